@@ -1,0 +1,401 @@
+//! A scripted mock backend for tests of code that is generic over [`Microscope`].
+//!
+//! After embedded-hal-mock: the test queues [`Expectation`]s; every call of
+//! `wait`, `move_to`, `scan` or `z_position` takes the next one. A call that does
+//! not match the queue returns a [`MockError`] of kind [`ErrorKind::Other`]
+//! (it does not panic, so the code under test sees an ordinary failure) and is
+//! remembered, and [`ScriptedMicroscope::done`] reports it. Faults are injected
+//! with [`Expectation::fault`]. `now`, `position` and `capabilities` are answered
+//! from the mock's state and never consume expectations.
+//!
+//! The mock has a clock: a scan takes [`Frame::nominal_duration`], a move
+//! takes its length over its speed plus the settle time, a wait its duration.
+
+use crate::microscope::{Capabilities, CoarseZStage, ErrorKind, Microscope, MoveRequest};
+use crate::scan::{Frame, ScanRequest};
+use crate::units::{CountPoint, Counts, Seconds};
+use std::collections::VecDeque;
+use std::fmt;
+
+/// The operations of [`Microscope`] that consume expectations.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Operation {
+    /// [`Microscope::wait`].
+    Wait,
+    /// [`Microscope::move_to`].
+    MoveTo,
+    /// [`Microscope::scan`].
+    Scan,
+    /// [`Microscope::z_position`].
+    ZPosition,
+}
+
+/// The mock's error: a kind and a message.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error("{kind}: {message}")]
+pub struct MockError {
+    /// What kind of failure this is.
+    pub kind: ErrorKind,
+    /// What happened.
+    pub message: String,
+}
+
+impl crate::microscope::Error for MockError {
+    fn kind(&self) -> ErrorKind {
+        self.kind
+    }
+}
+
+/// A surface for a scripted scan: height in Z counts at a commanded position and time.
+pub type ScanScript = Box<dyn FnMut(CountPoint, Seconds) -> Counts + Send>;
+
+/// One expected call and how to answer it.
+pub enum Expectation {
+    /// A `wait`; `None` accepts any duration.
+    Wait(Option<Seconds>),
+    /// A `move_to`; `None` accepts any target, otherwise the target must lie
+    /// within `tolerance` of it.
+    MoveTo {
+        /// The expected target.
+        target: Option<CountPoint>,
+        /// Accepted distance from the expected target.
+        tolerance: Counts,
+    },
+    /// A `scan`, answered by evaluating the script at every pixel.
+    Scan(ScanScript),
+    /// A `z_position`, answered with this value.
+    ZPosition(Counts),
+    /// The named operation fails with this error.
+    Fault {
+        /// Which call fails.
+        operation: Operation,
+        /// The error it returns.
+        error: MockError,
+    },
+}
+
+impl Expectation {
+    /// A scan answered by `surface(position, time)`.
+    pub fn scan(surface: impl FnMut(CountPoint, Seconds) -> Counts + Send + 'static) -> Self {
+        Self::Scan(Box::new(surface))
+    }
+
+    /// The next call of `operation` fails with `kind`.
+    pub fn fault(operation: Operation, kind: ErrorKind) -> Self {
+        Self::Fault {
+            operation,
+            error: MockError {
+                kind,
+                message: format!("injected {kind:?} fault on {operation:?}"),
+            },
+        }
+    }
+
+    fn operation(&self) -> Operation {
+        match self {
+            Self::Wait(_) => Operation::Wait,
+            Self::MoveTo { .. } => Operation::MoveTo,
+            Self::Scan(_) => Operation::Scan,
+            Self::ZPosition(_) => Operation::ZPosition,
+            Self::Fault { operation, .. } => *operation,
+        }
+    }
+}
+
+impl fmt::Debug for Expectation {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Fault { operation, error } => write!(f, "Fault({operation:?}, {:?})", error.kind),
+            other => write!(f, "{:?}", other.operation()),
+        }
+    }
+}
+
+/// A [`Microscope`] that answers from a queue of expectations.
+pub struct ScriptedMicroscope {
+    capabilities: Capabilities,
+    expectations: VecDeque<Expectation>,
+    clock: Seconds,
+    position: CountPoint,
+    lenient_moves_and_waits: bool,
+    mismatches: Vec<String>,
+    calls: Vec<Operation>,
+}
+
+impl ScriptedMicroscope {
+    /// A mock with the given capabilities, its probe at the field's centre, clock at 0 s.
+    pub fn new(capabilities: Capabilities) -> Self {
+        let position = CountPoint::new(
+            (capabilities.field_min.x + capabilities.field_max.x) * 0.5,
+            (capabilities.field_min.y + capabilities.field_max.y) * 0.5,
+        );
+        Self {
+            capabilities,
+            expectations: VecDeque::new(),
+            clock: Seconds::ZERO,
+            position,
+            lenient_moves_and_waits: false,
+            mismatches: Vec::new(),
+            calls: Vec::new(),
+        }
+    }
+
+    /// Capabilities of a generic 16-bit scanner (±32768 counts), with counter
+    /// scans and backward traces, no coarse stage.
+    pub fn default_capabilities() -> Capabilities {
+        Capabilities {
+            field_min: CountPoint::from_counts(-32768.0, -32768.0),
+            field_max: CountPoint::from_counts(32767.0, 32767.0),
+            z_min: Counts(-32768.0),
+            z_max: Counts(32767.0),
+            lateral_resolution: Counts(1.0),
+            max_pixels_per_line: 4096,
+            max_lines: 4096,
+            min_pixel_dwell: Seconds(1e-6),
+            counter_scan: true,
+            backward_trace: true,
+            coarse_z: None,
+        }
+    }
+
+    /// When set, `wait` and `move_to` succeed without an expectation unless the
+    /// next expectation is for them (a fault or a checked target). Scripts then
+    /// only list scans and faults.
+    pub fn lenient_moves_and_waits(mut self, lenient: bool) -> Self {
+        self.lenient_moves_and_waits = lenient;
+        self
+    }
+
+    /// Queues one expectation.
+    pub fn expect(&mut self, expectation: Expectation) -> &mut Self {
+        self.expectations.push_back(expectation);
+        self
+    }
+
+    /// Queues several expectations.
+    pub fn expect_all(&mut self, expectations: impl IntoIterator<Item = Expectation>) -> &mut Self {
+        self.expectations.extend(expectations);
+        self
+    }
+
+    /// Every consuming call made so far, in order.
+    pub fn calls(&self) -> &[Operation] {
+        &self.calls
+    }
+
+    /// Expectations not yet consumed.
+    pub fn remaining(&self) -> usize {
+        self.expectations.len()
+    }
+
+    /// Checks that every expectation was consumed and no call mismatched.
+    pub fn done(&self) -> Result<(), String> {
+        let mut problems = self.mismatches.clone();
+        if !self.expectations.is_empty() {
+            problems.push(format!("unconsumed expectations: {:?}", self.expectations));
+        }
+        if problems.is_empty() {
+            Ok(())
+        } else {
+            Err(problems.join("; "))
+        }
+    }
+
+    fn take(&mut self, operation: Operation) -> Result<Option<Expectation>, MockError> {
+        self.calls.push(operation);
+        let front_matches = self
+            .expectations
+            .front()
+            .is_some_and(|e| e.operation() == operation);
+        if front_matches {
+            match self.expectations.pop_front() {
+                Some(Expectation::Fault { error, .. }) => Err(error),
+                other => Ok(other),
+            }
+        } else if self.lenient_moves_and_waits
+            && matches!(operation, Operation::Wait | Operation::MoveTo)
+        {
+            Ok(None)
+        } else {
+            let message = format!(
+                "unexpected {operation:?}; next expectation: {:?}",
+                self.expectations.front()
+            );
+            self.mismatches.push(message.clone());
+            Err(MockError {
+                kind: ErrorKind::Other,
+                message,
+            })
+        }
+    }
+}
+
+impl Microscope for ScriptedMicroscope {
+    type Error = MockError;
+
+    fn capabilities(&self) -> Capabilities {
+        self.capabilities.clone()
+    }
+
+    fn now(&mut self) -> Result<Seconds, MockError> {
+        Ok(self.clock)
+    }
+
+    fn wait(&mut self, duration: Seconds) -> Result<(), MockError> {
+        if let Some(Expectation::Wait(Some(expected))) = self.take(Operation::Wait)?
+            && (expected - duration).abs().value() > 1e-9 * (1.0 + expected.value().abs())
+        {
+            {
+                let message = format!("wait of {duration} where {expected} was expected");
+                self.mismatches.push(message.clone());
+                return Err(MockError {
+                    kind: ErrorKind::Other,
+                    message,
+                });
+            }
+        }
+        self.clock += duration.max(Seconds::ZERO);
+        Ok(())
+    }
+
+    fn position(&mut self) -> Result<CountPoint, MockError> {
+        Ok(self.position)
+    }
+
+    fn move_to(&mut self, request: MoveRequest) -> Result<(), MockError> {
+        if let Some(Expectation::MoveTo {
+            target: Some(expected),
+            tolerance,
+        }) = self.take(Operation::MoveTo)?
+            && expected.distance(request.target) > tolerance
+        {
+            {
+                let message = format!(
+                    "move to ({}, {}) where ({}, {}) ± {} was expected",
+                    request.target.x, request.target.y, expected.x, expected.y, tolerance
+                );
+                self.mismatches.push(message.clone());
+                return Err(MockError {
+                    kind: ErrorKind::Other,
+                    message,
+                });
+            }
+        }
+        let length = self.position.distance(request.target);
+        if request.speed_counts_per_s > 0.0 && request.speed_counts_per_s.is_finite() {
+            self.clock += Seconds(length.value() / request.speed_counts_per_s);
+        }
+        self.clock += request.settle.max(Seconds::ZERO);
+        self.position = request.target;
+        Ok(())
+    }
+
+    fn scan(&mut self, request: &ScanRequest) -> Result<Frame, MockError> {
+        let expectation = self.take(Operation::Scan)?;
+        request.validate().map_err(|e| MockError {
+            kind: ErrorKind::OutOfRange,
+            message: e.to_string(),
+        })?;
+        let Some(Expectation::Scan(mut surface)) = expectation else {
+            return Err(MockError {
+                kind: ErrorKind::Other,
+                message: "scan expectation without a script".to_owned(),
+            });
+        };
+        let frame = Frame::from_fn(request.clone(), self.clock, &mut *surface);
+        self.clock += Frame::nominal_duration(request);
+        self.position = request.commanded_position(
+            crate::scan::TraceHalf::Backward,
+            (request.lines as usize).saturating_sub(1),
+            (request.pixels_per_line as usize).saturating_sub(1),
+        );
+        Ok(frame)
+    }
+
+    fn z_position(&mut self) -> Result<Counts, MockError> {
+        match self.take(Operation::ZPosition)? {
+            Some(Expectation::ZPosition(z)) => Ok(z),
+            _ => Ok(Counts::ZERO),
+        }
+    }
+
+    fn coarse_z(&mut self) -> Option<&mut dyn CoarseZStage<Error = MockError>> {
+        None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::units::Counts;
+
+    fn mock() -> ScriptedMicroscope {
+        ScriptedMicroscope::new(ScriptedMicroscope::default_capabilities())
+    }
+
+    #[test]
+    fn scripted_scan_returns_the_scripted_surface_and_advances_the_clock() {
+        let mut m = mock();
+        m.expect(Expectation::scan(|p, _| Counts(p.x.value() * 2.0)));
+        let request = ScanRequest::centred_square(
+            CountPoint::from_counts(10.0, 10.0),
+            Counts(1.0),
+            4,
+            Seconds(0.01),
+        );
+        let frame = m.scan(&request).unwrap();
+        assert_eq!(frame.forward.z_counts[1], 2.0 * (8.5 + 1.0));
+        assert!((m.now().unwrap().value() - 0.32).abs() < 1e-12);
+        m.done().unwrap();
+    }
+
+    #[test]
+    fn injected_faults_are_returned_as_typed_errors() {
+        let mut m = mock();
+        m.expect(Expectation::fault(Operation::MoveTo, ErrorKind::Timeout));
+        let error = m
+            .move_to(MoveRequest {
+                target: CountPoint::from_counts(1.0, 1.0),
+                speed_counts_per_s: 100.0,
+                settle: Seconds(0.0),
+            })
+            .unwrap_err();
+        assert_eq!(crate::microscope::Error::kind(&error), ErrorKind::Timeout);
+        m.done().unwrap();
+    }
+
+    #[test]
+    fn an_unexpected_call_is_an_error_and_is_reported_by_done() {
+        let mut m = mock();
+        m.expect(Expectation::ZPosition(Counts(3.0)));
+        assert!(m.wait(Seconds(1.0)).is_err());
+        assert!(m.done().is_err());
+    }
+
+    #[test]
+    fn lenient_mode_lets_moves_and_waits_through_and_still_checks_targets() {
+        let mut m = mock().lenient_moves_and_waits(true);
+        m.wait(Seconds(2.0)).unwrap();
+        m.expect(Expectation::MoveTo {
+            target: Some(CountPoint::from_counts(5.0, 5.0)),
+            tolerance: Counts(0.5),
+        });
+        let far = MoveRequest {
+            target: CountPoint::from_counts(50.0, 5.0),
+            speed_counts_per_s: 10.0,
+            settle: Seconds(0.0),
+        };
+        assert!(m.move_to(far).is_err());
+        assert!(m.done().is_err());
+    }
+
+    #[test]
+    fn the_blanket_impl_forwards_through_a_mutable_reference() {
+        fn generic<M: Microscope>(mut m: M) -> Result<Seconds, M::Error> {
+            m.wait(Seconds(1.5))?;
+            m.now()
+        }
+        let mut m = mock().lenient_moves_and_waits(true);
+        assert_eq!(generic(&mut m).unwrap(), Seconds(1.5));
+    }
+}

@@ -1,0 +1,298 @@
+//! Weighted least-squares fit of a [`Polynomial2`] of given degree.
+//!
+//! The design matrix is built in normalised coordinates (data span [−1, 1] in x and y) and
+//! reduced by a streaming Householder QR (blocks of rows are stacked under the running R and
+//! re-factorised), so memory is O(terms²) whatever the number of points and the conditioning is
+//! that of the design matrix itself, not of the normal equations. The condition number is
+//! σ_max/σ_min of R (SVD of the small triangular factor).
+
+use nalgebra::{DMatrix, DVector};
+
+use crate::polynomial::{MAX_DEGREE, n_terms, term_powers};
+use crate::{Polynomial2, RegressionError};
+
+/// Rows reduced per QR block.
+const BLOCK_ROWS: usize = 1024;
+
+/// Observations z_i at points (x_i, y_i), optionally weighted (structure of arrays).
+///
+/// Weights are relative (e.g. 1/u² for standard uncertainty u); a zero weight removes the
+/// point from the fit.
+#[derive(Debug, Clone, Copy)]
+pub struct Observations<'a> {
+    /// x coordinates (counts for LCC surfaces).
+    pub x: &'a [f64],
+    /// y coordinates.
+    pub y: &'a [f64],
+    /// Observed values.
+    pub value: &'a [f64],
+    /// Optional non-negative weights.
+    pub weight: Option<&'a [f64]>,
+}
+
+impl<'a> Observations<'a> {
+    /// Unweighted observations.
+    #[must_use]
+    pub fn new(x: &'a [f64], y: &'a [f64], value: &'a [f64]) -> Self {
+        Self {
+            x,
+            y,
+            value,
+            weight: None,
+        }
+    }
+
+    /// The same observations with weights.
+    #[must_use]
+    pub fn with_weights(self, weight: &'a [f64]) -> Self {
+        Self {
+            weight: Some(weight),
+            ..self
+        }
+    }
+
+    /// Number of points.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.x.len()
+    }
+
+    /// True if there are no points.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.x.is_empty()
+    }
+
+    /// Weight of point `i` (1 when unweighted).
+    #[must_use]
+    pub fn weight_of(&self, i: usize) -> f64 {
+        self.weight.and_then(|w| w.get(i).copied()).unwrap_or(1.0)
+    }
+
+    /// Checks lengths, finiteness and weights; returns the number of points with weight > 0.
+    ///
+    /// # Errors
+    /// [`RegressionError::LengthMismatch`], [`RegressionError::NonFinite`],
+    /// [`RegressionError::InvalidWeight`].
+    pub fn validate(&self) -> Result<usize, RegressionError> {
+        let n = self.x.len();
+        let check_len = |field, got| {
+            if got == n {
+                Ok(())
+            } else {
+                Err(RegressionError::LengthMismatch {
+                    field,
+                    expected: n,
+                    got,
+                })
+            }
+        };
+        check_len("y", self.y.len())?;
+        check_len("value", self.value.len())?;
+        if let Some(w) = self.weight {
+            check_len("weight", w.len())?;
+        }
+        for (field, data) in [("x", self.x), ("y", self.y), ("value", self.value)] {
+            if let Some(index) = data.iter().position(|v| !v.is_finite()) {
+                return Err(RegressionError::NonFinite { field, index });
+            }
+        }
+        match self.weight {
+            None => Ok(n),
+            Some(w) => {
+                if let Some(index) = w.iter().position(|v| !(v.is_finite() && *v >= 0.0)) {
+                    return Err(RegressionError::InvalidWeight {
+                        index,
+                        weight: w[index],
+                    });
+                }
+                Ok(w.iter().filter(|v| **v > 0.0).count())
+            }
+        }
+    }
+}
+
+/// Options of [`fit`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FitOptions {
+    /// A fit whose normalised design matrix has a larger condition number is refused with
+    /// [`RegressionError::IllConditioned`]. Default 1e8 (coefficients then keep ≥ 8 digits).
+    pub condition_threshold: f64,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        Self {
+            condition_threshold: 1e8,
+        }
+    }
+}
+
+/// Result of a least-squares fit.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PolyFit {
+    /// The fitted surface.
+    pub surface: Polynomial2,
+    /// Number of points with positive weight.
+    pub n_points: usize,
+    /// Σ w_i (z_i − f(x_i, y_i))² over all points.
+    pub weighted_rss: f64,
+    /// σ of eq. (14): √(Σ (z_i − f)² / (n − 1)) over points with positive weight (unweighted
+    /// residuals; 0 when n = 1).
+    pub sigma: f64,
+    /// Condition number of the normalised weighted design matrix.
+    pub condition_number: f64,
+}
+
+/// Centre and half-range of a coordinate (half-range 1 if all points coincide).
+fn normalisation(v: &[f64]) -> (f64, f64) {
+    let (lo, hi) = v
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &t| {
+            (lo.min(t), hi.max(t))
+        });
+    if !lo.is_finite() || !hi.is_finite() {
+        return (0.0, 1.0);
+    }
+    let center = 0.5 * (lo + hi);
+    let half = 0.5 * (hi - lo);
+    let scale = if half > 0.0 && half.is_finite() {
+        half
+    } else {
+        1.0
+    };
+    (center, scale)
+}
+
+/// Fills `row` with the design-matrix entries of (u, v).
+pub(crate) fn design_row(u: f64, v: f64, degree: u32, row: &mut [f64]) {
+    let mut pu = [0.0; MAX_DEGREE as usize + 2];
+    let mut pv = [0.0; MAX_DEGREE as usize + 2];
+    pu[0] = 1.0;
+    pv[0] = 1.0;
+    for k in 1..=degree as usize {
+        pu[k] = pu[k - 1] * u;
+        pv[k] = pv[k - 1] * v;
+    }
+    for (slot, (i, j)) in row.iter_mut().zip(term_powers(degree)) {
+        *slot = pu[i as usize] * pv[j as usize];
+    }
+}
+
+/// Weighted least-squares fit of a total-degree-`degree` polynomial surface (eq. 6).
+///
+/// # Errors
+/// [`RegressionError::DegreeTooHigh`]; input errors of [`Observations::validate`];
+/// [`RegressionError::TooFewPoints`] if fewer points with positive weight than terms;
+/// [`RegressionError::IllConditioned`] if the condition number exceeds
+/// [`FitOptions::condition_threshold`] or the solution is not finite.
+pub fn fit(
+    obs: &Observations<'_>,
+    degree: u32,
+    options: &FitOptions,
+) -> Result<PolyFit, RegressionError> {
+    if degree > MAX_DEGREE {
+        return Err(RegressionError::DegreeTooHigh {
+            degree,
+            max: MAX_DEGREE,
+        });
+    }
+    let usable = obs.validate()?;
+    let m = n_terms(degree);
+    if usable < m {
+        return Err(RegressionError::TooFewPoints {
+            degree,
+            needed: m,
+            got: usable,
+        });
+    }
+    let (cx, sx) = normalisation(obs.x);
+    let (cy, sy) = normalisation(obs.y);
+
+    // Streaming QR: [R; block] → R'.
+    let mut r = DMatrix::<f64>::zeros(m, m);
+    let mut qtb = DVector::<f64>::zeros(m);
+    let mut row = vec![0.0; m];
+    let n = obs.len();
+    let mut start = 0;
+    while start < n {
+        let end = (start + BLOCK_ROWS).min(n);
+        let rows = m + (end - start);
+        let mut a = DMatrix::<f64>::zeros(rows, m);
+        let mut b = DVector::<f64>::zeros(rows);
+        a.view_mut((0, 0), (m, m)).copy_from(&r);
+        b.rows_mut(0, m).copy_from(&qtb);
+        for (k, i) in (start..end).enumerate() {
+            let w = obs.weight_of(i);
+            if w <= 0.0 {
+                continue;
+            }
+            let sw = w.sqrt();
+            design_row((obs.x[i] - cx) / sx, (obs.y[i] - cy) / sy, degree, &mut row);
+            for (c, val) in row.iter().enumerate() {
+                a[(m + k, c)] = sw * val;
+            }
+            b[m + k] = sw * obs.value[i];
+        }
+        let qr = a.qr();
+        qr.q_tr_mul(&mut b);
+        r = qr.r();
+        qtb.copy_from(&b.rows(0, m));
+        start = end;
+    }
+
+    let sv = r.clone().svd(false, false).singular_values;
+    let smax = sv.iter().copied().fold(0.0_f64, f64::max);
+    let smin = sv.iter().copied().fold(f64::INFINITY, f64::min);
+    let condition_number = if smin > 0.0 && smax.is_finite() {
+        smax / smin
+    } else {
+        f64::INFINITY
+    };
+    let threshold = options.condition_threshold;
+    let ill = || RegressionError::IllConditioned {
+        degree,
+        condition_number,
+        threshold,
+    };
+    if condition_number.is_nan() || condition_number > threshold {
+        tracing::debug!(degree, condition_number, "refusing ill-conditioned fit");
+        return Err(ill());
+    }
+    let coeffs = r.solve_upper_triangular(&qtb).ok_or_else(ill)?;
+    if coeffs.iter().any(|c| !c.is_finite()) {
+        return Err(ill());
+    }
+    let surface = Polynomial2::new(degree, (cx, cy), (sx, sy), coeffs.iter().copied().collect())
+        .map_err(|_| ill())?;
+
+    let (mut rss, mut wrss) = (0.0, 0.0);
+    for i in 0..n {
+        let w = obs.weight_of(i);
+        if w <= 0.0 {
+            continue;
+        }
+        let e = obs.value[i] - surface.evaluate(obs.x[i], obs.y[i]);
+        rss += e * e;
+        wrss += w * e * e;
+    }
+    let sigma = if usable > 1 {
+        (rss / (usable - 1) as f64).sqrt()
+    } else {
+        0.0
+    };
+    tracing::trace!(
+        degree,
+        n_points = usable,
+        sigma,
+        condition_number,
+        "fitted surface"
+    );
+    Ok(PolyFit {
+        surface,
+        n_points: usable,
+        weighted_rss: wrss,
+        sigma,
+        condition_number,
+    })
+}

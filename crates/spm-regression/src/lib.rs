@@ -1,0 +1,22 @@
+//! Polynomial regression surfaces of Lapshin's distributed calibration: the 2-D polynomials of
+//! eq. (6) (term order `1, y, x, xy, y², x², …`, see [`term_powers`]) fitted by weighted least
+//! squares at a given degree ([`fit`]) or at a degree chosen by BIC or cross-validation
+//! ([`select_degree`]); the statistics σ (eq. 14, [`sigma`]) and Δmax (eq. 13, [`delta_max`]);
+//! the products of eq. (11) ([`product_values`]); and analytic x- and y-antiderivatives
+//! ([`Polynomial2::integrate_x`], [`Polynomial2::integrate_y`]) for the image correction of
+//! eqs. (9) and (12).
+//!
+//! Pure: no IO, no clock, no random numbers. Every failure is a typed [`RegressionError`];
+//! no function returns NaN for finite input.
+
+mod error;
+mod fit;
+mod polynomial;
+mod select;
+mod stats;
+
+pub use error::RegressionError;
+pub use fit::{FitOptions, Observations, PolyFit, fit};
+pub use polynomial::{MAX_DEGREE, Polynomial2, n_terms, term_index, term_powers};
+pub use select::{Criterion, DegreeScore, Selection, SelectionOptions, select_degree};
+pub use stats::{DeltaMax, Field, delta_max, product_values, sigma};

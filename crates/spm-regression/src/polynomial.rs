@@ -1,0 +1,384 @@
+//! The 2-D polynomial surface of eq. (6) with analytic antiderivatives (eqs. 9, 12).
+
+use serde::{Deserialize, Serialize};
+
+use crate::RegressionError;
+
+/// Highest supported total degree. Degree 10 already has 66 terms; LCC fields need ≤ 5.
+pub const MAX_DEGREE: u32 = 10;
+
+/// Number of terms of a total-degree-`degree` polynomial in two variables: (d+1)(d+2)/2.
+#[must_use]
+pub fn n_terms(degree: u32) -> usize {
+    let d = degree as usize;
+    (d + 1) * (d + 2) / 2
+}
+
+/// Powers `(p_x, p_y)` of the terms in the order of eq. (6) of the paper.
+///
+/// Degree by degree; within total degree n ≥ 1 the mixed terms x^i y^(n−i) come first with
+/// ascending power of x (i = 1 … n−1), then y^n, then x^n:
+///
+/// `1, y, x, xy, y², x², xy², x²y, y³, x³, xy³, x²y², x³y, y⁴, x⁴, …`
+///
+/// which reproduces the paper's p_x = (0, 0, 1, 1, 0, 2, …), p_y = (0, 1, 0, 1, 2, 0, …).
+pub fn term_powers(degree: u32) -> impl Iterator<Item = (u32, u32)> + Clone {
+    (0..=degree).flat_map(|n| {
+        let count = if n == 0 { 1 } else { n + 1 };
+        (0..count).map(move |t| {
+            if n == 0 {
+                (0, 0)
+            } else if t + 1 < n {
+                (t + 1, n - t - 1)
+            } else if t + 1 == n {
+                (0, n)
+            } else {
+                (n, 0)
+            }
+        })
+    })
+}
+
+/// Index in the eq. (6) order of the term x^px y^py (`px + py` must not exceed the degree).
+#[must_use]
+pub fn term_index(px: u32, py: u32) -> usize {
+    let n = (px + py) as usize;
+    let base = n * (n + 1) / 2;
+    let within = if n == 0 {
+        0
+    } else if px >= 1 && py >= 1 {
+        px as usize - 1
+    } else if px == 0 {
+        n - 1
+    } else {
+        n
+    };
+    base + within
+}
+
+/// `b^n − a^n` computed as `(b − a)·Σ b^k a^(n−1−k)` to avoid cancellation for close a, b.
+fn pow_diff(b: f64, a: f64, n: u32) -> f64 {
+    if n == 0 {
+        return 0.0;
+    }
+    let mut sum = 0.0;
+    let mut bk = 1.0;
+    for k in 0..n {
+        sum += bk * a.powi((n - 1 - k) as i32);
+        bk *= b;
+    }
+    (b - a) * sum
+}
+
+/// Fill `out[0..=degree]` with 1, t, t², …
+fn powers(t: f64, degree: u32, out: &mut [f64; MAX_DEGREE as usize + 2]) {
+    out[0] = 1.0;
+    for k in 1..=(degree as usize + 1).min(MAX_DEGREE as usize + 1) {
+        out[k] = out[k - 1] * t;
+    }
+}
+
+/// A total-degree-d polynomial surface f(x, y) in the term order of eq. (6) (see
+/// [`term_powers`]).
+///
+/// The coefficients apply to the *normalised* coordinates u = (x − c_x)/s_x, v = (y − c_y)/s_y
+/// (centre and scale stored here; the fit chooses them so that the data span [−1, 1]), which
+/// keeps the least-squares problem well conditioned for scanner coordinates of 10⁴–10⁶ counts.
+/// [`Polynomial2::coefficients_in_raw_coordinates`] expands them back to powers of x and y.
+/// `x`, `y` are in whatever unit the data were (counts for LCC surfaces); the value has the
+/// unit of the fitted quantity (nm per count for K̄x, rad for α).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "Polynomial2Repr", into = "Polynomial2Repr")]
+pub struct Polynomial2 {
+    degree: u32,
+    center_x: f64,
+    center_y: f64,
+    scale_x: f64,
+    scale_y: f64,
+    coefficients: Vec<f64>,
+}
+
+/// Serialised form (validated on the way in).
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Polynomial2Repr {
+    /// Total degree.
+    degree: u32,
+    /// Normalisation centre in x.
+    center_x: f64,
+    /// Normalisation centre in y.
+    center_y: f64,
+    /// Normalisation half-range in x.
+    scale_x: f64,
+    /// Normalisation half-range in y.
+    scale_y: f64,
+    /// Coefficients of the normalised coordinates, eq. (6) order.
+    coefficients: Vec<f64>,
+}
+
+impl TryFrom<Polynomial2Repr> for Polynomial2 {
+    type Error = RegressionError;
+    fn try_from(r: Polynomial2Repr) -> Result<Self, Self::Error> {
+        Polynomial2::new(
+            r.degree,
+            (r.center_x, r.center_y),
+            (r.scale_x, r.scale_y),
+            r.coefficients,
+        )
+    }
+}
+
+impl From<Polynomial2> for Polynomial2Repr {
+    fn from(p: Polynomial2) -> Self {
+        Polynomial2Repr {
+            degree: p.degree,
+            center_x: p.center_x,
+            center_y: p.center_y,
+            scale_x: p.scale_x,
+            scale_y: p.scale_y,
+            coefficients: p.coefficients,
+        }
+    }
+}
+
+impl Polynomial2 {
+    /// A polynomial from coefficients of the normalised coordinates
+    /// u = (x − center.0)/scale.0, v = (y − center.1)/scale.1, in eq. (6) order.
+    ///
+    /// # Errors
+    /// [`RegressionError::DegreeTooHigh`], [`RegressionError::CoefficientCount`],
+    /// [`RegressionError::NonFinite`] for a non-finite coefficient or centre,
+    /// [`RegressionError::InvalidArgument`] for a scale that is not finite and positive.
+    pub fn new(
+        degree: u32,
+        center: (f64, f64),
+        scale: (f64, f64),
+        coefficients: Vec<f64>,
+    ) -> Result<Self, RegressionError> {
+        if degree > MAX_DEGREE {
+            return Err(RegressionError::DegreeTooHigh {
+                degree,
+                max: MAX_DEGREE,
+            });
+        }
+        let expected = n_terms(degree);
+        if coefficients.len() != expected {
+            return Err(RegressionError::CoefficientCount {
+                degree,
+                expected,
+                got: coefficients.len(),
+            });
+        }
+        if let Some(index) = coefficients.iter().position(|c| !c.is_finite()) {
+            return Err(RegressionError::NonFinite {
+                field: "coefficient",
+                index,
+            });
+        }
+        if !center.0.is_finite() || !center.1.is_finite() {
+            return Err(RegressionError::NonFinite {
+                field: "center",
+                index: usize::from(center.0.is_finite()),
+            });
+        }
+        for s in [scale.0, scale.1] {
+            if !(s.is_finite() && s > 0.0) {
+                return Err(RegressionError::InvalidArgument(format!(
+                    "normalisation scale must be finite and > 0, got {s}"
+                )));
+            }
+        }
+        Ok(Self {
+            degree,
+            center_x: center.0,
+            center_y: center.1,
+            scale_x: scale.0,
+            scale_y: scale.1,
+            coefficients,
+        })
+    }
+
+    /// A polynomial from coefficients of the raw powers x^i y^j (centre 0, scale 1).
+    ///
+    /// # Errors
+    /// As [`Polynomial2::new`].
+    pub fn from_raw_coefficients(
+        degree: u32,
+        coefficients: Vec<f64>,
+    ) -> Result<Self, RegressionError> {
+        Self::new(degree, (0.0, 0.0), (1.0, 1.0), coefficients)
+    }
+
+    /// The constant surface f(x, y) = `value` (degree 0).
+    ///
+    /// # Errors
+    /// [`RegressionError::NonFinite`] if `value` is not finite.
+    pub fn constant(value: f64) -> Result<Self, RegressionError> {
+        Self::from_raw_coefficients(0, vec![value])
+    }
+
+    /// Total degree.
+    #[must_use]
+    pub fn degree(&self) -> u32 {
+        self.degree
+    }
+
+    /// Coefficients of the normalised coordinates, eq. (6) order.
+    #[must_use]
+    pub fn coefficients(&self) -> &[f64] {
+        &self.coefficients
+    }
+
+    /// Normalisation centre (c_x, c_y).
+    #[must_use]
+    pub fn center(&self) -> (f64, f64) {
+        (self.center_x, self.center_y)
+    }
+
+    /// Normalisation scale (s_x, s_y).
+    #[must_use]
+    pub fn scale(&self) -> (f64, f64) {
+        (self.scale_x, self.scale_y)
+    }
+
+    fn normalise(&self, x: f64, y: f64) -> (f64, f64) {
+        (
+            (x - self.center_x) / self.scale_x,
+            (y - self.center_y) / self.scale_y,
+        )
+    }
+
+    /// f(x, y).
+    #[must_use]
+    pub fn evaluate(&self, x: f64, y: f64) -> f64 {
+        let (u, v) = self.normalise(x, y);
+        let mut pu = [0.0; MAX_DEGREE as usize + 2];
+        let mut pv = [0.0; MAX_DEGREE as usize + 2];
+        powers(u, self.degree, &mut pu);
+        powers(v, self.degree, &mut pv);
+        term_powers(self.degree)
+            .zip(&self.coefficients)
+            .map(|((i, j), c)| c * pu[i as usize] * pv[j as usize])
+            .sum()
+    }
+
+    /// The gradient (∂f/∂x, ∂f/∂y) at (x, y).
+    #[must_use]
+    pub fn gradient(&self, x: f64, y: f64) -> (f64, f64) {
+        let (u, v) = self.normalise(x, y);
+        let mut pu = [0.0; MAX_DEGREE as usize + 2];
+        let mut pv = [0.0; MAX_DEGREE as usize + 2];
+        powers(u, self.degree, &mut pu);
+        powers(v, self.degree, &mut pv);
+        let (mut gx, mut gy) = (0.0, 0.0);
+        for ((i, j), c) in term_powers(self.degree).zip(&self.coefficients) {
+            if i > 0 {
+                gx += c * f64::from(i) * pu[i as usize - 1] * pv[j as usize];
+            }
+            if j > 0 {
+                gy += c * f64::from(j) * pu[i as usize] * pv[j as usize - 1];
+            }
+        }
+        (gx / self.scale_x, gy / self.scale_y)
+    }
+
+    /// Analytic ∫ f(x, y) dx from `x_a` to `x_b` at fixed `y` (the first integral of eq. 9).
+    #[must_use]
+    pub fn integrate_x(&self, x_a: f64, x_b: f64, y: f64) -> f64 {
+        let (ua, v) = self.normalise(x_a, y);
+        let (ub, _) = self.normalise(x_b, y);
+        let mut pv = [0.0; MAX_DEGREE as usize + 2];
+        powers(v, self.degree, &mut pv);
+        let s: f64 = term_powers(self.degree)
+            .zip(&self.coefficients)
+            .map(|((i, j), c)| c * pv[j as usize] * pow_diff(ub, ua, i + 1) / f64::from(i + 1))
+            .sum();
+        s * self.scale_x
+    }
+
+    /// Analytic ∫ f(x, y) dy from `y_a` to `y_b` at fixed `x` (the y integrals of eq. 9).
+    #[must_use]
+    pub fn integrate_y(&self, x: f64, y_a: f64, y_b: f64) -> f64 {
+        let (u, va) = self.normalise(x, y_a);
+        let (_, vb) = self.normalise(x, y_b);
+        let mut pu = [0.0; MAX_DEGREE as usize + 2];
+        powers(u, self.degree, &mut pu);
+        let s: f64 = term_powers(self.degree)
+            .zip(&self.coefficients)
+            .map(|((i, j), c)| c * pu[i as usize] * pow_diff(vb, va, j + 1) / f64::from(j + 1))
+            .sum();
+        s * self.scale_y
+    }
+
+    /// The coefficients of the raw powers x^i y^j in eq. (6) order (binomial expansion of the
+    /// normalisation; O(d⁴) operations). Large centres make these badly scaled: prefer
+    /// [`Polynomial2::evaluate`] for numbers.
+    #[must_use]
+    pub fn coefficients_in_raw_coordinates(&self) -> Vec<f64> {
+        let d = self.degree;
+        let mut raw = vec![0.0; n_terms(d)];
+        let binom = |n: u32, k: u32| -> f64 {
+            (0..k).fold(1.0, |acc, t| acc * f64::from(n - t) / f64::from(t + 1))
+        };
+        for ((i, j), c) in term_powers(d).zip(&self.coefficients) {
+            let norm = c / (self.scale_x.powi(i as i32) * self.scale_y.powi(j as i32));
+            for a in 0..=i {
+                let fx = binom(i, a) * (-self.center_x).powi((i - a) as i32);
+                for b in 0..=j {
+                    let fy = binom(j, b) * (-self.center_y).powi((j - b) as i32);
+                    raw[term_index(a, b)] += norm * fx * fy;
+                }
+            }
+        }
+        raw
+    }
+
+    /// This surface re-expressed with raw-coordinate coefficients (centre 0, scale 1).
+    ///
+    /// # Errors
+    /// [`RegressionError::NonFinite`] if the expansion overflows.
+    pub fn to_raw(&self) -> Result<Self, RegressionError> {
+        Self::from_raw_coefficients(self.degree, self.coefficients_in_raw_coordinates())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn term_order_matches_eq6() {
+        let t: Vec<_> = term_powers(3).collect();
+        assert_eq!(
+            t,
+            vec![
+                (0, 0),
+                (0, 1),
+                (1, 0),
+                (1, 1),
+                (0, 2),
+                (2, 0),
+                (1, 2),
+                (2, 1),
+                (0, 3),
+                (3, 0)
+            ]
+        );
+        for d in 0..=MAX_DEGREE {
+            assert_eq!(term_powers(d).count(), n_terms(d));
+            for (k, (i, j)) in term_powers(d).enumerate() {
+                assert_eq!(term_index(i, j), k);
+            }
+        }
+    }
+
+    #[test]
+    fn pow_diff_matches_direct() {
+        for n in 0..8 {
+            let (b, a) = (1.3_f64, -0.7_f64);
+            let direct = b.powi(n as i32) - a.powi(n as i32);
+            assert!((pow_diff(b, a, n) - direct).abs() < 1e-12);
+        }
+    }
+}

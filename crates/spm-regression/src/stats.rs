@@ -1,0 +1,155 @@
+//! Scanner-error statistics of §4 of the paper: σ (eq. 14) and Δmax (eq. 13), and the product
+//! values of eq. (11).
+
+use crate::fit::Observations;
+use crate::{Polynomial2, RegressionError};
+
+/// σ of eq. (14): √(Σᵢ (zᵢ − f(xᵢ, yᵢ))² / (n − 1)), the RMS deviation of the measured LCCs from
+/// their regression surface, over the points with positive weight (weights are otherwise not
+/// used: eq. 14 is unweighted).
+///
+/// # Errors
+/// Input errors of [`Observations::validate`]; [`RegressionError::TooFewPoints`] if n < 2.
+pub fn sigma(surface: &Polynomial2, obs: &Observations<'_>) -> Result<f64, RegressionError> {
+    let n = obs.validate()?;
+    if n < 2 {
+        return Err(RegressionError::TooFewPoints {
+            degree: surface.degree(),
+            needed: 2,
+            got: n,
+        });
+    }
+    let rss: f64 = (0..obs.len())
+        .filter(|&i| obs.weight_of(i) > 0.0)
+        .map(|i| (obs.value[i] - surface.evaluate(obs.x[i], obs.y[i])).powi(2))
+        .sum();
+    Ok((rss / (n - 1) as f64).sqrt())
+}
+
+/// A rectangular region of the scanner field, in the surface's x/y unit (counts).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Field {
+    /// Lower x bound.
+    pub x_min: f64,
+    /// Upper x bound.
+    pub x_max: f64,
+    /// Lower y bound.
+    pub y_min: f64,
+    /// Upper y bound.
+    pub y_max: f64,
+}
+
+/// Result of [`delta_max`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DeltaMax {
+    /// max |f(x, y) − f(x₀, y₀)| over the grid.
+    pub value: f64,
+    /// x of a grid point where the maximum is reached.
+    pub at_x: f64,
+    /// y of a grid point where the maximum is reached.
+    pub at_y: f64,
+}
+
+/// Δmax of eq. (13): max |f(x, y) − f(x₀, y₀)| over an `nx` × `ny` grid spanning `field`
+/// (both ends included), `reference` = (x₀, y₀) chosen by the caller (the origin of the
+/// image for virtual calibration, the scanner origin for real calibration). A measure of how
+/// far the surface is from the horizontal plane of an ideal scanner.
+///
+/// # Errors
+/// [`RegressionError::InvalidArgument`] for a grid with fewer than 1 point per axis or a field
+/// with non-finite or reversed bounds; [`RegressionError::NonFinite`] for a non-finite reference.
+pub fn delta_max(
+    surface: &Polynomial2,
+    field: &Field,
+    nx: usize,
+    ny: usize,
+    reference: (f64, f64),
+) -> Result<DeltaMax, RegressionError> {
+    if nx == 0 || ny == 0 {
+        return Err(RegressionError::InvalidArgument(format!(
+            "delta_max grid must have at least 1×1 points, got {nx}×{ny}"
+        )));
+    }
+    let bounds = [field.x_min, field.x_max, field.y_min, field.y_max];
+    if bounds.iter().any(|b| !b.is_finite())
+        || field.x_min > field.x_max
+        || field.y_min > field.y_max
+    {
+        return Err(RegressionError::InvalidArgument(format!(
+            "invalid field {field:?}"
+        )));
+    }
+    if !reference.0.is_finite() || !reference.1.is_finite() {
+        return Err(RegressionError::NonFinite {
+            field: "reference",
+            index: usize::from(reference.0.is_finite()),
+        });
+    }
+    let f0 = surface.evaluate(reference.0, reference.1);
+    let coord = |lo: f64, hi: f64, n: usize, k: usize| {
+        if n == 1 {
+            lo
+        } else {
+            lo + (hi - lo) * k as f64 / (n - 1) as f64
+        }
+    };
+    let mut best = DeltaMax {
+        value: 0.0,
+        at_x: reference.0,
+        at_y: reference.1,
+    };
+    let mut first = true;
+    for j in 0..ny {
+        let y = coord(field.y_min, field.y_max, ny, j);
+        for i in 0..nx {
+            let x = coord(field.x_min, field.x_max, nx, i);
+            let d = (surface.evaluate(x, y) - f0).abs();
+            if first || d > best.value {
+                best = DeltaMax {
+                    value: d,
+                    at_x: x,
+                    at_y: y,
+                };
+                first = false;
+            }
+        }
+    }
+    Ok(best)
+}
+
+/// The products K̄y·sin α and K̄y·cos α of eq. (11), through which the product surfaces
+/// K̄yx^r and K̄yy^r are fitted (fit each with [`crate::fit`] like any other LCC).
+///
+/// # Errors
+/// [`RegressionError::LengthMismatch`], [`RegressionError::NonFinite`].
+pub fn product_values(
+    ky_nm_per_count: &[f64],
+    alpha_rad: &[f64],
+) -> Result<(Vec<f64>, Vec<f64>), RegressionError> {
+    if ky_nm_per_count.len() != alpha_rad.len() {
+        return Err(RegressionError::LengthMismatch {
+            field: "alpha_rad",
+            expected: ky_nm_per_count.len(),
+            got: alpha_rad.len(),
+        });
+    }
+    let mut sin_part = Vec::with_capacity(alpha_rad.len());
+    let mut cos_part = Vec::with_capacity(alpha_rad.len());
+    for (index, (&k, &a)) in ky_nm_per_count.iter().zip(alpha_rad).enumerate() {
+        if !k.is_finite() {
+            return Err(RegressionError::NonFinite {
+                field: "ky_nm_per_count",
+                index,
+            });
+        }
+        if !a.is_finite() {
+            return Err(RegressionError::NonFinite {
+                field: "alpha_rad",
+                index,
+            });
+        }
+        sin_part.push(k * a.sin());
+        cos_part.push(k * a.cos());
+    }
+    Ok((sin_part, cos_part))
+}

@@ -1,0 +1,161 @@
+//! `.gsf` written by spmcal follows the Gwyddion spec and reads back identically.
+
+#![allow(clippy::unwrap_used)]
+
+use std::path::Path;
+
+use spm_formats::{
+    Channel, Direction, ErrorKind, Format, encode_gsf, read_any, read_bytes, write_gsf,
+};
+use spmcal_tests::measured_file;
+
+fn si7x7_051() -> spm_formats::SpmFile {
+    read_any(measured_file("si7x7-nanonis/Si_7x7_051.sxm")).unwrap()
+}
+
+/// Splits an encoded GSF into (header text after the magic line, padding length, data bytes).
+fn split(bytes: &[u8]) -> (String, usize, &[u8]) {
+    let nul = bytes.iter().position(|&b| b == 0).unwrap();
+    // The padding brings the header to the next multiple of 4 (data may start with zeros).
+    let data_start = (nul / 4 + 1) * 4;
+    assert!(bytes[nul..data_start].iter().all(|&b| b == 0));
+    let header = String::from_utf8(bytes[..nul].to_vec()).unwrap();
+    (header, data_start - nul, &bytes[data_start..])
+}
+
+#[test]
+fn encoded_gsf_follows_the_spec() {
+    let f = si7x7_051();
+    let z = f.channel("Z", Direction::Forward).unwrap();
+    let bytes = encode_gsf(z, &[("Source", "Si_7x7_051.sxm")]).unwrap();
+    assert!(bytes.starts_with(b"Gwyddion Simple Field 1.0\n"));
+    let (header, pad, data) = split(&bytes);
+    let lines: Vec<&str> = header.lines().collect();
+    assert_eq!(lines[0], "Gwyddion Simple Field 1.0");
+    let value = |key: &str| {
+        lines.iter().find_map(|l| {
+            let (k, v) = l.split_once('=')?;
+            (k.trim() == key).then(|| v.trim().to_string())
+        })
+    };
+    assert_eq!(value("XRes").as_deref(), Some("256"));
+    assert_eq!(value("YRes").as_deref(), Some("256"));
+    let x_real: f64 = value("XReal").unwrap().parse().unwrap();
+    let y_real: f64 = value("YReal").unwrap().parse().unwrap();
+    assert!((x_real - 2e-8).abs() < 1e-20 && (y_real - 2e-8).abs() < 1e-20);
+    assert_eq!(value("XYUnits").as_deref(), Some("m"));
+    assert_eq!(value("ZUnits").as_deref(), Some("m"));
+    assert_eq!(value("Title").as_deref(), Some("Z"));
+    assert_eq!(value("Source").as_deref(), Some("Si_7x7_051.sxm"));
+    // One to four NULs, data start at a multiple of 4.
+    assert!((1..=4).contains(&pad), "padding {pad}");
+    assert!((header.len() + pad).is_multiple_of(4));
+    assert_eq!(data.len(), 256 * 256 * 4);
+    // Little-endian float32, row 0 = top, same values as the channel.
+    for (k, c) in data.chunks_exact(4).enumerate() {
+        let v = f32::from_le_bytes(c.try_into().unwrap());
+        assert_eq!(f64::from(v), z.data()[k]);
+    }
+}
+
+#[test]
+fn gsf_reads_back_identically() {
+    let f = si7x7_051();
+    let dir = std::env::temp_dir().join(format!("spm-formats-gsf-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for ch in &f.channels {
+        let path = dir.join(format!("{}-{}.gsf", ch.name(), ch.direction()));
+        write_gsf(&path, ch, &[]).unwrap();
+        let back = read_any(&path).unwrap();
+        assert_eq!(back.format, Format::Gsf);
+        assert_eq!(back.channels.len(), 1);
+        let b = &back.channels[0];
+        assert_eq!(
+            (b.name(), b.direction(), b.unit()),
+            (ch.name(), ch.direction(), ch.unit())
+        );
+        assert_eq!((b.nx(), b.ny()), (ch.nx(), ch.ny()));
+        assert!((b.size_x_nm().unwrap() - 20.0).abs() < 1e-9);
+        assert!((b.size_y_nm().unwrap() - 20.0).abs() < 1e-9);
+        assert!((b.center_x_nm().unwrap() - ch.center_x_nm().unwrap()).abs() < 1e-9);
+        // Nanonis data are float32 already: the values come back bit for bit.
+        assert_eq!(b.data(), ch.data());
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn header_padding_is_never_empty() {
+    // Header lengths of every residue mod 4 get 1–4 NULs and read back.
+    for title_len in 0..8 {
+        let ch = Channel::new(
+            "t".repeat(title_len + 1),
+            Direction::Forward,
+            "m",
+            3,
+            2,
+            vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0],
+        )
+        .unwrap()
+        .with_size_nm(3.0, 2.0);
+        let bytes = encode_gsf(&ch, &[]).unwrap();
+        let nul = bytes.iter().position(|&b| b == 0).unwrap();
+        let data_start = bytes.len() - 6 * 4;
+        assert!(data_start > nul && data_start - nul <= 4 && data_start.is_multiple_of(4));
+        assert!(bytes[nul..data_start].iter().all(|&b| b == 0));
+        let back = read_bytes(&bytes, Path::new("mem.gsf")).unwrap();
+        assert_eq!(back.channels[0].data(), ch.data());
+        assert_eq!(back.channels[0].name(), ch.name());
+    }
+}
+
+#[test]
+fn writer_rejects_what_gsf_cannot_hold() {
+    let ch = Channel::new("z", Direction::Forward, "m", 2, 1, vec![0.0, f64::NAN])
+        .unwrap()
+        .with_size_nm(1.0, 1.0);
+    assert_eq!(
+        encode_gsf(&ch, &[]).unwrap_err().kind(),
+        ErrorKind::InvalidInput
+    );
+    let ch = Channel::new("z", Direction::Forward, "m", 2, 1, vec![0.0, 1e300])
+        .unwrap()
+        .with_size_nm(1.0, 1.0);
+    assert_eq!(
+        encode_gsf(&ch, &[]).unwrap_err().kind(),
+        ErrorKind::InvalidInput
+    );
+    let no_size = Channel::new("z", Direction::Forward, "m", 2, 1, vec![0.0, 1.0]).unwrap();
+    assert_eq!(
+        encode_gsf(&no_size, &[]).unwrap_err().kind(),
+        ErrorKind::InvalidInput
+    );
+    let ok = Channel::new("z", Direction::Forward, "m", 2, 1, vec![0.0, 1.0])
+        .unwrap()
+        .with_size_nm(1.0, 1.0);
+    assert_eq!(
+        encode_gsf(&ok, &[("bad key", "v")]).unwrap_err().kind(),
+        ErrorKind::InvalidInput
+    );
+    assert_eq!(
+        Channel::new("z", Direction::Forward, "m", 2, 2, vec![0.0])
+            .unwrap_err()
+            .kind(),
+        ErrorKind::InvalidInput
+    );
+}
+
+#[test]
+fn gsf_defaults_follow_the_spec() {
+    // Only XRes/YRes: XReal = YReal = 1 (metres), title defaults.
+    let mut bytes = b"Gwyddion Simple Field 1.0\nXRes = 2\nYRes = 1\n".to_vec();
+    let pad = 4 - bytes.len() % 4;
+    bytes.extend(std::iter::repeat_n(0, pad));
+    bytes.extend_from_slice(&1.5f32.to_le_bytes());
+    bytes.extend_from_slice(&(-2.0f32).to_le_bytes());
+    let f = read_bytes(&bytes, Path::new("defaults.gsf")).unwrap();
+    let c = &f.channels[0];
+    assert_eq!(c.data(), &[1.5, -2.0]);
+    assert_eq!(c.size_x_nm(), Some(1e9));
+    assert_eq!(f.header_value("XRes"), Some("2"));
+}

@@ -287,7 +287,7 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
     };
     let mut channels = Vec::with_capacity(channels_n);
     for ((name, unit), stored) in specs.into_iter().zip(values) {
-        let (si_unit, factor) = to_si(&unit);
+        let (si_unit, divisor) = to_si(&unit);
         let mut data = Vec::with_capacity(n);
         for row in 0..ny {
             let src = if scan_dir == ScanDir::Up {
@@ -297,9 +297,9 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
             };
             let line = &stored[src * nx..(src + 1) * nx];
             if reversed_x {
-                data.extend(line.iter().rev().map(|v| v * factor));
+                data.extend(line.iter().rev().map(|v| v / divisor));
             } else {
-                data.extend(line.iter().map(|v| v * factor));
+                data.extend(line.iter().map(|v| v / divisor));
             }
         }
         let ch = Channel::new(name, direction, si_unit, nx, ny, data)

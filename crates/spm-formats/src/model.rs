@@ -7,9 +7,8 @@ use serde::Serialize;
 
 use crate::error::{Ctx, Result};
 
-/// The file formats this crate knows.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize)]
-#[serde(rename_all = "snake_case")]
+/// The file formats this crate knows. Serialises as its [`Format::id`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Format {
     /// Nanonis `.sxm` scan file.
     NanonisSxm,
@@ -33,6 +32,12 @@ impl Format {
             Format::RawF64 => "raw-f64",
             Format::Gsf => "gsf",
         }
+    }
+}
+
+impl Serialize for Format {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        s.serialize_str(self.id())
     }
 }
 

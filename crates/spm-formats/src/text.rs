@@ -35,7 +35,7 @@ pub(crate) fn length_unit_to_nm(unit: &str) -> Option<f64> {
     match unit.trim() {
         "m" => Some(1e9),
         "mm" => Some(1e6),
-        "um" | "µm" | "μm" => Some(1e3),
+        "um" | "\u{b5}m" | "\u{3bc}m" => Some(1e3),
         "nm" => Some(1.0),
         "pm" => Some(1e-3),
         "A" | "\u{c5}" | "\u{212b}" | "Angstrom" => Some(0.1),
@@ -43,13 +43,22 @@ pub(crate) fn length_unit_to_nm(unit: &str) -> Option<f64> {
     }
 }
 
-/// Converts a value in `unit` to SI when `unit` is a length with a prefix; returns the SI
-/// unit and the factor. Other units are kept as they are.
+/// For a prefixed length unit, the SI unit ("m") and the divisor taking a value to metres
+/// (dividing by a power of ten rounds correctly where multiplying by 1e-9 would not).
+/// Other units are kept as they are, with divisor 1.
 pub(crate) fn to_si(unit: &str) -> (String, f64) {
-    match length_unit_to_nm(unit) {
-        // "A" is ambiguous (ampere or ångström); as a value unit it means ampere.
-        Some(_) if unit.trim() == "A" => ("A".to_string(), 1.0),
-        Some(nm) => ("m".to_string(), nm * 1e-9),
+    let divisor = match unit.trim() {
+        "m" => Some(1.0),
+        "mm" => Some(1e3),
+        "um" | "\u{b5}m" | "\u{3bc}m" => Some(1e6),
+        "nm" => Some(1e9),
+        "pm" => Some(1e12),
+        // "A" as a value unit means ampere; only the explicit spellings mean ångström.
+        "\u{c5}" | "\u{212b}" | "Angstrom" => Some(1e10),
+        _ => None,
+    };
+    match divisor {
+        Some(d) => ("m".to_string(), d),
         None => (unit.trim().to_string(), 1.0),
     }
 }

@@ -1,0 +1,235 @@
+//! Recognition of local calibration structures (LCS): triangles A, B, C of
+//! features whose true side lengths and angle are known.
+
+use crate::detect::Feature;
+use crate::error::{FeatureError, positive};
+use serde::{Deserialize, Serialize};
+use spm_hal::{CountPoint, CountVector, Counts, Nanometres, Radians};
+
+/// HOPG β-atom lattice constant, nm.
+pub const HOPG_LATTICE_NM: f64 = 0.2461;
+
+/// A calibration standard's triangle: |AB|, |AC| and the angle BAC.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LcsStandard {
+    /// True length of A→B.
+    pub ab: Nanometres,
+    /// True length of A→C.
+    pub ac: Nanometres,
+    /// True angle between A→B and A→C.
+    pub angle_bac: Radians,
+}
+
+impl LcsStandard {
+    /// Three neighbouring HOPG atoms: a = 0.2461 nm, 60°.
+    pub fn hopg() -> Self {
+        Self {
+            ab: Nanometres(HOPG_LATTICE_NM),
+            ac: Nanometres(HOPG_LATTICE_NM),
+            angle_bac: Radians::from_degrees(60.0),
+        }
+    }
+}
+
+/// Settings of LCS recognition. Matching is done in counts, so the caller
+/// gives an approximate nominal nm/count (the local coefficients are what is
+/// being calibrated): tolerances must cover the scanner's nonlinearity and
+/// nonorthogonality plus the drift distortion within one scan.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LcsConfig {
+    /// The standard triangle.
+    pub standard: LcsStandard,
+    /// Approximate scanner sensitivity, nm per count (same for x and y).
+    pub nominal_nm_per_count: f64,
+    /// Accepted relative deviation of a side from its expected length in
+    /// counts. Default 0.35.
+    pub length_tolerance: f64,
+    /// Accepted deviation of the angle BAC, rad. Default 0.35 (≈ 20°).
+    pub angle_tolerance_rad: f64,
+}
+
+impl LcsConfig {
+    /// HOPG with the default tolerances and the given nominal nm/count.
+    pub fn hopg(nominal_nm_per_count: f64) -> Self {
+        Self {
+            standard: LcsStandard::hopg(),
+            nominal_nm_per_count,
+            length_tolerance: 0.35,
+            angle_tolerance_rad: 0.35,
+        }
+    }
+
+    fn validate(&self) -> Result<(), FeatureError> {
+        positive("nominal_nm_per_count", self.nominal_nm_per_count)?;
+        positive("length_tolerance", self.length_tolerance)?;
+        positive("angle_tolerance_rad", self.angle_tolerance_rad)?;
+        positive("standard.ab", self.standard.ab.value())?;
+        positive("standard.ac", self.standard.ac.value())?;
+        positive("standard.angle_bac", self.standard.angle_bac.value())?;
+        Ok(())
+    }
+
+    /// Expected |AB| and |AC| in counts.
+    pub fn expected_counts(&self) -> (Counts, Counts) {
+        (
+            Counts(self.standard.ab.value() / self.nominal_nm_per_count),
+            Counts(self.standard.ac.value() / self.nominal_nm_per_count),
+        )
+    }
+}
+
+/// A recognised LCS: indices into the feature list and its geometry in counts.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Lcs {
+    /// Index of A.
+    pub a: usize,
+    /// Index of B.
+    pub b: usize,
+    /// Index of C.
+    pub c: usize,
+    /// A→B, counts (as seen in the frame: not drift-free).
+    pub ab: CountVector,
+    /// A→C, counts.
+    pub ac: CountVector,
+    /// The gravity centre of A, B, C, counts.
+    pub centroid: CountPoint,
+    /// Normalised mismatch to the standard (0 = exact at nominal nm/count).
+    pub mismatch: f64,
+}
+
+fn triangle(features: &[Feature], a: usize, b: usize, c: usize, config: &LcsConfig) -> Option<Lcs> {
+    let (pa, pb, pc) = (
+        features.get(a)?.position,
+        features.get(b)?.position,
+        features.get(c)?.position,
+    );
+    let (ab, ac) = (pb - pa, pc - pa);
+    let (lab, lac) = (ab.norm().value(), ac.norm().value());
+    if lab <= 0.0 || lac <= 0.0 {
+        return None;
+    }
+    let (eab, eac) = config.expected_counts();
+    let dab = lab / eab.value() - 1.0;
+    let dac = lac / eac.value() - 1.0;
+    let cross = ab.x.value() * ac.y.value() - ab.y.value() * ac.x.value();
+    let angle = cross.abs().atan2(ab.dot_counts_squared(ac));
+    let dangle = angle - config.standard.angle_bac.value();
+    if dab.abs() > config.length_tolerance
+        || dac.abs() > config.length_tolerance
+        || dangle.abs() > config.angle_tolerance_rad
+    {
+        return None;
+    }
+    let mismatch = (dab / config.length_tolerance).powi(2)
+        + (dac / config.length_tolerance).powi(2)
+        + (dangle / config.angle_tolerance_rad).powi(2);
+    Some(Lcs {
+        a,
+        b,
+        c,
+        ab,
+        ac,
+        centroid: CountPoint::from_counts(
+            (pa.x.value() + pb.x.value() + pc.x.value()) / 3.0,
+            (pa.y.value() + pb.y.value() + pc.y.value()) / 3.0,
+        ),
+        mismatch,
+    })
+}
+
+/// Every LCS with vertex `a` (B, C among the other features). When both
+/// orderings (B, C) and (C, B) match (equal sides), the one turning
+/// counter-clockwise from A→B to A→C is kept. Sorted by mismatch.
+pub fn lcs_with_vertex(
+    features: &[Feature],
+    a: usize,
+    config: &LcsConfig,
+) -> Result<Vec<Lcs>, FeatureError> {
+    config.validate()?;
+    let Some(pa) = features.get(a).map(|f| f.position) else {
+        return Err(FeatureError::IndexOutOfRange {
+            index: a,
+            len: features.len(),
+        });
+    };
+    let (eab, eac) = config.expected_counts();
+    let reach = eab.value().max(eac.value()) * (1.0 + config.length_tolerance);
+    let near: Vec<usize> = (0..features.len())
+        .filter(|&j| j != a && features[j].position.distance(pa).value() <= reach)
+        .collect();
+    let mut out: Vec<Lcs> = Vec::new();
+    for &b in &near {
+        for &c in &near {
+            if b == c {
+                continue;
+            }
+            let Some(t) = triangle(features, a, b, c, config) else {
+                continue;
+            };
+            let cross = t.ab.x.value() * t.ac.y.value() - t.ab.y.value() * t.ac.x.value();
+            if cross < 0.0 && triangle(features, a, c, b, config).is_some() {
+                continue; // the counter-clockwise ordering is kept instead
+            }
+            out.push(t);
+        }
+    }
+    out.sort_by(|x, y| x.mismatch.total_cmp(&y.mismatch));
+    Ok(out)
+}
+
+/// Every neighbour of `a` that forms an LCS with it (as B or C), sorted by index.
+pub fn lcs_neighbours(
+    features: &[Feature],
+    a: usize,
+    config: &LcsConfig,
+) -> Result<Vec<usize>, FeatureError> {
+    let mut out: Vec<usize> = lcs_with_vertex(features, a, config)?
+        .iter()
+        .flat_map(|t| [t.b, t.c])
+        .collect();
+    out.sort_unstable();
+    out.dedup();
+    Ok(out)
+}
+
+/// The LCS whose gravity centre is nearest `point` (paper §2.1.2: among
+/// several structures near the node, the closest is used); ties go to the
+/// smaller mismatch. `None` when no triangle matches.
+pub fn find_lcs_nearest(
+    features: &[Feature],
+    point: CountPoint,
+    config: &LcsConfig,
+) -> Result<Option<Lcs>, FeatureError> {
+    config.validate()?;
+    let mut best: Option<(f64, Lcs)> = None;
+    for a in 0..features.len() {
+        for t in lcs_with_vertex(features, a, config)? {
+            let d = t.centroid.distance(point).value();
+            let better = match &best {
+                None => true,
+                Some((bd, bt)) => {
+                    d < bd - 1e-9 || ((d - bd).abs() <= 1e-9 && t.mismatch < bt.mismatch)
+                }
+            };
+            if better {
+                best = Some((d, t));
+            }
+        }
+    }
+    Ok(best.map(|(_, t)| t))
+}
+
+/// The LCS with vertex A = the feature nearest `point` (the captured
+/// feature), best mismatch first. `None` when there are no features or no
+/// triangle at that vertex.
+pub fn find_lcs_at_nearest_vertex(
+    features: &[Feature],
+    point: CountPoint,
+    config: &LcsConfig,
+) -> Result<Option<Lcs>, FeatureError> {
+    let Some(a) = crate::detect::nearest_index(features, point) else {
+        return Ok(None);
+    };
+    Ok(lcs_with_vertex(features, a, config)?.into_iter().next())
+}

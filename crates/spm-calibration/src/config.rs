@@ -1,0 +1,817 @@
+//! The calibration plan as typed configuration (TOML), its validation and typed errors.
+//!
+//! # Where the plan lives
+//! A calibration job is one TOML document with a `[backend]` table (owned by the program that
+//! builds the backend: `kind = "sim"` and the simulator's own table for the simulator) and a
+//! `[plan]` table described here. [`PlanConfig::from_toml_str`] reads **only** the `[plan]`
+//! table and ignores the others, which their owners parse and validate; inside `[plan]` every
+//! table denies unknown fields. A plan can also stand alone in a `configs/plan-*.toml` file
+//! holding just `[plan]` (e.g. `configs/plan-hopg-small.toml`), to be combined with a backend
+//! by the caller.
+//!
+//! Every field has its unit in its name. There is no `Default`: a plan is always an explicit
+//! choice, a file or [`PlanConfig::hopg_small_net`] (the named constructor used by tests).
+//!
+//! # Errors
+//! [`ConfigError`] names the source (file), the 1-based line (and column for parse errors)
+//! and the dotted field path, e.g. `plan.toml:14:1: field `plan.skipping.cycles`: must be ≥ 1`.
+
+use crate::plan::{NetGeometry, PauseLaw, PlanError, ZLevel};
+use serde::{Deserialize, Serialize};
+use spm_hal::{Capabilities, Nanometres, Radians};
+use std::path::Path;
+
+/// The whole calibration plan (the `[plan]` table).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlanConfig {
+    /// Identifier of the scanner being calibrated (stored with every CDB record).
+    pub scanner_id: String,
+    /// Number of repeated passes l over the net (paper Fig. 2 pos. 10), ≥ 1.
+    pub repeats: u32,
+    /// The calibration standard.
+    pub standard: StandardConfig,
+    /// The net of nodes.
+    pub net: NetConfig,
+    /// The pause after each node move.
+    pub pause: PauseLaw,
+    /// Scan and move parameters shared by all operations.
+    pub motion: MotionConfig,
+    /// Probe attachment.
+    pub attach: AttachConfig,
+    /// Aperture scan and LCS recognition.
+    pub aperture: ApertureConfig,
+    /// Skipping between LCS features (or counter-scanning, see `variant`).
+    pub skipping: SkippingConfig,
+    /// Drift tolerances (paper §2.6).
+    pub drift: DriftConfig,
+    /// Failure budgets.
+    pub failures: FailureConfig,
+    /// Which variant of the method (paper §6).
+    pub variant: VariantConfig,
+}
+
+/// The calibration standard (a crystal lattice and its steps).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StandardConfig {
+    /// Distance A–B (and A–C) of the LCS: the lattice constant, nm (HOPG: 0.2461).
+    pub lattice_constant_nm: f64,
+    /// Angle BAC of the LCS, degrees (HOPG triangular lattice: 60).
+    pub lcs_angle_deg: f64,
+    /// Features are hills (atoms) or pits (hollows).
+    pub feature: FeaturePolarity,
+    /// Expected scanner sensitivity, nm per count, used to predict features' positions in
+    /// counts for LCS matching and to convert drift tolerances; the calibration measures the
+    /// true one.
+    pub nominal_nm_per_count: f64,
+    /// Accepted relative deviation of LCS side lengths from the lattice constant (after
+    /// conversion with the nominal sensitivity), e.g. 0.25.
+    pub length_tolerance_fraction: f64,
+    /// Accepted deviation of the LCS angle, degrees.
+    pub angle_tolerance_deg: f64,
+    /// Height of a monatomic step, nm (HOPG: 0.3354), for Kz; absent: Kz is not measured.
+    pub step_height_nm: Option<f64>,
+}
+
+impl StandardConfig {
+    /// The lattice constant.
+    pub fn lattice_constant(&self) -> Nanometres {
+        Nanometres(self.lattice_constant_nm)
+    }
+    /// The LCS angle.
+    pub fn lcs_angle(&self) -> Radians {
+        Radians::from_degrees(self.lcs_angle_deg)
+    }
+}
+
+/// Whether the standard's features are hills or pits.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FeaturePolarity {
+    /// Features are local maxima (atoms).
+    Hills,
+    /// Features are local minima (hollows).
+    Pits,
+}
+
+/// How the net is laid out (paper Fig. 1).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NetKind {
+    /// Lateral x–y planes at fixed Z (Fig. 1a).
+    LateralPlanes,
+    /// Vertical x–z planes at fixed Y (Fig. 1b); needs `y_planes_counts`.
+    VerticalPlanes,
+}
+
+/// The net of nodes. The nodes lie inside the scanner field shrunk by `margin_counts` on
+/// every side, `step_counts` apart, the grid centred in that region.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NetConfig {
+    /// Lateral or vertical planes.
+    pub kind: NetKind,
+    /// Net step, counts (> 0).
+    pub step_counts: i64,
+    /// Distance kept from the field's edge, counts (≥ 0); must leave room for the first
+    /// attachment and the aperture around every node.
+    pub margin_counts: i64,
+    /// The Z levels (one for a plain lateral calibration), in the first repeat's order.
+    pub z_levels: Vec<ZLevel>,
+    /// Fixed Y positions of vertical planes, counts (vertical planes only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub y_planes_counts: Option<Vec<i64>>,
+}
+
+impl NetConfig {
+    /// The net geometry inside the field of `capabilities`.
+    ///
+    /// # Errors
+    /// [`PlanError::Invalid`] when the margins leave no room or the fields are inconsistent.
+    pub fn geometry(&self, capabilities: &Capabilities) -> Result<NetGeometry, PlanError> {
+        let invalid = |field: &'static str, reason: String| PlanError::Invalid { field, reason };
+        if self.step_counts <= 0 {
+            return Err(invalid(
+                "step_counts",
+                format!("must be > 0, got {}", self.step_counts),
+            ));
+        }
+        if self.margin_counts < 0 {
+            return Err(invalid("margin_counts", "must be >= 0".into()));
+        }
+        let span = |lo: f64, hi: f64| -> Result<(i64, i64), PlanError> {
+            let lo = lo.ceil() as i64 + self.margin_counts;
+            let hi = hi.floor() as i64 - self.margin_counts;
+            if hi < lo {
+                return Err(invalid(
+                    "margin_counts",
+                    format!(
+                        "leaves no room in the field (margin {})",
+                        self.margin_counts
+                    ),
+                ));
+            }
+            // Centre the grid: leftover space split evenly.
+            let n = (hi - lo) / self.step_counts;
+            let leftover = (hi - lo) - n * self.step_counts;
+            let start = lo + leftover / 2;
+            Ok((start, start + n * self.step_counts))
+        };
+        let (x0, x1) = span(
+            capabilities.field_min.x.value(),
+            capabilities.field_max.x.value(),
+        )?;
+        match self.kind {
+            NetKind::LateralPlanes => {
+                if self.y_planes_counts.is_some() {
+                    return Err(invalid(
+                        "y_planes_counts",
+                        "only for kind = \"vertical_planes\"".into(),
+                    ));
+                }
+                let (y0, y1) = span(
+                    capabilities.field_min.y.value(),
+                    capabilities.field_max.y.value(),
+                )?;
+                Ok(NetGeometry::LateralPlanes {
+                    x_min_counts: x0,
+                    x_max_counts: x1,
+                    y_min_counts: y0,
+                    y_max_counts: y1,
+                    step_counts: self.step_counts,
+                    z_planes: self.z_levels.clone(),
+                })
+            }
+            NetKind::VerticalPlanes => {
+                let ys = self.y_planes_counts.clone().ok_or_else(|| {
+                    invalid(
+                        "y_planes_counts",
+                        "is required for kind = \"vertical_planes\"".into(),
+                    )
+                })?;
+                Ok(NetGeometry::VerticalPlanes {
+                    x_min_counts: x0,
+                    x_max_counts: x1,
+                    step_counts: self.step_counts,
+                    y_planes_counts: ys,
+                    z_levels: self.z_levels.clone(),
+                })
+            }
+        }
+    }
+}
+
+/// Scan and move parameters.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MotionConfig {
+    /// Pixel dwell of every scan (attach, aperture, segments), seconds (> 0).
+    pub pixel_dwell_s: f64,
+    /// Speed of lateral moves, counts per second (> 0).
+    pub move_speed_counts_per_s: f64,
+    /// Settle time after a short move (feature to feature), seconds (≥ 0).
+    pub settle_s: f64,
+}
+
+/// Probe attachment (paper §2.1.1).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AttachConfig {
+    /// Side of the first attachment scan, counts: surely holds a feature wherever it lies
+    /// (≥ ~2 lattice constants).
+    pub first_size_counts: f64,
+    /// Pixels per side of the first attachment scan (≥ 4).
+    pub first_pixels: u32,
+    /// Side of a segment (a scan enclosing one feature), counts.
+    pub segment_size_counts: f64,
+    /// Pixels per side of a segment (≥ 4).
+    pub segment_pixels: u32,
+    /// Attachments at most while waiting for the creep after a node move to die out.
+    pub max_attachments: u32,
+    /// Omit the pause and attachment (paper §2.1.3: possible when the net step is comparable
+    /// with the skipping distance; the aperture then acts as the attachment).
+    pub skip: bool,
+}
+
+/// The aperture scan (paper §2.1.2).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ApertureConfig {
+    /// Side of the aperture, counts: encloses at least one LCS around the captured feature.
+    pub size_counts: f64,
+    /// Pixels per side (≥ 8).
+    pub pixels: u32,
+}
+
+/// Skipping between the LCS features (paper §2.1.3).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SkippingConfig {
+    /// Kept skipping cycles per vector (≥ 1; the paper advises against many).
+    pub cycles: u32,
+    /// Idle cycles inserted after a spoiled one (paper §2.6), ≥ 1.
+    pub idle_cycles: u32,
+    /// Restarts of a vector's skipping allowed before the node is redone.
+    pub max_restarts: u32,
+}
+
+/// Drift tolerances (paper §2.1.1 and §2.6), in nm/s, converted to counts/s with the nominal
+/// sensitivity.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DriftConfig {
+    /// Largest |drift velocity| at which measuring starts after the attachments (the
+    /// microscope's typical post-warm-up drift), nm/s.
+    pub max_speed_nm_per_s: f64,
+    /// Largest change of the drift velocity within a skipping cycle (or between consecutive
+    /// cycles) before the cycle is declared spoiled, nm/s.
+    pub max_change_nm_per_s: f64,
+}
+
+/// Failure budgets.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FailureConfig {
+    /// Attempts at a node (a restart from the pause counts as one) before it is given up.
+    pub max_attempts_per_node: u32,
+    /// Transient backend errors (timeout, communication, feedback lost) retried per node
+    /// before it is given up.
+    pub transient_retries_per_node: u32,
+}
+
+/// The method's variant (paper §6).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VariantConfig {
+    /// Attach to feature A (Fig. 3a) or to the LCS gravity centre (Fig. 3b).
+    pub attach_to: AttachTarget,
+    /// Skip to the LCS's B and C only, or to every neighbour of A in the aperture that forms
+    /// an LCS with it (more vectors, least squares).
+    pub neighbours: NeighbourSet,
+    /// Additionally skip B↔C (redundant vector, least squares).
+    pub bc_redundancy: bool,
+    /// Measure the vectors by skipping, or by counter-scanning the aperture.
+    pub measurement: MeasurementMethod,
+}
+
+/// Attachment target (paper Fig. 3).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AttachTarget {
+    /// The feature nearest the node (Fig. 3a).
+    FeatureA,
+    /// The gravity centre of the LCS nearest the node (Fig. 3b).
+    LcsCentre,
+}
+
+/// Which neighbours of A are measured.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NeighbourSet {
+    /// B and C of the LCS.
+    Lcs,
+    /// Every nearest neighbour of A found in the aperture.
+    AllInAperture,
+}
+
+/// How drift-free vectors are measured.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MeasurementMethod {
+    /// Skipping A↔B, A↔C with half-sums (drift-insensitive, the default of the paper).
+    Skipping,
+    /// Direct and counter scans of the aperture (paper §6; faster, less precise).
+    CounterScan,
+}
+
+/// Why a plan configuration could not be loaded.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("cannot read plan config `{path}`: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The OS error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// Malformed TOML, an unknown field, a missing field or a value of the wrong type.
+    #[error("{source_name}{}: {}{message}", line_suffix(*line, *column), field_prefix(field.as_deref()))]
+    Parse {
+        /// File name or other label.
+        source_name: String,
+        /// 1-based line, when known.
+        line: Option<usize>,
+        /// 1-based column, when known.
+        column: Option<usize>,
+        /// Dotted path of the field, when known.
+        field: Option<String>,
+        /// The parser's message.
+        message: String,
+    },
+    /// A value is well-formed but invalid.
+    #[error("{source_name}{}: field `{field}` {reason}", line_suffix(*line, None))]
+    Invalid {
+        /// File name or other label.
+        source_name: String,
+        /// 1-based line of the field, when found.
+        line: Option<usize>,
+        /// Dotted path of the field, e.g. `plan.skipping.cycles`.
+        field: String,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+impl ConfigError {
+    /// Dotted path of the offending field, when known.
+    pub fn field(&self) -> Option<&str> {
+        match self {
+            Self::Io { .. } => None,
+            Self::Parse { field, .. } => field.as_deref(),
+            Self::Invalid { field, .. } => Some(field),
+        }
+    }
+    /// 1-based line, when known.
+    pub fn line(&self) -> Option<usize> {
+        match self {
+            Self::Io { .. } => None,
+            Self::Parse { line, .. } | Self::Invalid { line, .. } => *line,
+        }
+    }
+}
+
+fn line_suffix(line: Option<usize>, column: Option<usize>) -> String {
+    match (line, column) {
+        (Some(l), Some(c)) => format!(":{l}:{c}"),
+        (Some(l), None) => format!(":{l}"),
+        _ => String::new(),
+    }
+}
+
+fn field_prefix(field: Option<&str>) -> String {
+    field.map(|f| format!("field `{f}`: ")).unwrap_or_default()
+}
+
+/// A semantic validation failure: dotted field path (relative to `plan`) and reason.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error("field `{field}` {reason}")]
+pub struct ValidationError {
+    /// Dotted path of the field, e.g. `plan.skipping.cycles`.
+    pub field: String,
+    /// What is wrong.
+    pub reason: String,
+}
+
+/// The document: only `[plan]` is read; other tables are ignored (their owners parse them).
+#[derive(Deserialize)]
+struct Document {
+    plan: PlanConfig,
+}
+
+impl PlanConfig {
+    /// Parses the `[plan]` table of a TOML document and validates it; `source_name` (a file
+    /// name) labels errors.
+    ///
+    /// # Errors
+    /// [`ConfigError::Parse`] or [`ConfigError::Invalid`] naming the line and field.
+    pub fn from_toml_str(text: &str, source_name: &str) -> Result<Self, ConfigError> {
+        let doc: Document = toml::from_str(text).map_err(|e| {
+            let message = e.message().trim().to_owned();
+            let (line, column, field) = match e.span() {
+                Some(span) => {
+                    let (l, c) = line_column(text, span.start);
+                    (Some(l), Some(c), field_at(text, span.start, &message))
+                }
+                None => (None, None, quoted_name(&message)),
+            };
+            ConfigError::Parse {
+                source_name: source_name.to_owned(),
+                line,
+                column,
+                field,
+                message,
+            }
+        })?;
+        doc.plan.validate().map_err(|v| ConfigError::Invalid {
+            source_name: source_name.to_owned(),
+            line: locate_field_line(text, &v.field),
+            field: v.field,
+            reason: v.reason,
+        })?;
+        Ok(doc.plan)
+    }
+
+    /// Reads a file and parses its `[plan]` table.
+    ///
+    /// # Errors
+    /// [`ConfigError::Io`] and as [`PlanConfig::from_toml_str`].
+    pub fn from_file(path: impl AsRef<Path>) -> Result<Self, ConfigError> {
+        let path = path.as_ref();
+        let name = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+            path: name.clone(),
+            source,
+        })?;
+        Self::from_toml_str(&text, &name)
+    }
+
+    /// The plan as a TOML document with a `[plan]` table.
+    ///
+    /// # Errors
+    /// When serialisation fails (not expected for valid plans).
+    pub fn to_toml_string(&self) -> Result<String, toml::ser::Error> {
+        #[derive(Serialize)]
+        struct Out<'a> {
+            plan: &'a PlanConfig,
+        }
+        toml::to_string(&Out { plan: self })
+    }
+
+    /// Semantic validation: finite and positive numbers, sizes and counts in range.
+    ///
+    /// # Errors
+    /// The first invalid field.
+    pub fn validate(&self) -> Result<(), ValidationError> {
+        let bad = |field: &str, reason: String| {
+            Err(ValidationError {
+                field: format!("plan.{field}"),
+                reason,
+            })
+        };
+        let positive = |field: &str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                bad(field, format!("must be a finite number > 0, got {v}"))
+            }
+        };
+        let non_negative = |field: &str, v: f64| {
+            if v.is_finite() && v >= 0.0 {
+                Ok(())
+            } else {
+                bad(field, format!("must be a finite number >= 0, got {v}"))
+            }
+        };
+        let at_least = |field: &str, v: u32, min: u32| {
+            if v >= min {
+                Ok(())
+            } else {
+                bad(field, format!("must be >= {min}, got {v}"))
+            }
+        };
+        if self.scanner_id.trim().is_empty() {
+            return bad("scanner_id", "must not be empty".into());
+        }
+        at_least("repeats", self.repeats, 1)?;
+        let s = &self.standard;
+        positive("standard.lattice_constant_nm", s.lattice_constant_nm)?;
+        if !(s.lcs_angle_deg.is_finite() && s.lcs_angle_deg > 0.0 && s.lcs_angle_deg < 180.0) {
+            return bad(
+                "standard.lcs_angle_deg",
+                format!("must be in (0, 180), got {}", s.lcs_angle_deg),
+            );
+        }
+        positive("standard.nominal_nm_per_count", s.nominal_nm_per_count)?;
+        if !(s.length_tolerance_fraction.is_finite()
+            && s.length_tolerance_fraction > 0.0
+            && s.length_tolerance_fraction < 1.0)
+        {
+            return bad(
+                "standard.length_tolerance_fraction",
+                format!("must be in (0, 1), got {}", s.length_tolerance_fraction),
+            );
+        }
+        positive("standard.angle_tolerance_deg", s.angle_tolerance_deg)?;
+        if let Some(h) = s.step_height_nm {
+            positive("standard.step_height_nm", h)?;
+        }
+        let n = &self.net;
+        if n.step_counts <= 0 {
+            return bad(
+                "net.step_counts",
+                format!("must be > 0, got {}", n.step_counts),
+            );
+        }
+        if n.margin_counts < 0 {
+            return bad(
+                "net.margin_counts",
+                format!("must be >= 0, got {}", n.margin_counts),
+            );
+        }
+        if n.z_levels.is_empty() {
+            return bad("net.z_levels", "needs at least one level".into());
+        }
+        match (n.kind, &n.y_planes_counts) {
+            (NetKind::VerticalPlanes, None) => {
+                return bad(
+                    "net.y_planes_counts",
+                    "is required for vertical planes".into(),
+                );
+            }
+            (NetKind::VerticalPlanes, Some(ys)) if ys.is_empty() => {
+                return bad("net.y_planes_counts", "needs at least one plane".into());
+            }
+            (NetKind::LateralPlanes, Some(_)) => {
+                return bad(
+                    "net.y_planes_counts",
+                    "is only for kind = \"vertical_planes\"".into(),
+                );
+            }
+            _ => {}
+        }
+        if let Err(PlanError::Invalid { field, reason }) = self.pause.validate() {
+            return bad(&format!("pause.{field}"), reason);
+        }
+        let m = &self.motion;
+        positive("motion.pixel_dwell_s", m.pixel_dwell_s)?;
+        positive("motion.move_speed_counts_per_s", m.move_speed_counts_per_s)?;
+        non_negative("motion.settle_s", m.settle_s)?;
+        let a = &self.attach;
+        positive("attach.first_size_counts", a.first_size_counts)?;
+        at_least("attach.first_pixels", a.first_pixels, 4)?;
+        positive("attach.segment_size_counts", a.segment_size_counts)?;
+        at_least("attach.segment_pixels", a.segment_pixels, 4)?;
+        at_least("attach.max_attachments", a.max_attachments, 1)?;
+        positive("aperture.size_counts", self.aperture.size_counts)?;
+        at_least("aperture.pixels", self.aperture.pixels, 8)?;
+        let nominal_lattice_counts = s.lattice_constant_nm / s.nominal_nm_per_count;
+        if self.aperture.size_counts < 2.0 * nominal_lattice_counts {
+            return bad(
+                "aperture.size_counts",
+                format!(
+                    "must enclose an LCS: at least 2 lattice constants ({:.0} counts at the nominal sensitivity)",
+                    2.0 * nominal_lattice_counts
+                ),
+            );
+        }
+        at_least("skipping.cycles", self.skipping.cycles, 1)?;
+        at_least("skipping.idle_cycles", self.skipping.idle_cycles, 1)?;
+        positive("drift.max_speed_nm_per_s", self.drift.max_speed_nm_per_s)?;
+        positive("drift.max_change_nm_per_s", self.drift.max_change_nm_per_s)?;
+        at_least(
+            "failures.max_attempts_per_node",
+            self.failures.max_attempts_per_node,
+            1,
+        )?;
+        Ok(())
+    }
+
+    /// A small HOPG plan: a 3×3 lateral net (step 8000 counts in a 16-bit field with
+    /// margin 8000), one Z level, 2 skipping cycles, skipping variant of Fig. 3a, nominal
+    /// sensitivity 0.004 nm/count. Equals `configs/plan-hopg-small.toml`.
+    pub fn hopg_small_net() -> Self {
+        Self {
+            scanner_id: "sim-hopg".into(),
+            repeats: 1,
+            standard: StandardConfig {
+                lattice_constant_nm: 0.2461,
+                lcs_angle_deg: 60.0,
+                feature: FeaturePolarity::Hills,
+                nominal_nm_per_count: 0.004,
+                length_tolerance_fraction: 0.3,
+                angle_tolerance_deg: 12.0,
+                step_height_nm: None,
+            },
+            net: NetConfig {
+                kind: NetKind::LateralPlanes,
+                step_counts: 20000,
+                margin_counts: 8000,
+                z_levels: vec![ZLevel {
+                    nominal_z_counts: 0,
+                    coarse_steps: None,
+                }],
+                y_planes_counts: None,
+            },
+            pause: PauseLaw {
+                base_s: 0.5,
+                per_count_s: 1e-4,
+                per_coarse_step_s: 0.0,
+                max_s: 10.0,
+            },
+            motion: MotionConfig {
+                pixel_dwell_s: 1e-4,
+                move_speed_counts_per_s: 20000.0,
+                settle_s: 0.01,
+            },
+            attach: AttachConfig {
+                first_size_counts: 160.0,
+                first_pixels: 24,
+                segment_size_counts: 50.0,
+                segment_pixels: 12,
+                max_attachments: 8,
+                skip: false,
+            },
+            aperture: ApertureConfig {
+                size_counts: 220.0,
+                pixels: 40,
+            },
+            skipping: SkippingConfig {
+                cycles: 2,
+                idle_cycles: 1,
+                max_restarts: 2,
+            },
+            drift: DriftConfig {
+                max_speed_nm_per_s: 0.05,
+                max_change_nm_per_s: 0.02,
+            },
+            failures: FailureConfig {
+                max_attempts_per_node: 3,
+                transient_retries_per_node: 3,
+            },
+            variant: VariantConfig {
+                attach_to: AttachTarget::FeatureA,
+                neighbours: NeighbourSet::Lcs,
+                bc_redundancy: false,
+                measurement: MeasurementMethod::Skipping,
+            },
+        }
+    }
+}
+
+fn line_column(text: &str, offset: usize) -> (usize, usize) {
+    let offset = offset.min(text.len());
+    let before = text.get(..offset).unwrap_or("");
+    let line = before.matches('\n').count() + 1;
+    let column = before.rsplit('\n').next().map_or(0, |s| s.chars().count()) + 1;
+    (line, column)
+}
+
+/// The name inside the first pair of backticks of a serde message ("unknown field `x`",
+/// "missing field `x`").
+fn quoted_name(message: &str) -> Option<String> {
+    let start = message.find('`')? + 1;
+    let len = message.get(start..)?.find('`')?;
+    message.get(start..start + len).map(str::to_owned)
+}
+
+fn strip_comment(line: &str) -> &str {
+    let mut in_string = false;
+    for (k, ch) in line.char_indices() {
+        match ch {
+            '"' => in_string = !in_string,
+            '#' if !in_string => return line.get(..k).unwrap_or(line),
+            _ => {}
+        }
+    }
+    line
+}
+
+fn header(line: &str) -> Option<String> {
+    let t = strip_comment(line).trim();
+    t.starts_with('[').then(|| {
+        t.trim_start_matches('[')
+            .trim_end_matches(']')
+            .trim()
+            .to_owned()
+    })
+}
+
+/// The dotted field at a parse error's offset: the table in force plus the key of the line,
+/// or the name the message quotes (unknown/missing field).
+fn field_at(text: &str, offset: usize, message: &str) -> Option<String> {
+    let lines: Vec<&str> = text.split('\n').collect();
+    let (line, _) = line_column(text, offset);
+    let index = line.checked_sub(1)?;
+    let table = lines
+        .iter()
+        .take(index + 1)
+        .rev()
+        .find_map(|l| header(l))
+        .unwrap_or_default();
+    let join = |key: &str| {
+        if table.is_empty() {
+            key.to_owned()
+        } else {
+            format!("{table}.{key}")
+        }
+    };
+    if (message.contains("unknown field") || message.contains("missing field"))
+        && let Some(name) = quoted_name(message)
+    {
+        return Some(join(&name));
+    }
+    let content = strip_comment(lines.get(index)?).trim();
+    if content.starts_with('[') {
+        return Some(table);
+    }
+    let (key, _) = content.split_once('=')?;
+    Some(join(key.trim()))
+}
+
+/// Best-effort 1-based line of a dotted field (`plan.skipping.cycles`) in a TOML text:
+/// the key line inside its table, else the table header.
+fn locate_field_line(text: &str, field: &str) -> Option<usize> {
+    let (table, key) = field.rsplit_once('.')?;
+    let mut current = String::new();
+    let mut table_line = None;
+    for (index, raw) in text.split('\n').enumerate() {
+        if let Some(h) = header(raw) {
+            current = h;
+            if current == table {
+                table_line = Some(index + 1);
+            }
+            continue;
+        }
+        if current == table {
+            let content = strip_comment(raw).trim();
+            if let Some((k, _)) = content.split_once('=')
+                && k.trim() == key
+            {
+                return Some(index + 1);
+            }
+        }
+    }
+    table_line.or_else(|| locate_field_line(text, table))
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn the_named_constructor_round_trips_through_toml() {
+        let plan = PlanConfig::hopg_small_net();
+        plan.validate().unwrap();
+        let text = plan.to_toml_string().unwrap();
+        let back = PlanConfig::from_toml_str(&text, "mem.toml").unwrap();
+        assert_eq!(plan, back);
+    }
+
+    #[test]
+    fn other_tables_are_ignored_and_unknown_plan_fields_are_named_with_their_line() {
+        let mut text = "[backend]\nkind = \"sim\"\nanything = 3\n\n".to_owned();
+        text.push_str(&PlanConfig::hopg_small_net().to_toml_string().unwrap());
+        PlanConfig::from_toml_str(&text, "job.toml").unwrap();
+        let bad = text.replace("idle_cycles = 1", "idle_cycles = 1\nidel = 2");
+        let e = PlanConfig::from_toml_str(&bad, "job.toml").unwrap_err();
+        let message = e.to_string();
+        assert!(message.starts_with("job.toml:"), "{message}");
+        assert_eq!(e.field(), Some("plan.skipping.idel"), "{message}");
+        let line = bad.lines().position(|l| l.starts_with("idel")).unwrap() + 1;
+        assert_eq!(e.line(), Some(line), "{message}");
+    }
+
+    #[test]
+    fn invalid_values_name_field_and_line() {
+        let text = PlanConfig::hopg_small_net()
+            .to_toml_string()
+            .unwrap()
+            .replace("cycles = 2", "cycles = 0");
+        let e = PlanConfig::from_toml_str(&text, "p.toml").unwrap_err();
+        assert_eq!(e.field(), Some("plan.skipping.cycles"));
+        let line = text.lines().position(|l| l == "cycles = 0").unwrap() + 1;
+        assert_eq!(e.line(), Some(line));
+        assert!(e.to_string().contains("p.toml:"));
+        let wrong_type = PlanConfig::hopg_small_net()
+            .to_toml_string()
+            .unwrap()
+            .replace("repeats = 1", "repeats = \"two\"");
+        let e = PlanConfig::from_toml_str(&wrong_type, "p.toml").unwrap_err();
+        assert_eq!(e.field(), Some("plan.repeats"), "{e}");
+    }
+}

@@ -270,8 +270,10 @@ fn render_with_ctx(channel: &Channel, options: &PngOptions, ctx: Ctx<'_>) -> Res
     let (nx, ny) = (channel.nx(), channel.ny());
     let zoom = options.zoom.max(1) as usize;
     let (w, h) = (nx.saturating_mul(zoom), ny.saturating_mul(zoom));
-    if w > 1 << 15 || h > 1 << 15 {
-        return Err(ctx.invalid_input(format!("image {w}×{h} too large to render")));
+    if w > 1 << 15 || h > 1 << 15 || w.saturating_mul(h) > 1 << 26 {
+        return Err(ctx.invalid_input(format!(
+            "rendered image {w}×{h} exceeds 32768 px per side or 2^26 pixels"
+        )));
     }
     let values = if options.level_plane {
         level(channel.data(), nx, ny)

@@ -1,0 +1,212 @@
+//! Typed errors of the calibration database.
+
+use std::path::{Path, PathBuf};
+
+/// What went wrong, for callers that branch on it (e.g. exit code 2 for bad input, 1 otherwise).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[non_exhaustive]
+pub enum ErrorKind {
+    /// The file's schema is newer than this program supports; it was not modified.
+    NewerSchema,
+    /// The file's schema is older and the connection is read-only, so it cannot be migrated.
+    OutdatedSchema,
+    /// The file is not a SQLite database or not a spmcal CDB.
+    NotACdb,
+    /// A migration step failed (the file is left at the last complete version).
+    Migration,
+    /// The caller passed invalid data (non-finite value, K̄ ≤ 0, mismatched ids ...).
+    InvalidInput,
+    /// A run or plan node does not exist.
+    NotFound,
+    /// The operation conflicts with the stored state (node already done, duplicate record ...).
+    Conflict,
+    /// Stored data cannot be decoded (wrong type, out of range): the file was altered outside
+    /// this library.
+    Corrupt,
+    /// Another connection holds the lock beyond the busy timeout.
+    Busy,
+    /// Reading or writing a file or stream failed.
+    Io,
+    /// Any other SQLite failure.
+    Sqlite,
+}
+
+/// An error of the calibration database; every variant names the database file.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum CdbError {
+    /// See [`ErrorKind::NewerSchema`].
+    #[error(
+        "{}: schema version {found} is newer than this program supports ({supported}); the file was not modified",
+        path.display()
+    )]
+    NewerSchema {
+        /// Database file.
+        path: PathBuf,
+        /// Version in the file.
+        found: i64,
+        /// Highest version this program knows.
+        supported: i64,
+    },
+    /// See [`ErrorKind::OutdatedSchema`].
+    #[error(
+        "{}: schema version {found} is older than {supported}; open it read-write once to migrate",
+        path.display()
+    )]
+    OutdatedSchema {
+        /// Database file.
+        path: PathBuf,
+        /// Version in the file.
+        found: i64,
+        /// Current version.
+        supported: i64,
+    },
+    /// See [`ErrorKind::NotACdb`].
+    #[error("{}: not a spmcal calibration database: {reason}", path.display())]
+    NotACdb {
+        /// Database file.
+        path: PathBuf,
+        /// Why.
+        reason: String,
+    },
+    /// See [`ErrorKind::Migration`].
+    #[error("{}: migration from schema version {from} failed: {source}", path.display())]
+    Migration {
+        /// Database file.
+        path: PathBuf,
+        /// Version the failed step started from.
+        from: i64,
+        /// Underlying SQLite error.
+        source: rusqlite::Error,
+    },
+    /// See [`ErrorKind::InvalidInput`].
+    #[error("{}: invalid input: {reason}", path.display())]
+    InvalidInput {
+        /// Database file.
+        path: PathBuf,
+        /// Why.
+        reason: String,
+    },
+    /// See [`ErrorKind::NotFound`].
+    #[error("{}: not found: {what}", path.display())]
+    NotFound {
+        /// Database file.
+        path: PathBuf,
+        /// What was looked for.
+        what: String,
+    },
+    /// See [`ErrorKind::Conflict`].
+    #[error("{}: conflict: {reason}", path.display())]
+    Conflict {
+        /// Database file.
+        path: PathBuf,
+        /// Why.
+        reason: String,
+    },
+    /// See [`ErrorKind::Corrupt`].
+    #[error("{}: corrupt data: {reason}", path.display())]
+    Corrupt {
+        /// Database file.
+        path: PathBuf,
+        /// Why.
+        reason: String,
+    },
+    /// See [`ErrorKind::Busy`].
+    #[error("{}: database busy: {source}", path.display())]
+    Busy {
+        /// Database file.
+        path: PathBuf,
+        /// Underlying SQLite error.
+        source: rusqlite::Error,
+    },
+    /// See [`ErrorKind::Io`].
+    #[error("{}: I/O error ({context}): {source}", path.display())]
+    Io {
+        /// Database file.
+        path: PathBuf,
+        /// What was being done.
+        context: String,
+        /// Underlying error.
+        source: std::io::Error,
+    },
+    /// See [`ErrorKind::Sqlite`].
+    #[error("{}: SQLite error: {source}", path.display())]
+    Sqlite {
+        /// Database file.
+        path: PathBuf,
+        /// Underlying SQLite error.
+        source: rusqlite::Error,
+    },
+}
+
+impl CdbError {
+    /// The kind of the error.
+    #[must_use]
+    pub fn kind(&self) -> ErrorKind {
+        match self {
+            Self::NewerSchema { .. } => ErrorKind::NewerSchema,
+            Self::OutdatedSchema { .. } => ErrorKind::OutdatedSchema,
+            Self::NotACdb { .. } => ErrorKind::NotACdb,
+            Self::Migration { .. } => ErrorKind::Migration,
+            Self::InvalidInput { .. } => ErrorKind::InvalidInput,
+            Self::NotFound { .. } => ErrorKind::NotFound,
+            Self::Conflict { .. } => ErrorKind::Conflict,
+            Self::Corrupt { .. } => ErrorKind::Corrupt,
+            Self::Busy { .. } => ErrorKind::Busy,
+            Self::Io { .. } => ErrorKind::Io,
+            Self::Sqlite { .. } => ErrorKind::Sqlite,
+        }
+    }
+
+    /// The database file the error concerns.
+    #[must_use]
+    pub fn path(&self) -> &Path {
+        match self {
+            Self::NewerSchema { path, .. }
+            | Self::OutdatedSchema { path, .. }
+            | Self::NotACdb { path, .. }
+            | Self::Migration { path, .. }
+            | Self::InvalidInput { path, .. }
+            | Self::NotFound { path, .. }
+            | Self::Conflict { path, .. }
+            | Self::Corrupt { path, .. }
+            | Self::Busy { path, .. }
+            | Self::Io { path, .. }
+            | Self::Sqlite { path, .. } => path,
+        }
+    }
+
+    /// Classifies a rusqlite error.
+    pub(crate) fn sqlite(path: &Path, source: rusqlite::Error) -> Self {
+        use rusqlite::ErrorCode;
+        let path = path.to_path_buf();
+        match &source {
+            rusqlite::Error::SqliteFailure(e, _) => match e.code {
+                ErrorCode::DatabaseBusy | ErrorCode::DatabaseLocked => Self::Busy { path, source },
+                ErrorCode::NotADatabase => Self::NotACdb {
+                    path,
+                    reason: source.to_string(),
+                },
+                ErrorCode::ConstraintViolation => Self::Conflict {
+                    path,
+                    reason: source.to_string(),
+                },
+                ErrorCode::DatabaseCorrupt => Self::Corrupt {
+                    path,
+                    reason: source.to_string(),
+                },
+                _ => Self::Sqlite { path, source },
+            },
+            rusqlite::Error::FromSqlConversionFailure(..)
+            | rusqlite::Error::InvalidColumnType(..)
+            | rusqlite::Error::IntegralValueOutOfRange(..) => Self::Corrupt {
+                path,
+                reason: source.to_string(),
+            },
+            _ => Self::Sqlite { path, source },
+        }
+    }
+}
+
+/// `Result` with [`CdbError`].
+pub type Result<T, E = CdbError> = std::result::Result<T, E>;

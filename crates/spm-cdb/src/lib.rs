@@ -1,0 +1,873 @@
+//! Calibration database (CDB) of Lapshin's distributed calibration on embedded SQLite
+//! (DESIGN §8): dated local calibration coefficients per node, calibration runs, and the
+//! progress of each run's plan so that a run killed at any moment resumes at the next
+//! unfinished node.
+//!
+//! # File and durability
+//! - Schema version in `PRAGMA user_version` ([`SCHEMA_VERSION`]), file marked by
+//!   `PRAGMA application_id` ([`APPLICATION_ID`]). Older files are migrated on a read-write
+//!   open, one transaction per step; a file from a *newer* program is refused with
+//!   [`ErrorKind::NewerSchema`] after a read-only look, without a single byte written.
+//! - WAL journal: readers never block the writer and see a consistent snapshot
+//!   ([`Cdb::snapshot`]); a busy timeout (default 5 s) covers short lock contention.
+//! - `synchronous = FULL` by default: every committed node is on disk before
+//!   [`Cdb::commit_node`] returns, so neither a crash nor a power loss loses instrument time
+//!   that was reported as saved. With WAL, `NORMAL` would also never corrupt the file but could
+//!   roll back the last commits after a power cut; the fsync costs ~milliseconds per node
+//!   against seconds of instrument time per node, so FULL is the right default.
+//!   [`Synchronous::Normal`] is available for bulk imports.
+//! - One transaction per node: [`Cdb::commit_node`] writes the node's records and marks its
+//!   plan entry done atomically; [`Cdb::import_records`] writes many records in one transaction.
+//!
+//! # Time
+//! The library reads no clock: every time is supplied by the caller as UTC seconds since the
+//! Unix epoch (`*_unix_s`); exports add RFC 3339 text.
+//!
+//! # Reading
+//! Queries are methods of the [`CdbRead`] trait, implemented by [`Cdb`] (each query its own
+//! snapshot) and by [`Snapshot`] (all queries in one read transaction).
+
+mod error;
+mod export;
+mod integrity;
+mod model;
+mod query;
+mod schema;
+
+use rusqlite::{Connection, OpenFlags, TransactionBehavior, params};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+pub use error::{CdbError, ErrorKind, Result};
+pub use export::{CSV_HEADER, rfc3339_utc};
+pub use model::{
+    Coefficient, CoefficientStat, IntegrityProblem, IntegrityReport, LccColumns, LccRecord,
+    NodeDone, NodeProgress, NodeState, PlanNode, ProgressSummary, RecordFilter, RunInfo, RunStatus,
+    TrendGrouping, TrendPoint,
+};
+pub use schema::{APPLICATION_ID, SCHEMA_VERSION};
+
+/// SQLite `synchronous` setting (with WAL).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Synchronous {
+    /// fsync at every commit: committed nodes survive power loss (default).
+    #[default]
+    Full,
+    /// fsync at checkpoints only: never corrupt, but the last commits may roll back after a
+    /// power loss. For bulk imports.
+    Normal,
+}
+
+/// Options of [`Cdb::open_with`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct OpenOptions {
+    /// Create the file if it does not exist (default true).
+    pub create: bool,
+    /// Durability setting (default [`Synchronous::Full`]).
+    pub synchronous: Synchronous,
+    /// How long to wait for a lock held by another connection (default 5 s).
+    pub busy_timeout: Duration,
+}
+
+impl Default for OpenOptions {
+    fn default() -> Self {
+        Self {
+            create: true,
+            synchronous: Synchronous::Full,
+            busy_timeout: Duration::from_secs(5),
+        }
+    }
+}
+
+/// An open calibration database.
+#[derive(Debug)]
+pub struct Cdb {
+    conn: Connection,
+    path: PathBuf,
+}
+
+/// A read transaction: every query through it sees the same committed state, whatever other
+/// connections commit meanwhile. Ends when dropped.
+#[derive(Debug)]
+pub struct Snapshot<'c> {
+    tx: rusqlite::Transaction<'c>,
+    path: &'c Path,
+}
+
+/// Read-only queries, on a [`Cdb`] or inside a [`Snapshot`].
+pub trait CdbRead {
+    /// The SQLite connection (or transaction) to read through.
+    #[doc(hidden)]
+    fn connection(&self) -> &Connection;
+    /// The database file.
+    fn path(&self) -> &Path;
+
+    /// Selected records ordered by acquisition time.
+    ///
+    /// # Errors
+    /// [`ErrorKind::InvalidInput`] for a non-finite time bound; [`ErrorKind::Corrupt`] for a
+    /// row that cannot be decoded; SQLite errors.
+    fn records(&self, filter: &RecordFilter) -> Result<Vec<LccRecord>> {
+        query::records(self.connection(), self.path(), filter)
+    }
+
+    /// Calls `each` for every selected record (ordered by acquisition time) without holding
+    /// them all in memory; an error from `each` stops the iteration and is returned.
+    ///
+    /// # Errors
+    /// As [`CdbRead::records`], or the error of `each`.
+    fn for_each_record(
+        &self,
+        filter: &RecordFilter,
+        each: &mut dyn FnMut(LccRecord) -> Result<()>,
+    ) -> Result<()> {
+        query::for_each_record(self.connection(), self.path(), filter, each)
+    }
+
+    /// Number of selected records.
+    ///
+    /// # Errors
+    /// As [`CdbRead::records`].
+    fn count_records(&self, filter: &RecordFilter) -> Result<u64> {
+        query::count_records(self.connection(), self.path(), filter)
+    }
+
+    /// Selected records as numeric columns (for regression), in insertion order.
+    ///
+    /// # Errors
+    /// As [`CdbRead::records`].
+    fn columns(&self, filter: &RecordFilter) -> Result<LccColumns> {
+        query::columns(self.connection(), self.path(), filter)
+    }
+
+    /// Scanner ids present in runs or records.
+    ///
+    /// # Errors
+    /// SQLite errors.
+    fn scanners(&self) -> Result<Vec<String>> {
+        query::scanners(self.connection(), self.path())
+    }
+
+    /// Distinct Z planes (node z, counts) of a scanner's records, ascending.
+    ///
+    /// # Errors
+    /// SQLite errors.
+    fn z_planes(&self, scanner_id: &str) -> Result<Vec<i64>> {
+        query::z_planes(self.connection(), self.path(), scanner_id)
+    }
+
+    /// A run by id.
+    ///
+    /// # Errors
+    /// [`ErrorKind::Corrupt`] for an undecodable row; SQLite errors.
+    fn run(&self, run_id: &str) -> Result<Option<RunInfo>> {
+        query::run(self.connection(), self.path(), run_id)
+    }
+
+    /// Runs, optionally of one scanner, by start time.
+    ///
+    /// # Errors
+    /// As [`CdbRead::run`].
+    fn runs(&self, scanner_id: Option<&str>) -> Result<Vec<RunInfo>> {
+        query::runs(self.connection(), self.path(), scanner_id)
+    }
+
+    /// The plan of a run with the state of every node, in (repeat, node) order.
+    ///
+    /// # Errors
+    /// As [`CdbRead::run`].
+    fn progress(&self, run_id: &str) -> Result<Vec<NodeProgress>> {
+        query::progress(self.connection(), self.path(), run_id)
+    }
+
+    /// The first pending node of a run in (repeat, node) order: where a resumed run continues.
+    ///
+    /// # Errors
+    /// As [`CdbRead::run`].
+    fn next_pending(&self, run_id: &str) -> Result<Option<PlanNode>> {
+        query::next_pending(self.connection(), self.path(), run_id)
+    }
+
+    /// Numbers of pending, done and given-up nodes of a run.
+    ///
+    /// # Errors
+    /// As [`CdbRead::run`].
+    fn progress_summary(&self, run_id: &str) -> Result<ProgressSummary> {
+        query::progress_summary(self.connection(), self.path(), run_id)
+    }
+
+    /// Age dynamics: one coefficient against date, as mean and standard uncertainty per group
+    /// (per run, per UTC day, or per node and run), ordered by mean time.
+    ///
+    /// # Errors
+    /// As [`CdbRead::records`].
+    fn age_dynamics(
+        &self,
+        filter: &RecordFilter,
+        coefficient: Coefficient,
+        grouping: TrendGrouping,
+    ) -> Result<Vec<TrendPoint>> {
+        query::age_dynamics(
+            self.connection(),
+            self.path(),
+            filter,
+            coefficient,
+            grouping,
+        )
+    }
+
+    /// Writes the selected records as CSV ([`CSV_HEADER`] then one line per record); returns
+    /// the number of records.
+    ///
+    /// # Errors
+    /// [`ErrorKind::Io`] if writing fails; as [`CdbRead::records`].
+    fn export_csv(&self, filter: &RecordFilter, out: &mut dyn Write) -> Result<u64> {
+        export::csv(self.connection(), self.path(), filter, out)
+    }
+
+    /// Writes the selected records as JSON
+    /// `{"schema_version": N, "records": [LccRecord, …]}`; returns the number of records.
+    ///
+    /// # Errors
+    /// As [`CdbRead::export_csv`].
+    fn export_json(&self, filter: &RecordFilter, out: &mut dyn Write) -> Result<u64> {
+        export::json(self.connection(), self.path(), filter, out)
+    }
+
+    /// `PRAGMA integrity_check`, `PRAGMA foreign_key_check` and semantic checks: finite
+    /// values, K̄x, K̄y, Kz > 0, |α| < π/2, non-negative uncertainties and counts, every done
+    /// plan node has records and no unfinished one has any, records match their plan node and
+    /// run's scanner, no duplicate (run, repeat, node, lcs), given-up nodes have a reason.
+    ///
+    /// # Errors
+    /// SQLite errors while checking (problems found are in the report, not errors).
+    fn check(&self) -> Result<IntegrityReport> {
+        integrity::check(self.connection(), self.path())
+    }
+}
+
+impl CdbRead for Cdb {
+    fn connection(&self) -> &Connection {
+        &self.conn
+    }
+    fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+impl CdbRead for Snapshot<'_> {
+    fn connection(&self) -> &Connection {
+        &self.tx
+    }
+    fn path(&self) -> &Path {
+        self.path
+    }
+}
+
+fn invalid(path: &Path, reason: String) -> CdbError {
+    CdbError::InvalidInput {
+        path: path.to_path_buf(),
+        reason,
+    }
+}
+
+fn check_time(path: &Path, what: &str, t: f64) -> Result<()> {
+    if t.is_finite() {
+        Ok(())
+    } else {
+        Err(invalid(path, format!("{what} must be finite, got {t}")))
+    }
+}
+
+/// Checks a record before it is written.
+fn validate_record(path: &Path, r: &LccRecord) -> Result<()> {
+    let at = || {
+        format!(
+            "record (run {:?}, repeat {}, node {}, lcs {})",
+            r.run_id, r.repeat_index, r.node_index, r.lcs_index
+        )
+    };
+    if r.scanner_id.is_empty() || r.run_id.is_empty() {
+        return Err(invalid(path, format!("{}: empty scanner or run id", at())));
+    }
+    let finite = [
+        ("acquired_unix_s", r.acquired_unix_s),
+        ("lcs_x_counts", r.lcs_x_counts),
+        ("lcs_y_counts", r.lcs_y_counts),
+        ("lcs_z_counts", r.lcs_z_counts),
+        ("kx_nm_per_count", r.kx_nm_per_count),
+        ("ky_nm_per_count", r.ky_nm_per_count),
+        ("alpha_rad", r.alpha_rad),
+        ("drift_vx_nm_per_s", r.drift_vx_nm_per_s),
+        ("drift_vy_nm_per_s", r.drift_vy_nm_per_s),
+        ("quality", r.quality),
+    ];
+    for (name, v) in finite {
+        if !v.is_finite() {
+            return Err(invalid(
+                path,
+                format!("{}: {name} = {v} is not finite", at()),
+            ));
+        }
+    }
+    for (name, v) in [
+        ("kx_nm_per_count", Some(r.kx_nm_per_count)),
+        ("ky_nm_per_count", Some(r.ky_nm_per_count)),
+        ("kz_nm_per_count", r.kz_nm_per_count),
+    ] {
+        if let Some(v) = v
+            && !(v.is_finite() && v > 0.0)
+        {
+            return Err(invalid(path, format!("{}: {name} = {v} must be > 0", at())));
+        }
+    }
+    if r.alpha_rad.abs() >= std::f64::consts::FRAC_PI_2 {
+        return Err(invalid(
+            path,
+            format!(
+                "{}: |alpha_rad| = {} must be < pi/2",
+                at(),
+                r.alpha_rad.abs()
+            ),
+        ));
+    }
+    for (name, v) in [
+        ("u_kx_nm_per_count", r.u_kx_nm_per_count),
+        ("u_ky_nm_per_count", r.u_ky_nm_per_count),
+        ("u_alpha_rad", r.u_alpha_rad),
+        ("u_kz_nm_per_count", r.u_kz_nm_per_count),
+    ] {
+        if let Some(v) = v
+            && !(v.is_finite() && v >= 0.0)
+        {
+            return Err(invalid(
+                path,
+                format!("{}: {name} = {v} must be finite and >= 0", at()),
+            ));
+        }
+    }
+    Ok(())
+}
+
+const INSERT_RECORD: &str = "INSERT INTO records (scanner_id, run_id, acquired_unix_s, \
+repeat_index, node_index, lcs_index, node_x_counts, node_y_counts, node_z_counts, lcs_x_counts, \
+lcs_y_counts, lcs_z_counts, kx_nm_per_count, ky_nm_per_count, alpha_rad, kz_nm_per_count, \
+u_kx_nm_per_count, u_ky_nm_per_count, u_alpha_rad, u_kz_nm_per_count, drift_vx_nm_per_s, \
+drift_vy_nm_per_s, cycles_kept, cycles_discarded, quality) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, \
+?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20, ?21, ?22, ?23, ?24, ?25)";
+
+fn insert_record(conn: &Connection, r: &LccRecord) -> rusqlite::Result<()> {
+    let mut stmt = conn.prepare_cached(INSERT_RECORD)?;
+    stmt.execute(params![
+        r.scanner_id,
+        r.run_id,
+        r.acquired_unix_s,
+        r.repeat_index,
+        r.node_index,
+        r.lcs_index,
+        r.node_x_counts,
+        r.node_y_counts,
+        r.node_z_counts,
+        r.lcs_x_counts,
+        r.lcs_y_counts,
+        r.lcs_z_counts,
+        r.kx_nm_per_count,
+        r.ky_nm_per_count,
+        r.alpha_rad,
+        r.kz_nm_per_count,
+        r.u_kx_nm_per_count,
+        r.u_ky_nm_per_count,
+        r.u_alpha_rad,
+        r.u_kz_nm_per_count,
+        r.drift_vx_nm_per_s,
+        r.drift_vy_nm_per_s,
+        r.cycles_kept,
+        r.cycles_discarded,
+        r.quality
+    ])?;
+    Ok(())
+}
+
+impl Cdb {
+    /// Opens (creating if missing) a CDB read-write with default [`OpenOptions`], migrating an
+    /// older schema.
+    ///
+    /// # Errors
+    /// [`ErrorKind::NewerSchema`] (file untouched), [`ErrorKind::NotACdb`],
+    /// [`ErrorKind::Migration`], [`ErrorKind::Busy`], SQLite errors.
+    pub fn open(path: impl AsRef<Path>) -> Result<Self> {
+        Self::open_with(path, &OpenOptions::default())
+    }
+
+    /// Opens a CDB read-write with the given options.
+    ///
+    /// # Errors
+    /// As [`Cdb::open`]; [`ErrorKind::NotFound`] if the file is missing and
+    /// `options.create` is false.
+    pub fn open_with(path: impl AsRef<Path>, options: &OpenOptions) -> Result<Self> {
+        let path = path.as_ref().to_path_buf();
+        let err = |e| CdbError::sqlite(&path, e);
+        if path.exists() {
+            // Look read-only first: a file we refuse must not be written to, not even by
+            // switching its journal mode.
+            let ro = Connection::open_with_flags(
+                &path,
+                OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX,
+            )
+            .map_err(err)?;
+            ro.busy_timeout(options.busy_timeout).map_err(err)?;
+            let p = schema::probe(&ro).map_err(err)?;
+            schema::check_probe(&path, &p)?;
+            drop(ro);
+        } else if !options.create {
+            return Err(CdbError::NotFound {
+                path: path.clone(),
+                what: "database file".into(),
+            });
+        }
+        let mut conn = Connection::open_with_flags(
+            &path,
+            OpenFlags::SQLITE_OPEN_READ_WRITE
+                | OpenFlags::SQLITE_OPEN_CREATE
+                | OpenFlags::SQLITE_OPEN_NO_MUTEX,
+        )
+        .map_err(err)?;
+        conn.busy_timeout(options.busy_timeout).map_err(err)?;
+        let mode: String = conn
+            .pragma_update_and_check(None, "journal_mode", "WAL", |r| r.get(0))
+            .map_err(err)?;
+        if !mode.eq_ignore_ascii_case("wal") {
+            tracing::warn!(path = %path.display(), mode, "WAL journal not available");
+        }
+        let sync = match options.synchronous {
+            Synchronous::Full => "FULL",
+            Synchronous::Normal => "NORMAL",
+        };
+        conn.pragma_update(None, "synchronous", sync).map_err(err)?;
+        conn.pragma_update(None, "foreign_keys", true)
+            .map_err(err)?;
+        schema::initialise_or_migrate(&mut conn, &path)?;
+        tracing::debug!(path = %path.display(), "CDB open");
+        Ok(Self { conn, path })
+    }
+
+    /// Opens an existing CDB read-only (for check, export, trend). Never writes.
+    ///
+    /// # Errors
+    /// [`ErrorKind::NewerSchema`], [`ErrorKind::OutdatedSchema`] (open read-write once to
+    /// migrate), [`ErrorKind::NotACdb`] (also for an empty file), SQLite errors.
+    pub fn open_read_only(path: impl AsRef<Path>) -> Result<Self> {
+        let path = path.as_ref().to_path_buf();
+        let err = |e| CdbError::sqlite(&path, e);
+        if !path.exists() {
+            return Err(CdbError::NotFound {
+                path: path.clone(),
+                what: "database file".into(),
+            });
+        }
+        let conn = Connection::open_with_flags(
+            &path,
+            OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX,
+        )
+        .map_err(err)?;
+        conn.busy_timeout(Duration::from_secs(5)).map_err(err)?;
+        let p = schema::probe(&conn).map_err(err)?;
+        schema::check_probe(&path, &p)?;
+        if p.user_version == 0 {
+            return Err(CdbError::NotACdb {
+                path,
+                reason: "empty database".into(),
+            });
+        }
+        if p.user_version < SCHEMA_VERSION {
+            return Err(CdbError::OutdatedSchema {
+                path,
+                found: p.user_version,
+                supported: SCHEMA_VERSION,
+            });
+        }
+        Ok(Self { conn, path })
+    }
+
+    /// Schema version of the open file.
+    ///
+    /// # Errors
+    /// SQLite errors.
+    pub fn schema_version(&self) -> Result<i64> {
+        self.conn
+            .pragma_query_value(None, "user_version", |r| r.get(0))
+            .map_err(|e| CdbError::sqlite(&self.path, e))
+    }
+
+    /// Starts a read transaction: all queries through the snapshot see one committed state.
+    ///
+    /// # Errors
+    /// SQLite errors.
+    pub fn snapshot(&self) -> Result<Snapshot<'_>> {
+        let err = |e| CdbError::sqlite(&self.path, e);
+        let tx = self.conn.unchecked_transaction().map_err(err)?;
+        // A deferred transaction takes its snapshot at the first read.
+        tx.query_row("SELECT count(*) FROM runs", [], |r| r.get::<_, i64>(0))
+            .map_err(err)?;
+        Ok(Snapshot {
+            tx,
+            path: &self.path,
+        })
+    }
+
+    fn write_tx(&mut self) -> Result<rusqlite::Transaction<'_>> {
+        self.conn
+            .transaction_with_behavior(TransactionBehavior::Immediate)
+            .map_err(|e| CdbError::sqlite(&self.path, e))
+    }
+
+    /// Registers a new run (status as given, normally [`RunStatus::Running`]).
+    ///
+    /// # Errors
+    /// [`ErrorKind::Conflict`] if the run id exists; [`ErrorKind::InvalidInput`] for empty ids
+    /// or non-finite times.
+    pub fn create_run(&mut self, run: &RunInfo) -> Result<()> {
+        let path = self.path.clone();
+        if run.run_id.is_empty() || run.scanner_id.is_empty() {
+            return Err(invalid(&path, "empty run or scanner id".into()));
+        }
+        check_time(&path, "started_unix_s", run.started_unix_s)?;
+        if let Some(t) = run.finished_unix_s {
+            check_time(&path, "finished_unix_s", t)?;
+        }
+        let err = |e| CdbError::sqlite(&path, e);
+        let tx = self.write_tx()?;
+        if query::run_exists(&tx, &path, &run.run_id)? {
+            return Err(CdbError::Conflict {
+                path,
+                reason: format!("run {:?} already exists", run.run_id),
+            });
+        }
+        tx.execute(
+            "INSERT INTO runs (run_id, scanner_id, config, started_unix_s, finished_unix_s, \
+             status) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+            params![
+                run.run_id,
+                run.scanner_id,
+                run.config,
+                run.started_unix_s,
+                run.finished_unix_s,
+                run.status.as_str()
+            ],
+        )
+        .map_err(err)?;
+        tx.commit().map_err(err)?;
+        tracing::info!(run_id = %run.run_id, scanner_id = %run.scanner_id, "run created");
+        Ok(())
+    }
+
+    /// Sets a run's final status and end time.
+    ///
+    /// # Errors
+    /// [`ErrorKind::NotFound`] for an unknown run; [`ErrorKind::InvalidInput`] for a
+    /// non-finite time.
+    pub fn finish_run(
+        &mut self,
+        run_id: &str,
+        status: RunStatus,
+        finished_unix_s: f64,
+    ) -> Result<()> {
+        let path = self.path.clone();
+        check_time(&path, "finished_unix_s", finished_unix_s)?;
+        let err = |e| CdbError::sqlite(&path, e);
+        let n = self
+            .conn
+            .execute(
+                "UPDATE runs SET status = ?2, finished_unix_s = ?3 WHERE run_id = ?1",
+                params![run_id, status.as_str(), finished_unix_s],
+            )
+            .map_err(err)?;
+        if n == 0 {
+            return Err(CdbError::NotFound {
+                path,
+                what: format!("run {run_id:?}"),
+            });
+        }
+        tracing::info!(run_id, status = status.as_str(), "run finished");
+        Ok(())
+    }
+
+    /// Registers a run's plan (all nodes pending) in one transaction. Idempotent: nodes
+    /// already registered with the same coordinates are left as they are (so a resumed run
+    /// may call it again).
+    ///
+    /// # Errors
+    /// [`ErrorKind::NotFound`] for an unknown run; [`ErrorKind::Conflict`] if a node exists
+    /// with other coordinates.
+    pub fn register_plan(&mut self, run_id: &str, nodes: &[PlanNode]) -> Result<()> {
+        let path = self.path.clone();
+        let err = |e| CdbError::sqlite(&path, e);
+        let tx = self.write_tx()?;
+        if !query::run_exists(&tx, &path, run_id)? {
+            return Err(CdbError::NotFound {
+                path,
+                what: format!("run {run_id:?}"),
+            });
+        }
+        {
+            let mut get = tx
+                .prepare(
+                    "SELECT node_x_counts, node_y_counts, node_z_counts FROM progress \
+                     WHERE run_id = ?1 AND repeat_index = ?2 AND node_index = ?3",
+                )
+                .map_err(err)?;
+            let mut put = tx
+                .prepare(
+                    "INSERT INTO progress (run_id, repeat_index, node_index, node_x_counts, \
+                     node_y_counts, node_z_counts, state, attempts) \
+                     VALUES (?1, ?2, ?3, ?4, ?5, ?6, 'pending', 0)",
+                )
+                .map_err(err)?;
+            for n in nodes {
+                let mut rows = get
+                    .query(params![run_id, n.repeat_index, n.node_index])
+                    .map_err(err)?;
+                if let Some(r) = rows.next().map_err(err)? {
+                    let xyz: (i64, i64, i64) = (
+                        r.get(0).map_err(err)?,
+                        r.get(1).map_err(err)?,
+                        r.get(2).map_err(err)?,
+                    );
+                    if xyz != (n.node_x_counts, n.node_y_counts, n.node_z_counts) {
+                        return Err(CdbError::Conflict {
+                            path,
+                            reason: format!(
+                                "run {run_id:?} repeat {} node {} is registered at {xyz:?}",
+                                n.repeat_index, n.node_index
+                            ),
+                        });
+                    }
+                    continue;
+                }
+                drop(rows);
+                put.execute(params![
+                    run_id,
+                    n.repeat_index,
+                    n.node_index,
+                    n.node_x_counts,
+                    n.node_y_counts,
+                    n.node_z_counts
+                ])
+                .map_err(err)?;
+            }
+        }
+        tx.commit().map_err(err)?;
+        tracing::debug!(run_id, nodes = nodes.len(), "plan registered");
+        Ok(())
+    }
+
+    /// Stores a measured node: inserts its `records` and marks the plan node done, in one
+    /// transaction (all or nothing). Every record must belong to this run, repeat and node,
+    /// carry the plan node's coordinates and the run's scanner.
+    ///
+    /// # Errors
+    /// [`ErrorKind::NotFound`] for an unknown run or plan node; [`ErrorKind::Conflict`] if
+    /// the node is not pending or a record duplicates an LCS index;
+    /// [`ErrorKind::InvalidInput`] for invalid or mismatched records or an empty slice.
+    pub fn commit_node(
+        &mut self,
+        run_id: &str,
+        done: &NodeDone,
+        records: &[LccRecord],
+    ) -> Result<()> {
+        let path = self.path.clone();
+        check_time(&path, "finished_unix_s", done.finished_unix_s)?;
+        if records.is_empty() {
+            return Err(invalid(
+                &path,
+                "commit_node needs at least one record (use give_up_node otherwise)".into(),
+            ));
+        }
+        for r in records {
+            validate_record(&path, r)?;
+        }
+        let err = |e| CdbError::sqlite(&path, e);
+        let tx = self.write_tx()?;
+        let run = query::run(&tx, &path, run_id)?.ok_or_else(|| CdbError::NotFound {
+            path: path.clone(),
+            what: format!("run {run_id:?}"),
+        })?;
+        let plan = tx.query_row(
+            "SELECT node_x_counts, node_y_counts, node_z_counts, state FROM progress \
+                 WHERE run_id = ?1 AND repeat_index = ?2 AND node_index = ?3",
+            params![run_id, done.repeat_index, done.node_index],
+            |r| {
+                Ok((
+                    r.get::<_, i64>(0)?,
+                    r.get::<_, i64>(1)?,
+                    r.get::<_, i64>(2)?,
+                    r.get::<_, String>(3)?,
+                ))
+            },
+        );
+        let (x, y, z, state) = match plan {
+            Ok(p) => p,
+            Err(rusqlite::Error::QueryReturnedNoRows) => {
+                return Err(CdbError::NotFound {
+                    path,
+                    what: format!(
+                        "plan node (run {run_id:?}, repeat {}, node {})",
+                        done.repeat_index, done.node_index
+                    ),
+                });
+            }
+            Err(e) => return Err(err(e)),
+        };
+        if state != "pending" {
+            return Err(CdbError::Conflict {
+                path,
+                reason: format!(
+                    "run {run_id:?} repeat {} node {} is {state}, not pending",
+                    done.repeat_index, done.node_index
+                ),
+            });
+        }
+        for r in records {
+            let matches = r.run_id == run_id
+                && r.scanner_id == run.scanner_id
+                && r.repeat_index == done.repeat_index
+                && r.node_index == done.node_index
+                && (r.node_x_counts, r.node_y_counts, r.node_z_counts) == (x, y, z);
+            if !matches {
+                return Err(invalid(
+                    &path,
+                    format!(
+                        "record (run {:?}, scanner {:?}, repeat {}, node {} at ({}, {}, {})) \
+                         does not belong to run {run_id:?} (scanner {:?}) repeat {} node {} at \
+                         ({x}, {y}, {z})",
+                        r.run_id,
+                        r.scanner_id,
+                        r.repeat_index,
+                        r.node_index,
+                        r.node_x_counts,
+                        r.node_y_counts,
+                        r.node_z_counts,
+                        run.scanner_id,
+                        done.repeat_index,
+                        done.node_index
+                    ),
+                ));
+            }
+            insert_record(&tx, r).map_err(err)?;
+        }
+        tx.execute(
+            "UPDATE progress SET state = 'done', reason = NULL, attempts = ?4, \
+             updated_unix_s = ?5 WHERE run_id = ?1 AND repeat_index = ?2 AND node_index = ?3",
+            params![
+                run_id,
+                done.repeat_index,
+                done.node_index,
+                done.attempts,
+                done.finished_unix_s
+            ],
+        )
+        .map_err(err)?;
+        tx.commit().map_err(err)?;
+        tracing::debug!(
+            run_id,
+            repeat = done.repeat_index,
+            node = done.node_index,
+            records = records.len(),
+            "node committed"
+        );
+        Ok(())
+    }
+
+    /// Marks a pending plan node as given up, with the reason.
+    ///
+    /// # Errors
+    /// [`ErrorKind::NotFound`] for an unknown node; [`ErrorKind::Conflict`] if not pending;
+    /// [`ErrorKind::InvalidInput`] for an empty reason or a non-finite time.
+    pub fn give_up_node(
+        &mut self,
+        run_id: &str,
+        repeat_index: u32,
+        node_index: u32,
+        reason: &str,
+        attempts: u32,
+        at_unix_s: f64,
+    ) -> Result<()> {
+        let path = self.path.clone();
+        check_time(&path, "at_unix_s", at_unix_s)?;
+        if reason.trim().is_empty() {
+            return Err(invalid(&path, "a given-up node needs a reason".into()));
+        }
+        let err = |e| CdbError::sqlite(&path, e);
+        let tx = self.write_tx()?;
+        let state: Option<String> = match tx.query_row(
+            "SELECT state FROM progress WHERE run_id = ?1 AND repeat_index = ?2 AND node_index = ?3",
+            params![run_id, repeat_index, node_index],
+            |r| r.get(0),
+        ) {
+            Ok(s) => Some(s),
+            Err(rusqlite::Error::QueryReturnedNoRows) => None,
+            Err(e) => return Err(err(e)),
+        };
+        match state.as_deref() {
+            None => {
+                return Err(CdbError::NotFound {
+                    path,
+                    what: format!(
+                        "plan node (run {run_id:?}, repeat {repeat_index}, node {node_index})"
+                    ),
+                });
+            }
+            Some("pending") => {}
+            Some(other) => {
+                return Err(CdbError::Conflict {
+                    path,
+                    reason: format!(
+                        "run {run_id:?} repeat {repeat_index} node {node_index} is {other}, not pending"
+                    ),
+                });
+            }
+        }
+        tx.execute(
+            "UPDATE progress SET state = 'given_up', reason = ?4, attempts = ?5, \
+             updated_unix_s = ?6 WHERE run_id = ?1 AND repeat_index = ?2 AND node_index = ?3",
+            params![
+                run_id,
+                repeat_index,
+                node_index,
+                reason,
+                attempts,
+                at_unix_s
+            ],
+        )
+        .map_err(err)?;
+        tx.commit().map_err(err)?;
+        tracing::warn!(run_id, repeat_index, node_index, reason, "node given up");
+        Ok(())
+    }
+
+    /// Bulk import: inserts records (of existing runs, outside any plan) in one transaction.
+    /// Returns the number inserted.
+    ///
+    /// # Errors
+    /// [`ErrorKind::InvalidInput`] for an invalid record; [`ErrorKind::Conflict`] for a
+    /// duplicate (run, repeat, node, lcs) or a record of an unknown run. Nothing is written on
+    /// error.
+    pub fn import_records<'r>(
+        &mut self,
+        records: impl IntoIterator<Item = &'r LccRecord>,
+    ) -> Result<u64> {
+        let path = self.path.clone();
+        let err = |e| CdbError::sqlite(&path, e);
+        let tx = self.write_tx()?;
+        let mut n = 0;
+        for r in records {
+            validate_record(&path, r)?;
+            insert_record(&tx, r).map_err(err)?;
+            n += 1;
+        }
+        tx.commit().map_err(err)?;
+        tracing::info!(records = n, "records imported");
+        Ok(n)
+    }
+}

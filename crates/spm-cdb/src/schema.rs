@@ -1,0 +1,188 @@
+//! Schema, version and migrations.
+//!
+//! The version lives in `PRAGMA user_version`; `PRAGMA application_id` marks the file as a
+//! spmcal CDB. History:
+//! - v1: runs, progress, records without standard uncertainties.
+//! - v2: records gain `u_kx_nm_per_count`, `u_ky_nm_per_count`, `u_alpha_rad`,
+//!   `u_kz_nm_per_count` (NULL = unknown for records migrated from v1) and an index on
+//!   (scanner_id, acquired_unix_s) for time-window queries.
+
+use rusqlite::{Connection, TransactionBehavior};
+use std::path::Path;
+
+use crate::error::{CdbError, Result};
+
+/// Schema version written by this library.
+pub const SCHEMA_VERSION: i64 = 2;
+
+/// `PRAGMA application_id` of a spmcal CDB ("SPMC").
+pub const APPLICATION_ID: i64 = 0x5350_4D43;
+
+/// The complete current schema, used for new files.
+const SCHEMA_V2: &str = "
+CREATE TABLE runs (
+    run_id          TEXT PRIMARY KEY NOT NULL,
+    scanner_id      TEXT NOT NULL,
+    config          TEXT NOT NULL,
+    started_unix_s  REAL NOT NULL,
+    finished_unix_s REAL,
+    status          TEXT NOT NULL CHECK (status IN ('running', 'finished', 'failed', 'aborted'))
+);
+CREATE INDEX runs_scanner ON runs (scanner_id, started_unix_s);
+
+CREATE TABLE progress (
+    run_id         TEXT NOT NULL REFERENCES runs (run_id),
+    repeat_index   INTEGER NOT NULL,
+    node_index     INTEGER NOT NULL,
+    node_x_counts  INTEGER NOT NULL,
+    node_y_counts  INTEGER NOT NULL,
+    node_z_counts  INTEGER NOT NULL,
+    state          TEXT NOT NULL CHECK (state IN ('pending', 'done', 'given_up')),
+    reason         TEXT,
+    attempts       INTEGER NOT NULL DEFAULT 0,
+    updated_unix_s REAL,
+    PRIMARY KEY (run_id, repeat_index, node_index)
+) WITHOUT ROWID;
+
+CREATE TABLE records (
+    id                INTEGER PRIMARY KEY,
+    scanner_id        TEXT NOT NULL,
+    run_id            TEXT NOT NULL REFERENCES runs (run_id),
+    acquired_unix_s   REAL NOT NULL,
+    repeat_index      INTEGER NOT NULL,
+    node_index        INTEGER NOT NULL,
+    lcs_index         INTEGER NOT NULL DEFAULT 0,
+    node_x_counts     INTEGER NOT NULL,
+    node_y_counts     INTEGER NOT NULL,
+    node_z_counts     INTEGER NOT NULL,
+    lcs_x_counts      REAL NOT NULL,
+    lcs_y_counts      REAL NOT NULL,
+    lcs_z_counts      REAL NOT NULL,
+    kx_nm_per_count   REAL NOT NULL,
+    ky_nm_per_count   REAL NOT NULL,
+    alpha_rad         REAL NOT NULL,
+    kz_nm_per_count   REAL,
+    drift_vx_nm_per_s REAL NOT NULL,
+    drift_vy_nm_per_s REAL NOT NULL,
+    cycles_kept       INTEGER NOT NULL,
+    cycles_discarded  INTEGER NOT NULL,
+    quality           REAL NOT NULL,
+    u_kx_nm_per_count REAL,
+    u_ky_nm_per_count REAL,
+    u_alpha_rad       REAL,
+    u_kz_nm_per_count REAL
+);
+CREATE UNIQUE INDEX records_node ON records (run_id, repeat_index, node_index, lcs_index);
+CREATE INDEX records_plane ON records (scanner_id, node_z_counts, acquired_unix_s);
+CREATE INDEX records_time ON records (scanner_id, acquired_unix_s);
+";
+
+/// v1 → v2: standard uncertainties and the time index.
+const MIGRATE_V1_TO_V2: &str = "
+ALTER TABLE records ADD COLUMN u_kx_nm_per_count REAL;
+ALTER TABLE records ADD COLUMN u_ky_nm_per_count REAL;
+ALTER TABLE records ADD COLUMN u_alpha_rad REAL;
+ALTER TABLE records ADD COLUMN u_kz_nm_per_count REAL;
+CREATE INDEX IF NOT EXISTS records_time ON records (scanner_id, acquired_unix_s);
+";
+
+/// Migration steps: `MIGRATIONS[k]` takes version k+1 to k+2.
+const MIGRATIONS: &[&str] = &[MIGRATE_V1_TO_V2];
+
+/// What a read-only look at a file found.
+pub(crate) struct Probe {
+    pub user_version: i64,
+    pub application_id: i64,
+    pub n_tables: i64,
+}
+
+pub(crate) fn probe(conn: &Connection) -> rusqlite::Result<Probe> {
+    let user_version = conn.pragma_query_value(None, "user_version", |r| r.get(0))?;
+    let application_id = conn.pragma_query_value(None, "application_id", |r| r.get(0))?;
+    let n_tables = conn.query_row(
+        "SELECT count(*) FROM sqlite_master WHERE type = 'table'",
+        [],
+        |r| r.get(0),
+    )?;
+    Ok(Probe {
+        user_version,
+        application_id,
+        n_tables,
+    })
+}
+
+/// Checks a probe against what this library accepts (before anything is written).
+pub(crate) fn check_probe(path: &Path, p: &Probe) -> Result<()> {
+    if p.application_id != 0 && p.application_id != APPLICATION_ID {
+        return Err(CdbError::NotACdb {
+            path: path.to_path_buf(),
+            reason: format!("application_id {:#x}", p.application_id),
+        });
+    }
+    if p.user_version > SCHEMA_VERSION {
+        return Err(CdbError::NewerSchema {
+            path: path.to_path_buf(),
+            found: p.user_version,
+            supported: SCHEMA_VERSION,
+        });
+    }
+    if p.user_version == 0 && p.n_tables > 0 {
+        return Err(CdbError::NotACdb {
+            path: path.to_path_buf(),
+            reason: "tables present but no schema version".into(),
+        });
+    }
+    if p.user_version < 0 {
+        return Err(CdbError::NotACdb {
+            path: path.to_path_buf(),
+            reason: format!("negative schema version {}", p.user_version),
+        });
+    }
+    Ok(())
+}
+
+/// Creates the schema in an empty database or migrates an older one, one transaction per step.
+pub(crate) fn initialise_or_migrate(conn: &mut Connection, path: &Path) -> Result<()> {
+    loop {
+        let tx = conn
+            .transaction_with_behavior(TransactionBehavior::Immediate)
+            .map_err(|e| CdbError::sqlite(path, e))?;
+        // Re-read inside the write lock: another process may have migrated meanwhile.
+        let p = probe(&tx).map_err(|e| CdbError::sqlite(path, e))?;
+        check_probe(path, &p)?;
+        let version = p.user_version;
+        if version == SCHEMA_VERSION {
+            return Ok(());
+        }
+        let step = |e| CdbError::Migration {
+            path: path.to_path_buf(),
+            from: version,
+            source: e,
+        };
+        if version == 0 {
+            tracing::info!(path = %path.display(), version = SCHEMA_VERSION, "creating CDB schema");
+            tx.execute_batch(SCHEMA_V2).map_err(step)?;
+            tx.pragma_update(None, "application_id", APPLICATION_ID)
+                .map_err(step)?;
+            tx.pragma_update(None, "user_version", SCHEMA_VERSION)
+                .map_err(step)?;
+        } else {
+            let Some(sql) = usize::try_from(version - 1)
+                .ok()
+                .and_then(|k| MIGRATIONS.get(k))
+            else {
+                return Err(CdbError::NotACdb {
+                    path: path.to_path_buf(),
+                    reason: format!("no migration from schema version {version}"),
+                });
+            };
+            tracing::info!(path = %path.display(), from = version, to = version + 1, "migrating CDB");
+            tx.execute_batch(sql).map_err(step)?;
+            tx.pragma_update(None, "application_id", APPLICATION_ID)
+                .map_err(step)?;
+            tx.pragma_update(None, "user_version", version + 1)
+                .map_err(step)?;
+        }
+        tx.commit().map_err(step)?;
+    }
+}

@@ -1,0 +1,622 @@
+//! CDB tests: round trip, resume, queries, age dynamics, export, migration from v1, refusal of
+//! a newer schema without modification, snapshot isolation across threads, integrity check.
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use common::{T0, db_path, plan, record, run};
+use rusqlite::Connection;
+use spm_cdb::{
+    Cdb, CdbRead, Coefficient, ErrorKind, LccRecord, NodeDone, NodeState, RecordFilter, RunStatus,
+    SCHEMA_VERSION, TrendGrouping,
+};
+
+fn done(node_index: u32, t: f64) -> NodeDone {
+    NodeDone {
+        repeat_index: 0,
+        node_index,
+        attempts: 1,
+        finished_unix_s: t,
+    }
+}
+
+#[test]
+fn round_trip_queries_and_resume() {
+    let path = db_path("round_trip");
+    let r = run("run-1", "scanner-A", T0);
+    let nodes = plan(3);
+    let mut stored: Vec<LccRecord> = Vec::new();
+    {
+        let mut cdb = Cdb::open(&path).unwrap();
+        assert_eq!(cdb.schema_version().unwrap(), SCHEMA_VERSION);
+        cdb.create_run(&r).unwrap();
+        assert_eq!(cdb.create_run(&r).unwrap_err().kind(), ErrorKind::Conflict);
+        cdb.register_plan(&r.run_id, &nodes).unwrap();
+        cdb.register_plan(&r.run_id, &nodes).unwrap(); // idempotent
+        // nodes 0..4 measured (node 1 with two LCSs), node 4 given up, node 5 left pending
+        for n in &nodes[..4] {
+            let t = T0 + 60.0 * f64::from(n.node_index);
+            let mut recs = vec![record(&r, n, 0, t)];
+            if n.node_index == 1 {
+                recs.push(record(&r, n, 1, t + 1.0));
+            }
+            cdb.commit_node(&r.run_id, &done(n.node_index, t + 2.0), &recs)
+                .unwrap();
+            stored.extend(recs);
+        }
+        cdb.give_up_node(
+            &r.run_id,
+            0,
+            4,
+            "no LCS found in 5 apertures",
+            5,
+            T0 + 400.0,
+        )
+        .unwrap();
+        // simulated crash: dropped without finishing the run
+    }
+    let mut cdb = Cdb::open(&path).unwrap();
+    let all = cdb.records(&RecordFilter::default()).unwrap();
+    assert_eq!(all, stored);
+    let next = cdb.next_pending(&r.run_id).unwrap().unwrap();
+    assert_eq!(next, nodes[5]);
+    let s = cdb.progress_summary(&r.run_id).unwrap();
+    assert_eq!((s.pending, s.done, s.given_up), (1, 4, 1));
+    let prog = cdb.progress(&r.run_id).unwrap();
+    assert_eq!(
+        prog[4].state,
+        NodeState::GivenUp("no LCS found in 5 apertures".into())
+    );
+    assert_eq!(prog[4].attempts, 5);
+
+    // queries: scanner, Z plane, time window, run
+    let check = |filter: RecordFilter, expected: usize| {
+        let got = cdb.records(&filter).unwrap();
+        assert_eq!(got.len(), expected, "{filter:?}");
+        assert_eq!(cdb.count_records(&filter).unwrap(), expected as u64);
+        assert_eq!(cdb.columns(&filter).unwrap().len(), expected);
+    };
+    check(RecordFilter::scanner("scanner-A"), 5);
+    check(RecordFilter::scanner("scanner-B"), 0);
+    check(RecordFilter::scanner("scanner-A").with_z_plane(0), 4);
+    check(RecordFilter::scanner("scanner-A").with_z_plane(500), 1);
+    check(
+        RecordFilter::default().with_window(Some(T0 + 60.0), Some(T0 + 120.0)),
+        3,
+    );
+    check(
+        RecordFilter::default().with_window(Some(T0 + 61.0), None),
+        3,
+    );
+    check(
+        RecordFilter::default().with_window(Some(T0 + 62.0), None),
+        2,
+    );
+    check(RecordFilter::default().with_run("run-1"), 5);
+    check(RecordFilter::default().with_run("nope"), 0);
+    assert_eq!(cdb.z_planes("scanner-A").unwrap(), vec![0, 500]);
+    assert_eq!(cdb.scanners().unwrap(), vec!["scanner-A".to_string()]);
+    let bad = RecordFilter::default().with_window(Some(f64::NAN), None);
+    assert_eq!(
+        cdb.records(&bad).unwrap_err().kind(),
+        ErrorKind::InvalidInput
+    );
+
+    // resume: finish the last node, close the run
+    let last = nodes[5];
+    cdb.commit_node(
+        &r.run_id,
+        &done(5, T0 + 500.0),
+        &[record(&r, &last, 0, T0 + 499.0)],
+    )
+    .unwrap();
+    assert_eq!(cdb.next_pending(&r.run_id).unwrap(), None);
+    cdb.finish_run(&r.run_id, RunStatus::Finished, T0 + 600.0)
+        .unwrap();
+    let info = cdb.run(&r.run_id).unwrap().unwrap();
+    assert_eq!(
+        (info.status, info.finished_unix_s),
+        (RunStatus::Finished, Some(T0 + 600.0))
+    );
+    assert_eq!(cdb.runs(Some("scanner-A")).unwrap().len(), 1);
+    assert!(cdb.check().unwrap().is_ok(), "{:?}", cdb.check().unwrap());
+}
+
+#[test]
+fn commit_node_is_atomic_and_validated() {
+    let path = db_path("atomic");
+    let r = run("run-1", "S", T0);
+    let nodes = plan(2);
+    let mut cdb = Cdb::open(&path).unwrap();
+    cdb.create_run(&r).unwrap();
+    cdb.register_plan(&r.run_id, &nodes).unwrap();
+    let n0 = nodes[0];
+    // duplicate LCS index inside one node: the second insert fails, the first is rolled back
+    let dup = [record(&r, &n0, 0, T0), record(&r, &n0, 0, T0)];
+    assert_eq!(
+        cdb.commit_node(&r.run_id, &done(0, T0), &dup)
+            .unwrap_err()
+            .kind(),
+        ErrorKind::Conflict
+    );
+    assert_eq!(cdb.count_records(&RecordFilter::default()).unwrap(), 0);
+    assert_eq!(cdb.next_pending(&r.run_id).unwrap(), Some(n0));
+    // invalid values
+    let check_invalid = |cdb: &mut Cdb, edit: fn(&mut LccRecord)| {
+        let mut rec = record(&r, &n0, 0, T0);
+        edit(&mut rec);
+        let e = cdb
+            .commit_node(&r.run_id, &done(0, T0), &[rec])
+            .unwrap_err();
+        assert_eq!(e.kind(), ErrorKind::InvalidInput, "{e}");
+        assert_eq!(e.path(), path.as_path());
+    };
+    check_invalid(&mut cdb, |r| r.kx_nm_per_count = f64::NAN);
+    check_invalid(&mut cdb, |r| r.ky_nm_per_count = -0.02);
+    check_invalid(&mut cdb, |r| r.kz_nm_per_count = Some(0.0));
+    check_invalid(&mut cdb, |r| r.alpha_rad = 2.0);
+    check_invalid(&mut cdb, |r| r.u_alpha_rad = Some(-1.0));
+    check_invalid(&mut cdb, |r| r.drift_vx_nm_per_s = f64::INFINITY);
+    check_invalid(&mut cdb, |r| r.node_index = 1); // belongs to another node
+    check_invalid(&mut cdb, |r| r.node_x_counts += 1); // not the plan node's coordinates
+    check_invalid(&mut cdb, |r| r.scanner_id = "other".into());
+    assert_eq!(
+        cdb.commit_node(&r.run_id, &done(0, T0), &[])
+            .unwrap_err()
+            .kind(),
+        ErrorKind::InvalidInput
+    );
+    assert_eq!(cdb.count_records(&RecordFilter::default()).unwrap(), 0);
+    // unknown node / run, double commit, give up after done
+    assert_eq!(
+        cdb.commit_node(&r.run_id, &done(99, T0), &[record(&r, &n0, 0, T0)])
+            .unwrap_err()
+            .kind(),
+        ErrorKind::NotFound
+    );
+    assert_eq!(
+        cdb.commit_node("nope", &done(0, T0), &[record(&r, &n0, 0, T0)])
+            .unwrap_err()
+            .kind(),
+        ErrorKind::NotFound
+    );
+    cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &n0, 0, T0)])
+        .unwrap();
+    assert_eq!(
+        cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &n0, 1, T0)])
+            .unwrap_err()
+            .kind(),
+        ErrorKind::Conflict
+    );
+    assert_eq!(
+        cdb.give_up_node(&r.run_id, 0, 0, "x", 1, T0)
+            .unwrap_err()
+            .kind(),
+        ErrorKind::Conflict
+    );
+    assert_eq!(
+        cdb.give_up_node(&r.run_id, 0, 1, " ", 1, T0)
+            .unwrap_err()
+            .kind(),
+        ErrorKind::InvalidInput
+    );
+    assert_eq!(
+        cdb.finish_run("nope", RunStatus::Failed, T0)
+            .unwrap_err()
+            .kind(),
+        ErrorKind::NotFound
+    );
+    // a plan re-registered with other coordinates is refused
+    let mut moved = nodes.clone();
+    moved[1].node_x_counts += 7;
+    assert_eq!(
+        cdb.register_plan(&r.run_id, &moved).unwrap_err().kind(),
+        ErrorKind::Conflict
+    );
+    assert!(cdb.check().unwrap().is_ok());
+}
+
+#[test]
+fn age_dynamics_and_export() {
+    let path = db_path("trend");
+    let mut cdb = Cdb::open(&path).unwrap();
+    let nodes = plan(3);
+    let day = 86_400.0;
+    // three runs, 30 days apart; K̄x at the three nodes of plane 0 = base + (0, 1, 2)·1e-3
+    let mut all = Vec::new();
+    for (k, base) in [0.020, 0.0205, 0.021].into_iter().enumerate() {
+        let r = run(&format!("run-{k}"), "S", T0 + 30.0 * day * k as f64);
+        cdb.create_run(&r).unwrap();
+        for (i, n) in nodes[..3].iter().enumerate() {
+            let mut rec = record(&r, n, 0, r.started_unix_s + 10.0 * i as f64);
+            rec.kx_nm_per_count = base + 1e-3 * i as f64;
+            rec.kz_nm_per_count = None;
+            all.push(rec);
+        }
+    }
+    assert_eq!(cdb.import_records(&all).unwrap(), 9);
+    let trend = cdb
+        .age_dynamics(
+            &RecordFilter::scanner("S"),
+            Coefficient::KxNmPerCount,
+            TrendGrouping::PerRun,
+        )
+        .unwrap();
+    assert_eq!(trend.len(), 3);
+    for (k, (p, base)) in trend.iter().zip([0.020, 0.0205, 0.021]).enumerate() {
+        assert_eq!(p.key, format!("run-{k}"));
+        let s = p.stat.unwrap();
+        assert_eq!(s.n, 3);
+        assert!((s.mean - (base + 1e-3)).abs() < 1e-15);
+        assert!((s.std_dev - 1e-3).abs() < 1e-15); // sd of (0, 1, 2)·1e-3 with n − 1
+        assert!((s.std_uncertainty - 1e-3 / 3.0_f64.sqrt()).abs() < 1e-15);
+        assert!((p.mean_unix_s - (T0 + 30.0 * day * k as f64 + 10.0)).abs() < 1e-6);
+    }
+    let by_day = cdb
+        .age_dynamics(
+            &RecordFilter::default(),
+            Coefficient::KzNmPerCount,
+            TrendGrouping::PerDay,
+        )
+        .unwrap();
+    assert_eq!(
+        by_day.iter().map(|p| p.key.as_str()).collect::<Vec<_>>(),
+        ["2024-01-01", "2024-01-31", "2024-03-01"]
+    );
+    assert!(by_day.iter().all(|p| p.stat.is_none())); // Kz not measured
+    let per_node = cdb
+        .age_dynamics(
+            &RecordFilter::default(),
+            Coefficient::AlphaRad,
+            TrendGrouping::PerNodePerRun,
+        )
+        .unwrap();
+    assert_eq!(per_node.len(), 9);
+    assert_eq!(per_node[0].key, "0,0,0@run-0");
+
+    // CSV: header + 9 lines; times as RFC 3339; values round-trip through text
+    let mut csv = Vec::new();
+    assert_eq!(
+        cdb.export_csv(&RecordFilter::default(), &mut csv).unwrap(),
+        9
+    );
+    let csv = String::from_utf8(csv).unwrap();
+    let lines: Vec<&str> = csv.lines().collect();
+    assert_eq!(lines.len(), 10);
+    assert_eq!(lines[0], spm_cdb::CSV_HEADER);
+    let cols: Vec<&str> = lines[1].split(',').collect();
+    assert_eq!(cols.len(), lines[0].split(',').count());
+    assert_eq!(cols[0], "2024-01-01T00:00:00Z");
+    assert_eq!(cols[13].parse::<f64>().unwrap(), all[0].kx_nm_per_count);
+    // JSON: parses back into the same records
+    let mut json = Vec::new();
+    assert_eq!(
+        cdb.export_json(&RecordFilter::scanner("S"), &mut json)
+            .unwrap(),
+        9
+    );
+    let v: serde_json::Value = serde_json::from_slice(&json).unwrap();
+    assert_eq!(v["schema_version"], SCHEMA_VERSION);
+    let back: Vec<LccRecord> = serde_json::from_value(v["records"].clone()).unwrap();
+    // serde_json's default float parser may be 1 ulp off; the text itself is exact (ryu)
+    assert_eq!(back.len(), all.len());
+    for (b, a) in back.iter().zip(&all) {
+        assert_eq!(
+            (&b.run_id, b.node_index, b.cycles_kept),
+            (&a.run_id, a.node_index, a.cycles_kept)
+        );
+        assert!((b.kx_nm_per_count - a.kx_nm_per_count).abs() <= 1e-15 * a.kx_nm_per_count);
+        assert!((b.ky_nm_per_count - a.ky_nm_per_count).abs() <= 1e-15 * a.ky_nm_per_count);
+        assert_eq!(b.u_kz_nm_per_count, a.u_kz_nm_per_count);
+    }
+}
+
+/// Schema v1 as shipped: records without standard uncertainties.
+const V1_DDL: &str = "
+CREATE TABLE runs (run_id TEXT PRIMARY KEY NOT NULL, scanner_id TEXT NOT NULL, config TEXT NOT NULL,
+  started_unix_s REAL NOT NULL, finished_unix_s REAL,
+  status TEXT NOT NULL CHECK (status IN ('running', 'finished', 'failed', 'aborted')));
+CREATE INDEX runs_scanner ON runs (scanner_id, started_unix_s);
+CREATE TABLE progress (run_id TEXT NOT NULL REFERENCES runs (run_id), repeat_index INTEGER NOT NULL,
+  node_index INTEGER NOT NULL, node_x_counts INTEGER NOT NULL, node_y_counts INTEGER NOT NULL,
+  node_z_counts INTEGER NOT NULL, state TEXT NOT NULL CHECK (state IN ('pending', 'done', 'given_up')),
+  reason TEXT, attempts INTEGER NOT NULL DEFAULT 0, updated_unix_s REAL,
+  PRIMARY KEY (run_id, repeat_index, node_index)) WITHOUT ROWID;
+CREATE TABLE records (id INTEGER PRIMARY KEY, scanner_id TEXT NOT NULL,
+  run_id TEXT NOT NULL REFERENCES runs (run_id), acquired_unix_s REAL NOT NULL,
+  repeat_index INTEGER NOT NULL, node_index INTEGER NOT NULL, lcs_index INTEGER NOT NULL DEFAULT 0,
+  node_x_counts INTEGER NOT NULL, node_y_counts INTEGER NOT NULL, node_z_counts INTEGER NOT NULL,
+  lcs_x_counts REAL NOT NULL, lcs_y_counts REAL NOT NULL, lcs_z_counts REAL NOT NULL,
+  kx_nm_per_count REAL NOT NULL, ky_nm_per_count REAL NOT NULL, alpha_rad REAL NOT NULL,
+  kz_nm_per_count REAL, drift_vx_nm_per_s REAL NOT NULL, drift_vy_nm_per_s REAL NOT NULL,
+  cycles_kept INTEGER NOT NULL, cycles_discarded INTEGER NOT NULL, quality REAL NOT NULL);
+CREATE UNIQUE INDEX records_node ON records (run_id, repeat_index, node_index, lcs_index);
+CREATE INDEX records_plane ON records (scanner_id, node_z_counts, acquired_unix_s);
+INSERT INTO runs VALUES ('old-run', 'S', '', 1600000000.0, 1600000900.0, 'finished');
+INSERT INTO progress VALUES ('old-run', 0, 0, 0, 0, 0, 'done', NULL, 1, 1600000100.0);
+INSERT INTO progress VALUES ('old-run', 0, 1, 1000, 0, 0, 'pending', NULL, 0, NULL);
+INSERT INTO records (scanner_id, run_id, acquired_unix_s, repeat_index, node_index, lcs_index,
+  node_x_counts, node_y_counts, node_z_counts, lcs_x_counts, lcs_y_counts, lcs_z_counts,
+  kx_nm_per_count, ky_nm_per_count, alpha_rad, kz_nm_per_count, drift_vx_nm_per_s,
+  drift_vy_nm_per_s, cycles_kept, cycles_discarded, quality)
+  VALUES ('S', 'old-run', 1600000050.0, 0, 0, 0, 0, 0, 0, 0.5, -0.5, 0.0,
+          0.0201, 0.0199, 0.0012, NULL, 0.01, 0.02, 6, 1, 0.8);
+PRAGMA application_id = 1397771587;
+PRAGMA user_version = 1;
+";
+
+#[test]
+fn migrates_v1_file() {
+    let path = db_path("migrate_v1");
+    Connection::open(&path)
+        .unwrap()
+        .execute_batch(V1_DDL)
+        .unwrap();
+    // read-only cannot migrate: refused, file untouched
+    let before = std::fs::read(&path).unwrap();
+    let e = Cdb::open_read_only(&path).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::OutdatedSchema);
+    assert_eq!(std::fs::read(&path).unwrap(), before);
+
+    let mut cdb = Cdb::open(&path).unwrap();
+    assert_eq!(cdb.schema_version().unwrap(), 2);
+    let old = cdb.records(&RecordFilter::default()).unwrap();
+    assert_eq!(old.len(), 1);
+    assert_eq!(old[0].kx_nm_per_count, 0.0201);
+    assert_eq!((old[0].u_kx_nm_per_count, old[0].u_alpha_rad), (None, None));
+    assert!(cdb.check().unwrap().is_ok(), "{:?}", cdb.check().unwrap());
+    // the migrated file takes v2 records and resumes the old plan
+    let r = cdb.run("old-run").unwrap().unwrap();
+    let next = cdb.next_pending("old-run").unwrap().unwrap();
+    assert_eq!(next.node_x_counts, 1000);
+    cdb.commit_node(
+        "old-run",
+        &done(1, 1600000200.0),
+        &[record(&r, &next, 0, 1600000190.0)],
+    )
+    .unwrap();
+    let all = cdb.records(&RecordFilter::default()).unwrap();
+    assert_eq!(all[1].u_kx_nm_per_count, Some(1e-5));
+    drop(cdb);
+    // reopening is a no-op; read-only now works
+    let ro = Cdb::open_read_only(&path).unwrap();
+    assert_eq!(ro.count_records(&RecordFilter::default()).unwrap(), 2);
+}
+
+#[test]
+fn refuses_newer_schema_without_touching_file() {
+    let path = db_path("newer");
+    Connection::open(&path)
+        .unwrap()
+        .execute_batch(
+            "CREATE TABLE records (id INTEGER PRIMARY KEY, future TEXT);
+             INSERT INTO records (future) VALUES ('from v99');
+             PRAGMA application_id = 1397771587; PRAGMA user_version = 99;",
+        )
+        .unwrap();
+    let before = std::fs::read(&path).unwrap();
+    let mtime = std::fs::metadata(&path).unwrap().modified().unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(20));
+    for e in [
+        Cdb::open(&path).unwrap_err(),
+        Cdb::open_read_only(&path).unwrap_err(),
+    ] {
+        assert_eq!(e.kind(), ErrorKind::NewerSchema);
+        assert_eq!(e.path(), path.as_path());
+        let msg = e.to_string();
+        assert!(
+            msg.contains("99") && msg.contains(&path.display().to_string()),
+            "{msg}"
+        );
+    }
+    assert_eq!(std::fs::read(&path).unwrap(), before);
+    assert_eq!(std::fs::metadata(&path).unwrap().modified().unwrap(), mtime);
+    let mut wal = path.clone().into_os_string();
+    wal.push("-wal");
+    assert!(!std::path::Path::new(&wal).exists());
+}
+
+#[test]
+fn refuses_foreign_files() {
+    let garbage = db_path("garbage");
+    std::fs::write(&garbage, b"this is not a database, it is a text file of some length ...................................................................").unwrap();
+    assert_eq!(Cdb::open(&garbage).unwrap_err().kind(), ErrorKind::NotACdb);
+    let other = db_path("other_app");
+    Connection::open(&other)
+        .unwrap()
+        .execute_batch("CREATE TABLE t (a);")
+        .unwrap();
+    assert_eq!(Cdb::open(&other).unwrap_err().kind(), ErrorKind::NotACdb);
+    let missing = db_path("missing");
+    assert_eq!(
+        Cdb::open_read_only(&missing).unwrap_err().kind(),
+        ErrorKind::NotFound
+    );
+    let opts = spm_cdb::OpenOptions {
+        create: false,
+        ..Default::default()
+    };
+    assert_eq!(
+        Cdb::open_with(&missing, &opts).unwrap_err().kind(),
+        ErrorKind::NotFound
+    );
+}
+
+#[test]
+fn reader_snapshot_is_consistent_while_writer_commits() {
+    use std::sync::{Arc, Barrier};
+    let path = db_path("snapshot");
+    let r = run("run-1", "S", T0);
+    let nodes = plan(50);
+    {
+        let mut cdb = Cdb::open(&path).unwrap();
+        cdb.create_run(&r).unwrap();
+        cdb.register_plan(&r.run_id, &nodes).unwrap();
+        cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &nodes[0], 0, T0)])
+            .unwrap();
+    }
+    let barrier = Arc::new(Barrier::new(2));
+    let writer = {
+        let (path, barrier, r, nodes) = (path.clone(), barrier.clone(), r.clone(), nodes.clone());
+        std::thread::spawn(move || {
+            let mut cdb = Cdb::open(&path).unwrap();
+            barrier.wait(); // reader holds its snapshot
+            for n in &nodes[1..] {
+                let recs = [record(&r, n, 0, T0 + 1.0), record(&r, n, 1, T0 + 2.0)];
+                cdb.commit_node(&r.run_id, &done(n.node_index, T0 + 3.0), &recs)
+                    .unwrap();
+            }
+            barrier.wait(); // all committed
+        })
+    };
+    let reader = Cdb::open(&path).unwrap();
+    {
+        let snap = reader.snapshot().unwrap();
+        let n0 = snap.count_records(&RecordFilter::default()).unwrap();
+        let s0 = snap.progress_summary(&r.run_id).unwrap();
+        assert_eq!((n0, s0.done), (1, 1));
+        barrier.wait();
+        // while the writer commits, and after it has finished, the snapshot does not move
+        let mut seen = 0;
+        loop {
+            let n = snap.count_records(&RecordFilter::default()).unwrap();
+            let s = snap.progress_summary(&r.run_id).unwrap();
+            assert_eq!((n, s.done), (n0, s0.done));
+            seen += 1;
+            if writer.is_finished() || seen > 10_000 {
+                break;
+            }
+            std::thread::yield_now();
+        }
+        barrier.wait();
+        assert_eq!(snap.count_records(&RecordFilter::default()).unwrap(), n0);
+    }
+    writer.join().unwrap();
+    // a new read sees everything; each read is consistent: 2 records per node after node 0
+    let s = reader.progress_summary(&r.run_id).unwrap();
+    assert_eq!(s.done, 100);
+    assert_eq!(
+        reader.count_records(&RecordFilter::default()).unwrap(),
+        1 + 2 * 99
+    );
+    assert!(reader.check().unwrap().is_ok());
+}
+
+#[test]
+fn reads_always_see_whole_nodes() {
+    // A reader polling without an explicit snapshot never sees a node half committed.
+    let path = db_path("whole_nodes");
+    let r = run("run-1", "S", T0);
+    let nodes = plan(40);
+    {
+        let mut cdb = Cdb::open(&path).unwrap();
+        cdb.create_run(&r).unwrap();
+        cdb.register_plan(&r.run_id, &nodes).unwrap();
+    }
+    let writer = {
+        let (path, r, nodes) = (path.clone(), r.clone(), nodes.clone());
+        std::thread::spawn(move || {
+            let mut cdb = Cdb::open(&path).unwrap();
+            for n in &nodes {
+                let recs: Vec<_> = (0..3).map(|k| record(&r, n, k, T0)).collect();
+                cdb.commit_node(&r.run_id, &done(n.node_index, T0), &recs)
+                    .unwrap();
+            }
+        })
+    };
+    let reader = Cdb::open(&path).unwrap();
+    while !writer.is_finished() {
+        let snap = reader.snapshot().unwrap();
+        let done = snap.progress_summary(&r.run_id).unwrap().done;
+        let n = snap.count_records(&RecordFilter::default()).unwrap();
+        assert_eq!(n, 3 * done);
+        assert!(snap.check().unwrap().problems.is_empty());
+    }
+    writer.join().unwrap();
+    assert_eq!(reader.count_records(&RecordFilter::default()).unwrap(), 240);
+}
+
+#[test]
+fn integrity_check_finds_corruption() {
+    let path = db_path("corrupt");
+    let r = run("run-1", "S", T0);
+    let nodes = plan(3);
+    {
+        let mut cdb = Cdb::open(&path).unwrap();
+        cdb.create_run(&r).unwrap();
+        cdb.register_plan(&r.run_id, &nodes).unwrap();
+        cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &nodes[0], 0, T0)])
+            .unwrap();
+        assert!(cdb.check().unwrap().is_ok());
+    }
+    let raw = Connection::open(&path).unwrap();
+    let insert = |lcs: u32, kx: &str, alpha: &str| {
+        raw.execute_batch(&format!(
+            "INSERT INTO records (scanner_id, run_id, acquired_unix_s, repeat_index, node_index,
+              lcs_index, node_x_counts, node_y_counts, node_z_counts, lcs_x_counts, lcs_y_counts,
+              lcs_z_counts, kx_nm_per_count, ky_nm_per_count, alpha_rad, drift_vx_nm_per_s,
+              drift_vy_nm_per_s, cycles_kept, cycles_discarded, quality)
+             VALUES ('S', 'run-1', {T0}, 0, 0, {lcs}, 0, 0, 0, 0, 0, 0, {kx}, 0.02, {alpha},
+                     0, 0, 1, 0, 1)"
+        ))
+        .unwrap();
+    };
+    insert(1, "-0.02", "0.0"); // K̄x ≤ 0
+    insert(2, "9e999", "0.0"); // +∞
+    insert(3, "0.02", "2.0"); // |α| ≥ π/2
+    raw.execute_batch(
+        "UPDATE progress SET state = 'done' WHERE node_index = 1;
+         UPDATE progress SET state = 'given_up', reason = NULL WHERE node_index = 2;",
+    )
+    .unwrap();
+    drop(raw);
+    let cdb = Cdb::open(&path).unwrap();
+    let report = cdb.check().unwrap();
+    let kinds: Vec<&str> = report.problems.iter().map(|p| p.kind.as_str()).collect();
+    for expected in [
+        "nonpositive_lcc",
+        "non_finite",
+        "alpha_out_of_range",
+        "done_without_records",
+        "given_up_without_reason",
+    ] {
+        assert!(
+            kinds.contains(&expected),
+            "{expected} missing in {report:?}"
+        );
+    }
+    assert!(!report.is_ok());
+    assert!(
+        report
+            .problems
+            .iter()
+            .any(|p| p.detail.contains("kx_nm_per_count"))
+    );
+
+    // a text value where a number belongs is a typed Corrupt error on read, not a panic
+    let raw = Connection::open(&path).unwrap();
+    insert_text(&raw);
+    drop(raw);
+    let cdb = Cdb::open(&path).unwrap();
+    let e = cdb.records(&RecordFilter::default()).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Corrupt, "{e}");
+    assert!(
+        cdb.check()
+            .unwrap()
+            .problems
+            .iter()
+            .any(|p| p.kind == "non_finite" && p.detail.contains("quality"))
+    );
+}
+
+fn insert_text(raw: &Connection) {
+    raw.execute_batch(&format!(
+        "INSERT INTO records (scanner_id, run_id, acquired_unix_s, repeat_index, node_index,
+          lcs_index, node_x_counts, node_y_counts, node_z_counts, lcs_x_counts, lcs_y_counts,
+          lcs_z_counts, kx_nm_per_count, ky_nm_per_count, alpha_rad, drift_vx_nm_per_s,
+          drift_vy_nm_per_s, cycles_kept, cycles_discarded, quality)
+         VALUES ('S', 'run-1', {T0}, 0, 0, 9, 0, 0, 0, 0, 0, 0, 0.02, 0.02, 0.0, 0, 0, 1, 0,
+                 'excellent')"
+    ))
+    .unwrap();
+}

@@ -1,1 +1,196 @@
-fn main() {}
+//! CDB benchmarks (DESIGN §11): bulk insert of 10⁶ records in one transaction, the per-node
+//! transaction rate of `commit_node` (synchronous FULL and NORMAL), and query + degree-3
+//! regression fit over 10⁶ records.
+#![allow(clippy::unwrap_used)]
+
+use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use spm_cdb::{
+    Cdb, CdbRead, LccRecord, NodeDone, OpenOptions, PlanNode, RecordFilter, RunInfo, RunStatus,
+    Synchronous,
+};
+use spm_regression::{FitOptions, Observations, fit};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+const N_BIG: u64 = 1_000_000;
+const RUNS: u64 = 10;
+const T0: f64 = 1_704_067_200.0;
+
+fn fresh(name: &str) -> PathBuf {
+    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("spm-cdb-bench");
+    std::fs::create_dir_all(&dir).unwrap();
+    let p = dir.join(format!("{name}.sqlite"));
+    for suffix in ["", "-wal", "-shm"] {
+        let mut f = p.clone().into_os_string();
+        f.push(suffix);
+        let _ = std::fs::remove_file(PathBuf::from(f));
+    }
+    p
+}
+
+fn run_info(k: u64) -> RunInfo {
+    RunInfo {
+        run_id: format!("run-{k:02}"),
+        scanner_id: "bench-scanner".into(),
+        config: String::new(),
+        started_unix_s: T0 + 86_400.0 * k as f64,
+        finished_unix_s: None,
+        status: RunStatus::Running,
+    }
+}
+
+/// Record `i` of a 316×316-node net repeated over 10 runs, one Z plane; LCCs on a smooth field.
+fn record(i: u64, run_ids: &[String]) -> LccRecord {
+    let per_run = N_BIG / RUNS;
+    let (run, k) = (i / per_run, i % per_run);
+    let (x, y) = ((k % 316) as i64 * 200, (k / 316) as i64 * 200);
+    let (xf, yf) = (x as f64, y as f64);
+    let wiggle = ((i as f64) * 12.9898).sin();
+    LccRecord {
+        scanner_id: "bench-scanner".into(),
+        run_id: run_ids[run as usize].clone(),
+        acquired_unix_s: T0 + 86_400.0 * run as f64 + 3.0 * k as f64,
+        repeat_index: 0,
+        node_index: k as u32,
+        lcs_index: 0,
+        node_x_counts: x,
+        node_y_counts: y,
+        node_z_counts: 0,
+        lcs_x_counts: xf + 0.3 * wiggle,
+        lcs_y_counts: yf - 0.2 * wiggle,
+        lcs_z_counts: 0.0,
+        kx_nm_per_count: 0.02 + 1e-8 * xf - 2e-8 * yf + 1e-13 * xf * yf + 1e-5 * wiggle,
+        ky_nm_per_count: 0.021 - 1e-8 * xf + 1e-5 * wiggle,
+        alpha_rad: 0.001 + 1e-9 * yf,
+        kz_nm_per_count: None,
+        u_kx_nm_per_count: Some(1e-5),
+        u_ky_nm_per_count: Some(1e-5),
+        u_alpha_rad: Some(1e-4),
+        u_kz_nm_per_count: None,
+        drift_vx_nm_per_s: 0.01,
+        drift_vy_nm_per_s: -0.01,
+        cycles_kept: 8,
+        cycles_discarded: 1,
+        quality: 0.9,
+    }
+}
+
+/// A fresh CDB holding the 10 runs (no records yet).
+fn with_runs(name: &str, sync: Synchronous) -> (Cdb, Vec<String>) {
+    let options = OpenOptions {
+        synchronous: sync,
+        ..OpenOptions::default()
+    };
+    let mut cdb = Cdb::open_with(fresh(name), &options).unwrap();
+    let mut ids = Vec::new();
+    for k in 0..RUNS {
+        let r = run_info(k);
+        cdb.create_run(&r).unwrap();
+        ids.push(r.run_id);
+    }
+    (cdb, ids)
+}
+
+fn bulk_insert(c: &mut Criterion) {
+    let mut g = c.benchmark_group("cdb_insert");
+    g.sample_size(10)
+        .warm_up_time(Duration::from_millis(1))
+        .measurement_time(Duration::from_secs(30))
+        .throughput(Throughput::Elements(N_BIG));
+    g.bench_function("bulk_1e6_one_transaction", |b| {
+        b.iter_custom(|iters| {
+            let mut total = Duration::ZERO;
+            for _ in 0..iters {
+                let (mut cdb, ids) = with_runs("bulk", Synchronous::Full);
+                let start = Instant::now();
+                let n = cdb
+                    .import_records((0..N_BIG).map(|i| record(i, &ids)))
+                    .unwrap();
+                total += start.elapsed();
+                assert_eq!(n, N_BIG);
+            }
+            total
+        });
+    });
+    g.finish();
+}
+
+fn per_node(c: &mut Criterion) {
+    const NODES: u64 = 200;
+    let mut g = c.benchmark_group("cdb_commit_node");
+    g.sample_size(10)
+        .warm_up_time(Duration::from_millis(1))
+        .measurement_time(Duration::from_secs(5))
+        .throughput(Throughput::Elements(NODES));
+    for (label, sync) in [("full", Synchronous::Full), ("normal", Synchronous::Normal)] {
+        g.bench_function(format!("200_nodes_sync_{label}"), |b| {
+            b.iter_custom(|iters| {
+                let mut total = Duration::ZERO;
+                for _ in 0..iters {
+                    let (mut cdb, ids) = with_runs(&format!("per_node_{label}"), sync);
+                    let plan: Vec<PlanNode> = (0..NODES)
+                        .map(|i| {
+                            let r = record(i, &ids);
+                            PlanNode {
+                                repeat_index: 0,
+                                node_index: r.node_index,
+                                node_x_counts: r.node_x_counts,
+                                node_y_counts: r.node_y_counts,
+                                node_z_counts: 0,
+                            }
+                        })
+                        .collect();
+                    cdb.register_plan(&ids[0], &plan).unwrap();
+                    let start = Instant::now();
+                    for i in 0..NODES {
+                        let r = record(i, &ids);
+                        let done = NodeDone {
+                            repeat_index: 0,
+                            node_index: r.node_index,
+                            attempts: 1,
+                            finished_unix_s: r.acquired_unix_s,
+                        };
+                        cdb.commit_node(&ids[0], &done, &[r]).unwrap();
+                    }
+                    total += start.elapsed();
+                }
+                total
+            });
+        });
+    }
+    g.finish();
+}
+
+fn query_and_fit(c: &mut Criterion) {
+    let (mut cdb, ids) = with_runs("query", Synchronous::Normal);
+    cdb.import_records((0..N_BIG).map(|i| record(i, &ids)))
+        .unwrap();
+    let filter = RecordFilter::scanner("bench-scanner").with_z_plane(0);
+    let mut g = c.benchmark_group("cdb_query_fit");
+    g.sample_size(10)
+        .warm_up_time(Duration::from_millis(1))
+        .measurement_time(Duration::from_secs(10))
+        .throughput(Throughput::Elements(N_BIG));
+    g.bench_function("query_1e6", |b| {
+        b.iter(|| {
+            let cols = cdb.columns(&filter).unwrap();
+            assert_eq!(cols.len() as u64, N_BIG);
+            cols
+        });
+    });
+    g.bench_function("query_and_fit_degree3_1e6", |b| {
+        b.iter(|| {
+            let cols = cdb.columns(&filter).unwrap();
+            let obs = Observations::new(
+                &cols.lcs_x_counts,
+                &cols.lcs_y_counts,
+                &cols.kx_nm_per_count,
+            );
+            fit(&obs, 3, &FitOptions::default()).unwrap()
+        });
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bulk_insert, per_node, query_and_fit);
+criterion_main!(benches);

@@ -846,22 +846,25 @@ impl Cdb {
         Ok(())
     }
 
-    /// Bulk import: inserts records (of existing runs, outside any plan) in one transaction.
+    /// Bulk import: inserts records (of existing runs, outside any plan) in one transaction;
+    /// accepts records or references, so a large import can be streamed from a generator.
     /// Returns the number inserted.
     ///
     /// # Errors
     /// [`ErrorKind::InvalidInput`] for an invalid record; [`ErrorKind::Conflict`] for a
     /// duplicate (run, repeat, node, lcs) or a record of an unknown run. Nothing is written on
     /// error.
-    pub fn import_records<'r>(
-        &mut self,
-        records: impl IntoIterator<Item = &'r LccRecord>,
-    ) -> Result<u64> {
+    pub fn import_records<I>(&mut self, records: I) -> Result<u64>
+    where
+        I: IntoIterator,
+        I::Item: std::borrow::Borrow<LccRecord>,
+    {
         let path = self.path.clone();
         let err = |e| CdbError::sqlite(&path, e);
         let tx = self.write_tx()?;
         let mut n = 0;
         for r in records {
+            let r = std::borrow::Borrow::borrow(&r);
             validate_record(&path, r)?;
             insert_record(&tx, r).map_err(err)?;
             n += 1;

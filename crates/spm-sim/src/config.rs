@@ -1,0 +1,1192 @@
+//! Typed simulator configuration (TOML), its validation and typed errors.
+//!
+//! Every field carries its unit in its name and documents its meaning and the
+//! value used by [`SimConfig::room_temperature_tube`] ("typical") and by
+//! [`SimConfig::ideal`]. There is no `Default`: a scenario is always an explicit
+//! choice, either a shipped file (`configs/sim-hopg.toml`, `configs/sim-ideal.toml`)
+//! or one of the named constructors, which equal those files.
+//!
+//! `SimConfig` is embeddable: a bigger configuration can hold it as a section
+//! (e.g. `[backend.sim]`) and call [`SimConfig::validate_with_prefix`] with the
+//! section's path so that errors name the full field path.
+
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// The whole simulated-microscope scenario.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimConfig {
+    /// Master seed of every random process of the simulation (measurement
+    /// noise, drift random walk and jumps, random faults each get their own
+    /// stream derived from it). Same seed and config ⇒ bit-identical results.
+    pub seed: u64,
+    /// Ranges, limits and timing of the instrument.
+    pub instrument: InstrumentConfig,
+    /// The sample surface.
+    pub surface: SurfaceConfig,
+    /// The piezo scanner: static map, hysteresis, creep.
+    pub scanner: ScannerConfig,
+    /// Thermal drift of the tip relative to the sample.
+    pub drift: DriftConfig,
+    /// Measurement chain: noise, jitter, quantisation, feedback.
+    pub measurement: MeasurementConfig,
+    /// Randomly occurring faults (scheduled faults are added through the API).
+    pub faults: FaultConfig,
+}
+
+/// Ranges, limits and timing of the instrument.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InstrumentConfig {
+    /// Half range of the lateral DACs, counts; the field is
+    /// `[-half, half - 1]` on both axes and the scanner polynomials are
+    /// normalised by it. Typical (16-bit): 32768.
+    pub lateral_half_range_counts: f64,
+    /// Half range of the Z channel, counts; Z is `[-half, half - 1]`. Typical: 32768.
+    pub z_half_range_counts: f64,
+    /// Largest pixels per line of one scan. Typical: 4096.
+    pub max_pixels_per_line: u32,
+    /// Largest number of lines of one scan. Typical: 4096.
+    pub max_lines: u32,
+    /// Shortest pixel dwell, s. Typical: 1e-6.
+    pub min_pixel_dwell_s: f64,
+    /// Counter scans are supported. Typical: true.
+    pub counter_scan: bool,
+    /// Backward traces can be recorded. Typical: true.
+    pub backward_trace: bool,
+    /// Z-manipulator extension, nm, at which the feedback holds the tip on the
+    /// surface's reference plane (z = 0) with the coarse stage at 0 steps.
+    /// Typical: 40 (= 10000 counts at 0.004 nm/count).
+    pub initial_z_extension_nm: f64,
+    /// Instrument time consumed by every call (command round trip), s. Typical: 0.002; ideal: 0.
+    pub call_overhead_s: f64,
+    /// The coarse approach stage; absent = no software-driven stage.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coarse_z: Option<CoarseZConfig>,
+}
+
+/// A software-driven coarse approach stage.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CoarseZConfig {
+    /// Smallest stage position, steps. Typical: -2000.
+    pub min_steps: i64,
+    /// Largest stage position, steps. Typical: 2000.
+    pub max_steps: i64,
+    /// Stage travel per step, nm (a step towards the sample shortens the Z
+    /// extension the feedback needs by this much). Typical: 50.
+    pub step_nm: f64,
+    /// Time per step, s. Typical: 0.002.
+    pub step_time_s: f64,
+}
+
+/// The sample surface (one TOML sub-table naming the kind, e.g. `[surface.hopg]`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SurfaceConfig {
+    /// Highly oriented pyrolytic graphite.
+    Hopg(HopgConfig),
+    /// Si(111)-7×7 reconstruction, imaged by its corner holes.
+    Si7x7(Si7x7Config),
+    /// Generic hexagonal (triangular) lattice of Gaussian features.
+    HexLattice(LatticeConfig),
+    /// Generic square lattice of Gaussian features.
+    SquareLattice(LatticeConfig),
+}
+
+/// HOPG: three-cosine β-atom model with monatomic steps, vacancies and rotated domains.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HopgConfig {
+    /// Lattice constant of the β-atom triangular lattice, nm. Typical: 0.2461.
+    pub lattice_constant_nm: f64,
+    /// Peak-to-valley corrugation (β atom to hollow), nm; 0.02–0.2. Typical: 0.08.
+    pub corrugation_nm: f64,
+    /// Depth difference between hollow sites and α-atom sites relative to the
+    /// three-cosine amplitude (0 = equal minima, dimensionless, 0–0.5). Typical: 0.3.
+    pub hollow_asymmetry: f64,
+    /// Orientation of the lattice in sample coordinates, degrees (a lattice
+    /// vector points at this angle from +x). Typical: 12.
+    pub rotation_deg: f64,
+    /// Height of a monatomic step, nm. Typical: 0.3354.
+    pub step_height_nm: f64,
+    /// Straight step edges; crossing one in the direction of its left normal
+    /// goes one layer up (and shifts the lattice registry, AB stacking).
+    #[serde(default)]
+    pub steps: Vec<StepEdgeConfig>,
+    /// Fraction of β-atom sites that are vacant (0–0.2). Typical: 0.001.
+    pub vacancy_fraction: f64,
+    /// Circular grains whose lattice is rotated.
+    #[serde(default)]
+    pub domains: Vec<DomainConfig>,
+}
+
+/// A straight monatomic step edge.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StepEdgeConfig {
+    /// A point of the edge, x, nm.
+    pub point_x_nm: f64,
+    /// A point of the edge, y, nm.
+    pub point_y_nm: f64,
+    /// Direction of the edge line, degrees from +x; the upper terrace is on its left.
+    pub direction_deg: f64,
+    /// Width of the edge's smooth transition, nm (> 0). Typical: 0.5.
+    pub width_nm: f64,
+}
+
+/// A circular grain with a rotated lattice.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DomainConfig {
+    /// Centre x, nm.
+    pub centre_x_nm: f64,
+    /// Centre y, nm.
+    pub centre_y_nm: f64,
+    /// Radius, nm (> 0).
+    pub radius_nm: f64,
+    /// Lattice rotation inside the grain relative to the surrounding lattice, degrees.
+    pub rotation_deg: f64,
+}
+
+/// Si(111)-7×7: a triangular lattice of corner holes (pits).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Si7x7Config {
+    /// Corner-hole lattice constant, nm. Typical: 2.688.
+    pub lattice_constant_nm: f64,
+    /// Corner-hole depth, nm (> 0). Typical: 0.1.
+    pub corner_hole_depth_nm: f64,
+    /// Corner-hole Gaussian radius (σ), nm (> 0). Typical: 0.35.
+    pub corner_hole_sigma_nm: f64,
+    /// Lattice orientation, degrees from +x. Typical: 0.
+    pub rotation_deg: f64,
+}
+
+/// A generic lattice of Gaussian hills (height > 0) or pits (height < 0).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LatticeConfig {
+    /// Lattice constant, nm (> 0).
+    pub lattice_constant_nm: f64,
+    /// Feature height, nm (≠ 0; negative = pits).
+    pub feature_height_nm: f64,
+    /// Feature Gaussian radius (σ), nm (> 0).
+    pub feature_sigma_nm: f64,
+    /// Lattice orientation, degrees from +x.
+    pub rotation_deg: f64,
+}
+
+/// The piezo scanner. See the crate docs for the map and its physics.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScannerConfig {
+    /// Small-signal X sensitivity at the field centre, nm/count. Typical: 0.02.
+    pub sensitivity_x_nm_per_count: f64,
+    /// Small-signal Y sensitivity at the field centre, nm/count. Typical: 0.0215.
+    pub sensitivity_y_nm_per_count: f64,
+    /// Z sensitivity, nm/count. Typical: 0.004.
+    pub sensitivity_z_nm_per_count: f64,
+    /// X static nonlinearity.
+    pub nonlinearity_x: NonlinearityConfig,
+    /// Y static nonlinearity.
+    pub nonlinearity_y: NonlinearityConfig,
+    /// Angle by which the Y axis leans towards +X from the perpendicular, degrees. Typical: 1.5.
+    pub nonorthogonality_deg: f64,
+    /// Linear crosstalk: X displacement per Y displacement, nm/nm. Typical: 0.004.
+    pub crosstalk_x_from_y: f64,
+    /// Linear crosstalk: Y displacement per X displacement, nm/nm. Typical: -0.006.
+    pub crosstalk_y_from_x: f64,
+    /// Quadratic crosstalk (guidance bow): X displacement as a fraction of the
+    /// Y displacement at the Y field edge, growing linearly with y/half. Typical: 0.008.
+    pub bow_x_from_y: f64,
+    /// Quadratic crosstalk: Y displacement as a fraction of the X displacement
+    /// at the X field edge. Typical: 0.005.
+    pub bow_y_from_x: f64,
+    /// Tilted tube: X displacement per Z extension, nm/nm. Typical: 0.03.
+    pub tilt_x_from_z: f64,
+    /// Tilted tube: Y displacement per Z extension, nm/nm. Typical: -0.02.
+    pub tilt_y_from_z: f64,
+    /// Fractional change of both lateral sensitivities at full Z extension
+    /// (Z counts = half range), linear in Z counts. Typical: 0.03.
+    pub lateral_sensitivity_change_per_z: f64,
+    /// Curvature of the tube's arc, 1/nm: the tip rises by c·r²/2 at lateral
+    /// distance r (nm) from the field centre, which the feedback shows as a
+    /// bowl (edges higher). 0 = off. Typical: 5e-7 (radius 2 mm).
+    pub bowl_curvature_per_nm: f64,
+    /// X hysteresis (Prandtl–Ishlinskii play operators).
+    pub hysteresis_x: HysteresisConfig,
+    /// Y hysteresis.
+    pub hysteresis_y: HysteresisConfig,
+    /// Creep (both lateral axes).
+    pub creep: CreepConfig,
+}
+
+/// Static nonlinearity of one axis: the axis displacement in "linear counts"
+/// is `g(u) = u·(1 + quadratic·s + cubic·s²)`, `s = u / half_range`, so the
+/// local slope at the field edges is `1 ± 2·quadratic + 3·cubic`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NonlinearityConfig {
+    /// Quadratic coefficient (dimensionless). Typical: 0.03 (x), -0.025 (y).
+    pub quadratic: f64,
+    /// Cubic coefficient (dimensionless). Typical: 0.05 (x), 0.04 (y).
+    pub cubic: f64,
+}
+
+/// Rate-independent hysteresis of one axis: `operators` play operators with
+/// thresholds evenly spaced in `[min_threshold_counts, max_threshold_counts]`
+/// and equal weights chosen so that the ±half-range major loop has the given width.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HysteresisConfig {
+    /// Branch separation of the full-range major loop at u = 0 as a fraction
+    /// of the full range (2·half); 0 = off. Typical: 0.04 (x), 0.05 (y).
+    pub width_fraction: f64,
+    /// Smallest play threshold, counts (> 0): moves that stay within
+    /// ±this of their last reversal never change the hysteresis state. Typical: 512.
+    pub min_threshold_counts: f64,
+    /// Largest play threshold, counts (≤ half range / 2). Typical: 16384.
+    pub max_threshold_counts: f64,
+    /// Number of play operators (≥ 1). Typical: 16.
+    pub operators: u32,
+}
+
+/// Creep: a chain of first-order relaxations with log-spaced time constants.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CreepConfig {
+    /// γ of ΔL(t) = ΔL(0.1 s)·[1 + γ·lg(t / 0.1 s)]; 0 = off. Typical: 0.015.
+    pub log_slope_per_decade: f64,
+    /// Shortest relaxation time constant, s (> 0). Typical: 0.02.
+    pub min_time_constant_s: f64,
+    /// Longest relaxation time constant, s (> min). Typical: 2000.
+    pub max_time_constant_s: f64,
+    /// Relaxation elements per decade of time constant (≥ 1). Typical: 3.
+    pub elements_per_decade: u32,
+}
+
+/// Thermal drift of the tip relative to the sample.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DriftConfig {
+    /// Constant drift velocity, x, nm/s. Typical: 0.012 (0.12 Å/s).
+    pub velocity_x_nm_per_s: f64,
+    /// Constant drift velocity, y, nm/s. Typical: -0.007.
+    pub velocity_y_nm_per_s: f64,
+    /// Total displacement of the warm-up transient, x, nm. Typical: 1.5.
+    pub warmup_amplitude_x_nm: f64,
+    /// Total displacement of the warm-up transient, y, nm. Typical: -0.8.
+    pub warmup_amplitude_y_nm: f64,
+    /// Time constant of the warm-up exponential, s (> 0). Typical: 600.
+    pub warmup_time_constant_s: f64,
+    /// Random walk of the drift velocity (per axis), nm/s per √s. Typical: 2e-5.
+    pub velocity_random_walk_nm_per_s_per_sqrt_s: f64,
+    /// Knot interval of the random walk (and jump grid), s (> 0). Typical: 0.1.
+    pub random_walk_interval_s: f64,
+    /// Rate of sudden drift jumps (Poisson), 1/s. Typical: 2.8e-4 (one per hour).
+    pub jump_rate_per_s: f64,
+    /// Standard deviation of a jump per axis, nm. Typical: 0.05.
+    pub jump_sigma_nm: f64,
+}
+
+/// The measurement chain.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MeasurementConfig {
+    /// White Z noise per pixel (standard deviation), nm. Typical: 0.003.
+    pub z_white_noise_nm: f64,
+    /// 1/f Z noise, standard deviation over its band, nm. Typical: 0.004.
+    pub z_flicker_noise_nm: f64,
+    /// Lower corner of the 1/f band, Hz (> 0). Typical: 0.01.
+    pub flicker_min_frequency_hz: f64,
+    /// Upper corner of the 1/f band, Hz (> min). Typical: 1000.
+    pub flicker_max_frequency_hz: f64,
+    /// Lateral position jitter per pixel and axis (standard deviation), nm. Typical: 0.002.
+    pub lateral_jitter_nm: f64,
+    /// Commanded lateral positions are rounded to whole DAC counts. Typical: true.
+    pub quantise_lateral_dac: bool,
+    /// Z readings are rounded to whole ADC counts. Typical: true.
+    pub quantise_z_adc: bool,
+    /// Time constant of the Z feedback (first-order lag), s; 0 = ideal. Typical: 5e-5.
+    pub feedback_time_constant_s: f64,
+}
+
+/// Randomly occurring faults (all rates ≥ 0; 0 = never).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FaultConfig {
+    /// Probability that a call times out. Typical: 0.0005.
+    pub timeout_probability_per_call: f64,
+    /// Probability that a call fails with a communication error. Typical: 0.0005.
+    pub communication_probability_per_call: f64,
+    /// Rate at which the feedback loses the surface during scans and moves, 1/s. Typical: 1e-4.
+    pub feedback_lost_rate_per_s: f64,
+    /// Rate of spontaneous tip changes, 1/s. Typical: 2e-5.
+    pub tip_change_rate_per_s: f64,
+    /// Rate of drift bursts, 1/s. Typical: 1e-4.
+    pub drift_burst_rate_per_s: f64,
+    /// Time a timed-out call consumes before failing, s. Typical: 1.
+    pub timeout_duration_s: f64,
+    /// Speed of a random drift burst, nm/s. Typical: 0.2.
+    pub drift_burst_speed_nm_per_s: f64,
+    /// Duration of a random drift burst, s. Typical: 5.
+    pub drift_burst_duration_s: f64,
+    /// Standard deviation per axis of the lateral jump of a random tip change, nm. Typical: 0.3.
+    pub tip_change_jump_sigma_nm: f64,
+}
+
+// ---------------------------------------------------------------------------
+// Errors
+
+/// Why a configuration could not be loaded.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("cannot read simulator config `{path}`: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The OS error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The TOML is malformed, has an unknown field or a value of the wrong type.
+    #[error("{source_name}{}: {}{message}", line_suffix(*line, *column), field_prefix(field.as_deref()))]
+    Parse {
+        /// File name or other label of the text.
+        source_name: String,
+        /// 1-based line, when known.
+        line: Option<usize>,
+        /// 1-based column, when known.
+        column: Option<usize>,
+        /// Dotted path of the offending field, when known.
+        field: Option<String>,
+        /// The parser's message.
+        message: String,
+    },
+    /// A value is syntactically fine but physically invalid.
+    #[error("{source_name}{}: field `{field}` {reason}", line_suffix(*line, None))]
+    Invalid {
+        /// File name or other label of the text.
+        source_name: String,
+        /// 1-based line of the field, when it can be found.
+        line: Option<usize>,
+        /// Dotted path of the field, e.g. `scanner.nonlinearity_x.cubic`.
+        field: String,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+fn line_suffix(line: Option<usize>, column: Option<usize>) -> String {
+    match (line, column) {
+        (Some(l), Some(c)) => format!(":{l}:{c}"),
+        (Some(l), None) => format!(":{l}"),
+        _ => String::new(),
+    }
+}
+
+fn field_prefix(field: Option<&str>) -> String {
+    field.map(|f| format!("field `{f}`: ")).unwrap_or_default()
+}
+
+impl ConfigError {
+    /// Dotted path of the offending field, when known.
+    pub fn field(&self) -> Option<&str> {
+        match self {
+            Self::Io { .. } => None,
+            Self::Parse { field, .. } => field.as_deref(),
+            Self::Invalid { field, .. } => Some(field),
+        }
+    }
+    /// 1-based line of the problem, when known.
+    pub fn line(&self) -> Option<usize> {
+        match self {
+            Self::Io { .. } => None,
+            Self::Parse { line, .. } | Self::Invalid { line, .. } => *line,
+        }
+    }
+}
+
+/// A semantic validation failure, before it is located in a file.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error("field `{field}` {reason}")]
+pub struct ValidationError {
+    /// Dotted path of the field.
+    pub field: String,
+    /// What is wrong.
+    pub reason: String,
+}
+
+// ---------------------------------------------------------------------------
+// Loading
+
+impl SimConfig {
+    /// Parses and validates a TOML text; `source_name` labels errors (a file name).
+    pub fn from_toml_str(text: &str, source_name: &str) -> Result<Self, ConfigError> {
+        let config: SimConfig = toml::from_str(text).map_err(|e| {
+            let (line, column, field) = match e.span() {
+                Some(span) => {
+                    let (l, c) = line_column(text, span.start);
+                    (Some(l), Some(c), field_at(text, span.start, e.message()))
+                }
+                None => (None, None, unknown_field_name(e.message())),
+            };
+            ConfigError::Parse {
+                source_name: source_name.to_owned(),
+                line,
+                column,
+                field,
+                message: e.message().trim().to_owned(),
+            }
+        })?;
+        config.validate().map_err(|v| ConfigError::Invalid {
+            source_name: source_name.to_owned(),
+            line: locate_field_line(text, &v.field),
+            field: v.field,
+            reason: v.reason,
+        })?;
+        Ok(config)
+    }
+
+    /// Reads, parses and validates a TOML file.
+    pub fn from_file(path: impl AsRef<Path>) -> Result<Self, ConfigError> {
+        let path = path.as_ref();
+        let name = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+            path: name.clone(),
+            source,
+        })?;
+        Self::from_toml_str(&text, &name)
+    }
+
+    /// Semantic validation (finite numbers, positive where required, ranges).
+    pub fn validate(&self) -> Result<(), ValidationError> {
+        self.validate_with_prefix("")
+    }
+
+    /// Like [`validate`](Self::validate), with every field path prefixed by
+    /// `prefix` (e.g. `"backend.sim."`) for configs embedded in bigger ones.
+    pub fn validate_with_prefix(&self, prefix: &str) -> Result<(), ValidationError> {
+        let v = Checker { prefix };
+        let i = &self.instrument;
+        v.positive(
+            "instrument.lateral_half_range_counts",
+            i.lateral_half_range_counts,
+        )?;
+        v.positive("instrument.z_half_range_counts", i.z_half_range_counts)?;
+        v.at_least_one("instrument.max_pixels_per_line", i.max_pixels_per_line)?;
+        v.at_least_one("instrument.max_lines", i.max_lines)?;
+        v.positive("instrument.min_pixel_dwell_s", i.min_pixel_dwell_s)?;
+        v.finite(
+            "instrument.initial_z_extension_nm",
+            i.initial_z_extension_nm,
+        )?;
+        v.non_negative("instrument.call_overhead_s", i.call_overhead_s)?;
+        if let Some(c) = &i.coarse_z {
+            if c.min_steps > c.max_steps {
+                return v.fail("instrument.coarse_z.max_steps", "must be ≥ min_steps");
+            }
+            if c.min_steps > 0 || c.max_steps < 0 {
+                return v.fail("instrument.coarse_z.min_steps", "the range must contain 0");
+            }
+            v.positive("instrument.coarse_z.step_nm", c.step_nm)?;
+            v.non_negative("instrument.coarse_z.step_time_s", c.step_time_s)?;
+        }
+        match &self.surface {
+            SurfaceConfig::Hopg(h) => {
+                let p = "surface.hopg.";
+                v.positive(&format!("{p}lattice_constant_nm"), h.lattice_constant_nm)?;
+                v.positive(&format!("{p}corrugation_nm"), h.corrugation_nm)?;
+                v.range(
+                    &format!("{p}hollow_asymmetry"),
+                    h.hollow_asymmetry,
+                    0.0,
+                    0.5,
+                )?;
+                v.finite(&format!("{p}rotation_deg"), h.rotation_deg)?;
+                v.non_negative(&format!("{p}step_height_nm"), h.step_height_nm)?;
+                v.range(
+                    &format!("{p}vacancy_fraction"),
+                    h.vacancy_fraction,
+                    0.0,
+                    0.2,
+                )?;
+                for (k, s) in h.steps.iter().enumerate() {
+                    let q = format!("{p}steps[{k}].");
+                    v.finite(&format!("{q}point_x_nm"), s.point_x_nm)?;
+                    v.finite(&format!("{q}point_y_nm"), s.point_y_nm)?;
+                    v.finite(&format!("{q}direction_deg"), s.direction_deg)?;
+                    v.positive(&format!("{q}width_nm"), s.width_nm)?;
+                }
+                for (k, d) in h.domains.iter().enumerate() {
+                    let q = format!("{p}domains[{k}].");
+                    v.finite(&format!("{q}centre_x_nm"), d.centre_x_nm)?;
+                    v.finite(&format!("{q}centre_y_nm"), d.centre_y_nm)?;
+                    v.positive(&format!("{q}radius_nm"), d.radius_nm)?;
+                    v.finite(&format!("{q}rotation_deg"), d.rotation_deg)?;
+                }
+            }
+            SurfaceConfig::Si7x7(s) => {
+                let p = "surface.si7x7.";
+                v.positive(&format!("{p}lattice_constant_nm"), s.lattice_constant_nm)?;
+                v.positive(&format!("{p}corner_hole_depth_nm"), s.corner_hole_depth_nm)?;
+                v.positive(&format!("{p}corner_hole_sigma_nm"), s.corner_hole_sigma_nm)?;
+                v.finite(&format!("{p}rotation_deg"), s.rotation_deg)?;
+            }
+            SurfaceConfig::HexLattice(l) | SurfaceConfig::SquareLattice(l) => {
+                let p = if matches!(self.surface, SurfaceConfig::HexLattice(_)) {
+                    "surface.hex_lattice."
+                } else {
+                    "surface.square_lattice."
+                };
+                v.positive(&format!("{p}lattice_constant_nm"), l.lattice_constant_nm)?;
+                v.finite(&format!("{p}feature_height_nm"), l.feature_height_nm)?;
+                if l.feature_height_nm == 0.0 {
+                    return v.fail(&format!("{p}feature_height_nm"), "must not be 0");
+                }
+                v.positive(&format!("{p}feature_sigma_nm"), l.feature_sigma_nm)?;
+                v.finite(&format!("{p}rotation_deg"), l.rotation_deg)?;
+            }
+        }
+        let s = &self.scanner;
+        v.positive(
+            "scanner.sensitivity_x_nm_per_count",
+            s.sensitivity_x_nm_per_count,
+        )?;
+        v.positive(
+            "scanner.sensitivity_y_nm_per_count",
+            s.sensitivity_y_nm_per_count,
+        )?;
+        v.positive(
+            "scanner.sensitivity_z_nm_per_count",
+            s.sensitivity_z_nm_per_count,
+        )?;
+        for (name, n) in [
+            ("scanner.nonlinearity_x", &s.nonlinearity_x),
+            ("scanner.nonlinearity_y", &s.nonlinearity_y),
+        ] {
+            v.range(&format!("{name}.quadratic"), n.quadratic, -0.3, 0.3)?;
+            v.range(&format!("{name}.cubic"), n.cubic, -0.3, 0.3)?;
+            // The axis must stay monotonic over a generous margin of the field.
+            let worst = (0..=40)
+                .map(|k| -1.3 + 2.6 * f64::from(k) / 40.0)
+                .map(|s| 1.0 + 2.0 * n.quadratic * s + 3.0 * n.cubic * s * s)
+                .fold(f64::INFINITY, f64::min);
+            if worst <= 0.2 {
+                return v.fail(
+                    &format!("{name}.cubic"),
+                    "makes the axis non-monotonic (slope ≤ 0.2) within 1.3 × the half range",
+                );
+            }
+        }
+        v.range(
+            "scanner.nonorthogonality_deg",
+            s.nonorthogonality_deg,
+            -20.0,
+            20.0,
+        )?;
+        v.range(
+            "scanner.crosstalk_x_from_y",
+            s.crosstalk_x_from_y,
+            -0.2,
+            0.2,
+        )?;
+        v.range(
+            "scanner.crosstalk_y_from_x",
+            s.crosstalk_y_from_x,
+            -0.2,
+            0.2,
+        )?;
+        v.range("scanner.bow_x_from_y", s.bow_x_from_y, -0.2, 0.2)?;
+        v.range("scanner.bow_y_from_x", s.bow_y_from_x, -0.2, 0.2)?;
+        v.range("scanner.tilt_x_from_z", s.tilt_x_from_z, -1.0, 1.0)?;
+        v.range("scanner.tilt_y_from_z", s.tilt_y_from_z, -1.0, 1.0)?;
+        v.range(
+            "scanner.lateral_sensitivity_change_per_z",
+            s.lateral_sensitivity_change_per_z,
+            -0.5,
+            0.5,
+        )?;
+        v.non_negative("scanner.bowl_curvature_per_nm", s.bowl_curvature_per_nm)?;
+        for (name, h) in [
+            ("scanner.hysteresis_x", &s.hysteresis_x),
+            ("scanner.hysteresis_y", &s.hysteresis_y),
+        ] {
+            v.range(
+                &format!("{name}.width_fraction"),
+                h.width_fraction,
+                0.0,
+                0.3,
+            )?;
+            v.positive(
+                &format!("{name}.min_threshold_counts"),
+                h.min_threshold_counts,
+            )?;
+            v.positive(
+                &format!("{name}.max_threshold_counts"),
+                h.max_threshold_counts,
+            )?;
+            if h.max_threshold_counts < h.min_threshold_counts {
+                return v.fail(
+                    &format!("{name}.max_threshold_counts"),
+                    "must be ≥ min_threshold_counts",
+                );
+            }
+            if h.max_threshold_counts > 0.5 * i.lateral_half_range_counts {
+                return v.fail(
+                    &format!("{name}.max_threshold_counts"),
+                    "must be ≤ half of instrument.lateral_half_range_counts",
+                );
+            }
+            v.at_least_one(&format!("{name}.operators"), h.operators)?;
+            if h.operators > 256 {
+                return v.fail(&format!("{name}.operators"), "must be ≤ 256");
+            }
+        }
+        let c = &s.creep;
+        v.range(
+            "scanner.creep.log_slope_per_decade",
+            c.log_slope_per_decade,
+            0.0,
+            0.1,
+        )?;
+        v.positive("scanner.creep.min_time_constant_s", c.min_time_constant_s)?;
+        v.positive("scanner.creep.max_time_constant_s", c.max_time_constant_s)?;
+        if c.max_time_constant_s <= c.min_time_constant_s {
+            return v.fail(
+                "scanner.creep.max_time_constant_s",
+                "must be > min_time_constant_s",
+            );
+        }
+        if c.max_time_constant_s / c.min_time_constant_s > 1e12 {
+            return v.fail(
+                "scanner.creep.max_time_constant_s",
+                "spans more than 12 decades above min_time_constant_s",
+            );
+        }
+        v.at_least_one("scanner.creep.elements_per_decade", c.elements_per_decade)?;
+        if c.elements_per_decade > 20 {
+            return v.fail("scanner.creep.elements_per_decade", "must be ≤ 20");
+        }
+        let d = &self.drift;
+        v.finite("drift.velocity_x_nm_per_s", d.velocity_x_nm_per_s)?;
+        v.finite("drift.velocity_y_nm_per_s", d.velocity_y_nm_per_s)?;
+        v.finite("drift.warmup_amplitude_x_nm", d.warmup_amplitude_x_nm)?;
+        v.finite("drift.warmup_amplitude_y_nm", d.warmup_amplitude_y_nm)?;
+        v.positive("drift.warmup_time_constant_s", d.warmup_time_constant_s)?;
+        v.non_negative(
+            "drift.velocity_random_walk_nm_per_s_per_sqrt_s",
+            d.velocity_random_walk_nm_per_s_per_sqrt_s,
+        )?;
+        v.positive("drift.random_walk_interval_s", d.random_walk_interval_s)?;
+        v.non_negative("drift.jump_rate_per_s", d.jump_rate_per_s)?;
+        if d.jump_rate_per_s * d.random_walk_interval_s > 0.1 {
+            return v.fail(
+                "drift.jump_rate_per_s",
+                "must be < 0.1 / drift.random_walk_interval_s (at most one jump per knot)",
+            );
+        }
+        v.non_negative("drift.jump_sigma_nm", d.jump_sigma_nm)?;
+        let m = &self.measurement;
+        v.non_negative("measurement.z_white_noise_nm", m.z_white_noise_nm)?;
+        v.non_negative("measurement.z_flicker_noise_nm", m.z_flicker_noise_nm)?;
+        v.positive(
+            "measurement.flicker_min_frequency_hz",
+            m.flicker_min_frequency_hz,
+        )?;
+        v.positive(
+            "measurement.flicker_max_frequency_hz",
+            m.flicker_max_frequency_hz,
+        )?;
+        if m.flicker_max_frequency_hz <= m.flicker_min_frequency_hz {
+            return v.fail(
+                "measurement.flicker_max_frequency_hz",
+                "must be > flicker_min_frequency_hz",
+            );
+        }
+        v.non_negative("measurement.lateral_jitter_nm", m.lateral_jitter_nm)?;
+        v.non_negative(
+            "measurement.feedback_time_constant_s",
+            m.feedback_time_constant_s,
+        )?;
+        let f = &self.faults;
+        v.range(
+            "faults.timeout_probability_per_call",
+            f.timeout_probability_per_call,
+            0.0,
+            1.0,
+        )?;
+        v.range(
+            "faults.communication_probability_per_call",
+            f.communication_probability_per_call,
+            0.0,
+            1.0,
+        )?;
+        v.non_negative(
+            "faults.feedback_lost_rate_per_s",
+            f.feedback_lost_rate_per_s,
+        )?;
+        v.non_negative("faults.tip_change_rate_per_s", f.tip_change_rate_per_s)?;
+        v.non_negative("faults.drift_burst_rate_per_s", f.drift_burst_rate_per_s)?;
+        v.non_negative("faults.timeout_duration_s", f.timeout_duration_s)?;
+        v.non_negative(
+            "faults.drift_burst_speed_nm_per_s",
+            f.drift_burst_speed_nm_per_s,
+        )?;
+        v.non_negative("faults.drift_burst_duration_s", f.drift_burst_duration_s)?;
+        v.non_negative(
+            "faults.tip_change_jump_sigma_nm",
+            f.tip_change_jump_sigma_nm,
+        )?;
+        Ok(())
+    }
+}
+
+struct Checker<'a> {
+    prefix: &'a str,
+}
+
+impl Checker<'_> {
+    fn fail(&self, field: &str, reason: &str) -> Result<(), ValidationError> {
+        Err(ValidationError {
+            field: format!("{}{field}", self.prefix),
+            reason: reason.to_owned(),
+        })
+    }
+    fn finite(&self, field: &str, value: f64) -> Result<(), ValidationError> {
+        if value.is_finite() {
+            Ok(())
+        } else {
+            self.fail(field, &format!("must be a finite number, found {value}"))
+        }
+    }
+    fn positive(&self, field: &str, value: f64) -> Result<(), ValidationError> {
+        self.finite(field, value)?;
+        if value > 0.0 {
+            Ok(())
+        } else {
+            self.fail(field, &format!("must be > 0, found {value}"))
+        }
+    }
+    fn non_negative(&self, field: &str, value: f64) -> Result<(), ValidationError> {
+        self.finite(field, value)?;
+        if value >= 0.0 {
+            Ok(())
+        } else {
+            self.fail(field, &format!("must be ≥ 0, found {value}"))
+        }
+    }
+    fn range(&self, field: &str, value: f64, min: f64, max: f64) -> Result<(), ValidationError> {
+        self.finite(field, value)?;
+        if (min..=max).contains(&value) {
+            Ok(())
+        } else {
+            self.fail(field, &format!("must lie in [{min}, {max}], found {value}"))
+        }
+    }
+    fn at_least_one(&self, field: &str, value: u32) -> Result<(), ValidationError> {
+        if value >= 1 {
+            Ok(())
+        } else {
+            self.fail(field, "must be at least 1")
+        }
+    }
+}
+
+/// 1-based line and column of a byte offset.
+fn line_column(text: &str, offset: usize) -> (usize, usize) {
+    let offset = offset.min(text.len());
+    let before = text.get(..offset).unwrap_or("");
+    let line = before.matches('\n').count() + 1;
+    let column = before.rsplit('\n').next().map_or(0, |s| s.chars().count()) + 1;
+    (line, column)
+}
+
+/// The name inside the first pair of backticks of an "unknown field" message.
+fn unknown_field_name(message: &str) -> Option<String> {
+    if !message.contains("unknown field") && !message.contains("unknown variant") {
+        return None;
+    }
+    let start = message.find('`')? + 1;
+    let len = message.get(start..)?.find('`')?;
+    message.get(start..start + len).map(str::to_owned)
+}
+
+/// Strips a TOML line comment (outside strings, good enough for config files).
+fn strip_comment(line: &str) -> &str {
+    let mut in_string = false;
+    for (k, ch) in line.char_indices() {
+        match ch {
+            '"' => in_string = !in_string,
+            '#' if !in_string => return line.get(..k).unwrap_or(line),
+            _ => {}
+        }
+    }
+    line
+}
+
+/// The table header (`a.b` of `[a.b]` or `[[a.b]]`) in force at `line_index` (0-based).
+fn table_at(lines: &[&str], line_index: usize) -> String {
+    for line in lines.iter().take(line_index + 1).rev() {
+        let t = strip_comment(line).trim();
+        if t.starts_with('[') {
+            return t
+                .trim_start_matches('[')
+                .trim_end_matches(']')
+                .trim()
+                .to_owned();
+        }
+    }
+    String::new()
+}
+
+/// Best-effort dotted path of the field at a byte offset of a TOML text.
+fn field_at(text: &str, offset: usize, message: &str) -> Option<String> {
+    let lines: Vec<&str> = text.split('\n').collect();
+    let (line, _) = line_column(text, offset);
+    let index = line.checked_sub(1)?;
+    let table = table_at(&lines, index);
+    let join = |key: &str| {
+        if table.is_empty() {
+            key.to_owned()
+        } else {
+            format!("{table}.{key}")
+        }
+    };
+    if let Some(name) = unknown_field_name(message) {
+        return Some(join(&name));
+    }
+    let content = strip_comment(lines.get(index)?).trim();
+    if content.starts_with('[') {
+        return Some(table);
+    }
+    let (key, _) = content.split_once('=')?;
+    Some(join(key.trim()))
+}
+
+/// Best-effort 1-based line of a dotted field path in a TOML text.
+pub(crate) fn locate_field_line(text: &str, field: &str) -> Option<usize> {
+    let clean = |s: &str| -> String {
+        // `steps[2].width_nm` → `steps.width_nm` (array tables are matched by name).
+        let mut out = String::new();
+        let mut depth = 0;
+        for ch in s.chars() {
+            match ch {
+                '[' => depth += 1,
+                ']' => depth -= 1,
+                _ if depth == 0 => out.push(ch),
+                _ => {}
+            }
+        }
+        out
+    };
+    let field = clean(field);
+    let (table, key) = match field.rsplit_once('.') {
+        Some((t, k)) => (t.to_owned(), k.to_owned()),
+        None => (String::new(), field.clone()),
+    };
+    let lines: Vec<&str> = text.split('\n').collect();
+    let mut current = String::new();
+    for (index, raw) in lines.iter().enumerate() {
+        let line = strip_comment(raw).trim();
+        if line.starts_with('[') {
+            current = line
+                .trim_start_matches('[')
+                .trim_end_matches(']')
+                .trim()
+                .to_owned();
+            continue;
+        }
+        let Some((k, rest)) = line.split_once('=') else {
+            continue;
+        };
+        let k = k.trim();
+        if current == table && k == key {
+            return Some(index + 1);
+        }
+        // Inline table: `nonlinearity_x = { quadratic = 0.1, cubic = nan }`.
+        let full = if current.is_empty() {
+            k.to_owned()
+        } else {
+            format!("{current}.{k}")
+        };
+        if full == table && (rest.contains(&format!("{key} ")) || rest.contains(&format!("{key}=")))
+        {
+            return Some(index + 1);
+        }
+    }
+    None
+}
+
+// ---------------------------------------------------------------------------
+// Named scenarios
+
+impl SimConfig {
+    /// All effects off: a linear orthogonal scanner (0.02 nm/count on both
+    /// axes, 0.004 nm/count in Z), no hysteresis, creep, drift, noise,
+    /// quantisation or faults, a perfect HOPG lattice (a = 0.2461 nm,
+    /// rotation 0). Equals `configs/sim-ideal.toml`.
+    pub fn ideal() -> Self {
+        Self {
+            seed: 1,
+            instrument: InstrumentConfig {
+                lateral_half_range_counts: 32768.0,
+                z_half_range_counts: 32768.0,
+                max_pixels_per_line: 4096,
+                max_lines: 4096,
+                min_pixel_dwell_s: 1e-6,
+                counter_scan: true,
+                backward_trace: true,
+                initial_z_extension_nm: 0.0,
+                call_overhead_s: 0.0,
+                coarse_z: None,
+            },
+            surface: SurfaceConfig::Hopg(HopgConfig {
+                lattice_constant_nm: 0.2461,
+                corrugation_nm: 0.08,
+                hollow_asymmetry: 0.3,
+                rotation_deg: 0.0,
+                step_height_nm: 0.3354,
+                steps: Vec::new(),
+                vacancy_fraction: 0.0,
+                domains: Vec::new(),
+            }),
+            scanner: ScannerConfig {
+                sensitivity_x_nm_per_count: 0.02,
+                sensitivity_y_nm_per_count: 0.02,
+                sensitivity_z_nm_per_count: 0.004,
+                nonlinearity_x: NonlinearityConfig {
+                    quadratic: 0.0,
+                    cubic: 0.0,
+                },
+                nonlinearity_y: NonlinearityConfig {
+                    quadratic: 0.0,
+                    cubic: 0.0,
+                },
+                nonorthogonality_deg: 0.0,
+                crosstalk_x_from_y: 0.0,
+                crosstalk_y_from_x: 0.0,
+                bow_x_from_y: 0.0,
+                bow_y_from_x: 0.0,
+                tilt_x_from_z: 0.0,
+                tilt_y_from_z: 0.0,
+                lateral_sensitivity_change_per_z: 0.0,
+                bowl_curvature_per_nm: 0.0,
+                hysteresis_x: HysteresisConfig {
+                    width_fraction: 0.0,
+                    min_threshold_counts: 512.0,
+                    max_threshold_counts: 16384.0,
+                    operators: 1,
+                },
+                hysteresis_y: HysteresisConfig {
+                    width_fraction: 0.0,
+                    min_threshold_counts: 512.0,
+                    max_threshold_counts: 16384.0,
+                    operators: 1,
+                },
+                creep: CreepConfig {
+                    log_slope_per_decade: 0.0,
+                    min_time_constant_s: 0.02,
+                    max_time_constant_s: 2000.0,
+                    elements_per_decade: 1,
+                },
+            },
+            drift: DriftConfig {
+                velocity_x_nm_per_s: 0.0,
+                velocity_y_nm_per_s: 0.0,
+                warmup_amplitude_x_nm: 0.0,
+                warmup_amplitude_y_nm: 0.0,
+                warmup_time_constant_s: 600.0,
+                velocity_random_walk_nm_per_s_per_sqrt_s: 0.0,
+                random_walk_interval_s: 0.1,
+                jump_rate_per_s: 0.0,
+                jump_sigma_nm: 0.0,
+            },
+            measurement: MeasurementConfig {
+                z_white_noise_nm: 0.0,
+                z_flicker_noise_nm: 0.0,
+                flicker_min_frequency_hz: 0.01,
+                flicker_max_frequency_hz: 1000.0,
+                lateral_jitter_nm: 0.0,
+                quantise_lateral_dac: false,
+                quantise_z_adc: false,
+                feedback_time_constant_s: 0.0,
+            },
+            faults: FaultConfig::none(),
+        }
+    }
+
+    /// A room-temperature tube scanner over HOPG with every effect on at
+    /// realistic magnitudes. Equals `configs/sim-hopg.toml`.
+    pub fn room_temperature_tube() -> Self {
+        Self {
+            seed: 20261121,
+            instrument: InstrumentConfig {
+                lateral_half_range_counts: 32768.0,
+                z_half_range_counts: 32768.0,
+                max_pixels_per_line: 4096,
+                max_lines: 4096,
+                min_pixel_dwell_s: 1e-6,
+                counter_scan: true,
+                backward_trace: true,
+                initial_z_extension_nm: 40.0,
+                call_overhead_s: 0.002,
+                coarse_z: Some(CoarseZConfig {
+                    min_steps: -2000,
+                    max_steps: 2000,
+                    step_nm: 50.0,
+                    step_time_s: 0.002,
+                }),
+            },
+            surface: SurfaceConfig::Hopg(HopgConfig {
+                lattice_constant_nm: 0.2461,
+                corrugation_nm: 0.08,
+                hollow_asymmetry: 0.3,
+                rotation_deg: 12.0,
+                step_height_nm: 0.3354,
+                steps: vec![StepEdgeConfig {
+                    point_x_nm: 420.0,
+                    point_y_nm: 0.0,
+                    direction_deg: 80.0,
+                    width_nm: 0.5,
+                }],
+                vacancy_fraction: 0.001,
+                domains: vec![DomainConfig {
+                    centre_x_nm: -450.0,
+                    centre_y_nm: 420.0,
+                    radius_nm: 120.0,
+                    rotation_deg: 17.0,
+                }],
+            }),
+            scanner: ScannerConfig {
+                sensitivity_x_nm_per_count: 0.02,
+                sensitivity_y_nm_per_count: 0.0215,
+                sensitivity_z_nm_per_count: 0.004,
+                nonlinearity_x: NonlinearityConfig {
+                    quadratic: 0.03,
+                    cubic: 0.05,
+                },
+                nonlinearity_y: NonlinearityConfig {
+                    quadratic: -0.025,
+                    cubic: 0.04,
+                },
+                nonorthogonality_deg: 1.5,
+                crosstalk_x_from_y: 0.004,
+                crosstalk_y_from_x: -0.006,
+                bow_x_from_y: 0.008,
+                bow_y_from_x: 0.005,
+                tilt_x_from_z: 0.03,
+                tilt_y_from_z: -0.02,
+                lateral_sensitivity_change_per_z: 0.03,
+                bowl_curvature_per_nm: 5e-7,
+                hysteresis_x: HysteresisConfig {
+                    width_fraction: 0.04,
+                    min_threshold_counts: 512.0,
+                    max_threshold_counts: 16384.0,
+                    operators: 16,
+                },
+                hysteresis_y: HysteresisConfig {
+                    width_fraction: 0.05,
+                    min_threshold_counts: 512.0,
+                    max_threshold_counts: 16384.0,
+                    operators: 16,
+                },
+                creep: CreepConfig {
+                    log_slope_per_decade: 0.015,
+                    min_time_constant_s: 0.02,
+                    max_time_constant_s: 2000.0,
+                    elements_per_decade: 3,
+                },
+            },
+            drift: DriftConfig {
+                velocity_x_nm_per_s: 0.012,
+                velocity_y_nm_per_s: -0.007,
+                warmup_amplitude_x_nm: 1.5,
+                warmup_amplitude_y_nm: -0.8,
+                warmup_time_constant_s: 600.0,
+                velocity_random_walk_nm_per_s_per_sqrt_s: 2e-5,
+                random_walk_interval_s: 0.1,
+                jump_rate_per_s: 2.8e-4,
+                jump_sigma_nm: 0.05,
+            },
+            measurement: MeasurementConfig {
+                z_white_noise_nm: 0.003,
+                z_flicker_noise_nm: 0.004,
+                flicker_min_frequency_hz: 0.01,
+                flicker_max_frequency_hz: 1000.0,
+                lateral_jitter_nm: 0.002,
+                quantise_lateral_dac: true,
+                quantise_z_adc: true,
+                feedback_time_constant_s: 5e-5,
+            },
+            faults: FaultConfig {
+                timeout_probability_per_call: 0.0005,
+                communication_probability_per_call: 0.0005,
+                feedback_lost_rate_per_s: 1e-4,
+                tip_change_rate_per_s: 2e-5,
+                drift_burst_rate_per_s: 1e-4,
+                timeout_duration_s: 1.0,
+                drift_burst_speed_nm_per_s: 0.2,
+                drift_burst_duration_s: 5.0,
+                tip_change_jump_sigma_nm: 0.3,
+            },
+        }
+    }
+
+    /// This config with every random fault rate set to zero (scheduled faults
+    /// still work). Handy for accuracy runs.
+    pub fn without_random_faults(mut self) -> Self {
+        self.faults = FaultConfig {
+            timeout_duration_s: self.faults.timeout_duration_s,
+            ..FaultConfig::none()
+        };
+        self
+    }
+}
+
+impl FaultConfig {
+    /// No random faults (timeouts of scheduled faults last 1 s).
+    pub fn none() -> Self {
+        Self {
+            timeout_probability_per_call: 0.0,
+            communication_probability_per_call: 0.0,
+            feedback_lost_rate_per_s: 0.0,
+            tip_change_rate_per_s: 0.0,
+            drift_burst_rate_per_s: 0.0,
+            timeout_duration_s: 1.0,
+            drift_burst_speed_nm_per_s: 0.2,
+            drift_burst_duration_s: 5.0,
+            tip_change_jump_sigma_nm: 0.3,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn line_and_column_are_one_based() {
+        assert_eq!(line_column("a\nbc\n", 3), (2, 2));
+        assert_eq!(line_column("abc", 0), (1, 1));
+    }
+
+    #[test]
+    fn fields_are_located_in_tables_and_inline_tables() {
+        let text = "seed = 1\n[scanner]\nnonlinearity_x = { quadratic = 0.1, cubic = nan }\n[scanner.creep]\nmin_time_constant_s = -1\n";
+        assert_eq!(
+            locate_field_line(text, "scanner.nonlinearity_x.cubic"),
+            Some(3)
+        );
+        assert_eq!(
+            locate_field_line(text, "scanner.creep.min_time_constant_s"),
+            Some(5)
+        );
+        assert_eq!(locate_field_line(text, "seed"), Some(1));
+    }
+}

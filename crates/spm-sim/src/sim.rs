@@ -1,0 +1,935 @@
+//! The simulated microscope: explicit state, the `Microscope` implementation,
+//! fault scheduling.
+
+use crate::config::SimConfig;
+use crate::drift::{Burst, Drift, Flicker, Jump};
+use crate::fault::{FaultEvent, FaultEventKind, FaultKind, FaultTrigger, Operation, SimError};
+use crate::oracle::Oracle;
+use crate::scanner::{Creep, PlayHysteresis, StaticMap};
+use crate::surface::Surface;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use spm_hal::{
+    Capabilities, CoarseZCapability, CoarseZStage, CountPoint, Counts, Frame, Microscope,
+    MoveRequest, NmPoint, NmVelocity, ScanDirection, ScanRequest, Seconds, TraceHalf, TraceImage,
+};
+
+/// Stream numbers of the independent random processes derived from the seed.
+const STREAM_NOISE: u64 = 1;
+const STREAM_FAULTS: u64 = 2;
+const DRIFT_SEED_SALT: u64 = 0xD21F_7000_0000_0001;
+
+/// The tip's imaging state (changed by tip-change faults).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct TipState {
+    pub contrast: f64,
+    pub ghost_offset: [f64; 2],
+    pub ghost_amplitude: f64,
+}
+
+impl TipState {
+    const PRISTINE: Self = Self {
+        contrast: 1.0,
+        ghost_offset: [0.0; 2],
+        ghost_amplitude: 0.0,
+    };
+}
+
+/// The scanner's dynamic state: hysteresis and creep of both lateral axes.
+#[derive(Clone, Debug)]
+pub(crate) struct ScannerState {
+    pub hysteresis: [PlayHysteresis; 2],
+    pub creep: [Creep; 2],
+    /// DAC value applied now (after quantisation), counts.
+    pub applied: [f64; 2],
+    /// Post-hysteresis input x = u + h, counts.
+    pub input: [f64; 2],
+    /// Creep offsets, counts.
+    pub creep_offset: [f64; 2],
+}
+
+impl ScannerState {
+    #[inline]
+    fn set(&mut self, u: [f64; 2]) {
+        self.applied = u;
+        self.input = [
+            u[0] + self.hysteresis[0].update(u[0]),
+            u[1] + self.hysteresis[1].update(u[1]),
+        ];
+    }
+
+    fn advance(&mut self, dt_s: f64) {
+        if dt_s > 0.0 {
+            self.creep_offset = [
+                self.creep[0].advance(self.input[0], dt_s),
+                self.creep[1].advance(self.input[1], dt_s),
+            ];
+        }
+    }
+
+    #[inline]
+    pub fn effective(&self) -> [f64; 2] {
+        [
+            self.input[0] + self.creep_offset[0],
+            self.input[1] + self.creep_offset[1],
+        ]
+    }
+}
+
+/// A physics-based simulated scanning tunnelling microscope.
+///
+/// Deterministic: all randomness comes from ChaCha8 streams seeded by
+/// [`SimConfig::seed`]; there is no wall clock. Ground truth is reachable
+/// only through [`Simulator::oracle`].
+#[derive(Clone, Debug)]
+pub struct Simulator {
+    pub(crate) config: SimConfig,
+    pub(crate) surface: Surface,
+    pub(crate) map: StaticMap,
+    pub(crate) scanner: ScannerState,
+    pub(crate) drift: Drift,
+    flicker: Flicker,
+    noise_rng: ChaCha8Rng,
+    fault_rng: ChaCha8Rng,
+    pub(crate) time_s: f64,
+    /// The commanded (requested) position, counts.
+    command: [f64; 2],
+    /// Feedback output: Z reading without noise, nm (Z counts × Kz).
+    pub(crate) z_nm: f64,
+    coarse_steps: i64,
+    pub(crate) tip: TipState,
+    scheduled: Vec<(FaultTrigger, FaultKind)>,
+    pub(crate) log: Vec<FaultEvent>,
+    pending_jumps: Vec<Jump>,
+}
+
+/// Precomputed per-dwell factors of the pixel loop.
+struct PixelFactors {
+    creep_decays: Vec<f64>,
+    feedback_decay: f64,
+    fast_flicker: Vec<(usize, (f64, f64))>,
+    slow_flicker: Vec<(usize, (f64, f64))>,
+}
+
+impl Simulator {
+    /// A simulator in its initial state (t = 0, probe at the field centre,
+    /// scanner demagnetised and settled), from a validated config.
+    pub fn new(config: SimConfig) -> Result<Self, crate::ValidationError> {
+        config.validate()?;
+        let mut noise_rng = ChaCha8Rng::seed_from_u64(config.seed);
+        noise_rng.set_stream(STREAM_NOISE);
+        let mut fault_rng = ChaCha8Rng::seed_from_u64(config.seed);
+        fault_rng.set_stream(STREAM_FAULTS);
+        let surface = Surface::from_config(&config.surface, config.seed);
+        let i = &config.instrument;
+        let s = &config.scanner;
+        let map = StaticMap::new(s, i.lateral_half_range_counts, i.z_half_range_counts);
+        let scanner = ScannerState {
+            hysteresis: [
+                PlayHysteresis::new(&s.hysteresis_x, i.lateral_half_range_counts, 0.0),
+                PlayHysteresis::new(&s.hysteresis_y, i.lateral_half_range_counts, 0.0),
+            ],
+            creep: [Creep::new(&s.creep, 0.0), Creep::new(&s.creep, 0.0)],
+            applied: [0.0; 2],
+            input: [0.0; 2],
+            creep_offset: [0.0; 2],
+        };
+        let drift = Drift::new(&config.drift, config.seed ^ DRIFT_SEED_SALT);
+        let m = &config.measurement;
+        let flicker = Flicker::new(
+            m.z_flicker_noise_nm,
+            m.flicker_min_frequency_hz,
+            m.flicker_max_frequency_hz,
+            &mut noise_rng,
+        );
+        let mut sim = Self {
+            surface,
+            map,
+            scanner,
+            drift,
+            flicker,
+            noise_rng,
+            fault_rng,
+            time_s: 0.0,
+            command: [0.0; 2],
+            z_nm: 0.0,
+            coarse_steps: 0,
+            tip: TipState::PRISTINE,
+            scheduled: Vec::new(),
+            log: Vec::new(),
+            pending_jumps: Vec::new(),
+            config,
+        };
+        sim.z_nm = sim.z_reference_nm();
+        sim.z_nm = sim.feedback_target_nm(0.0, None);
+        // Two passes settle the Z-dependent lateral position.
+        sim.z_nm = sim.feedback_target_nm(0.0, None);
+        tracing::debug!(seed = sim.config.seed, "spm-sim simulator created");
+        Ok(sim)
+    }
+
+    /// The configuration this simulator runs.
+    pub fn config(&self) -> &SimConfig {
+        &self.config
+    }
+
+    /// The ground-truth view (tests, benchmarks, xtask; never algorithms).
+    pub fn oracle(&self) -> Oracle<'_> {
+        Oracle::new(self)
+    }
+
+    /// Schedules a fault. See [`FaultKind`] and [`FaultTrigger`] for the semantics.
+    pub fn schedule_fault(&mut self, trigger: FaultTrigger, kind: FaultKind) {
+        tracing::debug!(?trigger, ?kind, "fault scheduled");
+        self.scheduled.push((trigger, kind));
+    }
+
+    /// Scheduled faults not fired yet.
+    pub fn pending_faults(&self) -> usize {
+        self.scheduled.len()
+    }
+
+    /// Replaces the random fault rates (e.g. to switch random faults off mid-run).
+    pub fn set_fault_rates(&mut self, faults: crate::config::FaultConfig) {
+        self.config.faults = faults;
+    }
+
+    // ------------------------------------------------------------------
+    // Physics helpers
+
+    /// Z reading (nm) of the reference plane at the current coarse position.
+    fn z_reference_nm(&self) -> f64 {
+        let step = self
+            .config
+            .instrument
+            .coarse_z
+            .as_ref()
+            .map_or(0.0, |c| c.step_nm);
+        self.config.instrument.initial_z_extension_nm - self.coarse_steps as f64 * step
+    }
+
+    /// Tip position in the scanner frame now (nm).
+    pub(crate) fn scanner_position_nm(&self) -> [f64; 2] {
+        let ue = self.scanner.effective();
+        self.map.position(ue[0], ue[1], self.z_counts_noiseless())
+    }
+
+    pub(crate) fn z_counts_noiseless(&self) -> f64 {
+        self.z_nm / self.map.kz_nm_per_count()
+    }
+
+    /// Image height of the surface under sample point `s` with the current tip.
+    #[inline]
+    fn topography_nm(&self, s: [f64; 2]) -> f64 {
+        let z = self.surface.height_nm(s[0], s[1]);
+        if self.tip == TipState::PRISTINE {
+            z
+        } else {
+            let mut out = self.tip.contrast * z;
+            if self.tip.ghost_amplitude > 0.0 {
+                out += self.tip.ghost_amplitude
+                    * self.tip.contrast
+                    * self.surface.height_nm(
+                        s[0] + self.tip.ghost_offset[0],
+                        s[1] + self.tip.ghost_offset[1],
+                    );
+            }
+            out
+        }
+    }
+
+    /// The Z reading (nm) the feedback converges to at time t, with an
+    /// optional lateral jitter.
+    fn feedback_target_nm(&self, t_s: f64, jitter: Option<[f64; 2]>) -> f64 {
+        let p = self.scanner_position_nm();
+        let d = self.drift.displacement(t_s);
+        let j = jitter.unwrap_or([0.0; 2]);
+        let s = [p[0] + d[0] + j[0], p[1] + d[1] + j[1]];
+        self.z_reference_nm() + self.topography_nm(s) + self.map.bowl_nm(p)
+    }
+
+    fn normal(&mut self) -> f64 {
+        self.noise_rng.sample(StandardNormal)
+    }
+
+    fn quantise_lateral(&self, u: [f64; 2]) -> [f64; 2] {
+        if self.config.measurement.quantise_lateral_dac {
+            [u[0].round(), u[1].round()]
+        } else {
+            u
+        }
+    }
+
+    /// A single noisy Z reading in counts from the current feedback state.
+    fn read_z_counts(&mut self) -> f64 {
+        let white = self.config.measurement.z_white_noise_nm;
+        let n = if white > 0.0 {
+            white * self.normal()
+        } else {
+            0.0
+        };
+        let z = (self.z_nm + n + self.flicker.value()) / self.map.kz_nm_per_count();
+        if self.config.measurement.quantise_z_adc {
+            z.round()
+        } else {
+            z
+        }
+    }
+
+    /// Advances the clock by `dt` with the command held: creep, drift,
+    /// flicker and the feedback evolve; events inside are handled.
+    fn idle(&mut self, dt_s: f64, operation: Operation) -> Result<(), SimError> {
+        if dt_s <= 0.0 {
+            return Ok(());
+        }
+        let t0 = self.time_s;
+        let t1 = t0 + dt_s;
+        let events = self.events_in(t0, t1, true);
+        let mut t = t0;
+        for (te, kind, scheduled) in events {
+            let te = te.clamp(t, t1);
+            self.evolve_held(te - t);
+            t = te;
+            self.fire(te, kind, Some(operation), scheduled)?;
+        }
+        self.evolve_held(t1 - t);
+        Ok(())
+    }
+
+    /// Evolves the state by dt with the command held, no events.
+    fn evolve_held(&mut self, dt_s: f64) {
+        if dt_s <= 0.0 {
+            return;
+        }
+        self.scanner.advance(dt_s);
+        self.time_s += dt_s;
+        self.flush_drift(self.time_s);
+        self.flicker.advance_all(dt_s, &mut self.noise_rng);
+        let target = self.feedback_target_nm(self.time_s, None);
+        let tau = self.config.measurement.feedback_time_constant_s;
+        let decay = if tau > 0.0 { (-dt_s / tau).exp() } else { 0.0 };
+        self.z_nm = target + (self.z_nm - target) * decay;
+    }
+
+    /// Generates drift knots up to t and logs the spontaneous jumps that are due.
+    fn flush_drift(&mut self, t_s: f64) {
+        let new = self.drift.ensure(t_s + 1.0);
+        self.pending_jumps.extend(new);
+        let mut k = 0;
+        while k < self.pending_jumps.len() {
+            if let Some(jump) = self.pending_jumps.get(k).copied()
+                && jump.time_s <= t_s
+            {
+                self.pending_jumps.swap_remove(k);
+                self.log.push(FaultEvent {
+                    time: Seconds(jump.time_s),
+                    kind: FaultEventKind::DriftJump,
+                    duration: Seconds::ZERO,
+                    operation: None,
+                    scheduled: false,
+                });
+                continue;
+            }
+            k += 1;
+        }
+    }
+
+    /// Moves the command along a straight line to `target` at `speed`.
+    fn travel(
+        &mut self,
+        target: [f64; 2],
+        speed_counts_per_s: f64,
+        operation: Operation,
+    ) -> Result<(), SimError> {
+        let start = self.command;
+        let length = (target[0] - start[0]).hypot(target[1] - start[1]);
+        if length == 0.0 {
+            self.command = target;
+            let q = self.quantise_lateral(target);
+            self.scanner.set(q);
+            return Ok(());
+        }
+        let duration = length / speed_counts_per_s;
+        let min_tau = self.scanner.creep[0]
+            .time_constants_s()
+            .first()
+            .copied()
+            .unwrap_or(f64::INFINITY)
+            .min(self.config.measurement.feedback_time_constant_s.max(1e-6) * 20.0);
+        let steps = ((duration / (0.5 * min_tau)).ceil())
+            .max((length / 64.0).ceil())
+            .clamp(1.0, 4000.0) as usize;
+        let dt = duration / steps as f64;
+        let t0 = self.time_s;
+        let events = self.events_in(t0, t0 + duration, true);
+        let mut next = 0;
+        for k in 1..=steps {
+            let f = k as f64 / steps as f64;
+            let u = [
+                start[0] + (target[0] - start[0]) * f,
+                start[1] + (target[1] - start[1]) * f,
+            ];
+            self.command = u;
+            let q = self.quantise_lateral(u);
+            self.scanner.set(q);
+            self.evolve_held(dt);
+            while let Some((te, kind, scheduled)) = events.get(next).copied() {
+                if te > self.time_s {
+                    break;
+                }
+                next += 1;
+                self.fire(te, kind, Some(operation), scheduled)?;
+            }
+        }
+        self.command = target;
+        Ok(())
+    }
+
+    // ------------------------------------------------------------------
+    // Faults
+
+    /// Random and scheduled events with times in `[t0, t1]`, sorted.
+    fn events_in(&mut self, t0: f64, t1: f64, feedback: bool) -> Vec<(f64, FaultKind, bool)> {
+        let mut out = Vec::new();
+        let f = self.config.faults.clone();
+        let draw = |rate: f64, rng: &mut ChaCha8Rng| -> Option<f64> {
+            if rate <= 0.0 {
+                return None;
+            }
+            let u: f64 = rng.random();
+            let t = t0 - (1.0 - u).ln() / rate;
+            (t <= t1).then_some(t)
+        };
+        if feedback && let Some(t) = draw(f.feedback_lost_rate_per_s, &mut self.fault_rng) {
+            out.push((t, FaultKind::FeedbackLost, false));
+        }
+        if let Some(t) = draw(f.tip_change_rate_per_s, &mut self.fault_rng) {
+            let kind = self.random_tip_change();
+            out.push((t, kind, false));
+        }
+        if let Some(t) = draw(f.drift_burst_rate_per_s, &mut self.fault_rng) {
+            let angle: f64 = self.fault_rng.random::<f64>() * std::f64::consts::TAU;
+            out.push((
+                t,
+                FaultKind::DriftBurst {
+                    velocity: NmVelocity {
+                        x_nm_per_s: f.drift_burst_speed_nm_per_s * angle.cos(),
+                        y_nm_per_s: f.drift_burst_speed_nm_per_s * angle.sin(),
+                    },
+                    duration: Seconds(f.drift_burst_duration_s),
+                },
+                false,
+            ));
+        }
+        let mut k = 0;
+        while k < self.scheduled.len() {
+            let fire = match self.scheduled.get(k) {
+                Some((FaultTrigger::AtTime(t), kind)) => {
+                    let call_fault = matches!(kind, FaultKind::Timeout | FaultKind::Communication);
+                    let feedback_ok = feedback || !matches!(kind, FaultKind::FeedbackLost);
+                    !call_fault && feedback_ok && t.value() <= t1
+                }
+                _ => false,
+            };
+            if fire {
+                let (trigger, kind) = self.scheduled.remove(k);
+                if let FaultTrigger::AtTime(t) = trigger {
+                    out.push((t.value().max(t0), kind, true));
+                }
+            } else {
+                k += 1;
+            }
+        }
+        out.sort_by(|a, b| a.0.total_cmp(&b.0));
+        out
+    }
+
+    fn random_tip_change(&mut self) -> FaultKind {
+        let sigma = self.config.faults.tip_change_jump_sigma_nm;
+        let jx: f64 = self.fault_rng.sample(StandardNormal);
+        let jy: f64 = self.fault_rng.sample(StandardNormal);
+        let c: f64 = self.fault_rng.sample(StandardNormal);
+        let ghost: f64 = self.fault_rng.random();
+        let gx: f64 = self.fault_rng.sample(StandardNormal);
+        let gy: f64 = self.fault_rng.sample(StandardNormal);
+        let amplitude: f64 = self.fault_rng.random();
+        FaultKind::TipChange {
+            jump: NmPoint::from_nm(sigma * jx, sigma * jy),
+            contrast_factor: (0.3 * c).exp().clamp(0.3, 3.0),
+            ghost_offset: NmPoint::from_nm(0.3 * gx, 0.3 * gy),
+            ghost_amplitude: if ghost < 0.3 {
+                0.2 + 0.4 * amplitude
+            } else {
+                0.0
+            },
+        }
+    }
+
+    /// Applies an event at time t: logs it, changes the state, and returns
+    /// the error for failing kinds.
+    fn fire(
+        &mut self,
+        t_s: f64,
+        kind: FaultKind,
+        operation: Option<Operation>,
+        scheduled: bool,
+    ) -> Result<(), SimError> {
+        let op = operation.unwrap_or(Operation::Now);
+        let log = |sim: &mut Self, k: FaultEventKind, duration: f64| {
+            tracing::debug!(time_s = t_s, kind = ?k, ?operation, scheduled, "simulated fault");
+            sim.log.push(FaultEvent {
+                time: Seconds(t_s),
+                kind: k,
+                duration: Seconds(duration),
+                operation,
+                scheduled,
+            });
+        };
+        match kind {
+            FaultKind::Timeout => {
+                log(self, FaultEventKind::Timeout, 0.0);
+                let d = self.config.faults.timeout_duration_s;
+                self.evolve_held(d);
+                Err(SimError::Timeout {
+                    operation: op,
+                    time: Seconds(self.time_s),
+                })
+            }
+            FaultKind::Communication => {
+                log(self, FaultEventKind::Communication, 0.0);
+                Err(SimError::Communication {
+                    operation: op,
+                    time: Seconds(t_s),
+                })
+            }
+            FaultKind::FeedbackLost => {
+                log(self, FaultEventKind::FeedbackLost, 0.0);
+                Err(SimError::FeedbackLost {
+                    operation: op,
+                    time: Seconds(t_s),
+                })
+            }
+            FaultKind::TipChange {
+                jump,
+                contrast_factor,
+                ghost_offset,
+                ghost_amplitude,
+            } => {
+                log(self, FaultEventKind::TipChange, 0.0);
+                self.drift.add_tip_jump(Jump {
+                    time_s: t_s,
+                    displacement_nm: [jump.x.value(), jump.y.value()],
+                });
+                self.tip = TipState {
+                    contrast: if contrast_factor.is_finite() && contrast_factor > 0.0 {
+                        self.tip.contrast * contrast_factor
+                    } else {
+                        self.tip.contrast
+                    },
+                    ghost_offset: [ghost_offset.x.value(), ghost_offset.y.value()],
+                    ghost_amplitude: if ghost_amplitude.is_finite() {
+                        ghost_amplitude.max(0.0)
+                    } else {
+                        0.0
+                    },
+                };
+                Ok(())
+            }
+            FaultKind::DriftBurst { velocity, duration } => {
+                let d = if duration.value().is_finite() {
+                    duration.value().max(0.0)
+                } else {
+                    0.0
+                };
+                log(self, FaultEventKind::DriftBurst, d);
+                let v = [velocity.x_nm_per_s, velocity.y_nm_per_s];
+                if v.iter().all(|x| x.is_finite()) {
+                    self.drift.add_burst(Burst {
+                        start_s: t_s,
+                        duration_s: d,
+                        velocity_nm_per_s: v,
+                    });
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// Start of every call: overhead, call-level faults (scheduled and random).
+    fn begin_call(&mut self, operation: Operation, overhead: bool) -> Result<(), SimError> {
+        if overhead {
+            let d = self.config.instrument.call_overhead_s;
+            self.idle(d, operation)?;
+        }
+        let now = self.time_s;
+        // Scheduled faults for this call.
+        let mut k = 0;
+        while k < self.scheduled.len() {
+            let due = match self.scheduled.get(k) {
+                Some((FaultTrigger::NextCall(op), _)) => *op == operation,
+                Some((FaultTrigger::AtTime(t), kind)) => {
+                    t.value() <= now
+                        && (matches!(kind, FaultKind::Timeout | FaultKind::Communication)
+                            || matches!(kind, FaultKind::FeedbackLost))
+                }
+                None => false,
+            };
+            if due {
+                let (_, kind) = self.scheduled.remove(k);
+                self.fire(now, kind, Some(operation), true)?;
+            } else {
+                k += 1;
+            }
+        }
+        if overhead {
+            let p_timeout = self.config.faults.timeout_probability_per_call;
+            let p_comm = self.config.faults.communication_probability_per_call;
+            if p_timeout > 0.0 || p_comm > 0.0 {
+                let u: f64 = self.fault_rng.random();
+                if u < p_timeout {
+                    return self.fire(now, FaultKind::Timeout, Some(operation), false);
+                }
+                if u < p_timeout + p_comm {
+                    return self.fire(now, FaultKind::Communication, Some(operation), false);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn check_point(&self, p: CountPoint, what: &str) -> Result<[f64; 2], SimError> {
+        if !p.is_finite() {
+            return Err(SimError::InvalidRequest {
+                reason: format!("{what} is not finite"),
+            });
+        }
+        let h = self.config.instrument.lateral_half_range_counts;
+        let (x, y) = (p.x.value(), p.y.value());
+        if x < -h || y < -h || x > h - 1.0 || y > h - 1.0 {
+            return Err(SimError::OutOfRange {
+                reason: format!("{what} ({x}, {y}) counts is outside [{}, {}]", -h, h - 1.0),
+            });
+        }
+        Ok([x, y])
+    }
+
+    // ------------------------------------------------------------------
+    // The scan
+
+    fn pixel_factors(&self, dwell_s: f64, line_s: f64) -> PixelFactors {
+        let tau = self.config.measurement.feedback_time_constant_s;
+        let mut fast = Vec::new();
+        let mut slow = Vec::new();
+        for k in 0..self.flicker.len() {
+            let f = self.flicker.corner_hz(k);
+            if 2.0 * std::f64::consts::PI * f * line_s >= 0.1 {
+                fast.push((k, self.flicker.coefficients(k, dwell_s)));
+            } else {
+                slow.push((k, self.flicker.coefficients(k, line_s)));
+            }
+        }
+        PixelFactors {
+            creep_decays: self.scanner.creep[0].decays(dwell_s),
+            feedback_decay: if tau > 0.0 {
+                (-dwell_s / tau).exp()
+            } else {
+                0.0
+            },
+            fast_flicker: fast,
+            slow_flicker: slow,
+        }
+    }
+
+    /// One pixel: command u over one dwell ending at `t_end`; returns the Z reading (counts).
+    #[inline]
+    fn pixel(&mut self, u: [f64; 2], t_mid: f64, f: &PixelFactors, record: bool) -> f64 {
+        let q = self.quantise_lateral(u);
+        self.scanner.set(q);
+        let x = self.scanner.input;
+        self.scanner.creep_offset = [
+            self.scanner.creep[0].advance_with(x[0], &f.creep_decays),
+            self.scanner.creep[1].advance_with(x[1], &f.creep_decays),
+        ];
+        let ue = self.scanner.effective();
+        let kz = self.map.kz_nm_per_count();
+        let p = self.map.position(ue[0], ue[1], self.z_nm / kz);
+        let d = self.drift.displacement(t_mid);
+        let jitter = self.config.measurement.lateral_jitter_nm;
+        let (jx, jy) = if jitter > 0.0 {
+            (jitter * self.normal(), jitter * self.normal())
+        } else {
+            (0.0, 0.0)
+        };
+        let s = [p[0] + d[0] + jx, p[1] + d[1] + jy];
+        let target = self.z_reference_nm() + self.topography_nm(s) + self.map.bowl_nm(p);
+        self.z_nm = target + (self.z_nm - target) * f.feedback_decay;
+        for &(k, c) in &f.fast_flicker {
+            self.flicker.step(k, c, &mut self.noise_rng);
+        }
+        if !record {
+            return 0.0;
+        }
+        let white = self.config.measurement.z_white_noise_nm;
+        let n = if white > 0.0 {
+            white * self.normal()
+        } else {
+            0.0
+        };
+        let z = (self.z_nm + n + self.flicker.value()) / kz;
+        if self.config.measurement.quantise_z_adc {
+            z.round()
+        } else {
+            z
+        }
+    }
+
+    fn scan_impl(&mut self, request: &ScanRequest) -> Result<Frame, SimError> {
+        self.begin_call(Operation::Scan, true)?;
+        request.validate().map_err(|e| SimError::InvalidRequest {
+            reason: e.to_string(),
+        })?;
+        let caps = self.capabilities();
+        if request.pixels_per_line > caps.max_pixels_per_line || request.lines > caps.max_lines {
+            return Err(SimError::OutOfRange {
+                reason: format!(
+                    "{}×{} pixels exceed the maximum {}×{}",
+                    request.pixels_per_line,
+                    request.lines,
+                    caps.max_pixels_per_line,
+                    caps.max_lines
+                ),
+            });
+        }
+        if request.pixel_dwell < caps.min_pixel_dwell {
+            return Err(SimError::OutOfRange {
+                reason: format!(
+                    "pixel dwell {} is below the minimum {}",
+                    request.pixel_dwell, caps.min_pixel_dwell
+                ),
+            });
+        }
+        if request.direction == ScanDirection::Counter && !caps.counter_scan {
+            return Err(SimError::OutOfRange {
+                reason: "counter scans are not supported by this configuration".to_owned(),
+            });
+        }
+        request
+            .check_inside(caps.field_min, caps.field_max)
+            .map_err(|e| SimError::OutOfRange {
+                reason: e.to_string(),
+            })?;
+        let nx = request.pixels_per_line as usize;
+        let ny = request.lines as usize;
+        let dwell = request.pixel_dwell.value();
+        let step = request.pixel_step.value();
+        // Approach the first pixel at the scan speed.
+        let first = request.commanded_position(TraceHalf::Forward, 0, 0);
+        self.travel(
+            [first.x.value(), first.y.value()],
+            step / dwell,
+            Operation::Scan,
+        )?;
+        let start = self.time_s;
+        let line_s = 2.0 * nx as f64 * dwell;
+        let end = start + line_s * ny as f64;
+        self.flush_drift(end);
+        let events = self.events_in(start, end, true);
+        let mut next_event = 0;
+        let mut next_event_t = events.first().map_or(f64::INFINITY, |e| e.0);
+        let factors = self.pixel_factors(dwell, line_s);
+        let record_backward = request.record_backward && caps.backward_trace;
+        let mut forward = TraceImage {
+            z_counts: Vec::with_capacity(nx * ny),
+            time_s: Vec::with_capacity(nx * ny),
+        };
+        let mut backward = record_backward.then(|| TraceImage {
+            z_counts: Vec::with_capacity(nx * ny),
+            time_s: Vec::with_capacity(nx * ny),
+        });
+        let ox = request.origin.x.value();
+        let oy = request.origin.y.value();
+        // Only the last ~30 feedback time constants of an unrecorded retrace
+        // matter for the next trace; earlier pixels still drive creep.
+        for line in 0..ny {
+            let row = match request.direction {
+                ScanDirection::Direct => line,
+                ScanDirection::Counter => ny - 1 - line,
+            };
+            let y = oy + step * row as f64;
+            for &(k, c) in &factors.slow_flicker {
+                self.flicker.step(k, c, &mut self.noise_rng);
+            }
+            for half in [TraceHalf::Forward, TraceHalf::Backward] {
+                let record = half == TraceHalf::Forward || backward.is_some();
+                let runs_plus_x = matches!(
+                    (request.direction, half),
+                    (ScanDirection::Direct, TraceHalf::Forward)
+                        | (ScanDirection::Counter, TraceHalf::Backward)
+                );
+                let half_index = if half == TraceHalf::Forward { 0 } else { 1 };
+                let base = start + ((2 * line + half_index) * nx) as f64 * dwell;
+                for pixel in 0..nx {
+                    let t_mid = base + (pixel as f64 + 0.5) * dwell;
+                    if t_mid >= next_event_t {
+                        while let Some((te, kind, scheduled)) = events.get(next_event).copied() {
+                            if te > t_mid {
+                                break;
+                            }
+                            next_event += 1;
+                            if let Err(e) = self.fire(te, kind, Some(Operation::Scan), scheduled) {
+                                // The scan stops at this pixel.
+                                self.time_s = t_mid - 0.5 * dwell;
+                                return Err(e);
+                            }
+                        }
+                        next_event_t = events.get(next_event).map_or(f64::INFINITY, |e| e.0);
+                    }
+                    let column = if runs_plus_x { pixel } else { nx - 1 - pixel };
+                    let x = ox + step * column as f64;
+                    self.command = [x, y];
+                    let z = self.pixel([x, y], t_mid, &factors, record);
+                    if half == TraceHalf::Forward {
+                        forward.z_counts.push(z);
+                        forward.time_s.push(t_mid);
+                    } else if let Some(b) = backward.as_mut() {
+                        b.z_counts.push(z);
+                        b.time_s.push(t_mid);
+                    }
+                    self.time_s = t_mid + 0.5 * dwell;
+                }
+            }
+        }
+        self.time_s = end;
+        self.flush_drift(end);
+        Ok(Frame {
+            request: request.clone(),
+            forward,
+            backward,
+        })
+    }
+}
+
+impl Microscope for Simulator {
+    type Error = SimError;
+
+    fn capabilities(&self) -> Capabilities {
+        let i = &self.config.instrument;
+        let h = i.lateral_half_range_counts;
+        let hz = i.z_half_range_counts;
+        Capabilities {
+            field_min: CountPoint::from_counts(-h, -h),
+            field_max: CountPoint::from_counts(h - 1.0, h - 1.0),
+            z_min: Counts(-hz),
+            z_max: Counts(hz - 1.0),
+            lateral_resolution: Counts(if self.config.measurement.quantise_lateral_dac {
+                1.0
+            } else {
+                0.0
+            }),
+            max_pixels_per_line: i.max_pixels_per_line,
+            max_lines: i.max_lines,
+            min_pixel_dwell: Seconds(i.min_pixel_dwell_s),
+            counter_scan: i.counter_scan,
+            backward_trace: i.backward_trace,
+            coarse_z: i.coarse_z.as_ref().map(|c| CoarseZCapability {
+                min_steps: c.min_steps,
+                max_steps: c.max_steps,
+            }),
+        }
+    }
+
+    fn now(&mut self) -> Result<Seconds, SimError> {
+        self.begin_call(Operation::Now, false)?;
+        Ok(Seconds(self.time_s))
+    }
+
+    fn wait(&mut self, duration: Seconds) -> Result<(), SimError> {
+        self.begin_call(Operation::Wait, true)?;
+        let d = duration.value();
+        if !d.is_finite() || d < 0.0 {
+            return Err(SimError::InvalidRequest {
+                reason: format!("wait duration {duration} must be finite and ≥ 0"),
+            });
+        }
+        self.idle(d, Operation::Wait)
+    }
+
+    fn position(&mut self) -> Result<CountPoint, SimError> {
+        self.begin_call(Operation::Position, false)?;
+        Ok(CountPoint::from_counts(self.command[0], self.command[1]))
+    }
+
+    fn move_to(&mut self, request: MoveRequest) -> Result<(), SimError> {
+        self.begin_call(Operation::MoveTo, true)?;
+        let target = self.check_point(request.target, "move target")?;
+        let speed = request.speed_counts_per_s;
+        if !(speed.is_finite() && speed > 0.0) {
+            return Err(SimError::InvalidRequest {
+                reason: format!("move speed {speed} counts/s must be finite and > 0"),
+            });
+        }
+        let settle = request.settle.value();
+        if !(settle.is_finite() && settle >= 0.0) {
+            return Err(SimError::InvalidRequest {
+                reason: format!("settle time {} must be finite and ≥ 0", request.settle),
+            });
+        }
+        self.travel(target, speed, Operation::MoveTo)?;
+        self.idle(settle, Operation::MoveTo)
+    }
+
+    fn scan(&mut self, request: &ScanRequest) -> Result<Frame, SimError> {
+        let result = self.scan_impl(request);
+        if let Err(e) = &result {
+            tracing::debug!(error = %e, "simulated scan failed");
+        }
+        result
+    }
+
+    fn z_position(&mut self) -> Result<Counts, SimError> {
+        self.begin_call(Operation::ZPosition, true)?;
+        Ok(Counts(self.read_z_counts()))
+    }
+
+    fn coarse_z(&mut self) -> Option<&mut dyn CoarseZStage<Error = SimError>> {
+        if self.config.instrument.coarse_z.is_some() {
+            Some(self)
+        } else {
+            None
+        }
+    }
+}
+
+impl CoarseZStage for Simulator {
+    type Error = SimError;
+
+    fn step(&mut self, steps: i64) -> Result<(), SimError> {
+        self.begin_call(Operation::CoarseZ, true)?;
+        let Some(c) = self.config.instrument.coarse_z.clone() else {
+            return Err(SimError::OutOfRange {
+                reason: "this configuration has no coarse stage".to_owned(),
+            });
+        };
+        let target = self.coarse_steps.saturating_add(steps);
+        if target < c.min_steps || target > c.max_steps {
+            return Err(SimError::OutOfRange {
+                reason: format!(
+                    "coarse position {target} steps is outside [{}, {}]",
+                    c.min_steps, c.max_steps
+                ),
+            });
+        }
+        let duration = steps.unsigned_abs() as f64 * c.step_time_s;
+        self.idle(duration, Operation::CoarseZ)?;
+        self.coarse_steps = target;
+        // The feedback re-establishes the gap at the new stage position.
+        self.z_nm = self.feedback_target_nm(self.time_s, None);
+        Ok(())
+    }
+
+    fn position_steps(&mut self) -> Result<i64, SimError> {
+        self.begin_call(Operation::CoarseZ, false)?;
+        Ok(self.coarse_steps)
+    }
+}

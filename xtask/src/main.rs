@@ -1,1 +1,96 @@
-fn main() {}
+//! Project automation for spmcal: `cargo xtask calibrate | bench`.
+//!
+//! `cargo xtask` is an alias (see `.cargo/config.toml`) for
+//! `cargo run --package xtask --release --`.
+
+mod bench;
+mod calibrate;
+
+use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+
+#[derive(Debug, Parser)]
+#[command(name = "xtask", about = "spmcal project automation")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// The main job: a full simulated calibration with a report.
+    Calibrate {
+        /// Simulated-microscope config (TOML).
+        #[arg(long, value_name = "FILE", default_value = "configs/sim-hopg.toml")]
+        config: PathBuf,
+        /// Output folder.
+        #[arg(long, value_name = "DIR", default_value = "target/spmcal/calibrate")]
+        out: PathBuf,
+        /// A reduced run that takes seconds.
+        #[arg(long)]
+        quick: bool,
+    },
+    /// Benchmarks: writes results.json and regenerates docs/RESULTS.md.
+    Bench {
+        /// A reduced run.
+        #[arg(long)]
+        quick: bool,
+        /// Also run the Gwyddion side-by-side comparison.
+        #[arg(long)]
+        gwyddion: bool,
+        /// Output folder for results.json.
+        #[arg(long, value_name = "DIR", default_value = "target/spmcal/bench")]
+        out: PathBuf,
+    },
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let workspace_root = workspace_root();
+    let result = match cli.command {
+        Command::Calibrate { config, out, quick } => calibrate::run(
+            &workspace_root.join(config),
+            &workspace_root.join(out),
+            quick,
+        ),
+        Command::Bench {
+            quick,
+            gwyddion,
+            out,
+        } => bench::run(&workspace_root, &workspace_root.join(out), quick, gwyddion),
+    };
+    if let Err(error) = result {
+        eprintln!("xtask: error: {error}");
+        std::process::exit(1);
+    }
+}
+
+/// The workspace root (the parent of this crate's folder), so relative paths
+/// work from any current directory.
+fn workspace_root() -> PathBuf {
+    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    manifest.parent().map(PathBuf::from).unwrap_or(manifest)
+}
+
+/// An error of an xtask job, with what it was doing.
+#[derive(Debug, thiserror::Error)]
+pub enum XtaskError {
+    /// A step failed.
+    #[error("{step}: {message}")]
+    Step {
+        /// What was being done.
+        step: String,
+        /// Why it failed.
+        message: String,
+    },
+}
+
+impl XtaskError {
+    /// A failed step.
+    pub fn step(step: impl Into<String>, message: impl std::fmt::Display) -> Self {
+        Self::Step {
+            step: step.into(),
+            message: message.to_string(),
+        }
+    }
+}

@@ -1,5 +1,202 @@
-//! The spmcal command-line program (placeholder until the calibration issue).
+//! `spmcal`: the command-line program of the spmcal workspace (DESIGN §13).
+//!
+//! Exit codes: 0 success; 1 a run failed (instrument, numerical); 2 bad usage or
+//! bad input, with a message on stderr naming the file, line or field. A panic
+//! (101) is always a bug.
+
+mod error;
+mod info;
+
+use clap::{Parser, Subcommand, ValueEnum};
+use error::{CliError, EXIT_BAD_INPUT, EXIT_SUCCESS};
+use std::path::PathBuf;
+
+/// Distributed, drift-insensitive calibration of SPM scanners, and image correction.
+#[derive(Debug, Parser)]
+#[command(name = "spmcal", version, about, long_about = None)]
+struct Cli {
+    /// Write tracing logs to this file (default: warnings to stderr).
+    #[arg(long, global = true, value_name = "FILE")]
+    log: Option<PathBuf>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Run the calibration plan of a config on the backend it names; append to the CDB.
+    Calibrate {
+        /// The job config (TOML): `[backend]` and `[plan]`.
+        #[arg(long, value_name = "FILE")]
+        config: PathBuf,
+        /// The calibration database (created when missing).
+        #[arg(long, value_name = "PATH")]
+        cdb: Option<PathBuf>,
+        /// Resume the unfinished run in the CDB instead of starting a new one.
+        #[arg(long)]
+        resume: bool,
+        /// Folder for the run's report and plots.
+        #[arg(long, value_name = "DIR")]
+        out: Option<PathBuf>,
+    },
+    /// Fit regression surfaces through the CDB's coefficients.
+    Fit {
+        /// The calibration database.
+        #[arg(long, value_name = "PATH")]
+        cdb: PathBuf,
+        /// Only records of this scanner.
+        #[arg(long, value_name = "ID")]
+        scanner: Option<String>,
+        /// Only records at or after this UTC date-time (RFC 3339 or YYYY-MM-DD).
+        #[arg(long, value_name = "DATE")]
+        since: Option<String>,
+        /// Only records at or before this UTC date-time (RFC 3339 or YYYY-MM-DD).
+        #[arg(long, value_name = "DATE")]
+        until: Option<String>,
+        /// Where to write the surfaces (JSON).
+        #[arg(long, value_name = "FILE")]
+        out: PathBuf,
+    },
+    /// Correct an image with regression surfaces.
+    Correct {
+        /// The image file (any format spmcal reads).
+        image: PathBuf,
+        /// Surfaces written by `spmcal fit`.
+        #[arg(long, value_name = "FILE")]
+        surfaces: PathBuf,
+        /// Output Gwyddion Simple Field.
+        #[arg(long, value_name = "OUT.gsf")]
+        out: PathBuf,
+        /// Raster direction of the image.
+        #[arg(long, value_enum, default_value_t = RasterDirection::Direct)]
+        direction: RasterDirection,
+    },
+    /// Describe an SPM file: format, channels, directions, pixels, size, times, header.
+    Info {
+        /// The file.
+        file: PathBuf,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Compare measured images with the simulation: what it gets wrong and why.
+    Diagnose {
+        /// Image files (frames of one area).
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+        /// The sample's lattice: hopg | si7x7 | hex:A_NM | square:A_NM.
+        #[arg(long, value_name = "LATTICE")]
+        lattice: String,
+        /// Where to write the diagnosis (JSON).
+        #[arg(long, value_name = "OUT")]
+        json: PathBuf,
+        /// Also draw the residual figure.
+        #[arg(long, value_name = "OUT.png")]
+        png: Option<PathBuf>,
+    },
+    /// Calibration-database maintenance.
+    Cdb {
+        #[command(subcommand)]
+        command: CdbCommand,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum CdbCommand {
+    /// Check the database's integrity (exit 1 when it fails).
+    Check {
+        /// The database file.
+        path: PathBuf,
+    },
+    /// Export every record.
+    Export {
+        /// The database file.
+        path: PathBuf,
+        /// CSV output file.
+        #[arg(long, value_name = "OUT")]
+        csv: PathBuf,
+    },
+    /// Coefficients against date (age dynamics).
+    Trend {
+        /// The database file.
+        path: PathBuf,
+    },
+}
+
+/// Raster direction of an image to correct.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum RasterDirection {
+    /// +x lines stepping +y.
+    Direct,
+    /// −x lines stepping −y from the far corner.
+    Counter,
+}
+
 fn main() {
-    eprintln!("spmcal: not implemented yet");
-    std::process::exit(2);
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(error) => {
+            let code = if error.use_stderr() {
+                EXIT_BAD_INPUT
+            } else {
+                EXIT_SUCCESS
+            };
+            // clap prints help/version to stdout and usage errors to stderr.
+            let _ = error.print();
+            std::process::exit(code);
+        }
+    };
+    let _guard = install_subscriber(cli.log.as_deref());
+    let code = match run(cli.command) {
+        Ok(()) => EXIT_SUCCESS,
+        Err(error) => {
+            eprintln!("spmcal: error: {error}");
+            error.exit_code()
+        }
+    };
+    std::process::exit(code);
+}
+
+/// Logs go to a file when asked, otherwise warnings and errors go to stderr.
+fn install_subscriber(log: Option<&std::path::Path>) -> Option<()> {
+    use tracing_subscriber::EnvFilter;
+    let filter = EnvFilter::try_from_env("SPMCAL_LOG").unwrap_or_else(|_| EnvFilter::new("info"));
+    match log.map(std::fs::File::create) {
+        Some(Ok(file)) => {
+            let _ = tracing_subscriber::fmt()
+                .with_env_filter(filter)
+                .with_ansi(false)
+                .with_writer(std::sync::Mutex::new(file))
+                .try_init();
+        }
+        Some(Err(error)) => {
+            eprintln!("spmcal: warning: cannot open the log file: {error}; logging to stderr");
+            let _ = tracing_subscriber::fmt()
+                .with_env_filter(EnvFilter::new("warn"))
+                .with_writer(std::io::stderr)
+                .try_init();
+        }
+        None => {
+            let _ = tracing_subscriber::fmt()
+                .with_env_filter(EnvFilter::new("warn"))
+                .with_writer(std::io::stderr)
+                .try_init();
+        }
+    }
+    Some(())
+}
+
+fn run(command: Command) -> Result<(), CliError> {
+    match command {
+        Command::Info { file, json } => info::run(&file, json),
+        Command::Calibrate { .. } | Command::Fit { .. } | Command::Correct { .. } => Err(
+            CliError::RunFailed("this subcommand arrives with the calibration issue".to_owned()),
+        ),
+        Command::Diagnose { .. } => Err(CliError::RunFailed(
+            "this subcommand arrives with the model-check issue".to_owned(),
+        )),
+        Command::Cdb { .. } => Err(CliError::RunFailed(
+            "this subcommand arrives with the calibration issue".to_owned(),
+        )),
+    }
 }

@@ -1,0 +1,54 @@
+//! The CLI's error type and its mapping to exit codes (DESIGN §13).
+
+use std::path::PathBuf;
+
+/// Exit code: success.
+pub const EXIT_SUCCESS: i32 = 0;
+/// Exit code: a run failed (instrument, numerical).
+pub const EXIT_RUN_FAILED: i32 = 1;
+/// Exit code: bad usage or bad input.
+pub const EXIT_BAD_INPUT: i32 = 2;
+
+/// Everything a subcommand can fail with.
+#[derive(Debug, thiserror::Error)]
+pub enum CliError {
+    /// An input file, config or argument is wrong; the message names it.
+    #[error("{0}")]
+    BadInput(String),
+    /// The run itself failed (instrument fault, numerical failure).
+    #[error("{0}")]
+    RunFailed(String),
+    /// Reading or writing a file failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+}
+
+impl CliError {
+    /// The process exit code for this error.
+    pub fn exit_code(&self) -> i32 {
+        match self {
+            Self::BadInput(_) => EXIT_BAD_INPUT,
+            Self::RunFailed(_) => EXIT_RUN_FAILED,
+            Self::Io { source, .. } => match source.kind() {
+                std::io::ErrorKind::NotFound
+                | std::io::ErrorKind::PermissionDenied
+                | std::io::ErrorKind::InvalidData
+                | std::io::ErrorKind::InvalidInput => EXIT_BAD_INPUT,
+                _ => EXIT_RUN_FAILED,
+            },
+        }
+    }
+
+    /// An I/O error on `path`.
+    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Self::Io {
+            path: path.into(),
+            source,
+        }
+    }
+}

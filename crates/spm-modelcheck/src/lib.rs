@@ -1,3 +1,58 @@
-//! Simulation versus measurement: baseline fit, residual diagnosis, effect library, model extension.
+//! # spm-modelcheck: simulation versus measurement
 //!
-//! Placeholder: this crate is filled in by its issue (see docs/ARCHITECTURE.md).
+//! Given measured images of a crystal lattice (or feature lists), fit the
+//! baseline model — the known lattice seen through a lumped linear scanner
+//! (scales, obliquity, rotation) with constant drift and per-frame offsets —
+//! show what it gets wrong, name the physical cause from a library of nine
+//! effects by evidence, extend the model, and measure the gain on held-out
+//! features (DESIGN §10, §13).
+//!
+//! - [`diagnose`]: files → [`Diagnosis`] (the `spmcal diagnose` entry point);
+//! - [`diagnose_features`]: the same from a [`FeatureSet`] already extracted;
+//! - [`extract_features`]: images → feature observations with times;
+//! - [`write_png`]: the residual figure;
+//! - [`sim_patch`]: the fitted model as spm-sim configuration values.
+//!
+//! The effect library ([`EffectKind`]) — each a model extension whose
+//! parameters carry units in their names:
+//!
+//! | effect | extension | parameters |
+//! |---|---|---|
+//! | `drift_acceleration` | ½·a·t² tip–sample displacement | `acceleration_{x,y}_nm_per_s2` |
+//! | `creep` | input displacement c·lg(1 + t′/τ), t′ since the frame start | `creep_{x,y}_nm_per_decade`, `time_constant_s` |
+//! | `hysteresis` | fast-axis input −s·h·W·(1 − ξx²), s = ±1 trace/retrace | `branch_half_separation_fraction`, `branch_separation_nm` |
+//! | `scanner_nonlinearity` | input W·(q·ξ² + c·ξ³) per axis | `quadratic_{x,y}`, `cubic_{x,y}` (at the frame edge) |
+//! | `nonorthogonality` | input W·g·ξx·ξy per axis (obliquity varying over the field) | `shear_gradient_{x,y}` |
+//! | `crosstalk_xy` | input x += b·H·ξy², y += b·W·ξx² (quadratic crosstalk, bow) | `bow_x_from_y`, `bow_y_from_x` |
+//! | `feedback_lag` | fast-axis input −s·v·τ | `time_constant_s`, `shift_nm` |
+//! | `periodic_vibration` | A·cos(2πft + φ) per axis | `amplitude_{x,y}_nm`, `frequency_hz`, `phase_{x,y}_rad` |
+//! | `tip_change` | jump (jx, jy) from time t_c on | `jump_{x,y}_nm`, `time_s` |
+//!
+//! ξ is the commanded position over the frame half-size (W along x, H along y).
+//! The constant parts of nonorthogonality and linear crosstalk are inside the
+//! baseline's lumped linear scanner and cannot be told apart from it.
+#![warn(missing_docs)]
+
+mod diagnose;
+mod extract;
+mod index;
+mod model;
+mod plot;
+mod simmap;
+mod types;
+
+pub use diagnose::{
+    BaselineReport, CandidateScore, Diagnosis, FinalReport, Finding, ParamValue, ResidualPoint,
+    ResidualStructure, diagnose_features, diagnose_indexed,
+};
+pub use extract::{
+    ExtractOptions, ImageInput, MapContext, diagnose, diagnose_paths, extract_features,
+    features_from_height_map,
+};
+pub use index::MeasuredBasis;
+pub use plot::write_png;
+pub use simmap::{SimContext, SimPatch, TipChangeEvent, sim_patch};
+pub use types::{
+    EffectKind, FeatureObservation, FeatureSet, FrameInfo, HOPG_A_NM, LatticeSpec, LineDirection,
+    ModelCheckError, Options, SI7X7_A_NM,
+};

@@ -1,0 +1,361 @@
+//! From image files to feature observations with acquisition times.
+
+use crate::diagnose::{Diagnosis, diagnose_features};
+use crate::types::{
+    FeatureObservation, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError,
+    Options, SI7X7_A_NM,
+};
+use spm_features::{DetectionConfig, Polarity, detect};
+use spm_formats::{Channel, DateTime, Direction, ScanDir, SpmFile};
+use spm_hal::{CountPoint, Counts, HeightMap};
+use std::path::{Path, PathBuf};
+
+/// How features are extracted from images.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ExtractOptions {
+    /// Hills or pits; `None` = by lattice (pits, i.e. corner holes, for Si 7×7; hills otherwise).
+    pub polarity: Option<Polarity>,
+    /// Height channel name; `None` = the first channel in metres.
+    pub channel: Option<String>,
+    /// Line time assumed when a file records none, s (times are then in "line units").
+    pub default_line_time_s: f64,
+    /// Smallest signal-to-noise ratio of a feature (see spm-features). Default 4.
+    pub min_snr: f64,
+}
+
+impl Default for ExtractOptions {
+    fn default() -> Self {
+        Self {
+            polarity: None,
+            channel: None,
+            default_line_time_s: 1.0,
+            min_snr: 4.0,
+        }
+    }
+}
+
+/// One image input: a file and, optionally, its start time on a common axis.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImageInput {
+    /// The file.
+    pub path: PathBuf,
+    /// Frame start, s on the common axis; `None` = from the file's record date,
+    /// or right after the previous frame when the file has none.
+    pub start_time_s: Option<f64>,
+}
+
+fn days_from_civil(y: i64, m: i64, d: i64) -> i64 {
+    let y = if m <= 2 { y - 1 } else { y };
+    let era = if y >= 0 { y } else { y - 399 } / 400;
+    let yoe = y - era * 400;
+    let mp = (m + 9) % 12;
+    let doy = (153 * mp + 2) / 5 + d - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    era * 146_097 + doe - 719_468
+}
+
+fn seconds_of(dt: DateTime) -> f64 {
+    let days = days_from_civil(dt.year as i64, dt.month as i64, dt.day as i64);
+    (days * 86_400 + dt.hour as i64 * 3600 + dt.minute as i64 * 60 + dt.second as i64) as f64
+}
+
+/// Where a height map's features belong and how to find them.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MapContext {
+    /// Pixel pitch (x, y), nominal nm.
+    pub pixel_nm: [f64; 2],
+    /// Hills or pits.
+    pub polarity: Polarity,
+    /// Lattice period, nm (sets the detection scales).
+    pub a_nm: f64,
+    /// Smallest signal-to-noise ratio of a feature.
+    pub min_snr: f64,
+    /// Fast-axis direction of the map's lines.
+    pub direction: LineDirection,
+    /// Frame index of the features.
+    pub frame_index: usize,
+}
+
+/// Features of one height map in scanner geometry (row index grows with y,
+/// as [`HeightMap`] defines; one map unit = one pixel), placed with `ctx`;
+/// `time_and_line` gives (time s, acquisition line) of a fractional
+/// (column, row).
+pub fn features_from_height_map(
+    map: &HeightMap,
+    ctx: &MapContext,
+    time_and_line: &dyn Fn(f64, f64) -> (f64, usize),
+) -> Result<Vec<FeatureObservation>, ModelCheckError> {
+    let MapContext {
+        pixel_nm,
+        polarity,
+        a_nm,
+        min_snr,
+        direction,
+        frame_index,
+    } = *ctx;
+    let a_px = a_nm / pixel_nm[0].max(1e-12);
+    let config = DetectionConfig {
+        polarity,
+        min_separation_px: (0.5 * a_px).max(1.5),
+        min_snr,
+        max_fit_radius_px: (0.4 * a_px).clamp(2.0, 40.0),
+        max_width_px: a_px.max(1.0),
+        min_width_px: 0.4,
+        ..DetectionConfig::default()
+    };
+    let found = detect(map, &config).map_err(|source| ModelCheckError::Features {
+        label: format!("frame {frame_index} {direction:?}"),
+        source,
+    })?;
+    let (nx, ny) = (map.columns as f64, map.rows as f64);
+    Ok(found
+        .features
+        .iter()
+        .map(|f| {
+            let (column, row) = map.pixel_of(f.position);
+            let (time_s, line_index) = time_and_line(column, row);
+            let sigma_px = f.uncertainty.radial().value()
+                / std::f64::consts::SQRT_2
+                / map.pixel_step.value().max(1e-300);
+            FeatureObservation {
+                x_nm: (column - 0.5 * (nx - 1.0)) * pixel_nm[0],
+                y_nm: (row - 0.5 * (ny - 1.0)) * pixel_nm[1],
+                time_s,
+                direction,
+                frame_index,
+                line_index,
+                sigma_nm: Some(sigma_px * pixel_nm[0]),
+            }
+        })
+        .collect())
+}
+
+/// Levels a display-orientation image line by line (least-squares line per
+/// row) and fills NaN with 0; returns the values in pm and the NaN mask.
+fn level(channel: &Channel) -> (Vec<f64>, Vec<bool>) {
+    let (nx, ny) = (channel.nx(), channel.ny());
+    let scale = if channel.unit() == "m" { 1e12 } else { 1.0 };
+    let data = channel.data();
+    let mut out = vec![0.0; nx * ny];
+    let mut nan = vec![false; nx * ny];
+    for r in 0..ny {
+        let row = &data[r * nx..(r + 1) * nx];
+        let pts: Vec<(f64, f64)> = row
+            .iter()
+            .enumerate()
+            .filter(|(_, v)| v.is_finite())
+            .map(|(c, v)| (c as f64, v * scale))
+            .collect();
+        let n = pts.len() as f64;
+        let (a, b) = if pts.len() >= 2 {
+            let mx = pts.iter().map(|p| p.0).sum::<f64>() / n;
+            let my = pts.iter().map(|p| p.1).sum::<f64>() / n;
+            let sxx = pts.iter().map(|p| (p.0 - mx).powi(2)).sum::<f64>();
+            let sxy = pts.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum::<f64>();
+            let b = if sxx > 0.0 { sxy / sxx } else { 0.0 };
+            (my - b * mx, b)
+        } else {
+            (0.0, 0.0)
+        };
+        for c in 0..nx {
+            let v = row[c];
+            if v.is_finite() {
+                out[r * nx + c] = v * scale - a - b * c as f64;
+            } else {
+                nan[r * nx + c] = true;
+            }
+        }
+    }
+    (out, nan)
+}
+
+/// Extracts feature observations from the height channels (forward and
+/// backward) of each file. Frame `i` of the result is file `i`.
+pub fn extract_features(
+    files: &[(SpmFile, Option<f64>)],
+    lattice: &LatticeSpec,
+    ex: &ExtractOptions,
+) -> Result<FeatureSet, ModelCheckError> {
+    let polarity = ex
+        .polarity
+        .unwrap_or(if (lattice.a_nm() - SI7X7_A_NM).abs() < 1e-6 {
+            Polarity::Pit
+        } else {
+            Polarity::Hill
+        });
+    let mut set = FeatureSet::default();
+    let first_record = files.iter().find_map(|(f, _)| f.recorded).map(seconds_of);
+    let mut next_start = 0.0;
+    for (frame_index, (file, start)) in files.iter().enumerate() {
+        let path = file.source.display().to_string();
+        let is_height = |c: &&Channel| match &ex.channel {
+            Some(name) => c.name() == name,
+            None => c.unit() == "m",
+        };
+        let forward = file
+            .channels
+            .iter()
+            .filter(is_height)
+            .find(|c| c.direction() == Direction::Forward);
+        let Some(forward) = forward else {
+            return Err(ModelCheckError::MissingMetadata {
+                path,
+                reason: "no height channel (unit m)".to_owned(),
+            });
+        };
+        let backward = file
+            .channels
+            .iter()
+            .filter(is_height)
+            .find(|c| c.direction() == Direction::Backward && c.name() == forward.name());
+        let (Some(sx), Some(sy)) = (forward.size_x_nm(), forward.size_y_nm()) else {
+            return Err(ModelCheckError::MissingMetadata {
+                path,
+                reason: "no physical size".to_owned(),
+            });
+        };
+        let (nx, ny) = (forward.nx(), forward.ny());
+        let timing = forward.timing();
+        let line_time = timing.map_or(ex.default_line_time_s, |t| t.line_time_s);
+        let line_period = timing.map_or(
+            line_time * if backward.is_some() { 2.0 } else { 1.0 },
+            |t| t.line_period_s,
+        );
+        let start_s = match (start, file.recorded, first_record) {
+            (Some(s), _, _) => *s,
+            (None, Some(rec), Some(first)) => seconds_of(rec) - first,
+            _ => next_start,
+        };
+        next_start = start_s + line_period * ny as f64;
+        set.frames.push(FrameInfo {
+            label: format!(
+                "{} ({})",
+                file.source
+                    .file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_default(),
+                forward.name()
+            ),
+            half_width_x_nm: 0.5 * sx,
+            half_height_y_nm: 0.5 * sy,
+            start_time_s: start_s,
+            duration_s: line_period * ny as f64,
+            fast_speed_nm_per_s: sx / line_time.max(1e-12),
+            lines: ny,
+        });
+        let pixel_nm = [sx / nx as f64, sy / ny as f64];
+        for channel in [Some(forward), backward].into_iter().flatten() {
+            let direction = match channel.direction() {
+                Direction::Forward => LineDirection::Forward,
+                Direction::Backward => LineDirection::Backward,
+            };
+            let ch_timing = channel.timing();
+            let first_line = ch_timing.map_or(
+                if direction == LineDirection::Backward {
+                    line_time
+                } else {
+                    0.0
+                },
+                |t| t.first_line_start_s,
+            );
+            let (values, nan) = level(channel);
+            // Geometry: row index grows with y (display row 0 is the top).
+            let mut z = vec![0.0; nx * ny];
+            let mut bad = vec![false; nx * ny];
+            for r in 0..ny {
+                for c in 0..nx {
+                    z[(ny - 1 - r) * nx + c] = values[r * nx + c];
+                    bad[(ny - 1 - r) * nx + c] = nan[r * nx + c];
+                }
+            }
+            let map = HeightMap {
+                origin: CountPoint::from_counts(0.0, 0.0),
+                pixel_step: Counts(1.0),
+                columns: nx,
+                rows: ny,
+                z_counts: z,
+                time_s: vec![0.0; nx * ny],
+            };
+            let scan_up = channel.scan_dir().or(file.scan_dir) == Some(ScanDir::Up);
+            let time_and_line = |column: f64, row: f64| {
+                let display_row = (ny as f64 - 1.0) - row;
+                let acq_row = if scan_up { row } else { display_row };
+                let acq_col = match direction {
+                    LineDirection::Forward => column,
+                    LineDirection::Backward => nx as f64 - 1.0 - column,
+                };
+                let t = start_s
+                    + first_line
+                    + acq_row * line_period
+                    + (acq_col + 0.5) * line_time / nx as f64;
+                (t, acq_row.round().max(0.0) as usize)
+            };
+            let ctx = MapContext {
+                pixel_nm,
+                polarity,
+                a_nm: lattice.a_nm(),
+                min_snr: ex.min_snr,
+                direction,
+                frame_index,
+            };
+            let feats = features_from_height_map(&map, &ctx, &time_and_line)?;
+            // Drop features next to unscanned (NaN) pixels.
+            let a_px = (lattice.a_nm() / pixel_nm[0]).ceil() as i64;
+            for f in feats {
+                let c = (f.x_nm / pixel_nm[0] + 0.5 * (nx as f64 - 1.0)).round() as i64;
+                let r = (f.y_nm / pixel_nm[1] + 0.5 * (ny as f64 - 1.0)).round() as i64;
+                let near_nan = (-a_px..=a_px).any(|dr| {
+                    (-a_px..=a_px).any(|dc| {
+                        let (rr, cc) = (r + dr, c + dc);
+                        rr >= 0
+                            && cc >= 0
+                            && (rr as usize) < ny
+                            && (cc as usize) < nx
+                            && bad[rr as usize * nx + cc as usize]
+                    })
+                });
+                if !near_nan {
+                    set.features.push(f);
+                }
+            }
+        }
+    }
+    Ok(set)
+}
+
+/// The `spmcal diagnose` entry point: reads the files, extracts features,
+/// and diagnoses them against the lattice.
+pub fn diagnose(
+    inputs: &[ImageInput],
+    lattice: &LatticeSpec,
+    options: &Options,
+    ex: &ExtractOptions,
+) -> Result<Diagnosis, ModelCheckError> {
+    let mut files = Vec::with_capacity(inputs.len());
+    for input in inputs {
+        files.push((spm_formats::read_any(&input.path)?, input.start_time_s));
+    }
+    let set = extract_features(&files, lattice, ex)?;
+    tracing::info!(
+        features = set.features.len(),
+        frames = set.frames.len(),
+        "features extracted"
+    );
+    diagnose_features(&set, lattice, options)
+}
+
+/// Convenience: [`diagnose`] for plain paths with default extraction.
+pub fn diagnose_paths(
+    paths: &[impl AsRef<Path>],
+    lattice: &LatticeSpec,
+    options: &Options,
+) -> Result<Diagnosis, ModelCheckError> {
+    let inputs: Vec<ImageInput> = paths
+        .iter()
+        .map(|p| ImageInput {
+            path: p.as_ref().to_path_buf(),
+            start_time_s: None,
+        })
+        .collect();
+    diagnose(&inputs, lattice, options, &ExtractOptions::default())
+}

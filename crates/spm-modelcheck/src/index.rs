@@ -1,0 +1,246 @@
+//! Indexing features to lattice sites: integer (i, j) from the measured lattice vectors.
+//!
+//! The basis is measured once, from the largest group of features (one frame,
+//! one direction), as the two most populated nearest-neighbour directions.
+//! Every group is then indexed by a breadth-first walk from the feature nearest
+//! the reference origin: a neighbour's index is the walker's index plus the
+//! rounded local offset in basis units, so smooth distortion (nonlinearity,
+//! drift) never accumulates into a wrong index.
+
+use crate::types::{FeatureSet, LatticeSpec, LineDirection, ModelCheckError};
+use std::collections::VecDeque;
+
+/// The lattice found in the data.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MeasuredBasis {
+    /// First basis vector, nominal nm.
+    pub b1_nm: [f64; 2],
+    /// Second basis vector, nominal nm.
+    pub b2_nm: [f64; 2],
+    /// True first basis vector in the lattice frame, nm.
+    pub a1_nm: [f64; 2],
+    /// True second basis vector, nm (same handedness and angle class as b1, b2).
+    pub a2_nm: [f64; 2],
+}
+
+/// The lattice site of every feature (`None` = not indexed), and the basis.
+pub(crate) struct Indexing {
+    pub sites: Vec<Option<[i64; 2]>>,
+    pub basis: MeasuredBasis,
+}
+
+fn median(values: &mut [f64]) -> Option<f64> {
+    if values.is_empty() {
+        return None;
+    }
+    values.sort_by(f64::total_cmp);
+    Some(values[values.len() / 2])
+}
+
+/// Nearest-neighbour lattice basis of a point set, or `None`.
+fn measure_basis(points: &[[f64; 2]], a_expected_nm: Option<f64>) -> Option<([f64; 2], [f64; 2])> {
+    if points.len() < 4 {
+        return None;
+    }
+    let mut nn: Vec<f64> = points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            points
+                .iter()
+                .enumerate()
+                .filter(|(j, _)| *j != i)
+                .map(|(_, q)| (q[0] - p[0]).hypot(q[1] - p[1]))
+                .fold(f64::INFINITY, f64::min)
+        })
+        .collect();
+    let d_nn = median(&mut nn)?;
+    let d_nn = match a_expected_nm {
+        // Guard against duplicated detections: never below half the period.
+        Some(a) if d_nn < 0.6 * a => a,
+        _ => d_nn,
+    };
+    if !(d_nn.is_finite() && d_nn > 0.0) {
+        return None;
+    }
+    // Cluster folded neighbour vectors by direction (angle mod π).
+    let mut clusters: Vec<([f64; 2], usize, [f64; 2])> = Vec::new(); // (sum, n, reference)
+    for (i, p) in points.iter().enumerate() {
+        for q in points.iter().skip(i + 1) {
+            let mut v = [q[0] - p[0], q[1] - p[1]];
+            let len = v[0].hypot(v[1]);
+            if !(len > 0.7 * d_nn && len < 1.3 * d_nn) {
+                continue;
+            }
+            if v[0] < 0.0 || (v[0] == 0.0 && v[1] < 0.0) {
+                v = [-v[0], -v[1]];
+            }
+            let mut placed = false;
+            for c in &mut clusters {
+                let r = c.2;
+                let cos = (v[0] * r[0] + v[1] * r[1]) / (len * r[0].hypot(r[1]));
+                if cos.abs() > 0.97 {
+                    let w = if cos < 0.0 { [-v[0], -v[1]] } else { v };
+                    c.0[0] += w[0];
+                    c.0[1] += w[1];
+                    c.1 += 1;
+                    placed = true;
+                    break;
+                }
+            }
+            if !placed {
+                clusters.push((v, 1, v));
+            }
+        }
+    }
+    clusters.sort_by_key(|c| std::cmp::Reverse(c.1));
+    let mean = |c: &([f64; 2], usize, [f64; 2])| [c.0[0] / c.1 as f64, c.0[1] / c.1 as f64];
+    let first = clusters.first()?;
+    let b1 = mean(first);
+    // The second: the most populated direction clearly not parallel to b1.
+    let b2 = clusters.iter().skip(1).map(mean).find(|v| {
+        let cross = b1[0] * v[1] - b1[1] * v[0];
+        (cross / (b1[0].hypot(b1[1]) * v[0].hypot(v[1]))).abs() > 0.5
+    })?;
+    Some((b1, b2))
+}
+
+fn inverse(b1: [f64; 2], b2: [f64; 2]) -> Option<[[f64; 2]; 2]> {
+    let det = b1[0] * b2[1] - b2[0] * b1[1];
+    if !(det.is_finite() && det.abs() > 1e-300) {
+        return None;
+    }
+    Some([[b2[1] / det, -b2[0] / det], [-b1[1] / det, b1[0] / det]])
+}
+
+/// Indexes every feature of `set` to a lattice site.
+pub(crate) fn index_features(
+    set: &FeatureSet,
+    lattice: &LatticeSpec,
+) -> Result<Indexing, ModelCheckError> {
+    // Groups: (frame, direction).
+    let mut groups: Vec<((usize, LineDirection), Vec<usize>)> = Vec::new();
+    for (k, f) in set.features.iter().enumerate() {
+        let key = (f.frame_index, f.direction);
+        match groups.iter_mut().find(|g| g.0 == key) {
+            Some(g) => g.1.push(k),
+            None => groups.push((key, vec![k])),
+        }
+    }
+    groups.sort_by_key(|g| std::cmp::Reverse(g.1.len()));
+    let reference = groups
+        .first()
+        .ok_or_else(|| ModelCheckError::NoLattice("an empty feature set".to_owned()))?;
+    let ref_points: Vec<[f64; 2]> = reference
+        .1
+        .iter()
+        .map(|&k| [set.features[k].x_nm, set.features[k].y_nm])
+        .collect();
+    let (b1, b2) = measure_basis(&ref_points, None)
+        .ok_or_else(|| ModelCheckError::NoLattice(format!("frame {}", reference.0.0)))?;
+    let binv =
+        inverse(b1, b2).ok_or_else(|| ModelCheckError::NoLattice("degenerate basis".into()))?;
+    // True basis with the same angle class and handedness.
+    let a = lattice.a_nm();
+    let cos_measured = (b1[0] * b2[0] + b1[1] * b2[1]) / (b1[0].hypot(b1[1]) * b2[0].hypot(b2[1]));
+    let gamma = match lattice {
+        LatticeSpec::Hex { .. } if cos_measured < 0.0 => 2.0 * lattice.basis_angle_rad(),
+        _ => lattice.basis_angle_rad(),
+    };
+    let handed = (b1[0] * b2[1] - b1[1] * b2[0]).signum();
+    let basis = MeasuredBasis {
+        b1_nm: b1,
+        b2_nm: b2,
+        a1_nm: [a, 0.0],
+        a2_nm: [a * gamma.cos(), handed * a * gamma.sin()],
+    };
+    // Reference origin: the reference-group feature nearest the frame centre.
+    let origin_k = reference
+        .1
+        .iter()
+        .copied()
+        .min_by(|&p, &q| {
+            let fp = &set.features[p];
+            let fq = &set.features[q];
+            fp.x_nm.hypot(fp.y_nm).total_cmp(&fq.x_nm.hypot(fq.y_nm))
+        })
+        .ok_or_else(|| ModelCheckError::NoLattice("no origin".into()))?;
+    let origin = [set.features[origin_k].x_nm, set.features[origin_k].y_nm];
+    let frac = |d: [f64; 2]| {
+        [
+            binv[0][0] * d[0] + binv[0][1] * d[1],
+            binv[1][0] * d[0] + binv[1][1] * d[1],
+        ]
+    };
+    let b_len = b1[0].hypot(b1[1]).max(b2[0].hypot(b2[1]));
+    let mut sites: Vec<Option<[i64; 2]>> = vec![None; set.features.len()];
+    for (_, members) in &groups {
+        let pts: Vec<[f64; 2]> = members
+            .iter()
+            .map(|&k| [set.features[k].x_nm, set.features[k].y_nm])
+            .collect();
+        // Seed: nearest to the reference origin (same frame as the reference ⇒
+        // same site; another frame ⇒ the per-frame offset absorbs the choice).
+        let Some(seed) = (0..pts.len()).min_by(|&p, &q| {
+            let dp = (pts[p][0] - origin[0]).hypot(pts[p][1] - origin[1]);
+            let dq = (pts[q][0] - origin[0]).hypot(pts[q][1] - origin[1]);
+            dp.total_cmp(&dq)
+        }) else {
+            continue;
+        };
+        // A frame's other half (backward vs forward) sees the same atoms: take
+        // the seed's index from the nearest atom already indexed in that frame.
+        let frame = set.features[members[seed]].frame_index;
+        let nearest_indexed = sites
+            .iter()
+            .enumerate()
+            .filter_map(|(k, s)| s.map(|s| (k, s)))
+            .filter(|(k, _)| set.features[*k].frame_index == frame)
+            .map(|(k, s)| {
+                let f = &set.features[k];
+                let d = [pts[seed][0] - f.x_nm, pts[seed][1] - f.y_nm];
+                (d, s)
+            })
+            .min_by(|a, b| a.0[0].hypot(a.0[1]).total_cmp(&b.0[0].hypot(b.0[1])));
+        let seed_site = match nearest_indexed {
+            Some((d, s)) if d[0].hypot(d[1]) < 2.0 * b_len => {
+                let f = frac(d);
+                [s[0] + f[0].round() as i64, s[1] + f[1].round() as i64]
+            }
+            _ => {
+                let f0 = frac([pts[seed][0] - origin[0], pts[seed][1] - origin[1]]);
+                [f0[0].round() as i64, f0[1].round() as i64]
+            }
+        };
+        let mut local: Vec<Option<[i64; 2]>> = vec![None; pts.len()];
+        local[seed] = Some(seed_site);
+        let mut queue = VecDeque::from([seed]);
+        while let Some(p) = queue.pop_front() {
+            let Some(ip) = local[p] else { continue };
+            for q in 0..pts.len() {
+                if local[q].is_some() {
+                    continue;
+                }
+                let d = [pts[q][0] - pts[p][0], pts[q][1] - pts[p][1]];
+                if d[0].hypot(d[1]) > 1.6 * b_len {
+                    continue;
+                }
+                let f = frac(d);
+                let r = [f[0].round(), f[1].round()];
+                if (f[0] - r[0]).abs() < 0.3 && (f[1] - r[1]).abs() < 0.3 {
+                    local[q] = Some([ip[0] + r[0] as i64, ip[1] + r[1] as i64]);
+                    queue.push_back(q);
+                }
+            }
+        }
+        // Duplicate sites in one group: keep none of them (ambiguous).
+        let mut seen = std::collections::HashMap::new();
+        for s in local.iter().flatten() {
+            *seen.entry(*s).or_insert(0usize) += 1;
+        }
+        for (m, &k) in members.iter().enumerate() {
+            sites[k] = local[m].filter(|s| seen.get(s).copied() == Some(1));
+        }
+    }
+    Ok(Indexing { sites, basis })
+}

@@ -1,0 +1,477 @@
+//! The model: design columns of the baseline and of every effect, and the
+//! linear least-squares solver.
+//!
+//! Every observation k gives two equations (x and y) in the lattice frame:
+//!
+//! ```text
+//! R_k = J·u_k + v·(t_k − t̄) + c_frame + Σ_e J₀·Δu_e(k) + Σ_e Rot(θ₀)·d_e(k)
+//! ```
+//!
+//! `R_k` is the true site (nm), `u_k` the commanded position (nominal nm), `J`
+//! the lumped linear scanner (scales, obliquity, rotation: 4 numbers), `v` the
+//! constant drift, `c` the per-frame offsets. Scanner effects add a
+//! displacement `Δu_e` of the *input* (nominal nm, mapped by the baseline
+//! `J₀`); tip–sample effects add a displacement `d_e` in the image axes
+//! (mapped by the baseline rotation `θ₀`). All are linear in their
+//! amplitudes; a few effects have one nonlinear hyper-parameter (a creep time
+//! constant, a vibration frequency, a tip-change time) found by a search.
+
+use crate::types::{EffectKind, FeatureSet, FrameInfo, LineDirection, ModelCheckError};
+use nalgebra::{DMatrix, DVector};
+
+/// One indexed observation with everything the columns need.
+#[derive(Clone, Debug)]
+pub(crate) struct Obs {
+    pub u: [f64; 2],
+    pub site: [f64; 2],
+    /// Time relative to the middle of the observation span, s.
+    pub t: f64,
+    /// Time since the start of its frame, s.
+    pub t_frame: f64,
+    /// +1 forward, −1 backward.
+    pub s: f64,
+    pub frame: usize,
+    pub line: usize,
+    pub direction: LineDirection,
+    /// Position normalised by the frame half-size.
+    pub xi: [f64; 2],
+    /// Frame half-size, nominal nm.
+    pub half: [f64; 2],
+    /// Fast-axis speed, nominal nm/s.
+    pub speed: f64,
+}
+
+/// The context effect columns need: baseline J₀ and rotation θ₀.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Ctx {
+    pub j0: [[f64; 2]; 2],
+    pub theta0: f64,
+}
+
+/// A column: the x and y contributions of one parameter for every observation,
+/// interleaved `[x₀, y₀, x₁, y₁, …]`.
+pub(crate) type Column = Vec<f64>;
+
+pub(crate) fn baseline_columns(obs: &[Obs], n_frames: usize) -> Vec<Column> {
+    let n = obs.len();
+    let mut cols = vec![vec![0.0; 2 * n]; 6 + 2 * n_frames];
+    for (k, o) in obs.iter().enumerate() {
+        cols[0][2 * k] = o.u[0];
+        cols[1][2 * k] = o.u[1];
+        cols[2][2 * k + 1] = o.u[0];
+        cols[3][2 * k + 1] = o.u[1];
+        cols[4][2 * k] = o.t;
+        cols[5][2 * k + 1] = o.t;
+        cols[6 + 2 * o.frame][2 * k] = 1.0;
+        cols[7 + 2 * o.frame][2 * k + 1] = 1.0;
+    }
+    cols
+}
+
+/// An input-space column: Δu along `axis` by `f(o)`, mapped by J₀.
+fn input_col(obs: &[Obs], ctx: &Ctx, axis: usize, f: impl Fn(&Obs) -> f64) -> Column {
+    let mut c = vec![0.0; 2 * obs.len()];
+    for (k, o) in obs.iter().enumerate() {
+        let v = f(o);
+        c[2 * k] = ctx.j0[0][axis] * v;
+        c[2 * k + 1] = ctx.j0[1][axis] * v;
+    }
+    c
+}
+
+/// A sample-space column: displacement along image `axis` by `f(o)`, rotated by θ₀.
+fn sample_col(obs: &[Obs], ctx: &Ctx, axis: usize, f: impl Fn(&Obs) -> f64) -> Column {
+    let (s, c0) = ctx.theta0.sin_cos();
+    let dir = if axis == 0 { [c0, s] } else { [-s, c0] };
+    let mut c = vec![0.0; 2 * obs.len()];
+    for (k, o) in obs.iter().enumerate() {
+        let v = f(o);
+        c[2 * k] = dir[0] * v;
+        c[2 * k + 1] = dir[1] * v;
+    }
+    c
+}
+
+/// Names (with units) of an effect's linear parameters, in column order.
+pub(crate) fn param_names(kind: EffectKind) -> &'static [&'static str] {
+    match kind {
+        EffectKind::DriftAcceleration => &["acceleration_x_nm_per_s2", "acceleration_y_nm_per_s2"],
+        EffectKind::Creep => &["creep_x_nm_per_decade", "creep_y_nm_per_decade"],
+        EffectKind::Hysteresis => &["branch_half_separation_fraction"],
+        EffectKind::ScannerNonlinearity => &["quadratic_x", "cubic_x", "quadratic_y", "cubic_y"],
+        EffectKind::Nonorthogonality => &["shear_gradient_x", "shear_gradient_y"],
+        EffectKind::CrosstalkXy => &["bow_x_from_y", "bow_y_from_x"],
+        EffectKind::FeedbackLag => &["time_constant_s"],
+        EffectKind::PeriodicVibration => &["x_cos_nm", "x_sin_nm", "y_cos_nm", "y_sin_nm"],
+        EffectKind::TipChange => &["jump_x_nm", "jump_y_nm"],
+    }
+}
+
+/// Name (with unit) of an effect's hyper-parameter, if it has one.
+pub(crate) fn hyper_name(kind: EffectKind) -> Option<&'static str> {
+    match kind {
+        EffectKind::Creep => Some("time_constant_s"),
+        EffectKind::PeriodicVibration => Some("frequency_hz"),
+        EffectKind::TipChange => Some("time_s"),
+        _ => None,
+    }
+}
+
+/// Whether an effect can be told apart from the baseline with these data.
+pub(crate) fn identifiable(kind: EffectKind, obs: &[Obs]) -> bool {
+    let both = obs.iter().any(|o| o.s > 0.0) && obs.iter().any(|o| o.s < 0.0);
+    match kind {
+        EffectKind::Hysteresis | EffectKind::FeedbackLag => both,
+        _ => true,
+    }
+}
+
+/// The columns of an effect for a hyper-parameter value (ignored when it has none).
+pub(crate) fn effect_columns(kind: EffectKind, hyper: f64, obs: &[Obs], ctx: &Ctx) -> Vec<Column> {
+    match kind {
+        EffectKind::DriftAcceleration => vec![
+            sample_col(obs, ctx, 0, |o| 0.5 * o.t * o.t),
+            sample_col(obs, ctx, 1, |o| 0.5 * o.t * o.t),
+        ],
+        EffectKind::Creep => {
+            let tau = hyper.max(1e-9);
+            let g = move |o: &Obs| (1.0 + o.t_frame.max(0.0) / tau).log10();
+            vec![input_col(obs, ctx, 0, g), input_col(obs, ctx, 1, g)]
+        }
+        EffectKind::Hysteresis => vec![input_col(obs, ctx, 0, |o| {
+            -o.s * o.half[0] * (1.0 - o.xi[0] * o.xi[0])
+        })],
+        EffectKind::ScannerNonlinearity => vec![
+            input_col(obs, ctx, 0, |o| o.half[0] * o.xi[0] * o.xi[0]),
+            input_col(obs, ctx, 0, |o| o.half[0] * o.xi[0].powi(3)),
+            input_col(obs, ctx, 1, |o| o.half[1] * o.xi[1] * o.xi[1]),
+            input_col(obs, ctx, 1, |o| o.half[1] * o.xi[1].powi(3)),
+        ],
+        EffectKind::Nonorthogonality => vec![
+            input_col(obs, ctx, 0, |o| o.half[0] * o.xi[0] * o.xi[1]),
+            input_col(obs, ctx, 1, |o| o.half[1] * o.xi[0] * o.xi[1]),
+        ],
+        EffectKind::CrosstalkXy => vec![
+            input_col(obs, ctx, 0, |o| o.half[1] * o.xi[1] * o.xi[1]),
+            input_col(obs, ctx, 1, |o| o.half[0] * o.xi[0] * o.xi[0]),
+        ],
+        EffectKind::FeedbackLag => vec![input_col(obs, ctx, 0, |o| -o.s * o.speed)],
+        EffectKind::PeriodicVibration => {
+            let w = 2.0 * std::f64::consts::PI * hyper;
+            vec![
+                sample_col(obs, ctx, 0, |o| (w * o.t).cos()),
+                sample_col(obs, ctx, 0, |o| (w * o.t).sin()),
+                sample_col(obs, ctx, 1, |o| (w * o.t).cos()),
+                sample_col(obs, ctx, 1, |o| (w * o.t).sin()),
+            ]
+        }
+        EffectKind::TipChange => vec![
+            sample_col(obs, ctx, 0, |o| if o.t >= hyper { 1.0 } else { 0.0 }),
+            sample_col(obs, ctx, 1, |o| if o.t >= hyper { 1.0 } else { 0.0 }),
+        ],
+    }
+}
+
+/// Hyper-parameter candidates for an effect from the current residuals, and the
+/// number of independent trials they stand for (the look-elsewhere count).
+pub(crate) fn hyper_candidates(
+    kind: EffectKind,
+    obs: &[Obs],
+    frames: &[FrameInfo],
+    residual: &[f64],
+    mask: &[bool],
+) -> (Vec<f64>, f64) {
+    match kind {
+        EffectKind::Creep => {
+            let t_frame = frames
+                .iter()
+                .map(|f| f.duration_s)
+                .fold(0.0_f64, f64::max)
+                .max(1e-6);
+            let grid: Vec<f64> = [0.001, 0.003, 0.01, 0.03, 0.1, 0.3]
+                .iter()
+                .map(|r| r * t_frame)
+                .collect();
+            let m = grid.len() as f64;
+            (grid, m)
+        }
+        EffectKind::PeriodicVibration => vibration_candidates(obs, residual, mask),
+        EffectKind::TipChange => tip_change_candidates(obs, frames, residual, mask),
+        _ => (vec![0.0], 1.0),
+    }
+}
+
+fn vibration_candidates(obs: &[Obs], residual: &[f64], mask: &[bool]) -> (Vec<f64>, f64) {
+    let idx: Vec<usize> = (0..obs.len()).filter(|&k| mask[k]).collect();
+    if idx.len() < 10 {
+        return (Vec::new(), 1.0);
+    }
+    let mut times: Vec<f64> = idx.iter().map(|&k| obs[k].t).collect();
+    times.sort_by(f64::total_cmp);
+    let span = times[times.len() - 1] - times[0];
+    let mut gaps: Vec<f64> = times
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .filter(|d| *d > 0.0)
+        .collect();
+    gaps.sort_by(f64::total_cmp);
+    let Some(&gap) = gaps.get(gaps.len() / 2) else {
+        return (Vec::new(), 1.0);
+    };
+    if !(span > 0.0 && gap > 0.0) {
+        return (Vec::new(), 1.0);
+    }
+    let f_min = 1.5 / span;
+    let f_max = 0.5 / gap;
+    if f_max <= f_min {
+        return (Vec::new(), 1.0);
+    }
+    let trials = ((f_max - f_min) * span).max(1.0);
+    let n_grid = ((4.0 * trials) as usize).clamp(16, 6000);
+    let df = (f_max - f_min) / n_grid as f64;
+    let mut power: Vec<(f64, f64)> = Vec::with_capacity(n_grid);
+    for g in 0..=n_grid {
+        let f = f_min + g as f64 * df;
+        let w = 2.0 * std::f64::consts::PI * f;
+        let (mut xc, mut xs, mut yc, mut ys) = (0.0, 0.0, 0.0, 0.0);
+        for &k in &idx {
+            let (s, c) = (w * obs[k].t).sin_cos();
+            xc += residual[2 * k] * c;
+            xs += residual[2 * k] * s;
+            yc += residual[2 * k + 1] * c;
+            ys += residual[2 * k + 1] * s;
+        }
+        power.push((f, xc * xc + xs * xs + yc * yc + ys * ys));
+    }
+    // The three highest local maxima.
+    let mut peaks: Vec<(f64, f64)> = (0..power.len())
+        .filter(|&i| {
+            let p = power[i].1;
+            (i == 0 || power[i - 1].1 <= p) && (i + 1 == power.len() || power[i + 1].1 <= p)
+        })
+        .map(|i| power[i])
+        .collect();
+    peaks.sort_by(|a, b| b.1.total_cmp(&a.1));
+    // Each of the three highest peaks refined on a sub-grid of ±1 grid step.
+    let cands = peaks
+        .iter()
+        .take(3)
+        .flat_map(|p| (-4..=4).map(move |i| p.0 + i as f64 * df / 4.0))
+        .filter(|f| *f > 0.0)
+        .collect();
+    (cands, trials)
+}
+
+fn tip_change_candidates(
+    obs: &[Obs],
+    frames: &[FrameInfo],
+    residual: &[f64],
+    mask: &[bool],
+) -> (Vec<f64>, f64) {
+    let mut scored: Vec<(f64, f64)> = Vec::new();
+    let mut trials: f64 = 0.0;
+    for (f, frame) in frames.iter().enumerate() {
+        let mut in_frame: Vec<usize> = (0..obs.len())
+            .filter(|&k| mask[k] && obs[k].frame == f)
+            .collect();
+        if in_frame.len() < 8 {
+            continue;
+        }
+        in_frame.sort_by(|&a, &b| obs[a].t.total_cmp(&obs[b].t));
+        let total = in_frame.iter().fold([0.0, 0.0], |acc, &k| {
+            [acc[0] + residual[2 * k], acc[1] + residual[2 * k + 1]]
+        });
+        let n = in_frame.len() as f64;
+        let mut left = [0.0, 0.0];
+        let min_lines = 3.max(frame.lines / 20);
+        for (m, &k) in in_frame.iter().enumerate() {
+            left[0] += residual[2 * k];
+            left[1] += residual[2 * k + 1];
+            let Some(&next) = in_frame.get(m + 1) else {
+                break;
+            };
+            // Only between lines, away from the frame's first and last lines.
+            if obs[next].line == obs[k].line
+                || obs[next].line < min_lines
+                || obs[next].line + min_lines > frame.lines
+            {
+                continue;
+            }
+            trials += 1.0;
+            let n1 = (m + 1) as f64;
+            let n2 = n - n1;
+            let d = [
+                left[0] / n1 - (total[0] - left[0]) / n2,
+                left[1] / n1 - (total[1] - left[1]) / n2,
+            ];
+            let score = n1 * n2 / n * (d[0] * d[0] + d[1] * d[1]);
+            scored.push((0.5 * (obs[k].t + obs[next].t), score));
+        }
+    }
+    scored.sort_by(|a, b| b.1.total_cmp(&a.1));
+    (
+        scored.iter().take(3).map(|s| s.0).collect(),
+        trials.max(1.0),
+    )
+}
+
+/// A least-squares solution.
+#[derive(Clone, Debug)]
+pub(crate) struct Fit {
+    pub coef: Vec<f64>,
+    /// Covariance of the coefficients (σ² (XᵀX)⁺).
+    pub cov: DMatrix<f64>,
+    /// Residual `R − model` for every observation (also those not fitted).
+    pub residual: Vec<f64>,
+    /// Residual sum of squares over the fitted equations.
+    pub rss: f64,
+    /// Fitted equations.
+    pub n_eq: usize,
+    /// Numerical rank of the design (columns that are combinations of others do not count).
+    pub rank: usize,
+}
+
+/// Solves `target ≈ Σ coef_j·col_j` over the observations in `mask`, by an SVD
+/// of the column-normalised design (rank-deficient columns get zero weight).
+pub(crate) fn solve(
+    cols: &[Column],
+    target: &[f64],
+    mask: &[bool],
+) -> Result<Fit, ModelCheckError> {
+    let rows: Vec<usize> = (0..mask.len())
+        .filter(|&k| mask[k])
+        .flat_map(|k| [2 * k, 2 * k + 1])
+        .collect();
+    let p = cols.len();
+    if rows.len() <= p {
+        return Err(ModelCheckError::TooFewFeatures {
+            found: rows.len() / 2,
+            needed: p / 2 + 1,
+            context: "least-squares fit".to_owned(),
+        });
+    }
+    let mut scale = vec![1.0; p];
+    let mut x = DMatrix::<f64>::zeros(rows.len(), p);
+    for (j, col) in cols.iter().enumerate() {
+        let norm = rows.iter().map(|&r| col[r] * col[r]).sum::<f64>().sqrt();
+        scale[j] = if norm > 0.0 && norm.is_finite() {
+            1.0 / norm
+        } else {
+            0.0
+        };
+        for (i, &r) in rows.iter().enumerate() {
+            x[(i, j)] = col[r] * scale[j];
+        }
+    }
+    let y = DVector::from_iterator(rows.len(), rows.iter().map(|&r| target[r]));
+    if !x.iter().chain(y.iter()).all(|v| v.is_finite()) {
+        return Err(ModelCheckError::InvalidInput(
+            "non-finite value in the design".to_owned(),
+        ));
+    }
+    let svd = x.clone().svd(true, true);
+    let (Some(uu), Some(vt)) = (svd.u.as_ref(), svd.v_t.as_ref()) else {
+        return Err(ModelCheckError::Numerical("SVD failed".to_owned()));
+    };
+    let smax = svd.singular_values.iter().fold(0.0_f64, |m, v| m.max(*v));
+    let tol = smax * 1e-8;
+    let uty = uu.transpose() * &y;
+    let mut z = DVector::<f64>::zeros(p);
+    let mut rank = 0usize;
+    let mut inv_s2 = DVector::<f64>::zeros(p);
+    for i in 0..svd.singular_values.len() {
+        let s = svd.singular_values[i];
+        if s > tol {
+            z[i] = uty[i] / s;
+            inv_s2[i] = 1.0 / (s * s);
+            rank += 1;
+        }
+    }
+    let beta_scaled = vt.transpose() * z;
+    let coef: Vec<f64> = (0..p).map(|j| beta_scaled[j] * scale[j]).collect();
+    let fitted = &x * &beta_scaled;
+    let rss: f64 = (0..rows.len()).map(|i| (y[i] - fitted[i]).powi(2)).sum();
+    let dof = rows.len().saturating_sub(rank).max(1) as f64;
+    let sigma2 = rss / dof;
+    let v = vt.transpose();
+    let mut cov = DMatrix::<f64>::zeros(p, p);
+    for a in 0..p {
+        for b in 0..p {
+            let mut sum = 0.0;
+            for i in 0..svd.singular_values.len() {
+                sum += v[(a, i)] * v[(b, i)] * inv_s2[i];
+            }
+            cov[(a, b)] = sum * sigma2 * scale[a] * scale[b];
+        }
+    }
+    let mut residual = target.to_vec();
+    for (j, col) in cols.iter().enumerate() {
+        if coef[j] != 0.0 {
+            for (r, c) in residual.iter_mut().zip(col) {
+                *r -= coef[j] * c;
+            }
+        }
+    }
+    Ok(Fit {
+        coef,
+        cov,
+        residual,
+        rss,
+        n_eq: rows.len(),
+        rank,
+    })
+}
+
+/// Builds the observations from a feature set and the lattice sites.
+pub(crate) fn build_obs(
+    set: &FeatureSet,
+    sites: &[Option<[i64; 2]>],
+    a1: [f64; 2],
+    a2: [f64; 2],
+) -> Result<(Vec<Obs>, Vec<usize>, f64), ModelCheckError> {
+    let mut obs = Vec::new();
+    let mut source = Vec::new();
+    let times: Vec<f64> = set
+        .features
+        .iter()
+        .zip(sites)
+        .filter(|(_, s)| s.is_some())
+        .map(|(f, _)| f.time_s)
+        .collect();
+    let t_min = times.iter().copied().fold(f64::INFINITY, f64::min);
+    let t_max = times.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let t_mid = 0.5 * (t_min + t_max);
+    for (k, (f, site)) in set.features.iter().zip(sites).enumerate() {
+        let Some([i, j]) = *site else { continue };
+        let frame = set.frames.get(f.frame_index).ok_or_else(|| {
+            ModelCheckError::InvalidInput(format!(
+                "feature {k} names frame {} of {}",
+                f.frame_index,
+                set.frames.len()
+            ))
+        })?;
+        if !(f.x_nm.is_finite() && f.y_nm.is_finite() && f.time_s.is_finite()) {
+            continue;
+        }
+        let half = [
+            frame.half_width_x_nm.max(1e-12),
+            frame.half_height_y_nm.max(1e-12),
+        ];
+        let (i, j) = (i as f64, j as f64);
+        obs.push(Obs {
+            u: [f.x_nm, f.y_nm],
+            site: [i * a1[0] + j * a2[0], i * a1[1] + j * a2[1]],
+            t: f.time_s - t_mid,
+            t_frame: f.time_s - frame.start_time_s,
+            s: f.direction.sign(),
+            frame: f.frame_index,
+            line: f.line_index,
+            direction: f.direction,
+            xi: [f.x_nm / half[0], f.y_nm / half[1]],
+            half,
+            speed: frame.fast_speed_nm_per_s,
+        });
+        source.push(k);
+    }
+    Ok((obs, source, t_mid))
+}

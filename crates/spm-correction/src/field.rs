@@ -78,6 +78,40 @@ impl LineAntiderivative {
         }
     }
 
+    /// `out[i] = shift + A(x0 + h·i)` for every i: one line of a raster. Specialised for the
+    /// usual degrees so the Horner chains of neighbouring pixels overlap (vectorised).
+    pub fn fill_uniform(&self, x0_counts: f64, step_counts: f64, shift_nm: f64, out: &mut [f64]) {
+        let u0 = (x0_counts - self.center_x_counts) * self.inv_scale_x_per_count;
+        let du = step_counts * self.inv_scale_x_per_count;
+        fn fill<const N: usize>(c: &[f64], u0: f64, du: f64, shift: f64, out: &mut [f64]) {
+            let mut k = [0.0; N];
+            k.copy_from_slice(&c[..N]);
+            for (i, o) in out.iter_mut().enumerate() {
+                let u = u0 + du * i as f64;
+                let mut acc = k[N - 1];
+                for t in (0..N - 1).rev() {
+                    acc = acc * u + k[t];
+                }
+                *o = shift + acc * u;
+            }
+        }
+        let c = &self.coefficients;
+        match c.len() {
+            1 => fill::<1>(c, u0, du, shift_nm, out),
+            2 => fill::<2>(c, u0, du, shift_nm, out),
+            3 => fill::<3>(c, u0, du, shift_nm, out),
+            4 => fill::<4>(c, u0, du, shift_nm, out),
+            5 => fill::<5>(c, u0, du, shift_nm, out),
+            6 => fill::<6>(c, u0, du, shift_nm, out),
+            _ => {
+                for (i, o) in out.iter_mut().enumerate() {
+                    let x = x0_counts + step_counts * i as f64;
+                    *o = shift_nm + self.evaluate(x);
+                }
+            }
+        }
+    }
+
     /// A(x) (an antiderivative; differences give ∫ K̄x dx), nm.
     #[inline]
     #[must_use]

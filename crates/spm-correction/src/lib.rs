@@ -57,8 +57,11 @@ pub use field::{
 pub use height::heights_nm;
 pub use parallel::Parallelism;
 pub use quadrature::{MAX_GAUSS_POINTS, Quadrature};
-pub use raster::{CoordinateMap, Integration, RasterGeometry, YCoordinates, correct_raster};
-pub use resample::{Interpolation, MAX_OUTPUT_PIXELS, OutputGrid, resample};
+pub use raster::{
+    CoordinateMap, Integration, RasterGeometry, YCoordinates, correct_raster,
+    correct_raster_reusing,
+};
+pub use resample::{Interpolation, MAX_OUTPUT_PIXELS, OutputGrid, resample, resample_into};
 pub use surfaces::{
     BlendedField, FittedSurface, PlaneField, PlaneSurfaces, Provenance, Route,
     SURFACES_FORMAT_VERSION, SurfaceSet,

@@ -306,6 +306,35 @@ impl CoordinateMap {
         ))
     }
 
+    /// The bounding box, reading only the first and last column of x̄ when ȳ is per row
+    /// (raster maps, whose lines are monotone in x̄ wherever they can be resampled); the full
+    /// [`CoordinateMap::bounds_nm`] otherwise.
+    pub(crate) fn bounds_nm_fast(&self) -> (f64, f64, f64, f64) {
+        match &self.y_nm {
+            YCoordinates::PerPixel(_) => self.bounds_nm(),
+            YCoordinates::PerRow(y) => {
+                let nx = self.columns;
+                let edge = |offset: usize| {
+                    self.x_nm
+                        .iter()
+                        .skip(offset)
+                        .step_by(nx)
+                        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &t| {
+                            (lo.min(t), hi.max(t))
+                        })
+                };
+                let (a_lo, a_hi) = edge(0);
+                let (b_lo, b_hi) = edge(nx - 1);
+                let (y_lo, y_hi) = y
+                    .iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &t| {
+                        (lo.min(t), hi.max(t))
+                    });
+                (a_lo.min(b_lo), a_hi.max(b_hi), y_lo, y_hi)
+            }
+        }
+    }
+
     /// The bounding box (min x̄, max x̄, min ȳ, max ȳ), nm.
     #[must_use]
     pub fn bounds_nm(&self) -> (f64, f64, f64, f64) {
@@ -415,9 +444,7 @@ fn line_integrals<F: CorrectionField + ?Sized>(
         if let Some(line) = field.kx_line(y_counts) {
             let a0 = line.evaluate(x_anchor);
             let (x0, h) = (geometry.origin.x.value(), geometry.pixel_step.value());
-            for (i, o) in out.iter_mut().enumerate() {
-                *o = offset_nm + (line.evaluate(x0 + h * i as f64) - a0);
-            }
+            line.fill_uniform(x0, h, offset_nm - a0, out);
             return Ok(());
         }
         if field
@@ -457,6 +484,30 @@ pub fn correct_raster<F: CorrectionField + ?Sized>(
     direction: ScanDirection,
     integration: &Integration,
     parallelism: Parallelism,
+) -> Result<CoordinateMap, CorrectionError> {
+    correct_raster_reusing(
+        field,
+        geometry,
+        direction,
+        integration,
+        parallelism,
+        Vec::new(),
+    )
+}
+
+/// [`correct_raster`] writing x̄ into `buffer` (resized to the image), so a caller correcting
+/// image after image reuses one allocation (e.g. the x̄ of the previous map, from
+/// [`CoordinateMap::into_parts`]).
+///
+/// # Errors
+/// As [`correct_raster`].
+pub fn correct_raster_reusing<F: CorrectionField + ?Sized>(
+    field: &F,
+    geometry: &RasterGeometry,
+    direction: ScanDirection,
+    integration: &Integration,
+    parallelism: Parallelism,
+    buffer: Vec<f64>,
 ) -> Result<CoordinateMap, CorrectionError> {
     let geometry = RasterGeometry::new(
         geometry.origin,
@@ -514,15 +565,20 @@ pub fn correct_raster<F: CorrectionField + ?Sized>(
     crate::error::check_finite("line-start column integral", &col_yx)?;
     crate::error::check_finite("line-start column integral", &col_yy)?;
     let y_per_row: Vec<f64> = col_yy.iter().map(|v| anchor_y + v).collect();
+    crate::error::check_finite("y_nm", &y_per_row)?;
     let n = nx
         .checked_mul(ny)
         .ok_or(CorrectionError::Empty("raster size overflows"))?;
-    let mut x_nm = vec![0.0; n];
+    let mut x_nm = buffer;
+    x_nm.clear();
+    x_nm.resize(n, 0.0);
     let failure = std::sync::Mutex::new(None::<CorrectionError>);
     for_each_row(parallelism, &mut x_nm, nx, |j, row| {
         let y = geometry.y_counts(j as f64);
         let offset = anchor_x + col_yx[j];
-        if let Err(e) = line_integrals(field, &geometry, integration, y, anchor_column, offset, row)
+        let result = line_integrals(field, &geometry, integration, y, anchor_column, offset, row)
+            .and_then(|()| crate::error::check_finite("x_nm", row));
+        if let Err(e) = result
             && let Ok(mut slot) = failure.lock()
         {
             *slot = Some(e);
@@ -531,5 +587,11 @@ pub fn correct_raster<F: CorrectionField + ?Sized>(
     if let Some(e) = failure.into_inner().ok().flatten() {
         return Err(e);
     }
-    CoordinateMap::new(nx, ny, x_nm, YCoordinates::PerRow(y_per_row))
+    // Sizes and finiteness checked above (x̄ row by row while hot in cache).
+    Ok(CoordinateMap {
+        columns: nx,
+        rows: ny,
+        x_nm,
+        y_nm: YCoordinates::PerRow(y_per_row),
+    })
 }

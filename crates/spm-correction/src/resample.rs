@@ -105,7 +105,7 @@ impl OutputGrid {
         map: &CoordinateMap,
         step_nm: Option<Nanometres>,
     ) -> Result<Self, CorrectionError> {
-        let (x0, x1, y0, y1) = map.bounds_nm();
+        let (x0, x1, y0, y1) = map.bounds_nm_fast();
         let step = match step_nm {
             Some(s) => s.value(),
             None => {
@@ -235,6 +235,25 @@ pub fn resample(
     interpolation: Interpolation,
     parallelism: Parallelism,
 ) -> Result<Vec<f64>, CorrectionError> {
+    let grid = OutputGrid::new(grid.origin_nm, grid.step_nm, grid.columns, grid.rows)?;
+    let mut out = vec![0.0; grid.columns * grid.rows];
+    resample_into(image, map, &grid, interpolation, parallelism, &mut out)?;
+    Ok(out)
+}
+
+/// [`resample`] into a caller's buffer of `grid.columns × grid.rows` values (every value is
+/// overwritten; NaN outside the data).
+///
+/// # Errors
+/// As [`resample`]; [`CorrectionError::SizeMismatch`] for a buffer of the wrong size.
+pub fn resample_into(
+    image: &[f64],
+    map: &CoordinateMap,
+    grid: &OutputGrid,
+    interpolation: Interpolation,
+    parallelism: Parallelism,
+    out: &mut [f64],
+) -> Result<(), CorrectionError> {
     let (nx, ny) = (map.columns(), map.rows());
     if image.len() != nx * ny {
         return Err(CorrectionError::SizeMismatch {
@@ -255,22 +274,28 @@ pub fn resample(
         });
     }
     let grid = OutputGrid::new(grid.origin_nm, grid.step_nm, grid.columns, grid.rows)?;
+    if out.len() != grid.columns * grid.rows {
+        return Err(CorrectionError::SizeMismatch {
+            what: "output buffer",
+            expected: grid.columns * grid.rows,
+            got: out.len(),
+        });
+    }
+    out.fill(f64::NAN);
     let source = Source {
         image,
         columns: nx,
         rows: ny,
         interpolation,
     };
-    let mut out = vec![f64::NAN; grid.columns * grid.rows];
     match map.y_nm() {
         YCoordinates::PerRow(y_rows) => {
-            resample_rows(&source, map.x_nm(), y_rows, &grid, parallelism, &mut out)?;
+            resample_rows(&source, map.x_nm(), y_rows, &grid, parallelism, out)
         }
         YCoordinates::PerPixel(y_px) => {
-            resample_newton(&source, map.x_nm(), y_px, &grid, parallelism, &mut out)?;
+            resample_newton(&source, map.x_nm(), y_px, &grid, parallelism, out)
         }
     }
-    Ok(out)
 }
 
 /// Fractional row (j, f) of `y` in the strictly monotone `y_rows`, or None outside.
@@ -303,6 +328,59 @@ fn row_fraction(y_rows: &[f64], increasing: bool, y: f64) -> Option<(usize, f64)
     Some((j, f.clamp(0.0, 1.0)))
 }
 
+/// Inverts x̄(·, r) = a + (b − a)·f along one output row by a merge walk and writes
+/// `kernel(i, t)` (source column i + t, 0 ≤ i ≤ columns − 2, t ∈ [0, 1]) at every output node
+/// inside the row's extent. `Err(())` when the blended row is not strictly increasing.
+#[inline]
+fn walk_row(
+    a: &[f64],
+    b: &[f64],
+    f: f64,
+    grid: &OutputGrid,
+    out_row: &mut [f64],
+    kernel: impl Fn(usize, f64) -> f64,
+) -> Result<(), ()> {
+    let nx = a.len();
+    let blend = |i: usize| a[i] + (b[i] - a[i]) * f;
+    let (first, last) = (blend(0), blend(nx - 1));
+    if last <= first {
+        return Err(());
+    }
+    // Nodes within 1e-9 of a pixel of the first/last column count as on it (rounding).
+    let slack = 1e-9 * (last - first) / (nx - 1) as f64;
+    let (lo, hi) = (first - slack, last + slack);
+    let (gx0, step) = (grid.origin_nm.x.value(), grid.step_nm.value());
+    let c_start = ((lo - gx0) / step).ceil().max(0.0);
+    if c_start >= out_row.len() as f64 {
+        return Ok(());
+    }
+    let mut i = 0usize;
+    let mut cur = first;
+    let mut next = blend(1);
+    if next <= cur {
+        return Err(());
+    }
+    let mut inv = 1.0 / (next - cur);
+    for (c, o) in out_row.iter_mut().enumerate().skip(c_start as usize) {
+        let x = gx0 + step * c as f64;
+        if x > hi {
+            break;
+        }
+        while next < x && i + 2 < nx {
+            i += 1;
+            cur = next;
+            next = blend(i + 1);
+            if next <= cur {
+                return Err(());
+            }
+            inv = 1.0 / (next - cur);
+        }
+        let t = ((x - cur) * inv).clamp(0.0, 1.0);
+        *o = kernel(i, t);
+    }
+    Ok(())
+}
+
 fn resample_rows(
     source: &Source<'_>,
     x_nm: &[f64],
@@ -322,50 +400,34 @@ fn resample_rows(
         }
     }
     let folded = std::sync::atomic::AtomicUsize::new(usize::MAX);
-    let (gx0, step) = (grid.origin_nm.x.value(), grid.step_nm.value());
+    let mark_folded = |j: usize| {
+        folded.fetch_min(j, std::sync::atomic::Ordering::Relaxed);
+    };
     for_each_row(parallelism, out, grid.columns, |r, out_row| {
         let Some((j, f)) = row_fraction(y_rows, increasing, grid.y_nm(r)) else {
             return;
         };
         let a = &x_nm[j * nx..(j + 1) * nx];
         let b = &x_nm[(j + 1) * nx..(j + 2) * nx];
-        let blend = |i: usize| a[i] + (b[i] - a[i]) * f;
-        let (lo, hi) = (blend(0), blend(nx - 1));
-        if hi <= lo {
-            folded.fetch_min(j, std::sync::atomic::Ordering::Relaxed);
-            return;
-        }
-        // Nodes within 1e-9 of a pixel of the first/last column count as on it (rounding).
-        let slack = 1e-9 * (hi - lo) / (nx - 1) as f64;
-        let (lo, hi) = (lo - slack, hi + slack);
-        // First output column at or after lo.
-        let c_start = ((lo - gx0) / step).ceil().max(0.0);
-        if c_start >= out_row.len() as f64 {
-            return;
-        }
-        let mut i = 0usize;
-        let mut cur = blend(0);
-        let mut next = blend(1);
-        for (c, o) in out_row.iter_mut().enumerate().skip(c_start as usize) {
-            let x = gx0 + step * c as f64;
-            if x > hi {
-                break;
+        let result = match source.interpolation {
+            Interpolation::Bilinear => {
+                // Specialised kernel: the two source rows are fixed for the whole output row.
+                let r0 = &source.image[j * nx..(j + 1) * nx];
+                let r1 = &source.image[(j + 1) * nx..(j + 2) * nx];
+                walk_row(a, b, f, grid, out_row, |i, t| {
+                    let (p0, p1) = (r0[i], r0[i + 1]);
+                    let (q0, q1) = (r1[i], r1[i + 1]);
+                    let lo = p0 + (p1 - p0) * t;
+                    let hi = q0 + (q1 - q0) * t;
+                    lo + (hi - lo) * f
+                })
             }
-            while next < x && i + 2 < nx {
-                i += 1;
-                cur = next;
-                next = blend(i + 1);
-                if next <= cur {
-                    folded.fetch_min(j, std::sync::atomic::Ordering::Relaxed);
-                    return;
-                }
-            }
-            if next <= cur {
-                folded.fetch_min(j, std::sync::atomic::Ordering::Relaxed);
-                return;
-            }
-            let t = ((x - cur) / (next - cur)).clamp(0.0, 1.0);
-            *o = source.sample(i as f64 + t, j, f);
+            Interpolation::CatmullRom => walk_row(a, b, f, grid, out_row, |i, t| {
+                source.sample(i as f64 + t, j, f)
+            }),
+        };
+        if result.is_err() {
+            mark_folded(j);
         }
     })?;
     let j = folded.into_inner();

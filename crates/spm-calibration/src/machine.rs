@@ -1,0 +1,791 @@
+//! The node state machine of paper Fig. 2, as a pure step function.
+//!
+//! A [`NodeMachine`] measures one visit of one net node. Each call of [`NodeMachine::step`]
+//! takes the [`Event`] that ended the previous [`Action`] and returns the next action:
+//!
+//! ```text
+//! MoveAndPause → Attach → Aperture → Measure(vector 1) → … → Measure(vector n) → Finished
+//!        ↑__________ restart (attempt + 1) on a failed stage ___________|
+//!                                               GiveUp(reason) when the budgets run out
+//! ```
+//!
+//! The cycle-level adaptivity of paper §2.6 (spoiled cycle → idle cycles → continue or
+//! restart the skipping, or give up) is `spm_fos::DriftMonitor`'s, inside each measurement;
+//! when it gives up (long-term instability) this machine returns the probe to the node and
+//! redoes it (a new attempt), and after `max_attempts_per_node` attempts the node is given up
+//! with a typed [`GiveUpReason`]. Transient backend errors restart the node as well, against
+//! their own budget. The machine owns no microscope, clock, store or observer: the loop in
+//! [`crate::runner`] executes the actions and owns termination, observers and checkpoints.
+
+use crate::config::{AttachTarget, MeasurementMethod, NeighbourSet, PlanConfig};
+use crate::lcc::{CountCovariance, LccEstimate, StandardVector, VectorObservation, solve_lcc};
+use crate::plan::{GridNode, PlanVisit};
+use serde::{Deserialize, Serialize};
+use spm_hal::{CountPoint, CountVector, CountVelocity, Counts, ErrorKind, Radians, Seconds};
+
+/// A feature position at a time (positions move with the drift).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Anchor {
+    /// Position, counts.
+    pub position: CountPoint,
+    /// Instrument time of the position, seconds.
+    pub time: Seconds,
+}
+
+impl Anchor {
+    /// The position expected at `t` with drift `v`.
+    pub fn predict(&self, v: CountVelocity, t: Seconds) -> CountPoint {
+        self.position + v.displacement(t - self.time)
+    }
+}
+
+/// One vector to measure: from a feature (relative to A) to another.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct VectorTarget {
+    /// Start feature relative to A, counts (zero for A itself; A→B for B↔C).
+    pub from_offset: CountVector,
+    /// Approximate vector from the start feature to the end feature, counts.
+    pub estimate: CountVector,
+    /// The true vector in the standard's frame, nm.
+    pub standard: StandardVector,
+}
+
+/// What the executor must do next.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Action {
+    /// Move to the node (and its coarse-stage level) and pause.
+    MoveAndPause {
+        /// The node.
+        node: GridNode,
+        /// The pause after the move.
+        pause: Seconds,
+    },
+    /// Attach to the feature nearest `near` and wait for the drift to settle.
+    Attach {
+        /// Where to look, counts.
+        near: CountPoint,
+    },
+    /// Scan the aperture around `centre` and recognise the LCS.
+    Aperture {
+        /// The aperture's centre (the captured feature, or the node for Fig. 3b).
+        centre: Anchor,
+    },
+    /// Measure one vector drift-free by skipping.
+    Skip {
+        /// Index of the vector in [`NodeMachine::targets`].
+        index: usize,
+        /// The start feature.
+        from: Anchor,
+        /// Approximate vector to the end feature, counts.
+        estimate: CountVector,
+        /// Current drift estimate.
+        drift: CountVelocity,
+    },
+    /// Measure all vectors at once by counter-scanning the aperture around `centre`.
+    CounterScan {
+        /// Centre of the aperture.
+        centre: Anchor,
+        /// Current drift estimate (prior for matching).
+        drift: CountVelocity,
+    },
+    /// The node is measured: store the result (one transaction) and go on.
+    Finished(Box<NodeMeasurement>),
+    /// The node is given up.
+    GiveUp(GiveUpReason),
+}
+
+/// How an attachment ended (the executor's summary of `spm_fos::AttachReport`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum AttachResult {
+    /// Held and settled.
+    Settled {
+        /// The feature's last sighting.
+        feature: Anchor,
+        /// Drift velocity, counts/s.
+        drift: CountVelocity,
+    },
+    /// The drift did not settle in time.
+    DriftNotSettled {
+        /// Last drift velocity, counts/s.
+        drift: CountVelocity,
+    },
+    /// No feature was found or it was lost.
+    FeatureLost,
+}
+
+/// A recognised LCS with A's neighbours (the executor's summary of `spm_fos::ApertureReport`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ApertureResult {
+    /// Feature A.
+    pub a: Anchor,
+    /// A→B and A→C as seen in the aperture, counts.
+    pub lcs: Option<(CountVector, CountVector)>,
+    /// A→neighbour for every neighbour forming an LCS with A, counts.
+    pub neighbours: Vec<CountVector>,
+}
+
+/// A measured vector (summary of `spm_fos::SkipReport`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SkipResult {
+    /// The required cycles were kept.
+    Completed {
+        /// Mean drift-free vector over kept cycles, counts.
+        vector: CountVector,
+        /// Its covariance, counts².
+        covariance: CountCovariance,
+        /// A's last sighting.
+        a: Anchor,
+        /// Drift velocity, counts/s.
+        drift: CountVelocity,
+        /// Cycle statistics.
+        cycles: CycleCounts,
+    },
+    /// The drift monitor gave up or the cycle budget ran out.
+    Unstable {
+        /// Cycle statistics.
+        cycles: CycleCounts,
+    },
+}
+
+/// Counts of skipping cycles.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CycleCounts {
+    /// Kept measuring cycles.
+    pub kept: u32,
+    /// Spoiled and discarded cycles.
+    pub discarded: u32,
+    /// Idle cycles.
+    pub idle: u32,
+    /// Restarts of the skipping.
+    pub restarts: u32,
+}
+
+impl CycleCounts {
+    fn add(&mut self, other: CycleCounts) {
+        self.kept += other.kept;
+        self.discarded += other.discarded;
+        self.idle += other.idle;
+        self.restarts += other.restarts;
+    }
+}
+
+/// Drift-free vectors from a counter-scan: A→feature for each matched neighbour.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CounterResult {
+    /// Drift-free A, counts.
+    pub a: Anchor,
+    /// Drift-free vectors A→neighbour with covariances.
+    pub vectors: Vec<(CountVector, CountCovariance)>,
+    /// Drift velocity, counts/s.
+    pub drift: CountVelocity,
+}
+
+/// A failure of the last action, classified by the executor.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Failure {
+    /// A backend error of a transient kind (timeout, communication, feedback lost) or a
+    /// feature lost while tracking: retried within the node's transient budget.
+    Transient {
+        /// The backend's kind (`None` for a lost feature).
+        kind: Option<ErrorKind>,
+        /// The message.
+        message: String,
+    },
+    /// A measurement problem (recognition error, malformed frame): the node is redone.
+    Measurement {
+        /// The message.
+        message: String,
+    },
+    /// A permanent backend error for this node (out of range, other): given up at once.
+    Permanent {
+        /// The backend's kind.
+        kind: ErrorKind,
+        /// The message.
+        message: String,
+    },
+}
+
+/// The outcome of the last action.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Event {
+    /// Start of the visit (first call).
+    Begin,
+    /// The move and pause are done.
+    Paused,
+    /// The attachment ended.
+    Attached(AttachResult),
+    /// The aperture was scanned and recognised.
+    ApertureScanned(ApertureResult),
+    /// A vector was skipped.
+    Skipped(SkipResult),
+    /// A counter-scan was made.
+    CounterScanned(CounterResult),
+    /// The last action failed.
+    Failed(Failure),
+}
+
+/// Why a node was given up (stored as its text in the CDB).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, thiserror::Error)]
+#[serde(tag = "reason", rename_all = "snake_case")]
+#[non_exhaustive]
+pub enum GiveUpReason {
+    /// No feature could be captured near the node.
+    #[error("no feature captured near the node")]
+    NoFeature,
+    /// The drift did not fall below the limit during the attachments.
+    #[error("drift did not settle below the limit ({speed_counts_per_s:.3} counts/s)")]
+    DriftNotSettled {
+        /// The last speed, counts/s.
+        speed_counts_per_s: f64,
+    },
+    /// No LCS matching the standard was recognised in the aperture.
+    #[error("no LCS matching the standard in the aperture")]
+    NoLcs,
+    /// Skipping (or counter-scanning) could not keep enough cycles: long-term drift
+    /// instability.
+    #[error("drift unstable: {discarded} cycles spoiled, {restarts} restarts")]
+    DriftUnstable {
+        /// Spoiled cycles over all attempts.
+        discarded: u32,
+        /// Skipping restarts over all attempts.
+        restarts: u32,
+    },
+    /// The measured vectors gave no valid LCCs.
+    #[error("LCC solve failed: {message}")]
+    Degenerate {
+        /// The solver's message.
+        message: String,
+    },
+    /// Recognition or frame errors on every attempt.
+    #[error("measurement failed: {message}")]
+    Measurement {
+        /// The last message.
+        message: String,
+    },
+    /// The transient-error budget ran out.
+    #[error("{count} transient backend errors, last: {message}")]
+    TransientErrors {
+        /// Transient errors at this node.
+        count: u32,
+        /// The last kind (`None` for a lost feature).
+        kind: Option<ErrorKind>,
+        /// The last message.
+        message: String,
+    },
+    /// A permanent backend error.
+    #[error("backend error ({kind:?}): {message}")]
+    Backend {
+        /// The kind.
+        kind: ErrorKind,
+        /// The message.
+        message: String,
+    },
+}
+
+/// The result of a measured node.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NodeMeasurement {
+    /// The visit.
+    pub visit: PlanVisit,
+    /// The LCCs.
+    pub lcc: LccEstimate,
+    /// Gravity centre of the features used (drift-free, at A's last sighting), counts.
+    pub centre: CountPoint,
+    /// Drift velocity at the end, counts/s.
+    pub drift: CountVelocity,
+    /// Cycle statistics over all attempts at this visit.
+    pub cycles: CycleCounts,
+    /// Attempts it took (1 = first time).
+    pub attempts: u32,
+    /// The vectors used.
+    pub vectors: Vec<VectorObservation>,
+}
+
+impl NodeMeasurement {
+    /// Quality score in (0, 1], higher is better: `1 / (1 + 100·r)` with r the combined
+    /// relative standard uncertainty √((u(K̄x)/K̄x)² + (u(K̄y)/K̄y)²) (1 % → 0.5).
+    pub fn quality(&self) -> f64 {
+        let rx = self.lcc.u_kx().value() / self.lcc.kx.value();
+        let ry = self.lcc.u_ky().value() / self.lcc.ky.value();
+        let r = rx.hypot(ry);
+        if r.is_finite() {
+            1.0 / (1.0 + 100.0 * r)
+        } else {
+            0.0
+        }
+    }
+}
+
+/// The parts of the plan the machine needs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MachineParams {
+    /// Attach target variant.
+    pub attach_to: AttachTarget,
+    /// Which neighbours.
+    pub neighbours: NeighbourSet,
+    /// B↔C redundancy.
+    pub bc_redundancy: bool,
+    /// Skipping or counter-scanning.
+    pub measurement: MeasurementMethod,
+    /// Omit the attachment.
+    pub skip_attach: bool,
+    /// Lattice constant (|AB| = |AC|), nm.
+    pub lattice_constant_nm: f64,
+    /// LCS angle.
+    pub lcs_angle: Radians,
+    /// Attempts per node.
+    pub max_attempts: u32,
+    /// Transient errors per node.
+    pub transient_retries: u32,
+}
+
+impl MachineParams {
+    /// From a plan.
+    pub fn from_plan(plan: &PlanConfig) -> Self {
+        Self {
+            attach_to: plan.variant.attach_to,
+            neighbours: plan.variant.neighbours,
+            bc_redundancy: plan.variant.bc_redundancy,
+            measurement: plan.variant.measurement,
+            skip_attach: plan.attach.skip,
+            lattice_constant_nm: plan.standard.lattice_constant_nm,
+            lcs_angle: plan.standard.lcs_angle(),
+            max_attempts: plan.failures.max_attempts_per_node.max(1),
+            transient_retries: plan.failures.transient_retries_per_node,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Stage {
+    Start,
+    Pausing,
+    Attaching,
+    Aperture,
+    Measuring(usize),
+    CounterScanning,
+    Over,
+}
+
+/// The state machine of one visit (see the module docs).
+#[derive(Clone, Debug)]
+pub struct NodeMachine {
+    visit: PlanVisit,
+    params: MachineParams,
+    pause: Seconds,
+    stage: Stage,
+    attempt: u32,
+    transient: u32,
+    a: Option<Anchor>,
+    drift: CountVelocity,
+    targets: Vec<VectorTarget>,
+    measured: Vec<VectorObservation>,
+    cycles: CycleCounts,
+    last_failure: Option<GiveUpReason>,
+}
+
+impl NodeMachine {
+    /// A machine for `visit`; `pause` is the pause after the move to it (pause law).
+    pub fn new(visit: PlanVisit, params: MachineParams, pause: Seconds) -> Self {
+        Self {
+            visit,
+            params,
+            pause,
+            stage: Stage::Start,
+            attempt: 0,
+            transient: 0,
+            a: None,
+            drift: CountVelocity::ZERO,
+            targets: Vec::new(),
+            measured: Vec::new(),
+            cycles: CycleCounts::default(),
+            last_failure: None,
+        }
+    }
+
+    /// The visit.
+    pub fn visit(&self) -> &PlanVisit {
+        &self.visit
+    }
+    /// The current attempt (1-based once started).
+    pub fn attempt(&self) -> u32 {
+        self.attempt
+    }
+    /// Transient errors so far.
+    pub fn transient_errors(&self) -> u32 {
+        self.transient
+    }
+    /// The vectors to measure at this attempt.
+    pub fn targets(&self) -> &[VectorTarget] {
+        &self.targets
+    }
+    /// Cycle statistics so far.
+    pub fn cycles(&self) -> CycleCounts {
+        self.cycles
+    }
+    /// The current drift estimate.
+    pub fn drift(&self) -> CountVelocity {
+        self.drift
+    }
+    /// True once [`Action::Finished`] or [`Action::GiveUp`] was returned.
+    pub fn is_over(&self) -> bool {
+        self.stage == Stage::Over
+    }
+
+    /// Restart the node (a new attempt) after `reason`, or give up when attempts ran out.
+    fn redo(&mut self, reason: GiveUpReason) -> Action {
+        tracing::info!(
+            repeat = self.visit.repeat_index,
+            node = self.visit.node_index,
+            attempt = self.attempt,
+            %reason,
+            "node attempt failed"
+        );
+        self.last_failure = Some(reason.clone());
+        if self.attempt >= self.params.max_attempts {
+            self.stage = Stage::Over;
+            return Action::GiveUp(reason);
+        }
+        self.start_attempt(self.params_pause_on_redo())
+    }
+
+    fn params_pause_on_redo(&self) -> Seconds {
+        // Back to a node the probe is already near: the pause of a short move.
+        self.pause
+    }
+
+    fn start_attempt(&mut self, pause: Seconds) -> Action {
+        self.attempt += 1;
+        self.a = None;
+        self.targets.clear();
+        self.measured.clear();
+        self.stage = Stage::Pausing;
+        Action::MoveAndPause {
+            node: self.visit.grid,
+            pause,
+        }
+    }
+
+    fn after_pause(&mut self) -> Action {
+        let node = self.visit.grid.position();
+        if self.params.skip_attach || self.params.attach_to == AttachTarget::LcsCentre {
+            // Fig. 3b / §2.1.3: the aperture around the node acts as the attachment.
+            self.stage = Stage::Aperture;
+            Action::Aperture {
+                centre: Anchor {
+                    position: node,
+                    time: Seconds(f64::NAN),
+                },
+            }
+        } else {
+            self.stage = Stage::Attaching;
+            Action::Attach { near: node }
+        }
+    }
+
+    /// True angle of a measured vector: its angle from the first vector rounded to a
+    /// multiple of the LCS angle (lattice directions), length the lattice constant.
+    fn standard_for(&self, first: CountVector, v: CountVector) -> StandardVector {
+        let angle = (first.x.value() * v.y.value() - first.y.value() * v.x.value())
+            .atan2(first.dot_counts_squared(v));
+        let step = self.params.lcs_angle.value();
+        let k = (angle / step).round();
+        StandardVector::polar(
+            spm_hal::Nanometres(self.params.lattice_constant_nm),
+            Radians(k * step),
+        )
+    }
+
+    fn plan_targets(&mut self, aperture: &ApertureResult) -> bool {
+        let zero = CountVector::default();
+        let a = self.params.lattice_constant_nm;
+        let mut targets = Vec::new();
+        match (self.params.neighbours, aperture.lcs) {
+            (NeighbourSet::AllInAperture, _) if aperture.neighbours.len() >= 2 => {
+                let first = aperture.neighbours[0];
+                for &n in &aperture.neighbours {
+                    targets.push(VectorTarget {
+                        from_offset: zero,
+                        estimate: n,
+                        standard: self.standard_for(first, n),
+                    });
+                }
+            }
+            (_, Some((ab, ac))) => {
+                let sign = if ab.x.value() * ac.y.value() - ab.y.value() * ac.x.value() >= 0.0 {
+                    1.0
+                } else {
+                    -1.0
+                };
+                targets.push(VectorTarget {
+                    from_offset: zero,
+                    estimate: ab,
+                    standard: StandardVector::from_nm(a, 0.0),
+                });
+                targets.push(VectorTarget {
+                    from_offset: zero,
+                    estimate: ac,
+                    standard: StandardVector::polar(
+                        spm_hal::Nanometres(a),
+                        Radians(sign * self.params.lcs_angle.value()),
+                    ),
+                });
+            }
+            _ => return false,
+        }
+        if self.params.bc_redundancy && targets.len() >= 2 {
+            let (b, c) = (targets[0], targets[1]);
+            targets.push(VectorTarget {
+                from_offset: b.estimate,
+                estimate: c.estimate - b.estimate,
+                standard: c.standard.minus(b.standard),
+            });
+        }
+        self.targets = targets;
+        true
+    }
+
+    fn next_measurement(&mut self, index: usize) -> Action {
+        let Some(a) = self.a else {
+            return self.redo(GiveUpReason::NoFeature);
+        };
+        if index >= self.targets.len() {
+            return self.solve();
+        }
+        let target = self.targets[index];
+        // The start feature: A, or (B↔C) A plus the measured A→B when available.
+        let from_offset = self
+            .measured
+            .iter()
+            .zip(self.targets.iter())
+            .find(|(_, t)| {
+                t.from_offset == CountVector::default() && t.estimate == target.from_offset
+            })
+            .map_or(target.from_offset, |(m, _)| m.measured);
+        self.stage = Stage::Measuring(index);
+        Action::Skip {
+            index,
+            from: Anchor {
+                position: a.position + from_offset,
+                time: a.time,
+            },
+            estimate: target.estimate,
+            drift: self.drift,
+        }
+    }
+
+    fn solve(&mut self) -> Action {
+        let Some(a) = self.a else {
+            return self.redo(GiveUpReason::NoFeature);
+        };
+        match solve_lcc(&self.measured) {
+            Ok(lcc) => {
+                // Gravity centre of A and the end features of the vectors from A.
+                let ends: Vec<CountVector> = self
+                    .measured
+                    .iter()
+                    .zip(self.targets.iter())
+                    .filter(|(_, t)| t.from_offset == CountVector::default())
+                    .map(|(m, _)| m.measured)
+                    .collect();
+                let n = (ends.len() + 1) as f64;
+                let sum = ends.iter().fold(CountVector::default(), |s, v| s + *v);
+                let centre = a.position + sum * (1.0 / n);
+                self.stage = Stage::Over;
+                Action::Finished(Box::new(NodeMeasurement {
+                    visit: self.visit,
+                    lcc,
+                    centre,
+                    drift: self.drift,
+                    cycles: self.cycles,
+                    attempts: self.attempt,
+                    vectors: self.measured.clone(),
+                }))
+            }
+            Err(e) => self.redo(GiveUpReason::Degenerate {
+                message: e.to_string(),
+            }),
+        }
+    }
+
+    /// One transition: the outcome of the last action in, the next action out.
+    pub fn step(&mut self, event: Event) -> Action {
+        if self.stage == Stage::Over {
+            return Action::GiveUp(self.last_failure.clone().unwrap_or(
+                GiveUpReason::Measurement {
+                    message: "step after the end of the visit".into(),
+                },
+            ));
+        }
+        match (self.stage, event) {
+            (Stage::Start, Event::Begin) => self.start_attempt(self.pause),
+            (_, Event::Failed(failure)) => self.fail(failure),
+            (Stage::Pausing, Event::Paused) => self.after_pause(),
+            (Stage::Attaching, Event::Attached(result)) => match result {
+                AttachResult::Settled { feature, drift } => {
+                    self.drift = drift;
+                    self.stage = Stage::Aperture;
+                    Action::Aperture { centre: feature }
+                }
+                AttachResult::DriftNotSettled { drift } => {
+                    self.drift = drift;
+                    self.redo(GiveUpReason::DriftNotSettled {
+                        speed_counts_per_s: drift.norm_counts_per_s(),
+                    })
+                }
+                AttachResult::FeatureLost => self.redo(GiveUpReason::NoFeature),
+            },
+            (Stage::Aperture, Event::ApertureScanned(result)) => {
+                self.a = Some(result.a);
+                if !self.plan_targets(&result) {
+                    return self.redo(GiveUpReason::NoLcs);
+                }
+                match self.params.measurement {
+                    MeasurementMethod::Skipping => self.next_measurement(0),
+                    MeasurementMethod::CounterScan => {
+                        self.stage = Stage::CounterScanning;
+                        Action::CounterScan {
+                            centre: result.a,
+                            drift: self.drift,
+                        }
+                    }
+                }
+            }
+            (Stage::Measuring(index), Event::Skipped(result)) => match result {
+                SkipResult::Completed {
+                    vector,
+                    covariance,
+                    a,
+                    drift,
+                    cycles,
+                } => {
+                    self.cycles.add(cycles);
+                    self.drift = drift;
+                    // Keep A's latest sighting when the vector started at A.
+                    if self
+                        .targets
+                        .get(index)
+                        .is_some_and(|t| t.from_offset == CountVector::default())
+                    {
+                        self.a = Some(a);
+                    }
+                    let standard = self.targets[index].standard;
+                    self.measured.push(VectorObservation {
+                        measured: vector,
+                        covariance,
+                        standard,
+                    });
+                    self.next_measurement(index + 1)
+                }
+                SkipResult::Unstable { cycles } => {
+                    self.cycles.add(cycles);
+                    self.redo(GiveUpReason::DriftUnstable {
+                        discarded: self.cycles.discarded,
+                        restarts: self.cycles.restarts,
+                    })
+                }
+            },
+            (Stage::CounterScanning, Event::CounterScanned(result)) => {
+                self.drift = result.drift;
+                self.a = Some(result.a);
+                // Match each drift-free vector to the nearest planned target.
+                self.measured.clear();
+                let mut used = Vec::new();
+                for t in self.targets.clone() {
+                    if t.from_offset != CountVector::default() {
+                        // B↔C is implied by the same scan: no independent information.
+                        continue;
+                    }
+                    let best = result
+                        .vectors
+                        .iter()
+                        .enumerate()
+                        .filter(|(i, _)| !used.contains(i))
+                        .map(|(i, (v, c))| (i, *v, *c, (*v - t.estimate).norm().value()))
+                        .min_by(|x, y| x.3.total_cmp(&y.3));
+                    if let Some((i, v, c, d)) = best
+                        && d < 0.35 * t.estimate.norm().value()
+                    {
+                        used.push(i);
+                        self.measured.push(VectorObservation {
+                            measured: v,
+                            covariance: c,
+                            standard: t.standard,
+                        });
+                    }
+                }
+                self.targets
+                    .retain(|t| t.from_offset == CountVector::default());
+                if self.measured.len() < 2 {
+                    return self.redo(GiveUpReason::NoLcs);
+                }
+                self.cycles.kept += 1;
+                // Only the matched targets are kept, in measured order.
+                self.targets = self
+                    .measured
+                    .iter()
+                    .map(|m| VectorTarget {
+                        from_offset: CountVector::default(),
+                        estimate: m.measured,
+                        standard: m.standard,
+                    })
+                    .collect();
+                self.solve()
+            }
+            (stage, event) => {
+                tracing::error!(?stage, ?event, "unexpected event");
+                self.fail(Failure::Measurement {
+                    message: format!("unexpected event {event:?} in stage {stage:?}"),
+                })
+            }
+        }
+    }
+
+    fn fail(&mut self, failure: Failure) -> Action {
+        match failure {
+            Failure::Transient { kind, message } => {
+                self.transient += 1;
+                tracing::warn!(?kind, %message, count = self.transient, "transient failure");
+                if self.transient > self.params.transient_retries {
+                    self.stage = Stage::Over;
+                    let reason = GiveUpReason::TransientErrors {
+                        count: self.transient,
+                        kind,
+                        message,
+                    };
+                    self.last_failure = Some(reason.clone());
+                    Action::GiveUp(reason)
+                } else {
+                    // A retry does not use up an attempt.
+                    self.attempt = self.attempt.saturating_sub(1);
+                    let pause = self.pause;
+                    self.start_attempt(pause)
+                }
+            }
+            Failure::Measurement { message } => self.redo(GiveUpReason::Measurement { message }),
+            Failure::Permanent { kind, message } => {
+                self.stage = Stage::Over;
+                let reason = GiveUpReason::Backend { kind, message };
+                self.last_failure = Some(reason.clone());
+                Action::GiveUp(reason)
+            }
+        }
+    }
+}
+
+/// The covariance of a mean vector from the scatter of `n` kept cycles (its standard
+/// error `sigma`) and the localisation uncertainties (`localisation`, per-cycle standard
+/// deviation): the larger of the two per component.
+pub fn vector_covariance(
+    sigma_of_mean: CountVector,
+    localisation_per_cycle: CountVector,
+    n: usize,
+) -> CountCovariance {
+    let n = n.max(1) as f64;
+    let var = |s: Counts, l: Counts| (s.value() * s.value()).max(l.value() * l.value() / n);
+    CountCovariance {
+        xx_counts2: var(sigma_of_mean.x, localisation_per_cycle.x),
+        xy_counts2: 0.0,
+        yy_counts2: var(sigma_of_mean.y, localisation_per_cycle.y),
+    }
+}

@@ -1,0 +1,290 @@
+//! The node state machine without a microscope: events in, actions out.
+#![allow(clippy::unwrap_used)]
+
+use spm_calibration::{
+    Action, Anchor, ApertureResult, AttachResult, CountCovariance, CycleCounts, Event, Failure,
+    GiveUpReason, MachineParams, MeasurementMethod, NetPlan, NodeMachine, PlanConfig, SkipResult,
+};
+use spm_hal::mock::ScriptedMicroscope;
+use spm_hal::{CountPoint, CountVector, CountVelocity, ErrorKind, Seconds};
+
+const KX: f64 = 0.004;
+
+fn machine(edit: impl FnOnce(&mut PlanConfig)) -> NodeMachine {
+    let mut config = PlanConfig::hopg_small_net();
+    edit(&mut config);
+    let geometry = config
+        .net
+        .geometry(&ScriptedMicroscope::default_capabilities())
+        .unwrap();
+    let plan = NetPlan::new(&geometry, 1).unwrap();
+    NodeMachine::new(
+        plan.visit(0, 0).unwrap(),
+        MachineParams::from_plan(&config),
+        Seconds(1.0),
+    )
+}
+
+fn anchor(x: f64, y: f64) -> Anchor {
+    Anchor {
+        position: CountPoint::from_counts(x, y),
+        time: Seconds(10.0),
+    }
+}
+
+/// A→B and A→C of an exact scanner with K̄x = K̄y = 0.004 nm/count, α = 0.
+fn lcs() -> (CountVector, CountVector) {
+    let a = 0.2461 / KX;
+    (
+        CountVector::from_counts(a, 0.0),
+        CountVector::from_counts(a * 0.5, a * 3f64.sqrt() / 2.0),
+    )
+}
+
+fn aperture() -> Event {
+    Event::ApertureScanned(ApertureResult {
+        a: anchor(5.0, 5.0),
+        lcs: Some(lcs()),
+        neighbours: vec![],
+    })
+}
+
+fn completed(vector: CountVector, kept: u32, discarded: u32) -> Event {
+    Event::Skipped(SkipResult::Completed {
+        vector,
+        covariance: CountCovariance::EXACT,
+        a: anchor(5.5, 5.0),
+        drift: CountVelocity::ZERO,
+        cycles: CycleCounts {
+            kept,
+            discarded,
+            idle: discarded,
+            restarts: 0,
+        },
+    })
+}
+
+fn unstable() -> Event {
+    Event::Skipped(SkipResult::Unstable {
+        cycles: CycleCounts {
+            kept: 0,
+            discarded: 3,
+            idle: 3,
+            restarts: 2,
+        },
+    })
+}
+
+fn settled() -> Event {
+    Event::Attached(AttachResult::Settled {
+        feature: anchor(5.0, 5.0),
+        drift: CountVelocity::ZERO,
+    })
+}
+
+#[test]
+fn a_clean_visit_runs_the_fig_2_sequence() {
+    let mut m = machine(|_| {});
+    assert!(matches!(
+        m.step(Event::Begin),
+        Action::MoveAndPause { pause, .. } if pause == Seconds(1.0)
+    ));
+    assert!(matches!(m.step(Event::Paused), Action::Attach { .. }));
+    assert!(matches!(m.step(settled()), Action::Aperture { .. }));
+    let (ab, ac) = lcs();
+    assert!(matches!(m.step(aperture()), Action::Skip { index: 0, .. }));
+    // A spoiled cycle inside the skipping is counted but does not disturb the node.
+    assert!(matches!(
+        m.step(completed(ab, 2, 1)),
+        Action::Skip { index: 1, .. }
+    ));
+    let Action::Finished(result) = m.step(completed(ac, 2, 0)) else {
+        panic!("expected Finished");
+    };
+    assert!((result.lcc.kx.value() - KX).abs() < 1e-12);
+    assert!((result.lcc.ky.value() - KX).abs() < 1e-12);
+    assert!(result.lcc.alpha.value().abs() < 1e-9);
+    assert_eq!(result.attempts, 1);
+    assert_eq!(result.cycles.kept, 4);
+    assert_eq!(result.cycles.discarded, 1);
+    assert!(m.is_over());
+}
+
+#[test]
+fn unstable_drift_redoes_the_node_then_gives_up_with_the_reason() {
+    // max_attempts_per_node = 3 in the small plan.
+    let mut m = machine(|_| {});
+    m.step(Event::Begin);
+    for attempt in 1..=3 {
+        assert_eq!(m.attempt(), attempt);
+        m.step(Event::Paused);
+        m.step(settled());
+        m.step(aperture());
+        let action = m.step(unstable());
+        if attempt < 3 {
+            // Back to the node: move and pause again (paper §2.6, long-term instability).
+            assert!(matches!(action, Action::MoveAndPause { .. }), "{action:?}");
+        } else {
+            let Action::GiveUp(GiveUpReason::DriftUnstable {
+                discarded,
+                restarts,
+            }) = action
+            else {
+                panic!("expected DriftUnstable, got {action:?}");
+            };
+            assert_eq!((discarded, restarts), (9, 6));
+        }
+    }
+    assert!(m.is_over());
+}
+
+#[test]
+fn an_unstable_attempt_followed_by_a_stable_one_finishes() {
+    let mut m = machine(|_| {});
+    m.step(Event::Begin);
+    m.step(Event::Paused);
+    m.step(settled());
+    m.step(aperture());
+    assert!(matches!(m.step(unstable()), Action::MoveAndPause { .. }));
+    m.step(Event::Paused);
+    m.step(settled());
+    m.step(aperture());
+    let (ab, ac) = lcs();
+    m.step(completed(ab, 2, 0));
+    let Action::Finished(result) = m.step(completed(ac, 2, 0)) else {
+        panic!()
+    };
+    assert_eq!(result.attempts, 2);
+    assert_eq!(result.cycles.discarded, 3);
+}
+
+#[test]
+fn transient_errors_are_retried_within_their_budget() {
+    // transient_retries_per_node = 3: the fourth transient error gives the node up.
+    let mut m = machine(|_| {});
+    m.step(Event::Begin);
+    let timeout = || {
+        Event::Failed(Failure::Transient {
+            kind: Some(ErrorKind::Timeout),
+            message: "scan timed out".into(),
+        })
+    };
+    for _ in 0..3 {
+        assert!(matches!(m.step(timeout()), Action::MoveAndPause { .. }));
+        assert_eq!(m.attempt(), 1, "a retry does not use up an attempt");
+    }
+    let Action::GiveUp(GiveUpReason::TransientErrors { count, kind, .. }) = m.step(timeout())
+    else {
+        panic!()
+    };
+    assert_eq!((count, kind), (4, Some(ErrorKind::Timeout)));
+}
+
+#[test]
+fn permanent_errors_and_missing_features_have_their_reasons() {
+    let mut m = machine(|_| {});
+    m.step(Event::Begin);
+    let action = m.step(Event::Failed(Failure::Permanent {
+        kind: ErrorKind::OutOfRange,
+        message: "outside".into(),
+    }));
+    assert!(matches!(
+        action,
+        Action::GiveUp(GiveUpReason::Backend {
+            kind: ErrorKind::OutOfRange,
+            ..
+        })
+    ));
+    let mut m = machine(|c| c.failures.max_attempts_per_node = 1);
+    m.step(Event::Begin);
+    m.step(Event::Paused);
+    assert!(matches!(
+        m.step(Event::Attached(AttachResult::FeatureLost)),
+        Action::GiveUp(GiveUpReason::NoFeature)
+    ));
+    let mut m = machine(|c| c.failures.max_attempts_per_node = 1);
+    m.step(Event::Begin);
+    m.step(Event::Paused);
+    m.step(settled());
+    let no_lcs = Event::ApertureScanned(ApertureResult {
+        a: anchor(0.0, 0.0),
+        lcs: None,
+        neighbours: vec![],
+    });
+    assert!(matches!(
+        m.step(no_lcs),
+        Action::GiveUp(GiveUpReason::NoLcs)
+    ));
+    let mut m = machine(|c| c.failures.max_attempts_per_node = 1);
+    m.step(Event::Begin);
+    m.step(Event::Paused);
+    assert!(matches!(
+        m.step(Event::Attached(AttachResult::DriftNotSettled {
+            drift: CountVelocity {
+                x_counts_per_s: 3.0,
+                y_counts_per_s: 4.0
+            }
+        })),
+        Action::GiveUp(GiveUpReason::DriftNotSettled { speed_counts_per_s }) if speed_counts_per_s == 5.0
+    ));
+}
+
+#[test]
+fn variants_change_the_sequence_and_the_vectors() {
+    // Fig. 3b: no separate attachment, the aperture is centred on the node.
+    let mut m = machine(|c| c.variant.attach_to = spm_calibration::AttachTarget::LcsCentre);
+    m.step(Event::Begin);
+    assert!(matches!(m.step(Event::Paused), Action::Aperture { .. }));
+    // B↔C redundancy: a third vector starting at B.
+    let mut m = machine(|c| c.variant.bc_redundancy = true);
+    m.step(Event::Begin);
+    m.step(Event::Paused);
+    m.step(settled());
+    m.step(aperture());
+    assert_eq!(m.targets().len(), 3);
+    let (ab, ac) = lcs();
+    m.step(completed(ab, 2, 0));
+    let Action::Skip { from, estimate, .. } = m.step(completed(ac, 2, 0)) else {
+        panic!()
+    };
+    // Starts at A (last sighting 5.5, 5.0) + measured A→B.
+    assert!((from.position.x.value() - (5.5 + ab.x.value())).abs() < 1e-9);
+    assert!(((estimate - (ac - ab)).norm()).value() < 1e-9);
+    let Action::Finished(r) = m.step(completed(ac - ab, 2, 0)) else {
+        panic!()
+    };
+    assert_eq!(r.vectors.len(), 3);
+    assert!((r.lcc.kx.value() - KX).abs() < 1e-12);
+    // Every neighbour: six vectors around A, least squares.
+    let mut m = machine(|c| c.variant.neighbours = spm_calibration::NeighbourSet::AllInAperture);
+    m.step(Event::Begin);
+    m.step(Event::Paused);
+    m.step(settled());
+    let a = 0.2461 / KX;
+    let ring: Vec<CountVector> = (0..6)
+        .map(|k| {
+            let t = (60.0 * k as f64 + 10.0).to_radians();
+            CountVector::from_counts(a * t.cos(), a * t.sin())
+        })
+        .collect();
+    let mut action = m.step(Event::ApertureScanned(ApertureResult {
+        a: anchor(0.0, 0.0),
+        lcs: Some(lcs()),
+        neighbours: ring.clone(),
+    }));
+    for v in &ring {
+        assert!(matches!(action, Action::Skip { .. }));
+        action = m.step(completed(*v, 2, 0));
+    }
+    let Action::Finished(r) = action else {
+        panic!()
+    };
+    assert_eq!(r.vectors.len(), 6);
+    assert!((r.lcc.kx.value() - KX).abs() < 1e-12);
+    // Counter-scanning instead of skipping.
+    let mut m = machine(|c| c.variant.measurement = MeasurementMethod::CounterScan);
+    m.step(Event::Begin);
+    m.step(Event::Paused);
+    m.step(settled());
+    assert!(matches!(m.step(aperture()), Action::CounterScan { .. }));
+}

@@ -779,7 +779,7 @@ impl Simulator {
                             next_event += 1;
                             if let Err(e) = self.fire(te, kind, Some(Operation::Scan), scheduled) {
                                 // The scan stops at this pixel.
-                                self.time_s = t_mid - 0.5 * dwell;
+                                self.time_s = te.max(t_mid - 0.5 * dwell);
                                 return Err(e);
                             }
                         }

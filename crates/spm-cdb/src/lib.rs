@@ -135,6 +135,10 @@ pub trait CdbRead {
 
     /// Selected records as numeric columns (for regression), in insertion order.
     ///
+    /// Reads the table sequentially (no index): a regression selection (a scanner's Z plane)
+    /// is usually a large part of the table, where a scan is ~3× faster than 10⁶ index
+    /// lookups, and a scan costs at most ~0.4 µs per stored record otherwise.
+    ///
     /// # Errors
     /// As [`CdbRead::records`].
     fn columns(&self, filter: &RecordFilter) -> Result<LccColumns> {
@@ -350,6 +354,14 @@ fn validate_record(path: &Path, r: &LccRecord) -> Result<()> {
     Ok(())
 }
 
+/// Page cache of 64 MiB and memory-mapped reads of up to 1 GiB (address space only): bulk
+/// imports keep their index pages in memory and large scans avoid a read() per page.
+fn tune_cache(conn: &Connection) -> rusqlite::Result<()> {
+    conn.pragma_update(None, "cache_size", -65_536)?;
+    conn.pragma_update_and_check(None, "mmap_size", 1_i64 << 30, |r| r.get::<_, i64>(0))?;
+    Ok(())
+}
+
 const INSERT_RECORD: &str = "INSERT INTO records (scanner_id, run_id, acquired_unix_s, \
 repeat_index, node_index, lcs_index, node_x_counts, node_y_counts, node_z_counts, lcs_x_counts, \
 lcs_y_counts, lcs_z_counts, kx_nm_per_count, ky_nm_per_count, alpha_rad, kz_nm_per_count, \
@@ -447,6 +459,7 @@ impl Cdb {
         conn.pragma_update(None, "synchronous", sync).map_err(err)?;
         conn.pragma_update(None, "foreign_keys", true)
             .map_err(err)?;
+        tune_cache(&conn).map_err(err)?;
         schema::initialise_or_migrate(&mut conn, &path)?;
         tracing::debug!(path = %path.display(), "CDB open");
         Ok(Self { conn, path })
@@ -473,6 +486,7 @@ impl Cdb {
         .map_err(err)?;
         conn.busy_timeout(Duration::from_secs(5)).map_err(err)?;
         let p = schema::probe(&conn).map_err(err)?;
+        tune_cache(&conn).map_err(err)?;
         schema::check_probe(&path, &p)?;
         if p.user_version == 0 {
             return Err(CdbError::NotACdb {

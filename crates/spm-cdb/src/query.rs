@@ -135,7 +135,7 @@ pub(crate) fn columns(conn: &Connection, path: &Path, f: &RecordFilter) -> Resul
     let (w, p) = where_clause(f);
     let sql = format!(
         "SELECT lcs_x_counts, lcs_y_counts, node_z_counts, acquired_unix_s, kx_nm_per_count, \
-         ky_nm_per_count, alpha_rad, kz_nm_per_count FROM records{w} ORDER BY id"
+         ky_nm_per_count, alpha_rad, kz_nm_per_count FROM records NOT INDEXED{w} ORDER BY id"
     );
     let err = |e| CdbError::sqlite(path, e);
     let mut stmt = conn.prepare(&sql).map_err(err)?;

@@ -610,7 +610,12 @@ fn localise(
         let moved = (new_centre.0 - centre.0).hypot(new_centre.1 - centre.1);
         centre = new_centre;
         result = Some(fit);
-        if moved < 0.05 && pass > 0 {
+        // The first window is good enough when the fit barely moved and the
+        // width is close to the one that sized the window.
+        let new_radius = (config.fit_radius_sigmas * width)
+            .min(1.25 * config.min_separation_px)
+            .clamp(config.min_fit_radius_px, config.max_fit_radius_px);
+        if pass == 0 && moved < 0.5 && (new_radius - radius).abs() < 1.0 {
             break;
         }
     }

@@ -389,3 +389,80 @@ fn counter_scanning_recovers_the_drift() {
         );
     }
 }
+
+/// Mean A→B over `runs` skipping runs at drift `v` (counts/s along x and y),
+/// each with its own noise seeds (the same for every drift).
+fn skipping_error(v: (f64, f64), runs: u64, cycles: usize) -> f64 {
+    let ab_true = atom(0, 1) - atom(0, 0);
+    let mut sum_sq = 0.0;
+    for run in 0..runs {
+        let mut m = mock();
+        // Enough scans for a few spoiled and idle cycles too.
+        for i in 0..(1 + 2 * (cycles + 8)) as u64 {
+            m.expect(Expectation::scan(surface(
+                constant(v.0, v.1),
+                CORRUGATION_Z / 10.0,
+                1000 * run + i,
+            )));
+        }
+        let drift = CountVelocity {
+            x_counts_per_s: v.0,
+            y_counts_per_s: v.1,
+        };
+        let mut params = skip_params(cycles);
+        // Per-cycle velocity noise at SNR 10 is ≈ 2 counts/s.
+        params.monitor.velocity_tolerance_counts_per_s = 8.0;
+        let report = skip(&mut m, atom(0, 0), ab_true, drift, &params).unwrap();
+        assert_eq!(report.outcome, SkipOutcome::Completed);
+        let e = report.vector.unwrap() - ab_true;
+        sum_sq += e.dot_counts_squared(e);
+    }
+    (sum_sq / runs as f64).sqrt()
+}
+
+/// A→B (B at 60°, a line-separated neighbour) from one 64×64 aperture scan.
+fn single_scan_error(v: (f64, f64), seed: u64) -> f64 {
+    let ab_true = atom(0, 1) - atom(0, 0);
+    let mut m = mock();
+    m.expect(Expectation::scan(surface(
+        constant(v.0, v.1),
+        CORRUGATION_Z / 10.0,
+        seed,
+    )));
+    let raster = Raster {
+        pixels: 64,
+        pixel_step_counts: 4.0 * A / 63.0,
+        pixel_dwell_s: 2e-4,
+    };
+    let params = ApertureParams {
+        raster,
+        detection: detection(raster.pixel_step_counts),
+        lcs: LcsConfig::hopg(NM_PER_COUNT),
+        motion: Motion::default(),
+    };
+    let report = aperture(&mut m, atom(0, 0), &params).unwrap();
+    let a = report.feature(report.a.unwrap()).unwrap().position;
+    let b = report
+        .recognised
+        .detection
+        .nearest(atom(0, 1))
+        .unwrap()
+        .position;
+    ((b - a) - ab_true).norm().value()
+}
+
+#[test]
+fn skipping_is_drift_insensitive_where_a_single_scan_is_not() {
+    // 0.4 Å/s = 0.04 nm/s = 8 counts/s at 0.005 nm/count, diagonal.
+    let fast = (8.0 / 2f64.sqrt(), 8.0 / 2f64.sqrt());
+    let still = skipping_error((0.0, 0.0), 6, 4);
+    let drifting = skipping_error(fast, 6, 4);
+    let single_still = single_scan_error((0.0, 0.0), 77);
+    let single = single_scan_error(fast, 77);
+    println!(
+        "skipping error: {still:.4} counts at rest, {drifting:.4} at 0.4 Å/s; \
+         single scan: {single_still:.4} at rest, {single:.4} at 0.4 Å/s"
+    );
+    assert!(drifting <= 1.2 * still, "{drifting} > 1.2 × {still}");
+    assert!(single >= 5.0 * drifting, "{single} < 5 × {drifting}");
+}

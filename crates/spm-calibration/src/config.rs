@@ -600,9 +600,10 @@ impl PlanConfig {
         Ok(())
     }
 
-    /// A small HOPG plan: a 3×3 lateral net (step 8000 counts in a 16-bit field with
-    /// margin 8000), one Z level, 2 skipping cycles, skipping variant of Fig. 3a, nominal
-    /// sensitivity 0.004 nm/count. Equals `configs/plan-hopg-small.toml`.
+    /// A small HOPG plan for a 16-bit scanner of about 0.02 nm/count (the simulator's
+    /// `room_temperature_tube` and `ideal` scenarios): a 3×3 lateral net (step 20000 counts,
+    /// margin 8000), one Z level, 2 kept skipping cycles per vector, the skipping variant of
+    /// Fig. 3a. Equals `configs/plan-hopg-small.toml`.
     pub fn hopg_small_net() -> Self {
         Self {
             scanner_id: "sim-hopg".into(),
@@ -611,9 +612,9 @@ impl PlanConfig {
                 lattice_constant_nm: 0.2461,
                 lcs_angle_deg: 60.0,
                 feature: FeaturePolarity::Hills,
-                nominal_nm_per_count: 0.004,
+                nominal_nm_per_count: 0.02,
                 length_tolerance_fraction: 0.3,
-                angle_tolerance_deg: 12.0,
+                angle_tolerance_deg: 15.0,
                 step_height_nm: None,
             },
             net: NetConfig {
@@ -628,9 +629,9 @@ impl PlanConfig {
             },
             pause: PauseLaw {
                 base_s: 0.5,
-                per_count_s: 1e-4,
+                per_count_s: 5e-4,
                 per_coarse_step_s: 0.0,
-                max_s: 10.0,
+                max_s: 30.0,
             },
             motion: MotionConfig {
                 pixel_dwell_s: 1e-4,
@@ -638,16 +639,16 @@ impl PlanConfig {
                 settle_s: 0.01,
             },
             attach: AttachConfig {
-                first_size_counts: 160.0,
+                first_size_counts: 36.0,
                 first_pixels: 24,
-                segment_size_counts: 50.0,
+                segment_size_counts: 12.0,
                 segment_pixels: 12,
-                max_attachments: 8,
+                max_attachments: 40,
                 skip: false,
             },
             aperture: ApertureConfig {
-                size_counts: 220.0,
-                pixels: 40,
+                size_counts: 50.0,
+                pixels: 48,
             },
             skipping: SkippingConfig {
                 cycles: 2,
@@ -655,8 +656,8 @@ impl PlanConfig {
                 max_restarts: 2,
             },
             drift: DriftConfig {
-                max_speed_nm_per_s: 0.05,
-                max_change_nm_per_s: 0.02,
+                max_speed_nm_per_s: 0.2,
+                max_change_nm_per_s: 0.1,
             },
             failures: FailureConfig {
                 max_attempts_per_node: 3,

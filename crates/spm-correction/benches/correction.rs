@@ -77,6 +77,51 @@ fn bench(c: &mut Criterion) {
                 });
             });
         }
+        for (name, par) in [
+            ("fused, 1 thread", Parallelism::Sequential),
+            ("fused, all threads", Parallelism::AllCores),
+        ] {
+            group.bench_with_input(BenchmarkId::new(name, n), &n, |b, _| {
+                b.iter(|| {
+                    correct_and_resample(
+                        &field,
+                        &geometry,
+                        ScanDirection::Direct,
+                        &Integration::default(),
+                        &img,
+                        None,
+                        Interpolation::Bilinear,
+                        par,
+                    )
+                    .unwrap()
+                });
+            });
+        }
+        group.bench_with_input(
+            BenchmarkId::new("fused, 1 thread, thread CPU time", n),
+            &n,
+            |b, _| {
+                b.iter_custom(|iters| {
+                    let t0 = thread_cpu_ns();
+                    for _ in 0..iters {
+                        std::hint::black_box(
+                            correct_and_resample(
+                                &field,
+                                &geometry,
+                                ScanDirection::Direct,
+                                &Integration::default(),
+                                &img,
+                                None,
+                                Interpolation::Bilinear,
+                                Parallelism::Sequential,
+                            )
+                            .unwrap(),
+                        );
+                    }
+                    std::time::Duration::from_nanos(thread_cpu_ns().saturating_sub(t0))
+                });
+            },
+        );
         // Thread CPU time (immune to other load on a shared machine), fresh buffers and
         // reused buffers (Gwyddion's sample_distorted writes into an existing field).
         for reuse in [false, true] {

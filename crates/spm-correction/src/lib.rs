@@ -61,7 +61,9 @@ pub use raster::{
     CoordinateMap, Integration, RasterGeometry, YCoordinates, correct_raster,
     correct_raster_reusing,
 };
-pub use resample::{Interpolation, MAX_OUTPUT_PIXELS, OutputGrid, resample, resample_into};
+pub use resample::{
+    Interpolation, MAX_OUTPUT_PIXELS, OutputGrid, correct_and_resample, resample, resample_into,
+};
 pub use surfaces::{
     BlendedField, FittedSurface, PlaneField, PlaneSurfaces, Provenance, Route,
     SURFACES_FORMAT_VERSION, SurfaceSet,

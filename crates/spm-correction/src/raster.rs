@@ -471,6 +471,142 @@ fn line_integrals<F: CorrectionField + ?Sized>(
     Ok(())
 }
 
+/// The per-row data of a raster correction: x̄ of any line can be computed on demand
+/// ([`RasterLines::fill_row`]), so a fused correction + resampling never stores the whole map.
+pub(crate) struct RasterLines<'f, F: ?Sized> {
+    field: &'f F,
+    pub(crate) geometry: RasterGeometry,
+    integration: Integration,
+    anchor_column: usize,
+    /// x̄ at the anchor column of every row (anchor + line-start column integral), nm.
+    offsets_nm: Vec<f64>,
+    /// ȳ of every row, nm.
+    pub(crate) y_per_row: Vec<f64>,
+}
+
+impl<'f, F: CorrectionField + ?Sized> RasterLines<'f, F> {
+    pub(crate) fn new(
+        field: &'f F,
+        geometry: &RasterGeometry,
+        direction: ScanDirection,
+        integration: &Integration,
+    ) -> Result<Self, CorrectionError> {
+        let geometry = RasterGeometry::new(
+            geometry.origin,
+            geometry.pixel_step,
+            geometry.columns,
+            geometry.rows,
+        )?;
+        let h = geometry.pixel_step.value();
+        if matches!(integration, Integration::Sums) && h.fract() != 0.0 {
+            return Err(CorrectionError::NonIntegerStep {
+                pixel_step_counts: h,
+            });
+        }
+        let (nx, ny) = (geometry.columns, geometry.rows);
+        let far = geometry.far_corner();
+        // Direct-image column integrals at x₀ from row 0.
+        let x0 = geometry.origin.x.value();
+        let d_yx = column_integrals(field, &geometry, integration, x0, 0, Column::Kyx)?;
+        let d_yy = column_integrals(field, &geometry, integration, x0, 0, Column::Kyy)?;
+        let (col_yx, col_yy, anchor_column, anchor_x, anchor_y) = match direction {
+            ScanDirection::Direct => (d_yx, d_yy, 0, 0.0, 0.0),
+            ScanDirection::Counter => {
+                // The far corner's direct-image value anchors the counter path.
+                let mut top = vec![0.0; nx];
+                line_integrals(
+                    field,
+                    &geometry,
+                    integration,
+                    far.y.value(),
+                    0,
+                    d_yx[ny - 1],
+                    &mut top,
+                )?;
+                let anchor_x = top[nx - 1];
+                let anchor_y = d_yy[ny - 1];
+                let c_yx = column_integrals(
+                    field,
+                    &geometry,
+                    integration,
+                    far.x.value(),
+                    ny - 1,
+                    Column::Kyx,
+                )?;
+                let c_yy = column_integrals(
+                    field,
+                    &geometry,
+                    integration,
+                    far.x.value(),
+                    ny - 1,
+                    Column::Kyy,
+                )?;
+                (c_yx, c_yy, nx - 1, anchor_x, anchor_y)
+            }
+        };
+        crate::error::check_finite("line-start column integral", &col_yx)?;
+        crate::error::check_finite("line-start column integral", &col_yy)?;
+        let y_per_row: Vec<f64> = col_yy.iter().map(|v| anchor_y + v).collect();
+        crate::error::check_finite("y_nm", &y_per_row)?;
+        let offsets_nm = col_yx.iter().map(|v| anchor_x + v).collect();
+        Ok(Self {
+            field,
+            geometry,
+            integration: integration.clone(),
+            anchor_column,
+            offsets_nm,
+            y_per_row,
+        })
+    }
+
+    /// x̄ of every pixel of row `j` into `out` (length `columns`), checked finite.
+    pub(crate) fn fill_row(&self, j: usize, out: &mut [f64]) -> Result<(), CorrectionError> {
+        let y = self.geometry.y_counts(j as f64);
+        line_integrals(
+            self.field,
+            &self.geometry,
+            &self.integration,
+            y,
+            self.anchor_column,
+            self.offsets_nm[j],
+            out,
+        )?;
+        crate::error::check_finite("x_nm", out)
+    }
+
+    /// (x̄ of column 0, x̄ of the last column) of every row: the line integral over the whole
+    /// line, O(rows) (a two-column raster with the same ends).
+    pub(crate) fn edges(&self) -> Result<Vec<(f64, f64)>, CorrectionError> {
+        let g = &self.geometry;
+        let nx = g.columns;
+        if nx == 1 {
+            return Ok(self.offsets_nm.iter().map(|&v| (v, v)).collect());
+        }
+        let wide = RasterGeometry::new(
+            g.origin,
+            Counts(g.pixel_step.value() * (nx - 1) as f64),
+            2,
+            g.rows,
+        )?;
+        let anchor = if self.anchor_column == 0 { 0 } else { 1 };
+        let mut pair = [0.0; 2];
+        let mut out = Vec::with_capacity(g.rows);
+        for j in 0..g.rows {
+            line_integrals(
+                self.field,
+                &wide,
+                &self.integration,
+                g.y_counts(j as f64),
+                anchor,
+                self.offsets_nm[j],
+                &mut pair,
+            )?;
+            out.push((pair[0], pair[1]));
+        }
+        Ok(out)
+    }
+}
+
 /// Corrected coordinates of every pixel of a direct or counter raster, in the common frame
 /// described in the [module documentation](self) (nm from the corrected origin corner).
 ///
@@ -509,63 +645,8 @@ pub fn correct_raster_reusing<F: CorrectionField + ?Sized>(
     parallelism: Parallelism,
     buffer: Vec<f64>,
 ) -> Result<CoordinateMap, CorrectionError> {
-    let geometry = RasterGeometry::new(
-        geometry.origin,
-        geometry.pixel_step,
-        geometry.columns,
-        geometry.rows,
-    )?;
-    let h = geometry.pixel_step.value();
-    if matches!(integration, Integration::Sums) && h.fract() != 0.0 {
-        return Err(CorrectionError::NonIntegerStep {
-            pixel_step_counts: h,
-        });
-    }
-    let (nx, ny) = (geometry.columns, geometry.rows);
-    let far = geometry.far_corner();
-    // Direct-image column integrals at x₀ from row 0.
-    let x0 = geometry.origin.x.value();
-    let d_yx = column_integrals(field, &geometry, integration, x0, 0, Column::Kyx)?;
-    let d_yy = column_integrals(field, &geometry, integration, x0, 0, Column::Kyy)?;
-    let (col_yx, col_yy, anchor_column, anchor_x, anchor_y) = match direction {
-        ScanDirection::Direct => (d_yx, d_yy, 0, 0.0, 0.0),
-        ScanDirection::Counter => {
-            // The far corner's direct-image value anchors the counter path.
-            let mut top = vec![0.0; nx];
-            line_integrals(
-                field,
-                &geometry,
-                integration,
-                far.y.value(),
-                0,
-                d_yx[ny - 1],
-                &mut top,
-            )?;
-            let anchor_x = top[nx - 1];
-            let anchor_y = d_yy[ny - 1];
-            let c_yx = column_integrals(
-                field,
-                &geometry,
-                integration,
-                far.x.value(),
-                ny - 1,
-                Column::Kyx,
-            )?;
-            let c_yy = column_integrals(
-                field,
-                &geometry,
-                integration,
-                far.x.value(),
-                ny - 1,
-                Column::Kyy,
-            )?;
-            (c_yx, c_yy, nx - 1, anchor_x, anchor_y)
-        }
-    };
-    crate::error::check_finite("line-start column integral", &col_yx)?;
-    crate::error::check_finite("line-start column integral", &col_yy)?;
-    let y_per_row: Vec<f64> = col_yy.iter().map(|v| anchor_y + v).collect();
-    crate::error::check_finite("y_nm", &y_per_row)?;
+    let lines = RasterLines::new(field, geometry, direction, integration)?;
+    let (nx, ny) = (lines.geometry.columns, lines.geometry.rows);
     let n = nx
         .checked_mul(ny)
         .ok_or(CorrectionError::Empty("raster size overflows"))?;
@@ -574,11 +655,7 @@ pub fn correct_raster_reusing<F: CorrectionField + ?Sized>(
     x_nm.resize(n, 0.0);
     let failure = std::sync::Mutex::new(None::<CorrectionError>);
     for_each_row(parallelism, &mut x_nm, nx, |j, row| {
-        let y = geometry.y_counts(j as f64);
-        let offset = anchor_x + col_yx[j];
-        let result = line_integrals(field, &geometry, integration, y, anchor_column, offset, row)
-            .and_then(|()| crate::error::check_finite("x_nm", row));
-        if let Err(e) = result
+        if let Err(e) = lines.fill_row(j, row)
             && let Ok(mut slot) = failure.lock()
         {
             *slot = Some(e);
@@ -592,6 +669,6 @@ pub fn correct_raster_reusing<F: CorrectionField + ?Sized>(
         columns: nx,
         rows: ny,
         x_nm,
-        y_nm: YCoordinates::PerRow(y_per_row),
+        y_nm: YCoordinates::PerRow(lines.y_per_row),
     })
 }

@@ -21,8 +21,10 @@
 use spm_hal::{Nanometres, NmPoint};
 
 use crate::CorrectionError;
+use crate::field::CorrectionField;
 use crate::parallel::{Parallelism, for_each_row};
-use crate::raster::{CoordinateMap, YCoordinates};
+use crate::raster::{CoordinateMap, Integration, RasterGeometry, RasterLines, YCoordinates};
+use spm_hal::ScanDirection;
 
 /// Largest output grid accepted (2²⁸ pixels = 2 GiB of f64).
 pub const MAX_OUTPUT_PIXELS: usize = 1 << 28;
@@ -105,12 +107,21 @@ impl OutputGrid {
         map: &CoordinateMap,
         step_nm: Option<Nanometres>,
     ) -> Result<Self, CorrectionError> {
-        let (x0, x1, y0, y1) = map.bounds_nm_fast();
+        Self::from_bounds(map.bounds_nm_fast(), step_nm, map.columns(), map.rows())
+    }
+
+    /// The grid covering the box (min x, max x, min y, max y) nm of a `columns` × `rows` map.
+    fn from_bounds(
+        (x0, x1, y0, y1): (f64, f64, f64, f64),
+        step_nm: Option<Nanometres>,
+        columns: usize,
+        rows: usize,
+    ) -> Result<Self, CorrectionError> {
         let step = match step_nm {
             Some(s) => s.value(),
             None => {
-                let sx = (map.columns() > 1).then(|| (x1 - x0) / (map.columns() - 1) as f64);
-                let sy = (map.rows() > 1).then(|| (y1 - y0) / (map.rows() - 1) as f64);
+                let sx = (columns > 1).then(|| (x1 - x0) / (columns - 1) as f64);
+                let sy = (rows > 1).then(|| (y1 - y0) / (rows - 1) as f64);
                 match (sx, sy) {
                     (Some(a), Some(b)) => a.min(b),
                     (Some(a), None) | (None, Some(a)) => a,
@@ -255,24 +266,7 @@ pub fn resample_into(
     out: &mut [f64],
 ) -> Result<(), CorrectionError> {
     let (nx, ny) = (map.columns(), map.rows());
-    if image.len() != nx * ny {
-        return Err(CorrectionError::SizeMismatch {
-            what: "image",
-            expected: nx * ny,
-            got: image.len(),
-        });
-    }
-    if nx < 2 || ny < 2 {
-        return Err(CorrectionError::Empty(
-            "resampling needs at least two columns and two rows",
-        ));
-    }
-    if let Some(index) = image.iter().position(|v| v.is_infinite()) {
-        return Err(CorrectionError::NonFinite {
-            what: "image",
-            index,
-        });
-    }
+    check_image(image, nx, ny)?;
     let grid = OutputGrid::new(grid.origin_nm, grid.step_nm, grid.columns, grid.rows)?;
     if out.len() != grid.columns * grid.rows {
         return Err(CorrectionError::SizeMismatch {
@@ -381,6 +375,181 @@ fn walk_row(
     Ok(())
 }
 
+/// One output row from the source rows j, j + 1 (x̄ lines `a`, `b`, blend `f`).
+#[inline]
+fn emit_row(
+    source: &Source<'_>,
+    a: &[f64],
+    b: &[f64],
+    j: usize,
+    f: f64,
+    grid: &OutputGrid,
+    out_row: &mut [f64],
+) -> Result<(), ()> {
+    let nx = source.columns;
+    match source.interpolation {
+        Interpolation::Bilinear => {
+            // Specialised kernel: the two source rows are fixed for the whole output row.
+            let r0 = &source.image[j * nx..(j + 1) * nx];
+            let r1 = &source.image[(j + 1) * nx..(j + 2) * nx];
+            walk_row(a, b, f, grid, out_row, |i, t| {
+                let (p0, p1) = (r0[i], r0[i + 1]);
+                let (q0, q1) = (r1[i], r1[i + 1]);
+                let lo = p0 + (p1 - p0) * t;
+                let hi = q0 + (q1 - q0) * t;
+                lo + (hi - lo) * f
+            })
+        }
+        Interpolation::CatmullRom => walk_row(a, b, f, grid, out_row, |i, t| {
+            source.sample(i as f64 + t, j, f)
+        }),
+    }
+}
+
+/// Output rows per work item of [`correct_and_resample`] (each caches two source lines).
+const FUSED_CHUNK_ROWS: usize = 32;
+
+/// Fused raster correction and resampling: the corrected coordinates of each source line are
+/// computed when an output row first needs them (two lines cached per work item) instead of
+/// being stored for the whole image. Same result as [`crate::correct_raster`] followed by
+/// [`OutputGrid::covering`] and [`resample`], with two image-sized buffers (input and output)
+/// instead of three and a third of the memory traffic.
+///
+/// Returns the output grid (covering the corrected image at `step_nm`, by default the smaller
+/// mean pixel spacing) and the resampled image.
+///
+/// # Errors
+/// As [`crate::correct_raster`] and [`resample`].
+#[allow(clippy::too_many_arguments)]
+pub fn correct_and_resample<F: CorrectionField + ?Sized>(
+    field: &F,
+    geometry: &RasterGeometry,
+    direction: ScanDirection,
+    integration: &Integration,
+    image: &[f64],
+    step_nm: Option<Nanometres>,
+    interpolation: Interpolation,
+    parallelism: Parallelism,
+) -> Result<(OutputGrid, Vec<f64>), CorrectionError> {
+    let lines = RasterLines::new(field, geometry, direction, integration)?;
+    let (nx, ny) = (lines.geometry.columns, lines.geometry.rows);
+    check_image(image, nx, ny)?;
+    let edges = lines.edges()?;
+    let (x0, x1) = edges
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &(a, b)| {
+            (lo.min(a).min(b), hi.max(a).max(b))
+        });
+    let y_rows = &lines.y_per_row;
+    let (y0, y1) = y_rows
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &t| {
+            (lo.min(t), hi.max(t))
+        });
+    let grid = OutputGrid::from_bounds((x0, x1, y0, y1), step_nm, nx, ny)?;
+    let increasing = check_rows_monotone(y_rows)?;
+    let source = Source {
+        image,
+        columns: nx,
+        rows: ny,
+        interpolation,
+    };
+    let mut out = vec![0.0; grid.columns * grid.rows];
+    let folded = std::sync::atomic::AtomicUsize::new(usize::MAX);
+    let failure = std::sync::Mutex::new(None::<CorrectionError>);
+    for_each_row(
+        parallelism,
+        &mut out,
+        grid.columns * FUSED_CHUNK_ROWS,
+        |chunk_index, chunk| {
+            let mut lines_cache = [(usize::MAX, vec![0.0; nx]), (usize::MAX, vec![0.0; nx])];
+            for (k, out_row) in chunk.chunks_mut(grid.columns).enumerate() {
+                out_row.fill(f64::NAN);
+                let r = chunk_index * FUSED_CHUNK_ROWS + k;
+                let Some((j, f)) = row_fraction(y_rows, increasing, grid.y_nm(r)) else {
+                    continue;
+                };
+                if lines_cache[0].0 != j {
+                    if lines_cache[1].0 == j {
+                        lines_cache.swap(0, 1);
+                    } else {
+                        lines_cache[0].0 = usize::MAX;
+                        if let Err(e) = lines.fill_row(j, &mut lines_cache[0].1) {
+                            if let Ok(mut slot) = failure.lock() {
+                                *slot = Some(e);
+                            }
+                            return;
+                        }
+                        lines_cache[0].0 = j;
+                    }
+                }
+                if lines_cache[1].0 != j + 1 {
+                    lines_cache[1].0 = usize::MAX;
+                    if let Err(e) = lines.fill_row(j + 1, &mut lines_cache[1].1) {
+                        if let Ok(mut slot) = failure.lock() {
+                            *slot = Some(e);
+                        }
+                        return;
+                    }
+                    lines_cache[1].0 = j + 1;
+                }
+                let (a, b) = (&lines_cache[0].1, &lines_cache[1].1);
+                if emit_row(&source, a, b, j, f, &grid, out_row).is_err() {
+                    folded.fetch_min(j, std::sync::atomic::Ordering::Relaxed);
+                }
+            }
+        },
+    )?;
+    if let Some(e) = failure.into_inner().ok().flatten() {
+        return Err(e);
+    }
+    let j = folded.into_inner();
+    if j != usize::MAX {
+        return Err(CorrectionError::NotMonotone {
+            axis: "x",
+            index: j,
+        });
+    }
+    Ok((grid, out))
+}
+
+/// Checks the image against the map size and for infinities (NaN = missing data is allowed).
+fn check_image(image: &[f64], nx: usize, ny: usize) -> Result<(), CorrectionError> {
+    if image.len() != nx * ny {
+        return Err(CorrectionError::SizeMismatch {
+            what: "image",
+            expected: nx * ny,
+            got: image.len(),
+        });
+    }
+    if nx < 2 || ny < 2 {
+        return Err(CorrectionError::Empty(
+            "resampling needs at least two columns and two rows",
+        ));
+    }
+    if let Some(index) = image.iter().position(|v| v.is_infinite()) {
+        return Err(CorrectionError::NonFinite {
+            what: "image",
+            index,
+        });
+    }
+    Ok(())
+}
+
+/// Strict monotonicity of ȳ over the rows; returns whether it increases.
+fn check_rows_monotone(y_rows: &[f64]) -> Result<bool, CorrectionError> {
+    let increasing = y_rows.len() > 1 && y_rows[1] > y_rows[0];
+    for (k, w) in y_rows.windows(2).enumerate() {
+        if !((increasing && w[1] > w[0]) || (!increasing && w[1] < w[0])) {
+            return Err(CorrectionError::NotMonotone {
+                axis: "y",
+                index: k,
+            });
+        }
+    }
+    Ok(increasing)
+}
+
 fn resample_rows(
     source: &Source<'_>,
     x_nm: &[f64],
@@ -390,15 +559,7 @@ fn resample_rows(
     out: &mut [f64],
 ) -> Result<(), CorrectionError> {
     let nx = source.columns;
-    let increasing = y_rows[1] > y_rows[0];
-    for (k, w) in y_rows.windows(2).enumerate() {
-        if !((increasing && w[1] > w[0]) || (!increasing && w[1] < w[0])) {
-            return Err(CorrectionError::NotMonotone {
-                axis: "y",
-                index: k,
-            });
-        }
-    }
+    let increasing = check_rows_monotone(y_rows)?;
     let folded = std::sync::atomic::AtomicUsize::new(usize::MAX);
     let mark_folded = |j: usize| {
         folded.fetch_min(j, std::sync::atomic::Ordering::Relaxed);
@@ -409,23 +570,7 @@ fn resample_rows(
         };
         let a = &x_nm[j * nx..(j + 1) * nx];
         let b = &x_nm[(j + 1) * nx..(j + 2) * nx];
-        let result = match source.interpolation {
-            Interpolation::Bilinear => {
-                // Specialised kernel: the two source rows are fixed for the whole output row.
-                let r0 = &source.image[j * nx..(j + 1) * nx];
-                let r1 = &source.image[(j + 1) * nx..(j + 2) * nx];
-                walk_row(a, b, f, grid, out_row, |i, t| {
-                    let (p0, p1) = (r0[i], r0[i + 1]);
-                    let (q0, q1) = (r1[i], r1[i + 1]);
-                    let lo = p0 + (p1 - p0) * t;
-                    let hi = q0 + (q1 - q0) * t;
-                    lo + (hi - lo) * f
-                })
-            }
-            Interpolation::CatmullRom => walk_row(a, b, f, grid, out_row, |i, t| {
-                source.sample(i as f64 + t, j, f)
-            }),
-        };
+        let result = emit_row(source, a, b, j, f, grid, out_row);
         if result.is_err() {
             mark_folded(j);
         }

@@ -322,3 +322,92 @@ fn an_interrupted_run_resumes_with_exactly_the_missing_nodes() {
     drop(cdb);
     let _ = std::fs::remove_file(&path);
 }
+
+#[test]
+fn every_variant_of_section_6_calibrates_the_room_temperature_scanner() {
+    use spm_calibration::{AttachTarget, MeasurementMethod, NeighbourSet};
+    let variants: [(&str, fn(&mut PlanConfig)); 5] = [
+        ("B-C redundancy", |p| p.variant.bc_redundancy = true),
+        ("all neighbours", |p| {
+            p.variant.neighbours = NeighbourSet::AllInAperture;
+        }),
+        ("LCS centre (Fig. 3b)", |p| {
+            p.variant.attach_to = AttachTarget::LcsCentre;
+        }),
+        ("counter-scan", |p| {
+            p.variant.measurement = MeasurementMethod::CounterScan;
+        }),
+        ("no attachment", |p| p.attach.skip = true),
+    ];
+    for (name, edit) in variants {
+        let mut plan = PlanConfig::hopg_small_net();
+        edit(&mut plan);
+        let mut probe = Probe::new(SimConfig::room_temperature_tube().without_random_faults());
+        let mut store = MemoryStore::default();
+        let report = Calibrator::new(&mut probe, &mut store, &mut NoObserver, plan)
+            .unwrap()
+            .run(&options(name))
+            .unwrap();
+        let errors = errors(&probe, &store);
+        let rms = |k: usize| {
+            (errors.iter().map(|e| e[k] * e[k]).sum::<f64>() / errors.len().max(1) as f64).sqrt()
+        };
+        println!(
+            "{name}: done {} given up {:?}, rms error kx {:.4} ky {:.4} alpha {:.4} rad, cycles {:?}, instrument {:.1} s",
+            report.nodes_done,
+            report
+                .given_up
+                .iter()
+                .map(|g| g.reason.to_string())
+                .collect::<Vec<_>>(),
+            rms(0),
+            rms(1),
+            rms(2),
+            report.cycles,
+            report.instrument_time_s
+        );
+        assert!(report.nodes_done >= 7, "{name}: {report:?}");
+        // Counter-scanning the aperture is the fast, less precise variant (paper §6).
+        let limit = if name == "counter-scan" { 0.05 } else { 0.03 };
+        assert!(rms(0) < limit && rms(1) < limit, "{name}");
+    }
+}
+
+#[test]
+fn vertical_planes_drive_the_coarse_stage() {
+    use spm_calibration::{NetKind, ZLevel};
+    let mut plan = PlanConfig::hopg_small_net();
+    plan.net.kind = NetKind::VerticalPlanes;
+    plan.net.y_planes_counts = Some(vec![0]);
+    // Coarse step −1 (away from the sample) lengthens the Z extension by 50 nm.
+    plan.net.z_levels = vec![
+        ZLevel {
+            nominal_z_counts: 10000,
+            coarse_steps: Some(0),
+        },
+        ZLevel {
+            nominal_z_counts: 22500,
+            coarse_steps: Some(-1),
+        },
+    ];
+    plan.pause.per_coarse_step_s = 5.0;
+    let mut sim = simulator(SimConfig::room_temperature_tube().without_random_faults());
+    let mut store = MemoryStore::default();
+    let report = Calibrator::new(&mut sim, &mut store, &mut NoObserver, plan)
+        .unwrap()
+        .run(&options("vertical"))
+        .unwrap();
+    assert_eq!(report.visits_planned, 6);
+    assert_eq!(report.nodes_done, 6, "{report:?}");
+    // The measured Z follows the coarse level.
+    for r in &store.records {
+        let expected = r.node_z_counts as f64;
+        println!(
+            "node ({}, {}) z {} measured z {:.0} kx {:.5}",
+            r.node_x_counts, r.node_y_counts, r.node_z_counts, r.lcs_z_counts, r.kx_nm_per_count
+        );
+        assert!((r.lcs_z_counts - expected).abs() < 2000.0, "{r:?}");
+    }
+    // The last visit (x = 19999) ends at the second level.
+    assert_eq!(sim.coarse_z().unwrap().position_steps().unwrap(), -1);
+}

@@ -4,7 +4,10 @@
 //! bad input, with a message on stderr naming the file, line or field. A panic
 //! (101) is always a bug.
 
+mod cdb_cmd;
+mod dates;
 mod error;
+mod fit_cmd;
 mod info;
 
 use clap::{Parser, Subcommand, ValueEnum};
@@ -189,14 +192,37 @@ fn install_subscriber(log: Option<&std::path::Path>) -> Option<()> {
 fn run(command: Command) -> Result<(), CliError> {
     match command {
         Command::Info { file, json } => info::run(&file, json),
-        Command::Calibrate { .. } | Command::Fit { .. } | Command::Correct { .. } => Err(
-            CliError::RunFailed("this subcommand arrives with the calibration issue".to_owned()),
+        Command::Fit {
+            cdb,
+            scanner,
+            since,
+            until,
+            out,
+        } => fit_cmd::run(
+            &cdb,
+            scanner.as_deref(),
+            since.as_deref(),
+            until.as_deref(),
+            &out,
         ),
+        Command::Cdb { command } => match command {
+            CdbCommand::Check { path } => cdb_cmd::check(&path),
+            CdbCommand::Export { path, csv } => cdb_cmd::export(&path, &csv),
+            CdbCommand::Trend { path } => cdb_cmd::trend(&path),
+        },
+        Command::Calibrate { .. } | Command::Correct { .. } => Err(CliError::RunFailed(
+            "this subcommand arrives with the calibration issue".to_owned(),
+        )),
         Command::Diagnose { .. } => Err(CliError::RunFailed(
             "this subcommand arrives with the model-check issue".to_owned(),
         )),
-        Command::Cdb { .. } => Err(CliError::RunFailed(
-            "this subcommand arrives with the calibration issue".to_owned(),
-        )),
     }
+}
+
+/// Writes `bytes` to a temporary file beside `path`, then renames it into
+/// place: readers never see a half-written file.
+fn write_atomically(path: &std::path::Path, bytes: &[u8]) -> Result<(), CliError> {
+    let partial = path.with_extension("partial");
+    std::fs::write(&partial, bytes).map_err(|e| CliError::io(&partial, e))?;
+    std::fs::rename(&partial, path).map_err(|e| CliError::io(path, e))
 }

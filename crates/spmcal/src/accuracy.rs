@@ -1,0 +1,286 @@
+//! Calibration accuracy against the simulator's oracle (DESIGN §11).
+//!
+//! Two figures per correction method, both relative to the *true* local
+//! calibration coefficients of the simulated scanner ([`spm_sim::Oracle::true_lcc`],
+//! the small-signal LCCs at the reference state):
+//!
+//! - **Residual distortion** over the calibrated region: a raster covering the
+//!   region is corrected (eq. 9) once with the method's surfaces and once with
+//!   the oracle's true LCC field; the difference of the two coordinate maps,
+//!   after removing the best rigid motion (rotation and translation are
+//!   unobservable), is the residual distortion. RMS and max in pm.
+//! - **Lattice-constant error on corrected images anywhere in the field**: at
+//!   every point of an evaluation grid, a small image (the size of a
+//!   calibration aperture) is corrected with the method and with the truth; the
+//!   local map between the two (finite differences at the image centre) is
+//!   applied to the three lattice vectors of the standard; the relative change
+//!   of their mean length is the lattice-constant error that image shows. This
+//!   is exact (no detection noise), so it measures the calibration, not the
+//!   recognition.
+//!
+//! Both compare like with like: the same raster trajectory, the same equations;
+//! only the coefficient field differs.
+
+use serde::Serialize;
+use spm_correction::{
+    CoordinateMap, CorrectionError, CorrectionField, FnField, FormCoefficients, Integration,
+    Parallelism, PlaneSurfaces, RasterGeometry, Route, correct_raster,
+};
+use spm_hal::{CountPoint, Counts, ScanDirection};
+use spm_sim::Oracle;
+
+/// The region and sampling of the evaluation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EvaluationGrid {
+    /// Smallest x of the calibrated region, counts.
+    pub x_min_counts: f64,
+    /// Largest x, counts.
+    pub x_max_counts: f64,
+    /// Smallest y, counts.
+    pub y_min_counts: f64,
+    /// Largest y, counts.
+    pub y_max_counts: f64,
+    /// Z position of the plane, counts.
+    pub z_counts: f64,
+    /// Pixels per side of the field-wide raster (≥ 2).
+    pub field_pixels: usize,
+    /// Image places per side for the lattice-constant figure (≥ 1).
+    pub image_places: usize,
+    /// Side of each small image, counts.
+    pub image_side_counts: f64,
+    /// Lattice constant of the standard, nm.
+    pub lattice_constant_nm: f64,
+}
+
+/// Accuracy of one method (report.json's `M`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Accuracy {
+    /// RMS residual distortion over the region, pm.
+    pub rms_pm: f64,
+    /// Max residual distortion over the region, pm.
+    pub max_pm: f64,
+    /// RMS residual distortion as % of the lattice constant.
+    pub rms_pct_of_lattice: f64,
+    /// Mean |lattice-constant error| over the image places, %.
+    pub mean_lattice_error_pct: f64,
+    /// Max |lattice-constant error| over the image places, %.
+    pub max_lattice_error_pct: f64,
+}
+
+/// The oracle's true LCC field as a correction field.
+fn true_field<'a>(
+    oracle: &'a Oracle<'a>,
+    z_counts: f64,
+) -> FnField<impl Fn(f64, f64) -> FormCoefficients + Sync + 'a> {
+    FnField(move |x: f64, y: f64| {
+        let lcc = oracle.true_lcc(CountPoint::from_counts(x, y), Counts(z_counts));
+        FormCoefficients::from_lcc(lcc.kx.value(), lcc.ky.value(), lcc.alpha.value())
+    })
+}
+
+fn raster(
+    field: &(impl CorrectionField + ?Sized),
+    geometry: &RasterGeometry,
+) -> Result<CoordinateMap, CorrectionError> {
+    correct_raster(
+        field,
+        geometry,
+        ScanDirection::Direct,
+        &Integration::default(),
+        Parallelism::Sequential,
+    )
+}
+
+/// Evaluates one method's surfaces against the oracle.
+pub fn evaluate(
+    oracle: &Oracle<'_>,
+    plane: &PlaneSurfaces,
+    grid: &EvaluationGrid,
+) -> Result<Accuracy, CorrectionError> {
+    let method = plane.field(Route::Exact);
+    let truth = true_field(oracle, grid.z_counts);
+
+    // Field-wide residual distortion.
+    let n = grid.field_pixels.max(2);
+    let step = ((grid.x_max_counts - grid.x_min_counts).max(grid.y_max_counts - grid.y_min_counts))
+        / (n - 1) as f64;
+    let geometry = RasterGeometry::new(
+        CountPoint::from_counts(grid.x_min_counts, grid.y_min_counts),
+        Counts(step),
+        n,
+        n,
+    )?;
+    let measured = raster(&method, &geometry)?;
+    let expected = raster(&truth, &geometry)?;
+    let mut a = Vec::with_capacity(n * n);
+    let mut b = Vec::with_capacity(n * n);
+    for row in 0..n {
+        for column in 0..n {
+            if let (Some(p), Some(q)) = (measured.point(column, row), expected.point(column, row)) {
+                a.push([p.x.value(), p.y.value()]);
+                b.push([q.x.value(), q.y.value()]);
+            }
+        }
+    }
+    let residuals = rigid_residuals(&a, &b);
+    let count = residuals.len().max(1) as f64;
+    let rms_nm = (residuals.iter().map(|r| r * r).sum::<f64>() / count).sqrt();
+    let max_nm = residuals.iter().fold(0.0_f64, |m, r| m.max(*r));
+
+    // Lattice-constant error on small corrected images across the field.
+    let places = grid.image_places.max(1);
+    let side = grid.image_side_counts;
+    let image_pixels = 9usize;
+    let image_step = side / (image_pixels - 1) as f64;
+    let mut errors = Vec::with_capacity(places * places);
+    for j in 0..places {
+        for i in 0..places {
+            let fraction = |k: usize| {
+                if places == 1 {
+                    0.5
+                } else {
+                    k as f64 / (places - 1) as f64
+                }
+            };
+            let cx = grid.x_min_counts
+                + side / 2.0
+                + fraction(i) * (grid.x_max_counts - grid.x_min_counts - side).max(0.0);
+            let cy = grid.y_min_counts
+                + side / 2.0
+                + fraction(j) * (grid.y_max_counts - grid.y_min_counts - side).max(0.0);
+            let geometry = RasterGeometry::new(
+                CountPoint::from_counts(cx - side / 2.0, cy - side / 2.0),
+                Counts(image_step),
+                image_pixels,
+                image_pixels,
+            )?;
+            let c_method =
+                local_jacobian(&raster(&method, &geometry)?, image_pixels / 2, image_step);
+            let c_true = local_jacobian(&raster(&truth, &geometry)?, image_pixels / 2, image_step);
+            if let Some(error) = lattice_error(c_method, c_true) {
+                errors.push(error * 100.0);
+            }
+        }
+    }
+    let mean_abs = errors.iter().map(|e| e.abs()).sum::<f64>() / errors.len().max(1) as f64;
+    let max_abs = errors.iter().fold(0.0_f64, |m, e| m.max(e.abs()));
+    Ok(Accuracy {
+        rms_pm: rms_nm * 1e3,
+        max_pm: max_nm * 1e3,
+        rms_pct_of_lattice: rms_nm / grid.lattice_constant_nm * 100.0,
+        mean_lattice_error_pct: mean_abs,
+        max_lattice_error_pct: max_abs,
+    })
+}
+
+/// ∂(x̄, ȳ)/∂(x, y) at pixel (c, c) by central differences, nm/count.
+fn local_jacobian(map: &CoordinateMap, c: usize, step_counts: f64) -> [[f64; 2]; 2] {
+    let p = |column: usize, row: usize| {
+        map.point(column, row)
+            .map_or([f64::NAN; 2], |q| [q.x.value(), q.y.value()])
+    };
+    let (xp, xm, yp, ym) = (p(c + 1, c), p(c - 1, c), p(c, c + 1), p(c, c - 1));
+    let h = 2.0 * step_counts;
+    [
+        [(xp[0] - xm[0]) / h, (yp[0] - ym[0]) / h],
+        [(xp[1] - xm[1]) / h, (yp[1] - ym[1]) / h],
+    ]
+}
+
+/// Relative lattice-constant error of a corrected image: the true lattice
+/// vectors (in the true corrected frame) mapped through C_method·C_true⁻¹,
+/// mean length over the three directions of a triangular lattice, minus one.
+/// The error is invariant to the lattice orientation only on average, so the
+/// three orientations 0°, 60°, 120° and their rotations by 30° are averaged.
+fn lattice_error(c_method: [[f64; 2]; 2], c_true: [[f64; 2]; 2]) -> Option<f64> {
+    let det = c_true[0][0] * c_true[1][1] - c_true[0][1] * c_true[1][0];
+    if !(det.is_finite() && det.abs() > 0.0) {
+        return None;
+    }
+    let inv = [
+        [c_true[1][1] / det, -c_true[0][1] / det],
+        [-c_true[1][0] / det, c_true[0][0] / det],
+    ];
+    let t = [
+        [
+            c_method[0][0] * inv[0][0] + c_method[0][1] * inv[1][0],
+            c_method[0][0] * inv[0][1] + c_method[0][1] * inv[1][1],
+        ],
+        [
+            c_method[1][0] * inv[0][0] + c_method[1][1] * inv[1][0],
+            c_method[1][0] * inv[0][1] + c_method[1][1] * inv[1][1],
+        ],
+    ];
+    let mut worst: f64 = 0.0;
+    for offset_deg in [0.0_f64, 30.0] {
+        let mut sum = 0.0;
+        for k in 0..3 {
+            let angle = (offset_deg + 60.0 * k as f64).to_radians();
+            let (s, c) = angle.sin_cos();
+            let v = [t[0][0] * c + t[0][1] * s, t[1][0] * c + t[1][1] * s];
+            sum += v[0].hypot(v[1]);
+        }
+        let error = sum / 3.0 - 1.0;
+        if error.abs() > worst.abs() {
+            worst = error;
+        }
+    }
+    worst.is_finite().then_some(worst)
+}
+
+/// Distances |R·aᵢ + t − bᵢ| after the least-squares rigid motion (R, t) taking a to b.
+fn rigid_residuals(a: &[[f64; 2]], b: &[[f64; 2]]) -> Vec<f64> {
+    let n = a.len().min(b.len());
+    if n == 0 {
+        return Vec::new();
+    }
+    let mean = |v: &[[f64; 2]]| {
+        let s = v[..n]
+            .iter()
+            .fold([0.0, 0.0], |s, p| [s[0] + p[0], s[1] + p[1]]);
+        [s[0] / n as f64, s[1] / n as f64]
+    };
+    let (ma, mb) = (mean(a), mean(b));
+    // Optimal rotation angle (2-D Procrustes).
+    let (mut sxx, mut sxy) = (0.0, 0.0);
+    for i in 0..n {
+        let p = [a[i][0] - ma[0], a[i][1] - ma[1]];
+        let q = [b[i][0] - mb[0], b[i][1] - mb[1]];
+        sxx += p[0] * q[0] + p[1] * q[1];
+        sxy += p[0] * q[1] - p[1] * q[0];
+    }
+    let theta = sxy.atan2(sxx);
+    let (s, c) = theta.sin_cos();
+    (0..n)
+        .map(|i| {
+            let p = [a[i][0] - ma[0], a[i][1] - ma[1]];
+            let r = [c * p[0] - s * p[1], s * p[0] + c * p[1]];
+            (r[0] - (b[i][0] - mb[0])).hypot(r[1] - (b[i][1] - mb[1]))
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_rotated_and_shifted_copy_has_no_residual() {
+        let a: Vec<[f64; 2]> = (0..20).map(|i| [i as f64, (i * i) as f64 * 0.1]).collect();
+        let (s, c) = 0.3_f64.sin_cos();
+        let b: Vec<[f64; 2]> = a
+            .iter()
+            .map(|p| [c * p[0] - s * p[1] + 5.0, s * p[0] + c * p[1] - 2.0])
+            .collect();
+        assert!(rigid_residuals(&a, &b).iter().all(|r| *r < 1e-9));
+    }
+
+    #[test]
+    fn a_one_percent_isotropic_scale_error_is_a_one_percent_lattice_error() {
+        let truth = [[0.02, 0.001], [0.0, 0.021]];
+        let method = [[0.0202, 0.00101], [0.0, 0.02121]];
+        let error = lattice_error(method, truth).unwrap();
+        assert!((error - 0.01).abs() < 1e-9, "{error}");
+        assert_eq!(lattice_error(truth, truth), Some(0.0));
+    }
+}

@@ -1,0 +1,295 @@
+//! Regression surfaces from CDB records (eq. 2, 6, 11, 13, 14): one set of
+//! surfaces per Z plane, with the degree chosen per coefficient by BIC.
+
+use serde::Serialize;
+use spm_cdb::{CdbRead, LccColumns, RecordFilter};
+use spm_correction::{FittedSurface, PlaneSurfaces, Provenance, SurfaceSet};
+use spm_regression::{Criterion, Field, Observations, SelectionOptions, delta_max, select_degree};
+
+/// Why surfaces could not be fitted.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SurfaceFitError {
+    /// Reading the CDB failed.
+    #[error(transparent)]
+    Cdb(#[from] spm_cdb::CdbError),
+    /// The selection holds no record.
+    #[error("no record matches the selection (scanner {scanner:?}, window {since:?} … {until:?})")]
+    NoRecords {
+        /// Scanner filter.
+        scanner: Option<String>,
+        /// Lower time bound.
+        since: Option<String>,
+        /// Upper time bound.
+        until: Option<String>,
+    },
+    /// The CDB holds several scanners and none was chosen.
+    #[error("the CDB holds several scanners ({0}); choose one with --scanner")]
+    AmbiguousScanner(String),
+    /// A regression failed (too few points, ill-conditioned).
+    #[error("fitting {coefficient} in the plane z = {z_counts} counts: {source}")]
+    Regression {
+        /// Which coefficient.
+        coefficient: &'static str,
+        /// The plane.
+        z_counts: i64,
+        /// The cause.
+        source: spm_regression::RegressionError,
+    },
+    /// The assembled surfaces are invalid.
+    #[error(transparent)]
+    Correction(#[from] spm_correction::CorrectionError),
+}
+
+/// How to fit.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SurfaceFitOptions {
+    /// Highest polynomial degree tried per coefficient (eq. 6).
+    pub max_degree: u32,
+    /// Degree-selection criterion.
+    pub criterion: Criterion,
+}
+
+impl SurfaceFitOptions {
+    /// Degrees 0…`max_degree` chosen by BIC.
+    pub fn bic_up_to(max_degree: u32) -> Self {
+        Self {
+            max_degree,
+            criterion: Criterion::Bic,
+        }
+    }
+}
+
+/// Statistics of one fitted coefficient surface (report.json's `regression`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct SurfaceSummary {
+    /// Chosen degree.
+    pub degree: u32,
+    /// σ of eq. (14), the coefficient's unit.
+    pub sigma: f64,
+    /// Δmax of eq. (13) over the records' extent, reference at the field origin (0, 0).
+    pub delta_max: f64,
+}
+
+/// Summary of the first plane's surfaces.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct RegressionSummary {
+    /// K̄x^r (nm/count).
+    pub kx: SurfaceSummary,
+    /// K̄y^r (nm/count).
+    pub ky: SurfaceSummary,
+    /// α^r (rad).
+    pub alpha: SurfaceSummary,
+    /// Kz^r (nm/count), when measured.
+    pub kz: Option<SurfaceSummary>,
+}
+
+/// Surfaces and their summary.
+#[derive(Debug, Clone)]
+pub struct FittedSurfaces {
+    /// What `surfaces.json` holds.
+    pub set: SurfaceSet,
+    /// Degree, σ, Δmax of each coefficient in the plane nearest z = 0.
+    pub summary: RegressionSummary,
+}
+
+/// Selects records from the CDB and fits surfaces per Z plane.
+pub fn fit_from_cdb(
+    cdb: &dyn CdbRead,
+    scanner: Option<&str>,
+    since_unix_s: Option<f64>,
+    until_unix_s: Option<f64>,
+    options: &SurfaceFitOptions,
+) -> Result<FittedSurfaces, SurfaceFitError> {
+    let scanner_id = match scanner {
+        Some(id) => id.to_owned(),
+        None => {
+            let scanners = cdb.scanners()?;
+            match scanners.as_slice() {
+                [] => {
+                    return Err(SurfaceFitError::NoRecords {
+                        scanner: None,
+                        since: since_unix_s.map(spm_cdb::rfc3339_utc),
+                        until: until_unix_s.map(spm_cdb::rfc3339_utc),
+                    });
+                }
+                [one] => one.clone(),
+                many => return Err(SurfaceFitError::AmbiguousScanner(many.join(", "))),
+            }
+        }
+    };
+    let mut planes = Vec::new();
+    let mut summary = None;
+    let mut n_records = 0;
+    for z in cdb.z_planes(&scanner_id)? {
+        let filter = RecordFilter::scanner(&scanner_id)
+            .with_z_plane(z)
+            .with_window(since_unix_s, until_unix_s);
+        let columns = cdb.columns(&filter)?;
+        if columns.is_empty() {
+            continue;
+        }
+        n_records += columns.len();
+        let (plane, plane_summary) = fit_plane(z, &columns, options)?;
+        if summary.is_none() || z == 0 {
+            summary = Some(plane_summary);
+        }
+        planes.push(plane);
+    }
+    let Some(summary) = summary else {
+        return Err(SurfaceFitError::NoRecords {
+            scanner: Some(scanner_id),
+            since: since_unix_s.map(spm_cdb::rfc3339_utc),
+            until: until_unix_s.map(spm_cdb::rfc3339_utc),
+        });
+    };
+    let provenance = Provenance {
+        scanner_id,
+        fit_since: since_unix_s.map(spm_cdb::rfc3339_utc),
+        fit_until: until_unix_s.map(spm_cdb::rfc3339_utc),
+        n_records,
+    };
+    Ok(FittedSurfaces {
+        set: SurfaceSet::new(provenance, planes)?,
+        summary,
+    })
+}
+
+/// Fits the surfaces of one Z plane from its records.
+pub fn fit_plane(
+    z_counts: i64,
+    columns: &LccColumns,
+    options: &SurfaceFitOptions,
+) -> Result<(PlaneSurfaces, RegressionSummary), SurfaceFitError> {
+    let x = &columns.lcs_x_counts;
+    let y = &columns.lcs_y_counts;
+    let field = extent(x, y);
+    let kyx: Vec<f64> = columns
+        .ky_nm_per_count
+        .iter()
+        .zip(&columns.alpha_rad)
+        .map(|(ky, a)| ky * a.sin())
+        .collect();
+    let kyy: Vec<f64> = columns
+        .ky_nm_per_count
+        .iter()
+        .zip(&columns.alpha_rad)
+        .map(|(ky, a)| ky * a.cos())
+        .collect();
+    let one = |name: &'static str, xs: &[f64], ys: &[f64], values: &[f64]| {
+        fit_one(name, z_counts, xs, ys, values, &field, options)
+    };
+    let (kx, kx_summary) = one("kx_nm_per_count", x, y, &columns.kx_nm_per_count)?;
+    let (ky, ky_summary) = one("ky_nm_per_count", x, y, &columns.ky_nm_per_count)?;
+    let (alpha, alpha_summary) = one("alpha_rad", x, y, &columns.alpha_rad)?;
+    let (kyx_surface, _) = one("kyx_nm_per_count", x, y, &kyx)?;
+    let (kyy_surface, _) = one("kyy_nm_per_count", x, y, &kyy)?;
+    let mut kz_x = Vec::new();
+    let mut kz_y = Vec::new();
+    let mut kz_v = Vec::new();
+    for ((xi, yi), kz) in x.iter().zip(y).zip(&columns.kz_nm_per_count) {
+        if let Some(kz) = kz {
+            kz_x.push(*xi);
+            kz_y.push(*yi);
+            kz_v.push(*kz);
+        }
+    }
+    let (kz, kz_summary) = if kz_v.len() >= 2 {
+        let (surface, summary) = one("kz_nm_per_count", &kz_x, &kz_y, &kz_v)?;
+        (Some(surface), Some(summary))
+    } else {
+        (None, None)
+    };
+    let plane = PlaneSurfaces {
+        z_counts: z_counts as f64,
+        n_records: columns.len(),
+        kx_nm_per_count: kx,
+        ky_nm_per_count: ky,
+        alpha_rad: alpha,
+        kyx_nm_per_count: kyx_surface,
+        kyy_nm_per_count: kyy_surface,
+        kz_nm_per_count: kz,
+        bowl_z_counts: None,
+    };
+    Ok((
+        plane,
+        RegressionSummary {
+            kx: kx_summary,
+            ky: ky_summary,
+            alpha: alpha_summary,
+            kz: kz_summary,
+        },
+    ))
+}
+
+fn extent(x: &[f64], y: &[f64]) -> Field {
+    let fold = |v: &[f64]| {
+        v.iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &t| {
+                (lo.min(t), hi.max(t))
+            })
+    };
+    let (x_min, x_max) = fold(x);
+    let (y_min, y_max) = fold(y);
+    Field {
+        x_min,
+        x_max,
+        y_min,
+        y_max,
+    }
+}
+
+fn fit_one(
+    coefficient: &'static str,
+    z_counts: i64,
+    x: &[f64],
+    y: &[f64],
+    values: &[f64],
+    field: &Field,
+    options: &SurfaceFitOptions,
+) -> Result<(FittedSurface, SurfaceSummary), SurfaceFitError> {
+    let regression = |source| SurfaceFitError::Regression {
+        coefficient,
+        z_counts,
+        source,
+    };
+    let observations = Observations::new(x, y, values);
+    // A handful of records cannot support a high degree: cap it so that
+    // at least twice as many points as terms remain.
+    let mut max_degree = options.max_degree;
+    while max_degree > 0 && spm_regression::n_terms(max_degree) * 2 > values.len() {
+        max_degree -= 1;
+    }
+    let selection = select_degree(
+        &observations,
+        &SelectionOptions {
+            max_degree,
+            criterion: options.criterion,
+            fit: spm_regression::FitOptions::default(),
+        },
+    )
+    .map_err(regression)?;
+    let surface = selection.fit.surface;
+    let sigma = if values.len() >= 2 {
+        spm_regression::sigma(&surface, &observations).map_err(regression)?
+    } else {
+        0.0
+    };
+    let delta = if field.x_min.is_finite() && field.x_max > field.x_min && field.y_max > field.y_min
+    {
+        delta_max(&surface, field, 33, 33, (0.0, 0.0))
+            .map_err(regression)?
+            .value
+    } else {
+        0.0
+    };
+    let degree = surface.degree();
+    Ok((
+        FittedSurface::new(surface, sigma),
+        SurfaceSummary {
+            degree,
+            sigma,
+            delta_max: delta,
+        },
+    ))
+}

@@ -70,7 +70,9 @@ pub struct StandardConfig {
     pub length_tolerance_fraction: f64,
     /// Accepted deviation of the LCS angle, degrees.
     pub angle_tolerance_deg: f64,
-    /// Height of a monatomic step, nm (HOPG: 0.3354), for Kz; absent: Kz is not measured.
+    /// Height of a monatomic step, nm (HOPG: 0.3354), for Kz. The controller does not yet
+    /// locate steps by itself: Kz is computed with [`crate::solve_kz`] from step heights
+    /// measured separately, and records carry no Kz (`kz_nm_per_count = None`).
     pub step_height_nm: Option<f64>,
 }
 

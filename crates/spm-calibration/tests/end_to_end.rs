@@ -326,7 +326,8 @@ fn an_interrupted_run_resumes_with_exactly_the_missing_nodes() {
 #[test]
 fn every_variant_of_section_6_calibrates_the_room_temperature_scanner() {
     use spm_calibration::{AttachTarget, MeasurementMethod, NeighbourSet};
-    let variants: [(&str, fn(&mut PlanConfig)); 5] = [
+    type Edit = fn(&mut PlanConfig);
+    let variants: [(&str, Edit); 5] = [
         ("B-C redundancy", |p| p.variant.bc_redundancy = true),
         ("all neighbours", |p| {
             p.variant.neighbours = NeighbourSet::AllInAperture;
@@ -410,4 +411,50 @@ fn vertical_planes_drive_the_coarse_stage() {
     }
     // The last visit (x = 19999) ends at the second level.
     assert_eq!(sim.coarse_z().unwrap().position_steps().unwrap(), -1);
+}
+
+#[test]
+#[ignore = "diagnostic: where the room-temperature bias comes from"]
+fn diagnose_bias_sources() {
+    let base = SimConfig::room_temperature_tube().without_random_faults();
+    let mut no_creep = base.clone();
+    no_creep.scanner.creep.log_slope_per_decade = 0.0;
+    let mut no_drift = base.clone();
+    no_drift.drift.velocity_x_nm_per_s = 0.0;
+    no_drift.drift.velocity_y_nm_per_s = 0.0;
+    no_drift.drift.velocity_random_walk_nm_per_s_per_sqrt_s = 0.0;
+    no_drift.drift.jump_rate_per_s = 0.0;
+    let mut no_hyst = base.clone();
+    no_hyst.scanner.hysteresis_x.width_fraction = 0.0;
+    no_hyst.scanner.hysteresis_y.width_fraction = 0.0;
+    for (name, config) in [
+        ("base", base),
+        ("no creep", no_creep),
+        ("no drift", no_drift),
+        ("no hysteresis", no_hyst),
+    ] {
+        let mut probe = Probe::new(config);
+        let mut store = MemoryStore::default();
+        Calibrator::new(
+            &mut probe,
+            &mut store,
+            &mut NoObserver,
+            PlanConfig::hopg_small_net(),
+        )
+        .unwrap()
+        .run(&options(name))
+        .unwrap();
+        let e = errors(&probe, &store);
+        let n = e.len() as f64;
+        let m: Vec<f64> = (0..3)
+            .map(|k| e.iter().map(|v| v[k]).sum::<f64>() / n)
+            .collect();
+        println!(
+            "{name}: n {} mean kx {:+.4} ky {:+.4} alpha {:+.4}",
+            e.len(),
+            m[0],
+            m[1],
+            m[2]
+        );
+    }
 }

@@ -179,3 +179,37 @@ fn the_shipped_plan_file_parses() {
     let plan = PlanConfig::from_file(path).unwrap();
     assert_eq!(plan, PlanConfig::hopg_small_net());
 }
+
+mod properties {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #[test]
+        fn any_lateral_net_is_a_unit_step_serpentine(
+            nx in 1i64..8, ny in 1i64..8, planes in 1usize..4, repeats in 1u32..4,
+            step in 1i64..5000, x0 in -30000i64..0, y0 in -30000i64..0,
+        ) {
+            let geometry = NetGeometry::LateralPlanes {
+                x_min_counts: x0,
+                x_max_counts: x0 + (nx - 1) * step,
+                y_min_counts: y0,
+                y_max_counts: y0 + (ny - 1) * step,
+                step_counts: step,
+                z_planes: (0..planes as i64).map(|k| level(k, None)).collect(),
+            };
+            let plan = NetPlan::new(&geometry, repeats).unwrap();
+            prop_assert_eq!(plan.nodes_per_repeat(), (nx * ny) as usize * planes);
+            let visits: Vec<_> = plan.visits().collect();
+            prop_assert_eq!(visits.len(), plan.total_visits());
+            for w in visits.windows(2) {
+                let (a, b) = (w[0].grid, w[1].grid);
+                let lateral = (a.x_counts - b.x_counts).abs() + (a.y_counts - b.y_counts).abs();
+                // One net step, a plane change in place, or the turn between repeats.
+                prop_assert!(lateral == step || (lateral == 0 && (a.iz != b.iz || a == b)));
+            }
+            let unique: HashSet<_> = plan.nodes.iter().map(|n| (n.ix, n.iy, n.iz)).collect();
+            prop_assert_eq!(unique.len(), plan.nodes.len());
+        }
+    }
+}

@@ -179,7 +179,8 @@ pub struct Feature {
     pub column: f64,
     /// Fractional row of the centre in the map.
     pub row: f64,
-    /// Acquisition time of the pixel nearest the centre (needed for drift).
+    /// Acquisition time at the centre, interpolated bilinearly between the
+    /// pixel times (needed for drift).
     pub time: Seconds,
     /// Hill or pit.
     pub polarity: Polarity,
@@ -482,6 +483,23 @@ fn find_candidates(
 
 type RejectInfo = (f64, f64, RejectReason);
 
+/// Acquisition time at a fractional pixel position: bilinear in the pixel
+/// times (exact for a raster with constant dwell, whatever its direction).
+fn interpolated_time(map: &HeightMap, column: f64, row: f64) -> Option<Seconds> {
+    let (nx, ny) = (map.columns, map.rows);
+    let c = column.clamp(0.0, (nx - 1) as f64);
+    let r = row.clamp(0.0, (ny - 1) as f64);
+    let (c0, r0) = (
+        (c.floor() as usize).min(nx - 2),
+        (r.floor() as usize).min(ny - 2),
+    );
+    let (fc, fr) = (c - c0 as f64, r - r0 as f64);
+    let t = |cc: usize, rr: usize| map.time_s.get(rr * nx + cc).copied();
+    let top = t(c0, r0)? * (1.0 - fc) + t(c0 + 1, r0)? * fc;
+    let bottom = t(c0, r0 + 1)? * (1.0 - fc) + t(c0 + 1, r0 + 1)? * fc;
+    Some(Seconds(top * (1.0 - fr) + bottom * fr))
+}
+
 fn localise(
     map: &HeightMap,
     z: &[f64],
@@ -658,12 +676,7 @@ fn localise(
         * (snr / (snr + 5.0)).clamp(0.0, 1.0)
         * (border / (border + width)).clamp(0.0, 1.0);
     let step = map.pixel_step;
-    let time = map
-        .time_at(
-            centre.0.clamp(0.0, (nx - 1) as f64),
-            centre.1.clamp(0.0, (ny - 1) as f64),
-        )
-        .unwrap_or(Seconds(map.time_s[i]));
+    let time = interpolated_time(map, centre.0, centre.1).unwrap_or(Seconds(map.time_s[i]));
     Ok(Feature {
         position: map.position(centre.0, centre.1),
         column: centre.0,

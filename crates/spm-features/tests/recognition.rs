@@ -52,9 +52,13 @@ fn every_interior_atom_of_an_aperture_is_found_once_and_close_to_its_truth() {
             let error = f.position.distance(atom).value();
             assert!(error < 0.1 * hopg.a_counts, "atom ({n},{m}) error {error}");
             assert!(f.uncertainty.sigma_x.value() > 0.0 && f.uncertainty.sigma_x.value() < 2.0);
-            // The time is the acquisition time of the nearest pixel.
-            let t = map.time_at(f.column, f.row).unwrap();
-            assert_eq!(f.time, t);
+            // The time is interpolated between the four surrounding pixels.
+            let (c0, r0) = (f.column.floor(), f.row.floor());
+            let corners = [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)]
+                .map(|(dc, dr)| map.time_at(c0 + dc, r0 + dr).unwrap().value());
+            let lo = corners.iter().copied().fold(f64::INFINITY, f64::min);
+            let hi = corners.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            assert!(f.time.value() >= lo && f.time.value() <= hi);
         }
     }
     assert!(expected >= 12);

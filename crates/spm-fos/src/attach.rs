@@ -32,6 +32,9 @@ pub struct AttachParams {
     pub velocity_window: usize,
     /// Give up waiting after this long, seconds.
     pub timeout_s: f64,
+    /// Pause before each segment attachment, seconds: a longer baseline
+    /// makes each velocity estimate less noisy. Default 0.
+    pub attachment_interval_s: f64,
     /// A feature farther than this fraction of the segment's side from its
     /// predicted position is lost. Default 0.4.
     pub capture_radius_fraction: f64,
@@ -55,6 +58,7 @@ impl AttachParams {
             settle_count: 2,
             velocity_window: 3,
             timeout_s,
+            attachment_interval_s: 0.0,
             capture_radius_fraction: 0.4,
         }
     }
@@ -69,6 +73,12 @@ impl AttachParams {
         )?;
         positive("timeout_s", self.timeout_s)?;
         positive("capture_radius_fraction", self.capture_radius_fraction)?;
+        if !(self.attachment_interval_s.is_finite() && self.attachment_interval_s >= 0.0) {
+            return Err(FosError::InvalidParameter {
+                field: "attachment_interval_s",
+                reason: "must be a finite time ≥ 0",
+            });
+        }
         if self.velocity_window < 2 {
             return Err(FosError::InvalidParameter {
                 field: "velocity_window",
@@ -196,6 +206,11 @@ pub fn attach<M: Microscope>(
         let Some(last) = report.history.last().copied() else {
             return Ok(report);
         };
+        if params.attachment_interval_s > 0.0 {
+            microscope
+                .wait(Seconds(params.attachment_interval_s))
+                .map_err(FosError::instrument)?;
+        }
         let sighting = match track(
             microscope,
             last.position(),

@@ -235,24 +235,24 @@ fn mean(vectors: &[CountVector]) -> Option<CountVector> {
     Some(sum * (1.0 / n))
 }
 
-/// Skips between A (last seen near `a`) and B ≈ A + `ab_estimate` until the
-/// monitor has kept `required_cycles` cycles, gives up, or `max_cycles` pass.
-/// A is first re-acquired in a segment. The drift estimate starts at
-/// `drift` (e.g. from the attachment) and follows each cycle; the A→B
-/// estimate follows the kept cycles.
+/// Skips between A (seen at `a` at time `a_time`) and B ≈ A + `ab_estimate`
+/// until the monitor has kept `required_cycles` cycles, gives up, or
+/// `max_cycles` pass. A is first re-acquired in a segment (predicted with
+/// `drift`). The drift estimate starts at `drift` (e.g. from the attachment)
+/// and follows each cycle; the A→B estimate follows the kept cycles.
 pub fn skip<M: Microscope>(
     microscope: &mut M,
     a: CountPoint,
+    a_time: Seconds,
     ab_estimate: CountVector,
     drift: CountVelocity,
     params: &SkipParams,
 ) -> Result<SkipReport, FosError<M::Error>> {
     params.validate()?;
-    let now = microscope.now().map_err(FosError::instrument)?;
     let first_a = track(
         microscope,
         a,
-        now,
+        a_time,
         drift,
         &params.segment,
         &params.motion,

@@ -221,7 +221,15 @@ fn skipping_cancels_constant_drift() {
             y_counts_per_s: v.1,
         };
         let guess = ab_true + CountVector::from_counts(0.1 * A, -0.08 * A);
-        let report = skip(&mut m, atom(0, 0), guess, drift, &skip_params(4)).unwrap();
+        let report = skip(
+            &mut m,
+            atom(0, 0),
+            Seconds(0.0),
+            guess,
+            drift,
+            &skip_params(4),
+        )
+        .unwrap();
         m.done().unwrap();
         assert_eq!(report.outcome, SkipOutcome::Completed);
         assert_eq!(report.kept.len(), 4);
@@ -262,7 +270,15 @@ fn a_drift_burst_spoils_a_cycle_which_is_discarded() {
         x_counts_per_s: v,
         y_counts_per_s: 0.0,
     };
-    let report = skip(&mut m, atom(0, 0), ab_true, start, &skip_params(4)).unwrap();
+    let report = skip(
+        &mut m,
+        atom(0, 0),
+        Seconds(0.0),
+        ab_true,
+        start,
+        &skip_params(4),
+    )
+    .unwrap();
     assert_eq!(report.outcome, SkipOutcome::Completed);
     assert!(
         report.discarded >= 1,
@@ -296,6 +312,7 @@ fn skipping_faults_are_typed_errors() {
     let error = skip(
         &mut m,
         atom(0, 0),
+        Seconds(0.0),
         ab_true,
         CountVelocity::ZERO,
         &skip_params(4),
@@ -312,6 +329,7 @@ fn skipping_faults_are_typed_errors() {
     let error = skip(
         &mut m,
         atom(0, 0),
+        Seconds(0.0),
         ab_true,
         CountVelocity::ZERO,
         &skip_params(4),
@@ -412,7 +430,7 @@ fn skipping_error(v: (f64, f64), runs: u64, cycles: usize) -> f64 {
         let mut params = skip_params(cycles);
         // Per-cycle velocity noise at SNR 10 is ≈ 2 counts/s.
         params.monitor.velocity_tolerance_counts_per_s = 8.0;
-        let report = skip(&mut m, atom(0, 0), ab_true, drift, &params).unwrap();
+        let report = skip(&mut m, atom(0, 0), Seconds(0.0), ab_true, drift, &params).unwrap();
         assert_eq!(report.outcome, SkipOutcome::Completed);
         let e = report.vector.unwrap() - ab_true;
         sum_sq += e.dot_counts_squared(e);

@@ -275,7 +275,6 @@ pub fn resample_into(
             got: out.len(),
         });
     }
-    out.fill(f64::NAN);
     let source = Source {
         image,
         columns: nx,
@@ -287,6 +286,7 @@ pub fn resample_into(
             resample_rows(&source, map.x_nm(), y_rows, &grid, parallelism, out)
         }
         YCoordinates::PerPixel(y_px) => {
+            out.fill(f64::NAN);
             resample_newton(&source, map.x_nm(), y_px, &grid, parallelism, out)
         }
     }
@@ -338,6 +338,7 @@ fn walk_row(
     let blend = |i: usize| a[i] + (b[i] - a[i]) * f;
     let (first, last) = (blend(0), blend(nx - 1));
     if last <= first {
+        out_row.fill(f64::NAN);
         return Err(());
     }
     // Nodes within 1e-9 of a pixel of the first/last column count as on it (rounding).
@@ -346,8 +347,12 @@ fn walk_row(
     let (gx0, step) = (grid.origin_nm.x.value(), grid.step_nm.value());
     let c_start = ((lo - gx0) / step).ceil().max(0.0);
     if c_start >= out_row.len() as f64 {
+        out_row.fill(f64::NAN);
         return Ok(());
     }
+    let c_start = c_start as usize;
+    out_row[..c_start].fill(f64::NAN);
+    let mut c_end = out_row.len();
     let mut i = 0usize;
     let mut cur = first;
     let mut next = blend(1);
@@ -355,9 +360,10 @@ fn walk_row(
         return Err(());
     }
     let mut inv = 1.0 / (next - cur);
-    for (c, o) in out_row.iter_mut().enumerate().skip(c_start as usize) {
+    for (c, o) in out_row.iter_mut().enumerate().skip(c_start) {
         let x = gx0 + step * c as f64;
         if x > hi {
+            c_end = c;
             break;
         }
         while next < x && i + 2 < nx {
@@ -372,6 +378,7 @@ fn walk_row(
         let t = ((x - cur) * inv).clamp(0.0, 1.0);
         *o = kernel(i, t);
     }
+    out_row[c_end..].fill(f64::NAN);
     Ok(())
 }
 
@@ -464,9 +471,9 @@ pub fn correct_and_resample<F: CorrectionField + ?Sized>(
         |chunk_index, chunk| {
             let mut lines_cache = [(usize::MAX, vec![0.0; nx]), (usize::MAX, vec![0.0; nx])];
             for (k, out_row) in chunk.chunks_mut(grid.columns).enumerate() {
-                out_row.fill(f64::NAN);
                 let r = chunk_index * FUSED_CHUNK_ROWS + k;
                 let Some((j, f)) = row_fraction(y_rows, increasing, grid.y_nm(r)) else {
+                    out_row.fill(f64::NAN);
                     continue;
                 };
                 if lines_cache[0].0 != j {
@@ -566,6 +573,7 @@ fn resample_rows(
     };
     for_each_row(parallelism, out, grid.columns, |r, out_row| {
         let Some((j, f)) = row_fraction(y_rows, increasing, grid.y_nm(r)) else {
+            out_row.fill(f64::NAN);
             return;
         };
         let a = &x_nm[j * nx..(j + 1) * nx];

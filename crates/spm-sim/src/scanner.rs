@@ -335,12 +335,48 @@ impl Creep {
     #[inline]
     pub fn advance_with(&mut self, x: f64, decays: &[f64]) -> f64 {
         let target = self.weight * x;
-        let mut sum = 0.0;
-        for (c, d) in self.states.iter_mut().zip(decays) {
+        let n = self.states.len().min(decays.len());
+        let (states, decays) = (&mut self.states[..n], &decays[..n]);
+        for (c, d) in states.iter_mut().zip(decays) {
             *c = target + (*c - target) * d;
-            sum += *c;
         }
-        sum
+        // Four partial sums let the compiler vectorise the reduction.
+        let mut acc = [0.0f64; 4];
+        let chunks = states.chunks_exact(4);
+        let rest: f64 = chunks.remainder().iter().sum();
+        for c in chunks {
+            acc[0] += c[0];
+            acc[1] += c[1];
+            acc[2] += c[2];
+            acc[3] += c[3];
+        }
+        (acc[0] + acc[1]) + (acc[2] + acc[3]) + rest
+    }
+
+    /// Coefficients of `n` steps with decay factors `decays` and a ramp input
+    /// `x_j = a + j·b` (j = 0 … n−1): after them `cₖ = Aₖ·cₖ + Pₖ·a + Qₖ·b`.
+    pub fn ramp_coefficients(&self, decays: &[f64], n: usize) -> Vec<[f64; 3]> {
+        decays
+            .iter()
+            .map(|&d| {
+                let (mut a, mut p, mut q) = (1.0, 0.0, 0.0);
+                let g = (1.0 - d) * self.weight;
+                for j in 0..n {
+                    a *= d;
+                    p = d * p + g;
+                    q = d * q + g * j as f64;
+                }
+                [a, p, q]
+            })
+            .collect()
+    }
+
+    /// Applies [`ramp_coefficients`](Self::ramp_coefficients); returns the offset.
+    pub fn advance_ramp(&mut self, coefficients: &[[f64; 3]], a: f64, b: f64) -> f64 {
+        for (c, k) in self.states.iter_mut().zip(coefficients) {
+            *c = k[0] * *c + k[1] * a + k[2] * b;
+        }
+        self.offset()
     }
 
     /// Advances by `dt_s` with input `x` held constant; returns the offset.

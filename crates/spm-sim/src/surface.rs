@@ -352,9 +352,10 @@ impl Hopg {
         }
         let key = splitmix(
             self.seed
-                ^ splitmix(i as u64)
-                ^ splitmix((j as u64).rotate_left(21))
-                ^ splitmix(((terrace as i64 as u64) << 8) ^ domain.map_or(0, |d| d as u64 + 1)),
+                ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                ^ (j as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+                ^ ((terrace as i64 as u64) << 40)
+                ^ (domain.map_or(0, |d| d as u64 + 1) << 52),
         );
         key < self.vacancy_threshold
     }

@@ -213,3 +213,44 @@ proptest! {
         }
     }
 }
+
+#[test]
+fn the_unrecorded_retrace_fast_path_matches_full_simulation() {
+    let mut config = SimConfig::ideal();
+    config.scanner.creep.log_slope_per_decade = 0.015;
+    config.scanner.creep.elements_per_decade = 3;
+    config.scanner.hysteresis_x.width_fraction = 0.04;
+    config.scanner.hysteresis_x.operators = 16;
+    config.scanner.nonlinearity_x.quadratic = 0.03;
+    config.scanner.tilt_x_from_z = 0.03;
+    config.measurement.feedback_time_constant_s = 2e-4;
+    config.measurement.quantise_lateral_dac = true;
+    let run = |record_backward: bool| {
+        let mut sim = Simulator::new(config.clone()).unwrap();
+        let mut request = spm_hal::ScanRequest::centred_square(
+            CountPoint::from_counts(5000.0, -3000.0),
+            Counts(1.0),
+            96,
+            Seconds(5e-5),
+        );
+        request.record_backward = record_backward;
+        let a = sim.scan(&request).unwrap();
+        let b = sim.scan(&request).unwrap();
+        (
+            a.forward.z_counts,
+            b.forward.z_counts,
+            sim.oracle().effective_input_now(),
+        )
+    };
+    let (fast_a, fast_b, fast_u) = run(false);
+    let (full_a, full_b, full_u) = run(true);
+    for (x, y) in fast_a
+        .iter()
+        .chain(&fast_b)
+        .zip(full_a.iter().chain(&full_b))
+    {
+        assert!((x - y).abs() < 1e-6, "{x} vs {y}");
+    }
+    assert!((fast_u.x.value() - full_u.x.value()).abs() < 1e-9);
+    assert!((fast_u.y.value() - full_u.y.value()).abs() < 1e-9);
+}

@@ -337,6 +337,7 @@ pub struct Calibrator<'a, M: Microscope, S: ProgressStore, O: Observer> {
     config: PlanConfig,
     plan: NetPlan,
     fos: FosParams,
+    clock0: Option<Seconds>,
 }
 
 fn fos_failure<E: spm_hal::Error>(error: FosError<E>) -> Result<Failure, RunError> {
@@ -404,6 +405,7 @@ impl<'a, M: Microscope, S: ProgressStore, O: Observer> Calibrator<'a, M, S, O> {
             config,
             plan,
             fos,
+            clock0: None,
         })
     }
 
@@ -427,12 +429,39 @@ impl<'a, M: Microscope, S: ProgressStore, O: Observer> Calibrator<'a, M, S, O> {
     /// [`RunError`] for store failures, an aborted instrument, or invalid parameters. Node
     /// failures are not errors: the node is given up and the run goes on.
     pub fn run(&mut self, options: &RunOptions) -> Result<RunReport, RunError> {
+        let result = self.run_inner(options);
+        if let Err(error) = &result {
+            // Mark the run (best effort; it stays resumable: a later run with the same id
+            // continues at the first unfinished visit and sets it finished).
+            let status = match error {
+                RunError::Instrument {
+                    kind: ErrorKind::Aborted,
+                    ..
+                } => Some(RunStatus::Aborted),
+                RunError::Instrument { .. } | RunError::Parameters(_) => Some(RunStatus::Failed),
+                _ => None,
+            };
+            if let Some(status) = status {
+                let at = match (self.clock0, self.microscope.now()) {
+                    (Some(t0), Ok(now)) => options.start_unix_s + (now - t0).value(),
+                    _ => options.start_unix_s,
+                };
+                if let Err(e) = self.store.finish_run(&options.run_id, status, at) {
+                    tracing::warn!(error = %e, "could not mark the run");
+                }
+            }
+        }
+        result
+    }
+
+    fn run_inner(&mut self, options: &RunOptions) -> Result<RunReport, RunError> {
         let span = tracing::info_span!("calibration", run_id = %options.run_id);
         let _enter = span.enter();
         let clock0 = self.microscope.now().map_err(|e| RunError::Instrument {
             kind: e.kind(),
             message: e.to_string(),
         })?;
+        self.clock0 = Some(clock0);
         let unix = |t: Seconds| options.start_unix_s + (t - clock0).value();
         let visits: Vec<PlanVisit> = self.plan.visits().collect();
         let nodes: Vec<PlanNode> = visits

@@ -1,133 +1,177 @@
-//! `cargo xtask calibrate`: until the calibration issue lands, a simulated
-//! scan of HOPG (direct and counter frames) written as PNG images, with a
-//! report of the scan and the oracle's true LCCs at its centre.
+//! `cargo xtask calibrate`: the main job. A full simulated distributed
+//! calibration on the embedded defaults (`configs/sim-hopg.toml` with
+//! `configs/plan-hopg.toml`), into a fresh CDB, then regression surfaces,
+//! accuracy against the simulator's oracle and the four baselines, figures and
+//! `report.json`.
 
 use crate::XtaskError;
-use serde::Serialize;
-use spm_hal::{
-    CountPoint, Counts, HeightMap, Microscope, ScanDirection, ScanRequest, Seconds, TraceHalf,
-};
-use spm_sim::{SimConfig, Simulator};
+use indicatif::{ProgressBar, ProgressStyle};
+use spm_calibration::{GiveUpReason, NodeMeasurement, Observer, PlanVisit};
+use spmcal::job::Job;
+use spmcal::report::{RunRecord, finish};
+use spmcal::run::{RecordingObserver, RunStart, run_job};
 use std::path::Path;
-use std::time::Instant;
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
-#[derive(Debug, Serialize)]
-struct ScanReport {
-    config: String,
-    seed: u64,
-    pixels: [u32; 2],
-    pixel_step_counts: f64,
-    pixel_dwell_s: f64,
-    centre_counts: [f64; 2],
-    instrument_time_s: f64,
-    wall_time_s: f64,
-    frames: Vec<String>,
-    true_lcc_at_centre: TrueLcc,
-    true_drift_velocity_nm_per_s: [f64; 2],
+/// The progress bar on the terminal.
+struct ProgressObserver {
+    bar: ProgressBar,
 }
 
-#[derive(Debug, Serialize)]
-struct TrueLcc {
-    kx_nm_per_count: f64,
-    ky_nm_per_count: f64,
-    alpha_rad: f64,
-    kz_nm_per_count: f64,
+impl Observer for ProgressObserver {
+    fn run_started(&mut self, total_visits: usize, already_finished: usize) {
+        self.bar.set_length(total_visits as u64);
+        self.bar.set_position(already_finished as u64);
+    }
+    fn node_finished(&mut self, measurement: &NodeMeasurement) {
+        self.bar.inc(1);
+        self.bar.set_message(format!(
+            "K̄x {:.5} K̄y {:.5} nm/count α {:+.3}°",
+            measurement.lcc.kx.value(),
+            measurement.lcc.ky.value(),
+            measurement.lcc.alpha.to_degrees()
+        ));
+    }
+    fn node_given_up(&mut self, visit: &PlanVisit, reason: &GiveUpReason) {
+        self.bar.inc(1);
+        self.bar.println(format!(
+            "node {} (repeat {}) given up: {reason:?}",
+            visit.node_index, visit.repeat_index
+        ));
+    }
 }
 
-pub fn run(config_path: &Path, out: &Path, quick: bool) -> Result<(), XtaskError> {
+pub fn run(
+    config_path: &Path,
+    plan_path: Option<&Path>,
+    default_plan: &Path,
+    out: &Path,
+    quick: bool,
+) -> Result<(), XtaskError> {
     let started = Instant::now();
-    let config = SimConfig::from_file(config_path)
-        .map_err(|e| XtaskError::step("reading the simulator config", e))?;
-    let seed = config.seed;
-    let mut sim =
-        Simulator::new(config).map_err(|e| XtaskError::step("building the simulator", e))?;
     std::fs::create_dir_all(out)
         .map_err(|e| XtaskError::step(format!("creating {}", out.display()), e))?;
+    install_log(&out.join("calibrate.log"));
 
-    let pixels: u32 = if quick { 64 } else { 256 };
-    let centre = CountPoint::from_counts(0.0, 0.0);
-    let pixel_dwell = Seconds(1e-4);
-    let request = ScanRequest::centred_square(centre, Counts(1.0), pixels, pixel_dwell);
-    let mut frames = Vec::new();
-    for direction in [ScanDirection::Direct, ScanDirection::Counter] {
-        let request = request.clone().with_direction(direction);
-        let frame = sim
-            .scan(&request)
-            .map_err(|e| XtaskError::step(format!("{direction:?} scan"), e))?;
-        let map = frame
-            .height_map(TraceHalf::Forward)
-            .map_err(|e| XtaskError::step("frame", e))?;
-        let name = format!("hopg-{direction:?}.png").to_lowercase();
-        let kx = sim
-            .oracle()
-            .true_lcc(centre, sim.oracle().z_now())
-            .kx
-            .value();
-        write_png(&map, kx, &out.join(&name))?;
-        frames.push(name);
-    }
-    let oracle = sim.oracle();
-    let lcc = oracle.true_lcc(centre, oracle.z_now());
-    let now = sim.now().map_err(|e| XtaskError::step("clock", e))?;
-    let drift = sim.oracle().drift_velocity(now);
-    let report = ScanReport {
-        config: config_path.display().to_string(),
-        seed,
-        pixels: [pixels, pixels],
-        pixel_step_counts: 1.0,
-        pixel_dwell_s: pixel_dwell.value(),
-        centre_counts: [0.0, 0.0],
-        instrument_time_s: now.value(),
-        wall_time_s: started.elapsed().as_secs_f64(),
-        frames,
-        true_lcc_at_centre: TrueLcc {
-            kx_nm_per_count: lcc.kx.value(),
-            ky_nm_per_count: lcc.ky.value(),
-            alpha_rad: lcc.alpha.value(),
-            kz_nm_per_count: sim.oracle().kz().value(),
-        },
-        true_drift_velocity_nm_per_s: [drift.x_nm_per_s, drift.y_nm_per_s],
+    let text = std::fs::read_to_string(config_path)
+        .map_err(|e| XtaskError::step(format!("reading {}", config_path.display()), e))?;
+    let is_job = text
+        .parse::<toml::Table>()
+        .map(|t| t.contains_key("backend"))
+        .unwrap_or(false);
+    let job = if is_job {
+        Job::from_file(config_path).map_err(|e| XtaskError::step("reading the job", e))?
+    } else {
+        let plan_path = plan_path.unwrap_or(default_plan);
+        let (plan, plan_text) =
+            Job::read_plan(plan_path).map_err(|e| XtaskError::step("reading the plan", e))?;
+        Job::from_parts(config_path, plan, plan_text)
+            .map_err(|e| XtaskError::step("reading the simulator config", e))?
     };
-    let json = serde_json::to_string_pretty(&report).map_err(|e| XtaskError::step("report", e))?;
-    let report_path = out.join("report.json");
-    std::fs::write(&report_path, json)
-        .map_err(|e| XtaskError::step(format!("writing {}", report_path.display()), e))?;
+
+    // A fresh CDB for every job.
+    let cdb_path = out.join("cdb.sqlite");
+    for suffix in ["", "-wal", "-shm"] {
+        let path = out.join(format!("cdb.sqlite{suffix}"));
+        if path.exists() {
+            std::fs::remove_file(&path)
+                .map_err(|e| XtaskError::step(format!("removing {}", path.display()), e))?;
+        }
+    }
+    let start_unix_s = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0.0, |d| d.as_secs_f64());
+    let run_id = format!("xtask-{}", start_unix_s as u64);
+    let bar = ProgressBar::new(0);
+    bar.set_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} nodes {msg}")
+            .map_err(|e| XtaskError::step("progress bar", e))?,
+    );
+    let mut progress = ProgressObserver { bar };
+    let mut recorder = RecordingObserver::new(&mut progress);
+    let run_started = Instant::now();
+    let outcome = run_job(
+        &job,
+        &cdb_path,
+        RunStart::New { run_id },
+        start_unix_s,
+        &mut recorder,
+    )
+    .map_err(|e| XtaskError::step("calibration", e))?;
+    let run_wall_time_s = run_started.elapsed().as_secs_f64();
+    let drift = std::mem::take(&mut recorder.drift);
+    let nodes = std::mem::take(&mut recorder.nodes);
+    drop(recorder);
+    progress.bar.finish();
+
+    let record = RunRecord {
+        plan: &job.plan,
+        run: &outcome.report,
+        simulator: outcome.simulator.as_ref(),
+        drift: &drift,
+        nodes: &nodes,
+        wall_time_s: run_wall_time_s,
+    };
+    let report =
+        finish(&cdb_path, out, &record, quick).map_err(|e| XtaskError::step("report", e))?;
+
+    println!();
+    println!("== spmcal calibrate: summary ==");
     println!(
-        "simulated HOPG scan {pixels}×{pixels} (direct + counter) in {:.2} s wall, {:.2} s instrument time",
-        report.wall_time_s, report.instrument_time_s
+        "nodes {} × repeats {} → {} records; {} given up; cycles kept {} discarded {}",
+        report.nodes,
+        report.repeats,
+        report.records,
+        report.run.given_up.len(),
+        report.run.cycles.kept,
+        report.run.cycles.discarded
     );
     println!(
-        "true LCCs at the centre: K̄x = {:.5} nm/count, K̄y = {:.5} nm/count, α = {:.4}°",
-        lcc.kx.value(),
-        lcc.ky.value(),
-        lcc.alpha.to_degrees()
+        "instrument time {:.0} s; wall time {:.1} s ({:.2} ms per node); job total {:.1} s",
+        report.instrument_time_s,
+        report.wall_time_s,
+        report.wall_time_per_node_ms,
+        started.elapsed().as_secs_f64()
     );
-    println!("report: {}", report_path.display());
+    let r = &report.regression;
+    println!(
+        "surfaces: K̄x degree {} σ {:.2e}; K̄y degree {} σ {:.2e}; α degree {} σ {:.2e} rad",
+        r.kx.degree, r.kx.sigma, r.ky.degree, r.ky.sigma, r.alpha.degree, r.alpha.sigma
+    );
+    if let Some(a) = &report.accuracy {
+        println!(
+            "{:<12} {:>12} {:>12} {:>16} {:>16}",
+            "method", "RMS pm", "max pm", "mean lattice %", "max lattice %"
+        );
+        for (name, m) in [
+            ("uncorrected", &a.uncorrected),
+            ("lumped", &a.lumped),
+            ("affine", &a.affine),
+            ("distributed", &a.distributed),
+        ] {
+            println!(
+                "{:<12} {:>12.1} {:>12.1} {:>16.4} {:>16.4}",
+                name, m.rms_pm, m.max_pm, m.mean_lattice_error_pct, m.max_lattice_error_pct
+            );
+        }
+        println!(
+            "distributed / lumped RMS = {:.3} (target ≤ 0.1)",
+            a.distributed_over_lumped_rms
+        );
+    }
+    println!("output: {}", out.display());
     Ok(())
 }
 
-/// Writes a height map (scanner geometry, row 0 = smallest y) as a PNG in
-/// display orientation (row 0 = top = largest y).
-fn write_png(map: &HeightMap, nominal_nm_per_count: f64, path: &Path) -> Result<(), XtaskError> {
-    let mut display = Vec::with_capacity(map.z_counts.len());
-    for row in (0..map.rows).rev() {
-        display.extend_from_slice(&map.z_counts[row * map.columns..(row + 1) * map.columns]);
+fn install_log(path: &Path) {
+    if let Ok(file) = std::fs::File::create(path) {
+        let _ = tracing_subscriber::fmt()
+            .with_env_filter(
+                tracing_subscriber::EnvFilter::try_from_env("SPMCAL_LOG")
+                    .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+            )
+            .with_ansi(false)
+            .with_writer(std::sync::Mutex::new(file))
+            .try_init();
     }
-    let size_nm = map.pixel_step.value() * nominal_nm_per_count * map.columns as f64;
-    let channel = spm_formats::Channel::new(
-        "Z",
-        spm_formats::Direction::Forward,
-        "counts",
-        map.columns,
-        map.rows,
-        display,
-    )
-    .map_err(|e| XtaskError::step("image", e))?
-    .with_size_nm(size_nm, size_nm);
-    let options = spm_formats::PngOptions {
-        zoom: if map.columns < 128 { 4 } else { 2 },
-        ..spm_formats::PngOptions::default()
-    };
-    spm_formats::write_png(path, &channel, &options)
-        .map_err(|e| XtaskError::step(format!("writing {}", path.display()), e))
 }

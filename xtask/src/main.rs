@@ -26,6 +26,10 @@ enum Command {
         /// Output folder.
         #[arg(long, value_name = "DIR", default_value = "target/spmcal/calibrate")]
         out: PathBuf,
+        /// The calibration plan, when --config is a simulator config
+        /// (default configs/plan-hopg.toml; --quick: configs/plan-hopg-small.toml).
+        #[arg(long, value_name = "FILE")]
+        plan: Option<PathBuf>,
         /// A reduced run that takes seconds.
         #[arg(long)]
         quick: bool,
@@ -48,11 +52,25 @@ fn main() {
     let cli = Cli::parse();
     let workspace_root = workspace_root();
     let result = match cli.command {
-        Command::Calibrate { config, out, quick } => calibrate::run(
-            &workspace_root.join(config),
-            &workspace_root.join(out),
+        Command::Calibrate {
+            config,
+            plan,
+            out,
             quick,
-        ),
+        } => {
+            let default_plan = workspace_root.join(if quick {
+                "configs/plan-hopg-small.toml"
+            } else {
+                "configs/plan-hopg.toml"
+            });
+            calibrate::run(
+                &workspace_root.join(config),
+                plan.map(|p| workspace_root.join(p)).as_deref(),
+                &default_plan,
+                &workspace_root.join(out),
+                quick,
+            )
+        }
         Command::Bench {
             quick,
             gwyddion,

@@ -7,7 +7,7 @@ use spmcal::surfaces::{SurfaceFitError, SurfaceFitOptions, fit_from_cdb};
 use std::path::Path;
 
 /// Highest degree tried by BIC for every coefficient surface.
-pub const MAX_SURFACE_DEGREE: u32 = 5;
+pub use spmcal::report::MAX_SURFACE_DEGREE;
 
 pub fn run(
     cdb_path: &Path,

@@ -2,6 +2,10 @@
 //! the command line, `cargo xtask` and the end-to-end tests share.
 //!
 //! - [`surfaces`]: CDB records → regression surfaces per Z plane (`surfaces.json`).
+//! - [`job`]: the job file (`[backend]` + `[plan]`).
+//! - [`run`]: running a job on its backend into the CDB, recording drift and nodes.
+//! - [`plots`]: PNG figures of a run.
+//! - [`report`]: after a run: surfaces.json, accuracy, report.json, figures.
 //! - [`accuracy`]: calibration accuracy against the simulator's oracle (DESIGN §11).
 //!
 //! The binary (`src/main.rs`) parses arguments, installs the tracing
@@ -9,4 +13,8 @@
 //! errors and prints nothing.
 
 pub mod accuracy;
+pub mod job;
+pub mod plots;
+pub mod report;
+pub mod run;
 pub mod surfaces;

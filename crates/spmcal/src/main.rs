@@ -4,6 +4,7 @@
 //! bad input, with a message on stderr naming the file, line or field. A panic
 //! (101) is always a bug.
 
+mod calibrate_cmd;
 mod cdb_cmd;
 mod dates;
 mod error;
@@ -210,8 +211,14 @@ fn run(command: Command) -> Result<(), CliError> {
             CdbCommand::Export { path, csv } => cdb_cmd::export(&path, &csv),
             CdbCommand::Trend { path } => cdb_cmd::trend(&path),
         },
-        Command::Calibrate { .. } | Command::Correct { .. } => Err(CliError::RunFailed(
-            "this subcommand arrives with the calibration issue".to_owned(),
+        Command::Calibrate {
+            config,
+            cdb,
+            resume,
+            out,
+        } => calibrate_cmd::run(&config, cdb.as_deref(), resume, out.as_deref()),
+        Command::Correct { .. } => Err(CliError::RunFailed(
+            "`spmcal correct` arrives with the image-correction issue".to_owned(),
         )),
         Command::Diagnose { .. } => Err(CliError::RunFailed(
             "this subcommand arrives with the model-check issue".to_owned(),

@@ -1,0 +1,263 @@
+//! After a run: regression surfaces, accuracy against the oracle (simulated
+//! backends), `report.json`, `surfaces.json` and the PNG figures.
+
+use crate::accuracy::{Accuracy, EvaluationGrid, evaluate};
+use crate::plots::{self, Region};
+use crate::run::{DriftSample, NodeSample};
+use crate::surfaces::{RegressionSummary, SurfaceFitOptions, fit_from_cdb};
+use serde::Serialize;
+use spm_calibration::{PlanConfig, RunReport};
+use spm_cdb::{Cdb, CdbRead, RecordFilter};
+use spm_correction::PlaneSurfaces;
+use spm_sim::Simulator;
+use std::path::Path;
+
+/// Highest degree tried by BIC for every coefficient surface.
+pub const MAX_SURFACE_DEGREE: u32 = 5;
+
+/// Why the post-run steps failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ReportError {
+    /// Reading the CDB failed.
+    #[error(transparent)]
+    Cdb(#[from] spm_cdb::CdbError),
+    /// Fitting surfaces failed.
+    #[error(transparent)]
+    Fit(#[from] crate::surfaces::SurfaceFitError),
+    /// A correction step of the evaluation failed.
+    #[error("accuracy evaluation: {0}")]
+    Correction(#[from] spm_correction::CorrectionError),
+    /// A figure could not be written.
+    #[error(transparent)]
+    Plot(#[from] plots::PlotError),
+    /// A file could not be written.
+    #[error("{path}: {message}")]
+    Write {
+        /// The file.
+        path: String,
+        /// Why.
+        message: String,
+    },
+}
+
+/// Accuracy of every method (report.json's `accuracy`).
+#[derive(Debug, Clone, Serialize)]
+pub struct AccuracyTable {
+    /// The nominal sensitivity of the plan, orthogonal, no correction.
+    pub uncorrected: Accuracy,
+    /// K̄x, K̄y, α of the node nearest the field centre, applied everywhere.
+    pub lumped: Accuracy,
+    /// One affine map for the whole field: the mean LCCs of all nodes.
+    pub affine: Accuracy,
+    /// A per-image 3rd-order polynomial: not measured by this job (see `notes`).
+    pub polynomial: Option<Accuracy>,
+    /// The distributed calibration: regression surfaces of every node.
+    pub distributed: Accuracy,
+    /// distributed RMS ÷ lumped RMS (target ≤ 0.1).
+    pub distributed_over_lumped_rms: f64,
+}
+
+/// What report.json holds.
+#[derive(Debug, Clone, Serialize)]
+pub struct CalibrationReport {
+    /// Nodes per repeat.
+    pub nodes: usize,
+    /// Repeats l.
+    pub repeats: u32,
+    /// Records in the CDB for this run.
+    pub records: u64,
+    /// Instrument time of this invocation, s.
+    pub instrument_time_s: f64,
+    /// Wall time of the whole job, s.
+    pub wall_time_s: f64,
+    /// Wall time per measured node, ms.
+    pub wall_time_per_node_ms: f64,
+    /// Regression surfaces of the plane nearest z = 0.
+    pub regression: RegressionSummary,
+    /// Accuracy against the oracle (simulated backends only).
+    pub accuracy: Option<AccuracyTable>,
+    /// The calibrator's own report (cycles, given-up nodes with reasons, …).
+    pub run: RunReport,
+    /// How the figures were measured, and what is not.
+    pub notes: Vec<String>,
+}
+
+/// Everything the post-run steps need.
+pub struct RunRecord<'a> {
+    /// The plan that ran.
+    pub plan: &'a PlanConfig,
+    /// The calibrator's report.
+    pub run: &'a RunReport,
+    /// The simulator, when the backend was simulated.
+    pub simulator: Option<&'a Simulator>,
+    /// Drift estimates.
+    pub drift: &'a [DriftSample],
+    /// Measured nodes.
+    pub nodes: &'a [NodeSample],
+    /// Wall time of the run, s.
+    pub wall_time_s: f64,
+}
+
+/// Fits, evaluates and writes `surfaces.json`, `report.json` and the figures into `out`.
+pub fn finish(
+    cdb_path: &Path,
+    out: &Path,
+    record: &RunRecord<'_>,
+    quick: bool,
+) -> Result<CalibrationReport, ReportError> {
+    let cdb = Cdb::open_read_only(cdb_path)?;
+    let snapshot = cdb.snapshot()?;
+    let fitted = fit_from_cdb(
+        &snapshot,
+        Some(&record.plan.scanner_id),
+        None,
+        None,
+        &SurfaceFitOptions::bic_up_to(MAX_SURFACE_DEGREE),
+    )?;
+    let surfaces_json = fitted.set.to_json_string()?;
+    write(&out.join("surfaces.json"), surfaces_json.as_bytes())?;
+    let records = snapshot.count_records(&RecordFilter::default().with_run(&record.run.run_id))?;
+    let all = snapshot.records(&RecordFilter::scanner(&record.plan.scanner_id))?;
+
+    let mut notes = vec![
+        "accuracy: residual distortion = corrected raster (eq. 9) with the method's surfaces minus \
+         the same raster corrected with the oracle's true LCC field, best rigid motion removed; \
+         lattice error = apparent change of the lattice constant on an aperture-sized corrected \
+         image at each of a grid of places, from the exact local maps (no detection noise)"
+            .to_owned(),
+        "polynomial (per-image 3rd-order) baseline: not measured by this job yet".to_owned(),
+    ];
+    let region = Region::around(record.nodes, 0.0);
+    let accuracy = match (record.simulator, region, fitted.set.planes.first()) {
+        (Some(sim), Some(region), Some(plane)) => {
+            let oracle = sim.oracle();
+            let grid = EvaluationGrid {
+                x_min_counts: region.x_min_counts,
+                x_max_counts: region.x_max_counts,
+                y_min_counts: region.y_min_counts,
+                y_max_counts: region.y_max_counts,
+                z_counts: oracle.z_now().value(),
+                field_pixels: if quick { 33 } else { 65 },
+                image_places: if quick { 5 } else { 9 },
+                image_side_counts: record.plan.aperture.size_counts,
+                lattice_constant_nm: record.plan.standard.lattice_constant_nm,
+            };
+            let z = plane.z_counts;
+            let nominal = record.plan.standard.nominal_nm_per_count;
+            let uncorrected = PlaneSurfaces::constant(z, nominal, nominal, 0.0)?;
+            let centre = (
+                0.5 * (region.x_min_counts + region.x_max_counts),
+                0.5 * (region.y_min_counts + region.y_max_counts),
+            );
+            let nearest = all
+                .iter()
+                .min_by(|a, b| {
+                    let da = (a.lcs_x_counts - centre.0).hypot(a.lcs_y_counts - centre.1);
+                    let db = (b.lcs_x_counts - centre.0).hypot(b.lcs_y_counts - centre.1);
+                    da.total_cmp(&db)
+                })
+                .map(|r| (r.node_x_counts, r.node_y_counts));
+            let mean_of = |records: &[&spm_cdb::LccRecord]| {
+                let n = records.len().max(1) as f64;
+                (
+                    records.iter().map(|r| r.kx_nm_per_count).sum::<f64>() / n,
+                    records.iter().map(|r| r.ky_nm_per_count).sum::<f64>() / n,
+                    records.iter().map(|r| r.alpha_rad).sum::<f64>() / n,
+                )
+            };
+            let centre_records: Vec<&spm_cdb::LccRecord> = all
+                .iter()
+                .filter(|r| Some((r.node_x_counts, r.node_y_counts)) == nearest)
+                .collect();
+            let (kx, ky, alpha) = mean_of(&centre_records);
+            let lumped = PlaneSurfaces::constant(z, kx, ky, alpha)?;
+            let every: Vec<&spm_cdb::LccRecord> = all.iter().collect();
+            let (kx, ky, alpha) = mean_of(&every);
+            let affine = PlaneSurfaces::constant(z, kx, ky, alpha)?;
+            let uncorrected = evaluate(&oracle, &uncorrected, &grid)?;
+            let lumped = evaluate(&oracle, &lumped, &grid)?;
+            let affine = evaluate(&oracle, &affine, &grid)?;
+            let distributed = evaluate(&oracle, plane, &grid)?;
+            Some(AccuracyTable {
+                distributed_over_lumped_rms: distributed.rms_pm / lumped.rms_pm,
+                uncorrected,
+                lumped,
+                affine,
+                polynomial: None,
+                distributed,
+            })
+        }
+        _ => {
+            notes.push("accuracy: needs a simulated backend (the oracle)".to_owned());
+            None
+        }
+    };
+
+    if let (Some(region), Some(plane)) = (
+        Region::around(record.nodes, 0.08),
+        fitted.set.planes.first(),
+    ) {
+        let values = |f: fn(&NodeSample) -> f64| -> Vec<(f64, f64, f64)> {
+            record
+                .nodes
+                .iter()
+                .map(|n| (n.x_counts, n.y_counts, f(n)))
+                .collect()
+        };
+        plots::lcc_map(
+            &out.join("lcc-kx.png"),
+            &plane.kx_nm_per_count.surface,
+            &values(|n| n.kx_nm_per_count),
+            &region,
+        )?;
+        plots::lcc_map(
+            &out.join("lcc-ky.png"),
+            &plane.ky_nm_per_count.surface,
+            &values(|n| n.ky_nm_per_count),
+            &region,
+        )?;
+        plots::lcc_map(
+            &out.join("lcc-alpha.png"),
+            &plane.alpha_rad.surface,
+            &values(|n| n.alpha_rad),
+            &region,
+        )?;
+        plots::trajectory_plot(&out.join("trajectory.png"), record.nodes, &region)?;
+    }
+    plots::drift_plot(
+        &out.join("drift.png"),
+        record.drift,
+        record.plan.standard.nominal_nm_per_count,
+    )?;
+
+    let measured = record.run.nodes_done.max(1) as f64;
+    let report = CalibrationReport {
+        nodes: record.run.nodes,
+        repeats: record.run.repeats,
+        records,
+        instrument_time_s: record.run.instrument_time_s,
+        wall_time_s: record.wall_time_s,
+        wall_time_per_node_ms: record.wall_time_s / measured * 1e3,
+        regression: fitted.summary,
+        accuracy,
+        run: record.run.clone(),
+        notes,
+    };
+    let json = serde_json::to_string_pretty(&report).map_err(|e| ReportError::Write {
+        path: "report.json".to_owned(),
+        message: e.to_string(),
+    })?;
+    write(&out.join("report.json"), json.as_bytes())?;
+    Ok(report)
+}
+
+fn write(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
+    let partial = path.with_extension("partial");
+    std::fs::write(&partial, bytes)
+        .and_then(|()| std::fs::rename(&partial, path))
+        .map_err(|e| ReportError::Write {
+            path: path.display().to_string(),
+            message: e.to_string(),
+        })
+}

@@ -1,0 +1,188 @@
+//! Running a job: the backend, the CDB, the calibrator, and a recording observer.
+
+use crate::job::{Backend, Job};
+use spm_calibration::{
+    Calibrator, GiveUpReason, NodeMeasurement, Observer, PlanVisit, RunError, RunOptions, RunReport,
+};
+use spm_cdb::{Cdb, CdbRead, RunStatus};
+use spm_hal::{CountVelocity, Seconds};
+use spm_sim::Simulator;
+use std::path::Path;
+
+/// Why a run could not be carried out.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum JobRunError {
+    /// The CDB cannot be opened or read.
+    #[error(transparent)]
+    Cdb(#[from] spm_cdb::CdbError),
+    /// The backend cannot be built from its config.
+    #[error("backend: {0}")]
+    Backend(String),
+    /// The calibration failed as a whole.
+    #[error(transparent)]
+    Run(#[from] RunError),
+    /// `--resume` found nothing to resume.
+    #[error("no unfinished run of scanner {0:?} in the calibration database")]
+    NothingToResume(String),
+}
+
+/// One drift estimate during the run.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct DriftSample {
+    /// Instrument time, s.
+    pub time_s: f64,
+    /// Drift velocity x, counts/s.
+    pub vx_counts_per_s: f64,
+    /// Drift velocity y, counts/s.
+    pub vy_counts_per_s: f64,
+}
+
+/// One measured node, for plots.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct NodeSample {
+    /// Repeat.
+    pub repeat_index: u32,
+    /// Node index in the repeat's order.
+    pub node_index: u32,
+    /// LCS gravity centre x, counts.
+    pub x_counts: f64,
+    /// LCS gravity centre y, counts.
+    pub y_counts: f64,
+    /// K̄x, nm/count.
+    pub kx_nm_per_count: f64,
+    /// K̄y, nm/count.
+    pub ky_nm_per_count: f64,
+    /// α, rad.
+    pub alpha_rad: f64,
+}
+
+/// Records what a run did (drift, nodes, trajectory) and forwards to an inner observer.
+pub struct RecordingObserver<'a> {
+    inner: &'a mut dyn Observer,
+    /// Drift estimates in time order.
+    pub drift: Vec<DriftSample>,
+    /// Measured nodes in order.
+    pub nodes: Vec<NodeSample>,
+    /// Visits given up, with reasons.
+    pub given_up: Vec<(PlanVisit, String)>,
+    /// Spoiled cycles seen.
+    pub spoiled_cycles: usize,
+}
+
+impl<'a> RecordingObserver<'a> {
+    /// A recorder forwarding to `inner`.
+    pub fn new(inner: &'a mut dyn Observer) -> Self {
+        Self {
+            inner,
+            drift: Vec::new(),
+            nodes: Vec::new(),
+            given_up: Vec::new(),
+            spoiled_cycles: 0,
+        }
+    }
+}
+
+impl Observer for RecordingObserver<'_> {
+    fn run_started(&mut self, total_visits: usize, already_finished: usize) {
+        self.inner.run_started(total_visits, already_finished);
+    }
+    fn node_started(&mut self, visit: &PlanVisit, attempt: u32) {
+        self.inner.node_started(visit, attempt);
+    }
+    fn node_finished(&mut self, measurement: &NodeMeasurement) {
+        self.nodes.push(NodeSample {
+            repeat_index: measurement.visit.repeat_index,
+            node_index: measurement.visit.node_index,
+            x_counts: measurement.centre.x.value(),
+            y_counts: measurement.centre.y.value(),
+            kx_nm_per_count: measurement.lcc.kx.value(),
+            ky_nm_per_count: measurement.lcc.ky.value(),
+            alpha_rad: measurement.lcc.alpha.value(),
+        });
+        self.inner.node_finished(measurement);
+    }
+    fn node_given_up(&mut self, visit: &PlanVisit, reason: &GiveUpReason) {
+        self.given_up.push((visit.clone(), format!("{reason:?}")));
+        self.inner.node_given_up(visit, reason);
+    }
+    fn cycle_spoiled(&mut self, visit: &PlanVisit, reason: &spm_fos::SpoilReason) {
+        self.spoiled_cycles += 1;
+        self.inner.cycle_spoiled(visit, reason);
+    }
+    fn drift_estimate(&mut self, visit: &PlanVisit, velocity: CountVelocity, at: Seconds) {
+        self.drift.push(DriftSample {
+            time_s: at.value(),
+            vx_counts_per_s: velocity.x_counts_per_s,
+            vy_counts_per_s: velocity.y_counts_per_s,
+        });
+        self.inner.drift_estimate(visit, velocity, at);
+    }
+    fn keep_going(&mut self) -> bool {
+        self.inner.keep_going()
+    }
+}
+
+/// Where a run starts.
+#[derive(Debug, Clone, PartialEq)]
+pub enum RunStart {
+    /// A new run with this id.
+    New {
+        /// Run id.
+        run_id: String,
+    },
+    /// The newest unfinished run of the plan's scanner.
+    Resume,
+}
+
+/// The outcome of [`run_job`].
+pub struct JobOutcome {
+    /// The calibrator's report.
+    pub report: RunReport,
+    /// The simulator after the run (for the oracle), when the backend is simulated.
+    pub simulator: Option<Simulator>,
+}
+
+/// Runs a job's plan on its backend, appending to the CDB at `cdb_path`.
+///
+/// `start_unix_s` is the wall-clock start (the library reads no clock).
+pub fn run_job<O: Observer>(
+    job: &Job,
+    cdb_path: &Path,
+    start: RunStart,
+    start_unix_s: f64,
+    observer: &mut O,
+) -> Result<JobOutcome, JobRunError> {
+    let mut cdb = Cdb::open(cdb_path)?;
+    let run_id = match start {
+        RunStart::New { run_id } => run_id,
+        RunStart::Resume => {
+            let runs = cdb.runs(Some(&job.plan.scanner_id))?;
+            runs.iter()
+                .rev()
+                .find(|r| r.status == RunStatus::Running)
+                .map(|r| r.run_id.clone())
+                .ok_or_else(|| JobRunError::NothingToResume(job.plan.scanner_id.clone()))?
+        }
+    };
+    let options = RunOptions {
+        run_id,
+        start_unix_s,
+        config_text: job.provenance_text.clone(),
+    };
+    match &job.backend {
+        Backend::Sim(config) => {
+            let mut sim = Simulator::new((**config).clone())
+                .map_err(|e| JobRunError::Backend(e.to_string()))?;
+            let report = {
+                let mut calibrator =
+                    Calibrator::new(&mut sim, &mut cdb, observer, job.plan.clone())?;
+                calibrator.run(&options)?
+            };
+            Ok(JobOutcome {
+                report,
+                simulator: Some(sim),
+            })
+        }
+    }
+}

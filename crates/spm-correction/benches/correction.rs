@@ -98,6 +98,32 @@ fn bench(c: &mut Criterion) {
             });
         }
         group.bench_with_input(
+            BenchmarkId::new("fused, 1 thread, thread CPU time, reused buffer", n),
+            &n,
+            |b, _| {
+                let mut out = Vec::new();
+                b.iter_custom(|iters| {
+                    let t0 = thread_cpu_ns();
+                    for _ in 0..iters {
+                        correct_and_resample_into(
+                            &field,
+                            &geometry,
+                            ScanDirection::Direct,
+                            &Integration::default(),
+                            &img,
+                            None,
+                            Interpolation::Bilinear,
+                            Parallelism::Sequential,
+                            &mut out,
+                        )
+                        .unwrap();
+                        std::hint::black_box(&out);
+                    }
+                    std::time::Duration::from_nanos(thread_cpu_ns().saturating_sub(t0))
+                });
+            },
+        );
+        group.bench_with_input(
             BenchmarkId::new("fused, 1 thread, thread CPU time", n),
             &n,
             |b, _| {

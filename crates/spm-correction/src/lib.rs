@@ -62,7 +62,8 @@ pub use raster::{
     correct_raster_reusing,
 };
 pub use resample::{
-    Interpolation, MAX_OUTPUT_PIXELS, OutputGrid, correct_and_resample, resample, resample_into,
+    Interpolation, MAX_OUTPUT_PIXELS, OutputGrid, correct_and_resample, correct_and_resample_into,
+    resample, resample_into,
 };
 pub use surfaces::{
     BlendedField, FittedSurface, PlaneField, PlaneSurfaces, Provenance, Route,

@@ -438,6 +438,38 @@ pub fn correct_and_resample<F: CorrectionField + ?Sized>(
     interpolation: Interpolation,
     parallelism: Parallelism,
 ) -> Result<(OutputGrid, Vec<f64>), CorrectionError> {
+    let mut out = Vec::new();
+    let grid = correct_and_resample_into(
+        field,
+        geometry,
+        direction,
+        integration,
+        image,
+        step_nm,
+        interpolation,
+        parallelism,
+        &mut out,
+    )?;
+    Ok((grid, out))
+}
+
+/// [`correct_and_resample`] into a caller's buffer (resized to the output grid, which is
+/// returned), so image after image reuses one allocation.
+///
+/// # Errors
+/// As [`correct_and_resample`].
+#[allow(clippy::too_many_arguments)]
+pub fn correct_and_resample_into<F: CorrectionField + ?Sized>(
+    field: &F,
+    geometry: &RasterGeometry,
+    direction: ScanDirection,
+    integration: &Integration,
+    image: &[f64],
+    step_nm: Option<Nanometres>,
+    interpolation: Interpolation,
+    parallelism: Parallelism,
+    out: &mut Vec<f64>,
+) -> Result<OutputGrid, CorrectionError> {
     let lines = RasterLines::new(field, geometry, direction, integration)?;
     let (nx, ny) = (lines.geometry.columns, lines.geometry.rows);
     check_image(image, nx, ny)?;
@@ -461,12 +493,12 @@ pub fn correct_and_resample<F: CorrectionField + ?Sized>(
         rows: ny,
         interpolation,
     };
-    let mut out = vec![0.0; grid.columns * grid.rows];
+    out.resize(grid.columns * grid.rows, 0.0);
     let folded = std::sync::atomic::AtomicUsize::new(usize::MAX);
     let failure = std::sync::Mutex::new(None::<CorrectionError>);
     for_each_row(
         parallelism,
-        &mut out,
+        out,
         grid.columns * FUSED_CHUNK_ROWS,
         |chunk_index, chunk| {
             let mut lines_cache = [(usize::MAX, vec![0.0; nx]), (usize::MAX, vec![0.0; nx])];
@@ -517,7 +549,7 @@ pub fn correct_and_resample<F: CorrectionField + ?Sized>(
             index: j,
         });
     }
-    Ok((grid, out))
+    Ok(grid)
 }
 
 /// Checks the image against the map size and for infinities (NaN = missing data is allowed).

@@ -64,25 +64,21 @@ struct Grid {
 
 impl Grid {
     fn new(samples: &[Sample]) -> Self {
-        let min = samples
-            .iter()
-            .fold(f64::INFINITY, |m, s| m.min(s.dx).min(s.dy))
-            .round();
-        let max = samples
-            .iter()
-            .fold(f64::NEG_INFINITY, |m, s| m.max(s.dx).max(s.dy))
-            .round();
-        let len = if max >= min {
-            (max - min) as usize + 1
-        } else {
-            0
-        };
+        let (mut min, mut max) = (f64::INFINITY, f64::NEG_INFINITY);
+        for s in samples {
+            min = min.min(s.dx).min(s.dy);
+            max = max.max(s.dx).max(s.dy);
+        }
+        let min = min.floor();
+        let len = if max >= min { (max - min) as usize + 1 } else { 0 };
+        let last = len.saturating_sub(1);
+        // Offsets are whole pixels: truncation after adding ½ is exact rounding.
         let index = samples
             .iter()
             .map(|s| {
                 (
-                    ((s.dx - min).round().max(0.0) as usize).min(len.saturating_sub(1)),
-                    ((s.dy - min).round().max(0.0) as usize).min(len.saturating_sub(1)),
+                    ((s.dx - min + 0.5).max(0.0) as usize).min(last),
+                    ((s.dy - min + 0.5).max(0.0) as usize).min(last),
                 )
             })
             .collect();

@@ -70,7 +70,11 @@ impl Grid {
             max = max.max(s.dx).max(s.dy);
         }
         let min = min.floor();
-        let len = if max >= min { (max - min) as usize + 1 } else { 0 };
+        let len = if max >= min {
+            (max - min) as usize + 1
+        } else {
+            0
+        };
         let last = len.saturating_sub(1);
         // Offsets are whole pixels: truncation after adding ½ is exact rounding.
         let index = samples

@@ -138,7 +138,8 @@ impl Drift {
     #[inline]
     fn locate(&self, t_s: f64) -> (usize, f64) {
         let max = self.interval_jump.len().saturating_sub(1);
-        let j = ((t_s / self.interval_s).floor().max(0.0) as usize).min(max);
+        // Truncation is floor here: the argument is clamped to ≥ 0 first.
+        let j = ((t_s / self.interval_s).max(0.0) as usize).min(max);
         (j, (t_s - j as f64 * self.interval_s).max(0.0))
     }
 

@@ -20,6 +20,18 @@ const STREAM_NOISE: u64 = 1;
 const STREAM_FAULTS: u64 = 2;
 const DRIFT_SEED_SALT: u64 = 0xD21F_7000_0000_0001;
 
+/// Rounds to the nearest DAC/ADC code, ties away from zero like
+/// `f64::round` (which is a libm call on baseline x86-64), via a truncating
+/// cast for |x| < 2⁵¹; larger or non-finite values use `f64::round`.
+#[inline]
+fn round_code(x: f64) -> f64 {
+    if x.abs() < 2_251_799_813_685_248.0 {
+        ((x + 0.5f64.copysign(x)) as i64) as f64
+    } else {
+        x.round()
+    }
+}
+
 /// The tip's imaging state (changed by tip-change faults).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(crate) struct TipState {
@@ -255,7 +267,7 @@ impl Simulator {
 
     fn quantise_lateral(&self, u: [f64; 2]) -> [f64; 2] {
         if self.config.measurement.quantise_lateral_dac {
-            [u[0].round(), u[1].round()]
+            [round_code(u[0]), round_code(u[1])]
         } else {
             u
         }
@@ -271,7 +283,7 @@ impl Simulator {
         };
         let z = (self.z_nm + n + self.flicker.value()) / self.map.kz_nm_per_count();
         if self.config.measurement.quantise_z_adc {
-            z.round()
+            round_code(z)
         } else {
             z
         }
@@ -678,7 +690,7 @@ impl Simulator {
         };
         let z = (self.z_nm + n + self.flicker.value()) / kz;
         if self.config.measurement.quantise_z_adc {
-            z.round()
+            round_code(z)
         } else {
             z
         }
@@ -767,9 +779,10 @@ impl Simulator {
         // With DAC rounding the ramp stays linear when the step is whole and
         // the rounded ends are exactly (nx − 1) steps apart.
         let linear_x = !quantise
-            || (step.fract() == 0.0 && x_hi.round() - x_lo.round() == step * (nx - 1) as f64);
+            || (step.fract() == 0.0
+                && round_code(x_hi) - round_code(x_lo) == step * (nx - 1) as f64);
         let (x_lo, x_hi) = if quantise {
-            (x_lo.round(), x_hi.round())
+            (round_code(x_lo), round_code(x_hi))
         } else {
             (x_lo, x_hi)
         };

@@ -771,12 +771,15 @@ impl<'a, M: Microscope, S: ProgressStore, O: Observer> Calibrator<'a, M, S, O> {
                 drift,
             } => {
                 let _s = tracing::debug_span!("skip", vector = index).entered();
-                let now = match mic.now() {
-                    Ok(t) => t,
-                    Err(e) => return Ok(Event::Failed(instrument(e))),
-                };
-                let start = from.predict(drift, now);
-                match spm_fos::skip(mic, start, estimate, drift, &self.fos.skip) {
+                // fos predicts A at its next scan from the sighting time and the drift.
+                match spm_fos::skip(
+                    mic,
+                    from.position,
+                    from.time,
+                    estimate,
+                    drift,
+                    &self.fos.skip,
+                ) {
                     Ok(r) => {
                         for c in &r.cycles {
                             if let Decision::Discard(reason) = c.decision {

@@ -1,4 +1,6 @@
-//! Timing breakdown of detection on a 64×64 aperture (development aid).
+//! CPU-time probe of detection (development aid; use with `perf stat -e task-clock`):
+//! `profile_detect fits` = 2001 apertures 64×64 (17 atoms each), `nofits` = 2000
+//! apertures with fitting disabled, `segment` = 40 000 segments 16×16.
 #![allow(clippy::unwrap_used)]
 
 #[path = "../tests/common/mod.rs"]
@@ -35,6 +37,28 @@ fn main() {
     );
     let n = 2000;
     let mode = std::env::args().nth(1).unwrap_or_default();
+    if mode == "segment" {
+        let step16 = Counts(1.2 * hopg.a_counts / 15.0);
+        let atom = hopg.atom(3, 2);
+        let centre =
+            spm_hal::CountPoint::from_counts(atom.x.value() + 0.3 * step16.value(), atom.y.value());
+        let segment = segment_map(
+            &hopg,
+            centre,
+            step16,
+            16,
+            hopg.corrugation_z / 10.0,
+            &mut rng,
+        );
+        let config16 = DetectionConfig {
+            min_separation_px: 0.4 * hopg.a_counts / step16.value(),
+            ..DetectionConfig::default()
+        };
+        for _ in 0..20 * n {
+            std::hint::black_box(detect(&segment, &config16).unwrap());
+        }
+        return;
+    }
     if mode == "nofits" {
         let config = DetectionConfig {
             min_snr: 1e6,

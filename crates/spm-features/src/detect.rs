@@ -633,7 +633,7 @@ fn localise(
         let new_radius = (config.fit_radius_sigmas * width)
             .min(1.25 * config.min_separation_px)
             .clamp(config.min_fit_radius_px, config.max_fit_radius_px);
-        if pass == 0 && moved < 0.5 && (new_radius - radius).abs() < 1.0 {
+        if pass == 0 && moved < 1.0 && (new_radius - radius).abs() < 1.0 {
             break;
         }
     }

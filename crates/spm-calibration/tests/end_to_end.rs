@@ -435,26 +435,32 @@ fn diagnose_bias_sources() {
     ] {
         let mut probe = Probe::new(config);
         let mut store = MemoryStore::default();
-        Calibrator::new(
-            &mut probe,
-            &mut store,
-            &mut NoObserver,
-            PlanConfig::hopg_small_net(),
-        )
-        .unwrap()
-        .run(&options(name))
-        .unwrap();
+        let mut plan = PlanConfig::hopg_small_net();
+        plan.repeats = 6;
+        Calibrator::new(&mut probe, &mut store, &mut NoObserver, plan)
+            .unwrap()
+            .run(&options(name))
+            .unwrap();
         let e = errors(&probe, &store);
         let n = e.len() as f64;
         let m: Vec<f64> = (0..3)
             .map(|k| e.iter().map(|v| v[k]).sum::<f64>() / n)
             .collect();
+        let se: Vec<f64> = (0..3)
+            .map(|k| {
+                let var = e.iter().map(|v| (v[k] - m[k]).powi(2)).sum::<f64>() / (n - 1.0);
+                (var / n).sqrt()
+            })
+            .collect();
         println!(
-            "{name}: n {} mean kx {:+.4} ky {:+.4} alpha {:+.4}",
+            "{name}: n {} mean kx {:+.4} ± {:.4} ky {:+.4} ± {:.4} alpha {:+.4} ± {:.4}",
             e.len(),
             m[0],
+            se[0],
             m[1],
-            m[2]
+            se[1],
+            m[2],
+            se[2]
         );
     }
 }

@@ -25,15 +25,19 @@ pub struct AttachParams {
     pub motion: Motion,
     /// The attachment is settled when the drift speed is below this, counts per second.
     pub velocity_limit_counts_per_s: f64,
-    /// Consecutive velocity estimates below the limit needed to settle. Default 2.
+    /// Consecutive velocity estimates below the limit needed to settle.
+    /// Default 3 (a single low estimate is as likely noise as settling).
     pub settle_count: usize,
     /// Attachments used for each velocity estimate (least-squares line over
-    /// positions and times), at least 2. Default 3.
+    /// positions and times), at least 2. Default 4. A decaying creep makes a
+    /// longer window overestimate the current speed: conservative.
     pub velocity_window: usize,
     /// Give up waiting after this long, seconds.
     pub timeout_s: f64,
     /// Pause before each segment attachment, seconds: a longer baseline
-    /// makes each velocity estimate less noisy. Default 0.
+    /// makes each velocity estimate less noisy. Keep the drift over one
+    /// interval well below half the feature spacing, or the tracker may lock
+    /// onto a neighbouring feature (an aliased velocity). Default 0.
     pub attachment_interval_s: f64,
     /// A feature farther than this fraction of the segment's side from its
     /// predicted position is lost. Default 0.4.
@@ -55,8 +59,8 @@ impl AttachParams {
             segment_detection: DetectionConfig::default(),
             motion: Motion::default(),
             velocity_limit_counts_per_s,
-            settle_count: 2,
-            velocity_window: 3,
+            settle_count: 3,
+            velocity_window: 4,
             timeout_s,
             attachment_interval_s: 0.0,
             capture_radius_fraction: 0.4,

@@ -137,8 +137,9 @@ fn check_attach(
 
 #[test]
 fn attach_settles_or_times_out_by_the_drift_speed() {
-    // Slow drift (2 counts/s = 0.1 Å/s) under a 8 counts/s limit: first scan + 2 segments.
-    check_attach((2.0, -1.0), 8.0, 5.0, 3, ("settled", 3));
+    // Slow drift (2 counts/s = 0.1 Å/s) under a 8 counts/s limit: first scan
+    // + 3 segments (three consecutive estimates below the limit).
+    check_attach((2.0, -1.0), 8.0, 5.0, 4, ("settled", 4));
     // Fast drift (20 counts/s = 1 Å/s) never settles: times out, the feature held.
     check_attach((20.0, 5.0), 8.0, 1.0, 40, ("timed out", 5));
 }

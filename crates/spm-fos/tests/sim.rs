@@ -298,6 +298,7 @@ fn attach_after_a_node_move_settles_only_when_creep_has_died_out() {
         sim.wait(Seconds(5.0)).unwrap();
         let mut params = attach_params(limit, timeout_s);
         params.attachment_interval_s = 0.25;
+        params.velocity_window = 5;
         let report = attach(&mut sim, node, &params).unwrap();
         let f = report.feature.unwrap();
         let truth = true_velocity(&mut sim, &f);

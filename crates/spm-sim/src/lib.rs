@@ -34,7 +34,10 @@
 //! `2·pixels·dwell`: every line is a trace and a retrace at the same dwell,
 //! times are dwell midpoints as in [`spm_hal::Frame::from_fn`], and the
 //! retrace is simulated (creep, feedback, drift, noise) whether or not it is
-//! recorded. The probe ends at the last retrace's last pixel.
+//! recorded (an unrecorded retrace whose hysteresis is frozen is advanced in
+//! closed form — exact for creep, an exact AR step for the 1/f processes —
+//! and only its last ~20 feedback time constants pixel by pixel). The probe
+//! ends at the last retrace's last pixel.
 //!
 //! ## The scanner model
 //! Per lateral axis, commanded counts `u` (DAC-quantised if configured) pass
@@ -78,7 +81,7 @@
 //!   a node with an overshoot (or scan once) to reverse both axes first.
 //! - **Creep adds `S(t)`**: a move observed t seconds later has travelled
 //!   `(1 + S(t))·J_F·Δu`. With the shipped creep (γ = 0.015, τ_min = 20 ms)
-//!   `S(0.1 s) ≈ 1.2 %`, `S(1 s) ≈ 2.7 %`; alternating skips with period P see
+//!   `S(0.1 s) ≈ 1.7 %`, `S(0.3 s) ≈ 2.4 %`, `S(1 s) ≈ 3.2 %`, `S(10 s) ≈ 4.8 %`; alternating skips with period P see
 //!   roughly `1 + S(P/2)` for the elements faster than P and a common-mode
 //!   offset (cancelled like drift) for the slower ones. [`Oracle::creep_step_response`]
 //!   gives S(t) to compute what a protocol should measure; set
@@ -87,7 +90,10 @@
 //!   `1 + W_h` (`W_h` = total play weight) and settled creep a further
 //!   `1 + W_c`, so the reference (demagnetised, settled) effective input of
 //!   commanded u is `(1 + W_h)(1 + W_c)·u` ([`Oracle::reference_effective_input`]);
-//!   [`Oracle::true_lcc`] evaluates `J_F` there. A node's actual `uₑ` departs
+//!   [`Oracle::true_lcc`] evaluates `J_F` there. In `sim-hopg.toml`
+//!   W_h = 0.155 (x) / 0.194 (y) and W_c = 0.081, i.e. reference gains 1.249 / 1.290:
+//!   the large-signal field is ~25 % wider in nm than the small-signal
+//!   sensitivity × counts, as for real PZT tubes. A node's actual `uₑ` departs
 //!   from it by the history-dependent offset (up to `width·half·(1 + W_c)`
 //!   plus unsettled creep), which changes the local LCCs by `F″·δuₑ`
 //!   (≈ 0.2–1.5 % at the shipped nonlinearity). For 0.1 %-level checks compare

@@ -922,11 +922,10 @@ impl Microscope for Simulator {
             field_max: CountPoint::from_counts(h - 1.0, h - 1.0),
             z_min: Counts(-hz),
             z_max: Counts(hz - 1.0),
-            lateral_resolution: Counts(if self.config.measurement.quantise_lateral_dac {
-                1.0
-            } else {
-                0.0
-            }),
+            // One count is the DAC step by definition; with
+            // `quantise_lateral_dac = false` the simulator additionally honours
+            // sub-count commands exactly (an ideal DAC), but still advertises 1.
+            lateral_resolution: Counts(1.0),
             max_pixels_per_line: i.max_pixels_per_line,
             max_lines: i.max_lines,
             min_pixel_dwell: Seconds(i.min_pixel_dwell_s),

@@ -585,6 +585,45 @@ mod tests {
     use crate::config::SimConfig;
 
     #[test]
+    fn si7x7_corner_holes_and_generic_features_are_extrema() {
+        use crate::config::{LatticeConfig, Si7x7Config};
+        let surfaces = [
+            SurfaceConfig::Si7x7(Si7x7Config {
+                lattice_constant_nm: 2.688,
+                corner_hole_depth_nm: 0.1,
+                corner_hole_sigma_nm: 0.35,
+                rotation_deg: 10.0,
+            }),
+            SurfaceConfig::SquareLattice(LatticeConfig {
+                lattice_constant_nm: 0.5,
+                feature_height_nm: 0.05,
+                feature_sigma_nm: 0.08,
+                rotation_deg: 0.0,
+            }),
+            SurfaceConfig::HexLattice(LatticeConfig {
+                lattice_constant_nm: 0.4,
+                feature_height_nm: -0.03,
+                feature_sigma_nm: 0.1,
+                rotation_deg: 30.0,
+            }),
+        ];
+        for config in surfaces {
+            let s = Surface::from_config(&config, 3);
+            let sites = s.features_near(NmPoint::from_nm(1.0, -2.0), 6.0);
+            assert!(sites.len() >= 4, "{config:?}");
+            for site in sites {
+                let (x, y) = (site.position.x.value(), site.position.y.value());
+                let z0 = s.height_nm(x, y);
+                for k in 0..8 {
+                    let a = f64::from(k) * PI / 4.0;
+                    let z = s.height_nm(x + 0.02 * a.cos(), y + 0.02 * a.sin());
+                    assert_eq!(z < z0, site.kind.is_hill(), "{site:?}");
+                }
+            }
+        }
+    }
+
+    #[test]
     fn fast_sin_cos_matches_libm() {
         let mut x = -30000.0;
         while x < 30000.0 {

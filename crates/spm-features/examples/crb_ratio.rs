@@ -67,7 +67,9 @@ fn main() {
                 noise,
                 true,
             )
-            .unwrap();
+            .unwrap_or_else(|e| {
+                panic!("{e}: radius {radius}, feature {f:?}, atom at ({col}, {row})")
+            });
             crb2 += b.sigma_x.value().powi(2) + b.sigma_y.value().powi(2);
             amp += f.amplitude_z_counts;
             n += 1;

@@ -601,6 +601,10 @@ fn localise(
         } else {
             None
         };
+        // A free width far from the estimate means the fit latched onto noise
+        // (a spike) or onto the background: hold the width instead.
+        let free =
+            free.filter(|fit| fit.params[3] > 0.5 * init[3] && fit.params[3] < 2.0 * init[3]);
         let fit = match free {
             Some(fit) => fit,
             None => {

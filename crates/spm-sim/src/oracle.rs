@@ -165,6 +165,9 @@ impl<'a> Oracle<'a> {
     /// The commanded position at which sample point `s` appears now: solves
     /// `F(u + h(u) + c, z) + d(now) = s` (Newton on F, fixed point on the
     /// hysteresis, current creep and Z). `None` if it does not converge.
+    /// "Now" is literal: it ignores DAC rounding (≤ 0.5 count), the Z change
+    /// at the target (through the Z⇒X/Y couplings, a few pm on HOPG), and
+    /// the creep and drift during the call overhead and the move itself.
     pub fn commanded_for_sample_point(&self, sample: NmPoint) -> Option<CountPoint> {
         let d = self.sim.drift.displacement(self.sim.time_s);
         let target = [sample.x.value() - d[0], sample.y.value() - d[1]];

@@ -330,7 +330,7 @@ impl FosParams {
 }
 
 /// The calibration controller: a plan, a microscope, a store and an observer.
-pub struct Calibrator<'a, M: Microscope, S: ProgressStore, O: Observer> {
+pub struct Calibrator<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> {
     microscope: &'a mut M,
     store: &'a mut S,
     observer: &'a mut O,
@@ -384,7 +384,7 @@ fn instrument<E: spm_hal::Error>(e: E) -> Failure {
     }
 }
 
-impl<'a, M: Microscope, S: ProgressStore, O: Observer> Calibrator<'a, M, S, O> {
+impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibrator<'a, M, S, O> {
     /// A controller for `config` on `microscope` (the net is laid in its field).
     ///
     /// # Errors

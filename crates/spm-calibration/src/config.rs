@@ -303,7 +303,10 @@ pub struct VariantConfig {
 pub enum AttachTarget {
     /// The feature nearest the node (Fig. 3a).
     FeatureA,
-    /// The gravity centre of the LCS nearest the node (Fig. 3b).
+    /// The LCS nearest the node (Fig. 3b): no separate feature attachment; the aperture is
+    /// scanned around the node itself, A is the feature nearest the node, and the LCCs are
+    /// associated with the LCS's gravity centre. Faster (one scan fewer per node), for nets
+    /// whose step is much larger than the LCS.
     LcsCentre,
 }
 

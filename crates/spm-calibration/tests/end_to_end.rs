@@ -464,3 +464,41 @@ fn diagnose_bias_sources() {
         );
     }
 }
+
+#[test]
+fn resuming_with_a_different_plan_is_refused() {
+    let path = std::env::temp_dir().join(format!(
+        "spm-calibration-conflict-{}.sqlite",
+        std::process::id()
+    ));
+    let _ = std::fs::remove_file(&path);
+    let mut cdb = Cdb::open(&path).unwrap();
+    let mut probe = Probe::new(SimConfig::ideal());
+    let mut stop = StopAfter {
+        limit: 0,
+        finished: 0,
+    };
+    let report = Calibrator::new(
+        &mut probe,
+        &mut cdb,
+        &mut stop,
+        PlanConfig::hopg_small_net(),
+    )
+    .unwrap()
+    .run(&options("conflict"))
+    .unwrap();
+    assert!(report.interrupted);
+    let mut other = PlanConfig::hopg_small_net();
+    other.net.step_counts = 15000;
+    let error = Calibrator::new(&mut probe, &mut cdb, &mut NoObserver, other)
+        .unwrap()
+        .run(&options("conflict"))
+        .unwrap_err();
+    assert!(
+        matches!(error, spm_calibration::RunError::Store(_)),
+        "{error}"
+    );
+    assert_eq!(cdb.progress_summary("conflict").unwrap().done, 0);
+    drop(cdb);
+    let _ = std::fs::remove_file(&path);
+}

@@ -159,6 +159,18 @@ pub fn run(
             a.distributed_over_lumped_rms
         );
     }
+    if let Some(e) = &report.node_lcc_error {
+        println!(
+            "node LCCs vs oracle ({} records): K̄x {:+.3} ± {:.3} %, K̄y {:+.3} ± {:.3} %, α {:+.2} ± {:.2} mrad (mean, RMS)",
+            e.n,
+            e.kx_mean_pct,
+            e.kx_rms_pct,
+            e.ky_mean_pct,
+            e.ky_rms_pct,
+            e.alpha_mean_mrad,
+            e.alpha_rms_mrad
+        );
+    }
     println!("output: {}", out.display());
     Ok(())
 }

@@ -58,6 +58,25 @@ pub struct AccuracyTable {
     pub distributed_over_lumped_rms: f64,
 }
 
+/// Measured node LCCs against the oracle's true LCCs at the LCS centres.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct NodeLccError {
+    /// Records compared.
+    pub n: usize,
+    /// Mean (K̄x measured / true − 1), % (bias).
+    pub kx_mean_pct: f64,
+    /// RMS (K̄x measured / true − 1), %.
+    pub kx_rms_pct: f64,
+    /// Mean (K̄y measured / true − 1), %.
+    pub ky_mean_pct: f64,
+    /// RMS (K̄y measured / true − 1), %.
+    pub ky_rms_pct: f64,
+    /// Mean (α measured − true), mrad.
+    pub alpha_mean_mrad: f64,
+    /// RMS (α measured − true), mrad.
+    pub alpha_rms_mrad: f64,
+}
+
 /// What report.json holds.
 #[derive(Debug, Clone, Serialize)]
 pub struct CalibrationReport {
@@ -77,6 +96,8 @@ pub struct CalibrationReport {
     pub regression: RegressionSummary,
     /// Accuracy against the oracle (simulated backends only).
     pub accuracy: Option<AccuracyTable>,
+    /// Every record's LCCs against the oracle's true LCCs (simulated backends only).
+    pub node_lcc_error: Option<NodeLccError>,
     /// The calibrator's own report (cycles, given-up nodes with reasons, …).
     pub run: RunReport,
     /// How the figures were measured, and what is not.
@@ -231,6 +252,39 @@ pub fn finish(
         record.plan.standard.nominal_nm_per_count,
     )?;
 
+    let node_lcc_error = record.simulator.and_then(|sim| {
+        let oracle = sim.oracle();
+        let z = spm_hal::Counts(oracle.z_now().value());
+        let mut e = Vec::with_capacity(all.len());
+        for r in &all {
+            let truth = oracle.true_lcc(
+                spm_hal::CountPoint::from_counts(r.lcs_x_counts, r.lcs_y_counts),
+                z,
+            );
+            e.push((
+                (r.kx_nm_per_count / truth.kx.value() - 1.0) * 100.0,
+                (r.ky_nm_per_count / truth.ky.value() - 1.0) * 100.0,
+                (r.alpha_rad - truth.alpha.value()) * 1e3,
+            ));
+        }
+        if e.is_empty() {
+            return None;
+        }
+        let n = e.len() as f64;
+        let mean = |f: fn(&(f64, f64, f64)) -> f64| e.iter().map(f).sum::<f64>() / n;
+        let rms = |f: fn(&(f64, f64, f64)) -> f64| {
+            (e.iter().map(|v| f(v).powi(2)).sum::<f64>() / n).sqrt()
+        };
+        Some(NodeLccError {
+            n: e.len(),
+            kx_mean_pct: mean(|v| v.0),
+            kx_rms_pct: rms(|v| v.0),
+            ky_mean_pct: mean(|v| v.1),
+            ky_rms_pct: rms(|v| v.1),
+            alpha_mean_mrad: mean(|v| v.2),
+            alpha_rms_mrad: rms(|v| v.2),
+        })
+    });
     let measured = record.run.nodes_done.max(1) as f64;
     let report = CalibrationReport {
         nodes: record.run.nodes,
@@ -241,6 +295,7 @@ pub fn finish(
         wall_time_per_node_ms: record.wall_time_s / measured * 1e3,
         regression: fitted.summary,
         accuracy,
+        node_lcc_error,
         run: record.run.clone(),
         notes,
     };

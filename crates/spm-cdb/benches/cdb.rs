@@ -112,6 +112,19 @@ fn bulk_insert(c: &mut Criterion) {
             total
         });
     });
+    g.bench_function("cpu_time/bulk_1e6_one_transaction", |b| {
+        b.iter_custom(|iters| {
+            let mut total = Duration::ZERO;
+            for _ in 0..iters {
+                let (mut cdb, ids) = with_runs("bulk", Synchronous::Full);
+                total += cpu_time_of(1, || {
+                    cdb.import_records((0..N_BIG).map(|i| record(i, &ids)))
+                        .unwrap()
+                });
+            }
+            total
+        });
+    });
     g.finish();
 }
 
@@ -161,6 +174,28 @@ fn per_node(c: &mut Criterion) {
     g.finish();
 }
 
+/// On-CPU time of the calling thread (ns, from /proc/thread-self/schedstat; Linux only).
+/// SQLite and the fit run on this thread, so this is robust to other processes sharing the
+/// cores, unlike wall time.
+fn thread_cpu() -> Option<Duration> {
+    let s = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    let ns: u64 = s.split_whitespace().next()?.parse().ok()?;
+    Some(Duration::from_nanos(ns))
+}
+
+/// Runs `f` `iters` times and returns the thread CPU time it used (wall time if unavailable).
+fn cpu_time_of<T>(iters: u64, mut f: impl FnMut() -> T) -> Duration {
+    let wall = Instant::now();
+    let start = thread_cpu();
+    for _ in 0..iters {
+        std::hint::black_box(f());
+    }
+    match (start, thread_cpu()) {
+        (Some(a), Some(b)) => b.saturating_sub(a),
+        _ => wall.elapsed(),
+    }
+}
+
 fn query_and_fit(c: &mut Criterion) {
     let (mut cdb, ids) = with_runs("query", Synchronous::Normal);
     cdb.import_records((0..N_BIG).map(|i| record(i, &ids)))
@@ -187,6 +222,23 @@ fn query_and_fit(c: &mut Criterion) {
                 &cols.kx_nm_per_count,
             );
             fit(&obs, 3, &FitOptions::default()).unwrap()
+        });
+    });
+    // The same two measurements in thread CPU time instead of wall time.
+    g.bench_function("cpu_time/query_1e6", |b| {
+        b.iter_custom(|iters| cpu_time_of(iters, || cdb.columns(&filter).unwrap()));
+    });
+    g.bench_function("cpu_time/query_and_fit_degree3_1e6", |b| {
+        b.iter_custom(|iters| {
+            cpu_time_of(iters, || {
+                let cols = cdb.columns(&filter).unwrap();
+                let obs = Observations::new(
+                    &cols.lcs_x_counts,
+                    &cols.lcs_y_counts,
+                    &cols.kx_nm_per_count,
+                );
+                fit(&obs, 3, &FitOptions::default()).unwrap()
+            })
         });
     });
     g.finish();

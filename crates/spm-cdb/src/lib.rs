@@ -369,8 +369,7 @@ u_kx_nm_per_count, u_ky_nm_per_count, u_alpha_rad, u_kz_nm_per_count, drift_vx_n
 drift_vy_nm_per_s, cycles_kept, cycles_discarded, quality) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, \
 ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20, ?21, ?22, ?23, ?24, ?25)";
 
-fn insert_record(conn: &Connection, r: &LccRecord) -> rusqlite::Result<()> {
-    let mut stmt = conn.prepare_cached(INSERT_RECORD)?;
+fn insert_record(stmt: &mut rusqlite::Statement<'_>, r: &LccRecord) -> rusqlite::Result<()> {
     stmt.execute(params![
         r.scanner_id,
         r.run_id,
@@ -768,7 +767,8 @@ impl Cdb {
                     ),
                 ));
             }
-            insert_record(&tx, r).map_err(err)?;
+            let mut stmt = tx.prepare_cached(INSERT_RECORD).map_err(err)?;
+            insert_record(&mut stmt, r).map_err(err)?;
         }
         tx.execute(
             "UPDATE progress SET state = 'done', reason = NULL, attempts = ?4, \
@@ -877,11 +877,15 @@ impl Cdb {
         let err = |e| CdbError::sqlite(&path, e);
         let tx = self.write_tx()?;
         let mut n = 0;
-        for r in records {
-            let r = std::borrow::Borrow::borrow(&r);
-            validate_record(&path, r)?;
-            insert_record(&tx, r).map_err(err)?;
-            n += 1;
+        {
+            // One prepared statement for the whole import (no per-row cache lookup).
+            let mut stmt = tx.prepare(INSERT_RECORD).map_err(err)?;
+            for r in records {
+                let r = std::borrow::Borrow::borrow(&r);
+                validate_record(&path, r)?;
+                insert_record(&mut stmt, r).map_err(err)?;
+                n += 1;
+            }
         }
         tx.commit().map_err(err)?;
         tracing::info!(records = n, "records imported");

@@ -4,8 +4,11 @@
 //! spmcal CDB. History:
 //! - v1: runs, progress, records without standard uncertainties.
 //! - v2: records gain `u_kx_nm_per_count`, `u_ky_nm_per_count`, `u_alpha_rad`,
-//!   `u_kz_nm_per_count` (NULL = unknown for records migrated from v1) and an index on
-//!   (scanner_id, acquired_unix_s) for time-window queries.
+//!   `u_kz_nm_per_count` (NULL = unknown for records migrated from v1).
+//!
+//! Indexes are kept to two on `records` (the unique (run, repeat, node, lcs) key and
+//! (scanner, z plane, time), which also serves scanner + time-window queries) because each
+//! index costs insert time.
 
 use rusqlite::{Connection, TransactionBehavior};
 use std::path::Path;
@@ -74,16 +77,14 @@ CREATE TABLE records (
 );
 CREATE UNIQUE INDEX records_node ON records (run_id, repeat_index, node_index, lcs_index);
 CREATE INDEX records_plane ON records (scanner_id, node_z_counts, acquired_unix_s);
-CREATE INDEX records_time ON records (scanner_id, acquired_unix_s);
 ";
 
-/// v1 → v2: standard uncertainties and the time index.
+/// v1 → v2: standard uncertainties.
 const MIGRATE_V1_TO_V2: &str = "
 ALTER TABLE records ADD COLUMN u_kx_nm_per_count REAL;
 ALTER TABLE records ADD COLUMN u_ky_nm_per_count REAL;
 ALTER TABLE records ADD COLUMN u_alpha_rad REAL;
 ALTER TABLE records ADD COLUMN u_kz_nm_per_count REAL;
-CREATE INDEX IF NOT EXISTS records_time ON records (scanner_id, acquired_unix_s);
 ";
 
 /// Migration steps: `MIGRATIONS[k]` takes version k+1 to k+2.

@@ -29,6 +29,10 @@ pub struct BaselineReport {
     pub rms_pm: f64,
     /// Held-out RMS (two-fold over alternate lines), pm.
     pub heldout_rms_pm: f64,
+    /// Whether constant drift could be told apart from the lumped scanner
+    /// (false: one frame or frames scanned alike; the drift is then inside
+    /// the scales and obliquity and `drift_*` are absent).
+    pub drift_separable: bool,
     /// Lumped scanner (`scale_x`, `scale_y`: true nm per nominal nm;
     /// `obliquity_deg`; `rotation_deg`), constant drift in the image axes
     /// (`drift_x_nm_per_s`, `drift_y_nm_per_s`) and per-frame offsets.
@@ -66,6 +70,9 @@ pub struct FinalReport {
     pub rms_pm: f64,
     /// Held-out RMS of the final model, pm.
     pub heldout_rms_pm: f64,
+    /// The lumped scanner, drift and offsets in the final (extended) model
+    /// (same keys as the baseline's).
+    pub parameters: BTreeMap<String, ParamValue>,
 }
 
 /// Tests of structure left in the final residual.
@@ -196,6 +203,9 @@ fn best_extension(
     for h in cands {
         let mut all = cols.to_vec();
         let extra = effect_columns(kind, h, obs, ctx);
+        if nearly_collinear(&extra, cols, mask) {
+            continue;
+        }
         all.extend(extra.iter().cloned());
         let Ok(fit) = solve(&all, target, mask) else {
             continue;
@@ -386,7 +396,15 @@ fn effect_params(added: &Added, fit: &Fit, frames: &[FrameInfo]) -> BTreeMap<Str
         .clone()
         .map(|i| (fit.coef[i], fit.cov[(i, i)].max(0.0).sqrt()))
         .collect();
-    if added.kind != EffectKind::PeriodicVibration {
+    if added.kind == EffectKind::Creep {
+        for (i, (v, s)) in vals.iter().enumerate() {
+            let axis = if i % 2 == 0 { "x" } else { "y" };
+            m.insert(
+                format!("creep_{axis}_nm_per_decade_frame{}", i / 2),
+                pv(*v, *s),
+            );
+        }
+    } else if added.kind != EffectKind::PeriodicVibration {
         for (name, (v, s)) in names.iter().zip(&vals) {
             m.insert((*name).to_owned(), pv(*v, *s));
         }
@@ -437,6 +455,63 @@ fn effect_params(added: &Added, fit: &Fit, frames: &[FrameInfo]) -> BTreeMap<Str
     m
 }
 
+/// Whether some of `extra` is ≥ 99.9 % explained by `cols` (R² of its
+/// variation about its mean, over the fitted equations): the effect is then
+/// confounded with the model already there.
+fn nearly_collinear(extra: &[Column], cols: &[Column], mask: &[bool]) -> bool {
+    let n = mask.iter().filter(|m| **m).count().max(1) as f64;
+    extra.iter().any(|c| {
+        let mean = [0, 1].map(|a| {
+            (0..mask.len())
+                .filter(|&k| mask[k])
+                .map(|k| c[2 * k + a])
+                .sum::<f64>()
+                / n
+        });
+        let total: f64 = (0..mask.len())
+            .filter(|&k| mask[k])
+            .map(|k| (c[2 * k] - mean[0]).powi(2) + (c[2 * k + 1] - mean[1]).powi(2))
+            .sum();
+        match solve(cols, c, mask) {
+            Ok(f) => total <= 0.0 || f.rss < 1e-3 * total,
+            Err(_) => true,
+        }
+    })
+}
+
+/// Least squares with robust outlier rejection (mis-indexed or defective features).
+fn robust_fit(
+    cols: &[Column],
+    target: &[f64],
+    mask: &mut Vec<bool>,
+    outlier_sigmas: f64,
+    needed: usize,
+    floor_nm: f64,
+) -> Result<Fit, ModelCheckError> {
+    let n = mask.len();
+    let mut fit = solve(cols, target, mask)?;
+    for _ in 0..5 {
+        let mut abs: Vec<f64> = (0..n)
+            .filter(|&k| mask[k])
+            .flat_map(|k| [fit.residual[2 * k].abs(), fit.residual[2 * k + 1].abs()])
+            .collect();
+        abs.sort_by(f64::total_cmp);
+        let sigma = 1.4826 * abs.get(abs.len() / 2).copied().unwrap_or(0.0);
+        // Never below a quarter period: a mis-indexed feature is off by a
+        // lattice vector, a real effect (a tip jump) may be many σ.
+        let limit = (outlier_sigmas * sigma).max(floor_nm);
+        let new: Vec<bool> = (0..n)
+            .map(|k| fit.residual[2 * k].abs() <= limit && fit.residual[2 * k + 1].abs() <= limit)
+            .collect();
+        if new == *mask || new.iter().filter(|m| **m).count() < needed {
+            break;
+        }
+        *mask = new;
+        fit = solve(cols, target, mask)?;
+    }
+    Ok(fit)
+}
+
 /// Diagnoses a set of indexed-able feature observations against a lattice.
 ///
 /// Steps: index to lattice sites; baseline fit (lumped linear scanner,
@@ -469,6 +544,7 @@ pub fn diagnose_indexed(
         )));
     }
     let (obs, source, t_mid) = build_obs(set, sites, basis.a1_nm, basis.a2_nm)?;
+    let lattice_a_nm = basis.a1_nm[0].hypot(basis.a1_nm[1]);
     let n_frames = set.frames.len();
     let needed = 8 + n_frames * 2;
     if obs.len() < needed {
@@ -479,28 +555,55 @@ pub fn diagnose_indexed(
         });
     }
     let target: Vec<f64> = obs.iter().flat_map(|o| o.site).collect();
-    let base_cols = baseline_columns(&obs, n_frames);
-    // Robust baseline: drop outliers (mis-indexed or defective features).
+    let mut base_cols = baseline_columns(&obs, n_frames);
     let mut mask = vec![true; obs.len()];
-    let mut fit = solve(&base_cols, &target, &mask)?;
-    for _ in 0..5 {
-        let mut abs: Vec<f64> = (0..obs.len())
-            .filter(|&k| mask[k])
-            .flat_map(|k| [fit.residual[2 * k].abs(), fit.residual[2 * k + 1].abs()])
-            .collect();
-        abs.sort_by(f64::total_cmp);
-        let sigma = 1.4826 * abs.get(abs.len() / 2).copied().unwrap_or(0.0);
-        let limit = options.outlier_sigmas * sigma.max(1e-12);
-        let new: Vec<bool> = (0..obs.len())
-            .map(|k| fit.residual[2 * k].abs() <= limit && fit.residual[2 * k + 1].abs() <= limit)
-            .collect();
-        if new == mask || new.iter().filter(|m| **m).count() < needed {
-            break;
+    let mut fit = robust_fit(
+        &base_cols,
+        &target,
+        &mut mask,
+        options.outlier_sigmas,
+        needed,
+        0.25 * lattice_a_nm,
+    )?;
+    // Constant drift and the lumped scanner are inseparable when the times
+    // follow the positions (one frame, or frames scanned the same way): then
+    // the drift is absorbed into the lumped scanner (Lapshin's point for
+    // counter-scanning) and not reported.
+    let (trial, _) = decompose(&fit);
+    let relative = |k: &str| {
+        trial
+            .get(k)
+            .map_or(f64::INFINITY, |p| p.sigma / p.value.abs().max(1e-12))
+    };
+    let without_drift: Vec<Column> = base_cols
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| *i != 4 && *i != 5)
+        .map(|(_, c)| c.clone())
+        .collect();
+    let drift_separable = !nearly_collinear(&base_cols[4..6], &without_drift, &mask)
+        && relative("scale_x") < 0.05
+        && relative("scale_y") < 0.05
+        && trial.get("obliquity_deg").is_some_and(|p| p.sigma < 3.0);
+    if !drift_separable {
+        for c in &mut base_cols[4..6] {
+            c.iter_mut().for_each(|v| *v = 0.0);
         }
-        mask = new;
-        fit = solve(&base_cols, &target, &mask)?;
+        mask = vec![true; obs.len()];
+        fit = robust_fit(
+            &base_cols,
+            &target,
+            &mut mask,
+            options.outlier_sigmas,
+            needed,
+            0.25 * lattice_a_nm,
+        )?;
     }
-    let (baseline_params, theta0) = decompose(&fit);
+    let (mut baseline_params, theta0) = decompose(&fit);
+    if !drift_separable {
+        baseline_params.remove("drift_x_nm_per_s");
+        baseline_params.remove("drift_y_nm_per_s");
+    }
     let mut ctx = Ctx {
         j0: [[fit.coef[0], fit.coef[1]], [fit.coef[2], fit.coef[3]]],
         theta0,
@@ -511,6 +614,7 @@ pub fn diagnose_indexed(
     let baseline = BaselineReport {
         rms_pm: rms_pm(fit.rss, fit.n_eq),
         heldout_rms_pm: baseline_heldout,
+        drift_separable,
         parameters: baseline_params,
     };
     let mut cols = base_cols;
@@ -628,6 +732,11 @@ pub fn diagnose_indexed(
             t.value += t_mid;
         }
     }
+    let (mut final_params, _) = decompose(&fit);
+    if !drift_separable {
+        final_params.remove("drift_x_nm_per_s");
+        final_params.remove("drift_y_nm_per_s");
+    }
     let residual_structure = structure(&obs, &fit.residual, &mask, options.structure_z_threshold);
     let unexplained = [
         residual_structure.lag1_z_x,
@@ -636,7 +745,11 @@ pub fn diagnose_indexed(
         residual_structure.line_lag1_z_y,
     ]
     .iter()
-    .any(|z| *z > options.structure_z_threshold);
+    .any(|z| *z > options.structure_z_threshold)
+        // A residual beyond 15 % of the period is not a small distortion of
+        // the lattice model at all (mis-indexing, several domains, or a
+        // distortion far outside the library).
+        || rms_pm(fit.rss, fit.n_eq) > 150.0 * lattice_a_nm;
     let residuals = obs
         .iter()
         .enumerate()
@@ -665,6 +778,7 @@ pub fn diagnose_indexed(
         final_report: FinalReport {
             rms_pm: rms_pm(fit.rss, fit.n_eq),
             heldout_rms_pm: heldout_now,
+            parameters: final_params,
         },
         unexplained,
         residual_structure,

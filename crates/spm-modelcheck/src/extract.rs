@@ -96,7 +96,9 @@ pub fn features_from_height_map(
     let a_px = a_nm / pixel_nm[0].max(1e-12);
     let config = DetectionConfig {
         polarity,
-        min_separation_px: (0.5 * a_px).max(1.5),
+        // Corner holes: the deepest minimum within 0.7 a (the shallower
+        // half-cell minima lie at a/√3); atoms: the highest within a/2.
+        min_separation_px: (if polarity == Polarity::Pit { 0.7 } else { 0.5 } * a_px).max(1.5),
         min_snr,
         max_fit_radius_px: (0.4 * a_px).clamp(2.0, 40.0),
         max_width_px: a_px.max(1.0),

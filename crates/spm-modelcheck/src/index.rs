@@ -24,8 +24,11 @@ pub struct MeasuredBasis {
 }
 
 /// The lattice site of every feature (`None` = not indexed), and the basis.
-pub(crate) struct Indexing {
+#[derive(Clone, Debug, PartialEq)]
+pub struct Indexing {
+    /// Integer (i, j) of every feature, `None` when it could not be indexed.
     pub sites: Vec<Option<[i64; 2]>>,
+    /// The basis used.
     pub basis: MeasuredBasis,
 }
 
@@ -114,7 +117,7 @@ fn inverse(b1: [f64; 2], b2: [f64; 2]) -> Option<[[f64; 2]; 2]> {
 }
 
 /// Indexes every feature of `set` to a lattice site.
-pub(crate) fn index_features(
+pub fn index_features(
     set: &FeatureSet,
     lattice: &LatticeSpec,
 ) -> Result<Indexing, ModelCheckError> {
@@ -212,24 +215,63 @@ pub(crate) fn index_features(
                 [f0[0].round() as i64, f0[1].round() as i64]
             }
         };
+        // Walk from the seed; when the walk stays small (an isolated or
+        // spurious seed), retry from the next features nearest the origin and
+        // keep the largest walk.
+        let mut order: Vec<usize> = (0..pts.len()).collect();
+        order.sort_by(|&p, &q| {
+            let dp = (pts[p][0] - pts[seed][0]).hypot(pts[p][1] - pts[seed][1]);
+            let dq = (pts[q][0] - pts[seed][0]).hypot(pts[q][1] - pts[seed][1]);
+            dp.total_cmp(&dq)
+        });
         let mut local: Vec<Option<[i64; 2]>> = vec![None; pts.len()];
-        local[seed] = Some(seed_site);
-        let mut queue = VecDeque::from([seed]);
-        while let Some(p) = queue.pop_front() {
-            let Some(ip) = local[p] else { continue };
+        let mut best_count = 0usize;
+        for &start in order.iter().take(12) {
+            let site0 = if start == seed {
+                seed_site
+            } else {
+                let f = frac([pts[start][0] - pts[seed][0], pts[start][1] - pts[seed][1]]);
+                [
+                    seed_site[0] + f[0].round() as i64,
+                    seed_site[1] + f[1].round() as i64,
+                ]
+            };
+            let walk = walk_lattice(&pts, start, site0, &frac, b_len);
+            let count = walk.iter().filter(|s| s.is_some()).count();
+            if count > best_count {
+                best_count = count;
+                local = walk;
+            }
+            if 2 * best_count > pts.len() {
+                break;
+            }
+        }
+        // Other components (across defects, missing atoms): seed each from the
+        // nearest indexed feature within three basis lengths, and walk again.
+        loop {
+            let mut best: Option<(f64, usize, usize)> = None;
             for q in 0..pts.len() {
                 if local[q].is_some() {
                     continue;
                 }
-                let d = [pts[q][0] - pts[p][0], pts[q][1] - pts[p][1]];
-                if d[0].hypot(d[1]) > 1.6 * b_len {
-                    continue;
+                for p in 0..pts.len() {
+                    if local[p].is_none() {
+                        continue;
+                    }
+                    let d = (pts[q][0] - pts[p][0]).hypot(pts[q][1] - pts[p][1]);
+                    if d < 3.0 * b_len && best.is_none_or(|b| d < b.0) {
+                        best = Some((d, q, p));
+                    }
                 }
-                let f = frac(d);
-                let r = [f[0].round(), f[1].round()];
-                if (f[0] - r[0]).abs() < 0.3 && (f[1] - r[1]).abs() < 0.3 {
-                    local[q] = Some([ip[0] + r[0] as i64, ip[1] + r[1] as i64]);
-                    queue.push_back(q);
+            }
+            let Some((_, q, p)) = best else { break };
+            let Some(ip) = local[p] else { break };
+            let f = frac([pts[q][0] - pts[p][0], pts[q][1] - pts[p][1]]);
+            let site0 = [ip[0] + f[0].round() as i64, ip[1] + f[1].round() as i64];
+            let walk = walk_lattice(&pts, q, site0, &frac, b_len);
+            for (l, w) in local.iter_mut().zip(walk) {
+                if l.is_none() {
+                    *l = w;
                 }
             }
         }
@@ -243,4 +285,38 @@ pub(crate) fn index_features(
         }
     }
     Ok(Indexing { sites, basis })
+}
+
+/// Breadth-first indexing from `start` (given `site0`): a neighbour within
+/// 1.6 basis lengths gets the walker's index plus its rounded offset when the
+/// offset is within 0.35 of a lattice vector.
+fn walk_lattice(
+    pts: &[[f64; 2]],
+    start: usize,
+    site0: [i64; 2],
+    frac: &dyn Fn([f64; 2]) -> [f64; 2],
+    b_len: f64,
+) -> Vec<Option<[i64; 2]>> {
+    let mut local: Vec<Option<[i64; 2]>> = vec![None; pts.len()];
+    local[start] = Some(site0);
+    let mut queue = VecDeque::from([start]);
+    while let Some(p) = queue.pop_front() {
+        let Some(ip) = local[p] else { continue };
+        for q in 0..pts.len() {
+            if local[q].is_some() {
+                continue;
+            }
+            let d = [pts[q][0] - pts[p][0], pts[q][1] - pts[p][1]];
+            if d[0].hypot(d[1]) > 1.6 * b_len {
+                continue;
+            }
+            let f = frac(d);
+            let r = [f[0].round(), f[1].round()];
+            if (f[0] - r[0]).abs() < 0.35 && (f[1] - r[1]).abs() < 0.35 {
+                local[q] = Some([ip[0] + r[0] as i64, ip[1] + r[1] as i64]);
+                queue.push_back(q);
+            }
+        }
+    }
+    local
 }

@@ -19,8 +19,8 @@
 //! | effect | extension | parameters |
 //! |---|---|---|
 //! | `drift_acceleration` | ½·a·t² tip–sample displacement | `acceleration_{x,y}_nm_per_s2` |
-//! | `creep` | input displacement c·lg(1 + t′/τ), t′ since the frame start | `creep_{x,y}_nm_per_decade`, `time_constant_s` |
-//! | `hysteresis` | fast-axis input −s·h·W·(1 − ξx²), s = ±1 trace/retrace | `branch_half_separation_fraction`, `branch_separation_nm` |
+//! | `creep` | input displacement c_f·lg(1 + t′/τ) per frame f, t′ since the frame start | `creep_{x,y}_nm_per_decade_frame{f}`, `time_constant_s` |
+//! | `hysteresis` | fast-axis input −s·W·(1 − ξx²)·(h + g·ξx²), s = ±1 trace/retrace | `branch_half_separation_fraction` (h), `loop_shape` (g), `branch_separation_nm` |
 //! | `scanner_nonlinearity` | input W·(q·ξ² + c·ξ³) per axis | `quadratic_{x,y}`, `cubic_{x,y}` (at the frame edge) |
 //! | `nonorthogonality` | input W·g·ξx·ξy per axis (obliquity varying over the field) | `shear_gradient_{x,y}` |
 //! | `crosstalk_xy` | input x += b·H·ξy², y += b·W·ξx² (quadratic crosstalk, bow) | `bow_x_from_y`, `bow_y_from_x` |
@@ -49,7 +49,7 @@ pub use extract::{
     ExtractOptions, ImageInput, MapContext, diagnose, diagnose_paths, extract_features,
     features_from_height_map,
 };
-pub use index::MeasuredBasis;
+pub use index::{Indexing, MeasuredBasis, index_features};
 pub use plot::write_png;
 pub use simmap::{SimContext, SimPatch, TipChangeEvent, sim_patch};
 pub use types::{

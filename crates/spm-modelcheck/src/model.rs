@@ -97,7 +97,7 @@ pub(crate) fn param_names(kind: EffectKind) -> &'static [&'static str] {
     match kind {
         EffectKind::DriftAcceleration => &["acceleration_x_nm_per_s2", "acceleration_y_nm_per_s2"],
         EffectKind::Creep => &["creep_x_nm_per_decade", "creep_y_nm_per_decade"],
-        EffectKind::Hysteresis => &["branch_half_separation_fraction"],
+        EffectKind::Hysteresis => &["branch_half_separation_fraction", "loop_shape"],
         EffectKind::ScannerNonlinearity => &["quadratic_x", "cubic_x", "quadratic_y", "cubic_y"],
         EffectKind::Nonorthogonality => &["shear_gradient_x", "shear_gradient_y"],
         EffectKind::CrosstalkXy => &["bow_x_from_y", "bow_y_from_x"],
@@ -134,13 +134,30 @@ pub(crate) fn effect_columns(kind: EffectKind, hyper: f64, obs: &[Obs], ctx: &Ct
             sample_col(obs, ctx, 1, |o| 0.5 * o.t * o.t),
         ],
         EffectKind::Creep => {
+            // Per frame: the amplitude depends on the move before the frame.
             let tau = hyper.max(1e-9);
-            let g = move |o: &Obs| (1.0 + o.t_frame.max(0.0) / tau).log10();
-            vec![input_col(obs, ctx, 0, g), input_col(obs, ctx, 1, g)]
+            let n_frames = obs.iter().map(|o| o.frame + 1).max().unwrap_or(0);
+            (0..n_frames)
+                .flat_map(|f| {
+                    let g = move |o: &Obs| {
+                        if o.frame == f {
+                            (1.0 + o.t_frame.max(0.0) / tau).log10()
+                        } else {
+                            0.0
+                        }
+                    };
+                    [input_col(obs, ctx, 0, g), input_col(obs, ctx, 1, g)]
+                })
+                .collect()
         }
-        EffectKind::Hysteresis => vec![input_col(obs, ctx, 0, |o| {
-            -o.s * o.half[0] * (1.0 - o.xi[0] * o.xi[0])
-        })],
+        EffectKind::Hysteresis => vec![
+            input_col(obs, ctx, 0, |o| {
+                -o.s * o.half[0] * (1.0 - o.xi[0] * o.xi[0])
+            }),
+            input_col(obs, ctx, 0, |o| {
+                -o.s * o.half[0] * (1.0 - o.xi[0] * o.xi[0]) * o.xi[0] * o.xi[0]
+            }),
+        ],
         EffectKind::ScannerNonlinearity => vec![
             input_col(obs, ctx, 0, |o| o.half[0] * o.xi[0] * o.xi[0]),
             input_col(obs, ctx, 0, |o| o.half[0] * o.xi[0].powi(3)),
@@ -195,13 +212,29 @@ pub(crate) fn hyper_candidates(
             let m = grid.len() as f64;
             (grid, m)
         }
-        EffectKind::PeriodicVibration => vibration_candidates(obs, residual, mask),
+        EffectKind::PeriodicVibration => vibration_candidates(
+            obs,
+            residual,
+            mask,
+            frames.iter().map(|f| f.duration_s).fold(0.0, f64::max),
+            &frames
+                .iter()
+                .filter(|f| f.duration_s > 0.0 && f.lines > 0)
+                .map(|f| f.lines as f64 / f.duration_s)
+                .collect::<Vec<_>>(),
+        ),
         EffectKind::TipChange => tip_change_candidates(obs, frames, residual, mask),
         _ => (vec![0.0], 1.0),
     }
 }
 
-fn vibration_candidates(obs: &[Obs], residual: &[f64], mask: &[bool]) -> (Vec<f64>, f64) {
+fn vibration_candidates(
+    obs: &[Obs],
+    residual: &[f64],
+    mask: &[bool],
+    longest_frame_s: f64,
+    line_frequencies_hz: &[f64],
+) -> (Vec<f64>, f64) {
     let idx: Vec<usize> = (0..obs.len()).filter(|&k| mask[k]).collect();
     if idx.len() < 10 {
         return (Vec::new(), 1.0);
@@ -221,17 +254,29 @@ fn vibration_candidates(obs: &[Obs], residual: &[f64], mask: &[bool]) -> (Vec<f6
     if !(span > 0.0 && gap > 0.0) {
         return (Vec::new(), 1.0);
     }
-    let f_min = 1.5 / span;
+    // A "vibration" must complete two cycles within a frame; slower motion is
+    // drift variation (drift_acceleration, creep), not vibration.
+    let f_min = (1.5 / span).max(2.0 / longest_frame_s.max(1e-9));
     let f_max = 0.5 / gap;
     if f_max <= f_min {
         return (Vec::new(), 1.0);
     }
     let trials = ((f_max - f_min) * span).max(1.0);
-    let n_grid = ((4.0 * trials) as usize).clamp(16, 6000);
+    let n_grid_min = 16;
+    let n_grid = ((4.0 * trials) as usize).clamp(n_grid_min, 6000);
     let df = (f_max - f_min) / n_grid as f64;
     let mut power: Vec<(f64, f64)> = Vec::with_capacity(n_grid);
     for g in 0..=n_grid {
         let f = f_min + g as f64 * df;
+        // Harmonics of the line frequency are scan-synchronous: a "vibration"
+        // there cannot be told from trace/retrace effects (hysteresis, lag).
+        let synchronous = line_frequencies_hz.iter().any(|fl| {
+            let k = (f / fl).round();
+            k >= 1.0 && (f - k * fl).abs() < 2.0 / span
+        });
+        if synchronous {
+            continue;
+        }
         let w = 2.0 * std::f64::consts::PI * f;
         let (mut xc, mut xs, mut yc, mut ys) = (0.0, 0.0, 0.0, 0.0);
         for &k in &idx {

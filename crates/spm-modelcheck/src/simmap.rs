@@ -21,6 +21,10 @@ pub struct SimContext {
     pub time_offset_s: f64,
     /// Warm-up time constant used to express a drift acceleration, s.
     pub warmup_time_constant_s: f64,
+    /// Pixel dwell of the simulated scan, s: spm-sim's feedback relaxes once
+    /// per pixel, so a continuous lag τ (shift v·τ) becomes the time constant
+    /// whose per-pixel decay d obeys d/(1 − d) = τ/dwell.
+    pub pixel_dwell_s: Option<f64>,
 }
 
 /// A tip change to schedule in the simulator (a fault, not a config field).
@@ -60,7 +64,12 @@ fn value(d: &BTreeMap<String, crate::ParamValue>, key: &str) -> f64 {
 /// centre (`q_field = q_frame·H/W`, `c_field = c_frame·(H/W)²`); hysteresis maps
 /// to play operators whose thresholds all open within the frame.
 pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPatch {
-    let b = &d.baseline.parameters;
+    // The linear part of the model the findings extend: the final fit's.
+    let b = if with_findings {
+        &d.final_report.parameters
+    } else {
+        &d.baseline.parameters
+    };
     let n0 = ctx.nominal_nm_per_count;
     let mut p = SimPatch::default();
     let mut set = |k: &str, v: f64| {
@@ -142,10 +151,15 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
                     );
                 }
                 EffectKind::FeedbackLag => {
-                    put(
-                        "measurement.feedback_time_constant_s",
-                        value(fp, "time_constant_s").max(0.0),
-                    );
+                    let tau = value(fp, "time_constant_s").max(0.0);
+                    let tau_sim = match ctx.pixel_dwell_s {
+                        Some(dwell) if dwell > 0.0 && tau > 0.0 => {
+                            let d = tau / (dwell + tau);
+                            -dwell / d.ln()
+                        }
+                        _ => tau,
+                    };
+                    put("measurement.feedback_time_constant_s", tau_sim);
                 }
                 EffectKind::Hysteresis => {
                     let h = value(fp, "branch_half_separation_fraction");

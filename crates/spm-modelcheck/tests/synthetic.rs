@@ -54,8 +54,9 @@ fn hidden(effect: EffectKind, k: f64) -> (Box<Extra>, Vec<(&'static str, f64)>) 
                 ([0.15 * k * g, -0.1 * k * g], [0.0, 0.0])
             }),
             vec![
-                ("creep_x_nm_per_decade", 0.15 * k),
-                ("creep_y_nm_per_decade", -0.1 * k),
+                ("creep_x_nm_per_decade_frame0", 0.15 * k),
+                ("creep_y_nm_per_decade_frame0", -0.1 * k),
+                ("creep_x_nm_per_decade_frame2", 0.15 * k),
             ],
         ),
         EffectKind::Hysteresis => (
@@ -157,7 +158,10 @@ fn check_recovered(d: &Diagnosis, effect: EffectKind, truth: &[(&str, f64)]) {
         .finding(effect)
         .unwrap_or_else(|| panic!("{} not found: {}", effect.name(), summary(d)));
     for (name, value) in truth {
-        let p = f.parameters[*name];
+        let p = *f
+            .parameters
+            .get(*name)
+            .unwrap_or_else(|| panic!("{}: no {name}: {}", effect.name(), summary(d)));
         // Within 3σ of the stated uncertainty (plus 1 % for model discretisation).
         assert!(
             (p.value - value).abs() <= 3.0 * p.sigma + 0.01 * value.abs(),

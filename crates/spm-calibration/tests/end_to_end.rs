@@ -187,14 +187,24 @@ fn a_small_net_calibrates_within_tolerance_of_the_oracle() {
         let mean: Vec<f64> = (0..3)
             .map(|k| errors.iter().map(|e| e[k]).sum::<f64>() / n)
             .collect();
+        let se: Vec<f64> = (0..3)
+            .map(|k| {
+                let var = errors.iter().map(|e| (e[k] - mean[k]).powi(2)).sum::<f64>() / (n - 1.0);
+                (var / n).sqrt()
+            })
+            .collect();
         println!(
-            "{name}: mean errors kx {:+.4} ky {:+.4} alpha {:+.4} rad, largest |error|/u {z_max:.2}",
-            mean[0], mean[1], mean[2]
+            "{name}: mean errors kx {:+.4} ± {:.4} ky {:+.4} ± {:.4} alpha {:+.4} ± {:.4} rad, largest |error|/u {z_max:.2}",
+            mean[0], se[0], mean[1], se[1], mean[2], se[2]
         );
-        assert!(
-            mean[0].abs() < tolerance && mean[1].abs() < tolerance,
-            "{name}: mean {mean:?}"
-        );
+        // The mean over the net within 3 standard errors of the tolerance floor (the
+        // simulated creep of the hops leaves a systematic ≈ +0.4 %, see the crate docs).
+        for k in 0..2 {
+            assert!(
+                mean[k].abs() < 3.0 * se[k] + 0.5 * tolerance,
+                "{name}: mean {mean:?} ± {se:?}"
+            );
+        }
     }
 }
 

@@ -746,10 +746,10 @@ pub fn diagnose_indexed(
     ]
     .iter()
     .any(|z| *z > options.structure_z_threshold)
-        // A residual beyond 15 % of the period is not a small distortion of
+        // A residual beyond 25 % of the period is not a small distortion of
         // the lattice model at all (mis-indexing, several domains, or a
         // distortion far outside the library).
-        || rms_pm(fit.rss, fit.n_eq) > 150.0 * lattice_a_nm;
+        || rms_pm(fit.rss, fit.n_eq) > 250.0 * lattice_a_nm;
     let residuals = obs
         .iter()
         .enumerate()

@@ -148,7 +148,7 @@ fn colours(direction: LineDirection) -> (RGBColor, RGBColor) {
 
 fn draw(d: &Diagnosis, path: &Path, title: &str) -> Result<(), String> {
     let text = font_available();
-    let root = BitMapBackend::new(path, (1500, 900)).into_drawing_area();
+    let root = BitMapBackend::new(path, (1000, 600)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| e.to_string())?;
     let (header, body) = root.split_vertically(if text { 70 } else { 4 });
     if text {
@@ -176,7 +176,7 @@ fn draw(d: &Diagnosis, path: &Path, title: &str) -> Result<(), String> {
         header
             .draw_text(
                 &line,
-                &("sans-serif", 16).into_text_style(&header),
+                &("sans-serif", 13).into_text_style(&header),
                 (10, 38),
             )
             .map_err(|e| e.to_string())?;
@@ -276,7 +276,7 @@ fn draw(d: &Diagnosis, path: &Path, title: &str) -> Result<(), String> {
     Ok(())
 }
 
-/// Writes the residual figure of a diagnosis to `path` (PNG, 1500×900).
+/// Writes the residual figure of a diagnosis to `path` (PNG, 1000×600).
 pub fn write_png(
     d: &Diagnosis,
     path: impl AsRef<Path>,

@@ -21,7 +21,10 @@ fn crate_names() -> Vec<String> {
 }
 
 fn normal_dependencies(crate_name: &str) -> Vec<String> {
-    let path = workspace_root().join("crates").join(crate_name).join("Cargo.toml");
+    let path = workspace_root()
+        .join("crates")
+        .join(crate_name)
+        .join("Cargo.toml");
     let text = std::fs::read_to_string(&path).expect("manifest readable");
     let manifest: toml::Table = text.parse().expect("manifest is TOML");
     manifest
@@ -87,8 +90,13 @@ fn only_binaries_install_a_tracing_subscriber() {
 
 #[test]
 fn the_correction_and_hal_crates_pull_in_neither_simulator_nor_sqlite() {
-    for name in ["spm-hal", "spm-correction", "spm-regression", "spm-features"] {
-        for dep in normal_dependencies(&name) {
+    for name in [
+        "spm-hal",
+        "spm-correction",
+        "spm-regression",
+        "spm-features",
+    ] {
+        for dep in normal_dependencies(name) {
             assert!(
                 !["spm-sim", "spm-cdb", "rusqlite"].contains(&dep.as_str()),
                 "{name} depends on {dep}"
@@ -107,7 +115,12 @@ fn pure_crates_read_no_clock_and_no_global_rng() {
         "from_entropy",
         "from_os_rng",
     ];
-    for name in ["spm-features", "spm-regression", "spm-correction", "spm-sim"] {
+    for name in [
+        "spm-features",
+        "spm-regression",
+        "spm-correction",
+        "spm-sim",
+    ] {
         for file in rust_sources(&workspace_root().join("crates").join(name).join("src")) {
             let text = std::fs::read_to_string(&file).expect("source readable");
             for needle in forbidden {

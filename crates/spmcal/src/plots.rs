@@ -125,7 +125,7 @@ impl Region {
         Some(r)
     }
 
-    fn to_pixel(&self, x: f64, y: f64, size: usize) -> (f64, f64) {
+    fn pixel_of(self, x: f64, y: f64, size: usize) -> (f64, f64) {
         let s = (size - 1) as f64;
         (
             (x - self.x_min_counts) / (self.x_max_counts - self.x_min_counts) * s,
@@ -160,7 +160,7 @@ pub fn lcc_map(
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
             (lo.min(*v), hi.max(*v))
         });
-    if !(hi > lo) {
+    if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
         lo -= 1e-12;
         hi += 1e-12;
     }
@@ -170,7 +170,7 @@ pub fn lcc_map(
         canvas.set((i % SIZE) as i64, (i / SIZE) as i64, colour(*v));
     }
     for (x, y, v) in nodes {
-        let (px, py) = region.to_pixel(*x, *y, SIZE);
+        let (px, py) = region.pixel_of(*x, *y, SIZE);
         canvas.square(
             px.round() as i64,
             py.round() as i64,
@@ -234,13 +234,13 @@ pub fn trajectory_plot(
     for (k, pair) in nodes.windows(2).enumerate() {
         let c = ColorMap::Viridis.rgb(k as f64 / (n - 1.0));
         canvas.line(
-            region.to_pixel(pair[0].x_counts, pair[0].y_counts, SIZE),
-            region.to_pixel(pair[1].x_counts, pair[1].y_counts, SIZE),
+            region.pixel_of(pair[0].x_counts, pair[0].y_counts, SIZE),
+            region.pixel_of(pair[1].x_counts, pair[1].y_counts, SIZE),
             c,
         );
     }
     for (k, node) in nodes.iter().enumerate() {
-        let (x, y) = region.to_pixel(node.x_counts, node.y_counts, SIZE);
+        let (x, y) = region.pixel_of(node.x_counts, node.y_counts, SIZE);
         let c = ColorMap::Viridis.rgb(k as f64 / (n - 1.0));
         canvas.square(x.round() as i64, y.round() as i64, 2, c, [255, 255, 255]);
     }

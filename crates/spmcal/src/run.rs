@@ -103,7 +103,7 @@ impl Observer for RecordingObserver<'_> {
         self.inner.node_finished(measurement);
     }
     fn node_given_up(&mut self, visit: &PlanVisit, reason: &GiveUpReason) {
-        self.given_up.push((visit.clone(), format!("{reason:?}")));
+        self.given_up.push((*visit, format!("{reason:?}")));
         self.inner.node_given_up(visit, reason);
     }
     fn cycle_spoiled(&mut self, visit: &PlanVisit, reason: &spm_fos::SpoilReason) {

@@ -7,6 +7,7 @@
 mod calibrate_cmd;
 mod cdb_cmd;
 mod dates;
+mod diagnose_cmd;
 mod error;
 mod fit_cmd;
 mod info;
@@ -220,9 +221,12 @@ fn run(command: Command) -> Result<(), CliError> {
         Command::Correct { .. } => Err(CliError::RunFailed(
             "`spmcal correct` arrives with the image-correction issue".to_owned(),
         )),
-        Command::Diagnose { .. } => Err(CliError::RunFailed(
-            "this subcommand arrives with the model-check issue".to_owned(),
-        )),
+        Command::Diagnose {
+            files,
+            lattice,
+            json,
+            png,
+        } => diagnose_cmd::run(&files, &lattice, &json, png.as_deref()),
     }
 }
 

@@ -1,0 +1,53 @@
+//! `spmcal diagnose FILES... --lattice L --json OUT [--png OUT.png]`.
+
+use crate::error::CliError;
+use spm_modelcheck::{LatticeSpec, ModelCheckError, Options, diagnose_paths, write_png};
+use std::path::{Path, PathBuf};
+
+fn classify(error: ModelCheckError) -> CliError {
+    match error {
+        ModelCheckError::Numerical(_) | ModelCheckError::Plot { .. } => {
+            CliError::RunFailed(error.to_string())
+        }
+        other => CliError::BadInput(other.to_string()),
+    }
+}
+
+pub fn run(
+    files: &[PathBuf],
+    lattice: &str,
+    json: &Path,
+    png: Option<&Path>,
+) -> Result<(), CliError> {
+    let lattice =
+        LatticeSpec::parse(lattice).map_err(|e| CliError::BadInput(format!("--lattice: {e}")))?;
+    let diagnosis = diagnose_paths(files, &lattice, &Options::default()).map_err(classify)?;
+    let text = serde_json::to_string_pretty(&diagnosis)
+        .map_err(|e| CliError::RunFailed(format!("cannot encode the diagnosis: {e}")))?;
+    crate::write_atomically(json, text.as_bytes())?;
+    if let Some(png) = png {
+        let title = files
+            .iter()
+            .filter_map(|f| f.file_name().map(|n| n.to_string_lossy().into_owned()))
+            .collect::<Vec<_>>()
+            .join(" + ");
+        write_png(&diagnosis, png, &title).map_err(classify)?;
+    }
+    println!(
+        "baseline {:.1} pm → final {:.1} pm; findings: {}; unexplained: {}",
+        diagnosis.baseline.rms_pm,
+        diagnosis.final_report.rms_pm,
+        if diagnosis.findings.is_empty() {
+            "none".to_owned()
+        } else {
+            diagnosis
+                .findings
+                .iter()
+                .map(|f| format!("{} (evidence {:.1})", f.effect, f.evidence))
+                .collect::<Vec<_>>()
+                .join(", ")
+        },
+        diagnosis.unexplained
+    );
+    Ok(())
+}

@@ -5,41 +5,12 @@
 //! `report.json`.
 
 use crate::XtaskError;
-use indicatif::{ProgressBar, ProgressStyle};
-use spm_calibration::{GiveUpReason, NodeMeasurement, Observer, PlanVisit};
 use spmcal::job::Job;
+use spmcal::progress::ProgressBarObserver;
 use spmcal::report::{RunRecord, finish};
 use spmcal::run::{RecordingObserver, RunStart, run_job};
 use std::path::Path;
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
-
-/// The progress bar on the terminal.
-struct ProgressObserver {
-    bar: ProgressBar,
-}
-
-impl Observer for ProgressObserver {
-    fn run_started(&mut self, total_visits: usize, already_finished: usize) {
-        self.bar.set_length(total_visits as u64);
-        self.bar.set_position(already_finished as u64);
-    }
-    fn node_finished(&mut self, measurement: &NodeMeasurement) {
-        self.bar.inc(1);
-        self.bar.set_message(format!(
-            "K̄x {:.5} K̄y {:.5} nm/count α {:+.3}°",
-            measurement.lcc.kx.value(),
-            measurement.lcc.ky.value(),
-            measurement.lcc.alpha.to_degrees()
-        ));
-    }
-    fn node_given_up(&mut self, visit: &PlanVisit, reason: &GiveUpReason) {
-        self.bar.inc(1);
-        self.bar.println(format!(
-            "node {} (repeat {}) given up: {reason:?}",
-            visit.node_index, visit.repeat_index
-        ));
-    }
-}
 
 pub fn run(
     config_path: &Path,
@@ -82,12 +53,7 @@ pub fn run(
         .duration_since(UNIX_EPOCH)
         .map_or(0.0, |d| d.as_secs_f64());
     let run_id = format!("xtask-{}", start_unix_s as u64);
-    let bar = ProgressBar::new(0);
-    bar.set_style(
-        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} nodes {msg}")
-            .map_err(|e| XtaskError::step("progress bar", e))?,
-    );
-    let mut progress = ProgressObserver { bar };
+    let mut progress = ProgressBarObserver::new();
     let mut recorder = RecordingObserver::new(&mut progress);
     let run_started = Instant::now();
     let outcome = run_job(
@@ -102,7 +68,7 @@ pub fn run(
     let drift = std::mem::take(&mut recorder.drift);
     let nodes = std::mem::take(&mut recorder.nodes);
     drop(recorder);
-    progress.bar.finish();
+    progress.finish();
 
     let record = RunRecord {
         plan: &job.plan,

@@ -1,38 +1,12 @@
 //! `spmcal calibrate --config FILE [--cdb PATH] [--resume] [--out DIR]`.
 
 use crate::error::CliError;
-use indicatif::{ProgressBar, ProgressStyle};
-use spm_calibration::{GiveUpReason, NodeMeasurement, Observer, PlanVisit};
 use spmcal::job::Job;
+use spmcal::progress::ProgressBarObserver;
 use spmcal::report::{RunRecord, finish};
 use spmcal::run::{JobRunError, RecordingObserver, RunStart, run_job};
 use std::path::{Path, PathBuf};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
-
-struct Progress(ProgressBar);
-
-impl Observer for Progress {
-    fn run_started(&mut self, total_visits: usize, already_finished: usize) {
-        self.0.set_length(total_visits as u64);
-        self.0.set_position(already_finished as u64);
-    }
-    fn node_finished(&mut self, measurement: &NodeMeasurement) {
-        self.0.inc(1);
-        self.0.set_message(format!(
-            "K̄x {:.5} K̄y {:.5} nm/count α {:+.3}°",
-            measurement.lcc.kx.value(),
-            measurement.lcc.ky.value(),
-            measurement.lcc.alpha.to_degrees()
-        ));
-    }
-    fn node_given_up(&mut self, visit: &PlanVisit, reason: &GiveUpReason) {
-        self.0.inc(1);
-        self.0.println(format!(
-            "node {} (repeat {}) given up: {reason:?}",
-            visit.node_index, visit.repeat_index
-        ));
-    }
-}
 
 pub fn run(
     config: &Path,
@@ -54,13 +28,7 @@ pub fn run(
             run_id: format!("{}-{}", job.plan.scanner_id, start_unix_s as u64),
         }
     };
-    let bar = ProgressBar::new(0);
-    if let Ok(style) =
-        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} nodes {msg}")
-    {
-        bar.set_style(style);
-    }
-    let mut progress = Progress(bar);
+    let mut progress = ProgressBarObserver::new();
     let mut recorder = RecordingObserver::new(&mut progress);
     let started = Instant::now();
     let outcome =
@@ -75,7 +43,7 @@ pub fn run(
     let drift = std::mem::take(&mut recorder.drift);
     let nodes = std::mem::take(&mut recorder.nodes);
     drop(recorder);
-    progress.0.finish();
+    progress.finish();
     let record = RunRecord {
         plan: &job.plan,
         run: &outcome.report,

@@ -4,6 +4,7 @@
 //! - [`surfaces`]: CDB records → regression surfaces per Z plane (`surfaces.json`).
 //! - [`job`]: the job file (`[backend]` + `[plan]`).
 //! - [`run`]: running a job on its backend into the CDB, recording drift and nodes.
+//! - [`progress`]: the terminal progress bar of a run.
 //! - [`plots`]: PNG figures of a run.
 //! - [`report`]: after a run: surfaces.json, accuracy, report.json, figures.
 //! - [`accuracy`]: calibration accuracy against the simulator's oracle (DESIGN §11).
@@ -15,6 +16,7 @@
 pub mod accuracy;
 pub mod job;
 pub mod plots;
+pub mod progress;
 pub mod report;
 pub mod run;
 pub mod surfaces;

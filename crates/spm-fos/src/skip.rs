@@ -289,7 +289,7 @@ pub fn skip<M: Microscope>(
                 kept.clear();
             }
             Decision::Discard(reason) => {
-                tracing::warn!(?reason, "skipping cycle spoiled and discarded");
+                tracing::info!(?reason, "skipping cycle spoiled and discarded");
             }
             Decision::Idle { .. } | Decision::Resume | Decision::GiveUp => {}
         }

@@ -6,6 +6,7 @@
 
 mod calibrate_cmd;
 mod cdb_cmd;
+mod correct_cmd;
 mod dates;
 mod diagnose_cmd;
 mod error;
@@ -75,6 +76,10 @@ enum Command {
         /// Raster direction of the image.
         #[arg(long, value_enum, default_value_t = RasterDirection::Direct)]
         direction: RasterDirection,
+        /// The controller's nominal sensitivity, nm per count, for files that do not
+        /// record their raster in scanner counts.
+        #[arg(long, value_name = "K")]
+        nominal_nm_per_count: Option<f64>,
     },
     /// Describe an SPM file: format, channels, directions, pixels, size, times, header.
     Info {
@@ -218,9 +223,13 @@ fn run(command: Command) -> Result<(), CliError> {
             resume,
             out,
         } => calibrate_cmd::run(&config, cdb.as_deref(), resume, out.as_deref()),
-        Command::Correct { .. } => Err(CliError::RunFailed(
-            "`spmcal correct` arrives with the image-correction issue".to_owned(),
-        )),
+        Command::Correct {
+            image,
+            surfaces,
+            out,
+            direction,
+            nominal_nm_per_count,
+        } => correct_cmd::run(&image, &surfaces, &out, direction, nominal_nm_per_count),
         Command::Diagnose {
             files,
             lattice,

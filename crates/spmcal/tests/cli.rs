@@ -69,6 +69,34 @@ fn bad_usage_and_bad_input_exit_with_2_and_name_the_culprit() {
         2,
         "cubic",
     );
+    let sxm = spmcal_tests::measured_file("si7x7-nanonis/Si_7x7_051.sxm");
+    let sxm = sxm.to_str().unwrap();
+    let out = scratch.join("out.gsf");
+    let out = out.to_str().unwrap();
+    check(
+        &["correct", g, "--surfaces", "/no/such.json", "--out", out],
+        2,
+        "garbage.sxm",
+    );
+    check(
+        &["correct", sxm, "--surfaces", "/no/such.json", "--out", out],
+        2,
+        "/no/such.json",
+    );
+    let surfaces = scratch.join("surfaces.json");
+    std::fs::write(&surfaces, "{\"format_version\": 1}").unwrap();
+    check(
+        &[
+            "correct",
+            sxm,
+            "--surfaces",
+            surfaces.to_str().unwrap(),
+            "--out",
+            out,
+        ],
+        2,
+        "surfaces.json",
+    );
     let _ = std::fs::remove_dir_all(&scratch);
 }
 

@@ -1,9 +1,10 @@
 //! `spmcal correct IMAGE --surfaces surfaces.json --out OUT.gsf [--direction direct|counter]
 //! [--nominal-nm-per-count K]`.
 //!
-//! The raster in scanner counts comes from the file: GSF files written by
-//! spmcal carry `spmcal_origin_x_counts`, `spmcal_origin_y_counts` and
-//! `spmcal_pixel_step_counts`; for any other file the controller's nominal
+//! The raster in scanner counts comes from the file when it records it (GSF
+//! keys `spmcal_origin_x_counts`, `spmcal_origin_y_counts` and
+//! `spmcal_pixel_step_counts`, for a simulated or controller-exported frame);
+//! for any other file the controller's nominal
 //! sensitivity (`--nominal-nm-per-count`) turns the file's nm geometry back into
 //! the counts it commanded. The heights are kept in the file's unit. Pixels of
 //! the output grid outside the scanned area are filled with the mean height

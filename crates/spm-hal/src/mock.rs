@@ -245,14 +245,12 @@ impl Microscope for ScriptedMicroscope {
         if let Some(Expectation::Wait(Some(expected))) = self.take(Operation::Wait)?
             && (expected - duration).abs().value() > 1e-9 * (1.0 + expected.value().abs())
         {
-            {
-                let message = format!("wait of {duration} where {expected} was expected");
-                self.mismatches.push(message.clone());
-                return Err(MockError {
-                    kind: ErrorKind::Other,
-                    message,
-                });
-            }
+            let message = format!("wait of {duration} where {expected} was expected");
+            self.mismatches.push(message.clone());
+            return Err(MockError {
+                kind: ErrorKind::Other,
+                message,
+            });
         }
         self.clock += duration.max(Seconds::ZERO);
         Ok(())
@@ -269,17 +267,15 @@ impl Microscope for ScriptedMicroscope {
         }) = self.take(Operation::MoveTo)?
             && expected.distance(request.target) > tolerance
         {
-            {
-                let message = format!(
-                    "move to ({}, {}) where ({}, {}) ± {} was expected",
-                    request.target.x, request.target.y, expected.x, expected.y, tolerance
-                );
-                self.mismatches.push(message.clone());
-                return Err(MockError {
-                    kind: ErrorKind::Other,
-                    message,
-                });
-            }
+            let message = format!(
+                "move to ({}, {}) where ({}, {}) ± {} was expected",
+                request.target.x, request.target.y, expected.x, expected.y, tolerance
+            );
+            self.mismatches.push(message.clone());
+            return Err(MockError {
+                kind: ErrorKind::Other,
+                message,
+            });
         }
         let length = self.position.distance(request.target);
         if request.speed_counts_per_s > 0.0 && request.speed_counts_per_s.is_finite() {

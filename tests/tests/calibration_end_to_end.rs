@@ -10,84 +10,13 @@
 //! calibration must find and correct are the scanner's nonlinearity,
 //! nonorthogonality, crosstalk and Z couplings, under drift and noise.
 
-use spm_calibration::NoObserver;
-use spm_sim::SimConfig;
-use spmcal::job::{Backend, Job};
-use spmcal::report::{CalibrationReport, RunRecord, finish};
-use spmcal::run::{RecordingObserver, RunStart, run_job};
-use std::path::{Path, PathBuf};
+mod common;
 
-fn workspace_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("tests/ lives in the workspace")
-        .to_path_buf()
-}
-
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("spmcal-e2e-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("scratch folder");
-    dir
-}
-
-fn calibrate_small_net(name: &str, with_hysteresis_and_creep: bool) -> CalibrationReport {
-    let mut sim = SimConfig::room_temperature_tube().without_random_faults();
-    if !with_hysteresis_and_creep {
-        sim.scanner.hysteresis_x.width_fraction = 0.0;
-        sim.scanner.hysteresis_y.width_fraction = 0.0;
-        sim.scanner.creep.log_slope_per_decade = 0.0;
-    }
-    let (mut plan, plan_text) =
-        Job::read_plan(&workspace_root().join("configs/plan-hopg.toml")).expect("default plan");
-    plan.repeats = 1;
-    plan.net.step_counts = 11_500; // 6 × 6 nodes with a 4000-count margin on a 16-bit field
-    let job = Job {
-        backend: Backend::Sim(Box::new(sim)),
-        plan,
-        provenance_text: plan_text,
-    };
-    let out = scratch(name);
-    let cdb = out.join("cdb.sqlite");
-    let mut quiet = NoObserver;
-    let mut recorder = RecordingObserver::new(&mut quiet);
-    let outcome = run_job(
-        &job,
-        &cdb,
-        RunStart::New {
-            run_id: name.to_owned(),
-        },
-        1.8e9,
-        &mut recorder,
-    )
-    .expect("the calibration runs");
-    let drift = std::mem::take(&mut recorder.drift);
-    let nodes = std::mem::take(&mut recorder.nodes);
-    let record = RunRecord {
-        plan: &job.plan,
-        run: &outcome.report,
-        simulator: outcome.simulator.as_ref(),
-        drift: &drift,
-        nodes: &nodes,
-        wall_time_s: 0.0,
-    };
-    let report = finish(&cdb, &out, &record, true).expect("surfaces, accuracy and report");
-    for file in [
-        "report.json",
-        "surfaces.json",
-        "lcc-kx.png",
-        "drift.png",
-        "trajectory.png",
-    ] {
-        assert!(out.join(file).is_file(), "{file} was not written");
-    }
-    let _ = std::fs::remove_dir_all(&out);
-    report
-}
+use common::calibrate_small_net;
 
 #[test]
 fn a_small_net_corrects_nonlinearity_and_couplings_to_the_scaled_targets() {
-    let report = calibrate_small_net("static", false);
+    let report = calibrate_small_net("static", false).report;
     assert_eq!(report.nodes, 36);
     assert!(report.records >= 34, "records: {}", report.records);
     let a = report.accuracy.expect("the simulator gives an oracle");
@@ -117,9 +46,10 @@ fn creep_and_hysteresis_are_what_limit_the_full_scanner() {
     // Same net on the full room-temperature scanner: still far better than the
     // lumped calibration, but the creep excited by the skipping moves biases
     // the LCCs (docs/results/calibration.md), so the lattice error grows.
-    let full = calibrate_small_net("full", true);
+    let full = calibrate_small_net("full", true).report;
     let a = full.accuracy.expect("oracle");
     let static_only = calibrate_small_net("static-reference", false)
+        .report
         .accuracy
         .expect("oracle");
     eprintln!("{a:#?}");

@@ -1,0 +1,106 @@
+//! The small simulated calibration shared by the end-to-end tests: a 6 × 6 net, one pass,
+//! on the room-temperature tube scanner (optionally without hysteresis and creep). Returns the
+//! report, the simulator after the run (for the oracle and for further scans) and the surfaces
+//! read back from the `surfaces.json` the run wrote.
+
+#![allow(dead_code)] // each test file uses part of it
+
+use spm_calibration::{NoObserver, PlanConfig};
+use spm_correction::SurfaceSet;
+use spm_sim::{SimConfig, Simulator};
+use spmcal::job::{Backend, Job};
+use spmcal::report::{CalibrationReport, RunRecord, finish};
+use spmcal::run::{RecordingObserver, RunStart, run_job};
+use std::path::{Path, PathBuf};
+
+/// What a small-net calibration leaves behind.
+pub struct SmallNetCalibration {
+    /// report.json's content.
+    pub report: CalibrationReport,
+    /// The simulator after the run: the same scanner, drift and sample go on.
+    pub simulator: Simulator,
+    /// The surfaces written to surfaces.json.
+    pub surfaces: SurfaceSet,
+    /// The plan that was run.
+    pub plan: PlanConfig,
+}
+
+pub fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("tests/ lives in the workspace")
+        .to_path_buf()
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("spmcal-e2e-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("scratch folder");
+    dir
+}
+
+/// Runs the default HOPG plan reduced to a 6 × 6 net and one pass, fits surfaces and judges
+/// them against the oracle (`spmcal::report::finish`).
+pub fn calibrate_small_net(name: &str, with_hysteresis_and_creep: bool) -> SmallNetCalibration {
+    let mut sim = SimConfig::room_temperature_tube().without_random_faults();
+    if !with_hysteresis_and_creep {
+        sim.scanner.hysteresis_x.width_fraction = 0.0;
+        sim.scanner.hysteresis_y.width_fraction = 0.0;
+        sim.scanner.creep.log_slope_per_decade = 0.0;
+    }
+    let (mut plan, plan_text) =
+        Job::read_plan(&workspace_root().join("configs/plan-hopg.toml")).expect("default plan");
+    plan.repeats = 1;
+    plan.net.step_counts = 11_500; // 6 × 6 nodes with a 4000-count margin on a 16-bit field
+    let job = Job {
+        backend: Backend::Sim(Box::new(sim)),
+        plan,
+        provenance_text: plan_text,
+    };
+    let out = scratch(name);
+    let cdb = out.join("cdb.sqlite");
+    let mut quiet = NoObserver;
+    let mut recorder = RecordingObserver::new(&mut quiet);
+    let outcome = run_job(
+        &job,
+        &cdb,
+        RunStart::New {
+            run_id: name.to_owned(),
+        },
+        1.8e9,
+        &mut recorder,
+    )
+    .expect("the calibration runs");
+    let drift = std::mem::take(&mut recorder.drift);
+    let nodes = std::mem::take(&mut recorder.nodes);
+    let record = RunRecord {
+        plan: &job.plan,
+        run: &outcome.report,
+        simulator: outcome.simulator.as_ref(),
+        drift: &drift,
+        nodes: &nodes,
+        wall_time_s: 0.0,
+    };
+    let report = finish(&cdb, &out, &record, true).expect("surfaces, accuracy and report");
+    for file in [
+        "report.json",
+        "surfaces.json",
+        "lcc-kx.png",
+        "drift.png",
+        "trajectory.png",
+    ] {
+        assert!(out.join(file).is_file(), "{file} was not written");
+    }
+    let surfaces_json =
+        std::fs::read_to_string(out.join("surfaces.json")).expect("surfaces.json readable");
+    let surfaces = SurfaceSet::from_json_str(&surfaces_json).expect("surfaces.json parses");
+    let _ = std::fs::remove_dir_all(&out);
+    SmallNetCalibration {
+        report,
+        simulator: outcome
+            .simulator
+            .expect("a simulated backend returns its simulator"),
+        surfaces,
+        plan: job.plan,
+    }
+}

@@ -114,7 +114,10 @@ pub fn run(
             ("lumped", &a.lumped),
             ("affine", &a.affine),
             ("distributed", &a.distributed),
-        ] {
+        ]
+        .into_iter()
+        .chain(a.polynomial.as_ref().map(|p| ("polynomial", p)))
+        {
             println!(
                 "{:<12} {:>12.1} {:>12.1} {:>16.4} {:>16.4}",
                 name, m.rms_pm, m.max_pm, m.mean_lattice_error_pct, m.max_lattice_error_pct

@@ -97,7 +97,166 @@ pub fn evaluate(
     plane: &PlaneSurfaces,
     grid: &EvaluationGrid,
 ) -> Result<Accuracy, CorrectionError> {
-    let method = plane.field(Route::Exact);
+    evaluate_field(oracle, &plane.field(Route::Exact), grid)
+}
+
+/// How the per-image polynomial baseline's one image was taken.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PolynomialImage {
+    /// Reference features per side of the image (a grating pitch over the region, ≥ 4).
+    pub control_points: usize,
+    /// Time of the whole image (first line to last line), s.
+    pub image_time_s: f64,
+    /// Drift velocity during the image (x, y), nm/s: the sample moves by v·t under the tip.
+    pub drift_nm_per_s: (f64, f64),
+}
+
+/// Powers of the 3rd-order bivariate monomials (10 terms).
+const CUBIC_TERMS: [(i32, i32); 10] = [
+    (0, 0),
+    (1, 0),
+    (0, 1),
+    (2, 0),
+    (1, 1),
+    (0, 2),
+    (3, 0),
+    (2, 1),
+    (1, 2),
+    (0, 3),
+];
+
+/// The per-image 3rd-order polynomial baseline of DESIGN §11: the conventional
+/// correction of one image of the whole region taken over a reference standard
+/// with known feature positions. The tip sees the feature at true position P
+/// where the scanner's true map T(x, y) equals P + d(t), t = the time the slow
+/// axis reaches y, d = drift; the polynomial P̂(x, y) (total degree 3 per
+/// coordinate, least squares over `control_points`² features) is fitted to the
+/// known positions P = T − d. Best case for the baseline: the feature positions
+/// are exact (no detection noise); its errors are the polynomial's lack of fit
+/// (hysteresis, creep, higher orders) and the drift during the one slow image.
+/// The correction field is the polynomial's local shape: its Jacobian with the
+/// local rotation removed, as (K̄x, K̄y sin α, K̄y cos α).
+pub fn polynomial_baseline(
+    oracle: &Oracle<'_>,
+    grid: &EvaluationGrid,
+    image: &PolynomialImage,
+) -> Result<Accuracy, CorrectionError> {
+    let n = image.control_points.max(4);
+    let truth = true_field(oracle, grid.z_counts);
+    let (x0, y0) = (grid.x_min_counts, grid.y_min_counts);
+    let side = (grid.x_max_counts - x0).max(grid.y_max_counts - y0);
+    let step = side / (n - 1) as f64;
+    let geometry = RasterGeometry::new(CountPoint::from_counts(x0, y0), Counts(step), n, n)?;
+    let map = raster(&truth, &geometry)?;
+    let (cx, cy, half) = (x0 + side / 2.0, y0 + side / 2.0, side / 2.0);
+    let mut rows: Vec<([f64; 10], [f64; 2])> = Vec::with_capacity(n * n);
+    for row in 0..n {
+        let t = image.image_time_s * row as f64 / (n - 1) as f64;
+        for column in 0..n {
+            if let Some(p) = map.point(column, row) {
+                let (x, y) = (x0 + column as f64 * step, y0 + row as f64 * step);
+                let basis = cubic_basis((x - cx) / half, (y - cy) / half);
+                rows.push((
+                    basis,
+                    [
+                        p.x.value() - image.drift_nm_per_s.0 * t,
+                        p.y.value() - image.drift_nm_per_s.1 * t,
+                    ],
+                ));
+            }
+        }
+    }
+    let (Some(ax), Some(ay)) = (
+        least_squares(&rows, |r| r.1[0]),
+        least_squares(&rows, |r| r.1[1]),
+    ) else {
+        return Err(CorrectionError::Empty("polynomial baseline: singular fit"));
+    };
+    let field = FnField(move |x: f64, y: f64| {
+        let (u, v) = ((x - cx) / half, (y - cy) / half);
+        // Jacobian columns ∂P̂/∂x, ∂P̂/∂y, nm/count.
+        let (mut jxx, mut jxy, mut jyx, mut jyy) = (0.0, 0.0, 0.0, 0.0);
+        for (k, &(p, q)) in CUBIC_TERMS.iter().enumerate() {
+            let du = if p > 0 {
+                f64::from(p) * u.powi(p - 1) * v.powi(q)
+            } else {
+                0.0
+            };
+            let dv = if q > 0 {
+                f64::from(q) * u.powi(p) * v.powi(q - 1)
+            } else {
+                0.0
+            };
+            jxx += ax[k] * du / half;
+            jyx += ay[k] * du / half;
+            jxy += ax[k] * dv / half;
+            jyy += ay[k] * dv / half;
+        }
+        let kx = jxx.hypot(jyx);
+        let (ex, ey) = (jxx / kx, jyx / kx);
+        FormCoefficients {
+            kx_nm_per_count: kx,
+            kyx_nm_per_count: jxy * ex + jyy * ey,
+            kyy_nm_per_count: (jxx * jyy - jxy * jyx) / kx,
+        }
+    });
+    evaluate_field(oracle, &field, grid)
+}
+
+fn cubic_basis(u: f64, v: f64) -> [f64; 10] {
+    let mut b = [0.0; 10];
+    for (k, &(p, q)) in CUBIC_TERMS.iter().enumerate() {
+        b[k] = u.powi(p) * v.powi(q);
+    }
+    b
+}
+
+/// Least squares by the normal equations (10 unknowns, normalised basis) with
+/// partial pivoting; `None` when singular.
+fn least_squares<T>(
+    rows: &[([f64; 10], T)],
+    target: impl Fn(&([f64; 10], T)) -> f64,
+) -> Option<[f64; 10]> {
+    const M: usize = 10;
+    let mut a = [[0.0; M + 1]; M];
+    for r in rows {
+        let t = target(r);
+        for (row, &bi) in a.iter_mut().zip(&r.0) {
+            for (cell, &bj) in row.iter_mut().zip(&r.0) {
+                *cell += bi * bj;
+            }
+            row[M] += bi * t;
+        }
+    }
+    for col in 0..M {
+        let pivot = (col..M).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
+        if a[pivot][col].abs() < 1e-12 {
+            return None;
+        }
+        a.swap(col, pivot);
+        let pivot_row = a[col];
+        for (r, row) in a.iter_mut().enumerate() {
+            if r != col {
+                let f = row[col] / pivot_row[col];
+                for (cell, &p) in row.iter_mut().zip(&pivot_row).skip(col) {
+                    *cell -= f * p;
+                }
+            }
+        }
+    }
+    let mut x = [0.0; M];
+    for (i, (xi, row)) in x.iter_mut().zip(&a).enumerate() {
+        *xi = row[M] / row[i];
+    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+/// Evaluates any correction field against the oracle (see the module doc).
+pub fn evaluate_field(
+    oracle: &Oracle<'_>,
+    method: &(impl CorrectionField + ?Sized),
+    grid: &EvaluationGrid,
+) -> Result<Accuracy, CorrectionError> {
     let truth = true_field(oracle, grid.z_counts);
 
     // Field-wide residual distortion.
@@ -110,7 +269,7 @@ pub fn evaluate(
         n,
         n,
     )?;
-    let measured = raster(&method, &geometry)?;
+    let measured = raster(method, &geometry)?;
     let expected = raster(&truth, &geometry)?;
     let mut a = Vec::with_capacity(n * n);
     let mut b = Vec::with_capacity(n * n);
@@ -155,7 +314,7 @@ pub fn evaluate(
                 image_pixels,
             )?;
             let c_method =
-                local_jacobian(&raster(&method, &geometry)?, image_pixels / 2, image_step);
+                local_jacobian(&raster(method, &geometry)?, image_pixels / 2, image_step);
             let c_true = local_jacobian(&raster(&truth, &geometry)?, image_pixels / 2, image_step);
             if let Some(error) = lattice_error(c_method, c_true) {
                 errors.push(error * 100.0);
@@ -273,6 +432,23 @@ mod tests {
             .map(|p| [c * p[0] - s * p[1] + 5.0, s * p[0] + c * p[1] - 2.0])
             .collect();
         assert!(rigid_residuals(&a, &b).iter().all(|r| *r < 1e-9));
+    }
+
+    #[test]
+    fn least_squares_recovers_a_cubic() {
+        let truth = [0.5, -1.0, 2.0, 0.1, -0.2, 0.3, 0.05, -0.04, 0.03, -0.02];
+        let mut rows = Vec::new();
+        for i in 0..8 {
+            for j in 0..8 {
+                let b = cubic_basis(i as f64 / 3.5 - 1.0, j as f64 / 3.5 - 1.0);
+                let value: f64 = b.iter().zip(&truth).map(|(x, c)| x * c).sum();
+                rows.push((b, value));
+            }
+        }
+        let fitted = least_squares(&rows, |r| r.1).unwrap();
+        for (f, t) in fitted.iter().zip(&truth) {
+            assert!((f - t).abs() < 1e-9, "{fitted:?}");
+        }
     }
 
     #[test]

@@ -1,0 +1,273 @@
+//! `cargo xtask bench`: one command, one run, every figure of DESIGN §11.
+//!
+//! Sections (each a module): calibration accuracy against the four baselines on
+//! three simulated scanners ([`accuracy`]), drift insensitivity ([`drift`]),
+//! productivity of the plan variants ([`productivity`]), localisation error ÷
+//! Cramér–Rao bound ([`crb`]), speed ([`speed`]) and the Gwyddion peer
+//! ([`gwyddion`]). Everything is seeded; a section that fails is recorded with
+//! its reason and the others still run. [`report`] writes `results.json`, the
+//! PNG figures and `docs/RESULTS.md` (the hand-written `docs/results/*.md`
+//! sections follow the measured tables).
+
+mod accuracy;
+mod crb;
+mod drift;
+mod gwyddion;
+mod productivity;
+mod report;
+mod speed;
+
+use crate::XtaskError;
+use serde::Serialize;
+use spm_calibration::NoObserver;
+use spmcal::job::Job;
+use spmcal::report::{CalibrationReport, RunRecord, finish};
+use spmcal::run::{RecordingObserver, RunStart, run_job};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// A section's figures, or why they are missing.
+#[derive(Debug, Serialize)]
+#[serde(untagged)]
+pub enum Section<T> {
+    /// Measured.
+    Measured(T),
+    /// Not measured, with the reason.
+    Missing {
+        /// Why.
+        missing: String,
+    },
+}
+
+impl<T> Section<T> {
+    fn from_result(result: Result<T, XtaskError>) -> Self {
+        match result {
+            Ok(value) => Self::Measured(value),
+            Err(error) => Self::Missing {
+                missing: error.to_string(),
+            },
+        }
+    }
+
+    /// The figures, when measured.
+    pub fn measured(&self) -> Option<&T> {
+        match self {
+            Self::Measured(value) => Some(value),
+            Self::Missing { .. } => None,
+        }
+    }
+}
+
+/// The machine of the run.
+#[derive(Debug, Serialize)]
+pub struct Machine {
+    /// CPU model (/proc/cpuinfo).
+    pub cpu: String,
+    /// Logical cores available to this process.
+    pub logical_cores: usize,
+    /// Date of the run (UTC), YYYY-MM-DD HH:MM.
+    pub date_utc: String,
+    /// rustc version the workspace was built with, when known.
+    pub rustc: String,
+}
+
+/// Everything `results.json` holds.
+#[derive(Debug, Serialize)]
+pub struct Results {
+    /// The machine.
+    pub machine: Machine,
+    /// The command that produced the file.
+    pub command: String,
+    /// A reduced run (`--quick`).
+    pub quick: bool,
+    /// Wall time of the whole bench, s.
+    pub bench_wall_time_s: f64,
+    /// Calibration accuracy against the baselines, per scanner config.
+    pub accuracy: Section<accuracy::AccuracyResults>,
+    /// LCC error against drift velocity.
+    pub drift: Section<drift::DriftResults>,
+    /// Error against repeats, cycles, instrument time and plan variants.
+    pub productivity: Section<productivity::ProductivityResults>,
+    /// Localisation error ÷ Cramér–Rao bound.
+    pub crb: Section<crb::CrbResults>,
+    /// Speed figures.
+    pub speed: Section<speed::SpeedResults>,
+    /// Gwyddion side by side.
+    pub gwyddion: Section<gwyddion::GwyddionResults>,
+}
+
+pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<(), XtaskError> {
+    let started = Instant::now();
+    std::fs::create_dir_all(out)
+        .map_err(|e| XtaskError::step(format!("creating {}", out.display()), e))?;
+    let machine = machine();
+    println!(
+        "== cargo xtask bench{}{}: {} ({} logical cores), {}",
+        if quick { " --quick" } else { "" },
+        if with_gwyddion { " --gwyddion" } else { "" },
+        machine.cpu,
+        machine.logical_cores,
+        machine.date_utc
+    );
+    let ctx = Context {
+        root: root.to_path_buf(),
+        out: out.to_path_buf(),
+        quick,
+    };
+    let accuracy = timed("accuracy", || accuracy::run(&ctx));
+    let drift = timed("drift", || drift::run(&ctx));
+    let productivity = timed("productivity", || productivity::run(&ctx));
+    let crb = timed("crb", || crb::run(&ctx));
+    let speed = timed("speed", || speed::run(&ctx, accuracy.measured()));
+    let gwyddion = timed("gwyddion", || {
+        if with_gwyddion {
+            gwyddion::run(&ctx)
+        } else {
+            Err(XtaskError::step(
+                "gwyddion",
+                "not run: pass --gwyddion (installs libgwyddion20-dev with apt-get when root)",
+            ))
+        }
+    });
+    let mut command = String::from("cargo xtask bench");
+    if quick {
+        command.push_str(" --quick");
+    }
+    if with_gwyddion {
+        command.push_str(" --gwyddion");
+    }
+    let results = Results {
+        machine,
+        command,
+        quick,
+        bench_wall_time_s: started.elapsed().as_secs_f64(),
+        accuracy,
+        drift,
+        productivity,
+        crb,
+        speed,
+        gwyddion,
+    };
+    report::write(&ctx, &results)
+}
+
+/// What every section needs.
+pub struct Context {
+    /// Workspace root.
+    pub root: PathBuf,
+    /// Output folder (results.json, figures, scratch).
+    pub out: PathBuf,
+    /// Reduced run.
+    pub quick: bool,
+}
+
+impl Context {
+    /// A fresh scratch folder under the output folder.
+    pub fn scratch(&self, name: &str) -> Result<PathBuf, XtaskError> {
+        let dir = self.out.join("scratch").join(name);
+        if dir.exists() {
+            std::fs::remove_dir_all(&dir)
+                .map_err(|e| XtaskError::step(format!("removing {}", dir.display()), e))?;
+        }
+        std::fs::create_dir_all(&dir)
+            .map_err(|e| XtaskError::step(format!("creating {}", dir.display()), e))?;
+        Ok(dir)
+    }
+}
+
+fn timed<T>(name: &str, f: impl FnOnce() -> Result<T, XtaskError>) -> Section<T> {
+    let started = Instant::now();
+    let result = f();
+    match &result {
+        Ok(_) => println!(
+            "   {name}: done in {:.1} s",
+            started.elapsed().as_secs_f64()
+        ),
+        Err(e) => println!("   {name}: missing ({e})"),
+    }
+    Section::from_result(result)
+}
+
+/// Runs one calibration job into a fresh CDB in `dir` and evaluates it
+/// (spmcal's `run_job` + `finish`, as `cargo xtask calibrate` does).
+pub fn calibrate(job: &Job, dir: &Path, quick: bool) -> Result<CalibrationReport, XtaskError> {
+    let cdb_path = dir.join("cdb.sqlite");
+    let mut quiet = NoObserver;
+    let mut recorder = RecordingObserver::new(&mut quiet);
+    let started = Instant::now();
+    let outcome = run_job(
+        job,
+        &cdb_path,
+        RunStart::New {
+            run_id: "bench".to_owned(),
+        },
+        // A fixed start time: the CDB contents do not depend on the clock.
+        1_800_000_000.0,
+        &mut recorder,
+    )
+    .map_err(|e| XtaskError::step(format!("calibration in {}", dir.display()), e))?;
+    let wall_time_s = started.elapsed().as_secs_f64();
+    let drift = std::mem::take(&mut recorder.drift);
+    let nodes = std::mem::take(&mut recorder.nodes);
+    let record = RunRecord {
+        plan: &job.plan,
+        run: &outcome.report,
+        simulator: outcome.simulator.as_ref(),
+        drift: &drift,
+        nodes: &nodes,
+        wall_time_s,
+    };
+    finish(&cdb_path, dir, &record, quick)
+        .map_err(|e| XtaskError::step(format!("report in {}", dir.display()), e))
+}
+
+fn machine() -> Machine {
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|text| {
+            text.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|s| s.trim().to_owned())
+        })
+        .unwrap_or_else(|| "unknown".to_owned());
+    let rustc = std::process::Command::new("rustc")
+        .arg("--version")
+        .output()
+        .ok()
+        .and_then(|o| String::from_utf8(o.stdout).ok())
+        .map_or_else(|| "unknown".to_owned(), |s| s.trim().to_owned());
+    Machine {
+        cpu,
+        logical_cores: std::thread::available_parallelism().map_or(1, usize::from),
+        date_utc: date_utc(),
+        rustc,
+    }
+}
+
+/// The current UTC date and time, YYYY-MM-DD HH:MM (civil-from-days).
+fn date_utc() -> String {
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    let days = (secs / 86_400) as i64;
+    let (hh, mm) = ((secs % 86_400) / 3600, (secs % 3600) / 60);
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!("{y:04}-{m:02}-{d:02} {hh:02}:{mm:02}")
+}
+
+/// Root mean square.
+pub fn rms(values: &[f64]) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    (values.iter().map(|v| v * v).sum::<f64>() / values.len() as f64).sqrt()
+}

@@ -42,10 +42,12 @@ pub enum JobError {
         message: String,
     },
     /// A field of the job table is missing or wrong.
-    #[error("{path}: field `{field}`: {message}")]
+    #[error("{path}{}: field `{field}`: {message}", line.map(|l| format!(":{l}")).unwrap_or_default())]
     Field {
         /// The file.
         path: PathBuf,
+        /// 1-based line of the field (or of its table when the field is missing), when found.
+        line: Option<usize>,
         /// Dotted field path.
         field: String,
         /// What is wrong.
@@ -90,6 +92,7 @@ impl Job {
             })?;
         let field = |field: &str, message: &str| JobError::Field {
             path: path.to_path_buf(),
+            line: line_of(&text, field),
             field: field.to_owned(),
             message: message.to_owned(),
         };
@@ -105,25 +108,37 @@ impl Job {
                 ));
             }
         }
-        let kind = backend
-            .get("kind")
-            .and_then(toml::Value::as_str)
-            .ok_or_else(|| field("backend.kind", "missing (a string: \"sim\")"))?;
+        let kind = match backend.get("kind") {
+            Some(toml::Value::String(kind)) => kind.as_str(),
+            Some(other) => {
+                return Err(field(
+                    "backend.kind",
+                    &format!("must be a string (\"sim\"), found {}", other.type_str()),
+                ));
+            }
+            None => return Err(field("backend.kind", "missing (a string: \"sim\")")),
+        };
         if kind != "sim" {
             return Err(field(
                 "backend.kind",
                 &format!("unknown backend {kind:?} (known: \"sim\")"),
             ));
         }
-        let sim_path = backend
-            .get("sim_config")
-            .and_then(toml::Value::as_str)
-            .ok_or_else(|| {
-                field(
+        let sim_path = match backend.get("sim_config") {
+            Some(toml::Value::String(p)) => p.as_str(),
+            Some(other) => {
+                return Err(field(
+                    "backend.sim_config",
+                    &format!("must be a string (a file path), found {}", other.type_str()),
+                ));
+            }
+            None => {
+                return Err(field(
                     "backend.sim_config",
                     "missing (the simulator config file, relative to the job file)",
-                )
-            })?;
+                ));
+            }
+        };
         let sim_path = path.parent().unwrap_or(Path::new(".")).join(sim_path);
         for key in table.keys() {
             if !["backend", "plan", "plan_file"].contains(&key.as_str()) {
@@ -176,6 +191,39 @@ impl Job {
         let plan = PlanConfig::from_toml_str(&text, &path.display().to_string())?;
         Ok((plan, text))
     }
+}
+
+/// 1-based line of a dotted field (`backend.kind`, `plan_file`) in a job file: the line
+/// assigning its last key inside its table (top level before any table header), else the
+/// line of its table header. A text search (jobs are small, hand-written files); `None` when
+/// nothing matches.
+fn line_of(text: &str, dotted: &str) -> Option<usize> {
+    let (table, key) = dotted.rsplit_once('.').unwrap_or(("", dotted));
+    let mut current = String::new();
+    let mut header_line = None;
+    for (i, raw) in text.lines().enumerate() {
+        let line = raw.trim();
+        if let Some(name) = line.strip_prefix('[') {
+            current = name
+                .trim_start_matches('[')
+                .split(']')
+                .next()
+                .unwrap_or("")
+                .trim()
+                .to_owned();
+            if current == table {
+                header_line = Some(i + 1);
+            }
+            continue;
+        }
+        let assigns = line
+            .strip_prefix(key)
+            .is_some_and(|rest| rest.trim_start().starts_with('='));
+        if current == table && assigns {
+            return Some(i + 1);
+        }
+    }
+    header_line
 }
 
 fn read(path: &Path) -> Result<String, JobError> {

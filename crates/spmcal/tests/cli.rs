@@ -120,3 +120,236 @@ fn info_json_has_the_contract_keys() {
     );
     assert!(Path::new(&file).is_file());
 }
+
+/// Writes `name` into `dir` and returns its path as a string.
+fn write(dir: &Path, name: &str, text: &str) -> String {
+    let path = dir.join(name);
+    std::fs::write(&path, text).unwrap();
+    path.to_str().unwrap().to_owned()
+}
+
+#[test]
+fn config_errors_exit_2_naming_file_line_and_field() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let plan = std::fs::read_to_string(root.join("configs/plan-hopg-small.toml")).unwrap();
+    let sim = std::fs::read_to_string(root.join("configs/sim-hopg.toml")).unwrap();
+    let dir = std::env::temp_dir().join(format!("spmcal-config-errors-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let line_of = |text: &str, needle: &str| {
+        text.lines()
+            .position(|l| l.starts_with(needle))
+            .map(|i| i + 1)
+            .unwrap_or_else(|| panic!("{needle} not in the config"))
+    };
+    let step = line_of(&plan, "step_counts = 20000");
+    let dwell = line_of(&plan, "pixel_dwell_s =");
+    let overhead = line_of(&sim, "call_overhead_s =");
+    write(&dir, "sim.toml", &sim);
+    write(&dir, "plan.toml", &plan);
+    let job = |plan_file: &str, sim_file: &str| {
+        format!(
+            "plan_file = \"{plan_file}\"\n[backend]\nkind = \"sim\"\nsim_config = \"{sim_file}\"\n"
+        )
+    };
+    // (what, file to write, its text, job text, file named in the message, line, field)
+    let mut cases: Vec<(&str, &str, String, String, &str, usize, &str)> = Vec::new();
+    let plan_with = |from: &str, to: &str| plan.replacen(from, to, 1);
+    let sim_with = |from: &str, to: &str| {
+        let at = sim.find(from).expect("in sim config");
+        format!("{}{to}{}", &sim[..at], &sim[at + from.len()..])
+    };
+    for (what, text, line, field) in [
+        (
+            "plan: unknown field",
+            plan_with("step_counts = 20000", "step_counts = 20000\ncolour = 3"),
+            step + 1,
+            "plan.net.colour",
+        ),
+        (
+            "plan: wrong type",
+            plan_with("step_counts = 20000", "step_counts = \"many\""),
+            step,
+            "plan.net.step_counts",
+        ),
+        (
+            "plan: out of range",
+            plan_with("step_counts = 20000", "step_counts = -5"),
+            step,
+            "plan.net.step_counts",
+        ),
+        (
+            "plan: NaN",
+            plan_with("pixel_dwell_s = 0.0001", "pixel_dwell_s = nan"),
+            dwell,
+            "plan.motion.pixel_dwell_s",
+        ),
+    ] {
+        cases.push((
+            what,
+            "bad-plan.toml",
+            text,
+            job("bad-plan.toml", "sim.toml"),
+            "bad-plan.toml",
+            line,
+            field,
+        ));
+    }
+    let seed = line_of(&sim, "seed =");
+    for (what, text, line, field) in [
+        (
+            "sim: unknown field",
+            sim_with("seed = 20261121", "seed = 20261121\nbogus = 1"),
+            seed + 1,
+            "bogus",
+        ),
+        (
+            "sim: wrong type",
+            sim_with("call_overhead_s = 0.002", "call_overhead_s = \"fast\""),
+            overhead,
+            "instrument.call_overhead_s",
+        ),
+        (
+            "sim: out of range",
+            sim_with("call_overhead_s = 0.002", "call_overhead_s = -1.0"),
+            overhead,
+            "instrument.call_overhead_s",
+        ),
+    ] {
+        cases.push((
+            what,
+            "bad-sim.toml",
+            text,
+            job("plan.toml", "bad-sim.toml"),
+            "bad-sim.toml",
+            line,
+            field,
+        ));
+    }
+    for (what, job_text, line, field) in [
+        (
+            "job: unknown top-level field",
+            job("plan.toml", "sim.toml").replacen("[backend]", "extra_table = 2\n[backend]", 1),
+            2,
+            "extra_table",
+        ),
+        (
+            "job: unknown backend field",
+            format!("{}colour = 3\n", job("plan.toml", "sim.toml")),
+            5,
+            "backend.colour",
+        ),
+        (
+            "job: wrong type",
+            job("plan.toml", "sim.toml").replace("kind = \"sim\"", "kind = 5"),
+            3,
+            "backend.kind",
+        ),
+    ] {
+        cases.push((
+            what,
+            "unused.toml",
+            String::new(),
+            job_text,
+            "job.toml",
+            line,
+            field,
+        ));
+    }
+    for (what, file, text, job_text, named, line, field) in &cases {
+        write(&dir, file, text);
+        let job_path = write(&dir, "job.toml", job_text);
+        let (code, _, stderr) = spmcal(&[
+            "calibrate",
+            "--config",
+            &job_path,
+            "--out",
+            dir.join("out").to_str().unwrap(),
+        ]);
+        assert_eq!(code, 2, "{what}: {stderr}");
+        assert!(
+            stderr.contains(&format!("{named}:{line}")),
+            "{what}: stderr {stderr:?} should name {named}:{line}"
+        );
+        assert!(
+            stderr.contains(&format!("`{field}`")),
+            "{what}: stderr {stderr:?} should name field {field}"
+        );
+        assert!(!stderr.contains("panicked"), "{what}: {stderr}");
+    }
+    assert!(
+        !dir.join("out").join("cdb.sqlite").exists(),
+        "a bad config must not create a CDB"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_cdb_with_a_newer_schema_is_refused_and_left_byte_identical() {
+    let dir = std::env::temp_dir().join(format!("spmcal-newer-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let cdb_path = dir.join("newer.sqlite");
+    {
+        let cdb = spm_cdb::Cdb::open(&cdb_path).unwrap();
+        use spm_cdb::CdbRead;
+        let newer = spm_cdb::SCHEMA_VERSION + 1;
+        cdb.connection()
+            .pragma_update(None, "user_version", newer)
+            .unwrap();
+    }
+    let before = std::fs::read(&cdb_path).unwrap();
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let job = write(
+        &dir,
+        "job.toml",
+        &format!(
+            "plan_file = {:?}\n[backend]\nkind = \"sim\"\nsim_config = {:?}\n",
+            root.join("configs/plan-hopg-small.toml")
+                .display()
+                .to_string(),
+            root.join("configs/sim-hopg.toml").display().to_string()
+        ),
+    );
+    let db = cdb_path.to_str().unwrap();
+    let out = dir.join("out");
+    let csv = dir.join("x.csv");
+    let surfaces = dir.join("s.json");
+    for args in [
+        vec![
+            "calibrate",
+            "--config",
+            &job,
+            "--cdb",
+            db,
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        vec![
+            "calibrate",
+            "--config",
+            &job,
+            "--cdb",
+            db,
+            "--resume",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        vec!["cdb", "check", db],
+        vec!["cdb", "export", db, "--csv", csv.to_str().unwrap()],
+        vec!["cdb", "trend", db],
+        vec!["fit", "--cdb", db, "--out", surfaces.to_str().unwrap()],
+    ] {
+        let (code, _, stderr) = spmcal(&args);
+        assert_eq!(code, 2, "{args:?}: {stderr}");
+        assert!(
+            stderr.contains("newer.sqlite") && stderr.contains("newer than this program"),
+            "{args:?}: {stderr}"
+        );
+        assert_eq!(
+            std::fs::read(&cdb_path).unwrap(),
+            before,
+            "{args:?} changed the file"
+        );
+    }
+    assert!(!csv.exists() && !surfaces.exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -13,8 +13,15 @@
 //! Orientation: a negative `x_scale` means the stored columns run right to left; a positive
 //! `y_scale` means the stored lines run bottom to top (both as Gwyddion displays RHK files).
 //! Scan direction right is the trace ([`Direction::Forward`]), left the retrace. The stored
-//! line order is taken as the acquisition order. `period` is taken as the time per pixel, so a
-//! line lasts `period · x_size`.
+//! line order is taken as the acquisition order.
+//!
+//! Timing: the page header's `period` is the time per data point, in seconds (RHK's SM4
+//! description; spym, for one, reads it as `time_per_point`), so a line lasts
+//! `period · x_size` and trace + retrace `2 · period · x_size`. The measured graphite file
+//! checks the reading: its image pages say 1.953125 ms, i.e. 0.5 s per 256-pixel line (a
+//! 4.3-minute frame, usual for atomic resolution at 9 K; per line it would be a 0.5 s frame),
+//! and its spectroscopy pages say 0.1 ms for 81-point sweeps, which is plausible only per point.
+//! (shared/data/measured/README.md calls 1.953 ms the "line period": it is the pixel period.)
 
 use std::path::Path;
 

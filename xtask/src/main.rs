@@ -43,7 +43,7 @@ enum Command {
         #[arg(long)]
         gwyddion: bool,
         /// Output folder for results.json.
-        #[arg(long, value_name = "DIR", default_value = "target/spmcal/bench")]
+        #[arg(long, value_name = "DIR", default_value = "target/bench")]
         out: PathBuf,
     },
 }

@@ -71,7 +71,7 @@ pub fn run(ctx: &Context) -> Result<AccuracyResults, XtaskError> {
         let job = Job::from_parts(&config_path, plan.clone(), plan_text.clone())
             .map_err(|e| XtaskError::step(format!("reading {}", config_path.display()), e))?;
         let dir = ctx.scratch(&format!("accuracy-{name}"))?;
-        let report = calibrate(&job, &dir, ctx.quick)?;
+        let report = calibrate(&job, &dir, ctx.quick)?.report;
         let table = report
             .accuracy
             .ok_or_else(|| XtaskError::step(name, "no accuracy table (no oracle)"))?;

@@ -121,17 +121,15 @@ fn one_run(seed: u64, v: f64) -> Result<Option<(f64, f64, Vec<f64>)>, XtaskError
     let ap =
         aperture(&mut sim, a0.position, &ap_params).map_err(|e| XtaskError::step("aperture", e))?;
     let Some(lcs) = ap.lcs else { return Ok(None) };
-    let (Some(a), Some(b_index)) = (
-        ap.feature(lcs.a).copied(),
-        Some(if lcs.ab.y.value().abs() >= lcs.ac.y.value().abs() {
-            lcs.b
-        } else {
-            lcs.c
-        }),
-    ) else {
+    let Some(a) = ap.feature(lcs.a).copied() else {
         return Ok(None);
     };
-    let ab = if b_index == lcs.b { lcs.ab } else { lcs.ac };
+    // B: the LCS neighbour most separated in y (the vector a single scan distorts most).
+    let (b_index, ab) = if lcs.ab.y.value().abs() >= lcs.ac.y.value().abs() {
+        (lcs.b, lcs.ab)
+    } else {
+        (lcs.c, lcs.ac)
+    };
     let Some(b) = ap.feature(b_index).copied() else {
         return Ok(None);
     };
@@ -184,7 +182,7 @@ fn one_run(seed: u64, v: f64) -> Result<Option<(f64, f64, Vec<f64>)>, XtaskError
 }
 
 pub fn run(ctx: &Context) -> Result<DriftResults, XtaskError> {
-    let seeds: u64 = if ctx.quick { 3 } else { 10 };
+    let seeds: u64 = if ctx.quick { 3 } else { 20 };
     let velocities: &[f64] = if ctx.quick {
         &[0.0, 0.2, 0.4]
     } else {

@@ -188,9 +188,18 @@ fn timed<T>(name: &str, f: impl FnOnce() -> Result<T, XtaskError>) -> Section<T>
     Section::from_result(result)
 }
 
+/// A calibration with its figures.
+pub struct Calibrated {
+    /// spmcal's report (report.json).
+    pub report: CalibrationReport,
+    /// RMS over nodes of (K̄x, K̄y averaged over the node's repeats ÷ the
+    /// oracle's true value − 1), %: the error the net's repeats leave.
+    pub node_mean_k_rms_pct: Option<f64>,
+}
+
 /// Runs one calibration job into a fresh CDB in `dir` and evaluates it
 /// (spmcal's `run_job` + `finish`, as `cargo xtask calibrate` does).
-pub fn calibrate(job: &Job, dir: &Path, quick: bool) -> Result<CalibrationReport, XtaskError> {
+pub fn calibrate(job: &Job, dir: &Path, quick: bool) -> Result<Calibrated, XtaskError> {
     let cdb_path = dir.join("cdb.sqlite");
     let mut quiet = NoObserver;
     let mut recorder = RecordingObserver::new(&mut quiet);
@@ -217,8 +226,46 @@ pub fn calibrate(job: &Job, dir: &Path, quick: bool) -> Result<CalibrationReport
         nodes: &nodes,
         wall_time_s,
     };
-    finish(&cdb_path, dir, &record, quick)
-        .map_err(|e| XtaskError::step(format!("report in {}", dir.display()), e))
+    let report = finish(&cdb_path, dir, &record, quick)
+        .map_err(|e| XtaskError::step(format!("report in {}", dir.display()), e))?;
+    let node_mean_k_rms_pct = match outcome.simulator.as_ref() {
+        Some(sim) => node_mean_error(&cdb_path, sim)?,
+        None => None,
+    };
+    Ok(Calibrated {
+        report,
+        node_mean_k_rms_pct,
+    })
+}
+
+fn node_mean_error(cdb_path: &Path, sim: &spm_sim::Simulator) -> Result<Option<f64>, XtaskError> {
+    let fail = |e: spm_cdb::CdbError| XtaskError::step("reading the bench CDB", e);
+    let cdb = spm_cdb::Cdb::open_read_only(cdb_path).map_err(fail)?;
+    let snapshot = cdb.snapshot().map_err(fail)?;
+    let records =
+        spm_cdb::CdbRead::records(&snapshot, &spm_cdb::RecordFilter::default()).map_err(fail)?;
+    let mut by_node: std::collections::BTreeMap<(i64, i64, i64), Vec<&spm_cdb::LccRecord>> =
+        std::collections::BTreeMap::new();
+    for r in &records {
+        by_node
+            .entry((r.node_x_counts, r.node_y_counts, r.node_z_counts))
+            .or_default()
+            .push(r);
+    }
+    let oracle = sim.oracle();
+    let z = spm_hal::Counts(oracle.z_now().value());
+    let mut errors = Vec::new();
+    for group in by_node.values() {
+        let n = group.len() as f64;
+        let mean = |f: fn(&spm_cdb::LccRecord) -> f64| group.iter().map(|r| f(r)).sum::<f64>() / n;
+        let truth = oracle.true_lcc(
+            spm_hal::CountPoint::from_counts(mean(|r| r.lcs_x_counts), mean(|r| r.lcs_y_counts)),
+            z,
+        );
+        errors.push((mean(|r| r.kx_nm_per_count) / truth.kx.value() - 1.0) * 100.0);
+        errors.push((mean(|r| r.ky_nm_per_count) / truth.ky.value() - 1.0) * 100.0);
+    }
+    Ok((!errors.is_empty()).then(|| rms(&errors)))
 }
 
 fn machine() -> Machine {

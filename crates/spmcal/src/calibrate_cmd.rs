@@ -18,6 +18,12 @@ pub fn run(
     let out: PathBuf = out.map_or_else(|| PathBuf::from("spmcal-calibrate"), Path::to_path_buf);
     std::fs::create_dir_all(&out).map_err(|e| CliError::io(&out, e))?;
     let cdb_path = cdb.map_or_else(|| out.join("cdb.sqlite"), Path::to_path_buf);
+    if cdb_path.is_dir() {
+        return Err(CliError::BadInput(format!(
+            "{}: is a directory, not a calibration database",
+            cdb_path.display()
+        )));
+    }
     let start_unix_s = SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map_or(0.0, |d| d.as_secs_f64());

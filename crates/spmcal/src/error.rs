@@ -36,6 +36,8 @@ impl CliError {
             Self::RunFailed(_) => EXIT_RUN_FAILED,
             Self::Io { source, .. } => match source.kind() {
                 std::io::ErrorKind::NotFound
+                | std::io::ErrorKind::IsADirectory
+                | std::io::ErrorKind::NotADirectory
                 | std::io::ErrorKind::PermissionDenied
                 | std::io::ErrorKind::InvalidData
                 | std::io::ErrorKind::InvalidInput => EXIT_BAD_INPUT,

@@ -124,8 +124,8 @@ fn info_json_has_the_contract_keys() {
 /// Writes `name` into `dir` and returns its path as a string.
 fn write(dir: &Path, name: &str, text: &str) -> String {
     let path = dir.join(name);
-    std::fs::write(&path, text).unwrap();
-    path.to_str().unwrap().to_owned()
+    std::fs::write(&path, text).expect("scratch file");
+    path.to_str().expect("UTF-8 temp path").to_owned()
 }
 
 #[test]

@@ -8,7 +8,13 @@ use spm_formats::read_bytes;
 use std::path::Path;
 
 const NAMES: [&str; 7] = [
-    "x.sxm", "x.sm4", "x.spm", "x.dat", "x.gsf", "x.raw", "x.unknown",
+    "x.sxm",
+    "x.sm4",
+    "x.spm",
+    "x.dat",
+    "x.gsf",
+    "x.raw",
+    "x.unknown",
 ];
 
 fuzz_target!(|data: &[u8]| {

@@ -17,9 +17,10 @@ const SMALL: usize = 16;
 
 fn main() -> Result<(), Box<dyn Error>> {
     let mut args = std::env::args().skip(1);
-    let measured = args
-        .next()
-        .map_or_else(|| PathBuf::from("../../shared/data/measured"), PathBuf::from);
+    let measured = args.next().map_or_else(
+        || PathBuf::from("../../shared/data/measured"),
+        PathBuf::from,
+    );
     let corpus = args
         .next()
         .map_or_else(|| PathBuf::from("corpus"), PathBuf::from);
@@ -61,19 +62,17 @@ fn main() -> Result<(), Box<dyn Error>> {
         if let Some(small) = small {
             seeds.push((target, format!("{name}.small"), small));
         }
-        if let Ok(file) = read_any(path) {
-            if let Some(channel) = small_channel(&file) {
-                if target == "raw" {
-                    seeds.push(("raw", format!("{name}.small"), encode_raw_f64(&channel)));
-                }
-                if !gsf_done {
-                    seeds.push((
-                        "gsf",
-                        format!("{name}.small.gsf"),
-                        encode_gsf(&channel, &[("Source", "seed")])?,
-                    ));
-                    gsf_done = true;
-                }
+        if let Some(channel) = read_any(path).ok().as_ref().and_then(small_channel) {
+            if target == "raw" {
+                seeds.push(("raw", format!("{name}.small"), encode_raw_f64(&channel)));
+            }
+            if !gsf_done {
+                seeds.push((
+                    "gsf",
+                    format!("{name}.small.gsf"),
+                    encode_gsf(&channel, &[("Source", "seed")])?,
+                ));
+                gsf_done = true;
             }
         }
     }
@@ -104,15 +103,8 @@ fn small_channel(file: &SpmFile) -> Option<spm_formats::Channel> {
     let data: Vec<f64> = (0..SMALL)
         .flat_map(|r| c.data()[r * nx..r * nx + SMALL].iter().copied())
         .collect();
-    let ch = spm_formats::Channel::new(
-        c.name(),
-        c.direction(),
-        c.unit(),
-        SMALL,
-        SMALL,
-        data,
-    )
-    .ok()?;
+    let ch =
+        spm_formats::Channel::new(c.name(), c.direction(), c.unit(), SMALL, SMALL, data).ok()?;
     Some(ch.with_size_nm(1.0, 1.0))
 }
 

@@ -5,8 +5,10 @@
 //! not match the queue returns a [`MockError`] of kind [`ErrorKind::Other`]
 //! (it does not panic, so the code under test sees an ordinary failure) and is
 //! remembered, and [`ScriptedMicroscope::done`] reports it. Faults are injected
-//! with [`Expectation::fault`]. `now`, `position` and `capabilities` are answered
-//! from the mock's state and never consume expectations.
+//! with [`Expectation::fault`], or at a configurable rate with
+//! [`ScriptedMicroscope::with_random_faults`] (a random fault fails the call without
+//! consuming its expectation, so the retried call gets it). `now`, `position` and
+//! `capabilities` are answered from the mock's state and never consume expectations.
 //!
 //! The mock has a clock: a scan takes [`Frame::nominal_duration`], a move
 //! takes its length over its speed plus the settle time, a wait its duration.
@@ -111,8 +113,57 @@ impl fmt::Debug for Expectation {
     }
 }
 
+/// Faults injected at random into the consuming calls (see
+/// [`ScriptedMicroscope::with_random_faults`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct RandomFaults {
+    /// Probability that a consuming call fails, in [0, 1].
+    pub probability_per_call: f64,
+    /// The kinds drawn from (uniformly); empty means none are injected.
+    pub kinds: Vec<ErrorKind>,
+    /// Seed of the deterministic generator.
+    pub seed: u64,
+}
+
+impl RandomFaults {
+    /// The transient kinds (timeout, communication, feedback lost) at `probability_per_call`.
+    pub fn transient(probability_per_call: f64, seed: u64) -> Self {
+        Self {
+            probability_per_call,
+            kinds: vec![
+                ErrorKind::Timeout,
+                ErrorKind::Communication,
+                ErrorKind::FeedbackLost,
+            ],
+            seed,
+        }
+    }
+}
+
+/// One injected random fault.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct InjectedFault {
+    /// The failed call.
+    pub operation: Operation,
+    /// Its error kind.
+    pub kind: ErrorKind,
+    /// The mock's clock when it failed.
+    pub time: Seconds,
+}
+
+/// splitmix64: a tiny deterministic generator (no dependency).
+fn splitmix64(state: &mut u64) -> u64 {
+    *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    let mut z = *state;
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
 /// A [`Microscope`] that answers from a queue of expectations.
 pub struct ScriptedMicroscope {
+    random_faults: Option<(RandomFaults, u64)>,
+    injected: Vec<InjectedFault>,
     capabilities: Capabilities,
     expectations: VecDeque<Expectation>,
     clock: Seconds,
@@ -130,6 +181,8 @@ impl ScriptedMicroscope {
             (capabilities.field_min.y + capabilities.field_max.y) * 0.5,
         );
         Self {
+            random_faults: None,
+            injected: Vec::new(),
             capabilities,
             expectations: VecDeque::new(),
             clock: Seconds::ZERO,
@@ -164,6 +217,20 @@ impl ScriptedMicroscope {
     pub fn lenient_moves_and_waits(mut self, lenient: bool) -> Self {
         self.lenient_moves_and_waits = lenient;
         self
+    }
+
+    /// Fails consuming calls (`wait`, `move_to`, `scan`, `z_position`) at random with
+    /// `faults.probability_per_call`, before they look at the queue: the expectation stays
+    /// for the retry. Deterministic from `faults.seed`; see [`Self::injected_faults`].
+    pub fn with_random_faults(mut self, faults: RandomFaults) -> Self {
+        let state = faults.seed;
+        self.random_faults = Some((faults, state));
+        self
+    }
+
+    /// The random faults injected so far, in order.
+    pub fn injected_faults(&self) -> &[InjectedFault] {
+        &self.injected
     }
 
     /// Queues one expectation.
@@ -203,6 +270,28 @@ impl ScriptedMicroscope {
 
     fn take(&mut self, operation: Operation) -> Result<Option<Expectation>, MockError> {
         self.calls.push(operation);
+        if let Some((faults, state)) = &mut self.random_faults
+            && !faults.kinds.is_empty()
+        {
+            let u = (splitmix64(state) >> 11) as f64 / (1u64 << 53) as f64;
+            if u < faults.probability_per_call {
+                let pick = splitmix64(state) % faults.kinds.len() as u64;
+                let kind = faults
+                    .kinds
+                    .get(usize::try_from(pick).unwrap_or(0))
+                    .copied()
+                    .unwrap_or(ErrorKind::Other);
+                self.injected.push(InjectedFault {
+                    operation,
+                    kind,
+                    time: self.clock,
+                });
+                return Err(MockError {
+                    kind,
+                    message: format!("random {kind:?} fault on {operation:?}"),
+                });
+            }
+        }
         let front_matches = self
             .expectations
             .front()
@@ -327,6 +416,43 @@ mod tests {
 
     fn mock() -> ScriptedMicroscope {
         ScriptedMicroscope::new(ScriptedMicroscope::default_capabilities())
+    }
+
+    #[test]
+    fn random_faults_hit_at_their_rate_deterministically_and_keep_the_script() {
+        let run = |seed: u64| {
+            let mut m = mock()
+                .lenient_moves_and_waits(true)
+                .with_random_faults(RandomFaults::transient(0.05, seed));
+            m.expect(Expectation::Wait(Some(Seconds(1.0))));
+            let mut failures = Vec::new();
+            // The one scripted wait is retried until it succeeds; then lenient waits.
+            for _ in 0..20_000 {
+                if let Err(e) = m.wait(Seconds(1.0)) {
+                    failures.push(e.kind);
+                }
+            }
+            assert_eq!(m.remaining(), 0, "the scripted wait was consumed once");
+            assert!(m.done().is_ok());
+            assert_eq!(m.injected_faults().len(), failures.len());
+            assert!(failures.iter().all(|k| k.is_transient()));
+            failures
+        };
+        let a = run(7);
+        let rate = a.len() as f64 / 20_000.0;
+        assert!((0.045..0.055).contains(&rate), "rate {rate}");
+        assert_eq!(a, run(7), "same seed, same faults");
+        assert_ne!(a, run(8));
+        for kind in [
+            ErrorKind::Timeout,
+            ErrorKind::Communication,
+            ErrorKind::FeedbackLost,
+        ] {
+            assert!(a.contains(&kind));
+        }
+        let mut quiet = mock().with_random_faults(RandomFaults::transient(0.0, 1));
+        quiet.expect(Expectation::Wait(None));
+        assert!(quiet.wait(Seconds(1.0)).is_ok());
     }
 
     #[test]

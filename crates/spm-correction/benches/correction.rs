@@ -1,33 +1,13 @@
 //! Corrected coordinates + bilinear resampling of an N×N image (N = 2048, 4096), one thread and
 //! all threads. Compare: Gwyddion's `gwy_data_field_sample_distorted` (bilinear, one thread)
 //! takes about 74 ms for 2048² on this kind of machine (the resampling alone, given the map).
+//! Peak memory of the same workload: `cargo run --release -p spm-correction --example
+//! peak_memory`.
 #![allow(clippy::unwrap_used, missing_docs)]
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use spm_correction::*;
-use spm_hal::{CountPoint, Counts, ScanDirection};
-use spm_regression::{Polynomial2, n_terms};
-
-/// A realistic field: degree-3 surfaces over a 20000-count scanner, 1–5 % nonlinearity.
-fn field() -> ProductField {
-    let surface = |base: f64, seed: f64| {
-        let c: Vec<f64> = (0..n_terms(3))
-            .map(|k| {
-                if k == 0 {
-                    base
-                } else {
-                    base * 0.02 * ((k as f64 + seed) * 1.7).sin()
-                }
-            })
-            .collect();
-        Polynomial2::new(3, (10_000.0, 10_000.0), (10_000.0, 10_000.0), c).unwrap()
-    };
-    ProductField {
-        kx_nm_per_count: surface(0.0125, 0.0),
-        kyx_nm_per_count: surface(0.0004, 1.0),
-        kyy_nm_per_count: surface(0.0121, 2.0),
-    }
-}
+use spm_hal::ScanDirection;
 
 /// CPU time of the calling thread, ns (Linux `/proc/thread-self/schedstat`, first field): the
 /// single-thread figure without the waits of a shared, loaded machine.
@@ -38,25 +18,13 @@ fn thread_cpu_ns() -> u64 {
         .unwrap_or(0)
 }
 
-fn image(n: usize) -> Vec<f64> {
-    (0..n * n)
-        .map(|k| ((k % n) as f64 * 0.05).sin() + ((k / n) as f64 * 0.031).cos())
-        .collect()
-}
-
 fn bench(c: &mut Criterion) {
-    let field = field();
+    let field = bench_support::realistic_field().unwrap();
     let mut group = c.benchmark_group("correct_and_resample_bilinear");
     group.sample_size(10);
     for n in [2048usize, 4096] {
-        let geometry = RasterGeometry::new(
-            CountPoint::from_counts(2000.0, 3000.0),
-            Counts(16384.0 / n as f64),
-            n,
-            n,
-        )
-        .unwrap();
-        let img = image(n);
+        let geometry = bench_support::benchmark_geometry(n).unwrap();
+        let img = bench_support::benchmark_image(n);
         group.throughput(Throughput::Elements((n * n) as u64));
         for (name, par) in [
             ("1 thread", Parallelism::Sequential),

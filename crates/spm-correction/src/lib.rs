@@ -33,6 +33,7 @@
 //! ```
 #![warn(missing_docs)]
 
+pub mod bench_support;
 pub mod closed_form;
 mod drift;
 mod error;

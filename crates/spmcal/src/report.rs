@@ -158,7 +158,9 @@ pub fn finish(
              region (trace + retrace at the plan's pixel dwell) over a reference grid of \
              {POLYNOMIAL_CONTROL}×{POLYNOMIAL_CONTROL} features with exact positions; a total-degree-3 \
              polynomial per coordinate fitted by least squares; the drift (oracle velocity at the end \
-             of the run) moves the features during the image"
+             of the run) moves the features during the image. A best case for the baseline: it \
+             assumes a standard resolvable over the whole field in one image (a grating, not an \
+             atomic lattice) and no detection noise"
         ),
     ];
     let region = Region::around(record.nodes, 0.0);

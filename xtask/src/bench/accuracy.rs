@@ -34,6 +34,10 @@ pub struct ConfigAccuracy {
     pub repeats: u32,
     /// Records in the CDB.
     pub records: u64,
+    /// Visits given up.
+    pub given_up: usize,
+    /// Visits given up, by reason.
+    pub given_up_reasons: Vec<(String, usize)>,
     /// Simulated instrument time, s.
     pub instrument_time_s: f64,
     /// Wall time of the calibration, s.
@@ -72,6 +76,18 @@ pub fn run(ctx: &Context) -> Result<AccuracyResults, XtaskError> {
             .map_err(|e| XtaskError::step(format!("reading {}", config_path.display()), e))?;
         let dir = ctx.scratch(&format!("accuracy-{name}"))?;
         let report = calibrate(&job, &dir, ctx.quick)?.report;
+        let mut given_up_reasons: Vec<(String, usize)> = Vec::new();
+        for visit in &report.run.given_up {
+            let reason = serde_json::to_value(&visit.reason)
+                .ok()
+                .and_then(|v| v.get("reason").and_then(|r| r.as_str()).map(str::to_owned))
+                .unwrap_or_else(|| "unknown".to_owned());
+            match given_up_reasons.iter_mut().find(|(r, _)| *r == reason) {
+                Some(entry) => entry.1 += 1,
+                None => given_up_reasons.push((reason, 1)),
+            }
+        }
+        given_up_reasons.sort_by_key(|entry| std::cmp::Reverse(entry.1));
         let table = report
             .accuracy
             .ok_or_else(|| XtaskError::step(name, "no accuracy table (no oracle)"))?;
@@ -99,6 +115,8 @@ pub fn run(ctx: &Context) -> Result<AccuracyResults, XtaskError> {
             nodes: report.nodes,
             repeats: report.repeats,
             records: report.records,
+            given_up: report.run.given_up.len(),
+            given_up_reasons,
             instrument_time_s: report.instrument_time_s,
             wall_time_s: report.wall_time_s,
             wall_time_per_node_ms: report.wall_time_per_node_ms,

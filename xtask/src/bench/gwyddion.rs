@@ -134,7 +134,8 @@ fn compile(root: &Path, dir: &Path) -> Result<(PathBuf, String), XtaskError> {
     let mut args = vec!["-O2", "-o", bin, src];
     args.extend(flags.split_whitespace());
     sh("gcc", &args)?;
-    let line = format!("gcc {}", args.join(" "));
+    let root_prefix = format!("{}/", root.display());
+    let line = format!("gcc {}", args.join(" ")).replace(&root_prefix, "");
     Ok((binary.clone(), line))
 }
 

@@ -69,6 +69,11 @@ pub struct Machine {
     pub date_utc: String,
     /// rustc version the workspace was built with, when known.
     pub rustc: String,
+    /// /proc/loadavg (1, 5, 15 min) when the bench started: other work on the
+    /// machine inflates the wall-clock figures.
+    pub load_average_start: String,
+    /// /proc/loadavg when the bench ended.
+    pub load_average_end: String,
 }
 
 /// Everything `results.json` holds.
@@ -129,6 +134,8 @@ pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<
             ))
         }
     });
+    let mut machine = machine;
+    machine.load_average_end = load_average();
     let mut command = String::from("cargo xtask bench");
     if quick {
         command.push_str(" --quick");
@@ -289,14 +296,28 @@ fn machine() -> Machine {
         logical_cores: std::thread::available_parallelism().map_or(1, usize::from),
         date_utc: date_utc(),
         rustc,
+        load_average_start: load_average(),
+        load_average_end: String::new(),
     }
 }
 
-/// The current UTC date and time, YYYY-MM-DD HH:MM (civil-from-days).
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "unknown".to_owned())
+}
+
+/// The current UTC date and time, YYYY-MM-DD HH:MM.
 fn date_utc() -> String {
-    let secs = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs());
+    civil_date(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs()),
+    )
+}
+
+/// Seconds since the Unix epoch as YYYY-MM-DD HH:MM (UTC; civil-from-days).
+fn civil_date(secs: u64) -> String {
     let days = (secs / 86_400) as i64;
     let (hh, mm) = ((secs % 86_400) / 3600, (secs % 3600) / 60);
     let z = days + 719_468;
@@ -317,4 +338,22 @@ pub fn rms(values: &[f64]) -> f64 {
         return f64::NAN;
     }
     (values.iter().map(|v| v * v).sum::<f64>() / values.len() as f64).sqrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn civil_dates() {
+        assert_eq!(civil_date(0), "1970-01-01 00:00");
+        assert_eq!(civil_date(951_782_400), "2000-02-29 00:00");
+        assert_eq!(civil_date(1_704_067_200 + 3_661), "2024-01-01 01:01");
+    }
+
+    #[test]
+    fn rms_of_nothing_is_nan() {
+        assert!(rms(&[]).is_nan());
+        assert!((rms(&[3.0, 4.0]) - 12.5_f64.sqrt()).abs() < 1e-12);
+    }
 }

@@ -9,10 +9,10 @@ use crate::XtaskError;
 use serde::Serialize;
 use spm_cdb::{Cdb, CdbRead, LccRecord, OpenOptions, RecordFilter, RunInfo, RunStatus};
 use spm_correction::{
-    Integration, Interpolation, Parallelism, ProductField, RasterGeometry, correct_and_resample,
+    Integration, Interpolation, Parallelism, ProductField, RasterGeometry, bench_support,
+    correct_and_resample,
 };
 use spm_hal::{CountPoint, Counts, Microscope, ScanDirection, ScanRequest, Seconds};
-use spm_regression::{Polynomial2, n_terms};
 use spm_sim::{SimConfig, Simulator};
 use spmcal::surfaces::{SurfaceFitOptions, fit_from_cdb};
 use std::time::Instant;
@@ -128,45 +128,20 @@ fn simulated_pixels(quick: bool) -> Result<f64, XtaskError> {
     Ok(halves * f64::from(pixels) * f64::from(pixels) / seconds)
 }
 
-/// A realistic field (as spm-correction's benchmark): degree-3 surfaces over a
-/// 20000-count scanner, 1–5 % nonlinearity.
+/// The workload of spm-correction's benchmarks (`spm_correction::bench_support`):
+/// degree-3 surfaces over a 20000-count scanner, 1–5 % nonlinearity.
 pub fn field() -> Result<ProductField, XtaskError> {
-    let surface = |base: f64, seed: f64| {
-        let c: Vec<f64> = (0..n_terms(3))
-            .map(|k| {
-                if k == 0 {
-                    base
-                } else {
-                    base * 0.02 * ((k as f64 + seed) * 1.7).sin()
-                }
-            })
-            .collect();
-        Polynomial2::new(3, (10_000.0, 10_000.0), (10_000.0, 10_000.0), c)
-            .map_err(|e| XtaskError::step("correction field", e))
-    };
-    Ok(ProductField {
-        kx_nm_per_count: surface(0.0125, 0.0)?,
-        kyx_nm_per_count: surface(0.0004, 1.0)?,
-        kyy_nm_per_count: surface(0.0121, 2.0)?,
-    })
+    bench_support::realistic_field().map_err(|e| XtaskError::step("correction field", e))
 }
 
-/// The synthetic image of spm-correction's benchmark.
+/// The smooth test image of spm-correction's benchmarks (values in [−2, 2]).
 pub fn image(n: usize) -> Vec<f64> {
-    (0..n * n)
-        .map(|k| ((k % n) as f64 * 0.05).sin() + ((k / n) as f64 * 0.031).cos())
-        .collect()
+    bench_support::benchmark_image(n)
 }
 
-/// The raster of spm-correction's benchmark: 16384 counts wide from (2000, 3000).
+/// The raster of spm-correction's benchmarks: 16384 counts wide from (2000, 3000).
 pub fn geometry(n: usize) -> Result<RasterGeometry, XtaskError> {
-    RasterGeometry::new(
-        CountPoint::from_counts(2000.0, 3000.0),
-        Counts(16384.0 / n as f64),
-        n,
-        n,
-    )
-    .map_err(|e| XtaskError::step("raster geometry", e))
+    bench_support::benchmark_geometry(n).map_err(|e| XtaskError::step("raster geometry", e))
 }
 
 /// Correction + resampling of the benchmark image with the benchmark field.

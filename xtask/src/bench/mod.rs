@@ -83,6 +83,11 @@ pub struct Results {
     pub machine: Machine,
     /// The command that produced the file.
     pub command: String,
+    /// The source the bench was built from: `git rev-parse --short HEAD`.
+    pub commit: String,
+    /// Tracked files with uncommitted changes at that time (`git status`): the
+    /// figures include them.
+    pub uncommitted: Vec<String>,
     /// A reduced run (`--quick`).
     pub quick: bool,
     /// Wall time of the whole bench, s.
@@ -143,9 +148,12 @@ pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<
     if with_gwyddion {
         command.push_str(" --gwyddion");
     }
+    let (commit, uncommitted) = source_state(root);
     let results = Results {
         machine,
         command,
+        commit,
+        uncommitted,
         quick,
         bench_wall_time_s: started.elapsed().as_secs_f64(),
         accuracy,
@@ -299,6 +307,31 @@ fn machine() -> Machine {
         load_average_start: load_average(),
         load_average_end: String::new(),
     }
+}
+
+fn source_state(root: &Path) -> (String, Vec<String>) {
+    let git = |args: &[&str]| {
+        std::process::Command::new("git")
+            .arg("-C")
+            .arg(root)
+            .args(args)
+            .output()
+            .ok()
+            .filter(|o| o.status.success())
+            .and_then(|o| String::from_utf8(o.stdout).ok())
+    };
+    let commit = git(&["rev-parse", "--short", "HEAD"])
+        .map_or_else(|| "unknown".to_owned(), |s| s.trim().to_owned());
+    let uncommitted = git(&["status", "--porcelain", "--untracked-files=no"])
+        .map(|s| {
+            s.lines()
+                .filter_map(|l| l.get(3..))
+                .filter(|p| !p.starts_with("docs/"))
+                .map(str::to_owned)
+                .collect()
+        })
+        .unwrap_or_default();
+    (commit, uncommitted)
 }
 
 fn load_average() -> String {

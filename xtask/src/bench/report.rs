@@ -263,6 +263,24 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
         m.load_average_start,
         m.load_average_end
     );
+    let _ = writeln!(
+        md,
+        "Source: commit `{}`{}.\n",
+        results.commit,
+        if results.uncommitted.is_empty() {
+            String::new()
+        } else {
+            format!(
+                " plus uncommitted changes (another engineer's work in progress) in {}",
+                results
+                    .uncommitted
+                    .iter()
+                    .map(|p| format!("`{p}`"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        }
+    );
     if results.quick {
         let _ = writeln!(
             md,

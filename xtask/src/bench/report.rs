@@ -77,7 +77,8 @@ fn chart(
     }
     let pad = (x1 - x0).max(1e-9) * 0.05;
     let (x0, x1) = (x0 - pad, x1 + pad);
-    let (y0, y1) = (y0 / 1.5, y1 * 1.5);
+    // Head-room above the data for the legend.
+    let (y0, y1) = (y0 / 1.5, y1 * 6.0);
     let root = BitMapBackend::new(path, (800, 520)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| fail(&e))?;
     let text = font_available();

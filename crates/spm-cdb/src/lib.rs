@@ -400,6 +400,56 @@ fn insert_record(stmt: &mut rusqlite::Statement<'_>, r: &LccRecord) -> rusqlite:
     Ok(())
 }
 
+/// Creates a new CDB so that no other process ever sees it half made: the schema is
+/// written to a hidden sibling file, which is then hard-linked into place (a link never
+/// replaces an existing file) and removed. A reader that finds the file finds a complete,
+/// empty CDB; a creator that loses a race to another process keeps the other's file.
+/// Where the file system has no hard links, the CDB is created in place (the old way: a
+/// reader may then briefly see an empty database and is refused with `NotACdb`).
+fn create_atomically(path: &Path, options: &OpenOptions) -> Result<()> {
+    let file_name = path
+        .file_name()
+        .map_or_else(|| "cdb".into(), |n| n.to_string_lossy().into_owned());
+    let tmp = path.with_file_name(format!(".{file_name}.creating-{}", std::process::id()));
+    let remove_tmp = || {
+        for suffix in ["", "-wal", "-shm", "-journal"] {
+            let mut p = tmp.clone().into_os_string();
+            p.push(suffix);
+            let _ = std::fs::remove_file(PathBuf::from(p));
+        }
+    };
+    remove_tmp();
+    let result = (|| {
+        let err = |e| CdbError::sqlite(&tmp, e);
+        let mut conn = Connection::open_with_flags(
+            &tmp,
+            OpenFlags::SQLITE_OPEN_READ_WRITE
+                | OpenFlags::SQLITE_OPEN_CREATE
+                | OpenFlags::SQLITE_OPEN_NO_MUTEX,
+        )
+        .map_err(err)?;
+        conn.busy_timeout(options.busy_timeout).map_err(err)?;
+        let _: String = conn
+            .pragma_update_and_check(None, "journal_mode", "WAL", |r| r.get(0))
+            .map_err(err)?;
+        conn.pragma_update(None, "synchronous", "FULL")
+            .map_err(err)?;
+        schema::initialise_or_migrate(&mut conn, &tmp)?;
+        // Closing the only connection checkpoints the WAL into the file and deletes it.
+        conn.close().map_err(|(_, e)| err(e))?;
+        match std::fs::hard_link(&tmp, path) {
+            Ok(()) => Ok(()),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(()),
+            Err(e) => {
+                tracing::debug!(path = %path.display(), error = %e, "no hard link: creating the CDB in place");
+                Ok(())
+            }
+        }
+    })();
+    remove_tmp();
+    result
+}
+
 impl Cdb {
     /// Opens (creating if missing) a CDB read-write with default [`OpenOptions`], migrating an
     /// older schema.
@@ -436,6 +486,8 @@ impl Cdb {
                 path: path.clone(),
                 what: "database file".into(),
             });
+        } else {
+            create_atomically(&path, options)?;
         }
         let mut conn = Connection::open_with_flags(
             &path,

@@ -620,3 +620,41 @@ fn insert_text(raw: &Connection) {
     ))
     .unwrap();
 }
+
+/// A new CDB appears complete or not at all: readers racing its creation never see an
+/// empty file, and the creator leaves no temporary file behind.
+#[test]
+fn creation_is_atomic_for_racing_readers() {
+    let path = db_path("atomic_creation");
+    let dir = path.parent().unwrap().to_path_buf();
+    let reader_path = path.clone();
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let stop_reader = stop.clone();
+    let reader = std::thread::spawn(move || {
+        let mut seen = 0u32;
+        while !stop_reader.load(std::sync::atomic::Ordering::Relaxed) {
+            if reader_path.exists() {
+                match Cdb::open_read_only(&reader_path) {
+                    Ok(cdb) => {
+                        assert_eq!(cdb.schema_version().unwrap(), spm_cdb::SCHEMA_VERSION);
+                        seen += 1;
+                    }
+                    Err(e) => panic!("reader saw a half-made CDB: {e}"),
+                }
+            }
+        }
+        seen
+    });
+    let cdb = Cdb::open(&path).unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(50));
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    assert!(reader.join().unwrap() > 0, "the reader never saw the CDB");
+    drop(cdb);
+    let leftovers: Vec<String> = std::fs::read_dir(&dir)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.contains("atomic_creation") && n.contains(".creating-"))
+        .collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+}

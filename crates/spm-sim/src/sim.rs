@@ -20,15 +20,20 @@ const STREAM_NOISE: u64 = 1;
 const STREAM_FAULTS: u64 = 2;
 const DRIFT_SEED_SALT: u64 = 0xD21F_7000_0000_0001;
 
-/// Rounds to the nearest DAC/ADC code, ties away from zero like
-/// `f64::round` (which is a libm call on baseline x86-64), via a truncating
-/// cast for |x| < 2⁵¹; larger or non-finite values use `f64::round`.
+/// Rounds to the nearest DAC/ADC code, ties towards +∞ (`floor(x + ½)`), so
+/// that codes are uniform across zero: ties away from zero would map −½ and +½
+/// to −1 and +1 and leave a two-code gap at code 0 (a pixel grid on half codes,
+/// e.g. an even-sized raster centred on 0, would look 1/N too small there).
+/// A truncating cast does the floor for |x| < 2⁵¹ (`f64::floor` is a libm call
+/// on baseline x86-64); larger or non-finite values use `f64::floor`.
 #[inline]
 fn round_code(x: f64) -> f64 {
-    if x.abs() < 2_251_799_813_685_248.0 {
-        ((x + 0.5f64.copysign(x)) as i64) as f64
+    let y = x + 0.5;
+    if y.abs() < 2_251_799_813_685_248.0 {
+        let t = (y as i64) as f64;
+        if t > y { t - 1.0 } else { t }
     } else {
-        x.round()
+        y.floor()
     }
 }
 
@@ -1030,5 +1035,22 @@ impl CoarseZStage for Simulator {
     fn position_steps(&mut self) -> Result<i64, SimError> {
         self.begin_call(Operation::CoarseZ, false)?;
         Ok(self.coarse_steps)
+    }
+}
+
+#[cfg(test)]
+mod round_code_tests {
+    use super::round_code;
+
+    #[test]
+    fn half_code_grids_stay_uniform_across_zero() {
+        let grid: Vec<f64> = (-4..4).map(|i| f64::from(i) + 0.5).collect();
+        let codes: Vec<f64> = grid.iter().map(|&x| round_code(x)).collect();
+        assert_eq!(codes, vec![-3.0, -2.0, -1.0, 0.0, 1.0, 2.0, 3.0, 4.0]);
+        assert_eq!(round_code(-0.49), 0.0);
+        assert_eq!(round_code(-0.51), -1.0);
+        assert_eq!(round_code(2.4999), 2.0);
+        assert_eq!(round_code(-7.0), -7.0);
+        assert_eq!(round_code(1e300), 1e300);
     }
 }

@@ -10,12 +10,19 @@ use spmcal::accuracy::Accuracy;
 use spmcal::job::Job;
 
 /// The scanners, with their nonlinearity label.
-pub const CONFIGS: [(&str, &str); 3] = [
-    ("sim-mild", "3 % nonlinearity"),
-    ("sim-typical", "10 % nonlinearity"),
+/// (config, description, plan replacing the default one — full runs only).
+pub const CONFIGS: [(&str, &str, Option<&str>); 4] = [
+    ("sim-mild", "3 % nonlinearity", None),
+    ("sim-typical", "10 % nonlinearity", None),
     (
         "sim-bad",
         "25 % nonlinearity, 5° obliquity, strong crosstalk and creep",
+        None,
+    ),
+    (
+        "sim-bad",
+        "the same scanner, with pauses long enough for its creep",
+        Some("configs/plan-hopg-slow-creep.toml"),
     ),
 ];
 
@@ -70,11 +77,20 @@ pub fn run(ctx: &Context) -> Result<AccuracyResults, XtaskError> {
     let (plan, plan_text) = Job::read_plan(&ctx.root.join(plan_name))
         .map_err(|e| XtaskError::step("reading the plan", e))?;
     let mut configs = Vec::new();
-    for (name, description) in CONFIGS {
+    for (index, (name, description, plan_override)) in CONFIGS.into_iter().enumerate() {
         let config_path = ctx.root.join("configs").join(format!("{name}.toml"));
-        let job = Job::from_parts(&config_path, plan.clone(), plan_text.clone())
+        let (plan_name, plan, plan_text) = match plan_override {
+            None => (plan_name, plan.clone(), plan_text.clone()),
+            Some(_) if ctx.quick => continue,
+            Some(other) => {
+                let (p, t) = Job::read_plan(&ctx.root.join(other))
+                    .map_err(|e| XtaskError::step("reading the plan", e))?;
+                (other, p, t)
+            }
+        };
+        let job = Job::from_parts(&config_path, plan, plan_text)
             .map_err(|e| XtaskError::step(format!("reading {}", config_path.display()), e))?;
-        let dir = ctx.scratch(&format!("accuracy-{name}"))?;
+        let dir = ctx.scratch(&format!("accuracy-{index}-{name}"))?;
         let report = calibrate(&job, &dir, ctx.quick)?.report;
         let mut given_up_reasons: Vec<(String, usize)> = Vec::new();
         for visit in &report.run.given_up {

@@ -223,7 +223,7 @@ fn figures(dir: &Path, results: &Results) -> Result<Vec<(String, String)>, Xtask
         }
         chart(
             &dir.join("accuracy.png"),
-            "Residual distortion: 0 = mild, 1 = typical, 2 = bad scanner",
+            "Residual distortion: 0 = mild, 1 = typical, 2 = bad, 3 = bad with creep-length pauses",
             "scanner config",
             "RMS residual distortion, pm",
             &series,
@@ -231,7 +231,7 @@ fn figures(dir: &Path, results: &Results) -> Result<Vec<(String, String)>, Xtask
         )?;
         made.push((
             "accuracy.png".to_owned(),
-            "residual distortion per method on the three scanners".to_owned(),
+            "residual distortion per method on the three scanners (the bad one also with creep-length pauses)".to_owned(),
         ));
     }
     Ok(made)
@@ -313,9 +313,10 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
             for c in &a.configs {
                 let _ = writeln!(
                     md,
-                    "### `configs/{}.toml` — {}\n\n{} records{}, instrument time {:.0} s, wall time {:.1} s \
+                    "### `configs/{}.toml` with `{}` — {}\n\n{} records{}, instrument time {:.0} s, wall time {:.1} s \
                      ({:.1} ms per node). distributed ÷ lumped RMS = **{:.3}**{}.\n",
                     c.config,
+                    c.plan,
                     c.description,
                     c.records,
                     if c.given_up == 0 {

@@ -75,7 +75,12 @@ pub fn run(ctx: &Context, accuracy: Option<&AccuracyResults>) -> Result<SpeedRes
         .map(|a| {
             a.configs
                 .iter()
-                .map(|c| (c.config.clone(), c.wall_time_per_node_ms))
+                .map(|c| {
+                    (
+                        format!("{} ({})", c.config, c.plan),
+                        c.wall_time_per_node_ms,
+                    )
+                })
                 .collect()
         })
         .unwrap_or_default();

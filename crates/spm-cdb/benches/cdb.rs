@@ -4,6 +4,7 @@
 #![allow(clippy::unwrap_used)]
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use spm_cdb::bench_support::{SCANNER_ID, T0_UNIX_S as T0};
 use spm_cdb::{
     Cdb, CdbRead, LccRecord, NodeDone, OpenOptions, PlanNode, RecordFilter, RunInfo, RunStatus,
     Synchronous,
@@ -14,7 +15,6 @@ use std::time::{Duration, Instant};
 
 const N_BIG: u64 = 1_000_000;
 const RUNS: u64 = 10;
-const T0: f64 = 1_704_067_200.0;
 
 fn fresh(name: &str) -> PathBuf {
     let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("spm-cdb-bench");
@@ -31,7 +31,7 @@ fn fresh(name: &str) -> PathBuf {
 fn run_info(k: u64) -> RunInfo {
     RunInfo {
         run_id: format!("run-{k:02}"),
-        scanner_id: "bench-scanner".into(),
+        scanner_id: SCANNER_ID.into(),
         config: String::new(),
         started_unix_s: T0 + 86_400.0 * k as f64,
         finished_unix_s: None,
@@ -41,38 +41,7 @@ fn run_info(k: u64) -> RunInfo {
 
 /// Record `i` of a 316×316-node net repeated over 10 runs, one Z plane; LCCs on a smooth field.
 fn record(i: u64, run_ids: &[String]) -> LccRecord {
-    let per_run = N_BIG / RUNS;
-    let (run, k) = (i / per_run, i % per_run);
-    let (x, y) = ((k % 316) as i64 * 200, (k / 316) as i64 * 200);
-    let (xf, yf) = (x as f64, y as f64);
-    let wiggle = ((i as f64) * 12.9898).sin();
-    LccRecord {
-        scanner_id: "bench-scanner".into(),
-        run_id: run_ids[run as usize].clone(),
-        acquired_unix_s: T0 + 86_400.0 * run as f64 + 3.0 * k as f64,
-        repeat_index: 0,
-        node_index: k as u32,
-        lcs_index: 0,
-        node_x_counts: x,
-        node_y_counts: y,
-        node_z_counts: 0,
-        lcs_x_counts: xf + 0.3 * wiggle,
-        lcs_y_counts: yf - 0.2 * wiggle,
-        lcs_z_counts: 0.0,
-        kx_nm_per_count: 0.02 + 1e-8 * xf - 2e-8 * yf + 1e-13 * xf * yf + 1e-5 * wiggle,
-        ky_nm_per_count: 0.021 - 1e-8 * xf + 1e-5 * wiggle,
-        alpha_rad: 0.001 + 1e-9 * yf,
-        kz_nm_per_count: None,
-        u_kx_nm_per_count: Some(1e-5),
-        u_ky_nm_per_count: Some(1e-5),
-        u_alpha_rad: Some(1e-4),
-        u_kz_nm_per_count: None,
-        drift_vx_nm_per_s: 0.01,
-        drift_vy_nm_per_s: -0.01,
-        cycles_kept: 8,
-        cycles_discarded: 1,
-        quality: 0.9,
-    }
+    spm_cdb::bench_support::synthetic_record(i, N_BIG / RUNS, run_ids)
 }
 
 /// A fresh CDB holding the 10 runs (no records yet).
@@ -200,7 +169,7 @@ fn query_and_fit(c: &mut Criterion) {
     let (mut cdb, ids) = with_runs("query", Synchronous::Normal);
     cdb.import_records((0..N_BIG).map(|i| record(i, &ids)))
         .unwrap();
-    let filter = RecordFilter::scanner("bench-scanner").with_z_plane(0);
+    let filter = RecordFilter::scanner(SCANNER_ID).with_z_plane(0);
     let mut g = c.benchmark_group("cdb_query_fit");
     g.sample_size(10)
         .warm_up_time(Duration::from_millis(1))

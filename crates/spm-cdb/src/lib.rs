@@ -27,6 +27,7 @@
 //! Queries are methods of the [`CdbRead`] trait, implemented by [`Cdb`] (each query its own
 //! snapshot) and by [`Snapshot`] (all queries in one read transaction).
 
+pub mod bench_support;
 mod error;
 mod export;
 mod integrity;

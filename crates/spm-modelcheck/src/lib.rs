@@ -50,7 +50,7 @@ pub use extract::{
     features_from_height_map,
 };
 pub use index::{Indexing, MeasuredBasis, index_features};
-pub use plot::write_png;
+pub use plot::{register_system_font, write_png};
 pub use simmap::{SimContext, SimPatch, TipChangeEvent, sim_patch};
 pub use types::{
     EffectKind, FeatureObservation, FeatureSet, FrameInfo, HOPG_A_NM, LatticeSpec, LineDirection,

@@ -18,9 +18,10 @@ const FONT_PATHS: [&str; 4] = [
     "/Library/Fonts/Arial.ttf",
 ];
 
-/// Registers a system font once; `false` when none is found (the figure is
-/// then drawn without text).
-fn font_available() -> bool {
+/// Registers a system font (DejaVu Sans, or Arial on macOS) with plotters once, for every
+/// figure of the process; `false` when none is found (figures are then drawn without text).
+/// Shared with `cargo xtask bench`'s figures.
+pub fn register_system_font() -> bool {
     static FONT: OnceLock<bool> = OnceLock::new();
     *FONT.get_or_init(|| {
         for path in FONT_PATHS {
@@ -147,7 +148,7 @@ fn colours(direction: LineDirection) -> (RGBColor, RGBColor) {
 }
 
 fn draw(d: &Diagnosis, path: &Path, title: &str) -> Result<(), String> {
-    let text = font_available();
+    let text = register_system_font();
     let root = BitMapBackend::new(path, (1000, 600)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| e.to_string())?;
     let (header, body) = root.split_vertically(if text { 70 } else { 4 });

@@ -10,30 +10,6 @@ use crate::XtaskError;
 use plotters::prelude::*;
 use std::fmt::Write as _;
 use std::path::Path;
-use std::sync::OnceLock;
-
-const FONT_PATHS: [&str; 3] = [
-    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/TTF/DejaVuSans.ttf",
-];
-
-/// Registers a system font once (as spm-modelcheck's figures do); without one
-/// the figures are drawn without text.
-fn font_available() -> bool {
-    static FONT: OnceLock<bool> = OnceLock::new();
-    *FONT.get_or_init(|| {
-        for path in FONT_PATHS {
-            if let Ok(bytes) = std::fs::read(path) {
-                let leaked: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-                if plotters::style::register_font("sans-serif", FontStyle::Normal, leaked).is_ok() {
-                    return true;
-                }
-            }
-        }
-        false
-    })
-}
 
 type Series = (String, Vec<(f64, f64)>);
 
@@ -81,7 +57,7 @@ fn chart(
     let (y0, y1) = (y0 / 1.5, y1 * 6.0);
     let root = BitMapBackend::new(path, (800, 520)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| fail(&e))?;
-    let text = font_available();
+    let text = spm_modelcheck::register_system_font();
     let mut builder = ChartBuilder::on(&root);
     builder.margin(15);
     if text {

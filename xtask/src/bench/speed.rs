@@ -7,7 +7,8 @@ use super::Context;
 use super::accuracy::AccuracyResults;
 use crate::XtaskError;
 use serde::Serialize;
-use spm_cdb::{Cdb, CdbRead, LccRecord, OpenOptions, RecordFilter, RunInfo, RunStatus};
+use spm_cdb::bench_support::{SCANNER_ID as SCANNER, T0_UNIX_S as T0, synthetic_record};
+use spm_cdb::{Cdb, CdbRead, OpenOptions, RecordFilter, RunInfo, RunStatus};
 use spm_correction::{
     Integration, Interpolation, Parallelism, ProductField, RasterGeometry, bench_support,
     correct_and_resample,
@@ -231,45 +232,6 @@ fn correction_speed(n: usize, repeats: usize) -> Result<CorrectionSpeed, XtaskEr
     })
 }
 
-const SCANNER: &str = "bench-scanner";
-const T0: f64 = 1_704_067_200.0;
-
-/// A synthetic record (as spm-cdb's benchmark): a 316-wide node grid, smooth
-/// LCC surfaces with a small deterministic wiggle.
-fn record(i: u64, per_run: u64, run_ids: &[String]) -> LccRecord {
-    let (run, k) = (i / per_run, i % per_run);
-    let (x, y) = ((k % 316) as i64 * 200, (k / 316) as i64 * 200);
-    let (xf, yf) = (x as f64, y as f64);
-    let wiggle = ((i as f64) * 12.9898).sin();
-    LccRecord {
-        scanner_id: SCANNER.into(),
-        run_id: run_ids[(run as usize).min(run_ids.len() - 1)].clone(),
-        acquired_unix_s: T0 + 86_400.0 * run as f64 + 3.0 * k as f64,
-        repeat_index: 0,
-        node_index: k as u32,
-        lcs_index: 0,
-        node_x_counts: x,
-        node_y_counts: y,
-        node_z_counts: 0,
-        lcs_x_counts: xf + 0.3 * wiggle,
-        lcs_y_counts: yf - 0.2 * wiggle,
-        lcs_z_counts: 0.0,
-        kx_nm_per_count: 0.02 + 1e-8 * xf - 2e-8 * yf + 1e-13 * xf * yf + 1e-5 * wiggle,
-        ky_nm_per_count: 0.021 - 1e-8 * xf + 1e-5 * wiggle,
-        alpha_rad: 0.001 + 1e-9 * yf,
-        kz_nm_per_count: None,
-        u_kx_nm_per_count: Some(1e-5),
-        u_ky_nm_per_count: Some(1e-5),
-        u_alpha_rad: Some(1e-4),
-        u_kz_nm_per_count: None,
-        drift_vx_nm_per_s: 0.01,
-        drift_vy_nm_per_s: -0.01,
-        cycles_kept: 8,
-        cycles_discarded: 1,
-        quality: 0.9,
-    }
-}
-
 fn cdb_speed(ctx: &Context, records: u64) -> Result<CdbSpeed, XtaskError> {
     let dir = ctx.scratch("cdb")?;
     let path = dir.join("cdb.sqlite");
@@ -295,7 +257,7 @@ fn cdb_speed(ctx: &Context, records: u64) -> Result<CdbSpeed, XtaskError> {
     let per_run = records / runs;
     let started = Instant::now();
     let n = cdb
-        .import_records((0..records).map(|i| record(i, per_run, &ids)))
+        .import_records((0..records).map(|i| synthetic_record(i, per_run, &ids)))
         .map_err(step("insert"))?;
     let insert_s = started.elapsed().as_secs_f64();
     let snapshot = cdb.snapshot().map_err(step("snapshot"))?;

@@ -65,7 +65,8 @@ pub use lcc::{
 };
 pub use machine::{
     Action, Anchor, ApertureResult, AttachResult, CounterResult, CycleCounts, Event, Failure,
-    GiveUpReason, MachineParams, NodeMachine, NodeMeasurement, SkipResult, VectorTarget,
+    GiveUpReason, MachineParams, NodeMachine, NodeMeasurement, SKIP_VECTOR_TOLERANCE, SkipResult,
+    VectorTarget,
 };
 pub use plan::{GridNode, NetGeometry, NetPlan, PauseLaw, PlanError, PlanVisit, ZLevel};
 pub use runner::{

@@ -224,6 +224,12 @@ pub enum Event {
     Failed(Failure),
 }
 
+/// The largest |skipped − aperture| difference of a vector, as a fraction of its length,
+/// accepted as the same vector. The aperture's single-scan estimate is off by a few per cent
+/// (drift, creep); the nearest wrong feature makes the difference at least one lattice
+/// constant, i.e. a fraction ≳ 1 (the counter-scan match uses the same limit).
+pub const SKIP_VECTOR_TOLERANCE: f64 = 0.35;
+
 /// Why a node was given up (stored as its text in the CDB).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, thiserror::Error)]
 #[serde(tag = "reason", rename_all = "snake_case")]
@@ -249,6 +255,17 @@ pub enum GiveUpReason {
         discarded: u32,
         /// Skipping restarts over all attempts.
         restarts: u32,
+    },
+    /// A skipped vector disagrees with the same vector seen in the aperture by more than
+    /// [`SKIP_VECTOR_TOLERANCE`] of its length: an attachment caught a neighbouring
+    /// feature (the probe landed more than half a lattice constant off), so the half-sum
+    /// measured another vector of the lattice.
+    #[error(
+        "skipping caught another feature: the vector differs from the aperture's by {deviation_fraction:.2} of its length"
+    )]
+    WrongFeature {
+        /// |measured − aperture estimate| ÷ |aperture estimate|.
+        deviation_fraction: f64,
     },
     /// The measured vectors gave no valid LCCs.
     #[error("LCC solve failed: {message}")]
@@ -661,6 +678,14 @@ impl NodeMachine {
                 } => {
                     self.cycles.add(cycles);
                     self.drift = drift;
+                    if let Some(target) = self.targets.get(index) {
+                        let length = target.estimate.norm().value();
+                        let deviation_fraction = (vector - target.estimate).norm().value()
+                            / length.max(f64::MIN_POSITIVE);
+                        if !(deviation_fraction <= SKIP_VECTOR_TOLERANCE) {
+                            return self.redo(GiveUpReason::WrongFeature { deviation_fraction });
+                        }
+                    }
                     // Keep A's latest sighting when the vector started at A.
                     if self
                         .targets
@@ -704,7 +729,7 @@ impl NodeMachine {
                         .map(|(i, (v, c))| (i, *v, *c, (*v - t.estimate).norm().value()))
                         .min_by(|x, y| x.3.total_cmp(&y.3));
                     if let Some((i, v, c, d)) = best
-                        && d < 0.35 * t.estimate.norm().value()
+                        && d < SKIP_VECTOR_TOLERANCE * t.estimate.norm().value()
                     {
                         used.push(i);
                         self.measured.push(VectorObservation {

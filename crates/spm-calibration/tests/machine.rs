@@ -288,3 +288,43 @@ fn variants_change_the_sequence_and_the_vectors() {
     m.step(settled());
     assert!(matches!(m.step(aperture()), Action::CounterScan { .. }));
 }
+
+/// Skipping that caught a neighbouring atom measures another lattice vector (here A→B + A→C,
+/// √3 longer): the node is redone, never finished with it; a vector within the tolerance of
+/// the aperture's (drift-distorted) estimate is kept.
+#[test]
+fn a_skipped_vector_that_caught_another_feature_redoes_the_node() {
+    let (ab, ac) = lcs();
+    let mut m = machine(|_| {});
+    m.step(Event::Begin);
+    for attempt in 1..=3 {
+        m.step(Event::Paused);
+        m.step(settled());
+        m.step(aperture());
+        let action = m.step(completed(ab + ac, 2, 0));
+        if attempt < 3 {
+            assert!(matches!(action, Action::MoveAndPause { .. }), "{action:?}");
+        } else {
+            let Action::GiveUp(GiveUpReason::WrongFeature { deviation_fraction }) = action else {
+                panic!("expected WrongFeature, got {action:?}");
+            };
+            assert!(
+                (deviation_fraction - 1.0).abs() < 1e-9,
+                "{deviation_fraction}"
+            );
+        }
+    }
+    assert!(m.is_over());
+
+    // 10 % off the aperture's estimate (a single scan under drift) is the same vector.
+    let mut m = machine(|_| {});
+    m.step(Event::Begin);
+    m.step(Event::Paused);
+    m.step(settled());
+    m.step(aperture());
+    assert!(matches!(
+        m.step(completed(ab * 1.1, 2, 0)),
+        Action::Skip { index: 1, .. }
+    ));
+    assert!(spm_calibration::SKIP_VECTOR_TOLERANCE < 1.0);
+}

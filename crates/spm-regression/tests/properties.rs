@@ -18,6 +18,17 @@ fn polynomial() -> impl Strategy<Value = Polynomial2> {
     })
 }
 
+/// A bound on |f| over the points `at` (raw coordinates, used as x and as y):
+/// Σ|c|·rᵈ with r the largest normalised coordinate (at least 1).
+fn magnitude(p: &Polynomial2, at: &[f64]) -> f64 {
+    let ((cx, cy), (sx, sy)) = (p.center(), p.scale());
+    let r = at
+        .iter()
+        .flat_map(|v| [((v - cx) / sx).abs(), ((v - cy) / sy).abs()])
+        .fold(1.0_f64, f64::max);
+    p.coefficients().iter().map(|c| c.abs()).sum::<f64>() * r.powi(p.degree() as i32)
+}
+
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(128))]
 
@@ -48,7 +59,7 @@ proptest! {
         let h = 1e-3;
         let dx = (p.integrate_x(xa, xb + h, y) - p.integrate_x(xa, xb - h, y)) / (2.0 * h);
         let f = p.evaluate(xb, y);
-        let mag = p.coefficients().iter().map(|c| c.abs()).sum::<f64>() * 8.0_f64.powi(p.degree() as i32);
+        let mag = magnitude(&p, &[xa, xb + h, xb - h, y]);
         prop_assert!((dx - f).abs() <= 1e-6 * mag.max(1.0), "{dx} vs {f}");
         let dy = (p.integrate_y(y, xa, xb + h) - p.integrate_y(y, xa, xb - h)) / (2.0 * h);
         let g = p.evaluate(y, xb);
@@ -58,7 +69,7 @@ proptest! {
     /// ∫_a^b + ∫_b^c = ∫_a^c, ∫_a^a = 0, ∫_a^b = −∫_b^a.
     #[test]
     fn antiderivative_additivity(p in polynomial(), a in -1000.0..1000.0_f64, b in -1000.0..1000.0_f64, c in -1000.0..1000.0_f64, y in -1000.0..1000.0_f64) {
-        let mag = p.coefficients().iter().map(|c| c.abs()).sum::<f64>() * 8.0_f64.powi(p.degree() as i32) * 3000.0;
+        let mag = magnitude(&p, &[a, b, c, y]) * 3000.0;
         let lhs = p.integrate_x(a, b, y) + p.integrate_x(b, c, y);
         prop_assert!((lhs - p.integrate_x(a, c, y)).abs() <= 1e-10 * mag.max(1.0));
         prop_assert_eq!(p.integrate_y(y, a, a), 0.0);
@@ -69,9 +80,29 @@ proptest! {
     #[test]
     fn raw_coefficients_same_surface(p in polynomial(), x in -1000.0..1000.0_f64, y in -1000.0..1000.0_f64) {
         let raw = p.to_raw().unwrap();
-        let mag = p.coefficients().iter().map(|c| c.abs()).sum::<f64>() * 4.0_f64.powi(p.degree() as i32);
+        let mag = (p.coefficients().iter().map(|c| c.abs()).sum::<f64>() * 4.0_f64.powi(p.degree() as i32))
+            .max(magnitude(&p, &[x, y]));
         // raw coefficients lose digits when the centre is far from 0 relative to the scale
         let lost = ((p.center().0.abs() / p.scale().0).max(p.center().1.abs() / p.scale().1) + 1.0).powi(p.degree() as i32);
         prop_assert!((raw.evaluate(x, y) - p.evaluate(x, y)).abs() <= 1e-11 * mag.max(1.0) * lost * 8.0_f64.powi(p.degree() as i32));
+    }
+}
+
+/// The case proptest found on a clean CI machine: a quartic centred 881 scale units away,
+/// where the old fixed bound (coordinates within ±8 scale units) was 10⁸ times too tight.
+#[test]
+fn antiderivative_derivative_far_from_the_centre() {
+    let mut c = vec![0.0; n_terms(4)];
+    c[14] = 0.189_981_032_325_645_6;
+    let p = Polynomial2::new(4, (-881.378_641_553_250_8, 0.0), (1.0, 1.0), c).unwrap();
+    let h = 1e-3;
+    for (xa, xb, y) in [(0.0, 0.0, 0.0), (-1000.0, 1000.0, 500.0)] {
+        let dx = (p.integrate_x(xa, xb + h, y) - p.integrate_x(xa, xb - h, y)) / (2.0 * h);
+        let f = p.evaluate(xb, y);
+        assert!(
+            (dx - f).abs() <= 1e-6 * magnitude(&p, &[xa, xb + h, xb - h, y]),
+            "{dx} vs {f}"
+        );
+        assert!((dx - f).abs() <= 1e-9 * f.abs().max(1.0), "{dx} vs {f}");
     }
 }

@@ -682,7 +682,8 @@ impl NodeMachine {
                         let length = target.estimate.norm().value();
                         let deviation_fraction = (vector - target.estimate).norm().value()
                             / length.max(f64::MIN_POSITIVE);
-                        if !(deviation_fraction <= SKIP_VECTOR_TOLERANCE) {
+                        if deviation_fraction.is_nan() || deviation_fraction > SKIP_VECTOR_TOLERANCE
+                        {
                             return self.redo(GiveUpReason::WrongFeature { deviation_fraction });
                         }
                     }

@@ -308,6 +308,7 @@ impl FosParams {
             nominal_nm_per_count: s.nominal_nm_per_count,
             length_tolerance: s.length_tolerance_fraction,
             angle_tolerance_rad: s.angle_tolerance_deg.to_radians(),
+            prior_nm_per_count: None,
         };
         Self {
             attach,
@@ -560,6 +561,12 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
                             alpha = measurement.lcc.alpha.value(),
                             "node measured"
                         );
+                        // The next node (a net step away) ranks its LCS candidates through
+                        // this node's calibration rather than the nominal sensitivity.
+                        let (sin, cos) = measurement.lcc.alpha.value().sin_cos();
+                        let (kx, ky) = (measurement.lcc.kx.value(), measurement.lcc.ky.value());
+                        self.fos.aperture.lcs.prior_nm_per_count =
+                            Some([[kx, ky * sin], [0.0, ky * cos]]);
                         self.observer.node_finished(&measurement);
                         break;
                     }

@@ -47,6 +47,17 @@ pub struct LcsConfig {
     pub length_tolerance: f64,
     /// Accepted deviation of the angle BAC, rad. Default 0.35 (≈ 20°).
     pub angle_tolerance_rad: f64,
+    /// The scanner's local calibration expected here, counts → nm up to a rotation, e.g.
+    /// the last measured node's M = [[K̄x, K̄y·sin α], [0, K̄y·cos α]] (rows of nm/count).
+    /// Candidates are then admitted through this map (the tolerances above apply to their
+    /// sides and angle in nm) and still ranked through the nominal sensitivity, so the
+    /// choice among the true LCSs (their orientation) does not depend on the prior. Where
+    /// the local sensitivity is far from nominal (a scanner's edge), the true LCS fails the
+    /// nominal tolerances while another triangle of features passes them; the neighbour's
+    /// calibration tells them apart. `None` (default): admitted through the nominal
+    /// sensitivity.
+    #[serde(default)]
+    pub prior_nm_per_count: Option<[[f64; 2]; 2]>,
 }
 
 impl LcsConfig {
@@ -57,6 +68,7 @@ impl LcsConfig {
             nominal_nm_per_count,
             length_tolerance: 0.35,
             angle_tolerance_rad: 0.35,
+            prior_nm_per_count: None,
         }
     }
 
@@ -67,10 +79,38 @@ impl LcsConfig {
         positive("standard.ab", self.standard.ab.value())?;
         positive("standard.ac", self.standard.ac.value())?;
         positive("standard.angle_bac", self.standard.angle_bac.value())?;
+        if let Some(m) = self.prior_nm_per_count {
+            let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+            if !(m.iter().flatten().all(|v| v.is_finite()) && det.is_finite() && det != 0.0) {
+                return Err(FeatureError::InvalidConfig {
+                    field: "prior_nm_per_count",
+                    reason: "must be a finite, invertible 2×2 map",
+                });
+            }
+        }
         Ok(())
     }
 
-    /// Expected |AB| and |AC| in counts.
+    /// The farthest a B or C can be from A, counts: the longer standard side stretched by
+    /// the tolerance, through the nominal sensitivity or, with a prior, through its
+    /// smallest singular value (the direction in which a nanometre takes the most counts).
+    pub fn reach_counts(&self) -> f64 {
+        let longest_nm = self.standard.ab.value().max(self.standard.ac.value());
+        let nm_per_count = match self.prior_nm_per_count {
+            None => self.nominal_nm_per_count,
+            Some(m) => {
+                // σ_min² of M: the smaller eigenvalue of MᵀM.
+                let (a, b, c, d) = (m[0][0], m[0][1], m[1][0], m[1][1]);
+                let (p, q, r) = (a * a + c * c, a * b + c * d, b * b + d * d);
+                let half_trace = 0.5 * (p + r);
+                let root = (0.25 * (p - r).powi(2) + q * q).sqrt();
+                (half_trace - root).max(0.0).sqrt()
+            }
+        };
+        longest_nm * (1.0 + self.length_tolerance) / nm_per_count
+    }
+
+    /// Expected |AB| and |AC| in counts (through the nominal sensitivity).
     pub fn expected_counts(&self) -> (Counts, Counts) {
         (
             Counts(self.standard.ab.value() / self.nominal_nm_per_count),
@@ -94,7 +134,8 @@ pub struct Lcs {
     pub ac: CountVector,
     /// The gravity centre of A, B, C, counts.
     pub centroid: CountPoint,
-    /// Normalised mismatch to the standard (0 = exact at nominal nm/count).
+    /// Normalised mismatch to the standard through the nominal sensitivity (0 = exact at
+    /// nominal nm/count; the ranking key).
     pub mismatch: f64,
 }
 
@@ -109,21 +150,43 @@ fn triangle(features: &[Feature], a: usize, b: usize, c: usize, config: &LcsConf
     if lab <= 0.0 || lac <= 0.0 {
         return None;
     }
+    // Against the standard through the nominal sensitivity: the ranking (and, without a
+    // prior, the gate).
     let (eab, eac) = config.expected_counts();
-    let dab = lab / eab.value() - 1.0;
-    let dac = lac / eac.value() - 1.0;
     let cross = ab.x.value() * ac.y.value() - ab.y.value() * ac.x.value();
     let angle = cross.abs().atan2(ab.dot_counts_squared(ac));
-    let dangle = angle - config.standard.angle_bac.value();
+    let nominal = (
+        lab / eab.value() - 1.0,
+        lac / eac.value() - 1.0,
+        angle - config.standard.angle_bac.value(),
+    );
+    // The gate: through the prior when there is one.
+    let (dab, dac, dangle) = match config.prior_nm_per_count {
+        None => nominal,
+        Some(m) => {
+            let map = |v: CountVector| {
+                let (x, y) = (v.x.value(), v.y.value());
+                (m[0][0] * x + m[0][1] * y, m[1][0] * x + m[1][1] * y)
+            };
+            let (ab_nm, ac_nm) = (map(ab), map(ac));
+            let cross_nm = ab_nm.0 * ac_nm.1 - ab_nm.1 * ac_nm.0;
+            let angle_nm = cross_nm.abs().atan2(ab_nm.0 * ac_nm.0 + ab_nm.1 * ac_nm.1);
+            (
+                ab_nm.0.hypot(ab_nm.1) / config.standard.ab.value() - 1.0,
+                ac_nm.0.hypot(ac_nm.1) / config.standard.ac.value() - 1.0,
+                angle_nm - config.standard.angle_bac.value(),
+            )
+        }
+    };
     if dab.abs() > config.length_tolerance
         || dac.abs() > config.length_tolerance
         || dangle.abs() > config.angle_tolerance_rad
     {
         return None;
     }
-    let mismatch = (dab / config.length_tolerance).powi(2)
-        + (dac / config.length_tolerance).powi(2)
-        + (dangle / config.angle_tolerance_rad).powi(2);
+    let mismatch = (nominal.0 / config.length_tolerance).powi(2)
+        + (nominal.1 / config.length_tolerance).powi(2)
+        + (nominal.2 / config.angle_tolerance_rad).powi(2);
     Some(Lcs {
         a,
         b,
@@ -153,8 +216,7 @@ pub fn lcs_with_vertex(
             len: features.len(),
         });
     };
-    let (eab, eac) = config.expected_counts();
-    let reach = eab.value().max(eac.value()) * (1.0 + config.length_tolerance);
+    let reach = config.reach_counts();
     let near: Vec<usize> = (0..features.len())
         .filter(|&j| j != a && features[j].position.distance(pa).value() <= reach)
         .collect();

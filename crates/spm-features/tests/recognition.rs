@@ -242,5 +242,32 @@ fn lattice_vectors_and_lcs_of_an_aperture() {
             .unwrap()
             .is_none()
     );
+    // A neighbour's calibration as the prior overrides the nominal sensitivity: with the
+    // true map the far-off nominal finds all six again; with a prior twice off, none.
+    let k = NM_PER_COUNT;
+    let prior_true = LcsConfig {
+        prior_nm_per_count: Some([[k, 0.0], [0.0, k]]),
+        ..wrong.clone()
+    };
+    assert_eq!(
+        lcs_with_vertex(&found.features, a, &prior_true)
+            .unwrap()
+            .len(),
+        6
+    );
+    let prior_wrong = LcsConfig {
+        prior_nm_per_count: Some([[2.0 * k, 0.0], [0.0, 2.0 * k]]),
+        ..config.clone()
+    };
+    assert!(
+        lcs_with_vertex(&found.features, a, &prior_wrong)
+            .unwrap()
+            .is_empty()
+    );
+    let singular = LcsConfig {
+        prior_nm_per_count: Some([[k, k], [k, k]]),
+        ..config.clone()
+    };
+    assert!(lcs_with_vertex(&found.features, a, &singular).is_err());
     assert!(lcs_with_vertex(&found.features, 10_000, &config).is_err());
 }

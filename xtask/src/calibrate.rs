@@ -65,19 +65,10 @@ pub fn run(
     )
     .map_err(|e| XtaskError::step("calibration", e))?;
     let run_wall_time_s = run_started.elapsed().as_secs_f64();
-    let drift = std::mem::take(&mut recorder.drift);
-    let nodes = std::mem::take(&mut recorder.nodes);
-    drop(recorder);
+    let samples = recorder.into_samples();
     progress.finish();
 
-    let record = RunRecord {
-        plan: &job.plan,
-        run: &outcome.report,
-        simulator: outcome.simulator.as_ref(),
-        drift: &drift,
-        nodes: &nodes,
-        wall_time_s: run_wall_time_s,
-    };
+    let record = RunRecord::of_job(&job.plan, &outcome, &samples, run_wall_time_s);
     let report =
         finish(&cdb_path, out, &record, quick).map_err(|e| XtaskError::step("report", e))?;
 

@@ -46,18 +46,9 @@ pub fn run(
             other => CliError::RunFailed(other.to_string()),
         })?;
     let wall_time_s = started.elapsed().as_secs_f64();
-    let drift = std::mem::take(&mut recorder.drift);
-    let nodes = std::mem::take(&mut recorder.nodes);
-    drop(recorder);
+    let samples = recorder.into_samples();
     progress.finish();
-    let record = RunRecord {
-        plan: &job.plan,
-        run: &outcome.report,
-        simulator: outcome.simulator.as_ref(),
-        drift: &drift,
-        nodes: &nodes,
-        wall_time_s,
-    };
+    let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s);
     let report =
         finish(&cdb_path, &out, &record, false).map_err(|e| CliError::RunFailed(e.to_string()))?;
     println!(

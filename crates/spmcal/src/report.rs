@@ -126,6 +126,25 @@ pub struct RunRecord<'a> {
     pub wall_time_s: f64,
 }
 
+impl<'a> RunRecord<'a> {
+    /// The record of a [`crate::run::run_job`] outcome with what its recorder saw.
+    pub fn of_job(
+        plan: &'a PlanConfig,
+        outcome: &'a crate::run::JobOutcome,
+        samples: &'a crate::run::RunSamples,
+        wall_time_s: f64,
+    ) -> Self {
+        Self {
+            plan,
+            run: &outcome.report,
+            simulator: outcome.simulator.as_ref(),
+            drift: &samples.drift,
+            nodes: &samples.nodes,
+            wall_time_s,
+        }
+    }
+}
+
 /// Fits, evaluates and writes `surfaces.json`, `report.json` and the figures into `out`.
 pub fn finish(
     cdb_path: &Path,

@@ -70,7 +70,24 @@ pub struct RecordingObserver<'a> {
     pub spoiled_cycles: usize,
 }
 
+/// What a [`RecordingObserver`] kept for the report: drift estimates and measured nodes.
+#[derive(Debug, Default)]
+pub struct RunSamples {
+    /// Drift estimates in time order.
+    pub drift: Vec<DriftSample>,
+    /// Measured nodes in order.
+    pub nodes: Vec<NodeSample>,
+}
+
 impl<'a> RecordingObserver<'a> {
+    /// Ends the recording (releasing the inner observer) and keeps what the report needs.
+    pub fn into_samples(self) -> RunSamples {
+        RunSamples {
+            drift: self.drift,
+            nodes: self.nodes,
+        }
+    }
+
     /// A recorder forwarding to `inner`.
     pub fn new(inner: &'a mut dyn Observer) -> Self {
         Self {

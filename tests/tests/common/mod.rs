@@ -71,16 +71,8 @@ pub fn calibrate_small_net(name: &str, with_hysteresis_and_creep: bool) -> Small
         &mut recorder,
     )
     .expect("the calibration runs");
-    let drift = std::mem::take(&mut recorder.drift);
-    let nodes = std::mem::take(&mut recorder.nodes);
-    let record = RunRecord {
-        plan: &job.plan,
-        run: &outcome.report,
-        simulator: outcome.simulator.as_ref(),
-        drift: &drift,
-        nodes: &nodes,
-        wall_time_s: 0.0,
-    };
+    let samples = recorder.into_samples();
+    let record = RunRecord::of_job(&job.plan, &outcome, &samples, 0.0);
     let report = finish(&cdb, &out, &record, true).expect("surfaces, accuracy and report");
     for file in [
         "report.json",

@@ -231,16 +231,8 @@ pub fn calibrate(job: &Job, dir: &Path, quick: bool) -> Result<Calibrated, Xtask
     )
     .map_err(|e| XtaskError::step(format!("calibration in {}", dir.display()), e))?;
     let wall_time_s = started.elapsed().as_secs_f64();
-    let drift = std::mem::take(&mut recorder.drift);
-    let nodes = std::mem::take(&mut recorder.nodes);
-    let record = RunRecord {
-        plan: &job.plan,
-        run: &outcome.report,
-        simulator: outcome.simulator.as_ref(),
-        drift: &drift,
-        nodes: &nodes,
-        wall_time_s,
-    };
+    let samples = recorder.into_samples();
+    let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s);
     let report = finish(&cdb_path, dir, &record, quick)
         .map_err(|e| XtaskError::step(format!("report in {}", dir.display()), e))?;
     let node_mean_k_rms_pct = match outcome.simulator.as_ref() {

@@ -119,6 +119,9 @@ pub fn run(
             a.distributed_over_lumped_rms
         );
     }
+    if let Some(images) = &report.images {
+        print!("{}", images.summary_table());
+    }
     if let Some(e) = &report.node_lcc_error {
         println!(
             "node LCCs vs oracle ({} records): K̄x {:+.3} ± {:.3} %, K̄y {:+.3} ± {:.3} %, α {:+.2} ± {:.2} mrad (mean, RMS)",

@@ -27,6 +27,20 @@ impl<'a> Oracle<'a> {
         Self { sim }
     }
 
+    /// True tip positions (scanner frame, nm: hysteresis and creep as they
+    /// acted, drift and jitter excluded) of the last scan's forward pixels in
+    /// acquisition order, recorded while [`Simulator::record_tip_positions`]
+    /// is on; empty otherwise.
+    pub fn last_scan_tip_positions(&self) -> Vec<NmPoint> {
+        self.sim
+            .tip_trace
+            .as_deref()
+            .unwrap_or(&[])
+            .iter()
+            .map(|p| NmPoint::from_nm(p[0], p[1]))
+            .collect()
+    }
+
     /// The instrument clock now.
     pub fn now(&self) -> Seconds {
         Seconds(self.sim.time_s)

@@ -119,6 +119,11 @@ pub struct Simulator {
     scheduled: Vec<(FaultTrigger, FaultKind)>,
     pub(crate) log: Vec<FaultEvent>,
     pending_jumps: Vec<Jump>,
+    /// True tip positions (scanner frame, nm) of the last scan's forward
+    /// pixels, when recording is on (oracle only).
+    pub(crate) tip_trace: Option<Vec<[f64; 2]>>,
+    /// Tip position (scanner frame, nm) of the last simulated pixel.
+    last_tip_nm: [f64; 2],
 }
 
 /// Precomputed per-dwell factors of the pixel loop.
@@ -181,6 +186,8 @@ impl Simulator {
             scheduled: Vec::new(),
             log: Vec::new(),
             pending_jumps: Vec::new(),
+            tip_trace: None,
+            last_tip_nm: [0.0; 2],
             config,
         };
         sim.z_nm = sim.z_reference_nm();
@@ -189,6 +196,15 @@ impl Simulator {
         sim.z_nm = sim.feedback_target_nm(0.0, None);
         tracing::debug!(seed = sim.config.seed, "spm-sim simulator created");
         Ok(sim)
+    }
+
+    /// Turns the recording of true tip positions on or off. While on, every
+    /// scan keeps the scanner-frame tip position (nm; hysteresis and creep as
+    /// they acted, no drift, no jitter) of each forward-trace pixel, in
+    /// acquisition order, for [`Oracle::last_scan_tip_positions`]. Ground
+    /// truth for benchmarks; it changes nothing the instrument measures.
+    pub fn record_tip_positions(&mut self, on: bool) {
+        self.tip_trace = on.then(Vec::new);
     }
 
     /// The configuration this simulator runs.
@@ -682,6 +698,7 @@ impl Simulator {
         let ue = self.scanner.effective();
         let kz = self.map.kz_nm_per_count();
         let p = self.map.position(ue[0], ue[1], self.z_nm / kz);
+        self.last_tip_nm = p;
         let d = self.drift.displacement(t_mid);
         let jitter = self.config.measurement.lateral_jitter_nm;
         let (jx, jy) = if jitter > 0.0 {
@@ -758,6 +775,10 @@ impl Simulator {
             step / dwell,
             Operation::Scan,
         )?;
+        if let Some(trace) = self.tip_trace.as_mut() {
+            trace.clear();
+            trace.reserve(nx * ny);
+        }
         let start = self.time_s;
         let line_s = 2.0 * nx as f64 * dwell;
         let end = start + line_s * ny as f64;
@@ -897,6 +918,9 @@ impl Simulator {
                     if half == TraceHalf::Forward {
                         forward.z_counts.push(z);
                         forward.time_s.push(t_mid);
+                        if let Some(trace) = self.tip_trace.as_mut() {
+                            trace.push(self.last_tip_nm);
+                        }
                     } else if let Some(b) = backward.as_mut() {
                         b.z_counts.push(z);
                         b.time_s.push(t_mid);

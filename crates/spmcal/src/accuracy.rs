@@ -112,7 +112,7 @@ pub struct PolynomialImage {
 }
 
 /// Powers of the 3rd-order bivariate monomials (10 terms).
-const CUBIC_TERMS: [(i32, i32); 10] = [
+pub(crate) const CUBIC_TERMS: [(i32, i32); 10] = [
     (0, 0),
     (1, 0),
     (0, 1),
@@ -203,7 +203,7 @@ pub fn polynomial_baseline(
     evaluate_field(oracle, &field, grid)
 }
 
-fn cubic_basis(u: f64, v: f64) -> [f64; 10] {
+pub(crate) fn cubic_basis(u: f64, v: f64) -> [f64; 10] {
     let mut b = [0.0; 10];
     for (k, &(p, q)) in CUBIC_TERMS.iter().enumerate() {
         b[k] = u.powi(p) * v.powi(q);
@@ -213,7 +213,7 @@ fn cubic_basis(u: f64, v: f64) -> [f64; 10] {
 
 /// Least squares by the normal equations (10 unknowns, normalised basis) with
 /// partial pivoting; `None` when singular.
-fn least_squares<T>(
+pub(crate) fn least_squares<T>(
     rows: &[([f64; 10], T)],
     target: impl Fn(&([f64; 10], T)) -> f64,
 ) -> Option<[f64; 10]> {
@@ -388,7 +388,7 @@ fn lattice_error(c_method: [[f64; 2]; 2], c_true: [[f64; 2]; 2]) -> Option<f64> 
 }
 
 /// Distances |R·aᵢ + t − bᵢ| after the least-squares rigid motion (R, t) taking a to b.
-fn rigid_residuals(a: &[[f64; 2]], b: &[[f64; 2]]) -> Vec<f64> {
+pub(crate) fn rigid_residuals(a: &[[f64; 2]], b: &[[f64; 2]]) -> Vec<f64> {
     let n = a.len().min(b.len());
     if n == 0 {
         return Vec::new();

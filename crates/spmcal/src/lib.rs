@@ -14,6 +14,7 @@
 //! errors and prints nothing.
 
 pub mod accuracy;
+pub mod images;
 pub mod job;
 pub mod plots;
 pub mod progress;

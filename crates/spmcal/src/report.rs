@@ -33,6 +33,9 @@ pub enum ReportError {
     /// A correction step of the evaluation failed.
     #[error("accuracy evaluation: {0}")]
     Correction(#[from] spm_correction::CorrectionError),
+    /// The image benchmark failed.
+    #[error(transparent)]
+    Images(#[from] crate::images::ImageBenchmarkError),
     /// A figure could not be written.
     #[error(transparent)]
     Plot(#[from] plots::PlotError),
@@ -102,6 +105,9 @@ pub struct CalibrationReport {
     pub regression: RegressionSummary,
     /// Accuracy against the oracle (simulated backends only).
     pub accuracy: Option<AccuracyTable>,
+    /// The image benchmark: test images taken after the run, as a user takes them, every
+    /// method's position and lattice error on them (simulated backends only).
+    pub images: Option<crate::images::ImageBenchmark>,
     /// Every record's LCCs against the oracle's true LCCs (simulated backends only).
     pub node_lcc_error: Option<NodeLccError>,
     /// The calibrator's own report (cycles, given-up nodes with reasons, …).
@@ -183,6 +189,7 @@ pub fn finish(
         ),
     ];
     let region = Region::around(record.nodes, 0.0);
+    let mut images = None;
     let accuracy = match (record.simulator, region, fitted.set.planes.first()) {
         (Some(sim), Some(region), Some(plane)) => {
             let oracle = sim.oracle();
@@ -229,6 +236,18 @@ pub fn finish(
             let every: Vec<&spm_cdb::LccRecord> = all.iter().collect();
             let (kx, ky, alpha) = mean_of(&every);
             let affine = PlaneSurfaces::constant(z, kx, ky, alpha)?;
+            images = Some(image_benchmark(
+                sim,
+                record.plan,
+                &region,
+                &[
+                    ("uncorrected", &uncorrected),
+                    ("lumped", &lumped),
+                    ("affine", &affine),
+                    ("distributed", plane),
+                ],
+                quick,
+            )?);
             let uncorrected = evaluate(&oracle, &uncorrected, &grid)?;
             let lumped = evaluate(&oracle, &lumped, &grid)?;
             let affine = evaluate(&oracle, &affine, &grid)?;
@@ -339,6 +358,7 @@ pub fn finish(
         wall_time_per_node_ms: record.wall_time_s / measured * 1e3,
         regression: fitted.summary,
         accuracy,
+        images,
         node_lcc_error,
         run: record.run.clone(),
         notes,
@@ -349,6 +369,71 @@ pub fn finish(
     })?;
     write(&out.join("report.json"), json.as_bytes())?;
     Ok(report)
+}
+
+/// The image benchmark on a copy of the simulator as the run left it (the same instrument and
+/// seed stream going on): every surface-set method, the realistic grating polynomial and the
+/// per-image bound.
+fn image_benchmark(
+    sim: &Simulator,
+    plan: &PlanConfig,
+    region: &Region,
+    planes: &[(&str, &PlaneSurfaces)],
+    quick: bool,
+) -> Result<crate::images::ImageBenchmark, ReportError> {
+    use crate::images::{
+        CountRegion, GratingConfig, ImageCorrection, ImageMethod, ImageSetConfig, evaluate_images,
+        grating_polynomial, take_test_images,
+    };
+    let region = CountRegion {
+        x_min_counts: region.x_min_counts,
+        x_max_counts: region.x_max_counts,
+        y_min_counts: region.y_min_counts,
+        y_max_counts: region.y_max_counts,
+    };
+    let config = ImageSetConfig::standard(plan, quick);
+    let grating = grating_polynomial(
+        sim.config(),
+        &region,
+        &GratingConfig::standard(4.0 * plan.motion.pixel_dwell_s),
+    )?;
+    let mut instrument = sim.clone();
+    let taken = take_test_images(&mut instrument, &region, &config)?;
+    let mut methods: Vec<ImageMethod<'_>> = planes
+        .iter()
+        .map(|(name, plane)| ImageMethod {
+            name: (*name).to_owned(),
+            correction: ImageCorrection::Field(Box::new(
+                plane.field(spm_correction::Route::Products),
+            )),
+        })
+        .collect();
+    methods.push(ImageMethod {
+        name: "polynomial".to_owned(),
+        correction: ImageCorrection::Map(grating),
+    });
+    // Reference: the oracle's true small-signal LCC field (reference state) through the same
+    // correction. It separates the calibration's error from what no static field can correct.
+    let oracle = sim.oracle();
+    let z = oracle.z_now();
+    methods.push(ImageMethod {
+        name: "oracle_static_field".to_owned(),
+        correction: ImageCorrection::Field(Box::new(spm_correction::FnField(
+            move |x: f64, y: f64| {
+                let lcc = oracle.true_lcc(spm_hal::CountPoint::from_counts(x, y), z);
+                spm_correction::FormCoefficients::from_lcc(
+                    lcc.kx.value(),
+                    lcc.ky.value(),
+                    lcc.alpha.value(),
+                )
+            },
+        ))),
+    });
+    methods.push(ImageMethod {
+        name: "polynomial_bound".to_owned(),
+        correction: ImageCorrection::PerImageBound,
+    });
+    Ok(evaluate_images(&taken, &methods, &config)?)
 }
 
 fn write(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {

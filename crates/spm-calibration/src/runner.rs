@@ -136,6 +136,9 @@ pub trait Observer {
     fn node_given_up(&mut self, _visit: &PlanVisit, _reason: &GiveUpReason) {}
     /// A skipping cycle was spoiled and discarded.
     fn cycle_spoiled(&mut self, _visit: &PlanVisit, _reason: &SpoilReason) {}
+    /// Every sighting of one attachment sequence (the feature re-found after a node move,
+    /// position and time of each): the data of the creep law's identification.
+    fn attach_sightings(&mut self, _visit: &PlanVisit, _sightings: &[spm_fos::Sighting]) {}
     /// A new drift velocity estimate at instrument time `at`.
     fn drift_estimate(&mut self, _visit: &PlanVisit, _velocity: CountVelocity, _at: Seconds) {}
     /// Asked before every visit: `false` stops the run cleanly (it stays resumable).
@@ -711,6 +714,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
                 let _s = tracing::debug_span!("attach").entered();
                 match spm_fos::attach(mic, near, &self.fos.attach) {
                     Ok(r) => {
+                        self.observer.attach_sightings(visit, &r.history);
                         let last_t = r.history.last().map(|s| s.time());
                         for v in &r.velocities {
                             self.observer.drift_estimate(

@@ -12,6 +12,8 @@
 //!   closed forms literally in [`closed_form`];
 //! - the image **resampled** onto a uniform nm grid by inverse mapping ([`resample`],
 //!   bilinear or Catmull-Rom, NaN outside the data), heights through Kz ([`heights_nm`]);
+//! - **scanner input dynamics** ([`dynamics`]): creep replayed along a command log, its law
+//!   identified from attachment tracks, and images corrected along their effective trajectory;
 //! - **counter-scanned pairs**: drift from common features and drift-corrected coordinate maps
 //!   ([`estimate_drift`], [`correct_counter_pair`]).
 //!
@@ -36,6 +38,7 @@
 pub mod bench_support;
 pub mod closed_form;
 mod drift;
+pub mod dynamics;
 mod error;
 mod field;
 mod height;

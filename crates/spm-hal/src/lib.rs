@@ -15,6 +15,7 @@
 
 pub mod microscope;
 pub mod mock;
+pub mod recording;
 pub mod scan;
 pub mod units;
 

@@ -128,6 +128,10 @@ pub struct RunRecord<'a> {
     pub drift: &'a [DriftSample],
     /// Measured nodes.
     pub nodes: &'a [NodeSample],
+    /// Attachment sequences (for the creep law).
+    pub attach_tracks: &'a [spm_correction::dynamics::AttachTrack],
+    /// The run's lateral commands (for the creep law).
+    pub commands: &'a [spm_hal::recording::CommandEvent],
     /// Wall time of the run, s.
     pub wall_time_s: f64,
 }
@@ -146,6 +150,8 @@ impl<'a> RunRecord<'a> {
             simulator: outcome.simulator.as_ref(),
             drift: &samples.drift,
             nodes: &samples.nodes,
+            attach_tracks: &samples.attach_tracks,
+            commands: &outcome.commands,
             wall_time_s,
         }
     }

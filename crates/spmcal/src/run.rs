@@ -68,6 +68,8 @@ pub struct RecordingObserver<'a> {
     pub given_up: Vec<(PlanVisit, String)>,
     /// Spoiled cycles seen.
     pub spoiled_cycles: usize,
+    /// Attachment sequences (sightings of one feature after a node move), in order.
+    pub attach_tracks: Vec<spm_correction::dynamics::AttachTrack>,
 }
 
 /// What a [`RecordingObserver`] kept for the report: drift estimates and measured nodes.
@@ -77,6 +79,8 @@ pub struct RunSamples {
     pub drift: Vec<DriftSample>,
     /// Measured nodes in order.
     pub nodes: Vec<NodeSample>,
+    /// Attachment sequences in order.
+    pub attach_tracks: Vec<spm_correction::dynamics::AttachTrack>,
 }
 
 impl<'a> RecordingObserver<'a> {
@@ -85,6 +89,7 @@ impl<'a> RecordingObserver<'a> {
         RunSamples {
             drift: self.drift,
             nodes: self.nodes,
+            attach_tracks: self.attach_tracks,
         }
     }
 
@@ -96,6 +101,7 @@ impl<'a> RecordingObserver<'a> {
             nodes: Vec::new(),
             given_up: Vec::new(),
             spoiled_cycles: 0,
+            attach_tracks: Vec::new(),
         }
     }
 }
@@ -118,6 +124,22 @@ impl Observer for RecordingObserver<'_> {
             alpha_rad: measurement.lcc.alpha.value(),
         });
         self.inner.node_finished(measurement);
+    }
+    fn attach_sightings(&mut self, visit: &PlanVisit, sightings: &[spm_fos::Sighting]) {
+        self.attach_tracks
+            .push(spm_correction::dynamics::AttachTrack {
+                sightings: sightings
+                    .iter()
+                    .map(|s| {
+                        (
+                            s.time().value(),
+                            s.position().x.value(),
+                            s.position().y.value(),
+                        )
+                    })
+                    .collect(),
+            });
+        self.inner.attach_sightings(visit, sightings);
     }
     fn node_given_up(&mut self, visit: &PlanVisit, reason: &GiveUpReason) {
         self.given_up.push((*visit, format!("{reason:?}")));
@@ -158,7 +180,13 @@ pub struct JobOutcome {
     pub report: RunReport,
     /// The simulator after the run (for the oracle), when the backend is simulated.
     pub simulator: Option<Simulator>,
+    /// The lateral commands of the run with their instrument times (the creep model's input).
+    pub commands: Vec<spm_hal::recording::CommandEvent>,
 }
+
+/// Most lateral commands a run keeps for the creep model (the oldest are dropped beyond it;
+/// a 16 × 16 × 3 run sends about 10⁵).
+pub const MAX_COMMANDS: usize = 4_000_000;
 
 /// Runs a job's plan on its backend, appending to the CDB at `cdb_path`.
 ///
@@ -191,14 +219,17 @@ pub fn run_job<O: Observer>(
         Backend::Sim(config) => {
             let mut sim = Simulator::new((**config).clone())
                 .map_err(|e| JobRunError::Backend(e.to_string()))?;
+            let mut recorder = spm_hal::recording::CommandRecorder::new(&mut sim, MAX_COMMANDS);
             let report = {
                 let mut calibrator =
-                    Calibrator::new(&mut sim, &mut cdb, observer, job.plan.clone())?;
+                    Calibrator::new(&mut recorder, &mut cdb, observer, job.plan.clone())?;
                 calibrator.run(&options)?
             };
+            let (_, commands) = recorder.into_parts();
             Ok(JobOutcome {
                 report,
                 simulator: Some(sim),
+                commands,
             })
         }
     }

@@ -242,6 +242,8 @@ fn calibrate(name: &str, faults: Option<FaultConfig>, p_feature_lost: f64) -> Ou
         simulator: Some(&microscope.sim),
         drift: &recorder.drift,
         nodes: &recorder.nodes,
+        attach_tracks: &recorder.attach_tracks,
+        commands: &[],
         wall_time_s: 0.0,
     };
     let report = finish(&cdb_path, &out, &record, true).expect("surfaces and accuracy");

@@ -4,6 +4,8 @@
 //! a fraction of a second. No test depends on timing: signals are sent once the CDB shows
 //! a stored visit, and every safe outcome is accepted, the invariants asserted.
 
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
 use spm_cdb::{Cdb, CdbRead};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
@@ -534,10 +536,13 @@ fn item_07_a_fifo_or_device_given_as_an_input_is_refused_without_reading() {
     assert!(!dir.path("new.sqlite").exists(), "no CDB created");
 }
 
+/// Text replacements in a config file.
+type Edits<'a> = &'a [(&'a str, &'a str)];
+
 #[test]
 fn item_08_absurd_sizes_are_refused_before_memory_is_spent() {
     let dir = Scratch::new("i08");
-    let cases: [(&[(&str, &str)], &[(&str, &str)], &str); 4] = [
+    let cases: [(Edits<'_>, Edits<'_>, &str); 4] = [
         (
             &[("repeats = 1 ", "repeats = 4294967295 ")],
             &[],

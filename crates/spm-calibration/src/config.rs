@@ -21,6 +21,19 @@ use serde::{Deserialize, Serialize};
 use spm_hal::{Capabilities, Nanometres, Radians};
 use std::path::Path;
 
+/// Longest scanner id, bytes (it is stored with every record).
+pub const MAX_SCANNER_ID_BYTES: usize = 128;
+/// Most repeats of a plan.
+pub const MAX_REPEATS: u32 = 10_000;
+/// Most Z levels (or Y planes) of a net.
+pub const MAX_LEVELS: usize = 10_000;
+/// Largest coordinate, step, margin or size in counts (a 32-bit DAC).
+pub const MAX_COUNTS: i64 = 1 << 31;
+/// Largest coarse-stage position, steps.
+pub const MAX_COARSE_STEPS: i64 = 100_000_000;
+/// Most pixels per line or lines of one scan (instruments offer at most a few thousand).
+pub const MAX_SCAN_PIXELS: u32 = 65_536;
+
 /// The whole calibration plan (the `[plan]` table).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -487,40 +500,78 @@ impl PlanConfig {
                 reason,
             })
         };
-        let positive = |field: &str, v: f64| {
-            if v.is_finite() && v > 0.0 {
+        // Every number has a physical or practical range: a value outside it is a typo
+        // (1e308, 4e9) that would otherwise exhaust memory or time, or end in every node
+        // given up with no word about why.
+        let within = |field: &str, v: f64, min: f64, max: f64| {
+            if v.is_finite() && v > 0.0 && (min..=max).contains(&v) {
                 Ok(())
             } else {
-                bad(field, format!("must be a finite number > 0, got {v}"))
+                bad(
+                    field,
+                    format!("must be a finite number in [{min}, {max}], got {v}"),
+                )
             }
         };
-        let non_negative = |field: &str, v: f64| {
-            if v.is_finite() && v >= 0.0 {
+        let within_or_zero = |field: &str, v: f64, max: f64| {
+            if v.is_finite() && (0.0..=max).contains(&v) {
                 Ok(())
             } else {
-                bad(field, format!("must be a finite number >= 0, got {v}"))
+                bad(
+                    field,
+                    format!("must be a finite number in [0, {max}], got {v}"),
+                )
             }
         };
-        let at_least = |field: &str, v: u32, min: u32| {
-            if v >= min {
+        let count = |field: &str, v: u32, min: u32, max: u32| {
+            if (min..=max).contains(&v) {
                 Ok(())
             } else {
-                bad(field, format!("must be >= {min}, got {v}"))
+                bad(field, format!("must be in [{min}, {max}], got {v}"))
+            }
+        };
+        let counts_i64 = |field: &str, v: i64, min: i64, max: i64| {
+            if (min..=max).contains(&v) {
+                Ok(())
+            } else {
+                bad(field, format!("must be in [{min}, {max}], got {v}"))
             }
         };
         if self.scanner_id.trim().is_empty() {
             return bad("scanner_id", "must not be empty".into());
         }
-        at_least("repeats", self.repeats, 1)?;
+        if self.scanner_id.len() > MAX_SCANNER_ID_BYTES {
+            return bad(
+                "scanner_id",
+                format!(
+                    "is {} bytes long; at most {MAX_SCANNER_ID_BYTES}",
+                    self.scanner_id.len()
+                ),
+            );
+        }
+        if self.scanner_id.chars().any(char::is_control) {
+            return bad("scanner_id", "must not contain control characters".into());
+        }
+        count("repeats", self.repeats, 1, MAX_REPEATS)?;
         let s = &self.standard;
-        positive("standard.lattice_constant_nm", s.lattice_constant_nm)?;
+        within(
+            "standard.lattice_constant_nm",
+            s.lattice_constant_nm,
+            0.05,
+            1e4,
+        )?;
         if !(s.lcs_angle_deg.is_finite() && s.lcs_angle_deg > 0.0 && s.lcs_angle_deg < 180.0) {
             return bad(
                 "standard.lcs_angle_deg",
                 format!("must be in (0, 180), got {}", s.lcs_angle_deg),
             );
         }
-        positive("standard.nominal_nm_per_count", s.nominal_nm_per_count)?;
+        within(
+            "standard.nominal_nm_per_count",
+            s.nominal_nm_per_count,
+            1e-6,
+            100.0,
+        )?;
         if !(s.length_tolerance_fraction.is_finite()
             && s.length_tolerance_fraction > 0.0
             && s.length_tolerance_fraction < 1.0)
@@ -530,25 +581,42 @@ impl PlanConfig {
                 format!("must be in (0, 1), got {}", s.length_tolerance_fraction),
             );
         }
-        positive("standard.angle_tolerance_deg", s.angle_tolerance_deg)?;
+        within(
+            "standard.angle_tolerance_deg",
+            s.angle_tolerance_deg,
+            1e-3,
+            60.0,
+        )?;
         if let Some(h) = s.step_height_nm {
-            positive("standard.step_height_nm", h)?;
+            within("standard.step_height_nm", h, 1e-3, 100.0)?;
         }
         let n = &self.net;
-        if n.step_counts <= 0 {
-            return bad(
-                "net.step_counts",
-                format!("must be > 0, got {}", n.step_counts),
-            );
-        }
-        if n.margin_counts < 0 {
-            return bad(
-                "net.margin_counts",
-                format!("must be >= 0, got {}", n.margin_counts),
-            );
-        }
+        counts_i64("net.step_counts", n.step_counts, 1, MAX_COUNTS)?;
+        counts_i64("net.margin_counts", n.margin_counts, 0, MAX_COUNTS)?;
         if n.z_levels.is_empty() {
             return bad("net.z_levels", "needs at least one level".into());
+        }
+        if n.z_levels.len() > MAX_LEVELS {
+            return bad(
+                "net.z_levels",
+                format!("has {} levels; at most {MAX_LEVELS}", n.z_levels.len()),
+            );
+        }
+        for level in &n.z_levels {
+            counts_i64(
+                "net.z_levels.nominal_z_counts",
+                level.nominal_z_counts,
+                -MAX_COUNTS,
+                MAX_COUNTS,
+            )?;
+            if let Some(steps) = level.coarse_steps {
+                counts_i64(
+                    "net.z_levels.coarse_steps",
+                    steps,
+                    -MAX_COARSE_STEPS,
+                    MAX_COARSE_STEPS,
+                )?;
+            }
         }
         match (n.kind, &n.y_planes_counts) {
             (NetKind::VerticalPlanes, None) => {
@@ -560,6 +628,12 @@ impl PlanConfig {
             (NetKind::VerticalPlanes, Some(ys)) if ys.is_empty() => {
                 return bad("net.y_planes_counts", "needs at least one plane".into());
             }
+            (NetKind::VerticalPlanes, Some(ys)) if ys.len() > MAX_LEVELS => {
+                return bad(
+                    "net.y_planes_counts",
+                    format!("has {} planes; at most {MAX_LEVELS}", ys.len()),
+                );
+            }
             (NetKind::LateralPlanes, Some(_)) => {
                 return bad(
                     "net.y_planes_counts",
@@ -568,21 +642,51 @@ impl PlanConfig {
             }
             _ => {}
         }
+        if let Some(ys) = &n.y_planes_counts {
+            for y in ys {
+                counts_i64("net.y_planes_counts", *y, -MAX_COUNTS, MAX_COUNTS)?;
+            }
+        }
         if let Err(PlanError::Invalid { field, reason }) = self.pause.validate() {
             return bad(&format!("pause.{field}"), reason);
         }
         let m = &self.motion;
-        positive("motion.pixel_dwell_s", m.pixel_dwell_s)?;
-        positive("motion.move_speed_counts_per_s", m.move_speed_counts_per_s)?;
-        non_negative("motion.settle_s", m.settle_s)?;
+        within("motion.pixel_dwell_s", m.pixel_dwell_s, 1e-9, 10.0)?;
+        within(
+            "motion.move_speed_counts_per_s",
+            m.move_speed_counts_per_s,
+            1e-3,
+            1e9,
+        )?;
+        within_or_zero("motion.settle_s", m.settle_s, 3600.0)?;
         let a = &self.attach;
-        positive("attach.first_size_counts", a.first_size_counts)?;
-        at_least("attach.first_pixels", a.first_pixels, 4)?;
-        positive("attach.segment_size_counts", a.segment_size_counts)?;
-        at_least("attach.segment_pixels", a.segment_pixels, 4)?;
-        at_least("attach.max_attachments", a.max_attachments, 1)?;
-        positive("aperture.size_counts", self.aperture.size_counts)?;
-        at_least("aperture.pixels", self.aperture.pixels, 8)?;
+        within(
+            "attach.first_size_counts",
+            a.first_size_counts,
+            1e-3,
+            MAX_COUNTS as f64,
+        )?;
+        count("attach.first_pixels", a.first_pixels, 4, MAX_SCAN_PIXELS)?;
+        within(
+            "attach.segment_size_counts",
+            a.segment_size_counts,
+            1e-3,
+            MAX_COUNTS as f64,
+        )?;
+        count(
+            "attach.segment_pixels",
+            a.segment_pixels,
+            4,
+            MAX_SCAN_PIXELS,
+        )?;
+        count("attach.max_attachments", a.max_attachments, 1, 100_000)?;
+        within(
+            "aperture.size_counts",
+            self.aperture.size_counts,
+            1e-3,
+            MAX_COUNTS as f64,
+        )?;
+        count("aperture.pixels", self.aperture.pixels, 8, MAX_SCAN_PIXELS)?;
         let nominal_lattice_counts = s.lattice_constant_nm / s.nominal_nm_per_count;
         if self.aperture.size_counts < 2.0 * nominal_lattice_counts {
             return bad(
@@ -593,14 +697,42 @@ impl PlanConfig {
                 ),
             );
         }
-        at_least("skipping.cycles", self.skipping.cycles, 1)?;
-        at_least("skipping.idle_cycles", self.skipping.idle_cycles, 1)?;
-        positive("drift.max_speed_nm_per_s", self.drift.max_speed_nm_per_s)?;
-        positive("drift.max_change_nm_per_s", self.drift.max_change_nm_per_s)?;
-        at_least(
+        count("skipping.cycles", self.skipping.cycles, 1, 100_000)?;
+        count(
+            "skipping.idle_cycles",
+            self.skipping.idle_cycles,
+            1,
+            100_000,
+        )?;
+        count(
+            "skipping.max_restarts",
+            self.skipping.max_restarts,
+            0,
+            10_000,
+        )?;
+        within(
+            "drift.max_speed_nm_per_s",
+            self.drift.max_speed_nm_per_s,
+            1e-9,
+            1e3,
+        )?;
+        within(
+            "drift.max_change_nm_per_s",
+            self.drift.max_change_nm_per_s,
+            1e-9,
+            1e3,
+        )?;
+        count(
             "failures.max_attempts_per_node",
             self.failures.max_attempts_per_node,
             1,
+            1000,
+        )?;
+        count(
+            "failures.transient_retries_per_node",
+            self.failures.transient_retries_per_node,
+            0,
+            10_000,
         )?;
         Ok(())
     }
@@ -750,7 +882,7 @@ fn field_at(text: &str, offset: usize, message: &str) -> Option<String> {
 
 /// Best-effort 1-based line of a dotted field (`plan.skipping.cycles`) in a TOML text:
 /// the key line inside its table, else the table header.
-fn locate_field_line(text: &str, field: &str) -> Option<usize> {
+pub fn locate_field_line(text: &str, field: &str) -> Option<usize> {
     let (table, key) = field.rsplit_once('.')?;
     let mut current = String::new();
     let mut table_line = None;

@@ -57,7 +57,7 @@ pub mod runner;
 pub use config::{
     ApertureConfig, AttachConfig, AttachTarget, ConfigError, DriftConfig, FailureConfig,
     FeaturePolarity, MeasurementMethod, MotionConfig, NeighbourSet, NetConfig, NetKind, PlanConfig,
-    SkippingConfig, StandardConfig, ValidationError, VariantConfig,
+    SkippingConfig, StandardConfig, ValidationError, VariantConfig, locate_field_line,
 };
 pub use lcc::{
     CountCovariance, KzEstimate, LccError, LccEstimate, Metric, StandardVector, StepObservation,

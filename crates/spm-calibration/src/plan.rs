@@ -63,6 +63,42 @@ pub enum NetGeometry {
     },
 }
 
+impl NetGeometry {
+    /// Number of nodes of one repeat, computed without building the plan (saturating, so
+    /// an absurd net is measured before any memory is spent on it).
+    pub fn node_count(&self) -> usize {
+        let axis = |min: i64, max: i64, step: i64| -> usize {
+            if step <= 0 || max < min {
+                return 0;
+            }
+            usize::try_from((max.saturating_sub(min)) / step)
+                .unwrap_or(usize::MAX)
+                .saturating_add(1)
+        };
+        match self {
+            Self::LateralPlanes {
+                x_min_counts,
+                x_max_counts,
+                y_min_counts,
+                y_max_counts,
+                step_counts,
+                z_planes,
+            } => axis(*x_min_counts, *x_max_counts, *step_counts)
+                .saturating_mul(axis(*y_min_counts, *y_max_counts, *step_counts))
+                .saturating_mul(z_planes.len()),
+            Self::VerticalPlanes {
+                x_min_counts,
+                x_max_counts,
+                step_counts,
+                y_planes_counts,
+                z_levels,
+            } => axis(*x_min_counts, *x_max_counts, *step_counts)
+                .saturating_mul(y_planes_counts.len())
+                .saturating_mul(z_levels.len()),
+        }
+    }
+}
+
 /// A Z level of the net: where the coarse approach stage is put, and the nominal Z
 /// coordinate the level is stored under.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -149,6 +185,21 @@ impl PauseLaw {
                 return Err(PlanError::Invalid {
                     field,
                     reason: format!("must be finite and >= 0, got {v}"),
+                });
+            }
+        }
+        // A day is the longest pause that makes sense between two nodes; a count of lateral
+        // move or a coarse step never needs more than a minute.
+        for (field, v, max) in [
+            ("base_s", self.base_s, 86_400.0),
+            ("per_count_s", self.per_count_s, 60.0),
+            ("per_coarse_step_s", self.per_coarse_step_s, 60.0),
+            ("max_s", self.max_s, 86_400.0),
+        ] {
+            if v > max {
+                return Err(PlanError::Invalid {
+                    field,
+                    reason: format!("must be <= {max} s, got {v}"),
                 });
             }
         }

@@ -451,6 +451,90 @@ fn create_atomically(path: &Path, options: &OpenOptions) -> Result<()> {
     result
 }
 
+/// The hidden creation files (`.NAME.creating-PID` and its `-wal`, `-shm`, `-journal`)
+/// that a process killed while creating the CDB at `path` left beside it, when that
+/// process is gone.
+fn creation_leftovers(path: &Path) -> Vec<PathBuf> {
+    let Some(name) = path.file_name().map(|n| n.to_string_lossy().into_owned()) else {
+        return Vec::new();
+    };
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let prefix = format!(".{name}.creating-");
+    let Ok(entries) = std::fs::read_dir(&dir) else {
+        return Vec::new();
+    };
+    let mut found = Vec::new();
+    for entry in entries.flatten() {
+        let file_name = entry.file_name().to_string_lossy().into_owned();
+        let Some(rest) = file_name.strip_prefix(&prefix) else {
+            continue;
+        };
+        let pid_text = ["-wal", "-shm", "-journal"]
+            .iter()
+            .find_map(|s| rest.strip_suffix(s))
+            .unwrap_or(rest);
+        let Ok(pid) = pid_text.parse::<u32>() else {
+            continue;
+        };
+        if pid != std::process::id() && !process_alive(pid) {
+            found.push(entry.path());
+        }
+    }
+    found
+}
+
+/// Whether a process with this id exists (Linux: `/proc/PID`; elsewhere assumed alive, so
+/// nothing of a live creator is ever removed).
+fn process_alive(pid: u32) -> bool {
+    let proc_root = Path::new("/proc");
+    if proc_root.join("self").exists() {
+        proc_root.join(pid.to_string()).exists()
+    } else {
+        true
+    }
+}
+
+/// Removes what a killed creator left (see [`creation_leftovers`]); best effort.
+fn remove_creation_leftovers(path: &Path) {
+    for leftover in creation_leftovers(path) {
+        match std::fs::remove_file(&leftover) {
+            Ok(()) => {
+                tracing::info!(file = %leftover.display(), "removed a leftover of an interrupted CDB creation")
+            }
+            Err(e) => {
+                tracing::debug!(file = %leftover.display(), error = %e, "cannot remove a creation leftover")
+            }
+        }
+    }
+}
+
+/// True for the SQLite errors of a read-only open that cannot create the WAL index
+/// (`-shm`) because the folder or the mount is read-only.
+fn is_read_only_place(error: &rusqlite::Error) -> bool {
+    use rusqlite::ErrorCode;
+    matches!(
+        error.sqlite_error_code(),
+        Some(ErrorCode::ReadOnly | ErrorCode::CannotOpen | ErrorCode::PermissionDenied)
+    )
+}
+
+/// `file:PATH?immutable=1` with the path percent-encoded where SQLite URIs need it.
+fn immutable_uri(path: &Path) -> String {
+    let absolute = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+    let mut uri = String::from("file:");
+    for byte in absolute.to_string_lossy().bytes() {
+        match byte {
+            b'%' | b'?' | b'#' | 0x80..=0xFF => uri.push_str(&format!("%{byte:02X}")),
+            _ => uri.push(char::from(byte)),
+        }
+    }
+    uri.push_str("?immutable=1");
+    uri
+}
+
 impl Cdb {
     /// Opens (creating if missing) a CDB read-write with default [`OpenOptions`], migrating an
     /// older schema.
@@ -470,6 +554,7 @@ impl Cdb {
     pub fn open_with(path: impl AsRef<Path>, options: &OpenOptions) -> Result<Self> {
         let path = path.as_ref().to_path_buf();
         let err = |e| CdbError::sqlite(&path, e);
+        remove_creation_leftovers(&path);
         if path.exists() {
             // Look read-only first: a file we refuse must not be written to, not even by
             // switching its journal mode.
@@ -531,13 +616,31 @@ impl Cdb {
                 what: "database file".into(),
             });
         }
-        let conn = Connection::open_with_flags(
-            &path,
-            OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX,
-        )
-        .map_err(err)?;
-        conn.busy_timeout(Duration::from_secs(5)).map_err(err)?;
-        let p = schema::probe(&conn).map_err(err)?;
+        let open = |immutable: bool| -> rusqlite::Result<(Connection, schema::Probe)> {
+            let flags = OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX;
+            let conn = if immutable {
+                Connection::open_with_flags(
+                    immutable_uri(&path),
+                    flags | OpenFlags::SQLITE_OPEN_URI,
+                )?
+            } else {
+                Connection::open_with_flags(&path, flags)?
+            };
+            conn.busy_timeout(Duration::from_secs(5))?;
+            let p = schema::probe(&conn)?;
+            Ok((conn, p))
+        };
+        let (conn, p) = match open(false) {
+            Ok(opened) => opened,
+            // A WAL file in a read-only folder or mount: SQLite cannot create the WAL index
+            // beside it. Nobody can be writing it there (a writer would have created the
+            // index), so it is read as an immutable file.
+            Err(e) if is_read_only_place(&e) => {
+                tracing::debug!(path = %path.display(), error = %e, "read-only place: opening the CDB as immutable");
+                open(true).map_err(err)?
+            }
+            Err(e) => return Err(err(e)),
+        };
         tune_cache(&conn).map_err(err)?;
         schema::check_probe(&path, &p)?;
         if p.user_version == 0 {
@@ -656,6 +759,35 @@ impl Cdb {
             });
         }
         tracing::info!(run_id, status = status.as_str(), "run finished");
+        Ok(())
+    }
+
+    /// Sets an unfinished run ('running', 'aborted' or 'failed') back to 'running' with no
+    /// end time, for a resume. A finished run is never reopened.
+    ///
+    /// # Errors
+    /// [`ErrorKind::NotFound`] for an unknown run; [`ErrorKind::Conflict`] for a finished one.
+    pub fn reopen_run(&mut self, run_id: &str) -> Result<()> {
+        let path = self.path.clone();
+        let err = |e| CdbError::sqlite(&path, e);
+        let tx = self.write_tx()?;
+        let run = query::run(&tx, &path, run_id)?.ok_or_else(|| CdbError::NotFound {
+            path: path.clone(),
+            what: format!("run {run_id:?}"),
+        })?;
+        if run.status == RunStatus::Finished {
+            return Err(CdbError::Conflict {
+                path,
+                reason: format!("run {run_id:?} is finished and cannot be resumed"),
+            });
+        }
+        tx.execute(
+            "UPDATE runs SET status = 'running', finished_unix_s = NULL WHERE run_id = ?1",
+            params![run_id],
+        )
+        .map_err(err)?;
+        tx.commit().map_err(err)?;
+        tracing::info!(run_id, "run reopened");
         Ok(())
     }
 

@@ -463,6 +463,30 @@ impl SimConfig {
         Self::from_toml_str(&text, &name)
     }
 
+    /// What the instrument of this config offers (as the simulator reports it), for
+    /// checking a plan against it before any simulator is built.
+    pub fn capabilities(&self) -> spm_hal::Capabilities {
+        let i = &self.instrument;
+        let h = i.lateral_half_range_counts;
+        let hz = i.z_half_range_counts;
+        spm_hal::Capabilities {
+            field_min: spm_hal::CountPoint::from_counts(-h, -h),
+            field_max: spm_hal::CountPoint::from_counts(h - 1.0, h - 1.0),
+            z_min: spm_hal::Counts(-hz),
+            z_max: spm_hal::Counts(hz - 1.0),
+            lateral_resolution: spm_hal::Counts(1.0),
+            max_pixels_per_line: i.max_pixels_per_line,
+            max_lines: i.max_lines,
+            min_pixel_dwell: spm_hal::Seconds(i.min_pixel_dwell_s),
+            counter_scan: i.counter_scan,
+            backward_trace: i.backward_trace,
+            coarse_z: i.coarse_z.as_ref().map(|c| spm_hal::CoarseZCapability {
+                min_steps: c.min_steps,
+                max_steps: c.max_steps,
+            }),
+        }
+    }
+
     /// Semantic validation (finite numbers, positive where required, ranges).
     pub fn validate(&self) -> Result<(), ValidationError> {
         self.validate_with_prefix("")
@@ -473,19 +497,39 @@ impl SimConfig {
     pub fn validate_with_prefix(&self, prefix: &str) -> Result<(), ValidationError> {
         let v = Checker { prefix };
         let i = &self.instrument;
-        v.positive(
+        v.range_positive(
             "instrument.lateral_half_range_counts",
             i.lateral_half_range_counts,
+            8.0,
+            2147483648.0,
         )?;
-        v.positive("instrument.z_half_range_counts", i.z_half_range_counts)?;
+        v.range_positive(
+            "instrument.z_half_range_counts",
+            i.z_half_range_counts,
+            8.0,
+            2147483648.0,
+        )?;
         v.at_least_one("instrument.max_pixels_per_line", i.max_pixels_per_line)?;
         v.at_least_one("instrument.max_lines", i.max_lines)?;
-        v.positive("instrument.min_pixel_dwell_s", i.min_pixel_dwell_s)?;
-        v.finite(
+        v.at_most(
+            "instrument.max_pixels_per_line",
+            i.max_pixels_per_line,
+            65_536,
+        )?;
+        v.at_most("instrument.max_lines", i.max_lines, 65_536)?;
+        v.range_positive(
+            "instrument.min_pixel_dwell_s",
+            i.min_pixel_dwell_s,
+            1e-9,
+            1.0,
+        )?;
+        v.range(
             "instrument.initial_z_extension_nm",
             i.initial_z_extension_nm,
+            -1e6,
+            1e6,
         )?;
-        v.non_negative("instrument.call_overhead_s", i.call_overhead_s)?;
+        v.range("instrument.call_overhead_s", i.call_overhead_s, 0.0, 10.0)?;
         if let Some(c) = &i.coarse_z {
             if c.min_steps > c.max_steps {
                 return v.fail("instrument.coarse_z.max_steps", "must be ≥ min_steps");
@@ -493,22 +537,33 @@ impl SimConfig {
             if c.min_steps > 0 || c.max_steps < 0 {
                 return v.fail("instrument.coarse_z.min_steps", "the range must contain 0");
             }
-            v.positive("instrument.coarse_z.step_nm", c.step_nm)?;
-            v.non_negative("instrument.coarse_z.step_time_s", c.step_time_s)?;
+            if c.min_steps < -100_000_000 {
+                return v.fail("instrument.coarse_z.min_steps", "must be ≥ -100000000");
+            }
+            if c.max_steps > 100_000_000 {
+                return v.fail("instrument.coarse_z.max_steps", "must be ≤ 100000000");
+            }
+            v.range_positive("instrument.coarse_z.step_nm", c.step_nm, 1e-3, 1e4)?;
+            v.range("instrument.coarse_z.step_time_s", c.step_time_s, 0.0, 60.0)?;
         }
         match &self.surface {
             SurfaceConfig::Hopg(h) => {
                 let p = "surface.hopg.";
-                v.positive(&format!("{p}lattice_constant_nm"), h.lattice_constant_nm)?;
-                v.positive(&format!("{p}corrugation_nm"), h.corrugation_nm)?;
+                v.range_positive(
+                    &format!("{p}lattice_constant_nm"),
+                    h.lattice_constant_nm,
+                    0.05,
+                    1e4,
+                )?;
+                v.range_positive(&format!("{p}corrugation_nm"), h.corrugation_nm, 1e-6, 10.0)?;
                 v.range(
                     &format!("{p}hollow_asymmetry"),
                     h.hollow_asymmetry,
                     0.0,
                     0.5,
                 )?;
-                v.finite(&format!("{p}rotation_deg"), h.rotation_deg)?;
-                v.non_negative(&format!("{p}step_height_nm"), h.step_height_nm)?;
+                v.range(&format!("{p}rotation_deg"), h.rotation_deg, -360.0, 360.0)?;
+                v.range(&format!("{p}step_height_nm"), h.step_height_nm, 0.0, 100.0)?;
                 v.range(
                     &format!("{p}vacancy_fraction"),
                     h.vacancy_fraction,
@@ -517,25 +572,40 @@ impl SimConfig {
                 )?;
                 for (k, s) in h.steps.iter().enumerate() {
                     let q = format!("{p}steps[{k}].");
-                    v.finite(&format!("{q}point_x_nm"), s.point_x_nm)?;
-                    v.finite(&format!("{q}point_y_nm"), s.point_y_nm)?;
-                    v.finite(&format!("{q}direction_deg"), s.direction_deg)?;
-                    v.positive(&format!("{q}width_nm"), s.width_nm)?;
+                    v.range(&format!("{q}point_x_nm"), s.point_x_nm, -1e7, 1e7)?;
+                    v.range(&format!("{q}point_y_nm"), s.point_y_nm, -1e7, 1e7)?;
+                    v.range(&format!("{q}direction_deg"), s.direction_deg, -360.0, 360.0)?;
+                    v.range_positive(&format!("{q}width_nm"), s.width_nm, 1e-3, 1e6)?;
                 }
                 for (k, d) in h.domains.iter().enumerate() {
                     let q = format!("{p}domains[{k}].");
-                    v.finite(&format!("{q}centre_x_nm"), d.centre_x_nm)?;
-                    v.finite(&format!("{q}centre_y_nm"), d.centre_y_nm)?;
-                    v.positive(&format!("{q}radius_nm"), d.radius_nm)?;
-                    v.finite(&format!("{q}rotation_deg"), d.rotation_deg)?;
+                    v.range(&format!("{q}centre_x_nm"), d.centre_x_nm, -1e7, 1e7)?;
+                    v.range(&format!("{q}centre_y_nm"), d.centre_y_nm, -1e7, 1e7)?;
+                    v.range_positive(&format!("{q}radius_nm"), d.radius_nm, 1e-3, 1e7)?;
+                    v.range(&format!("{q}rotation_deg"), d.rotation_deg, -360.0, 360.0)?;
                 }
             }
             SurfaceConfig::Si7x7(s) => {
                 let p = "surface.si7x7.";
-                v.positive(&format!("{p}lattice_constant_nm"), s.lattice_constant_nm)?;
-                v.positive(&format!("{p}corner_hole_depth_nm"), s.corner_hole_depth_nm)?;
-                v.positive(&format!("{p}corner_hole_sigma_nm"), s.corner_hole_sigma_nm)?;
-                v.finite(&format!("{p}rotation_deg"), s.rotation_deg)?;
+                v.range_positive(
+                    &format!("{p}lattice_constant_nm"),
+                    s.lattice_constant_nm,
+                    0.05,
+                    1e4,
+                )?;
+                v.range_positive(
+                    &format!("{p}corner_hole_depth_nm"),
+                    s.corner_hole_depth_nm,
+                    1e-6,
+                    10.0,
+                )?;
+                v.range_positive(
+                    &format!("{p}corner_hole_sigma_nm"),
+                    s.corner_hole_sigma_nm,
+                    1e-3,
+                    100.0,
+                )?;
+                v.range(&format!("{p}rotation_deg"), s.rotation_deg, -360.0, 360.0)?;
             }
             SurfaceConfig::HexLattice(l) | SurfaceConfig::SquareLattice(l) => {
                 let p = if matches!(self.surface, SurfaceConfig::HexLattice(_)) {
@@ -543,27 +613,48 @@ impl SimConfig {
                 } else {
                     "surface.square_lattice."
                 };
-                v.positive(&format!("{p}lattice_constant_nm"), l.lattice_constant_nm)?;
-                v.finite(&format!("{p}feature_height_nm"), l.feature_height_nm)?;
+                v.range_positive(
+                    &format!("{p}lattice_constant_nm"),
+                    l.lattice_constant_nm,
+                    0.05,
+                    1e4,
+                )?;
+                v.range(
+                    &format!("{p}feature_height_nm"),
+                    l.feature_height_nm,
+                    -100.0,
+                    100.0,
+                )?;
                 if l.feature_height_nm == 0.0 {
                     return v.fail(&format!("{p}feature_height_nm"), "must not be 0");
                 }
-                v.positive(&format!("{p}feature_sigma_nm"), l.feature_sigma_nm)?;
-                v.finite(&format!("{p}rotation_deg"), l.rotation_deg)?;
+                v.range_positive(
+                    &format!("{p}feature_sigma_nm"),
+                    l.feature_sigma_nm,
+                    1e-3,
+                    1e3,
+                )?;
+                v.range(&format!("{p}rotation_deg"), l.rotation_deg, -360.0, 360.0)?;
             }
         }
         let s = &self.scanner;
-        v.positive(
+        v.range_positive(
             "scanner.sensitivity_x_nm_per_count",
             s.sensitivity_x_nm_per_count,
+            1e-6,
+            100.0,
         )?;
-        v.positive(
+        v.range_positive(
             "scanner.sensitivity_y_nm_per_count",
             s.sensitivity_y_nm_per_count,
+            1e-6,
+            100.0,
         )?;
-        v.positive(
+        v.range_positive(
             "scanner.sensitivity_z_nm_per_count",
             s.sensitivity_z_nm_per_count,
+            1e-6,
+            100.0,
         )?;
         for (name, n) in [
             ("scanner.nonlinearity_x", &s.nonlinearity_x),
@@ -611,7 +702,12 @@ impl SimConfig {
             -0.5,
             0.5,
         )?;
-        v.non_negative("scanner.bowl_curvature_per_nm", s.bowl_curvature_per_nm)?;
+        v.range(
+            "scanner.bowl_curvature_per_nm",
+            s.bowl_curvature_per_nm,
+            0.0,
+            1.0,
+        )?;
         for (name, h) in [
             ("scanner.hysteresis_x", &s.hysteresis_x),
             ("scanner.hysteresis_y", &s.hysteresis_y),
@@ -622,13 +718,17 @@ impl SimConfig {
                 0.0,
                 0.3,
             )?;
-            v.positive(
+            v.range_positive(
                 &format!("{name}.min_threshold_counts"),
                 h.min_threshold_counts,
+                1e-3,
+                2147483648.0,
             )?;
-            v.positive(
+            v.range_positive(
                 &format!("{name}.max_threshold_counts"),
                 h.max_threshold_counts,
+                1e-3,
+                2147483648.0,
             )?;
             if h.max_threshold_counts < h.min_threshold_counts {
                 return v.fail(
@@ -654,8 +754,18 @@ impl SimConfig {
             0.0,
             0.1,
         )?;
-        v.positive("scanner.creep.min_time_constant_s", c.min_time_constant_s)?;
-        v.positive("scanner.creep.max_time_constant_s", c.max_time_constant_s)?;
+        v.range_positive(
+            "scanner.creep.min_time_constant_s",
+            c.min_time_constant_s,
+            1e-6,
+            1e6,
+        )?;
+        v.range_positive(
+            "scanner.creep.max_time_constant_s",
+            c.max_time_constant_s,
+            1e-6,
+            1e9,
+        )?;
         if c.max_time_constant_s <= c.min_time_constant_s {
             return v.fail(
                 "scanner.creep.max_time_constant_s",
@@ -673,34 +783,80 @@ impl SimConfig {
             return v.fail("scanner.creep.elements_per_decade", "must be ≤ 20");
         }
         let d = &self.drift;
-        v.finite("drift.velocity_x_nm_per_s", d.velocity_x_nm_per_s)?;
-        v.finite("drift.velocity_y_nm_per_s", d.velocity_y_nm_per_s)?;
-        v.finite("drift.warmup_amplitude_x_nm", d.warmup_amplitude_x_nm)?;
-        v.finite("drift.warmup_amplitude_y_nm", d.warmup_amplitude_y_nm)?;
-        v.positive("drift.warmup_time_constant_s", d.warmup_time_constant_s)?;
-        v.non_negative(
+        v.range(
+            "drift.velocity_x_nm_per_s",
+            d.velocity_x_nm_per_s,
+            -1e3,
+            1e3,
+        )?;
+        v.range(
+            "drift.velocity_y_nm_per_s",
+            d.velocity_y_nm_per_s,
+            -1e3,
+            1e3,
+        )?;
+        v.range(
+            "drift.warmup_amplitude_x_nm",
+            d.warmup_amplitude_x_nm,
+            -1e4,
+            1e4,
+        )?;
+        v.range(
+            "drift.warmup_amplitude_y_nm",
+            d.warmup_amplitude_y_nm,
+            -1e4,
+            1e4,
+        )?;
+        v.range_positive(
+            "drift.warmup_time_constant_s",
+            d.warmup_time_constant_s,
+            1e-3,
+            1e7,
+        )?;
+        v.range(
             "drift.velocity_random_walk_nm_per_s_per_sqrt_s",
             d.velocity_random_walk_nm_per_s_per_sqrt_s,
+            0.0,
+            100.0,
         )?;
-        v.positive("drift.random_walk_interval_s", d.random_walk_interval_s)?;
-        v.non_negative("drift.jump_rate_per_s", d.jump_rate_per_s)?;
+        v.range_positive(
+            "drift.random_walk_interval_s",
+            d.random_walk_interval_s,
+            0.01,
+            1e4,
+        )?;
+        v.range("drift.jump_rate_per_s", d.jump_rate_per_s, 0.0, 10.0)?;
         if d.jump_rate_per_s * d.random_walk_interval_s > 0.1 {
             return v.fail(
                 "drift.jump_rate_per_s",
                 "must be < 0.1 / drift.random_walk_interval_s (at most one jump per knot)",
             );
         }
-        v.non_negative("drift.jump_sigma_nm", d.jump_sigma_nm)?;
+        v.range("drift.jump_sigma_nm", d.jump_sigma_nm, 0.0, 1e3)?;
         let m = &self.measurement;
-        v.non_negative("measurement.z_white_noise_nm", m.z_white_noise_nm)?;
-        v.non_negative("measurement.z_flicker_noise_nm", m.z_flicker_noise_nm)?;
-        v.positive(
+        v.range(
+            "measurement.z_white_noise_nm",
+            m.z_white_noise_nm,
+            0.0,
+            100.0,
+        )?;
+        v.range(
+            "measurement.z_flicker_noise_nm",
+            m.z_flicker_noise_nm,
+            0.0,
+            100.0,
+        )?;
+        v.range_positive(
             "measurement.flicker_min_frequency_hz",
             m.flicker_min_frequency_hz,
+            1e-6,
+            1e7,
         )?;
-        v.positive(
+        v.range_positive(
             "measurement.flicker_max_frequency_hz",
             m.flicker_max_frequency_hz,
+            1e-6,
+            1e7,
         )?;
         if m.flicker_max_frequency_hz <= m.flicker_min_frequency_hz {
             return v.fail(
@@ -708,10 +864,17 @@ impl SimConfig {
                 "must be > flicker_min_frequency_hz",
             );
         }
-        v.non_negative("measurement.lateral_jitter_nm", m.lateral_jitter_nm)?;
-        v.non_negative(
+        v.range(
+            "measurement.lateral_jitter_nm",
+            m.lateral_jitter_nm,
+            0.0,
+            100.0,
+        )?;
+        v.range(
             "measurement.feedback_time_constant_s",
             m.feedback_time_constant_s,
+            0.0,
+            10.0,
         )?;
         let f = &self.faults;
         v.range(
@@ -726,21 +889,47 @@ impl SimConfig {
             0.0,
             1.0,
         )?;
-        v.non_negative(
+        v.range(
             "faults.feedback_lost_rate_per_s",
             f.feedback_lost_rate_per_s,
+            0.0,
+            100.0,
         )?;
-        v.non_negative("faults.tip_change_rate_per_s", f.tip_change_rate_per_s)?;
-        v.non_negative("faults.drift_burst_rate_per_s", f.drift_burst_rate_per_s)?;
-        v.non_negative("faults.timeout_duration_s", f.timeout_duration_s)?;
-        v.non_negative(
+        v.range(
+            "faults.tip_change_rate_per_s",
+            f.tip_change_rate_per_s,
+            0.0,
+            100.0,
+        )?;
+        v.range(
+            "faults.drift_burst_rate_per_s",
+            f.drift_burst_rate_per_s,
+            0.0,
+            100.0,
+        )?;
+        v.range(
+            "faults.timeout_duration_s",
+            f.timeout_duration_s,
+            0.0,
+            3600.0,
+        )?;
+        v.range(
             "faults.drift_burst_speed_nm_per_s",
             f.drift_burst_speed_nm_per_s,
+            0.0,
+            1e3,
         )?;
-        v.non_negative("faults.drift_burst_duration_s", f.drift_burst_duration_s)?;
-        v.non_negative(
+        v.range(
+            "faults.drift_burst_duration_s",
+            f.drift_burst_duration_s,
+            0.0,
+            3600.0,
+        )?;
+        v.range(
             "faults.tip_change_jump_sigma_nm",
             f.tip_change_jump_sigma_nm,
+            0.0,
+            1e3,
         )?;
         Ok(())
     }
@@ -772,20 +961,29 @@ impl Checker<'_> {
             self.fail(field, &format!("must be > 0, found {value}"))
         }
     }
-    fn non_negative(&self, field: &str, value: f64) -> Result<(), ValidationError> {
-        self.finite(field, value)?;
-        if value >= 0.0 {
-            Ok(())
-        } else {
-            self.fail(field, &format!("must be ≥ 0, found {value}"))
-        }
-    }
     fn range(&self, field: &str, value: f64, min: f64, max: f64) -> Result<(), ValidationError> {
         self.finite(field, value)?;
         if (min..=max).contains(&value) {
             Ok(())
         } else {
             self.fail(field, &format!("must lie in [{min}, {max}], found {value}"))
+        }
+    }
+    fn range_positive(
+        &self,
+        field: &str,
+        value: f64,
+        min: f64,
+        max: f64,
+    ) -> Result<(), ValidationError> {
+        self.positive(field, value)?;
+        self.range(field, value, min, max)
+    }
+    fn at_most(&self, field: &str, value: u32, max: u32) -> Result<(), ValidationError> {
+        if value <= max {
+            Ok(())
+        } else {
+            self.fail(field, &format!("must be ≤ {max}, found {value}"))
         }
     }
     fn at_least_one(&self, field: &str, value: u32) -> Result<(), ValidationError> {

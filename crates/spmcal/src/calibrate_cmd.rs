@@ -1,12 +1,127 @@
 //! `spmcal calibrate --config FILE [--cdb PATH] [--resume] [--out DIR]`.
+//!
+//! SIGINT, SIGTERM and SIGHUP stop the run at the next safe point (between two visits,
+//! never inside a CDB transaction): the run is marked 'aborted' with a message and
+//! `--resume` continues it. A second signal of the same kind ends the program at once
+//! (exit 1; the CDB stays consistent, as after a kill).
 
 use crate::error::CliError;
+use crate::files;
+use spm_calibration::{GiveUpReason, NodeMeasurement, Observer, PlanVisit};
+use spm_hal::{CountVelocity, Seconds};
 use spmcal::job::Job;
 use spmcal::progress::ProgressBarObserver;
 use spmcal::report::{RunRecord, finish};
-use spmcal::run::{JobRunError, RecordingObserver, RunStart, run_job};
+use spmcal::run::{RecordingObserver, RunStart, mark_aborted, run_job};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
+
+/// The report folder when `--out` is not given.
+pub const DEFAULT_OUT: &str = "spmcal-calibrate";
+
+/// The files a run writes into its report folder.
+pub const OUTPUT_FILES: [&str; 7] = [
+    "report.json",
+    "surfaces.json",
+    "lcc-kx.png",
+    "lcc-ky.png",
+    "lcc-alpha.png",
+    "trajectory.png",
+    "drift.png",
+];
+
+/// The termination signals that stop a run at the next safe point.
+#[cfg(unix)]
+const STOP_SIGNALS: [(i32, &str); 3] = [
+    (signal_hook::consts::SIGINT, "SIGINT"),
+    (signal_hook::consts::SIGTERM, "SIGTERM"),
+    (signal_hook::consts::SIGHUP, "SIGHUP"),
+];
+
+/// Set by a termination signal; read between visits.
+struct StopRequest {
+    requested: Arc<AtomicBool>,
+    signal: Arc<AtomicUsize>,
+}
+
+impl StopRequest {
+    /// Installs the handlers (they only set flags: async-signal-safe).
+    fn install() -> Result<Self, CliError> {
+        let requested = Arc::new(AtomicBool::new(false));
+        let signal = Arc::new(AtomicUsize::new(0));
+        #[cfg(unix)]
+        for (number, _) in STOP_SIGNALS {
+            let installed =
+                signal_hook::flag::register_conditional_shutdown(number, 1, Arc::clone(&requested))
+                    .and_then(|_| signal_hook::flag::register(number, Arc::clone(&requested)))
+                    .and_then(|_| {
+                        signal_hook::flag::register_usize(
+                            number,
+                            Arc::clone(&signal),
+                            number as usize,
+                        )
+                    });
+            installed.map_err(|e| {
+                CliError::RunFailed(format!("cannot install the signal handlers: {e}"))
+            })?;
+        }
+        Ok(Self { requested, signal })
+    }
+
+    fn requested(&self) -> bool {
+        self.requested.load(Ordering::SeqCst)
+    }
+
+    /// The name of the signal received.
+    fn name(&self) -> &'static str {
+        let number = self.signal.load(Ordering::SeqCst);
+        #[cfg(unix)]
+        for (n, name) in STOP_SIGNALS {
+            if n as usize == number {
+                return name;
+            }
+        }
+        "a termination signal"
+    }
+}
+
+/// Forwards to the progress observer and says stop once a signal has arrived.
+struct Stoppable<'a> {
+    inner: &'a mut dyn Observer,
+    stop: &'a StopRequest,
+}
+
+impl Observer for Stoppable<'_> {
+    fn run_started(&mut self, total_visits: usize, already_finished: usize) {
+        self.inner.run_started(total_visits, already_finished);
+    }
+    fn node_started(&mut self, visit: &PlanVisit, attempt: u32) {
+        self.inner.node_started(visit, attempt);
+    }
+    fn node_finished(&mut self, measurement: &NodeMeasurement) {
+        self.inner.node_finished(measurement);
+    }
+    fn node_given_up(&mut self, visit: &PlanVisit, reason: &GiveUpReason) {
+        self.inner.node_given_up(visit, reason);
+    }
+    fn cycle_spoiled(&mut self, visit: &PlanVisit, reason: &spm_fos::SpoilReason) {
+        self.inner.cycle_spoiled(visit, reason);
+    }
+    fn drift_estimate(&mut self, visit: &PlanVisit, velocity: CountVelocity, at: Seconds) {
+        self.inner.drift_estimate(visit, velocity, at);
+    }
+    fn keep_going(&mut self) -> bool {
+        !self.stop.requested() && self.inner.keep_going()
+    }
+}
+
+fn now_unix_s() -> f64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0.0, |d| d.as_secs_f64())
+}
 
 pub fn run(
     config: &Path,
@@ -14,19 +129,38 @@ pub fn run(
     resume: bool,
     out: Option<&Path>,
 ) -> Result<(), CliError> {
+    let stop = StopRequest::install()?;
     let job = Job::from_file(config).map_err(|e| CliError::BadInput(e.to_string()))?;
-    let out: PathBuf = out.map_or_else(|| PathBuf::from("spmcal-calibrate"), Path::to_path_buf);
-    std::fs::create_dir_all(&out).map_err(|e| CliError::io(&out, e))?;
+    let out: PathBuf = out.map_or_else(|| PathBuf::from(DEFAULT_OUT), Path::to_path_buf);
     let cdb_path = cdb.map_or_else(|| out.join("cdb.sqlite"), Path::to_path_buf);
-    if cdb_path.is_dir() {
+    // Every file the run reads must stay as it is: the CDB is none of the configs, and no
+    // report file is a config or the CDB.
+    let mut inputs: Vec<PathBuf> = vec![config.to_path_buf()];
+    inputs.extend(Job::referenced_files(config));
+    let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
+    if cdb_path.exists() {
+        files::check_input(&cdb_path, "calibration database")?;
+    }
+    files::check_output(&cdb_path, "--cdb", &input_refs)?;
+    let mut protected = input_refs.clone();
+    protected.push(&cdb_path);
+    for name in OUTPUT_FILES {
+        files::check_output(&out.join(name), "--out", &protected)?;
+    }
+    if out.exists() && !out.is_dir() {
         return Err(CliError::BadInput(format!(
-            "{}: is a directory, not a calibration database",
-            cdb_path.display()
+            "--out {}: not a directory",
+            out.display()
         )));
     }
-    let start_unix_s = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0.0, |d| d.as_secs_f64());
+    std::fs::create_dir_all(&out).map_err(|e| CliError::io(&out, e))?;
+    if stop.requested() {
+        return Err(CliError::RunFailed(format!(
+            "interrupted by {} before the run started; nothing was written",
+            stop.name()
+        )));
+    }
+    let start_unix_s = now_unix_s();
     let start = if resume {
         RunStart::Resume
     } else {
@@ -35,25 +169,45 @@ pub fn run(
         }
     };
     let mut progress = ProgressBarObserver::new();
-    let mut recorder = RecordingObserver::new(&mut progress);
+    let mut stoppable = Stoppable {
+        inner: &mut progress,
+        stop: &stop,
+    };
+    let mut recorder = RecordingObserver::new(&mut stoppable);
     let started = Instant::now();
-    let outcome =
-        run_job(&job, &cdb_path, start, start_unix_s, &mut recorder).map_err(|e| match e {
-            JobRunError::NothingToResume(_) => CliError::BadInput(e.to_string()),
-            JobRunError::Cdb(ref inner) if inner.kind() != spm_cdb::ErrorKind::Sqlite => {
-                CliError::BadInput(e.to_string())
-            }
-            other => CliError::RunFailed(other.to_string()),
-        })?;
+    let outcome = run_job(&job, &cdb_path, start, start_unix_s, &mut recorder).map_err(|e| {
+        if e.is_bad_input() {
+            CliError::BadInput(e.to_string())
+        } else {
+            CliError::RunFailed(e.to_string())
+        }
+    })?;
     let wall_time_s = started.elapsed().as_secs_f64();
     let samples = recorder.into_samples();
     progress.finish();
+    let run_id = outcome.report.run_id.clone();
+    if outcome.report.interrupted {
+        let signal = stop.name();
+        let marked = mark_aborted(&cdb_path, &run_id, start_unix_s + wall_time_s.max(0.0));
+        return Err(CliError::RunFailed(match marked {
+            Ok(()) => format!(
+                "interrupted by {signal}: run {run_id} stopped after {} visits measured now \
+                 ({} before) and was marked 'aborted'; continue it with --resume",
+                outcome.report.nodes_done, outcome.report.already_finished
+            ),
+            Err(e) => format!(
+                "interrupted by {signal}: run {run_id} stopped after {} visits measured now; \
+                 it could not be marked 'aborted' ({e}); continue it with --resume",
+                outcome.report.nodes_done
+            ),
+        }));
+    }
     let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s);
     let report =
         finish(&cdb_path, &out, &record, false).map_err(|e| CliError::RunFailed(e.to_string()))?;
-    println!(
+    crate::outln!(
         "run {}: {} visits measured now ({} before), {} given up, {} records; CDB {}; report {}",
-        outcome.report.run_id,
+        run_id,
         outcome.report.nodes_done,
         outcome.report.already_finished,
         outcome.report.given_up.len(),
@@ -61,10 +215,5 @@ pub fn run(
         cdb_path.display(),
         out.join("report.json").display()
     );
-    if outcome.report.interrupted {
-        return Err(CliError::RunFailed(
-            "the run was interrupted; continue it with --resume".to_owned(),
-        ));
-    }
     Ok(())
 }

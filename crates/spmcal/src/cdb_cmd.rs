@@ -4,14 +4,39 @@ use crate::error::CliError;
 use spm_cdb::{Cdb, CdbRead, Coefficient, RecordFilter, TrendGrouping};
 use std::path::Path;
 
-fn open_read_only(path: &Path) -> Result<Cdb, CliError> {
-    if !path.is_file() {
+/// Opens a CDB for the commands that only read it: a regular file (checked before opening),
+/// opened read-only (also in a read-only folder or mount).
+pub fn open_read_only(path: &Path) -> Result<Cdb, CliError> {
+    if !path.exists() {
         return Err(CliError::BadInput(format!(
             "{}: no such calibration database",
             path.display()
         )));
     }
+    crate::files::check_input(path, "calibration database")?;
     Cdb::open_read_only(path).map_err(cdb_error)
+}
+
+/// A writer that remembers its first I/O error, so that a failed export names the output
+/// file rather than the CDB.
+struct Tracked<W> {
+    inner: W,
+    error: Option<std::io::Error>,
+}
+
+impl<W: std::io::Write> std::io::Write for Tracked<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.inner.write(buf).inspect_err(|e| {
+            self.error
+                .get_or_insert_with(|| std::io::Error::new(e.kind(), e.to_string()));
+        })
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush().inspect_err(|e| {
+            self.error
+                .get_or_insert_with(|| std::io::Error::new(e.kind(), e.to_string()));
+        })
+    }
 }
 
 /// Maps a CDB error to the exit-code classes: bad or foreign files are bad input.
@@ -30,7 +55,7 @@ pub fn check(path: &Path) -> Result<(), CliError> {
         let records = cdb
             .count_records(&RecordFilter::default())
             .map_err(cdb_error)?;
-        println!(
+        crate::outln!(
             "{}: ok (schema version {}, {records} records)",
             path.display(),
             cdb.schema_version().map_err(cdb_error)?
@@ -38,10 +63,10 @@ pub fn check(path: &Path) -> Result<(), CliError> {
         return Ok(());
     }
     for line in &report.sqlite {
-        println!("sqlite: {line}");
+        crate::outln!("sqlite: {line}");
     }
     for problem in &report.problems {
-        println!("{}: {}", problem.kind, problem.detail);
+        crate::outln!("{}: {}", problem.kind, problem.detail);
     }
     Err(CliError::RunFailed(format!(
         "{}: integrity check failed ({} problems)",
@@ -51,29 +76,50 @@ pub fn check(path: &Path) -> Result<(), CliError> {
 }
 
 pub fn export(path: &Path, csv: &Path) -> Result<(), CliError> {
+    crate::files::check_output(csv, "--csv", &[path])?;
     let cdb = open_read_only(path)?;
-    // Write to a temporary file beside the target and rename, so a failed export
-    // never leaves a truncated CSV under the requested name.
-    let partial = csv.with_extension("csv.partial");
-    let file = std::fs::File::create(&partial).map_err(|e| CliError::io(&partial, e))?;
-    let mut writer = std::io::BufWriter::new(file);
-    let snapshot = cdb.snapshot().map_err(cdb_error)?;
-    let count = snapshot
-        .export_csv(&RecordFilter::default(), &mut writer)
-        .map_err(cdb_error)?;
-    use std::io::Write;
-    writer.flush().map_err(|e| CliError::io(&partial, e))?;
-    drop(writer);
-    std::fs::rename(&partial, csv).map_err(|e| CliError::io(csv, e))?;
-    println!("{count} records → {}", csv.display());
+    // Write to a hidden temporary file beside the target and rename, so a failed export
+    // never leaves a truncated CSV under the requested name, nor a temporary file.
+    let partial = crate::files::temporary_beside(csv);
+    let result = write_csv(&cdb, csv, &partial);
+    if result.is_err() {
+        let _ = std::fs::remove_file(&partial);
+    }
+    let count = result?;
+    crate::outln!("{count} records → {}", csv.display());
     Ok(())
+}
+
+fn write_csv(cdb: &Cdb, csv: &Path, partial: &Path) -> Result<u64, CliError> {
+    use std::io::Write;
+    let file = std::fs::File::create(partial).map_err(|e| CliError::io(csv, e))?;
+    let mut writer = Tracked {
+        inner: std::io::BufWriter::new(file),
+        error: None,
+    };
+    let snapshot = cdb.snapshot().map_err(cdb_error)?;
+    let exported = snapshot.export_csv(&RecordFilter::default(), &mut writer);
+    let flushed = writer.flush();
+    if let Some(e) = writer.error.take() {
+        return Err(CliError::io(csv, e));
+    }
+    let count = exported.map_err(cdb_error)?;
+    flushed.map_err(|e| CliError::io(csv, e))?;
+    let file = writer
+        .inner
+        .into_inner()
+        .map_err(|e| CliError::io(csv, e.into_error()))?;
+    file.sync_all().map_err(|e| CliError::io(csv, e))?;
+    drop(file);
+    std::fs::rename(partial, csv).map_err(|e| CliError::io(csv, e))?;
+    Ok(count)
 }
 
 pub fn trend(path: &Path) -> Result<(), CliError> {
     let cdb = open_read_only(path)?;
     let snapshot = cdb.snapshot().map_err(cdb_error)?;
     for scanner in snapshot.scanners().map_err(cdb_error)? {
-        println!("scanner {scanner}");
+        crate::outln!("scanner {scanner}");
         for (coefficient, label, scale, unit) in [
             (Coefficient::KxNmPerCount, "K̄x", 1.0, "nm/count"),
             (Coefficient::KyNmPerCount, "K̄y", 1.0, "nm/count"),
@@ -92,10 +138,10 @@ pub fn trend(path: &Path) -> Result<(), CliError> {
                     TrendGrouping::PerRun,
                 )
                 .map_err(cdb_error)?;
-            println!("  {label} ({unit}) per run:");
+            crate::outln!("  {label} ({unit}) per run:");
             for point in points {
                 match point.stat {
-                    Some(stat) => println!(
+                    Some(stat) => crate::outln!(
                         "    {}  {:<24} n = {:<6} mean = {:.6e} ± {:.1e} (sd {:.1e})",
                         spm_cdb::rfc3339_utc(point.mean_unix_s),
                         point.key,
@@ -104,7 +150,7 @@ pub fn trend(path: &Path) -> Result<(), CliError> {
                         stat.std_uncertainty * scale,
                         stat.std_dev * scale
                     ),
-                    None => println!(
+                    None => crate::outln!(
                         "    {}  {:<24} not measured",
                         spm_cdb::rfc3339_utc(point.mean_unix_s),
                         point.key

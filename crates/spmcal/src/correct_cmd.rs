@@ -85,6 +85,65 @@ fn geometry(
         .map_err(|e| bad(format!("{}: {e}", image.display())))
 }
 
+/// Largest surfaces file read, bytes.
+const MAX_SURFACES_BYTES: u64 = 64 << 20;
+
+/// Physical range of a sensitivity, nm per count (a 1 µm field over 2¹⁶ counts is 0.015).
+const SENSITIVITY_RANGE_NM_PER_COUNT: (f64, f64) = (1e-9, 1e3);
+
+/// Checks the plane's coefficients where the image lies: K̄x, K̄y and K̄yy = K̄y cos α
+/// finite and in [`SENSITIVITY_RANGE_NM_PER_COUNT`], |α| < π/2 (a raster, not a mirror),
+/// on a grid of up to 65 × 65 points over the raster including its corners.
+fn check_plane(
+    plane: &spm_correction::PlaneSurfaces,
+    geometry: &RasterGeometry,
+    surfaces: &Path,
+) -> Result<(), CliError> {
+    let (lo, hi) = SENSITIVITY_RANGE_NM_PER_COUNT;
+    let samples = |n: usize| -> Vec<f64> {
+        let k = n.clamp(1, 65);
+        if k == 1 || n <= 1 {
+            return vec![0.0];
+        }
+        (0..k)
+            .map(|i| (n - 1) as f64 * i as f64 / (k - 1) as f64)
+            .collect()
+    };
+    let (nx, ny) = (geometry.columns, geometry.rows);
+    for row in samples(ny) {
+        for column in samples(nx) {
+            let (x, y) = (geometry.x_counts(column), geometry.y_counts(row));
+            let kx = plane.kx_nm_per_count.surface.evaluate(x, y);
+            let ky = plane.ky_nm_per_count.surface.evaluate(x, y);
+            let alpha = plane.alpha_rad.surface.evaluate(x, y);
+            let kyy = plane.kyy_nm_per_count.surface.evaluate(x, y);
+            for (field, value) in [
+                ("kx_nm_per_count", kx),
+                ("ky_nm_per_count", ky),
+                ("kyy_nm_per_count", kyy),
+            ] {
+                if !(value.is_finite() && (lo..=hi).contains(&value)) {
+                    return Err(bad(format!(
+                        "{}: plane z = {}: field `{field}` = {value} at ({x:.0}, {y:.0}) counts \
+                         is outside [{lo}, {hi}] nm/count",
+                        surfaces.display(),
+                        plane.z_counts
+                    )));
+                }
+            }
+            if !(alpha.is_finite() && alpha.abs() < std::f64::consts::FRAC_PI_2) {
+                return Err(bad(format!(
+                    "{}: plane z = {}: field `alpha_rad` = {alpha} at ({x:.0}, {y:.0}) counts \
+                     must lie in (−π/2, π/2)",
+                    surfaces.display(),
+                    plane.z_counts
+                )));
+            }
+        }
+    }
+    Ok(())
+}
+
 pub fn run(
     image: &Path,
     surfaces: &Path,
@@ -92,6 +151,8 @@ pub fn run(
     direction: RasterDirection,
     nominal_nm_per_count: Option<f64>,
 ) -> Result<(), CliError> {
+    crate::files::check_input(image, "image")?;
+    crate::files::check_output(out, "--out", &[image, surfaces])?;
     let file = spm_formats::read_any(image).map_err(|e| bad(e.to_string()))?;
     let channel = file
         .channels
@@ -99,13 +160,23 @@ pub fn run(
         .find(|c| c.direction() == Direction::Forward && c.unit() == "m")
         .or_else(|| file.channels.first())
         .ok_or_else(|| bad(format!("{}: no image channel", image.display())))?;
-    let text = std::fs::read_to_string(surfaces).map_err(|e| CliError::io(surfaces, e))?;
+    let bytes = crate::files::read_limited(surfaces, "surfaces file", MAX_SURFACES_BYTES)?;
+    let text = String::from_utf8(bytes)
+        .map_err(|_| bad(format!("{}: not UTF-8 text", surfaces.display())))?;
     let set = SurfaceSet::from_json_str(&text)
         .map_err(|e| bad(format!("{}: {e}", surfaces.display())))?;
     let plane = set
         .plane_nearest(0.0)
         .map_err(|e| bad(format!("{}: {e}", surfaces.display())))?;
     let geometry = geometry(&file, channel, nominal_nm_per_count, image)?;
+    check_plane(plane, &geometry, surfaces)?;
+    if !channel.data().iter().any(|v| v.is_finite()) {
+        return Err(bad(format!(
+            "{}: channel {:?} holds no finite height (all NaN or infinite)",
+            image.display(),
+            channel.name()
+        )));
+    }
     // Display orientation (row 0 = top) → scanner geometry (row 0 = smallest y).
     let (nx, ny) = (channel.nx(), channel.ny());
     let mut heights = Vec::with_capacity(nx * ny);
@@ -156,8 +227,9 @@ pub fn run(
     let filled_text = filled.to_string();
     let source = image.display().to_string();
     let surfaces_text = surfaces.display().to_string();
+    let partial = crate::files::temporary_beside(out);
     spm_formats::write_gsf(
-        out,
+        &partial,
         &corrected,
         &[
             ("spmcal_source", source.as_str()),
@@ -165,8 +237,18 @@ pub fn run(
             ("spmcal_filled_outside_pixels", filled_text.as_str()),
         ],
     )
-    .map_err(|e| CliError::RunFailed(e.to_string()))?;
-    println!(
+    .and_then(|()| {
+        std::fs::rename(&partial, out).map_err(|source| spm_formats::FormatError::Io {
+            path: out.to_path_buf(),
+            action: "cannot write",
+            source,
+        })
+    })
+    .map_err(|e| {
+        let _ = std::fs::remove_file(&partial);
+        CliError::RunFailed(e.to_string())
+    })?;
+    crate::outln!(
         "{} → {} ({}×{} px of {:.4} nm; {} pixels outside the scan filled with the mean)",
         image.display(),
         out.display(),

@@ -4,6 +4,10 @@ use crate::error::CliError;
 use spm_modelcheck::{LatticeSpec, ModelCheckError, Options, diagnose_paths, write_png};
 use std::path::{Path, PathBuf};
 
+/// Physical range of a lattice constant, nm: from below the shortest interatomic distance
+/// to a coarse calibration grating.
+const LATTICE_RANGE_NM: (f64, f64) = (0.05, 1e4);
+
 fn classify(error: ModelCheckError) -> CliError {
     match error {
         ModelCheckError::Numerical(_) | ModelCheckError::Plot { .. } => {
@@ -21,6 +25,22 @@ pub fn run(
 ) -> Result<(), CliError> {
     let lattice =
         LatticeSpec::parse(lattice).map_err(|e| CliError::BadInput(format!("--lattice: {e}")))?;
+    let a_nm = lattice.a_nm();
+    if !(a_nm.is_finite() && (LATTICE_RANGE_NM.0..=LATTICE_RANGE_NM.1).contains(&a_nm)) {
+        return Err(CliError::BadInput(format!(
+            "--lattice: lattice constant {a_nm} nm is outside the physical range [{}, {}] nm",
+            LATTICE_RANGE_NM.0, LATTICE_RANGE_NM.1
+        )));
+    }
+    for file in files {
+        crate::files::check_input(file, "image")?;
+    }
+    let inputs: Vec<&Path> = files.iter().map(PathBuf::as_path).collect();
+    crate::files::check_output(json, "--json", &inputs)?;
+    if let Some(png) = png {
+        crate::files::check_output(png, "--png", &inputs)?;
+        crate::files::check_distinct_outputs(&[("--json", json), ("--png", png)])?;
+    }
     let diagnosis = diagnose_paths(files, &lattice, &Options::default()).map_err(classify)?;
     let text = serde_json::to_string_pretty(&diagnosis)
         .map_err(|e| CliError::RunFailed(format!("cannot encode the diagnosis: {e}")))?;
@@ -33,7 +53,7 @@ pub fn run(
             .join(" + ");
         write_png(&diagnosis, png, &title).map_err(classify)?;
     }
-    println!(
+    crate::outln!(
         "baseline {:.1} pm → final {:.1} pm; findings: {}; unexplained: {}",
         diagnosis.baseline.rms_pm,
         diagnosis.final_report.rms_pm,

@@ -18,6 +18,9 @@ pub enum CliError {
     /// The run itself failed (instrument fault, numerical failure).
     #[error("{0}")]
     RunFailed(String),
+    /// Standard output is closed or full (exit 1, no message when the reader went away).
+    #[error("cannot write to standard output: {0}")]
+    Stdout(std::io::Error),
     /// Reading or writing a file failed.
     #[error("{path}: {source}")]
     Io {
@@ -33,7 +36,7 @@ impl CliError {
     pub fn exit_code(&self) -> i32 {
         match self {
             Self::BadInput(_) => EXIT_BAD_INPUT,
-            Self::RunFailed(_) => EXIT_RUN_FAILED,
+            Self::RunFailed(_) | Self::Stdout(_) => EXIT_RUN_FAILED,
             Self::Io { source, .. } => match source.kind() {
                 std::io::ErrorKind::NotFound
                 | std::io::ErrorKind::IsADirectory
@@ -44,6 +47,12 @@ impl CliError {
                 _ => EXIT_RUN_FAILED,
             },
         }
+    }
+
+    /// True when the error is a closed standard output (the reader went away): the
+    /// program ends quietly.
+    pub fn is_closed_stdout(&self) -> bool {
+        matches!(self, Self::Stdout(e) if e.kind() == std::io::ErrorKind::BrokenPipe)
     }
 
     /// An I/O error on `path`.

@@ -1,7 +1,7 @@
 //! `spmcal fit --cdb PATH [--scanner ID] [--since DATE] [--until DATE] --out surfaces.json`.
 
 use crate::cdb_cmd::cdb_error;
-use crate::dates::parse_utc;
+use crate::dates::parse_window;
 use crate::error::CliError;
 use spmcal::surfaces::{SurfaceFitError, SurfaceFitOptions, fit_from_cdb};
 use std::path::Path;
@@ -16,15 +16,9 @@ pub fn run(
     until: Option<&str>,
     out: &Path,
 ) -> Result<(), CliError> {
-    let since = since.map(|s| parse_utc("--since", s)).transpose()?;
-    let until = until.map(|s| parse_utc("--until", s)).transpose()?;
-    if !cdb_path.is_file() {
-        return Err(CliError::BadInput(format!(
-            "{}: no such calibration database",
-            cdb_path.display()
-        )));
-    }
-    let cdb = spm_cdb::Cdb::open_read_only(cdb_path).map_err(cdb_error)?;
+    let (since, until) = parse_window(since, until)?;
+    crate::files::check_output(out, "--out", &[cdb_path])?;
+    let cdb = crate::cdb_cmd::open_read_only(cdb_path)?;
     let snapshot = cdb.snapshot().map_err(cdb_error)?;
     let fitted = fit_from_cdb(
         &snapshot,
@@ -35,26 +29,43 @@ pub fn run(
     )
     .map_err(|e| match e {
         SurfaceFitError::Cdb(e) => cdb_error(e),
-        SurfaceFitError::NoRecords { .. } | SurfaceFitError::AmbiguousScanner(_) => {
-            CliError::BadInput(e.to_string())
+        SurfaceFitError::NoRecords { .. }
+        | SurfaceFitError::AmbiguousScanner(_)
+        | SurfaceFitError::TooFewRecords { .. } => {
+            CliError::BadInput(format!("{}: {e}", cdb_path.display()))
         }
         other => CliError::RunFailed(other.to_string()),
     })?;
+    if fitted.excluded_records > 0 {
+        use std::io::Write;
+        let _ = writeln!(
+            std::io::stderr(),
+            "spmcal: warning: {}: {} records with invalid coefficients (as `spmcal cdb check` \
+             reports them) were left out of the fit",
+            cdb_path.display(),
+            fitted.excluded_records
+        );
+    }
     let json = fitted
         .set
         .to_json_string()
         .map_err(|e| CliError::RunFailed(e.to_string()))?;
     crate::write_atomically(out, json.as_bytes())?;
     let s = fitted.summary;
-    println!(
+    crate::outln!(
         "{} planes, {} records → {}",
         fitted.set.planes.len(),
         fitted.set.provenance.n_records,
         out.display()
     );
-    println!(
+    crate::outln!(
         "K̄x: degree {} σ {:.2e} nm/count; K̄y: degree {} σ {:.2e} nm/count; α: degree {} σ {:.2e} rad",
-        s.kx.degree, s.kx.sigma, s.ky.degree, s.ky.sigma, s.alpha.degree, s.alpha.sigma
+        s.kx.degree,
+        s.kx.sigma,
+        s.ky.degree,
+        s.ky.sigma,
+        s.alpha.degree,
+        s.alpha.sigma
     );
     Ok(())
 }

@@ -59,7 +59,23 @@ pub enum JobError {
     /// The simulator config is invalid (the message names file, line and field).
     #[error("{0}")]
     Sim(#[from] spm_sim::ConfigError),
+    /// A config file is not a regular file (a FIFO, a device, a directory) or too large.
+    #[error("{path}: {message}")]
+    NotAConfigFile {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
 }
+
+/// Largest config file (job, plan or simulator) read, bytes: configs are small hand-written
+/// files; anything larger is a mistake (e.g. a data file given as a config).
+pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
+
+/// Largest number of visits (nodes × repeats) of one run: a week of instrument time at
+/// well under a second per visit. A larger plan is almost surely a typo (`step_counts = 1`).
+pub const MAX_TOTAL_VISITS: usize = 1_000_000;
 
 /// The backend a job runs on.
 #[derive(Debug, Clone)]
@@ -148,7 +164,7 @@ impl Job {
                 ));
             }
         }
-        let (plan, plan_text) = match table.get("plan_file") {
+        let plan = match table.get("plan_file") {
             Some(toml::Value::String(plan_file)) => {
                 if table.contains_key("plan") {
                     return Err(field(
@@ -156,15 +172,22 @@ impl Job {
                         "give either plan_file or [plan], not both",
                     ));
                 }
-                Self::read_plan(&path.parent().unwrap_or(Path::new(".")).join(plan_file))?
+                let plan_path = path.parent().unwrap_or(Path::new(".")).join(plan_file);
+                let (plan, plan_text) = Self::read_plan(&plan_path)?;
+                (plan, plan_text, plan_path.display().to_string())
             }
             Some(_) => return Err(field("plan_file", "must be a string (a file path)")),
             None => (
                 PlanConfig::from_toml_str(&text, &path.display().to_string())?,
                 text.clone(),
+                path.display().to_string(),
             ),
         };
-        Self::from_parts(&sim_path, plan, format!("{text}\n{plan_text}"))
+        let (plan, plan_text, plan_source) = plan;
+        let job = Self::from_parts(&sim_path, plan, format!("{text}\n{plan_text}"))?;
+        let Backend::Sim(sim) = &job.backend;
+        Self::check_plan_on_backend(&job.plan, sim, &plan_source, &plan_text)?;
+        Ok(job)
     }
 
     /// A job from a simulator config file and a plan (what `cargo xtask calibrate` uses).
@@ -185,11 +208,129 @@ impl Job {
         })
     }
 
-    /// A plan file (a `[plan]` table, possibly among others).
+    /// A plan file: a `[plan]` table and nothing else at the top level.
     pub fn read_plan(path: &Path) -> Result<(PlanConfig, String), JobError> {
         let text = read(path)?;
         let plan = PlanConfig::from_toml_str(&text, &path.display().to_string())?;
+        if let Ok(table) = text.parse::<toml::Table>() {
+            for key in table.keys() {
+                if key != "plan" {
+                    return Err(JobError::Field {
+                        path: path.to_path_buf(),
+                        line: line_of(&text, key),
+                        field: key.clone(),
+                        message: "unknown top-level field of a plan file (expected only [plan])"
+                            .to_owned(),
+                    });
+                }
+            }
+        }
         Ok((plan, text))
+    }
+
+    /// The other files a job file names (`backend.sim_config`, `plan_file`), resolved
+    /// against its folder; best effort (nothing when the file cannot be read or parsed).
+    pub fn referenced_files(path: &Path) -> Vec<PathBuf> {
+        let Ok(text) = read(path) else {
+            return Vec::new();
+        };
+        let Ok(table) = text.parse::<toml::Table>() else {
+            return Vec::new();
+        };
+        let dir = path.parent().unwrap_or(Path::new("."));
+        let mut files = Vec::new();
+        if let Some(p) = table
+            .get("backend")
+            .and_then(|b| b.get("sim_config"))
+            .and_then(toml::Value::as_str)
+        {
+            files.push(dir.join(p));
+        }
+        if let Some(p) = table.get("plan_file").and_then(toml::Value::as_str) {
+            files.push(dir.join(p));
+        }
+        files
+    }
+
+    /// Checks the plan against the backend: the net laid in the instrument's field, its
+    /// size, and scans within the instrument's limits. `plan_source` and `plan_text` locate
+    /// the plan's fields.
+    fn check_plan_on_backend(
+        plan: &PlanConfig,
+        sim: &SimConfig,
+        plan_source: &str,
+        plan_text: &str,
+    ) -> Result<(), JobError> {
+        let invalid = |field: &str, reason: String| {
+            JobError::Plan(spm_calibration::ConfigError::Invalid {
+                source_name: plan_source.to_owned(),
+                line: spm_calibration::locate_field_line(plan_text, field),
+                field: field.to_owned(),
+                reason,
+            })
+        };
+        let capabilities = sim.capabilities();
+        let geometry = plan.net.geometry(&capabilities).map_err(|e| match e {
+            spm_calibration::PlanError::Invalid { field, reason } => {
+                invalid(&format!("plan.net.{field}"), reason)
+            }
+            other => invalid("plan.net", other.to_string()),
+        })?;
+        let nodes = geometry.node_count();
+        let visits = nodes.saturating_mul(plan.repeats as usize);
+        if nodes == 0 || visits > MAX_TOTAL_VISITS {
+            return Err(invalid(
+                "plan.net.step_counts",
+                format!(
+                    "gives {nodes} nodes × {} repeats = {visits} visits, more than the limit of \
+                     {MAX_TOTAL_VISITS}",
+                    plan.repeats
+                ),
+            ));
+        }
+        let max_pixels = capabilities.max_pixels_per_line.min(capabilities.max_lines);
+        for (field, pixels) in [
+            ("plan.aperture.pixels", plan.aperture.pixels),
+            ("plan.attach.first_pixels", plan.attach.first_pixels),
+            ("plan.attach.segment_pixels", plan.attach.segment_pixels),
+        ] {
+            if pixels > max_pixels {
+                return Err(invalid(
+                    field,
+                    format!("must be ≤ {max_pixels}, the instrument's largest scan, got {pixels}"),
+                ));
+            }
+        }
+        if plan.motion.pixel_dwell_s < capabilities.min_pixel_dwell.value() {
+            return Err(invalid(
+                "plan.motion.pixel_dwell_s",
+                format!(
+                    "must be ≥ {} s, the instrument's shortest dwell, got {}",
+                    capabilities.min_pixel_dwell.value(),
+                    plan.motion.pixel_dwell_s
+                ),
+            ));
+        }
+        let width = capabilities.field_max.x.value() - capabilities.field_min.x.value();
+        for (field, size) in [
+            ("plan.aperture.size_counts", plan.aperture.size_counts),
+            (
+                "plan.attach.first_size_counts",
+                plan.attach.first_size_counts,
+            ),
+            (
+                "plan.attach.segment_size_counts",
+                plan.attach.segment_size_counts,
+            ),
+        ] {
+            if size > width {
+                return Err(invalid(
+                    field,
+                    format!("must be ≤ {width} counts, the instrument's field, got {size}"),
+                ));
+            }
+        }
+        Ok(())
     }
 }
 
@@ -226,9 +367,39 @@ fn line_of(text: &str, dotted: &str) -> Option<usize> {
     header_line
 }
 
+/// Reads a config file: a regular file (checked before opening: a FIFO would block, a
+/// device never end) of at most [`MAX_CONFIG_BYTES`].
 fn read(path: &Path) -> Result<String, JobError> {
-    std::fs::read_to_string(path).map_err(|source| JobError::Io {
+    let io = |source| JobError::Io {
         path: path.to_path_buf(),
         source,
-    })
+    };
+    let not_config = |message: String| JobError::NotAConfigFile {
+        path: path.to_path_buf(),
+        message,
+    };
+    let meta = std::fs::metadata(path).map_err(io)?;
+    if !meta.is_file() {
+        return Err(not_config(
+            "not a regular file (a directory, FIFO or device); a config must be a file".into(),
+        ));
+    }
+    if meta.len() > MAX_CONFIG_BYTES {
+        return Err(not_config(format!(
+            "{} bytes is larger than the limit of {MAX_CONFIG_BYTES} bytes for a config",
+            meta.len()
+        )));
+    }
+    let file = std::fs::File::open(path).map_err(io)?;
+    let mut bytes = Vec::new();
+    use std::io::Read;
+    file.take(MAX_CONFIG_BYTES + 1)
+        .read_to_end(&mut bytes)
+        .map_err(io)?;
+    if bytes.len() as u64 > MAX_CONFIG_BYTES {
+        return Err(not_config(format!(
+            "larger than the limit of {MAX_CONFIG_BYTES} bytes for a config"
+        )));
+    }
+    String::from_utf8(bytes).map_err(|_| not_config("not UTF-8 text".into()))
 }

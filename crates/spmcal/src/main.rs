@@ -10,12 +10,22 @@ mod correct_cmd;
 mod dates;
 mod diagnose_cmd;
 mod error;
+mod files;
 mod fit_cmd;
 mod info;
 
 use clap::{Parser, Subcommand, ValueEnum};
 use error::{CliError, EXIT_BAD_INPUT, EXIT_SUCCESS};
+use std::io::Write;
 use std::path::PathBuf;
+
+/// `println!` that returns [`CliError::Stdout`] instead of panicking when stdout is closed.
+macro_rules! outln {
+    ($($arg:tt)*) => {
+        $crate::files::stdout_line(format_args!($($arg)*))?
+    };
+}
+pub(crate) use outln;
 
 /// Distributed, drift-insensitive calibration of SPM scanners, and image correction.
 #[derive(Debug, Parser)]
@@ -156,22 +166,95 @@ fn main() {
             std::process::exit(code);
         }
     };
+    if let Some(log) = &cli.log {
+        if let Err(error) = check_log(log, &cli.command) {
+            let _ = writeln!(std::io::stderr(), "spmcal: error: {error}");
+            std::process::exit(error.exit_code());
+        }
+        files::set_log(log);
+    }
     let _guard = install_subscriber(cli.log.as_deref());
     let code = match run(cli.command) {
         Ok(()) => EXIT_SUCCESS,
         Err(error) => {
-            eprintln!("spmcal: error: {error}");
+            // A reader that went away (closed pipe) gets no message; anything else does.
+            if !error.is_closed_stdout() {
+                let _ = writeln!(std::io::stderr(), "spmcal: error: {error}");
+            }
             error.exit_code()
         }
     };
     std::process::exit(code);
 }
 
+impl Command {
+    /// Every file the command names (inputs and outputs), for the `--log` check.
+    fn paths(&self) -> Vec<PathBuf> {
+        let mut paths = Vec::new();
+        match self {
+            Self::Calibrate {
+                config, cdb, out, ..
+            } => {
+                paths.push(config.clone());
+                paths.extend(spmcal::job::Job::referenced_files(config));
+                let out = out
+                    .clone()
+                    .unwrap_or_else(|| PathBuf::from(calibrate_cmd::DEFAULT_OUT));
+                paths.push(cdb.clone().unwrap_or_else(|| out.join("cdb.sqlite")));
+                for name in calibrate_cmd::OUTPUT_FILES {
+                    paths.push(out.join(name));
+                }
+            }
+            Self::Fit { cdb, out, .. } => paths.extend([cdb.clone(), out.clone()]),
+            Self::Correct {
+                image,
+                surfaces,
+                out,
+                ..
+            } => paths.extend([image.clone(), surfaces.clone(), out.clone()]),
+            Self::Info { file, .. } => paths.push(file.clone()),
+            Self::Diagnose {
+                files, json, png, ..
+            } => {
+                paths.extend(files.iter().cloned());
+                paths.push(json.clone());
+                paths.extend(png.iter().cloned());
+            }
+            Self::Cdb { command } => match command {
+                CdbCommand::Check { path } | CdbCommand::Trend { path } => {
+                    paths.push(path.clone());
+                }
+                CdbCommand::Export { path, csv } => paths.extend([path.clone(), csv.clone()]),
+            },
+        }
+        paths
+    }
+}
+
+/// The log file must be a regular file or new, and none of the command's files.
+fn check_log(log: &std::path::Path, command: &Command) -> Result<(), error::CliError> {
+    let paths = command.paths();
+    let refs: Vec<&std::path::Path> = paths.iter().map(PathBuf::as_path).collect();
+    if paths.iter().any(|p| p == log) {
+        return Err(error::CliError::BadInput(format!(
+            "--log {}: is also a file of the command; refusing to overwrite it",
+            log.display()
+        )));
+    }
+    files::check_output(log, "--log", &refs)
+}
+
 /// Logs go to a file when asked, otherwise warnings and errors go to stderr.
 fn install_subscriber(log: Option<&std::path::Path>) -> Option<()> {
     use tracing_subscriber::EnvFilter;
     let filter = EnvFilter::try_from_env("SPMCAL_LOG").unwrap_or_else(|_| EnvFilter::new("info"));
-    match log.map(std::fs::File::create) {
+    let append = |path: &std::path::Path| {
+        std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)
+    };
+    match log.map(append) {
         Some(Ok(file)) => {
             let _ = tracing_subscriber::fmt()
                 .with_env_filter(filter)
@@ -180,7 +263,10 @@ fn install_subscriber(log: Option<&std::path::Path>) -> Option<()> {
                 .try_init();
         }
         Some(Err(error)) => {
-            eprintln!("spmcal: warning: cannot open the log file: {error}; logging to stderr");
+            let _ = writeln!(
+                std::io::stderr(),
+                "spmcal: warning: cannot open the log file: {error}; logging to stderr"
+            );
             let _ = tracing_subscriber::fmt()
                 .with_env_filter(EnvFilter::new("warn"))
                 .with_writer(std::io::stderr)
@@ -239,10 +325,7 @@ fn run(command: Command) -> Result<(), CliError> {
     }
 }
 
-/// Writes `bytes` to a temporary file beside `path`, then renames it into
-/// place: readers never see a half-written file.
+/// Writes `bytes` to a temporary file beside `path`, then renames it into place.
 fn write_atomically(path: &std::path::Path, bytes: &[u8]) -> Result<(), CliError> {
-    let partial = path.with_extension("partial");
-    std::fs::write(&partial, bytes).map_err(|e| CliError::io(&partial, e))?;
-    std::fs::rename(&partial, path).map_err(|e| CliError::io(path, e))
+    files::write_atomically(path, bytes)
 }

@@ -4,7 +4,7 @@ use crate::job::{Backend, Job};
 use spm_calibration::{
     Calibrator, GiveUpReason, NodeMeasurement, Observer, PlanVisit, RunError, RunOptions, RunReport,
 };
-use spm_cdb::{Cdb, CdbRead, RunStatus};
+use spm_cdb::{Cdb, CdbRead, RunInfo, RunStatus};
 use spm_hal::{CountVelocity, Seconds};
 use spm_sim::Simulator;
 use std::path::Path;
@@ -25,6 +25,112 @@ pub enum JobRunError {
     /// `--resume` found nothing to resume.
     #[error("no unfinished run of scanner {0:?} in the calibration database")]
     NothingToResume(String),
+    /// `--resume` with a job whose plan or simulator config differs from the run's.
+    #[error(
+        "{path}: run {run_id:?} was started with another job (its plan or simulator config \
+         differs); resume it with the config it was started with, or start a new run \
+         without --resume"
+    )]
+    ConfigMismatch {
+        /// The CDB.
+        path: std::path::PathBuf,
+        /// The unfinished run.
+        run_id: String,
+    },
+    /// The CDB fails its integrity check: nothing is appended to it.
+    #[error(
+        "{path}: the calibration database fails its integrity check ({problems}); nothing \
+         was written. See `spmcal cdb check {path}`",
+        path = path.display()
+    )]
+    CdbRejected {
+        /// The CDB.
+        path: std::path::PathBuf,
+        /// The first problems found.
+        problems: String,
+    },
+}
+
+impl JobRunError {
+    /// True when the error is the input's fault (a bad CDB, config or argument), false when
+    /// the run itself failed.
+    pub fn is_bad_input(&self) -> bool {
+        match self {
+            Self::NothingToResume(_) | Self::ConfigMismatch { .. } | Self::CdbRejected { .. } => {
+                true
+            }
+            Self::Cdb(inner) => !matches!(
+                inner.kind(),
+                spm_cdb::ErrorKind::Sqlite | spm_cdb::ErrorKind::Io
+            ),
+            Self::Backend(_) | Self::Run(_) => false,
+        }
+    }
+}
+
+/// The job's config text without the line naming where the simulator config was read from
+/// (the same job resumed from another folder is the same job).
+fn comparable_config(text: &str) -> String {
+    text.lines()
+        .filter(|l| !l.starts_with("# simulator: "))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// Refuses a CDB that `cdb check` rejects, before anything is written to it. A file of an
+/// older schema (migrated on the read-write open) is checked after its migration by the
+/// next `cdb check`.
+fn verify_existing_cdb(cdb_path: &Path) -> Result<(), JobRunError> {
+    if !cdb_path.exists() {
+        return Ok(());
+    }
+    let cdb = match Cdb::open_read_only(cdb_path) {
+        Ok(cdb) => cdb,
+        Err(e) if e.kind() == spm_cdb::ErrorKind::OutdatedSchema => return Ok(()),
+        Err(e) => return Err(e.into()),
+    };
+    let report = cdb.check()?;
+    if report.is_ok() {
+        return Ok(());
+    }
+    let mut problems: Vec<String> = report.sqlite.iter().take(3).cloned().collect();
+    problems.extend(
+        report
+            .problems
+            .iter()
+            .take(3)
+            .map(|p| format!("{}: {}", p.kind, p.detail)),
+    );
+    Err(JobRunError::CdbRejected {
+        path: cdb_path.to_path_buf(),
+        problems: problems.join("; "),
+    })
+}
+
+/// Registers a new run under `base` or, when that id is taken (another run started in the
+/// same second), under `base-2`, `base-3`, …: a run id is never reused.
+fn create_unique_run(cdb: &mut Cdb, base: &str, run: &RunInfo) -> Result<String, JobRunError> {
+    let mut last = None;
+    for n in 1..=10_000u32 {
+        let run_id = if n == 1 {
+            base.to_owned()
+        } else {
+            format!("{base}-{n}")
+        };
+        let info = RunInfo {
+            run_id: run_id.clone(),
+            ..run.clone()
+        };
+        match cdb.create_run(&info) {
+            Ok(()) => return Ok(run_id),
+            Err(e) if e.kind() == spm_cdb::ErrorKind::Conflict => last = Some(e),
+            Err(e) => return Err(e.into()),
+        }
+    }
+    Err(last.map_or_else(
+        || JobRunError::Backend("no free run id".into()),
+        JobRunError::from,
+    ))
 }
 
 /// One drift estimate during the run.
@@ -198,16 +304,41 @@ pub fn run_job<O: Observer>(
     start_unix_s: f64,
     observer: &mut O,
 ) -> Result<JobOutcome, JobRunError> {
+    verify_existing_cdb(cdb_path)?;
+    let Backend::Sim(config) = &job.backend;
+    let mut sim =
+        Simulator::new((**config).clone()).map_err(|e| JobRunError::Backend(e.to_string()))?;
     let mut cdb = Cdb::open(cdb_path)?;
     let run_id = match start {
-        RunStart::New { run_id } => run_id,
+        RunStart::New { run_id } => {
+            let run = RunInfo {
+                run_id: run_id.clone(),
+                scanner_id: job.plan.scanner_id.clone(),
+                config: job.provenance_text.clone(),
+                started_unix_s: start_unix_s,
+                finished_unix_s: None,
+                status: RunStatus::Running,
+            };
+            create_unique_run(&mut cdb, &run_id, &run)?
+        }
         RunStart::Resume => {
+            // The newest run that did not finish: killed ('running'), stopped by a signal
+            // ('aborted') or by an instrument failure ('failed'). A finished run is never
+            // reused.
             let runs = cdb.runs(Some(&job.plan.scanner_id))?;
-            runs.iter()
+            let run = runs
+                .iter()
                 .rev()
-                .find(|r| r.status == RunStatus::Running)
-                .map(|r| r.run_id.clone())
-                .ok_or_else(|| JobRunError::NothingToResume(job.plan.scanner_id.clone()))?
+                .find(|r| r.status != RunStatus::Finished)
+                .ok_or_else(|| JobRunError::NothingToResume(job.plan.scanner_id.clone()))?;
+            if comparable_config(&run.config) != comparable_config(&job.provenance_text) {
+                return Err(JobRunError::ConfigMismatch {
+                    path: cdb_path.to_path_buf(),
+                    run_id: run.run_id.clone(),
+                });
+            }
+            cdb.reopen_run(&run.run_id)?;
+            run.run_id.clone()
         }
     };
     let options = RunOptions {
@@ -215,22 +346,39 @@ pub fn run_job<O: Observer>(
         start_unix_s,
         config_text: job.provenance_text.clone(),
     };
-    match &job.backend {
-        Backend::Sim(config) => {
-            let mut sim = Simulator::new((**config).clone())
-                .map_err(|e| JobRunError::Backend(e.to_string()))?;
-            let mut recorder = spm_hal::recording::CommandRecorder::new(&mut sim, MAX_COMMANDS);
-            let report = {
-                let mut calibrator =
-                    Calibrator::new(&mut recorder, &mut cdb, observer, job.plan.clone())?;
-                calibrator.run(&options)?
-            };
-            let (_, commands) = recorder.into_parts();
-            Ok(JobOutcome {
-                report,
-                simulator: Some(sim),
-                commands,
-            })
+    let mut recorder = spm_hal::recording::CommandRecorder::new(&mut sim, MAX_COMMANDS);
+    let result = Calibrator::new(&mut recorder, &mut cdb, observer, job.plan.clone())
+        .and_then(|mut calibrator| calibrator.run(&options));
+    let (_, commands) = recorder.into_parts();
+    match result {
+        Ok(report) => Ok(JobOutcome {
+            report,
+            simulator: Some(sim),
+            commands,
+        }),
+        Err(error) => {
+            // Never leave a run 'running' that nothing will continue on its own: a plan the
+            // instrument cannot carry out is marked failed (the runner marks instrument
+            // failures itself; a CDB failure leaves the run resumable as it is).
+            if let RunError::Plan(_) = error
+                && let Ok(Some(run)) = cdb.run(&options.run_id)
+                && run.status == RunStatus::Running
+                && let Err(e) = cdb.finish_run(&options.run_id, RunStatus::Failed, start_unix_s)
+            {
+                tracing::warn!(error = %e, "could not mark the run failed");
+            }
+            Err(error.into())
         }
     }
+}
+
+/// Marks an interrupted run 'aborted' (a signal stopped it at a safe point); `--resume`
+/// continues it.
+///
+/// # Errors
+/// CDB errors.
+pub fn mark_aborted(cdb_path: &Path, run_id: &str, at_unix_s: f64) -> Result<(), JobRunError> {
+    let mut cdb = Cdb::open(cdb_path)?;
+    cdb.finish_run(run_id, RunStatus::Aborted, at_unix_s)?;
+    Ok(())
 }

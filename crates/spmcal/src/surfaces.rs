@@ -14,7 +14,10 @@ pub enum SurfaceFitError {
     #[error(transparent)]
     Cdb(#[from] spm_cdb::CdbError),
     /// The selection holds no record.
-    #[error("no record matches the selection (scanner {scanner:?}, window {since:?} … {until:?})")]
+    #[error(
+        "no record matches the selection ({})",
+        describe_selection(scanner.as_deref(), since.as_deref(), until.as_deref())
+    )]
     NoRecords {
         /// Scanner filter.
         scanner: Option<String>,
@@ -22,6 +25,17 @@ pub enum SurfaceFitError {
         since: Option<String>,
         /// Upper time bound.
         until: Option<String>,
+    },
+    /// A plane holds too few valid records for a surface and its σ (eq. 14).
+    #[error(
+        "the plane z = {z_counts} counts holds {n} valid record(s); a surface with its σ needs \
+         at least {MIN_RECORDS_PER_PLANE}"
+    )]
+    TooFewRecords {
+        /// The plane.
+        z_counts: i64,
+        /// Valid records in it.
+        n: usize,
     },
     /// The CDB holds several scanners and none was chosen.
     #[error("the CDB holds several scanners ({0}); choose one with --scanner")]
@@ -39,6 +53,69 @@ pub enum SurfaceFitError {
     /// The assembled surfaces are invalid.
     #[error(transparent)]
     Correction(#[from] spm_correction::CorrectionError),
+}
+
+/// Fewest valid records a plane needs: σ (eq. 14) has n − 1 degrees of freedom for the
+/// lowest degree, so one record would report σ = 0.
+pub const MIN_RECORDS_PER_PLANE: usize = 2;
+
+/// The selection in words: `scanner "X", since 2026-…, until 2026-…`.
+fn describe_selection(scanner: Option<&str>, since: Option<&str>, until: Option<&str>) -> String {
+    let mut parts = Vec::new();
+    match scanner {
+        Some(s) => parts.push(format!("scanner {s:?}")),
+        None => parts.push("any scanner".to_owned()),
+    }
+    if let Some(t) = since {
+        parts.push(format!("since {t}"));
+    }
+    if let Some(t) = until {
+        parts.push(format!("until {t}"));
+    }
+    parts.join(", ")
+}
+
+/// Keeps the records that `cdb check` accepts (finite centre, K̄x, K̄y > 0, |α| < π/2,
+/// Kz > 0 where given); returns how many were left out.
+fn keep_valid(columns: &mut LccColumns) -> usize {
+    let n = columns.len();
+    let keep: Vec<bool> = (0..n)
+        .map(|i| {
+            let kx = columns.kx_nm_per_count[i];
+            let ky = columns.ky_nm_per_count[i];
+            let alpha = columns.alpha_rad[i];
+            columns.lcs_x_counts[i].is_finite()
+                && columns.lcs_y_counts[i].is_finite()
+                && kx.is_finite()
+                && kx > 0.0
+                && ky.is_finite()
+                && ky > 0.0
+                && alpha.is_finite()
+                && alpha.abs() < std::f64::consts::FRAC_PI_2
+                && columns.kz_nm_per_count[i].is_none_or(|kz| kz.is_finite() && kz > 0.0)
+        })
+        .collect();
+    let excluded = keep.iter().filter(|k| !**k).count();
+    if excluded == 0 {
+        return 0;
+    }
+    fn retain<T>(v: &mut Vec<T>, keep: &[bool]) {
+        let mut i = 0;
+        v.retain(|_| {
+            let k = keep.get(i).copied().unwrap_or(false);
+            i += 1;
+            k
+        });
+    }
+    retain(&mut columns.lcs_x_counts, &keep);
+    retain(&mut columns.lcs_y_counts, &keep);
+    retain(&mut columns.node_z_counts, &keep);
+    retain(&mut columns.acquired_unix_s, &keep);
+    retain(&mut columns.kx_nm_per_count, &keep);
+    retain(&mut columns.ky_nm_per_count, &keep);
+    retain(&mut columns.alpha_rad, &keep);
+    retain(&mut columns.kz_nm_per_count, &keep);
+    excluded
 }
 
 /// How to fit.
@@ -91,6 +168,8 @@ pub struct FittedSurfaces {
     pub set: SurfaceSet,
     /// Degree, σ, Δmax of each coefficient in the plane nearest z = 0.
     pub summary: RegressionSummary,
+    /// Records left out because `cdb check` would flag their coefficients.
+    pub excluded_records: usize,
 }
 
 /// Selects records from the CDB and fits surfaces per Z plane.
@@ -121,13 +200,29 @@ pub fn fit_from_cdb(
     let mut planes = Vec::new();
     let mut summary = None;
     let mut n_records = 0;
+    let mut excluded_records = 0;
     for z in cdb.z_planes(&scanner_id)? {
         let filter = RecordFilter::scanner(&scanner_id)
             .with_z_plane(z)
             .with_window(since_unix_s, until_unix_s);
-        let columns = cdb.columns(&filter)?;
+        let mut columns = cdb.columns(&filter)?;
+        let excluded = keep_valid(&mut columns);
+        excluded_records += excluded;
+        if excluded > 0 {
+            tracing::warn!(
+                z,
+                excluded,
+                "records with invalid coefficients left out of the fit"
+            );
+        }
         if columns.is_empty() {
             continue;
+        }
+        if columns.len() < MIN_RECORDS_PER_PLANE {
+            return Err(SurfaceFitError::TooFewRecords {
+                z_counts: z,
+                n: columns.len(),
+            });
         }
         n_records += columns.len();
         let (plane, plane_summary) = fit_plane(z, &columns, options)?;
@@ -152,6 +247,7 @@ pub fn fit_from_cdb(
     Ok(FittedSurfaces {
         set: SurfaceSet::new(provenance, planes)?,
         summary,
+        excluded_records,
     })
 }
 

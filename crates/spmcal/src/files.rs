@@ -1,0 +1,222 @@
+//! Guards on the files the command line reads and writes (issue 13).
+//!
+//! - Inputs must be regular files, checked *before* opening (a FIFO would block the open,
+//!   a device such as `/dev/zero` would be read until memory runs out).
+//! - Outputs must be regular files or new, and never the same file (device + inode, so
+//!   also through links and other spellings) as an input, the CDB (or its `-wal`/`-shm`
+//!   companions) or the log.
+//! - Standard output that is closed or full ends the program with a typed error (exit 1,
+//!   no panic).
+
+use crate::error::CliError;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+/// The `--log` file, once it is known: every output is checked against it.
+static LOG: OnceLock<PathBuf> = OnceLock::new();
+
+/// Remembers the log file so that no output replaces it.
+pub fn set_log(path: &Path) {
+    let _ = LOG.set(path.to_path_buf());
+}
+
+/// A file's identity: device and inode (following symbolic links).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FileId {
+    dev: u64,
+    ino: u64,
+}
+
+/// The identity of an existing file, `None` when it does not exist.
+pub fn identity(path: &Path) -> Option<FileId> {
+    let meta = std::fs::metadata(path).ok()?;
+    id_of(&meta)
+}
+
+#[cfg(unix)]
+fn id_of(meta: &std::fs::Metadata) -> Option<FileId> {
+    use std::os::unix::fs::MetadataExt;
+    Some(FileId {
+        dev: meta.dev(),
+        ino: meta.ino(),
+    })
+}
+
+#[cfg(not(unix))]
+fn id_of(_meta: &std::fs::Metadata) -> Option<FileId> {
+    None
+}
+
+/// What kind of non-regular file `meta` describes, for messages.
+fn kind_of(meta: &std::fs::Metadata) -> &'static str {
+    let t = meta.file_type();
+    if t.is_dir() {
+        return "a directory";
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if t.is_fifo() {
+            return "a FIFO";
+        }
+        if t.is_char_device() {
+            return "a character device";
+        }
+        if t.is_block_device() {
+            return "a block device";
+        }
+        if t.is_socket() {
+            return "a socket";
+        }
+    }
+    "not a regular file"
+}
+
+/// Checks that an input exists and is a regular file (without opening it); `what` names
+/// its role ("image", "config", "calibration database").
+pub fn check_input(path: &Path, what: &str) -> Result<std::fs::Metadata, CliError> {
+    let meta = std::fs::metadata(path).map_err(|e| CliError::io(path, e))?;
+    if meta.is_file() {
+        Ok(meta)
+    } else {
+        Err(CliError::BadInput(format!(
+            "{}: {} is {}, expected a regular file",
+            path.display(),
+            what,
+            kind_of(&meta)
+        )))
+    }
+}
+
+/// The files that an output must never be: `inputs`, their SQLite companions (`-wal`,
+/// `-shm`, `-journal`) and the log.
+fn protected(inputs: &[&Path]) -> Vec<(PathBuf, FileId)> {
+    let mut paths: Vec<PathBuf> = Vec::new();
+    for p in inputs
+        .iter()
+        .copied()
+        .chain(LOG.get().map(PathBuf::as_path))
+    {
+        paths.push(p.to_path_buf());
+        for suffix in ["-wal", "-shm", "-journal"] {
+            let mut s = p.as_os_str().to_owned();
+            s.push(suffix);
+            paths.push(PathBuf::from(s));
+        }
+    }
+    paths
+        .into_iter()
+        .filter_map(|p| identity(&p).map(|id| (p, id)))
+        .collect()
+}
+
+/// Checks that `out` may be written: new, or an existing regular file that is none of
+/// `inputs` (nor the CDB's companions, nor the log). `flag` names the option.
+pub fn check_output(out: &Path, flag: &str, inputs: &[&Path]) -> Result<(), CliError> {
+    let meta = match std::fs::metadata(out) {
+        Ok(meta) => meta,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            // A dangling symbolic link would be followed to create its target: refuse.
+            if std::fs::symlink_metadata(out).is_ok() {
+                return Err(CliError::BadInput(format!(
+                    "{flag} {}: a dangling symbolic link; give a regular file",
+                    out.display()
+                )));
+            }
+            return Ok(());
+        }
+        Err(e) => return Err(CliError::io(out, e)),
+    };
+    if !meta.is_file() {
+        return Err(CliError::BadInput(format!(
+            "{flag} {}: is {}; an output must be a regular file or new",
+            out.display(),
+            kind_of(&meta)
+        )));
+    }
+    if let Some(id) = id_of(&meta) {
+        for (p, other) in protected(inputs) {
+            if other == id {
+                return Err(CliError::BadInput(format!(
+                    "{flag} {}: is the same file as {}; refusing to overwrite it",
+                    out.display(),
+                    p.display()
+                )));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Checks that no two of `outputs` are the same file (by name or identity).
+pub fn check_distinct_outputs(outputs: &[(&str, &Path)]) -> Result<(), CliError> {
+    for (i, (flag_a, a)) in outputs.iter().enumerate() {
+        for (flag_b, b) in outputs.iter().skip(i + 1) {
+            let same_id = matches!((identity(a), identity(b)), (Some(x), Some(y)) if x == y);
+            if a == b || same_id {
+                return Err(CliError::BadInput(format!(
+                    "{flag_a} and {flag_b} name the same file {}",
+                    a.display()
+                )));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// A hidden temporary name beside `path`, unique to this process.
+pub fn temporary_beside(path: &Path) -> PathBuf {
+    let name = path
+        .file_name()
+        .map_or_else(|| "out".into(), |n| n.to_string_lossy().into_owned());
+    path.with_file_name(format!(".{name}.partial-{}", std::process::id()))
+}
+
+/// Writes `bytes` to a temporary file beside `path`, then renames it into place: readers
+/// never see a half-written file, and a failure leaves no temporary file behind.
+pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), CliError> {
+    let partial = temporary_beside(path);
+    let result = std::fs::write(&partial, bytes)
+        .map_err(|e| CliError::io(path, e))
+        .and_then(|()| std::fs::rename(&partial, path).map_err(|e| CliError::io(path, e)));
+    if result.is_err() {
+        let _ = std::fs::remove_file(&partial);
+    }
+    result
+}
+
+/// Reads a whole input file of at most `limit` bytes (checked to be a regular file first).
+pub fn read_limited(path: &Path, what: &str, limit: u64) -> Result<Vec<u8>, CliError> {
+    let meta = check_input(path, what)?;
+    if meta.len() > limit {
+        return Err(CliError::BadInput(format!(
+            "{}: {what} of {} bytes is larger than the limit of {limit} bytes",
+            path.display(),
+            meta.len()
+        )));
+    }
+    let file = std::fs::File::open(path).map_err(|e| CliError::io(path, e))?;
+    let mut bytes = Vec::new();
+    use std::io::Read;
+    file.take(limit + 1)
+        .read_to_end(&mut bytes)
+        .map_err(|e| CliError::io(path, e))?;
+    if bytes.len() as u64 > limit {
+        return Err(CliError::BadInput(format!(
+            "{}: {what} is larger than the limit of {limit} bytes",
+            path.display()
+        )));
+    }
+    Ok(bytes)
+}
+
+/// Writes one line to standard output; a closed or full stdout is an error (exit 1), not a
+/// panic.
+pub fn stdout_line(args: std::fmt::Arguments<'_>) -> Result<(), CliError> {
+    let mut out = std::io::stdout().lock();
+    out.write_fmt(args)
+        .and_then(|()| out.write_all(b"\n"))
+        .and_then(|()| out.flush())
+        .map_err(CliError::Stdout)
+}

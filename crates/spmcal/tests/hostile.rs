@@ -1,0 +1,1264 @@
+//! Issue 13: the command line against hostile paths, signals, absurd configs and corrupt
+//! databases. One test per item of the issue (`item_NN_…`); each failed on the program
+//! before the fix. Nets are 3 × 3, one repeat, on the ideal simulator, so that a run takes
+//! a fraction of a second. No test depends on timing: signals are sent once the CDB shows
+//! a stored visit, and every safe outcome is accepted, the invariants asserted.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use spm_cdb::{Cdb, CdbRead};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// The program under test (`SPMCAL_TEST_BIN` runs the suite against another build).
+fn bin() -> PathBuf {
+    std::env::var_os("SPMCAL_TEST_BIN").map_or_else(
+        || PathBuf::from(env!("CARGO_BIN_EXE_spmcal")),
+        PathBuf::from,
+    )
+}
+
+/// A fresh scratch folder, removed when dropped.
+struct Scratch(PathBuf);
+
+impl Scratch {
+    fn new(name: &str) -> Self {
+        let dir =
+            std::env::temp_dir().join(format!("spmcal-hostile-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("scratch folder");
+        Self(dir)
+    }
+    fn path(&self, name: &str) -> PathBuf {
+        self.0.join(name)
+    }
+    fn s(&self, name: &str) -> String {
+        self.path(name).display().to_string()
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Writes `plan.toml` (the small HOPG plan with `plan_edits`), `sim.toml` (the ideal
+/// simulator with `sim_edits`) and `job.toml` naming both into the scratch folder.
+fn write_job(dir: &Scratch, plan_edits: &[(&str, &str)], sim_edits: &[(&str, &str)]) -> String {
+    let mut plan = std::fs::read_to_string(root().join("configs/plan-hopg-small.toml")).unwrap();
+    for (from, to) in plan_edits {
+        assert!(plan.contains(from), "plan has {from:?}");
+        plan = plan.replacen(from, to, 1);
+    }
+    let mut sim = std::fs::read_to_string(root().join("configs/sim-ideal.toml")).unwrap();
+    for (from, to) in sim_edits {
+        assert!(sim.contains(from), "sim config has {from:?}");
+        sim = sim.replacen(from, to, 1);
+    }
+    std::fs::write(dir.path("plan.toml"), plan).unwrap();
+    std::fs::write(dir.path("sim.toml"), sim).unwrap();
+    std::fs::write(
+        dir.path("job.toml"),
+        "plan_file = \"plan.toml\"\n\n[backend]\nkind = \"sim\"\nsim_config = \"sim.toml\"\n",
+    )
+    .unwrap();
+    dir.s("job.toml")
+}
+
+/// Runs the program to its end, killing it after 120 s (a hang is a failure, not a wait).
+/// The working directory of every spawned `spmcal`: commands without `--out` write their
+/// default output folder there, never into the source tree.
+fn scratch_cwd() -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("spmcal-hostile-cwd-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("scratch working directory");
+    dir
+}
+
+fn run(args: &[&str]) -> Output {
+    let child = Command::new(bin())
+        .current_dir(scratch_cwd())
+        .args(args)
+        .env("NO_COLOR", "1")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spmcal starts");
+    wait_bounded(child, args)
+}
+
+fn wait_bounded(mut child: Child, what: &[&str]) -> Output {
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        if child.try_wait().expect("wait").is_some() {
+            return child.wait_with_output().expect("output");
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("spmcal {what:?} hangs (killed after 120 s)");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn code(out: &Output) -> Option<i32> {
+    out.status.code()
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+fn stdout(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// Asserts exit 2 and that stderr mentions every one of `mentions`.
+fn assert_bad_input(out: &Output, what: &str, mentions: &[&str]) {
+    let err = stderr(out);
+    assert_eq!(
+        code(out),
+        Some(2),
+        "{what}: exit {:?}, stderr {err}",
+        code(out)
+    );
+    assert!(!err.contains("panicked"), "{what}: {err}");
+    for m in mentions {
+        assert!(
+            err.contains(m),
+            "{what}: stderr {err:?} should mention {m:?}"
+        );
+    }
+}
+
+/// A calibrated 3 × 3 CDB (9 records) in the scratch folder; returns its path.
+fn calibrated(dir: &Scratch) -> String {
+    let job = write_job(dir, &[], &[]);
+    let cdb = dir.s("c.sqlite");
+    let out = run(&[
+        "calibrate",
+        "--config",
+        &job,
+        "--cdb",
+        &cdb,
+        "--out",
+        &dir.s("out"),
+    ]);
+    assert_eq!(code(&out), Some(0), "calibrate: {}", stderr(&out));
+    cdb
+}
+
+fn count_records(cdb: &str) -> u64 {
+    Cdb::open_read_only(cdb)
+        .unwrap()
+        .count_records(&spm_cdb::RecordFilter::default())
+        .unwrap()
+}
+
+fn check_passes(cdb: &str) {
+    let out = run(&["cdb", "check", cdb]);
+    assert_eq!(
+        code(&out),
+        Some(0),
+        "cdb check {cdb}: {}{}",
+        stdout(&out),
+        stderr(&out)
+    );
+}
+
+/// Runs SQL on a CDB (to build a broken or unfinished one).
+fn sql(cdb: &str, statement: &str) {
+    let db = Cdb::open(cdb).unwrap();
+    db.connection().execute_batch(statement).unwrap();
+}
+
+/// (run id, status) of every run.
+fn runs(cdb: &str) -> Vec<(String, String)> {
+    let db = Cdb::open_read_only(cdb).unwrap();
+    db.runs(None)
+        .unwrap()
+        .into_iter()
+        .map(|r| (r.run_id, r.status.as_str().to_owned()))
+        .collect()
+}
+
+/// Every planned visit is stored exactly once (done ⇔ one record) or given up with a
+/// reason; pending ones have none; no record lies outside a plan.
+fn assert_consistent(cdb: &str) {
+    let db = Cdb::open_read_only(cdb).unwrap();
+    let conn = db.connection();
+    let bad: i64 = conn
+        .query_row(
+            "SELECT count(*) FROM progress p WHERE \
+             (SELECT count(*) FROM records r WHERE r.run_id = p.run_id \
+                AND r.repeat_index = p.repeat_index AND r.node_index = p.node_index) \
+             != (CASE p.state WHEN 'done' THEN 1 ELSE 0 END) \
+             OR (p.state = 'given_up' AND coalesce(p.reason, '') = '')",
+            [],
+            |r| r.get(0),
+        )
+        .unwrap();
+    assert_eq!(bad, 0, "{cdb}: {bad} visits not stored exactly once");
+    let orphans: i64 = conn
+        .query_row(
+            "SELECT count(*) FROM records r WHERE NOT EXISTS (SELECT 1 FROM progress p \
+             WHERE p.run_id = r.run_id AND p.repeat_index = r.repeat_index \
+             AND p.node_index = r.node_index)",
+            [],
+            |r| r.get(0),
+        )
+        .unwrap();
+    assert_eq!(orphans, 0, "{cdb}: records outside the plan");
+}
+
+fn bytes(path: &str) -> Vec<u8> {
+    std::fs::read(path).unwrap()
+}
+
+fn mkfifo(path: &Path) {
+    let ok = Command::new("mkfifo")
+        .arg(path)
+        .status()
+        .expect("mkfifo runs");
+    assert!(ok.success());
+}
+
+#[cfg(unix)]
+fn is_fifo(path: &Path) -> bool {
+    use std::os::unix::fs::FileTypeExt;
+    std::fs::symlink_metadata(path).is_ok_and(|m| m.file_type().is_fifo())
+}
+
+/// A 16 × 16 GSF image that records its raster in counts (`data` by value, `f32`).
+fn write_gsf(path: &Path, value: impl Fn(usize, usize) -> f32) {
+    let mut head = String::from("Gwyddion Simple Field 1.0\n");
+    head.push_str("XRes = 16\nYRes = 16\nXReal = 8e-08\nYReal = 8e-08\nXYUnits = m\nZUnits = m\n");
+    head.push_str("spmcal_origin_x_counts = -2000\nspmcal_origin_y_counts = -2000\n");
+    head.push_str("spmcal_pixel_step_counts = 250\n");
+    let mut bytes = head.into_bytes();
+    bytes.push(0);
+    while bytes.len() % 4 != 0 {
+        bytes.push(0);
+    }
+    for row in 0..16 {
+        for column in 0..16 {
+            bytes.extend_from_slice(&value(column, row).to_le_bytes());
+        }
+    }
+    std::fs::write(path, bytes).unwrap();
+}
+
+fn smooth(column: usize, row: usize) -> f32 {
+    ((column as f32) * 0.7).sin() * 1e-10 + (row as f32) * 1e-11
+}
+
+// ---------------------------------------------------------------------------------------
+// Data lost with exit 0.
+
+#[test]
+fn item_01_an_output_that_is_the_cdb_is_refused_and_the_cdb_kept() {
+    let dir = Scratch::new("i01");
+    let cdb = calibrated(&dir);
+    let before = bytes(&cdb);
+    let link = dir.path("link.json");
+    std::fs::hard_link(&cdb, &link).unwrap();
+    let sym = dir.path("sym.csv");
+    std::os::unix::fs::symlink(&cdb, &sym).unwrap();
+    let link = link.display().to_string();
+    let sym = sym.display().to_string();
+    for args in [
+        vec!["cdb", "export", &cdb, "--csv", &cdb],
+        vec!["cdb", "export", &cdb, "--csv", &sym],
+        vec!["fit", "--cdb", &cdb, "--out", &cdb],
+        vec!["fit", "--cdb", &cdb, "--out", &link],
+    ] {
+        let out = run(&args);
+        assert_bad_input(&out, &format!("{args:?}"), &["same file"]);
+        assert_eq!(bytes(&cdb), before, "{args:?} changed the CDB");
+    }
+    assert_eq!(count_records(&cdb), 9);
+    check_passes(&cdb);
+}
+
+#[test]
+fn item_02_a_log_that_is_the_cdb_is_refused() {
+    let dir = Scratch::new("i02");
+    let cdb = calibrated(&dir);
+    let job = dir.s("job.toml");
+    let link = dir.path("hard.log");
+    std::fs::hard_link(&cdb, &link).unwrap();
+    let link = link.display().to_string();
+    for log in [cdb.as_str(), link.as_str()] {
+        let out = run(&[
+            "--log",
+            log,
+            "calibrate",
+            "--config",
+            &job,
+            "--cdb",
+            &cdb,
+            "--out",
+            &dir.s("out"),
+        ]);
+        assert_bad_input(&out, &format!("--log {log}"), &["--log"]);
+        let out = run(&["--log", log, "cdb", "check", &cdb]);
+        assert_bad_input(&out, &format!("--log {log} cdb check"), &["--log"]);
+    }
+    assert_eq!(count_records(&cdb), 9, "no record lost");
+    check_passes(&cdb);
+}
+
+#[test]
+fn item_03_correct_never_overwrites_its_image_and_the_log_never_a_config() {
+    let dir = Scratch::new("i03");
+    calibrated(&dir);
+    let image = dir.path("in.gsf");
+    write_gsf(&image, smooth);
+    let image = image.display().to_string();
+    let surfaces = dir.s("out/surfaces.json");
+    let before = bytes(&image);
+    let out = run(&["correct", &image, "--surfaces", &surfaces, "--out", &image]);
+    assert_bad_input(&out, "correct --out IMAGE", &["same file"]);
+    let out = run(&[
+        "correct",
+        &image,
+        "--surfaces",
+        &surfaces,
+        "--out",
+        &surfaces,
+    ]);
+    assert_bad_input(&out, "correct --out SURFACES", &["same file"]);
+    assert_eq!(bytes(&image), before);
+    // The log is none of the job's files (job, plan, simulator config).
+    for config in ["job.toml", "plan.toml", "sim.toml"] {
+        let config_path = dir.s(config);
+        let text = bytes(&config_path);
+        let out = run(&[
+            "--log",
+            &config_path,
+            "calibrate",
+            "--config",
+            &dir.s("job.toml"),
+            "--cdb",
+            &dir.s("c.sqlite"),
+            "--out",
+            &dir.s("out"),
+        ]);
+        assert_bad_input(&out, &format!("--log {config}"), &["--log"]);
+        assert_eq!(bytes(&config_path), text, "{config} unchanged");
+    }
+    // A correct output that is new still works.
+    let out = run(&[
+        "correct",
+        &image,
+        "--surfaces",
+        &surfaces,
+        "--out",
+        &dir.s("new.gsf"),
+    ]);
+    assert_eq!(code(&out), Some(0), "{}", stderr(&out));
+}
+
+#[test]
+fn item_04_a_fifo_or_device_given_as_an_output_is_not_replaced() {
+    let dir = Scratch::new("i04");
+    let cdb = calibrated(&dir);
+    let fifo = dir.path("out.fifo");
+    mkfifo(&fifo);
+    let f = fifo.display().to_string();
+    for args in [
+        vec!["fit", "--cdb", &cdb, "--out", &f],
+        vec!["cdb", "export", &cdb, "--csv", &f],
+        vec!["--log", &f, "cdb", "check", &cdb],
+    ] {
+        let out = run(&args);
+        assert_bad_input(&out, &format!("{args:?}"), &["FIFO"]);
+        assert!(is_fifo(&fifo), "{args:?} replaced the FIFO");
+    }
+    // A directory as an output is refused the same way.
+    let out = run(&["fit", "--cdb", &cdb, "--out", &dir.s("out")]);
+    assert_bad_input(&out, "fit --out DIR", &["directory"]);
+}
+
+#[test]
+fn item_05_runs_started_in_the_same_second_get_their_own_ids() {
+    use spmcal::job::Job;
+    use spmcal::run::{RecordingObserver, RunStart, run_job};
+    let dir = Scratch::new("i05");
+    let job_path = write_job(&dir, &[], &[]);
+    let cdb = dir.path("c.sqlite");
+    let mut ids = Vec::new();
+    // Three runs with the id the CLI derives from the same second, the third with another
+    // simulator seed.
+    for seed in [None, None, Some("seed = 77")] {
+        if let Some(seed) = seed {
+            let sim = std::fs::read_to_string(dir.path("sim.toml")).unwrap();
+            let line = sim
+                .lines()
+                .find(|l| l.starts_with("seed"))
+                .unwrap()
+                .to_owned();
+            std::fs::write(dir.path("sim.toml"), sim.replacen(&line, seed, 1)).unwrap();
+        }
+        let job = Job::from_file(Path::new(&job_path)).unwrap();
+        let mut observer = spm_calibration::NoObserver;
+        let mut recorder = RecordingObserver::new(&mut observer);
+        let outcome = run_job(
+            &job,
+            &cdb,
+            RunStart::New {
+                run_id: "sim-hopg-1795000000".into(),
+            },
+            1_795_000_000.0,
+            &mut recorder,
+        )
+        .unwrap();
+        assert_eq!(
+            outcome.report.nodes_done, 9,
+            "every run measures its own visits"
+        );
+        ids.push(outcome.report.run_id);
+    }
+    ids.sort();
+    ids.dedup();
+    assert_eq!(ids.len(), 3, "run ids {ids:?}");
+    let cdb = cdb.display().to_string();
+    assert_eq!(count_records(&cdb), 27);
+    assert!(runs(&cdb).iter().all(|(_, status)| status == "finished"));
+    assert_consistent(&cdb);
+    check_passes(&cdb);
+}
+
+// ---------------------------------------------------------------------------------------
+// Panics and hangs.
+
+#[test]
+fn item_06_a_closed_or_full_stdout_ends_quietly_without_a_panic() {
+    let dir = Scratch::new("i06");
+    let cdb = calibrated(&dir);
+    let fit_out = dir.s("s.json");
+    let commands: Vec<Vec<&str>> = vec![
+        vec!["cdb", "trend", &cdb],
+        vec!["cdb", "check", &cdb],
+        vec!["fit", "--cdb", &cdb, "--out", &fit_out],
+        vec!["--help"],
+    ];
+    for args in &commands {
+        // A pipe whose reader is already gone: every write fails with EPIPE.
+        let (reader, writer) = std::io::pipe().unwrap();
+        drop(reader);
+        let child = Command::new(bin())
+            .current_dir(scratch_cwd())
+            .args(args)
+            .stdout(writer)
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let out = wait_bounded(child, args);
+        let err = stderr(&out);
+        assert!(
+            matches!(code(&out), Some(0 | 1)),
+            "{args:?} with a closed stdout: exit {:?}, {err}",
+            code(&out)
+        );
+        assert!(!err.contains("panicked"), "{args:?}: {err}");
+        // A full device: ENOSPC.
+        let full = std::fs::OpenOptions::new()
+            .write(true)
+            .open("/dev/full")
+            .unwrap();
+        let child = Command::new(bin())
+            .current_dir(scratch_cwd())
+            .args(args)
+            .stdout(full)
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let out = wait_bounded(child, args);
+        let err = stderr(&out);
+        assert!(
+            matches!(code(&out), Some(0 | 1)),
+            "{args:?} > /dev/full: {err}"
+        );
+        assert!(!err.contains("panicked"), "{args:?}: {err}");
+    }
+    check_passes(&cdb);
+}
+
+#[test]
+fn item_07_a_fifo_or_device_given_as_an_input_is_refused_without_reading() {
+    let dir = Scratch::new("i07");
+    let cdb = calibrated(&dir);
+    let fifo = dir.path("in.fifo");
+    mkfifo(&fifo);
+    let f = fifo.display().to_string();
+    let surfaces = dir.s("out/surfaces.json");
+    let image = dir.path("in.gsf");
+    write_gsf(&image, smooth);
+    let image = image.display().to_string();
+    let out_gsf = dir.s("o.gsf");
+    let cases: Vec<Vec<&str>> = vec![
+        vec!["info", &f],
+        vec!["info", "/dev/zero"],
+        vec!["calibrate", "--config", &f, "--cdb", &cdb],
+        vec!["calibrate", "--config", "/dev/zero", "--cdb", &cdb],
+        vec!["correct", &f, "--surfaces", &surfaces, "--out", &out_gsf],
+        vec![
+            "correct",
+            &image,
+            "--surfaces",
+            "/dev/zero",
+            "--out",
+            &out_gsf,
+        ],
+        vec!["correct", &image, "--surfaces", &f, "--out", &out_gsf],
+        vec!["diagnose", &f, "--lattice", "hopg", "--json", &out_gsf],
+        vec!["cdb", "check", &f],
+        vec!["fit", "--cdb", &f, "--out", &out_gsf],
+    ];
+    for args in &cases {
+        let out = run(args);
+        assert_bad_input(&out, &format!("{args:?}"), &["regular file"]);
+    }
+    // A plan file or simulator config that is a device or a FIFO.
+    write_job(&dir, &[], &[]);
+    for (key, value) in [("plan_file", "/dev/zero"), ("plan_file", f.as_str())] {
+        std::fs::write(
+            dir.path("job2.toml"),
+            format!("{key} = {value:?}\n[backend]\nkind = \"sim\"\nsim_config = \"sim.toml\"\n"),
+        )
+        .unwrap();
+        let out = run(&[
+            "calibrate",
+            "--config",
+            &dir.s("job2.toml"),
+            "--cdb",
+            &dir.s("new.sqlite"),
+        ]);
+        assert_bad_input(&out, value, &["regular file"]);
+    }
+    assert!(!dir.path("new.sqlite").exists(), "no CDB created");
+}
+
+/// Text replacements in a config file.
+type Edits<'a> = &'a [(&'a str, &'a str)];
+
+#[test]
+fn item_08_absurd_sizes_are_refused_before_memory_is_spent() {
+    let dir = Scratch::new("i08");
+    let cases: [(Edits<'_>, Edits<'_>, &str); 4] = [
+        (
+            &[("repeats = 1 ", "repeats = 4294967295 ")],
+            &[],
+            "plan.repeats",
+        ),
+        (
+            &[],
+            &[(
+                "random_walk_interval_s = 0.1",
+                "random_walk_interval_s = 1e-9",
+            )],
+            "drift.random_walk_interval_s",
+        ),
+        (
+            &[],
+            &[(
+                "lateral_half_range_counts = 32768.0",
+                "lateral_half_range_counts = 1e308",
+            )],
+            "instrument.lateral_half_range_counts",
+        ),
+        (
+            &[("step_counts = 20000", "step_counts = 2")],
+            &[],
+            "plan.net.step_counts",
+        ),
+    ];
+    for (plan, sim, field) in cases {
+        let job = write_job(&dir, plan, sim);
+        let cdb = dir.s("c.sqlite");
+        let out = run(&[
+            "calibrate",
+            "--config",
+            &job,
+            "--cdb",
+            &cdb,
+            "--out",
+            &dir.s("o"),
+        ]);
+        let file = if field.starts_with("plan.") {
+            "plan.toml:"
+        } else {
+            "sim.toml:"
+        };
+        assert_bad_input(&out, field, &[field, file]);
+        assert!(!Path::new(&cdb).exists(), "{field}: no CDB created");
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// Wrong codes, wrong words, silent acceptance.
+
+#[test]
+fn item_09_calibrate_refuses_a_cdb_that_fails_its_check_and_writes_nothing() {
+    let dir = Scratch::new("i09");
+    let cdb = calibrated(&dir);
+    let job = dir.s("job.toml");
+    // A semantic fault (a negative sensitivity) and a structural one (a done visit
+    // without its record).
+    for fault in [
+        "UPDATE records SET kx_nm_per_count = -0.02 WHERE rowid = 3",
+        "DELETE FROM records WHERE rowid = 5",
+    ] {
+        let broken = dir.s("broken.sqlite");
+        std::fs::copy(&cdb, &broken).unwrap();
+        sql(&broken, fault);
+        let check = run(&["cdb", "check", &broken]);
+        assert_eq!(code(&check), Some(1), "{fault}: cdb check rejects it");
+        let before = bytes(&broken);
+        let out = run(&[
+            "calibrate",
+            "--config",
+            &job,
+            "--cdb",
+            &broken,
+            "--out",
+            &dir.s("o"),
+        ]);
+        assert_bad_input(&out, fault, &["integrity check", "broken.sqlite"]);
+        assert_eq!(bytes(&broken), before, "{fault}: nothing written");
+        std::fs::remove_file(&broken).unwrap();
+    }
+}
+
+#[test]
+fn item_10_absurd_values_exit_2_naming_file_line_and_field() {
+    let dir = Scratch::new("i10");
+    let plan_cases: &[(&str, &str, &str)] = &[
+        (
+            "lattice_constant_nm = 0.2461",
+            "lattice_constant_nm = 1e308",
+            "plan.standard.lattice_constant_nm",
+        ),
+        (
+            "nominal_nm_per_count = 0.02",
+            "nominal_nm_per_count = 1e308",
+            "plan.standard.nominal_nm_per_count",
+        ),
+        ("pixels = 48", "pixels = 4000000000", "plan.aperture.pixels"),
+        ("cycles = 2", "cycles = 4000000000", "plan.skipping.cycles"),
+        ("pixels = 48", "pixels = 8192", "plan.aperture.pixels"),
+        (
+            "max_speed_nm_per_s = 0.2",
+            "max_speed_nm_per_s = 1e308",
+            "plan.drift.max_speed_nm_per_s",
+        ),
+        (
+            "move_speed_counts_per_s = 20000.0",
+            "move_speed_counts_per_s = 1e308",
+            "plan.motion.move_speed_counts_per_s",
+        ),
+    ];
+    let sim_cases: &[(&str, &str, &str)] = &[
+        (
+            "sensitivity_x_nm_per_count = 0.02",
+            "sensitivity_x_nm_per_count = 1e308",
+            "scanner.sensitivity_x_nm_per_count",
+        ),
+        (
+            "velocity_x_nm_per_s = 0.0",
+            "velocity_x_nm_per_s = 1e308",
+            "drift.velocity_x_nm_per_s",
+        ),
+        (
+            "lattice_constant_nm = 0.2461",
+            "lattice_constant_nm = 1e308",
+            "surface.hopg.lattice_constant_nm",
+        ),
+    ];
+    for (from, to, field) in plan_cases {
+        let job = write_job(&dir, &[(from, to)], &[]);
+        let line = std::fs::read_to_string(dir.path("plan.toml"))
+            .unwrap()
+            .lines()
+            .position(|l| l.trim_start().starts_with(to))
+            .unwrap()
+            + 1;
+        let out = run(&["calibrate", "--config", &job, "--cdb", &dir.s("c.sqlite")]);
+        assert_bad_input(&out, to, &[&format!("plan.toml:{line}"), field]);
+        assert!(!dir.path("c.sqlite").exists());
+    }
+    for (from, to, field) in sim_cases {
+        let job = write_job(&dir, &[], &[(from, to)]);
+        let line = std::fs::read_to_string(dir.path("sim.toml"))
+            .unwrap()
+            .lines()
+            .position(|l| l.trim_start().starts_with(to))
+            .unwrap()
+            + 1;
+        let out = run(&["calibrate", "--config", &job, "--cdb", &dir.s("c.sqlite")]);
+        assert_bad_input(&out, to, &[&format!("sim.toml:{line}"), field]);
+        assert!(!dir.path("c.sqlite").exists());
+    }
+    // An empty selection is described in words, not debug text.
+    let cdb = calibrated(&dir);
+    let out = run(&[
+        "fit",
+        "--cdb",
+        &cdb,
+        "--scanner",
+        "nope",
+        "--out",
+        &dir.s("s.json"),
+    ]);
+    assert_bad_input(
+        &out,
+        "fit --scanner nope",
+        &["c.sqlite", "scanner \"nope\""],
+    );
+    assert!(!stderr(&out).contains("Some("), "{}", stderr(&out));
+}
+
+#[test]
+fn item_11_errors_blame_the_right_field_and_leave_no_run_behind() {
+    let dir = Scratch::new("i11");
+    let cases: &[(&str, &str, &str)] = &[
+        (
+            "pixel_dwell_s = 0.0001",
+            "pixel_dwell_s = 1e308",
+            "plan.motion.pixel_dwell_s",
+        ),
+        (
+            "step_counts = 20000",
+            "step_counts = 1",
+            "plan.net.step_counts",
+        ),
+        (
+            "angle_tolerance_deg = 15.0",
+            "angle_tolerance_deg = 1e308",
+            "plan.standard.angle_tolerance_deg",
+        ),
+    ];
+    for (from, to, field) in cases {
+        let job = write_job(&dir, &[(from, to)], &[]);
+        let out = run(&["calibrate", "--config", &job, "--cdb", &dir.s("c.sqlite")]);
+        assert_bad_input(&out, to, &["plan.toml:", field]);
+        assert!(!stderr(&out).contains("timeout_s"), "{}", stderr(&out));
+        assert!(
+            !dir.path("c.sqlite").exists(),
+            "{to}: no CDB, no 'running' run"
+        );
+    }
+}
+
+#[test]
+fn item_12_absurd_but_quiet_values_are_refused() {
+    let dir = Scratch::new("i12");
+    let job = write_job(
+        &dir,
+        &[],
+        &[("timeout_duration_s = 1.0", "timeout_duration_s = 1e308")],
+    );
+    let out = run(&["calibrate", "--config", &job, "--cdb", &dir.s("c.sqlite")]);
+    assert_bad_input(
+        &out,
+        "timeout_duration_s",
+        &["sim.toml:", "faults.timeout_duration_s"],
+    );
+    // A 10 MB scanner id: the file is over the config size limit; a 200-byte one is over
+    // the id limit.
+    let huge = format!("scanner_id = \"{}\"", "x".repeat(10 << 20));
+    let job = write_job(&dir, &[("scanner_id = \"sim-hopg\"", &huge)], &[]);
+    let out = run(&["calibrate", "--config", &job, "--cdb", &dir.s("c.sqlite")]);
+    assert_bad_input(&out, "10 MB scanner id", &["plan.toml", "limit"]);
+    let long = format!("scanner_id = \"{}\"", "x".repeat(200));
+    let job = write_job(&dir, &[("scanner_id = \"sim-hopg\"", &long)], &[]);
+    let out = run(&["calibrate", "--config", &job, "--cdb", &dir.s("c.sqlite")]);
+    assert_bad_input(&out, "long scanner id", &["plan.toml:", "plan.scanner_id"]);
+    // An unknown top-level table in a plan file.
+    let job = write_job(&dir, &[], &[]);
+    let mut plan = std::fs::read_to_string(dir.path("plan.toml")).unwrap();
+    plan.push_str("\n[colour]\nhue = 3\n");
+    std::fs::write(dir.path("plan.toml"), plan).unwrap();
+    let out = run(&["calibrate", "--config", &job, "--cdb", &dir.s("c.sqlite")]);
+    assert_bad_input(&out, "unknown table", &["plan.toml:", "colour"]);
+    assert!(!dir.path("c.sqlite").exists());
+}
+
+/// Starts a calibration of a 13 × 13 net (169 visits), sends `signal` once the CDB holds a
+/// stored visit, and checks the invariants. Returns the exit code.
+fn interrupt_and_check(dir: &Scratch, signal: &str) {
+    let job = write_job(dir, &[("step_counts = 20000", "step_counts = 4000")], &[]);
+    let cdb = dir.s("c.sqlite");
+    let _ = std::fs::remove_file(&cdb);
+    let child = Command::new(bin())
+        .current_dir(scratch_cwd())
+        .args([
+            "calibrate",
+            "--config",
+            &job,
+            "--cdb",
+            &cdb,
+            "--out",
+            &dir.s("o"),
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Wait until a visit is stored (or the run has ended).
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        let stored = Cdb::open_read_only(&cdb)
+            .ok()
+            .and_then(|db| db.count_records(&spm_cdb::RecordFilter::default()).ok())
+            .unwrap_or(0);
+        if stored > 0 || Instant::now() > deadline {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let pid = child.id().to_string();
+    let _ = Command::new("kill")
+        .args([&format!("-{signal}"), &pid])
+        .status();
+    let out = wait_bounded(child, &[signal]);
+    let err = stderr(&out);
+    let status = runs(&cdb);
+    assert_eq!(status.len(), 1, "{signal}: {status:?}");
+    match code(&out) {
+        // Stopped at the next visit: marked aborted, with a message.
+        Some(1) => {
+            assert_eq!(status[0].1, "aborted", "{signal}: {err}");
+            assert!(
+                err.contains(signal) && err.contains("aborted"),
+                "{signal}: {err}"
+            );
+        }
+        // The signal came after the last visit.
+        Some(0) => assert_eq!(status[0].1, "finished"),
+        other => panic!("{signal}: exit {other:?} ({:?}), {err}", out.status),
+    }
+    assert!(!err.contains("panicked"), "{err}");
+    assert_consistent(&cdb);
+    check_passes(&cdb);
+    if status[0].1 == "aborted" {
+        let out = run(&[
+            "calibrate",
+            "--config",
+            &job,
+            "--cdb",
+            &cdb,
+            "--out",
+            &dir.s("o"),
+            "--resume",
+        ]);
+        assert_eq!(code(&out), Some(0), "{signal} resume: {}", stderr(&out));
+        assert_eq!(runs(&cdb)[0].1, "finished");
+    }
+    assert_eq!(
+        count_records(&cdb),
+        169,
+        "{signal}: every visit stored once"
+    );
+    assert_consistent(&cdb);
+}
+
+#[test]
+fn item_13_a_signal_stops_the_run_at_a_safe_point_and_marks_it_aborted() {
+    let dir = Scratch::new("i13");
+    for signal in ["INT", "TERM", "HUP"] {
+        interrupt_and_check(&dir, signal);
+    }
+}
+
+#[test]
+fn item_14_leftovers_of_a_killed_creation_are_cleaned_at_the_next_open() {
+    let dir = Scratch::new("i14");
+    // A creator that no longer exists (no process has this id).
+    let dead = 2_147_483_647u32;
+    let leftovers: Vec<PathBuf> = ["", "-wal", "-shm"]
+        .iter()
+        .map(|s| dir.path(&format!(".c.sqlite.creating-{dead}{s}")))
+        .collect();
+    for f in &leftovers {
+        std::fs::write(f, b"half made").unwrap();
+    }
+    let cdb = calibrated(&dir);
+    for f in &leftovers {
+        assert!(!f.exists(), "{} left behind", f.display());
+    }
+    // Next to an existing CDB too.
+    for f in &leftovers {
+        std::fs::write(f, b"half made").unwrap();
+    }
+    let out = run(&[
+        "calibrate",
+        "--config",
+        &dir.s("job.toml"),
+        "--cdb",
+        &cdb,
+        "--out",
+        &dir.s("out"),
+    ]);
+    assert_eq!(code(&out), Some(0), "{}", stderr(&out));
+    for f in &leftovers {
+        assert!(!f.exists(), "{} left behind", f.display());
+    }
+    check_passes(&cdb);
+}
+
+/// A small tmpfs mounted on `dir` where the machine allows it (root with mount rights);
+/// unmounted when dropped.
+struct Tmpfs(PathBuf);
+
+impl Tmpfs {
+    fn mount(dir: &Path, size: &str) -> Option<Self> {
+        std::fs::create_dir_all(dir).ok()?;
+        let ok = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={size}"), "tmpfs"])
+            .arg(dir)
+            .stderr(Stdio::null())
+            .status()
+            .ok()?
+            .success();
+        ok.then(|| Self(dir.to_path_buf()))
+    }
+    fn remount_read_only(&self) -> bool {
+        Command::new("mount")
+            .args(["-o", "remount,ro"])
+            .arg(&self.0)
+            .status()
+            .is_ok_and(|s| s.success())
+    }
+}
+
+impl Drop for Tmpfs {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg(&self.0).status();
+    }
+}
+
+/// `spmcal ARGS` with a full disk: on a small full tmpfs where possible, else with the file
+/// size limit at 1 KiB (SIGXFSZ ignored, so writes fail with EFBIG like a full disk).
+fn with_full_disk(dir: &Scratch, args: &[&str], out_name: &str) -> (Output, PathBuf) {
+    let mount = dir.path("full");
+    if let Some(fs) = Tmpfs::mount(&mount, "64k") {
+        // Fill it.
+        let filler = mount.join("filler");
+        let _ = std::fs::write(&filler, vec![7u8; 256 << 10]);
+        let out_path = mount.join(out_name);
+        let mut full_args: Vec<String> = args.iter().map(|a| (*a).to_owned()).collect();
+        full_args.push(out_path.display().to_string());
+        let refs: Vec<&str> = full_args.iter().map(String::as_str).collect();
+        let out = run(&refs);
+        let listing: Vec<String> = std::fs::read_dir(&mount)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(listing, ["filler"], "nothing left on the full disk");
+        drop(fs);
+        return (out, out_path);
+    }
+    let out_path = dir.path(out_name);
+    let mut script = String::from("trap '' XFSZ; ulimit -f 1; exec \"$0\"");
+    for k in 0..=args.len() {
+        script.push_str(&format!(" \"${}\"", k + 1));
+    }
+    let child = Command::new("sh")
+        .arg("-c")
+        .arg(script)
+        .arg(bin())
+        .args(args)
+        .arg(&out_path)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    (wait_bounded(child, args), out_path)
+}
+
+#[test]
+fn item_15_a_full_disk_during_export_names_the_csv_and_leaves_no_partial_file() {
+    let dir = Scratch::new("i15");
+    let cdb = calibrated(&dir);
+    let (out, csv) = with_full_disk(&dir, &["cdb", "export", &cdb, "--csv"], "out.csv");
+    let err = stderr(&out);
+    assert_eq!(code(&out), Some(1), "{err}");
+    assert!(err.contains("out.csv"), "the message names the CSV: {err}");
+    assert!(!err.contains("c.sqlite"), "not the CDB: {err}");
+    assert!(!csv.exists());
+    let partials: Vec<_> = std::fs::read_dir(csv.parent().unwrap())
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_name().to_string_lossy().contains("partial"))
+        .collect();
+    assert!(partials.is_empty(), "partial files left: {partials:?}");
+    check_passes(&cdb);
+}
+
+#[test]
+fn item_16_fit_leaves_out_records_that_check_flags_and_needs_two_per_plane() {
+    let dir = Scratch::new("i16");
+    let cdb = calibrated(&dir);
+    sql(
+        &cdb,
+        "UPDATE records SET kx_nm_per_count = -0.02 WHERE rowid = 2",
+    );
+    let out_json = dir.s("s.json");
+    let out = run(&["fit", "--cdb", &cdb, "--out", &out_json]);
+    assert_eq!(code(&out), Some(0), "{}", stderr(&out));
+    assert!(stderr(&out).contains("left out"), "{}", stderr(&out));
+    let json: serde_json::Value = serde_json::from_slice(&bytes(&out_json)).unwrap();
+    assert_eq!(json["provenance"]["n_records"], 8);
+    // One valid record cannot give σ.
+    sql(
+        &cdb,
+        "DELETE FROM records WHERE rowid > 3; UPDATE records SET kx_nm_per_count = -1 WHERE rowid = 1",
+    );
+    let out = run(&["fit", "--cdb", &cdb, "--out", &dir.s("t.json")]);
+    assert_bad_input(&out, "one record", &["at least 2"]);
+    assert!(!dir.path("t.json").exists());
+}
+
+#[test]
+fn item_17_correct_refuses_absurd_surfaces_and_an_image_without_heights() {
+    let dir = Scratch::new("i17");
+    calibrated(&dir);
+    let image = dir.path("in.gsf");
+    write_gsf(&image, smooth);
+    let image = image.display().to_string();
+    let good: serde_json::Value =
+        serde_json::from_slice(&bytes(&dir.s("out/surfaces.json"))).unwrap();
+    let set = |field: &str, value: f64| {
+        let mut s = good.clone();
+        let coefficients = s["planes"][0][field]["surface"]["coefficients"]
+            .as_array_mut()
+            .unwrap();
+        for (k, c) in coefficients.iter_mut().enumerate() {
+            *c = serde_json::json!(if k == 0 { value } else { 0.0 });
+        }
+        s
+    };
+    let cases = [
+        ("kx_nm_per_count", 0.0),
+        ("kx_nm_per_count", -0.02),
+        ("kx_nm_per_count", 1e308),
+        ("ky_nm_per_count", 1e308),
+        ("kyy_nm_per_count", 0.0),
+        ("alpha_rad", std::f64::consts::PI),
+    ];
+    for (field, value) in cases {
+        let surfaces = dir.path("bad.json");
+        std::fs::write(&surfaces, serde_json::to_vec(&set(field, value)).unwrap()).unwrap();
+        let out = run(&[
+            "correct",
+            &image,
+            "--surfaces",
+            &surfaces.display().to_string(),
+            "--out",
+            &dir.s("o.gsf"),
+        ]);
+        assert_bad_input(&out, &format!("{field} = {value}"), &["bad.json", field]);
+        assert!(!dir.path("o.gsf").exists());
+    }
+    // A Nanonis file whose every height is NaN (the reader keeps NaN: unscanned lines).
+    let measured =
+        std::fs::read(spmcal_tests::measured_file("si7x7-nanonis/Si_7x7_051.sxm")).unwrap();
+    let start = measured.windows(2).position(|w| w == b"\x1a\x04").unwrap() + 2;
+    let mut nan = measured[..start].to_vec();
+    while nan.len() < measured.len() {
+        nan.extend_from_slice(&f32::NAN.to_be_bytes());
+    }
+    nan.truncate(measured.len());
+    std::fs::write(dir.path("nan.sxm"), nan).unwrap();
+    let out = run(&[
+        "correct",
+        &dir.s("nan.sxm"),
+        "--surfaces",
+        &dir.s("out/surfaces.json"),
+        "--out",
+        &dir.s("o.gsf"),
+        "--nominal-nm-per-count",
+        "0.02",
+    ]);
+    assert_bad_input(&out, "all-NaN image", &["nan.sxm", "no finite height"]);
+    assert!(!dir.path("o.gsf").exists());
+}
+
+#[test]
+fn item_18_diagnose_refuses_an_absurd_lattice_constant() {
+    let dir = Scratch::new("i18");
+    let image = dir.path("in.gsf");
+    write_gsf(&image, smooth);
+    let image = image.display().to_string();
+    for lattice in ["square:1e-300", "hex:1e300", "square:0.001"] {
+        let out = run(&[
+            "diagnose",
+            &image,
+            "--lattice",
+            lattice,
+            "--json",
+            &dir.s("d.json"),
+        ]);
+        assert_bad_input(&out, lattice, &["--lattice", "physical range"]);
+        assert!(!dir.path("d.json").exists());
+    }
+}
+
+#[test]
+fn item_19_a_reversed_window_is_reported_and_until_covers_its_whole_day() {
+    let dir = Scratch::new("i19");
+    let cdb = calibrated(&dir);
+    let first = Cdb::open_read_only(&cdb)
+        .unwrap()
+        .records(&spm_cdb::RecordFilter::default())
+        .unwrap()[0]
+        .acquired_unix_s;
+    let day = spm_cdb::rfc3339_utc(first)[..10].to_owned();
+    let out = run(&[
+        "fit",
+        "--cdb",
+        &cdb,
+        "--since",
+        &day,
+        "--until",
+        &day,
+        "--out",
+        &dir.s("s.json"),
+    ]);
+    assert_eq!(
+        code(&out),
+        Some(0),
+        "--since D --until D selects day D: {}",
+        stderr(&out)
+    );
+    let json: serde_json::Value = serde_json::from_slice(&bytes(&dir.s("s.json"))).unwrap();
+    assert_eq!(json["provenance"]["n_records"], 9);
+    let out = run(&[
+        "fit",
+        "--cdb",
+        &cdb,
+        "--since",
+        "2026-02-02",
+        "--until",
+        "2026-02-01",
+        "--out",
+        &dir.s("t.json"),
+    ]);
+    assert_bad_input(&out, "reversed window", &["reversed", "--since", "--until"]);
+}
+
+#[test]
+fn item_20_resume_with_another_job_is_refused_and_mixes_nothing() {
+    let dir = Scratch::new("i20");
+    let cdb = calibrated(&dir);
+    // Make the run unfinished, as after a kill: the last six visits pending again.
+    sql(
+        &cdb,
+        "UPDATE runs SET status = 'running', finished_unix_s = NULL; \
+         DELETE FROM records WHERE node_index >= 3; \
+         UPDATE progress SET state = 'pending' WHERE node_index >= 3;",
+    );
+    check_passes(&cdb);
+    let before = bytes(&cdb);
+    // Another simulator seed, then another plan.
+    let sim = std::fs::read_to_string(dir.path("sim.toml")).unwrap();
+    let seed = sim
+        .lines()
+        .find(|l| l.starts_with("seed"))
+        .unwrap()
+        .to_owned();
+    std::fs::write(dir.path("sim.toml"), sim.replacen(&seed, "seed = 4242", 1)).unwrap();
+    let job = dir.s("job.toml");
+    let out = run(&[
+        "calibrate",
+        "--config",
+        &job,
+        "--cdb",
+        &cdb,
+        "--out",
+        &dir.s("o"),
+        "--resume",
+    ]);
+    assert_bad_input(&out, "another seed", &["another job"]);
+    assert_eq!(bytes(&cdb), before, "nothing written");
+    std::fs::write(dir.path("sim.toml"), &sim).unwrap();
+    let plan = std::fs::read_to_string(dir.path("plan.toml")).unwrap();
+    std::fs::write(
+        dir.path("plan.toml"),
+        plan.replacen("cycles = 2", "cycles = 3", 1),
+    )
+    .unwrap();
+    let out = run(&[
+        "calibrate",
+        "--config",
+        &job,
+        "--cdb",
+        &cdb,
+        "--out",
+        &dir.s("o"),
+        "--resume",
+    ]);
+    assert_bad_input(&out, "another plan", &["another job"]);
+    assert_eq!(bytes(&cdb), before, "nothing written");
+    // The original job resumes and finishes.
+    std::fs::write(dir.path("plan.toml"), plan).unwrap();
+    let out = run(&[
+        "calibrate",
+        "--config",
+        &job,
+        "--cdb",
+        &cdb,
+        "--out",
+        &dir.s("o"),
+        "--resume",
+    ]);
+    assert_eq!(code(&out), Some(0), "{}", stderr(&out));
+    assert_eq!(count_records(&cdb), 9);
+    assert_eq!(runs(&cdb)[0].1, "finished");
+    // A finished run is never resumed.
+    let out = run(&[
+        "calibrate",
+        "--config",
+        &job,
+        "--cdb",
+        &cdb,
+        "--out",
+        &dir.s("o"),
+        "--resume",
+    ]);
+    assert_bad_input(&out, "finished run", &["no unfinished run"]);
+}
+
+#[test]
+fn item_21_the_reading_commands_work_in_a_read_only_place() {
+    let dir = Scratch::new("i21");
+    let cdb = calibrated(&dir);
+    let mount = dir.path("ro");
+    let Some(fs) = Tmpfs::mount(&mount, "16m") else {
+        eprintln!("item_21: cannot mount a tmpfs here (not root?): skipped");
+        return;
+    };
+    let inside = mount.join("c.sqlite");
+    std::fs::copy(&cdb, &inside).unwrap();
+    assert!(fs.remount_read_only(), "remount read-only");
+    let inside = inside.display().to_string();
+    for args in [
+        vec!["cdb", "check", inside.as_str()],
+        vec!["cdb", "trend", inside.as_str()],
+        vec!["cdb", "export", inside.as_str(), "--csv", &dir.s("e.csv")],
+        vec!["fit", "--cdb", inside.as_str(), "--out", &dir.s("s.json")],
+    ] {
+        let out = run(&args);
+        assert_eq!(code(&out), Some(0), "{args:?}: {}", stderr(&out));
+    }
+    assert!(stdout(&run(&["cdb", "check", &inside])).contains("9 records"));
+}

@@ -562,6 +562,9 @@ fn solve_symmetric(a: &[Vec<f64>], b: &[f64]) -> Option<(Vec<f64>, f64)> {
 /// input (`gain` = the model's large-signal gain per axis, 1 + W).
 ///
 /// `commanded` and `offsets` are per pixel in *acquisition order* (line by line as scanned).
+/// The corrected frame has its origin where the settled effective input of
+/// `reference_commanded` (`gain · reference`) is: images that share the reference (a direct
+/// and a counter image of one place) share the frame, creep transients included.
 ///
 /// # Errors
 /// [`CorrectionError::SizeMismatch`], [`CorrectionError::NonFinite`], [`CorrectionError::Empty`].
@@ -572,6 +575,7 @@ pub fn correct_effective_raster(
     commanded: &[[f64; 2]],
     offsets: &[[f64; 2]],
     gain: [f64; 2],
+    reference_commanded: [f64; 2],
 ) -> Result<Vec<[f64; 2]>, CorrectionError> {
     let n = columns
         .checked_mul(rows)
@@ -615,7 +619,11 @@ pub fn correct_effective_raster(
         ]
     };
     let mut out = vec![[0.0; 2]; n];
-    let mut line_start = [0.0; 2];
+    let reference = [
+        reference_commanded[0] * gain[0],
+        reference_commanded[1] * gain[1],
+    ];
+    let mut line_start = step(reference, ue[0]);
     for line in 0..rows {
         let base = line * columns;
         if line > 0 {

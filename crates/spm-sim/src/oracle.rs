@@ -41,6 +41,18 @@ impl<'a> Oracle<'a> {
             .collect()
     }
 
+    /// Effective inputs `uₑ = u + h + c` (counts) of the last scan's forward pixels, in
+    /// acquisition order, recorded like [`last_scan_tip_positions`](Self::last_scan_tip_positions).
+    pub fn last_scan_effective_inputs(&self) -> Vec<CountPoint> {
+        self.sim
+            .effective_trace
+            .as_deref()
+            .unwrap_or(&[])
+            .iter()
+            .map(|p| point(*p))
+            .collect()
+    }
+
     /// The instrument clock now.
     pub fn now(&self) -> Seconds {
         Seconds(self.sim.time_s)

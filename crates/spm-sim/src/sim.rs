@@ -122,8 +122,12 @@ pub struct Simulator {
     /// True tip positions (scanner frame, nm) of the last scan's forward
     /// pixels, when recording is on (oracle only).
     pub(crate) tip_trace: Option<Vec<[f64; 2]>>,
+    /// Effective inputs (counts) of the same pixels, when recording is on.
+    pub(crate) effective_trace: Option<Vec<[f64; 2]>>,
     /// Tip position (scanner frame, nm) of the last simulated pixel.
     last_tip_nm: [f64; 2],
+    /// Effective input (counts) of the last simulated pixel.
+    last_effective: [f64; 2],
 }
 
 /// Precomputed per-dwell factors of the pixel loop.
@@ -187,7 +191,9 @@ impl Simulator {
             log: Vec::new(),
             pending_jumps: Vec::new(),
             tip_trace: None,
+            effective_trace: None,
             last_tip_nm: [0.0; 2],
+            last_effective: [0.0; 2],
             config,
         };
         sim.z_nm = sim.z_reference_nm();
@@ -205,6 +211,7 @@ impl Simulator {
     /// truth for benchmarks; it changes nothing the instrument measures.
     pub fn record_tip_positions(&mut self, on: bool) {
         self.tip_trace = on.then(Vec::new);
+        self.effective_trace = on.then(Vec::new);
     }
 
     /// The configuration this simulator runs.
@@ -699,6 +706,7 @@ impl Simulator {
         let kz = self.map.kz_nm_per_count();
         let p = self.map.position(ue[0], ue[1], self.z_nm / kz);
         self.last_tip_nm = p;
+        self.last_effective = ue;
         let d = self.drift.displacement(t_mid);
         let jitter = self.config.measurement.lateral_jitter_nm;
         let (jx, jy) = if jitter > 0.0 {
@@ -775,7 +783,10 @@ impl Simulator {
             step / dwell,
             Operation::Scan,
         )?;
-        if let Some(trace) = self.tip_trace.as_mut() {
+        for trace in [self.tip_trace.as_mut(), self.effective_trace.as_mut()]
+            .into_iter()
+            .flatten()
+        {
             trace.clear();
             trace.reserve(nx * ny);
         }
@@ -920,6 +931,9 @@ impl Simulator {
                         forward.time_s.push(t_mid);
                         if let Some(trace) = self.tip_trace.as_mut() {
                             trace.push(self.last_tip_nm);
+                        }
+                        if let Some(trace) = self.effective_trace.as_mut() {
+                            trace.push(self.last_effective);
                         }
                     } else if let Some(b) = backward.as_mut() {
                         b.z_counts.push(z);

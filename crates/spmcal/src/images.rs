@@ -26,13 +26,18 @@ use serde::Serialize;
 use spm_calibration::PauseLaw;
 use spm_correction::{
     CorrectionError, CorrectionField, FeatureMatch, FormCoefficients, Integration, Interpolation,
-    OutputGrid, Parallelism, RasterGeometry, correct_counter_pair, correct_raster, resample,
+    OutputGrid, Parallelism, RasterGeometry, correct_raster, resample,
 };
 use spm_features::{DetectionConfig, Feature, LatticeConfig, detect, lattice_vectors};
 use spm_hal::{
     CountPoint, Counts, HeightMap, Microscope, MoveRequest, NmPoint, ScanDirection, ScanRequest,
     Seconds, TraceHalf,
 };
+use spm_correction::dynamics::correct_effective_raster;
+use spm_correction::{
+    CoordinateMap, FeatureSighting, SightingPair, YCoordinates, drift_corrected_map, estimate_drift,
+};
+use spm_hal::recording::CommandRecorder;
 use spm_sim::Simulator;
 use std::collections::BTreeMap;
 
@@ -174,6 +179,13 @@ pub struct TestImage {
     pub map: HeightMap,
     /// True tip position of every pixel, scanner frame, nm, in the same geometry.
     pub truth_nm: Vec<[f64; 2]>,
+    /// Commanded counts of every pixel in acquisition order.
+    pub commanded_acquisition: Vec<[f64; 2]>,
+    /// Time of every pixel in acquisition order, s.
+    pub time_acquisition_s: Vec<f64>,
+    /// True effective input (u + h + c, counts) of every pixel in acquisition order (oracle:
+    /// only the true-dynamics bound uses it).
+    pub true_effective_acquisition: Vec<[f64; 2]>,
 }
 
 /// Places of the set: corners, edges and centre of the region, inset by half an image.
@@ -241,7 +253,7 @@ const ATTEMPTS: usize = 4;
 /// # Errors
 /// [`ImageBenchmarkError::Instrument`] when an image fails [`ATTEMPTS`] times.
 pub fn take_test_images(
-    sim: &mut Simulator,
+    instrument: &mut CommandRecorder<Simulator>,
     region: &CountRegion,
     config: &ImageSetConfig,
 ) -> Result<Vec<TestImage>, ImageBenchmarkError> {
@@ -250,7 +262,8 @@ pub fn take_test_images(
             "no sizes, dwells or places".to_owned(),
         ));
     }
-    sim.record_tip_positions(true);
+    instrument.inner_mut().record_tip_positions(true);
+    let sim = &mut *instrument;
     let mut images = Vec::new();
     let mut pair = 0;
     let result = (|| {
@@ -287,7 +300,13 @@ pub fn take_test_images(
                     for direction in [ScanDirection::Direct, ScanDirection::Counter] {
                         let request = request.clone().with_direction(direction);
                         let frame = retry(images.len(), "scan", || sim.scan(&request))?;
-                        let truth = sim.oracle().last_scan_tip_positions();
+                        let oracle = sim.inner_mut().oracle();
+                        let truth = oracle.last_scan_tip_positions();
+                        let effective: Vec<[f64; 2]> = oracle
+                            .last_scan_effective_inputs()
+                            .iter()
+                            .map(|p| [p.x.value(), p.y.value()])
+                            .collect();
                         let map = frame
                             .height_map(TraceHalf::Forward)
                             .map_err(|e| ImageBenchmarkError::Config(format!("height map: {e}")))?;
@@ -301,6 +320,13 @@ pub fn take_test_images(
                                 n * n
                             )));
                         }
+                        let mut commanded = Vec::with_capacity(n * n);
+                        for line in 0..n {
+                            for pixel in 0..n {
+                                let u = request.commanded_position(TraceHalf::Forward, line, pixel);
+                                commanded.push([u.x.value(), u.y.value()]);
+                            }
+                        }
                         images.push(TestImage {
                             pair,
                             place: name.clone(),
@@ -309,6 +335,9 @@ pub fn take_test_images(
                             direction,
                             map,
                             truth_nm: to_geometry(&truth, n, n, direction),
+                            commanded_acquisition: commanded,
+                            time_acquisition_s: frame.forward.time_s.clone(),
+                            true_effective_acquisition: effective,
                         });
                     }
                     pair += 1;
@@ -317,7 +346,7 @@ pub fn take_test_images(
         }
         Ok(())
     })();
-    sim.record_tip_positions(false);
+    instrument.inner_mut().record_tip_positions(false);
     result.map(|()| images)
 }
 
@@ -444,6 +473,17 @@ pub enum ImageCorrection<'a> {
     Map(CubicMap),
     /// The bound: a cubic fitted to each image's own true positions (exact, per image).
     PerImageBound,
+    /// A correction field integrated along each image's *effective* trajectory
+    /// (`spm_correction::dynamics`): `offsets[image]` = uₑ − u per pixel in acquisition order,
+    /// the field evaluated at uₑ / `gain`.
+    EffectivePath {
+        /// The LCC field.
+        field: Box<dyn CorrectionField + 'a>,
+        /// Per image (index in the set), per pixel: uₑ − u, counts.
+        offsets: Vec<Vec<[f64; 2]>>,
+        /// Large-signal gain per axis of the dynamics model.
+        gain: [f64; 2],
+    },
 }
 
 /// One correction method of the benchmark.
@@ -505,8 +545,38 @@ pub struct ImageBenchmark {
     pub dwells_s: Vec<f64>,
     /// Per method.
     pub methods: BTreeMap<String, ImageMethodSummary>,
+    /// The scanner-dynamics model the `*_creep_model` methods used, as identified from the
+    /// run (None when it could not be identified).
+    pub dynamics: Option<DynamicsSummary>,
     /// Per image: place, size, dwell, direction and every method's figures.
     pub images: Vec<ImageRow>,
+}
+
+/// The identified creep law (spm_correction::dynamics::fit_creep_law) in report.json.
+#[derive(Debug, Clone, Serialize)]
+pub struct DynamicsSummary {
+    /// Weight w of every relaxation element.
+    pub creep_weight: f64,
+    /// Its standard error.
+    pub creep_weight_sigma: f64,
+    /// Time constants of the law's shape: shortest and longest, s, and per decade.
+    pub time_constants_s: [f64; 2],
+    /// Elements per decade.
+    pub elements_per_decade: u32,
+    /// Settled creep gain W = n·w.
+    pub settled_gain: f64,
+    /// Log slope γ of the law between 0.1 s and 10 s.
+    pub gamma_per_decade: f64,
+    /// Attachment tracks and sightings used.
+    pub tracks: usize,
+    /// Sightings used.
+    pub sightings: usize,
+    /// RMS residual of the tracks after the fit, counts.
+    pub residual_rms_counts: f64,
+    /// RMS of the fitted creep motion within the tracks, counts.
+    pub signal_rms_counts: f64,
+    /// Why it is missing, when it is.
+    pub note: Option<String>,
 }
 
 /// One image's row.
@@ -543,40 +613,81 @@ fn commanded(image: &TestImage) -> Vec<[f64; 2]> {
     out
 }
 
-fn coordinates(
+fn flatten(map: &CoordinateMap) -> Result<Vec<[f64; 2]>, CorrectionError> {
+    let mut out = Vec::with_capacity(map.columns() * map.rows());
+    for row in 0..map.rows() {
+        for column in 0..map.columns() {
+            let p = map.point(column, row).ok_or(CorrectionError::Empty(
+                "coordinate map smaller than its image",
+            ))?;
+            out.push([p.x.value(), p.y.value()]);
+        }
+    }
+    Ok(out)
+}
+
+fn map_from_points(points: &[[f64; 2]], columns: usize, rows: usize) -> Result<CoordinateMap, CorrectionError> {
+    CoordinateMap::new(
+        columns,
+        rows,
+        points.iter().map(|p| p[0]).collect(),
+        YCoordinates::PerPixel(points.iter().map(|p| p[1]).collect()),
+    )
+}
+
+/// The method's corrected coordinates of every pixel of image `index`, in scanner geometry.
+fn coordinate_map(
     method: &ImageMethod<'_>,
     image: &TestImage,
-) -> Result<Vec<[f64; 2]>, ImageBenchmarkError> {
+    index: usize,
+) -> Result<CoordinateMap, ImageBenchmarkError> {
+    let (nx, ny) = (image.map.columns, image.map.rows);
     Ok(match &method.correction {
-        ImageCorrection::Field(field) => {
-            let map = correct_raster(
-                field.as_ref(),
-                &geometry_of(image)?,
-                image.direction,
-                &Integration::default(),
-                Parallelism::Sequential,
-            )?;
-            let mut out = Vec::with_capacity(map.columns() * map.rows());
-            for row in 0..map.rows() {
-                for column in 0..map.columns() {
-                    let p = map.point(column, row).ok_or(CorrectionError::Empty(
-                        "coordinate map smaller than its image",
-                    ))?;
-                    out.push([p.x.value(), p.y.value()]);
-                }
-            }
-            out
+        ImageCorrection::Field(field) => correct_raster(
+            field.as_ref(),
+            &geometry_of(image)?,
+            image.direction,
+            &Integration::default(),
+            Parallelism::Sequential,
+        )?,
+        ImageCorrection::Map(map) => {
+            let points: Vec<[f64; 2]> = commanded(image)
+                .iter()
+                .map(|u| map.eval(u[0], u[1]))
+                .collect();
+            map_from_points(&points, nx, ny)?
         }
-        ImageCorrection::Map(map) => commanded(image)
-            .iter()
-            .map(|u| map.eval(u[0], u[1]))
-            .collect(),
         ImageCorrection::PerImageBound => {
             let u = commanded(image);
             let fit = CubicMap::fit(&u, &image.truth_nm).ok_or_else(|| {
                 ImageBenchmarkError::Grating("per-image bound: singular fit".to_owned())
             })?;
-            u.iter().map(|p| fit.eval(p[0], p[1])).collect()
+            let points: Vec<[f64; 2]> = u.iter().map(|p| fit.eval(p[0], p[1])).collect();
+            map_from_points(&points, nx, ny)?
+        }
+        ImageCorrection::EffectivePath {
+            field,
+            offsets,
+            gain,
+        } => {
+            let offsets = offsets.get(index).ok_or_else(|| {
+                ImageBenchmarkError::Config(format!("no effective-input offsets for image {index}"))
+            })?;
+            let n = image.commanded_acquisition.len().max(1) as f64;
+            let centre = image
+                .commanded_acquisition
+                .iter()
+                .fold([0.0, 0.0], |s, u| [s[0] + u[0] / n, s[1] + u[1] / n]);
+            let acquisition = correct_effective_raster(
+                field.as_ref(),
+                nx,
+                ny,
+                &image.commanded_acquisition,
+                offsets,
+                *gain,
+                centre,
+            )?;
+            spm_correction::dynamics::to_geometry_map(&acquisition, nx, ny, image.direction)?
         }
     })
 }
@@ -598,42 +709,35 @@ fn atoms(map: &HeightMap, period_px: f64) -> Vec<Feature> {
     detect(map, &config).map(|d| d.features).unwrap_or_default()
 }
 
-/// Mutual nearest neighbours between two images' features, after shifting each direct feature
-/// by `offset(feature)` pixels, closer than `max_px`.
+/// Mutual nearest neighbours between the direct features `subset` (positions shifted by
+/// `offset(i)`) and every counter feature, closer than `max`.
 fn mutual_matches(
-    direct: &[Feature],
-    counter: &[Feature],
-    max_px: f64,
-    offset: impl Fn(&Feature) -> [f64; 2],
+    direct: &[[f64; 2]],
+    counter: &[[f64; 2]],
+    subset: &[usize],
+    max: f64,
+    offset: impl Fn(usize) -> [f64; 2],
 ) -> Vec<(usize, usize)> {
-    let shifted: Vec<[f64; 2]> = direct
+    let shifted: Vec<[f64; 2]> = subset
         .iter()
-        .map(|f| {
-            let o = offset(f);
-            [f.column + o[0], f.row + o[1]]
+        .map(|&i| {
+            let o = offset(i);
+            [direct[i][0] + o[0], direct[i][1] + o[1]]
         })
         .collect();
-    let nearest_counter = |p: [f64; 2]| {
-        counter
-            .iter()
+    let nearest = |p: [f64; 2], set: &[[f64; 2]]| {
+        set.iter()
             .enumerate()
-            .map(|(i, g)| (i, (g.column - p[0]).hypot(g.row - p[1])))
-            .min_by(|a, b| a.1.total_cmp(&b.1))
-    };
-    let nearest_direct = |g: &Feature| {
-        shifted
-            .iter()
-            .enumerate()
-            .map(|(i, p)| (i, (g.column - p[0]).hypot(g.row - p[1])))
+            .map(|(i, g)| (i, (g[0] - p[0]).hypot(g[1] - p[1])))
             .min_by(|a, b| a.1.total_cmp(&b.1))
     };
     let mut out = Vec::new();
-    for (i, p) in shifted.iter().enumerate() {
-        let Some((j, distance)) = nearest_counter(*p) else {
+    for (k, p) in shifted.iter().enumerate() {
+        let Some((j, distance)) = nearest(*p, counter) else {
             continue;
         };
-        if distance <= max_px && nearest_direct(&counter[j]).map(|(k, _)| k) == Some(i) {
-            out.push((i, j));
+        if distance <= max && nearest(counter[j], &shifted).map(|(m, _)| m) == Some(k) {
+            out.push((subset[k], j));
         }
     }
     out
@@ -643,18 +747,45 @@ fn mutual_matches(
 /// drift (and creep) over the time between them, which runs from about zero (the last
 /// direct line, the first counter line) to twice the image time: far more than a lattice
 /// period in a slow image. So the match grows from the rows seen close in time: first the
-/// few atoms with the shortest time apart, matched within `max_px`; their offsets give an
-/// apparent offset and velocity (pixels, pixels per second); then ever more atoms matched at
-/// the positions those predict, the fit renewed at every stage.
+/// few atoms with the shortest time apart, matched within `max`; their offsets give an
+/// apparent offset and velocity; then ever more atoms matched at the positions those
+/// predict, the fit renewed at every stage. Positions are the features' pixel coordinates,
+/// or, with `frame`, their corrected coordinates in the two images' common frame (nm; `max`
+/// then in nm too), where a good correction leaves only the drift between the sightings.
 pub fn match_features(
     direct: &[Feature],
     counter: &[Feature],
     direct_map: &HeightMap,
     counter_map: &HeightMap,
-    max_px: f64,
+    max: f64,
+    frame: Option<(&CoordinateMap, &CoordinateMap)>,
 ) -> Vec<FeatureMatch> {
     let (nx, ny) = (direct_map.columns, direct_map.rows);
-    let time_apart = |f: &Feature| -> f64 {
+    let position = |f: &Feature, map: Option<&CoordinateMap>| -> Option<[f64; 2]> {
+        match map {
+            None => Some([f.column, f.row]),
+            Some(m) => m
+                .interpolate(f.column, f.row)
+                .map(|p| [p.x.value(), p.y.value()]),
+        }
+    };
+    // Features without a position in the frame are left out (kept indices).
+    let keep_d: Vec<usize> = (0..direct.len())
+        .filter(|&i| position(&direct[i], frame.map(|f| f.0)).is_some())
+        .collect();
+    let keep_c: Vec<usize> = (0..counter.len())
+        .filter(|&j| position(&counter[j], frame.map(|f| f.1)).is_some())
+        .collect();
+    let pd: Vec<[f64; 2]> = keep_d
+        .iter()
+        .filter_map(|&i| position(&direct[i], frame.map(|f| f.0)))
+        .collect();
+    let pc: Vec<[f64; 2]> = keep_c
+        .iter()
+        .filter_map(|&j| position(&counter[j], frame.map(|f| f.1)))
+        .collect();
+    let time_apart = |i: usize| -> f64 {
+        let f = &direct[keep_d[i]];
         let c = (f.column.round().max(0.0) as usize).min(nx.saturating_sub(1));
         let r = (f.row.round().max(0.0) as usize).min(ny.saturating_sub(1));
         let k = r * nx + c;
@@ -663,14 +794,8 @@ pub fn match_features(
             _ => f64::NAN,
         }
     };
-    let mut order: Vec<usize> = (0..direct.len())
-        .filter(|&i| time_apart(&direct[i]).is_finite())
-        .collect();
-    order.sort_by(|&a, &b| {
-        time_apart(&direct[a])
-            .abs()
-            .total_cmp(&time_apart(&direct[b]).abs())
-    });
+    let mut order: Vec<usize> = (0..pd.len()).filter(|&i| time_apart(i).is_finite()).collect();
+    order.sort_by(|&a, &b| time_apart(a).abs().total_cmp(&time_apart(b).abs()));
     // offset(Δt) = a + v·Δt per axis, least squares over the matched pairs.
     let fit = |pairs: &[(usize, usize)]| -> Option<[[f64; 2]; 2]> {
         if pairs.len() < 4 {
@@ -680,11 +805,8 @@ pub fn match_features(
         let (mut st, mut stt) = (0.0, 0.0);
         let (mut sx, mut sy, mut stx, mut sty) = (0.0, 0.0, 0.0, 0.0);
         for &(i, j) in pairs {
-            let t = time_apart(&direct[i]);
-            let (dx, dy) = (
-                counter[j].column - direct[i].column,
-                counter[j].row - direct[i].row,
-            );
+            let t = time_apart(i);
+            let (dx, dy) = (pc[j][0] - pd[i][0], pc[j][1] - pd[i][1]);
             st += t;
             stt += t * t;
             sx += dx;
@@ -694,7 +816,6 @@ pub fn match_features(
         }
         let det = n * stt - st * st;
         if !(det.abs() > 1e-12) {
-            // All at one time apart: the offset only.
             return Some([[sx / n, sy / n], [0.0, 0.0]]);
         }
         let v = [(n * stx - st * sx) / det, (n * sty - st * sy) / det];
@@ -702,7 +823,7 @@ pub fn match_features(
     };
     let mut model = [[0.0_f64; 2]; 2];
     let mut pairs = Vec::new();
-    // Stages of 4 %, 6 %, 9 %, … of the atoms (at least 6), then twice all of them: each
+    // Stages of 4 %, 6 %, 9 %, … of the atoms (at least 6), then all of them, twice: each
     // stage's prediction errs by the velocity error times its longer time apart.
     let mut fraction = 0.04_f64;
     for _ in 0..12 {
@@ -710,17 +831,15 @@ pub fn match_features(
             .max(6)
             .min(order.len());
         fraction *= 1.5;
-        let subset: Vec<Feature> = order.iter().take(take).map(|&i| direct[i]).collect();
-        let index: Vec<usize> = order.iter().take(take).copied().collect();
-        let found = mutual_matches(&subset, counter, max_px, |f| {
-            let t = time_apart(f);
+        pairs = mutual_matches(&pd, &pc, &order[..take], max, |i| {
+            let t = time_apart(i);
             [model[0][0] + model[1][0] * t, model[0][1] + model[1][1] * t]
         });
-        pairs = found.into_iter().map(|(i, j)| (index[i], j)).collect();
         if let Some(m) = fit(&pairs) {
             model = m;
         }
     }
+    let pairs: Vec<(usize, usize)> = pairs.into_iter().map(|(i, j)| (keep_d[i], keep_c[j])).collect();
     pairs
         .into_iter()
         .map(|(i, j)| FeatureMatch {
@@ -733,9 +852,13 @@ pub fn match_features(
 }
 
 /// Lattice constant (nm) and largest angle deviation from 60° (degrees) on the direct image of
-/// a pair corrected with `field` (drift from the pair). `None` when the pipeline cannot measure.
+/// a pair, given both images' corrected coordinate maps (scanner geometry): the atoms common
+/// to both give the drift (`estimate_drift`), the direct map is moved to a common time, the
+/// image resampled onto a uniform nm grid and the lattice measured on it. `None` when the
+/// pipeline cannot measure.
 pub fn measure_lattice(
-    field: &(dyn CorrectionField + '_),
+    direct_coordinates: &CoordinateMap,
+    counter_coordinates: &CoordinateMap,
     direct: &HeightMap,
     counter: &HeightMap,
     period_px: f64,
@@ -746,22 +869,37 @@ pub fn measure_lattice(
         &atoms(counter, period_px),
         direct,
         counter,
-        0.3 * period_px,
+        0.3 * lattice_constant_nm,
+        Some((direct_coordinates, counter_coordinates)),
     );
     if matches.len() < 6 {
         return None;
     }
+    let (nx, ny) = (direct.columns, direct.rows);
+    let time_at = |times: &[f64], c: f64, r: f64| -> f64 {
+        let i = (c.round().max(0.0) as usize).min(nx - 1);
+        let j = (r.round().max(0.0) as usize).min(ny - 1);
+        times[j * nx + i]
+    };
+    let mut pairs = Vec::with_capacity(matches.len());
+    for m in &matches {
+        let pd = direct_coordinates.interpolate(m.direct_column, m.direct_row)?;
+        let pc = counter_coordinates.interpolate(m.counter_column, m.counter_row)?;
+        pairs.push(SightingPair {
+            direct: FeatureSighting {
+                position: pd,
+                time: Seconds(time_at(&direct.time_s, m.direct_column, m.direct_row)),
+            },
+            counter: FeatureSighting {
+                position: pc,
+                time: Seconds(time_at(&counter.time_s, m.counter_column, m.counter_row)),
+            },
+        });
+    }
+    let drift = estimate_drift(&pairs).ok()?;
     let t_ref = Seconds(direct.time_s[direct.time_s.len() / 2]);
-    let corrected = correct_counter_pair(
-        field,
-        direct,
-        counter,
-        &matches,
-        t_ref,
-        &Integration::default(),
-        Parallelism::Sequential,
-    )
-    .ok()?;
+    let moved = drift_corrected_map(direct_coordinates, &direct.time_s, drift.velocity, t_ref).ok()?;
+    let corrected = CounterPairView { direct: moved };
     // The largest axis-aligned rectangle inside the corrected (sheared, drift-moved) image:
     // inside its left and right columns and its first and last rows.
     let m = &corrected.direct;
@@ -844,6 +982,11 @@ pub fn measure_lattice(
     Some((a, worst))
 }
 
+/// The drift-corrected direct map (named like `CounterPairCorrection`'s field).
+struct CounterPairView {
+    direct: CoordinateMap,
+}
+
 /// Corrects every image with every method and summarises.
 ///
 /// # Errors
@@ -879,7 +1022,8 @@ pub fn evaluate_images(
         let mut angle_max: f64 = 0.0;
         let mut failures = 0;
         for (k, image) in images.iter().enumerate() {
-            let corrected = coordinates(method, image)?;
+            let map = coordinate_map(method, image, k)?;
+            let corrected = flatten(&map)?;
             let (rms, max, pct) = position_figures(&corrected, image, nominal);
             ms_sum += rms * rms;
             max_pm = max_pm.max(max);
@@ -903,19 +1047,15 @@ pub fn evaluate_images(
                     .get(k + 1)
                     .filter(|c| c.pair == image.pair && c.direction == ScanDirection::Counter)
             {
-                let measured = match &method.correction {
-                    ImageCorrection::Field(field) => {
-                        measure_lattice(field.as_ref(), &image.map, &counter.map, period_px, a_true)
-                    }
-                    ImageCorrection::Map(map) => {
-                        measure_lattice(map, &image.map, &counter.map, period_px, a_true)
-                    }
-                    ImageCorrection::PerImageBound => {
-                        CubicMap::fit(&commanded(image), &image.truth_nm).and_then(|fit| {
-                            measure_lattice(&fit, &image.map, &counter.map, period_px, a_true)
-                        })
-                    }
-                };
+                let counter_map = coordinate_map(method, counter, k + 1)?;
+                let measured = measure_lattice(
+                    &map,
+                    &counter_map,
+                    &image.map,
+                    &counter.map,
+                    period_px,
+                    a_true,
+                );
                 match measured {
                     Some((a_nm, angle)) => {
                         let e = 100.0 * (a_nm / config.lattice_constant_nm - 1.0);
@@ -955,6 +1095,7 @@ pub fn evaluate_images(
         sizes: config.sizes.clone(),
         dwells_s: config.dwells_s.clone(),
         methods: summaries,
+        dynamics: None,
         images: rows,
     })
 }

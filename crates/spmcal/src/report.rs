@@ -244,7 +244,7 @@ pub fn finish(
             let affine = PlaneSurfaces::constant(z, kx, ky, alpha)?;
             images = Some(image_benchmark(
                 sim,
-                record.plan,
+                record,
                 &region,
                 &[
                     ("uncorrected", &uncorrected),
@@ -377,20 +377,30 @@ pub fn finish(
     Ok(report)
 }
 
+/// Shortest and longest time constant of the creep law's shape, s, and elements per decade:
+/// the log law over the scales that matter to images (a line, 10 ms, to a session, hours).
+pub const CREEP_LAW_SHAPE: (f64, f64, u32) = (0.01, 1.0e4, 3);
+/// Drift windows of the creep identification, s (the drift is taken constant within one).
+pub const CREEP_FIT_DRIFT_WINDOW_S: f64 = 300.0;
+
 /// The image benchmark on a copy of the simulator as the run left it (the same instrument and
-/// seed stream going on): every surface-set method, the realistic grating polynomial and the
-/// per-image bound.
+/// seed stream going on): every surface-set method, the realistic grating polynomial, the
+/// distributed calibration along the effective trajectory of the creep law identified from
+/// the run, and two labelled bounds (the oracle's true dynamics; a per-image polynomial on
+/// exact positions).
 fn image_benchmark(
     sim: &Simulator,
-    plan: &PlanConfig,
+    record: &RunRecord<'_>,
     region: &Region,
     planes: &[(&str, &PlaneSurfaces)],
     quick: bool,
 ) -> Result<crate::images::ImageBenchmark, ReportError> {
     use crate::images::{
-        CountRegion, GratingConfig, ImageCorrection, ImageMethod, ImageSetConfig, evaluate_images,
-        grating_polynomial, take_test_images,
+        CountRegion, DynamicsSummary, GratingConfig, ImageCorrection, ImageMethod,
+        ImageSetConfig, evaluate_images, grating_polynomial, take_test_images,
     };
+    use spm_correction::dynamics::{CommandHistory, CreepLaw, creep_offsets, fit_creep_law};
+    let plan = record.plan;
     let region = CountRegion {
         x_min_counts: region.x_min_counts,
         x_max_counts: region.x_max_counts,
@@ -403,8 +413,55 @@ fn image_benchmark(
         &region,
         &GratingConfig::standard(4.0 * plan.motion.pixel_dwell_s),
     )?;
-    let mut instrument = sim.clone();
+    let mut instrument =
+        spm_hal::recording::CommandRecorder::new(sim.clone(), crate::run::MAX_COMMANDS);
     let taken = take_test_images(&mut instrument, &region, &config)?;
+    let (_, image_commands) = instrument.into_parts();
+
+    // The creep law from the run's own attachment tracks and commands.
+    let mut history = CommandHistory::from_events(record.commands);
+    let (tau_min, tau_max, per_decade) = CREEP_LAW_SHAPE;
+    let shape = CreepLaw::log_spaced(0.0, tau_min, tau_max, per_decade)?;
+    let fit = fit_creep_law(&history, &shape, record.attach_tracks, CREEP_FIT_DRIFT_WINDOW_S);
+    history.extend_with_events(&image_commands);
+    let dynamics = match &fit {
+        Ok(f) => DynamicsSummary {
+            creep_weight: f.law.weight(),
+            creep_weight_sigma: f.weight_sigma,
+            time_constants_s: [tau_min, tau_max],
+            elements_per_decade: per_decade,
+            settled_gain: f.law.total_weight(),
+            gamma_per_decade: f.gamma_per_decade,
+            tracks: f.tracks,
+            sightings: f.sightings,
+            residual_rms_counts: f.residual_rms_counts,
+            signal_rms_counts: f.signal_rms_counts,
+            note: None,
+        },
+        Err(e) => DynamicsSummary {
+            creep_weight: 0.0,
+            creep_weight_sigma: f64::NAN,
+            time_constants_s: [tau_min, tau_max],
+            elements_per_decade: per_decade,
+            settled_gain: 0.0,
+            gamma_per_decade: 0.0,
+            tracks: 0,
+            sightings: 0,
+            residual_rms_counts: f64::NAN,
+            signal_rms_counts: f64::NAN,
+            note: Some(format!("not identified: {e}")),
+        },
+    };
+    let split = |all: Vec<[f64; 2]>| -> Vec<Vec<[f64; 2]>> {
+        let mut out = Vec::with_capacity(taken.len());
+        let mut rest = all.as_slice();
+        for image in &taken {
+            let (head, tail) = rest.split_at(image.time_acquisition_s.len().min(rest.len()));
+            out.push(head.to_vec());
+            rest = tail;
+        }
+        out
+    };
     let mut methods: Vec<ImageMethod<'_>> = planes
         .iter()
         .map(|(name, plane)| ImageMethod {
@@ -414,12 +471,31 @@ fn image_benchmark(
             )),
         })
         .collect();
+    if let (Ok(f), Some((_, distributed))) =
+        (&fit, planes.iter().find(|(name, _)| *name == "distributed"))
+    {
+        let times: Vec<f64> = taken
+            .iter()
+            .flat_map(|i| i.time_acquisition_s.iter().copied())
+            .collect();
+        let offsets = creep_offsets(&history, &f.law, &times)?;
+        let gain = 1.0 + f.law.total_weight();
+        methods.push(ImageMethod {
+            name: "distributed_creep_model".to_owned(),
+            correction: ImageCorrection::EffectivePath {
+                field: Box::new(distributed.field(spm_correction::Route::Products)),
+                offsets: split(offsets),
+                gain: [gain, gain],
+            },
+        });
+    }
     methods.push(ImageMethod {
         name: "polynomial".to_owned(),
         correction: ImageCorrection::Map(grating),
     });
-    // Reference: the oracle's true small-signal LCC field (reference state) through the same
-    // correction. It separates the calibration's error from what no static field can correct.
+    // References (labelled bounds, not competitors): the oracle's true static LCC field, the
+    // distributed surfaces along the oracle's true effective trajectory, and a per-image cubic
+    // on exact positions.
     let oracle = sim.oracle();
     let z = oracle.z_now();
     methods.push(ImageMethod {
@@ -435,11 +511,34 @@ fn image_benchmark(
             },
         ))),
     });
+    if let Some((_, distributed)) = planes.iter().find(|(name, _)| *name == "distributed") {
+        let offsets: Vec<Vec<[f64; 2]>> = taken
+            .iter()
+            .map(|i| {
+                i.true_effective_acquisition
+                    .iter()
+                    .zip(&i.commanded_acquisition)
+                    .map(|(e, u)| [e[0] - u[0], e[1] - u[1]])
+                    .collect()
+            })
+            .collect();
+        let (gx, gy) = oracle.reference_gain();
+        methods.push(ImageMethod {
+            name: "bound_distributed_true_dynamics".to_owned(),
+            correction: ImageCorrection::EffectivePath {
+                field: Box::new(distributed.field(spm_correction::Route::Products)),
+                offsets,
+                gain: [gx, gy],
+            },
+        });
+    }
     methods.push(ImageMethod {
-        name: "polynomial_bound".to_owned(),
+        name: "bound_polynomial_per_image".to_owned(),
         correction: ImageCorrection::PerImageBound,
     });
-    Ok(evaluate_images(&taken, &methods, &config)?)
+    let mut bench = evaluate_images(&taken, &methods, &config)?;
+    bench.dynamics = Some(dynamics);
+    Ok(bench)
 }
 
 fn write(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {

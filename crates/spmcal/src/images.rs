@@ -861,12 +861,12 @@ pub fn measure_lattice(
     counter_coordinates: &CoordinateMap,
     direct: &HeightMap,
     counter: &HeightMap,
-    period_px: f64,
+    raw_atoms: (&[Feature], &[Feature]),
     lattice_constant_nm: f64,
 ) -> Option<(f64, f64)> {
     let matches = match_features(
-        &atoms(direct, period_px),
-        &atoms(counter, period_px),
+        raw_atoms.0,
+        raw_atoms.1,
         direct,
         counter,
         0.3 * lattice_constant_nm,
@@ -1013,6 +1013,8 @@ pub fn evaluate_images(
         })
         .collect();
     let mut summaries = BTreeMap::new();
+    // The atoms of the raw images do not depend on the method: detected once per pair.
+    let mut raw_atoms: BTreeMap<usize, (Vec<Feature>, Vec<Feature>)> = BTreeMap::new();
     for method in methods {
         let mut ms_sum = 0.0;
         let mut max_pm: f64 = 0.0;
@@ -1048,12 +1050,15 @@ pub fn evaluate_images(
                     .filter(|c| c.pair == image.pair && c.direction == ScanDirection::Counter)
             {
                 let counter_map = coordinate_map(method, counter, k + 1)?;
+                let raw = raw_atoms
+                    .entry(k)
+                    .or_insert_with(|| (atoms(&image.map, period_px), atoms(&counter.map, period_px)));
                 let measured = measure_lattice(
                     &map,
                     &counter_map,
                     &image.map,
                     &counter.map,
-                    period_px,
+                    (&raw.0, &raw.1),
                     a_true,
                 );
                 match measured {

@@ -164,6 +164,21 @@ pub fn finish(
     record: &RunRecord<'_>,
     quick: bool,
 ) -> Result<CalibrationReport, ReportError> {
+    finish_with(cdb_path, out, record, quick, true)
+}
+
+/// [`finish`], with the image benchmark (simulated backends) only when `with_images`: it takes
+/// new images on a copy of the simulator, which sweeps of many calibrations can skip.
+///
+/// # Errors
+/// As [`finish`].
+pub fn finish_with(
+    cdb_path: &Path,
+    out: &Path,
+    record: &RunRecord<'_>,
+    quick: bool,
+    with_images: bool,
+) -> Result<CalibrationReport, ReportError> {
     let cdb = Cdb::open_read_only(cdb_path)?;
     let snapshot = cdb.snapshot()?;
     let fitted = fit_from_cdb(
@@ -242,7 +257,8 @@ pub fn finish(
             let every: Vec<&spm_cdb::LccRecord> = all.iter().collect();
             let (kx, ky, alpha) = mean_of(&every);
             let affine = PlaneSurfaces::constant(z, kx, ky, alpha)?;
-            images = Some(image_benchmark(
+            images = if with_images {
+                Some(image_benchmark(
                 sim,
                 record,
                 &region,
@@ -253,7 +269,10 @@ pub fn finish(
                     ("distributed", plane),
                 ],
                 quick,
-            )?);
+            )?)
+            } else {
+                None
+            };
             let uncorrected = evaluate(&oracle, &uncorrected, &grid)?;
             let lumped = evaluate(&oracle, &lumped, &grid)?;
             let affine = evaluate(&oracle, &affine, &grid)?;

@@ -59,6 +59,8 @@ pub struct ConfigAccuracy {
     pub distributed_over_polynomial_rms: Option<f64>,
     /// spmcal's notes on how the figures were measured.
     pub notes: Vec<String>,
+    /// The image benchmark: per method, the errors on test images taken as a user does.
+    pub images: Option<spmcal::images::ImageBenchmark>,
 }
 
 /// The accuracy section.
@@ -91,7 +93,7 @@ pub fn run(ctx: &Context) -> Result<AccuracyResults, XtaskError> {
         let job = Job::from_parts(&config_path, plan, plan_text)
             .map_err(|e| XtaskError::step(format!("reading {}", config_path.display()), e))?;
         let dir = ctx.scratch(&format!("accuracy-{index}-{name}"))?;
-        let report = calibrate(&job, &dir, ctx.quick)?.report;
+        let report = calibrate(&job, &dir, ctx.quick, true)?.report;
         let mut given_up_reasons: Vec<(String, usize)> = Vec::new();
         for visit in &report.run.given_up {
             let reason = serde_json::to_value(&visit.reason)
@@ -142,6 +144,10 @@ pub fn run(ctx: &Context) -> Result<AccuracyResults, XtaskError> {
                 .map(|p| table.distributed.rms_pm / p.rms_pm),
             methods,
             notes: report.notes,
+            images: report.images.map(|mut i| {
+                i.images.clear(); // per-image rows stay in the scratch report.json
+                i
+            }),
         });
     }
     Ok(AccuracyResults { configs })

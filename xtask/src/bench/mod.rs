@@ -1,7 +1,8 @@
 //! `cargo xtask bench`: one command, one run, every figure of DESIGN §11.
 //!
 //! Sections (each a module): calibration accuracy against the four baselines on
-//! three simulated scanners ([`accuracy`]), drift insensitivity ([`drift`]),
+//! three simulated scanners, on the static field and on test images ([`accuracy`]), the
+//! error budget of the images effect by effect ([`budget`]), drift insensitivity ([`drift`]),
 //! productivity of the plan variants ([`productivity`]), localisation error ÷
 //! Cramér–Rao bound ([`crb`]), speed ([`speed`]) and the Gwyddion peer
 //! ([`gwyddion`]). Everything is seeded; a section that fails is recorded with
@@ -10,6 +11,7 @@
 //! sections follow the measured tables).
 
 mod accuracy;
+mod budget;
 mod crb;
 mod drift;
 mod gwyddion;
@@ -21,7 +23,7 @@ use crate::XtaskError;
 use serde::Serialize;
 use spm_calibration::NoObserver;
 use spmcal::job::Job;
-use spmcal::report::{CalibrationReport, RunRecord, finish};
+use spmcal::report::{CalibrationReport, RunRecord, finish_with};
 use spmcal::run::{RecordingObserver, RunStart, run_job};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -94,6 +96,8 @@ pub struct Results {
     pub bench_wall_time_s: f64,
     /// Calibration accuracy against the baselines, per scanner config.
     pub accuracy: Section<accuracy::AccuracyResults>,
+    /// Error budget of the distributed calibration on test images, effect by effect.
+    pub budget: Section<budget::BudgetResults>,
     /// LCC error against drift velocity.
     pub drift: Section<drift::DriftResults>,
     /// Error against repeats, cycles, instrument time and plan variants.
@@ -125,6 +129,7 @@ pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<
         quick,
     };
     let accuracy = timed("accuracy", || accuracy::run(&ctx));
+    let budget = timed("budget", || budget::run(&ctx));
     let drift = timed("drift", || drift::run(&ctx));
     let productivity = timed("productivity", || productivity::run(&ctx));
     let crb = timed("crb", || crb::run(&ctx));
@@ -157,6 +162,7 @@ pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<
         quick,
         bench_wall_time_s: started.elapsed().as_secs_f64(),
         accuracy,
+        budget,
         drift,
         productivity,
         crb,
@@ -214,7 +220,12 @@ pub struct Calibrated {
 
 /// Runs one calibration job into a fresh CDB in `dir` and evaluates it
 /// (spmcal's `run_job` + `finish`, as `cargo xtask calibrate` does).
-pub fn calibrate(job: &Job, dir: &Path, quick: bool) -> Result<Calibrated, XtaskError> {
+pub fn calibrate(
+    job: &Job,
+    dir: &Path,
+    quick: bool,
+    with_images: bool,
+) -> Result<Calibrated, XtaskError> {
     let cdb_path = dir.join("cdb.sqlite");
     let mut quiet = NoObserver;
     let mut recorder = RecordingObserver::new(&mut quiet);
@@ -233,7 +244,7 @@ pub fn calibrate(job: &Job, dir: &Path, quick: bool) -> Result<Calibrated, Xtask
     let wall_time_s = started.elapsed().as_secs_f64();
     let samples = recorder.into_samples();
     let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s);
-    let report = finish(&cdb_path, dir, &record, quick)
+    let report = finish_with(&cdb_path, dir, &record, quick, with_images)
         .map_err(|e| XtaskError::step(format!("report in {}", dir.display()), e))?;
     let node_mean_k_rms_pct = match outcome.simulator.as_ref() {
         Some(sim) => node_mean_error(&cdb_path, sim)?,

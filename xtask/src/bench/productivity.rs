@@ -93,7 +93,7 @@ pub fn run(ctx: &Context) -> Result<ProductivityResults, XtaskError> {
         let job = Job::from_parts(&sim_path, plan, plan_text.clone())
             .map_err(|e| XtaskError::step("reading configs/sim-hopg.toml", e))?;
         let dir = ctx.scratch(&format!("productivity-{name}-l{l}-c{c}"))?;
-        let calibrated = calibrate(&job, &dir, true)?;
+        let calibrated = calibrate(&job, &dir, true, false)?;
         let report = calibrated.report;
         nodes = report.nodes;
         let (Some(e), Some(a)) = (report.node_lcc_error, report.accuracy.as_ref()) else {

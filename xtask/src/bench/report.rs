@@ -330,6 +330,9 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
                     );
                 }
                 md.push('\n');
+                if let Some(images) = &c.images {
+                    images_table(&mut md, images);
+                }
             }
             if let Some(c) = a.configs.first() {
                 for note in &c.notes {
@@ -343,6 +346,7 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
         }
     }
 
+    budget_section(&mut md, &results.budget);
     let _ = writeln!(md, "## Drift insensitivity\n");
     match &results.drift {
         Section::Measured(d) => {
@@ -629,12 +633,158 @@ fn fragments(root: &Path) -> Result<String, XtaskError> {
     Ok(text)
 }
 
+/// The image benchmark's table of one calibration.
+fn images_table(md: &mut String, images: &spmcal::images::ImageBenchmark) {
+    let _ = writeln!(
+        md,
+        "**On test images** ({} images = {} counter-scanned pairs; sides {} counts; dwells {} s; \
+         position error against the true tip positions, drift excluded, best rigid motion \
+         removed; lattice error on the drift-corrected pairs that resolve atoms). Methods \
+         named `bound_*` and `oracle_*` are labelled references, not competitors.\n",
+        images.count,
+        images.pairs,
+        images
+            .sizes
+            .iter()
+            .map(|s| format!("{:.0}", s.side_counts()))
+            .collect::<Vec<_>>()
+            .join(", "),
+        images
+            .dwells_s
+            .iter()
+            .map(|d| format!("{d:.0e}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    let _ = writeln!(
+        md,
+        "| method | position RMS pm | position max pm | position RMS % of side | mean lattice error % | max lattice error % | lattice pairs (failed) |\n|---|---|---|---|---|---|---|"
+    );
+    for (name, m) in &images.methods {
+        let _ = writeln!(
+            md,
+            "| {name} | {:.1} | {:.1} | {:.3} | {:.3} | {:.3} | {} ({}) |",
+            m.position_rms_pm,
+            m.position_max_pm,
+            m.position_rms_pct_of_side,
+            m.mean_lattice_error_pct,
+            m.max_lattice_error_pct,
+            m.lattice_pairs,
+            m.lattice_failures
+        );
+    }
+    if let Some(d) = &images.dynamics {
+        let _ = writeln!(
+            md,
+            "\nCreep law identified from the run's {} attachment tracks ({} sightings): weight \
+             {:.5} ± {:.5} per element ({} per decade, τ {} … {} s), settled gain {:.3}, γ = {:.4} per \
+             decade; track residual {:.3} counts RMS against a fitted creep motion of {:.3} counts RMS.{}",
+            d.tracks,
+            d.sightings,
+            d.creep_weight,
+            d.creep_weight_sigma,
+            d.elements_per_decade,
+            d.time_constants_s[0],
+            d.time_constants_s[1],
+            d.settled_gain,
+            d.gamma_per_decade,
+            d.residual_rms_counts,
+            d.signal_rms_counts,
+            d.note.as_ref().map_or_else(String::new, |n| format!(" ({n})"))
+        );
+    }
+    md.push('\n');
+}
+
+/// The error budget section.
+fn budget_section(md: &mut String, budget: &Section<super::budget::BudgetResults>) {
+    let _ = writeln!(md, "## Error budget of the images (issue 12)\n");
+    match budget {
+        Section::Measured(b) => {
+            let _ = writeln!(
+                md,
+                "`configs/sim-hopg.toml` (random faults off) with `{}`, calibrated and imaged again \
+                 with one effect off at a time. Figures: position RMS in % of the image side (mean \
+                 over the images) and mean / max lattice error %, per method; the share of an \
+                 effect is √(e_all² − e_without²) of the position figure.\n",
+                b.plan
+            );
+            let all = b.rows.first();
+            let _ = writeln!(
+                md,
+                "| variant | distributed pos % side | distributed lattice mean / max % | share of distributed pos % | creep model pos % side | creep model lattice mean / max % | share of creep-model pos % | oracle static field pos % | true-dynamics bound pos % | node K̄x / K̄y RMS %, α mrad |\n|---|---|---|---|---|---|---|---|---|---|"
+            );
+            let share = |row: &super::budget::BudgetRow, method: &str| -> String {
+                match (
+                    all.and_then(|a| a.methods.get(method)),
+                    row.methods.get(method),
+                ) {
+                    (Some(a), Some(r)) if row.variant != "every effect on" => {
+                        let e = a.position_rms_pct_of_side;
+                        let w = r.position_rms_pct_of_side;
+                        format!("{:.3}", (e * e - w * w).max(0.0).sqrt())
+                    }
+                    _ => "—".to_owned(),
+                }
+            };
+            let pos = |row: &super::budget::BudgetRow, method: &str| -> String {
+                row.methods
+                    .get(method)
+                    .map_or_else(|| "—".to_owned(), |m| format!("{:.3}", m.position_rms_pct_of_side))
+            };
+            let lat = |row: &super::budget::BudgetRow, method: &str| -> String {
+                row.methods.get(method).map_or_else(
+                    || "—".to_owned(),
+                    |m| format!("{:.3} / {:.3}", m.mean_lattice_error_pct, m.max_lattice_error_pct),
+                )
+            };
+            for row in &b.rows {
+                let _ = writeln!(
+                    md,
+                    "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+                    row.variant,
+                    pos(row, "distributed"),
+                    lat(row, "distributed"),
+                    share(row, "distributed"),
+                    pos(row, "distributed_creep_model"),
+                    lat(row, "distributed_creep_model"),
+                    share(row, "distributed_creep_model"),
+                    pos(row, "oracle_static_field"),
+                    pos(row, "bound_distributed_true_dynamics"),
+                    row.node_lcc_rms.map_or_else(
+                        || "—".to_owned(),
+                        |(x, y, a)| format!("{x:.2} / {y:.2}, {a:.1}")
+                    ),
+                );
+            }
+            md.push('\n');
+        }
+        Section::Missing { missing } => {
+            let _ = writeln!(md, "Not measured: {missing}\n");
+        }
+    }
+}
+
 pub fn write(ctx: &Context, results: &Results) -> Result<(), XtaskError> {
     let json = serde_json::to_string_pretty(results).map_err(|e| XtaskError::step("json", e))?;
     let results_path = ctx.out.join("results.json");
     std::fs::write(&results_path, &json)
         .map_err(|e| XtaskError::step(format!("writing {}", results_path.display()), e))?;
     let figures = figures(&ctx.out, results)?;
+    let md = markdown(results, &figures, &fragments(&ctx.root)?);
+    let out_md = ctx.out.join("RESULTS.md");
+    std::fs::write(&out_md, &md)
+        .map_err(|e| XtaskError::step(format!("writing {}", out_md.display()), e))?;
+    if ctx.quick {
+        // A smoke run never rewrites committed files: docs/ is regenerated only by the full
+        // `cargo xtask bench`.
+        println!(
+            "wrote {} and {} (--quick: docs/ left as committed)",
+            results_path.display(),
+            out_md.display()
+        );
+        return Ok(());
+    }
     let docs = ctx.root.join("docs").join("results").join("bench");
     std::fs::create_dir_all(&docs)
         .map_err(|e| XtaskError::step(format!("creating {}", docs.display()), e))?;
@@ -644,7 +794,6 @@ pub fn write(ctx: &Context, results: &Results) -> Result<(), XtaskError> {
         std::fs::copy(ctx.out.join(file), docs.join(file))
             .map_err(|e| XtaskError::step(format!("copying {file}"), e))?;
     }
-    let md = markdown(results, &figures, &fragments(&ctx.root)?);
     let results_md = ctx.root.join("docs").join("RESULTS.md");
     std::fs::write(&results_md, md)
         .map_err(|e| XtaskError::step(format!("writing {}", results_md.display()), e))?;

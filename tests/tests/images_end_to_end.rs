@@ -1,0 +1,109 @@
+//! Issue 12 end to end: the accuracy a user sees, with every simulated effect on.
+//!
+//! A 6 × 6 net is calibrated on the room-temperature tube scanner with hysteresis, creep,
+//! drift, noise and feedback lag all on (random faults off), and the run's report carries the
+//! image benchmark (`report.json` `images`): test images taken after the run as a user takes
+//! them (a move, a pause, a direct and a counter raster), corrected by every method.
+//!
+//! The creep of the scanner is hidden from the algorithms: nothing tells them its law. The
+//! run must *find* it (a creep weight well above its standard error, from the attachment
+//! tracks the run makes anyway), *measure* it (its logarithmic slope against the simulator's
+//! own, read through the oracle), and *correct* it (the images corrected along the effective
+//! trajectory of the identified law beat the same surfaces corrected statically).
+//!
+//! Every target is relative to a reference the code under test cannot move, computed from the
+//! oracle on the same images: `oracle_static_field` (the simulator's true small-signal LCC
+//! field through the same correction — the best any static calibration can do) and
+//! `bound_distributed_true_dynamics` (the calibrated surfaces along the simulator's true
+//! effective inputs).
+
+mod common;
+
+use spm_hal::Seconds;
+
+#[test]
+fn with_every_effect_on_the_identified_creep_law_corrects_what_no_static_field_can() {
+    let calibration = common::calibrate_small_net("images-e2e", true);
+    let report = &calibration.report;
+    let images = report.images.as_ref().expect("the image benchmark ran");
+    assert!(images.count >= 24, "{} test images", images.count);
+    let get = |name: &str| {
+        images
+            .methods
+            .get(name)
+            .unwrap_or_else(|| panic!("method {name} missing: {:?}", images.methods.keys()))
+    };
+    for (name, m) in &images.methods {
+        eprintln!(
+            "{name:<34} position {:8.1} pm RMS {:7.3} % of side; lattice {:.3} / {:.3} % ({} pairs, {} failed)",
+            m.position_rms_pm,
+            m.position_rms_pct_of_side,
+            m.mean_lattice_error_pct,
+            m.max_lattice_error_pct,
+            m.lattice_pairs,
+            m.lattice_failures
+        );
+    }
+
+    // Found and measured: the creep law against the simulator's own.
+    let dynamics = images.dynamics.as_ref().expect("dynamics summary");
+    assert!(dynamics.note.is_none(), "creep law not identified: {dynamics:?}");
+    assert!(
+        dynamics.creep_weight > 10.0 * dynamics.creep_weight_sigma,
+        "creep not found above its noise: {dynamics:?}"
+    );
+    let oracle = calibration.simulator.oracle();
+    let s = |t: f64| oracle.creep_step_response(Seconds(t));
+    let true_gamma = ((1.0 + s(10.0)) / (1.0 + s(0.1)) - 1.0) / 2.0;
+    eprintln!(
+        "creep γ identified {:.4} per decade, simulator {:.4}",
+        dynamics.gamma_per_decade, true_gamma
+    );
+    assert!(
+        (dynamics.gamma_per_decade / true_gamma - 1.0).abs() < 0.25,
+        "γ {} vs the simulator's {true_gamma}",
+        dynamics.gamma_per_decade
+    );
+
+    // Corrected: what a static field cannot correct, the identified law removes for the most part.
+    let static_truth = get("oracle_static_field");
+    let distributed = get("distributed");
+    let dynamic = get("distributed_creep_model");
+    let bound = get("bound_distributed_true_dynamics");
+    assert!(
+        dynamic.position_rms_pct_of_side <= 0.35 * static_truth.position_rms_pct_of_side,
+        "creep model {:.3} % vs the true static field {:.3} %",
+        dynamic.position_rms_pct_of_side,
+        static_truth.position_rms_pct_of_side
+    );
+    assert!(
+        dynamic.position_rms_pct_of_side <= 0.35 * distributed.position_rms_pct_of_side,
+        "creep model {:.3} % vs static distributed {:.3} %",
+        dynamic.position_rms_pct_of_side,
+        distributed.position_rms_pct_of_side
+    );
+    // The static calibration itself is not what limits the images: its surfaces do as well as
+    // the simulator's true field through the same correction (within 30 %).
+    assert!(
+        distributed.position_rms_pct_of_side <= 1.3 * static_truth.position_rms_pct_of_side,
+        "distributed {:.3} % vs true static field {:.3} %",
+        distributed.position_rms_pct_of_side,
+        static_truth.position_rms_pct_of_side
+    );
+    // And the rest is the dynamics the model leaves out (hysteresis): with the true effective
+    // inputs the same surfaces do better still.
+    assert!(
+        bound.position_rms_pct_of_side < dynamic.position_rms_pct_of_side,
+        "true-dynamics bound {:.3} % vs creep model {:.3} %",
+        bound.position_rms_pct_of_side,
+        dynamic.position_rms_pct_of_side
+    );
+    // The lattice seen on the corrected pairs: better than any static correction.
+    assert!(dynamic.lattice_pairs >= images.pairs / 2, "{dynamic:?}");
+    assert!(
+        dynamic.mean_lattice_error_pct < distributed.mean_lattice_error_pct,
+        "lattice: creep model {:.3} % vs static {:.3} %",
+        dynamic.mean_lattice_error_pct,
+        distributed.mean_lattice_error_pct
+    );
+}

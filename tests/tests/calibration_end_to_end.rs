@@ -16,7 +16,7 @@ use common::calibrate_small_net;
 
 #[test]
 fn a_small_net_corrects_nonlinearity_and_couplings_to_the_scaled_targets() {
-    let report = calibrate_small_net("static", false).report;
+    let report = calibrate_small_net("static", false, false).report;
     assert_eq!(report.nodes, 36);
     assert!(report.records >= 34, "records: {}", report.records);
     let a = report.accuracy.expect("the simulator gives an oracle");
@@ -46,9 +46,9 @@ fn creep_and_hysteresis_are_what_limit_the_full_scanner() {
     // Same net on the full room-temperature scanner: still far better than the
     // lumped calibration, but the creep excited by the skipping moves biases
     // the LCCs (docs/results/calibration.md), so the lattice error grows.
-    let full = calibrate_small_net("full", true).report;
+    let full = calibrate_small_net("full", true, false).report;
     let a = full.accuracy.expect("oracle");
-    let static_only = calibrate_small_net("static-reference", false)
+    let static_only = calibrate_small_net("static-reference", false, false)
         .report
         .accuracy
         .expect("oracle");

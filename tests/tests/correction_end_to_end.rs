@@ -198,7 +198,7 @@ fn measure(field: &(impl CorrectionField + ?Sized), pair: &Pair, period_px: f64)
 
 #[test]
 fn images_anywhere_in_the_field_show_the_lattice_constant_after_correction() {
-    let calibration = common::calibrate_small_net("correction-e2e", false);
+    let calibration = common::calibrate_small_net("correction-e2e", false, false);
     let mut sim = calibration.simulator;
     let plan = calibration.plan;
     let nominal = plan.standard.nominal_nm_per_count;

@@ -23,7 +23,7 @@ use spm_hal::Seconds;
 
 #[test]
 fn with_every_effect_on_the_identified_creep_law_corrects_what_no_static_field_can() {
-    let calibration = common::calibrate_small_net("images-e2e", true);
+    let calibration = common::calibrate_small_net("images-e2e", true, true);
     let report = &calibration.report;
     let images = report.images.as_ref().expect("the image benchmark ran");
     assert!(images.count >= 24, "{} test images", images.count);
@@ -47,7 +47,10 @@ fn with_every_effect_on_the_identified_creep_law_corrects_what_no_static_field_c
 
     // Found and measured: the creep law against the simulator's own.
     let dynamics = images.dynamics.as_ref().expect("dynamics summary");
-    assert!(dynamics.note.is_none(), "creep law not identified: {dynamics:?}");
+    assert!(
+        dynamics.note.is_none(),
+        "creep law not identified: {dynamics:?}"
+    );
     assert!(
         dynamics.creep_weight > 10.0 * dynamics.creep_weight_sigma,
         "creep not found above its noise: {dynamics:?}"

@@ -11,7 +11,7 @@ use spm_calibration::{GiveUpReason, NodeMeasurement, Observer, PlanVisit};
 use spm_hal::{CountVelocity, Seconds};
 use spmcal::job::Job;
 use spmcal::progress::ProgressBarObserver;
-use spmcal::report::{RunRecord, finish};
+use spmcal::report::{RunRecord, finish_with};
 use spmcal::run::{RecordingObserver, RunStart, mark_aborted, run_job};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -128,6 +128,7 @@ pub fn run(
     cdb: Option<&Path>,
     resume: bool,
     out: Option<&Path>,
+    image_benchmark: bool,
 ) -> Result<(), CliError> {
     let stop = StopRequest::install()?;
     let job = Job::from_file(config).map_err(|e| CliError::BadInput(e.to_string()))?;
@@ -203,8 +204,8 @@ pub fn run(
         }));
     }
     let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s);
-    let report =
-        finish(&cdb_path, &out, &record, false).map_err(|e| CliError::RunFailed(e.to_string()))?;
+    let report = finish_with(&cdb_path, &out, &record, false, image_benchmark)
+        .map_err(|e| CliError::RunFailed(e.to_string()))?;
     crate::outln!(
         "run {}: {} visits measured now ({} before), {} given up, {} records; CDB {}; report {}",
         run_id,
@@ -215,5 +216,10 @@ pub fn run(
         cdb_path.display(),
         out.join("report.json").display()
     );
+    if let Some(images) = &report.images {
+        for line in images.summary_table().lines() {
+            crate::outln!("{line}");
+        }
+    }
     Ok(())
 }

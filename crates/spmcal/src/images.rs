@@ -24,20 +24,20 @@
 use crate::accuracy::{CUBIC_TERMS, cubic_basis, least_squares, rigid_residuals};
 use serde::Serialize;
 use spm_calibration::PauseLaw;
+use spm_correction::dynamics::correct_effective_raster;
+use spm_correction::{
+    CoordinateMap, FeatureSighting, SightingPair, YCoordinates, drift_corrected_map, estimate_drift,
+};
 use spm_correction::{
     CorrectionError, CorrectionField, FeatureMatch, FormCoefficients, Integration, Interpolation,
     OutputGrid, Parallelism, RasterGeometry, correct_raster, resample,
 };
 use spm_features::{DetectionConfig, Feature, LatticeConfig, detect, lattice_vectors};
+use spm_hal::recording::CommandRecorder;
 use spm_hal::{
     CountPoint, Counts, HeightMap, Microscope, MoveRequest, NmPoint, ScanDirection, ScanRequest,
     Seconds, TraceHalf,
 };
-use spm_correction::dynamics::correct_effective_raster;
-use spm_correction::{
-    CoordinateMap, FeatureSighting, SightingPair, YCoordinates, drift_corrected_map, estimate_drift,
-};
-use spm_hal::recording::CommandRecorder;
 use spm_sim::Simulator;
 use std::collections::BTreeMap;
 
@@ -626,7 +626,11 @@ fn flatten(map: &CoordinateMap) -> Result<Vec<[f64; 2]>, CorrectionError> {
     Ok(out)
 }
 
-fn map_from_points(points: &[[f64; 2]], columns: usize, rows: usize) -> Result<CoordinateMap, CorrectionError> {
+fn map_from_points(
+    points: &[[f64; 2]],
+    columns: usize,
+    rows: usize,
+) -> Result<CoordinateMap, CorrectionError> {
     CoordinateMap::new(
         columns,
         rows,
@@ -725,18 +729,45 @@ fn mutual_matches(
             [direct[i][0] + o[0], direct[i][1] + o[1]]
         })
         .collect();
-    let nearest = |p: [f64; 2], set: &[[f64; 2]]| {
-        set.iter()
-            .enumerate()
-            .map(|(i, g)| (i, (g[0] - p[0]).hypot(g[1] - p[1])))
-            .min_by(|a, b| a.1.total_cmp(&b.1))
+    // Only neighbours within `max` count: a grid of `max`-sized cells finds them.
+    let cell = max.max(1e-12);
+    let key = |p: [f64; 2]| ((p[0] / cell).floor() as i64, (p[1] / cell).floor() as i64);
+    let grid = |set: &[[f64; 2]]| {
+        let mut g: std::collections::HashMap<(i64, i64), Vec<usize>> =
+            std::collections::HashMap::new();
+        for (i, p) in set.iter().enumerate() {
+            g.entry(key(*p)).or_default().push(i);
+        }
+        g
+    };
+    let counter_grid = grid(counter);
+    let shifted_grid = grid(&shifted);
+    let nearest = |p: [f64; 2],
+                   set: &[[f64; 2]],
+                   g: &std::collections::HashMap<(i64, i64), Vec<usize>>|
+     -> Option<(usize, f64)> {
+        let (cx, cy) = key(p);
+        let mut best: Option<(usize, f64)> = None;
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                for &i in g.get(&(cx + dx, cy + dy)).into_iter().flatten() {
+                    let d = (set[i][0] - p[0]).hypot(set[i][1] - p[1]);
+                    if best.is_none_or(|b| d < b.1 || (d == b.1 && i < b.0)) {
+                        best = Some((i, d));
+                    }
+                }
+            }
+        }
+        best
     };
     let mut out = Vec::new();
     for (k, p) in shifted.iter().enumerate() {
-        let Some((j, distance)) = nearest(*p, counter) else {
+        let Some((j, distance)) = nearest(*p, counter, &counter_grid) else {
             continue;
         };
-        if distance <= max && nearest(counter[j], &shifted).map(|(m, _)| m) == Some(k) {
+        if distance <= max
+            && nearest(counter[j], &shifted, &shifted_grid).map(|(m, _)| m) == Some(k)
+        {
             out.push((subset[k], j));
         }
     }
@@ -794,7 +825,9 @@ pub fn match_features(
             _ => f64::NAN,
         }
     };
-    let mut order: Vec<usize> = (0..pd.len()).filter(|&i| time_apart(i).is_finite()).collect();
+    let mut order: Vec<usize> = (0..pd.len())
+        .filter(|&i| time_apart(i).is_finite())
+        .collect();
     order.sort_by(|&a, &b| time_apart(a).abs().total_cmp(&time_apart(b).abs()));
     // offset(Δt) = a + v·Δt per axis, least squares over the matched pairs.
     let fit = |pairs: &[(usize, usize)]| -> Option<[[f64; 2]; 2]> {
@@ -839,7 +872,10 @@ pub fn match_features(
             model = m;
         }
     }
-    let pairs: Vec<(usize, usize)> = pairs.into_iter().map(|(i, j)| (keep_d[i], keep_c[j])).collect();
+    let pairs: Vec<(usize, usize)> = pairs
+        .into_iter()
+        .map(|(i, j)| (keep_d[i], keep_c[j]))
+        .collect();
     pairs
         .into_iter()
         .map(|(i, j)| FeatureMatch {
@@ -897,8 +933,14 @@ pub fn measure_lattice(
         });
     }
     let drift = estimate_drift(&pairs).ok()?;
+    // Matched atoms that a constant drift cannot explain to a fifth of a lattice constant are
+    // a failed match (or an image too distorted to match), not a lattice measurement.
+    if !(drift.residual_rms_nm <= 0.2 * lattice_constant_nm) {
+        return None;
+    }
     let t_ref = Seconds(direct.time_s[direct.time_s.len() / 2]);
-    let moved = drift_corrected_map(direct_coordinates, &direct.time_s, drift.velocity, t_ref).ok()?;
+    let moved =
+        drift_corrected_map(direct_coordinates, &direct.time_s, drift.velocity, t_ref).ok()?;
     let corrected = CounterPairView { direct: moved };
     // The largest axis-aligned rectangle inside the corrected (sheared, drift-moved) image:
     // inside its left and right columns and its first and last rows.
@@ -968,6 +1010,11 @@ pub fn measure_lattice(
         .map(|l| [l.vector.x.value() * step, l.vector.y.value() * step])
         .collect();
     let a = v.iter().map(|p| p[0].hypot(p[1])).sum::<f64>() / 3.0;
+    // Three directions of one triangular lattice: lengths within a quarter of their mean.
+    // Anything else is a second-neighbour or spurious vector, not a measurement.
+    if v.iter().any(|p| (p[0].hypot(p[1]) / a - 1.0).abs() > 0.25) {
+        return None;
+    }
     let mut worst: f64 = 0.0;
     for i in 0..3 {
         for j in (i + 1)..3 {
@@ -979,7 +1026,9 @@ pub fn measure_lattice(
             worst = worst.max(dev);
         }
     }
-    Some((a, worst))
+    // A triangular lattice's three directions are 60° apart; one further off than 15° is a
+    // spurious vector (a failed resampling or match), not a distorted lattice.
+    (worst <= 15.0).then_some((a, worst))
 }
 
 /// The drift-corrected direct map (named like `CounterPairCorrection`'s field).
@@ -1050,9 +1099,9 @@ pub fn evaluate_images(
                     .filter(|c| c.pair == image.pair && c.direction == ScanDirection::Counter)
             {
                 let counter_map = coordinate_map(method, counter, k + 1)?;
-                let raw = raw_atoms
-                    .entry(k)
-                    .or_insert_with(|| (atoms(&image.map, period_px), atoms(&counter.map, period_px)));
+                let raw = raw_atoms.entry(k).or_insert_with(|| {
+                    (atoms(&image.map, period_px), atoms(&counter.map, period_px))
+                });
                 let measured = measure_lattice(
                     &map,
                     &counter_map,
@@ -1302,7 +1351,7 @@ impl ImageBenchmark {
     /// The table the calibrate summary prints: one line per method.
     pub fn summary_table(&self) -> String {
         let mut out = format!(
-            "test images ({} images, {} counter-scanned pairs; position: true tip positions, drift excluded; lattice: corrected pairs)\n{:<17} {:>14} {:>14} {:>12} {:>16} {:>16}\n",
+            "test images ({} images, {} counter-scanned pairs; position: true tip positions, drift excluded; lattice: corrected pairs, over the pairs measured)\n{:<33} {:>15} {:>15} {:>10} {:>14} {:>13} {:>14}\n",
             self.count,
             self.pairs,
             "method",
@@ -1310,17 +1359,20 @@ impl ImageBenchmark {
             "position max pm",
             "RMS % side",
             "mean lattice %",
-            "max lattice %"
+            "max lattice %",
+            "pairs measured"
         );
         for (name, m) in &self.methods {
             out.push_str(&format!(
-                "{:<17} {:>14.1} {:>14.1} {:>12.3} {:>16.4} {:>16.4}\n",
+                "{:<33} {:>15.1} {:>15.1} {:>10.3} {:>14.4} {:>13.4} {:>8}/{:<5}\n",
                 name,
                 m.position_rms_pm,
                 m.position_max_pm,
                 m.position_rms_pct_of_side,
                 m.mean_lattice_error_pct,
-                m.max_lattice_error_pct
+                m.max_lattice_error_pct,
+                m.lattice_pairs,
+                m.lattice_pairs + m.lattice_failures
             ));
         }
         out

@@ -54,6 +54,11 @@ enum Command {
         /// Folder for the run's report and plots.
         #[arg(long, value_name = "DIR")]
         out: Option<PathBuf>,
+        /// After the run, take the test images of the image benchmark on the simulated
+        /// instrument (moves, pauses, direct and counter rasters) and judge every correction
+        /// method on them (report.json `images`; simulated backends only; adds minutes).
+        #[arg(long)]
+        image_benchmark: bool,
     },
     /// Fit regression surfaces through the CDB's coefficients.
     Fit {
@@ -308,7 +313,14 @@ fn run(command: Command) -> Result<(), CliError> {
             cdb,
             resume,
             out,
-        } => calibrate_cmd::run(&config, cdb.as_deref(), resume, out.as_deref()),
+            image_benchmark,
+        } => calibrate_cmd::run(
+            &config,
+            cdb.as_deref(),
+            resume,
+            out.as_deref(),
+            image_benchmark,
+        ),
         Command::Correct {
             image,
             surfaces,

@@ -259,17 +259,17 @@ pub fn finish_with(
             let affine = PlaneSurfaces::constant(z, kx, ky, alpha)?;
             images = if with_images {
                 Some(image_benchmark(
-                sim,
-                record,
-                &region,
-                &[
-                    ("uncorrected", &uncorrected),
-                    ("lumped", &lumped),
-                    ("affine", &affine),
-                    ("distributed", plane),
-                ],
-                quick,
-            )?)
+                    sim,
+                    record,
+                    &region,
+                    &[
+                        ("uncorrected", &uncorrected),
+                        ("lumped", &lumped),
+                        ("affine", &affine),
+                        ("distributed", plane),
+                    ],
+                    quick,
+                )?)
             } else {
                 None
             };
@@ -415,8 +415,8 @@ fn image_benchmark(
     quick: bool,
 ) -> Result<crate::images::ImageBenchmark, ReportError> {
     use crate::images::{
-        CountRegion, DynamicsSummary, GratingConfig, ImageCorrection, ImageMethod,
-        ImageSetConfig, evaluate_images, grating_polynomial, take_test_images,
+        CountRegion, DynamicsSummary, GratingConfig, ImageCorrection, ImageMethod, ImageSetConfig,
+        evaluate_images, grating_polynomial, take_test_images,
     };
     use spm_correction::dynamics::{CommandHistory, CreepLaw, creep_offsets, fit_creep_law};
     let plan = record.plan;
@@ -441,7 +441,12 @@ fn image_benchmark(
     let mut history = CommandHistory::from_events(record.commands);
     let (tau_min, tau_max, per_decade) = CREEP_LAW_SHAPE;
     let shape = CreepLaw::log_spaced(0.0, tau_min, tau_max, per_decade)?;
-    let fit = fit_creep_law(&history, &shape, record.attach_tracks, CREEP_FIT_DRIFT_WINDOW_S);
+    let fit = fit_creep_law(
+        &history,
+        &shape,
+        record.attach_tracks,
+        CREEP_FIT_DRIFT_WINDOW_S,
+    );
     history.extend_with_events(&image_commands);
     let dynamics = match &fit {
         Ok(f) => DynamicsSummary {

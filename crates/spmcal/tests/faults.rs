@@ -25,7 +25,7 @@ use spm_hal::{
 };
 use spm_sim::{FaultConfig, FaultEventKind, SimConfig, Simulator};
 use spmcal::job::Job;
-use spmcal::report::{CalibrationReport, RunRecord, finish};
+use spmcal::report::{CalibrationReport, RunRecord, finish_with};
 use spmcal::run::RecordingObserver;
 use std::cell::RefCell;
 use std::collections::HashMap;
@@ -246,7 +246,7 @@ fn calibrate(name: &str, faults: Option<FaultConfig>, p_feature_lost: f64) -> Ou
         commands: &[],
         wall_time_s: 0.0,
     };
-    let report = finish(&cdb_path, &out, &record, true).expect("surfaces and accuracy");
+    let report = finish_with(&cdb_path, &out, &record, true, false).expect("surfaces and accuracy");
     drop(recorder);
     let records = Cdb::open_read_only(&cdb_path)
         .unwrap()

@@ -9,7 +9,7 @@ use spm_calibration::{NoObserver, PlanConfig};
 use spm_correction::SurfaceSet;
 use spm_sim::{SimConfig, Simulator};
 use spmcal::job::{Backend, Job};
-use spmcal::report::{CalibrationReport, RunRecord, finish};
+use spmcal::report::{CalibrationReport, RunRecord, finish_with};
 use spmcal::run::{RecordingObserver, RunStart, run_job};
 use std::path::{Path, PathBuf};
 
@@ -41,7 +41,11 @@ fn scratch(name: &str) -> PathBuf {
 
 /// Runs the default HOPG plan reduced to a 6 × 6 net and one pass, fits surfaces and judges
 /// them against the oracle (`spmcal::report::finish`).
-pub fn calibrate_small_net(name: &str, with_hysteresis_and_creep: bool) -> SmallNetCalibration {
+pub fn calibrate_small_net(
+    name: &str,
+    with_hysteresis_and_creep: bool,
+    with_image_benchmark: bool,
+) -> SmallNetCalibration {
     let mut sim = SimConfig::room_temperature_tube().without_random_faults();
     if !with_hysteresis_and_creep {
         sim.scanner.hysteresis_x.width_fraction = 0.0;
@@ -73,7 +77,8 @@ pub fn calibrate_small_net(name: &str, with_hysteresis_and_creep: bool) -> Small
     .expect("the calibration runs");
     let samples = recorder.into_samples();
     let record = RunRecord::of_job(&job.plan, &outcome, &samples, 0.0);
-    let report = finish(&cdb, &out, &record, true).expect("surfaces, accuracy and report");
+    let report = finish_with(&cdb, &out, &record, true, with_image_benchmark)
+        .expect("surfaces, accuracy and report");
     for file in [
         "report.json",
         "surfaces.json",

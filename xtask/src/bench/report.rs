@@ -690,7 +690,9 @@ fn images_table(md: &mut String, images: &spmcal::images::ImageBenchmark) {
             d.gamma_per_decade,
             d.residual_rms_counts,
             d.signal_rms_counts,
-            d.note.as_ref().map_or_else(String::new, |n| format!(" ({n})"))
+            d.note
+                .as_ref()
+                .map_or_else(String::new, |n| format!(" ({n})"))
         );
     }
     md.push('\n');
@@ -728,14 +730,20 @@ fn budget_section(md: &mut String, budget: &Section<super::budget::BudgetResults
                 }
             };
             let pos = |row: &super::budget::BudgetRow, method: &str| -> String {
-                row.methods
-                    .get(method)
-                    .map_or_else(|| "—".to_owned(), |m| format!("{:.3}", m.position_rms_pct_of_side))
+                row.methods.get(method).map_or_else(
+                    || "—".to_owned(),
+                    |m| format!("{:.3}", m.position_rms_pct_of_side),
+                )
             };
             let lat = |row: &super::budget::BudgetRow, method: &str| -> String {
                 row.methods.get(method).map_or_else(
                     || "—".to_owned(),
-                    |m| format!("{:.3} / {:.3}", m.mean_lattice_error_pct, m.max_lattice_error_pct),
+                    |m| {
+                        format!(
+                            "{:.3} / {:.3}",
+                            m.mean_lattice_error_pct, m.max_lattice_error_pct
+                        )
+                    },
                 )
             };
             for row in &b.rows {

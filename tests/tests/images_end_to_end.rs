@@ -101,12 +101,25 @@ fn with_every_effect_on_the_identified_creep_law_corrects_what_no_static_field_c
         bound.position_rms_pct_of_side,
         dynamic.position_rms_pct_of_side
     );
-    // The lattice seen on the corrected pairs: better than any static correction.
-    assert!(dynamic.lattice_pairs >= images.pairs / 2, "{dynamic:?}");
+    // The lattice seen on the corrected pairs. A pair counts only when its atoms can be matched
+    // and a constant drift explains them; a static correction loses most pairs to the creep of
+    // the approach, the creep model keeps them, and its error is within reach of what the same
+    // surfaces give along the true effective trajectory (the oracle's bound).
     assert!(
-        dynamic.mean_lattice_error_pct < distributed.mean_lattice_error_pct,
-        "lattice: creep model {:.3} % vs static {:.3} %",
+        dynamic.lattice_pairs * 5 >= (dynamic.lattice_pairs + dynamic.lattice_failures) * 4,
+        "creep model measured only {} of {} pairs",
+        dynamic.lattice_pairs,
+        dynamic.lattice_pairs + dynamic.lattice_failures
+    );
+    assert!(
+        dynamic.lattice_pairs > distributed.lattice_pairs
+            || dynamic.mean_lattice_error_pct < distributed.mean_lattice_error_pct,
+        "lattice: creep model {dynamic:?} vs static {distributed:?}"
+    );
+    assert!(
+        dynamic.mean_lattice_error_pct <= 2.0 * bound.mean_lattice_error_pct + 0.5,
+        "lattice: creep model {:.3} % vs true-dynamics bound {:.3} %",
         dynamic.mean_lattice_error_pct,
-        distributed.mean_lattice_error_pct
+        bound.mean_lattice_error_pct
     );
 }

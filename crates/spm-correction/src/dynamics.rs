@@ -293,8 +293,7 @@ pub fn creep_offsets(
     let first = segments
         .first()
         .ok_or(CorrectionError::Empty("command history"))?;
-    if query_times_s.windows(2).any(|w| !(w[1] >= w[0]))
-        || query_times_s.iter().any(|t| !t.is_finite())
+    if query_times_s.iter().any(|t| !t.is_finite()) || query_times_s.windows(2).any(|w| w[1] < w[0])
     {
         return Err(CorrectionError::InvalidArgument(
             "query times must be finite and in time order".to_owned(),
@@ -386,6 +385,9 @@ pub struct CreepFit {
     pub gamma_per_decade: f64,
 }
 
+/// One sighting in the creep fit: time (s), feature position and unit creep (counts), drift window.
+type TrackPoint = (f64, [f64; 2], [f64; 2], usize);
+
 /// Fits the creep weight of `shape` (its time constants) to attachment tracks: a feature
 /// re-found at commanded position `u_f(t)` obeys `u_f(t) = U − c(t) + v·t` (c the creep
 /// offset of the command history, v the drift in counts/s). Per track an offset U; the drift
@@ -425,7 +427,7 @@ pub fn fit_creep_law(
     let window = drift_window_s.max(1.0);
     let t0 = times[0];
     // Group per track: (time, position, unit creep, window).
-    let mut per_track: Vec<Vec<(f64, [f64; 2], [f64; 2], usize)>> = vec![Vec::new(); tracks.len()];
+    let mut per_track: Vec<Vec<TrackPoint>> = vec![Vec::new(); tracks.len()];
     for (p, c) in points.iter().zip(&creep) {
         let s = tracks[p.1].sightings[p.2];
         let w = ((p.0 - t0) / window).floor().max(0.0) as usize;

@@ -139,7 +139,7 @@ impl ImageSetConfig {
             } else {
                 vec![dwell, 4.0 * dwell]
             },
-            pause: plan.pause.clone(),
+            pause: plan.pause,
             move_speed_counts_per_s: plan.motion.move_speed_counts_per_s,
             settle_s: plan.motion.settle_s,
             lattice_constant_nm: plan.standard.lattice_constant_nm,
@@ -848,7 +848,7 @@ pub fn match_features(
             sty += t * dy;
         }
         let det = n * stt - st * st;
-        if !(det.abs() > 1e-12) {
+        if det.abs() <= 1e-12 || det.is_nan() {
             return Some([[sx / n, sy / n], [0.0, 0.0]]);
         }
         let v = [(n * stx - st * sx) / det, (n * sty - st * sy) / det];
@@ -935,7 +935,7 @@ pub fn measure_lattice(
     let drift = estimate_drift(&pairs).ok()?;
     // Matched atoms that a constant drift cannot explain to a fifth of a lattice constant are
     // a failed match (or an image too distorted to match), not a lattice measurement.
-    if !(drift.residual_rms_nm <= 0.2 * lattice_constant_nm) {
+    if drift.residual_rms_nm.is_nan() || drift.residual_rms_nm > 0.2 * lattice_constant_nm {
         return None;
     }
     let t_ref = Seconds(direct.time_s[direct.time_s.len() / 2]);

@@ -112,6 +112,9 @@ impl Observer for Stoppable<'_> {
     fn drift_estimate(&mut self, visit: &PlanVisit, velocity: CountVelocity, at: Seconds) {
         self.inner.drift_estimate(visit, velocity, at);
     }
+    fn attach_sightings(&mut self, visit: &PlanVisit, sightings: &[spm_fos::Sighting]) {
+        self.inner.attach_sightings(visit, sightings);
+    }
     fn keep_going(&mut self) -> bool {
         !self.stop.requested() && self.inner.keep_going()
     }

@@ -1363,14 +1363,22 @@ impl ImageBenchmark {
             "pairs measured"
         );
         for (name, m) in &self.methods {
+            let (mean, max) = if m.lattice_pairs == 0 {
+                ("—".to_owned(), "—".to_owned())
+            } else {
+                (
+                    format!("{:.4}", m.mean_lattice_error_pct),
+                    format!("{:.4}", m.max_lattice_error_pct),
+                )
+            };
             out.push_str(&format!(
-                "{:<33} {:>15.1} {:>15.1} {:>10.3} {:>14.4} {:>13.4} {:>8}/{:<5}\n",
+                "{:<33} {:>15.1} {:>15.1} {:>10.3} {:>14} {:>13} {:>8}/{:<5}\n",
                 name,
                 m.position_rms_pm,
                 m.position_max_pm,
                 m.position_rms_pct_of_side,
-                m.mean_lattice_error_pct,
-                m.max_lattice_error_pct,
+                mean,
+                max,
                 m.lattice_pairs,
                 m.lattice_pairs + m.lattice_failures
             ));

@@ -661,14 +661,20 @@ fn images_table(md: &mut String, images: &spmcal::images::ImageBenchmark) {
         "| method | position RMS pm | position max pm | position RMS % of side | mean lattice error % | max lattice error % | lattice pairs (failed) |\n|---|---|---|---|---|---|---|"
     );
     for (name, m) in &images.methods {
+        let (mean, max) = if m.lattice_pairs == 0 {
+            ("—".to_owned(), "—".to_owned())
+        } else {
+            (
+                format!("{:.3}", m.mean_lattice_error_pct),
+                format!("{:.3}", m.max_lattice_error_pct),
+            )
+        };
         let _ = writeln!(
             md,
-            "| {name} | {:.1} | {:.1} | {:.3} | {:.3} | {:.3} | {} ({}) |",
+            "| {name} | {:.1} | {:.1} | {:.3} | {mean} | {max} | {} ({}) |",
             m.position_rms_pm,
             m.position_max_pm,
             m.position_rms_pct_of_side,
-            m.mean_lattice_error_pct,
-            m.max_lattice_error_pct,
             m.lattice_pairs,
             m.lattice_failures
         );

@@ -209,7 +209,10 @@ pub fn finish_with(
              atomic lattice) and no detection noise"
         ),
     ];
-    let region = Region::around(record.nodes, 0.0);
+    // A region of no area (the nodes of one row or column, e.g. a resume that measured only
+    // those) has no raster to judge: no accuracy, said in the notes.
+    let region = Region::around(record.nodes, 0.0)
+        .filter(|r| r.x_max_counts > r.x_min_counts && r.y_max_counts > r.y_min_counts);
     let mut images = None;
     let accuracy = match (record.simulator, region, fitted.set.planes.first()) {
         (Some(sim), Some(region), Some(plane)) => {
@@ -298,7 +301,10 @@ pub fn finish_with(
             })
         }
         _ => {
-            notes.push("accuracy: needs a simulated backend (the oracle)".to_owned());
+            notes.push(
+                "accuracy: needs a simulated backend (the oracle) and measured nodes that span an area"
+                    .to_owned(),
+            );
             None
         }
     };

@@ -742,15 +742,13 @@ fn budget_section(md: &mut String, budget: &Section<super::budget::BudgetResults
                 )
             };
             let lat = |row: &super::budget::BudgetRow, method: &str| -> String {
-                row.methods.get(method).map_or_else(
-                    || "—".to_owned(),
-                    |m| {
-                        format!(
-                            "{:.3} / {:.3}",
-                            m.mean_lattice_error_pct, m.max_lattice_error_pct
-                        )
-                    },
-                )
+                match row.methods.get(method) {
+                    Some(m) if m.lattice_pairs > 0 => format!(
+                        "{:.3} / {:.3} ({} pairs)",
+                        m.mean_lattice_error_pct, m.max_lattice_error_pct, m.lattice_pairs
+                    ),
+                    _ => "—".to_owned(),
+                }
             };
             for row in &b.rows {
                 let _ = writeln!(

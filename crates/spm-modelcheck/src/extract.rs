@@ -244,6 +244,7 @@ pub fn extract_features(
             duration_s: line_period * ny as f64,
             fast_speed_nm_per_s: sx / line_time.max(1e-12),
             lines: ny,
+            pixel_nm: Some([sx / nx as f64, sy / ny as f64]),
         });
         let pixel_nm = [sx / nx as f64, sy / ny as f64];
         for channel in [Some(forward), backward].into_iter().flatten() {

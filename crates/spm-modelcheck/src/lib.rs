@@ -42,7 +42,7 @@ mod simmap;
 mod types;
 
 pub use diagnose::{
-    BaselineReport, CandidateScore, Diagnosis, FinalReport, Finding, ParamValue, ResidualPoint,
+    BaselineReport, CandidateScore, Diagnosis, FinalReport, Finding, ParamValue, Rejection, ResidualPoint,
     ResidualStructure, diagnose_features, diagnose_indexed,
 };
 pub use extract::{

@@ -39,6 +39,9 @@ pub(crate) struct Obs {
     pub half: [f64; 2],
     /// Fast-axis speed, nominal nm/s.
     pub speed: f64,
+    /// Sub-pixel phase (x, y) of the feature in its image, in [0, 1) (0 = on a
+    /// pixel centre), and the pixel pitch, nominal nm; `None` without a grid.
+    pub phase: Option<([f64; 2], [f64; 2])>,
 }
 
 /// The context effect columns need: baseline J₀ and rotation θ₀.
@@ -90,6 +93,38 @@ fn sample_col(obs: &[Obs], ctx: &Ctx, axis: usize, f: impl Fn(&Obs) -> f64) -> C
         c[2 * k + 1] = dir[1] * v;
     }
     c
+}
+
+/// Names of the pixel-locking columns, in column order (nominal nm).
+pub(crate) const PIXEL_LOCKING_NAMES: [&str; 4] = [
+    "pixel_locking_x_sin1_nm",
+    "pixel_locking_x_sin2_nm",
+    "pixel_locking_y_sin1_nm",
+    "pixel_locking_y_sin2_nm",
+];
+
+/// The localiser's pixel-locking bias: a fit of a peak sampled on a pixel
+/// grid is pulled towards (or away from) pixel centres by an amount that is a
+/// periodic, odd function of the sub-pixel phase φ (zero on a pixel centre and
+/// half-way between two, by symmetry): b(φ) = s₁·sin 2πφ + s₂·sin 4πφ per
+/// axis. On a lattice, φ of successive rows changes slowly (the beat of the
+/// lattice period against the pixel pitch), and row is time along the slow
+/// axis: the bias looks like a slow "vibration" unless modelled. `None` when
+/// the features carry no pixel grid.
+pub(crate) fn pixel_locking_columns(obs: &[Obs], ctx: &Ctx) -> Option<Vec<Column>> {
+    if obs.iter().any(|o| o.phase.is_none()) {
+        return None;
+    }
+    let tau = 2.0 * std::f64::consts::PI;
+    let ph = |o: &Obs, axis: usize, k: f64| {
+        o.phase.map_or(0.0, |(p, _)| (k * tau * p[axis]).sin())
+    };
+    Some(vec![
+        input_col(obs, ctx, 0, |o| ph(o, 0, 1.0)),
+        input_col(obs, ctx, 0, |o| ph(o, 0, 2.0)),
+        input_col(obs, ctx, 1, |o| ph(o, 1, 1.0)),
+        input_col(obs, ctx, 1, |o| ph(o, 1, 2.0)),
+    ])
 }
 
 /// Names (with units) of an effect's linear parameters, in column order.
@@ -503,6 +538,16 @@ pub(crate) fn build_obs(
             frame.half_height_y_nm.max(1e-12),
         ];
         let (i, j) = (i as f64, j as f64);
+        let phase = frame.pixel_nm.and_then(|p| {
+            if !(p[0] > 0.0 && p[1] > 0.0 && p[0].is_finite() && p[1].is_finite()) {
+                return None;
+            }
+            let nx = (2.0 * half[0] / p[0]).round();
+            let ny = (2.0 * half[1] / p[1]).round();
+            let fx = f.x_nm / p[0] + 0.5 * (nx - 1.0);
+            let fy = f.y_nm / p[1] + 0.5 * (ny - 1.0);
+            Some(([fx - fx.floor(), fy - fy.floor()], p))
+        });
         obs.push(Obs {
             u: [f.x_nm, f.y_nm],
             site: [i * a1[0] + j * a2[0], i * a1[1] + j * a2[1]],
@@ -515,6 +560,7 @@ pub(crate) fn build_obs(
             xi: [f.x_nm / half[0], f.y_nm / half[1]],
             half,
             speed: frame.fast_speed_nm_per_s,
+            phase,
         });
         source.push(k);
     }

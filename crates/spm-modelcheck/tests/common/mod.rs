@@ -88,6 +88,7 @@ pub fn generate(scan: &Scan, seed: u64, extra: &Extra) -> FeatureSet {
             duration_s: duration,
             fast_speed_nm_per_s: 2.0 * h / scan.line_time_s,
             lines: scan.lines,
+            pixel_nm: None,
         });
         let offset = [0.37 * f as f64, -0.21 * f as f64];
         for dir in [LineDirection::Forward, LineDirection::Backward] {

@@ -3,8 +3,8 @@
 
 use crate::index::{MeasuredBasis, index_features};
 use crate::model::{
-    Column, Ctx, Fit, Obs, baseline_columns, build_obs, effect_columns, hyper_candidates,
-    hyper_name, identifiable, param_names, PIXEL_LOCKING_NAMES, pixel_locking_columns, solve,
+    Column, Ctx, Fit, Obs, PIXEL_LOCKING_NAMES, baseline_columns, build_obs, effect_columns,
+    hyper_candidates, hyper_name, identifiable, param_names, pixel_locking_columns, solve,
 };
 use crate::types::{
     EffectKind, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError, Options,
@@ -416,7 +416,11 @@ fn structure(
                 .sum::<f64>()
                 / (n - 1) as f64
         });
-        let dir = if key.1 == LineDirection::Forward { 0 } else { 1 };
+        let dir = if key.1 == LineDirection::Forward {
+            0
+        } else {
+            1
+        };
         group_means.insert((key.0, dir), (mean, var, n));
         // Excess variance of the group over the pooled residual.
         let group_var = 0.5 * (var[0] + var[1]) + 0.5 * (mean[0].powi(2) + mean[1].powi(2));
@@ -484,9 +488,19 @@ fn structure(
         0.0
     };
     let lag = [lag1_z(&sx), lag1_z(&sy), lag1_z(&lx), lag1_z(&ly)];
-    let pairs = |series: &[Vec<f64>]| series.iter().map(|s| s.len().saturating_sub(1)).sum::<usize>();
+    let pairs = |series: &[Vec<f64>]| {
+        series
+            .iter()
+            .map(|s| s.len().saturating_sub(1))
+            .sum::<usize>()
+    };
     let n_pairs = [pairs(&sx), pairs(&sy), pairs(&lx), pairs(&ly)];
-    let names = ["time-ordered x", "time-ordered y", "line-mean x", "line-mean y"];
+    let names = [
+        "time-ordered x",
+        "time-ordered y",
+        "line-mean x",
+        "line-mean y",
+    ];
     let series_var = |series: &[Vec<f64>]| {
         let (mut sum, mut n) = (0.0, 0usize);
         for s in series {
@@ -499,7 +513,12 @@ fn structure(
         }
         if n > 0 { sum / n as f64 } else { 0.0 }
     };
-    let vars = [series_var(&sx), series_var(&sy), series_var(&lx), series_var(&ly)];
+    let vars = [
+        series_var(&sx),
+        series_var(&sy),
+        series_var(&lx),
+        series_var(&ly),
+    ];
     for i in 0..4 {
         // ρ₁ ≈ var(signal)/var(total) for a slow signal in white noise: the
         // correlated part has RMS √(ρ₁·var) per axis (√2 for a vector).
@@ -764,9 +783,10 @@ pub fn diagnose_features(
     options: &Options,
 ) -> Result<Diagnosis, ModelCheckError> {
     let indexing = index_features(set, lattice)?;
-    diagnose_indexed(set, &indexing.sites, &indexing.basis, options)
+    let mut d = diagnose_indexed(set, &indexing.sites, &indexing.basis, options)?;
+    d.warnings.extend(indexing.warnings);
+    Ok(d)
 }
-
 
 /// Physical range of an effect's fitted parameters; `Some(reason)` when one
 /// is outside it. The bounds are generous (an order beyond what instruments
@@ -1193,7 +1213,15 @@ pub fn diagnose_indexed(
                 });
                 continue;
             }
-            let after = heldout_rms(&obs, frames, &target, &cols, Some(scores[i].kind), &mask, &ctx);
+            let after = heldout_rms(
+                &obs,
+                frames,
+                &target,
+                &cols,
+                Some(scores[i].kind),
+                &mask,
+                &ctx,
+            );
             if after < heldout_now {
                 accepted = Some((i, after));
                 break;
@@ -1299,10 +1327,7 @@ pub fn diagnose_indexed(
         for (i, name) in PIXEL_LOCKING_NAMES.iter().enumerate() {
             let j = base_len + i;
             if let Some(v) = fit.coef.get(j) {
-                localiser_bias.insert(
-                    (*name).to_owned(),
-                    pv(*v, fit.cov[(j, j)].max(0.0).sqrt()),
-                );
+                localiser_bias.insert((*name).to_owned(), pv(*v, fit.cov[(j, j)].max(0.0).sqrt()));
             }
         }
     }

@@ -171,6 +171,56 @@ fn level(channel: &Channel) -> (Vec<f64>, Vec<bool>) {
     (out, nan)
 }
 
+/// Scan settings that one scan series shares.
+#[derive(Clone, Debug, PartialEq)]
+struct FrameSettings {
+    pixels: [usize; 2],
+    size_nm: [f64; 2],
+    line_time_s: Option<f64>,
+    angle_deg: Option<f64>,
+    bias: Option<String>,
+    centre_nm: Option<[f64; 2]>,
+}
+
+impl FrameSettings {
+    fn differs_from(&self, other: &Self) -> Vec<String> {
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-3 * a.abs().max(b.abs());
+        let mut why = Vec::new();
+        if self.pixels != other.pixels {
+            why.push(format!("pixels {:?} vs {:?}", self.pixels, other.pixels));
+        }
+        if !(close(self.size_nm[0], other.size_nm[0]) && close(self.size_nm[1], other.size_nm[1])) {
+            why.push(format!(
+                "size {:?} nm vs {:?} nm",
+                self.size_nm, other.size_nm
+            ));
+        }
+        if let (Some(a), Some(b)) = (self.line_time_s, other.line_time_s)
+            && !close(a, b)
+        {
+            why.push(format!("line time {a} s vs {b} s"));
+        }
+        if let (Some(a), Some(b)) = (self.angle_deg, other.angle_deg)
+            && (a - b).abs() > 1e-3
+        {
+            why.push(format!("scan angle {a}° vs {b}°"));
+        }
+        if let (Some(a), Some(b)) = (&self.bias, &other.bias)
+            && a != b
+        {
+            why.push(format!("bias {a} vs {b}"));
+        }
+        if let (Some(a), Some(b)) = (self.centre_nm, other.centre_nm)
+            && (a[0] - b[0]).hypot(a[1] - b[1]) > 0.5 * self.size_nm[0].min(other.size_nm[0])
+        {
+            why.push(format!(
+                "frame centre {a:?} nm vs {b:?} nm (different areas)"
+            ));
+        }
+        why
+    }
+}
+
 /// Extracts feature observations from the height channels (forward and
 /// backward) of each file. Frame `i` of the result is file `i`.
 pub fn extract_features(
@@ -188,28 +238,44 @@ pub fn extract_features(
     let mut set = FeatureSet::default();
     let first_record = files.iter().find_map(|(f, _)| f.recorded).map(seconds_of);
     let mut next_start = 0.0;
+    let mut first_settings: Option<(String, FrameSettings)> = None;
     for (frame_index, (file, start)) in files.iter().enumerate() {
         let path = file.source.display().to_string();
         let is_height = |c: &&Channel| match &ex.channel {
             Some(name) => c.name() == name,
             None => c.unit() == "m",
         };
-        let forward = file
-            .channels
+        let heights: Vec<&Channel> = file.channels.iter().filter(is_height).collect();
+        // The first height channel's forward image, or its backward image when
+        // the file holds only that direction.
+        let Some(first) = heights
             .iter()
-            .filter(is_height)
-            .find(|c| c.direction() == Direction::Forward);
-        let Some(forward) = forward else {
+            .find(|c| c.direction() == Direction::Forward)
+            .or_else(|| heights.first())
+            .copied()
+        else {
             return Err(ModelCheckError::MissingMetadata {
                 path,
-                reason: "no height channel (unit m)".to_owned(),
+                reason: match &ex.channel {
+                    Some(name) => format!("no channel named {name:?}"),
+                    None => format!(
+                        "no height channel (unit m) among {} channel(s): {}",
+                        file.channels.len(),
+                        file.channels
+                            .iter()
+                            .map(|c| format!("{} [{}] {:?}", c.name(), c.unit(), c.direction()))
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    ),
+                },
             });
         };
-        let backward = file
-            .channels
+        let forward = first;
+        let backward = heights
             .iter()
-            .filter(is_height)
-            .find(|c| c.direction() == Direction::Backward && c.name() == forward.name());
+            .find(|c| c.direction() == Direction::Backward && c.name() == forward.name())
+            .copied()
+            .filter(|b| !std::ptr::eq(*b, forward));
         let (Some(sx), Some(sy)) = (forward.size_x_nm(), forward.size_y_nm()) else {
             return Err(ModelCheckError::MissingMetadata {
                 path,
@@ -219,6 +285,29 @@ pub fn extract_features(
         let (nx, ny) = (forward.nx(), forward.ny());
         let timing = forward.timing();
         let line_time = timing.map_or(ex.default_line_time_s, |t| t.line_time_s);
+        let settings = FrameSettings {
+            pixels: [nx, ny],
+            size_nm: [sx, sy],
+            line_time_s: timing.map(|t| t.line_time_s),
+            angle_deg: forward.angle_deg(),
+            bias: file.header_value("BIAS").map(|b| b.trim().to_owned()),
+            centre_nm: forward
+                .center_x_nm()
+                .zip(forward.center_y_nm())
+                .map(|(x, y)| [x, y]),
+        };
+        if let Some((first_label, first)) = &first_settings {
+            let why = settings.differs_from(first);
+            if !why.is_empty() {
+                set.warnings.push(format!(
+                    "{path} differs from {first_label} in {}: frames of different scan \
+                     series are diagnosed as one",
+                    why.join(", ")
+                ));
+            }
+        } else {
+            first_settings = Some((path.clone(), settings));
+        }
         let line_period = timing.map_or(
             line_time * if backward.is_some() { 2.0 } else { 1.0 },
             |t| t.line_period_s,

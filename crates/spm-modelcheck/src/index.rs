@@ -30,6 +30,8 @@ pub struct Indexing {
     pub sites: Vec<Option<[i64; 2]>>,
     /// The basis used.
     pub basis: MeasuredBasis,
+    /// Warnings (e.g. frames whose lattice differs from the reference's).
+    pub warnings: Vec<String>,
 }
 
 fn median(values: &mut [f64]) -> Option<f64> {
@@ -108,6 +110,107 @@ fn measure_basis(points: &[[f64; 2]], a_expected_nm: Option<f64>) -> Option<([f6
     Some((b1, b2))
 }
 
+/// The reference basis refined on a group's own neighbour vectors: for each
+/// of b1, b2, the mean of the group's neighbour differences within 30 % of it
+/// (sign-folded). `None` when either has fewer than three matches.
+fn refine_basis(points: &[[f64; 2]], b1: [f64; 2], b2: [f64; 2]) -> Option<([f64; 2], [f64; 2])> {
+    let mut out = [[0.0; 2]; 2];
+    for (o, b) in out.iter_mut().zip([b1, b2]) {
+        let len = b[0].hypot(b[1]);
+        let (mut sum, mut n) = ([0.0, 0.0], 0usize);
+        for (i, p) in points.iter().enumerate() {
+            for q in points.iter().skip(i + 1) {
+                let mut v = [q[0] - p[0], q[1] - p[1]];
+                if (v[0] + b[0]).hypot(v[1] + b[1]) < (v[0] - b[0]).hypot(v[1] - b[1]) {
+                    v = [-v[0], -v[1]];
+                }
+                if (v[0] - b[0]).hypot(v[1] - b[1]) < 0.3 * len {
+                    sum[0] += v[0];
+                    sum[1] += v[1];
+                    n += 1;
+                }
+            }
+        }
+        if n < 3 {
+            return None;
+        }
+        *o = [sum[0] / n as f64, sum[1] / n as f64];
+    }
+    Some((out[0], out[1]))
+}
+
+/// Refuses a point set that is not the claimed lattice: the measured basis
+/// must have the claimed period within a factor 1.6 (instrument calibrations
+/// are never off by more) and the claimed angle class within 30°, and most
+/// features' nearest-neighbour vectors must be lattice vectors (within 0.2 in
+/// basis units). Random points (noise peaks, adsorbates) pass the last test
+/// for ≈ 20 % of features, a lattice for nearly all.
+fn check_lattice(
+    points: &[[f64; 2]],
+    b1: [f64; 2],
+    b2: [f64; 2],
+    lattice: &LatticeSpec,
+    context: &str,
+) -> Result<(), ModelCheckError> {
+    let refuse = |reason: String| {
+        Err(ModelCheckError::NotTheLattice {
+            context: context.to_owned(),
+            reason,
+        })
+    };
+    if points.len() < 6 {
+        return refuse(format!("only {} features", points.len()));
+    }
+    let a = lattice.a_nm();
+    for b in [b1, b2] {
+        let r = b[0].hypot(b[1]) / a;
+        if !(r > 1.0 / 1.6 && r < 1.6) {
+            return refuse(format!(
+                "the features' period is {:.4} nm, the claimed lattice's {a:.4} nm",
+                b[0].hypot(b[1])
+            ));
+        }
+    }
+    let cos = (b1[0] * b2[0] + b1[1] * b2[1]) / (b1[0].hypot(b1[1]) * b2[0].hypot(b2[1]));
+    let angle = cos.clamp(-1.0, 1.0).acos().to_degrees();
+    let expected: &[f64] = match lattice {
+        LatticeSpec::Hex { .. } => &[60.0, 120.0],
+        LatticeSpec::Square { .. } => &[90.0],
+    };
+    if !expected.iter().any(|e| (angle - e).abs() < 30.0) {
+        return refuse(format!("the features' lattice angle is {angle:.0}°"));
+    }
+    let Some(inv) = inverse(b1, b2) else {
+        return refuse("degenerate basis".to_owned());
+    };
+    let mut good = 0usize;
+    for (i, p) in points.iter().enumerate() {
+        let nearest = points
+            .iter()
+            .enumerate()
+            .filter(|(j, _)| *j != i)
+            .map(|(_, q)| [q[0] - p[0], q[1] - p[1]])
+            .min_by(|u, v| u[0].hypot(u[1]).total_cmp(&v[0].hypot(v[1])));
+        let Some(d) = nearest else { continue };
+        let f = [
+            inv[0][0] * d[0] + inv[0][1] * d[1],
+            inv[1][0] * d[0] + inv[1][1] * d[1],
+        ];
+        let r = [f[0].round(), f[1].round()];
+        if (f[0] - r[0]).abs() < 0.2 && (f[1] - r[1]).abs() < 0.2 && r != [0.0, 0.0] {
+            good += 1;
+        }
+    }
+    let fraction = good as f64 / points.len() as f64;
+    if fraction < 0.5 {
+        return refuse(format!(
+            "only {:.0} % of the features have a lattice vector to their nearest neighbour",
+            100.0 * fraction
+        ));
+    }
+    Ok(())
+}
+
 fn inverse(b1: [f64; 2], b2: [f64; 2]) -> Option<[[f64; 2]; 2]> {
     let det = b1[0] * b2[1] - b2[0] * b1[1];
     if !(det.is_finite() && det.abs() > 1e-300) {
@@ -139,8 +242,18 @@ pub fn index_features(
         .iter()
         .map(|&k| [set.features[k].x_nm, set.features[k].y_nm])
         .collect();
-    let (b1, b2) = measure_basis(&ref_points, None)
-        .ok_or_else(|| ModelCheckError::NoLattice(format!("frame {}", reference.0.0)))?;
+    let label = |key: (usize, LineDirection)| {
+        let name = set
+            .frames
+            .get(key.0)
+            .map_or_else(|| format!("frame {}", key.0), |f| f.label.clone());
+        format!("{name}, {:?}", key.1).to_lowercase()
+    };
+    let (b1, b2) =
+        measure_basis(&ref_points, None).ok_or_else(|| ModelCheckError::NotTheLattice {
+            context: label(reference.0),
+            reason: "no two lattice directions among the features".to_owned(),
+        })?;
     let binv =
         inverse(b1, b2).ok_or_else(|| ModelCheckError::NoLattice("degenerate basis".into()))?;
     // True basis with the same angle class and handedness.
@@ -157,6 +270,38 @@ pub fn index_features(
         a1_nm: [a, 0.0],
         a2_nm: [a * gamma.cos(), handed * a * gamma.sin()],
     };
+    check_lattice(&ref_points, b1, b2, lattice, &label(reference.0))?;
+    let mut warnings = Vec::new();
+    let ref_len = [b1[0].hypot(b1[1]), b2[0].hypot(b2[1])];
+    for (key, members) in groups.iter().skip(1) {
+        let pts: Vec<[f64; 2]> = members
+            .iter()
+            .map(|&k| [set.features[k].x_nm, set.features[k].y_nm])
+            .collect();
+        if pts.len() < 6 {
+            continue;
+        }
+        let (g1, g2) = refine_basis(&pts, b1, b2).unwrap_or((b1, b2));
+        check_lattice(&pts, g1, g2, lattice, &label(*key))?;
+        // One sample, one scan series: the lattice seen in every frame should
+        // agree with the reference up to drift-sized distortion.
+        let rot = |a: [f64; 2], b: [f64; 2]| {
+            ((a[0] * b[1] - a[1] * b[0]).atan2(a[0] * b[0] + a[1] * b[1])).to_degrees()
+        };
+        let dr = rot(b1, g1).abs().max(rot(b2, g2).abs());
+        let dl = ((g1[0].hypot(g1[1]) / ref_len[0]) - 1.0)
+            .abs()
+            .max(((g2[0].hypot(g2[1]) / ref_len[1]) - 1.0).abs());
+        if dr > 5.0 || dl > 0.15 {
+            warnings.push(format!(
+                "{}: the lattice differs from {} by {dr:.1}° and {:.0} % in length: \
+                 these frames may not be one scan series of one area",
+                label(*key),
+                label(reference.0),
+                100.0 * dl
+            ));
+        }
+    }
     // Reference origin: the reference-group feature nearest the frame centre.
     let origin_k = reference
         .1
@@ -191,30 +336,21 @@ pub fn index_features(
         }) else {
             continue;
         };
-        // A frame's other half (backward vs forward) sees the same atoms: take
-        // the seed's index from the nearest atom already indexed in that frame.
         let frame = set.features[members[seed]].frame_index;
-        let nearest_indexed = sites
-            .iter()
-            .enumerate()
-            .filter_map(|(k, s)| s.map(|s| (k, s)))
-            .filter(|(k, _)| set.features[*k].frame_index == frame)
-            .map(|(k, s)| {
-                let f = &set.features[k];
-                let d = [pts[seed][0] - f.x_nm, pts[seed][1] - f.y_nm];
-                (d, s)
-            })
-            .min_by(|a, b| a.0[0].hypot(a.0[1]).total_cmp(&b.0[0].hypot(b.0[1])));
-        let seed_site = match nearest_indexed {
-            Some((d, s)) if d[0].hypot(d[1]) < 2.0 * b_len => {
-                let f = frac(d);
-                [s[0] + f[0].round() as i64, s[1] + f[1].round() as i64]
-            }
-            _ => {
-                let f0 = frac([pts[seed][0] - origin[0], pts[seed][1] - origin[1]]);
-                [f0[0].round() as i64, f0[1].round() as i64]
-            }
+        let f0 = frac([pts[seed][0] - origin[0], pts[seed][1] - origin[1]]);
+        let seed_site = [f0[0].round() as i64, f0[1].round() as i64];
+        // The group's own metric: the reference basis refined on this group's
+        // neighbour vectors (another frame may be distorted differently by
+        // its drift); its index directions stay those of the reference.
+        let (g1, g2) = refine_basis(&pts, b1, b2).unwrap_or((b1, b2));
+        let ginv = inverse(g1, g2).unwrap_or(binv);
+        let gfrac = |d: [f64; 2]| {
+            [
+                ginv[0][0] * d[0] + ginv[0][1] * d[1],
+                ginv[1][0] * d[0] + ginv[1][1] * d[1],
+            ]
         };
+        let frac = &gfrac;
         // Walk from the seed; when the walk stays small (an isolated or
         // spurious seed), retry from the next features nearest the origin and
         // keep the largest walk.
@@ -275,6 +411,63 @@ pub fn index_features(
                 }
             }
         }
+        // A frame's other half (backward vs forward) sees the same atoms, but
+        // trace and retrace can be shifted by up to a lattice constant mid-line
+        // (hysteresis, lag): register the whole group by a vote over its
+        // features near the line ends, where hysteresis vanishes (the loop
+        // closes at the turnaround), against the half already indexed.
+        let half_x = set
+            .frames
+            .get(frame)
+            .map_or(f64::INFINITY, |f| f.half_width_x_nm.max(1e-12));
+        let other: Vec<(usize, [i64; 2])> = sites
+            .iter()
+            .enumerate()
+            .filter_map(|(k, s)| s.map(|s| (k, s)))
+            .filter(|(k, _)| set.features[*k].frame_index == frame)
+            .collect();
+        if !other.is_empty() {
+            let mut votes: std::collections::HashMap<[i64; 2], f64> =
+                std::collections::HashMap::new();
+            for edge_limit in [0.8, 0.6, 0.0] {
+                for (m, l) in local.iter().enumerate() {
+                    let Some(l) = l else { continue };
+                    let xi = (pts[m][0] / half_x).abs();
+                    if xi < edge_limit {
+                        continue;
+                    }
+                    let nearest = other
+                        .iter()
+                        .map(|&(k, s)| {
+                            let f = &set.features[k];
+                            ([pts[m][0] - f.x_nm, pts[m][1] - f.y_nm], s)
+                        })
+                        .min_by(|a, b| a.0[0].hypot(a.0[1]).total_cmp(&b.0[0].hypot(b.0[1])));
+                    let Some((d, s)) = nearest else { continue };
+                    if d[0].hypot(d[1]) > 0.75 * b_len {
+                        continue;
+                    }
+                    let f = frac(d);
+                    let implied = [s[0] + f[0].round() as i64, s[1] + f[1].round() as i64];
+                    // Features nearest the turnaround count most.
+                    *votes
+                        .entry([implied[0] - l[0], implied[1] - l[1]])
+                        .or_insert(0.0) += xi * xi + 0.05;
+                }
+                if votes.values().sum::<f64>() >= 3.0 {
+                    break;
+                }
+            }
+            if let Some((shift, _)) = votes
+                .into_iter()
+                .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))
+            {
+                for l in local.iter_mut().flatten() {
+                    l[0] += shift[0];
+                    l[1] += shift[1];
+                }
+            }
+        }
         // Duplicate sites in one group: keep none of them (ambiguous).
         let mut seen = std::collections::HashMap::new();
         for s in local.iter().flatten() {
@@ -284,7 +477,11 @@ pub fn index_features(
             sites[k] = local[m].filter(|s| seen.get(s).copied() == Some(1));
         }
     }
-    Ok(Indexing { sites, basis })
+    Ok(Indexing {
+        sites,
+        basis,
+        warnings,
+    })
 }
 
 /// Breadth-first indexing from `start` (given `site0`): a neighbour within

@@ -42,8 +42,8 @@ mod simmap;
 mod types;
 
 pub use diagnose::{
-    BaselineReport, CandidateScore, Diagnosis, FinalReport, Finding, ParamValue, Rejection, ResidualPoint,
-    ResidualStructure, diagnose_features, diagnose_indexed,
+    BaselineReport, CandidateScore, Diagnosis, FinalReport, Finding, ParamValue, Rejection,
+    ResidualPoint, ResidualStructure, diagnose_features, diagnose_indexed,
 };
 pub use extract::{
     ExtractOptions, ImageInput, MapContext, diagnose, diagnose_paths, extract_features,

@@ -116,9 +116,7 @@ pub(crate) fn pixel_locking_columns(obs: &[Obs], ctx: &Ctx) -> Option<Vec<Column
         return None;
     }
     let tau = 2.0 * std::f64::consts::PI;
-    let ph = |o: &Obs, axis: usize, k: f64| {
-        o.phase.map_or(0.0, |(p, _)| (k * tau * p[axis]).sin())
-    };
+    let ph = |o: &Obs, axis: usize, k: f64| o.phase.map_or(0.0, |(p, _)| (k * tau * p[axis]).sin());
     Some(vec![
         input_col(obs, ctx, 0, |o| ph(o, 0, 1.0)),
         input_col(obs, ctx, 0, |o| ph(o, 0, 2.0)),

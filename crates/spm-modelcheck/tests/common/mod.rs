@@ -2,6 +2,8 @@
 //! constant drift, plus hidden extras, with per-feature times of a raster.
 #![allow(dead_code, clippy::unwrap_used)]
 
+pub mod image;
+
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};

@@ -422,10 +422,16 @@ fn structure(
             1
         };
         group_means.insert((key.0, dir), (mean, var, n));
-        // Excess variance of the group over the pooled residual.
-        let group_var = 0.5 * (var[0] + var[1]) + 0.5 * (mean[0].powi(2) + mean[1].powi(2));
-        let z = (group_var / pooled_var - 1.0) / (1.0 / n as f64).sqrt();
-        let excess = (2.0 * (group_var - pooled_var)).max(0.0).sqrt();
+        // Excess scatter of the group over the pooled residual (robust: a
+        // few features scanned across a jump do not make a frame "worse").
+        let group_mask: Vec<bool> = (0..obs.len())
+            .map(|k| mask[k] && (obs[k].frame, obs[k].direction) == key)
+            .collect();
+        let group_var = robust_sigma(residual, &group_mask).powi(2);
+        let robust_pooled = robust_sigma(residual, mask).powi(2).max(1e-300);
+        // Standard error of a MAD-based variance ≈ 1.36·√(2/n) relative.
+        let z = (group_var / robust_pooled - 1.0) / (1.36 * (1.0 / n as f64).sqrt());
+        let excess = (2.0 * (group_var - robust_pooled)).max(0.0).sqrt();
         if z > frame_z {
             frame_z = z;
         }

@@ -116,6 +116,7 @@ pub fn features_from_height_map(
         .map(|f| {
             let (column, row) = map.pixel_of(f.position);
             let (time_s, line_index) = time_and_line(column, row);
+            let width_px = f.width.value() / map.pixel_step.value().max(1e-300);
             let sigma_px = f.uncertainty.radial().value()
                 / std::f64::consts::SQRT_2
                 / map.pixel_step.value().max(1e-300);
@@ -127,33 +128,60 @@ pub fn features_from_height_map(
                 frame_index,
                 line_index,
                 sigma_nm: Some(sigma_px * pixel_nm[0]),
+                width_nm: Some(width_px * pixel_nm[1]),
+                // spm-features' window: fit_radius_sigmas·σ, at most 1.25 × the
+                // separation and the configured maximum, at least the minimum.
+                fit_radius_nm: Some(
+                    (config.fit_radius_sigmas * width_px)
+                        .min(1.25 * config.min_separation_px)
+                        .clamp(config.min_fit_radius_px, config.max_fit_radius_px)
+                        * pixel_nm[1],
+                ),
             }
         })
         .collect())
 }
 
-/// Levels a display-orientation image line by line (least-squares line per
-/// row) and fills NaN with 0; returns the values in pm and the NaN mask.
+/// Levels a display-orientation image line by line and fills NaN with 0;
+/// returns the values in pm and the NaN mask.
+///
+/// Each line's offset and slope come from a least-squares line with Hann
+/// weights (sin² over the line). A line of a lattice image holds a
+/// non-integer number of periods: with uniform weights the partial period at
+/// the ends leaks into the line's offset and slope, which then change from
+/// line to line with the lattice phase of the row; subtracting them moves
+/// every atom by a periodic function of its row (a fake slow "vibration" of
+/// ~1 pm on graphite, since rows are time along the slow axis). The taper
+/// suppresses that leakage by orders of magnitude while still removing the
+/// line-to-line offsets and tilts of the feedback.
 fn level(channel: &Channel) -> (Vec<f64>, Vec<bool>) {
     let (nx, ny) = (channel.nx(), channel.ny());
     let scale = if channel.unit() == "m" { 1e12 } else { 1.0 };
     let data = channel.data();
     let mut out = vec![0.0; nx * ny];
     let mut nan = vec![false; nx * ny];
+    let taper = |c: usize| {
+        (std::f64::consts::PI * (c as f64 + 0.5) / nx as f64)
+            .sin()
+            .powi(2)
+    };
     for r in 0..ny {
         let row = &data[r * nx..(r + 1) * nx];
-        let pts: Vec<(f64, f64)> = row
+        let pts: Vec<(f64, f64, f64)> = row
             .iter()
             .enumerate()
             .filter(|(_, v)| v.is_finite())
-            .map(|(c, v)| (c as f64, v * scale))
+            .map(|(c, v)| (c as f64, v * scale, taper(c)))
             .collect();
-        let n = pts.len() as f64;
-        let (a, b) = if pts.len() >= 2 {
-            let mx = pts.iter().map(|p| p.0).sum::<f64>() / n;
-            let my = pts.iter().map(|p| p.1).sum::<f64>() / n;
-            let sxx = pts.iter().map(|p| (p.0 - mx).powi(2)).sum::<f64>();
-            let sxy = pts.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum::<f64>();
+        let w: f64 = pts.iter().map(|p| p.2).sum();
+        let (a, b) = if pts.len() >= 2 && w > 0.0 {
+            let mx = pts.iter().map(|p| p.2 * p.0).sum::<f64>() / w;
+            let my = pts.iter().map(|p| p.2 * p.1).sum::<f64>() / w;
+            let sxx = pts.iter().map(|p| p.2 * (p.0 - mx).powi(2)).sum::<f64>();
+            let sxy = pts
+                .iter()
+                .map(|p| p.2 * (p.0 - mx) * (p.1 - my))
+                .sum::<f64>();
             let b = if sxx > 0.0 { sxy / sxx } else { 0.0 };
             (my - b * mx, b)
         } else {

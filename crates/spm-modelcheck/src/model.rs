@@ -42,6 +42,9 @@ pub(crate) struct Obs {
     /// Sub-pixel phase (x, y) of the feature in its image, in [0, 1) (0 = on a
     /// pixel centre), and the pixel pitch, nominal nm; `None` without a grid.
     pub phase: Option<([f64; 2], [f64; 2])>,
+    /// The feature's footprint over lines: (Gaussian width σ, fit-window
+    /// radius) in lines, and the line period, s; `None` when unknown.
+    pub footprint: Option<(f64, f64, f64)>,
 }
 
 /// The context effect columns need: baseline J₀ and rotation θ₀.
@@ -208,11 +211,39 @@ pub(crate) fn effect_columns(kind: EffectKind, hyper: f64, obs: &[Obs], ctx: &Ct
         EffectKind::FeedbackLag => vec![input_col(obs, ctx, 0, |o| -o.s * o.speed)],
         EffectKind::PeriodicVibration => {
             let w = 2.0 * std::f64::consts::PI * hyper;
+            // A feature's position averages the motion over the lines it
+            // spans. A Gaussian fit weighs line l (offset l from the centre,
+            // within the fit window of radius R) by g(l)²·c(l) along x and by
+            // l²·g(l)²·c(l) along y (g the profile of width σ, c the window's
+            // chord): for cos ωt the measured amplitude is Σ w(l)·cos(ωlP)/Σ w(l)
+            // (P the line period). The columns carry these factors, so the
+            // reported amplitude is the tip's, not the attenuated one.
+            let att = |o: &Obs| {
+                let Some((sigma, radius, period)) = o.footprint else {
+                    return [1.0, 1.0];
+                };
+                let n = radius.floor() as i64;
+                let (mut sx, mut wx, mut sy, mut wy) = (0.0, 0.0, 0.0, 0.0);
+                for l in -n..=n {
+                    let l = l as f64;
+                    let chord = 2.0 * (radius * radius - l * l).max(0.0).sqrt() + 1.0;
+                    let g2 = (-(l * l) / (sigma * sigma).max(1e-12)).exp() * chord;
+                    let c = (w * l * period).cos();
+                    sx += g2 * c;
+                    wx += g2;
+                    sy += l * l * g2 * c;
+                    wy += l * l * g2;
+                }
+                [
+                    if wx > 0.0 { sx / wx } else { 1.0 },
+                    if wy > 0.0 { sy / wy } else { 1.0 },
+                ]
+            };
             vec![
-                sample_col(obs, ctx, 0, |o| (w * o.t).cos()),
-                sample_col(obs, ctx, 0, |o| (w * o.t).sin()),
-                sample_col(obs, ctx, 1, |o| (w * o.t).cos()),
-                sample_col(obs, ctx, 1, |o| (w * o.t).sin()),
+                sample_col(obs, ctx, 0, |o| att(o)[0] * (w * o.t).cos()),
+                sample_col(obs, ctx, 0, |o| att(o)[0] * (w * o.t).sin()),
+                sample_col(obs, ctx, 1, |o| att(o)[1] * (w * o.t).cos()),
+                sample_col(obs, ctx, 1, |o| att(o)[1] * (w * o.t).sin()),
             ]
         }
         EffectKind::TipChange => vec![
@@ -559,6 +590,18 @@ pub(crate) fn build_obs(
             half,
             speed: frame.fast_speed_nm_per_s,
             phase,
+            footprint: match (f.width_nm, f.fit_radius_nm, frame.pixel_nm) {
+                (Some(w), Some(r), Some(p))
+                    if w.is_finite() && w > 0.0 && r.is_finite() && r > 0.0 && p[1] > 0.0 =>
+                {
+                    Some((
+                        w / p[1],
+                        (r / p[1]).min(64.0),
+                        frame.duration_s / frame.lines.max(1) as f64,
+                    ))
+                }
+                _ => None,
+            },
         });
         source.push(k);
     }

@@ -69,6 +69,14 @@ pub struct FeatureObservation {
     pub line_index: usize,
     /// One-sigma localisation uncertainty (per axis), nominal nm, when known.
     pub sigma_nm: Option<f64>,
+    /// Fitted Gaussian width σ of the feature, nominal nm, when known: the
+    /// feature spans about ±σ of lines, so its position averages whatever
+    /// moved during those lines (a vibration is seen attenuated).
+    #[serde(default)]
+    pub width_nm: Option<f64>,
+    /// Radius of the localiser's fit window, nominal nm, when known.
+    #[serde(default)]
+    pub fit_radius_nm: Option<f64>,
 }
 
 /// Features of one or more frames, ready for [`crate::diagnose_features`].

@@ -62,7 +62,10 @@ fn summary(d: &Diagnosis) -> String {
         d.residual_structure.reasons,
         d.rejected
             .iter()
-            .map(|r| format!("{} {:.0} {:.2}pm {}", r.effect, r.evidence, r.explained_rms_pm, r.reason))
+            .map(|r| format!(
+                "{} {:.0} {:.2}pm {}",
+                r.effect, r.evidence, r.explained_rms_pm, r.reason
+            ))
             .collect::<Vec<_>>(),
         d.rounds.first().map(|r| r
             .iter()
@@ -117,8 +120,12 @@ fn cases() -> Vec<(&'static str, Hidden)> {
 #[ignore = "exploration: prints every case"]
 fn explore_image() {
     let program = Program::default();
+    let only = std::env::var("CASE").ok();
     for (name, hidden) in cases() {
-        for seed in 1..=2 {
+        if only.as_deref().is_some_and(|o| o != name) {
+            continue;
+        }
+        for seed in 1..=std::env::var("SEEDS").map_or(2, |s| s.parse().unwrap()) {
             let started = std::time::Instant::now();
             let d = run(&program, hidden, seed, name);
             println!(

@@ -20,21 +20,38 @@ pub enum Hidden {
     /// Rate-independent trace/retrace separation along x, largest mid-line
     /// (cos(πξ/2) shape, not the library's polynomial): half-separation at
     /// mid-line, nm.
-    Hysteresis { half_separation_nm: f64 },
+    Hysteresis {
+        half_separation_nm: f64,
+    },
     /// Drift acceleration (x, y), nm/s².
-    DriftAcceleration { a_nm_per_s2: [f64; 2] },
+    DriftAcceleration {
+        a_nm_per_s2: [f64; 2],
+    },
     /// Lateral jump (x, y) at a time (s from the first frame's start).
-    TipChange { time_s: f64, jump_nm: [f64; 2] },
+    TipChange {
+        time_s: f64,
+        jump_nm: [f64; 2],
+    },
     /// Sinusoidal vibration: amplitudes (x, y) nm, frequency Hz.
-    Vibration { amplitude_nm: [f64; 2], frequency_hz: f64 },
+    Vibration {
+        amplitude_nm: [f64; 2],
+        frequency_hz: f64,
+    },
     /// First-order Z feedback filtering the measured height along the line:
     /// per-pixel decay d (the measured height keeps d of its previous value).
-    FeedbackFilter { decay: f64 },
+    FeedbackFilter {
+        decay: f64,
+    },
     /// Quadratic + cubic nonlinearity of the x axis at the frame edge
     /// (fractions of the half-width).
-    Nonlinearity { quadratic: f64, cubic: f64 },
+    Nonlinearity {
+        quadratic: f64,
+        cubic: f64,
+    },
     /// Backward lines shifted along y (interlace), nm: no library effect.
-    Interlace { dy_nm: f64 },
+    Interlace {
+        dy_nm: f64,
+    },
 }
 
 /// The scan program and the instrument's linear part.
@@ -77,7 +94,15 @@ impl Default for Program {
 
 fn date_plus(seconds: u64) -> DateTime {
     let s = 12 * 3600 + seconds;
-    DateTime::new(2024, 3, 5, (s / 3600) as u8, ((s / 60) % 60) as u8, (s % 60) as u8).unwrap()
+    DateTime::new(
+        2024,
+        3,
+        5,
+        (s / 3600) as u8,
+        ((s / 60) % 60) as u8,
+        (s % 60) as u8,
+    )
+    .unwrap()
 }
 
 /// Writes the frames as `.sxm` files in a fresh directory; returns their paths.
@@ -110,11 +135,13 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
             [g * phi.cos(), g * phi.sin()]
         })
         .collect();
-    let offset = [0.031 * seed as f64 % program.a_nm, 0.017 * seed as f64 % program.a_nm];
+    let offset = [
+        0.031 * seed as f64 % program.a_nm,
+        0.017 * seed as f64 % program.a_nm,
+    ];
     let height = |r: [f64; 2]| {
         program.corrugation_nm / 3.0
-            * gs
-                .iter()
+            * gs.iter()
                 .map(|gk| (gk[0] * (r[0] - offset[0]) + gk[1] * (r[1] - offset[1])).cos())
                 .sum::<f64>()
     };
@@ -140,10 +167,7 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
                         + if s > 0.0 { 0.0 } else { program.line_time_s }
                         + (k as f64 + 0.5) * program.line_time_s / n as f64;
                     let xi = u[0] / half;
-                    let mut d = [
-                        program.drift_nm_per_s[0] * t,
-                        program.drift_nm_per_s[1] * t,
-                    ];
+                    let mut d = [program.drift_nm_per_s[0] * t, program.drift_nm_per_s[1] * t];
                     let mut decay = 0.0;
                     match hidden {
                         Hidden::None => {}

@@ -143,6 +143,8 @@ pub fn generate(scan: &Scan, seed: u64, extra: &Extra) -> FeatureSet {
                         frame_index: f,
                         line_index: line.round() as usize,
                         sigma_nm: Some(scan.noise_nm),
+                        width_nm: None,
+                        fit_radius_nm: None,
                     });
                 }
             }

@@ -151,7 +151,7 @@ fn check_lattice(
     b2: [f64; 2],
     lattice: &LatticeSpec,
     context: &str,
-) -> Result<(), ModelCheckError> {
+) -> Result<(usize, usize), ModelCheckError> {
     let refuse = |reason: String| {
         Err(ModelCheckError::NotTheLattice {
             context: context.to_owned(),
@@ -202,14 +202,24 @@ fn check_lattice(
         }
     }
     let fraction = good as f64 / points.len() as f64;
-    if fraction < 0.5 {
+    // A clearly random group (enough features to tell) is refused alone.
+    if points.len() >= 30 && fraction < RANDOM_NN_FRACTION {
         return refuse(format!(
             "only {:.0} % of the features have a lattice vector to their nearest neighbour",
             100.0 * fraction
         ));
     }
-    Ok(())
+    Ok((good, points.len()))
 }
+
+/// Fraction of features whose nearest neighbour is a lattice vector (within
+/// 0.2 in basis units) for random points (noise peaks, adsorbates) with the
+/// detector's minimum separation: measured 0.18–0.28 on white-noise and blob
+/// images (tests/image.rs); a lattice gives 0.8–1, a lattice with many
+/// spurious detections (Si 7×7 with defects) 0.3–0.5.
+const RANDOM_NN_FRACTION: f64 = 0.25;
+/// Pooled over all frames and directions, at least this fraction is needed.
+const LATTICE_NN_FRACTION: f64 = 0.33;
 
 fn inverse(b1: [f64; 2], b2: [f64; 2]) -> Option<[[f64; 2]; 2]> {
     let det = b1[0] * b2[1] - b2[0] * b1[1];
@@ -270,7 +280,8 @@ pub fn index_features(
         a1_nm: [a, 0.0],
         a2_nm: [a * gamma.cos(), handed * a * gamma.sin()],
     };
-    check_lattice(&ref_points, b1, b2, lattice, &label(reference.0))?;
+    let (mut good_total, mut n_total) =
+        check_lattice(&ref_points, b1, b2, lattice, &label(reference.0))?;
     let mut warnings = Vec::new();
     let ref_len = [b1[0].hypot(b1[1]), b2[0].hypot(b2[1])];
     for (key, members) in groups.iter().skip(1) {
@@ -282,7 +293,9 @@ pub fn index_features(
             continue;
         }
         let (g1, g2) = refine_basis(&pts, b1, b2).unwrap_or((b1, b2));
-        check_lattice(&pts, g1, g2, lattice, &label(*key))?;
+        let (g, n) = check_lattice(&pts, g1, g2, lattice, &label(*key))?;
+        good_total += g;
+        n_total += n;
         // One sample, one scan series: the lattice seen in every frame should
         // agree with the reference up to drift-sized distortion.
         let rot = |a: [f64; 2], b: [f64; 2]| {
@@ -301,6 +314,17 @@ pub fn index_features(
                 100.0 * dl
             ));
         }
+    }
+    let pooled = good_total as f64 / n_total.max(1) as f64;
+    if pooled < LATTICE_NN_FRACTION {
+        return Err(ModelCheckError::NotTheLattice {
+            context: format!("{} features in {} group(s)", n_total, groups.len()),
+            reason: format!(
+                "only {:.0} % of the features have a lattice vector to their nearest \
+                 neighbour (random points: about 20 %, a lattice: 80–100 %)",
+                100.0 * pooled
+            ),
+        });
     }
     // Reference origin: the reference-group feature nearest the frame centre.
     let origin_k = reference

@@ -136,3 +136,16 @@ fn explore_image() {
         }
     }
 }
+
+#[test]
+#[ignore = "exploration: prints the no-lattice cases"]
+fn explore_no_lattice() {
+    let program = Program::default();
+    for blobs in [false, true] {
+        for seed in 1..=3 {
+            let path = write_no_lattice(&program, blobs, seed, "explore-nolattice");
+            let r = run_paths(std::slice::from_ref(&path), program.a_nm);
+            println!("blobs {blobs} seed {seed}: {:?}", r.map(|d| summary(&d)));
+        }
+    }
+}

@@ -98,6 +98,35 @@ fn sample_col(obs: &[Obs], ctx: &Ctx, axis: usize, f: impl Fn(&Obs) -> f64) -> C
     c
 }
 
+/// The value a feature's fitted position sees of a time-dependent tip–sample
+/// displacement `f(t)` along image `axis` (0 = fast, 1 = slow).
+///
+/// A feature spans several lines, so its position averages whatever moved
+/// during them. A Gaussian fit weighs line l (offset l lines from the centre,
+/// within the fit window of radius R) by g(l)²·c(l) for the fast-axis
+/// position and by l²·g(l)²·c(l) for the slow-axis position (g the profile of
+/// width σ, c the window's chord): the seen displacement is
+/// Σ w(l)·f(t + l·P) / Σ w(l), P the line period. For a vibration cos ωt
+/// this attenuates the amplitude (strongly along the slow axis); a jump is
+/// seen partly by the features scanned across it. Without a known footprint
+/// (feature lists), f(t).
+pub(crate) fn footprint_average(o: &Obs, axis: usize, f: impl Fn(f64) -> f64) -> f64 {
+    let Some((sigma, radius, period)) = o.footprint else {
+        return f(o.t);
+    };
+    let n = radius.floor() as i64;
+    let (mut sum, mut weight) = (0.0, 0.0);
+    for l in -n..=n {
+        let l = l as f64;
+        let chord = 2.0 * (radius * radius - l * l).max(0.0).sqrt() + 1.0;
+        let g2 = (-(l * l) / (sigma * sigma).max(1e-12)).exp() * chord;
+        let w = if axis == 0 { g2 } else { l * l * g2 };
+        sum += w * f(o.t + l * period);
+        weight += w;
+    }
+    if weight > 0.0 { sum / weight } else { f(o.t) }
+}
+
 /// Names of the pixel-locking columns, in column order (nominal nm).
 pub(crate) const PIXEL_LOCKING_NAMES: [&str; 4] = [
     "pixel_locking_x_sin1_nm",
@@ -211,45 +240,20 @@ pub(crate) fn effect_columns(kind: EffectKind, hyper: f64, obs: &[Obs], ctx: &Ct
         EffectKind::FeedbackLag => vec![input_col(obs, ctx, 0, |o| -o.s * o.speed)],
         EffectKind::PeriodicVibration => {
             let w = 2.0 * std::f64::consts::PI * hyper;
-            // A feature's position averages the motion over the lines it
-            // spans. A Gaussian fit weighs line l (offset l from the centre,
-            // within the fit window of radius R) by g(l)²·c(l) along x and by
-            // l²·g(l)²·c(l) along y (g the profile of width σ, c the window's
-            // chord): for cos ωt the measured amplitude is Σ w(l)·cos(ωlP)/Σ w(l)
-            // (P the line period). The columns carry these factors, so the
-            // reported amplitude is the tip's, not the attenuated one.
-            let att = |o: &Obs| {
-                let Some((sigma, radius, period)) = o.footprint else {
-                    return [1.0, 1.0];
-                };
-                let n = radius.floor() as i64;
-                let (mut sx, mut wx, mut sy, mut wy) = (0.0, 0.0, 0.0, 0.0);
-                for l in -n..=n {
-                    let l = l as f64;
-                    let chord = 2.0 * (radius * radius - l * l).max(0.0).sqrt() + 1.0;
-                    let g2 = (-(l * l) / (sigma * sigma).max(1e-12)).exp() * chord;
-                    let c = (w * l * period).cos();
-                    sx += g2 * c;
-                    wx += g2;
-                    sy += l * l * g2 * c;
-                    wy += l * l * g2;
-                }
-                [
-                    if wx > 0.0 { sx / wx } else { 1.0 },
-                    if wy > 0.0 { sy / wy } else { 1.0 },
-                ]
-            };
             vec![
-                sample_col(obs, ctx, 0, |o| att(o)[0] * (w * o.t).cos()),
-                sample_col(obs, ctx, 0, |o| att(o)[0] * (w * o.t).sin()),
-                sample_col(obs, ctx, 1, |o| att(o)[1] * (w * o.t).cos()),
-                sample_col(obs, ctx, 1, |o| att(o)[1] * (w * o.t).sin()),
+                sample_col(obs, ctx, 0, |o| footprint_average(o, 0, |t| (w * t).cos())),
+                sample_col(obs, ctx, 0, |o| footprint_average(o, 0, |t| (w * t).sin())),
+                sample_col(obs, ctx, 1, |o| footprint_average(o, 1, |t| (w * t).cos())),
+                sample_col(obs, ctx, 1, |o| footprint_average(o, 1, |t| (w * t).sin())),
             ]
         }
-        EffectKind::TipChange => vec![
-            sample_col(obs, ctx, 0, |o| if o.t >= hyper { 1.0 } else { 0.0 }),
-            sample_col(obs, ctx, 1, |o| if o.t >= hyper { 1.0 } else { 0.0 }),
-        ],
+        EffectKind::TipChange => {
+            let step = |t: f64| if t >= hyper { 1.0 } else { 0.0 };
+            vec![
+                sample_col(obs, ctx, 0, |o| footprint_average(o, 0, step)),
+                sample_col(obs, ctx, 1, |o| footprint_average(o, 1, step)),
+            ]
+        }
     }
 }
 

@@ -13,6 +13,7 @@ mod error;
 mod files;
 mod fit_cmd;
 mod info;
+mod simulate_cmd;
 
 use clap::{Parser, Subcommand, ValueEnum};
 use error::{CliError, EXIT_BAD_INPUT, EXIT_SUCCESS};
@@ -113,6 +114,19 @@ enum Command {
         /// Also draw the residual figure.
         #[arg(long, value_name = "OUT.png")]
         png: Option<PathBuf>,
+    },
+    /// Run a measured file's scan program on the simulated microscope and write it as .sxm.
+    Simulate {
+        /// The measured file whose scan program (size, pixels, line time,
+        /// directions, slow-axis direction, date) is copied.
+        #[arg(long, value_name = "FILE")]
+        like: PathBuf,
+        /// The simulated microscope (spm-sim TOML), e.g. from the diagnosis' sim patch.
+        #[arg(long, value_name = "SIM.toml")]
+        config: PathBuf,
+        /// Where to write the simulated scan (Nanonis .sxm).
+        #[arg(long, value_name = "OUT.sxm")]
+        out: PathBuf,
     },
     /// Calibration-database maintenance.
     Cdb {
@@ -220,6 +234,9 @@ impl Command {
                 paths.push(json.clone());
                 paths.extend(png.iter().cloned());
             }
+            Self::Simulate { like, config, out } => {
+                paths.extend([like.clone(), config.clone(), out.clone()]);
+            }
             Self::Cdb { command } => match command {
                 CdbCommand::Check { path } | CdbCommand::Trend { path } => {
                     paths.push(path.clone());
@@ -322,6 +339,7 @@ fn run(command: Command) -> Result<(), CliError> {
             json,
             png,
         } => diagnose_cmd::run(&files, &lattice, &json, png.as_deref()),
+        Command::Simulate { like, config, out } => simulate_cmd::run(&like, &config, &out),
     }
 }
 

@@ -4,7 +4,8 @@
 use crate::index::{MeasuredBasis, index_features};
 use crate::model::{
     Column, Ctx, Fit, Obs, PIXEL_LOCKING_NAMES, baseline_columns, build_obs, effect_columns,
-    hyper_candidates, hyper_name, identifiable, param_names, pixel_locking_columns, solve,
+    hyper_candidates, hyper_name, identifiable, nonlinearity_degree, nonlinearity_names,
+    param_names, pixel_locking_columns, solve,
 };
 use crate::types::{
     EffectKind, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError, Options,
@@ -191,6 +192,11 @@ pub struct Diagnosis {
     pub unindexed: usize,
     /// Frame labels.
     pub frames: Vec<String>,
+    /// Localisation uncertainty the relevance threshold refers to (vector
+    /// length, pm): the localiser's median reported uncertainty, or the
+    /// baseline's robust scatter when none is reported.
+    #[serde(default)]
+    pub localisation_sigma_pm: f64,
     /// Candidates supported by evidence but not accepted, and why (every round).
     #[serde(default)]
     pub rejected: Vec<Rejection>,
@@ -310,6 +316,21 @@ fn heldout_rms(
         return f64::NAN;
     }
     1000.0 * (sum / n as f64).sqrt()
+}
+
+/// Two-fold held-out RMS over alternate lines of the model `cols`, pm.
+fn heldout_rms_with(
+    obs: &[Obs],
+    frames: &[FrameInfo],
+    target: &[f64],
+    cols: &[Column],
+    mask: &[bool],
+) -> f64 {
+    let ctx = Ctx {
+        j0: [[1.0, 0.0], [0.0, 1.0]],
+        theta0: 0.0,
+    };
+    heldout_rms(obs, frames, target, cols, None, mask, &ctx)
 }
 
 fn lag1_z(series: &[Vec<f64>]) -> f64 {
@@ -667,6 +688,12 @@ fn effect_params(added: &Added, fit: &Fit, frames: &[FrameInfo]) -> BTreeMap<Str
                 pv(*v, *s),
             );
         }
+    } else if added.kind == EffectKind::ScannerNonlinearity {
+        let degree = nonlinearity_degree(added.hyper);
+        for (name, (v, s)) in nonlinearity_names(degree).iter().zip(&vals) {
+            m.insert(name.clone(), pv(*v, *s));
+        }
+        m.insert("polynomial_degree".to_owned(), pv(degree as f64, 0.0));
     } else if added.kind != EffectKind::PeriodicVibration {
         for (name, (v, s)) in names.iter().zip(&vals) {
             m.insert((*name).to_owned(), pv(*v, *s));
@@ -740,6 +767,32 @@ fn nearly_collinear(extra: &[Column], cols: &[Column], mask: &[bool]) -> bool {
             Err(_) => true,
         }
     })
+}
+
+/// Re-runs the outlier rejection from all features with the current model;
+/// adopts the new mask when it keeps more features.
+fn readmit(
+    cols: &[Column],
+    target: &[f64],
+    mask: &mut Vec<bool>,
+    fit: &mut Fit,
+    options: &Options,
+    needed: usize,
+    lattice_a_nm: f64,
+) {
+    let mut all = vec![true; mask.len()];
+    if let Ok(f) = robust_fit(
+        cols,
+        target,
+        &mut all,
+        options.outlier_sigmas,
+        needed,
+        0.25 * lattice_a_nm,
+    ) && all.iter().filter(|m| **m).count() > mask.iter().filter(|m| **m).count()
+    {
+        *mask = all;
+        *fit = f;
+    }
 }
 
 /// Least squares with robust outlier rejection (mis-indexed or defective features).
@@ -1096,10 +1149,31 @@ pub fn diagnose_indexed(
         drift_separable,
         parameters: baseline_params,
     };
-    // Relevance: the smallest RMS displacement worth reporting.
-    let sigma_loc_nm = std::f64::consts::SQRT_2 * robust_sigma(&fit.residual, &mask);
-    let relevance_nm = (options.relevance_sigma_fraction * sigma_loc_nm)
-        .max(options.relevance_lattice_fraction * lattice_a_nm);
+    // Relevance: the smallest RMS displacement worth reporting — a fraction
+    // of the localisation uncertainty (the localiser's own, when it reports
+    // one; otherwise the scatter of the current model, updated every round)
+    // and of the lattice constant.
+    let mut reported: Vec<f64> = source
+        .iter()
+        .filter_map(|&k| set.features[k].sigma_nm)
+        .filter(|s| s.is_finite() && *s > 0.0)
+        .collect();
+    reported.sort_by(f64::total_cmp);
+    let reported_sigma_nm = if reported.len() * 2 >= source.len() && !reported.is_empty() {
+        Some(std::f64::consts::SQRT_2 * reported[reported.len() / 2])
+    } else {
+        None
+    };
+    let relevance_for = |fit: &Fit, mask: &[bool]| {
+        let sigma = reported_sigma_nm
+            .unwrap_or_else(|| std::f64::consts::SQRT_2 * robust_sigma(&fit.residual, mask));
+        (options.relevance_sigma_fraction * sigma)
+            .max(options.relevance_lattice_fraction * lattice_a_nm)
+    };
+    let mut relevance_nm = relevance_for(&fit, &mask);
+    let localisation_sigma_pm = 1000.0
+        * reported_sigma_nm
+            .unwrap_or_else(|| std::f64::consts::SQRT_2 * robust_sigma(&fit.residual, &mask));
     let span_s = obs.iter().map(|o| o.t).fold(f64::NEG_INFINITY, f64::max)
         - obs.iter().map(|o| o.t).fold(f64::INFINITY, f64::min);
     let mut cols = base_cols;
@@ -1109,8 +1183,9 @@ pub fn diagnose_indexed(
     let mut rejected: Vec<Rejection> = Vec::new();
     let mut unexplained_candidates: Vec<String> = Vec::new();
     let mut heldout_now = baseline_heldout;
-    let n_eq = fit.n_eq as f64;
+    let mut n_eq = fit.n_eq as f64;
     for _ in 0..options.max_findings {
+        relevance_nm = relevance_for(&fit, &mask);
         let mut scores: Vec<Scored> = Vec::new();
         for &kind in &options.effects {
             if added.iter().any(|a| a.kind == kind) || !identifiable(kind, &obs) {
@@ -1318,6 +1393,94 @@ pub fn diagnose_indexed(
             a.range = start..cols.len();
         }
         fit = solve(&cols, &target, &mask)?;
+        // Features dropped as outliers of the baseline may be well described
+        // by the extended model (the edges of a strongly nonlinear frame):
+        // re-admit them, or the data that size the effect are thrown away.
+        readmit(
+            &cols,
+            &target,
+            &mut mask,
+            &mut fit,
+            options,
+            needed,
+            lattice_a_nm,
+        );
+        // A strong map may need more than a cubic: raise the degree by two
+        // while the evidence supports it, the held-out RMS drops and the
+        // added orders explain a relevant displacement.
+        if kind == EffectKind::ScannerNonlinearity {
+            while let Some(pos) = added.iter().position(|a| a.kind == kind) {
+                let degree = nonlinearity_degree(added[pos].hyper);
+                if degree + 2 > 9 {
+                    break;
+                }
+                let mut trial = cols.clone();
+                let range = added[pos].range.clone();
+                let higher = effect_columns(kind, (degree + 2) as f64, &obs, &ctx);
+                // Keep the existing columns; append the two new orders per axis.
+                let new_cols: Vec<Column> = higher
+                    .iter()
+                    .enumerate()
+                    .filter(|(i, _)| {
+                        let k = i % (degree + 1) + 2;
+                        k > degree
+                    })
+                    .map(|(_, c)| c.clone())
+                    .collect();
+                let start = trial.len();
+                trial.extend(new_cols);
+                let Ok(fit2) = solve(&trial, &target, &mask) else {
+                    break;
+                };
+                let ev = delta_bic(n_eq, fit.rss, fit2.rss, 4.0, 1.0);
+                let explained = explained_rms(&trial, &fit2, start..trial.len(), &mask);
+                if !(ev > options.evidence_threshold && explained >= relevance_nm)
+                    || heldout_rms_with(&obs, frames, &target, &trial, &mask) >= heldout_now
+                {
+                    break;
+                }
+                // Rebuild with the higher degree in place of the old columns.
+                let _ = range;
+                added[pos].hyper = (degree + 2) as f64;
+                cols.truncate(base_len);
+                if pixel_locking && let Some(pl) = pixel_locking_columns(&obs, &ctx) {
+                    cols.extend(pl);
+                }
+                for a in &mut added {
+                    let start = cols.len();
+                    cols.extend(effect_columns(a.kind, a.hyper, &obs, &ctx));
+                    a.range = start..cols.len();
+                }
+                fit = solve(&cols, &target, &mask)?;
+                readmit(
+                    &cols,
+                    &target,
+                    &mut mask,
+                    &mut fit,
+                    options,
+                    needed,
+                    lattice_a_nm,
+                );
+                if let Some(f) = findings.last_mut() {
+                    f.rms_after_pm = rms_pm(fit.rss, fit.n_eq);
+                    let ho = heldout_rms_with(&obs, frames, &target, &cols, &mask);
+                    if ho.is_finite() {
+                        f.heldout_rms_after_pm = ho;
+                        heldout_now = ho;
+                    }
+                }
+            }
+        }
+        // The held-out reference and the equation count follow the mask.
+        n_eq = fit.n_eq as f64;
+        let ho = heldout_rms_with(&obs, frames, &target, &cols, &mask);
+        if ho.is_finite() {
+            heldout_now = ho;
+            if let Some(f) = findings.last_mut() {
+                f.heldout_rms_after_pm = ho;
+                f.rms_after_pm = rms_pm(fit.rss, fit.n_eq);
+            }
+        }
         tracing::debug!(effect = kind.name(), evidence, "effect accepted");
     }
     for (finding, a) in findings.iter_mut().zip(&added) {
@@ -1397,6 +1560,7 @@ pub fn diagnose_indexed(
         outliers: obs.len() - used,
         unindexed: set.features.len() - source.len(),
         frames: set.frames.iter().map(|f| f.label.clone()).collect(),
+        localisation_sigma_pm,
         rejected,
         warnings: set.warnings.clone(),
         localiser_bias,

@@ -157,6 +157,31 @@ pub(crate) fn pixel_locking_columns(obs: &[Obs], ctx: &Ctx) -> Option<Vec<Column
     ])
 }
 
+/// The polynomial degree of the nonlinearity for a hyper-parameter value (3 by default).
+pub(crate) fn nonlinearity_degree(hyper: f64) -> usize {
+    if hyper.is_finite() && hyper >= 3.0 {
+        (hyper.round() as usize).min(15)
+    } else {
+        3
+    }
+}
+
+/// Parameter names of the nonlinearity of a degree, in column order.
+pub(crate) fn nonlinearity_names(degree: usize) -> Vec<String> {
+    let mut names = Vec::new();
+    for axis in ["x", "y"] {
+        for k in 2..=degree {
+            let order = match k {
+                2 => "quadratic".to_owned(),
+                3 => "cubic".to_owned(),
+                k => format!("order{k}"),
+            };
+            names.push(format!("{order}_{axis}"));
+        }
+    }
+    names
+}
+
 /// Names (with units) of an effect's linear parameters, in column order.
 pub(crate) fn param_names(kind: EffectKind) -> &'static [&'static str] {
     match kind {
@@ -223,12 +248,21 @@ pub(crate) fn effect_columns(kind: EffectKind, hyper: f64, obs: &[Obs], ctx: &Ct
                 -o.s * o.half[0] * (1.0 - o.xi[0] * o.xi[0]) * o.xi[0] * o.xi[0]
             }),
         ],
-        EffectKind::ScannerNonlinearity => vec![
-            input_col(obs, ctx, 0, |o| o.half[0] * o.xi[0] * o.xi[0]),
-            input_col(obs, ctx, 0, |o| o.half[0] * o.xi[0].powi(3)),
-            input_col(obs, ctx, 1, |o| o.half[1] * o.xi[1] * o.xi[1]),
-            input_col(obs, ctx, 1, |o| o.half[1] * o.xi[1].powi(3)),
-        ],
+        EffectKind::ScannerNonlinearity => {
+            // Polynomial of degree `hyper` (3 unless raised): a strong map
+            // that is not a cubic (a sinusoidal fast-axis drive with pixels
+            // equidistant in time) needs higher orders to be followed.
+            let degree = nonlinearity_degree(hyper);
+            let mut cols = Vec::with_capacity(2 * (degree - 1));
+            for axis in 0..2 {
+                for k in 2..=degree {
+                    cols.push(input_col(obs, ctx, axis, |o| {
+                        o.half[axis] * o.xi[axis].powi(k as i32)
+                    }));
+                }
+            }
+            cols
+        }
         EffectKind::Nonorthogonality => vec![
             input_col(obs, ctx, 0, |o| o.half[0] * o.xi[0] * o.xi[1]),
             input_col(obs, ctx, 1, |o| o.half[1] * o.xi[0] * o.xi[1]),

@@ -40,7 +40,8 @@ fn run(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> Diagnosis {
 
 fn summary(d: &Diagnosis) -> String {
     format!(
-        "baseline {:.2} pm (sep {}) → final {:.2} pm; used {} ({} outliers, {} unindexed); findings {:?}; unexplained {} {:?}; rejected {:?}; round 0 {:?}; pl {:?}",
+        "σloc {:.2} pm, baseline {:.2} pm (sep {}) → final {:.2} pm; used {} ({} outliers, {} unindexed); findings {:?}; unexplained {} {:?}; rejected {:?}; round 0 {:?}; pl {:?}",
+        d.localisation_sigma_pm,
         d.baseline.rms_pm,
         d.baseline.drift_separable,
         d.final_report.rms_pm,
@@ -113,6 +114,8 @@ fn cases() -> Vec<(&'static str, Hidden)> {
             },
         ),
         ("interlace", Hidden::Interlace { dy_nm: 0.03 }),
+        ("sine_drive", Hidden::SineDrive { beta_rad: 1.2 }),
+        ("sine_drive_full", Hidden::SineDrive { beta_rad: 1.5 }),
         (
             "hysteresis_large",
             Hidden::Hysteresis {

@@ -52,6 +52,11 @@ pub enum Hidden {
     Interlace {
         dy_nm: f64,
     },
+    /// Fast axis driven sinusoidally in time (fast SPM), pixels equidistant
+    /// in time: true x = W·sin(βξ)/sin β for the commanded ξ.
+    SineDrive {
+        beta_rad: f64,
+    },
 }
 
 /// The scan program and the instrument's linear part.
@@ -195,6 +200,9 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
                         Hidden::FeedbackFilter { decay: dd } => decay = dd,
                         Hidden::Nonlinearity { quadratic, cubic } => {
                             u[0] += half * (quadratic * xi * xi + cubic * xi.powi(3));
+                        }
+                        Hidden::SineDrive { beta_rad } => {
+                            u[0] = half * (beta_rad * xi).sin() / beta_rad.sin();
                         }
                         Hidden::Interlace { dy_nm } => {
                             if s < 0.0 {

@@ -145,25 +145,37 @@ pub fn features_from_height_map(
 /// Levels a display-orientation image line by line and fills NaN with 0;
 /// returns the values in pm and the NaN mask.
 ///
-/// Each line's offset and slope come from a least-squares line with Hann
-/// weights (sin² over the line). A line of a lattice image holds a
+/// Each line's offset and slope come from a least-squares line with Tukey
+/// weights (flat, with sin² tapers over the outer 15 % of each end). A line of a lattice image holds a
 /// non-integer number of periods: with uniform weights the partial period at
 /// the ends leaks into the line's offset and slope, which then change from
 /// line to line with the lattice phase of the row; subtracting them moves
 /// every atom by a periodic function of its row (a fake slow "vibration" of
 /// ~1 pm on graphite, since rows are time along the slow axis). The taper
-/// suppresses that leakage by orders of magnitude while still removing the
-/// line-to-line offsets and tilts of the feedback.
+/// suppresses that leakage (on the image-level test generator the evidence
+/// for that "vibration" on clean data drops from ΔBIC ≈ 95 to ≤ 5) while
+/// still removing the line-to-line offsets and tilts of the feedback.
 fn level(channel: &Channel) -> (Vec<f64>, Vec<bool>) {
     let (nx, ny) = (channel.nx(), channel.ny());
     let scale = if channel.unit() == "m" { 1e12 } else { 1.0 };
     let data = channel.data();
     let mut out = vec![0.0; nx * ny];
     let mut nan = vec![false; nx * ny];
+    // 15 % of each end tapered: enough to suppress the partial-period
+    // leakage (tests/image.rs, clean cases), while the flat middle keeps the
+    // tilt estimate efficient on real lines with strong feedback noise.
+    let alpha = 0.3;
     let taper = |c: usize| {
-        (std::f64::consts::PI * (c as f64 + 0.5) / nx as f64)
-            .sin()
-            .powi(2)
+        // Tukey window: flat in the middle, cosine tapers over α/2 of each end.
+        let x = (c as f64 + 0.5) / nx as f64;
+        let edge = x.min(1.0 - x);
+        if alpha <= 0.0 || edge >= 0.5 * alpha {
+            1.0
+        } else {
+            (0.5 * std::f64::consts::PI * edge / (0.5 * alpha))
+                .sin()
+                .powi(2)
+        }
     };
     for r in 0..ny {
         let row = &data[r * nx..(r + 1) * nx];

@@ -212,6 +212,21 @@ pub(crate) fn identifiable(kind: EffectKind, obs: &[Obs]) -> bool {
     let both = obs.iter().any(|o| o.s > 0.0) && obs.iter().any(|o| o.s < 0.0);
     match kind {
         EffectKind::Hysteresis | EffectKind::FeedbackLag => both,
+        // In one direction of one frame the time is a fixed function of the
+        // position: a "vibration" is then any periodic function of position
+        // (a localiser or levelling bias that follows the lattice, a
+        // periodic distortion) and cannot be told from one. Only a second
+        // pass over the same places at other times (the other direction,
+        // another frame) makes it a function of time.
+        EffectKind::PeriodicVibration => {
+            let mut groups: Vec<(usize, LineDirection)> = Vec::new();
+            for o in obs {
+                if !groups.contains(&(o.frame, o.direction)) {
+                    groups.push((o.frame, o.direction));
+                }
+            }
+            groups.len() >= 2
+        }
         _ => true,
     }
 }

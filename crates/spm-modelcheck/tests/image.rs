@@ -286,6 +286,15 @@ fn hidden_effects_in_images_are_named_first_with_their_parameters() {
                 ));
                 continue;
             }
+            // final.parameters: the baseline's keys only, never effect
+            // values under frame-offset names.
+            for key in d.final_report.parameters.keys() {
+                assert!(
+                    d.baseline.parameters.contains_key(key),
+                    "{key}: {}",
+                    summary(&d)
+                );
+            }
             let f = &d.findings[0];
             for (name, value) in truth {
                 let Some(p) = f.parameters.get(*name) else {
@@ -434,4 +443,93 @@ fn images_without_the_lattice_are_refused() {
         "{:?}",
         r.map(|d| summary(&d))
     );
+}
+
+/// A fast axis driven sinusoidally in time (pixels equidistant in time, not
+/// space): a strong map that is not a cubic. Named as the scanner's
+/// nonlinearity, with the features at the frame edges kept (re-admitted
+/// under the extended model) and nothing relevant left.
+#[test]
+fn a_sinusoidal_fast_axis_drive_is_followed() {
+    let program = Program::default();
+    let d = run(&program, Hidden::SineDrive { beta_rad: 1.2 }, 11, "sine");
+    assert_eq!(
+        d.effects_found().first(),
+        Some(&"scanner_nonlinearity"),
+        "{}",
+        summary(&d)
+    );
+    assert!(d.outliers * 50 < d.features_used, "{}", summary(&d));
+    assert!(
+        d.final_report.rms_pm < 1.5 * d.localisation_sigma_pm,
+        "{}",
+        summary(&d)
+    );
+    assert!(!d.unexplained, "{}", summary(&d));
+    // The cubic of sin(βξ)/sin β relative to its linear part: −β²/6 (Taylor).
+    let c = d.findings[0].parameters["cubic_x"].value;
+    let k = 1.2_f64;
+    assert!(
+        (c - (-k * k / 6.0)).abs() < 0.15 * k * k / 6.0,
+        "cubic {c}: {}",
+        summary(&d)
+    );
+}
+
+/// Frames of different scan series (another size) are diagnosed with a
+/// warning naming the difference.
+#[test]
+fn frames_of_different_series_are_flagged() {
+    let a = write_frames(
+        &Program {
+            frames: vec![spm_formats::ScanDir::Down],
+            ..Program::default()
+        },
+        Hidden::None,
+        21,
+        "series-a",
+    );
+    let b = write_frames(
+        &Program {
+            frames: vec![spm_formats::ScanDir::Up],
+            size_nm: 6.0,
+            ..Program::default()
+        },
+        Hidden::None,
+        22,
+        "series-b",
+    );
+    let d = run_paths(&[a[0].clone(), b[0].clone()], 0.2461);
+    for p in [&a[0], &b[0]] {
+        let _ = std::fs::remove_dir_all(p.parent().unwrap());
+    }
+    let d = d.unwrap();
+    assert!(
+        d.warnings.iter().any(|w| w.contains("size")),
+        "{:?}",
+        d.warnings
+    );
+}
+
+/// A file holding only the backward (retrace) image is diagnosed from it.
+#[test]
+fn a_backward_only_file_is_diagnosed() {
+    let program = Program {
+        frames: vec![spm_formats::ScanDir::Up],
+        ..Program::default()
+    };
+    let paths = write_frames(&program, Hidden::None, 31, "backward-only");
+    let file = spm_formats::read_any(&paths[0]).unwrap();
+    let backward = file
+        .channels
+        .iter()
+        .find(|c| c.direction() == spm_formats::Direction::Backward)
+        .unwrap();
+    let gsf = paths[0].with_extension("gsf");
+    spm_formats::write_gsf(&gsf, backward, &[]).unwrap();
+    let d = run_paths(std::slice::from_ref(&gsf), program.a_nm);
+    let _ = std::fs::remove_dir_all(paths[0].parent().unwrap());
+    let d = d.unwrap();
+    assert!(d.features_used > 300, "{}", summary(&d));
+    assert!(d.findings.is_empty(), "{}", summary(&d));
 }

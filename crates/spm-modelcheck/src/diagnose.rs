@@ -354,6 +354,9 @@ fn lag1_z(series: &[Vec<f64>]) -> f64 {
     num / den * (pairs as f64).sqrt()
 }
 
+/// Mean, variance (per axis) and count of one group's residuals.
+type GroupStats = ([f64; 2], [f64; 2], usize);
+
 /// Robust σ per axis (1.4826·MAD over both axes) of a residual over `mask`, nm.
 fn robust_sigma(residual: &[f64], mask: &[bool]) -> f64 {
     let mut abs: Vec<f64> = (0..mask.len())
@@ -404,7 +407,7 @@ fn structure(
     let mut spatial_cells = 0usize;
     let mut frame_excess: f64 = 0.0;
     let mut frame_z: f64 = 0.0;
-    let mut group_means: BTreeMap<(usize, u8), ([f64; 2], [f64; 2], usize)> = BTreeMap::new();
+    let mut group_means: BTreeMap<(usize, u8), GroupStats> = BTreeMap::new();
     for &key in &keys {
         let mut idx: Vec<usize> = (0..obs.len())
             .filter(|&k| mask[k] && (obs[k].frame, obs[k].direction) == key)

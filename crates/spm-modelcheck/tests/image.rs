@@ -180,11 +180,14 @@ fn vibration_image_amplitudes(program: &Program, a: [f64; 2]) -> [f64; 2] {
     [x[0].hypot(x[1]), y[0].hypot(y[1])]
 }
 
-/// (effect expected first, hidden, true parameters) with amplitude factor k.
+/// (effect expected first, hidden, true parameters).
+type HiddenCase = (EffectKind, Hidden, Vec<(&'static str, f64)>);
+
+/// The hidden cases with amplitude factor k.
 fn hidden_effects(
     program: &Program,
     k: f64,
-) -> Vec<(EffectKind, Hidden, Vec<(&'static str, f64)>)> {
+) -> Vec<HiddenCase> {
     let acc = [1.2e-4 * k, -0.8e-4 * k];
     let acc_img = to_image(program, acc);
     let jump = [0.04 * k, -0.03 * k];

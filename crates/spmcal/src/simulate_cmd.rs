@@ -1,144 +1,17 @@
-//! `spmcal simulate --like FILE --config SIM.toml --out OUT.sxm`: the scan
-//! program of a measured file (size, pixels, line time, directions, slow-axis
-//! direction, record date) run on the simulated microscope of a config, and
-//! written as a Nanonis `.sxm` — the "closing the loop" step of the model check
-//! (DESIGN §10): simulate with the fitted baseline configuration and with the
-//! extended one, and compare both with the measurement.
+//! `spmcal simulate --like FILE --config SIM.toml --out OUT.sxm` (see
+//! [`spmcal::simulate`]).
 
 use crate::error::CliError;
-use spm_formats::{
-    DateTime, Direction, ScanDir, SpmFile, SxmChannel, SxmScan, encode_sxm, read_any,
-};
-use spm_hal::{CountPoint, Counts, Microscope, ScanDirection, ScanRequest, Seconds, TraceHalf};
-use spm_sim::{SimConfig, Simulator};
+use spm_formats::{encode_sxm, read_any};
+use spm_sim::SimConfig;
+use spmcal::simulate::{SimulateError, scan_program, simulate};
 use std::path::Path;
 
-/// The scan program of a measured file.
-#[derive(Clone, Debug, PartialEq)]
-pub struct ScanProgram {
-    /// Pixels per line, lines.
-    pub pixels: [usize; 2],
-    /// Frame size, nm.
-    pub size_nm: [f64; 2],
-    /// Forward line time, s.
-    pub line_time_s: f64,
-    /// Trace and retrace recorded.
-    pub both_directions: bool,
-    /// Slow-axis direction.
-    pub scan_dir: ScanDir,
-    /// Record date.
-    pub recorded: Option<DateTime>,
-}
-
-/// Reads the scan program of `file`: its first height channel (unit m).
-pub fn scan_program(file: &SpmFile) -> Result<ScanProgram, CliError> {
-    let path = file.source.display();
-    let height: Vec<_> = file.channels.iter().filter(|c| c.unit() == "m").collect();
-    let Some(first) = height.first() else {
-        return Err(CliError::BadInput(format!(
-            "{path}: no height channel (unit m) to copy the scan program from"
-        )));
-    };
-    let (Some(sx), Some(sy)) = (first.size_x_nm(), first.size_y_nm()) else {
-        return Err(CliError::BadInput(format!("{path}: no physical size")));
-    };
-    let both = height.iter().any(|c| c.direction() == Direction::Backward)
-        && height.iter().any(|c| c.direction() == Direction::Forward);
-    Ok(ScanProgram {
-        pixels: [first.nx(), first.ny()],
-        size_nm: [sx, sy],
-        // Without timing: one second per line, as the diagnosis assumes.
-        line_time_s: first.timing().map_or(1.0, |t| t.line_time_s),
-        both_directions: both,
-        scan_dir: first.scan_dir().or(file.scan_dir).unwrap_or(ScanDir::Up),
-        recorded: file.recorded,
-    })
-}
-
-/// Runs `program` on the simulator of `config` at the field centre and
-/// returns the `.sxm` scan. The instrument's nominal calibration is the
-/// config's x sensitivity (what the user's software believes). Up scans are
-/// direct rasters (+x trace, lines stepping +y); down scans are counter
-/// rasters (lines stepping −y), whose −x half comes first in each line.
-pub fn simulate(program: &ScanProgram, config: SimConfig) -> Result<SxmScan, CliError> {
-    let nominal = config.scanner.sensitivity_x_nm_per_count;
-    let z_nm_per_count = config.scanner.sensitivity_z_nm_per_count;
-    let [nx, ny] = program.pixels;
-    if nx != ny || (program.size_nm[0] - program.size_nm[1]).abs() > 1e-9 * program.size_nm[0] {
-        return Err(CliError::BadInput(format!(
-            "--like: the simulator scans square rasters with square pixels; the file has \
-             {nx}×{ny} pixels over {:?} nm",
-            program.size_nm
-        )));
+fn cli(e: SimulateError) -> CliError {
+    match e {
+        SimulateError::BadInput(m) => CliError::BadInput(m),
+        other => CliError::RunFailed(other.to_string()),
     }
-    let step = program.size_nm[0] / nx as f64 / nominal;
-    let dwell = program.line_time_s / nx as f64;
-    let mut sim =
-        Simulator::new(config).map_err(|e| CliError::BadInput(format!("--config: {e}")))?;
-    let direction = match program.scan_dir {
-        ScanDir::Up => ScanDirection::Direct,
-        ScanDir::Down => ScanDirection::Counter,
-    };
-    let mut request = ScanRequest::centred_square(
-        CountPoint::from_counts(0.0, 0.0),
-        Counts(step),
-        nx as u32,
-        Seconds(dwell),
-    )
-    .with_direction(direction);
-    request.record_backward = program.both_directions;
-    let frame = sim
-        .scan(&request)
-        .map_err(|e| CliError::RunFailed(format!("simulated scan failed: {e}")))?;
-    // Acquisition order of an image with +x (`plus_x`) lines.
-    let acquisition = |half: TraceHalf, plus_x: bool| -> Result<Vec<f64>, CliError> {
-        let map = frame
-            .height_map(half)
-            .map_err(|e| CliError::RunFailed(format!("simulated frame: {e}")))?;
-        let mut out = vec![0.0; nx * ny];
-        for r in 0..ny {
-            let row = match program.scan_dir {
-                ScanDir::Up => r,
-                ScanDir::Down => ny - 1 - r,
-            };
-            for k in 0..nx {
-                let col = if plus_x { k } else { nx - 1 - k };
-                out[r * nx + k] = map.z_counts[row * nx + col] * z_nm_per_count * 1e-9;
-            }
-        }
-        Ok(out)
-    };
-    // Direct: forward = +x; counter: backward = +x.
-    let (plus, minus) = match direction {
-        ScanDirection::Counter => (TraceHalf::Backward, TraceHalf::Forward),
-        _ => (TraceHalf::Forward, TraceHalf::Backward),
-    };
-    let forward = acquisition(plus, true)?;
-    let backward = if program.both_directions {
-        Some(acquisition(minus, false)?)
-    } else {
-        None
-    };
-    Ok(SxmScan {
-        pixels: [nx, ny],
-        size_nm: program.size_nm,
-        centre_nm: [0.0, 0.0],
-        angle_deg: 0.0,
-        line_time_s: [program.line_time_s, program.line_time_s],
-        scan_dir: program.scan_dir,
-        recorded: program
-            .recorded
-            .or_else(|| DateTime::new(2000, 1, 1, 0, 0, 0))
-            .ok_or_else(|| CliError::RunFailed("no date".into()))?,
-        bias_v: 0.0,
-        comment: "spmcal simulate".to_owned(),
-        channels: vec![SxmChannel {
-            name: "Z".to_owned(),
-            unit: "m".to_owned(),
-            forward,
-            backward,
-        }],
-    })
 }
 
 pub fn run(like: &Path, config: &Path, out: &Path) -> Result<(), CliError> {
@@ -146,14 +19,14 @@ pub fn run(like: &Path, config: &Path, out: &Path) -> Result<(), CliError> {
     crate::files::check_input(config, "--config")?;
     crate::files::check_output(out, "--out", &[like, config])?;
     let file = read_any(like).map_err(|e| CliError::BadInput(e.to_string()))?;
-    let program = scan_program(&file)?;
+    let program = scan_program(&file).map_err(cli)?;
     let text = std::fs::read_to_string(config).map_err(|source| CliError::Io {
         path: config.to_path_buf(),
         source,
     })?;
     let sim_config = SimConfig::from_toml_str(&text, &config.display().to_string())
         .map_err(|e| CliError::BadInput(e.to_string()))?;
-    let scan = simulate(&program, sim_config)?;
+    let scan = simulate(&program, sim_config).map_err(cli)?;
     let bytes = encode_sxm(&scan, out).map_err(|e| CliError::RunFailed(e.to_string()))?;
     crate::write_atomically(out, &bytes)?;
     crate::outln!(

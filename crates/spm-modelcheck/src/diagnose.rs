@@ -893,13 +893,15 @@ fn implausible(
             if h.abs() > 0.3 || (h + g).abs() > 0.3 {
                 return bad(format!("branch separation fraction {h:.3} (+{g:.3} ξ²)"));
             }
-            // The branches of a loop do not cross inside it: (h + g·ξ²) keeps
-            // one sign over the line.
-            if h * (h + g) < 0.0
-                && h.abs().min((h + g).abs()) > 3.0 * s("branch_half_separation_fraction")
-            {
+            // The piezo lags its drive: on the trace the tip is behind the
+            // commanded position, on the retrace ahead, so features appear
+            // shifted along the scan direction (like a feedback lag), and the
+            // branches do not cross inside the loop: h + g·ξ² ≥ 0 over the line.
+            let sh = s("branch_half_separation_fraction").max(1e-12);
+            if h < -3.0 * sh || h + g < -3.0 * sh.hypot(s("loop_shape")) {
                 return bad(format!(
-                    "the branches cross inside the line (h = {h:.4}, h + g = {:.4})",
+                    "the branches are reversed or cross (h = {h:.4}, h + g = {:.4}): \
+                     features shifted against the scan direction",
                     h + g
                 ));
             }
@@ -954,23 +956,15 @@ fn implausible(
     None
 }
 
-/// RMS length of the displacement the columns `range` of `fit` explain over `mask`, nm.
-fn explained_rms(cols: &[Column], fit: &Fit, range: std::ops::Range<usize>, mask: &[bool]) -> f64 {
-    let mut sum = 0.0;
-    let mut n = 0usize;
+/// RMS length of the change between two residuals over `mask`, nm.
+fn change_rms(before: &[f64], after: &[f64], mask: &[bool]) -> f64 {
+    let (mut sum, mut n) = (0.0, 0usize);
     for k in 0..mask.len() {
-        if !mask[k] {
-            continue;
+        if mask[k] {
+            sum += (before[2 * k] - after[2 * k]).powi(2)
+                + (before[2 * k + 1] - after[2 * k + 1]).powi(2);
+            n += 1;
         }
-        let mut d = [0.0, 0.0];
-        for j in range.clone() {
-            if let (Some(c), Some(b)) = (cols.get(j), fit.coef.get(j)) {
-                d[0] += b * c[2 * k];
-                d[1] += b * c[2 * k + 1];
-            }
-        }
-        sum += d[0] * d[0] + d[1] * d[1];
-        n += 1;
     }
     if n == 0 { 0.0 } else { (sum / n as f64).sqrt() }
 }
@@ -1207,9 +1201,9 @@ pub fn diagnose_indexed(
             let k = n_params(kind, &extra);
             let evidence = delta_bic(n_eq, fit.rss, fit1.rss, k, trials);
             let range = cols.len()..cols.len() + extra.len();
-            let mut all = cols.clone();
-            all.extend(extra.iter().cloned());
-            let explained_nm = explained_rms(&all, &fit1, range.clone(), &mask);
+            // The displacement the effect adds to the model's prediction (not
+            // its raw columns, which other terms may partly cancel).
+            let explained_nm = change_rms(&fit.residual, &fit1.residual, &mask);
             let mut params = effect_params(
                 &Added {
                     kind,
@@ -1430,13 +1424,12 @@ pub fn diagnose_indexed(
                     })
                     .map(|(_, c)| c.clone())
                     .collect();
-                let start = trial.len();
                 trial.extend(new_cols);
                 let Ok(fit2) = solve(&trial, &target, &mask) else {
                     break;
                 };
                 let ev = delta_bic(n_eq, fit.rss, fit2.rss, 4.0, 1.0);
-                let explained = explained_rms(&trial, &fit2, start..trial.len(), &mask);
+                let explained = change_rms(&fit.residual, &fit2.residual, &mask);
                 if !(ev > options.evidence_threshold && explained >= relevance_nm)
                     || heldout_rms_with(&obs, frames, &target, &trial, &mask) >= heldout_now
                 {

@@ -185,7 +185,7 @@ type HiddenCase = (EffectKind, Hidden, Vec<(&'static str, f64)>);
 
 /// The hidden cases with amplitude factor k.
 fn hidden_effects(program: &Program, k: f64) -> Vec<HiddenCase> {
-    let acc = [1.2e-4 * k, -0.8e-4 * k];
+    let acc = [5e-4 * k, -3.5e-4 * k];
     let acc_img = to_image(program, acc);
     let jump = [0.04 * k, -0.03 * k];
     let jump_img = to_image(program, jump);

@@ -273,8 +273,8 @@ fn the_json_has_the_design_keys() {
 }
 
 /// Absurd parameters are not findings: trace and retrace shifted *against*
-/// the scan direction (a negative feedback lag) is not named feedback_lag,
-/// and the structure is reported as unexplained.
+/// the scan direction (a negative feedback lag, a reversed hysteresis loop)
+/// is not named, and the structure is reported as unexplained.
 #[test]
 fn a_negative_lag_is_implausible_and_unexplained() {
     let v = 2.0 * Scan::default().half_nm / Scan::default().line_time_s;

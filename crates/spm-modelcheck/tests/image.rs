@@ -328,6 +328,7 @@ fn hidden_effects_in_images_are_named_first_with_their_parameters() {
             effect.name()
         );
     }
+    println!("named first in {named_first} of {total}; parameter misses: {failures:?}");
     assert!(
         6 * named_first >= 5 * total,
         "named first in {named_first} of {total}: {failures:#?}"

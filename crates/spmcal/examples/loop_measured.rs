@@ -144,10 +144,10 @@ fn base_config(lattice: &LatticeSpec, nominal: f64, corr_nm: f64, noise_nm: f64)
     c
 }
 
-fn run_sim(like: &Path, config: SimConfig, out: &Path) {
+fn run_sim(like: &Path, config: SimConfig, nominal: f64, out: &Path) {
     let file = read_any(like).unwrap();
     let program = scan_program(&file).unwrap();
-    let scan = simulate(&program, config).unwrap();
+    let scan = simulate(&program, config, Some(nominal)).unwrap();
     spm_formats::write_sxm(out, &scan).unwrap();
 }
 
@@ -189,7 +189,12 @@ fn main() {
         // corrugation scaled so the noise-free simulation matches the signal.
         let noise_nm = meas.noise_pm * 1e-3;
         let probe = tmp.join(format!("{name}-probe.sxm"));
-        run_sim(&path, base_config(&lattice, nominal, 0.1, 0.0), &probe);
+        run_sim(
+            &path,
+            base_config(&lattice, nominal, 0.1, 0.0),
+            nominal,
+            &probe,
+        );
         let s0 = stats(&probe);
         let signal = (meas.corrugation_pm.powi(2) - meas.noise_pm.powi(2))
             .max(0.0)
@@ -225,14 +230,15 @@ fn main() {
                 "{name}-{}.sxm",
                 if extended { "ext" } else { "base" }
             ));
-            run_sim(&path, config, &out);
+            run_sim(&path, config, nominal, &out);
             let ds = diag(&out, &lattice).ok();
             results.push((stats(&out), ds, patch.unmapped.clone()));
         }
         let row = |what: &str, m: f64, b: f64, e: f64| {
             let gain = (b - m).abs() / (e - m).abs().max(1e-9);
+            let p = if m.abs() < 5.0 { 3 } else { 1 };
             println!(
-                "| {name} | {what} | {m:.1} | {b:.1} | {e:.1} | {} |",
+                "| {name} | {what} | {m:.p$} | {b:.p$} | {e:.p$} | {} |",
                 if gain.is_finite() {
                     format!("{gain:.2}×")
                 } else {

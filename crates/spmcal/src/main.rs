@@ -127,6 +127,10 @@ enum Command {
         /// Where to write the simulated scan (Nanonis .sxm).
         #[arg(long, value_name = "OUT.sxm")]
         out: PathBuf,
+        /// The calibration the instrument's software believes, nm per count
+        /// (default: the config's x sensitivity).
+        #[arg(long, value_name = "NM")]
+        nominal_nm_per_count: Option<f64>,
     },
     /// Calibration-database maintenance.
     Cdb {
@@ -234,7 +238,9 @@ impl Command {
                 paths.push(json.clone());
                 paths.extend(png.iter().cloned());
             }
-            Self::Simulate { like, config, out } => {
+            Self::Simulate {
+                like, config, out, ..
+            } => {
                 paths.extend([like.clone(), config.clone(), out.clone()]);
             }
             Self::Cdb { command } => match command {
@@ -339,7 +345,12 @@ fn run(command: Command) -> Result<(), CliError> {
             json,
             png,
         } => diagnose_cmd::run(&files, &lattice, &json, png.as_deref()),
-        Command::Simulate { like, config, out } => simulate_cmd::run(&like, &config, &out),
+        Command::Simulate {
+            like,
+            config,
+            out,
+            nominal_nm_per_count,
+        } => simulate_cmd::run(&like, &config, &out, nominal_nm_per_count),
     }
 }
 

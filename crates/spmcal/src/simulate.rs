@@ -63,12 +63,22 @@ pub fn scan_program(file: &SpmFile) -> Result<ScanProgram, SimulateError> {
 }
 
 /// Runs `program` on the simulator of `config` at the field centre and
-/// returns the `.sxm` scan. The instrument's nominal calibration is the
-/// config's x sensitivity (what the user's software believes). Up scans are
+/// returns the `.sxm` scan. `nominal_nm_per_count` is the calibration the
+/// instrument's software believes (pixels are commanded with it and the file
+/// states sizes in it); `None` = the config's x sensitivity. Up scans are
 /// direct rasters (+x trace, lines stepping +y); down scans are counter
 /// rasters (lines stepping −y), whose −x half comes first in each line.
-pub fn simulate(program: &ScanProgram, config: SimConfig) -> Result<SxmScan, SimulateError> {
-    let nominal = config.scanner.sensitivity_x_nm_per_count;
+pub fn simulate(
+    program: &ScanProgram,
+    config: SimConfig,
+    nominal_nm_per_count: Option<f64>,
+) -> Result<SxmScan, SimulateError> {
+    let nominal = nominal_nm_per_count.unwrap_or(config.scanner.sensitivity_x_nm_per_count);
+    if !(nominal.is_finite() && nominal > 0.0) {
+        return Err(SimulateError::BadInput(format!(
+            "nominal calibration {nominal} nm per count is not a positive number"
+        )));
+    }
     let z_nm_per_count = config.scanner.sensitivity_z_nm_per_count;
     let [nx, ny] = program.pixels;
     if nx != ny || (program.size_nm[0] - program.size_nm[1]).abs() > 1e-9 * program.size_nm[0] {

@@ -14,7 +14,12 @@ fn cli(e: SimulateError) -> CliError {
     }
 }
 
-pub fn run(like: &Path, config: &Path, out: &Path) -> Result<(), CliError> {
+pub fn run(
+    like: &Path,
+    config: &Path,
+    out: &Path,
+    nominal_nm_per_count: Option<f64>,
+) -> Result<(), CliError> {
     crate::files::check_input(like, "--like")?;
     crate::files::check_input(config, "--config")?;
     crate::files::check_output(out, "--out", &[like, config])?;
@@ -26,7 +31,7 @@ pub fn run(like: &Path, config: &Path, out: &Path) -> Result<(), CliError> {
     })?;
     let sim_config = SimConfig::from_toml_str(&text, &config.display().to_string())
         .map_err(|e| CliError::BadInput(e.to_string()))?;
-    let scan = simulate(&program, sim_config).map_err(cli)?;
+    let scan = simulate(&program, sim_config, nominal_nm_per_count).map_err(cli)?;
     let bytes = encode_sxm(&scan, out).map_err(|e| CliError::RunFailed(e.to_string()))?;
     crate::write_atomically(out, &bytes)?;
     crate::outln!(

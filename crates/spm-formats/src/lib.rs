@@ -25,6 +25,7 @@ mod raw;
 mod render;
 mod rhk_sm4;
 mod sxm;
+mod sxm_write;
 mod text;
 
 use std::path::Path;
@@ -39,6 +40,7 @@ pub use raw::{encode_raw_f64, read_raw_f64};
 pub use render::{ColorMap, PngOptions, render_png, write_png};
 pub use rhk_sm4::read_sm4;
 pub use sxm::read_sxm;
+pub use sxm_write::{SxmChannel, SxmScan, encode_sxm, write_sxm};
 
 use error::Ctx;
 

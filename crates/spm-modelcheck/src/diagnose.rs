@@ -3,8 +3,9 @@
 
 use crate::index::{MeasuredBasis, index_features};
 use crate::model::{
-    Column, Ctx, Fit, Obs, baseline_columns, build_obs, effect_columns, hyper_candidates,
-    hyper_name, identifiable, param_names, solve,
+    Column, Ctx, Fit, Obs, PIXEL_LOCKING_NAMES, baseline_columns, build_obs, effect_columns,
+    hyper_candidates, hyper_name, identifiable, nonlinearity_degree, nonlinearity_names,
+    param_names, pixel_locking_columns, solve,
 };
 use crate::types::{
     EffectKind, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError, Options,
@@ -88,6 +89,51 @@ pub struct ResidualStructure {
     pub line_lag1_z_y: f64,
     /// Threshold used.
     pub z_threshold: f64,
+    /// Largest forward − backward difference of the mean residual within one
+    /// frame (x, y), pm: a trace/retrace offset no finding explains (e.g. an
+    /// interlace offset along the slow axis).
+    #[serde(default)]
+    pub direction_offset_pm: [f64; 2],
+    /// Its significance, |Δ| / standard error (largest over frames and axes).
+    #[serde(default)]
+    pub direction_offset_z: f64,
+    /// Largest excess RMS of one frame (or direction) over the pooled
+    /// residual, pm: √(RMS_f² − RMS²) when positive.
+    #[serde(default)]
+    pub frame_excess_rms_pm: f64,
+    /// Its significance (z of the variance ratio).
+    #[serde(default)]
+    pub frame_excess_z: f64,
+    /// Spatial structure: RMS of the mean residual in 4×4 position cells of
+    /// each frame and direction beyond the noise, pm.
+    #[serde(default)]
+    pub spatial_rms_pm: f64,
+    /// Its significance (χ² of the cell means as a z-score).
+    #[serde(default)]
+    pub spatial_z: f64,
+    /// Smallest RMS displacement that counts (the relevance threshold), pm.
+    #[serde(default)]
+    pub relevance_pm: f64,
+    /// Which tests found relevant structure (empty = none).
+    #[serde(default)]
+    pub reasons: Vec<String>,
+}
+
+/// A candidate the selection did not accept although the evidence supported
+/// it, and why.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Rejection {
+    /// Effect name.
+    pub effect: String,
+    /// Its evidence (ΔBIC after the look-elsewhere penalty).
+    pub evidence: f64,
+    /// RMS displacement the effect would explain, pm.
+    pub explained_rms_pm: f64,
+    /// Why not accepted: `irrelevant` (below the relevance threshold),
+    /// `implausible: …` (a parameter outside its physical range),
+    /// `encompassed by …` (another effect explains its signal and more),
+    /// `no held-out gain`.
+    pub reason: String,
 }
 
 /// One candidate's evidence in one selection round.
@@ -146,6 +192,21 @@ pub struct Diagnosis {
     pub unindexed: usize,
     /// Frame labels.
     pub frames: Vec<String>,
+    /// Localisation uncertainty the relevance threshold refers to (vector
+    /// length, pm): the localiser's median reported uncertainty, or the
+    /// baseline's robust scatter when none is reported.
+    #[serde(default)]
+    pub localisation_sigma_pm: f64,
+    /// Candidates supported by evidence but not accepted, and why (every round).
+    #[serde(default)]
+    pub rejected: Vec<Rejection>,
+    /// Warnings: frames that may not belong together, refusals avoided, …
+    #[serde(default)]
+    pub warnings: Vec<String>,
+    /// The localiser's pixel-locking bias (sub-pixel phase terms), when the
+    /// data support it; part of the baseline (not an effect of the instrument).
+    #[serde(default)]
+    pub localiser_bias: BTreeMap<String, ParamValue>,
     /// Time 0 of the model's time axis (the middle of the observation span) on
     /// the input's time axis, s.
     pub time_origin_s: f64,
@@ -257,6 +318,21 @@ fn heldout_rms(
     1000.0 * (sum / n as f64).sqrt()
 }
 
+/// Two-fold held-out RMS over alternate lines of the model `cols`, pm.
+fn heldout_rms_with(
+    obs: &[Obs],
+    frames: &[FrameInfo],
+    target: &[f64],
+    cols: &[Column],
+    mask: &[bool],
+) -> f64 {
+    let ctx = Ctx {
+        j0: [[1.0, 0.0], [0.0, 1.0]],
+        theta0: 0.0,
+    };
+    heldout_rms(obs, frames, target, cols, None, mask, &ctx)
+}
+
 fn lag1_z(series: &[Vec<f64>]) -> f64 {
     let mut num = 0.0;
     let mut den = 0.0;
@@ -278,7 +354,32 @@ fn lag1_z(series: &[Vec<f64>]) -> f64 {
     num / den * (pairs as f64).sqrt()
 }
 
-fn structure(obs: &[Obs], residual: &[f64], mask: &[bool], threshold: f64) -> ResidualStructure {
+/// Mean, variance (per axis) and count of one group's residuals.
+type GroupStats = ([f64; 2], [f64; 2], usize);
+
+/// Robust σ per axis (1.4826·MAD over both axes) of a residual over `mask`, nm.
+fn robust_sigma(residual: &[f64], mask: &[bool]) -> f64 {
+    let mut abs: Vec<f64> = (0..mask.len())
+        .filter(|&k| mask[k])
+        .flat_map(|k| [residual[2 * k].abs(), residual[2 * k + 1].abs()])
+        .collect();
+    if abs.is_empty() {
+        return 0.0;
+    }
+    abs.sort_by(f64::total_cmp);
+    1.4826 * abs[abs.len() / 2]
+}
+
+/// Residual-structure tests. `relevance_nm` is the smallest RMS displacement
+/// that matters: statistically significant structure smaller than it is noted
+/// but does not make the residual "unexplained".
+fn structure(
+    obs: &[Obs],
+    residual: &[f64],
+    mask: &[bool],
+    threshold: f64,
+    relevance_nm: f64,
+) -> ResidualStructure {
     // Segments: (frame, direction), ordered by time.
     let mut keys: Vec<(usize, LineDirection)> = Vec::new();
     for o in obs {
@@ -290,7 +391,24 @@ fn structure(obs: &[Obs], residual: &[f64], mask: &[bool], threshold: f64) -> Re
     let mut sy = Vec::new();
     let mut lx = Vec::new();
     let mut ly = Vec::new();
-    for key in keys {
+    let used: Vec<usize> = (0..obs.len()).filter(|&k| mask[k]).collect();
+    let pooled_var = if used.is_empty() {
+        0.0
+    } else {
+        used.iter()
+            .map(|&k| residual[2 * k].powi(2) + residual[2 * k + 1].powi(2))
+            .sum::<f64>()
+            / (2 * used.len()) as f64
+    };
+    let mut reasons = Vec::new();
+    let mut spatial_chi2 = 0.0;
+    let mut spatial_dof = 0usize;
+    let mut spatial_excess = 0.0;
+    let mut spatial_cells = 0usize;
+    let mut frame_excess: f64 = 0.0;
+    let mut frame_z: f64 = 0.0;
+    let mut group_means: BTreeMap<(usize, u8), GroupStats> = BTreeMap::new();
+    for &key in &keys {
         let mut idx: Vec<usize> = (0..obs.len())
             .filter(|&k| mask[k] && (obs[k].frame, obs[k].direction) == key)
             .collect();
@@ -307,17 +425,184 @@ fn structure(obs: &[Obs], residual: &[f64], mask: &[bool], threshold: f64) -> Re
         }
         lx.push(lines.values().map(|e| e.0 / e.2 as f64).collect::<Vec<_>>());
         ly.push(lines.values().map(|e| e.1 / e.2 as f64).collect::<Vec<_>>());
+        let n = idx.len();
+        if n < 8 || pooled_var <= 0.0 {
+            continue;
+        }
+        // Mean and variance of this group (for the direction-offset test).
+        let mean = [
+            idx.iter().map(|&k| residual[2 * k]).sum::<f64>() / n as f64,
+            idx.iter().map(|&k| residual[2 * k + 1]).sum::<f64>() / n as f64,
+        ];
+        let var = [0, 1].map(|a| {
+            idx.iter()
+                .map(|&k| (residual[2 * k + a] - mean[a]).powi(2))
+                .sum::<f64>()
+                / (n - 1) as f64
+        });
+        let dir = if key.1 == LineDirection::Forward {
+            0
+        } else {
+            1
+        };
+        group_means.insert((key.0, dir), (mean, var, n));
+        // Excess scatter of the group over the pooled residual (robust: a
+        // few features scanned across a jump do not make a frame "worse").
+        let group_mask: Vec<bool> = (0..obs.len())
+            .map(|k| mask[k] && (obs[k].frame, obs[k].direction) == key)
+            .collect();
+        let group_var = robust_sigma(residual, &group_mask).powi(2);
+        let robust_pooled = robust_sigma(residual, mask).powi(2).max(1e-300);
+        // Standard error of a MAD-based variance ≈ 1.36·√(2/n) relative.
+        let z = (group_var / robust_pooled - 1.0) / (1.36 * (1.0 / n as f64).sqrt());
+        let excess = (2.0 * (group_var - robust_pooled)).max(0.0).sqrt();
+        if z > frame_z {
+            frame_z = z;
+        }
+        if excess > frame_excess && z > threshold {
+            frame_excess = excess;
+        }
+        // 4×4 position cells: χ² of the cell means against the noise.
+        let mut cells: BTreeMap<(i64, i64), ([f64; 2], usize)> = BTreeMap::new();
+        for &k in &idx {
+            let c = [0, 1].map(|a| (((obs[k].xi[a] + 1.0) * 2.0).floor() as i64).clamp(0, 3));
+            let e = cells.entry((c[0], c[1])).or_insert(([0.0, 0.0], 0));
+            e.0[0] += residual[2 * k] - mean[0];
+            e.0[1] += residual[2 * k + 1] - mean[1];
+            e.1 += 1;
+        }
+        let noise = 0.5 * (var[0] + var[1]);
+        for (sum, m) in cells.values() {
+            if *m < 4 || noise <= 0.0 {
+                continue;
+            }
+            for v in sum {
+                let cm = v / *m as f64;
+                spatial_chi2 += cm * cm * *m as f64 / noise;
+                spatial_dof += 1;
+                spatial_excess += (cm * cm - noise / *m as f64).max(0.0);
+                spatial_cells += 1;
+            }
+        }
+    }
+    // Forward − backward within one frame.
+    let mut dir_offset = [0.0_f64, 0.0];
+    let mut dir_z: f64 = 0.0;
+    for (&(frame, d), &(mf, vf, nf)) in &group_means {
+        if d != 0 {
+            continue;
+        }
+        let Some(&(mb, vb, nb)) = group_means.get(&(frame, 1)) else {
+            continue;
+        };
+        for a in 0..2 {
+            let delta = mf[a] - mb[a];
+            let se = (vf[a] / nf as f64 + vb[a] / nb as f64).sqrt().max(1e-300);
+            let z = delta.abs() / se;
+            if z > dir_z {
+                dir_z = z;
+            }
+            if z > threshold && delta.abs() > dir_offset[a].abs() {
+                dir_offset[a] = delta;
+            }
+        }
+    }
+    let spatial_z = if spatial_dof > 0 {
+        (spatial_chi2 - spatial_dof as f64) / (2.0 * spatial_dof as f64).sqrt()
+    } else {
+        0.0
+    };
+    let spatial_rms = if spatial_cells > 0 {
+        (2.0 * spatial_excess / spatial_cells as f64).sqrt()
+    } else {
+        0.0
+    };
+    let lag = [lag1_z(&sx), lag1_z(&sy), lag1_z(&lx), lag1_z(&ly)];
+    let pairs = |series: &[Vec<f64>]| {
+        series
+            .iter()
+            .map(|s| s.len().saturating_sub(1))
+            .sum::<usize>()
+    };
+    let n_pairs = [pairs(&sx), pairs(&sy), pairs(&lx), pairs(&ly)];
+    let names = [
+        "time-ordered x",
+        "time-ordered y",
+        "line-mean x",
+        "line-mean y",
+    ];
+    let series_var = |series: &[Vec<f64>]| {
+        let (mut sum, mut n) = (0.0, 0usize);
+        for s in series {
+            if s.len() < 2 {
+                continue;
+            }
+            let m = s.iter().sum::<f64>() / s.len() as f64;
+            sum += s.iter().map(|v| (v - m).powi(2)).sum::<f64>();
+            n += s.len();
+        }
+        if n > 0 { sum / n as f64 } else { 0.0 }
+    };
+    let vars = [
+        series_var(&sx),
+        series_var(&sy),
+        series_var(&lx),
+        series_var(&ly),
+    ];
+    for i in 0..4 {
+        // ρ₁ ≈ var(signal)/var(total) for a slow signal in white noise: the
+        // correlated part has RMS √(ρ₁·var) per axis (√2 for a vector).
+        let rho = lag[i] / (n_pairs[i].max(1) as f64).sqrt();
+        let amplitude = (rho.max(0.0) * vars[i]).sqrt() * std::f64::consts::SQRT_2;
+        if lag[i] > threshold && amplitude >= relevance_nm {
+            reasons.push(format!(
+                "{} residual autocorrelated (z = {:.1}, ≈ {:.1} pm)",
+                names[i],
+                lag[i],
+                1000.0 * amplitude
+            ));
+        }
+    }
+    if dir_z > threshold && dir_offset[0].hypot(dir_offset[1]) >= relevance_nm {
+        reasons.push(format!(
+            "forward and backward differ by ({:.1}, {:.1}) pm (z = {:.1})",
+            1000.0 * dir_offset[0],
+            1000.0 * dir_offset[1],
+            dir_z
+        ));
+    }
+    if frame_z > threshold && frame_excess >= relevance_nm {
+        reasons.push(format!(
+            "one frame/direction scatters {:.1} pm more than the rest (z = {:.1})",
+            1000.0 * frame_excess,
+            frame_z
+        ));
+    }
+    if spatial_z > threshold && spatial_rms >= relevance_nm {
+        reasons.push(format!(
+            "the residual depends on position ({:.1} pm RMS over 4×4 cells, z = {:.1})",
+            1000.0 * spatial_rms,
+            spatial_z
+        ));
     }
     ResidualStructure {
-        lag1_z_x: lag1_z(&sx),
-        lag1_z_y: lag1_z(&sy),
-        line_lag1_z_x: lag1_z(&lx),
-        line_lag1_z_y: lag1_z(&ly),
+        lag1_z_x: lag[0],
+        lag1_z_y: lag[1],
+        line_lag1_z_x: lag[2],
+        line_lag1_z_y: lag[3],
         z_threshold: threshold,
+        direction_offset_pm: [1000.0 * dir_offset[0], 1000.0 * dir_offset[1]],
+        direction_offset_z: dir_z,
+        frame_excess_rms_pm: 1000.0 * frame_excess,
+        frame_excess_z: frame_z,
+        spatial_rms_pm: 1000.0 * spatial_rms,
+        spatial_z,
+        relevance_pm: 1000.0 * relevance_nm,
+        reasons,
     }
 }
 
-fn decompose(fit: &Fit) -> (BTreeMap<String, ParamValue>, f64) {
+fn decompose(fit: &Fit, n_frames: usize) -> (BTreeMap<String, ParamValue>, f64) {
     let c = &fit.coef;
     let j = [c[0], c[1], c[2], c[3]];
     let f = |j: [f64; 4]| -> [f64; 4] {
@@ -373,7 +658,9 @@ fn decompose(fit: &Fit) -> (BTreeMap<String, ParamValue>, f64) {
         "drift_y_nm_per_s".to_owned(),
         pv(d[1], (s * dv[0]).hypot(co * dv[1])),
     );
-    let n_frames = (c.len() - 6) / 2;
+    // Only the frame-offset columns: effect coefficients follow them and are
+    // reported with their effects, never under frame-offset names.
+    let n_frames = n_frames.min(c.len().saturating_sub(6) / 2);
     for fr in 0..n_frames {
         let (ox, oy) = (c[6 + 2 * fr], c[7 + 2 * fr]);
         m.insert(
@@ -404,6 +691,12 @@ fn effect_params(added: &Added, fit: &Fit, frames: &[FrameInfo]) -> BTreeMap<Str
                 pv(*v, *s),
             );
         }
+    } else if added.kind == EffectKind::ScannerNonlinearity {
+        let degree = nonlinearity_degree(added.hyper);
+        for (name, (v, s)) in nonlinearity_names(degree).iter().zip(&vals) {
+            m.insert(name.clone(), pv(*v, *s));
+        }
+        m.insert("polynomial_degree".to_owned(), pv(degree as f64, 0.0));
     } else if added.kind != EffectKind::PeriodicVibration {
         for (name, (v, s)) in names.iter().zip(&vals) {
             m.insert((*name).to_owned(), pv(*v, *s));
@@ -479,6 +772,32 @@ fn nearly_collinear(extra: &[Column], cols: &[Column], mask: &[bool]) -> bool {
     })
 }
 
+/// Re-runs the outlier rejection from all features with the current model;
+/// adopts the new mask when it keeps more features.
+fn readmit(
+    cols: &[Column],
+    target: &[f64],
+    mask: &mut Vec<bool>,
+    fit: &mut Fit,
+    options: &Options,
+    needed: usize,
+    lattice_a_nm: f64,
+) {
+    let mut all = vec![true; mask.len()];
+    if let Ok(f) = robust_fit(
+        cols,
+        target,
+        &mut all,
+        options.outlier_sigmas,
+        needed,
+        0.25 * lattice_a_nm,
+    ) && all.iter().filter(|m| **m).count() > mask.iter().filter(|m| **m).count()
+    {
+        *mask = all;
+        *fit = f;
+    }
+}
+
 /// Least squares with robust outlier rejection (mis-indexed or defective features).
 fn robust_fit(
     cols: &[Column],
@@ -526,7 +845,190 @@ pub fn diagnose_features(
     options: &Options,
 ) -> Result<Diagnosis, ModelCheckError> {
     let indexing = index_features(set, lattice)?;
-    diagnose_indexed(set, &indexing.sites, &indexing.basis, options)
+    let mut d = diagnose_indexed(set, &indexing.sites, &indexing.basis, options)?;
+    d.warnings.extend(indexing.warnings);
+    Ok(d)
+}
+
+/// Physical range of an effect's fitted parameters; `Some(reason)` when one
+/// is outside it. The bounds are generous (an order beyond what instruments
+/// show) and scale-free where possible: they catch a fit that uses an effect
+/// as a mathematical basis for something else (a lattice-vector mis-index
+/// read as a negative feedback lag, leftover drift read as 100 nm/s²).
+fn implausible(
+    kind: EffectKind,
+    p: &BTreeMap<String, ParamValue>,
+    frames: &[FrameInfo],
+    lattice_a_nm: f64,
+    span_s: f64,
+) -> Option<String> {
+    let v = |k: &str| p.get(k).map_or(0.0, |q| q.value);
+    let s = |k: &str| p.get(k).map_or(0.0, |q| q.sigma);
+    let half = frames
+        .iter()
+        .map(|f| f.half_width_x_nm.max(f.half_height_y_nm))
+        .fold(0.0_f64, f64::max);
+    let bad = |what: String| Some(what);
+    match kind {
+        EffectKind::DriftAcceleration => {
+            let a = v("acceleration_x_nm_per_s2").hypot(v("acceleration_y_nm_per_s2"));
+            // Thermal drift changes by at most ~nm/s over an experiment; more
+            // is a mis-modelled motion, not drift.
+            if a > 1.0 || a * span_s > 5.0 {
+                return bad(format!(
+                    "drift acceleration {a:.3e} nm/s² (velocity change {:.3} nm/s over the data)",
+                    a * span_s
+                ));
+            }
+        }
+        EffectKind::Creep => {
+            for (k, q) in p {
+                if k.starts_with("creep_") && q.value.abs() > 0.2 * half {
+                    return bad(format!("{k} = {:.3} nm per decade", q.value));
+                }
+            }
+        }
+        EffectKind::Hysteresis => {
+            let (h, g) = (v("branch_half_separation_fraction"), v("loop_shape"));
+            if h.abs() > 0.3 || (h + g).abs() > 0.3 {
+                return bad(format!("branch separation fraction {h:.3} (+{g:.3} ξ²)"));
+            }
+            // The piezo lags its drive: on the trace the tip is behind the
+            // commanded position, on the retrace ahead, so features appear
+            // shifted along the scan direction (like a feedback lag), and the
+            // branches do not cross inside the loop: h + g·ξ² ≥ 0 over the line.
+            let sh = s("branch_half_separation_fraction").max(1e-12);
+            if h < -3.0 * sh || h + g < -3.0 * sh.hypot(s("loop_shape")) {
+                return bad(format!(
+                    "the branches are reversed or cross (h = {h:.4}, h + g = {:.4}): \
+                     features shifted against the scan direction",
+                    h + g
+                ));
+            }
+        }
+        EffectKind::ScannerNonlinearity => {
+            for k in ["quadratic_x", "cubic_x", "quadratic_y", "cubic_y"] {
+                if v(k).abs() > 0.3 {
+                    return bad(format!("{k} = {:.3} at the frame edge", v(k)));
+                }
+            }
+        }
+        EffectKind::Nonorthogonality => {
+            for k in ["shear_gradient_x", "shear_gradient_y"] {
+                if v(k).abs() > 0.3 {
+                    return bad(format!("{k} = {:.3}", v(k)));
+                }
+            }
+        }
+        EffectKind::CrosstalkXy => {
+            for k in ["bow_x_from_y", "bow_y_from_x"] {
+                if v(k).abs() > 0.3 {
+                    return bad(format!("{k} = {:.3}", v(k)));
+                }
+            }
+        }
+        EffectKind::FeedbackLag => {
+            let tau = v("time_constant_s");
+            // A lag is a delay: features shift along the scan direction.
+            if tau < -3.0 * s("time_constant_s") {
+                return bad(format!(
+                    "negative feedback lag {tau:.3e} ± {:.1e} s",
+                    s("time_constant_s")
+                ));
+            }
+            if v("shift_nm").abs() > 0.5 * half {
+                return bad(format!("lag shift {:.3} nm", v("shift_nm")));
+            }
+        }
+        EffectKind::PeriodicVibration => {
+            let amp = v("amplitude_x_nm").hypot(v("amplitude_y_nm"));
+            if amp > 0.5 * lattice_a_nm {
+                return bad(format!("vibration amplitude {amp:.3} nm > a/2"));
+            }
+        }
+        EffectKind::TipChange => {
+            let jump = v("jump_x_nm").hypot(v("jump_y_nm"));
+            if jump > 3.0 * lattice_a_nm {
+                return bad(format!("tip jump {jump:.3} nm > 3a"));
+            }
+        }
+    }
+    None
+}
+
+/// RMS length of the change between two residuals over `mask`, nm.
+fn change_rms(before: &[f64], after: &[f64], mask: &[bool]) -> f64 {
+    let (mut sum, mut n) = (0.0, 0usize);
+    for k in 0..mask.len() {
+        if mask[k] {
+            sum += (before[2 * k] - after[2 * k]).powi(2)
+                + (before[2 * k + 1] - after[2 * k + 1]).powi(2);
+            n += 1;
+        }
+    }
+    if n == 0 { 0.0 } else { (sum / n as f64).sqrt() }
+}
+
+/// ΔBIC of adding `k` parameters that lower the RSS from `rss0` to `rss1`.
+fn delta_bic(n_eq: f64, rss0: f64, rss1: f64, k: f64, trials: f64) -> f64 {
+    if rss0 > 0.0 && rss1 > 0.0 {
+        n_eq * (rss0 / rss1).ln() - k * n_eq.ln() - 2.0 * trials.max(1.0).ln()
+    } else {
+        f64::NEG_INFINITY
+    }
+}
+
+/// One scored candidate of a selection round.
+struct Scored {
+    kind: EffectKind,
+    evidence: f64,
+    extra: Vec<Column>,
+    fit: Fit,
+    hyper: f64,
+    trials: f64,
+    explained_nm: f64,
+    problem: Option<String>,
+}
+
+fn n_params(kind: EffectKind, extra: &[Column]) -> f64 {
+    extra.len() as f64 + if hyper_name(kind).is_some() { 1.0 } else { 0.0 }
+}
+
+/// Whether `other` encompasses `chosen`: with both in the model, `chosen`
+/// adds no evidence beyond `other` while `other` still adds evidence beyond
+/// `chosen` — `other` explains `chosen`'s signal and more (a trace/retrace
+/// offset that vanishes at the line ends is hysteresis, not a lag, even
+/// though a constant shift captures part of it).
+fn encompasses(
+    other: &Scored,
+    chosen: &Scored,
+    cols: &[Column],
+    target: &[f64],
+    mask: &[bool],
+    threshold: f64,
+) -> bool {
+    let mut all = cols.to_vec();
+    all.extend(chosen.extra.iter().cloned());
+    all.extend(other.extra.iter().cloned());
+    let Ok(joint) = solve(&all, target, mask) else {
+        return false;
+    };
+    let n_eq = joint.n_eq as f64;
+    let chosen_given_other = delta_bic(
+        n_eq,
+        other.fit.rss,
+        joint.rss,
+        n_params(chosen.kind, &chosen.extra),
+        chosen.trials,
+    );
+    let other_given_chosen = delta_bic(
+        n_eq,
+        chosen.fit.rss,
+        joint.rss,
+        n_params(other.kind, &other.extra),
+        other.trials,
+    );
+    chosen_given_other <= threshold && other_given_chosen > threshold
 }
 
 /// Like [`diagnose_features`] with the lattice sites given (e.g. from a simulator's oracle).
@@ -554,6 +1056,7 @@ pub fn diagnose_indexed(
             context: "indexed features".to_owned(),
         });
     }
+    let base_len = 6 + 2 * n_frames;
     let target: Vec<f64> = obs.iter().flat_map(|o| o.site).collect();
     let mut base_cols = baseline_columns(&obs, n_frames);
     let mut mask = vec![true; obs.len()];
@@ -568,13 +1071,10 @@ pub fn diagnose_indexed(
     // Constant drift and the lumped scanner are inseparable when the times
     // follow the positions (one frame, or frames scanned the same way): then
     // the drift is absorbed into the lumped scanner (Lapshin's point for
-    // counter-scanning) and not reported.
-    let (trial, _) = decompose(&fit);
-    let relative = |k: &str| {
-        trial
-            .get(k)
-            .map_or(f64::INFINITY, |p| p.sigma / p.value.abs().max(1e-12))
-    };
+    // counter-scanning) and not reported. The test is scale-free: how much the
+    // drift inflates the uncertainty of the scanner's numbers (variance
+    // inflation), not how large those uncertainties are (which depends on the
+    // noise and the number of features).
     let without_drift: Vec<Column> = base_cols
         .iter()
         .enumerate()
@@ -582,9 +1082,18 @@ pub fn diagnose_indexed(
         .map(|(_, c)| c.clone())
         .collect();
     let drift_separable = !nearly_collinear(&base_cols[4..6], &without_drift, &mask)
-        && relative("scale_x") < 0.05
-        && relative("scale_y") < 0.05
-        && trial.get("obliquity_deg").is_some_and(|p| p.sigma < 3.0);
+        && match solve(&without_drift, &target, &mask) {
+            Ok(nd) => (0..4).all(|j| {
+                let with = fit.cov[(j, j)] / fit.rss.max(1e-300);
+                let without = nd.cov[(j, j)] / nd.rss.max(1e-300);
+                // Covariances are scaled by each fit's σ²: compare the
+                // unscaled (XᵀX)⁻¹ diagonals.
+                let with = with * (fit.n_eq.saturating_sub(fit.rank).max(1)) as f64;
+                let without = without * (nd.n_eq.saturating_sub(nd.rank).max(1)) as f64;
+                without > 0.0 && with / without < 100.0
+            }),
+            Err(_) => false,
+        };
     if !drift_separable {
         for c in &mut base_cols[4..6] {
             c.iter_mut().for_each(|v| *v = 0.0);
@@ -599,12 +1108,32 @@ pub fn diagnose_indexed(
             0.25 * lattice_a_nm,
         )?;
     }
-    let (mut baseline_params, theta0) = decompose(&fit);
+    let (_, theta_base) = decompose(&fit, n_frames);
+    let mut ctx = Ctx {
+        j0: [[fit.coef[0], fit.coef[1]], [fit.coef[2], fit.coef[3]]],
+        theta0: theta_base,
+    };
+    // The localiser's pixel-locking bias: part of the measurement model (the
+    // baseline), added when the data support it.
+    let mut pixel_locking = false;
+    if let Some(pl) = pixel_locking_columns(&obs, &ctx) {
+        let mut all = base_cols.clone();
+        all.extend(pl);
+        if let Ok(fit_pl) = solve(&all, &target, &mask) {
+            let ev = delta_bic(fit.n_eq as f64, fit.rss, fit_pl.rss, 4.0, 1.0);
+            if ev > options.evidence_threshold && fit_pl.rank >= fit.rank + 4 {
+                pixel_locking = true;
+                base_cols = all;
+                fit = fit_pl;
+            }
+        }
+    }
+    let (mut baseline_params, theta0) = decompose(&fit, n_frames);
     if !drift_separable {
         baseline_params.remove("drift_x_nm_per_s");
         baseline_params.remove("drift_y_nm_per_s");
     }
-    let mut ctx = Ctx {
+    ctx = Ctx {
         j0: [[fit.coef[0], fit.coef[1]], [fit.coef[2], fit.coef[3]]],
         theta0,
     };
@@ -617,14 +1146,44 @@ pub fn diagnose_indexed(
         drift_separable,
         parameters: baseline_params,
     };
+    // Relevance: the smallest RMS displacement worth reporting — a fraction
+    // of the localisation uncertainty (the localiser's own, when it reports
+    // one; otherwise the scatter of the current model, updated every round)
+    // and of the lattice constant.
+    let mut reported: Vec<f64> = source
+        .iter()
+        .filter_map(|&k| set.features[k].sigma_nm)
+        .filter(|s| s.is_finite() && *s > 0.0)
+        .collect();
+    reported.sort_by(f64::total_cmp);
+    let reported_sigma_nm = if reported.len() * 2 >= source.len() && !reported.is_empty() {
+        Some(std::f64::consts::SQRT_2 * reported[reported.len() / 2])
+    } else {
+        None
+    };
+    let relevance_for = |fit: &Fit, mask: &[bool]| {
+        let sigma = reported_sigma_nm
+            .unwrap_or_else(|| std::f64::consts::SQRT_2 * robust_sigma(&fit.residual, mask));
+        (options.relevance_sigma_fraction * sigma)
+            .max(options.relevance_lattice_fraction * lattice_a_nm)
+    };
+    let mut relevance_nm = relevance_for(&fit, &mask);
+    let localisation_sigma_pm = 1000.0
+        * reported_sigma_nm
+            .unwrap_or_else(|| std::f64::consts::SQRT_2 * robust_sigma(&fit.residual, &mask));
+    let span_s = obs.iter().map(|o| o.t).fold(f64::NEG_INFINITY, f64::max)
+        - obs.iter().map(|o| o.t).fold(f64::INFINITY, f64::min);
     let mut cols = base_cols;
     let mut added: Vec<Added> = Vec::new();
     let mut findings: Vec<Finding> = Vec::new();
     let mut rounds = Vec::new();
+    let mut rejected: Vec<Rejection> = Vec::new();
+    let mut unexplained_candidates: Vec<String> = Vec::new();
     let mut heldout_now = baseline_heldout;
-    let n_eq = fit.n_eq as f64;
+    let mut n_eq = fit.n_eq as f64;
     for _ in 0..options.max_findings {
-        let mut scores: Vec<(EffectKind, f64, Vec<Column>, Fit, f64)> = Vec::new();
+        relevance_nm = relevance_for(&fit, &mask);
+        let mut scores: Vec<Scored> = Vec::new();
         for &kind in &options.effects {
             if added.iter().any(|a| a.kind == kind) || !identifiable(kind, &obs) {
                 continue;
@@ -639,51 +1198,157 @@ pub fn diagnose_indexed(
                 // data the effect cannot be told apart from what is already there.
                 continue;
             }
-            let k = extra.len() as f64 + if hyper_name(kind).is_some() { 1.0 } else { 0.0 };
-            let evidence = if fit1.rss > 0.0 && fit.rss > 0.0 {
-                n_eq * (fit.rss / fit1.rss).ln() - k * n_eq.ln() - 2.0 * trials.max(1.0).ln()
+            let k = n_params(kind, &extra);
+            let evidence = delta_bic(n_eq, fit.rss, fit1.rss, k, trials);
+            let range = cols.len()..cols.len() + extra.len();
+            // The displacement the effect adds to the model's prediction (not
+            // its raw columns, which other terms may partly cancel).
+            let explained_nm = change_rms(&fit.residual, &fit1.residual, &mask);
+            let mut params = effect_params(
+                &Added {
+                    kind,
+                    hyper: h,
+                    hyper_sigma: 0.0,
+                    range,
+                },
+                &fit1,
+                frames,
+            );
+            if kind == EffectKind::TipChange
+                && let Some(t) = params.get_mut("time_s")
+            {
+                t.value += t_mid;
+            }
+            let problem = if explained_nm < relevance_nm {
+                Some(format!(
+                    "irrelevant: explains {:.2} pm RMS, below {:.2} pm",
+                    1000.0 * explained_nm,
+                    1000.0 * relevance_nm
+                ))
             } else {
-                f64::NEG_INFINITY
+                implausible(kind, &params, frames, lattice_a_nm, span_s)
+                    .map(|r| format!("implausible: {r}"))
             };
-            scores.push((kind, evidence, extra, fit1, h));
+            scores.push(Scored {
+                kind,
+                evidence,
+                extra,
+                fit: fit1,
+                hyper: h,
+                trials,
+                explained_nm,
+                problem,
+            });
         }
-        scores.sort_by(|a, b| b.1.total_cmp(&a.1));
+        scores.sort_by(|a, b| b.evidence.total_cmp(&a.evidence));
         rounds.push(
             scores
                 .iter()
                 .map(|s| CandidateScore {
-                    effect: s.0.name().to_owned(),
-                    evidence: if s.1.is_finite() { s.1 } else { -1e300 },
+                    effect: s.kind.name().to_owned(),
+                    evidence: if s.evidence.is_finite() {
+                        s.evidence
+                    } else {
+                        -1e300
+                    },
                 })
                 .collect::<Vec<_>>(),
         );
-        let mut accepted = None;
-        for (pos, s) in scores.iter().enumerate() {
-            if s.1 <= options.evidence_threshold {
-                break;
-            }
-            let after = heldout_rms(&obs, frames, &target, &cols, Some(s.0), &mask, &ctx);
-            if after < heldout_now {
-                accepted = Some((pos, after));
-                break;
+        let supported = |s: &Scored| s.evidence > options.evidence_threshold;
+        let mut round_rejected: Vec<Rejection> = Vec::new();
+        for s in scores.iter().filter(|s| supported(s)) {
+            if let Some(p) = &s.problem {
+                round_rejected.push(Rejection {
+                    effect: s.kind.name().to_owned(),
+                    evidence: s.evidence,
+                    explained_rms_pm: 1000.0 * s.explained_nm,
+                    reason: p.clone(),
+                });
             }
         }
-        let Some((pos, after)) = accepted else { break };
-        let (kind, evidence, extra, fit1, h) = scores.swap_remove(pos);
+        let eligible: Vec<usize> = (0..scores.len())
+            .filter(|&i| supported(&scores[i]) && scores[i].problem.is_none())
+            .collect();
+        let mut accepted = None;
+        for &i in &eligible {
+            let encompassing = eligible.iter().copied().find(|&j| {
+                j != i
+                    && encompasses(
+                        &scores[j],
+                        &scores[i],
+                        &cols,
+                        &target,
+                        &mask,
+                        options.evidence_threshold,
+                    )
+            });
+            if let Some(j) = encompassing {
+                round_rejected.push(Rejection {
+                    effect: scores[i].kind.name().to_owned(),
+                    evidence: scores[i].evidence,
+                    explained_rms_pm: 1000.0 * scores[i].explained_nm,
+                    reason: format!("encompassed by {}", scores[j].kind.name()),
+                });
+                continue;
+            }
+            let after = heldout_rms(
+                &obs,
+                frames,
+                &target,
+                &cols,
+                Some(scores[i].kind),
+                &mask,
+                &ctx,
+            );
+            if after < heldout_now {
+                accepted = Some((i, after));
+                break;
+            }
+            round_rejected.push(Rejection {
+                effect: scores[i].kind.name().to_owned(),
+                evidence: scores[i].evidence,
+                explained_rms_pm: 1000.0 * scores[i].explained_nm,
+                reason: "no held-out gain".to_owned(),
+            });
+        }
+        let Some((pos, after)) = accepted else {
+            // Structure the evidence supports and that matters, but whose only
+            // candidates are implausible: the library does not explain it.
+            for r in &round_rejected {
+                if r.reason.starts_with("implausible") {
+                    unexplained_candidates.push(format!(
+                        "{} would explain {:.1} pm but is {}",
+                        r.effect, r.explained_rms_pm, r.reason
+                    ));
+                }
+            }
+            rejected.extend(round_rejected);
+            break;
+        };
+        rejected.extend(round_rejected);
+        let chosen = scores.swap_remove(pos);
         let confounded_with = scores
             .iter()
-            .filter(|s| s.1 > options.evidence_threshold && s.1 >= evidence - 6.0)
-            .map(|s| s.0.name().to_owned())
+            .filter(|s| {
+                s.evidence > options.evidence_threshold
+                    && s.evidence >= chosen.evidence - 6.0
+                    && s.problem.is_none()
+            })
+            .map(|s| s.kind.name().to_owned())
             .collect();
+        let Scored {
+            kind,
+            evidence,
+            extra,
+            fit: fit1,
+            hyper: h,
+            ..
+        } = chosen;
         let start = cols.len();
         cols.extend(extra);
         let hyper_sigma = match kind {
             EffectKind::Creep => h,
-            EffectKind::PeriodicVibration => {
-                let span = obs.iter().map(|o| o.t).fold(f64::NEG_INFINITY, f64::max)
-                    - obs.iter().map(|o| o.t).fold(f64::INFINITY, f64::min);
-                0.25 / span.max(1e-9)
-            }
+            EffectKind::PeriodicVibration => 0.25 / span_s.max(1e-9),
             EffectKind::TipChange => frames
                 .iter()
                 .map(|f| 0.5 * f.duration_s / f.lines.max(1) as f64)
@@ -709,19 +1374,109 @@ pub fn diagnose_indexed(
         });
         heldout_now = after;
         fit = fit1;
-        // Refresh J₀ and θ₀ from the extended fit and rebuild the effect columns.
-        let (_, theta) = decompose(&fit);
+        // Refresh J₀ and θ₀ from the extended fit and rebuild the columns.
+        let (_, theta) = decompose(&fit, n_frames);
         ctx = Ctx {
             j0: [[fit.coef[0], fit.coef[1]], [fit.coef[2], fit.coef[3]]],
             theta0: theta,
         };
-        cols.truncate(6 + 2 * n_frames);
+        cols.truncate(base_len);
+        if pixel_locking && let Some(pl) = pixel_locking_columns(&obs, &ctx) {
+            cols.extend(pl);
+        }
         for a in &mut added {
             let start = cols.len();
             cols.extend(effect_columns(a.kind, a.hyper, &obs, &ctx));
             a.range = start..cols.len();
         }
         fit = solve(&cols, &target, &mask)?;
+        // Features dropped as outliers of the baseline may be well described
+        // by the extended model (the edges of a strongly nonlinear frame):
+        // re-admit them, or the data that size the effect are thrown away.
+        readmit(
+            &cols,
+            &target,
+            &mut mask,
+            &mut fit,
+            options,
+            needed,
+            lattice_a_nm,
+        );
+        // A strong map may need more than a cubic: raise the degree by two
+        // while the evidence supports it, the held-out RMS drops and the
+        // added orders explain a relevant displacement.
+        if kind == EffectKind::ScannerNonlinearity {
+            while let Some(pos) = added.iter().position(|a| a.kind == kind) {
+                let degree = nonlinearity_degree(added[pos].hyper);
+                if degree + 2 > 9 {
+                    break;
+                }
+                let mut trial = cols.clone();
+                let range = added[pos].range.clone();
+                let higher = effect_columns(kind, (degree + 2) as f64, &obs, &ctx);
+                // Keep the existing columns; append the two new orders per axis.
+                let new_cols: Vec<Column> = higher
+                    .iter()
+                    .enumerate()
+                    .filter(|(i, _)| {
+                        let k = i % (degree + 1) + 2;
+                        k > degree
+                    })
+                    .map(|(_, c)| c.clone())
+                    .collect();
+                trial.extend(new_cols);
+                let Ok(fit2) = solve(&trial, &target, &mask) else {
+                    break;
+                };
+                let ev = delta_bic(n_eq, fit.rss, fit2.rss, 4.0, 1.0);
+                let explained = change_rms(&fit.residual, &fit2.residual, &mask);
+                if !(ev > options.evidence_threshold && explained >= relevance_nm)
+                    || heldout_rms_with(&obs, frames, &target, &trial, &mask) >= heldout_now
+                {
+                    break;
+                }
+                // Rebuild with the higher degree in place of the old columns.
+                let _ = range;
+                added[pos].hyper = (degree + 2) as f64;
+                cols.truncate(base_len);
+                if pixel_locking && let Some(pl) = pixel_locking_columns(&obs, &ctx) {
+                    cols.extend(pl);
+                }
+                for a in &mut added {
+                    let start = cols.len();
+                    cols.extend(effect_columns(a.kind, a.hyper, &obs, &ctx));
+                    a.range = start..cols.len();
+                }
+                fit = solve(&cols, &target, &mask)?;
+                readmit(
+                    &cols,
+                    &target,
+                    &mut mask,
+                    &mut fit,
+                    options,
+                    needed,
+                    lattice_a_nm,
+                );
+                if let Some(f) = findings.last_mut() {
+                    f.rms_after_pm = rms_pm(fit.rss, fit.n_eq);
+                    let ho = heldout_rms_with(&obs, frames, &target, &cols, &mask);
+                    if ho.is_finite() {
+                        f.heldout_rms_after_pm = ho;
+                        heldout_now = ho;
+                    }
+                }
+            }
+        }
+        // The held-out reference and the equation count follow the mask.
+        n_eq = fit.n_eq as f64;
+        let ho = heldout_rms_with(&obs, frames, &target, &cols, &mask);
+        if ho.is_finite() {
+            heldout_now = ho;
+            if let Some(f) = findings.last_mut() {
+                f.heldout_rms_after_pm = ho;
+                f.rms_after_pm = rms_pm(fit.rss, fit.n_eq);
+            }
+        }
         tracing::debug!(effect = kind.name(), evidence, "effect accepted");
     }
     for (finding, a) in findings.iter_mut().zip(&added) {
@@ -732,24 +1487,38 @@ pub fn diagnose_indexed(
             t.value += t_mid;
         }
     }
-    let (mut final_params, _) = decompose(&fit);
+    let mut localiser_bias = BTreeMap::new();
+    if pixel_locking {
+        for (i, name) in PIXEL_LOCKING_NAMES.iter().enumerate() {
+            let j = base_len + i;
+            if let Some(v) = fit.coef.get(j) {
+                localiser_bias.insert((*name).to_owned(), pv(*v, fit.cov[(j, j)].max(0.0).sqrt()));
+            }
+        }
+    }
+    let (mut final_params, _) = decompose(&fit, n_frames);
     if !drift_separable {
         final_params.remove("drift_x_nm_per_s");
         final_params.remove("drift_y_nm_per_s");
     }
-    let residual_structure = structure(&obs, &fit.residual, &mask, options.structure_z_threshold);
-    let unexplained = [
-        residual_structure.lag1_z_x,
-        residual_structure.lag1_z_y,
-        residual_structure.line_lag1_z_x,
-        residual_structure.line_lag1_z_y,
-    ]
-    .iter()
-    .any(|z| *z > options.structure_z_threshold)
-        // A residual beyond 25 % of the period is not a small distortion of
-        // the lattice model at all (mis-indexing, several domains, or a
-        // distortion far outside the library).
-        || rms_pm(fit.rss, fit.n_eq) > 250.0 * lattice_a_nm;
+    let mut residual_structure = structure(
+        &obs,
+        &fit.residual,
+        &mask,
+        options.structure_z_threshold,
+        relevance_nm,
+    );
+    residual_structure.reasons.extend(unexplained_candidates);
+    // A residual beyond 25 % of the period is not a small distortion of the
+    // lattice model at all (mis-indexing, several domains, or a distortion
+    // far outside the library).
+    if rms_pm(fit.rss, fit.n_eq) > 250.0 * lattice_a_nm {
+        residual_structure.reasons.push(format!(
+            "final RMS {:.0} pm exceeds a quarter of the lattice period",
+            rms_pm(fit.rss, fit.n_eq)
+        ));
+    }
+    let unexplained = !residual_structure.reasons.is_empty();
     let residuals = obs
         .iter()
         .enumerate()
@@ -787,6 +1556,10 @@ pub fn diagnose_indexed(
         outliers: obs.len() - used,
         unindexed: set.features.len() - source.len(),
         frames: set.frames.iter().map(|f| f.label.clone()).collect(),
+        localisation_sigma_pm,
+        rejected,
+        warnings: set.warnings.clone(),
+        localiser_bias,
         time_origin_s: t_mid,
         frame_half_nm: set
             .frames

@@ -21,7 +21,7 @@
 //! | `drift_acceleration` | ½·a·t² tip–sample displacement | `acceleration_{x,y}_nm_per_s2` |
 //! | `creep` | input displacement c_f·lg(1 + t′/τ) per frame f, t′ since the frame start | `creep_{x,y}_nm_per_decade_frame{f}`, `time_constant_s` |
 //! | `hysteresis` | fast-axis input −s·W·(1 − ξx²)·(h + g·ξx²), s = ±1 trace/retrace | `branch_half_separation_fraction` (h), `loop_shape` (g), `branch_separation_nm` |
-//! | `scanner_nonlinearity` | input W·(q·ξ² + c·ξ³) per axis | `quadratic_{x,y}`, `cubic_{x,y}` (at the frame edge) |
+//! | `scanner_nonlinearity` | input W·(q·ξ² + c·ξ³ + …) per axis, degree raised by evidence | `quadratic_{x,y}`, `cubic_{x,y}`, `order{k}_{x,y}` (at the frame edge), `polynomial_degree` |
 //! | `nonorthogonality` | input W·g·ξx·ξy per axis (obliquity varying over the field) | `shear_gradient_{x,y}` |
 //! | `crosstalk_xy` | input x += b·H·ξy², y += b·W·ξx² (quadratic crosstalk, bow) | `bow_x_from_y`, `bow_y_from_x` |
 //! | `feedback_lag` | fast-axis input −s·v·τ | `time_constant_s`, `shift_nm` |
@@ -29,6 +29,12 @@
 //! | `tip_change` | jump (jx, jy) from time t_c on | `jump_{x,y}_nm`, `time_s` |
 //!
 //! ξ is the commanded position over the frame half-size (W along x, H along y).
+//! Time-dependent tip–sample effects are seen through each feature's footprint
+//! over lines (see `docs/MODELCHECK.md`). An effect is reported only when it is
+//! supported (ΔBIC), relevant (against the localisation uncertainty and the
+//! lattice constant), plausible (every parameter in its physical range), not
+//! encompassed by another, and lowers the held-out RMS; features that are not
+//! the claimed lattice are refused ([`ModelCheckError::NotTheLattice`]).
 //! The constant parts of nonorthogonality and linear crosstalk are inside the
 //! baseline's lumped linear scanner and cannot be told apart from it.
 #![warn(missing_docs)]
@@ -42,8 +48,8 @@ mod simmap;
 mod types;
 
 pub use diagnose::{
-    BaselineReport, CandidateScore, Diagnosis, FinalReport, Finding, ParamValue, ResidualPoint,
-    ResidualStructure, diagnose_features, diagnose_indexed,
+    BaselineReport, CandidateScore, Diagnosis, FinalReport, Finding, ParamValue, Rejection,
+    ResidualPoint, ResidualStructure, diagnose_features, diagnose_indexed,
 };
 pub use extract::{
     ExtractOptions, ImageInput, MapContext, diagnose, diagnose_paths, extract_features,

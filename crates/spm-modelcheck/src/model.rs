@@ -39,6 +39,12 @@ pub(crate) struct Obs {
     pub half: [f64; 2],
     /// Fast-axis speed, nominal nm/s.
     pub speed: f64,
+    /// Sub-pixel phase (x, y) of the feature in its image, in [0, 1) (0 = on a
+    /// pixel centre), and the pixel pitch, nominal nm; `None` without a grid.
+    pub phase: Option<([f64; 2], [f64; 2])>,
+    /// The feature's footprint over lines: (Gaussian width σ, fit-window
+    /// radius) in lines, and the line period, s; `None` when unknown.
+    pub footprint: Option<(f64, f64, f64)>,
 }
 
 /// The context effect columns need: baseline J₀ and rotation θ₀.
@@ -92,6 +98,90 @@ fn sample_col(obs: &[Obs], ctx: &Ctx, axis: usize, f: impl Fn(&Obs) -> f64) -> C
     c
 }
 
+/// The value a feature's fitted position sees of a time-dependent tip–sample
+/// displacement `f(t)` along image `axis` (0 = fast, 1 = slow).
+///
+/// A feature spans several lines, so its position averages whatever moved
+/// during them. A Gaussian fit weighs line l (offset l lines from the centre,
+/// within the fit window of radius R) by g(l)²·c(l) for the fast-axis
+/// position and by l²·g(l)²·c(l) for the slow-axis position (g the profile of
+/// width σ, c the window's chord): the seen displacement is
+/// Σ w(l)·f(t + l·P) / Σ w(l), P the line period. For a vibration cos ωt
+/// this attenuates the amplitude (strongly along the slow axis); a jump is
+/// seen partly by the features scanned across it. Without a known footprint
+/// (feature lists), f(t).
+pub(crate) fn footprint_average(o: &Obs, axis: usize, f: impl Fn(f64) -> f64) -> f64 {
+    let Some((sigma, radius, period)) = o.footprint else {
+        return f(o.t);
+    };
+    let n = radius.floor() as i64;
+    let (mut sum, mut weight) = (0.0, 0.0);
+    for l in -n..=n {
+        let l = l as f64;
+        let chord = 2.0 * (radius * radius - l * l).max(0.0).sqrt() + 1.0;
+        let g2 = (-(l * l) / (sigma * sigma).max(1e-12)).exp() * chord;
+        let w = if axis == 0 { g2 } else { l * l * g2 };
+        sum += w * f(o.t + l * period);
+        weight += w;
+    }
+    if weight > 0.0 { sum / weight } else { f(o.t) }
+}
+
+/// Names of the pixel-locking columns, in column order (nominal nm).
+pub(crate) const PIXEL_LOCKING_NAMES: [&str; 4] = [
+    "pixel_locking_x_sin1_nm",
+    "pixel_locking_x_sin2_nm",
+    "pixel_locking_y_sin1_nm",
+    "pixel_locking_y_sin2_nm",
+];
+
+/// The localiser's pixel-locking bias: a fit of a peak sampled on a pixel
+/// grid is pulled towards (or away from) pixel centres by an amount that is a
+/// periodic, odd function of the sub-pixel phase φ (zero on a pixel centre and
+/// half-way between two, by symmetry): b(φ) = s₁·sin 2πφ + s₂·sin 4πφ per
+/// axis. On a lattice, φ of successive rows changes slowly (the beat of the
+/// lattice period against the pixel pitch), and row is time along the slow
+/// axis: the bias looks like a slow "vibration" unless modelled. `None` when
+/// the features carry no pixel grid.
+pub(crate) fn pixel_locking_columns(obs: &[Obs], ctx: &Ctx) -> Option<Vec<Column>> {
+    if obs.iter().any(|o| o.phase.is_none()) {
+        return None;
+    }
+    let tau = 2.0 * std::f64::consts::PI;
+    let ph = |o: &Obs, axis: usize, k: f64| o.phase.map_or(0.0, |(p, _)| (k * tau * p[axis]).sin());
+    Some(vec![
+        input_col(obs, ctx, 0, |o| ph(o, 0, 1.0)),
+        input_col(obs, ctx, 0, |o| ph(o, 0, 2.0)),
+        input_col(obs, ctx, 1, |o| ph(o, 1, 1.0)),
+        input_col(obs, ctx, 1, |o| ph(o, 1, 2.0)),
+    ])
+}
+
+/// The polynomial degree of the nonlinearity for a hyper-parameter value (3 by default).
+pub(crate) fn nonlinearity_degree(hyper: f64) -> usize {
+    if hyper.is_finite() && hyper >= 3.0 {
+        (hyper.round() as usize).min(15)
+    } else {
+        3
+    }
+}
+
+/// Parameter names of the nonlinearity of a degree, in column order.
+pub(crate) fn nonlinearity_names(degree: usize) -> Vec<String> {
+    let mut names = Vec::new();
+    for axis in ["x", "y"] {
+        for k in 2..=degree {
+            let order = match k {
+                2 => "quadratic".to_owned(),
+                3 => "cubic".to_owned(),
+                k => format!("order{k}"),
+            };
+            names.push(format!("{order}_{axis}"));
+        }
+    }
+    names
+}
+
 /// Names (with units) of an effect's linear parameters, in column order.
 pub(crate) fn param_names(kind: EffectKind) -> &'static [&'static str] {
     match kind {
@@ -122,6 +212,21 @@ pub(crate) fn identifiable(kind: EffectKind, obs: &[Obs]) -> bool {
     let both = obs.iter().any(|o| o.s > 0.0) && obs.iter().any(|o| o.s < 0.0);
     match kind {
         EffectKind::Hysteresis | EffectKind::FeedbackLag => both,
+        // In one direction of one frame the time is a fixed function of the
+        // position: a "vibration" is then any periodic function of position
+        // (a localiser or levelling bias that follows the lattice, a
+        // periodic distortion) and cannot be told from one. Only a second
+        // pass over the same places at other times (the other direction,
+        // another frame) makes it a function of time.
+        EffectKind::PeriodicVibration => {
+            let mut groups: Vec<(usize, LineDirection)> = Vec::new();
+            for o in obs {
+                if !groups.contains(&(o.frame, o.direction)) {
+                    groups.push((o.frame, o.direction));
+                }
+            }
+            groups.len() >= 2
+        }
         _ => true,
     }
 }
@@ -158,12 +263,21 @@ pub(crate) fn effect_columns(kind: EffectKind, hyper: f64, obs: &[Obs], ctx: &Ct
                 -o.s * o.half[0] * (1.0 - o.xi[0] * o.xi[0]) * o.xi[0] * o.xi[0]
             }),
         ],
-        EffectKind::ScannerNonlinearity => vec![
-            input_col(obs, ctx, 0, |o| o.half[0] * o.xi[0] * o.xi[0]),
-            input_col(obs, ctx, 0, |o| o.half[0] * o.xi[0].powi(3)),
-            input_col(obs, ctx, 1, |o| o.half[1] * o.xi[1] * o.xi[1]),
-            input_col(obs, ctx, 1, |o| o.half[1] * o.xi[1].powi(3)),
-        ],
+        EffectKind::ScannerNonlinearity => {
+            // Polynomial of degree `hyper` (3 unless raised): a strong map
+            // that is not a cubic (a sinusoidal fast-axis drive with pixels
+            // equidistant in time) needs higher orders to be followed.
+            let degree = nonlinearity_degree(hyper);
+            let mut cols = Vec::with_capacity(2 * (degree - 1));
+            for axis in 0..2 {
+                for k in 2..=degree {
+                    cols.push(input_col(obs, ctx, axis, |o| {
+                        o.half[axis] * o.xi[axis].powi(k as i32)
+                    }));
+                }
+            }
+            cols
+        }
         EffectKind::Nonorthogonality => vec![
             input_col(obs, ctx, 0, |o| o.half[0] * o.xi[0] * o.xi[1]),
             input_col(obs, ctx, 1, |o| o.half[1] * o.xi[0] * o.xi[1]),
@@ -176,16 +290,19 @@ pub(crate) fn effect_columns(kind: EffectKind, hyper: f64, obs: &[Obs], ctx: &Ct
         EffectKind::PeriodicVibration => {
             let w = 2.0 * std::f64::consts::PI * hyper;
             vec![
-                sample_col(obs, ctx, 0, |o| (w * o.t).cos()),
-                sample_col(obs, ctx, 0, |o| (w * o.t).sin()),
-                sample_col(obs, ctx, 1, |o| (w * o.t).cos()),
-                sample_col(obs, ctx, 1, |o| (w * o.t).sin()),
+                sample_col(obs, ctx, 0, |o| footprint_average(o, 0, |t| (w * t).cos())),
+                sample_col(obs, ctx, 0, |o| footprint_average(o, 0, |t| (w * t).sin())),
+                sample_col(obs, ctx, 1, |o| footprint_average(o, 1, |t| (w * t).cos())),
+                sample_col(obs, ctx, 1, |o| footprint_average(o, 1, |t| (w * t).sin())),
             ]
         }
-        EffectKind::TipChange => vec![
-            sample_col(obs, ctx, 0, |o| if o.t >= hyper { 1.0 } else { 0.0 }),
-            sample_col(obs, ctx, 1, |o| if o.t >= hyper { 1.0 } else { 0.0 }),
-        ],
+        EffectKind::TipChange => {
+            let step = |t: f64| if t >= hyper { 1.0 } else { 0.0 };
+            vec![
+                sample_col(obs, ctx, 0, |o| footprint_average(o, 0, step)),
+                sample_col(obs, ctx, 1, |o| footprint_average(o, 1, step)),
+            ]
+        }
     }
 }
 
@@ -503,6 +620,16 @@ pub(crate) fn build_obs(
             frame.half_height_y_nm.max(1e-12),
         ];
         let (i, j) = (i as f64, j as f64);
+        let phase = frame.pixel_nm.and_then(|p| {
+            if !(p[0] > 0.0 && p[1] > 0.0 && p[0].is_finite() && p[1].is_finite()) {
+                return None;
+            }
+            let nx = (2.0 * half[0] / p[0]).round();
+            let ny = (2.0 * half[1] / p[1]).round();
+            let fx = f.x_nm / p[0] + 0.5 * (nx - 1.0);
+            let fy = f.y_nm / p[1] + 0.5 * (ny - 1.0);
+            Some(([fx - fx.floor(), fy - fy.floor()], p))
+        });
         obs.push(Obs {
             u: [f.x_nm, f.y_nm],
             site: [i * a1[0] + j * a2[0], i * a1[1] + j * a2[1]],
@@ -515,6 +642,19 @@ pub(crate) fn build_obs(
             xi: [f.x_nm / half[0], f.y_nm / half[1]],
             half,
             speed: frame.fast_speed_nm_per_s,
+            phase,
+            footprint: match (f.width_nm, f.fit_radius_nm, frame.pixel_nm) {
+                (Some(w), Some(r), Some(p))
+                    if w.is_finite() && w > 0.0 && r.is_finite() && r > 0.0 && p[1] > 0.0 =>
+                {
+                    Some((
+                        w / p[1],
+                        (r / p[1]).min(64.0),
+                        frame.duration_s / frame.lines.max(1) as f64,
+                    ))
+                }
+                _ => None,
+            },
         });
         source.push(k);
     }

@@ -44,6 +44,12 @@ pub struct FrameInfo {
     pub fast_speed_nm_per_s: f64,
     /// Number of lines.
     pub lines: usize,
+    /// Pixel pitch (x, y), nominal nm, when the features come from a sampled
+    /// image (positions are then `(column − (nx − 1)/2)·pitch`): the sub-pixel
+    /// phase of every feature is known and the localiser's pixel-locking bias
+    /// can be modelled. `None` for feature lists without a pixel grid.
+    #[serde(default)]
+    pub pixel_nm: Option<[f64; 2]>,
 }
 
 /// One localised feature (atom, corner hole) in one half of one frame.
@@ -63,6 +69,14 @@ pub struct FeatureObservation {
     pub line_index: usize,
     /// One-sigma localisation uncertainty (per axis), nominal nm, when known.
     pub sigma_nm: Option<f64>,
+    /// Fitted Gaussian width σ of the feature, nominal nm, when known: the
+    /// feature spans about ±σ of lines, so its position averages whatever
+    /// moved during those lines (a vibration is seen attenuated).
+    #[serde(default)]
+    pub width_nm: Option<f64>,
+    /// Radius of the localiser's fit window, nominal nm, when known.
+    #[serde(default)]
+    pub fit_radius_nm: Option<f64>,
 }
 
 /// Features of one or more frames, ready for [`crate::diagnose_features`].
@@ -72,6 +86,10 @@ pub struct FeatureSet {
     pub frames: Vec<FrameInfo>,
     /// The features, any order.
     pub features: Vec<FeatureObservation>,
+    /// Warnings from extraction (e.g. frames that do not look like one scan
+    /// series); carried into the diagnosis.
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 /// The sample's lattice: the known geometry the baseline model uses.
@@ -244,6 +262,16 @@ pub struct Options {
     /// Residuals beyond this many robust σ are outliers (mis-indexed or
     /// defective features) and are dropped before the search. Default 5.
     pub outlier_sigmas: f64,
+    /// Relevance against the localisation uncertainty: an effect is reported
+    /// only when the RMS displacement it explains is at least this fraction of
+    /// the per-feature localisation uncertainty (robust σ of the residual,
+    /// vector length). Default 0.5.
+    pub relevance_sigma_fraction: f64,
+    /// Relevance against the scale a user cares about: the RMS displacement an
+    /// effect explains must also be at least this fraction of the lattice
+    /// constant. Default 0.005 (half of the 1 % lattice-constant accuracy a
+    /// scanner calibration aims at).
+    pub relevance_lattice_fraction: f64,
 }
 
 impl Default for Options {
@@ -254,6 +282,8 @@ impl Default for Options {
             max_findings: 4,
             structure_z_threshold: 4.0,
             outlier_sigmas: 5.0,
+            relevance_sigma_fraction: 0.5,
+            relevance_lattice_fraction: 0.005,
         }
     }
 }
@@ -305,6 +335,16 @@ pub enum ModelCheckError {
     /// The lattice could not be indexed (no two lattice directions).
     #[error("cannot index the lattice in {0}: fewer than two lattice directions found")]
     NoLattice(String),
+    /// The features do not form the claimed lattice (white noise, adsorbates,
+    /// a different lattice constant): the diagnosis refuses rather than
+    /// reporting effects of a model that does not describe the data.
+    #[error("the claimed lattice is not in these images ({context}): {reason}")]
+    NotTheLattice {
+        /// Which frame / direction.
+        context: String,
+        /// What failed.
+        reason: String,
+    },
     /// The input is inconsistent (bad frame index, non-finite values, …).
     #[error("invalid input: {0}")]
     InvalidInput(String),

@@ -86,6 +86,7 @@ fn add_frame(set: &mut FeatureSet, frame: &Frame, frame_index: usize) {
         duration_s: 2.0 * (n * n) as f64 * DWELL_S,
         fast_speed_nm_per_s: pixel_nm / DWELL_S,
         lines: n,
+        pixel_nm: Some([pixel_nm, pixel_nm]),
     });
     let counter = frame.request.direction == ScanDirection::Counter;
     for half in [TraceHalf::Forward, TraceHalf::Backward] {

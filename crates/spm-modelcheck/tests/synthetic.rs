@@ -271,3 +271,26 @@ fn the_json_has_the_design_keys() {
     }
     assert_eq!(f["effect"], "feedback_lag");
 }
+
+/// Absurd parameters are not findings: trace and retrace shifted *against*
+/// the scan direction (a negative feedback lag, a reversed hysteresis loop)
+/// is not named, and the structure is reported as unexplained.
+#[test]
+fn a_negative_lag_is_implausible_and_unexplained() {
+    let v = 2.0 * Scan::default().half_nm / Scan::default().line_time_s;
+    let extra = move |_: [f64; 2], _: f64, s: f64, _: f64| ([s * v * 3e-4, 0.0], [0.0, 0.0]);
+    let d = run(&extra, 12, &Options::default());
+    assert!(
+        !d.effects_found().contains(&"feedback_lag"),
+        "{}",
+        summary(&d)
+    );
+    assert!(d.unexplained, "{}", summary(&d));
+    assert!(
+        d.rejected
+            .iter()
+            .any(|r| r.effect == "feedback_lag" && r.reason.starts_with("implausible")),
+        "{:?}",
+        d.rejected
+    );
+}

@@ -53,8 +53,11 @@ pub fn run(
             .join(" + ");
         write_png(&diagnosis, png, &title).map_err(classify)?;
     }
+    for w in &diagnosis.warnings {
+        eprintln!("warning: {w}");
+    }
     crate::outln!(
-        "baseline {:.1} pm → final {:.1} pm; findings: {}; unexplained: {}",
+        "baseline {:.1} pm → final {:.1} pm; findings: {}; unexplained: {}{}",
         diagnosis.baseline.rms_pm,
         diagnosis.final_report.rms_pm,
         if diagnosis.findings.is_empty() {
@@ -67,7 +70,12 @@ pub fn run(
                 .collect::<Vec<_>>()
                 .join(", ")
         },
-        diagnosis.unexplained
+        diagnosis.unexplained,
+        if diagnosis.residual_structure.reasons.is_empty() {
+            String::new()
+        } else {
+            format!(" ({})", diagnosis.residual_structure.reasons.join("; "))
+        }
     );
     Ok(())
 }

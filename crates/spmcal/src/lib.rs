@@ -8,6 +8,7 @@
 //! - [`plots`]: PNG figures of a run.
 //! - [`report`]: after a run: surfaces.json, accuracy, report.json, figures.
 //! - [`accuracy`]: calibration accuracy against the simulator's oracle (DESIGN §11).
+//! - [`simulate`]: a measured file's scan program on the simulated microscope (`spmcal simulate`).
 //!
 //! The binary (`src/main.rs`) parses arguments, installs the tracing
 //! subscriber and maps errors to exit codes; everything here returns typed
@@ -20,4 +21,5 @@ pub mod plots;
 pub mod progress;
 pub mod report;
 pub mod run;
+pub mod simulate;
 pub mod surfaces;

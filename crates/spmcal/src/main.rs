@@ -13,6 +13,7 @@ mod error;
 mod files;
 mod fit_cmd;
 mod info;
+mod simulate_cmd;
 
 use clap::{Parser, Subcommand, ValueEnum};
 use error::{CliError, EXIT_BAD_INPUT, EXIT_SUCCESS};
@@ -119,6 +120,23 @@ enum Command {
         #[arg(long, value_name = "OUT.png")]
         png: Option<PathBuf>,
     },
+    /// Run a measured file's scan program on the simulated microscope and write it as .sxm.
+    Simulate {
+        /// The measured file whose scan program (size, pixels, line time,
+        /// directions, slow-axis direction, date) is copied.
+        #[arg(long, value_name = "FILE")]
+        like: PathBuf,
+        /// The simulated microscope (spm-sim TOML), e.g. from the diagnosis' sim patch.
+        #[arg(long, value_name = "SIM.toml")]
+        config: PathBuf,
+        /// Where to write the simulated scan (Nanonis .sxm).
+        #[arg(long, value_name = "OUT.sxm")]
+        out: PathBuf,
+        /// The calibration the instrument's software believes, nm per count
+        /// (default: the config's x sensitivity).
+        #[arg(long, value_name = "NM")]
+        nominal_nm_per_count: Option<f64>,
+    },
     /// Calibration-database maintenance.
     Cdb {
         #[command(subcommand)]
@@ -224,6 +242,11 @@ impl Command {
                 paths.extend(files.iter().cloned());
                 paths.push(json.clone());
                 paths.extend(png.iter().cloned());
+            }
+            Self::Simulate {
+                like, config, out, ..
+            } => {
+                paths.extend([like.clone(), config.clone(), out.clone()]);
             }
             Self::Cdb { command } => match command {
                 CdbCommand::Check { path } | CdbCommand::Trend { path } => {
@@ -334,6 +357,12 @@ fn run(command: Command) -> Result<(), CliError> {
             json,
             png,
         } => diagnose_cmd::run(&files, &lattice, &json, png.as_deref()),
+        Command::Simulate {
+            like,
+            config,
+            out,
+            nominal_nm_per_count,
+        } => simulate_cmd::run(&like, &config, &out, nominal_nm_per_count),
     }
 }
 

@@ -353,3 +353,51 @@ fn a_cdb_with_a_newer_schema_is_refused_and_left_byte_identical() {
     assert!(!csv.exists() && !surfaces.exists());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `spmcal simulate --like FILE --config SIM.toml --out OUT.sxm`: the measured
+/// file's scan program on the simulator, written as a Nanonis file that the
+/// readers (and `spmcal info`) take like the original; the nominal calibration
+/// sets the commanded pixels.
+#[test]
+fn simulate_copies_the_scan_program_of_a_measured_file() {
+    let scratch = std::env::temp_dir().join(format!("spmcal-sim-{}", std::process::id()));
+    std::fs::create_dir_all(&scratch).unwrap();
+    let like = spmcal_tests::measured_file("si7x7-nanonis/Si_7x7_051.sxm");
+    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/sim-hopg.toml");
+    let out = scratch.join("sim.sxm");
+    let (code, _, stderr) = spmcal(&[
+        "simulate",
+        "--like",
+        like.to_str().unwrap(),
+        "--config",
+        config.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--nominal-nm-per-count",
+        "0.02",
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let original = spm_formats::read_any(&like).unwrap();
+    let simulated = spm_formats::read_any(&out).unwrap();
+    assert_eq!(simulated.pixels(), original.pixels());
+    assert_eq!(simulated.size_nm(), original.size_nm());
+    assert_eq!(simulated.scan_dir, original.scan_dir);
+    assert_eq!(simulated.line_time_s, original.line_time_s);
+    assert_eq!(simulated.recorded, original.recorded);
+    assert_eq!(simulated.channels.len(), 2, "forward and backward Z");
+    // A missing config is bad input naming the flag's file.
+    check(
+        &[
+            "simulate",
+            "--like",
+            like.to_str().unwrap(),
+            "--config",
+            scratch.join("missing.toml").to_str().unwrap(),
+            "--out",
+            scratch.join("x.sxm").to_str().unwrap(),
+        ],
+        2,
+        "missing.toml",
+    );
+    let _ = std::fs::remove_dir_all(&scratch);
+}

@@ -2,6 +2,8 @@
 //! constant drift, plus hidden extras, with per-feature times of a raster.
 #![allow(dead_code, clippy::unwrap_used)]
 
+pub mod image;
+
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
@@ -88,6 +90,7 @@ pub fn generate(scan: &Scan, seed: u64, extra: &Extra) -> FeatureSet {
             duration_s: duration,
             fast_speed_nm_per_s: 2.0 * h / scan.line_time_s,
             lines: scan.lines,
+            pixel_nm: None,
         });
         let offset = [0.37 * f as f64, -0.21 * f as f64];
         for dir in [LineDirection::Forward, LineDirection::Backward] {
@@ -140,6 +143,8 @@ pub fn generate(scan: &Scan, seed: u64, extra: &Extra) -> FeatureSet {
                         frame_index: f,
                         line_index: line.round() as usize,
                         sigma_nm: Some(scan.noise_nm),
+                        width_nm: None,
+                        fit_radius_nm: None,
                     });
                 }
             }

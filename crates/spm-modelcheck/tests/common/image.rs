@@ -1,0 +1,313 @@
+//! An image-level generator independent of spm-sim and of the feature-level
+//! generator: a cosine (graphite-like) lattice point-sampled at the true tip
+//! position of every pixel, pixels equidistant in time along each line, trace
+//! and retrace, written as Nanonis `.sxm` through spm-formats' writer and read
+//! back by the diagnosis like any instrument file. Pixel locking of the
+//! localiser, file timing and direction conventions are all exercised.
+#![allow(dead_code, clippy::unwrap_used)]
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use spm_formats::{DateTime, ScanDir, SxmChannel, SxmScan, encode_sxm};
+use std::f64::consts::PI;
+use std::path::PathBuf;
+
+/// What the generator hides (one effect per case, or none).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Hidden {
+    None,
+    /// Rate-independent trace/retrace separation along x, largest mid-line
+    /// (cos(πξ/2) shape, not the library's polynomial): half-separation at
+    /// mid-line, nm.
+    Hysteresis {
+        half_separation_nm: f64,
+    },
+    /// Drift acceleration (x, y), nm/s².
+    DriftAcceleration {
+        a_nm_per_s2: [f64; 2],
+    },
+    /// Lateral jump (x, y) at a time (s from the first frame's start).
+    TipChange {
+        time_s: f64,
+        jump_nm: [f64; 2],
+    },
+    /// Sinusoidal vibration: amplitudes (x, y) nm, frequency Hz.
+    Vibration {
+        amplitude_nm: [f64; 2],
+        frequency_hz: f64,
+    },
+    /// First-order Z feedback filtering the measured height along the line:
+    /// per-pixel decay d (the measured height keeps d of its previous value).
+    FeedbackFilter {
+        decay: f64,
+    },
+    /// Quadratic + cubic nonlinearity of the x axis at the frame edge
+    /// (fractions of the half-width).
+    Nonlinearity {
+        quadratic: f64,
+        cubic: f64,
+    },
+    /// Backward lines shifted along y (interlace), nm: no library effect.
+    Interlace {
+        dy_nm: f64,
+    },
+    /// Fast axis driven sinusoidally in time (fast SPM), pixels equidistant
+    /// in time: true x = W·sin(βξ)/sin β for the commanded ξ.
+    SineDrive {
+        beta_rad: f64,
+    },
+}
+
+/// The scan program and the instrument's linear part.
+#[derive(Clone, Debug)]
+pub struct Program {
+    pub a_nm: f64,
+    pub pixels: usize,
+    pub size_nm: f64,
+    pub line_time_s: f64,
+    /// Slow-axis direction of each frame.
+    pub frames: Vec<ScanDir>,
+    /// Pause between the end of one frame and the start of the next, s.
+    pub gap_s: f64,
+    pub corrugation_nm: f64,
+    pub z_noise_nm: f64,
+    pub scale: [f64; 2],
+    pub obliquity_rad: f64,
+    pub rotation_rad: f64,
+    pub drift_nm_per_s: [f64; 2],
+}
+
+impl Default for Program {
+    fn default() -> Self {
+        Self {
+            a_nm: 0.2461,
+            pixels: 96,
+            size_nm: 4.8,
+            line_time_s: 0.08,
+            frames: vec![ScanDir::Down, ScanDir::Up],
+            gap_s: 28.0,
+            corrugation_nm: 0.03,
+            z_noise_nm: 0.002,
+            scale: [1.03, 0.98],
+            obliquity_rad: 0.015,
+            rotation_rad: 0.25,
+            drift_nm_per_s: [0.004, -0.003],
+        }
+    }
+}
+
+fn date_plus(seconds: u64) -> DateTime {
+    let s = 12 * 3600 + seconds;
+    DateTime::new(
+        2024,
+        3,
+        5,
+        (s / 3600) as u8,
+        ((s / 60) % 60) as u8,
+        (s % 60) as u8,
+    )
+    .unwrap()
+}
+
+/// Writes the frames as `.sxm` files in a fresh directory; returns their paths.
+pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> Vec<PathBuf> {
+    let dir = std::env::temp_dir().join(format!(
+        "spm-modelcheck-image-{}-{tag}-{seed}",
+        std::process::id()
+    ));
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let noise = Normal::new(0.0, program.z_noise_nm.max(1e-12)).unwrap();
+    let n = program.pixels;
+    let p = program.size_nm / n as f64;
+    let half = 0.5 * program.size_nm;
+    let (so, co) = program.obliquity_rad.sin_cos();
+    let (sr, cr) = program.rotation_rad.sin_cos();
+    let m = [
+        [program.scale[0], program.scale[1] * so],
+        [0.0, program.scale[1] * co],
+    ];
+    let j = [
+        [cr * m[0][0] - sr * m[1][0], cr * m[0][1] - sr * m[1][1]],
+        [sr * m[0][0] + cr * m[1][0], sr * m[0][1] + cr * m[1][1]],
+    ];
+    // Reciprocal vectors of the triangular lattice (hills on the sites).
+    let g = 4.0 * PI / (3f64.sqrt() * program.a_nm);
+    let gs: Vec<[f64; 2]> = (0..3)
+        .map(|k| {
+            let phi = PI / 6.0 + k as f64 * 2.0 * PI / 3.0;
+            [g * phi.cos(), g * phi.sin()]
+        })
+        .collect();
+    let offset = [
+        0.031 * seed as f64 % program.a_nm,
+        0.017 * seed as f64 % program.a_nm,
+    ];
+    let height = |r: [f64; 2]| {
+        program.corrugation_nm / 3.0
+            * gs.iter()
+                .map(|gk| (gk[0] * (r[0] - offset[0]) + gk[1] * (r[1] - offset[1])).cos())
+                .sum::<f64>()
+    };
+    let period = 2.0 * program.line_time_s;
+    let duration = period * n as f64;
+    let mut paths = Vec::new();
+    let mut start = 0.0_f64;
+    for (f, &dir_y) in program.frames.iter().enumerate() {
+        let mut images = [vec![0.0; n * n], vec![0.0; n * n]];
+        for (h, image) in images.iter_mut().enumerate() {
+            let s = if h == 0 { 1.0 } else { -1.0 };
+            for r in 0..n {
+                let y_row = match dir_y {
+                    ScanDir::Down => (0.5 * (n as f64 - 1.0) - r as f64) * p,
+                    ScanDir::Up => (r as f64 - 0.5 * (n as f64 - 1.0)) * p,
+                };
+                let mut z_meas = None::<f64>;
+                for k in 0..n {
+                    let c = if s > 0.0 { k } else { n - 1 - k };
+                    let mut u = [(c as f64 - 0.5 * (n as f64 - 1.0)) * p, y_row];
+                    let t = start
+                        + r as f64 * period
+                        + if s > 0.0 { 0.0 } else { program.line_time_s }
+                        + (k as f64 + 0.5) * program.line_time_s / n as f64;
+                    let xi = u[0] / half;
+                    let mut d = [program.drift_nm_per_s[0] * t, program.drift_nm_per_s[1] * t];
+                    let mut decay = 0.0;
+                    match hidden {
+                        Hidden::None => {}
+                        Hidden::Hysteresis { half_separation_nm } => {
+                            u[0] -= s * half_separation_nm * (0.5 * PI * xi).cos();
+                        }
+                        Hidden::DriftAcceleration { a_nm_per_s2 } => {
+                            d[0] += 0.5 * a_nm_per_s2[0] * t * t;
+                            d[1] += 0.5 * a_nm_per_s2[1] * t * t;
+                        }
+                        Hidden::TipChange { time_s, jump_nm } => {
+                            if t >= time_s {
+                                d[0] += jump_nm[0];
+                                d[1] += jump_nm[1];
+                            }
+                        }
+                        Hidden::Vibration {
+                            amplitude_nm,
+                            frequency_hz,
+                        } => {
+                            let w = 2.0 * PI * frequency_hz * t;
+                            d[0] += amplitude_nm[0] * w.cos();
+                            d[1] += amplitude_nm[1] * (w + 1.0).cos();
+                        }
+                        Hidden::FeedbackFilter { decay: dd } => decay = dd,
+                        Hidden::Nonlinearity { quadratic, cubic } => {
+                            u[0] += half * (quadratic * xi * xi + cubic * xi.powi(3));
+                        }
+                        Hidden::SineDrive { beta_rad } => {
+                            u[0] = half * (beta_rad * xi).sin() / beta_rad.sin();
+                        }
+                        Hidden::Interlace { dy_nm } => {
+                            if s < 0.0 {
+                                u[1] += dy_nm;
+                            }
+                        }
+                    }
+                    let q = [
+                        j[0][0] * u[0] + j[0][1] * u[1] + d[0],
+                        j[1][0] * u[0] + j[1][1] * u[1] + d[1],
+                    ];
+                    let z_true = height(q);
+                    let z = match z_meas {
+                        Some(prev) if decay > 0.0 => decay * prev + (1.0 - decay) * z_true,
+                        _ => z_true,
+                    };
+                    z_meas = Some(z);
+                    // Stored in acquisition (time) order: column k of line r.
+                    image[r * n + k] = (z + noise.sample(&mut rng)) * 1e-9;
+                }
+            }
+        }
+        let [fwd, bwd] = images;
+        let scan = SxmScan {
+            pixels: [n, n],
+            size_nm: [program.size_nm, program.size_nm],
+            centre_nm: [0.0, 0.0],
+            angle_deg: 0.0,
+            line_time_s: [program.line_time_s, program.line_time_s],
+            scan_dir: dir_y,
+            recorded: date_plus(start.round() as u64),
+            bias_v: 0.1,
+            comment: format!("image-level generator, hidden {hidden:?}"),
+            channels: vec![SxmChannel {
+                name: "Z".into(),
+                unit: "m".into(),
+                forward: fwd,
+                backward: Some(bwd),
+            }],
+        };
+        let path = dir.join(format!("frame{f}.sxm"));
+        std::fs::write(&path, encode_sxm(&scan, &path).unwrap()).unwrap();
+        paths.push(path);
+        start = (start + duration + program.gap_s).round();
+    }
+    paths
+}
+
+/// A frame of white noise or of random blobs (no lattice), as `.sxm`.
+pub fn write_no_lattice(program: &Program, blobs: bool, seed: u64, tag: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!(
+        "spm-modelcheck-image-{}-{tag}-{seed}",
+        std::process::id()
+    ));
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let n = program.pixels;
+    let p = program.size_nm / n as f64;
+    let unit: Normal<f64> = Normal::new(0.0, 1.0).unwrap();
+    let centres: Vec<[f64; 2]> = (0..(n * n / 40))
+        .map(|_| {
+            [
+                (unit.sample(&mut rng) * 0.3 + 0.5).rem_euclid(1.0) * program.size_nm,
+                (unit.sample(&mut rng) * 0.3 + 0.5).rem_euclid(1.0) * program.size_nm,
+            ]
+        })
+        .collect();
+    let mut image = vec![0.0; n * n];
+    for r in 0..n {
+        for c in 0..n {
+            let v = if blobs {
+                let x = [c as f64 * p, r as f64 * p];
+                centres
+                    .iter()
+                    .map(|b| {
+                        let d2 = (x[0] - b[0]).powi(2) + (x[1] - b[1]).powi(2);
+                        0.05 * (-d2 / (2.0 * (0.35 * program.a_nm).powi(2))).exp()
+                    })
+                    .sum::<f64>()
+                    + 0.001 * unit.sample(&mut rng)
+            } else {
+                0.01 * unit.sample(&mut rng)
+            };
+            image[r * n + c] = v * 1e-9;
+        }
+    }
+    let backward: Vec<f64> = image.clone();
+    let scan = SxmScan {
+        pixels: [n, n],
+        size_nm: [program.size_nm, program.size_nm],
+        centre_nm: [0.0, 0.0],
+        angle_deg: 0.0,
+        line_time_s: [program.line_time_s, program.line_time_s],
+        scan_dir: ScanDir::Down,
+        recorded: date_plus(0),
+        bias_v: 0.1,
+        comment: String::new(),
+        channels: vec![SxmChannel {
+            name: "Z".into(),
+            unit: "m".into(),
+            forward: image,
+            backward: Some(backward),
+        }],
+    };
+    let path = dir.join(format!("{}.sxm", if blobs { "blobs" } else { "noise" }));
+    std::fs::write(&path, encode_sxm(&scan, &path).unwrap()).unwrap();
+    path
+}

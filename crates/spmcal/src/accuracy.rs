@@ -172,34 +172,8 @@ pub fn polynomial_baseline(
     ) else {
         return Err(CorrectionError::Empty("polynomial baseline: singular fit"));
     };
-    let field = FnField(move |x: f64, y: f64| {
-        let (u, v) = ((x - cx) / half, (y - cy) / half);
-        // Jacobian columns ∂P̂/∂x, ∂P̂/∂y, nm/count.
-        let (mut jxx, mut jxy, mut jyx, mut jyy) = (0.0, 0.0, 0.0, 0.0);
-        for (k, &(p, q)) in CUBIC_TERMS.iter().enumerate() {
-            let du = if p > 0 {
-                f64::from(p) * u.powi(p - 1) * v.powi(q)
-            } else {
-                0.0
-            };
-            let dv = if q > 0 {
-                f64::from(q) * u.powi(p) * v.powi(q - 1)
-            } else {
-                0.0
-            };
-            jxx += ax[k] * du / half;
-            jyx += ay[k] * du / half;
-            jxy += ax[k] * dv / half;
-            jyy += ay[k] * dv / half;
-        }
-        let kx = jxx.hypot(jyx);
-        let (ex, ey) = (jxx / kx, jyx / kx);
-        FormCoefficients {
-            kx_nm_per_count: kx,
-            kyx_nm_per_count: jxy * ex + jyy * ey,
-            kyy_nm_per_count: (jxx * jyy - jxy * jyx) / kx,
-        }
-    });
+    // The correction field is the polynomial's local shape (its Jacobian, rotation removed).
+    let field = crate::images::CubicMap::from_coefficients([cx, cy], half, ax, ay);
     evaluate_field(oracle, &field, grid)
 }
 

@@ -380,6 +380,22 @@ pub struct CubicMap {
 }
 
 impl CubicMap {
+    /// The map of given coefficients (total-degree-3 monomials of [`CUBIC_TERMS`] in the
+    /// normalised coordinates `(x − centre) / half`).
+    pub(crate) fn from_coefficients(
+        centre: [f64; 2],
+        half: f64,
+        ax: [f64; 10],
+        ay: [f64; 10],
+    ) -> Self {
+        Self {
+            centre,
+            half,
+            ax,
+            ay,
+        }
+    }
+
     /// Least-squares fit of `points` (counts) to `targets` (nm); `None` when singular.
     pub fn fit(points: &[[f64; 2]], targets: &[[f64; 2]]) -> Option<Self> {
         let n = points.len().min(targets.len());
@@ -780,40 +796,36 @@ fn mutual_matches(
 /// period in a slow image. So the match grows from the rows seen close in time: first the
 /// few atoms with the shortest time apart, matched within `max`; their offsets give an
 /// apparent offset and velocity; then ever more atoms matched at the positions those
-/// predict, the fit renewed at every stage. Positions are the features' pixel coordinates,
-/// or, with `frame`, their corrected coordinates in the two images' common frame (nm; `max`
-/// then in nm too), where a good correction leaves only the drift between the sightings.
+/// predict, the fit renewed at every stage. Positions are the features' corrected
+/// coordinates in the two images' common frame (`frame`: the direct and the counter map; nm,
+/// `max` in nm too), where a good correction leaves only the drift between the sightings.
 pub fn match_features(
     direct: &[Feature],
     counter: &[Feature],
     direct_map: &HeightMap,
     counter_map: &HeightMap,
     max: f64,
-    frame: Option<(&CoordinateMap, &CoordinateMap)>,
+    frame: (&CoordinateMap, &CoordinateMap),
 ) -> Vec<FeatureMatch> {
     let (nx, ny) = (direct_map.columns, direct_map.rows);
-    let position = |f: &Feature, map: Option<&CoordinateMap>| -> Option<[f64; 2]> {
-        match map {
-            None => Some([f.column, f.row]),
-            Some(m) => m
-                .interpolate(f.column, f.row)
-                .map(|p| [p.x.value(), p.y.value()]),
-        }
+    let position = |f: &Feature, map: &CoordinateMap| -> Option<[f64; 2]> {
+        map.interpolate(f.column, f.row)
+            .map(|p| [p.x.value(), p.y.value()])
     };
     // Features without a position in the frame are left out (kept indices).
     let keep_d: Vec<usize> = (0..direct.len())
-        .filter(|&i| position(&direct[i], frame.map(|f| f.0)).is_some())
+        .filter(|&i| position(&direct[i], frame.0).is_some())
         .collect();
     let keep_c: Vec<usize> = (0..counter.len())
-        .filter(|&j| position(&counter[j], frame.map(|f| f.1)).is_some())
+        .filter(|&j| position(&counter[j], frame.1).is_some())
         .collect();
     let pd: Vec<[f64; 2]> = keep_d
         .iter()
-        .filter_map(|&i| position(&direct[i], frame.map(|f| f.0)))
+        .filter_map(|&i| position(&direct[i], frame.0))
         .collect();
     let pc: Vec<[f64; 2]> = keep_c
         .iter()
-        .filter_map(|&j| position(&counter[j], frame.map(|f| f.1)))
+        .filter_map(|&j| position(&counter[j], frame.1))
         .collect();
     let time_apart = |i: usize| -> f64 {
         let f = &direct[keep_d[i]];
@@ -906,7 +918,7 @@ pub fn measure_lattice(
         direct,
         counter,
         0.3 * lattice_constant_nm,
-        Some((direct_coordinates, counter_coordinates)),
+        (direct_coordinates, counter_coordinates),
     );
     if matches.len() < 6 {
         return None;
@@ -941,10 +953,9 @@ pub fn measure_lattice(
     let t_ref = Seconds(direct.time_s[direct.time_s.len() / 2]);
     let moved =
         drift_corrected_map(direct_coordinates, &direct.time_s, drift.velocity, t_ref).ok()?;
-    let corrected = CounterPairView { direct: moved };
     // The largest axis-aligned rectangle inside the corrected (sheared, drift-moved) image:
     // inside its left and right columns and its first and last rows.
-    let m = &corrected.direct;
+    let m = &moved;
     let (nc, nr) = (m.columns(), m.rows());
     let (mut x0, mut x1, mut y0, mut y1) = (
         f64::NEG_INFINITY,
@@ -981,7 +992,7 @@ pub fn measure_lattice(
     .ok()?;
     let image = resample(
         &direct.z_counts,
-        &corrected.direct,
+        &moved,
         &grid,
         Interpolation::Bilinear,
         Parallelism::Sequential,
@@ -1029,11 +1040,6 @@ pub fn measure_lattice(
     // A triangular lattice's three directions are 60° apart; one further off than 15° is a
     // spurious vector (a failed resampling or match), not a distorted lattice.
     (worst <= 15.0).then_some((a, worst))
-}
-
-/// The drift-corrected direct map (named like `CounterPairCorrection`'s field).
-struct CounterPairView {
-    direct: CoordinateMap,
 }
 
 /// Corrects every image with every method and summarises.

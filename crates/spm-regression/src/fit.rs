@@ -181,6 +181,8 @@ pub(crate) fn design_row(u: f64, v: f64, degree: u32, row: &mut [f64]) {
 
 /// Weighted least-squares fit of a total-degree-`degree` polynomial surface (eq. 6).
 ///
+/// Implements eq. (6): the coefficient vector by least squares.
+///
 /// # Errors
 /// [`RegressionError::DegreeTooHigh`]; input errors of [`Observations::validate`];
 /// [`RegressionError::TooFewPoints`] if fewer points with positive weight than terms;

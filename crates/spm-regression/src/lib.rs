@@ -8,6 +8,7 @@
 //!
 //! Pure: no IO, no clock, no random numbers. Every failure is a typed [`RegressionError`];
 //! no function returns NaN for finite input.
+#![doc = include_str!("../README.md")]
 
 mod error;
 mod fit;

@@ -10,6 +10,8 @@
 //! no function returns NaN for finite input.
 #![doc = include_str!("../README.md")]
 
+#[cfg(feature = "faer")]
+pub mod bench_support;
 mod error;
 mod fit;
 mod polynomial;

@@ -165,20 +165,44 @@ fn cargo() -> std::process::Command {
     std::process::Command::new(program)
 }
 
-/// `cargo metadata --format-version 1 --offline --all-features` of a manifest, parsed.
-fn metadata_of(manifest: &Path) -> serde_json::Value {
-    let output = cargo()
-        .args([
-            "metadata",
-            "--format-version",
-            "1",
-            "--offline",
-            "--all-features",
-        ])
-        .arg("--manifest-path")
-        .arg(manifest)
+/// The host's target triple (`rustc -vV`), so that `cargo metadata` resolves (and needs) only
+/// the packages of this platform.
+fn host_triple() -> String {
+    let rustc = std::env::var_os("RUSTC").unwrap_or_else(|| "rustc".into());
+    let output = std::process::Command::new(rustc)
+        .arg("-vV")
         .output()
-        .expect("cargo runs");
+        .expect("rustc runs");
+    String::from_utf8_lossy(&output.stdout)
+        .lines()
+        .find_map(|l| l.strip_prefix("host: "))
+        .expect("rustc -vV names the host")
+        .trim()
+        .to_owned()
+}
+
+/// `cargo metadata --format-version 1 --all-features --filter-platform <host>` of a manifest,
+/// parsed. Offline first (everything a build of the workspace fetched is in cargo's cache); when
+/// a package the build never needed is missing there (an optional feature's dependency), once
+/// more with the registry reachable.
+fn metadata_of(manifest: &Path) -> serde_json::Value {
+    let host = host_triple();
+    let run = |offline: bool| {
+        let mut command = cargo();
+        command
+            .args(["metadata", "--format-version", "1", "--all-features"])
+            .args(["--filter-platform", &host])
+            .arg("--manifest-path")
+            .arg(manifest);
+        if offline {
+            command.arg("--offline");
+        }
+        command.output().expect("cargo runs")
+    };
+    let mut output = run(true);
+    if !output.status.success() {
+        output = run(false);
+    }
     assert!(
         output.status.success(),
         "cargo metadata --manifest-path {} failed:\n{}",

@@ -638,73 +638,15 @@ impl PlanConfig {
     /// A small HOPG plan for a 16-bit scanner of about 0.02 nm/count (the simulator's
     /// `room_temperature_tube` and `ideal` scenarios): a 3×3 lateral net (step 20000 counts,
     /// margin 8000), one Z level, 2 kept skipping cycles per vector, the skipping variant of
-    /// Fig. 3a. Equals `configs/plan-hopg-small.toml`.
+    /// Fig. 3a. Parsed from `scenarios/plan-hopg-small.toml` (`configs/plan-hopg-small.toml`).
     pub fn hopg_small_net() -> Self {
-        Self {
-            scanner_id: "sim-hopg".into(),
-            repeats: 1,
-            standard: StandardConfig {
-                lattice_constant_nm: 0.2461,
-                lcs_angle_deg: 60.0,
-                feature: FeaturePolarity::Hills,
-                nominal_nm_per_count: 0.02,
-                length_tolerance_fraction: 0.3,
-                angle_tolerance_deg: 15.0,
-                step_height_nm: None,
-            },
-            net: NetConfig {
-                kind: NetKind::LateralPlanes,
-                step_counts: 20000,
-                margin_counts: 8000,
-                z_levels: vec![ZLevel {
-                    nominal_z_counts: 0,
-                    coarse_steps: None,
-                }],
-                y_planes_counts: None,
-            },
-            pause: PauseLaw {
-                base_s: 0.5,
-                per_count_s: 5e-4,
-                per_coarse_step_s: 0.0,
-                max_s: 30.0,
-            },
-            motion: MotionConfig {
-                pixel_dwell_s: 1e-4,
-                move_speed_counts_per_s: 20000.0,
-                settle_s: 0.01,
-            },
-            attach: AttachConfig {
-                first_size_counts: 36.0,
-                first_pixels: 24,
-                segment_size_counts: 12.0,
-                segment_pixels: 12,
-                max_attachments: 40,
-                skip: false,
-            },
-            aperture: ApertureConfig {
-                size_counts: 50.0,
-                pixels: 48,
-            },
-            skipping: SkippingConfig {
-                cycles: 2,
-                idle_cycles: 1,
-                max_restarts: 2,
-            },
-            drift: DriftConfig {
-                max_speed_nm_per_s: 0.2,
-                max_change_nm_per_s: 0.1,
-            },
-            failures: FailureConfig {
-                max_attempts_per_node: 3,
-                transient_retries_per_node: 3,
-            },
-            variant: VariantConfig {
-                attach_to: AttachTarget::FeatureA,
-                neighbours: NeighbourSet::Lcs,
-                bc_redundancy: false,
-                measurement: MeasurementMethod::Skipping,
-            },
-        }
+        // The text is part of the program; the crate's tests parse it.
+        #[allow(clippy::expect_used)]
+        Self::from_toml_str(
+            include_str!("../scenarios/plan-hopg-small.toml"),
+            "plan-hopg-small.toml",
+        )
+        .expect("the shipped plan parses and validates")
     }
 }
 

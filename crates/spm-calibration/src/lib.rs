@@ -52,6 +52,7 @@
 pub mod config;
 pub mod lcc;
 pub mod machine;
+pub mod measure;
 pub mod plan;
 pub mod runner;
 

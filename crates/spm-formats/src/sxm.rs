@@ -208,7 +208,9 @@ impl ScanGeometry {
             Some(v) => {
                 let (f, b) = two_numbers(ctx, "SCAN_TIME", v)?;
                 if f <= 0.0 || b < 0.0 {
-                    return Err(ctx.invalid("SCAN_TIME", format!("non-positive line time in {v:?}")));
+                    return Err(
+                        ctx.invalid("SCAN_TIME", format!("non-positive line time in {v:?}"))
+                    );
                 }
                 Some((f, b))
             }

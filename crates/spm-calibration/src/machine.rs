@@ -243,12 +243,6 @@ pub enum Event {
     Failed(Failure),
 }
 
-/// The largest |skipped − aperture| difference of a vector, as a fraction of its length,
-/// accepted as the same vector. The aperture's single-scan estimate is off by a few per cent
-/// (drift, creep); the nearest wrong feature makes the difference at least one lattice
-/// constant, i.e. a fraction ≳ 1 (the counter-scan match uses the same limit).
-pub const SKIP_VECTOR_TOLERANCE: f64 = 0.35;
-
 /// Why a node was given up (stored as its text in the CDB).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, thiserror::Error)]
 #[serde(tag = "reason", rename_all = "snake_case")]
@@ -276,7 +270,7 @@ pub enum GiveUpReason {
         restarts: u32,
     },
     /// A skipped vector disagrees with the same vector seen in the aperture by more than
-    /// [`SKIP_VECTOR_TOLERANCE`] of its length: an attachment caught a neighbouring
+    /// `tuning.vector_match_tolerance_fraction` of its length: an attachment caught a neighbouring
     /// feature (the probe landed more than half a lattice constant off), so the half-sum
     /// measured another vector of the lattice.
     #[error(
@@ -373,6 +367,9 @@ pub struct MachineParams {
     pub max_attempts: u32,
     /// Transient errors per node.
     pub transient_retries: u32,
+    /// A measured vector farther than this fraction of its length from the expected one
+    /// caught another feature (plan `tuning.vector_match_tolerance_fraction`).
+    pub vector_match_tolerance: f64,
 }
 
 impl MachineParams {
@@ -388,6 +385,7 @@ impl MachineParams {
             lcs_angle: plan.standard.lcs_angle(),
             max_attempts: plan.failures.max_attempts_per_node.max(1),
             transient_retries: plan.failures.transient_retries_per_node,
+            vector_match_tolerance: plan.tuning.vector_match_tolerance_fraction,
         }
     }
 }
@@ -701,7 +699,8 @@ impl NodeMachine {
                         let length = target.estimate.norm().value();
                         let deviation_fraction = (vector - target.estimate).norm().value()
                             / length.max(f64::MIN_POSITIVE);
-                        if deviation_fraction.is_nan() || deviation_fraction > SKIP_VECTOR_TOLERANCE
+                        if deviation_fraction.is_nan()
+                            || deviation_fraction > self.params.vector_match_tolerance
                         {
                             return self.redo(GiveUpReason::WrongFeature { deviation_fraction });
                         }
@@ -749,7 +748,7 @@ impl NodeMachine {
                         .map(|(i, (v, c))| (i, *v, *c, (*v - t.estimate).norm().value()))
                         .min_by(|x, y| x.3.total_cmp(&y.3));
                     if let Some((i, v, c, d)) = best
-                        && d < SKIP_VECTOR_TOLERANCE * t.estimate.norm().value()
+                        && d < self.params.vector_match_tolerance * t.estimate.norm().value()
                     {
                         used.push(i);
                         self.measured.push(VectorObservation {

@@ -161,9 +161,11 @@ fn raster(size_counts: f64, pixels: u32, dwell_s: f64) -> Raster {
 impl FosParams {
     /// Converts the plan: sizes to rasters, nm/s to counts/s with the nominal sensitivity,
     /// the attachment timeout from `max_attachments`, the monitor's speed limit from the
-    /// segment (a feature must not drift more than 0.4 segment over one cycle).
+    /// segment (a feature must not drift more than `tuning.monitor_drift_segment_fraction`
+    /// of the segment over one cycle).
     pub fn from_plan(plan: &PlanConfig) -> Self {
         let s = &plan.standard;
+        let tuning = &plan.tuning;
         let dwell = plan.motion.pixel_dwell_s;
         let motion = Motion {
             speed_counts_per_s: plan.motion.move_speed_counts_per_s,
@@ -176,7 +178,9 @@ impl FosParams {
         };
         let detection = |r: &Raster| DetectionConfig {
             polarity,
-            min_separation_px: (0.5 * spacing_counts / r.pixel_step_counts).max(1.5),
+            min_separation_px: (tuning.detection_separation_fraction * spacing_counts
+                / r.pixel_step_counts)
+                .max(1.5),
             ..DetectionConfig::default()
         };
         let first = raster(
@@ -196,14 +200,25 @@ impl FosParams {
         let track_s = segment.duration_s() + hop_s;
         let timeout_s =
             first.duration_s() + f64::from(plan.attach.max_attachments) * track_s + 1e-9;
-        let mut attach = AttachParams::new(first, segment, speed_limit, timeout_s);
-        attach.first_detection = detection(&first);
-        attach.segment_detection = detection(&segment);
-        attach.motion = motion;
+        let attach = AttachParams {
+            first,
+            segment,
+            first_detection: detection(&first),
+            segment_detection: detection(&segment),
+            motion,
+            velocity_limit_counts_per_s: speed_limit,
+            settle_count: tuning.attach_settle_sightings as usize,
+            velocity_window: tuning.attach_velocity_window as usize,
+            timeout_s,
+            attachment_interval_s: 0.0,
+            capture_radius_fraction: tuning.attach_capture_radius_fraction,
+        };
         let cycle_s = 2.0 * track_s;
         let monitor = MonitorParams {
             velocity_tolerance_counts_per_s: to_counts(plan.drift.max_change_nm_per_s),
-            max_speed_counts_per_s: (0.4 * segment.side_counts() / cycle_s).max(speed_limit),
+            max_speed_counts_per_s: (tuning.monitor_drift_segment_fraction * segment.side_counts()
+                / cycle_s)
+                .max(speed_limit),
             idle_cycles: plan.skipping.idle_cycles as usize,
             required_cycles: plan.skipping.cycles as usize,
             max_restarts: plan.skipping.max_restarts as usize,
@@ -235,7 +250,7 @@ impl FosParams {
                 raster: aperture,
                 detection: detection(&aperture),
                 motion,
-                match_radius_counts: 0.35 * spacing_counts,
+                match_radius_counts: tuning.counter_match_radius_fraction * spacing_counts,
                 drift_prior: CountVelocity::ZERO,
             },
         }

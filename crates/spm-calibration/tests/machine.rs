@@ -326,7 +326,7 @@ fn a_skipped_vector_that_caught_another_feature_redoes_the_node() {
         m.step(completed(ab * 1.1, 2, 0)),
         Action::Skip { index: 1, .. }
     ));
-    const { assert!(spm_calibration::SKIP_VECTOR_TOLERANCE < 1.0) };
+    const { assert!(spm_calibration::TuningConfig::RECOMMENDED.vector_match_tolerance_fraction < 1.0) };
 }
 
 /// The machine's answer to each event as a short name: `move`, `attach`, `aperture`,

@@ -15,6 +15,7 @@ mod budget;
 mod crb;
 mod drift;
 mod gwyddion;
+mod linalg;
 mod productivity;
 mod report;
 mod speed;
@@ -108,6 +109,8 @@ pub struct Results {
     pub speed: Section<speed::SpeedResults>,
     /// Gwyddion side by side.
     pub gwyddion: Section<gwyddion::GwyddionResults>,
+    /// Large least squares, nalgebra beside faer.
+    pub linalg: Section<linalg::LinalgResults>,
 }
 
 /// What `cargo xtask bench` was asked to do.
@@ -161,6 +164,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
             ))
         }
     });
+    let linalg = timed("linalg", || linalg::run(&ctx));
     let mut machine = machine;
     machine.load_average_end = load_average();
     let mut command = String::from("cargo xtask bench");
@@ -188,6 +192,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
         crb,
         speed,
         gwyddion,
+        linalg,
     };
     report::write(&ctx, &results)
 }

@@ -29,6 +29,6 @@ pub use scan::{
     TraceImage,
 };
 pub use units::{
-    CountPoint, CountVector, CountVelocity, Counts, Nanometres, NmPerCount, NmPoint, NmVelocity,
-    Radians, Seconds,
+    CountPoint, CountVector, CountVelocity, Counts, CountsPerSecond, Nanometres, NmPerCount,
+    NmPerCountMatrix, NmPoint, NmVelocity, Radians, Seconds,
 };

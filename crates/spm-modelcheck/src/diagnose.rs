@@ -1084,6 +1084,7 @@ fn encompasses(
 }
 
 /// Like [`diagnose_features`] with the lattice sites given (e.g. from a simulator's oracle).
+// long-function: the forward model selection shares one fit state (candidate set, residuals, BIC ledger) across its stages; issue 18 rewrites this loop into separate stages
 pub fn diagnose_indexed(
     set: &FeatureSet,
     sites: &[Option<[i64; 2]>],

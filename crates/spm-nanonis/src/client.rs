@@ -153,14 +153,14 @@ impl Client {
         let address = self.config.address()?;
         let stream = TcpStream::connect_timeout(&address, seconds(self.config.connect_timeout_s))
             .map_err(|e| {
-                NanonisError::new(
-                    NanonisErrorKind::Connect,
-                    format!("cannot connect to {address}: {e}"),
-                )
-            })?;
-        stream.set_nodelay(true).map_err(|e| {
-            NanonisError::new(NanonisErrorKind::Io, format!("set_nodelay: {e}"))
+            NanonisError::new(
+                NanonisErrorKind::Connect,
+                format!("cannot connect to {address}: {e}"),
+            )
         })?;
+        stream
+            .set_nodelay(true)
+            .map_err(|e| NanonisError::new(NanonisErrorKind::Io, format!("set_nodelay: {e}")))?;
         Ok(stream)
     }
 
@@ -218,9 +218,7 @@ impl Client {
                 "the controller at {}:{} is unreachable after {} reconnect attempts ({cause}); \
                  the run cannot continue: restart the controller (or its TCP interface) and \
                  resume",
-                self.config.host,
-                self.config.port,
-                self.config.reconnect_attempts
+                self.config.host, self.config.port, self.config.reconnect_attempts
             ),
         ))
     }
@@ -232,8 +230,13 @@ impl Client {
 
     /// Sends a wait-style request expected to take `expected_s`: its timeout is that plus
     /// the wait margin.
-    pub fn call_waiting(&mut self, request: &Request, expected_s: f64) -> Result<Reply, NanonisError> {
-        let timeout = expected_s.max(0.0) + self.config.wait_margin_s + self.config.command_timeout_s;
+    pub fn call_waiting(
+        &mut self,
+        request: &Request,
+        expected_s: f64,
+    ) -> Result<Reply, NanonisError> {
+        let timeout =
+            expected_s.max(0.0) + self.config.wait_margin_s + self.config.command_timeout_s;
         self.call_with_timeout(request, timeout)
     }
 
@@ -258,7 +261,8 @@ impl Client {
             }
         }
         Err(last.unwrap_or_else(|| {
-            NanonisError::new(NanonisErrorKind::Io, "no attempt was made").in_command(request.name())
+            NanonisError::new(NanonisErrorKind::Io, "no attempt was made")
+                .in_command(request.name())
         }))
     }
 
@@ -299,7 +303,10 @@ impl Client {
             };
             match transact(stream, request, self.schema, self.config.command_timeout_s) {
                 Ok((_, error)) if error.status != 0 => {
-                    return Err(NanonisError::from_error_reply(request.name(), &error.description));
+                    return Err(NanonisError::from_error_reply(
+                        request.name(),
+                        &error.description,
+                    ));
                 }
                 Ok(_) => return Ok(()),
                 Err(e) => {
@@ -359,7 +366,10 @@ fn transact(
     if header.command != name {
         return Err(NanonisError::new(
             NanonisErrorKind::Protocol,
-            format!("reply is for {:?}, not for the request sent", header.command),
+            format!(
+                "reply is for {:?}, not for the request sent",
+                header.command
+            ),
         ));
     }
     let mut reply_body = vec![0u8; header.body_len];

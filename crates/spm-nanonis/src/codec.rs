@@ -366,7 +366,12 @@ impl Writer {
         Ok(())
     }
     /// A 2-D `float32` array with rows and columns in front, row-major.
-    pub fn f32_2d(&mut self, rows: usize, columns: usize, values: &[f32]) -> Result<(), CodecError> {
+    pub fn f32_2d(
+        &mut self,
+        rows: usize,
+        columns: usize,
+        values: &[f32],
+    ) -> Result<(), CodecError> {
         if rows.checked_mul(columns) != Some(values.len()) {
             return Err(CodecError::Encode {
                 what: "2-D array",
@@ -557,8 +562,10 @@ mod tests {
         h
     }
 
-    const FOLME_XYPOSGET_NAME: &str = "466F 6C4D 652E 5859 506F 7347 6574 0000 0000 0000 0000 0000 0000 0000 0000 0000";
-    const FOLME_XYPOSSET_NAME: &str = "466F 6C4D 652E 5859 506F 7353 6574 0000 0000 0000 0000 0000 0000 0000 0000 0000";
+    const FOLME_XYPOSGET_NAME: &str =
+        "466F 6C4D 652E 5859 506F 7347 6574 0000 0000 0000 0000 0000 0000 0000 0000 0000";
+    const FOLME_XYPOSSET_NAME: &str =
+        "466F 6C4D 652E 5859 506F 7353 6574 0000 0000 0000 0000 0000 0000 0000 0000 0000";
 
     #[test]
     fn manual_example_return_the_tip_position_request() {
@@ -599,7 +606,10 @@ mod tests {
         let mut r = Reader::new(&bytes[HEADER_LEN..]);
         assert_eq!(r.f64("x").expect("x"), 5e-9);
         assert_eq!(r.f64("y").expect("y"), -5e-9);
-        assert_eq!(ErrorSection::decode(&mut r).expect("error"), ErrorSection::ok());
+        assert_eq!(
+            ErrorSection::decode(&mut r).expect("error"),
+            ErrorSection::ok()
+        );
         r.finish("FolMe.XYPosGet").expect("consumed");
         // And the other way round.
         let mut w = Writer::new();
@@ -636,7 +646,10 @@ mod tests {
         let h = decode_response_header(&header(&response)).expect("valid");
         assert_eq!(h.body_len, 8);
         let mut r = Reader::new(&response[HEADER_LEN..]);
-        assert_eq!(ErrorSection::decode(&mut r).expect("error"), ErrorSection::ok());
+        assert_eq!(
+            ErrorSection::decode(&mut r).expect("error"),
+            ErrorSection::ok()
+        );
         r.finish("FolMe.XYPosSet").expect("consumed");
     }
 
@@ -681,7 +694,10 @@ mod tests {
         w.i32(2);
         let bytes = w.into_bytes();
         let mut r = Reader::new(&bytes);
-        assert!(matches!(r.f32_2d("data"), Err(CodecError::InvalidSize { .. })));
+        assert!(matches!(
+            r.f32_2d("data"),
+            Err(CodecError::InvalidSize { .. })
+        ));
         let mut r = Reader::new(&[0xFF, 0xFF, 0xFF, 0xFF]);
         assert!(r.string("name").is_err());
     }

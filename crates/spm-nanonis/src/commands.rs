@@ -432,8 +432,9 @@ impl Request {
                     (true, None) | (false, Some(_)) => {
                         return Err(CodecError::Encode {
                             what: "Scan.PropsSet",
-                            reason: "the Autopaste argument does not match the controller's release"
-                                .into(),
+                            reason:
+                                "the Autopaste argument does not match the controller's release"
+                                    .into(),
                         });
                     }
                 }
@@ -476,10 +477,12 @@ impl Request {
                 indexes,
                 wait_newest,
             } => {
-                w.i32(i32::try_from(indexes.len()).map_err(|_| CodecError::Encode {
-                    what: "signal indexes",
-                    reason: "too many".into(),
-                })?);
+                w.i32(
+                    i32::try_from(indexes.len()).map_err(|_| CodecError::Encode {
+                        what: "signal indexes",
+                        reason: "too many".into(),
+                    })?,
+                );
                 w.i32_array(indexes);
                 w.u32(*wait_newest);
             }
@@ -791,10 +794,12 @@ impl Reply {
                 file_path,
             } => {
                 w.u32(*timed_out);
-                w.u32(u32::try_from(file_path.len()).map_err(|_| CodecError::Encode {
-                    what: "file path",
-                    reason: "too long".into(),
-                })?);
+                w.u32(
+                    u32::try_from(file_path.len()).map_err(|_| CodecError::Encode {
+                        what: "file path",
+                        reason: "too long".into(),
+                    })?,
+                );
                 w.raw_string(file_path);
             }
             Self::Frame(f) => encode_frame(&mut w, f),
@@ -823,7 +828,13 @@ impl Reply {
 }
 
 fn encode_frame(w: &mut Writer, f: &ScanFrame) {
-    w.f32_array(&[f.centre_x_m, f.centre_y_m, f.width_m, f.height_m, f.angle_deg]);
+    w.f32_array(&[
+        f.centre_x_m,
+        f.centre_y_m,
+        f.width_m,
+        f.height_m,
+        f.angle_deg,
+    ]);
 }
 
 fn decode_frame(r: &mut Reader<'_>) -> Result<ScanFrame, CodecError> {
@@ -837,10 +848,12 @@ fn decode_frame(r: &mut Reader<'_>) -> Result<ScanFrame, CodecError> {
 }
 
 fn encode_buffer(w: &mut Writer, b: &ScanBuffer) -> Result<(), CodecError> {
-    w.i32(i32::try_from(b.channels.len()).map_err(|_| CodecError::Encode {
-        what: "channel indexes",
-        reason: "too many".into(),
-    })?);
+    w.i32(
+        i32::try_from(b.channels.len()).map_err(|_| CodecError::Encode {
+            what: "channel indexes",
+            reason: "too many".into(),
+        })?,
+    );
     w.i32_array(&b.channels);
     w.i32(b.pixels);
     w.i32(b.lines);

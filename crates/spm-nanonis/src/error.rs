@@ -84,8 +84,11 @@ impl NanonisError {
         } else {
             NanonisErrorKind::Controller
         };
-        Self::new(kind, format!("the controller answered with an error: {description}"))
-            .in_command(command)
+        Self::new(
+            kind,
+            format!("the controller answered with an error: {description}"),
+        )
+        .in_command(command)
     }
 }
 
@@ -121,14 +124,19 @@ mod tests {
 
     #[test]
     fn error_replies_map_to_shared_kinds() {
-        check("Z-Controller: feedback lost (Safe Tip)", ErrorKind::FeedbackLost);
+        check(
+            "Z-Controller: feedback lost (Safe Tip)",
+            ErrorKind::FeedbackLost,
+        );
         check("the real-time engine timed out", ErrorKind::Timeout);
         check("target is out of range", ErrorKind::OutOfRange);
         check("busy", ErrorKind::Communication);
         check("Invalid channel index", ErrorKind::Other);
         assert!(ErrorKind::Communication.is_transient());
-        assert!(!NanonisError::new(NanonisErrorKind::Unreachable, "x")
-            .kind()
-            .is_transient());
+        assert!(
+            !NanonisError::new(NanonisErrorKind::Unreachable, "x")
+                .kind()
+                .is_transient()
+        );
     }
 }

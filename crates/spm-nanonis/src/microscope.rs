@@ -128,7 +128,10 @@ impl NanonisConfig {
             }
         }
         if !(0..=127).contains(&self.z_channel) {
-            return invalid("z_channel", format!("{} is outside [0, 127]", self.z_channel));
+            return invalid(
+                "z_channel",
+                format!("{} is outside [0, 127]", self.z_channel),
+            );
         }
         if let ClockSource::ControllerSignals {
             whole_s_signal,
@@ -155,7 +158,10 @@ impl NanonisConfig {
                 return invalid("coarse_z", "[min_steps, max_steps] must contain 0".into());
             }
             if c.approach != "z+" && c.approach != "z-" {
-                return invalid("coarse_z.approach", format!("{:?} is not \"z+\" or \"z-\"", c.approach));
+                return invalid(
+                    "coarse_z.approach",
+                    format!("{:?} is not \"z+\" or \"z-\"", c.approach),
+                );
             }
             if c.group > 5 {
                 return invalid("coarse_z.group", format!("{} is outside [0, 5]", c.group));
@@ -491,7 +497,11 @@ impl NanonisMicroscope {
         {
             return Err(NanonisError::new(
                 NanonisErrorKind::OutOfRange,
-                format!("{what} ({}, {}) counts is outside the field", p.x.value(), p.y.value()),
+                format!(
+                    "{what} ({}, {}) counts is outside the field",
+                    p.x.value(),
+                    p.y.value()
+                ),
             ));
         }
         Ok(())
@@ -556,7 +566,10 @@ impl NanonisMicroscope {
         };
         let (_, far_y) = request.far_corner();
         for (x, y) in [(x_lo, request.origin.y.value()), (x_hi, far_y.value())] {
-            self.check_inside(CountPoint::from_counts(x, y), "the scan raster (padded to a multiple of 16 pixels)")?;
+            self.check_inside(
+                CountPoint::from_counts(x, y),
+                "the scan raster (padded to a multiple of 16 pixels)",
+            )?;
         }
         // Frame: pixels are cell-centred, pixel i of a line at left + (i + ½)·width/pixels.
         let centre_counts = CountPoint::from_counts(
@@ -742,7 +755,9 @@ impl NanonisMicroscope {
             forward,
         };
         match self.client.call(&request)? {
-            Reply::FrameData(d) if d.rows == rows as usize && d.columns == columns as usize => Ok(d),
+            Reply::FrameData(d) if d.rows == rows as usize && d.columns == columns as usize => {
+                Ok(d)
+            }
             Reply::FrameData(d) => Err(NanonisError::new(
                 NanonisErrorKind::IncompleteData,
                 format!(
@@ -767,9 +782,7 @@ impl NanonisMicroscope {
                     wait_newest: 0,
                 };
                 match self.client.call(&request)? {
-                    Reply::Values(v) if v.len() == 2 => {
-                        Ok(f64::from(v[0]) + f64::from(v[1]))
-                    }
+                    Reply::Values(v) if v.len() == 2 => Ok(f64::from(v[0]) + f64::from(v[1])),
                     other => Err(unexpected("Signals.ValsGet", &other)),
                 }
             }
@@ -822,7 +835,10 @@ impl Microscope for NanonisMicroscope {
     }
 
     fn position(&mut self) -> Result<CountPoint, NanonisError> {
-        match self.client.call(&Request::FolMeXYPosGet { wait_newest: 0 })? {
+        match self
+            .client
+            .call(&Request::FolMeXYPosGet { wait_newest: 0 })?
+        {
             Reply::XY { x_m, y_m } => Ok(CountPoint::from_counts(
                 x_m / self.lateral_m_per_count[0],
                 y_m / self.lateral_m_per_count[1],

@@ -343,86 +343,7 @@ pub enum MeasurementMethod {
     CounterScan,
 }
 
-/// Why a plan configuration could not be loaded.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum ConfigError {
-    /// The file could not be read.
-    #[error("cannot read plan config `{path}`: {source}")]
-    Io {
-        /// The file.
-        path: String,
-        /// The OS error.
-        #[source]
-        source: std::io::Error,
-    },
-    /// Malformed TOML, an unknown field, a missing field or a value of the wrong type.
-    #[error("{source_name}{}: {}{message}", line_suffix(*line, *column), field_prefix(field.as_deref()))]
-    Parse {
-        /// File name or other label.
-        source_name: String,
-        /// 1-based line, when known.
-        line: Option<usize>,
-        /// 1-based column, when known.
-        column: Option<usize>,
-        /// Dotted path of the field, when known.
-        field: Option<String>,
-        /// The parser's message.
-        message: String,
-    },
-    /// A value is well-formed but invalid.
-    #[error("{source_name}{}: field `{field}` {reason}", line_suffix(*line, None))]
-    Invalid {
-        /// File name or other label.
-        source_name: String,
-        /// 1-based line of the field, when found.
-        line: Option<usize>,
-        /// Dotted path of the field, e.g. `plan.skipping.cycles`.
-        field: String,
-        /// What is wrong.
-        reason: String,
-    },
-}
-
-impl ConfigError {
-    /// Dotted path of the offending field, when known.
-    pub fn field(&self) -> Option<&str> {
-        match self {
-            Self::Io { .. } => None,
-            Self::Parse { field, .. } => field.as_deref(),
-            Self::Invalid { field, .. } => Some(field),
-        }
-    }
-    /// 1-based line, when known.
-    pub fn line(&self) -> Option<usize> {
-        match self {
-            Self::Io { .. } => None,
-            Self::Parse { line, .. } | Self::Invalid { line, .. } => *line,
-        }
-    }
-}
-
-fn line_suffix(line: Option<usize>, column: Option<usize>) -> String {
-    match (line, column) {
-        (Some(l), Some(c)) => format!(":{l}:{c}"),
-        (Some(l), None) => format!(":{l}"),
-        _ => String::new(),
-    }
-}
-
-fn field_prefix(field: Option<&str>) -> String {
-    field.map(|f| format!("field `{f}`: ")).unwrap_or_default()
-}
-
-/// A semantic validation failure: dotted field path (relative to `plan`) and reason.
-#[derive(Clone, Debug, PartialEq, thiserror::Error)]
-#[error("field `{field}` {reason}")]
-pub struct ValidationError {
-    /// Dotted path of the field, e.g. `plan.skipping.cycles`.
-    pub field: String,
-    /// What is wrong.
-    pub reason: String,
-}
+pub use spm_config::{ConfigError, ValidationError};
 
 /// The document: only `[plan]` is read; other tables are ignored (their owners parse them).
 #[derive(Deserialize)]
@@ -437,29 +358,10 @@ impl PlanConfig {
     /// # Errors
     /// [`ConfigError::Parse`] or [`ConfigError::Invalid`] naming the line and field.
     pub fn from_toml_str(text: &str, source_name: &str) -> Result<Self, ConfigError> {
-        let doc: Document = toml::from_str(text).map_err(|e| {
-            let message = e.message().trim().to_owned();
-            let (line, column, field) = match e.span() {
-                Some(span) => {
-                    let (l, c) = line_column(text, span.start);
-                    (Some(l), Some(c), field_at(text, span.start, &message))
-                }
-                None => (None, None, quoted_name(&message)),
-            };
-            ConfigError::Parse {
-                source_name: source_name.to_owned(),
-                line,
-                column,
-                field,
-                message,
-            }
-        })?;
-        doc.plan.validate().map_err(|v| ConfigError::Invalid {
-            source_name: source_name.to_owned(),
-            line: locate_field_line(text, &v.field),
-            field: v.field,
-            reason: v.reason,
-        })?;
+        let doc: Document = spm_config::parse_toml(text, source_name)?;
+        doc.plan
+            .validate()
+            .map_err(|v| ConfigError::invalid(text, source_name, v))?;
         Ok(doc.plan)
     }
 
@@ -469,12 +371,8 @@ impl PlanConfig {
     /// [`ConfigError::Io`] and as [`PlanConfig::from_toml_str`].
     pub fn from_file(path: impl AsRef<Path>) -> Result<Self, ConfigError> {
         let path = path.as_ref();
-        let name = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
-            path: name.clone(),
-            source,
-        })?;
-        Self::from_toml_str(&text, &name)
+        let text = spm_config::read_config_file(path)?;
+        Self::from_toml_str(&text, &path.display().to_string())
     }
 
     /// The plan as a TOML document with a `[plan]` table.
@@ -810,100 +708,11 @@ impl PlanConfig {
     }
 }
 
-fn line_column(text: &str, offset: usize) -> (usize, usize) {
-    let offset = offset.min(text.len());
-    let before = text.get(..offset).unwrap_or("");
-    let line = before.matches('\n').count() + 1;
-    let column = before.rsplit('\n').next().map_or(0, |s| s.chars().count()) + 1;
-    (line, column)
-}
-
-/// The name inside the first pair of backticks of a serde message ("unknown field `x`",
-/// "missing field `x`").
-fn quoted_name(message: &str) -> Option<String> {
-    let start = message.find('`')? + 1;
-    let len = message.get(start..)?.find('`')?;
-    message.get(start..start + len).map(str::to_owned)
-}
-
-fn strip_comment(line: &str) -> &str {
-    let mut in_string = false;
-    for (k, ch) in line.char_indices() {
-        match ch {
-            '"' => in_string = !in_string,
-            '#' if !in_string => return line.get(..k).unwrap_or(line),
-            _ => {}
-        }
-    }
-    line
-}
-
-fn header(line: &str) -> Option<String> {
-    let t = strip_comment(line).trim();
-    t.starts_with('[').then(|| {
-        t.trim_start_matches('[')
-            .trim_end_matches(']')
-            .trim()
-            .to_owned()
-    })
-}
-
-/// The dotted field at a parse error's offset: the table in force plus the key of the line,
-/// or the name the message quotes (unknown/missing field).
-fn field_at(text: &str, offset: usize, message: &str) -> Option<String> {
-    let lines: Vec<&str> = text.split('\n').collect();
-    let (line, _) = line_column(text, offset);
-    let index = line.checked_sub(1)?;
-    let table = lines
-        .iter()
-        .take(index + 1)
-        .rev()
-        .find_map(|l| header(l))
-        .unwrap_or_default();
-    let join = |key: &str| {
-        if table.is_empty() {
-            key.to_owned()
-        } else {
-            format!("{table}.{key}")
-        }
-    };
-    if (message.contains("unknown field") || message.contains("missing field"))
-        && let Some(name) = quoted_name(message)
-    {
-        return Some(join(&name));
-    }
-    let content = strip_comment(lines.get(index)?).trim();
-    if content.starts_with('[') {
-        return Some(table);
-    }
-    let (key, _) = content.split_once('=')?;
-    Some(join(key.trim()))
-}
-
-/// Best-effort 1-based line of a dotted field (`plan.skipping.cycles`) in a TOML text:
-/// the key line inside its table, else the table header.
+/// The 1-based line of a dotted field (`plan.skipping.cycles`) in a TOML text: the key's
+/// line, else the line of the deepest table of the path that is written.
+#[must_use]
 pub fn locate_field_line(text: &str, field: &str) -> Option<usize> {
-    let (table, key) = field.rsplit_once('.')?;
-    let mut current = String::new();
-    let mut table_line = None;
-    for (index, raw) in text.split('\n').enumerate() {
-        if let Some(h) = header(raw) {
-            current = h;
-            if current == table {
-                table_line = Some(index + 1);
-            }
-            continue;
-        }
-        if current == table {
-            let content = strip_comment(raw).trim();
-            if let Some((k, _)) = content.split_once('=')
-                && k.trim() == key
-            {
-                return Some(index + 1);
-            }
-        }
-    }
-    table_line.or_else(|| locate_field_line(text, table))
+    spm_config::TomlLocator::new(text).line_of(field)
 }
 
 #[cfg(test)]

@@ -340,85 +340,12 @@ pub struct FaultConfig {
 // ---------------------------------------------------------------------------
 // Errors
 
-/// Why a configuration could not be loaded.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum ConfigError {
-    /// The file could not be read.
-    #[error("cannot read simulator config `{path}`: {source}")]
-    Io {
-        /// The file.
-        path: String,
-        /// The OS error.
-        #[source]
-        source: std::io::Error,
-    },
-    /// The TOML is malformed, has an unknown field or a value of the wrong type.
-    #[error("{source_name}{}: {}{message}", line_suffix(*line, *column), field_prefix(field.as_deref()))]
-    Parse {
-        /// File name or other label of the text.
-        source_name: String,
-        /// 1-based line, when known.
-        line: Option<usize>,
-        /// 1-based column, when known.
-        column: Option<usize>,
-        /// Dotted path of the offending field, when known.
-        field: Option<String>,
-        /// The parser's message.
-        message: String,
-    },
-    /// A value is syntactically fine but physically invalid.
-    #[error("{source_name}{}: field `{field}` {reason}", line_suffix(*line, None))]
-    Invalid {
-        /// File name or other label of the text.
-        source_name: String,
-        /// 1-based line of the field, when it can be found.
-        line: Option<usize>,
-        /// Dotted path of the field, e.g. `scanner.nonlinearity_x.cubic`.
-        field: String,
-        /// What is wrong.
-        reason: String,
-    },
-}
+pub use spm_config::{ConfigError, ValidationError};
 
-fn line_suffix(line: Option<usize>, column: Option<usize>) -> String {
-    match (line, column) {
-        (Some(l), Some(c)) => format!(":{l}:{c}"),
-        (Some(l), None) => format!(":{l}"),
-        _ => String::new(),
+impl spm_config::Validate for SimConfig {
+    fn validate(&self) -> Result<(), ValidationError> {
+        SimConfig::validate(self)
     }
-}
-
-fn field_prefix(field: Option<&str>) -> String {
-    field.map(|f| format!("field `{f}`: ")).unwrap_or_default()
-}
-
-impl ConfigError {
-    /// Dotted path of the offending field, when known.
-    pub fn field(&self) -> Option<&str> {
-        match self {
-            Self::Io { .. } => None,
-            Self::Parse { field, .. } => field.as_deref(),
-            Self::Invalid { field, .. } => Some(field),
-        }
-    }
-    /// 1-based line of the problem, when known.
-    pub fn line(&self) -> Option<usize> {
-        match self {
-            Self::Io { .. } => None,
-            Self::Parse { line, .. } | Self::Invalid { line, .. } => *line,
-        }
-    }
-}
-
-/// A semantic validation failure, before it is located in a file.
-#[derive(Clone, Debug, PartialEq, thiserror::Error)]
-#[error("field `{field}` {reason}")]
-pub struct ValidationError {
-    /// Dotted path of the field.
-    pub field: String,
-    /// What is wrong.
-    pub reason: String,
 }
 
 // ---------------------------------------------------------------------------
@@ -427,40 +354,12 @@ pub struct ValidationError {
 impl SimConfig {
     /// Parses and validates a TOML text; `source_name` labels errors (a file name).
     pub fn from_toml_str(text: &str, source_name: &str) -> Result<Self, ConfigError> {
-        let config: SimConfig = toml::from_str(text).map_err(|e| {
-            let (line, column, field) = match e.span() {
-                Some(span) => {
-                    let (l, c) = line_column(text, span.start);
-                    (Some(l), Some(c), field_at(text, span.start, e.message()))
-                }
-                None => (None, None, unknown_field_name(e.message())),
-            };
-            ConfigError::Parse {
-                source_name: source_name.to_owned(),
-                line,
-                column,
-                field,
-                message: e.message().trim().to_owned(),
-            }
-        })?;
-        config.validate().map_err(|v| ConfigError::Invalid {
-            source_name: source_name.to_owned(),
-            line: locate_field_line(text, &v.field),
-            field: v.field,
-            reason: v.reason,
-        })?;
-        Ok(config)
+        spm_config::parse_and_validate(text, source_name)
     }
 
     /// Reads, parses and validates a TOML file.
     pub fn from_file(path: impl AsRef<Path>) -> Result<Self, ConfigError> {
-        let path = path.as_ref();
-        let name = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
-            path: name.clone(),
-            source,
-        })?;
-        Self::from_toml_str(&text, &name)
+        spm_config::load_file(path.as_ref())
     }
 
     /// What the instrument of this config offers (as the simulator reports it), for
@@ -995,131 +894,6 @@ impl Checker<'_> {
     }
 }
 
-/// 1-based line and column of a byte offset.
-fn line_column(text: &str, offset: usize) -> (usize, usize) {
-    let offset = offset.min(text.len());
-    let before = text.get(..offset).unwrap_or("");
-    let line = before.matches('\n').count() + 1;
-    let column = before.rsplit('\n').next().map_or(0, |s| s.chars().count()) + 1;
-    (line, column)
-}
-
-/// The name inside the first pair of backticks of an "unknown field" message.
-fn unknown_field_name(message: &str) -> Option<String> {
-    if !message.contains("unknown field") && !message.contains("unknown variant") {
-        return None;
-    }
-    let start = message.find('`')? + 1;
-    let len = message.get(start..)?.find('`')?;
-    message.get(start..start + len).map(str::to_owned)
-}
-
-/// Strips a TOML line comment (outside strings, good enough for config files).
-fn strip_comment(line: &str) -> &str {
-    let mut in_string = false;
-    for (k, ch) in line.char_indices() {
-        match ch {
-            '"' => in_string = !in_string,
-            '#' if !in_string => return line.get(..k).unwrap_or(line),
-            _ => {}
-        }
-    }
-    line
-}
-
-/// The table header (`a.b` of `[a.b]` or `[[a.b]]`) in force at `line_index` (0-based).
-fn table_at(lines: &[&str], line_index: usize) -> String {
-    for line in lines.iter().take(line_index + 1).rev() {
-        let t = strip_comment(line).trim();
-        if t.starts_with('[') {
-            return t
-                .trim_start_matches('[')
-                .trim_end_matches(']')
-                .trim()
-                .to_owned();
-        }
-    }
-    String::new()
-}
-
-/// Best-effort dotted path of the field at a byte offset of a TOML text.
-fn field_at(text: &str, offset: usize, message: &str) -> Option<String> {
-    let lines: Vec<&str> = text.split('\n').collect();
-    let (line, _) = line_column(text, offset);
-    let index = line.checked_sub(1)?;
-    let table = table_at(&lines, index);
-    let join = |key: &str| {
-        if table.is_empty() {
-            key.to_owned()
-        } else {
-            format!("{table}.{key}")
-        }
-    };
-    if let Some(name) = unknown_field_name(message) {
-        return Some(join(&name));
-    }
-    let content = strip_comment(lines.get(index)?).trim();
-    if content.starts_with('[') {
-        return Some(table);
-    }
-    let (key, _) = content.split_once('=')?;
-    Some(join(key.trim()))
-}
-
-/// Best-effort 1-based line of a dotted field path in a TOML text.
-pub(crate) fn locate_field_line(text: &str, field: &str) -> Option<usize> {
-    let clean = |s: &str| -> String {
-        // `steps[2].width_nm` → `steps.width_nm` (array tables are matched by name).
-        let mut out = String::new();
-        let mut depth = 0;
-        for ch in s.chars() {
-            match ch {
-                '[' => depth += 1,
-                ']' => depth -= 1,
-                _ if depth == 0 => out.push(ch),
-                _ => {}
-            }
-        }
-        out
-    };
-    let field = clean(field);
-    let (table, key) = match field.rsplit_once('.') {
-        Some((t, k)) => (t.to_owned(), k.to_owned()),
-        None => (String::new(), field.clone()),
-    };
-    let lines: Vec<&str> = text.split('\n').collect();
-    let mut current = String::new();
-    for (index, raw) in lines.iter().enumerate() {
-        let line = strip_comment(raw).trim();
-        if line.starts_with('[') {
-            current = line
-                .trim_start_matches('[')
-                .trim_end_matches(']')
-                .trim()
-                .to_owned();
-            continue;
-        }
-        let Some((k, rest)) = line.split_once('=') else {
-            continue;
-        };
-        let k = k.trim();
-        if current == table && k == key {
-            return Some(index + 1);
-        }
-        // Inline table: `nonlinearity_x = { quadratic = 0.1, cubic = nan }`.
-        let full = if current.is_empty() {
-            k.to_owned()
-        } else {
-            format!("{current}.{k}")
-        };
-        if full == table && (rest.contains(&format!("{key} ")) || rest.contains(&format!("{key}=")))
-        {
-            return Some(index + 1);
-        }
-    }
-    None
-}
-
 // ---------------------------------------------------------------------------
 // Named scenarios
 
@@ -1360,31 +1134,5 @@ impl FaultConfig {
             drift_burst_duration_s: 5.0,
             tip_change_jump_sigma_nm: 0.3,
         }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    #![allow(clippy::unwrap_used)]
-    use super::*;
-
-    #[test]
-    fn line_and_column_are_one_based() {
-        assert_eq!(line_column("a\nbc\n", 3), (2, 2));
-        assert_eq!(line_column("abc", 0), (1, 1));
-    }
-
-    #[test]
-    fn fields_are_located_in_tables_and_inline_tables() {
-        let text = "seed = 1\n[scanner]\nnonlinearity_x = { quadratic = 0.1, cubic = nan }\n[scanner.creep]\nmin_time_constant_s = -1\n";
-        assert_eq!(
-            locate_field_line(text, "scanner.nonlinearity_x.cubic"),
-            Some(3)
-        );
-        assert_eq!(
-            locate_field_line(text, "scanner.creep.min_time_constant_s"),
-            Some(5)
-        );
-        assert_eq!(locate_field_line(text, "seed"), Some(1));
     }
 }

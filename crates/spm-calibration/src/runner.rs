@@ -283,18 +283,25 @@ fn fos_failure<E: spm_hal::Error>(error: FosError<E>) -> Result<Failure, RunErro
     }
 }
 
-fn instrument<E: spm_hal::Error>(e: E) -> Failure {
+/// A backend error of a move, pause or coarse step: like [`fos_failure`], an `Aborted`
+/// instrument stops the run (it is not this node's failure).
+fn instrument<E: spm_hal::Error>(e: E) -> Result<Failure, RunError> {
     let kind = e.kind();
-    if kind.is_transient() {
-        Failure::Transient {
-            kind: Some(kind),
-            message: e.to_string(),
-        }
-    } else {
-        Failure::Permanent {
+    if kind == ErrorKind::Aborted {
+        Err(RunError::Instrument {
             kind,
             message: e.to_string(),
-        }
+        })
+    } else if kind.is_transient() {
+        Ok(Failure::Transient {
+            kind: Some(kind),
+            message: e.to_string(),
+        })
+    } else {
+        Ok(Failure::Permanent {
+            kind,
+            message: e.to_string(),
+        })
     }
 }
 
@@ -599,13 +606,13 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
                         Some(c) => c,
                         None => match stage.position_steps() {
                             Ok(p) => p,
-                            Err(e) => return Ok(Event::Failed(instrument(e))),
+                            Err(e) => return instrument(e).map(Event::Failed),
                         },
                     };
                     if target != from
                         && let Err(e) = stage.step(target - from)
                     {
-                        return Ok(Event::Failed(instrument(e)));
+                        return instrument(e).map(Event::Failed);
                     }
                     *coarse_now = Some(target);
                 }
@@ -615,10 +622,10 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
                     settle: Seconds(self.config.motion.settle_s),
                 };
                 if let Err(e) = mic.move_to(request) {
-                    return Ok(Event::Failed(instrument(e)));
+                    return instrument(e).map(Event::Failed);
                 }
                 if let Err(e) = mic.wait(pause) {
-                    return Ok(Event::Failed(instrument(e)));
+                    return instrument(e).map(Event::Failed);
                 }
                 Ok(Event::Paused)
             }

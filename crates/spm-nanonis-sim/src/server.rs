@@ -284,7 +284,7 @@ fn decimal(x: f32) -> f64 {
 fn describe(e: &spm_sim::SimError) -> String {
     let kind = match e.kind() {
         ErrorKind::Timeout => "the real-time engine timed out",
-        ErrorKind::Communication => "busy: communication with the real-time engine failed",
+        ErrorKind::Communication => "communication with the real-time engine failed",
         ErrorKind::FeedbackLost => "Z-Controller: feedback lost (safe tip)",
         ErrorKind::OutOfRange => "out of range",
         _ => "error",
@@ -493,7 +493,9 @@ impl State {
                 s.forward_line_s, s.backward_line_s
             ));
         }
-        let dwell = decimal(s.forward_line_s) / f64::from(pixels);
+        // The dwell a user meant: the shortest decimal at float32 precision of line time ÷
+        // pixels (4.8 ms ÷ 48 is 9.999999999999999e-5 s in float64, 1e-4 s meant).
+        let dwell = decimal((decimal(s.forward_line_s) / f64::from(pixels)) as f32);
         // Pixel i of a line at left + (i + ½)·width/pixels; the frame centre is the raster's.
         let centre = CountPoint::from_counts(
             decimal(f.centre_x_m) / self.m_per_count[0],
@@ -739,8 +741,17 @@ impl State {
                 if !(x_m.is_finite() && y_m.is_finite()) {
                     return Err("target is not finite".into());
                 }
-                let target =
+                let mut target =
                     CountPoint::from_counts(x_m / self.m_per_count[0], y_m / self.m_per_count[1]);
+                // Metres → counts is exact only to ~1e-12 counts: a target that close to the
+                // commanded position is the commanded position (a move of length 0, as the
+                // client meant it, not one of 1e-12 counts).
+                let here = self.sim.position().map_err(|e| describe(&e))?;
+                if (target.x - here.x).abs().value() < 1e-9
+                    && (target.y - here.y).abs().value() < 1e-9
+                {
+                    target = here;
+                }
                 let m_per_count = (self.m_per_count[0] * self.m_per_count[1]).sqrt();
                 let speed = decimal(speed_m) / m_per_count;
                 self.pending = Pending::Move { target, speed };
@@ -998,6 +1009,13 @@ fn encode_reply(command: &str, reply: &Reply, error: &ErrorSection) -> Option<Ve
 }
 
 fn serve_connection(mut stream: TcpStream, shared: &Shared, stop: &AtomicBool) {
+    serve_commands(&mut stream, shared, stop);
+    // Shut the socket down whatever the reason (the accept loop keeps a clone for `kill`,
+    // which would otherwise keep it open and leave the client waiting for its timeout).
+    let _ = stream.shutdown(Shutdown::Both);
+}
+
+fn serve_commands(stream: &mut TcpStream, shared: &Shared, stop: &AtomicBool) {
     loop {
         if stop.load(Ordering::SeqCst) {
             return;

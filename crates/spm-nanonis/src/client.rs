@@ -13,9 +13,10 @@
 //! - **Reconnect with backoff.** A dropped connection is re-opened on the next command, up
 //!   to [`ClientConfig::reconnect_attempts`] times with exponential backoff from
 //!   [`ClientConfig::reconnect_backoff_s`]; when every attempt fails the error is
-//!   [`NanonisErrorKind::Unreachable`]. Idempotent requests ([`Request::is_idempotent`]) are
-//!   re-sent once after a failure; moves, scans, waits and motor steps are not (their
-//!   failure is reported and the caller decides).
+//!   [`NanonisErrorKind::Unreachable`]. A request refused as busy is sent again, and so is
+//!   one whose connection was lost when that is safe ([`Request::is_retry_safe`]: not the
+//!   relative motor steps), up to [`RETRIES`] times; other failures are reported and the
+//!   caller decides.
 //! - **Schema by version.** On every (re)connection `Util.VersionGet` is asked and the
 //!   [`Schema`] chosen from the host-application release.
 //! - **A second connection for stop and abort** ([`Client::stop`]): the manual lets a client
@@ -87,6 +88,9 @@ impl ClientConfig {
             })
     }
 }
+
+/// Times a request is sent again after a busy reply or a lost connection.
+pub const RETRIES: u32 = 3;
 
 fn seconds(s: f64) -> Duration {
     Duration::from_secs_f64(s.clamp(1e-3, 1e6))
@@ -240,21 +244,25 @@ impl Client {
         self.call_with_timeout(request, timeout)
     }
 
-    /// Sends a request with an explicit timeout (s). Idempotent requests are re-sent once
-    /// after a communication failure.
+    /// Sends a request with an explicit timeout (s). A request the controller refused as
+    /// busy (not executed) is sent again; so is a request whose connection was lost before
+    /// the reply when that is safe ([`Request::is_retry_safe`]); at most [`RETRIES`] times.
     pub fn call_with_timeout(
         &mut self,
         request: &Request,
         timeout_s: f64,
     ) -> Result<Reply, NanonisError> {
-        let tries = if request.is_idempotent() { 2 } else { 1 };
         let mut last = None;
-        for _ in 0..tries {
+        for _ in 0..=RETRIES {
             self.ensure_connected()?;
             match self.exchange(request, timeout_s) {
                 Ok(reply) => return Ok(reply),
-                Err(e) if self.stream.is_none() => {
-                    tracing::debug!(error = %e, "nanonis: connection dropped");
+                Err(e) if e.kind == NanonisErrorKind::Busy => {
+                    tracing::debug!(error = %e, "nanonis: busy; sending again");
+                    last = Some(e);
+                }
+                Err(e) if self.stream.is_none() && request.is_retry_safe() => {
+                    tracing::debug!(error = %e, "nanonis: connection dropped; sending again");
                     last = Some(e);
                 }
                 Err(e) => return Err(e),

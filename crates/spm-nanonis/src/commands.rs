@@ -365,8 +365,7 @@ impl Request {
     }
 
     /// True when sending the request twice has the same effect as once (a read, or a
-    /// setting): such a request may be re-sent after a lost connection. Moves, scans,
-    /// waits and motor steps are not.
+    /// setting).
     pub fn is_idempotent(&self) -> bool {
         !matches!(
             self,
@@ -375,6 +374,16 @@ impl Request {
                 | Self::FolMeXYPosSet { .. }
                 | Self::MotorStartMove { .. }
         )
+    }
+
+    /// True when the request may be sent again after a connection lost before its reply
+    /// (it may or may not have been executed): idempotent requests; `FolMe.XYPosSet` (an
+    /// absolute target: a second move ends where the first did); `Scan.WaitEndOfScan` (a
+    /// second wait lengthens a pause, or returns at once after a scan); `Scan.Action` (a
+    /// start restarts the scan from its first line, a stop stops). Never `Motor.StartMove`:
+    /// its steps are relative.
+    pub fn is_retry_safe(&self) -> bool {
+        !matches!(self, Self::MotorStartMove { .. })
     }
 
     /// The body.

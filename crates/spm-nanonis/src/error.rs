@@ -21,6 +21,8 @@ pub enum NanonisErrorKind {
     Protocol,
     /// The controller answered with its error section set; the description says why.
     Controller,
+    /// The controller refused the command as busy (not executed): safe to send again.
+    Busy,
     /// The controller reported that the Z feedback is off (a safe-tip event or a crash).
     FeedbackOff,
     /// The controller's data do not fit the request (a short or NaN-padded frame).
@@ -79,7 +81,9 @@ impl NanonisError {
             NanonisErrorKind::Timeout
         } else if lower.contains("out of range") || lower.contains("outside") {
             NanonisErrorKind::OutOfRange
-        } else if lower.contains("busy") || lower.contains("communication") {
+        } else if lower.starts_with("busy") {
+            NanonisErrorKind::Busy
+        } else if lower.contains("communication") {
             NanonisErrorKind::Io
         } else {
             NanonisErrorKind::Controller
@@ -95,9 +99,10 @@ impl NanonisError {
 impl spm_hal::Error for NanonisError {
     fn kind(&self) -> ErrorKind {
         match self.kind {
-            NanonisErrorKind::Connect | NanonisErrorKind::Io | NanonisErrorKind::Protocol => {
-                ErrorKind::Communication
-            }
+            NanonisErrorKind::Connect
+            | NanonisErrorKind::Io
+            | NanonisErrorKind::Protocol
+            | NanonisErrorKind::Busy => ErrorKind::Communication,
             NanonisErrorKind::Timeout => ErrorKind::Timeout,
             NanonisErrorKind::FeedbackOff => ErrorKind::FeedbackLost,
             NanonisErrorKind::OutOfRange => ErrorKind::OutOfRange,
@@ -131,6 +136,10 @@ mod tests {
         check("the real-time engine timed out", ErrorKind::Timeout);
         check("target is out of range", ErrorKind::OutOfRange);
         check("busy", ErrorKind::Communication);
+        check(
+            "communication with the RT engine failed",
+            ErrorKind::Communication,
+        );
         check("Invalid channel index", ErrorKind::Other);
         assert!(ErrorKind::Communication.is_transient());
         assert!(

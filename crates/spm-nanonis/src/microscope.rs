@@ -266,6 +266,8 @@ pub struct NanonisMicroscope {
     epoch: Instant,
     coarse_steps: i64,
     sent: SentSettings,
+    /// What the whole-millisecond controller waits owe the requested ones, s.
+    wait_carry_s: f64,
 }
 
 fn f32_of(x: f64) -> f32 {
@@ -411,6 +413,7 @@ impl NanonisMicroscope {
             state,
             epoch: Instant::now(),
             coarse_steps: 0,
+            wait_carry_s: 0.0,
             sent: SentSettings {
                 reconnects,
                 ..SentSettings::default()
@@ -469,7 +472,12 @@ impl NanonisMicroscope {
                 Ok(())
             }
             ClockSource::ControllerSignals { .. } => {
-                let ms = (duration_s * 1e3).round();
+                // Whole milliseconds (the command's `int`), the remainder carried to the
+                // next wait: the controller's clock never runs more than ½ ms from the sum
+                // of the requested waits.
+                let owed = duration_s + self.wait_carry_s;
+                let ms = (owed * 1e3).round().max(0.0);
+                self.wait_carry_s = owed - ms * 1e-3;
                 if ms > f64::from(i32::MAX) {
                     return Err(NanonisError::new(
                         NanonisErrorKind::InvalidRequest,

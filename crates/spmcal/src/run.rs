@@ -359,6 +359,15 @@ pub fn run_job<O: Observer>(
                 commands,
             })
         }
+        Instrument::Nanonis(mut nanonis) => {
+            let (result, commands) = calibrate_on(&mut *nanonis, &mut cdb, observer, job, &options);
+            let report = settle(result, &mut cdb, &options, start_unix_s)?;
+            Ok(JobOutcome {
+                report,
+                simulator: None,
+                commands,
+            })
+        }
     }
 }
 
@@ -366,6 +375,8 @@ pub fn run_job<O: Observer>(
 enum Instrument {
     /// The simulated microscope.
     Sim(Box<Simulator>),
+    /// A Nanonis controller over TCP.
+    Nanonis(Box<spm_nanonis::NanonisMicroscope>),
 }
 
 /// Builds the job's instrument.
@@ -374,6 +385,17 @@ fn open_backend(backend: &Backend) -> Result<Instrument, JobRunError> {
         Backend::Sim(config) => Simulator::new((**config).clone())
             .map(|sim| Instrument::Sim(Box::new(sim)))
             .map_err(|e| JobRunError::Backend(Box::new(e))),
+        Backend::Nanonis(config) => {
+            let nanonis = spm_nanonis::NanonisMicroscope::connect((**config).clone())
+                .map_err(|e| JobRunError::Backend(Box::new(e)))?;
+            // The controller's state as found and as set (compensation off) goes into the
+            // run's log: a calibration is only meaningful on uncorrected coordinates.
+            tracing::info!(
+                state = %serde_json::to_string(nanonis.controller_state()).unwrap_or_default(),
+                "nanonis controller state"
+            );
+            Ok(Instrument::Nanonis(Box::new(nanonis)))
+        }
     }
 }
 

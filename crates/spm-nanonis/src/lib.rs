@@ -26,7 +26,17 @@
 //! clock (hardware); [`ClockSource::ControllerSignals`] reads the controller's time from
 //! two signals (whole seconds and fraction), which is how `nanonis-sim` publishes its
 //! simulated time; waits then run on the controller as `Scan.WaitEndOfScan` timeouts,
-//! quantised to whole milliseconds by that command's `int` argument.
+//! quantised to whole milliseconds by that command's `int` argument (the remainder is
+//! carried to the next wait, so the controller's clock stays within ½ ms of the sum of the
+//! waits asked). A move's settle is always sent as such a wait, even of 0 ms, so that the
+//! controller sees a move and its settle as one operation.
+//!
+//! ## Failures
+//! A reply "busy" (not executed) is sent again; a command whose connection was lost is sent
+//! again when that is safe (everything but the relative `Motor.StartMove` steps), up to
+//! [`client::RETRIES`] times over a fresh connection; timeouts, error replies and frames that
+//! do not fit the request become [`NanonisError`]s whose [`spm_hal::ErrorKind`] tells the
+//! calibration what to do (transient: retry the node; aborted: stop the run).
 //!
 //! ## Pitfalls handled
 //! - **Pixels per line are coerced to a multiple of 16** (`Scan.BufferSet`: data travel

@@ -75,7 +75,7 @@ impl JobRunError {
 /// (the same job resumed from another folder is the same job).
 fn comparable_config(text: &str) -> String {
     text.lines()
-        .filter(|l| !l.starts_with("# simulator: "))
+        .filter(|l| !l.starts_with("# simulator: ") && !l.starts_with("# controller: "))
         .collect::<Vec<_>>()
         .join("\n")
 }
@@ -311,13 +311,23 @@ pub fn run_job<O: Observer>(
     // The instrument is opened before the CDB is touched: a backend that cannot be built
     // leaves no run behind.
     let instrument = open_backend(&job.backend)?;
+    // A controller's state as found when it was opened (its own compensation, switched
+    // off) is part of the run's provenance (ignored when comparing jobs for --resume).
+    let provenance = match &instrument {
+        Instrument::Nanonis(nanonis) => format!(
+            "{}\n# controller: {}",
+            job.provenance_text,
+            serde_json::to_string(nanonis.controller_state()).unwrap_or_default()
+        ),
+        Instrument::Sim(_) => job.provenance_text.clone(),
+    };
     let mut cdb = Cdb::open(cdb_path)?;
     let run_id = match start {
         RunStart::New { run_id } => {
             let run = RunInfo {
                 run_id: run_id.clone(),
                 scanner_id: job.plan.scanner_id.clone(),
-                config: job.provenance_text.clone(),
+                config: provenance.clone(),
                 started_unix_s: start_unix_s,
                 finished_unix_s: None,
                 status: RunStatus::Running,
@@ -347,7 +357,7 @@ pub fn run_job<O: Observer>(
     let options = RunOptions {
         run_id,
         start_unix_s,
-        config_text: job.provenance_text.clone(),
+        config_text: provenance,
     };
     match instrument {
         Instrument::Sim(mut sim) => {

@@ -72,12 +72,15 @@ impl JobRunError {
 }
 
 /// The job's config text without the line naming where the simulator config was read from
-/// (the same job resumed from another folder is the same job).
+/// (the same job resumed from another folder is the same job) and without the controller
+/// state a Nanonis backend found (a resumed run finds its own compensation switched off).
 fn comparable_config(text: &str) -> String {
     text.lines()
         .filter(|l| !l.starts_with("# simulator: ") && !l.starts_with("# controller: "))
         .collect::<Vec<_>>()
         .join("\n")
+        .trim_end()
+        .to_owned()
 }
 
 /// Refuses a CDB that `cdb check` rejects, before anything is written to it. A file of an
@@ -315,8 +318,8 @@ pub fn run_job<O: Observer>(
     // off) is part of the run's provenance (ignored when comparing jobs for --resume).
     let provenance = match &instrument {
         Instrument::Nanonis(nanonis) => format!(
-            "{}\n# controller: {}",
-            job.provenance_text,
+            "{}\n# controller: {}\n",
+            job.provenance_text.trim_end(),
             serde_json::to_string(nanonis.controller_state()).unwrap_or_default()
         ),
         Instrument::Sim(_) => job.provenance_text.clone(),

@@ -62,6 +62,122 @@ pub struct PlanConfig {
     pub failures: FailureConfig,
     /// Which variant of the method (paper §6).
     pub variant: VariantConfig,
+    /// The controller's tuning constants (fractions of the lattice or of a raster, counts of
+    /// sightings). Optional in a plan file: absent, [`TuningConfig::RECOMMENDED`] is used and
+    /// written back by [`PlanConfig::to_toml_string`], so a stored plan always states them.
+    #[serde(default = "TuningConfig::recommended")]
+    pub tuning: TuningConfig,
+}
+
+/// The controller's tuning constants: how features are told apart, paired and captured, and
+/// how fast a drift the skipping monitor accepts. Every value is dimensionless or a count;
+/// the defaults ([`TuningConfig::RECOMMENDED`]) are the values the method was validated with
+/// (`docs/results/calibration.md`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TuningConfig {
+    /// Smallest separation of two detected features, as a fraction of the lattice constant
+    /// (default 0.5: neighbouring atoms are a lattice constant apart; noise maxima closer
+    /// than half of it are one feature). In (0, 1].
+    pub detection_separation_fraction: f64,
+    /// The fastest drift the skipping monitor accepts moves a feature by this fraction of
+    /// the tracking segment's side over one cycle (default 0.4: the feature stays inside
+    /// the segment it is searched in). In (0, 0.5].
+    pub monitor_drift_segment_fraction: f64,
+    /// Radius within which a counter-scan pairs a direct and a counter sighting, fraction of
+    /// the lattice constant (default 0.35: nearer to one's own atom than to the neighbour).
+    /// In (0, 0.5).
+    pub counter_match_radius_fraction: f64,
+    /// A measured vector farther than this fraction of its length from the expected one
+    /// caught another feature (default 0.35). In (0, 0.5).
+    pub vector_match_tolerance_fraction: f64,
+    /// Consecutive sightings whose drift is below the limit before the attachment counts as
+    /// settled (default 3). ≥ 1.
+    pub attach_settle_sightings: u32,
+    /// Sightings per drift-velocity fit during the attachment (default 4). ≥ 2.
+    pub attach_velocity_window: u32,
+    /// A sighting within this fraction of the lattice constant of the prediction is the
+    /// same feature during the attachment (default 0.4). In (0, 0.5].
+    pub attach_capture_radius_fraction: f64,
+}
+
+impl TuningConfig {
+    /// The values the method was validated with.
+    pub const RECOMMENDED: Self = Self {
+        detection_separation_fraction: 0.5,
+        monitor_drift_segment_fraction: 0.4,
+        counter_match_radius_fraction: 0.35,
+        vector_match_tolerance_fraction: 0.35,
+        attach_settle_sightings: 3,
+        attach_velocity_window: 4,
+        attach_capture_radius_fraction: 0.4,
+    };
+
+    /// [`TuningConfig::RECOMMENDED`] (for serde).
+    #[must_use]
+    pub fn recommended() -> Self {
+        Self::RECOMMENDED
+    }
+
+    fn validate(&self) -> Result<(), ValidationError> {
+        let fraction = |field: &str, v: f64, max: f64, max_inclusive: bool| {
+            let ok = v.is_finite() && v > 0.0 && if max_inclusive { v <= max } else { v < max };
+            if ok {
+                Ok(())
+            } else {
+                Err(ValidationError::new(
+                    format!("plan.tuning.{field}"),
+                    format!(
+                        "must be in (0, {max}{}, got {v}",
+                        if max_inclusive { "]" } else { ")" }
+                    ),
+                ))
+            }
+        };
+        fraction(
+            "detection_separation_fraction",
+            self.detection_separation_fraction,
+            1.0,
+            true,
+        )?;
+        fraction(
+            "monitor_drift_segment_fraction",
+            self.monitor_drift_segment_fraction,
+            0.5,
+            true,
+        )?;
+        fraction(
+            "counter_match_radius_fraction",
+            self.counter_match_radius_fraction,
+            0.5,
+            false,
+        )?;
+        fraction(
+            "vector_match_tolerance_fraction",
+            self.vector_match_tolerance_fraction,
+            0.5,
+            false,
+        )?;
+        fraction(
+            "attach_capture_radius_fraction",
+            self.attach_capture_radius_fraction,
+            0.5,
+            true,
+        )?;
+        if self.attach_settle_sightings < 1 {
+            return Err(ValidationError::new(
+                "plan.tuning.attach_settle_sightings",
+                "must be at least 1",
+            ));
+        }
+        if self.attach_velocity_window < 2 {
+            return Err(ValidationError::new(
+                "plan.tuning.attach_velocity_window",
+                "must be at least 2 (a velocity needs two sightings)",
+            ));
+        }
+        Ok(())
+    }
 }
 
 /// The calibration standard (a crystal lattice and its steps).
@@ -392,6 +508,7 @@ impl PlanConfig {
     /// # Errors
     /// The first invalid field.
     pub fn validate(&self) -> Result<(), ValidationError> {
+        self.tuning.validate()?;
         let bad = |field: &str, reason: String| {
             Err(ValidationError {
                 field: format!("plan.{field}"),
@@ -638,73 +755,15 @@ impl PlanConfig {
     /// A small HOPG plan for a 16-bit scanner of about 0.02 nm/count (the simulator's
     /// `room_temperature_tube` and `ideal` scenarios): a 3×3 lateral net (step 20000 counts,
     /// margin 8000), one Z level, 2 kept skipping cycles per vector, the skipping variant of
-    /// Fig. 3a. Equals `configs/plan-hopg-small.toml`.
+    /// Fig. 3a. Parsed from `scenarios/plan-hopg-small.toml` (`configs/plan-hopg-small.toml`).
     pub fn hopg_small_net() -> Self {
-        Self {
-            scanner_id: "sim-hopg".into(),
-            repeats: 1,
-            standard: StandardConfig {
-                lattice_constant_nm: 0.2461,
-                lcs_angle_deg: 60.0,
-                feature: FeaturePolarity::Hills,
-                nominal_nm_per_count: 0.02,
-                length_tolerance_fraction: 0.3,
-                angle_tolerance_deg: 15.0,
-                step_height_nm: None,
-            },
-            net: NetConfig {
-                kind: NetKind::LateralPlanes,
-                step_counts: 20000,
-                margin_counts: 8000,
-                z_levels: vec![ZLevel {
-                    nominal_z_counts: 0,
-                    coarse_steps: None,
-                }],
-                y_planes_counts: None,
-            },
-            pause: PauseLaw {
-                base_s: 0.5,
-                per_count_s: 5e-4,
-                per_coarse_step_s: 0.0,
-                max_s: 30.0,
-            },
-            motion: MotionConfig {
-                pixel_dwell_s: 1e-4,
-                move_speed_counts_per_s: 20000.0,
-                settle_s: 0.01,
-            },
-            attach: AttachConfig {
-                first_size_counts: 36.0,
-                first_pixels: 24,
-                segment_size_counts: 12.0,
-                segment_pixels: 12,
-                max_attachments: 40,
-                skip: false,
-            },
-            aperture: ApertureConfig {
-                size_counts: 50.0,
-                pixels: 48,
-            },
-            skipping: SkippingConfig {
-                cycles: 2,
-                idle_cycles: 1,
-                max_restarts: 2,
-            },
-            drift: DriftConfig {
-                max_speed_nm_per_s: 0.2,
-                max_change_nm_per_s: 0.1,
-            },
-            failures: FailureConfig {
-                max_attempts_per_node: 3,
-                transient_retries_per_node: 3,
-            },
-            variant: VariantConfig {
-                attach_to: AttachTarget::FeatureA,
-                neighbours: NeighbourSet::Lcs,
-                bc_redundancy: false,
-                measurement: MeasurementMethod::Skipping,
-            },
-        }
+        // The text is part of the program; the crate's tests parse it.
+        #[allow(clippy::expect_used)]
+        Self::from_toml_str(
+            include_str!("../scenarios/plan-hopg-small.toml"),
+            "plan-hopg-small.toml",
+        )
+        .expect("the shipped plan parses and validates")
     }
 }
 

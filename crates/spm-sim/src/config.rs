@@ -898,215 +898,29 @@ impl Checker<'_> {
 // Named scenarios
 
 impl SimConfig {
+    /// A scenario shipped with the crate (`scenarios/*.toml`, also `configs/*.toml` of the
+    /// workspace). The texts are part of the program, parsed by the same loader as any user
+    /// file; the crate's tests parse each of them, so this cannot fail in a released build.
+    #[allow(clippy::expect_used)]
+    fn embedded(text: &str, name: &str) -> Self {
+        Self::from_toml_str(text, name).expect("a shipped scenario parses and validates")
+    }
+
     /// All effects off: a linear orthogonal scanner (0.02 nm/count on both
     /// axes, 0.004 nm/count in Z), no hysteresis, creep, drift, noise,
     /// quantisation or faults, a perfect HOPG lattice (a = 0.2461 nm,
-    /// rotation 0). Equals `configs/sim-ideal.toml`.
+    /// rotation 0). Parsed from `scenarios/sim-ideal.toml` (`configs/sim-ideal.toml`).
     pub fn ideal() -> Self {
-        Self {
-            seed: 1,
-            instrument: InstrumentConfig {
-                lateral_half_range_counts: 32768.0,
-                z_half_range_counts: 32768.0,
-                max_pixels_per_line: 4096,
-                max_lines: 4096,
-                min_pixel_dwell_s: 1e-6,
-                counter_scan: true,
-                backward_trace: true,
-                initial_z_extension_nm: 0.0,
-                call_overhead_s: 0.0,
-                coarse_z: None,
-            },
-            surface: SurfaceConfig::Hopg(HopgConfig {
-                lattice_constant_nm: 0.2461,
-                corrugation_nm: 0.08,
-                hollow_asymmetry: 0.3,
-                rotation_deg: 0.0,
-                step_height_nm: 0.3354,
-                steps: Vec::new(),
-                vacancy_fraction: 0.0,
-                domains: Vec::new(),
-            }),
-            scanner: ScannerConfig {
-                sensitivity_x_nm_per_count: 0.02,
-                sensitivity_y_nm_per_count: 0.02,
-                sensitivity_z_nm_per_count: 0.004,
-                nonlinearity_x: NonlinearityConfig {
-                    quadratic: 0.0,
-                    cubic: 0.0,
-                },
-                nonlinearity_y: NonlinearityConfig {
-                    quadratic: 0.0,
-                    cubic: 0.0,
-                },
-                nonorthogonality_deg: 0.0,
-                crosstalk_x_from_y: 0.0,
-                crosstalk_y_from_x: 0.0,
-                bow_x_from_y: 0.0,
-                bow_y_from_x: 0.0,
-                tilt_x_from_z: 0.0,
-                tilt_y_from_z: 0.0,
-                lateral_sensitivity_change_per_z: 0.0,
-                bowl_curvature_per_nm: 0.0,
-                hysteresis_x: HysteresisConfig {
-                    width_fraction: 0.0,
-                    min_threshold_counts: 512.0,
-                    max_threshold_counts: 16384.0,
-                    operators: 1,
-                },
-                hysteresis_y: HysteresisConfig {
-                    width_fraction: 0.0,
-                    min_threshold_counts: 512.0,
-                    max_threshold_counts: 16384.0,
-                    operators: 1,
-                },
-                creep: CreepConfig {
-                    log_slope_per_decade: 0.0,
-                    min_time_constant_s: 0.02,
-                    max_time_constant_s: 2000.0,
-                    elements_per_decade: 1,
-                },
-            },
-            drift: DriftConfig {
-                velocity_x_nm_per_s: 0.0,
-                velocity_y_nm_per_s: 0.0,
-                warmup_amplitude_x_nm: 0.0,
-                warmup_amplitude_y_nm: 0.0,
-                warmup_time_constant_s: 600.0,
-                velocity_random_walk_nm_per_s_per_sqrt_s: 0.0,
-                random_walk_interval_s: 0.1,
-                jump_rate_per_s: 0.0,
-                jump_sigma_nm: 0.0,
-            },
-            measurement: MeasurementConfig {
-                z_white_noise_nm: 0.0,
-                z_flicker_noise_nm: 0.0,
-                flicker_min_frequency_hz: 0.01,
-                flicker_max_frequency_hz: 1000.0,
-                lateral_jitter_nm: 0.0,
-                quantise_lateral_dac: false,
-                quantise_z_adc: false,
-                feedback_time_constant_s: 0.0,
-            },
-            faults: FaultConfig::none(),
-        }
+        Self::embedded(
+            include_str!("../scenarios/sim-ideal.toml"),
+            "sim-ideal.toml",
+        )
     }
 
     /// A room-temperature tube scanner over HOPG with every effect on at
-    /// realistic magnitudes. Equals `configs/sim-hopg.toml`.
+    /// realistic magnitudes. Parsed from `scenarios/sim-hopg.toml` (`configs/sim-hopg.toml`).
     pub fn room_temperature_tube() -> Self {
-        Self {
-            seed: 20261121,
-            instrument: InstrumentConfig {
-                lateral_half_range_counts: 32768.0,
-                z_half_range_counts: 32768.0,
-                max_pixels_per_line: 4096,
-                max_lines: 4096,
-                min_pixel_dwell_s: 1e-6,
-                counter_scan: true,
-                backward_trace: true,
-                initial_z_extension_nm: 40.0,
-                call_overhead_s: 0.002,
-                coarse_z: Some(CoarseZConfig {
-                    min_steps: -2000,
-                    max_steps: 2000,
-                    step_nm: 50.0,
-                    step_time_s: 0.002,
-                }),
-            },
-            surface: SurfaceConfig::Hopg(HopgConfig {
-                lattice_constant_nm: 0.2461,
-                corrugation_nm: 0.08,
-                hollow_asymmetry: 0.3,
-                rotation_deg: 12.0,
-                step_height_nm: 0.3354,
-                steps: vec![StepEdgeConfig {
-                    point_x_nm: 420.0,
-                    point_y_nm: 0.0,
-                    direction_deg: 80.0,
-                    width_nm: 0.5,
-                }],
-                vacancy_fraction: 0.001,
-                domains: vec![DomainConfig {
-                    centre_x_nm: -450.0,
-                    centre_y_nm: 420.0,
-                    radius_nm: 120.0,
-                    rotation_deg: 17.0,
-                }],
-            }),
-            scanner: ScannerConfig {
-                sensitivity_x_nm_per_count: 0.02,
-                sensitivity_y_nm_per_count: 0.0215,
-                sensitivity_z_nm_per_count: 0.004,
-                nonlinearity_x: NonlinearityConfig {
-                    quadratic: 0.03,
-                    cubic: 0.05,
-                },
-                nonlinearity_y: NonlinearityConfig {
-                    quadratic: -0.025,
-                    cubic: 0.04,
-                },
-                nonorthogonality_deg: 1.5,
-                crosstalk_x_from_y: 0.004,
-                crosstalk_y_from_x: -0.006,
-                bow_x_from_y: 0.008,
-                bow_y_from_x: 0.005,
-                tilt_x_from_z: 0.03,
-                tilt_y_from_z: -0.02,
-                lateral_sensitivity_change_per_z: 0.03,
-                bowl_curvature_per_nm: 5e-7,
-                hysteresis_x: HysteresisConfig {
-                    width_fraction: 0.04,
-                    min_threshold_counts: 512.0,
-                    max_threshold_counts: 16384.0,
-                    operators: 16,
-                },
-                hysteresis_y: HysteresisConfig {
-                    width_fraction: 0.05,
-                    min_threshold_counts: 512.0,
-                    max_threshold_counts: 16384.0,
-                    operators: 16,
-                },
-                creep: CreepConfig {
-                    log_slope_per_decade: 0.015,
-                    min_time_constant_s: 0.02,
-                    max_time_constant_s: 2000.0,
-                    elements_per_decade: 3,
-                },
-            },
-            drift: DriftConfig {
-                velocity_x_nm_per_s: 0.012,
-                velocity_y_nm_per_s: -0.007,
-                warmup_amplitude_x_nm: 1.5,
-                warmup_amplitude_y_nm: -0.8,
-                warmup_time_constant_s: 600.0,
-                velocity_random_walk_nm_per_s_per_sqrt_s: 2e-5,
-                random_walk_interval_s: 0.1,
-                jump_rate_per_s: 2.8e-4,
-                jump_sigma_nm: 0.05,
-            },
-            measurement: MeasurementConfig {
-                z_white_noise_nm: 0.003,
-                z_flicker_noise_nm: 0.004,
-                flicker_min_frequency_hz: 0.01,
-                flicker_max_frequency_hz: 1000.0,
-                lateral_jitter_nm: 0.002,
-                quantise_lateral_dac: true,
-                quantise_z_adc: true,
-                feedback_time_constant_s: 5e-5,
-            },
-            faults: FaultConfig {
-                timeout_probability_per_call: 0.0005,
-                communication_probability_per_call: 0.0005,
-                feedback_lost_rate_per_s: 1e-4,
-                tip_change_rate_per_s: 2e-5,
-                drift_burst_rate_per_s: 1e-4,
-                timeout_duration_s: 1.0,
-                drift_burst_speed_nm_per_s: 0.2,
-                drift_burst_duration_s: 5.0,
-                tip_change_jump_sigma_nm: 0.3,
-            },
-        }
+        Self::embedded(include_str!("../scenarios/sim-hopg.toml"), "sim-hopg.toml")
     }
 
     /// This config with every random fault rate set to zero (scheduled faults

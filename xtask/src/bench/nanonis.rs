@@ -146,6 +146,7 @@ mod tests {
             out: root.join("target/bench-nanonis"),
             root,
             quick: false,
+            write_docs: false,
         };
         match super::run(&ctx) {
             Ok(r) => println!("{r:#?}"),

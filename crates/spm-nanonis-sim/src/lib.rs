@@ -1,3 +1,5 @@
+#![doc = include_str!("../README.md")]
+//!
 //! # spm-nanonis-sim: the Nanonis TCP protocol over the simulated microscope
 //!
 //! A TCP server that answers the commands [`spm_nanonis`] uses, byte for byte as the

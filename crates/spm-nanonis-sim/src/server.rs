@@ -436,7 +436,7 @@ impl State {
         self.sim
             .move_to(MoveRequest {
                 target,
-                speed_counts_per_s: speed,
+                speed: spm_hal::CountsPerSecond(speed),
                 settle: Seconds(settle_s),
             })
             .map_err(|e| describe(&e))
@@ -561,6 +561,7 @@ impl State {
         }))
     }
 
+    // long-function: the dispatch table of the protocol, one short arm per command.
     fn execute(&mut self, request: &Request) -> Result<Reply, String> {
         match request {
             Request::UtilVersionGet => Ok(Reply::Version(Version {

@@ -130,12 +130,12 @@ fn the_same_operations_give_the_same_instrument_over_tcp() {
     let moves = [
         MoveRequest {
             target: CountPoint::from_counts(1200.0, -2300.0),
-            speed_counts_per_s: 20000.0,
+            speed: spm_hal::CountsPerSecond(20000.0),
             settle: Seconds(0.01),
         },
         MoveRequest {
             target: CountPoint::from_counts(-5000.5, 7000.25),
-            speed_counts_per_s: 5000.0,
+            speed: spm_hal::CountsPerSecond(5000.0),
             settle: Seconds(0.0),
         },
     ];

@@ -1,3 +1,5 @@
+#![doc = include_str!("../README.md")]
+//!
 //! # spm-nanonis: a Nanonis (SPECS) controller behind spm-hal's `Microscope`
 //!
 //! Three layers, written from the vendor's manual "Nanonis TCP Protocol — TCP Programming

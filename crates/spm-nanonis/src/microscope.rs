@@ -535,6 +535,8 @@ impl NanonisMicroscope {
         .in_command("Scan.StatusGet"))
     }
 
+    // long-function: one scan's command sequence in protocol order, each step a documented
+    // pitfall (padding, read-backs, running scan, timeouts, frame order); split, it scatters.
     fn scan_impl(&mut self, request: &ScanRequest) -> Result<Frame, NanonisError> {
         request
             .validate()
@@ -857,7 +859,7 @@ impl Microscope for NanonisMicroscope {
 
     fn move_to(&mut self, request: MoveRequest) -> Result<(), NanonisError> {
         self.check_inside(request.target, "move target")?;
-        let speed = request.speed_counts_per_s;
+        let speed = request.speed.value();
         if !(speed.is_finite() && speed > 0.0) {
             return Err(NanonisError::new(
                 NanonisErrorKind::InvalidRequest,

@@ -15,6 +15,7 @@ mod budget;
 mod crb;
 mod drift;
 mod gwyddion;
+mod linalg;
 mod nanonis;
 mod productivity;
 mod report;
@@ -109,6 +110,8 @@ pub struct Results {
     pub speed: Section<speed::SpeedResults>,
     /// Gwyddion side by side.
     pub gwyddion: Section<gwyddion::GwyddionResults>,
+    /// Large least squares, nalgebra beside faer.
+    pub linalg: Section<linalg::LinalgResults>,
     /// Nanonis TCP overhead: wall time per node over loopback ÷ in process.
     pub nanonis: Section<nanonis::NanonisResults>,
 }
@@ -165,6 +168,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
             ))
         }
     });
+    let linalg = timed("linalg", || linalg::run(&ctx));
     let mut machine = machine;
     machine.load_average_end = load_average();
     let mut command = String::from("cargo xtask bench");
@@ -192,6 +196,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
         crb,
         speed,
         gwyddion,
+        linalg,
         nanonis,
     };
     report::write(&ctx, &results)

@@ -317,18 +317,25 @@ fn fos_failure<E: spm_hal::Error>(error: FosError<E>) -> Result<Failure, RunErro
     }
 }
 
-fn instrument<E: spm_hal::Error>(e: E) -> Failure {
+/// A backend error of a move, pause, clock read or coarse step: like [`fos_failure`], an
+/// `Aborted` instrument stops the run (it is not this node's failure).
+fn instrument<E: spm_hal::Error>(e: E) -> Result<Failure, RunError> {
     let kind = e.kind();
-    if kind.is_transient() {
-        Failure::Transient {
-            kind: Some(kind),
-            message: e.to_string(),
-        }
-    } else {
-        Failure::Permanent {
+    if kind == ErrorKind::Aborted {
+        Err(RunError::Instrument {
             kind,
             message: e.to_string(),
-        }
+        })
+    } else if kind.is_transient() {
+        Ok(Failure::Transient {
+            kind: Some(kind),
+            message: e.to_string(),
+        })
+    } else {
+        Ok(Failure::Permanent {
+            kind,
+            message: e.to_string(),
+        })
     }
 }
 
@@ -762,7 +769,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
                 Some(c) => c,
                 None => match stage.position_steps() {
                     Ok(p) => p,
-                    Err(e) => return Ok(Event::Failed(instrument(e))),
+                    Err(e) => return instrument(e).map(Event::Failed),
                 },
             };
             if target != from
@@ -770,7 +777,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             {
                 // Where the stage ended is unknown: read it again next time.
                 *coarse_now = None;
-                return Ok(Event::Failed(instrument(e)));
+                return instrument(e).map(Event::Failed);
             }
             *coarse_now = Some(target);
         }
@@ -780,10 +787,10 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             settle: Seconds(self.config.motion.settle_s),
         };
         if let Err(e) = mic.move_to(request) {
-            return Ok(Event::Failed(instrument(e)));
+            return instrument(e).map(Event::Failed);
         }
         if let Err(e) = mic.wait(pause) {
-            return Ok(Event::Failed(instrument(e)));
+            return instrument(e).map(Event::Failed);
         }
         Ok(Event::Paused)
     }
@@ -868,7 +875,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             Some(t) => t,
             None => match self.microscope.now() {
                 Ok(t) => t,
-                Err(e) => return Ok(Event::Failed(instrument(e))),
+                Err(e) => return instrument(e).map(Event::Failed),
             },
         };
         let r = match spm_fos::skip(
@@ -924,7 +931,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
         params.drift_prior = drift;
         let now = match self.microscope.now() {
             Ok(t) => t,
-            Err(e) => return Ok(Event::Failed(instrument(e))),
+            Err(e) => return instrument(e).map(Event::Failed),
         };
         let target = centre.predict(drift, now);
         let r = match spm_fos::counter_scan(&mut *self.microscope, target, &params) {

@@ -81,6 +81,9 @@ pub enum BackendConfig {
         /// The simulator's config file, relative to the job file.
         sim_config: PathBuf,
     },
+    /// A Nanonis controller over its TCP programming interface (spm-nanonis): host, port,
+    /// timeouts, reconnects, the counts convention, the Z signal and the clock.
+    Nanonis(spm_nanonis::NanonisConfig),
 }
 
 /// The top level of a job file. `[plan]` is parsed by spm-calibration (its own diagnostics);
@@ -109,6 +112,8 @@ struct PlanFile {
 pub enum Backend {
     /// The simulated microscope with this configuration.
     Sim(Box<SimConfig>),
+    /// A Nanonis controller (or `spmcal nanonis-sim`) over TCP.
+    Nanonis(Box<spm_nanonis::NanonisConfig>),
 }
 
 impl Backend {
@@ -117,6 +122,7 @@ impl Backend {
     pub fn capabilities(&self) -> spm_hal::Capabilities {
         match self {
             Self::Sim(config) => config.capabilities(),
+            Self::Nanonis(config) => config.capabilities(),
         }
     }
 }
@@ -166,6 +172,19 @@ impl Job {
             BackendConfig::Sim { sim_config } => {
                 Self::from_parts(&dir.join(sim_config), plan, format!("{text}\n{plan_text}"))?
             }
+            BackendConfig::Nanonis(config) => {
+                config.validate().map_err(|e| JobError::Field {
+                    path: path.to_path_buf(),
+                    line: spm_config::TomlLocator::new(&text).line_of("backend"),
+                    field: "backend".to_owned(),
+                    message: e.message,
+                })?;
+                Self {
+                    backend: Backend::Nanonis(Box::new(config.clone())),
+                    plan,
+                    provenance_text: format!("# job\n{text}\n# plan\n{plan_text}"),
+                }
+            }
         };
         Self::check_plan_on_backend(&job.plan, &job.backend, &plan_source, &plan_text)?;
         Ok(job)
@@ -214,6 +233,7 @@ impl Job {
         let mut files = Vec::new();
         match &file.backend {
             BackendConfig::Sim { sim_config } => files.push(dir.join(sim_config)),
+            BackendConfig::Nanonis(_) => {}
         }
         if let Some(p) = &file.plan_file {
             files.push(dir.join(p));

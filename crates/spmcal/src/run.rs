@@ -72,12 +72,15 @@ impl JobRunError {
 }
 
 /// The job's config text without the line naming where the simulator config was read from
-/// (the same job resumed from another folder is the same job).
+/// (the same job resumed from another folder is the same job) and without the controller
+/// state a Nanonis backend found (a resumed run finds its own compensation switched off).
 fn comparable_config(text: &str) -> String {
     text.lines()
-        .filter(|l| !l.starts_with("# simulator: "))
+        .filter(|l| !l.starts_with("# simulator: ") && !l.starts_with("# controller: "))
         .collect::<Vec<_>>()
         .join("\n")
+        .trim_end()
+        .to_owned()
 }
 
 /// Refuses a CDB that `cdb check` rejects, before anything is written to it. A file of an
@@ -311,13 +314,23 @@ pub fn run_job<O: Observer>(
     // The instrument is opened before the CDB is touched: a backend that cannot be built
     // leaves no run behind.
     let instrument = open_backend(&job.backend)?;
+    // A controller's state as found when it was opened (its own compensation, switched
+    // off) is part of the run's provenance (ignored when comparing jobs for --resume).
+    let provenance = match &instrument {
+        Instrument::Nanonis(nanonis) => format!(
+            "{}\n# controller: {}\n",
+            job.provenance_text.trim_end(),
+            serde_json::to_string(nanonis.controller_state()).unwrap_or_default()
+        ),
+        Instrument::Sim(_) => job.provenance_text.clone(),
+    };
     let mut cdb = Cdb::open(cdb_path)?;
     let run_id = match start {
         RunStart::New { run_id } => {
             let run = RunInfo {
                 run_id: run_id.clone(),
                 scanner_id: job.plan.scanner_id.clone(),
-                config: job.provenance_text.clone(),
+                config: provenance.clone(),
                 started_unix_s: start_unix_s,
                 finished_unix_s: None,
                 status: RunStatus::Running,
@@ -347,7 +360,7 @@ pub fn run_job<O: Observer>(
     let options = RunOptions {
         run_id,
         start_unix_s,
-        config_text: job.provenance_text.clone(),
+        config_text: provenance,
     };
     match instrument {
         Instrument::Sim(mut sim) => {
@@ -359,6 +372,15 @@ pub fn run_job<O: Observer>(
                 commands,
             })
         }
+        Instrument::Nanonis(mut nanonis) => {
+            let (result, commands) = calibrate_on(&mut *nanonis, &mut cdb, observer, job, &options);
+            let report = settle(result, &mut cdb, &options, start_unix_s)?;
+            Ok(JobOutcome {
+                report,
+                instrument: FinishedInstrument::Nanonis(nanonis),
+                commands,
+            })
+        }
     }
 }
 
@@ -367,6 +389,8 @@ pub fn run_job<O: Observer>(
 pub enum FinishedInstrument {
     /// The simulated microscope (its oracle is the ground truth).
     Sim(Box<Simulator>),
+    /// A Nanonis controller (no ground truth).
+    Nanonis(Box<spm_nanonis::NanonisMicroscope>),
 }
 
 impl FinishedInstrument {
@@ -375,6 +399,7 @@ impl FinishedInstrument {
     pub fn truth(&self) -> Option<&dyn crate::report::TruthSource> {
         match self {
             Self::Sim(sim) => Some(&**sim),
+            Self::Nanonis(_) => None,
         }
     }
 
@@ -384,6 +409,7 @@ impl FinishedInstrument {
     pub fn simulator(&self) -> Option<&Simulator> {
         match self {
             Self::Sim(sim) => Some(sim),
+            Self::Nanonis(_) => None,
         }
     }
 
@@ -392,6 +418,7 @@ impl FinishedInstrument {
     pub fn into_simulator(self) -> Option<Simulator> {
         match self {
             Self::Sim(sim) => Some(*sim),
+            Self::Nanonis(_) => None,
         }
     }
 }
@@ -400,6 +427,8 @@ impl FinishedInstrument {
 enum Instrument {
     /// The simulated microscope.
     Sim(Box<Simulator>),
+    /// A Nanonis controller over TCP.
+    Nanonis(Box<spm_nanonis::NanonisMicroscope>),
 }
 
 /// Builds the job's instrument.
@@ -408,6 +437,17 @@ fn open_backend(backend: &Backend) -> Result<Instrument, JobRunError> {
         Backend::Sim(config) => Simulator::new((**config).clone())
             .map(|sim| Instrument::Sim(Box::new(sim)))
             .map_err(|e| JobRunError::Backend(Box::new(e))),
+        Backend::Nanonis(config) => {
+            let nanonis = spm_nanonis::NanonisMicroscope::connect((**config).clone())
+                .map_err(|e| JobRunError::Backend(Box::new(e)))?;
+            // The controller's state as found and as set (compensation off) goes into the
+            // run's log: a calibration is only meaningful on uncorrected coordinates.
+            tracing::info!(
+                state = %serde_json::to_string(nanonis.controller_state()).unwrap_or_default(),
+                "nanonis controller state"
+            );
+            Ok(Instrument::Nanonis(Box::new(nanonis)))
+        }
     }
 }
 

@@ -16,6 +16,7 @@ mod crb;
 mod drift;
 mod gwyddion;
 mod linalg;
+mod nanonis;
 mod productivity;
 mod report;
 mod speed;
@@ -111,6 +112,8 @@ pub struct Results {
     pub gwyddion: Section<gwyddion::GwyddionResults>,
     /// Large least squares, nalgebra beside faer.
     pub linalg: Section<linalg::LinalgResults>,
+    /// Nanonis TCP overhead: wall time per node over loopback ÷ in process.
+    pub nanonis: Section<nanonis::NanonisResults>,
 }
 
 /// What `cargo xtask bench` was asked to do.
@@ -154,6 +157,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
     let productivity = timed("productivity", || productivity::run(&ctx));
     let crb = timed("crb", || crb::run(&ctx));
     let speed = timed("speed", || speed::run(&ctx, accuracy.measured()));
+    let nanonis = timed("nanonis", || nanonis::run(&ctx));
     let gwyddion = timed("gwyddion", || {
         if with_gwyddion {
             gwyddion::run(&ctx)
@@ -193,6 +197,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
         speed,
         gwyddion,
         linalg,
+        nanonis,
     };
     report::write(&ctx, &results)
 }

@@ -1,0 +1,1122 @@
+//! The server: listener, connection threads, command execution, fault injection.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use spm_hal::{
+    CountPoint, Counts, Error as _, ErrorKind, Frame, Microscope, MoveRequest, ScanDirection,
+    ScanRequest, Seconds,
+};
+use spm_nanonis::codec::{self, ErrorSection, HEADER_LEN};
+use spm_nanonis::commands::{
+    DriftComp, FrameData, Reply, Request, ScanBuffer, ScanFrame, ScanSpeed, Schema, Version,
+    motor_direction, scan_action,
+};
+use spm_nanonis::{PIXEL_PACKET, metres_per_count};
+use spm_sim::{SimConfig, Simulator};
+use std::io::{Read, Write};
+use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+/// Why the server cannot start or run.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ServerError {
+    /// Binding or accepting failed.
+    #[error("nanonis-sim: {0}")]
+    Io(#[from] std::io::Error),
+    /// The configuration cannot be served.
+    #[error("nanonis-sim: {0}")]
+    Config(String),
+}
+
+/// Faults injected at the socket level, each a probability per command (drawn from a
+/// generator seeded with `seed`, in the order the commands arrive).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SocketFaults {
+    /// Seed of the fault generator.
+    pub seed: u64,
+    /// An error reply ("busy") instead of executing the command.
+    pub error_reply: f64,
+    /// The connection is closed before the command is executed.
+    pub drop_before: f64,
+    /// The command is executed, then the connection is closed without a reply.
+    pub drop_after: f64,
+    /// The reply is written one byte per write.
+    pub one_byte_writes: f64,
+    /// The reply is delayed by `delay_s`.
+    pub delay: f64,
+    /// Delay of a delayed reply, s.
+    pub delay_s: f64,
+    /// The reply is delayed by `stall_s` (meant to exceed the client's timeout).
+    pub stall: f64,
+    /// Delay of a stalled reply, s.
+    pub stall_s: f64,
+    /// A scan is found running (as if started by someone else) at an idle moment
+    /// (a clock or position read).
+    pub scan_running: f64,
+}
+
+impl SocketFaults {
+    /// No faults.
+    pub fn none() -> Self {
+        Self {
+            seed: 0,
+            error_reply: 0.0,
+            drop_before: 0.0,
+            drop_after: 0.0,
+            one_byte_writes: 0.0,
+            delay: 0.0,
+            delay_s: 0.0,
+            stall: 0.0,
+            stall_s: 0.0,
+            scan_running: 0.0,
+        }
+    }
+
+    /// A total fault probability per command spread over the kinds: error replies 25 %,
+    /// one-byte writes 25 %, delays (`delay_s`) 20 %, drops before 10 % and after 10 %,
+    /// stalls (`stall_s`) 5 %, a scan left running 5 %.
+    pub fn mixed(rate: f64, seed: u64, delay_s: f64, stall_s: f64) -> Self {
+        Self {
+            seed,
+            error_reply: 0.25 * rate,
+            one_byte_writes: 0.25 * rate,
+            delay: 0.2 * rate,
+            delay_s,
+            drop_before: 0.1 * rate,
+            drop_after: 0.1 * rate,
+            stall: 0.05 * rate,
+            stall_s,
+            scan_running: 0.05 * rate,
+        }
+    }
+
+    /// The total probability that a command meets a fault.
+    pub fn total(&self) -> f64 {
+        self.error_reply
+            + self.drop_before
+            + self.drop_after
+            + self.one_byte_writes
+            + self.delay
+            + self.stall
+            + self.scan_running
+    }
+
+    fn validate(&self) -> Result<(), ServerError> {
+        let rates = [
+            self.error_reply,
+            self.drop_before,
+            self.drop_after,
+            self.one_byte_writes,
+            self.delay,
+            self.stall,
+            self.scan_running,
+        ];
+        if rates.iter().any(|r| !(0.0..=1.0).contains(r)) || self.total() > 1.0 {
+            return Err(ServerError::Config(format!(
+                "fault probabilities must lie in [0, 1] and sum to at most 1: {self:?}"
+            )));
+        }
+        for (name, d) in [("delay_s", self.delay_s), ("stall_s", self.stall_s)] {
+            if !(d.is_finite() && (0.0..=3600.0).contains(&d)) {
+                return Err(ServerError::Config(format!(
+                    "{name} = {d} is not in [0, 3600] s"
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What the server publishes and how.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServerConfig {
+    /// Host-application release answered by `Util.VersionGet` (decides the schemas).
+    pub host_release: u32,
+    /// RT-engine release.
+    pub rt_release: u32,
+    /// Signal index of Z (topography), the only channel a scan buffer may record.
+    pub z_channel: i32,
+    /// Signal index publishing the whole seconds of the simulated time.
+    pub time_whole_signal: i32,
+    /// Signal index publishing the fraction of a second.
+    pub time_fraction_signal: i32,
+    /// The controller's nominal lateral calibration, nm per count (published through
+    /// `Piezo.CalibrGet` by the counts convention of spm-nanonis).
+    pub lateral_nm_per_count: f64,
+    /// The nominal Z calibration, nm per count.
+    pub z_nm_per_count: f64,
+    /// Socket faults.
+    pub faults: SocketFaults,
+}
+
+/// Host-application release the server answers by default (the manual's R5.1.14718).
+pub const DEFAULT_HOST_RELEASE: u32 = 14718;
+
+impl ServerConfig {
+    /// The default server for a simulator: release 14718, Z on signal 30, time on signals
+    /// 126 and 127, nominal calibration 0.02 nm/count lateral and 0.01 nm/count Z.
+    pub fn new(faults: SocketFaults) -> Self {
+        Self {
+            host_release: DEFAULT_HOST_RELEASE,
+            rt_release: 14_000,
+            z_channel: 30,
+            time_whole_signal: 126,
+            time_fraction_signal: 127,
+            lateral_nm_per_count: 0.02,
+            z_nm_per_count: 0.01,
+            faults,
+        }
+    }
+}
+
+/// DAC width of a simulator's half range (`2^(bits−1)`), when it is a power of two.
+fn bits_of(half_range_counts: f64, what: &str) -> Result<u32, ServerError> {
+    let bits = (2.0 * half_range_counts).log2();
+    if bits.fract() != 0.0 || !(8.0..=32.0).contains(&bits) {
+        return Err(ServerError::Config(format!(
+            "{what} = {half_range_counts} is not a power of two 2^(bits−1) with 8 ≤ bits ≤ 32"
+        )));
+    }
+    Ok(bits as u32)
+}
+
+/// Counters of what the server did.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct ServerStats {
+    /// Requests received (complete headers and bodies).
+    pub commands: u64,
+    /// Error replies of the fault injector.
+    pub injected_error_replies: u64,
+    /// Connections dropped before executing.
+    pub injected_drops_before: u64,
+    /// Connections dropped after executing.
+    pub injected_drops_after: u64,
+    /// Replies written one byte at a time.
+    pub injected_one_byte_writes: u64,
+    /// Delayed replies.
+    pub injected_delays: u64,
+    /// Stalled replies.
+    pub injected_stalls: u64,
+    /// Scans found running.
+    pub injected_scans_running: u64,
+    /// Connections accepted.
+    pub connections: u64,
+    /// Requests refused as malformed (bad header closes, bad body gets an error reply).
+    pub malformed: u64,
+}
+
+impl ServerStats {
+    /// Faults injected, all kinds.
+    pub fn injected(&self) -> u64 {
+        self.injected_error_replies
+            + self.injected_drops_before
+            + self.injected_drops_after
+            + self.injected_one_byte_writes
+            + self.injected_delays
+            + self.injected_stalls
+            + self.injected_scans_running
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Fault {
+    None,
+    ErrorReply,
+    DropBefore,
+    DropAfter,
+    OneByte,
+    Delay,
+    Stall,
+}
+
+#[derive(Debug)]
+enum Pending {
+    None,
+    Move { target: CountPoint, speed: f64 },
+    Scan(ScanRequest),
+}
+
+#[derive(Debug)]
+struct LastScan {
+    frame: Result<Frame, String>,
+    rows: usize,
+    columns: usize,
+}
+
+struct State {
+    sim: Simulator,
+    config: ServerConfig,
+    schema: Schema,
+    calibration: [f32; 3],
+    m_per_count: [f64; 3],
+    drift: DriftComp,
+    tilt: [f32; 2],
+    hysteresis: u32,
+    continuous: bool,
+    bouncy: bool,
+    buffer: ScanBuffer,
+    frame: ScanFrame,
+    speed: ScanSpeed,
+    folme_speed: Option<f32>,
+    pending: Pending,
+    last_scan: Option<LastScan>,
+    leftover_running: bool,
+    rng: ChaCha8Rng,
+    stats: ServerStats,
+}
+
+/// A float32 argument read as the shortest decimal that rounds to it — the value a user
+/// typing it into the controller would have meant. A pixel dwell of 1e-4 s sent as a
+/// float32 time per line (0.0032 s for 32 pixels) is then exactly 1e-4 s again, not
+/// 1.0000000067e-4 s: the simulator's pixel loop treats sub-ulp different dwells the same.
+fn decimal(x: f32) -> f64 {
+    format!("{x}").parse().unwrap_or(f64::from(x))
+}
+
+/// A sim error as a controller's error text, worded so that a client recognises its kind.
+fn describe(e: &spm_sim::SimError) -> String {
+    let kind = match e.kind() {
+        ErrorKind::Timeout => "the real-time engine timed out",
+        ErrorKind::Communication => "communication with the real-time engine failed",
+        ErrorKind::FeedbackLost => "Z-Controller: feedback lost (safe tip)",
+        ErrorKind::OutOfRange => "out of range",
+        _ => "error",
+    };
+    format!("{kind}: {e}")
+}
+
+impl State {
+    fn new(sim: Simulator, config: ServerConfig) -> Result<Self, ServerError> {
+        config.faults.validate()?;
+        let i = &sim.config().instrument;
+        let bits = bits_of(
+            i.lateral_half_range_counts,
+            "instrument.lateral_half_range_counts",
+        )?;
+        let z_bits = bits_of(i.z_half_range_counts, "instrument.z_half_range_counts")?;
+        let cal = |nm_per_count: f64, bits: u32| {
+            (nm_per_count * 1e-9 * 2f64.powi(bits as i32) / spm_nanonis::LOW_VOLTAGE_SPAN_V) as f32
+        };
+        let calibration = [
+            cal(config.lateral_nm_per_count, bits),
+            cal(config.lateral_nm_per_count, bits),
+            cal(config.z_nm_per_count, z_bits),
+        ];
+        if !calibration.iter().all(|c| c.is_finite() && *c > 0.0) {
+            return Err(ServerError::Config(format!(
+                "calibration {calibration:?} m/V is not positive"
+            )));
+        }
+        let m_per_count = [
+            metres_per_count(f64::from(calibration[0]), bits),
+            metres_per_count(f64::from(calibration[1]), bits),
+            metres_per_count(f64::from(calibration[2]), z_bits),
+        ];
+        let rng = ChaCha8Rng::seed_from_u64(config.faults.seed);
+        Ok(Self {
+            sim,
+            schema: Schema::for_release(config.host_release),
+            calibration,
+            m_per_count,
+            // As a user may have left it: every correction on, continuous bouncy scanning.
+            drift: DriftComp {
+                status: 1,
+                v_m_per_s: [2e-12, -1e-12, 0.0],
+                saturated: [0; 3],
+                saturation_limit_percent: 10.0,
+            },
+            tilt: [0.4, -0.2],
+            hysteresis: 1,
+            continuous: true,
+            bouncy: true,
+            buffer: ScanBuffer {
+                channels: vec![config.z_channel],
+                pixels: 256,
+                lines: 256,
+            },
+            frame: ScanFrame {
+                centre_x_m: 0.0,
+                centre_y_m: 0.0,
+                width_m: 1e-7,
+                height_m: 1e-7,
+                angle_deg: 0.0,
+            },
+            speed: ScanSpeed {
+                forward_speed_m_per_s: 1e-7,
+                backward_speed_m_per_s: 1e-7,
+                forward_line_s: 1.0,
+                backward_line_s: 1.0,
+                keep: 1,
+                speed_ratio: 1.0,
+            },
+            folme_speed: None,
+            pending: Pending::None,
+            last_scan: None,
+            leftover_running: false,
+            rng,
+            stats: ServerStats::default(),
+            config,
+        })
+    }
+
+    fn draw_fault(&mut self, command: &str) -> Fault {
+        let f = &self.config.faults;
+        if f.total() <= 0.0 {
+            return Fault::None;
+        }
+        let u: f64 = self.rng.random();
+        let mut edge = 0.0;
+        let kinds = [
+            (f.error_reply, Fault::ErrorReply),
+            (f.drop_before, Fault::DropBefore),
+            (f.drop_after, Fault::DropAfter),
+            (f.one_byte_writes, Fault::OneByte),
+            (f.delay, Fault::Delay),
+            (f.stall, Fault::Stall),
+        ];
+        for (p, kind) in kinds {
+            edge += p;
+            if u < edge {
+                return kind;
+            }
+        }
+        edge += f.scan_running;
+        if u < edge && matches!(command, "Signals.ValsGet" | "FolMe.XYPosGet") {
+            self.leftover_running = true;
+            self.stats.injected_scans_running += 1;
+        }
+        Fault::None
+    }
+
+    fn counts_to_m(&self, p: CountPoint) -> (f64, f64) {
+        (
+            p.x.value() * self.m_per_count[0],
+            p.y.value() * self.m_per_count[1],
+        )
+    }
+
+    fn compensation_off(&self) -> Result<(), String> {
+        if self.drift.status != 0 || self.tilt != [0.0, 0.0] || self.hysteresis != 0 {
+            return Err(format!(
+                "nanonis-sim does not model the controller's compensation: switch drift \
+                 ({}), tilt ({:?}°) and hysteresis ({}) compensation off",
+                self.drift.status, self.tilt, self.hysteresis
+            ));
+        }
+        Ok(())
+    }
+
+    /// Completes a pending move (with no settle) or scan (recording the backward trace
+    /// when `backward` is set).
+    fn flush(&mut self, backward: bool) -> Result<(), String> {
+        match std::mem::replace(&mut self.pending, Pending::None) {
+            Pending::None => Ok(()),
+            Pending::Move { target, speed } => self.do_move(target, speed, 0.0),
+            Pending::Scan(mut request) => {
+                request.record_backward = backward;
+                let frame = self.sim.scan(&request).map_err(|e| describe(&e));
+                self.last_scan = Some(LastScan {
+                    frame,
+                    rows: request.lines as usize,
+                    columns: request.pixels_per_line as usize,
+                });
+                Ok(())
+            }
+        }
+    }
+
+    fn do_move(&mut self, target: CountPoint, speed: f64, settle_s: f64) -> Result<(), String> {
+        self.sim
+            .move_to(MoveRequest {
+                target,
+                speed: spm_hal::CountsPerSecond(speed),
+                settle: Seconds(settle_s),
+            })
+            .map_err(|e| describe(&e))
+    }
+
+    fn start_scan(&mut self, direction_up: u32) -> Result<(), String> {
+        self.flush(false)?;
+        if self.leftover_running {
+            return Err("busy: a scan is already running".into());
+        }
+        self.compensation_off()?;
+        if self.continuous || self.bouncy {
+            return Err(
+                "nanonis-sim scans one frame at a time: switch continuous and bouncy scanning off"
+                    .into(),
+            );
+        }
+        if direction_up != 1 {
+            return Err("nanonis-sim scans upwards only (direction 1)".into());
+        }
+        if self.buffer.channels != [self.config.z_channel] {
+            return Err(format!(
+                "nanonis-sim records only the Z channel (signal {})",
+                self.config.z_channel
+            ));
+        }
+        let f = self.frame;
+        let direction = if f.angle_deg == 0.0 {
+            ScanDirection::Direct
+        } else if f.angle_deg == 180.0 || f.angle_deg == -180.0 {
+            ScanDirection::Counter
+        } else {
+            return Err(format!(
+                "nanonis-sim turns frames by 0° or 180° only, not {}°",
+                f.angle_deg
+            ));
+        };
+        let pixels = self.buffer.pixels as u32;
+        let lines = self.buffer.lines as u32;
+        let step_x = decimal(f.width_m) / f64::from(pixels) / self.m_per_count[0];
+        let step_y = decimal(f.height_m) / f64::from(lines) / self.m_per_count[1];
+        if !(step_x > 0.0 && step_y > 0.0) || ((step_x - step_y) / step_x).abs() > 1e-5 {
+            return Err(format!(
+                "nanonis-sim scans square pixels: {step_x} × {step_y} counts"
+            ));
+        }
+        let s = self.speed;
+        if s.forward_line_s != s.backward_line_s
+            || s.forward_line_s.is_nan()
+            || s.forward_line_s <= 0.0
+        {
+            return Err(format!(
+                "nanonis-sim retraces at the forward speed: time per line {} s / {} s",
+                s.forward_line_s, s.backward_line_s
+            ));
+        }
+        // The dwell a user meant: the shortest decimal at float32 precision of line time ÷
+        // pixels (4.8 ms ÷ 48 is 9.999999999999999e-5 s in float64, 1e-4 s meant).
+        let dwell = decimal((decimal(s.forward_line_s) / f64::from(pixels)) as f32);
+        // Pixel i of a line at left + (i + ½)·width/pixels; the frame centre is the raster's.
+        let centre = CountPoint::from_counts(
+            decimal(f.centre_x_m) / self.m_per_count[0],
+            decimal(f.centre_y_m) / self.m_per_count[1],
+        );
+        let origin = CountPoint::from_counts(
+            centre.x.value() - 0.5 * f64::from(pixels - 1) * step_x,
+            centre.y.value() - 0.5 * f64::from(lines - 1) * step_x,
+        );
+        self.pending = Pending::Scan(ScanRequest {
+            origin,
+            pixel_step: Counts(step_x),
+            pixels_per_line: pixels,
+            lines,
+            direction,
+            pixel_dwell: Seconds(dwell),
+            record_backward: false,
+        });
+        self.last_scan = None;
+        Ok(())
+    }
+
+    fn grab(&mut self, channel: u32, forward: u32) -> Result<Reply, String> {
+        if i64::from(channel) != i64::from(self.config.z_channel) {
+            return Err(format!("channel {channel} is not recorded"));
+        }
+        if matches!(self.pending, Pending::Scan(_)) {
+            self.flush(forward == 0)?;
+        }
+        let Some(last) = &self.last_scan else {
+            return Err("no scan data: no scan has run".into());
+        };
+        let frame = last.frame.as_ref().map_err(Clone::clone)?;
+        let (rows, columns) = (last.rows, last.columns);
+        let image = if forward == 1 {
+            &frame.forward
+        } else {
+            frame.backward.as_ref().ok_or_else(|| {
+                "backward data were not recorded (the scan's first grab asked for the forward \
+                 data)"
+                    .to_owned()
+            })?
+        };
+        let mut data = Vec::with_capacity(rows * columns);
+        for row in 0..rows {
+            let line = rows - 1 - row;
+            let acquired = &image.z_counts[line * columns..(line + 1) * columns];
+            for column in 0..columns {
+                let z = if forward == 1 {
+                    acquired[column]
+                } else {
+                    acquired[columns - 1 - column]
+                };
+                data.push((z * self.m_per_count[2]) as f32);
+            }
+        }
+        Ok(Reply::FrameData(FrameData {
+            channel_name: "Z (m)".into(),
+            rows,
+            columns,
+            data,
+            direction_up: 1,
+        }))
+    }
+
+    // long-function: the dispatch table of the protocol, one short arm per command.
+    fn execute(&mut self, request: &Request) -> Result<Reply, String> {
+        match request {
+            Request::UtilVersionGet => Ok(Reply::Version(Version {
+                product_line: "Nanonis SPM Control Software".into(),
+                version: "Generic 5 (spmcal nanonis-sim)".into(),
+                host_release: self.config.host_release,
+                rt_release: self.config.rt_release,
+            })),
+            Request::PiezoCalibrGet => Ok(Reply::F32x3(self.calibration)),
+            Request::PiezoRangeGet => Ok(Reply::F32x3(
+                self.calibration
+                    .map(|c| c * spm_nanonis::LOW_VOLTAGE_SPAN_V as f32),
+            )),
+            Request::PiezoDriftCompSet {
+                on_off,
+                v_m_per_s,
+                saturation_limit_percent,
+            } => {
+                match on_off {
+                    1 => self.drift.status = 1,
+                    2 => self.drift.status = 0,
+                    _ => {}
+                }
+                self.drift.v_m_per_s = *v_m_per_s;
+                self.drift.saturation_limit_percent = *saturation_limit_percent;
+                Ok(Reply::Empty)
+            }
+            Request::PiezoDriftCompGet => Ok(Reply::DriftComp(self.drift)),
+            Request::PiezoTiltSet { x_deg, y_deg } => {
+                self.tilt = [*x_deg, *y_deg];
+                Ok(Reply::Empty)
+            }
+            Request::PiezoTiltGet => Ok(Reply::F32x2(self.tilt)),
+            Request::PiezoHystOnOffSet(v) => {
+                self.hysteresis = *v;
+                Ok(Reply::Empty)
+            }
+            Request::PiezoHystOnOffGet => Ok(Reply::U32(self.hysteresis)),
+            Request::ScanAction {
+                action,
+                direction_up,
+            } => match *action {
+                scan_action::START => self.start_scan(*direction_up).map(|()| Reply::Empty),
+                scan_action::STOP => {
+                    self.leftover_running = false;
+                    if matches!(self.pending, Pending::Scan(_)) {
+                        self.pending = Pending::None;
+                    }
+                    Ok(Reply::Empty)
+                }
+                other => Err(format!("nanonis-sim does not model scan action {other}")),
+            },
+            Request::ScanStatusGet => Ok(Reply::U32(u32::from(self.leftover_running))),
+            Request::ScanWaitEndOfScan { timeout_ms } => {
+                match std::mem::replace(&mut self.pending, Pending::None) {
+                    Pending::Scan(request) => {
+                        // The scan ends; it is simulated when its data are needed.
+                        self.pending = Pending::Scan(request);
+                        Ok(Reply::WaitEndOfScan {
+                            timed_out: 0,
+                            file_path: String::new(),
+                        })
+                    }
+                    Pending::Move { target, speed } => {
+                        let settle = f64::from((*timeout_ms).max(0)) * 1e-3;
+                        self.do_move(target, speed, settle)?;
+                        Ok(Reply::WaitEndOfScan {
+                            timed_out: 1,
+                            file_path: String::new(),
+                        })
+                    }
+                    Pending::None => {
+                        if *timeout_ms < 0 {
+                            return Err("nanonis-sim: waiting forever with no scan running".into());
+                        }
+                        self.sim
+                            .wait(Seconds(f64::from(*timeout_ms) * 1e-3))
+                            .map_err(|e| describe(&e))?;
+                        Ok(Reply::WaitEndOfScan {
+                            timed_out: 1,
+                            file_path: String::new(),
+                        })
+                    }
+                }
+            }
+            Request::ScanFrameSet(f) => {
+                if ![
+                    f.centre_x_m,
+                    f.centre_y_m,
+                    f.width_m,
+                    f.height_m,
+                    f.angle_deg,
+                ]
+                .iter()
+                .all(|v| v.is_finite())
+                    || f.width_m <= 0.0
+                    || f.height_m <= 0.0
+                {
+                    return Err(format!("invalid frame {f:?}"));
+                }
+                self.frame = *f;
+                Ok(Reply::Empty)
+            }
+            Request::ScanFrameGet => Ok(Reply::Frame(self.frame)),
+            Request::ScanBufferSet(b) => {
+                let max = self.sim.capabilities().max_pixels_per_line as i32;
+                let max_lines = self.sim.capabilities().max_lines as i32;
+                if b.pixels <= 0 || b.lines <= 0 || b.lines > max_lines {
+                    return Err(format!("invalid buffer {} × {}", b.pixels, b.lines));
+                }
+                if b.channels.iter().any(|c| !(0..=127).contains(c)) {
+                    return Err(format!("channel indexes {:?} outside [0, 127]", b.channels));
+                }
+                // Coerced to the closest multiple of 16 (at least 16), as the controller does.
+                let packet = PIXEL_PACKET as i32;
+                let pixels = ((b.pixels + packet / 2) / packet * packet).clamp(packet, max);
+                self.buffer = ScanBuffer {
+                    channels: b.channels.clone(),
+                    pixels,
+                    lines: b.lines,
+                };
+                Ok(Reply::Empty)
+            }
+            Request::ScanBufferGet => Ok(Reply::Buffer(self.buffer.clone())),
+            Request::ScanPropsSet(p) => {
+                match p.continuous {
+                    1 => self.continuous = true,
+                    2 => self.continuous = false,
+                    _ => {}
+                }
+                match p.bouncy {
+                    1 => self.bouncy = true,
+                    2 => self.bouncy = false,
+                    _ => {}
+                }
+                Ok(Reply::Empty)
+            }
+            Request::ScanSpeedSet(s) => {
+                let width = f64::from(self.frame.width_m);
+                let (tf, tb) = match s.keep {
+                    1 => (
+                        width / f64::from(s.forward_speed_m_per_s),
+                        width / f64::from(s.backward_speed_m_per_s),
+                    ),
+                    2 => (f64::from(s.forward_line_s), f64::from(s.backward_line_s)),
+                    _ => (
+                        f64::from(self.speed.forward_line_s),
+                        f64::from(self.speed.backward_line_s),
+                    ),
+                };
+                if !(tf.is_finite() && tb.is_finite() && tf > 0.0 && tb > 0.0) {
+                    return Err(format!("invalid speed {s:?}"));
+                }
+                self.speed = ScanSpeed {
+                    forward_speed_m_per_s: (width / tf) as f32,
+                    backward_speed_m_per_s: (width / tb) as f32,
+                    forward_line_s: tf as f32,
+                    backward_line_s: tb as f32,
+                    keep: if s.keep == 1 { 0 } else { 1 },
+                    speed_ratio: (tf / tb) as f32,
+                };
+                Ok(Reply::Empty)
+            }
+            Request::ScanSpeedGet => Ok(Reply::Speed(self.speed)),
+            Request::ScanFrameDataGrab { channel, forward } => self.grab(*channel, *forward),
+            Request::FolMeXYPosSet {
+                x_m,
+                y_m,
+                wait_end_of_move,
+            } => {
+                self.flush(false)?;
+                self.compensation_off()?;
+                let Some(speed_m) = self.folme_speed else {
+                    return Err(
+                        "nanonis-sim needs a custom Follow-Me speed (FolMe.SpeedSet)".into(),
+                    );
+                };
+                if !(x_m.is_finite() && y_m.is_finite()) {
+                    return Err("target is not finite".into());
+                }
+                let mut target =
+                    CountPoint::from_counts(x_m / self.m_per_count[0], y_m / self.m_per_count[1]);
+                // Metres → counts is exact only to ~1e-12 counts: a target that close to the
+                // commanded position is the commanded position (a move of length 0, as the
+                // client meant it, not one of 1e-12 counts).
+                let here = self.sim.position().map_err(|e| describe(&e))?;
+                if (target.x - here.x).abs().value() < 1e-9
+                    && (target.y - here.y).abs().value() < 1e-9
+                {
+                    target = here;
+                }
+                let m_per_count = (self.m_per_count[0] * self.m_per_count[1]).sqrt();
+                let speed = decimal(speed_m) / m_per_count;
+                self.pending = Pending::Move { target, speed };
+                if *wait_end_of_move == 0 {
+                    self.flush(false)?;
+                }
+                Ok(Reply::Empty)
+            }
+            Request::FolMeXYPosGet { .. } => {
+                self.flush(false)?;
+                let p = self.sim.position().map_err(|e| describe(&e))?;
+                let (x_m, y_m) = self.counts_to_m(p);
+                Ok(Reply::XY { x_m, y_m })
+            }
+            Request::FolMeSpeedSet {
+                speed_m_per_s,
+                custom,
+            } => {
+                if *custom == 1 {
+                    if !(speed_m_per_s.is_finite() && *speed_m_per_s > 0.0) {
+                        return Err(format!("speed {speed_m_per_s} m/s is not positive"));
+                    }
+                    self.folme_speed = Some(*speed_m_per_s);
+                } else {
+                    self.folme_speed = None;
+                }
+                Ok(Reply::Empty)
+            }
+            Request::FolMeStop | Request::MotorStopMove => {
+                if matches!(self.pending, Pending::Move { .. }) {
+                    self.flush(false)?;
+                }
+                Ok(Reply::Empty)
+            }
+            Request::ZCtrlZPosGet => {
+                self.flush(false)?;
+                let z = self.sim.z_position().map_err(|e| describe(&e))?;
+                Ok(Reply::F32((z.value() * self.m_per_count[2]) as f32))
+            }
+            Request::ZCtrlOnOffSet(_) => Ok(Reply::Empty),
+            Request::ZCtrlOnOffGet => Ok(Reply::U32(1)),
+            Request::MotorStartMove {
+                direction, steps, ..
+            } => {
+                self.flush(false)?;
+                let signed = match *direction {
+                    motor_direction::Z_MINUS => i64::from(*steps),
+                    motor_direction::Z_PLUS => -i64::from(*steps),
+                    other => {
+                        return Err(format!(
+                            "nanonis-sim moves the motor along Z only, not {other}"
+                        ));
+                    }
+                };
+                let Some(stage) = self.sim.coarse_z() else {
+                    return Err("no motor module is configured".into());
+                };
+                stage.step(signed).map_err(|e| describe(&e))?;
+                Ok(Reply::Empty)
+            }
+            Request::MotorFreqAmpGet(_) => {
+                if self.sim.config().instrument.coarse_z.is_some() {
+                    Ok(Reply::F32x2([1000.0, 100.0]))
+                } else {
+                    Err("no motor module is configured".into())
+                }
+            }
+            Request::SignalsValsGet { indexes, .. } => {
+                self.flush(false)?;
+                let t = self.sim.now().map_err(|e| describe(&e))?.value();
+                let whole = t.floor();
+                let mut values = Vec::with_capacity(indexes.len());
+                for &i in indexes {
+                    if i == self.config.time_whole_signal {
+                        values.push(whole as f32);
+                    } else if i == self.config.time_fraction_signal {
+                        values.push((t - whole) as f32);
+                    } else if i == self.config.z_channel {
+                        let z = self.sim.z_position().map_err(|e| describe(&e))?;
+                        values.push((z.value() * self.m_per_count[2]) as f32);
+                    } else {
+                        return Err(format!("nanonis-sim does not publish signal {i}"));
+                    }
+                }
+                Ok(Reply::Values(values))
+            }
+            other => Err(format!("nanonis-sim does not implement {}", other.name())),
+        }
+    }
+}
+
+type Shared = Arc<Mutex<State>>;
+
+fn lock(shared: &Shared) -> MutexGuard<'_, State> {
+    match shared.lock() {
+        Ok(guard) => guard,
+        // A connection thread that panicked leaves the state as it was between commands.
+        Err(poisoned) => poisoned.into_inner(),
+    }
+}
+
+/// A bound server, not yet serving.
+pub struct Server {
+    listener: TcpListener,
+    shared: Shared,
+}
+
+/// A server running in the background.
+pub struct ServerHandle {
+    addr: SocketAddr,
+    stop: Arc<AtomicBool>,
+    connections: Arc<Mutex<Vec<TcpStream>>>,
+    shared: Shared,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl Server {
+    /// Binds `address` (e.g. `127.0.0.1:0` for any free port) over a simulator.
+    pub fn bind(
+        address: &str,
+        sim_config: SimConfig,
+        config: ServerConfig,
+    ) -> Result<Self, ServerError> {
+        let sim = Simulator::new(sim_config).map_err(|e| ServerError::Config(e.to_string()))?;
+        let state = State::new(sim, config)?;
+        let listener = TcpListener::bind(address)?;
+        Ok(Self {
+            listener,
+            shared: Arc::new(Mutex::new(state)),
+        })
+    }
+
+    /// The address bound.
+    pub fn local_addr(&self) -> Result<SocketAddr, ServerError> {
+        Ok(self.listener.local_addr()?)
+    }
+
+    /// Serves until the process ends.
+    pub fn serve(self) -> Result<(), ServerError> {
+        let stop = Arc::new(AtomicBool::new(false));
+        let connections = Arc::new(Mutex::new(Vec::new()));
+        accept_loop(&self.listener, &self.shared, &stop, &connections);
+        Ok(())
+    }
+
+    /// Serves on a background thread.
+    pub fn spawn(self) -> Result<ServerHandle, ServerError> {
+        let addr = self.listener.local_addr()?;
+        let stop = Arc::new(AtomicBool::new(false));
+        let connections = Arc::new(Mutex::new(Vec::new()));
+        let (listener, shared) = (self.listener, self.shared);
+        let thread_shared = Arc::clone(&shared);
+        let thread_stop = Arc::clone(&stop);
+        let thread_connections = Arc::clone(&connections);
+        let thread = std::thread::Builder::new()
+            .name("nanonis-sim-accept".into())
+            .spawn(move || {
+                accept_loop(&listener, &thread_shared, &thread_stop, &thread_connections)
+            })?;
+        Ok(ServerHandle {
+            addr,
+            stop,
+            connections,
+            shared,
+            thread: Some(thread),
+        })
+    }
+}
+
+impl ServerHandle {
+    /// The address served.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// What the server did so far.
+    pub fn stats(&self) -> ServerStats {
+        lock(&self.shared).stats.clone()
+    }
+
+    /// Runs `f` on the simulator (tests: the oracle).
+    pub fn with_simulator<T>(&self, f: impl FnOnce(&Simulator) -> T) -> T {
+        f(&lock(&self.shared).sim)
+    }
+
+    /// Stops at once, as a killed process would: the listener closes and every open
+    /// connection is shut down.
+    pub fn kill(mut self) {
+        self.shutdown();
+    }
+
+    fn shutdown(&mut self) {
+        self.stop.store(true, Ordering::SeqCst);
+        // Wake the accept loop.
+        let _ = TcpStream::connect_timeout(&self.addr, Duration::from_millis(200));
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+        let connections = match self.connections.lock() {
+            Ok(mut c) => std::mem::take(&mut *c),
+            Err(poisoned) => std::mem::take(&mut *poisoned.into_inner()),
+        };
+        for c in connections {
+            let _ = c.shutdown(Shutdown::Both);
+        }
+    }
+}
+
+impl Drop for ServerHandle {
+    fn drop(&mut self) {
+        self.shutdown();
+    }
+}
+
+fn accept_loop(
+    listener: &TcpListener,
+    shared: &Shared,
+    stop: &Arc<AtomicBool>,
+    connections: &Arc<Mutex<Vec<TcpStream>>>,
+) {
+    for stream in listener.incoming() {
+        if stop.load(Ordering::SeqCst) {
+            break;
+        }
+        let stream = match stream {
+            Ok(s) => s,
+            Err(e) => {
+                tracing::warn!(error = %e, "nanonis-sim: accept failed");
+                continue;
+            }
+        };
+        let _ = stream.set_nodelay(true);
+        if let (Ok(clone), Ok(mut list)) = (stream.try_clone(), connections.lock()) {
+            list.retain(|s| s.peer_addr().is_ok());
+            list.push(clone);
+        }
+        lock(shared).stats.connections += 1;
+        let shared = Arc::clone(shared);
+        let stop = Arc::clone(stop);
+        let spawned = std::thread::Builder::new()
+            .name("nanonis-sim-connection".into())
+            .spawn(move || serve_connection(stream, &shared, &stop));
+        if let Err(e) = spawned {
+            tracing::warn!(error = %e, "nanonis-sim: cannot start a connection thread");
+        }
+    }
+}
+
+fn encode_reply(command: &str, reply: &Reply, error: &ErrorSection) -> Option<Vec<u8>> {
+    let body = reply.encode(error).ok()?;
+    let header = codec::encode_response_header(command, body.len()).ok()?;
+    let mut bytes = header.to_vec();
+    bytes.extend_from_slice(&body);
+    Some(bytes)
+}
+
+fn serve_connection(mut stream: TcpStream, shared: &Shared, stop: &AtomicBool) {
+    serve_commands(&mut stream, shared, stop);
+    // Shut the socket down whatever the reason (the accept loop keeps a clone for `kill`,
+    // which would otherwise keep it open and leave the client waiting for its timeout).
+    let _ = stream.shutdown(Shutdown::Both);
+}
+
+fn serve_commands(stream: &mut TcpStream, shared: &Shared, stop: &AtomicBool) {
+    loop {
+        if stop.load(Ordering::SeqCst) {
+            return;
+        }
+        let mut header = [0u8; HEADER_LEN];
+        if stream.read_exact(&mut header).is_err() {
+            return;
+        }
+        let header = match codec::decode_request_header(&header) {
+            Ok(h) => h,
+            Err(e) => {
+                tracing::warn!(error = %e, "nanonis-sim: malformed header; closing the connection");
+                lock(shared).stats.malformed += 1;
+                return;
+            }
+        };
+        let mut body = vec![0u8; header.body_len];
+        if stream.read_exact(&mut body).is_err() {
+            return;
+        }
+        let (fault, bytes) = {
+            let mut state = lock(shared);
+            if stop.load(Ordering::SeqCst) {
+                return;
+            }
+            state.stats.commands += 1;
+            let fault = state.draw_fault(&header.command);
+            let request = Request::decode(&header.command, &body, state.schema);
+            let bytes = match (fault, request) {
+                (Fault::DropBefore, _) => {
+                    state.stats.injected_drops_before += 1;
+                    return;
+                }
+                (_, Err(e)) => {
+                    state.stats.malformed += 1;
+                    tracing::debug!(error = %e, command = %header.command, "nanonis-sim: invalid request");
+                    encode_reply(
+                        &header.command,
+                        &Reply::Empty,
+                        &ErrorSection::error(format!("invalid request: {e}")),
+                    )
+                }
+                (Fault::ErrorReply, Ok(request)) => {
+                    state.stats.injected_error_replies += 1;
+                    encode_reply(
+                        &header.command,
+                        &request.neutral_reply(),
+                        &ErrorSection::error("busy: injected fault (error reply)"),
+                    )
+                }
+                (_, Ok(request)) => match state.execute(&request) {
+                    Ok(reply) => encode_reply(&header.command, &reply, &ErrorSection::ok()),
+                    Err(description) => encode_reply(
+                        &header.command,
+                        &request.neutral_reply(),
+                        &ErrorSection::error(description),
+                    ),
+                },
+            };
+            match fault {
+                Fault::DropAfter => state.stats.injected_drops_after += 1,
+                Fault::OneByte => state.stats.injected_one_byte_writes += 1,
+                Fault::Delay => state.stats.injected_delays += 1,
+                Fault::Stall => state.stats.injected_stalls += 1,
+                _ => {}
+            }
+            let delays = (state.config.faults.delay_s, state.config.faults.stall_s);
+            (
+                match fault {
+                    Fault::Delay => Some(delays.0),
+                    Fault::Stall => Some(delays.1),
+                    Fault::DropAfter => None,
+                    _ => Some(0.0),
+                },
+                (fault, bytes),
+            )
+        };
+        let (fault_kind, bytes) = bytes;
+        let Some(delay_s) = fault else {
+            return; // dropped after executing
+        };
+        if delay_s > 0.0 {
+            std::thread::sleep(Duration::from_secs_f64(delay_s));
+        }
+        if !header.send_response {
+            continue;
+        }
+        let Some(bytes) = bytes else {
+            tracing::warn!(command = %header.command, "nanonis-sim: cannot encode the reply");
+            return;
+        };
+        let written = if fault_kind == Fault::OneByte {
+            bytes
+                .iter()
+                .try_for_each(|b| stream.write_all(std::slice::from_ref(b)))
+        } else {
+            stream.write_all(&bytes)
+        };
+        if written.is_err() {
+            return;
+        }
+    }
+}

@@ -1,0 +1,266 @@
+//! NanonisMicroscope against nanonis-sim, judged against the same simulator in process:
+//! the same sequence of moves, waits, scans and Z reads gives the same clock, positions and
+//! data within the wire format's precision, the pitfalls are handled, and faults are
+//! survived.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use spm_hal::{
+    CountPoint, Counts, Error as _, ErrorKind, Frame, Microscope, MoveRequest, ScanDirection,
+    ScanRequest, Seconds,
+};
+use spm_nanonis::{ClockSource, NanonisConfig, NanonisMicroscope};
+use spm_nanonis_sim::{Server, ServerConfig, SocketFaults};
+use spm_sim::{SimConfig, Simulator};
+use std::path::Path;
+
+fn sim_config() -> SimConfig {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/sim-hopg.toml");
+    let mut c = SimConfig::from_file(path).unwrap().without_random_faults();
+    // DAC rounding of pixel positions that float32 frame geometry moves across a half
+    // code would change whole pixels; without it the difference is continuous.
+    c.measurement.quantise_lateral_dac = false;
+    c
+}
+
+fn client_config(port: u16) -> NanonisConfig {
+    NanonisConfig {
+        host: "127.0.0.1".into(),
+        port,
+        connect_timeout_s: 1.0,
+        command_timeout_s: 2.0,
+        wait_margin_s: 2.0,
+        reconnect_attempts: 4,
+        reconnect_backoff_s: 0.02,
+        lateral_dac_bits: 16,
+        z_dac_bits: 16,
+        z_channel: 30,
+        clock: ClockSource::ControllerSignals {
+            whole_s_signal: 126,
+            fraction_s_signal: 127,
+        },
+        max_pixels_per_line: 4096,
+        max_lines: 4096,
+        min_pixel_dwell_s: 1e-6,
+        coarse_z: None,
+    }
+}
+
+fn start(faults: SocketFaults) -> spm_nanonis_sim::server::ServerHandle {
+    Server::bind("127.0.0.1:0", sim_config(), ServerConfig::new(faults))
+        .unwrap()
+        .spawn()
+        .unwrap()
+}
+
+fn request(direction: ScanDirection, pixels: u32, lines: u32) -> ScanRequest {
+    ScanRequest {
+        origin: CountPoint::from_counts(1234.25, -2345.5),
+        pixel_step: Counts(0.75),
+        pixels_per_line: pixels,
+        lines,
+        direction,
+        pixel_dwell: Seconds(1e-4),
+        record_backward: false,
+    }
+}
+
+/// Relative float32 precision, with a floor for values near zero.
+fn close(a: f64, b: f64, scale: f64) -> bool {
+    (a - b).abs() <= 4.0 * f64::from(f32::EPSILON) * (a.abs().max(b.abs()) + scale)
+}
+
+fn check_frames(tcp: &Frame, local: &Frame, what: &str) {
+    assert_eq!(tcp.request, local.request, "{what}");
+    let halves = [
+        (Some(&tcp.forward), Some(&local.forward)),
+        (tcp.backward.as_ref(), local.backward.as_ref()),
+    ];
+    for (a, b) in halves {
+        let (Some(a), Some(b)) = (a, b) else {
+            assert_eq!(a.is_some(), b.is_some(), "{what}");
+            continue;
+        };
+        assert_eq!(a.z_counts.len(), b.z_counts.len(), "{what}");
+        // Z: float32 metres on the wire; pixel positions realised from float32 frame
+        // geometry move the sample point by ≤ 0.002 counts, i.e. a fraction of a count of
+        // topography at the steepest atomic slopes.
+        let max_z = a
+            .z_counts
+            .iter()
+            .zip(&b.z_counts)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
+        let max_t = a
+            .time_s
+            .iter()
+            .zip(&b.time_s)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
+        eprintln!("{what}: max |Δz| {max_z:.2e} counts, max |Δt| {max_t:.2e} s");
+        for (i, (za, zb)) in a.z_counts.iter().zip(&b.z_counts).enumerate() {
+            assert!((za - zb).abs() <= 0.5, "{what}: z[{i}] {za} vs {zb}");
+        }
+        // Times: line times are float32 seconds, the clock two float32s.
+        for (i, (ta, tb)) in a.time_s.iter().zip(&b.time_s).enumerate() {
+            assert!(close(*ta, *tb, 1e-3), "{what}: t[{i}] {ta} vs {tb}");
+        }
+    }
+}
+
+#[test]
+fn the_same_operations_give_the_same_instrument_over_tcp() {
+    let server = start(SocketFaults::none());
+    let mut tcp = NanonisMicroscope::connect(client_config(server.addr().port())).unwrap();
+    let mut local = Simulator::new(sim_config()).unwrap();
+    // The controller was found with every correction on and switched it off.
+    let state = tcp.controller_state().clone();
+    assert_eq!(state.drift_compensation_found.0, 1);
+    assert_eq!(state.hysteresis_compensation_found, 1);
+    assert_eq!(
+        (
+            state.drift_compensation_now,
+            state.hysteresis_compensation_now
+        ),
+        (0, 0)
+    );
+    assert_eq!(state.tilt_now_deg, [0.0, 0.0]);
+    assert_eq!(tcp.capabilities().field_min, local.capabilities().field_min);
+    assert_eq!(tcp.capabilities().field_max, local.capabilities().field_max);
+
+    let moves = [
+        MoveRequest {
+            target: CountPoint::from_counts(1200.0, -2300.0),
+            speed: spm_hal::CountsPerSecond(20000.0),
+            settle: Seconds(0.01),
+        },
+        MoveRequest {
+            target: CountPoint::from_counts(-5000.5, 7000.25),
+            speed: spm_hal::CountsPerSecond(5000.0),
+            settle: Seconds(0.0),
+        },
+    ];
+    let scans = [
+        request(ScanDirection::Direct, 32, 8),
+        request(ScanDirection::Counter, 16, 12),
+        ScanRequest {
+            record_backward: true,
+            ..request(ScanDirection::Direct, 48, 6)
+        },
+    ];
+    for (k, m) in moves.iter().enumerate() {
+        tcp.move_to(*m).unwrap();
+        local.move_to(*m).unwrap();
+        assert!(close(
+            tcp.now().unwrap().value(),
+            local.now().unwrap().value(),
+            1e-3
+        ));
+        let (a, b) = (tcp.position().unwrap(), local.position().unwrap());
+        assert!(
+            (a.x.value() - b.x.value()).abs() < 1e-6,
+            "move {k}: {a:?} vs {b:?}"
+        );
+        assert!(
+            (a.y.value() - b.y.value()).abs() < 1e-6,
+            "move {k}: {a:?} vs {b:?}"
+        );
+        tcp.wait(Seconds(0.25)).unwrap();
+        local.wait(Seconds(0.25)).unwrap();
+        for s in &scans {
+            let a = tcp.scan(s).unwrap();
+            let b = local.scan(s).unwrap();
+            check_frames(
+                &a,
+                &b,
+                &format!("move {k}, {:?} {} px", s.direction, s.pixels_per_line),
+            );
+            let (za, zb) = (tcp.z_position().unwrap(), local.z_position().unwrap());
+            assert!((za.value() - zb.value()).abs() <= 2e-3, "{za} vs {zb}");
+        }
+    }
+    let (ta, tb) = (tcp.now().unwrap().value(), local.now().unwrap().value());
+    assert!(close(ta, tb, 1e-3), "clock {ta} vs {tb}");
+    assert!(ta > 1.0);
+}
+
+#[test]
+fn pixel_counts_are_padded_to_16_and_cropped() {
+    // 12 pixels are scanned as 16 with the same step and cropped: the data are those of an
+    // in-process 16-pixel scan of the same origin, cropped, with 16-pixel line timing.
+    let server = start(SocketFaults::none());
+    let mut tcp = NanonisMicroscope::connect(client_config(server.addr().port())).unwrap();
+    let mut local = Simulator::new(sim_config()).unwrap();
+    for direction in [ScanDirection::Direct, ScanDirection::Counter] {
+        let asked = ScanRequest {
+            record_backward: true,
+            ..request(direction, 12, 5)
+        };
+        let mut padded = asked.clone();
+        padded.pixels_per_line = 16;
+        if direction == ScanDirection::Counter {
+            padded.origin.x -= Counts(4.0 * 0.75);
+        }
+        let a = tcp.scan(&asked).unwrap();
+        let b = local.scan(&padded).unwrap();
+        assert_eq!(a.request, asked);
+        assert_eq!(a.forward.z_counts.len(), 12 * 5);
+        let back_a = a.backward.as_ref().unwrap();
+        let back_b = b.backward.as_ref().unwrap();
+        for line in 0..5 {
+            for pixel in 0..12 {
+                // Forward: the first 12 pixels of each 16-pixel trace.
+                let (i, j) = (line * 12 + pixel, line * 16 + pixel);
+                assert!((a.forward.z_counts[i] - b.forward.z_counts[j]).abs() <= 2e-3);
+                assert!(close(a.forward.time_s[i], b.forward.time_s[j], 1e-3));
+                // Backward: the retrace reaches the requested pixels after the 4 padding ones.
+                let j = line * 16 + 4 + pixel;
+                assert!(
+                    (back_a.z_counts[i] - back_b.z_counts[j]).abs() <= 2e-3,
+                    "{direction:?}"
+                );
+                assert!(close(back_a.time_s[i], back_b.time_s[j], 1e-3));
+            }
+        }
+    }
+}
+
+#[test]
+fn socket_faults_are_survived_and_an_unreachable_controller_aborts() {
+    let faults = SocketFaults::mixed(0.1, 7, 0.01, 0.0);
+    let server = start(faults);
+    let mut tcp = NanonisMicroscope::connect(client_config(server.addr().port()));
+    // Opening may itself meet faults on non-repeatable commands; retry like a user would.
+    for _ in 0..5 {
+        if tcp.is_ok() {
+            break;
+        }
+        tcp = NanonisMicroscope::connect(client_config(server.addr().port()));
+    }
+    let mut tcp = tcp.unwrap();
+    let mut ok = 0;
+    let mut transient = 0;
+    for k in 0..40 {
+        let s = request(ScanDirection::Direct, 16, 4);
+        match tcp.scan(&s) {
+            Ok(frame) => {
+                frame.validate().unwrap();
+                assert!(frame.forward.z_counts.iter().all(|z| z.is_finite()));
+                ok += 1;
+            }
+            Err(e) => {
+                assert!(e.kind().is_transient(), "scan {k}: {e}");
+                transient += 1;
+            }
+        }
+    }
+    let stats = server.stats();
+    eprintln!("ok {ok}, transient {transient}, {stats:?}");
+    assert!(stats.injected() as f64 >= 0.05 * stats.commands as f64);
+    assert!(ok >= 20, "{ok} of 40 scans succeeded");
+    server.kill();
+    let e = tcp
+        .scan(&request(ScanDirection::Direct, 16, 4))
+        .unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Aborted, "{e}");
+    assert!(e.to_string().contains("unreachable"), "{e}");
+}

@@ -1,0 +1,390 @@
+//! A blocking client of the Nanonis TCP protocol.
+//!
+//! - **Exact frames.** A request is written whole (`write_all` of header and body); a reply
+//!   is read whole (`read_exact` of the 40-byte header, then of exactly the body size it
+//!   announces). A reply is accepted only for the command that was sent and only if its
+//!   body decodes to exactly that command's return arguments and error section. After any
+//!   I/O, timeout or framing failure the connection is dropped: its byte stream can no
+//!   longer be trusted to be at a message boundary.
+//! - **Timeouts per command.** Every command has the read/write timeout
+//!   [`ClientConfig::command_timeout_s`]; wait-style commands (`Scan.WaitEndOfScan`, waited
+//!   `FolMe.XYPosSet` and `Motor.StartMove`) get their expected duration plus
+//!   [`ClientConfig::wait_margin_s`] ([`Client::call_waiting`]).
+//! - **Reconnect with backoff.** A dropped connection is re-opened on the next command, up
+//!   to [`ClientConfig::reconnect_attempts`] times with exponential backoff from
+//!   [`ClientConfig::reconnect_backoff_s`]; when every attempt fails the error is
+//!   [`NanonisErrorKind::Unreachable`]. A request refused as busy is sent again, and so is
+//!   one whose connection was lost when that is safe ([`Request::is_retry_safe`]: not the
+//!   relative motor steps), up to [`RETRIES`] times; other failures are reported and the
+//!   caller decides.
+//! - **Schema by version.** On every (re)connection `Util.VersionGet` is asked and the
+//!   [`Schema`] chosen from the host-application release.
+//! - **A second connection for stop and abort** ([`Client::stop`]): the manual lets a client
+//!   open up to four connections, each serialising its own commands, so a stop sent on a
+//!   second connection is executed while the first one is blocked in a wait.
+
+use crate::codec::{self, HEADER_LEN};
+use crate::commands::{Reply, Request, Schema, Version};
+use crate::error::{NanonisError, NanonisErrorKind};
+use serde::{Deserialize, Serialize};
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
+use std::time::Duration;
+
+/// Connection settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ClientConfig {
+    /// Controller host name or address.
+    pub host: String,
+    /// The TCP port of the controller's first programming-interface connection.
+    pub port: u16,
+    /// Timeout of one connection attempt, s.
+    pub connect_timeout_s: f64,
+    /// Read and write timeout of an ordinary command, s.
+    pub command_timeout_s: f64,
+    /// Added to the expected duration of wait-style commands, s.
+    pub wait_margin_s: f64,
+    /// Reconnect attempts after a dropped connection before giving up.
+    pub reconnect_attempts: u32,
+    /// First backoff between reconnect attempts, s (doubled each attempt, at most 2 s).
+    pub reconnect_backoff_s: f64,
+}
+
+impl ClientConfig {
+    /// Checks that every duration is finite and positive.
+    pub fn validate(&self) -> Result<(), NanonisError> {
+        for (field, value) in [
+            ("connect_timeout_s", self.connect_timeout_s),
+            ("command_timeout_s", self.command_timeout_s),
+            ("wait_margin_s", self.wait_margin_s),
+            ("reconnect_backoff_s", self.reconnect_backoff_s),
+        ] {
+            if !(value.is_finite() && value > 0.0 && value < 1e6) {
+                return Err(NanonisError::new(
+                    NanonisErrorKind::Configuration,
+                    format!("{field} = {value} must be a finite number of seconds in (0, 1e6)"),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    fn address(&self) -> Result<SocketAddr, NanonisError> {
+        (self.host.as_str(), self.port)
+            .to_socket_addrs()
+            .map_err(|e| {
+                NanonisError::new(
+                    NanonisErrorKind::Connect,
+                    format!("cannot resolve {}:{}: {e}", self.host, self.port),
+                )
+            })?
+            .next()
+            .ok_or_else(|| {
+                NanonisError::new(
+                    NanonisErrorKind::Connect,
+                    format!("{}:{} resolves to no address", self.host, self.port),
+                )
+            })
+    }
+}
+
+/// Times a request is sent again after a busy reply or a lost connection.
+pub const RETRIES: u32 = 3;
+
+fn seconds(s: f64) -> Duration {
+    Duration::from_secs_f64(s.clamp(1e-3, 1e6))
+}
+
+/// A connection to the controller (see the module documentation).
+#[derive(Debug)]
+pub struct Client {
+    config: ClientConfig,
+    stream: Option<TcpStream>,
+    stop_stream: Option<TcpStream>,
+    version: Option<Version>,
+    schema: Schema,
+    /// Commands sent (including re-sent ones), for statistics.
+    commands_sent: u64,
+    /// Connections opened after the first one.
+    reconnects: u64,
+}
+
+impl Client {
+    /// Connects and asks the controller's version.
+    pub fn connect(config: ClientConfig) -> Result<Self, NanonisError> {
+        config.validate()?;
+        let mut client = Self {
+            config,
+            stream: None,
+            stop_stream: None,
+            version: None,
+            schema: Schema::for_release(0),
+            commands_sent: 0,
+            reconnects: 0,
+        };
+        client.ensure_connected()?;
+        client.reconnects = 0;
+        Ok(client)
+    }
+
+    /// The controller's version, from the last (re)connection.
+    pub fn version(&self) -> Option<&Version> {
+        self.version.as_ref()
+    }
+
+    /// The argument schema in use.
+    pub fn schema(&self) -> Schema {
+        self.schema
+    }
+
+    /// The connection settings.
+    pub fn config(&self) -> &ClientConfig {
+        &self.config
+    }
+
+    /// Commands sent so far (re-sent ones included).
+    pub fn commands_sent(&self) -> u64 {
+        self.commands_sent
+    }
+
+    /// Reconnections so far.
+    pub fn reconnects(&self) -> u64 {
+        self.reconnects
+    }
+
+    fn open(&self) -> Result<TcpStream, NanonisError> {
+        let address = self.config.address()?;
+        let stream = TcpStream::connect_timeout(&address, seconds(self.config.connect_timeout_s))
+            .map_err(|e| {
+            NanonisError::new(
+                NanonisErrorKind::Connect,
+                format!("cannot connect to {address}: {e}"),
+            )
+        })?;
+        stream
+            .set_nodelay(true)
+            .map_err(|e| NanonisError::new(NanonisErrorKind::Io, format!("set_nodelay: {e}")))?;
+        Ok(stream)
+    }
+
+    /// Opens the main connection when there is none, with backoff, and asks the version.
+    fn ensure_connected(&mut self) -> Result<(), NanonisError> {
+        if self.stream.is_some() {
+            return Ok(());
+        }
+        let mut backoff = self.config.reconnect_backoff_s;
+        let mut last = None;
+        for attempt in 0..=self.config.reconnect_attempts {
+            if attempt > 0 {
+                std::thread::sleep(seconds(backoff));
+                backoff = (backoff * 2.0).min(2.0);
+            }
+            match self.open() {
+                Ok(stream) => {
+                    self.stream = Some(stream);
+                    self.reconnects += 1;
+                    match self.exchange(&Request::UtilVersionGet, self.config.command_timeout_s) {
+                        Ok(Reply::Version(version)) => {
+                            self.schema = Schema::for_release(version.host_release);
+                            tracing::info!(
+                                product = %version.product_line,
+                                version = %version.version,
+                                host_release = version.host_release,
+                                rt_release = version.rt_release,
+                                "nanonis: connected to {}:{}",
+                                self.config.host,
+                                self.config.port
+                            );
+                            self.version = Some(version);
+                            return Ok(());
+                        }
+                        Ok(other) => {
+                            self.stream = None;
+                            last = Some(NanonisError::new(
+                                NanonisErrorKind::Protocol,
+                                format!("unexpected reply {other:?}"),
+                            ));
+                        }
+                        Err(e) => {
+                            self.stream = None;
+                            last = Some(e);
+                        }
+                    }
+                }
+                Err(e) => last = Some(e),
+            }
+        }
+        let cause = last.map(|e| e.to_string()).unwrap_or_default();
+        Err(NanonisError::new(
+            NanonisErrorKind::Unreachable,
+            format!(
+                "the controller at {}:{} is unreachable after {} reconnect attempts ({cause}); \
+                 the run cannot continue: restart the controller (or its TCP interface) and \
+                 resume",
+                self.config.host, self.config.port, self.config.reconnect_attempts
+            ),
+        ))
+    }
+
+    /// Sends a request with the ordinary command timeout and returns its reply.
+    pub fn call(&mut self, request: &Request) -> Result<Reply, NanonisError> {
+        self.call_with_timeout(request, self.config.command_timeout_s)
+    }
+
+    /// Sends a wait-style request expected to take `expected_s`: its timeout is that plus
+    /// the wait margin.
+    pub fn call_waiting(
+        &mut self,
+        request: &Request,
+        expected_s: f64,
+    ) -> Result<Reply, NanonisError> {
+        let timeout =
+            expected_s.max(0.0) + self.config.wait_margin_s + self.config.command_timeout_s;
+        self.call_with_timeout(request, timeout)
+    }
+
+    /// Sends a request with an explicit timeout (s). A request the controller refused as
+    /// busy (not executed) is sent again; so is a request whose connection was lost before
+    /// the reply when that is safe ([`Request::is_retry_safe`]); at most [`RETRIES`] times.
+    pub fn call_with_timeout(
+        &mut self,
+        request: &Request,
+        timeout_s: f64,
+    ) -> Result<Reply, NanonisError> {
+        let mut last = None;
+        for _ in 0..=RETRIES {
+            self.ensure_connected()?;
+            match self.exchange(request, timeout_s) {
+                Ok(reply) => return Ok(reply),
+                Err(e) if e.kind == NanonisErrorKind::Busy => {
+                    tracing::debug!(error = %e, "nanonis: busy; sending again");
+                    last = Some(e);
+                }
+                Err(e) if self.stream.is_none() && request.is_retry_safe() => {
+                    tracing::debug!(error = %e, "nanonis: connection dropped; sending again");
+                    last = Some(e);
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Err(last.unwrap_or_else(|| {
+            NanonisError::new(NanonisErrorKind::Io, "no attempt was made")
+                .in_command(request.name())
+        }))
+    }
+
+    /// One request and its reply on the main connection. Any failure that leaves the
+    /// stream at an unknown position drops the connection.
+    fn exchange(&mut self, request: &Request, timeout_s: f64) -> Result<Reply, NanonisError> {
+        let name = request.name();
+        let Some(stream) = self.stream.as_mut() else {
+            return Err(NanonisError::new(NanonisErrorKind::Io, "not connected").in_command(name));
+        };
+        self.commands_sent += 1;
+        let result = transact(stream, request, self.schema, timeout_s);
+        match result {
+            Ok((reply, error)) => {
+                if error.status != 0 {
+                    Err(NanonisError::from_error_reply(name, &error.description))
+                } else {
+                    Ok(reply)
+                }
+            }
+            Err(e) => {
+                self.stream = None;
+                Err(e.in_command(name))
+            }
+        }
+    }
+
+    /// Sends a stop request (`Scan.Action` stop, `FolMe.Stop`, `Motor.StopMove`) on the
+    /// second connection, opened on first use and re-opened once if it was dropped.
+    pub fn stop(&mut self, request: &Request) -> Result<(), NanonisError> {
+        let mut last = None;
+        for _ in 0..2 {
+            if self.stop_stream.is_none() {
+                self.stop_stream = Some(self.open()?);
+            }
+            let Some(stream) = self.stop_stream.as_mut() else {
+                continue;
+            };
+            match transact(stream, request, self.schema, self.config.command_timeout_s) {
+                Ok((_, error)) if error.status != 0 => {
+                    return Err(NanonisError::from_error_reply(
+                        request.name(),
+                        &error.description,
+                    ));
+                }
+                Ok(_) => return Ok(()),
+                Err(e) => {
+                    self.stop_stream = None;
+                    last = Some(e.in_command(request.name()));
+                }
+            }
+        }
+        Err(last.unwrap_or_else(|| NanonisError::new(NanonisErrorKind::Io, "stop failed")))
+    }
+
+    /// Closes both connections (the next command reconnects).
+    pub fn disconnect(&mut self) {
+        self.stream = None;
+        self.stop_stream = None;
+    }
+}
+
+fn io_error(what: &str, e: &std::io::Error) -> NanonisError {
+    let kind = match e.kind() {
+        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut => NanonisErrorKind::Timeout,
+        _ => NanonisErrorKind::Io,
+    };
+    NanonisError::new(kind, format!("{what}: {e}"))
+}
+
+/// Writes one request and reads its reply on `stream`.
+fn transact(
+    stream: &mut TcpStream,
+    request: &Request,
+    schema: Schema,
+    timeout_s: f64,
+) -> Result<(Reply, codec::ErrorSection), NanonisError> {
+    let name = request.name();
+    let body = request
+        .encode(schema)
+        .map_err(|e| NanonisError::new(NanonisErrorKind::InvalidRequest, e.to_string()))?;
+    let header = codec::encode_request_header(name, body.len(), true)
+        .map_err(|e| NanonisError::new(NanonisErrorKind::InvalidRequest, e.to_string()))?;
+    let timeout = seconds(timeout_s);
+    stream
+        .set_write_timeout(Some(timeout))
+        .and_then(|()| stream.set_read_timeout(Some(timeout)))
+        .map_err(|e| io_error("set timeout", &e))?;
+    let mut message = Vec::with_capacity(HEADER_LEN + body.len());
+    message.extend_from_slice(&header);
+    message.extend_from_slice(&body);
+    stream
+        .write_all(&message)
+        .map_err(|e| io_error("write request", &e))?;
+    let mut reply_header = [0u8; HEADER_LEN];
+    stream
+        .read_exact(&mut reply_header)
+        .map_err(|e| io_error("read reply header", &e))?;
+    let header = codec::decode_response_header(&reply_header)
+        .map_err(|e| NanonisError::protocol(name, &e))?;
+    if header.command != name {
+        return Err(NanonisError::new(
+            NanonisErrorKind::Protocol,
+            format!(
+                "reply is for {:?}, not for the request sent",
+                header.command
+            ),
+        ));
+    }
+    let mut reply_body = vec![0u8; header.body_len];
+    stream
+        .read_exact(&mut reply_body)
+        .map_err(|e| io_error("read reply body", &e))?;
+    request
+        .decode_reply(&reply_body)
+        .map_err(|e| NanonisError::protocol(name, &e))
+}

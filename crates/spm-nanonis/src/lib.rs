@@ -1,0 +1,96 @@
+#![doc = include_str!("../README.md")]
+//!
+//! # spm-nanonis: a Nanonis (SPECS) controller behind spm-hal's `Microscope`
+//!
+//! Three layers, written from the vendor's manual "Nanonis TCP Protocol — TCP Programming
+//! Interface" (it ships with the vendor's MIT-licensed Python client `nanonis-spm`):
+//!
+//! - [`codec`]: the wire format — 40-byte request and response headers, big-endian
+//!   numbers, size-prefixed strings, 1-D and 2-D arrays, the error section. Tested on the
+//!   manual's own hex examples and by round-trip properties; fuzzed (`fuzz/`).
+//! - [`commands`] and [`client`]: the commands used, with their argument schemas (strict
+//!   in both directions), and a blocking client: exact frames, per-command timeouts
+//!   (longer for wait-style commands), reconnection with backoff, the schema chosen by
+//!   `Util.VersionGet`, and a second connection for stop and abort.
+//! - [`NanonisMicroscope`]: [`spm_hal::Microscope`] on top.
+//!
+//! ## Units: the counts convention
+//! spm-hal speaks DAC counts; the controller speaks metres. `Piezo.CalibrGet` gives the
+//! calibration of the ±10 V low-voltage outputs in m/V, and the job states the DAC width
+//! (`lateral_dac_bits`, `z_dac_bits`). **One count is `20 V / 2^bits` of the output**, so
+//! `metres = counts × calibration × 20 V / 2^bits`; count 0 is 0 m (the field centre) and
+//! the field is `[−2^(bits−1), 2^(bits−1) − 1]` counts. A calibration in nm/count is then
+//! a correction of the controller's own nominal calibration: with the controller's
+//! calibration changed, the counts (and the calibration) change with it.
+//!
+//! ## The instrument clock
+//! The protocol has no clock command. [`ClockSource::Host`] uses the host's monotonic
+//! clock (hardware); [`ClockSource::ControllerSignals`] reads the controller's time from
+//! two signals (whole seconds and fraction), which is how `nanonis-sim` publishes its
+//! simulated time; waits then run on the controller as `Scan.WaitEndOfScan` timeouts,
+//! quantised to whole milliseconds by that command's `int` argument (the remainder is
+//! carried to the next wait, so the controller's clock stays within ½ ms of the sum of the
+//! waits asked). A move's settle is always sent as such a wait, even of 0 ms, so that the
+//! controller sees a move and its settle as one operation.
+//!
+//! ## Failures
+//! A reply "busy" (not executed) is sent again; a command whose connection was lost is sent
+//! again when that is safe (everything but the relative `Motor.StartMove` steps), up to
+//! [`client::RETRIES`] times over a fresh connection; timeouts, error replies and frames that
+//! do not fit the request become [`NanonisError`]s whose [`spm_hal::ErrorKind`] tells the
+//! calibration what to do (transient: retry the node; aborted: stop the run).
+//!
+//! ## Pitfalls handled
+//! - **Pixels per line are coerced to a multiple of 16** (`Scan.BufferSet`: data travel
+//!   from the real-time engine in packets of 16). A request of `n` pixels is scanned as
+//!   `⌈n/16⌉·16` pixels with the same pixel step, the extra pixels continuing the forward
+//!   trace past the requested ones, and cropped; the pixel times account for the longer
+//!   lines. The buffer is read back (`Scan.BufferGet`) and a mismatch is an error.
+//! - **Continuous and bouncy scanning** (and autosave, autopaste) are switched off by
+//!   `Scan.PropsSet` when the backend opens: left on, the controller starts the next frame
+//!   (in the other direction, for bouncy) and the data grabbed are not the scan requested.
+//!   `Scan.PropsSet` gained its *Autopaste* argument in release R5.1.14573: the argument is
+//!   sent only to controllers of that release or later (`Util.VersionGet`).
+//! - **The controller's own compensation** — drift (`Piezo.DriftCompSet`), tilt
+//!   (`Piezo.TiltSet`) and hysteresis (`Piezo.HystOnOffSet`) — is switched off and read
+//!   back when the backend opens, and what was found is kept in [`ControllerState`]
+//!   (logged, and stored with the run by `spmcal calibrate`). Left on, the calibration is
+//!   done on already-corrected coordinates: it measures the correction, not the scanner.
+//! - **A scan already running** (started by a user or left by a lost connection) is
+//!   stopped on the second connection before a new one starts (`Scan.StatusGet`).
+//! - **Scan speed** is set with the time per line kept constant and read back
+//!   (`Scan.SpeedGet`): the pixel times are reconstructed from the line times the
+//!   controller actually uses: pixel `k` of line `l` at
+//!   `start + l·(t_fwd + t_bwd) + (k + ½)·t_fwd/pixels`, backward pixels after `t_fwd`, and
+//!   `start` = the controller time at the end of the scan − `lines·(t_fwd + t_bwd)`.
+//! - **Counter scans** use the frame turned by 180°: its forward traces run along −x and
+//!   its lines step along −y.
+//! - **Frame data** (`Scan.FrameDataGrab`) come top line first (for an upward scan the
+//!   last line acquired) and left to right in the frame for both directions; pixels not
+//!   acquired are NaN, which is an error, never data.
+//! - **The frame geometry is `float32` metres** on the wire (`Scan.FrameSet`), the move
+//!   targets `float64`: a scan's pixel positions are realised to `float32` precision
+//!   (relative 6·10⁻⁸, ≈ 0.002 counts at the edge of a 16-bit field).
+//! - **A Z feedback that is off** when the backend opens is an error; an error reply naming
+//!   the feedback maps to [`spm_hal::ErrorKind::FeedbackLost`] (transient).
+//! - **A controller that stays unreachable** after the reconnect attempts is
+//!   [`spm_hal::ErrorKind::Aborted`]: the calibration stops (and can be resumed) instead of
+//!   giving up its remaining nodes one after another.
+//! - **The coarse Z motor** is a capability found by query (`Motor.FreqAmpGet` on Z; the
+//!   manual documents it for PD5, PMD4 and ANC150 controllers): with no motor module
+//!   answering, [`spm_hal::Microscope::coarse_z`] is `None`. Positions are counted by the
+//!   backend from where it was opened (`Motor.StepCounterGet` exists only for ANC150).
+#![warn(missing_docs)]
+
+pub mod client;
+pub mod codec;
+pub mod commands;
+pub mod error;
+pub mod microscope;
+
+pub use client::{Client, ClientConfig};
+pub use error::{NanonisError, NanonisErrorKind};
+pub use microscope::{
+    ClockSource, CoarseZConfig, ControllerState, LOW_VOLTAGE_SPAN_V, NanonisConfig,
+    NanonisMicroscope, PIXEL_PACKET, metres_per_count,
+};

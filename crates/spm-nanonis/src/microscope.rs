@@ -1,0 +1,986 @@
+//! [`NanonisMicroscope`]: spm-hal's [`Microscope`] over the Nanonis TCP protocol.
+//!
+//! See the crate documentation for the units convention and the pitfalls handled.
+
+use crate::client::{Client, ClientConfig};
+use crate::commands::{
+    DriftComp, FrameData, Reply, Request, ScanBuffer, ScanFrame, ScanProps, ScanSpeed, Version,
+    motor_direction, scan_action,
+};
+use crate::error::{NanonisError, NanonisErrorKind};
+use serde::{Deserialize, Serialize};
+use spm_hal::{
+    Capabilities, CoarseZCapability, CoarseZStage, CountPoint, Counts, Frame, Microscope,
+    MoveRequest, ScanDirection, ScanRequest, Seconds, TraceImage,
+};
+use std::time::Instant;
+
+/// The full span of the controller's low-voltage outputs, V (±10 V): `Piezo.CalibrGet`
+/// gives metres per volt of these signals.
+pub const LOW_VOLTAGE_SPAN_V: f64 = 20.0;
+
+/// Pixels per line travel from the real-time engine to the host in packets of this many:
+/// the scan module coerces pixels per line to a multiple of it.
+pub const PIXEL_PACKET: u32 = 16;
+
+/// Where the instrument clock comes from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum ClockSource {
+    /// The host's monotonic clock since the backend was opened; waits sleep on the host.
+    /// The protocol has no clock command, so this is the choice for hardware.
+    Host,
+    /// The controller's own time, published as two signals read with `Signals.ValsGet`:
+    /// whole seconds and the fraction (two `float32`s keep 0.1 µs resolution where one
+    /// would lose it after a few minutes). Waits then run on the controller as
+    /// `Scan.WaitEndOfScan` timeouts (whole milliseconds). `nanonis-sim` publishes its
+    /// simulated time this way.
+    ControllerSignals {
+        /// Signal index of the whole seconds.
+        whole_s_signal: i32,
+        /// Signal index of the fraction of a second.
+        fraction_s_signal: i32,
+    },
+}
+
+/// A software-drivable coarse Z motor.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CoarseZConfig {
+    /// Smallest allowed position, steps from where the backend was opened.
+    pub min_steps: i64,
+    /// Largest allowed position, steps.
+    pub max_steps: i64,
+    /// `Motor.StartMove` direction that approaches the sample: "z+" or "z-".
+    pub approach: String,
+    /// Motor group (0 = group 1).
+    pub group: u32,
+    /// Upper bound of one step's duration, s (sets the command timeout).
+    pub step_time_s: f64,
+}
+
+/// Everything the backend needs to know about the controller and the job.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NanonisConfig {
+    /// Controller host.
+    pub host: String,
+    /// Controller port (the first TCP programming-interface port).
+    pub port: u16,
+    /// Timeout of one connection attempt, s.
+    pub connect_timeout_s: f64,
+    /// Timeout of an ordinary command, s.
+    pub command_timeout_s: f64,
+    /// Margin added to wait-style commands' expected duration, s.
+    pub wait_margin_s: f64,
+    /// Reconnect attempts before the controller is declared unreachable.
+    pub reconnect_attempts: u32,
+    /// First backoff between reconnect attempts, s.
+    pub reconnect_backoff_s: f64,
+    /// Counts convention, lateral: one count is `20 V / 2^lateral_dac_bits` of the X/Y
+    /// low-voltage outputs.
+    pub lateral_dac_bits: u32,
+    /// Counts convention, Z: one count is `20 V / 2^z_dac_bits` of the Z output.
+    pub z_dac_bits: u32,
+    /// Signal index (0–127) of the Z (topography) channel in the scan buffer.
+    pub z_channel: i32,
+    /// The instrument clock.
+    pub clock: ClockSource,
+    /// Largest pixels per line of one scan (rounded down to a multiple of 16).
+    pub max_pixels_per_line: u32,
+    /// Largest number of lines of one scan.
+    pub max_lines: u32,
+    /// Shortest pixel dwell, s.
+    pub min_pixel_dwell_s: f64,
+    /// The coarse Z motor, when software may drive it (its presence is still queried).
+    pub coarse_z: Option<CoarseZConfig>,
+}
+
+impl NanonisConfig {
+    /// The connection part.
+    pub fn client_config(&self) -> ClientConfig {
+        ClientConfig {
+            host: self.host.clone(),
+            port: self.port,
+            connect_timeout_s: self.connect_timeout_s,
+            command_timeout_s: self.command_timeout_s,
+            wait_margin_s: self.wait_margin_s,
+            reconnect_attempts: self.reconnect_attempts,
+            reconnect_backoff_s: self.reconnect_backoff_s,
+        }
+    }
+
+    /// Checks every field; the message names it.
+    pub fn validate(&self) -> Result<(), NanonisError> {
+        let invalid = |field: &str, reason: String| {
+            Err(NanonisError::new(
+                NanonisErrorKind::Configuration,
+                format!("backend.{field}: {reason}"),
+            ))
+        };
+        self.client_config().validate()?;
+        for (field, bits) in [
+            ("lateral_dac_bits", self.lateral_dac_bits),
+            ("z_dac_bits", self.z_dac_bits),
+        ] {
+            if !(8..=32).contains(&bits) {
+                return invalid(field, format!("{bits} is outside [8, 32]"));
+            }
+        }
+        if !(0..=127).contains(&self.z_channel) {
+            return invalid(
+                "z_channel",
+                format!("{} is outside [0, 127]", self.z_channel),
+            );
+        }
+        if let ClockSource::ControllerSignals {
+            whole_s_signal,
+            fraction_s_signal,
+        } = self.clock
+        {
+            for s in [whole_s_signal, fraction_s_signal] {
+                if !(0..=127).contains(&s) {
+                    return invalid("clock", format!("signal {s} is outside [0, 127]"));
+                }
+            }
+        }
+        if self.max_pixels_per_line < PIXEL_PACKET || self.max_lines == 0 {
+            return invalid(
+                "max_pixels_per_line",
+                "needs at least 16 pixels and 1 line".into(),
+            );
+        }
+        if !(self.min_pixel_dwell_s.is_finite() && self.min_pixel_dwell_s > 0.0) {
+            return invalid("min_pixel_dwell_s", "must be a finite time > 0".into());
+        }
+        if let Some(c) = &self.coarse_z {
+            if c.min_steps > 0 || c.max_steps < 0 {
+                return invalid("coarse_z", "[min_steps, max_steps] must contain 0".into());
+            }
+            if c.approach != "z+" && c.approach != "z-" {
+                return invalid(
+                    "coarse_z.approach",
+                    format!("{:?} is not \"z+\" or \"z-\"", c.approach),
+                );
+            }
+            if c.group > 5 {
+                return invalid("coarse_z.group", format!("{} is outside [0, 5]", c.group));
+            }
+            if !(c.step_time_s.is_finite() && c.step_time_s > 0.0) {
+                return invalid("coarse_z.step_time_s", "must be a finite time > 0".into());
+            }
+        }
+        Ok(())
+    }
+
+    /// The capabilities this configuration gives (the coarse stage as configured; the
+    /// backend drops it when the controller has no motor module).
+    pub fn capabilities(&self) -> Capabilities {
+        let half = 2f64.powi(self.lateral_dac_bits as i32 - 1);
+        let z_half = 2f64.powi(self.z_dac_bits as i32 - 1);
+        Capabilities {
+            field_min: CountPoint::from_counts(-half, -half),
+            field_max: CountPoint::from_counts(half - 1.0, half - 1.0),
+            z_min: Counts(-z_half),
+            z_max: Counts(z_half - 1.0),
+            lateral_resolution: Counts(1.0),
+            max_pixels_per_line: self.max_pixels_per_line / PIXEL_PACKET * PIXEL_PACKET,
+            max_lines: self.max_lines,
+            min_pixel_dwell: Seconds(self.min_pixel_dwell_s),
+            counter_scan: true,
+            backward_trace: true,
+            coarse_z: self.coarse_z.as_ref().map(|c| CoarseZCapability {
+                min_steps: c.min_steps,
+                max_steps: c.max_steps,
+            }),
+        }
+    }
+}
+
+/// Metres per count from a low-voltage calibration (m/V) and a DAC width.
+pub fn metres_per_count(calibration_m_per_v: f64, bits: u32) -> f64 {
+    calibration_m_per_v * LOW_VOLTAGE_SPAN_V / 2f64.powi(bits as i32)
+}
+
+/// The controller's state as found and as set when the backend was opened: recorded with
+/// the run, because a calibration on coordinates the controller already corrects is a
+/// calibration of the correction.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ControllerState {
+    /// Product line.
+    pub product_line: String,
+    /// Software version.
+    pub version: String,
+    /// Host-application release.
+    pub host_release: u32,
+    /// RT-engine release.
+    pub rt_release: u32,
+    /// `Piezo.CalibrGet`, m/V (X, Y, Z).
+    pub calibration_m_per_v: [f64; 3],
+    /// `Piezo.RangeGet`, m (X, Y, Z).
+    pub range_m: [f64; 3],
+    /// Metres per count (X, Y, Z) by the counts convention.
+    pub metres_per_count: [f64; 3],
+    /// Drift compensation found: on (1) / off (0) and its speeds, m/s.
+    pub drift_compensation_found: (u32, [f64; 3]),
+    /// Tilt correction found, degrees (X, Y).
+    pub tilt_found_deg: [f64; 2],
+    /// Hysteresis compensation found: 1 = on.
+    pub hysteresis_compensation_found: u32,
+    /// After setting: drift compensation status (0 = off).
+    pub drift_compensation_now: u32,
+    /// After setting: tilt, degrees.
+    pub tilt_now_deg: [f64; 2],
+    /// After setting: hysteresis compensation (0 = off).
+    pub hysteresis_compensation_now: u32,
+    /// Continuous and bouncy scanning were switched off, autosave and autopaste off.
+    pub scan_props_set: bool,
+    /// The Z controller was on.
+    pub z_feedback_on: bool,
+    /// A coarse Z motor answered the query.
+    pub coarse_motor_present: bool,
+}
+
+/// Scan settings last sent, to skip unchanged ones (cleared on reconnection).
+#[derive(Clone, Debug, Default, PartialEq)]
+struct SentSettings {
+    buffer: Option<(i32, i32)>,
+    frame: Option<[u32; 5]>,
+    speed: Option<ScanSpeed>,
+    line_times_s: Option<(f64, f64)>,
+    folme_speed: Option<u32>,
+    reconnects: u64,
+}
+
+/// The Nanonis backend.
+#[derive(Debug)]
+pub struct NanonisMicroscope {
+    client: Client,
+    config: NanonisConfig,
+    capabilities: Capabilities,
+    /// Metres per count, X and Y.
+    lateral_m_per_count: [f64; 2],
+    /// Metres per Z count.
+    z_m_per_count: f64,
+    state: ControllerState,
+    epoch: Instant,
+    coarse_steps: i64,
+    sent: SentSettings,
+    /// What the whole-millisecond controller waits owe the requested ones, s.
+    wait_carry_s: f64,
+}
+
+fn f32_of(x: f64) -> f32 {
+    x as f32
+}
+
+impl NanonisMicroscope {
+    /// Connects, reads the calibration, puts the controller into a known state (drift,
+    /// tilt and hysteresis compensation off; continuous and bouncy scanning, autosave and
+    /// autopaste off), checks the Z feedback and queries the coarse motor.
+    pub fn connect(config: NanonisConfig) -> Result<Self, NanonisError> {
+        config.validate()?;
+        let mut client = Client::connect(config.client_config())?;
+        let version = client.version().cloned().unwrap_or(Version {
+            product_line: String::new(),
+            version: String::new(),
+            host_release: 0,
+            rt_release: 0,
+        });
+        let calibration = match client.call(&Request::PiezoCalibrGet)? {
+            Reply::F32x3(v) => v.map(f64::from),
+            other => return Err(unexpected("Piezo.CalibrGet", &other)),
+        };
+        if !calibration.iter().all(|c| c.is_finite() && *c > 0.0) {
+            return Err(NanonisError::new(
+                NanonisErrorKind::Configuration,
+                format!("the piezo calibration {calibration:?} m/V is not positive and finite"),
+            )
+            .in_command("Piezo.CalibrGet"));
+        }
+        let range = match client.call(&Request::PiezoRangeGet)? {
+            Reply::F32x3(v) => v.map(f64::from),
+            other => return Err(unexpected("Piezo.RangeGet", &other)),
+        };
+        for (axis, (c, r)) in calibration.iter().zip(range).enumerate() {
+            let expected = c * LOW_VOLTAGE_SPAN_V;
+            if (r - expected).abs() > 0.01 * expected {
+                tracing::warn!(
+                    axis,
+                    range_m = r,
+                    calibration_times_20v_m = expected,
+                    "nanonis: piezo range differs from calibration × 20 V (HV gain?)"
+                );
+            }
+        }
+        // Compensation to a known state.
+        let found_drift = match client.call(&Request::PiezoDriftCompGet)? {
+            Reply::DriftComp(d) => d,
+            other => return Err(unexpected("Piezo.DriftCompGet", &other)),
+        };
+        let found_tilt = f32x2(&mut client, &Request::PiezoTiltGet)?;
+        let found_hyst = u32_reply(&mut client, &Request::PiezoHystOnOffGet)?;
+        client.call(&Request::PiezoDriftCompSet {
+            on_off: 2,
+            v_m_per_s: [0.0; 3],
+            saturation_limit_percent: found_drift.saturation_limit_percent,
+        })?;
+        client.call(&Request::PiezoTiltSet {
+            x_deg: 0.0,
+            y_deg: 0.0,
+        })?;
+        client.call(&Request::PiezoHystOnOffSet(0))?;
+        let now_drift: DriftComp = match client.call(&Request::PiezoDriftCompGet)? {
+            Reply::DriftComp(d) => d,
+            other => return Err(unexpected("Piezo.DriftCompGet", &other)),
+        };
+        let now_tilt = f32x2(&mut client, &Request::PiezoTiltGet)?;
+        let now_hyst = u32_reply(&mut client, &Request::PiezoHystOnOffGet)?;
+        if now_drift.status != 0 || now_tilt != [0.0, 0.0] || now_hyst != 0 {
+            return Err(NanonisError::new(
+                NanonisErrorKind::Configuration,
+                format!(
+                    "the controller's own compensation did not switch off (drift {}, tilt \
+                     {now_tilt:?}°, hysteresis {now_hyst}): a calibration on corrected \
+                     coordinates would calibrate the correction",
+                    now_drift.status
+                ),
+            ));
+        }
+        let autopaste = client.schema().props_set_autopaste.then_some(3);
+        client.call(&Request::ScanPropsSet(ScanProps {
+            continuous: 2,
+            bouncy: 2,
+            autosave: 3,
+            series_name: String::new(),
+            comment: String::new(),
+            modules: Vec::new(),
+            autopaste,
+        }))?;
+        let z_on = u32_reply(&mut client, &Request::ZCtrlOnOffGet)? == 1;
+        if !z_on {
+            return Err(NanonisError::new(
+                NanonisErrorKind::FeedbackOff,
+                "the Z controller is off: approach the tip and switch the feedback on first",
+            )
+            .in_command("ZCtrl.OnOffGet"));
+        }
+        let coarse_motor_present = match &config.coarse_z {
+            Some(_) => match client.call(&Request::MotorFreqAmpGet(3)) {
+                Ok(_) => true,
+                Err(e) if e.kind == NanonisErrorKind::Controller => {
+                    tracing::info!(error = %e, "nanonis: no coarse motor answers; coarse Z off");
+                    false
+                }
+                Err(e) => return Err(e),
+            },
+            None => false,
+        };
+        let mut capabilities = config.capabilities();
+        if !coarse_motor_present {
+            capabilities.coarse_z = None;
+        }
+        let lateral = [
+            metres_per_count(calibration[0], config.lateral_dac_bits),
+            metres_per_count(calibration[1], config.lateral_dac_bits),
+        ];
+        let z = metres_per_count(calibration[2], config.z_dac_bits);
+        let state = ControllerState {
+            product_line: version.product_line.clone(),
+            version: version.version.clone(),
+            host_release: version.host_release,
+            rt_release: version.rt_release,
+            calibration_m_per_v: calibration,
+            range_m: range,
+            metres_per_count: [lateral[0], lateral[1], z],
+            drift_compensation_found: (found_drift.status, found_drift.v_m_per_s.map(f64::from)),
+            tilt_found_deg: found_tilt.map(f64::from),
+            hysteresis_compensation_found: found_hyst,
+            drift_compensation_now: now_drift.status,
+            tilt_now_deg: now_tilt.map(f64::from),
+            hysteresis_compensation_now: now_hyst,
+            scan_props_set: true,
+            z_feedback_on: z_on,
+            coarse_motor_present,
+        };
+        tracing::info!(?state, "nanonis: controller state recorded");
+        let reconnects = client.reconnects();
+        Ok(Self {
+            client,
+            capabilities,
+            lateral_m_per_count: lateral,
+            z_m_per_count: z,
+            state,
+            epoch: Instant::now(),
+            coarse_steps: 0,
+            wait_carry_s: 0.0,
+            sent: SentSettings {
+                reconnects,
+                ..SentSettings::default()
+            },
+            config,
+        })
+    }
+
+    /// The controller's state found and set when the backend was opened.
+    pub fn controller_state(&self) -> &ControllerState {
+        &self.state
+    }
+
+    /// The client (statistics: commands sent, reconnects).
+    pub fn client(&self) -> &Client {
+        &self.client
+    }
+
+    /// Stops a running scan, a Follow-Me move and the coarse motor, on the second
+    /// connection (so it works while the main one is blocked).
+    pub fn abort(&mut self) -> Result<(), NanonisError> {
+        self.client.stop(&Request::ScanAction {
+            action: scan_action::STOP,
+            direction_up: 1,
+        })?;
+        self.client.stop(&Request::FolMeStop)?;
+        if self.state.coarse_motor_present {
+            self.client.stop(&Request::MotorStopMove)?;
+        }
+        Ok(())
+    }
+
+    fn to_metres(&self, p: CountPoint) -> (f64, f64) {
+        (
+            p.x.value() * self.lateral_m_per_count[0],
+            p.y.value() * self.lateral_m_per_count[1],
+        )
+    }
+
+    fn invalidate_on_reconnect(&mut self) {
+        if self.client.reconnects() != self.sent.reconnects {
+            self.sent = SentSettings {
+                reconnects: self.client.reconnects(),
+                ..SentSettings::default()
+            };
+        }
+    }
+
+    /// A wait on the controller (controller clock) or on the host.
+    fn pause(&mut self, duration_s: f64) -> Result<(), NanonisError> {
+        match self.config.clock {
+            ClockSource::Host => {
+                if duration_s > 0.0 {
+                    std::thread::sleep(std::time::Duration::from_secs_f64(duration_s));
+                }
+                Ok(())
+            }
+            ClockSource::ControllerSignals { .. } => {
+                // Whole milliseconds (the command's `int`), the remainder carried to the
+                // next wait: the controller's clock never runs more than ½ ms from the sum
+                // of the requested waits.
+                let owed = duration_s + self.wait_carry_s;
+                let ms = (owed * 1e3).round().max(0.0);
+                self.wait_carry_s = owed - ms * 1e-3;
+                if ms > f64::from(i32::MAX) {
+                    return Err(NanonisError::new(
+                        NanonisErrorKind::InvalidRequest,
+                        format!("a wait of {duration_s} s is longer than the protocol's timeout"),
+                    ));
+                }
+                let request = Request::ScanWaitEndOfScan {
+                    timeout_ms: ms as i32,
+                };
+                self.client.call_waiting(&request, duration_s)?;
+                Ok(())
+            }
+        }
+    }
+
+    fn check_inside(&self, p: CountPoint, what: &str) -> Result<(), NanonisError> {
+        let c = &self.capabilities;
+        if !p.is_finite() {
+            return Err(NanonisError::new(
+                NanonisErrorKind::InvalidRequest,
+                format!("{what} is not finite"),
+            ));
+        }
+        if p.x < c.field_min.x || p.y < c.field_min.y || p.x > c.field_max.x || p.y > c.field_max.y
+        {
+            return Err(NanonisError::new(
+                NanonisErrorKind::OutOfRange,
+                format!(
+                    "{what} ({}, {}) counts is outside the field",
+                    p.x.value(),
+                    p.y.value()
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Makes sure no scan is running: a scan left running (by a user, an earlier client or
+    /// a lost connection) is stopped on the second connection.
+    fn stop_running_scan(&mut self) -> Result<(), NanonisError> {
+        for _ in 0..5 {
+            if u32_reply(&mut self.client, &Request::ScanStatusGet)? == 0 {
+                return Ok(());
+            }
+            tracing::warn!("nanonis: a scan is already running; stopping it");
+            self.client.stop(&Request::ScanAction {
+                action: scan_action::STOP,
+                direction_up: 1,
+            })?;
+        }
+        Err(NanonisError::new(
+            NanonisErrorKind::Controller,
+            "a scan keeps running after 5 stop requests",
+        )
+        .in_command("Scan.StatusGet"))
+    }
+
+    // long-function: one scan's command sequence in protocol order, each step a documented
+    // pitfall (padding, read-backs, running scan, timeouts, frame order); split, it scatters.
+    fn scan_impl(&mut self, request: &ScanRequest) -> Result<Frame, NanonisError> {
+        request
+            .validate()
+            .map_err(|e| NanonisError::new(NanonisErrorKind::InvalidRequest, e.to_string()))?;
+        let caps = &self.capabilities;
+        let n = request.pixels_per_line;
+        let lines = request.lines;
+        // Pitfall: pixels per line are coerced to a multiple of 16. Scan the next multiple
+        // with the same pixel step (the extra pixels continue the forward trace past the
+        // requested ones) and crop.
+        let n16 = n.div_ceil(PIXEL_PACKET) * PIXEL_PACKET;
+        if n16 > caps.max_pixels_per_line || lines > caps.max_lines {
+            return Err(NanonisError::new(
+                NanonisErrorKind::OutOfRange,
+                format!(
+                    "{n} (scanned as {n16}) × {lines} pixels exceed the maximum {} × {}",
+                    caps.max_pixels_per_line, caps.max_lines
+                ),
+            ));
+        }
+        if request.pixel_dwell < caps.min_pixel_dwell {
+            return Err(NanonisError::new(
+                NanonisErrorKind::OutOfRange,
+                format!(
+                    "pixel dwell {} is below the minimum {}",
+                    request.pixel_dwell, caps.min_pixel_dwell
+                ),
+            ));
+        }
+        let step = request.pixel_step.value();
+        let (far_x, _) = request.far_corner();
+        let pad = f64::from(n16 - n) * step;
+        // The padded raster in counts: x range of pixel centres.
+        let (x_lo, x_hi) = match request.direction {
+            ScanDirection::Direct => (request.origin.x.value(), far_x.value() + pad),
+            ScanDirection::Counter => (request.origin.x.value() - pad, far_x.value()),
+        };
+        let (_, far_y) = request.far_corner();
+        for (x, y) in [(x_lo, request.origin.y.value()), (x_hi, far_y.value())] {
+            self.check_inside(
+                CountPoint::from_counts(x, y),
+                "the scan raster (padded to a multiple of 16 pixels)",
+            )?;
+        }
+        // Frame: pixels are cell-centred, pixel i of a line at left + (i + ½)·width/pixels.
+        let centre_counts = CountPoint::from_counts(
+            0.5 * (x_lo + x_hi),
+            0.5 * (request.origin.y.value() + far_y.value()),
+        );
+        let (cx, cy) = self.to_metres(centre_counts);
+        let width_m = f64::from(n16) * step * self.lateral_m_per_count[0];
+        let height_m = f64::from(lines) * step * self.lateral_m_per_count[1];
+        // Counter scans: the frame turned by 180°, so its +x runs along −x and its "up"
+        // along −y.
+        let angle_deg = match request.direction {
+            ScanDirection::Direct => 0.0,
+            ScanDirection::Counter => 180.0,
+        };
+        self.invalidate_on_reconnect();
+        self.stop_running_scan()?;
+        if self.sent.buffer != Some((n16 as i32, lines as i32)) {
+            self.client.call(&Request::ScanBufferSet(ScanBuffer {
+                channels: vec![self.config.z_channel],
+                pixels: n16 as i32,
+                lines: lines as i32,
+            }))?;
+            // Pitfall: read back what the controller made of it.
+            match self.client.call(&Request::ScanBufferGet)? {
+                Reply::Buffer(b) if b.pixels == n16 as i32 && b.lines == lines as i32 => {}
+                Reply::Buffer(b) => {
+                    self.sent.buffer = None;
+                    return Err(NanonisError::new(
+                        NanonisErrorKind::Controller,
+                        format!(
+                            "the controller set {} × {} pixels for the requested {n16} × {lines}",
+                            b.pixels, b.lines
+                        ),
+                    )
+                    .in_command("Scan.BufferGet"));
+                }
+                other => return Err(unexpected("Scan.BufferGet", &other)),
+            }
+            self.sent.buffer = Some((n16 as i32, lines as i32));
+        }
+        let frame = ScanFrame {
+            centre_x_m: f32_of(cx),
+            centre_y_m: f32_of(cy),
+            width_m: f32_of(width_m),
+            height_m: f32_of(height_m),
+            angle_deg,
+        };
+        let frame_bits = [
+            frame.centre_x_m.to_bits(),
+            frame.centre_y_m.to_bits(),
+            frame.width_m.to_bits(),
+            frame.height_m.to_bits(),
+            frame.angle_deg.to_bits(),
+        ];
+        if self.sent.frame != Some(frame_bits) {
+            self.client.call(&Request::ScanFrameSet(frame))?;
+            self.sent.frame = Some(frame_bits);
+        }
+        let line_s = f64::from(n16) * request.pixel_dwell.value();
+        let speed = ScanSpeed {
+            forward_speed_m_per_s: f32_of(width_m / line_s),
+            backward_speed_m_per_s: f32_of(width_m / line_s),
+            forward_line_s: f32_of(line_s),
+            backward_line_s: f32_of(line_s),
+            keep: 2,
+            speed_ratio: 1.0,
+        };
+        if self.sent.speed != Some(speed) {
+            self.client.call(&Request::ScanSpeedSet(speed))?;
+            // Pitfall: the controller may coerce the speed; time the pixels by what it uses.
+            let (tf, tb) = match self.client.call(&Request::ScanSpeedGet)? {
+                Reply::Speed(s) => (f64::from(s.forward_line_s), f64::from(s.backward_line_s)),
+                other => return Err(unexpected("Scan.SpeedGet", &other)),
+            };
+            if !(tf.is_finite() && tb.is_finite() && tf > 0.0 && tb > 0.0) {
+                return Err(NanonisError::new(
+                    NanonisErrorKind::Controller,
+                    format!("line times {tf} s / {tb} s are not positive"),
+                )
+                .in_command("Scan.SpeedGet"));
+            }
+            self.sent.speed = Some(speed);
+            self.sent.line_times_s = Some((tf, tb));
+        }
+        let (tf, tb) = self.sent.line_times_s.unwrap_or((line_s, line_s));
+        self.client.call(&Request::ScanAction {
+            action: scan_action::START,
+            direction_up: 1,
+        })?;
+        let expected_s = f64::from(lines) * (tf + tb);
+        let timeout_ms = ((expected_s + self.config.wait_margin_s) * 1e3)
+            .ceil()
+            .min(f64::from(i32::MAX)) as i32;
+        let waited = self
+            .client
+            .call_waiting(&Request::ScanWaitEndOfScan { timeout_ms }, expected_s);
+        let timed_out = match waited {
+            Ok(Reply::WaitEndOfScan { timed_out, .. }) => timed_out == 1,
+            Ok(other) => return Err(unexpected("Scan.WaitEndOfScan", &other)),
+            Err(e) => {
+                if let Err(stop) = self.abort() {
+                    tracing::warn!(error = %stop, "nanonis: could not stop the scan");
+                }
+                return Err(e);
+            }
+        };
+        if timed_out {
+            if let Err(stop) = self.abort() {
+                tracing::warn!(error = %stop, "nanonis: could not stop the scan");
+            }
+            return Err(NanonisError::new(
+                NanonisErrorKind::Timeout,
+                format!("no end of scan within {timeout_ms} ms"),
+            )
+            .in_command("Scan.WaitEndOfScan"));
+        }
+        // Backward first when wanted (a controller that records lazily learns it is needed).
+        let want_backward = request.record_backward && self.capabilities.backward_trace;
+        let backward = if want_backward {
+            Some(self.grab(0, n16, lines)?)
+        } else {
+            None
+        };
+        let forward = self.grab(1, n16, lines)?;
+        let end = self.now_s()?;
+        let start = end - f64::from(lines) * (tf + tb);
+        let n = n as usize;
+        let n16u = n16 as usize;
+        let ny = lines as usize;
+        let mut fwd = TraceImage {
+            z_counts: Vec::with_capacity(n * ny),
+            time_s: Vec::with_capacity(n * ny),
+        };
+        let mut bwd = want_backward.then(|| TraceImage {
+            z_counts: Vec::with_capacity(n * ny),
+            time_s: Vec::with_capacity(n * ny),
+        });
+        for line in 0..ny {
+            // Rows come top line first: for an upward scan the last line acquired.
+            let row = ny - 1 - line;
+            let line_start = start + line as f64 * (tf + tb);
+            for pixel in 0..n {
+                let value = forward.data[row * n16u + pixel];
+                fwd.z_counts.push(self.z_counts(value)?);
+                fwd.time_s
+                    .push(line_start + (pixel as f64 + 0.5) * tf / n16u as f64);
+            }
+            if let (Some(image), Some(data)) = (bwd.as_mut(), backward.as_ref()) {
+                for pixel in 0..n {
+                    let column = n - 1 - pixel;
+                    let value = data.data[row * n16u + column];
+                    image.z_counts.push(self.z_counts(value)?);
+                    let index = n16u - 1 - column;
+                    image
+                        .time_s
+                        .push(line_start + tf + (index as f64 + 0.5) * tb / n16u as f64);
+                }
+            }
+        }
+        Ok(Frame {
+            request: request.clone(),
+            forward: fwd,
+            backward: bwd,
+        })
+    }
+
+    fn z_counts(&self, value_m: f32) -> Result<f64, NanonisError> {
+        if !value_m.is_finite() {
+            // Pitfall: pixels not acquired yet are NaN in the buffer.
+            return Err(NanonisError::new(
+                NanonisErrorKind::IncompleteData,
+                "the frame has pixels that were not acquired (NaN)",
+            )
+            .in_command("Scan.FrameDataGrab"));
+        }
+        Ok(f64::from(value_m) / self.z_m_per_count)
+    }
+
+    fn grab(&mut self, forward: u32, columns: u32, rows: u32) -> Result<FrameData, NanonisError> {
+        let request = Request::ScanFrameDataGrab {
+            channel: self.config.z_channel as u32,
+            forward,
+        };
+        match self.client.call(&request)? {
+            Reply::FrameData(d) if d.rows == rows as usize && d.columns == columns as usize => {
+                Ok(d)
+            }
+            Reply::FrameData(d) => Err(NanonisError::new(
+                NanonisErrorKind::IncompleteData,
+                format!(
+                    "{} × {} data for a {columns} × {rows} scan",
+                    d.columns, d.rows
+                ),
+            )
+            .in_command("Scan.FrameDataGrab")),
+            other => Err(unexpected("Scan.FrameDataGrab", &other)),
+        }
+    }
+
+    fn now_s(&mut self) -> Result<f64, NanonisError> {
+        match self.config.clock {
+            ClockSource::Host => Ok(self.epoch.elapsed().as_secs_f64()),
+            ClockSource::ControllerSignals {
+                whole_s_signal,
+                fraction_s_signal,
+            } => {
+                let request = Request::SignalsValsGet {
+                    indexes: vec![whole_s_signal, fraction_s_signal],
+                    wait_newest: 0,
+                };
+                match self.client.call(&request)? {
+                    Reply::Values(v) if v.len() == 2 => Ok(f64::from(v[0]) + f64::from(v[1])),
+                    other => Err(unexpected("Signals.ValsGet", &other)),
+                }
+            }
+        }
+    }
+}
+
+fn unexpected(command: &str, reply: &Reply) -> NanonisError {
+    NanonisError::new(
+        NanonisErrorKind::Protocol,
+        format!("unexpected reply {reply:?}"),
+    )
+    .in_command(command)
+}
+
+fn f32x2(client: &mut Client, request: &Request) -> Result<[f32; 2], NanonisError> {
+    match client.call(request)? {
+        Reply::F32x2(v) => Ok(v),
+        other => Err(unexpected(request.name(), &other)),
+    }
+}
+
+fn u32_reply(client: &mut Client, request: &Request) -> Result<u32, NanonisError> {
+    match client.call(request)? {
+        Reply::U32(v) => Ok(v),
+        other => Err(unexpected(request.name(), &other)),
+    }
+}
+
+impl Microscope for NanonisMicroscope {
+    type Error = NanonisError;
+
+    fn capabilities(&self) -> Capabilities {
+        self.capabilities.clone()
+    }
+
+    fn now(&mut self) -> Result<Seconds, NanonisError> {
+        self.now_s().map(Seconds)
+    }
+
+    fn wait(&mut self, duration: Seconds) -> Result<(), NanonisError> {
+        let d = duration.value();
+        if !(d.is_finite() && d >= 0.0) {
+            return Err(NanonisError::new(
+                NanonisErrorKind::InvalidRequest,
+                format!("wait duration {duration} must be finite and ≥ 0"),
+            ));
+        }
+        self.pause(d)
+    }
+
+    fn position(&mut self) -> Result<CountPoint, NanonisError> {
+        match self
+            .client
+            .call(&Request::FolMeXYPosGet { wait_newest: 0 })?
+        {
+            Reply::XY { x_m, y_m } => Ok(CountPoint::from_counts(
+                x_m / self.lateral_m_per_count[0],
+                y_m / self.lateral_m_per_count[1],
+            )),
+            other => Err(unexpected("FolMe.XYPosGet", &other)),
+        }
+    }
+
+    fn move_to(&mut self, request: MoveRequest) -> Result<(), NanonisError> {
+        self.check_inside(request.target, "move target")?;
+        let speed = request.speed.value();
+        if !(speed.is_finite() && speed > 0.0) {
+            return Err(NanonisError::new(
+                NanonisErrorKind::InvalidRequest,
+                format!("move speed {speed} counts/s must be finite and > 0"),
+            ));
+        }
+        let settle = request.settle.value();
+        if !(settle.is_finite() && settle >= 0.0) {
+            return Err(NanonisError::new(
+                NanonisErrorKind::InvalidRequest,
+                format!("settle time {} must be finite and ≥ 0", request.settle),
+            ));
+        }
+        self.invalidate_on_reconnect();
+        // Speed in m/s along the path: counts/s × the geometric mean of the X and Y
+        // metres per count (exact when they are equal, as in the counts convention of a
+        // square field).
+        let m_per_count = (self.lateral_m_per_count[0] * self.lateral_m_per_count[1]).sqrt();
+        let speed_m = f32_of(speed * m_per_count);
+        if self.sent.folme_speed != Some(speed_m.to_bits()) {
+            self.client.call(&Request::FolMeSpeedSet {
+                speed_m_per_s: speed_m,
+                custom: 1,
+            })?;
+            self.sent.folme_speed = Some(speed_m.to_bits());
+        }
+        let (x_m, y_m) = self.to_metres(request.target);
+        let here = self.position()?;
+        let expected_s = here.distance(request.target).value() / speed;
+        self.client.call_waiting(
+            &Request::FolMeXYPosSet {
+                x_m,
+                y_m,
+                wait_end_of_move: 1,
+            },
+            expected_s,
+        )?;
+        // The settle always goes to the controller (even 0 s) so that a controller-side
+        // clock sees move and settle as one operation.
+        self.pause(settle)
+    }
+
+    fn scan(&mut self, request: &ScanRequest) -> Result<Frame, NanonisError> {
+        let result = self.scan_impl(request);
+        if let Err(e) = &result {
+            tracing::debug!(error = %e, "nanonis: scan failed");
+        }
+        result
+    }
+
+    fn z_position(&mut self) -> Result<Counts, NanonisError> {
+        match self.client.call(&Request::ZCtrlZPosGet)? {
+            Reply::F32(z) if z.is_finite() => Ok(Counts(f64::from(z) / self.z_m_per_count)),
+            other => Err(unexpected("ZCtrl.ZPosGet", &other)),
+        }
+    }
+
+    fn coarse_z(&mut self) -> Option<&mut dyn CoarseZStage<Error = NanonisError>> {
+        if self.capabilities.coarse_z.is_some() {
+            Some(self)
+        } else {
+            None
+        }
+    }
+}
+
+impl CoarseZStage for NanonisMicroscope {
+    type Error = NanonisError;
+
+    fn step(&mut self, steps: i64) -> Result<(), NanonisError> {
+        let Some(c) = self.config.coarse_z.clone() else {
+            return Err(NanonisError::new(
+                NanonisErrorKind::OutOfRange,
+                "no coarse Z motor is configured",
+            ));
+        };
+        let target = self.coarse_steps.saturating_add(steps);
+        if target < c.min_steps || target > c.max_steps {
+            return Err(NanonisError::new(
+                NanonisErrorKind::OutOfRange,
+                format!(
+                    "coarse position {target} steps is outside [{}, {}]",
+                    c.min_steps, c.max_steps
+                ),
+            ));
+        }
+        let approach = if c.approach == "z+" {
+            motor_direction::Z_PLUS
+        } else {
+            motor_direction::Z_MINUS
+        };
+        let retract = if approach == motor_direction::Z_PLUS {
+            motor_direction::Z_MINUS
+        } else {
+            motor_direction::Z_PLUS
+        };
+        let direction = if steps >= 0 { approach } else { retract };
+        let mut left = steps.unsigned_abs();
+        while left > 0 {
+            let chunk = left.min(u64::from(u16::MAX)) as u16;
+            self.client.call_waiting(
+                &Request::MotorStartMove {
+                    direction,
+                    steps: chunk,
+                    group: c.group,
+                    wait: 1,
+                },
+                f64::from(chunk) * c.step_time_s,
+            )?;
+            left -= u64::from(chunk);
+            let signed = if steps >= 0 {
+                i64::from(chunk)
+            } else {
+                -i64::from(chunk)
+            };
+            self.coarse_steps += signed;
+        }
+        Ok(())
+    }
+
+    fn position_steps(&mut self) -> Result<i64, NanonisError> {
+        Ok(self.coarse_steps)
+    }
+}

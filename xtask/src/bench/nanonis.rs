@@ -1,0 +1,156 @@
+//! Nanonis TCP overhead (issue 14): the same calibration job (sim-hopg, the small HOPG plan)
+//! run in process and over loopback TCP against `nanonis-sim` (spm-nanonis ↔
+//! spm-nanonis-sim), wall time per node of each and their ratio (target ≤ 1.5×). Each side
+//! is run `repeats` times and its fastest run kept (the machine is shared).
+
+use super::Context;
+use crate::XtaskError;
+use serde::Serialize;
+use spm_calibration::NoObserver;
+use spm_nanonis::{ClockSource, NanonisConfig};
+use spm_nanonis_sim::{Server, ServerConfig, SocketFaults};
+use spm_sim::SimConfig;
+use spmcal::job::{Backend, Job};
+use spmcal::run::{RecordingObserver, RunStart, run_job};
+use std::path::Path;
+use std::time::Instant;
+
+/// The figures.
+#[derive(Debug, Serialize)]
+pub struct NanonisResults {
+    /// Nodes of the net (visits of the one pass).
+    pub nodes: usize,
+    /// Runs per side (the fastest is kept).
+    pub repeats: usize,
+    /// In process: wall time per node, ms.
+    pub in_process_ms_per_node: f64,
+    /// Over loopback TCP: wall time per node, ms.
+    pub tcp_ms_per_node: f64,
+    /// TCP ÷ in process.
+    pub ratio: f64,
+    /// Protocol commands per node over TCP.
+    pub commands_per_node: f64,
+    /// Simulated instrument time per node, s (the same on both sides).
+    pub instrument_s_per_node: f64,
+}
+
+fn nanonis_config(port: u16) -> NanonisConfig {
+    NanonisConfig {
+        host: "127.0.0.1".into(),
+        port,
+        connect_timeout_s: 2.0,
+        command_timeout_s: 10.0,
+        wait_margin_s: 10.0,
+        reconnect_attempts: 3,
+        reconnect_backoff_s: 0.05,
+        lateral_dac_bits: 16,
+        z_dac_bits: 16,
+        z_channel: 30,
+        clock: ClockSource::ControllerSignals {
+            whole_s_signal: 126,
+            fraction_s_signal: 127,
+        },
+        max_pixels_per_line: 4096,
+        max_lines: 4096,
+        min_pixel_dwell_s: 1e-6,
+        coarse_z: None,
+    }
+}
+
+/// One run: (wall time s, nodes, instrument time s).
+fn timed_run(job: &Job, dir: &Path, name: &str) -> Result<(f64, usize, f64), XtaskError> {
+    let cdb = dir.join(format!("{name}.sqlite"));
+    let mut quiet = NoObserver;
+    let mut recorder = RecordingObserver::new(&mut quiet);
+    let started = Instant::now();
+    let outcome = run_job(
+        job,
+        &cdb,
+        RunStart::New {
+            run_id: name.to_owned(),
+        },
+        1_800_000_000.0,
+        &mut recorder,
+    )
+    .map_err(|e| XtaskError::step(format!("nanonis bench run {name}"), e))?;
+    let wall_s = started.elapsed().as_secs_f64();
+    Ok((
+        wall_s,
+        outcome.report.visits_planned,
+        outcome.report.instrument_time_s,
+    ))
+}
+
+/// Runs the comparison.
+pub fn run(ctx: &Context) -> Result<NanonisResults, XtaskError> {
+    let dir = ctx.scratch("nanonis")?;
+    let sim_path = ctx.root.join("configs/sim-hopg.toml");
+    let sim = SimConfig::from_file(&sim_path)
+        .map_err(|e| XtaskError::step(format!("reading {}", sim_path.display()), e))?;
+    let (plan, plan_text) = Job::read_plan(&ctx.root.join("configs/plan-hopg-small.toml"))
+        .map_err(|e| XtaskError::step("reading plan-hopg-small.toml", e))?;
+    let repeats = if ctx.quick { 1 } else { 3 };
+    let local = Job {
+        backend: Backend::Sim(Box::new(sim.clone())),
+        plan: plan.clone(),
+        provenance_text: plan_text.clone(),
+    };
+    let mut best_local = f64::INFINITY;
+    let mut best_tcp = f64::INFINITY;
+    let (mut nodes, mut instrument_s, mut commands) = (0, 0.0, 0u64);
+    for k in 0..repeats {
+        let (wall, n, t) = timed_run(&local, &dir, &format!("local-{k}"))?;
+        best_local = best_local.min(wall);
+        (nodes, instrument_s) = (n, t);
+        let server = Server::bind(
+            "127.0.0.1:0",
+            sim.clone(),
+            ServerConfig::new(SocketFaults::none()),
+        )
+        .and_then(Server::spawn)
+        .map_err(|e| XtaskError::step("starting nanonis-sim", e))?;
+        let tcp = Job {
+            backend: Backend::Nanonis(Box::new(nanonis_config(server.addr().port()))),
+            plan: plan.clone(),
+            provenance_text: plan_text.clone(),
+        };
+        let (wall, _, _) = timed_run(&tcp, &dir, &format!("tcp-{k}"))?;
+        best_tcp = best_tcp.min(wall);
+        commands = server.stats().commands;
+        server.kill();
+    }
+    let per_node = |s: f64| 1e3 * s / nodes.max(1) as f64;
+    Ok(NanonisResults {
+        nodes,
+        repeats,
+        in_process_ms_per_node: per_node(best_local),
+        tcp_ms_per_node: per_node(best_tcp),
+        ratio: best_tcp / best_local,
+        commands_per_node: commands as f64 / nodes.max(1) as f64,
+        instrument_s_per_node: instrument_s / nodes.max(1) as f64,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    /// `cargo test -p xtask --release nanonis_overhead -- --ignored --nocapture`: the figure
+    /// alone, without the whole bench.
+    #[test]
+    #[ignore = "a timing measurement, not a test; run on demand"]
+    fn nanonis_overhead() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .parent()
+            .map(std::path::Path::to_path_buf)
+            .unwrap_or_default();
+        let ctx = super::Context {
+            out: root.join("target/bench-nanonis"),
+            root,
+            quick: false,
+            write_docs: false,
+        };
+        match super::run(&ctx) {
+            Ok(r) => println!("{r:#?}"),
+            Err(e) => panic!("{e}"),
+        }
+    }
+}

@@ -5,10 +5,11 @@
 //! # Schema and versions
 //! The SQLite schema with PostgreSQL types (`DOUBLE PRECISION`, `BIGINT`, `TEXT`); the record
 //! columns are built from [`spm_records::LCC_RECORD_COLUMNS`]. A `schema_version` table holds
-//! one row per applied version (the number, [`crate::APPLICATION_ID`] and what the step did):
-//! a new database is created at v1 and migrated step by step, one transaction per step, under
-//! a transaction-scoped advisory lock so that programs opening a new database at once do not
-//! race. A database of a *newer* schema is refused ([`ErrorKind::NewerSchema`]) after a look
+//! one row per applied version (the number, [`crate::APPLICATION_ID`] and what the step did).
+//! A new database is created at v1 and brought to the current version by the migrations in
+//! one transaction (readers see no schema or all of it); an older database is migrated one
+//! transaction per step. Both run under a transaction-scoped advisory lock, so programs
+//! opening one database at once do not race. A database of a *newer* schema is refused ([`ErrorKind::NewerSchema`]) after a look
 //! that writes nothing.
 //!
 //! # Transactions and concurrency
@@ -413,7 +414,9 @@ fn initialise_or_migrate(client: &mut Client, path: &Path, target: i64) -> Resul
         }
         let step = |e| CdbError::postgres(path, e);
         if version == 0 {
-            tracing::info!(path = %path.display(), version = 1, "creating CDB schema");
+            // A new database is made at v1 and brought to the target by the migrations, all
+            // in this one transaction: other programs see no schema or the whole of it.
+            tracing::info!(path = %path.display(), version = target, "creating CDB schema");
             tx.batch_execute(&SCHEMA_V1).map_err(step)?;
             tx.execute(
                 "INSERT INTO schema_version (version, application_id, description) \
@@ -421,27 +424,37 @@ fn initialise_or_migrate(client: &mut Client, path: &Path, target: i64) -> Resul
                 &[&APPLICATION_ID, &V1_DESCRIPTION],
             )
             .map_err(step)?;
+            for v in 1..target {
+                migrate_step(&mut tx, path, v)?;
+            }
         } else {
-            let Some((description, sql)) = usize::try_from(version - 1)
-                .ok()
-                .and_then(|k| MIGRATIONS.get(k))
-            else {
-                return Err(CdbError::NotACdb {
-                    path: path.to_path_buf(),
-                    reason: format!("no migration from schema version {version}"),
-                });
-            };
             tracing::info!(path = %path.display(), from = version, to = version + 1, "migrating CDB");
-            tx.batch_execute(sql).map_err(step)?;
-            tx.execute(
-                "INSERT INTO schema_version (version, application_id, description) \
-                 VALUES ($1, $2, $3)",
-                &[&(version + 1), &APPLICATION_ID, description],
-            )
-            .map_err(step)?;
+            migrate_step(&mut tx, path, version)?;
         }
         tx.commit().map_err(step)?;
     }
+}
+
+/// Applies the migration from `version` to `version + 1` inside `tx` and records it.
+fn migrate_step(tx: &mut postgres::Transaction<'_>, path: &Path, version: i64) -> Result<()> {
+    let step = |e| CdbError::postgres(path, e);
+    let Some((description, sql)) = usize::try_from(version - 1)
+        .ok()
+        .and_then(|k| MIGRATIONS.get(k))
+    else {
+        return Err(CdbError::NotACdb {
+            path: path.to_path_buf(),
+            reason: format!("no migration from schema version {version}"),
+        });
+    };
+    tx.batch_execute(sql).map_err(step)?;
+    tx.execute(
+        "INSERT INTO schema_version (version, application_id, description) \
+         VALUES ($1, $2, $3)",
+        &[&(version + 1), &APPLICATION_ID, description],
+    )
+    .map_err(step)?;
+    Ok(())
 }
 
 /// An open shared calibration database on PostgreSQL.

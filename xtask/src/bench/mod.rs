@@ -15,6 +15,7 @@ mod budget;
 mod crb;
 mod drift;
 mod gwyddion;
+mod postgres;
 mod productivity;
 mod report;
 mod speed;
@@ -108,6 +109,8 @@ pub struct Results {
     pub speed: Section<speed::SpeedResults>,
     /// Gwyddion side by side.
     pub gwyddion: Section<gwyddion::GwyddionResults>,
+    /// The CDB on SQLite and on a shared PostgreSQL database.
+    pub postgres: Section<postgres::PostgresResults>,
 }
 
 pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<(), XtaskError> {
@@ -134,6 +137,7 @@ pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<
     let productivity = timed("productivity", || productivity::run(&ctx));
     let crb = timed("crb", || crb::run(&ctx));
     let speed = timed("speed", || speed::run(&ctx, accuracy.measured()));
+    let postgres = timed("postgres", || postgres::run(&ctx));
     let gwyddion = timed("gwyddion", || {
         if with_gwyddion {
             gwyddion::run(&ctx)
@@ -168,6 +172,7 @@ pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<
         crb,
         speed,
         gwyddion,
+        postgres,
     };
     report::write(&ctx, &results)
 }

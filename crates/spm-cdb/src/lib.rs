@@ -25,7 +25,14 @@
 //!
 //! # Reading
 //! Queries are methods of the [`CdbRead`] trait, implemented by [`Cdb`] (each query its own
-//! snapshot) and by [`Snapshot`] (all queries in one read transaction).
+//! snapshot) and by [`Snapshot`] (all queries in one read transaction), and on PostgreSQL by
+//! `postgres::PgCdb` and `postgres::PgSnapshot`.
+//!
+//! # PostgreSQL (feature `postgres`)
+//! [`postgres`](crate::postgres) is the same CDB on a shared PostgreSQL server, for several
+//! instruments writing at once: same schema, versions and migrations, one transaction per
+//! node, [`ProgressStore`] implemented twice. [`pg_server`](crate::pg_server) starts a private
+//! server for tests and benchmarks.
 
 pub mod bench_support;
 mod columns;

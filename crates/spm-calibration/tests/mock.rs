@@ -123,5 +123,5 @@ fn a_plan_needing_a_coarse_stage_is_refused_without_one() {
         .unwrap()
         .run(&options())
         .unwrap_err();
-    assert!(matches!(error, RunError::Parameters(_)), "{error}");
+    assert!(matches!(error, RunError::Unsupported(_)), "{error}");
 }

@@ -33,6 +33,7 @@
 //! instruments writing at once: same schema, versions and migrations, one transaction per
 //! node, [`ProgressStore`] implemented twice. [`pg_server`](crate::pg_server) starts a private
 //! server for tests and benchmarks.
+#![doc = include_str!("../README.md")]
 
 pub mod bench_support;
 mod columns;

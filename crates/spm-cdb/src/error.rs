@@ -29,6 +29,8 @@ pub enum ErrorKind {
     Io,
     /// Any other SQLite failure.
     Sqlite,
+    /// Any other PostgreSQL failure (connection refused or lost, server error).
+    Postgres,
 }
 
 /// An error of the calibration database; every variant names the database file.
@@ -137,6 +139,15 @@ pub enum CdbError {
         /// Underlying SQLite error.
         source: rusqlite::Error,
     },
+    /// See [`ErrorKind::Postgres`].
+    #[cfg(feature = "postgres")]
+    #[error("{}: PostgreSQL error: {source}", path.display())]
+    Postgres {
+        /// The database URL (without its password).
+        path: PathBuf,
+        /// Underlying client error.
+        source: postgres::Error,
+    },
 }
 
 impl CdbError {
@@ -155,6 +166,8 @@ impl CdbError {
             Self::Busy { .. } => ErrorKind::Busy,
             Self::Io { .. } => ErrorKind::Io,
             Self::Sqlite { .. } => ErrorKind::Sqlite,
+            #[cfg(feature = "postgres")]
+            Self::Postgres { .. } => ErrorKind::Postgres,
         }
     }
 
@@ -173,6 +186,8 @@ impl CdbError {
             | Self::Busy { path, .. }
             | Self::Io { path, .. }
             | Self::Sqlite { path, .. } => path,
+            #[cfg(feature = "postgres")]
+            Self::Postgres { path, .. } => path,
         }
     }
 
@@ -204,6 +219,43 @@ impl CdbError {
                 reason: source.to_string(),
             },
             _ => Self::Sqlite { path, source },
+        }
+    }
+}
+
+#[cfg(feature = "postgres")]
+impl CdbError {
+    /// Classifies a PostgreSQL client error by its SQLSTATE.
+    pub(crate) fn postgres(path: &Path, source: postgres::Error) -> Self {
+        use postgres::error::SqlState;
+        let path = path.to_path_buf();
+        let Some(code) = source.code().cloned() else {
+            return Self::Postgres { path, source };
+        };
+        if code == SqlState::UNIQUE_VIOLATION
+            || code == SqlState::FOREIGN_KEY_VIOLATION
+            || code == SqlState::CHECK_VIOLATION
+            || code == SqlState::NOT_NULL_VIOLATION
+        {
+            Self::Conflict {
+                path,
+                reason: source.to_string(),
+            }
+        } else if code == SqlState::T_R_SERIALIZATION_FAILURE
+            || code == SqlState::T_R_DEADLOCK_DETECTED
+            || code == SqlState::LOCK_NOT_AVAILABLE
+        {
+            Self::Conflict {
+                path,
+                reason: format!("concurrent update: {source}"),
+            }
+        } else if code == SqlState::READ_ONLY_SQL_TRANSACTION {
+            Self::InvalidInput {
+                path,
+                reason: format!("the database was opened read-only: {source}"),
+            }
+        } else {
+            Self::Postgres { path, source }
         }
     }
 }

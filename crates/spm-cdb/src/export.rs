@@ -1,13 +1,12 @@
 //! CSV and JSON export.
 
-use rusqlite::Connection;
 use std::io::Write;
 use std::path::Path;
 
 use crate::error::{CdbError, Result};
-use crate::query::for_each_record;
+use crate::query::RecordSource;
 use crate::schema::SCHEMA_VERSION;
-use spm_records::{LccRecord, RecordFilter};
+use spm_records::LccRecord;
 
 /// CSV header: `acquired_utc` (RFC 3339) then the record columns
 /// ([`spm_records::LCC_RECORD_COLUMNS`]) in order.
@@ -72,17 +71,12 @@ fn io(path: &Path, context: &str) -> impl Fn(std::io::Error) -> CdbError {
     }
 }
 
-pub(crate) fn csv(
-    conn: &Connection,
-    path: &Path,
-    filter: &RecordFilter,
-    out: &mut dyn Write,
-) -> Result<u64> {
+pub(crate) fn csv(path: &Path, source: &mut RecordSource<'_>, out: &mut dyn Write) -> Result<u64> {
     let e = io(path, "writing CSV export");
     out.write_all(CSV_HEADER.as_bytes()).map_err(&e)?;
     out.write_all(b"\n").map_err(&e)?;
     let mut n = 0;
-    for_each_record(conn, path, filter, |r| {
+    source(&mut |r| {
         n += 1;
         out.write_all(csv_line(&r).as_bytes()).map_err(&e)
     })?;
@@ -90,16 +84,11 @@ pub(crate) fn csv(
     Ok(n)
 }
 
-pub(crate) fn json(
-    conn: &Connection,
-    path: &Path,
-    filter: &RecordFilter,
-    out: &mut dyn Write,
-) -> Result<u64> {
+pub(crate) fn json(path: &Path, source: &mut RecordSource<'_>, out: &mut dyn Write) -> Result<u64> {
     let e = io(path, "writing JSON export");
     write!(out, "{{\"schema_version\":{SCHEMA_VERSION},\"records\":[").map_err(&e)?;
     let mut n = 0u64;
-    for_each_record(conn, path, filter, |r| {
+    source(&mut |r| {
         if n > 0 {
             out.write_all(b",\n").map_err(&e)?;
         } else {

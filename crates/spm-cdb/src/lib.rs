@@ -25,7 +25,14 @@
 //!
 //! # Reading
 //! Queries are methods of the [`CdbRead`] trait, implemented by [`Cdb`] (each query its own
-//! snapshot) and by [`Snapshot`] (all queries in one read transaction).
+//! snapshot) and by [`Snapshot`] (all queries in one read transaction), and on PostgreSQL by
+//! `postgres::PgCdb` and `postgres::PgSnapshot`.
+//!
+//! # PostgreSQL (feature `postgres`)
+//! [`postgres`](crate::postgres) is the same CDB on a shared PostgreSQL server, for several
+//! instruments writing at once: same schema, versions and migrations, one transaction per
+//! node, [`ProgressStore`] implemented twice. [`pg_server`](crate::pg_server) starts a private
+//! server for tests and benchmarks.
 #![doc = include_str!("../README.md")]
 
 pub mod bench_support;
@@ -33,6 +40,10 @@ mod columns;
 mod error;
 mod export;
 mod integrity;
+#[cfg(feature = "postgres")]
+pub mod pg_server;
+#[cfg(feature = "postgres")]
+pub mod postgres;
 mod query;
 mod schema;
 mod store;
@@ -98,21 +109,32 @@ pub struct Snapshot<'c> {
     path: &'c Path,
 }
 
-/// Read-only queries, on a [`Cdb`] or inside a [`Snapshot`].
+/// Read-only queries, on either back end: the embedded file ([`Cdb`], [`Snapshot`]) or the
+/// shared PostgreSQL database (`postgres::PgCdb`, `postgres::PgSnapshot`, feature
+/// `postgres`). Object safe: programs that accept both back ends read through
+/// `&dyn CdbRead`.
 pub trait CdbRead {
-    /// The SQLite connection (or transaction) to read through.
-    #[doc(hidden)]
-    fn connection(&self) -> &Connection;
-    /// The database file.
+    /// Where the database is: the file, or the PostgreSQL URL without its password.
     fn path(&self) -> &Path;
+
+    /// Schema version of the database.
+    ///
+    /// # Errors
+    /// Database errors.
+    fn schema_version(&self) -> Result<i64>;
 
     /// Selected records ordered by acquisition time.
     ///
     /// # Errors
     /// [`ErrorKind::InvalidInput`] for a non-finite time bound; [`ErrorKind::Corrupt`] for a
-    /// row that cannot be decoded; SQLite errors.
+    /// row that cannot be decoded; database errors.
     fn records(&self, filter: &RecordFilter) -> Result<Vec<LccRecord>> {
-        query::records(self.connection(), self.path(), filter)
+        let mut out = Vec::new();
+        self.for_each_record(filter, &mut |r| {
+            out.push(r);
+            Ok(())
+        })?;
+        Ok(out)
     }
 
     /// Calls `each` for every selected record (ordered by acquisition time) without holding
@@ -124,85 +146,65 @@ pub trait CdbRead {
         &self,
         filter: &RecordFilter,
         each: &mut dyn FnMut(LccRecord) -> Result<()>,
-    ) -> Result<()> {
-        query::for_each_record(self.connection(), self.path(), filter, each)
-    }
+    ) -> Result<()>;
 
     /// Number of selected records.
     ///
     /// # Errors
     /// As [`CdbRead::records`].
-    fn count_records(&self, filter: &RecordFilter) -> Result<u64> {
-        query::count_records(self.connection(), self.path(), filter)
-    }
+    fn count_records(&self, filter: &RecordFilter) -> Result<u64>;
 
     /// Selected records as numeric columns (for regression), in insertion order.
     ///
-    /// Reads the table sequentially (no index): a regression selection (a scanner's Z plane)
-    /// is usually a large part of the table, where a scan is ~3× faster than 10⁶ index
-    /// lookups, and a scan costs at most ~0.4 µs per stored record otherwise.
+    /// On SQLite this reads the table sequentially (no index): a regression selection (a
+    /// scanner's Z plane) is usually a large part of the table, where a scan is ~3× faster
+    /// than 10⁶ index lookups, and a scan costs at most ~0.4 µs per stored record otherwise.
     ///
     /// # Errors
     /// As [`CdbRead::records`].
-    fn columns(&self, filter: &RecordFilter) -> Result<LccColumns> {
-        query::columns(self.connection(), self.path(), filter)
-    }
+    fn columns(&self, filter: &RecordFilter) -> Result<LccColumns>;
 
     /// Scanner ids present in runs or records.
     ///
     /// # Errors
-    /// SQLite errors.
-    fn scanners(&self) -> Result<Vec<String>> {
-        query::scanners(self.connection(), self.path())
-    }
+    /// Database errors.
+    fn scanners(&self) -> Result<Vec<String>>;
 
     /// Distinct Z planes (node z, counts) of a scanner's records, ascending.
     ///
     /// # Errors
-    /// SQLite errors.
-    fn z_planes(&self, scanner_id: &str) -> Result<Vec<i64>> {
-        query::z_planes(self.connection(), self.path(), scanner_id)
-    }
+    /// Database errors.
+    fn z_planes(&self, scanner_id: &str) -> Result<Vec<i64>>;
 
     /// A run by id.
     ///
     /// # Errors
-    /// [`ErrorKind::Corrupt`] for an undecodable row; SQLite errors.
-    fn run(&self, run_id: &str) -> Result<Option<RunInfo>> {
-        query::run(self.connection(), self.path(), run_id)
-    }
+    /// [`ErrorKind::Corrupt`] for an undecodable row; database errors.
+    fn run(&self, run_id: &str) -> Result<Option<RunInfo>>;
 
     /// Runs, optionally of one scanner, by start time.
     ///
     /// # Errors
     /// As [`CdbRead::run`].
-    fn runs(&self, scanner_id: Option<&str>) -> Result<Vec<RunInfo>> {
-        query::runs(self.connection(), self.path(), scanner_id)
-    }
+    fn runs(&self, scanner_id: Option<&str>) -> Result<Vec<RunInfo>>;
 
     /// The plan of a run with the state of every node, in (repeat, node) order.
     ///
     /// # Errors
     /// As [`CdbRead::run`].
-    fn progress(&self, run_id: &str) -> Result<Vec<NodeProgress>> {
-        query::progress(self.connection(), self.path(), run_id)
-    }
+    fn progress(&self, run_id: &str) -> Result<Vec<NodeProgress>>;
 
     /// The first pending node of a run in (repeat, node) order: where a resumed run continues.
     ///
     /// # Errors
     /// As [`CdbRead::run`].
-    fn next_pending(&self, run_id: &str) -> Result<Option<PlanNode>> {
-        query::next_pending(self.connection(), self.path(), run_id)
-    }
+    fn next_pending(&self, run_id: &str) -> Result<Option<PlanNode>>;
 
     /// Numbers of pending, done and given-up nodes of a run.
     ///
     /// # Errors
     /// As [`CdbRead::run`].
-    fn progress_summary(&self, run_id: &str) -> Result<ProgressSummary> {
-        query::progress_summary(self.connection(), self.path(), run_id)
-    }
+    fn progress_summary(&self, run_id: &str) -> Result<ProgressSummary>;
 
     /// Age dynamics: one coefficient against date, as mean and standard uncertainty per group
     /// (per run, per UTC day, or per node and run), ordered by mean time.
@@ -216,9 +218,7 @@ pub trait CdbRead {
         grouping: TrendGrouping,
     ) -> Result<Vec<TrendPoint>> {
         query::age_dynamics(
-            self.connection(),
-            self.path(),
-            filter,
+            &mut |each| self.for_each_record(filter, each),
             coefficient,
             grouping,
         )
@@ -230,7 +230,11 @@ pub trait CdbRead {
     /// # Errors
     /// [`ErrorKind::Io`] if writing fails; as [`CdbRead::records`].
     fn export_csv(&self, filter: &RecordFilter, out: &mut dyn Write) -> Result<u64> {
-        export::csv(self.connection(), self.path(), filter, out)
+        export::csv(
+            self.path(),
+            &mut |each| self.for_each_record(filter, each),
+            out,
+        )
     }
 
     /// Writes the selected records as JSON
@@ -239,36 +243,91 @@ pub trait CdbRead {
     /// # Errors
     /// As [`CdbRead::export_csv`].
     fn export_json(&self, filter: &RecordFilter, out: &mut dyn Write) -> Result<u64> {
-        export::json(self.connection(), self.path(), filter, out)
+        export::json(
+            self.path(),
+            &mut |each| self.for_each_record(filter, each),
+            out,
+        )
     }
 
-    /// `PRAGMA integrity_check`, `PRAGMA foreign_key_check` and semantic checks: finite
-    /// values, K̄x, K̄y, Kz > 0, |α| < π/2, non-negative uncertainties and counts, every done
-    /// plan node has records and no unfinished one has any, records match their plan node and
-    /// run's scanner, no duplicate (run, repeat, node, lcs), given-up nodes have a reason.
+    /// Structural checks of the back end (SQLite: `PRAGMA integrity_check` and
+    /// `foreign_key_check`; PostgreSQL: the tables and columns the schema defines) and
+    /// semantic checks: finite values, K̄x, K̄y, Kz > 0, |α| < π/2, non-negative uncertainties
+    /// and counts, every done plan node has records and no unfinished one has any, records
+    /// match their plan node and run's scanner, no duplicate (run, repeat, node, lcs),
+    /// given-up nodes have a reason.
     ///
     /// # Errors
-    /// SQLite errors while checking (problems found are in the report, not errors).
-    fn check(&self) -> Result<IntegrityReport> {
-        integrity::check(self.connection(), self.path())
-    }
+    /// Database errors while checking (problems found are in the report, not errors).
+    fn check(&self) -> Result<IntegrityReport>;
 }
 
-impl CdbRead for Cdb {
-    fn connection(&self) -> &Connection {
-        &self.conn
-    }
-    fn path(&self) -> &Path {
-        &self.path
-    }
+/// `CdbRead` for a type with `fn sqlite(&self) -> &Connection` and a `path` field.
+macro_rules! sqlite_read {
+    ($t:ty) => {
+        impl CdbRead for $t {
+            fn path(&self) -> &Path {
+                &self.path
+            }
+            fn schema_version(&self) -> Result<i64> {
+                self.sqlite()
+                    .pragma_query_value(None, "user_version", |r| r.get(0))
+                    .map_err(|e| CdbError::sqlite(&self.path, e))
+            }
+            fn for_each_record(
+                &self,
+                filter: &RecordFilter,
+                each: &mut dyn FnMut(LccRecord) -> Result<()>,
+            ) -> Result<()> {
+                query::for_each_record(self.sqlite(), &self.path, filter, each)
+            }
+            fn count_records(&self, filter: &RecordFilter) -> Result<u64> {
+                query::count_records(self.sqlite(), &self.path, filter)
+            }
+            fn columns(&self, filter: &RecordFilter) -> Result<LccColumns> {
+                query::columns(self.sqlite(), &self.path, filter)
+            }
+            fn scanners(&self) -> Result<Vec<String>> {
+                query::scanners(self.sqlite(), &self.path)
+            }
+            fn z_planes(&self, scanner_id: &str) -> Result<Vec<i64>> {
+                query::z_planes(self.sqlite(), &self.path, scanner_id)
+            }
+            fn run(&self, run_id: &str) -> Result<Option<RunInfo>> {
+                query::run(self.sqlite(), &self.path, run_id)
+            }
+            fn runs(&self, scanner_id: Option<&str>) -> Result<Vec<RunInfo>> {
+                query::runs(self.sqlite(), &self.path, scanner_id)
+            }
+            fn progress(&self, run_id: &str) -> Result<Vec<NodeProgress>> {
+                query::progress(self.sqlite(), &self.path, run_id)
+            }
+            fn next_pending(&self, run_id: &str) -> Result<Option<PlanNode>> {
+                query::next_pending(self.sqlite(), &self.path, run_id)
+            }
+            fn progress_summary(&self, run_id: &str) -> Result<ProgressSummary> {
+                query::progress_summary(self.sqlite(), &self.path, run_id)
+            }
+            fn check(&self) -> Result<IntegrityReport> {
+                integrity::check(self.sqlite(), &self.path)
+            }
+        }
+    };
 }
 
-impl CdbRead for Snapshot<'_> {
-    fn connection(&self) -> &Connection {
+sqlite_read!(Cdb);
+sqlite_read!(Snapshot<'_>);
+
+impl Snapshot<'_> {
+    fn sqlite(&self) -> &Connection {
         &self.tx
     }
-    fn path(&self) -> &Path {
-        self.path
+
+    /// The SQLite transaction (tests and tools that inspect the file directly).
+    #[doc(hidden)]
+    #[must_use]
+    pub fn connection(&self) -> &Connection {
+        &self.tx
     }
 }
 
@@ -285,6 +344,43 @@ fn check_time(path: &Path, what: &str, t: f64) -> Result<()> {
     } else {
         Err(invalid(path, format!("{what} must be finite, got {t}")))
     }
+}
+
+/// Checks that a record belongs to the plan node it is committed with: its run, the run's
+/// scanner, the visit's repeat and node, and the plan node's coordinates.
+pub(crate) fn check_belongs(
+    path: &Path,
+    run_id: &str,
+    scanner_id: &str,
+    done: &NodeDone,
+    (x, y, z): (i64, i64, i64),
+    r: &LccRecord,
+) -> Result<()> {
+    let matches = r.run_id == run_id
+        && r.scanner_id == scanner_id
+        && r.repeat_index == done.repeat_index
+        && r.node_index == done.node_index
+        && (r.node_x_counts, r.node_y_counts, r.node_z_counts) == (x, y, z);
+    if matches {
+        return Ok(());
+    }
+    Err(invalid(
+        path,
+        format!(
+            "record (run {:?}, scanner {:?}, repeat {}, node {} at ({}, {}, {})) does not \
+             belong to run {run_id:?} (scanner {scanner_id:?}) repeat {} node {} at \
+             ({x}, {y}, {z})",
+            r.run_id,
+            r.scanner_id,
+            r.repeat_index,
+            r.node_index,
+            r.node_x_counts,
+            r.node_y_counts,
+            r.node_z_counts,
+            done.repeat_index,
+            done.node_index
+        ),
+    ))
 }
 
 /// Checks a record before it is written ([`LccRecord::check`], the rules every store applies).
@@ -560,14 +656,15 @@ impl Cdb {
         Ok(Self { conn, path })
     }
 
-    /// Schema version of the open file.
-    ///
-    /// # Errors
-    /// SQLite errors.
-    pub fn schema_version(&self) -> Result<i64> {
-        self.conn
-            .pragma_query_value(None, "user_version", |r| r.get(0))
-            .map_err(|e| CdbError::sqlite(&self.path, e))
+    fn sqlite(&self) -> &Connection {
+        &self.conn
+    }
+
+    /// The SQLite connection (tests and tools that inspect the file directly).
+    #[doc(hidden)]
+    #[must_use]
+    pub fn connection(&self) -> &Connection {
+        &self.conn
     }
 
     /// Starts a read transaction: all queries through the snapshot see one committed state.
@@ -828,31 +925,7 @@ impl Cdb {
             });
         }
         for r in records {
-            let matches = r.run_id == run_id
-                && r.scanner_id == run.scanner_id
-                && r.repeat_index == done.repeat_index
-                && r.node_index == done.node_index
-                && (r.node_x_counts, r.node_y_counts, r.node_z_counts) == (x, y, z);
-            if !matches {
-                return Err(invalid(
-                    &path,
-                    format!(
-                        "record (run {:?}, scanner {:?}, repeat {}, node {} at ({}, {}, {})) \
-                         does not belong to run {run_id:?} (scanner {:?}) repeat {} node {} at \
-                         ({x}, {y}, {z})",
-                        r.run_id,
-                        r.scanner_id,
-                        r.repeat_index,
-                        r.node_index,
-                        r.node_x_counts,
-                        r.node_y_counts,
-                        r.node_z_counts,
-                        run.scanner_id,
-                        done.repeat_index,
-                        done.node_index
-                    ),
-                ));
-            }
+            check_belongs(&path, run_id, &run.scanner_id, done, (x, y, z), r)?;
             let mut stmt = tx.prepare_cached(&INSERT_RECORD).map_err(err)?;
             insert_record(&mut stmt, r).map_err(err)?;
         }

@@ -78,15 +78,6 @@ pub(crate) fn for_each_record(
     Ok(())
 }
 
-pub(crate) fn records(conn: &Connection, path: &Path, f: &RecordFilter) -> Result<Vec<LccRecord>> {
-    let mut out = Vec::new();
-    for_each_record(conn, path, f, |r| {
-        out.push(r);
-        Ok(())
-    })?;
-    Ok(out)
-}
-
 pub(crate) fn count_records(conn: &Connection, path: &Path, f: &RecordFilter) -> Result<u64> {
     check_filter(path, f)?;
     let (w, p) = where_clause(f);
@@ -351,16 +342,19 @@ pub(crate) fn utc_day(t_unix_s: f64) -> String {
     }
 }
 
+/// Streams the selected records of a back end into a callback (`CdbRead::for_each_record`
+/// with its filter bound).
+pub(crate) type RecordSource<'s> =
+    dyn FnMut(&mut dyn FnMut(LccRecord) -> Result<()>) -> Result<()> + 's;
+
 pub(crate) fn age_dynamics(
-    conn: &Connection,
-    path: &Path,
-    filter: &RecordFilter,
+    source: &mut RecordSource<'_>,
     coefficient: Coefficient,
     grouping: TrendGrouping,
 ) -> Result<Vec<TrendPoint>> {
     let mut groups: BTreeMap<String, Group> = BTreeMap::new();
     let mut order: Vec<String> = Vec::new();
-    for_each_record(conn, path, filter, |r| {
+    source(&mut |r| {
         let key = match grouping {
             TrendGrouping::PerRun => r.run_id.clone(),
             TrendGrouping::PerDay => utc_day(r.acquired_unix_s),

@@ -1,10 +1,14 @@
 //! CDB tests: round trip, resume, queries, age dynamics, export, migration from v1, refusal of
 //! a newer schema without modification, snapshot isolation across threads, integrity check.
+//!
+//! The bodies that hold for every back end run on both (`sqlite::*` and `postgres::*`, through
+//! a store factory, [`common::Backend`]); the PostgreSQL tests start a private server once per
+//! test binary. Tests of one back end's file or schema mechanics are named for it.
 #![allow(clippy::unwrap_used)]
 
 mod common;
 
-use common::{T0, db_path, plan, record, run};
+use common::{Backend, T0, db_path, plan, record, run};
 use rusqlite::Connection;
 use spm_cdb::{
     Cdb, CdbRead, Coefficient, ErrorKind, LccRecord, NodeDone, NodeState, RecordFilter, RunStatus,
@@ -20,14 +24,23 @@ fn done(node_index: u32, t: f64) -> NodeDone {
     }
 }
 
-#[test]
-fn round_trip_queries_and_resume() {
-    let path = db_path("round_trip");
+on_both_backends!(
+    round_trip_queries_and_resume,
+    commit_node_is_atomic_and_validated,
+    age_dynamics_and_export,
+    reader_snapshot_is_consistent_while_writer_commits,
+    reads_always_see_whole_nodes,
+    integrity_check_finds_corruption,
+    concurrent_runs_of_four_scanners_lose_nothing,
+);
+
+fn round_trip_queries_and_resume(b: &'static dyn Backend) {
+    let path = b.fresh("round_trip");
     let r = run("run-1", "scanner-A", T0);
     let nodes = plan(3);
     let mut stored: Vec<LccRecord> = Vec::new();
     {
-        let mut cdb = Cdb::open(&path).unwrap();
+        let mut cdb = b.open(&path);
         assert_eq!(cdb.schema_version().unwrap(), SCHEMA_VERSION);
         cdb.create_run(&r).unwrap();
         assert_eq!(cdb.create_run(&r).unwrap_err().kind(), ErrorKind::Conflict);
@@ -55,7 +68,7 @@ fn round_trip_queries_and_resume() {
         .unwrap();
         // simulated crash: dropped without finishing the run
     }
-    let mut cdb = Cdb::open(&path).unwrap();
+    let mut cdb = b.open(&path);
     let all = cdb.records(&RecordFilter::default()).unwrap();
     assert_eq!(all, stored);
     let next = cdb.next_pending(&r.run_id).unwrap().unwrap();
@@ -122,12 +135,11 @@ fn round_trip_queries_and_resume() {
     assert!(cdb.check().unwrap().is_ok(), "{:?}", cdb.check().unwrap());
 }
 
-#[test]
-fn commit_node_is_atomic_and_validated() {
-    let path = db_path("atomic");
+fn commit_node_is_atomic_and_validated(b: &'static dyn Backend) {
+    let path = b.fresh("atomic");
     let r = run("run-1", "S", T0);
     let nodes = plan(2);
-    let mut cdb = Cdb::open(&path).unwrap();
+    let mut cdb = b.open(&path);
     cdb.create_run(&r).unwrap();
     cdb.register_plan(&r.run_id, &nodes).unwrap();
     let n0 = nodes[0];
@@ -142,14 +154,15 @@ fn commit_node_is_atomic_and_validated() {
     assert_eq!(cdb.count_records(&RecordFilter::default()).unwrap(), 0);
     assert_eq!(cdb.next_pending(&r.run_id).unwrap(), Some(n0));
     // invalid values
-    let check_invalid = |cdb: &mut Cdb, edit: fn(&mut LccRecord)| {
+    let shown = b.shown(&path);
+    let check_invalid = |cdb: &mut Box<dyn common::Store>, edit: fn(&mut LccRecord)| {
         let mut rec = record(&r, &n0, 0, T0);
         edit(&mut rec);
         let e = cdb
             .commit_node(&r.run_id, &done(0, T0), &[rec])
             .unwrap_err();
         assert_eq!(e.kind(), ErrorKind::InvalidInput, "{e}");
-        assert_eq!(e.path(), path.as_path());
+        assert_eq!(e.path(), shown.as_path());
     };
     check_invalid(&mut cdb, |r| r.kx_nm_per_count = f64::NAN);
     check_invalid(&mut cdb, |r| r.ky_nm_per_count = -0.02);
@@ -216,10 +229,9 @@ fn commit_node_is_atomic_and_validated() {
     assert!(cdb.check().unwrap().is_ok());
 }
 
-#[test]
-fn age_dynamics_and_export() {
-    let path = db_path("trend");
-    let mut cdb = Cdb::open(&path).unwrap();
+fn age_dynamics_and_export(b: &'static dyn Backend) {
+    let path = b.fresh("trend");
+    let mut cdb = b.open(&path);
     let nodes = plan(3);
     let day = 86_400.0;
     // three runs, 30 days apart; K̄x at the three nodes of plane 0 = base + (0, 1, 2)·1e-3
@@ -442,14 +454,13 @@ fn refuses_foreign_files() {
     );
 }
 
-#[test]
-fn reader_snapshot_is_consistent_while_writer_commits() {
+fn reader_snapshot_is_consistent_while_writer_commits(b: &'static dyn Backend) {
     use std::sync::{Arc, Barrier};
-    let path = db_path("snapshot");
+    let path = b.fresh("snapshot");
     let r = run("run-1", "S", T0);
     let nodes = plan(50);
     {
-        let mut cdb = Cdb::open(&path).unwrap();
+        let mut cdb = b.open(&path);
         cdb.create_run(&r).unwrap();
         cdb.register_plan(&r.run_id, &nodes).unwrap();
         cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &nodes[0], 0, T0)])
@@ -459,7 +470,7 @@ fn reader_snapshot_is_consistent_while_writer_commits() {
     let writer = {
         let (path, barrier, r, nodes) = (path.clone(), barrier.clone(), r.clone(), nodes.clone());
         std::thread::spawn(move || {
-            let mut cdb = Cdb::open(&path).unwrap();
+            let mut cdb = b.open(&path);
             barrier.wait(); // reader holds its snapshot
             for n in &nodes[1..] {
                 let recs = [record(&r, n, 0, T0 + 1.0), record(&r, n, 1, T0 + 2.0)];
@@ -469,7 +480,7 @@ fn reader_snapshot_is_consistent_while_writer_commits() {
             barrier.wait(); // all committed
         })
     };
-    let reader = Cdb::open(&path).unwrap();
+    let reader = b.open(&path);
     {
         let snap = reader.snapshot().unwrap();
         let n0 = snap.count_records(&RecordFilter::default()).unwrap();
@@ -502,21 +513,20 @@ fn reader_snapshot_is_consistent_while_writer_commits() {
     assert!(reader.check().unwrap().is_ok());
 }
 
-#[test]
-fn reads_always_see_whole_nodes() {
+fn reads_always_see_whole_nodes(b: &'static dyn Backend) {
     // A reader polling without an explicit snapshot never sees a node half committed.
-    let path = db_path("whole_nodes");
+    let path = b.fresh("whole_nodes");
     let r = run("run-1", "S", T0);
     let nodes = plan(40);
     {
-        let mut cdb = Cdb::open(&path).unwrap();
+        let mut cdb = b.open(&path);
         cdb.create_run(&r).unwrap();
         cdb.register_plan(&r.run_id, &nodes).unwrap();
     }
     let writer = {
         let (path, r, nodes) = (path.clone(), r.clone(), nodes.clone());
         std::thread::spawn(move || {
-            let mut cdb = Cdb::open(&path).unwrap();
+            let mut cdb = b.open(&path);
             for n in &nodes {
                 let recs: Vec<_> = (0..3).map(|k| record(&r, n, k, T0)).collect();
                 cdb.commit_node(&r.run_id, &done(n.node_index, T0), &recs)
@@ -524,7 +534,7 @@ fn reads_always_see_whole_nodes() {
             }
         })
     };
-    let reader = Cdb::open(&path).unwrap();
+    let reader = b.open(&path);
     while !writer.is_finished() {
         let snap = reader.snapshot().unwrap();
         let done = snap.progress_summary(&r.run_id).unwrap().done;
@@ -536,41 +546,40 @@ fn reads_always_see_whole_nodes() {
     assert_eq!(reader.count_records(&RecordFilter::default()).unwrap(), 240);
 }
 
-#[test]
-fn integrity_check_finds_corruption() {
-    let path = db_path("corrupt");
+fn integrity_check_finds_corruption(b: &'static dyn Backend) {
+    let path = b.fresh("corrupt");
     let r = run("run-1", "S", T0);
     let nodes = plan(3);
     {
-        let mut cdb = Cdb::open(&path).unwrap();
+        let mut cdb = b.open(&path);
         cdb.create_run(&r).unwrap();
         cdb.register_plan(&r.run_id, &nodes).unwrap();
         cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &nodes[0], 0, T0)])
             .unwrap();
         assert!(cdb.check().unwrap().is_ok());
     }
-    let raw = Connection::open(&path).unwrap();
     let insert = |lcs: u32, kx: &str, alpha: &str| {
-        raw.execute_batch(&format!(
-            "INSERT INTO records (scanner_id, run_id, acquired_unix_s, repeat_index, node_index,
+        b.raw_sql(
+            &path,
+            &format!(
+                "INSERT INTO records (scanner_id, run_id, acquired_unix_s, repeat_index, node_index,
               lcs_index, node_x_counts, node_y_counts, node_z_counts, lcs_x_counts, lcs_y_counts,
               lcs_z_counts, kx_nm_per_count, ky_nm_per_count, alpha_rad, drift_vx_nm_per_s,
               drift_vy_nm_per_s, cycles_kept, cycles_discarded, quality)
              VALUES ('S', 'run-1', {T0}, 0, 0, {lcs}, 0, 0, 0, 0, 0, 0, {kx}, 0.02, {alpha},
                      0, 0, 1, 0, 1)"
-        ))
-        .unwrap();
+            ),
+        );
     };
     insert(1, "-0.02", "0.0"); // K̄x ≤ 0
-    insert(2, "9e999", "0.0"); // +∞
+    insert(2, b.infinity_literal(), "0.0"); // +∞
     insert(3, "0.02", "2.0"); // |α| ≥ π/2
-    raw.execute_batch(
+    b.raw_sql(
+        &path,
         "UPDATE progress SET state = 'done' WHERE node_index = 1;
          UPDATE progress SET state = 'given_up', reason = NULL WHERE node_index = 2;",
-    )
-    .unwrap();
-    drop(raw);
-    let cdb = Cdb::open(&path).unwrap();
+    );
+    let cdb = b.open(&path);
     let report = cdb.check().unwrap();
     let kinds: Vec<&str> = report.problems.iter().map(|p| p.kind.as_str()).collect();
     for expected in [
@@ -592,8 +601,25 @@ fn integrity_check_finds_corruption() {
             .iter()
             .any(|p| p.detail.contains("kx_nm_per_count"))
     );
+    // every problem was found once: 3 bad records, 1 done node without records, 1 given up
+    // without a reason
+    assert_eq!(report.problems.len(), 5, "{report:?}");
+}
 
-    // a text value where a number belongs is a typed Corrupt error on read, not a panic
+/// SQLite stores any value in any column: a text value where a number belongs is a typed
+/// Corrupt error on read, not a panic. (PostgreSQL's column types refuse such a value.)
+#[test]
+fn sqlite_text_in_a_number_column_is_corrupt() {
+    let path = db_path("corrupt_text");
+    let r = run("run-1", "S", T0);
+    let nodes = plan(3);
+    {
+        let mut cdb = Cdb::open(&path).unwrap();
+        cdb.create_run(&r).unwrap();
+        cdb.register_plan(&r.run_id, &nodes).unwrap();
+        cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &nodes[0], 0, T0)])
+            .unwrap();
+    }
     let raw = Connection::open(&path).unwrap();
     insert_text(&raw);
     drop(raw);
@@ -607,6 +633,58 @@ fn integrity_check_finds_corruption() {
             .iter()
             .any(|p| p.kind == "non_finite" && p.detail.contains("quality"))
     );
+}
+
+/// Four instruments calibrate into one database at once, each its own run and scanner, one
+/// connection each: every node is committed exactly once with all its records, nothing is
+/// lost or duplicated, and the check is clean.
+fn concurrent_runs_of_four_scanners_lose_nothing(b: &'static dyn Backend) {
+    let path = b.fresh("four_scanners");
+    drop(b.open(&path)); // the schema exists before the writers race
+    let nodes = plan(15);
+    let writers: Vec<_> = (0..4)
+        .map(|k| {
+            let (path, nodes) = (path.clone(), nodes.clone());
+            std::thread::spawn(move || {
+                let mut cdb = b.open(&path);
+                let r = run(&format!("run-{k}"), &format!("scanner-{k}"), T0);
+                cdb.create_run(&r).unwrap();
+                cdb.register_plan(&r.run_id, &nodes).unwrap();
+                for n in &nodes {
+                    let recs: Vec<_> = (0..2)
+                        .map(|l| record(&r, n, l, T0 + f64::from(n.node_index)))
+                        .collect();
+                    // SQLite serialises writers with its lock (busy timeout); PostgreSQL
+                    // commits different runs' nodes side by side.
+                    cdb.commit_node(&r.run_id, &done(n.node_index, T0), &recs)
+                        .unwrap();
+                }
+                cdb.finish_run(&r.run_id, RunStatus::Finished, T0 + 100.0)
+                    .unwrap();
+            })
+        })
+        .collect();
+    for w in writers {
+        w.join().unwrap();
+    }
+    let cdb = b.open(&path);
+    assert_eq!(cdb.scanners().unwrap().len(), 4);
+    for k in 0..4 {
+        let filter = RecordFilter::scanner(&format!("scanner-{k}"));
+        assert_eq!(cdb.count_records(&filter).unwrap(), 2 * nodes.len() as u64);
+        let mut keys: Vec<(u32, u32)> = cdb
+            .records(&filter)
+            .unwrap()
+            .iter()
+            .map(|r| (r.node_index, r.lcs_index))
+            .collect();
+        keys.sort_unstable();
+        keys.dedup();
+        assert_eq!(keys.len(), 2 * nodes.len());
+        let s = cdb.progress_summary(&format!("run-{k}")).unwrap();
+        assert_eq!((s.pending, s.done), (0, nodes.len() as u64));
+    }
+    assert!(cdb.check().unwrap().is_ok(), "{:?}", cdb.check().unwrap());
 }
 
 fn insert_text(raw: &Connection) {
@@ -691,4 +769,221 @@ fn records_table_matches_the_one_column_list() {
             .chain([("id".to_owned(), ("INTEGER".to_owned(), false))])
             .collect();
     assert_eq!(stored, expected);
+}
+
+// ---------------------------------------------------------------------------------------
+// PostgreSQL: schema versions, migration, refusals, column list, one node from two programs.
+
+use spm_cdb::postgres::PgCdb;
+
+/// v1 data as a v1 program stored it (no standard uncertainties).
+const PG_V1_DATA: &str = "
+INSERT INTO runs VALUES ('old-run', 'S', '', 1600000000.0, 1600000900.0, 'finished');
+INSERT INTO progress VALUES ('old-run', 0, 0, 0, 0, 0, 'done', NULL, 1, 1600000100.0);
+INSERT INTO progress VALUES ('old-run', 0, 1, 1000, 0, 0, 'pending', NULL, 0, NULL);
+INSERT INTO records (scanner_id, run_id, acquired_unix_s, repeat_index, node_index, lcs_index,
+  node_x_counts, node_y_counts, node_z_counts, lcs_x_counts, lcs_y_counts, lcs_z_counts,
+  kx_nm_per_count, ky_nm_per_count, alpha_rad, kz_nm_per_count, drift_vx_nm_per_s,
+  drift_vy_nm_per_s, cycles_kept, cycles_discarded, quality)
+  VALUES ('S', 'old-run', 1600000050.0, 0, 0, 0, 0, 0, 0, 0.5, -0.5, 0.0,
+          0.0201, 0.0199, 0.0012, NULL, 0.01, 0.02, 6, 1, 0.8);
+";
+
+fn pg_versions(url: &str) -> Vec<i64> {
+    let mut c = ::postgres::Client::connect(url, ::postgres::NoTls).unwrap();
+    c.query("SELECT version FROM schema_version ORDER BY version", &[])
+        .unwrap()
+        .iter()
+        .map(|r| r.get(0))
+        .collect()
+}
+
+#[test]
+fn postgres_migrates_v1_database() {
+    let pg = common::postgres();
+    let url = pg.fresh("pg_migrate_v1");
+    drop(PgCdb::open_at_version(&url, 1).unwrap());
+    assert_eq!(pg_versions(&url), [1]);
+    pg.raw_sql(&url, PG_V1_DATA);
+    // read-only cannot migrate: refused, nothing written
+    let e = PgCdb::open_read_only(&url).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::OutdatedSchema, "{e}");
+    assert_eq!(pg_versions(&url), [1]);
+
+    let mut cdb = PgCdb::open(&url).unwrap();
+    assert_eq!(pg_versions(&url), [1, 2]);
+    assert_eq!(cdb.schema_version().unwrap(), SCHEMA_VERSION);
+    let old = cdb.records(&RecordFilter::default()).unwrap();
+    assert_eq!(old.len(), 1);
+    assert_eq!(old[0].kx_nm_per_count, 0.0201);
+    assert_eq!((old[0].u_kx_nm_per_count, old[0].u_alpha_rad), (None, None));
+    assert!(cdb.check().unwrap().is_ok(), "{:?}", cdb.check().unwrap());
+    let r = cdb.run("old-run").unwrap().unwrap();
+    let next = cdb.next_pending("old-run").unwrap().unwrap();
+    assert_eq!(next.node_x_counts, 1000);
+    cdb.commit_node(
+        "old-run",
+        &done(1, 1600000200.0),
+        &[record(&r, &next, 0, 1600000190.0)],
+    )
+    .unwrap();
+    let all = cdb.records(&RecordFilter::default()).unwrap();
+    assert_eq!(all[1].u_kx_nm_per_count, Some(1e-5));
+    drop(cdb);
+    drop(PgCdb::open(&url).unwrap()); // a no-op
+    assert_eq!(pg_versions(&url), [1, 2]);
+    let ro = PgCdb::open_read_only(&url).unwrap();
+    assert_eq!(ro.count_records(&RecordFilter::default()).unwrap(), 2);
+}
+
+#[test]
+fn postgres_refuses_newer_schema_without_writing() {
+    let pg = common::postgres();
+    let url = pg.fresh("pg_newer");
+    drop(PgCdb::open(&url).unwrap());
+    pg.raw_sql(
+        &url,
+        &format!(
+            "DROP TABLE records; CREATE TABLE records (id BIGINT PRIMARY KEY, future TEXT);
+             INSERT INTO records VALUES (1, 'from v99');
+             INSERT INTO schema_version VALUES (99, {}, 'the future');",
+            spm_cdb::APPLICATION_ID
+        ),
+    );
+    let state = |url: &str| -> (Vec<i64>, Vec<String>) {
+        let mut c = ::postgres::Client::connect(url, ::postgres::NoTls).unwrap();
+        let columns = c
+            .query(
+                "SELECT column_name::TEXT FROM information_schema.columns \
+                 WHERE table_name = 'records' ORDER BY 1",
+                &[],
+            )
+            .unwrap()
+            .iter()
+            .map(|r| r.get(0))
+            .collect();
+        (pg_versions(url), columns)
+    };
+    let before = state(&url);
+    for e in [
+        PgCdb::open(&url).unwrap_err(),
+        PgCdb::open_read_only(&url).unwrap_err(),
+    ] {
+        assert_eq!(e.kind(), ErrorKind::NewerSchema);
+        let msg = e.to_string();
+        assert!(msg.contains("99") && msg.contains(&url), "{msg}");
+    }
+    assert_eq!(state(&url), before);
+}
+
+#[test]
+fn postgres_refuses_foreign_databases() {
+    let pg = common::postgres();
+    let empty = pg.fresh("pg_empty");
+    assert_eq!(
+        PgCdb::open_read_only(&empty).unwrap_err().kind(),
+        ErrorKind::NotACdb
+    );
+    let other = pg.fresh("pg_other_app");
+    pg.raw_sql(&other, "CREATE TABLE runs (a INTEGER);");
+    assert_eq!(PgCdb::open(&other).unwrap_err().kind(), ErrorKind::NotACdb);
+    let foreign = pg.fresh("pg_foreign_version");
+    pg.raw_sql(
+        &foreign,
+        "CREATE TABLE schema_version (version BIGINT PRIMARY KEY, application_id BIGINT NOT NULL,
+           description TEXT NOT NULL);
+         INSERT INTO schema_version VALUES (1, 42, 'another program');",
+    );
+    assert_eq!(
+        PgCdb::open(&foreign).unwrap_err().kind(),
+        ErrorKind::NotACdb
+    );
+    // a malformed URL is bad input; a server that is not there is a PostgreSQL error naming
+    // the URL without its password
+    assert_eq!(
+        PgCdb::open("postgres://u@h:notaport/db")
+            .unwrap_err()
+            .kind(),
+        ErrorKind::InvalidInput
+    );
+    let closed = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().port()
+    };
+    let e = PgCdb::open(&format!(
+        "postgres://someone:secret@127.0.0.1:{closed}/nothing?connect_timeout=5"
+    ))
+    .unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Postgres, "{e}");
+    assert!(!e.to_string().contains("secret"), "{e}");
+    assert!(e.to_string().contains("someone:***@127.0.0.1"), "{e}");
+}
+
+/// The PostgreSQL `records` table holds exactly the columns of
+/// `spm_records::LCC_RECORD_COLUMNS` (after the surrogate key) with the type and nullability
+/// of each column's kind.
+#[test]
+fn postgres_records_table_matches_the_one_column_list() {
+    let pg = common::postgres();
+    let url = pg.fresh("pg_column_list");
+    let cdb = PgCdb::open(&url).unwrap();
+    let stored: std::collections::BTreeMap<String, (String, bool)> =
+        spm_cdb::postgres::records_table_columns(&cdb)
+            .unwrap()
+            .into_iter()
+            .collect();
+    let expected: std::collections::BTreeMap<String, (String, bool)> =
+        spm_records::LCC_RECORD_COLUMNS
+            .iter()
+            .map(|col| {
+                let (sql_type, nullable) = match col.kind {
+                    spm_records::ColumnKind::Text => ("text", false),
+                    spm_records::ColumnKind::Real => ("double precision", false),
+                    spm_records::ColumnKind::OptionalReal => ("double precision", true),
+                    spm_records::ColumnKind::Integer => ("bigint", false),
+                };
+                (col.name.to_owned(), (sql_type.to_owned(), nullable))
+            })
+            .chain([("id".to_owned(), ("bigint".to_owned(), false))])
+            .collect();
+    assert_eq!(stored, expected);
+}
+
+/// Two programs resuming the same run commit the same node at once: the plan row's lock
+/// serialises them, one stores the node and the other gets a Conflict; the node's records are
+/// stored once.
+#[test]
+fn postgres_one_node_from_two_programs_is_stored_once() {
+    let pg = common::postgres();
+    let url = pg.fresh("pg_same_node");
+    let r = run("run-1", "S", T0);
+    let nodes = plan(20);
+    {
+        let mut cdb = PgCdb::open(&url).unwrap();
+        cdb.create_run(&r).unwrap();
+        cdb.register_plan(&r.run_id, &nodes).unwrap();
+    }
+    let racers: Vec<_> = (0..2)
+        .map(|_| {
+            let (url, r, nodes) = (url.clone(), r.clone(), nodes.clone());
+            std::thread::spawn(move || {
+                let mut cdb = PgCdb::open(&url).unwrap();
+                let mut won = 0;
+                for n in &nodes {
+                    let recs: Vec<_> = (0..3).map(|k| record(&r, n, k, T0)).collect();
+                    match cdb.commit_node(&r.run_id, &done(n.node_index, T0), &recs) {
+                        Ok(()) => won += 1,
+                        Err(e) => assert_eq!(e.kind(), ErrorKind::Conflict, "{e}"),
+                    }
+                }
+                won
+            })
+        })
+        .collect();
+    let won: u32 = racers.into_iter().map(|t| t.join().unwrap()).sum();
+    assert_eq!(won, 40);
+    let cdb = PgCdb::open_read_only(&url).unwrap();
+    assert_eq!(cdb.count_records(&RecordFilter::default()).unwrap(), 120);
+    assert_eq!(cdb.progress_summary(&r.run_id).unwrap().done, 40);
+    assert!(cdb.check().unwrap().is_ok());
 }

@@ -151,10 +151,14 @@ pub fn run(
     let mut inputs: Vec<PathBuf> = vec![config.to_path_buf()];
     inputs.extend(Job::referenced_files(config));
     let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
-    if cdb_path.exists() {
+    // A PostgreSQL URL names no file: the file guards apply to a CDB file only.
+    let cdb_is_file = !spmcal::cdb_handle::is_postgres(&cdb_path);
+    if cdb_is_file && cdb_path.exists() {
         files::check_input(&cdb_path, "calibration database")?;
     }
-    files::check_output(&cdb_path, "--cdb", &input_refs)?;
+    if cdb_is_file {
+        files::check_output(&cdb_path, "--cdb", &input_refs)?;
+    }
     let mut protected = input_refs.clone();
     protected.push(&cdb_path);
     for name in OUTPUT_FILES {
@@ -231,7 +235,7 @@ pub fn run(
         outcome.report.already_finished,
         outcome.report.given_up.len(),
         report.records,
-        cdb_path.display(),
+        spmcal::cdb_handle::shown(&cdb_path),
         out.join("report.json").display()
     );
     for line in report.summary_text().lines() {

@@ -1,12 +1,17 @@
 //! `spmcal cdb check|export|trend`.
 
 use crate::error::CliError;
-use spm_cdb::{Cdb, CdbRead, Coefficient, RecordFilter, TrendGrouping};
+use spm_cdb::{CdbRead, Coefficient, RecordFilter, TrendGrouping};
+use spmcal::cdb_handle::{CdbHandle, is_postgres, shown};
 use std::path::Path;
 
-/// Opens a CDB for the commands that only read it: a regular file (checked before opening),
-/// opened read-only (also in a read-only folder or mount).
-pub fn open_read_only(path: &Path) -> Result<Cdb, CliError> {
+/// Opens a CDB for the commands that only read it: a PostgreSQL URL (a read-only session),
+/// or a regular file (checked before opening), opened read-only (also in a read-only folder
+/// or mount).
+pub fn open_read_only(path: &Path) -> Result<CdbHandle, CliError> {
+    if is_postgres(path) {
+        return CdbHandle::open_read_only(path).map_err(cdb_error);
+    }
     if !path.exists() {
         return Err(CliError::BadInput(format!(
             "{}: no such calibration database",
@@ -14,7 +19,7 @@ pub fn open_read_only(path: &Path) -> Result<Cdb, CliError> {
         )));
     }
     crate::files::check_input(path, "calibration database")?;
-    Cdb::open_read_only(path).map_err(cdb_error)
+    CdbHandle::open_read_only(path).map_err(cdb_error)
 }
 
 /// A writer that remembers its first I/O error, so that a failed export names the output
@@ -43,13 +48,17 @@ impl<W: std::io::Write> std::io::Write for Tracked<W> {
 pub fn cdb_error(error: spm_cdb::CdbError) -> CliError {
     use spm_cdb::ErrorKind;
     match error.kind() {
-        ErrorKind::Sqlite | ErrorKind::Io => CliError::RunFailed(error.to_string()),
+        ErrorKind::Sqlite | ErrorKind::Postgres | ErrorKind::Io => {
+            CliError::RunFailed(error.to_string())
+        }
         _ => CliError::BadInput(error.to_string()),
     }
 }
 
 pub fn check(path: &Path) -> Result<(), CliError> {
-    let cdb = open_read_only(path)?;
+    let handle = open_read_only(path)?;
+    let snapshot = handle.snapshot().map_err(cdb_error)?;
+    let cdb: &dyn CdbRead = &*snapshot;
     let report = cdb.check().map_err(cdb_error)?;
     if report.is_ok() {
         let records = cdb
@@ -57,20 +66,25 @@ pub fn check(path: &Path) -> Result<(), CliError> {
             .map_err(cdb_error)?;
         crate::outln!(
             "{}: ok (schema version {}, {records} records)",
-            path.display(),
+            shown(path),
             cdb.schema_version().map_err(cdb_error)?
         );
         return Ok(());
     }
+    let engine = if is_postgres(path) {
+        "postgres"
+    } else {
+        "sqlite"
+    };
     for line in &report.sqlite {
-        crate::outln!("sqlite: {line}");
+        crate::outln!("{engine}: {line}");
     }
     for problem in &report.problems {
         crate::outln!("{}: {}", problem.kind, problem.detail);
     }
     Err(CliError::RunFailed(format!(
         "{}: integrity check failed ({} problems)",
-        path.display(),
+        shown(path),
         report.sqlite.len() + report.problems.len()
     )))
 }
@@ -90,7 +104,7 @@ pub fn export(path: &Path, csv: &Path) -> Result<(), CliError> {
     Ok(())
 }
 
-fn write_csv(cdb: &Cdb, csv: &Path, partial: &Path) -> Result<u64, CliError> {
+fn write_csv(cdb: &CdbHandle, csv: &Path, partial: &Path) -> Result<u64, CliError> {
     use std::io::Write;
     let file = std::fs::File::create(partial).map_err(|e| CliError::io(csv, e))?;
     let mut writer = Tracked {

@@ -21,7 +21,7 @@ pub fn run(
     let cdb = crate::cdb_cmd::open_read_only(cdb_path)?;
     let snapshot = cdb.snapshot().map_err(cdb_error)?;
     let fitted = fit_from_cdb(
-        &snapshot,
+        &*snapshot,
         scanner,
         since,
         until,
@@ -32,7 +32,7 @@ pub fn run(
         SurfaceFitError::NoRecords { .. }
         | SurfaceFitError::AmbiguousScanner(_)
         | SurfaceFitError::TooFewRecords { .. } => {
-            CliError::BadInput(format!("{}: {e}", cdb_path.display()))
+            CliError::BadInput(format!("{}: {e}", spmcal::cdb_handle::shown(cdb_path)))
         }
         other => CliError::RunFailed(other.to_string()),
     })?;
@@ -42,7 +42,7 @@ pub fn run(
             std::io::stderr(),
             "spmcal: warning: {}: {} records with invalid coefficients (as `spmcal cdb check` \
              reports them) were left out of the fit",
-            cdb_path.display(),
+            spmcal::cdb_handle::shown(cdb_path),
             fitted.excluded_records
         );
     }

@@ -1,6 +1,7 @@
 //! The library half of the `spmcal` program: the glue between the crates that
 //! the command line, `cargo xtask` and the end-to-end tests share.
 //!
+//! - [`cdb_handle`]: the CDB a command names, an SQLite file or a PostgreSQL URL.
 //! - [`surfaces`]: CDB records → regression surfaces per Z plane (`surfaces.json`).
 //! - [`job`]: the job file (`[backend]` + `[plan]`).
 //! - [`run`]: running a job on its backend into the CDB, recording drift and nodes.
@@ -16,6 +17,7 @@
 #![doc = include_str!("../README.md")]
 
 pub mod accuracy;
+pub mod cdb_handle;
 pub mod images;
 pub mod job;
 pub mod plots;

@@ -47,8 +47,10 @@ enum Command {
         /// The job config (TOML): `[backend]` and `[plan]`.
         #[arg(long, value_name = "FILE")]
         config: PathBuf,
-        /// The calibration database (created when missing).
-        #[arg(long, value_name = "PATH")]
+        /// The calibration database: a file (created when missing; default OUT/cdb.sqlite)
+        /// or a shared PostgreSQL database, postgres://USER@HOST:PORT/DB (the schema is
+        /// created when missing).
+        #[arg(long, value_name = "PATH|URL")]
         cdb: Option<PathBuf>,
         /// Resume the unfinished run in the CDB instead of starting a new one.
         #[arg(long)]
@@ -68,8 +70,8 @@ enum Command {
     },
     /// Fit regression surfaces through the CDB's coefficients.
     Fit {
-        /// The calibration database.
-        #[arg(long, value_name = "PATH")]
+        /// The calibration database: a file or postgres://USER@HOST:PORT/DB.
+        #[arg(long, value_name = "PATH|URL")]
         cdb: PathBuf,
         /// Only records of this scanner.
         #[arg(long, value_name = "ID")]
@@ -182,12 +184,14 @@ enum Command {
 enum CdbCommand {
     /// Check the database's integrity (exit 1 when it fails).
     Check {
-        /// The database file.
+        /// The database: a file or postgres://USER@HOST:PORT/DB.
+        #[arg(value_name = "PATH|URL")]
         path: PathBuf,
     },
     /// Export every record.
     Export {
-        /// The database file.
+        /// The database: a file or postgres://USER@HOST:PORT/DB.
+        #[arg(value_name = "PATH|URL")]
         path: PathBuf,
         /// CSV output file.
         #[arg(long, value_name = "OUT")]
@@ -195,7 +199,8 @@ enum CdbCommand {
     },
     /// Coefficients against date (age dynamics).
     Trend {
-        /// The database file.
+        /// The database: a file or postgres://USER@HOST:PORT/DB.
+        #[arg(value_name = "PATH|URL")]
         path: PathBuf,
     },
 }

@@ -7,7 +7,7 @@ use crate::run::{DriftSample, NodeSample};
 use crate::surfaces::{RegressionSummary, SurfaceFitOptions, fit_from_cdb};
 use serde::Serialize;
 use spm_calibration::{PlanConfig, RunReport};
-use spm_cdb::{Cdb, CdbRead, RecordFilter};
+use spm_cdb::RecordFilter;
 use spm_correction::PlaneSurfaces;
 use spm_hal::truth::{GroundTruth, SimulatedInstrument};
 use std::path::Path;
@@ -284,10 +284,10 @@ pub fn finish_with(
     quick: bool,
     with_images: bool,
 ) -> Result<CalibrationReport, ReportError> {
-    let cdb = Cdb::open_read_only(cdb_path)?;
+    let cdb = crate::cdb_handle::CdbHandle::open_read_only(cdb_path)?;
     let snapshot = cdb.snapshot()?;
     let fitted = fit_from_cdb(
-        &snapshot,
+        &*snapshot,
         Some(&record.plan.scanner_id),
         None,
         None,

@@ -1,10 +1,11 @@
 //! Running a job: the backend, the CDB, the calibrator, and a recording observer.
 
+use crate::cdb_handle::{CdbHandle, is_postgres};
 use crate::job::{Backend, Job};
 use spm_calibration::{
     Calibrator, GiveUpReason, NodeMeasurement, Observer, PlanVisit, RunError, RunOptions, RunReport,
 };
-use spm_cdb::{Cdb, CdbRead, RunInfo, RunStatus};
+use spm_cdb::{ProgressStore, RunInfo, RunStatus};
 use spm_hal::{CountVelocity, Seconds};
 use spm_sim::Simulator;
 use std::path::Path;
@@ -64,7 +65,7 @@ impl JobRunError {
             }
             Self::Cdb(inner) => !matches!(
                 inner.kind(),
-                spm_cdb::ErrorKind::Sqlite | spm_cdb::ErrorKind::Io
+                spm_cdb::ErrorKind::Sqlite | spm_cdb::ErrorKind::Postgres | spm_cdb::ErrorKind::Io
             ),
             Self::Backend(_) | Self::Run(_) | Self::NoFreeRunId(_) => false,
         }
@@ -87,15 +88,19 @@ fn comparable_config(text: &str) -> String {
 /// older schema (migrated on the read-write open) is checked after its migration by the
 /// next `cdb check`.
 fn verify_existing_cdb(cdb_path: &Path) -> Result<(), JobRunError> {
-    if !cdb_path.exists() {
+    let postgres = is_postgres(cdb_path);
+    if !postgres && !cdb_path.exists() {
         return Ok(());
     }
-    let cdb = match Cdb::open_read_only(cdb_path) {
+    let cdb = match CdbHandle::open_read_only(cdb_path) {
         Ok(cdb) => cdb,
         Err(e) if e.kind() == spm_cdb::ErrorKind::OutdatedSchema => return Ok(()),
+        // A PostgreSQL database without the schema gets it on the read-write open (which
+        // refuses another program's tables).
+        Err(e) if postgres && e.kind() == spm_cdb::ErrorKind::NotACdb => return Ok(()),
         Err(e) => return Err(e.into()),
     };
-    let report = cdb.check()?;
+    let report = cdb.read().check()?;
     if report.is_ok() {
         return Ok(());
     }
@@ -108,14 +113,18 @@ fn verify_existing_cdb(cdb_path: &Path) -> Result<(), JobRunError> {
             .map(|p| format!("{}: {}", p.kind, p.detail)),
     );
     Err(JobRunError::CdbRejected {
-        path: cdb_path.to_path_buf(),
+        path: crate::cdb_handle::shown(cdb_path).into(),
         problems: problems.join("; "),
     })
 }
 
 /// Registers a new run under `base` or, when that id is taken (another run started in the
 /// same second), under `base-2`, `base-3`, …: a run id is never reused.
-fn create_unique_run(cdb: &mut Cdb, base: &str, run: &RunInfo) -> Result<String, JobRunError> {
+fn create_unique_run(
+    cdb: &mut CdbHandle,
+    base: &str,
+    run: &RunInfo,
+) -> Result<String, JobRunError> {
     let mut last = None;
     for n in 1..=10_000u32 {
         let run_id = if n == 1 {
@@ -324,7 +333,7 @@ pub fn run_job<O: Observer>(
         ),
         Instrument::Sim(_) => job.provenance_text.clone(),
     };
-    let mut cdb = Cdb::open(cdb_path)?;
+    let mut cdb = CdbHandle::open(cdb_path)?;
     let run_id = match start {
         RunStart::New { run_id } => {
             let run = RunInfo {
@@ -341,7 +350,7 @@ pub fn run_job<O: Observer>(
             // The newest run that did not finish: killed ('running'), stopped by a signal
             // ('aborted') or by an instrument failure ('failed'). A finished run is never
             // reused.
-            let runs = cdb.runs(Some(&job.plan.scanner_id))?;
+            let runs = cdb.read().runs(Some(&job.plan.scanner_id))?;
             let run = runs
                 .iter()
                 .rev()
@@ -349,7 +358,7 @@ pub fn run_job<O: Observer>(
                 .ok_or_else(|| JobRunError::NothingToResume(job.plan.scanner_id.clone()))?;
             if comparable_config(&run.config) != comparable_config(&job.provenance_text) {
                 return Err(JobRunError::ConfigMismatch {
-                    path: cdb_path.to_path_buf(),
+                    path: crate::cdb_handle::shown(cdb_path).into(),
                     run_id: run.run_id.clone(),
                 });
             }
@@ -454,7 +463,7 @@ fn open_backend(backend: &Backend) -> Result<Instrument, JobRunError> {
 /// Runs the plan on any instrument, recording its lateral commands (the creep model's input).
 fn calibrate_on<M: spm_hal::Microscope, O: Observer>(
     microscope: &mut M,
-    cdb: &mut Cdb,
+    cdb: &mut CdbHandle,
     observer: &mut O,
     job: &Job,
     options: &RunOptions,
@@ -472,7 +481,7 @@ fn calibrate_on<M: spm_hal::Microscope, O: Observer>(
 /// The run's result; a plan the instrument cannot carry out marks the run failed.
 fn settle(
     result: Result<RunReport, RunError>,
-    cdb: &mut Cdb,
+    cdb: &mut CdbHandle,
     options: &RunOptions,
     start_unix_s: f64,
 ) -> Result<RunReport, JobRunError> {
@@ -483,9 +492,14 @@ fn settle(
             // instrument cannot carry out is marked failed (the runner marks instrument
             // failures itself; a CDB failure leaves the run resumable as it is).
             if let RunError::Plan(_) = error
-                && let Ok(Some(run)) = cdb.run(&options.run_id)
+                && let Ok(Some(run)) = cdb.read().run(&options.run_id)
                 && run.status == RunStatus::Running
-                && let Err(e) = cdb.finish_run(&options.run_id, RunStatus::Failed, start_unix_s)
+                && let Err(e) = ProgressStore::finish_run(
+                    &mut *cdb,
+                    &options.run_id,
+                    RunStatus::Failed,
+                    start_unix_s,
+                )
             {
                 tracing::warn!(error = %e, "could not mark the run failed");
             }
@@ -500,7 +514,7 @@ fn settle(
 /// # Errors
 /// CDB errors.
 pub fn mark_aborted(cdb_path: &Path, run_id: &str, at_unix_s: f64) -> Result<(), JobRunError> {
-    let mut cdb = Cdb::open(cdb_path)?;
-    cdb.finish_run(run_id, RunStatus::Aborted, at_unix_s)?;
+    let mut cdb = CdbHandle::open(cdb_path)?;
+    ProgressStore::finish_run(&mut cdb, run_id, RunStatus::Aborted, at_unix_s)?;
     Ok(())
 }

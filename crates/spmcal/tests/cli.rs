@@ -290,7 +290,6 @@ fn a_cdb_with_a_newer_schema_is_refused_and_left_byte_identical() {
     let cdb_path = dir.join("newer.sqlite");
     {
         let cdb = spm_cdb::Cdb::open(&cdb_path).unwrap();
-        use spm_cdb::CdbRead;
         let newer = spm_cdb::SCHEMA_VERSION + 1;
         cdb.connection()
             .pragma_update(None, "user_version", newer)

@@ -7,6 +7,10 @@
 //! the exports taken just before and just after it. Before the writer has created the schema,
 //! an export is refused cleanly ("empty database", exit 2); that is tolerated only until the
 //! first export succeeds.
+//!
+//! The same test runs on the embedded SQLite file and on a shared PostgreSQL database (a
+//! private server started by `spm_cdb::pg_server`), whose schema is likewise created in one
+//! transaction.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use std::collections::HashSet;
@@ -32,14 +36,8 @@ fn spmcal(args: &[&str]) -> Output {
 /// Exports the CDB and returns its data rows (header checked and dropped). The CDB is
 /// created atomically (spm-cdb builds it aside and links it into place), so a reader that
 /// finds the file never sees it half made.
-fn export(cdb: &Path, csv: &Path) -> Vec<String> {
-    let out = spmcal(&[
-        "cdb",
-        "export",
-        cdb.to_str().unwrap(),
-        "--csv",
-        csv.to_str().unwrap(),
-    ]);
+fn export(cdb: &str, csv: &Path) -> Vec<String> {
+    let out = spmcal(&["cdb", "export", cdb, "--csv", csv.to_str().unwrap()]);
     assert_eq!(
         out.status.code(),
         Some(0),
@@ -67,8 +65,30 @@ fn visit(row: &str) -> (u32, u32) {
 #[test]
 fn export_and_fit_during_a_run_see_consistent_snapshots() {
     let dir = std::env::temp_dir().join(format!("spmcal-concurrency-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let cdb = dir.join("cdb.sqlite");
+    readers_during_a_run(&dir, cdb.to_str().unwrap(), &|| cdb.is_file());
+}
+
+#[test]
+fn postgres_export_and_fit_during_a_run_see_consistent_snapshots() {
+    let dir = std::env::temp_dir().join(format!("spmcal-concurrency-pg-{}", std::process::id()));
+    let server = spm_cdb::pg_server::TestServer::start()
+        .unwrap_or_else(|e| panic!("cannot start the private PostgreSQL server: {e}"));
+    let url = server.create_database("concurrency").unwrap();
+    let has_schema = || {
+        let mut c = postgres::Client::connect(&url, postgres::NoTls).unwrap();
+        c.query_one("SELECT to_regclass('schema_version') IS NOT NULL", &[])
+            .unwrap()
+            .get(0)
+    };
+    readers_during_a_run(&dir, &url, &has_schema);
+}
+
+/// Runs a calibration into `cdb` (a path or URL) and exports and fits while it writes;
+/// `exists()` tells whether the writer has created the CDB yet.
+fn readers_during_a_run(dir: &Path, cdb: &str, exists: &dyn Fn() -> bool) {
+    let _ = std::fs::remove_dir_all(dir);
+    std::fs::create_dir_all(dir).unwrap();
     let root = workspace_root();
     let plan = std::fs::read_to_string(root.join("configs/plan-hopg-small.toml"))
         .unwrap()
@@ -84,14 +104,13 @@ fn export_and_fit_during_a_run_see_consistent_snapshots() {
         ),
     )
     .unwrap();
-    let cdb = dir.join("cdb.sqlite");
     let mut writer = Command::new(env!("CARGO_BIN_EXE_spmcal"))
         .args([
             "calibrate",
             "--config",
             job.to_str().unwrap(),
             "--cdb",
-            cdb.to_str().unwrap(),
+            cdb,
             "--out",
             dir.join("out").to_str().unwrap(),
         ])
@@ -107,23 +126,17 @@ fn export_and_fit_during_a_run_see_consistent_snapshots() {
         if let Some(status) = writer.try_wait().unwrap() {
             break status;
         }
-        if !cdb.is_file() {
+        if !exists() {
             std::thread::sleep(std::time::Duration::from_millis(20));
             continue;
         }
         i += 1;
-        let before = export(&cdb, &dir.join(format!("export-{i}.csv")));
+        let before = export(cdb, &dir.join(format!("export-{i}.csv")));
         let n_before = before.len();
         snapshots.push(before);
         if n_before >= 40 {
             let surfaces = dir.join(format!("surfaces-{i}.json"));
-            let out = spmcal(&[
-                "fit",
-                "--cdb",
-                cdb.to_str().unwrap(),
-                "--out",
-                surfaces.to_str().unwrap(),
-            ]);
+            let out = spmcal(&["fit", "--cdb", cdb, "--out", surfaces.to_str().unwrap()]);
             assert_eq!(
                 out.status.code(),
                 Some(0),
@@ -135,14 +148,14 @@ fn export_and_fit_during_a_run_see_consistent_snapshots() {
             let used = json["provenance"]["n_records"]
                 .as_u64()
                 .expect("provenance.n_records");
-            let after = export(&cdb, &dir.join(format!("export-{i}b.csv")));
+            let after = export(cdb, &dir.join(format!("export-{i}b.csv")));
             fits.push((n_before, used, after.len()));
             snapshots.push(after);
         }
     };
     assert_eq!(status.code(), Some(0), "calibrate");
 
-    let last = export(&cdb, &dir.join("final.csv"));
+    let last = export(cdb, &dir.join("final.csv"));
     let final_count = last.len();
     let mut seen = HashSet::new();
     assert!(last.iter().all(|r| seen.insert(visit(r))), "a visit twice");
@@ -173,5 +186,5 @@ fn export_and_fit_during_a_run_see_consistent_snapshots() {
     );
     assert!(mid_run >= 3, "only {mid_run} exports landed mid-run");
     assert!(mid_run_fits >= 2, "only {mid_run_fits} fits landed mid-run");
-    let _ = std::fs::remove_dir_all(&dir);
+    let _ = std::fs::remove_dir_all(dir);
 }

@@ -9,9 +9,12 @@
 //! `--resume` is killed too; a final `spmcal calibrate --resume` exits 0 and leaves every
 //! planned visit done exactly once (one record) or given up with a reason (no record),
 //! compared with the plan of an uninterrupted reference run.
+//!
+//! The same trials run on the embedded SQLite file and on a shared PostgreSQL database (a
+//! private server started by `spm_cdb::pg_server`, one database per trial).
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use spm_cdb::{Cdb, CdbRead};
+use spm_cdb::Cdb;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -51,13 +54,13 @@ fn spmcal() -> Command {
     c
 }
 
-fn calibrate_args(job: &Path, dir: &Path, resume: bool) -> Vec<String> {
+fn calibrate_args(job: &Path, dir: &Path, cdb: &dyn Db, resume: bool) -> Vec<String> {
     let mut args = vec![
         "calibrate".to_owned(),
         "--config".to_owned(),
         job.display().to_string(),
         "--cdb".to_owned(),
-        dir.join("cdb.sqlite").display().to_string(),
+        cdb.location(),
         "--out".to_owned(),
         dir.join("out").display().to_string(),
     ];
@@ -68,9 +71,9 @@ fn calibrate_args(job: &Path, dir: &Path, resume: bool) -> Vec<String> {
 }
 
 /// Starts calibrate and kills it after `after`; true when the kill landed (it was still running).
-fn run_and_kill(job: &Path, dir: &Path, resume: bool, after: Duration) -> bool {
+fn run_and_kill(job: &Path, dir: &Path, cdb: &dyn Db, resume: bool, after: Duration) -> bool {
     let mut child = spmcal()
-        .args(calibrate_args(job, dir, resume))
+        .args(calibrate_args(job, dir, cdb, resume))
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
@@ -88,9 +91,9 @@ fn run_and_kill(job: &Path, dir: &Path, resume: bool, after: Duration) -> bool {
     true
 }
 
-fn run_to_end(job: &Path, dir: &Path, resume: bool) {
+fn run_to_end(job: &Path, dir: &Path, cdb: &dyn Db, resume: bool) {
     let out = spmcal()
-        .args(calibrate_args(job, dir, resume))
+        .args(calibrate_args(job, dir, cdb, resume))
         .output()
         .unwrap();
     assert_eq!(
@@ -110,6 +113,76 @@ struct Contents {
     progress: HashMap<(u32, u32), (String, Option<String>)>,
     /// (repeat, node) → records.
     records: HashMap<(u32, u32), u32>,
+}
+
+/// A CDB the trials write to: its `--cdb` argument, whether a calibration has created it, and
+/// its contents as SQL sees them.
+trait Db {
+    fn location(&self) -> String;
+    fn exists(&self) -> bool;
+    fn contents(&self) -> Contents;
+}
+
+struct SqliteFile(PathBuf);
+
+impl Db for SqliteFile {
+    fn location(&self) -> String {
+        self.0.display().to_string()
+    }
+    fn exists(&self) -> bool {
+        self.0.is_file()
+    }
+    fn contents(&self) -> Contents {
+        contents(&self.0)
+    }
+}
+
+/// A database on the private PostgreSQL server.
+struct Postgres(String);
+
+const PG_CONTENTS: [&str; 3] = [
+    "SELECT run_id, status FROM runs",
+    "SELECT repeat_index, node_index, state, reason FROM progress",
+    "SELECT repeat_index, node_index, COUNT(*) FROM records GROUP BY 1, 2",
+];
+
+impl Db for Postgres {
+    fn location(&self) -> String {
+        self.0.clone()
+    }
+    fn exists(&self) -> bool {
+        let mut c = postgres::Client::connect(&self.0, postgres::NoTls).unwrap();
+        c.query_one("SELECT to_regclass('schema_version') IS NOT NULL", &[])
+            .unwrap()
+            .get(0)
+    }
+    fn contents(&self) -> Contents {
+        let mut c = postgres::Client::connect(&self.0, postgres::NoTls).unwrap();
+        let index = |r: &postgres::Row, i: usize| u32::try_from(r.get::<_, i64>(i)).unwrap();
+        let runs = c
+            .query(PG_CONTENTS[0], &[])
+            .unwrap()
+            .iter()
+            .map(|r| (r.get(0), r.get(1)))
+            .collect();
+        let progress = c
+            .query(PG_CONTENTS[1], &[])
+            .unwrap()
+            .iter()
+            .map(|r| ((index(r, 0), index(r, 1)), (r.get(2), r.get(3))))
+            .collect();
+        let records = c
+            .query(PG_CONTENTS[2], &[])
+            .unwrap()
+            .iter()
+            .map(|r| ((index(r, 0), index(r, 1)), index(r, 2)))
+            .collect();
+        Contents {
+            runs,
+            progress,
+            records,
+        }
+    }
 }
 
 fn contents(path: &Path) -> Contents {
@@ -165,9 +238,9 @@ fn assert_consistent(c: &Contents, when: &str) {
     }
 }
 
-fn check_passes(cdb: &Path, when: &str) {
+fn check_passes(cdb: &dyn Db, when: &str) {
     let out = spmcal()
-        .args(["cdb", "check", &cdb.display().to_string()])
+        .args(["cdb", "check", &cdb.location()])
         .output()
         .unwrap();
     assert_eq!(
@@ -191,7 +264,25 @@ impl Rng {
 
 #[test]
 fn sigkill_at_random_moments_loses_nothing_and_resume_completes_the_plan() {
-    let scratch = std::env::temp_dir().join(format!("spmcal-crash-{}", std::process::id()));
+    trials("sqlite", &|dir: &Path, _name: &str| -> Box<dyn Db> {
+        Box::new(SqliteFile(dir.join("cdb.sqlite")))
+    });
+}
+
+#[test]
+fn postgres_sigkill_at_random_moments_loses_nothing_and_resume_completes_the_plan() {
+    let server = spm_cdb::pg_server::TestServer::start()
+        .unwrap_or_else(|e| panic!("cannot start the private PostgreSQL server: {e}"));
+    trials("postgres", &|_dir: &Path, name: &str| -> Box<dyn Db> {
+        Box::new(Postgres(server.create_database(name).unwrap()))
+    });
+}
+
+/// The trials on one back end; `make_db(dir, name)` gives each trial (and the reference run)
+/// a new, empty database.
+fn trials(backend: &str, make_db: &dyn Fn(&Path, &str) -> Box<dyn Db>) {
+    let scratch =
+        std::env::temp_dir().join(format!("spmcal-crash-{backend}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&scratch);
     std::fs::create_dir_all(&scratch).unwrap();
 
@@ -199,10 +290,11 @@ fn sigkill_at_random_moments_loses_nothing_and_resume_completes_the_plan() {
     let reference = scratch.join("reference");
     std::fs::create_dir_all(&reference).unwrap();
     let job = write_job(&reference);
+    let reference_db = make_db(&reference, "reference");
     let started = Instant::now();
-    run_to_end(&job, &reference, false);
+    run_to_end(&job, &reference, &*reference_db, false);
     let full = started.elapsed();
-    let planned = contents(&reference.join("cdb.sqlite"));
+    let planned = reference_db.contents();
     assert_eq!(planned.progress.len(), 13 * 13 * 2);
     assert_consistent(&planned, "reference");
 
@@ -212,13 +304,14 @@ fn sigkill_at_random_moments_loses_nothing_and_resume_completes_the_plan() {
         let dir = scratch.join(format!("trial-{trial}"));
         std::fs::create_dir_all(&dir).unwrap();
         let job = write_job(&dir);
-        let cdb = dir.join("cdb.sqlite");
+        let cdb = make_db(&dir, &format!("trial_{trial}"));
+        let cdb = &*cdb;
         let kills_this_trial = if trial % 2 == 1 { 2 } else { 1 };
         for k in 0..kills_this_trial {
             // Where the database stands decides how to (re)start: resume a running run,
             // start afresh when none was registered yet, stop when the run finished.
-            let (resume, finished) = if cdb.is_file() {
-                let runs = contents(&cdb).runs;
+            let (resume, finished) = if cdb.exists() {
+                let runs = cdb.contents().runs;
                 (
                     runs.iter().any(|(_, s)| s == "running"),
                     runs.iter().any(|(_, s)| s == "finished"),
@@ -230,16 +323,16 @@ fn sigkill_at_random_moments_loses_nothing_and_resume_completes_the_plan() {
                 break;
             }
             let after = full.mul_f64(0.05 + 0.65 * rng.uniform());
-            if !run_and_kill(&job, &dir, resume, after) {
+            if !run_and_kill(&job, &dir, cdb, resume, after) {
                 continue; // it finished before the kill
             }
             kills += 1;
             let when = format!("trial {trial}, kill {k} after {after:?}");
-            if !cdb.is_file() {
+            if !cdb.exists() {
                 continue; // killed before the database was created
             }
-            check_passes(&cdb, &when);
-            let c = contents(&cdb);
+            check_passes(cdb, &when);
+            let c = cdb.contents();
             assert_consistent(&c, &when);
             assert!(c.runs.len() <= 1, "{when}: {:?}", c.runs);
             if c.runs.iter().any(|(_, s)| s == "running")
@@ -249,16 +342,16 @@ fn sigkill_at_random_moments_loses_nothing_and_resume_completes_the_plan() {
             }
         }
         // Finish: resume the killed run (or, killed before it was registered, start it).
-        let runs = if cdb.is_file() {
-            contents(&cdb).runs
+        let runs = if cdb.exists() {
+            cdb.contents().runs
         } else {
             Vec::new()
         };
         if !runs.iter().any(|(_, s)| s == "finished") {
-            run_to_end(&job, &dir, runs.iter().any(|(_, s)| s == "running"));
+            run_to_end(&job, &dir, cdb, runs.iter().any(|(_, s)| s == "running"));
         }
-        check_passes(&cdb, &format!("trial {trial}, after resume"));
-        let c = contents(&cdb);
+        check_passes(cdb, &format!("trial {trial}, after resume"));
+        let c = cdb.contents();
         assert_consistent(&c, &format!("trial {trial}, after resume"));
         assert_eq!(
             c.runs.len(),
@@ -283,7 +376,10 @@ fn sigkill_at_random_moments_loses_nothing_and_resume_completes_the_plan() {
         );
         assert_eq!(c.records.values().sum::<u32>() as usize, done);
     }
-    eprintln!("{kills} kills, {mid_run} mid-run (pending visits left), full run {full:?}");
+    eprintln!(
+        "{backend}: {kills} kills, {mid_run} mid-run (pending visits left), `cdb check` clean \
+         after each, full run {full:?}"
+    );
     assert!(kills >= TRIALS, "kills: {kills}");
     assert!(mid_run >= 10, "only {mid_run} kills landed mid-run");
     let _ = std::fs::remove_dir_all(&scratch);

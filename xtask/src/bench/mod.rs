@@ -17,6 +17,7 @@ mod drift;
 mod gwyddion;
 mod linalg;
 mod nanonis;
+mod postgres;
 mod productivity;
 mod report;
 mod speed;
@@ -114,6 +115,8 @@ pub struct Results {
     pub linalg: Section<linalg::LinalgResults>,
     /// Nanonis TCP overhead: wall time per node over loopback ÷ in process.
     pub nanonis: Section<nanonis::NanonisResults>,
+    /// The CDB on SQLite and on a shared PostgreSQL database.
+    pub postgres: Section<postgres::PostgresResults>,
 }
 
 /// What `cargo xtask bench` was asked to do.
@@ -158,6 +161,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
     let crb = timed("crb", || crb::run(&ctx));
     let speed = timed("speed", || speed::run(&ctx, accuracy.measured()));
     let nanonis = timed("nanonis", || nanonis::run(&ctx));
+    let postgres = timed("postgres", || postgres::run(&ctx));
     let gwyddion = timed("gwyddion", || {
         if with_gwyddion {
             gwyddion::run(&ctx)
@@ -198,6 +202,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
         gwyddion,
         linalg,
         nanonis,
+        postgres,
     };
     report::write(&ctx, &results)
 }

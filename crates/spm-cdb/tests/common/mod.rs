@@ -83,3 +83,194 @@ pub fn record(run: &RunInfo, node: &PlanNode, lcs_index: u32, t_unix_s: f64) -> 
         quality: 0.9,
     }
 }
+
+// ---------------------------------------------------------------------------------------
+// Both back ends: the same test body runs on the embedded file and on a private PostgreSQL
+// server, through a store factory.
+
+use spm_cdb::postgres::PgCdb;
+use spm_cdb::{Cdb, CdbRead, NodeDone, Result};
+use std::path::Path;
+
+/// The writes of a CDB, on either back end (the inherent methods of `Cdb` and `PgCdb`).
+pub trait Store: CdbRead + Send {
+    fn create_run(&mut self, run: &RunInfo) -> Result<()>;
+    fn register_plan(&mut self, run_id: &str, nodes: &[PlanNode]) -> Result<()>;
+    fn commit_node(&mut self, run_id: &str, done: &NodeDone, records: &[LccRecord]) -> Result<()>;
+    fn give_up_node(
+        &mut self,
+        run_id: &str,
+        repeat_index: u32,
+        node_index: u32,
+        reason: &str,
+        attempts: u32,
+        at_unix_s: f64,
+    ) -> Result<()>;
+    fn finish_run(&mut self, run_id: &str, status: RunStatus, at_unix_s: f64) -> Result<()>;
+    fn reopen_run(&mut self, run_id: &str) -> Result<()>;
+    fn import_records(&mut self, records: &[LccRecord]) -> Result<u64>;
+    fn snapshot(&self) -> Result<Box<dyn CdbRead + '_>>;
+}
+
+macro_rules! store {
+    ($t:ty) => {
+        impl Store for $t {
+            fn create_run(&mut self, run: &RunInfo) -> Result<()> {
+                <$t>::create_run(self, run)
+            }
+            fn register_plan(&mut self, run_id: &str, nodes: &[PlanNode]) -> Result<()> {
+                <$t>::register_plan(self, run_id, nodes)
+            }
+            fn commit_node(
+                &mut self,
+                run_id: &str,
+                done: &NodeDone,
+                records: &[LccRecord],
+            ) -> Result<()> {
+                <$t>::commit_node(self, run_id, done, records)
+            }
+            fn give_up_node(
+                &mut self,
+                run_id: &str,
+                repeat_index: u32,
+                node_index: u32,
+                reason: &str,
+                attempts: u32,
+                at_unix_s: f64,
+            ) -> Result<()> {
+                <$t>::give_up_node(
+                    self,
+                    run_id,
+                    repeat_index,
+                    node_index,
+                    reason,
+                    attempts,
+                    at_unix_s,
+                )
+            }
+            fn finish_run(
+                &mut self,
+                run_id: &str,
+                status: RunStatus,
+                at_unix_s: f64,
+            ) -> Result<()> {
+                <$t>::finish_run(self, run_id, status, at_unix_s)
+            }
+            fn reopen_run(&mut self, run_id: &str) -> Result<()> {
+                <$t>::reopen_run(self, run_id)
+            }
+            fn import_records(&mut self, records: &[LccRecord]) -> Result<u64> {
+                <$t>::import_records(self, records)
+            }
+            fn snapshot(&self) -> Result<Box<dyn CdbRead + '_>> {
+                Ok(Box::new(<$t>::snapshot(self)?))
+            }
+        }
+    };
+}
+
+store!(Cdb);
+store!(PgCdb);
+
+/// A store factory: fresh databases by name, opened read-write.
+pub trait Backend: Sync {
+    /// An empty database for the test `name`; returns its location (path or URL).
+    fn fresh(&self, name: &str) -> String;
+    /// Opens a database read-write (creating the schema).
+    fn open(&self, location: &str) -> Box<dyn Store>;
+    /// Opens a database read-only.
+    fn open_read_only(&self, location: &str) -> Result<Box<dyn CdbRead>>;
+    /// Runs SQL on the database directly (to corrupt it behind the library's back).
+    fn raw_sql(&self, location: &str, sql: &str);
+    /// What errors name as the database's place.
+    fn shown(&self, location: &str) -> std::path::PathBuf;
+    /// An SQL literal for +∞ that the back end stores in a REAL / DOUBLE PRECISION column.
+    fn infinity_literal(&self) -> &'static str;
+}
+
+/// The embedded SQLite file.
+pub struct Sqlite;
+
+impl Backend for Sqlite {
+    fn fresh(&self, name: &str) -> String {
+        db_path(name).to_string_lossy().into_owned()
+    }
+    fn open(&self, location: &str) -> Box<dyn Store> {
+        Box::new(Cdb::open(location).unwrap())
+    }
+    fn open_read_only(&self, location: &str) -> Result<Box<dyn CdbRead>> {
+        Ok(Box::new(Cdb::open_read_only(location)?))
+    }
+    fn raw_sql(&self, location: &str, sql: &str) {
+        rusqlite::Connection::open(location)
+            .unwrap()
+            .execute_batch(sql)
+            .unwrap();
+    }
+    fn shown(&self, location: &str) -> std::path::PathBuf {
+        Path::new(location).to_path_buf()
+    }
+    fn infinity_literal(&self) -> &'static str {
+        "9e999"
+    }
+}
+
+/// A private PostgreSQL server, one per test binary (stopped by its watchdog when the binary
+/// exits), one database per test.
+pub struct Postgres {
+    server: spm_cdb::pg_server::TestServer,
+}
+
+/// The test binary's PostgreSQL server, started on first use. Panics with the harness's
+/// message (naming what is missing) if PostgreSQL is not installed.
+pub fn postgres() -> &'static Postgres {
+    static SERVER: std::sync::OnceLock<Postgres> = std::sync::OnceLock::new();
+    SERVER.get_or_init(|| Postgres {
+        server: spm_cdb::pg_server::TestServer::start()
+            .unwrap_or_else(|e| panic!("cannot start the private PostgreSQL server: {e}")),
+    })
+}
+
+impl Backend for Postgres {
+    fn fresh(&self, name: &str) -> String {
+        self.server.create_database(name).unwrap()
+    }
+    fn open(&self, location: &str) -> Box<dyn Store> {
+        Box::new(PgCdb::open(location).unwrap())
+    }
+    fn open_read_only(&self, location: &str) -> Result<Box<dyn CdbRead>> {
+        Ok(Box::new(PgCdb::open_read_only(location)?))
+    }
+    fn raw_sql(&self, location: &str, sql: &str) {
+        postgres::Client::connect(location, postgres::NoTls)
+            .unwrap()
+            .batch_execute(sql)
+            .unwrap();
+    }
+    fn shown(&self, location: &str) -> std::path::PathBuf {
+        std::path::PathBuf::from(location)
+    }
+    fn infinity_literal(&self) -> &'static str {
+        "'Infinity'"
+    }
+}
+
+/// `#[test]`s running each named body (`fn name(b: &'static dyn Backend)`) on both back ends:
+/// `sqlite::name` and `postgres::name`.
+#[macro_export]
+macro_rules! on_both_backends {
+    ($($name:ident),* $(,)?) => {
+        mod sqlite {
+            $(#[test]
+            fn $name() {
+                super::$name(&super::common::Sqlite);
+            })*
+        }
+        mod postgres {
+            $(#[test]
+            fn $name() {
+                super::$name(super::common::postgres());
+            })*
+        }
+    };
+}

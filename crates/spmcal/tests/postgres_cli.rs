@@ -1,0 +1,188 @@
+//! The read commands on a shared PostgreSQL CDB (issue 16): `spmcal fit`, `cdb check`,
+//! `cdb export` and `cdb trend` given `postgres://…` give the same output as given an SQLite
+//! file holding the same records (the embedded back end is the peer oracle), `cdb check`
+//! finds what was altered behind the library's back, and an unreachable server is a run
+//! failure whose message never shows the password.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use spm_cdb::bench_support::{SCANNER_ID, T0_UNIX_S, synthetic_record};
+use spm_cdb::postgres::PgCdb;
+use spm_cdb::{Cdb, RunInfo, RunStatus};
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn spmcal(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_spmcal"))
+        .args(args)
+        .env("NO_COLOR", "1")
+        .output()
+        .expect("spmcal runs")
+}
+
+fn ok(out: &Output, what: &str) -> String {
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{what}: {}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// Three runs of 600 records (a day apart) of the bench's synthetic scanner.
+fn fill(create: &mut dyn FnMut(&RunInfo), import: &mut dyn FnMut(&[spm_cdb::LccRecord])) {
+    let ids: Vec<String> = (0..3).map(|k| format!("run-{k}")).collect();
+    for (k, id) in ids.iter().enumerate() {
+        create(&RunInfo {
+            run_id: id.clone(),
+            scanner_id: SCANNER_ID.into(),
+            config: "[plan]\n".into(),
+            started_unix_s: T0_UNIX_S + 86_400.0 * k as f64,
+            finished_unix_s: Some(T0_UNIX_S + 86_400.0 * k as f64 + 3600.0),
+            status: RunStatus::Finished,
+        });
+    }
+    let records: Vec<_> = (0..1800).map(|i| synthetic_record(i, 600, &ids)).collect();
+    import(&records);
+}
+
+#[test]
+fn read_commands_on_postgres_match_the_sqlite_file() {
+    let dir = std::env::temp_dir().join(format!("spmcal-pg-cli-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("cdb.sqlite");
+    {
+        let cdb = std::cell::RefCell::new(Cdb::open(&file).unwrap());
+        fill(
+            &mut |r| cdb.borrow_mut().create_run(r).unwrap(),
+            &mut |rs| {
+                cdb.borrow_mut().import_records(rs).unwrap();
+            },
+        );
+    }
+    let server = spm_cdb::pg_server::TestServer::start()
+        .unwrap_or_else(|e| panic!("cannot start the private PostgreSQL server: {e}"));
+    let url = server.create_database("cli").unwrap();
+    {
+        let cdb = std::cell::RefCell::new(PgCdb::open(&url).unwrap());
+        fill(
+            &mut |r| cdb.borrow_mut().create_run(r).unwrap(),
+            &mut |rs| {
+                cdb.borrow_mut().import_records(rs).unwrap();
+            },
+        );
+    }
+    let file_s = file.to_str().unwrap();
+    let on_both = |args: &dyn Fn(&str, &str) -> Vec<String>, what: &str| -> (String, String) {
+        let run = |location: &str, tag: &str| {
+            let a = args(location, tag);
+            let a: Vec<&str> = a.iter().map(String::as_str).collect();
+            ok(&spmcal(&a), &format!("{what} on {tag}")).replace(location, "<CDB>")
+        };
+        (run(file_s, "sqlite"), run(&url, "postgres"))
+    };
+
+    // cdb check: clean, same schema version and count
+    let (a, b) = on_both(
+        &|l, _| vec!["cdb".into(), "check".into(), l.into()],
+        "check",
+    );
+    assert_eq!(a, b);
+    assert!(a.contains("ok (schema version 2, 1800 records)"), "{a}");
+
+    // cdb trend: the same text
+    let (a, b) = on_both(
+        &|l, _| vec!["cdb".into(), "trend".into(), l.into()],
+        "trend",
+    );
+    assert_eq!(a, b);
+    assert!(a.contains("run-2"), "{a}");
+
+    // cdb export: byte-identical CSV
+    let csv = |tag: &str| dir.join(format!("{tag}.csv"));
+    let (a, b) = on_both(
+        &|l, tag| {
+            vec![
+                "cdb".into(),
+                "export".into(),
+                l.into(),
+                "--csv".into(),
+                csv(tag).display().to_string(),
+            ]
+        },
+        "export",
+    );
+    assert_eq!(a.replace("sqlite.csv", "X"), b.replace("postgres.csv", "X"));
+    let (sqlite_csv, pg_csv) = (
+        std::fs::read(csv("sqlite")).unwrap(),
+        std::fs::read(csv("postgres")).unwrap(),
+    );
+    assert_eq!(sqlite_csv.iter().filter(|&&c| c == b'\n').count(), 1801);
+    assert!(sqlite_csv == pg_csv, "the CSV exports differ");
+
+    // fit: the same surfaces
+    let surfaces = |tag: &str| dir.join(format!("surfaces-{tag}.json"));
+    let (a, b) = on_both(
+        &|l, tag| {
+            vec![
+                "fit".into(),
+                "--cdb".into(),
+                l.into(),
+                "--since".into(),
+                "2024-01-02".into(),
+                "--out".into(),
+                surfaces(tag).display().to_string(),
+            ]
+        },
+        "fit",
+    );
+    let read = |tag: &str| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(surfaces(tag)).unwrap()).unwrap()
+    };
+    assert_eq!(
+        a.replace("surfaces-sqlite", "X"),
+        b.replace("surfaces-postgres", "X")
+    );
+    assert_eq!(read("sqlite"), read("postgres"));
+    assert_eq!(read("postgres")["provenance"]["n_records"], 1200);
+
+    // altered behind the library's back: check fails (exit 1) naming the problem
+    let mut raw = postgres::Client::connect(&url, postgres::NoTls).unwrap();
+    raw.batch_execute("UPDATE records SET kx_nm_per_count = 'NaN' WHERE id = 7")
+        .unwrap();
+    let out = spmcal(&["cdb", "check", &url]);
+    assert_eq!(out.status.code(), Some(1));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("non_finite: record id 7") && text.contains("kx_nm_per_count"),
+        "{text}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn unreachable_server_is_a_run_failure_without_the_password() {
+    let port = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().port()
+    };
+    let url = format!("postgres://lab:hunter2@127.0.0.1:{port}/cdb?connect_timeout=5");
+    let out_dir = std::env::temp_dir().join(format!("spmcal-pg-cli-fit-{}", std::process::id()));
+    std::fs::create_dir_all(&out_dir).unwrap();
+    let surfaces = out_dir.join("s.json");
+    for args in [
+        vec!["cdb", "check", &url],
+        vec!["cdb", "trend", &url],
+        vec!["fit", "--cdb", &url, "--out", surfaces.to_str().unwrap()],
+    ] {
+        let out = spmcal(&args);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {err}");
+        assert!(!err.contains("hunter2"), "{err}");
+        assert!(err.contains("lab:***@127.0.0.1"), "{err}");
+    }
+    assert!(!Path::new(&surfaces).exists());
+    let _ = std::fs::remove_dir_all(&out_dir);
+}

@@ -69,6 +69,27 @@ pub(crate) fn tick_label(v: f64, step: f64) -> String {
     }
 }
 
+/// A tick label of a logarithmic axis: the decimals its decade needs (1, 10, 0.5, 0.02).
+pub(crate) fn log_tick_label(v: f64) -> String {
+    if !(v.is_finite() && v > 0.0) {
+        return String::new();
+    }
+    if !(1e-4..1e7).contains(&v) {
+        return format!("{v:.0e}");
+    }
+    let decimals = (-v.log10().floor()).max(0.0) as usize;
+    format!("{v:.decimals$}")
+}
+
+/// A logarithmic range around [lo, hi] with head-room at the top for a legend of `rows`
+/// entries (the legend takes about 5.5 % of the plot's height per entry).
+fn log_range_with_legend(lo: f64, hi: f64, rows: usize) -> (f64, f64) {
+    let (lo, hi) = (lo / 1.3, hi * 1.3);
+    let span = (hi / lo).log10().max(0.3);
+    let f = (0.04 + 0.055 * rows as f64).min(0.6);
+    (lo, hi * 10f64.powf(span * f / (1.0 - f)))
+}
+
 /// The finite (min, max) of `values`, widened when degenerate; `None` when none is finite.
 fn finite_range(values: impl Iterator<Item = f64>) -> Option<(f64, f64)> {
     let (lo, hi) = values
@@ -415,8 +436,7 @@ pub fn xy_chart(f: &XyFigure) -> Result<Vec<u8>, PlotError> {
             .y_label_area_size(84);
         let sx = step_of(xr, 8);
         if f.log_y {
-            // Head-room above the data for the legend.
-            let yr = (ylo / 1.5, yhi * 10f64.powf(0.35 * legend_rows.max(2.0)));
+            let yr = log_range_with_legend(ylo, yhi, series.len());
             let mut chart = builder
                 .build_cartesian_2d(xr.0..xr.1, (yr.0..yr.1).log_scale())
                 .map_err(|e| draw_error(title, e))?;
@@ -424,7 +444,7 @@ pub fn xy_chart(f: &XyFigure) -> Result<Vec<u8>, PlotError> {
                 .configure_mesh()
                 .x_labels(8)
                 .x_label_formatter(&|v| tick_label(*v, sx))
-                .y_label_formatter(&|v| tick_label(*v, v.abs() / 10.0))
+                .y_label_formatter(&|v| log_tick_label(*v))
                 .x_desc(f.x_label.as_str())
                 .y_desc(f.y_label.as_str())
                 .label_style((FONT_FAMILY, TICK_PX))
@@ -595,9 +615,7 @@ pub fn category_chart(f: &CategoryFigure) -> Result<Vec<u8>, PlotError> {
             .y_label_area_size(84);
         let x_range = -0.5..(n as f64 - 0.5);
         if f.log_y {
-            // Head-room above the data for the legend.
-            let rows = f.series.len().max(2) as f64;
-            let yr = (ylo / 1.6, yhi * 10f64.powf(0.3 * rows));
+            let yr = log_range_with_legend(ylo, yhi, f.series.len());
             let chart = builder
                 .build_cartesian_2d(x_range, (yr.0..yr.1).log_scale())
                 .map_err(|e| draw_error(title, e))?;
@@ -625,12 +643,19 @@ where
 {
     let title = f.title.as_str();
     let n = f.categories.len();
+    let linear_step = step_of((y_bottom, y_top), 10);
     chart
         .configure_mesh()
         .disable_x_mesh()
         .x_labels(0)
         .x_label_formatter(&|_| String::new())
-        .y_label_formatter(&|v| tick_label(*v, v.abs() / 10.0))
+        .y_label_formatter(&|v| {
+            if f.log_y {
+                log_tick_label(*v)
+            } else {
+                tick_label(*v, linear_step)
+            }
+        })
         .x_desc(f.x_label.as_str())
         .y_desc(f.y_label.as_str())
         .label_style((FONT_FAMILY, TICK_PX))
@@ -782,5 +807,25 @@ mod tests {
         check(-0.0, 0.1, "0.0");
         check(1.5e-5, 1e-6, "1.5e-5");
         check(250_000.0, 50_000.0, "2.5e5");
+    }
+
+    #[test]
+    fn log_tick_labels_show_the_decade() {
+        for (v, expected) in [
+            (1.0, "1"),
+            (10.0, "10"),
+            (0.5, "0.5"),
+            (0.02, "0.02"),
+            (1e6, "1000000"),
+            (1e8, "1e8"),
+        ] {
+            assert_eq!(log_tick_label(v), expected, "log_tick_label({v})");
+        }
+    }
+
+    #[test]
+    fn the_legend_gets_head_room_on_a_log_axis() {
+        let (lo, hi) = log_range_with_legend(1.0, 10.0, 4);
+        assert!(lo < 1.0 && hi > 13.0 && hi < 100.0, "{lo} {hi}");
     }
 }

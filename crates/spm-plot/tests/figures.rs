@@ -134,6 +134,45 @@ fn xy_chart_draws_lines_markers_and_legend() {
 }
 
 #[test]
+fn log_xy_chart_keeps_a_narrow_range_readable() {
+    // Six series between 0.9 % and 2.6 %: the legend's head-room must not squash them.
+    let series: Vec<Series> = (0..6)
+        .map(|k| Series {
+            name: format!("variant {k}"),
+            points: vec![
+                (360.0 + 20.0 * f64::from(k), 0.9 + 0.3 * f64::from(k)),
+                (1130.0, 0.88),
+            ],
+            style: SeriesStyle::Markers,
+        })
+        .collect();
+    let bytes = xy_chart(&XyFigure {
+        title: "Node LCC error against instrument time".to_owned(),
+        x_label: "simulated instrument time, s".to_owned(),
+        y_label: "RMS node K error, %".to_owned(),
+        series,
+        log_y: true,
+        y_from_zero: false,
+        size: (1000, 560),
+    })
+    .unwrap();
+    save("xy-log.png", &bytes);
+    let img = Image::decode(&bytes);
+    // The markers (left half: the legend is on the right) spread over more than a fifth of
+    // the figure's height.
+    let rows_of = |k: usize| -> Vec<u32> {
+        let c = spm_plot::category_colour(k);
+        (0..img.h)
+            .filter(|&y| (0..img.w / 2).any(|x| img.px(x, y) == [c.0, c.1, c.2]))
+            .collect()
+    };
+    let (rows, rows5) = (rows_of(0), rows_of(5));
+    let low = rows.iter().max().unwrap();
+    let high = rows5.iter().min().unwrap();
+    assert!(low - high > img.h / 5, "{low} {high}");
+}
+
+#[test]
 fn category_chart_puts_categories_on_ticks_and_rejects_empty() {
     let categories: Vec<String> = ["sim-mild", "sim-typical", "sim-bad", "sim-bad + pauses"]
         .iter()

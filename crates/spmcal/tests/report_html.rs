@@ -235,6 +235,9 @@ fn check_page(html: &str, json: &Value, figures: &[Figure]) {
         points.iter().filter(|p| p["spoiled"] == true).count() as u64,
         drift["spoiled"].as_u64().unwrap()
     );
+    // Every marked estimate is a cycle the run counted as spoiled (a cycle without a finite
+    // velocity has no estimate to mark).
+    assert!(drift["spoiled"].as_u64().unwrap() <= run["cycles"]["discarded"].as_u64().unwrap());
     let speeds = &drift["speed_min_median_max_nm_per_s"];
     for (k, key) in ["speed_min", "speed_median", "speed_max"]
         .iter()

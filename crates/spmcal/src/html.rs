@@ -340,6 +340,46 @@ pub fn images_tables(page: &mut Page, prefix: &str, images: &crate::images::Imag
         })
         .collect();
     page.table(&format!("{prefix}images-methods"), &IMAGES_HEADER, &rows);
+    if !images.images.is_empty() {
+        // Per image: every method's position RMS (report.json `images.images`).
+        let methods: Vec<&String> = images.methods.keys().collect();
+        let mut header: Vec<String> = [
+            "image",
+            "place",
+            "side, counts",
+            "pixel dwell, s",
+            "direction",
+        ]
+        .iter()
+        .map(|h| (*h).to_owned())
+        .collect();
+        header.extend(methods.iter().map(|m| format!("{m}: position RMS, pm")));
+        let header: Vec<&str> = header.iter().map(String::as_str).collect();
+        let rows: Vec<Row> = images
+            .images
+            .iter()
+            .enumerate()
+            .map(|(k, image)| {
+                let mut cells = vec![
+                    Cell::text(format!("pair {} {}", image.pair, image.direction)),
+                    Cell::text(&image.place),
+                    Cell::significant(image.side_counts),
+                    Cell::significant(image.dwell_s),
+                    Cell::text(&image.direction),
+                ];
+                cells.extend(methods.iter().map(|m| {
+                    image
+                        .figures
+                        .get(*m)
+                        .map_or(Cell::text("–"), |f| Cell::number(f.position_rms_pm, 1))
+                }));
+                Row::new(k.to_string(), cells)
+            })
+            .collect();
+        page.details_start(&format!("every image ({})", images.images.len()));
+        page.table(&format!("{prefix}images-per-image"), &header, &rows);
+        page.details_end();
+    }
     if let Some(d) = &images.dynamics {
         let rows = vec![
             Row::new(

@@ -184,6 +184,23 @@ fn check_page(html: &str, json: &Value, figures: &[Figure]) {
             );
         }
     }
+    let per_image = json["images"]["images"].as_array().unwrap();
+    assert_eq!(rows(&doc, "images-per-image").len(), per_image.len());
+    let method_names: Vec<&String> = images.keys().collect();
+    for (k, image) in per_image.iter().enumerate() {
+        let cells = row(&doc, "images-per-image", &k.to_string());
+        assert_eq!(text(&cells[1]), image["place"]);
+        check_number(&cells[2], &image["side_counts"], "image side");
+        check_number(&cells[3], &image["dwell_s"], "image dwell");
+        assert_eq!(text(&cells[4]), image["direction"]);
+        for (m, name) in method_names.iter().enumerate() {
+            check_number(
+                &cells[5 + m],
+                &image["figures"][name.as_str()]["position_rms_pm"],
+                &format!("image {k} {name}"),
+            );
+        }
+    }
     let summary = doc
         .select(&sel("p#images-summary"))
         .next()

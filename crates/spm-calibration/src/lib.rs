@@ -46,18 +46,21 @@
 //!   +0.16 ± 0.20 %; without drift or without hysteresis the excess stays. The likely cause is
 //!   the creep reaction to the skipping hops themselves (not drift, so not cancelled by the
 //!   half-sum); the evidence is modest (ignored test `diagnose_bias_sources`).
+#![doc = include_str!("../README.md")]
 #![warn(missing_docs)]
 
 pub mod config;
 pub mod lcc;
 pub mod machine;
+pub mod measure;
 pub mod plan;
 pub mod runner;
 
 pub use config::{
     ApertureConfig, AttachConfig, AttachTarget, ConfigError, DriftConfig, FailureConfig,
     FeaturePolarity, MeasurementMethod, MotionConfig, NeighbourSet, NetConfig, NetKind, PlanConfig,
-    SkippingConfig, StandardConfig, ValidationError, VariantConfig, locate_field_line,
+    SkippingConfig, StandardConfig, TuningConfig, ValidationError, VariantConfig,
+    locate_field_line,
 };
 pub use lcc::{
     CountCovariance, KzEstimate, LccError, LccEstimate, Metric, StandardVector, StepObservation,
@@ -65,8 +68,7 @@ pub use lcc::{
 };
 pub use machine::{
     Action, Anchor, ApertureResult, AttachResult, CounterResult, CycleCounts, Event, Failure,
-    GiveUpReason, MachineParams, NodeMachine, NodeMeasurement, SKIP_VECTOR_TOLERANCE, SkipResult,
-    VectorTarget,
+    GiveUpReason, MachineParams, NodeMachine, NodeMeasurement, SkipResult, VectorTarget,
 };
 pub use plan::{GridNode, NetGeometry, NetPlan, PauseLaw, PlanError, PlanVisit, ZLevel};
 pub use runner::{

@@ -14,6 +14,7 @@
 //!
 //! Every function returns the PNG bytes (for files and for the HTML report's data URIs);
 //! nothing panics on data: non-finite values are skipped, empty inputs are [`PlotError`]s.
+#![doc = include_str!("../README.md")]
 
 mod channel;
 mod charts;

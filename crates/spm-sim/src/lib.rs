@@ -117,6 +117,7 @@
 //! [`SimError`] of the matching [`spm_hal::ErrorKind`]; tip changes and drift
 //! bursts change the data only. Everything is logged with its time
 //! ([`Oracle::fault_log`]), including spontaneous drift jumps.
+#![doc = include_str!("../README.md")]
 #![warn(missing_docs)]
 
 pub mod config;
@@ -136,4 +137,6 @@ pub use fault::{FaultEvent, FaultEventKind, FaultKind, FaultTrigger, Operation, 
 pub use oracle::Oracle;
 pub use scanner::{Creep, Jacobian, Lcc, PlayHysteresis, StaticMap, creep_elements};
 pub use sim::Simulator;
+
+mod truth;
 pub use surface::{FeatureKind, FeatureSite, Surface};

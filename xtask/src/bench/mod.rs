@@ -15,6 +15,7 @@ mod budget;
 mod crb;
 mod drift;
 mod gwyddion;
+mod linalg;
 mod productivity;
 mod report;
 mod speed;
@@ -108,9 +109,27 @@ pub struct Results {
     pub speed: Section<speed::SpeedResults>,
     /// Gwyddion side by side.
     pub gwyddion: Section<gwyddion::GwyddionResults>,
+    /// Large least squares, nalgebra beside faer.
+    pub linalg: Section<linalg::LinalgResults>,
 }
 
-pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<(), XtaskError> {
+/// What `cargo xtask bench` was asked to do.
+#[derive(Debug, Clone, Copy)]
+pub struct Options {
+    /// A reduced run.
+    pub quick: bool,
+    /// Also run the Gwyddion side-by-side comparison.
+    pub with_gwyddion: bool,
+    /// Regenerate the committed docs/ from this run.
+    pub write_docs: bool,
+}
+
+pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> {
+    let Options {
+        quick,
+        with_gwyddion,
+        write_docs,
+    } = options;
     let started = Instant::now();
     std::fs::create_dir_all(out)
         .map_err(|e| XtaskError::step(format!("creating {}", out.display()), e))?;
@@ -127,6 +146,7 @@ pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<
         root: root.to_path_buf(),
         out: out.to_path_buf(),
         quick,
+        write_docs,
     };
     let accuracy = timed("accuracy", || accuracy::run(&ctx));
     let budget = timed("budget", || budget::run(&ctx));
@@ -144,6 +164,7 @@ pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<
             ))
         }
     });
+    let linalg = timed("linalg", || linalg::run(&ctx));
     let mut machine = machine;
     machine.load_average_end = load_average();
     let mut command = String::from("cargo xtask bench");
@@ -152,6 +173,9 @@ pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<
     }
     if with_gwyddion {
         command.push_str(" --gwyddion");
+    }
+    if write_docs {
+        command.push_str(" --write-docs");
     }
     let (commit, uncommitted) = source_state(root);
     let results = Results {
@@ -168,6 +192,7 @@ pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<
         crb,
         speed,
         gwyddion,
+        linalg,
     };
     report::write(&ctx, &results)
 }
@@ -180,6 +205,8 @@ pub struct Context {
     pub out: PathBuf,
     /// Reduced run.
     pub quick: bool,
+    /// Regenerate the committed docs/ (`--write-docs`).
+    pub write_docs: bool,
 }
 
 impl Context {
@@ -246,7 +273,7 @@ pub fn calibrate(
     let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s);
     let report = finish_with(&cdb_path, dir, &record, quick, with_images)
         .map_err(|e| XtaskError::step(format!("report in {}", dir.display()), e))?;
-    let node_mean_k_rms_pct = match outcome.simulator.as_ref() {
+    let node_mean_k_rms_pct = match outcome.instrument.simulator() {
         Some(sim) => node_mean_error(&cdb_path, sim)?,
         None => None,
     };

@@ -437,6 +437,8 @@ pub fn images_tables(page: &mut Page, prefix: &str, images: &crate::images::Imag
     }
 }
 
+// long-function: one straight page, section after section in reading order; splitting it
+// would scatter the page's layout over helpers that each run once.
 /// The calibration report page: metadata, accuracy per method, the image benchmark, the
 /// regression surfaces with σ and Δmax, given-up nodes with reasons, the drift history,
 /// the figures and the notes.

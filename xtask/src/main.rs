@@ -1,10 +1,11 @@
-//! Project automation for spmcal: `cargo xtask calibrate | bench`.
+//! Project automation for spmcal: `cargo xtask calibrate | bench | check-report`.
 //!
 //! `cargo xtask` is an alias (see `.cargo/config.toml`) for
 //! `cargo run --package xtask --release --`.
 
 mod bench;
 mod calibrate;
+mod check_report;
 
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
@@ -51,6 +52,19 @@ enum Command {
         #[arg(long, conflicts_with = "quick")]
         write_docs: bool,
     },
+    /// Renders a report.html in headless Chromium and writes a screenshot.
+    CheckReport {
+        /// The page (default: the one `cargo xtask calibrate` writes).
+        #[arg(
+            long,
+            value_name = "FILE",
+            default_value = "target/spmcal/calibrate/report.html"
+        )]
+        report: PathBuf,
+        /// The screenshot (default: report-screenshot.png beside the page).
+        #[arg(long, value_name = "PNG")]
+        out: Option<PathBuf>,
+    },
 }
 
 fn main() {
@@ -85,6 +99,14 @@ fn main() {
                 write_docs,
             },
         ),
+        Command::CheckReport { report, out } => {
+            let report = workspace_root.join(report);
+            let out = out.map_or_else(
+                || report.with_file_name("report-screenshot.png"),
+                |o| workspace_root.join(o),
+            );
+            check_report::run(&report, &out)
+        }
     };
     if let Err(error) = result {
         eprintln!("xtask: error: {error}");

@@ -1,4 +1,4 @@
-//! Reader, writer and renderer throughput on the measured files.
+//! Reader and writer throughput on the measured files.
 //!
 //! `cargo bench -p spm-formats` (needs ../shared/data beside the project, or
 //! SPMCAL_SHARED_DATA).
@@ -9,7 +9,7 @@ use std::hint::black_box;
 use std::path::Path;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use spm_formats::{Direction, PngOptions, encode_gsf, read_bytes, render_png};
+use spm_formats::{Direction, encode_gsf, read_bytes};
 
 fn measured(rel: &str) -> Vec<u8> {
     let dir = std::env::var_os("SPMCAL_SHARED_DATA")
@@ -54,10 +54,6 @@ fn bench(c: &mut Criterion) {
         b.iter(|| read_bytes(black_box(&gsf), Path::new("x.gsf")).unwrap())
     });
     g.finish();
-
-    c.bench_function("render_png_256", |b| {
-        b.iter(|| render_png(black_box(z), &PngOptions::default()).unwrap())
-    });
 }
 
 criterion_group!(benches, bench);

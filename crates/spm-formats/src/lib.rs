@@ -1,11 +1,12 @@
-//! SPM file formats: Nanonis `.sxm`, RHK `.sm4`, ISO 28600, raw f64, Gwyddion `.gsf`; PNG rendering.
+//! SPM file formats: Nanonis `.sxm`, RHK `.sm4`, ISO 28600, raw f64, Gwyddion `.gsf`.
 //!
 //! Every reader turns a file into one [`SpmFile`]: a list of image [`Channel`]s (name,
 //! forward/backward, SI unit, pixel grid, physical size in nm, slow-axis direction, line
 //! timing) plus the complete header as ordered key/value pairs. [`read_any`] detects the
 //! format from the magic bytes (falling back to the extension); [`read_bytes`] does the same
 //! for a buffer already in memory. [`write_gsf`] writes one channel as a Gwyddion Simple
-//! Field, [`render_png`] draws a channel with a colour map and a scale bar.
+//! Field. (Rendering a channel as a PNG is `spm_plot::render_png`: this crate reads and
+//! writes files and draws nothing.)
 //!
 //! Orientation: a channel's data are in display orientation (row 0 = top, x to the right);
 //! [`Channel::acquisition_image`] reorders them into acquisition order (row 0 = first line
@@ -23,7 +24,6 @@ mod gsf;
 mod iso28600;
 mod model;
 mod raw;
-mod render;
 mod rhk_sm4;
 mod sxm;
 mod sxm_write;
@@ -38,7 +38,6 @@ pub use model::{
     Channel, ChannelInfo, DateTime, Direction, Format, Image, Info, LineTiming, ScanDir, SpmFile,
 };
 pub use raw::{encode_raw_f64, read_raw_f64};
-pub use render::{ColorMap, PngOptions, render_png, write_png};
 pub use rhk_sm4::read_sm4;
 pub use sxm::read_sxm;
 pub use sxm_write::{SxmChannel, SxmScan, encode_sxm, write_sxm};

@@ -11,11 +11,11 @@ fn main() {
     let lattice = LatticeSpec::parse(&args[1]).unwrap();
     let file = spm_formats::read_any(&path).unwrap();
     if let Some(out) = args.get(2) {
-        let opts = spm_formats::PngOptions {
+        let opts = spm_plot::PngOptions {
             zoom: 2,
             ..Default::default()
         };
-        spm_formats::write_png(out, &file.channels[0], &opts).unwrap();
+        spm_plot::write_png(out, &file.channels[0], &opts).unwrap();
     }
     let set = extract_features(&[(file, None)], &lattice, &ExtractOptions::default()).unwrap();
     println!("{} features; frame {:?}", set.features.len(), set.frames[0]);

@@ -9,31 +9,12 @@ use crate::diagnose::Diagnosis;
 use crate::types::{LineDirection, ModelCheckError};
 use plotters::prelude::*;
 use std::path::Path;
-use std::sync::OnceLock;
 
-const FONT_PATHS: [&str; 4] = [
-    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/TTF/DejaVuSans.ttf",
-    "/Library/Fonts/Arial.ttf",
-];
-
-/// Registers a system font (DejaVu Sans, or Arial on macOS) with plotters once, for every
-/// figure of the process; `false` when none is found (figures are then drawn without text).
-/// Shared with `cargo xtask bench`'s figures.
+/// Registers the workspace's embedded font (DejaVu Sans, `spm_plot::register_fonts`) with
+/// plotters once, for every figure of the process; `false` only when plotters rejects it
+/// (figures are then drawn without text).
 pub fn register_system_font() -> bool {
-    static FONT: OnceLock<bool> = OnceLock::new();
-    *FONT.get_or_init(|| {
-        for path in FONT_PATHS {
-            if let Ok(bytes) = std::fs::read(path) {
-                let leaked: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-                if plotters::style::register_font("sans-serif", FontStyle::Normal, leaked).is_ok() {
-                    return true;
-                }
-            }
-        }
-        false
-    })
+    spm_plot::register_fonts().is_ok()
 }
 
 fn range(values: impl Iterator<Item = f64>) -> (f64, f64) {

@@ -22,8 +22,9 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 pub const DEFAULT_OUT: &str = "spmcal-calibrate";
 
 /// The files a run writes into its report folder.
-pub const OUTPUT_FILES: [&str; 7] = [
+pub const OUTPUT_FILES: [&str; 8] = [
     "report.json",
+    "report.html",
     "surfaces.json",
     "lcc-kx.png",
     "lcc-ky.png",

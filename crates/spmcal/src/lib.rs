@@ -6,8 +6,9 @@
 //! - [`job`]: the job file (`[backend]` + `[plan]`).
 //! - [`run`]: running a job on its backend into the CDB, recording drift and nodes.
 //! - [`progress`]: the terminal progress bar of a run.
-//! - [`plots`]: PNG figures of a run.
-//! - [`report`]: after a run: surfaces.json, accuracy, report.json, figures.
+//! - [`plots`]: PNG figures of a run (drawn with `spm-plot`).
+//! - [`report`]: after a run: surfaces.json, accuracy, report.json, figures, report.html.
+//! - [`html`]: the self-contained `report.html` (also used by `cargo xtask bench`).
 //! - [`accuracy`]: calibration accuracy against the simulator's oracle (DESIGN §11).
 //! - [`simulate`]: a measured file's scan program on the simulated microscope (`spmcal simulate`).
 //!
@@ -18,6 +19,7 @@
 
 pub mod accuracy;
 pub mod cdb_handle;
+pub mod html;
 pub mod images;
 pub mod job;
 pub mod plots;

@@ -1,8 +1,9 @@
 //! After a run: regression surfaces, accuracy against the oracle (simulated
-//! backends), `report.json`, `surfaces.json` and the PNG figures.
+//! backends), `report.json`, `surfaces.json`, the PNG figures and `report.html` (the same
+//! [`CalibrationReport`] with the figures embedded, see [`crate::html`]).
 
 use crate::accuracy::{Accuracy, EvaluationGrid, PolynomialImage, evaluate, polynomial_baseline};
-use crate::plots::{self, Region};
+use crate::plots::{self, Coefficient, Region};
 use crate::run::{DriftSample, NodeSample};
 use crate::surfaces::{RegressionSummary, SurfaceFitOptions, fit_from_cdb};
 use serde::Serialize;
@@ -86,9 +87,77 @@ pub struct NodeLccError {
     pub alpha_rms_mrad: f64,
 }
 
+/// One drift estimate in report.json.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct DriftPoint {
+    /// Instrument time, s.
+    pub time_s: f64,
+    /// Drift speed through the nominal sensitivity, nm/s.
+    pub speed_nm_per_s: f64,
+    /// The estimate of a spoiled (discarded) skipping cycle.
+    pub spoiled: bool,
+}
+
+/// The drift history of the run (report.json `drift`, the HTML report's drift section).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DriftHistory {
+    /// The nominal sensitivity the speeds are converted with, nm/count.
+    pub nominal_nm_per_count: f64,
+    /// Estimates made.
+    pub estimates: usize,
+    /// Of which spoiled cycles.
+    pub spoiled: usize,
+    /// Instrument time of the first and last estimate, s (None without estimates).
+    pub time_span_s: Option<[f64; 2]>,
+    /// Smallest, median and largest speed of the kept estimates, nm/s (None without any).
+    pub speed_min_median_max_nm_per_s: Option<[f64; 3]>,
+    /// Every estimate in time order.
+    pub points: Vec<DriftPoint>,
+}
+
+impl DriftHistory {
+    /// The history of `drift`, speeds through `nominal_nm_per_count`.
+    pub fn of(drift: &[DriftSample], nominal_nm_per_count: f64) -> Self {
+        let points: Vec<DriftPoint> = drift
+            .iter()
+            .map(|d| DriftPoint {
+                time_s: d.time_s,
+                speed_nm_per_s: d.vx_counts_per_s.hypot(d.vy_counts_per_s) * nominal_nm_per_count,
+                spoiled: d.spoiled,
+            })
+            .collect();
+        let mut kept: Vec<f64> = points
+            .iter()
+            .filter(|p| !p.spoiled && p.speed_nm_per_s.is_finite())
+            .map(|p| p.speed_nm_per_s)
+            .collect();
+        kept.sort_by(f64::total_cmp);
+        let speed_min_median_max_nm_per_s = match (kept.first(), kept.last()) {
+            (Some(&lo), Some(&hi)) => Some([lo, kept[kept.len() / 2], hi]),
+            _ => None,
+        };
+        let times = points.iter().map(|p| p.time_s).filter(|t| t.is_finite());
+        let time_span_s = times
+            .clone()
+            .reduce(f64::min)
+            .zip(times.reduce(f64::max))
+            .map(|(a, b)| [a, b]);
+        Self {
+            nominal_nm_per_count,
+            estimates: points.len(),
+            spoiled: points.iter().filter(|p| p.spoiled).count(),
+            time_span_s,
+            speed_min_median_max_nm_per_s,
+            points,
+        }
+    }
+}
+
 /// What report.json holds.
 #[derive(Debug, Clone, Serialize)]
 pub struct CalibrationReport {
+    /// The scanner calibrated (the plan's `scanner_id`).
+    pub scanner_id: String,
     /// Nodes per repeat.
     pub nodes: usize,
     /// Repeats l.
@@ -112,6 +181,8 @@ pub struct CalibrationReport {
     pub node_lcc_error: Option<NodeLccError>,
     /// The calibrator's own report (cycles, given-up nodes with reasons, …).
     pub run: RunReport,
+    /// The drift estimates of the run.
+    pub drift: DriftHistory,
     /// How the figures were measured, and what is not.
     pub notes: Vec<String>,
 }
@@ -262,7 +333,8 @@ impl CalibrationReport {
     }
 }
 
-/// Fits, evaluates and writes `surfaces.json`, `report.json` and the figures into `out`.
+/// Fits, evaluates and writes `surfaces.json`, `report.json`, the figures and `report.html`
+/// into `out`.
 pub fn finish(
     cdb_path: &Path,
     out: &Path,
@@ -413,42 +485,39 @@ pub fn finish_with(
         }
     };
 
+    let mut figures = Vec::new();
     if let (Some(region), Some(plane)) = (
         Region::around(record.nodes, 0.08),
         fitted.set.planes.first(),
     ) {
-        let values = |f: fn(&NodeSample) -> f64| -> Vec<(f64, f64, f64)> {
-            record
-                .nodes
-                .iter()
-                .map(|n| (n.x_counts, n.y_counts, f(n)))
-                .collect()
-        };
-        plots::lcc_map(
-            &out.join("lcc-kx.png"),
-            &plane.kx_nm_per_count.surface,
-            &values(|n| n.kx_nm_per_count),
-            &region,
-        )?;
-        plots::lcc_map(
-            &out.join("lcc-ky.png"),
-            &plane.ky_nm_per_count.surface,
-            &values(|n| n.ky_nm_per_count),
-            &region,
-        )?;
-        plots::lcc_map(
-            &out.join("lcc-alpha.png"),
-            &plane.alpha_rad.surface,
-            &values(|n| n.alpha_rad),
-            &region,
-        )?;
-        plots::trajectory_plot(&out.join("trajectory.png"), record.nodes, &region)?;
+        let summary = &fitted.summary;
+        for (coefficient, surface, summary) in [
+            (Coefficient::Kx, &plane.kx_nm_per_count.surface, &summary.kx),
+            (Coefficient::Ky, &plane.ky_nm_per_count.surface, &summary.ky),
+            (Coefficient::Alpha, &plane.alpha_rad.surface, &summary.alpha),
+        ] {
+            figures.push(plots::lcc_map(
+                coefficient,
+                surface,
+                summary,
+                record.nodes,
+                &region,
+            )?);
+        }
+        figures.push(plots::trajectory_plot(record.nodes)?);
     }
-    plots::drift_plot(
-        &out.join("drift.png"),
-        record.drift,
-        record.plan.standard.nominal_nm_per_count,
-    )?;
+    let drift = DriftHistory::of(record.drift, record.plan.standard.nominal_nm_per_count);
+    if drift.estimates > 0 {
+        figures.push(plots::drift_plot(
+            record.drift,
+            record.plan.standard.nominal_nm_per_count,
+        )?);
+    } else {
+        notes.push("drift: no drift estimate was made in this invocation (no figure)".to_owned());
+    }
+    for figure in &figures {
+        write(&out.join(&figure.file), &figure.png)?;
+    }
 
     let node_lcc_error = record.truth.and_then(|oracle| {
         let z = oracle.z_now();
@@ -484,6 +553,7 @@ pub fn finish_with(
     });
     let measured = record.run.nodes_done.max(1) as f64;
     let report = CalibrationReport {
+        scanner_id: record.plan.scanner_id.clone(),
         nodes: record.run.nodes,
         repeats: record.run.repeats,
         records,
@@ -495,6 +565,7 @@ pub fn finish_with(
         images,
         node_lcc_error,
         run: record.run.clone(),
+        drift,
         notes,
     };
     let json = serde_json::to_string_pretty(&report).map_err(|e| ReportError::Write {
@@ -502,6 +573,10 @@ pub fn finish_with(
         message: e.to_string(),
     })?;
     write(&out.join("report.json"), json.as_bytes())?;
+    write(
+        &out.join("report.html"),
+        crate::html::calibration_page(&report, &figures).as_bytes(),
+    )?;
     Ok(report)
 }
 

@@ -157,6 +157,8 @@ pub struct DriftSample {
     pub vx_counts_per_s: f64,
     /// Drift velocity y, counts/s.
     pub vy_counts_per_s: f64,
+    /// The estimate of a skipping cycle that the monitor spoiled and discarded.
+    pub spoiled: bool,
 }
 
 /// One measured node, for plots.
@@ -191,6 +193,8 @@ pub struct RecordingObserver<'a> {
     pub spoiled_cycles: usize,
     /// Attachment sequences (sightings of one feature after a node move), in order.
     pub attach_tracks: Vec<spm_correction::dynamics::AttachTrack>,
+    /// A cycle was just spoiled: the runner reports its drift estimate next.
+    spoil_pending: bool,
 }
 
 /// What a [`RecordingObserver`] kept for the report: drift estimates and measured nodes.
@@ -223,6 +227,7 @@ impl<'a> RecordingObserver<'a> {
             given_up: Vec::new(),
             spoiled_cycles: 0,
             attach_tracks: Vec::new(),
+            spoil_pending: false,
         }
     }
 }
@@ -268,6 +273,9 @@ impl Observer for RecordingObserver<'_> {
     }
     fn cycle_spoiled(&mut self, visit: &PlanVisit, reason: &spm_fos::SpoilReason) {
         self.spoiled_cycles += 1;
+        // The runner reports a spoiled cycle's drift estimate right after it, unless the
+        // cycle had no finite velocity.
+        self.spoil_pending = !matches!(reason, spm_fos::SpoilReason::Invalid);
         self.inner.cycle_spoiled(visit, reason);
     }
     fn drift_estimate(&mut self, visit: &PlanVisit, velocity: CountVelocity, at: Seconds) {
@@ -275,6 +283,7 @@ impl Observer for RecordingObserver<'_> {
             time_s: at.value(),
             vx_counts_per_s: velocity.x_counts_per_s,
             vy_counts_per_s: velocity.y_counts_per_s,
+            spoiled: std::mem::take(&mut self.spoil_pending),
         });
         self.inner.drift_estimate(visit, velocity, at);
     }

@@ -1,4 +1,5 @@
-//! `results.json`, the PNG figures and `docs/RESULTS.md`.
+//! `results.json`, the PNG figures, `report.html` (self-contained, figures embedded) and
+//! `docs/RESULTS.md`.
 //!
 //! The measured tables come first, then the hand-written sections of
 //! `docs/results/*.md` (the crates' own benchmark write-ups), as before.
@@ -7,22 +8,12 @@
 
 use super::{Context, Results, Section};
 use crate::XtaskError;
-use plotters::prelude::*;
 use std::fmt::Write as _;
 use std::path::Path;
 
 type Series = (String, Vec<(f64, f64)>);
 
-const COLOURS: [RGBColor; 6] = [
-    RGBColor(31, 119, 180),
-    RGBColor(214, 39, 40),
-    RGBColor(44, 160, 44),
-    RGBColor(255, 127, 14),
-    RGBColor(148, 103, 189),
-    RGBColor(23, 190, 207),
-];
-
-/// A line/point chart with a logarithmic y axis.
+/// A line/point chart with a logarithmic y axis (spm-plot), written to `path`.
 fn chart(
     path: &Path,
     title: &str,
@@ -30,93 +21,73 @@ fn chart(
     y_label: &str,
     series: &[Series],
     lines: bool,
-) -> Result<(), XtaskError> {
-    let fail =
-        |e: &dyn std::fmt::Display| XtaskError::step(format!("drawing {}", path.display()), e);
-    let points = series.iter().flat_map(|s| s.1.iter());
-    let (mut x0, mut x1, mut y0, mut y1) = (
-        f64::INFINITY,
-        f64::NEG_INFINITY,
-        f64::INFINITY,
-        f64::NEG_INFINITY,
-    );
-    for &(x, y) in points {
-        if x.is_finite() && y.is_finite() && y > 0.0 {
-            x0 = x0.min(x);
-            x1 = x1.max(x);
-            y0 = y0.min(y);
-            y1 = y1.max(y);
-        }
-    }
-    if !(x0.is_finite() && y0.is_finite()) {
-        return Err(fail(&"no finite points"));
-    }
-    let pad = (x1 - x0).max(1e-9) * 0.05;
-    let (x0, x1) = (x0 - pad, x1 + pad);
-    // Head-room above the data for the legend.
-    let (y0, y1) = (y0 / 1.5, y1 * 6.0);
-    let root = BitMapBackend::new(path, (800, 520)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| fail(&e))?;
-    let text = spm_modelcheck::register_system_font();
-    let mut builder = ChartBuilder::on(&root);
-    builder.margin(15);
-    if text {
-        builder
-            .caption(title, ("sans-serif", 20))
-            .x_label_area_size(40)
-            .y_label_area_size(70);
-    }
-    let mut ctx = builder
-        .build_cartesian_2d(x0..x1, (y0..y1).log_scale())
-        .map_err(|e| fail(&e))?;
-    if text {
-        ctx.configure_mesh()
-            .x_desc(x_label)
-            .y_desc(y_label)
-            .draw()
-            .map_err(|e| fail(&e))?;
-    }
-    for (k, (name, data)) in series.iter().enumerate() {
-        let colour = COLOURS[k % COLOURS.len()];
-        let data: Vec<(f64, f64)> = data
+) -> Result<Vec<u8>, XtaskError> {
+    let style = if lines {
+        spm_plot::SeriesStyle::LineAndMarkers
+    } else {
+        spm_plot::SeriesStyle::Markers
+    };
+    let png = spm_plot::xy_chart(&spm_plot::XyFigure {
+        title: title.to_owned(),
+        x_label: x_label.to_owned(),
+        y_label: y_label.to_owned(),
+        series: series
             .iter()
-            .copied()
-            .filter(|p| p.0.is_finite() && p.1.is_finite() && p.1 > 0.0)
-            .collect();
-        if lines {
-            let drawn = ctx
-                .draw_series(LineSeries::new(data.clone(), colour.stroke_width(2)))
-                .map_err(|e| fail(&e))?;
-            if text {
-                drawn.label(name.as_str()).legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
-                });
-            }
-            ctx.draw_series(data.iter().map(|&p| Circle::new(p, 4, colour.filled())))
-                .map_err(|e| fail(&e))?;
-        } else {
-            let drawn = ctx
-                .draw_series(data.iter().map(|&p| Circle::new(p, 5, colour.filled())))
-                .map_err(|e| fail(&e))?;
-            if text {
-                drawn
-                    .label(name.as_str())
-                    .legend(move |(x, y)| Circle::new((x + 10, y), 5, colour.filled()));
-            }
-        }
-    }
-    if text {
-        ctx.configure_series_labels()
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .position(SeriesLabelPosition::UpperRight)
-            .draw()
-            .map_err(|e| fail(&e))?;
-    }
-    root.present().map_err(|e| fail(&e))
+            .map(|(name, points)| spm_plot::Series {
+                name: name.clone(),
+                points: points.clone(),
+                style,
+            })
+            .collect(),
+        log_y: true,
+        y_from_zero: false,
+        size: (1000, 560),
+    })
+    .map_err(|e| XtaskError::step(format!("drawing {}", path.display()), e))?;
+    write_png(path, &png)?;
+    Ok(png)
 }
 
-fn figures(dir: &Path, results: &Results) -> Result<Vec<(String, String)>, XtaskError> {
+fn write_png(path: &Path, png: &[u8]) -> Result<(), XtaskError> {
+    std::fs::write(path, png)
+        .map_err(|e| XtaskError::step(format!("writing {}", path.display()), e))
+}
+
+/// A figure of the bench: file name, caption, PNG.
+pub struct BenchFigure {
+    /// File name in the output folder.
+    pub file: String,
+    /// Caption.
+    pub caption: String,
+    /// The PNG.
+    pub png: Vec<u8>,
+}
+
+/// The category label of each accuracy config: its name, with the plan's distinguishing
+/// suffix when the same scanner runs under several plans.
+fn config_labels(configs: &[super::accuracy::ConfigAccuracy]) -> Vec<String> {
+    configs
+        .iter()
+        .map(|c| {
+            let repeated = configs.iter().filter(|o| o.config == c.config).count() > 1;
+            let first_plan = configs
+                .iter()
+                .find(|o| o.config == c.config)
+                .map(|o| o.plan.as_str());
+            if repeated && first_plan != Some(c.plan.as_str()) {
+                let stem = Path::new(&c.plan)
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_else(|| c.plan.clone());
+                format!("{} + {}", c.config, stem.trim_start_matches("plan-hopg-"))
+            } else {
+                c.config.clone()
+            }
+        })
+        .collect()
+}
+
+fn figures(dir: &Path, results: &Results) -> Result<Vec<BenchFigure>, XtaskError> {
     let mut made = Vec::new();
     if let Some(d) = results.drift.measured() {
         let pick = |f: fn(&super::drift::DriftPoint) -> f64| -> Vec<(f64, f64)> {
@@ -125,7 +96,7 @@ fn figures(dir: &Path, results: &Results) -> Result<Vec<(String, String)>, Xtask
                 .map(|p| (p.velocity_angstrom_per_s, f(p)))
                 .collect()
         };
-        chart(
+        let png = chart(
             &dir.join("drift.png"),
             "LCC error against drift velocity",
             "drift velocity, Å/s",
@@ -140,10 +111,11 @@ fn figures(dir: &Path, results: &Results) -> Result<Vec<(String, String)>, Xtask
             ],
             true,
         )?;
-        made.push((
-            "drift.png".to_owned(),
-            "LCC error against drift velocity".to_owned(),
-        ));
+        made.push(BenchFigure {
+            file: "drift.png".to_owned(),
+            caption: "LCC error against drift velocity".to_owned(),
+            png,
+        });
     }
     if let Some(p) = results.productivity.measured() {
         let mut series: Vec<Series> = Vec::new();
@@ -173,7 +145,7 @@ fn figures(dir: &Path, results: &Results) -> Result<Vec<(String, String)>, Xtask
                 )),
             }
         }
-        chart(
+        let png = chart(
             &dir.join("productivity.png"),
             "Node LCC error against instrument time",
             "simulated instrument time, s",
@@ -181,36 +153,158 @@ fn figures(dir: &Path, results: &Results) -> Result<Vec<(String, String)>, Xtask
             &series,
             false,
         )?;
-        made.push((
-            "productivity.png".to_owned(),
-            "node LCC error against instrument time, per plan variant".to_owned(),
-        ));
+        made.push(BenchFigure {
+            file: "productivity.png".to_owned(),
+            caption: "node LCC error against instrument time, per plan variant".to_owned(),
+            png,
+        });
     }
     if let Some(a) = results.accuracy.measured() {
-        let mut series: Vec<Series> = Vec::new();
+        let mut series: Vec<spm_plot::CategorySeries> = Vec::new();
         for (k, c) in a.configs.iter().enumerate() {
             for (name, m) in &c.methods {
-                let point = (k as f64, m.rms_pm);
-                match series.iter_mut().find(|s| &s.0 == name) {
-                    Some(s) => s.1.push(point),
-                    None => series.push((name.clone(), vec![point])),
+                let index = match series.iter().position(|s| &s.name == name) {
+                    Some(i) => i,
+                    None => {
+                        series.push(spm_plot::CategorySeries {
+                            name: name.clone(),
+                            values: vec![None; a.configs.len()],
+                        });
+                        series.len() - 1
+                    }
+                };
+                series[index].values[k] = Some(m.rms_pm);
+            }
+        }
+        let path = dir.join("accuracy.png");
+        let png = spm_plot::category_chart(&spm_plot::CategoryFigure {
+            title: "Residual distortion of the static field per method and scanner".to_owned(),
+            x_label: "simulated scanner configuration".to_owned(),
+            categories: config_labels(&a.configs),
+            y_label: "RMS residual distortion, pm".to_owned(),
+            series,
+            log_y: true,
+            size: (1200, 600),
+        })
+        .map_err(|e| XtaskError::step(format!("drawing {}", path.display()), e))?;
+        write_png(&path, &png)?;
+        made.push(BenchFigure {
+            file: "accuracy.png".to_owned(),
+            caption: "residual distortion per method on the three scanners (the bad one also with creep-length pauses)".to_owned(),
+            png,
+        });
+    }
+    Ok(made)
+}
+
+/// `report.html` of the bench: the run's metadata, the accuracy and image-benchmark tables
+/// per scanner, the figures embedded, and which sections were not measured.
+fn html(results: &Results, figures: &[BenchFigure]) -> String {
+    use spmcal::html::{Cell, Page, Row, accuracy_header, accuracy_row, images_tables};
+    let mut page = Page::new(&format!(
+        "spmcal benchmark report{}",
+        if results.quick { " (--quick)" } else { "" }
+    ));
+    page.section("metadata", "Run");
+    let m = &results.machine;
+    let text = |key: &str, label: &str, value: &str| {
+        Row::new(key, vec![Cell::text(label), Cell::text(value)])
+    };
+    let rows = vec![
+        text("command", "command", &results.command),
+        text("commit", "commit", &results.commit),
+        text(
+            "uncommitted",
+            "uncommitted files",
+            &if results.uncommitted.is_empty() {
+                "none".to_owned()
+            } else {
+                results.uncommitted.join(", ")
+            },
+        ),
+        text(
+            "quick",
+            "reduced run (--quick)",
+            if results.quick { "yes" } else { "no" },
+        ),
+        Row::new(
+            "bench_wall_time_s",
+            vec![
+                Cell::text("bench wall time, s"),
+                Cell::number(results.bench_wall_time_s, 1),
+            ],
+        ),
+        text("cpu", "CPU", &m.cpu),
+        Row::new(
+            "logical_cores",
+            vec![Cell::text("logical cores"), Cell::count(m.logical_cores)],
+        ),
+        text("date_utc", "date (UTC)", &m.date_utc),
+        text("rustc", "rustc", &m.rustc),
+        text(
+            "load_average_start",
+            "load average at start",
+            &m.load_average_start,
+        ),
+        text(
+            "load_average_end",
+            "load average at end",
+            &m.load_average_end,
+        ),
+    ];
+    page.table("metadata-table", &["quantity", "value"], &rows);
+
+    page.section("accuracy", "Accuracy per scanner and method");
+    match &results.accuracy {
+        Section::Measured(a) => {
+            for (label, c) in config_labels(&a.configs).iter().zip(&a.configs) {
+                let key = label.replace(' ', "");
+                page.paragraph_with_id(
+                    &format!("config-{key}"),
+                    &format!(
+                        "{label}: {} (plan {}, {} nodes × {} repeats, {} records, {} given up,                          instrument time {:.0} s)",
+                        c.description,
+                        c.plan,
+                        c.nodes,
+                        c.repeats,
+                        c.records,
+                        c.given_up,
+                        c.instrument_time_s
+                    ),
+                );
+                let rows: Vec<Row> = c.methods.iter().map(|(n, a)| accuracy_row(n, a)).collect();
+                page.table(&format!("accuracy-{key}"), accuracy_header(), &rows);
+                if let Some(images) = &c.images {
+                    page.details_start(&format!("{label}: test images (image benchmark)"));
+                    images_tables(&mut page, &format!("{key}-"), images);
+                    page.details_end();
                 }
             }
         }
-        chart(
-            &dir.join("accuracy.png"),
-            "Residual distortion: 0 = mild, 1 = typical, 2 = bad, 3 = bad with creep-length pauses",
-            "scanner config",
-            "RMS residual distortion, pm",
-            &series,
-            true,
-        )?;
-        made.push((
-            "accuracy.png".to_owned(),
-            "residual distortion per method on the three scanners (the bad one also with creep-length pauses)".to_owned(),
-        ));
+        Section::Missing { missing } => page.paragraph(&format!("Not measured: {missing}")),
     }
-    Ok(made)
+    page.section("figures", "Figures");
+    for f in figures {
+        page.figure(&f.file, &f.png, &f.caption);
+    }
+    page.section("missing", "Sections not measured");
+    let missing: Vec<String> = [
+        ("accuracy", missing(&results.accuracy)),
+        ("budget", missing(&results.budget)),
+        ("drift", missing(&results.drift)),
+        ("productivity", missing(&results.productivity)),
+        ("crb", missing(&results.crb)),
+        ("speed", missing(&results.speed)),
+        ("gwyddion", missing(&results.gwyddion)),
+    ]
+    .into_iter()
+    .filter_map(|(name, why)| why.map(|w| format!("{name}: {w}")))
+    .collect();
+    page.list("missing-list", &missing);
+    page.paragraph(
+        "The full tables (budget, CRB, speed, Gwyddion) are in RESULTS.md and results.json          beside this file.",
+    );
+    page.finish()
 }
 
 fn missing<T>(section: &Section<T>) -> Option<&str> {
@@ -784,6 +878,10 @@ pub fn write(ctx: &Context, results: &Results) -> Result<(), XtaskError> {
     std::fs::write(&results_path, &json)
         .map_err(|e| XtaskError::step(format!("writing {}", results_path.display()), e))?;
     let figures = figures(&ctx.out, results)?;
+    let html_path = ctx.out.join("report.html");
+    std::fs::write(&html_path, html(results, &figures))
+        .map_err(|e| XtaskError::step(format!("writing {}", html_path.display()), e))?;
+    let figures: Vec<(String, String)> = figures.into_iter().map(|f| (f.file, f.caption)).collect();
     let md = markdown(results, &figures, &fragments(&ctx.root)?);
     let out_md = ctx.out.join("RESULTS.md");
     std::fs::write(&out_md, &md)

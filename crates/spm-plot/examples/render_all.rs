@@ -1,8 +1,9 @@
 //! Renders every channel of the given files to PNG files in the output folder.
 //!
-//! `cargo run -p spm-formats --example render_all -- OUT_DIR FILE...`
+//! `cargo run -p spm-plot --example render_all -- OUT_DIR FILE...`
 
-use spm_formats::{PngOptions, read_any, write_png};
+use spm_formats::read_any;
+use spm_plot::{PngOptions, write_png};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);

@@ -2,7 +2,8 @@
 
 #![allow(clippy::unwrap_used)]
 
-use spm_formats::{Channel, ColorMap, Direction, PngOptions, read_any, render_png};
+use spm_formats::{Channel, Direction, read_any};
+use spm_plot::{ColorMap, PngOptions, render_png};
 use spmcal_tests::measured_file;
 
 fn decode(bytes: &[u8]) -> (u32, u32, Vec<u8>) {

@@ -1,0 +1,774 @@
+//! `report.html`: one self-contained file (inline CSS, the PNG figures as base64 data URIs,
+//! no script, no external resource) written from the same [`CalibrationReport`] that
+//! `report.json` serialises.
+//!
+//! Every section and table has a stable `id`, every row a `data-key` and every number cell
+//! its exact value in `data-value` (Rust's shortest round-trip form; `NaN` for a value
+//! report.json writes as `null`), so that tests and scripts can read the page back and check
+//! it against report.json. [`Page`] is the small builder; `cargo xtask bench` uses it too.
+
+use crate::plots::Figure;
+use crate::report::CalibrationReport;
+use base64::Engine as _;
+use std::fmt::Write as _;
+
+/// Escapes text for HTML element content and attribute values.
+pub fn escape(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for c in text.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&#39;"),
+            _ => out.push(c),
+        }
+    }
+    out
+}
+
+/// One table cell.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Cell {
+    /// Text.
+    Text(String),
+    /// A number: the exact value (`data-value`) and its display text.
+    Number {
+        /// The value.
+        value: f64,
+        /// As shown.
+        text: String,
+    },
+}
+
+impl Cell {
+    /// A text cell.
+    pub fn text(text: impl Into<String>) -> Self {
+        Self::Text(text.into())
+    }
+
+    /// A number shown with `decimals` decimals (`–` when not finite).
+    pub fn number(value: f64, decimals: usize) -> Self {
+        let text = if value.is_finite() {
+            format!("{value:.decimals$}")
+        } else {
+            "–".to_owned()
+        };
+        Self::Number { value, text }
+    }
+
+    /// A number shown with three significant digits (`–` when not finite).
+    pub fn significant(value: f64) -> Self {
+        let text = if !value.is_finite() {
+            "–".to_owned()
+        } else if value == 0.0 {
+            "0".to_owned()
+        } else {
+            let a = value.abs();
+            if (1e-3..1e6).contains(&a) {
+                let decimals = (2 - a.log10().floor() as i64).clamp(0, 6) as usize;
+                format!("{value:.decimals$}")
+            } else {
+                format!("{value:.2e}")
+            }
+        };
+        Self::Number { value, text }
+    }
+
+    /// A count.
+    pub fn count(value: usize) -> Self {
+        Self::Number {
+            value: value as f64,
+            text: value.to_string(),
+        }
+    }
+}
+
+/// The exact form of a value in `data-value`.
+pub fn data_value(value: f64) -> String {
+    if value.is_nan() {
+        "NaN".to_owned()
+    } else {
+        format!("{value:?}")
+    }
+}
+
+/// One table row: its key (`data-key`) and cells (the first is the row's header).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Row {
+    /// Stable key of the row.
+    pub key: String,
+    /// The cells.
+    pub cells: Vec<Cell>,
+}
+
+impl Row {
+    /// A row.
+    pub fn new(key: impl Into<String>, cells: Vec<Cell>) -> Self {
+        Self {
+            key: key.into(),
+            cells,
+        }
+    }
+}
+
+const STYLE: &str = "\
+body{font-family:'DejaVu Sans',Helvetica,Arial,sans-serif;margin:2em auto;max-width:1500px;\
+padding:0 1em;color:#1b1b1b;background:#fff;line-height:1.4}\
+h1{font-size:1.6em;border-bottom:2px solid #4e79a7;padding-bottom:.2em}\
+h2{font-size:1.25em;margin-top:1.8em;color:#284b6e}\
+table{border-collapse:collapse;margin:.6em 0;font-size:.92em}\
+th,td{border:1px solid #c9ced6;padding:.25em .6em;text-align:right}\
+th:first-child,td.text{text-align:left}thead th{background:#eef2f7}\
+tbody tr:nth-child(even){background:#f8f9fb}\
+figure{margin:1em 0}figure img{max-width:100%;height:auto;border:1px solid #dde}\
+figcaption{font-size:.9em;color:#444}p.note{font-size:.9em;color:#444}\
+details{margin:.5em 0}section{margin-bottom:1.5em}";
+
+/// A self-contained HTML page built section by section; all text is escaped.
+#[derive(Debug, Clone)]
+pub struct Page {
+    title: String,
+    body: String,
+    open_section: bool,
+}
+
+impl Page {
+    /// A page with `title` (also the first heading).
+    pub fn new(title: &str) -> Self {
+        let mut body = String::new();
+        let _ = writeln!(body, "<h1>{}</h1>", escape(title));
+        Self {
+            title: title.to_owned(),
+            body,
+            open_section: false,
+        }
+    }
+
+    /// Starts a section `<section id=…>` with a heading (closing the previous one).
+    pub fn section(&mut self, id: &str, heading: &str) {
+        self.close_section();
+        let _ = writeln!(
+            self.body,
+            "<section id=\"{}\">\n<h2>{}</h2>",
+            escape(id),
+            escape(heading)
+        );
+        self.open_section = true;
+    }
+
+    fn close_section(&mut self) {
+        if self.open_section {
+            self.body.push_str("</section>\n");
+            self.open_section = false;
+        }
+    }
+
+    /// A paragraph of text.
+    pub fn paragraph(&mut self, text: &str) {
+        let _ = writeln!(self.body, "<p>{}</p>", escape(text));
+    }
+
+    /// A paragraph with a stable id.
+    pub fn paragraph_with_id(&mut self, id: &str, text: &str) {
+        let _ = writeln!(self.body, "<p id=\"{}\">{}</p>", escape(id), escape(text));
+    }
+
+    /// A table with a stable id, column headers and rows.
+    pub fn table(&mut self, id: &str, header: &[&str], rows: &[Row]) {
+        let _ = writeln!(self.body, "<table id=\"{}\">\n<thead><tr>", escape(id));
+        for h in header {
+            let _ = write!(self.body, "<th>{}</th>", escape(h));
+        }
+        self.body.push_str("</tr></thead>\n<tbody>\n");
+        for row in rows {
+            let _ = write!(self.body, "<tr data-key=\"{}\">", escape(&row.key));
+            for (k, cell) in row.cells.iter().enumerate() {
+                let tag = if k == 0 { "th" } else { "td" };
+                match cell {
+                    Cell::Text(t) => {
+                        let _ = write!(self.body, "<{tag} class=\"text\">{}</{tag}>", escape(t));
+                    }
+                    Cell::Number { value, text } => {
+                        let _ = write!(
+                            self.body,
+                            "<{tag} data-value=\"{}\">{}</{tag}>",
+                            data_value(*value),
+                            escape(text)
+                        );
+                    }
+                }
+            }
+            self.body.push_str("</tr>\n");
+        }
+        self.body.push_str("</tbody>\n</table>\n");
+    }
+
+    /// A bulleted list with a stable id.
+    pub fn list(&mut self, id: &str, items: &[String]) {
+        let _ = writeln!(self.body, "<ul id=\"{}\">", escape(id));
+        for item in items {
+            let _ = writeln!(self.body, "<li>{}</li>", escape(item));
+        }
+        self.body.push_str("</ul>\n");
+    }
+
+    /// A PNG figure embedded as a data URI, with a caption; `file` is its name in the
+    /// report folder (the figure's `id` and `data-file`).
+    pub fn figure(&mut self, file: &str, png: &[u8], caption: &str) {
+        let id = format!("figure-{}", file.trim_end_matches(".png"));
+        let _ = writeln!(
+            self.body,
+            "<figure id=\"{}\" data-file=\"{}\"><img alt=\"{}\" src=\"data:image/png;base64,{}\">\
+             <figcaption>{}</figcaption></figure>",
+            escape(&id),
+            escape(file),
+            escape(caption),
+            base64::engine::general_purpose::STANDARD.encode(png),
+            escape(caption)
+        );
+    }
+
+    /// Starts a collapsed block (`<details>`) with a summary line.
+    pub fn details_start(&mut self, summary: &str) {
+        let _ = writeln!(self.body, "<details><summary>{}</summary>", escape(summary));
+    }
+
+    /// Ends the block of [`Page::details_start`].
+    pub fn details_end(&mut self) {
+        self.body.push_str("</details>\n");
+    }
+
+    /// The whole document.
+    pub fn finish(mut self) -> String {
+        self.close_section();
+        format!(
+            "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n\
+             <meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n\
+             <title>{}</title>\n<style>{STYLE}</style>\n</head>\n<body>\n{}</body>\n</html>\n",
+            escape(&self.title),
+            self.body
+        )
+    }
+}
+
+/// Columns of an accuracy table (report.json `accuracy.<method>`).
+const ACCURACY_HEADER: [&str; 6] = [
+    "method",
+    "RMS residual, pm",
+    "max residual, pm",
+    "RMS, % of lattice constant",
+    "mean |lattice error|, %",
+    "max |lattice error|, %",
+];
+
+/// One accuracy row.
+pub fn accuracy_row(method: &str, a: &crate::accuracy::Accuracy) -> Row {
+    Row::new(
+        method,
+        vec![
+            Cell::text(method),
+            Cell::number(a.rms_pm, 1),
+            Cell::number(a.max_pm, 1),
+            Cell::number(a.rms_pct_of_lattice, 2),
+            Cell::number(a.mean_lattice_error_pct, 3),
+            Cell::number(a.max_lattice_error_pct, 3),
+        ],
+    )
+}
+
+/// The accuracy table's header.
+pub fn accuracy_header() -> &'static [&'static str] {
+    &ACCURACY_HEADER
+}
+
+/// Columns of the image benchmark's per-method table (report.json `images.methods`).
+const IMAGES_HEADER: [&str; 9] = [
+    "method",
+    "position RMS, pm",
+    "position max, pm",
+    "position RMS, % of side",
+    "mean |lattice error|, %",
+    "max |lattice error|, %",
+    "max lattice-angle error, °",
+    "lattice pairs",
+    "lattice failures",
+];
+
+/// The image benchmark: the summary line, per-method table and the identified dynamics;
+/// `prefix` makes the ids unique when a page holds several.
+pub fn images_tables(page: &mut Page, prefix: &str, images: &crate::images::ImageBenchmark) {
+    page.paragraph_with_id(
+        &format!("{prefix}images-summary"),
+        &format!(
+            "{} test images ({} counter-scanned pairs), sizes {}, pixel dwells {} s",
+            images.count,
+            images.pairs,
+            images
+                .sizes
+                .iter()
+                .map(|s| format!("{} px × {} counts", s.pixels, s.step_counts))
+                .collect::<Vec<_>>()
+                .join(", "),
+            images
+                .dwells_s
+                .iter()
+                .map(|d| format!("{d}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    );
+    let rows: Vec<Row> = images
+        .methods
+        .iter()
+        .map(|(name, m)| {
+            Row::new(
+                name,
+                vec![
+                    Cell::text(name),
+                    Cell::number(m.position_rms_pm, 1),
+                    Cell::number(m.position_max_pm, 1),
+                    Cell::number(m.position_rms_pct_of_side, 3),
+                    Cell::number(m.mean_lattice_error_pct, 3),
+                    Cell::number(m.max_lattice_error_pct, 3),
+                    Cell::number(m.max_lattice_angle_error_deg, 3),
+                    Cell::count(m.lattice_pairs),
+                    Cell::count(m.lattice_failures),
+                ],
+            )
+        })
+        .collect();
+    page.table(&format!("{prefix}images-methods"), &IMAGES_HEADER, &rows);
+    if !images.images.is_empty() {
+        // Per image: every method's position RMS (report.json `images.images`).
+        let methods: Vec<&String> = images.methods.keys().collect();
+        let mut header: Vec<String> = [
+            "image",
+            "place",
+            "side, counts",
+            "pixel dwell, s",
+            "direction",
+        ]
+        .iter()
+        .map(|h| (*h).to_owned())
+        .collect();
+        header.extend(methods.iter().map(|m| format!("{m}: position RMS, pm")));
+        let header: Vec<&str> = header.iter().map(String::as_str).collect();
+        let rows: Vec<Row> = images
+            .images
+            .iter()
+            .enumerate()
+            .map(|(k, image)| {
+                let mut cells = vec![
+                    Cell::text(format!("pair {} {}", image.pair, image.direction)),
+                    Cell::text(&image.place),
+                    Cell::significant(image.side_counts),
+                    Cell::significant(image.dwell_s),
+                    Cell::text(&image.direction),
+                ];
+                cells.extend(methods.iter().map(|m| {
+                    image
+                        .figures
+                        .get(*m)
+                        .map_or(Cell::text("–"), |f| Cell::number(f.position_rms_pm, 1))
+                }));
+                Row::new(k.to_string(), cells)
+            })
+            .collect();
+        page.details_start(&format!("every image ({})", images.images.len()));
+        page.table(&format!("{prefix}images-per-image"), &header, &rows);
+        page.details_end();
+    }
+    if let Some(d) = &images.dynamics {
+        let rows = vec![
+            Row::new(
+                "creep_weight",
+                vec![
+                    Cell::text("creep weight w"),
+                    Cell::significant(d.creep_weight),
+                ],
+            ),
+            Row::new(
+                "creep_weight_sigma",
+                vec![
+                    Cell::text("its standard error"),
+                    Cell::significant(d.creep_weight_sigma),
+                ],
+            ),
+            Row::new(
+                "settled_gain",
+                vec![
+                    Cell::text("settled creep gain W"),
+                    Cell::significant(d.settled_gain),
+                ],
+            ),
+            Row::new(
+                "gamma_per_decade",
+                vec![
+                    Cell::text("log slope γ per decade"),
+                    Cell::significant(d.gamma_per_decade),
+                ],
+            ),
+            Row::new(
+                "tracks",
+                vec![Cell::text("attachment tracks used"), Cell::count(d.tracks)],
+            ),
+            Row::new(
+                "sightings",
+                vec![Cell::text("sightings used"), Cell::count(d.sightings)],
+            ),
+            Row::new(
+                "residual_rms_counts",
+                vec![
+                    Cell::text("track residual RMS, counts"),
+                    Cell::significant(d.residual_rms_counts),
+                ],
+            ),
+        ];
+        page.table(
+            &format!("{prefix}images-dynamics"),
+            &["creep law identified from the run", "value"],
+            &rows,
+        );
+        if let Some(note) = &d.note {
+            page.paragraph(note);
+        }
+    }
+}
+
+// long-function: one straight page, section after section in reading order; splitting it
+// would scatter the page's layout over helpers that each run once.
+/// The calibration report page: metadata, accuracy per method, the image benchmark, the
+/// regression surfaces with σ and Δmax, given-up nodes with reasons, the drift history,
+/// the figures and the notes.
+pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> String {
+    let run = &report.run;
+    let mut page = Page::new(&format!(
+        "spmcal calibration report: run {} of scanner {}",
+        run.run_id, report.scanner_id
+    ));
+    let figure = |page: &mut Page, file: &str| {
+        if let Some(f) = figures.iter().find(|f| f.file == file) {
+            page.figure(&f.file, &f.png, &f.caption);
+        }
+    };
+
+    page.section("metadata", "Run");
+    let text_row = |key: &str, label: &str, value: &str| {
+        Row::new(key, vec![Cell::text(label), Cell::text(value)])
+    };
+    let num_row = |key: &str, label: &str, cell: Cell| Row::new(key, vec![Cell::text(label), cell]);
+    let rows = vec![
+        text_row("run_id", "run id", &run.run_id),
+        text_row("scanner_id", "scanner id", &report.scanner_id),
+        num_row("nodes", "nodes per repeat", Cell::count(report.nodes)),
+        num_row("repeats", "repeats l", Cell::count(report.repeats as usize)),
+        num_row(
+            "visits_planned",
+            "visits planned",
+            Cell::count(run.visits_planned),
+        ),
+        num_row(
+            "already_finished",
+            "visits finished before this invocation",
+            Cell::count(run.already_finished),
+        ),
+        num_row(
+            "nodes_done",
+            "visits measured now",
+            Cell::count(run.nodes_done),
+        ),
+        num_row(
+            "given_up",
+            "visits given up",
+            Cell::count(run.given_up.len()),
+        ),
+        num_row(
+            "records",
+            "records in the CDB",
+            Cell::number(report.records as f64, 0),
+        ),
+        num_row(
+            "cycles_kept",
+            "skipping cycles kept",
+            Cell::count(run.cycles.kept as usize),
+        ),
+        num_row(
+            "cycles_discarded",
+            "skipping cycles spoiled (discarded)",
+            Cell::count(run.cycles.discarded as usize),
+        ),
+        num_row(
+            "cycles_idle",
+            "idle cycles",
+            Cell::count(run.cycles.idle as usize),
+        ),
+        num_row(
+            "cycles_restarts",
+            "skipping restarts",
+            Cell::count(run.cycles.restarts as usize),
+        ),
+        num_row(
+            "transient_errors",
+            "transient backend errors",
+            Cell::count(run.transient_errors as usize),
+        ),
+        num_row(
+            "instrument_time_s",
+            "instrument time, s",
+            Cell::number(report.instrument_time_s, 1),
+        ),
+        num_row(
+            "wall_time_s",
+            "wall time, s",
+            Cell::number(report.wall_time_s, 2),
+        ),
+        num_row(
+            "wall_time_per_node_ms",
+            "wall time per measured node, ms",
+            Cell::number(report.wall_time_per_node_ms, 1),
+        ),
+        text_row(
+            "interrupted",
+            "interrupted",
+            if run.interrupted { "yes" } else { "no" },
+        ),
+    ];
+    page.table("metadata-table", &["quantity", "value"], &rows);
+
+    page.section("accuracy", "Accuracy against the simulator's ground truth");
+    match &report.accuracy {
+        Some(a) => {
+            let mut rows = vec![
+                accuracy_row("uncorrected", &a.uncorrected),
+                accuracy_row("lumped", &a.lumped),
+                accuracy_row("affine", &a.affine),
+            ];
+            if let Some(p) = &a.polynomial {
+                rows.push(accuracy_row("polynomial", p));
+            }
+            rows.push(accuracy_row("distributed", &a.distributed));
+            page.table("accuracy-table", accuracy_header(), &rows);
+            page.paragraph_with_id(
+                "accuracy-ratio",
+                &format!(
+                    "distributed RMS ÷ lumped RMS = {:.3} (target ≤ 0.1)",
+                    a.distributed_over_lumped_rms
+                ),
+            );
+        }
+        None => page.paragraph("Not measured: needs a simulated backend (the oracle)."),
+    }
+    if let Some(e) = &report.node_lcc_error {
+        page.paragraph(&format!(
+            "Measured node LCCs against the true LCCs at the LCS centres ({} records):",
+            e.n
+        ));
+        let rows = vec![
+            Row::new(
+                "kx",
+                vec![
+                    Cell::text("Kx, %"),
+                    Cell::number(e.kx_mean_pct, 4),
+                    Cell::number(e.kx_rms_pct, 4),
+                ],
+            ),
+            Row::new(
+                "ky",
+                vec![
+                    Cell::text("Ky, %"),
+                    Cell::number(e.ky_mean_pct, 4),
+                    Cell::number(e.ky_rms_pct, 4),
+                ],
+            ),
+            Row::new(
+                "alpha",
+                vec![
+                    Cell::text("α, mrad"),
+                    Cell::number(e.alpha_mean_mrad, 4),
+                    Cell::number(e.alpha_rms_mrad, 4),
+                ],
+            ),
+        ];
+        page.table(
+            "node-lcc-error",
+            &["coefficient", "mean error", "RMS error"],
+            &rows,
+        );
+    }
+
+    page.section(
+        "images",
+        "Test images taken after the run (image benchmark)",
+    );
+    match &report.images {
+        Some(images) => images_tables(&mut page, "", images),
+        None => page.paragraph(
+            "Not measured: needs a simulated backend (and is skipped when the image benchmark \
+             is off).",
+        ),
+    }
+
+    page.section("regression", "Regression surfaces (plane nearest z = 0)");
+    let r = &report.regression;
+    let surface_row =
+        |key: &str, label: &str, unit: &str, scale: f64, s: &crate::surfaces::SurfaceSummary| {
+            Row::new(
+                key,
+                vec![
+                    Cell::text(label),
+                    Cell::count(s.degree as usize),
+                    Cell::significant(s.sigma * scale),
+                    Cell::significant(s.delta_max * scale),
+                    Cell::text(unit),
+                ],
+            )
+        };
+    let mut rows = vec![
+        surface_row("kx", "Kx (x sensitivity)", "pm/count", 1e3, &r.kx),
+        surface_row("ky", "Ky (y sensitivity)", "pm/count", 1e3, &r.ky),
+        surface_row("alpha", "α (non-orthogonality)", "mrad", 1e3, &r.alpha),
+    ];
+    if let Some(kz) = &r.kz {
+        rows.push(surface_row("kz", "Kz (z sensitivity)", "pm/count", 1e3, kz));
+    }
+    page.table(
+        "regression-table",
+        &["coefficient", "degree", "σ", "Δmax", "unit"],
+        &rows,
+    );
+    page.paragraph(
+        "σ: the residual standard deviation of the fit (eq. 14); Δmax: the largest deviation of \
+         the surface from its value at the field origin over the records' extent (eq. 13). \
+         Values shown in the unit of the last column (report.json holds nm/count and rad).",
+    );
+    for file in ["lcc-kx.png", "lcc-ky.png", "lcc-alpha.png"] {
+        figure(&mut page, file);
+    }
+
+    page.section("given-up", "Given-up nodes");
+    if run.given_up.is_empty() {
+        page.paragraph("None: every visit of this invocation was measured.");
+    }
+    let rows: Vec<Row> = run
+        .given_up
+        .iter()
+        .enumerate()
+        .map(|(k, g)| {
+            let code = serde_json::to_value(&g.reason)
+                .ok()
+                .and_then(|v| v.get("reason").and_then(|r| r.as_str()).map(str::to_owned))
+                .unwrap_or_default();
+            Row::new(
+                k.to_string(),
+                vec![
+                    Cell::count(g.repeat_index as usize),
+                    Cell::count(g.node_index as usize),
+                    Cell::text(format!("({}, {}, {})", g.node[0], g.node[1], g.node[2])),
+                    Cell::text(code),
+                    Cell::text(g.reason.to_string()),
+                ],
+            )
+        })
+        .collect();
+    page.table(
+        "given-up-table",
+        &[
+            "repeat",
+            "node",
+            "node position, counts",
+            "reason",
+            "explanation",
+        ],
+        &rows,
+    );
+
+    page.section("drift", "Drift history");
+    let d = &report.drift;
+    let mut rows = vec![
+        Row::new(
+            "estimates",
+            vec![Cell::text("drift estimates"), Cell::count(d.estimates)],
+        ),
+        Row::new(
+            "spoiled",
+            vec![
+                Cell::text("of which spoiled cycles (discarded)"),
+                Cell::count(d.spoiled),
+            ],
+        ),
+        Row::new(
+            "nominal_nm_per_count",
+            vec![
+                Cell::text("nominal sensitivity used for nm, nm/count"),
+                Cell::significant(d.nominal_nm_per_count),
+            ],
+        ),
+    ];
+    if let Some([t0, t1]) = d.time_span_s {
+        rows.push(Row::new(
+            "time_first_s",
+            vec![
+                Cell::text("first estimate, instrument time, s"),
+                Cell::number(t0, 1),
+            ],
+        ));
+        rows.push(Row::new(
+            "time_last_s",
+            vec![
+                Cell::text("last estimate, instrument time, s"),
+                Cell::number(t1, 1),
+            ],
+        ));
+    }
+    if let Some([lo, median, hi]) = d.speed_min_median_max_nm_per_s {
+        for (key, label, v) in [
+            ("speed_min", "smallest kept speed, nm/s", lo),
+            ("speed_median", "median kept speed, nm/s", median),
+            ("speed_max", "largest kept speed, nm/s", hi),
+        ] {
+            rows.push(Row::new(key, vec![Cell::text(label), Cell::significant(v)]));
+        }
+    }
+    page.table("drift-table", &["quantity", "value"], &rows);
+    figure(&mut page, "drift.png");
+
+    page.section("trajectory", "Nodes in visiting order");
+    figure(&mut page, "trajectory.png");
+
+    page.section("notes", "How the figures were measured");
+    page.list("notes-list", &report.notes);
+    page.finish()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn check(input: &str, expected: &str) {
+        assert_eq!(escape(input), expected, "escape({input:?})");
+    }
+
+    #[test]
+    fn escapes_markup_and_quotes() {
+        check("a<b>&\"c'", "a&lt;b&gt;&amp;&quot;c&#39;");
+        check("σ = 0.1 µm", "σ = 0.1 µm");
+        check("</table><script>", "&lt;/table&gt;&lt;script&gt;");
+    }
+
+    #[test]
+    fn numbers_keep_their_exact_value() {
+        assert_eq!(data_value(0.1 + 0.2), "0.30000000000000004");
+        assert_eq!(data_value(f64::NAN), "NaN");
+        assert_eq!(data_value(3.0), "3.0");
+        match Cell::significant(0.012345) {
+            Cell::Number { text, .. } => assert_eq!(text, "0.0123"),
+            Cell::Text(_) => panic!("a number cell"),
+        }
+        match Cell::number(f64::INFINITY, 2) {
+            Cell::Number { text, .. } => assert_eq!(text, "–"),
+            Cell::Text(_) => panic!("a number cell"),
+        }
+    }
+}

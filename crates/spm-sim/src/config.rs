@@ -221,6 +221,10 @@ pub struct ScannerConfig {
     pub hysteresis_y: HysteresisConfig,
     /// Creep (both lateral axes).
     pub creep: CreepConfig,
+    /// Nonlinear Z manipulator whose Kz varies with z and over the field
+    /// ([`crate::vertical`]); absent = linear, Kz = `sensitivity_z_nm_per_count` everywhere.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_manipulator: Option<crate::vertical::ZManipulatorConfig>,
 }
 
 /// Static nonlinearity of one axis: the axis displacement in "linear counts"
@@ -708,6 +712,11 @@ impl SimConfig {
             0.0,
             1.0,
         )?;
+        if let Some(z) = &s.z_manipulator
+            && let Err((field, reason)) = crate::vertical::check(z)
+        {
+            return v.fail(&format!("scanner.z_manipulator.{field}"), &reason);
+        }
         for (name, h) in [
             ("scanner.hysteresis_x", &s.hysteresis_x),
             ("scanner.hysteresis_y", &s.hysteresis_y),
@@ -1192,6 +1201,7 @@ impl SimConfig {
                     max_time_constant_s: 2000.0,
                     elements_per_decade: 1,
                 },
+                z_manipulator: None,
             },
             drift: DriftConfig {
                 velocity_x_nm_per_s: 0.0,
@@ -1299,6 +1309,7 @@ impl SimConfig {
                     max_time_constant_s: 2000.0,
                     elements_per_decade: 3,
                 },
+                z_manipulator: None,
             },
             drift: DriftConfig {
                 velocity_x_nm_per_s: 0.012,

@@ -126,6 +126,7 @@ pub mod oracle;
 pub mod scanner;
 pub mod sim;
 pub mod surface;
+pub mod vertical;
 
 pub use config::{
     CoarseZConfig, ConfigError, CreepConfig, DomainConfig, DriftConfig, FaultConfig, HopgConfig,
@@ -137,3 +138,4 @@ pub use oracle::Oracle;
 pub use scanner::{Creep, Jacobian, Lcc, PlayHysteresis, StaticMap, creep_elements};
 pub use sim::Simulator;
 pub use surface::{FeatureKind, FeatureSite, Surface};
+pub use vertical::{VerticalOracle, ZCrosstalk, ZManipulatorConfig, ZMap};

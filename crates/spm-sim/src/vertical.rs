@@ -283,6 +283,19 @@ impl<'a> VerticalOracle<'a> {
         spm_hal::NmPerCount(self.sim.zmap.kz_nm_per_count(z.value(), ue))
     }
 
+    /// True local Kz (nm/count) a small scan around commanded `u` sees now: the current
+    /// hysteresis and creep state (as [`crate::Oracle::effective_input_for`]) and Z reading.
+    pub fn kz_now(&self, commanded: spm_hal::CountPoint) -> spm_hal::NmPerCount {
+        let o = self.sim.oracle();
+        let e = o.effective_input_for(commanded);
+        let z = o.z_now();
+        spm_hal::NmPerCount(
+            self.sim
+                .zmap
+                .kz_nm_per_count(z.value(), [e.x.value(), e.y.value()]),
+        )
+    }
+
     /// Extension (nm) of Z reading `z` at commanded `u`.
     pub fn extension_nm(&self, commanded: spm_hal::CountPoint, z: spm_hal::Counts) -> f64 {
         let ue = self.reference_effective(commanded);

@@ -23,7 +23,6 @@ use crate::machine::{
 };
 use crate::plan::{GridNode, NetPlan, PlanError, PlanVisit};
 use serde::{Deserialize, Serialize};
-use spm_cdb::{LccRecord, NodeDone, NodeState, PlanNode, RunInfo, RunStatus};
 use spm_features::{DetectionConfig, LcsConfig, LcsStandard, Polarity};
 use spm_fos::{
     ApertureParams, AttachOutcome, AttachParams, CounterScanParams, Decision, FosError,
@@ -32,97 +31,8 @@ use spm_fos::{
 use spm_hal::{
     CountVector, CountVelocity, Counts, Error as _, ErrorKind, Microscope, Nanometres, Seconds,
 };
-use std::collections::HashMap;
-
-/// Where the plan's progress and the records go (implemented by `spm_cdb::Cdb`).
-pub trait ProgressStore {
-    /// The store's error.
-    type Error: std::error::Error + Send + Sync + 'static;
-    /// Creates the run if it does not exist (else leaves it) and registers the plan's
-    /// visits (idempotent).
-    fn begin_run(&mut self, run: &RunInfo, visits: &[PlanNode]) -> Result<(), Self::Error>;
-    /// The state of every registered visit, by (repeat, node index).
-    fn states(&mut self, run_id: &str) -> Result<HashMap<(u32, u32), NodeState>, Self::Error>;
-    /// Stores a measured visit's records and marks it done, in one transaction.
-    fn commit_node(
-        &mut self,
-        run_id: &str,
-        done: &NodeDone,
-        records: &[LccRecord],
-    ) -> Result<(), Self::Error>;
-    /// Marks a visit as given up with its reason.
-    #[allow(clippy::too_many_arguments)]
-    fn give_up_node(
-        &mut self,
-        run_id: &str,
-        repeat_index: u32,
-        node_index: u32,
-        reason: &str,
-        attempts: u32,
-        at_unix_s: f64,
-    ) -> Result<(), Self::Error>;
-    /// Sets the run's final status.
-    fn finish_run(
-        &mut self,
-        run_id: &str,
-        status: RunStatus,
-        at_unix_s: f64,
-    ) -> Result<(), Self::Error>;
-}
-
-impl ProgressStore for spm_cdb::Cdb {
-    type Error = spm_cdb::CdbError;
-    fn begin_run(&mut self, run: &RunInfo, visits: &[PlanNode]) -> Result<(), Self::Error> {
-        use spm_cdb::CdbRead;
-        if self.run(&run.run_id)?.is_none() {
-            self.create_run(run)?;
-        }
-        self.register_plan(&run.run_id, visits)
-    }
-    fn states(&mut self, run_id: &str) -> Result<HashMap<(u32, u32), NodeState>, Self::Error> {
-        use spm_cdb::CdbRead;
-        Ok(self
-            .progress(run_id)?
-            .into_iter()
-            .map(|p| ((p.node.repeat_index, p.node.node_index), p.state))
-            .collect())
-    }
-    fn commit_node(
-        &mut self,
-        run_id: &str,
-        done: &NodeDone,
-        records: &[LccRecord],
-    ) -> Result<(), Self::Error> {
-        spm_cdb::Cdb::commit_node(self, run_id, done, records)
-    }
-    fn give_up_node(
-        &mut self,
-        run_id: &str,
-        repeat_index: u32,
-        node_index: u32,
-        reason: &str,
-        attempts: u32,
-        at_unix_s: f64,
-    ) -> Result<(), Self::Error> {
-        spm_cdb::Cdb::give_up_node(
-            self,
-            run_id,
-            repeat_index,
-            node_index,
-            reason,
-            attempts,
-            at_unix_s,
-        )
-    }
-    fn finish_run(
-        &mut self,
-        run_id: &str,
-        status: RunStatus,
-        at_unix_s: f64,
-    ) -> Result<(), Self::Error> {
-        spm_cdb::Cdb::finish_run(self, run_id, status, at_unix_s)
-    }
-}
+use spm_records::{LccRecord, NodeDone, NodeState, PlanNode, RunInfo, RunStatus};
+pub use spm_records::{MemoryStore, MemoryStoreError, ProgressStore};
 
 /// Progress callbacks (all default to nothing). The CLI hangs a progress bar and plots here.
 pub trait Observer {
@@ -578,11 +488,13 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
                         self.store
                             .give_up_node(
                                 &options.run_id,
-                                visit.repeat_index,
-                                visit.node_index,
+                                &NodeDone {
+                                    repeat_index: visit.repeat_index,
+                                    node_index: visit.node_index,
+                                    attempts: machine.attempt(),
+                                    finished_unix_s: unix(now),
+                                },
                                 &reason.to_string(),
-                                machine.attempt(),
-                                unix(now),
                             )
                             .map_err(Self::store_err)?;
                         report.cycles = add(report.cycles, machine.cycles());
@@ -925,91 +837,4 @@ fn add(mut a: CycleCounts, b: CycleCounts) -> CycleCounts {
     a.idle += b.idle;
     a.restarts += b.restarts;
     a
-}
-
-/// An in-memory [`ProgressStore`] (dry runs and tests): same semantics as the CDB's plan
-/// progress, without persistence.
-#[derive(Clone, Debug, Default)]
-pub struct MemoryStore {
-    /// Runs by id.
-    pub runs: HashMap<String, RunInfo>,
-    /// Visit states by (run, repeat, node).
-    pub states: HashMap<(String, u32, u32), NodeState>,
-    /// Stored records in commit order.
-    pub records: Vec<LccRecord>,
-}
-
-/// Errors of [`MemoryStore`].
-#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
-#[error("memory store: {0}")]
-pub struct MemoryStoreError(pub String);
-
-impl ProgressStore for MemoryStore {
-    type Error = MemoryStoreError;
-    fn begin_run(&mut self, run: &RunInfo, visits: &[PlanNode]) -> Result<(), Self::Error> {
-        self.runs
-            .entry(run.run_id.clone())
-            .or_insert_with(|| run.clone());
-        for v in visits {
-            self.states
-                .entry((run.run_id.clone(), v.repeat_index, v.node_index))
-                .or_insert(NodeState::Pending);
-        }
-        Ok(())
-    }
-    fn states(&mut self, run_id: &str) -> Result<HashMap<(u32, u32), NodeState>, Self::Error> {
-        Ok(self
-            .states
-            .iter()
-            .filter(|((r, _, _), _)| r == run_id)
-            .map(|((_, rep, node), s)| ((*rep, *node), s.clone()))
-            .collect())
-    }
-    fn commit_node(
-        &mut self,
-        run_id: &str,
-        done: &NodeDone,
-        records: &[LccRecord],
-    ) -> Result<(), Self::Error> {
-        let key = (run_id.to_owned(), done.repeat_index, done.node_index);
-        match self.states.get(&key) {
-            Some(NodeState::Pending) => {}
-            other => return Err(MemoryStoreError(format!("{key:?} is {other:?}"))),
-        }
-        self.records.extend_from_slice(records);
-        self.states.insert(key, NodeState::Done);
-        Ok(())
-    }
-    fn give_up_node(
-        &mut self,
-        run_id: &str,
-        repeat_index: u32,
-        node_index: u32,
-        reason: &str,
-        _attempts: u32,
-        _at_unix_s: f64,
-    ) -> Result<(), Self::Error> {
-        let key = (run_id.to_owned(), repeat_index, node_index);
-        match self.states.get(&key) {
-            Some(NodeState::Pending) => {}
-            other => return Err(MemoryStoreError(format!("{key:?} is {other:?}"))),
-        }
-        self.states
-            .insert(key, NodeState::GivenUp(reason.to_owned()));
-        Ok(())
-    }
-    fn finish_run(
-        &mut self,
-        run_id: &str,
-        status: RunStatus,
-        at_unix_s: f64,
-    ) -> Result<(), Self::Error> {
-        let run = self
-            .runs
-            .get_mut(run_id)
-            .ok_or_else(|| MemoryStoreError(format!("no run {run_id}")))?;
-        run.status = status;
-        run.finished_unix_s = Some(at_unix_s);
-        Ok(())
-    }
 }

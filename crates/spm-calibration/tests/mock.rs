@@ -6,9 +6,9 @@
 use spm_calibration::{
     Calibrator, GiveUpReason, MemoryStore, Observer, PlanConfig, RunError, RunOptions,
 };
-use spm_cdb::NodeState;
 use spm_hal::ErrorKind;
 use spm_hal::mock::{Expectation, Operation, ScriptedMicroscope};
+use spm_records::NodeState;
 
 #[derive(Default)]
 struct Counting {
@@ -81,7 +81,7 @@ fn every_scan_failing_gives_every_node_up_within_its_budget() {
             .all(|s| matches!(s, NodeState::GivenUp(r) if r.contains("transient")))
     );
     // The run itself finished: everything was tried.
-    assert_eq!(store.runs["mock"].status, spm_cdb::RunStatus::Finished);
+    assert_eq!(store.runs["mock"].status, spm_records::RunStatus::Finished);
 }
 
 #[test]
@@ -108,7 +108,7 @@ fn an_aborted_instrument_stops_the_run_and_leaves_it_resumable() {
         }
     ));
     assert!(store.states.values().all(|s| *s == NodeState::Pending));
-    assert_eq!(store.runs["mock"].status, spm_cdb::RunStatus::Aborted);
+    assert_eq!(store.runs["mock"].status, spm_records::RunStatus::Aborted);
 }
 
 #[test]

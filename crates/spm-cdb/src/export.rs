@@ -5,16 +5,20 @@ use std::io::Write;
 use std::path::Path;
 
 use crate::error::{CdbError, Result};
-use crate::model::{LccRecord, RecordFilter};
 use crate::query::for_each_record;
 use crate::schema::SCHEMA_VERSION;
+use spm_records::{LccRecord, RecordFilter};
 
-/// CSV header: `acquired_utc` (RFC 3339) then the record fields in declaration order.
-pub const CSV_HEADER: &str = "acquired_utc,scanner_id,run_id,acquired_unix_s,repeat_index,\
-node_index,lcs_index,node_x_counts,node_y_counts,node_z_counts,lcs_x_counts,lcs_y_counts,\
-lcs_z_counts,kx_nm_per_count,ky_nm_per_count,alpha_rad,kz_nm_per_count,u_kx_nm_per_count,\
-u_ky_nm_per_count,u_alpha_rad,u_kz_nm_per_count,drift_vx_nm_per_s,drift_vy_nm_per_s,\
-cycles_kept,cycles_discarded,quality";
+/// CSV header: `acquired_utc` (RFC 3339) then the record columns
+/// ([`spm_records::LCC_RECORD_COLUMNS`]) in order.
+pub static CSV_HEADER: std::sync::LazyLock<String> = std::sync::LazyLock::new(|| {
+    let mut h = String::from("acquired_utc");
+    for c in spm_records::LCC_RECORD_COLUMNS {
+        h.push(',');
+        h.push_str(c.name);
+    }
+    h
+});
 
 /// RFC 3339 UTC text of a Unix time (millisecond precision is kept as given by `time`).
 #[must_use]
@@ -40,40 +44,22 @@ fn csv_text(s: &str) -> String {
     }
 }
 
-fn opt(v: Option<f64>) -> String {
-    v.map(|v| v.to_string()).unwrap_or_default()
-}
-
 fn csv_line(r: &LccRecord) -> String {
-    format!(
-        "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
-        rfc3339_utc(r.acquired_unix_s),
-        csv_text(&r.scanner_id),
-        csv_text(&r.run_id),
-        r.acquired_unix_s,
-        r.repeat_index,
-        r.node_index,
-        r.lcs_index,
-        r.node_x_counts,
-        r.node_y_counts,
-        r.node_z_counts,
-        r.lcs_x_counts,
-        r.lcs_y_counts,
-        r.lcs_z_counts,
-        r.kx_nm_per_count,
-        r.ky_nm_per_count,
-        r.alpha_rad,
-        opt(r.kz_nm_per_count),
-        opt(r.u_kx_nm_per_count),
-        opt(r.u_ky_nm_per_count),
-        opt(r.u_alpha_rad),
-        opt(r.u_kz_nm_per_count),
-        r.drift_vx_nm_per_s,
-        r.drift_vy_nm_per_s,
-        r.cycles_kept,
-        r.cycles_discarded,
-        r.quality
-    )
+    use spm_records::ColumnValue;
+    let mut line = rfc3339_utc(r.acquired_unix_s);
+    for v in r.column_values() {
+        line.push(',');
+        match v {
+            ColumnValue::Text(t) => line.push_str(&csv_text(t)),
+            ColumnValue::Real(v) | ColumnValue::OptionalReal(Some(v)) => {
+                line.push_str(&v.to_string());
+            }
+            ColumnValue::OptionalReal(None) => {}
+            ColumnValue::Integer(v) => line.push_str(&v.to_string()),
+        }
+    }
+    line.push('\n');
+    line
 }
 
 fn io(path: &Path, context: &str) -> impl Fn(std::io::Error) -> CdbError {

@@ -4,40 +4,18 @@ use rusqlite::Connection;
 use std::path::Path;
 
 use crate::error::{CdbError, Result};
-use crate::model::{IntegrityProblem, IntegrityReport};
+use spm_records::{ColumnKind, IntegrityProblem, IntegrityReport, LCC_RECORD_COLUMNS};
 
 /// Report at most this many rows per kind of problem.
 const MAX_ROWS_PER_CHECK: usize = 1000;
 
-const REQUIRED_REALS: &[&str] = &[
-    "acquired_unix_s",
-    "lcs_x_counts",
-    "lcs_y_counts",
-    "lcs_z_counts",
-    "kx_nm_per_count",
-    "ky_nm_per_count",
-    "alpha_rad",
-    "drift_vx_nm_per_s",
-    "drift_vy_nm_per_s",
-    "quality",
-];
-const OPTIONAL_REALS: &[&str] = &[
-    "kz_nm_per_count",
-    "u_kx_nm_per_count",
-    "u_ky_nm_per_count",
-    "u_alpha_rad",
-    "u_kz_nm_per_count",
-];
-const INTEGERS: &[&str] = &[
-    "repeat_index",
-    "node_index",
-    "lcs_index",
-    "node_x_counts",
-    "node_y_counts",
-    "node_z_counts",
-    "cycles_kept",
-    "cycles_discarded",
-];
+/// Names of the record columns of one kind ([`spm_records::LCC_RECORD_COLUMNS`]).
+fn columns_of(kind: ColumnKind) -> impl Iterator<Item = &'static str> {
+    LCC_RECORD_COLUMNS
+        .iter()
+        .filter(move |c| c.kind == kind)
+        .map(|c| c.name)
+}
 
 /// SQL predicate true when `col` is not a finite number (NULL counts as not finite).
 fn not_finite(col: &str) -> String {
@@ -122,24 +100,24 @@ pub(crate) fn check(conn: &Connection, path: &Path) -> Result<IntegrityReport> {
         // Structural damage: semantic queries may be meaningless.
         return Ok(c.report);
     }
-    for col in REQUIRED_REALS {
+    for col in columns_of(ColumnKind::Real) {
         c.record_rows("non_finite", &format!("{col} not finite"), &not_finite(col))?;
     }
-    for col in OPTIONAL_REALS {
+    for col in columns_of(ColumnKind::OptionalReal) {
         c.record_rows(
             "non_finite",
             &format!("{col} not finite"),
             &format!("{col} IS NOT NULL AND {}", not_finite(col)),
         )?;
     }
-    for col in INTEGERS {
+    for col in columns_of(ColumnKind::Integer) {
         c.record_rows(
             "bad_type",
             &format!("{col} not an integer"),
             &format!("typeof({col}) != 'integer'"),
         )?;
     }
-    for col in ["kx_nm_per_count", "ky_nm_per_count"] {
+    for col in spm_records::POSITIVE_COLUMNS {
         c.record_rows(
             "nonpositive_lcc",
             &format!("{col} <= 0"),
@@ -147,21 +125,11 @@ pub(crate) fn check(conn: &Connection, path: &Path) -> Result<IntegrityReport> {
         )?;
     }
     c.record_rows(
-        "nonpositive_lcc",
-        "kz_nm_per_count <= 0",
-        "typeof(kz_nm_per_count) IN ('real', 'integer') AND kz_nm_per_count <= 0",
-    )?;
-    c.record_rows(
         "alpha_out_of_range",
         "|alpha_rad| >= pi/2",
         "typeof(alpha_rad) IN ('real', 'integer') AND abs(alpha_rad) >= 1.5707963267948966",
     )?;
-    for col in [
-        "u_kx_nm_per_count",
-        "u_ky_nm_per_count",
-        "u_alpha_rad",
-        "u_kz_nm_per_count",
-    ] {
+    for col in spm_records::UNCERTAINTY_COLUMNS {
         c.record_rows(
             "negative_uncertainty",
             &format!("{col} < 0"),

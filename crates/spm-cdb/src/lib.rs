@@ -28,12 +28,13 @@
 //! snapshot) and by [`Snapshot`] (all queries in one read transaction).
 
 pub mod bench_support;
+mod columns;
 mod error;
 mod export;
 mod integrity;
-mod model;
 mod query;
 mod schema;
+mod store;
 
 use rusqlite::{Connection, OpenFlags, TransactionBehavior, params};
 use std::io::Write;
@@ -42,12 +43,12 @@ use std::time::Duration;
 
 pub use error::{CdbError, ErrorKind, Result};
 pub use export::{CSV_HEADER, rfc3339_utc};
-pub use model::{
-    Coefficient, CoefficientStat, IntegrityProblem, IntegrityReport, LccColumns, LccRecord,
-    NodeDone, NodeProgress, NodeState, PlanNode, ProgressSummary, RecordFilter, RunInfo, RunStatus,
-    TrendGrouping, TrendPoint,
-};
 pub use schema::{APPLICATION_ID, SCHEMA_VERSION};
+pub use spm_records::{
+    Coefficient, CoefficientStat, IntegrityProblem, IntegrityReport, LccColumns, LccRecord,
+    NodeDone, NodeProgress, NodeState, PlanNode, ProgressStore, ProgressSummary, RecordFilter,
+    RunInfo, RunStatus, TrendGrouping, TrendPoint,
+};
 
 /// SQLite `synchronous` setting (with WAL).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -285,74 +286,9 @@ fn check_time(path: &Path, what: &str, t: f64) -> Result<()> {
     }
 }
 
-/// Checks a record before it is written.
+/// Checks a record before it is written ([`LccRecord::check`], the rules every store applies).
 fn validate_record(path: &Path, r: &LccRecord) -> Result<()> {
-    let at = || {
-        format!(
-            "record (run {:?}, repeat {}, node {}, lcs {})",
-            r.run_id, r.repeat_index, r.node_index, r.lcs_index
-        )
-    };
-    if r.scanner_id.is_empty() || r.run_id.is_empty() {
-        return Err(invalid(path, format!("{}: empty scanner or run id", at())));
-    }
-    let finite = [
-        ("acquired_unix_s", r.acquired_unix_s),
-        ("lcs_x_counts", r.lcs_x_counts),
-        ("lcs_y_counts", r.lcs_y_counts),
-        ("lcs_z_counts", r.lcs_z_counts),
-        ("kx_nm_per_count", r.kx_nm_per_count),
-        ("ky_nm_per_count", r.ky_nm_per_count),
-        ("alpha_rad", r.alpha_rad),
-        ("drift_vx_nm_per_s", r.drift_vx_nm_per_s),
-        ("drift_vy_nm_per_s", r.drift_vy_nm_per_s),
-        ("quality", r.quality),
-    ];
-    for (name, v) in finite {
-        if !v.is_finite() {
-            return Err(invalid(
-                path,
-                format!("{}: {name} = {v} is not finite", at()),
-            ));
-        }
-    }
-    for (name, v) in [
-        ("kx_nm_per_count", Some(r.kx_nm_per_count)),
-        ("ky_nm_per_count", Some(r.ky_nm_per_count)),
-        ("kz_nm_per_count", r.kz_nm_per_count),
-    ] {
-        if let Some(v) = v
-            && !(v.is_finite() && v > 0.0)
-        {
-            return Err(invalid(path, format!("{}: {name} = {v} must be > 0", at())));
-        }
-    }
-    if r.alpha_rad.abs() >= std::f64::consts::FRAC_PI_2 {
-        return Err(invalid(
-            path,
-            format!(
-                "{}: |alpha_rad| = {} must be < pi/2",
-                at(),
-                r.alpha_rad.abs()
-            ),
-        ));
-    }
-    for (name, v) in [
-        ("u_kx_nm_per_count", r.u_kx_nm_per_count),
-        ("u_ky_nm_per_count", r.u_ky_nm_per_count),
-        ("u_alpha_rad", r.u_alpha_rad),
-        ("u_kz_nm_per_count", r.u_kz_nm_per_count),
-    ] {
-        if let Some(v) = v
-            && !(v.is_finite() && v >= 0.0)
-        {
-            return Err(invalid(
-                path,
-                format!("{}: {name} = {v} must be finite and >= 0", at()),
-            ));
-        }
-    }
-    Ok(())
+    r.check().map_err(|p| invalid(path, p.to_string()))
 }
 
 /// Page cache of 64 MiB and memory-mapped reads of up to 1 GiB (address space only): bulk
@@ -363,43 +299,7 @@ fn tune_cache(conn: &Connection) -> rusqlite::Result<()> {
     Ok(())
 }
 
-const INSERT_RECORD: &str = "INSERT INTO records (scanner_id, run_id, acquired_unix_s, \
-repeat_index, node_index, lcs_index, node_x_counts, node_y_counts, node_z_counts, lcs_x_counts, \
-lcs_y_counts, lcs_z_counts, kx_nm_per_count, ky_nm_per_count, alpha_rad, kz_nm_per_count, \
-u_kx_nm_per_count, u_ky_nm_per_count, u_alpha_rad, u_kz_nm_per_count, drift_vx_nm_per_s, \
-drift_vy_nm_per_s, cycles_kept, cycles_discarded, quality) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, \
-?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20, ?21, ?22, ?23, ?24, ?25)";
-
-fn insert_record(stmt: &mut rusqlite::Statement<'_>, r: &LccRecord) -> rusqlite::Result<()> {
-    stmt.execute(params![
-        r.scanner_id,
-        r.run_id,
-        r.acquired_unix_s,
-        r.repeat_index,
-        r.node_index,
-        r.lcs_index,
-        r.node_x_counts,
-        r.node_y_counts,
-        r.node_z_counts,
-        r.lcs_x_counts,
-        r.lcs_y_counts,
-        r.lcs_z_counts,
-        r.kx_nm_per_count,
-        r.ky_nm_per_count,
-        r.alpha_rad,
-        r.kz_nm_per_count,
-        r.u_kx_nm_per_count,
-        r.u_ky_nm_per_count,
-        r.u_alpha_rad,
-        r.u_kz_nm_per_count,
-        r.drift_vx_nm_per_s,
-        r.drift_vy_nm_per_s,
-        r.cycles_kept,
-        r.cycles_discarded,
-        r.quality
-    ])?;
-    Ok(())
-}
+use columns::{INSERT_RECORD, insert_record};
 
 /// Creates a new CDB so that no other process ever sees it half made: the schema is
 /// written to a hidden sibling file, which is then hard-linked into place (a link never
@@ -952,7 +852,7 @@ impl Cdb {
                     ),
                 ));
             }
-            let mut stmt = tx.prepare_cached(INSERT_RECORD).map_err(err)?;
+            let mut stmt = tx.prepare_cached(&INSERT_RECORD).map_err(err)?;
             insert_record(&mut stmt, r).map_err(err)?;
         }
         tx.execute(
@@ -1064,7 +964,7 @@ impl Cdb {
         let mut n = 0;
         {
             // One prepared statement for the whole import (no per-row cache lookup).
-            let mut stmt = tx.prepare(INSERT_RECORD).map_err(err)?;
+            let mut stmt = tx.prepare(&INSERT_RECORD).map_err(err)?;
             for r in records {
                 let r = std::borrow::Borrow::borrow(&r);
                 validate_record(&path, r)?;

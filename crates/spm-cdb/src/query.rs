@@ -6,47 +6,12 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use crate::error::{CdbError, Result};
-use crate::model::{
+use spm_records::{
     Coefficient, CoefficientStat, LccColumns, LccRecord, NodeProgress, NodeState, PlanNode,
     ProgressSummary, RecordFilter, RunInfo, RunStatus, TrendGrouping, TrendPoint,
 };
 
-/// Columns of `records` in the order [`record_from_row`] reads them.
-pub(crate) const RECORD_COLUMNS: &str = "scanner_id, run_id, acquired_unix_s, repeat_index, \
-node_index, lcs_index, node_x_counts, node_y_counts, node_z_counts, lcs_x_counts, lcs_y_counts, \
-lcs_z_counts, kx_nm_per_count, ky_nm_per_count, alpha_rad, kz_nm_per_count, u_kx_nm_per_count, \
-u_ky_nm_per_count, u_alpha_rad, u_kz_nm_per_count, drift_vx_nm_per_s, drift_vy_nm_per_s, \
-cycles_kept, cycles_discarded, quality";
-
-pub(crate) fn record_from_row(r: &Row<'_>) -> rusqlite::Result<LccRecord> {
-    Ok(LccRecord {
-        scanner_id: r.get(0)?,
-        run_id: r.get(1)?,
-        acquired_unix_s: r.get(2)?,
-        repeat_index: r.get(3)?,
-        node_index: r.get(4)?,
-        lcs_index: r.get(5)?,
-        node_x_counts: r.get(6)?,
-        node_y_counts: r.get(7)?,
-        node_z_counts: r.get(8)?,
-        lcs_x_counts: r.get(9)?,
-        lcs_y_counts: r.get(10)?,
-        lcs_z_counts: r.get(11)?,
-        kx_nm_per_count: r.get(12)?,
-        ky_nm_per_count: r.get(13)?,
-        alpha_rad: r.get(14)?,
-        kz_nm_per_count: r.get(15)?,
-        u_kx_nm_per_count: r.get(16)?,
-        u_ky_nm_per_count: r.get(17)?,
-        u_alpha_rad: r.get(18)?,
-        u_kz_nm_per_count: r.get(19)?,
-        drift_vx_nm_per_s: r.get(20)?,
-        drift_vy_nm_per_s: r.get(21)?,
-        cycles_kept: r.get(22)?,
-        cycles_discarded: r.get(23)?,
-        quality: r.get(24)?,
-    })
-}
+pub(crate) use crate::columns::{RECORD_COLUMNS, record_from_row};
 
 /// WHERE clause and parameters of a filter.
 pub(crate) fn where_clause(f: &RecordFilter) -> (String, Vec<Value>) {
@@ -100,7 +65,10 @@ pub(crate) fn for_each_record(
 ) -> Result<()> {
     check_filter(path, filter)?;
     let (w, p) = where_clause(filter);
-    let sql = format!("SELECT {RECORD_COLUMNS} FROM records{w} ORDER BY acquired_unix_s, id");
+    let sql = format!(
+        "SELECT {} FROM records{w} ORDER BY acquired_unix_s, id",
+        *RECORD_COLUMNS
+    );
     let err = |e| CdbError::sqlite(path, e);
     let mut stmt = conn.prepare(&sql).map_err(err)?;
     let mut rows = stmt.query(rusqlite::params_from_iter(p)).map_err(err)?;

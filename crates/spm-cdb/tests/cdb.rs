@@ -283,7 +283,7 @@ fn age_dynamics_and_export() {
     let csv = String::from_utf8(csv).unwrap();
     let lines: Vec<&str> = csv.lines().collect();
     assert_eq!(lines.len(), 10);
-    assert_eq!(lines[0], spm_cdb::CSV_HEADER);
+    assert_eq!(lines[0], spm_cdb::CSV_HEADER.as_str());
     let cols: Vec<&str> = lines[1].split(',').collect();
     assert_eq!(cols.len(), lines[0].split(',').count());
     assert_eq!(cols[0], "2024-01-01T00:00:00Z");
@@ -657,4 +657,38 @@ fn creation_is_atomic_for_racing_readers() {
         .filter(|n| n.contains("atomic_creation") && n.contains(".creating-"))
         .collect();
     assert!(leftovers.is_empty(), "{leftovers:?}");
+}
+
+/// The `records` table holds exactly the columns of `spm_records::LCC_RECORD_COLUMNS` (after
+/// the surrogate key), with the SQL type and nullability of each column's kind: the schema text
+/// and the one column list cannot diverge. (The physical order follows the migrations: the
+/// uncertainties were appended by v2; every statement names its columns.)
+#[test]
+fn records_table_matches_the_one_column_list() {
+    let path = db_path("column_list");
+    drop(Cdb::open(&path).unwrap());
+    let conn = Connection::open(&path).unwrap();
+    let mut stmt = conn.prepare("PRAGMA table_info(records)").unwrap();
+    let stored: std::collections::BTreeMap<String, (String, bool)> = stmt
+        .query_map([], |r| {
+            Ok((r.get(1)?, (r.get(2)?, r.get::<_, i64>(3)? != 0)))
+        })
+        .unwrap()
+        .collect::<Result<_, _>>()
+        .unwrap();
+    let expected: std::collections::BTreeMap<String, (String, bool)> =
+        spm_records::LCC_RECORD_COLUMNS
+            .iter()
+            .map(|col| {
+                let (sql_type, not_null) = match col.kind {
+                    spm_records::ColumnKind::Text => ("TEXT", true),
+                    spm_records::ColumnKind::Real => ("REAL", true),
+                    spm_records::ColumnKind::OptionalReal => ("REAL", false),
+                    spm_records::ColumnKind::Integer => ("INTEGER", true),
+                };
+                (col.name.to_owned(), (sql_type.to_owned(), not_null))
+            })
+            .chain([("id".to_owned(), ("INTEGER".to_owned(), false))])
+            .collect();
+    assert_eq!(stored, expected);
 }

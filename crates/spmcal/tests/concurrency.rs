@@ -48,7 +48,7 @@ fn export(cdb: &Path, csv: &Path) -> Vec<String> {
     );
     let text = std::fs::read_to_string(csv).unwrap();
     let mut lines = text.lines();
-    assert_eq!(lines.next(), Some(spm_cdb::CSV_HEADER));
+    assert_eq!(lines.next(), Some(spm_cdb::CSV_HEADER.as_str()));
     let rows: Vec<String> = lines.map(str::to_owned).collect();
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(

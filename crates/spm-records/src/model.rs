@@ -168,7 +168,7 @@ pub struct ProgressSummary {
     pub given_up: u64,
 }
 
-/// Completion of a node passed to [`crate::Cdb::commit_node`].
+/// Completion of a node passed to [`crate::ProgressStore::commit_node`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct NodeDone {
     /// Repeat index.
@@ -264,7 +264,7 @@ impl LccColumns {
     }
 }
 
-/// A calibration coefficient tracked by [`crate::Cdb::age_dynamics`].
+/// A calibration coefficient tracked by a store's age-dynamics query.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Coefficient {
@@ -278,7 +278,7 @@ pub enum Coefficient {
     KzNmPerCount,
 }
 
-/// How [`crate::Cdb::age_dynamics`] groups records.
+/// How a store's age-dynamics query groups records.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum TrendGrouping {
@@ -318,7 +318,7 @@ pub struct TrendPoint {
     pub stat: Option<CoefficientStat>,
 }
 
-/// One finding of [`crate::Cdb::check`].
+/// One finding of a store's integrity check.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct IntegrityProblem {
     /// Short machine-readable class, e.g. `non_finite`, `nonpositive_lcc`, `done_without_records`.
@@ -327,10 +327,11 @@ pub struct IntegrityProblem {
     pub detail: String,
 }
 
-/// Result of [`crate::Cdb::check`].
+/// Result of a store's integrity check.
 #[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct IntegrityReport {
-    /// Lines of `PRAGMA integrity_check` other than `ok`, and `PRAGMA foreign_key_check` rows.
+    /// Problems the database engine itself reports (SQLite: lines of `PRAGMA integrity_check`
+    /// other than `ok`, and `PRAGMA foreign_key_check` rows).
     pub sqlite: Vec<String>,
     /// Semantic problems.
     pub problems: Vec<IntegrityProblem>,

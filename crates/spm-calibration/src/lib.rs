@@ -53,6 +53,7 @@ pub mod lcc;
 pub mod machine;
 pub mod plan;
 pub mod runner;
+pub mod vertical;
 
 pub use config::{
     ApertureConfig, AttachConfig, AttachTarget, ConfigError, DriftConfig, FailureConfig,
@@ -73,3 +74,4 @@ pub use runner::{
     Calibrator, FosParams, GivenUpVisit, MemoryStore, MemoryStoreError, NoObserver, Observer,
     ProgressStore, RunError, RunOptions, RunReport,
 };
+pub use vertical::{KzOutcome, KzSearch, StepSearchConfig};

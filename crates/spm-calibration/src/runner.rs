@@ -51,6 +51,8 @@ pub trait Observer {
     fn attach_sightings(&mut self, _visit: &PlanVisit, _sightings: &[spm_fos::Sighting]) {}
     /// A new drift velocity estimate at instrument time `at`.
     fn drift_estimate(&mut self, _visit: &PlanVisit, _velocity: CountVelocity, _at: Seconds) {}
+    /// The vertical measurements at a visit (plans with `[plan.steps]`).
+    fn kz_searched(&mut self, _visit: &PlanVisit, _search: &crate::vertical::KzSearch) {}
     /// Asked before every visit: `false` stops the run cleanly (it stays resumable).
     fn keep_going(&mut self) -> bool {
         true
@@ -113,6 +115,9 @@ pub struct RunReport {
     pub instrument_time_s: f64,
     /// True when stopped by the observer before the plan's end.
     pub interrupted: bool,
+    /// Step searches for Kz (plans with `[plan.steps]`).
+    #[serde(default)]
+    pub kz: crate::vertical::KzTally,
 }
 
 /// Why a run failed as a whole.
@@ -455,7 +460,14 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
                     Action::Finished(measurement) => {
                         let z = self.microscope.z_position().map_or(f64::NAN, |z| z.value());
                         let now = self.microscope.now().unwrap_or(clock0);
-                        let record = self.record(&options.run_id, &measurement, z, unix(now));
+                        let mut record = self.record(&options.run_id, &measurement, z, unix(now));
+                        // Vertical axis (issue 15): the LCS's level and Kz from a nearby step.
+                        if let Some(search) =
+                            crate::vertical::at_node(self.microscope, &self.config, &mut record)
+                        {
+                            report.kz.count(&search);
+                            self.observer.kz_searched(visit, &search);
+                        }
                         let done = NodeDone {
                             repeat_index: visit.repeat_index,
                             node_index: visit.node_index,

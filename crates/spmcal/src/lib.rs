@@ -23,3 +23,4 @@ pub mod report;
 pub mod run;
 pub mod simulate;
 pub mod surfaces;
+pub mod vertical;

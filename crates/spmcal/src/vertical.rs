@@ -1,0 +1,312 @@
+//! The vertical axis after a run (issue 15): the bowl surface of every Z plane from the LCSs'
+//! levels, and — against the simulator's oracle — the `vertical` section of report.json
+//! (Kz surface error, bowl residual, the z-dependence of K̄x and K̄y across the planes).
+
+use crate::surfaces::{RegressionSummary, SurfaceFitError, SurfaceFitOptions, extent, fit_one};
+use serde::Serialize;
+use spm_cdb::{CdbRead, RecordFilter};
+use spm_correction::{PlaneSurfaces, SurfaceSet};
+use spm_hal::{CountPoint, Counts};
+use spm_records::LccRecord;
+use spm_sim::Simulator;
+
+/// Fits the plane's bowl (the LCSs' Z over x, y) when the plane's records come from a run that
+/// measured the vertical axis (at least one record with Kz; without it `lcs_z_counts` is a
+/// single Z reading on the corrugation and no bowl is fitted). Records on another terrace
+/// (their Z off the surface by more than half a step) are left out, iteratively.
+///
+/// # Errors
+/// [`SurfaceFitError`] from the CDB or the regression.
+pub fn with_bowl(
+    cdb: &dyn CdbRead,
+    filter: &RecordFilter,
+    mut plane: PlaneSurfaces,
+    mut summary: RegressionSummary,
+    options: &SurfaceFitOptions,
+) -> Result<(PlaneSurfaces, RegressionSummary), SurfaceFitError> {
+    let records = cdb.records(filter)?;
+    let levels: Vec<&LccRecord> = records
+        .iter()
+        .filter(|r| {
+            r.lcs_x_counts.is_finite() && r.lcs_y_counts.is_finite() && r.lcs_z_counts.is_finite()
+        })
+        .collect();
+    let kz: Vec<f64> = levels.iter().filter_map(|r| r.kz_nm_per_count).collect();
+    if kz.is_empty() || levels.len() < 6 {
+        return Ok((plane, summary));
+    }
+    // Half a monatomic step in counts (0.3354 nm over the mean Kz): a terrace offset.
+    let half_step = 0.5 * 0.3354 / (kz.iter().sum::<f64>() / kz.len() as f64);
+    let z_counts = plane.z_counts as i64;
+    let mut keep = vec![true; levels.len()];
+    let mut fitted = None;
+    for _ in 0..4 {
+        let pick = |f: fn(&LccRecord) -> f64| -> Vec<f64> {
+            levels
+                .iter()
+                .zip(&keep)
+                .filter(|(_, k)| **k)
+                .map(|(r, _)| f(r))
+                .collect()
+        };
+        let (x, y, z) = (
+            pick(|r| r.lcs_x_counts),
+            pick(|r| r.lcs_y_counts),
+            pick(|r| r.lcs_z_counts),
+        );
+        if z.len() < 6 {
+            break;
+        }
+        let field = extent(&x, &y);
+        let (surface, s) = fit_one("bowl_z_counts", z_counts, &x, &y, &z, &field, options)?;
+        let next: Vec<bool> = levels
+            .iter()
+            .map(|r| {
+                (r.lcs_z_counts - surface.surface.evaluate(r.lcs_x_counts, r.lcs_y_counts)).abs()
+                    < half_step
+            })
+            .collect();
+        let stable = next == keep;
+        keep = next;
+        fitted = Some((surface, s));
+        if stable {
+            break;
+        }
+    }
+    if let Some((surface, s)) = fitted {
+        plane.bowl_z_counts = Some(surface);
+        summary.bowl = Some(s);
+    }
+    Ok((plane, summary))
+}
+
+/// A z-slope measured across the Z planes against the oracle's.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct SlopeComparison {
+    /// Measured relative slope, per count of Z reading (from the planes' surfaces at the
+    /// field centre).
+    pub measured_per_count: f64,
+    /// Its standard uncertainty.
+    pub sigma_per_count: f64,
+    /// The oracle's.
+    pub true_per_count: f64,
+    /// |measured − true| ≤ 2σ.
+    pub within_2_sigma: bool,
+}
+
+/// One Z plane's vertical figures.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PlaneVertical {
+    /// Plane label (node z), counts.
+    pub z_counts: f64,
+    /// Mean Z reading of the plane's LCSs, counts.
+    pub level_z_counts: f64,
+    /// Records with Kz.
+    pub kz_records: usize,
+    /// Mean |Kz^r / Kz_true − 1| over the plane's nodes, %.
+    pub kz_mean_error_pct: Option<f64>,
+    /// Largest of it, %.
+    pub kz_max_error_pct: Option<f64>,
+    /// RMS(bowl^r − bowl_true) / RMS(bowl_true) over the nodes, both relative to their means.
+    pub bowl_residual_fraction: Option<f64>,
+    /// χ² per degree of freedom of the Kz records about Kz^r with their own uncertainties:
+    /// ≫ 1 means structure the surface does not model (or understated uncertainties).
+    pub kz_chi2_per_dof: Option<f64>,
+}
+
+/// report.json's `vertical` (simulated backends only).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct VerticalReport {
+    /// Mean over the planes' nodes of |Kz^r/Kz_true − 1|, %.
+    pub kz_mean_error_pct: Option<f64>,
+    /// Largest, %.
+    pub kz_max_error_pct: Option<f64>,
+    /// Worst plane's bowl residual fraction.
+    pub bowl_residual_fraction: Option<f64>,
+    /// The z-dependence of K̄x and K̄y recovered within 2σ (needs ≥ 3 planes).
+    pub z_crosstalk_recovered: Option<bool>,
+    /// The slopes behind it.
+    pub z_crosstalk: Option<[SlopeComparison; 2]>,
+    /// Kz records whose residual structure exceeds their uncertainties (χ²/dof > 4 in a plane).
+    pub kz_structured_residual: bool,
+    /// Per plane.
+    pub planes: Vec<PlaneVertical>,
+}
+
+/// Coarse-stage position of a plane label from the plan's Z levels.
+fn coarse_of(plan: &spm_calibration::PlanConfig, z_counts: f64) -> i64 {
+    plan.net
+        .z_levels
+        .iter()
+        .find(|l| l.nominal_z_counts as f64 == z_counts)
+        .and_then(|l| l.coarse_steps)
+        .unwrap_or(0)
+}
+
+fn weighted_slope(points: &[(f64, f64, f64)]) -> Option<(f64, f64)> {
+    // (x, y, σ) → slope and its σ.
+    if points.len() < 3 {
+        return None;
+    }
+    let w: Vec<f64> = points
+        .iter()
+        .map(|p| 1.0 / (p.2 * p.2).max(1e-300))
+        .collect();
+    let sw: f64 = w.iter().sum();
+    let mx = points.iter().zip(&w).map(|(p, w)| p.0 * w).sum::<f64>() / sw;
+    let my = points.iter().zip(&w).map(|(p, w)| p.1 * w).sum::<f64>() / sw;
+    let sxx: f64 = points
+        .iter()
+        .zip(&w)
+        .map(|(p, w)| w * (p.0 - mx).powi(2))
+        .sum();
+    if sxx <= 0.0 {
+        return None;
+    }
+    let sxy: f64 = points
+        .iter()
+        .zip(&w)
+        .map(|(p, w)| w * (p.0 - mx) * (p.1 - my))
+        .sum();
+    Some((sxy / sxx, (1.0 / sxx).sqrt()))
+}
+
+/// The vertical figures of a fitted surface set against the simulator's oracle. `records`
+/// are the records the surfaces were fitted from.
+pub fn evaluate(
+    sim: &Simulator,
+    plan: &spm_calibration::PlanConfig,
+    set: &SurfaceSet,
+    records: &[LccRecord],
+) -> Option<VerticalReport> {
+    let oracle = sim.oracle();
+    let vertical = oracle.vertical();
+    let mut planes = Vec::new();
+    let mut kz_errors = Vec::new();
+    let mut slopes_x = Vec::new();
+    let mut slopes_y = Vec::new();
+    let mut truth_x = Vec::new();
+    let mut truth_y = Vec::new();
+    for plane in &set.planes {
+        let in_plane: Vec<&LccRecord> = records
+            .iter()
+            .filter(|r| r.node_z_counts as f64 == plane.z_counts)
+            .collect();
+        if in_plane.is_empty() {
+            continue;
+        }
+        let level = in_plane.iter().map(|r| r.lcs_z_counts).sum::<f64>() / in_plane.len() as f64;
+        let coarse = coarse_of(plan, plane.z_counts);
+        // Kz^r at every node against the truth at the plane's level.
+        let mut errors = Vec::new();
+        let mut chi2 = 0.0;
+        let mut n_kz = 0usize;
+        if let Some(kz) = &plane.kz_nm_per_count {
+            for r in &in_plane {
+                let u = CountPoint::from_counts(r.lcs_x_counts, r.lcs_y_counts);
+                let truth = vertical.kz_at(u, Counts(level)).value();
+                let fitted = kz.surface.evaluate(r.lcs_x_counts, r.lcs_y_counts);
+                errors.push(100.0 * (fitted / truth - 1.0).abs());
+                if let (Some(k), Some(uk)) = (r.kz_nm_per_count, r.u_kz_nm_per_count)
+                    && uk > 0.0
+                {
+                    chi2 += ((k - fitted) / uk).powi(2);
+                    n_kz += 1;
+                }
+            }
+        }
+        let kz_records = in_plane
+            .iter()
+            .filter(|r| r.kz_nm_per_count.is_some())
+            .count();
+        let dof = n_kz as f64
+            - plane
+                .kz_nm_per_count
+                .as_ref()
+                .map_or(0.0, |k| spm_regression::n_terms(k.surface.degree()) as f64);
+        let kz_chi2_per_dof = (dof >= 1.0).then(|| chi2 / dof);
+        // Bowl against the truth, both relative to their means over the nodes.
+        let bowl_residual_fraction = plane.bowl_z_counts.as_ref().and_then(|b| {
+            let pairs: Vec<(f64, f64)> = in_plane
+                .iter()
+                .map(|r| {
+                    let u = CountPoint::from_counts(r.lcs_x_counts, r.lcs_y_counts);
+                    (
+                        b.surface.evaluate(r.lcs_x_counts, r.lcs_y_counts),
+                        vertical.flat_sample_z_reading(u, coarse).value(),
+                    )
+                })
+                .collect();
+            let n = pairs.len() as f64;
+            let mb = pairs.iter().map(|p| p.0).sum::<f64>() / n;
+            let mt = pairs.iter().map(|p| p.1).sum::<f64>() / n;
+            let rms_t = (pairs.iter().map(|p| (p.1 - mt).powi(2)).sum::<f64>() / n).sqrt();
+            let rms_r = (pairs
+                .iter()
+                .map(|p| ((p.0 - mb) - (p.1 - mt)).powi(2))
+                .sum::<f64>()
+                / n)
+                .sqrt();
+            (rms_t > 0.0).then(|| rms_r / rms_t)
+        });
+        // K̄x, K̄y at the field centre of the records (for the z-dependence).
+        let xs: Vec<f64> = in_plane.iter().map(|r| r.lcs_x_counts).collect();
+        let ys: Vec<f64> = in_plane.iter().map(|r| r.lcs_y_counts).collect();
+        let f = extent(&xs, &ys);
+        let (cx, cy) = (0.5 * (f.x_min + f.x_max), 0.5 * (f.y_min + f.y_max));
+        let n = in_plane.len() as f64;
+        let kx = plane.kx_nm_per_count.surface.evaluate(cx, cy);
+        let ky = plane.ky_nm_per_count.surface.evaluate(cx, cy);
+        let sx = plane.kx_nm_per_count.sigma / n.sqrt();
+        let sy = plane.ky_nm_per_count.sigma / n.sqrt();
+        let t = vertical.true_lcc_at_reading(CountPoint::from_counts(cx, cy), Counts(level));
+        slopes_x.push((level, kx, sx.max(1e-12)));
+        slopes_y.push((level, ky, sy.max(1e-12)));
+        truth_x.push((level, t.kx.value(), 1.0));
+        truth_y.push((level, t.ky.value(), 1.0));
+        kz_errors.extend(errors.iter().copied());
+        planes.push(PlaneVertical {
+            z_counts: plane.z_counts,
+            level_z_counts: level,
+            kz_records,
+            kz_mean_error_pct: (!errors.is_empty())
+                .then(|| errors.iter().sum::<f64>() / errors.len() as f64),
+            kz_max_error_pct: errors.iter().copied().reduce(f64::max),
+            bowl_residual_fraction,
+            kz_chi2_per_dof,
+        });
+    }
+    if planes.is_empty() {
+        return None;
+    }
+    let compare = |m: &[(f64, f64, f64)], t: &[(f64, f64, f64)]| -> Option<SlopeComparison> {
+        let (sm, ss) = weighted_slope(m)?;
+        let (st, _) = weighted_slope(t)?;
+        // Relative slopes (per count), normalised by the mean coefficient.
+        let mean_m = m.iter().map(|p| p.1).sum::<f64>() / m.len() as f64;
+        let mean_t = t.iter().map(|p| p.1).sum::<f64>() / t.len() as f64;
+        let (measured, sigma, truth) = (sm / mean_m, ss / mean_m, st / mean_t);
+        Some(SlopeComparison {
+            measured_per_count: measured,
+            sigma_per_count: sigma,
+            true_per_count: truth,
+            within_2_sigma: (measured - truth).abs() <= 2.0 * sigma,
+        })
+    };
+    let z_crosstalk = compare(&slopes_x, &truth_x).zip(compare(&slopes_y, &truth_y));
+    Some(VerticalReport {
+        kz_mean_error_pct: (!kz_errors.is_empty())
+            .then(|| kz_errors.iter().sum::<f64>() / kz_errors.len() as f64),
+        kz_max_error_pct: kz_errors.iter().copied().reduce(f64::max),
+        bowl_residual_fraction: planes
+            .iter()
+            .filter_map(|p| p.bowl_residual_fraction)
+            .reduce(f64::max),
+        z_crosstalk_recovered: z_crosstalk.map(|(x, y)| x.within_2_sigma && y.within_2_sigma),
+        z_crosstalk: z_crosstalk.map(|(x, y)| [x, y]),
+        kz_structured_residual: planes
+            .iter()
+            .any(|p| p.kz_chi2_per_dof.is_some_and(|c| c > 4.0)),
+        planes,
+    })
+}

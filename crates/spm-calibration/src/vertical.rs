@@ -17,7 +17,9 @@
 
 use serde::{Deserialize, Serialize};
 use spm_features::{StepConfig, StepRejection, measure_step, measure_step_pair};
-use spm_hal::{CountPoint, Counts, Microscope, MoveRequest, ScanRequest, Seconds, TraceHalf};
+use spm_hal::{
+    CountPoint, Counts, Error as _, Microscope, MoveRequest, ScanRequest, Seconds, TraceHalf,
+};
 
 /// The step search of a plan (the `[plan.steps]` table). Units in the names.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -91,7 +93,7 @@ impl StepSearchConfig {
                 return bad(f, format!("must be in [{lo}, 4096], got {v}"));
             }
         }
-        if self.search_radius_counts / (0.8 * self.window_size_counts) > 20.0 {
+        if self.search_radius_counts / (0.5 * self.window_size_counts) > 20.0 {
             return bad(
                 "search_radius_counts",
                 "searches more than 40 × 40 windows; shrink it or enlarge the windows".into(),
@@ -100,10 +102,11 @@ impl StepSearchConfig {
         Ok(())
     }
 
-    /// The window centres, nearest first: a square grid of pitch 0.8 window around the node
-    /// (overlapping, so an edge is never only at a border), within the search radius.
+    /// The window centres, nearest first: a square grid of pitch half a window around the
+    /// node (an edge near one window's border is near the middle of the next), within the
+    /// search radius.
     pub fn window_offsets(&self) -> Vec<(f64, f64)> {
-        let pitch = 0.8 * self.window_size_counts;
+        let pitch = 0.5 * self.window_size_counts;
         let n = (self.search_radius_counts / pitch).floor() as i64;
         let mut out: Vec<(f64, f64)> = (-n..=n)
             .flat_map(|i| (-n..=n).map(move |j| (i as f64 * pitch, j as f64 * pitch)))
@@ -274,20 +277,25 @@ pub fn measure_node<M: Microscope + ?Sized>(
         if !inside(&request) {
             continue;
         }
-        let moved = mic.move_to(MoveRequest {
-            target: request.origin,
-            speed_counts_per_s: motion.move_speed_counts_per_s,
-            settle: Seconds(motion.settle_s),
-        });
-        let frame = match moved.and_then(|()| mic.scan(&request)) {
-            Ok(f) => f,
-            Err(e) => {
-                return KzSearch {
-                    level_z_counts: level,
-                    kz: KzOutcome::Failed {
-                        message: e.to_string(),
-                    },
-                };
+        // Transient errors (timeouts, communication, feedback lost) are retried twice.
+        let mut attempt = 0;
+        let frame = loop {
+            let moved = mic.move_to(MoveRequest {
+                target: request.origin,
+                speed_counts_per_s: motion.move_speed_counts_per_s,
+                settle: Seconds(motion.settle_s),
+            });
+            match moved.and_then(|()| mic.scan(&request)) {
+                Ok(f) => break f,
+                Err(e) if e.kind().is_transient() && attempt < 2 => attempt += 1,
+                Err(e) => {
+                    return KzSearch {
+                        level_z_counts: level,
+                        kz: KzOutcome::Failed {
+                            message: e.to_string(),
+                        },
+                    };
+                }
             }
         };
         windows += 1;

@@ -12,8 +12,9 @@ use spm_sim::Simulator;
 
 /// Fits the plane's bowl (the LCSs' Z over x, y) when the plane's records come from a run that
 /// measured the vertical axis (at least one record with Kz; without it `lcs_z_counts` is a
-/// single Z reading on the corrugation and no bowl is fitted). Records on another terrace
-/// (their Z off the surface by more than half a step) are left out, iteratively.
+/// single Z reading on the corrugation and no bowl is fitted). With enough records for a
+/// quadratic (≥ 12), records on another terrace (Z off the surface by more than 0.6 step)
+/// are left out, iteratively.
 ///
 /// # Errors
 /// [`SurfaceFitError`] from the CDB or the regression.
@@ -35,8 +36,13 @@ pub fn with_bowl(
     if kz.is_empty() || levels.len() < 6 {
         return Ok((plane, summary));
     }
-    // Half a monatomic step in counts (0.3354 nm over the mean Kz): a terrace offset.
-    let half_step = 0.5 * 0.3354 / (kz.iter().sum::<f64>() / kz.len() as f64);
+    // 0.6 monatomic step in counts (0.3354 nm over the mean Kz): a terrace offset. A plane
+    // (fewer than 12 records) cannot follow the bowl, so nothing is left out then.
+    let terrace = if levels.len() >= 12 {
+        0.6 * 0.3354 / (kz.iter().sum::<f64>() / kz.len() as f64)
+    } else {
+        f64::INFINITY
+    };
     let z_counts = plane.z_counts as i64;
     let mut keep = vec![true; levels.len()];
     let mut fitted = None;
@@ -63,7 +69,7 @@ pub fn with_bowl(
             .iter()
             .map(|r| {
                 (r.lcs_z_counts - surface.surface.evaluate(r.lcs_x_counts, r.lcs_y_counts)).abs()
-                    < half_step
+                    < terrace
             })
             .collect();
         let stable = next == keep;

@@ -586,6 +586,8 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             cycles_kept: m.cycles.kept,
             cycles_discarded: m.cycles.discarded,
             quality: m.quality(),
+            kz_x_counts: None,
+            kz_y_counts: None,
         }
     }
 

@@ -169,11 +169,15 @@ impl KzSearch {
         if let KzOutcome::Measured {
             kz_nm_per_count,
             u_kz_nm_per_count,
+            edge_x_counts,
+            edge_y_counts,
             ..
         } = self.kz
         {
             record.kz_nm_per_count = Some(kz_nm_per_count);
             record.u_kz_nm_per_count = Some(u_kz_nm_per_count);
+            record.kz_x_counts = Some(edge_x_counts);
+            record.kz_y_counts = Some(edge_y_counts);
         }
     }
 

@@ -19,6 +19,7 @@ fn simulator(edges: Vec<StepEdgeConfig>) -> Simulator {
         lateral_radial: 0.02,
         ripple_fraction: 0.0,
         ripple_period_counts: 16384.0,
+        kz_drift_per_hour: 0.0,
     });
     c.scanner.bowl_curvature_per_nm = 2e-6;
     if let SurfaceConfig::Hopg(h) = &mut c.surface {

@@ -368,6 +368,7 @@ impl Simulator {
         }
         self.scanner.advance(dt_s);
         self.time_s += dt_s;
+        self.zmap.set_time(self.time_s);
         self.flush_drift(self.time_s);
         self.flicker.advance_all(dt_s, &mut self.noise_rng);
         let target = self.feedback_target_nm(self.time_s, None);
@@ -716,6 +717,7 @@ impl Simulator {
     fn pixel(&mut self, u: [f64; 2], t_mid: f64, f: &PixelFactors, record: bool) -> f64 {
         let q = self.quantise_lateral(u);
         self.scanner.set(q);
+        self.zmap.set_time(t_mid);
         let x = self.scanner.input;
         self.scanner.creep_offset = [
             self.scanner.creep[0].advance_with(x[0], &f.creep_decays),

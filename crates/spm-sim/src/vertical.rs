@@ -42,6 +42,10 @@ pub struct ZManipulatorConfig {
     pub ripple_fraction: f64,
     /// Period of the ripple along x, lateral counts (> 0). Typical: 16384.
     pub ripple_period_counts: f64,
+    /// Fractional change of Kz per hour of instrument time (aging, temperature): a Z effect
+    /// a calibration that takes Kz as static does not model. Typical: 0 (off).
+    #[serde(default)]
+    pub kz_drift_per_hour: f64,
 }
 
 /// The Z characteristic of a validated config (see the module docs).
@@ -51,6 +55,8 @@ pub struct ZMap {
     z_half_counts: f64,
     half_counts: f64,
     nonlinear: Option<ZManipulatorConfig>,
+    /// Instrument time the Kz drift is evaluated at, s (set by the simulator as time goes).
+    time_s: f64,
 }
 
 impl ZMap {
@@ -66,7 +72,14 @@ impl ZMap {
             z_half_counts,
             half_counts,
             nonlinear,
+            time_s: 0.0,
         }
+    }
+
+    /// Sets the instrument time (s) of the Kz drift.
+    #[inline]
+    pub fn set_time(&mut self, time_s: f64) {
+        self.time_s = time_s;
     }
 
     /// True when the manipulator is linear and uniform (E = Kz·z).
@@ -88,10 +101,11 @@ impl ZMap {
         } else {
             0.0
         };
-        1.0 + c.lateral_gradient_x * sx
+        (1.0 + c.lateral_gradient_x * sx
             + c.lateral_gradient_y * sy
             + c.lateral_radial * (sx * sx + sy * sy)
-            + ripple
+            + ripple)
+            * (1.0 + c.kz_drift_per_hour * self.time_s / 3600.0)
     }
 
     /// Extension (nm) at Z counts `z` and effective lateral input `ue` (counts).
@@ -159,6 +173,7 @@ pub(crate) fn check(c: &ZManipulatorConfig) -> Result<(), (&'static str, String)
         ("lateral_gradient_y", c.lateral_gradient_y, 0.3),
         ("lateral_radial", c.lateral_radial, 0.3),
         ("ripple_fraction", c.ripple_fraction, 0.1),
+        ("kz_drift_per_hour", c.kz_drift_per_hour, 0.2),
     ] {
         if !(v.is_finite() && v.abs() <= lim) {
             return Err((
@@ -216,6 +231,7 @@ mod tests {
             lateral_radial: 0.02,
             ripple_fraction: 0.003,
             ripple_period_counts: 16384.0,
+            kz_drift_per_hour: 0.0,
         }
     }
 
@@ -253,6 +269,7 @@ mod tests {
 #[derive(Clone, Copy, Debug)]
 pub struct VerticalOracle<'a> {
     sim: &'a crate::Simulator,
+    creep_settled: bool,
 }
 
 /// The Z⇒X/Y crosstalk of the scanner.
@@ -269,12 +286,30 @@ pub struct ZCrosstalk {
 
 impl<'a> VerticalOracle<'a> {
     pub(crate) fn new(sim: &'a crate::Simulator) -> Self {
-        Self { sim }
+        Self {
+            sim,
+            creep_settled: true,
+        }
+    }
+
+    /// The same view, with lateral positions taken right after a move instead of with the
+    /// creep settled: the effective input `(1 + W_h)·u` (hysteresis midline, creep not yet
+    /// reacted). A node is measured seconds after its move, far from the settled state of
+    /// creep time constants up to hours; the two references bracket the state it had.
+    pub fn just_moved(mut self) -> Self {
+        self.creep_settled = false;
+        self
     }
 
     fn reference_effective(&self, commanded: spm_hal::CountPoint) -> [f64; 2] {
-        let e = self.sim.oracle().reference_effective_input(commanded);
-        [e.x.value(), e.y.value()]
+        let o = self.sim.oracle();
+        let e = o.reference_effective_input(commanded);
+        if self.creep_settled {
+            [e.x.value(), e.y.value()]
+        } else {
+            let wc = 1.0 + self.sim.scanner.creep[0].total_weight();
+            [e.x.value() / wc, e.y.value() / wc]
+        }
     }
 
     /// True local Kz = ∂(extension)/∂(Z counts), nm/count, at commanded `u` and Z reading `z`.

@@ -20,9 +20,10 @@ struct Cli {
 enum Command {
     /// The main job: a full simulated calibration with a report.
     Calibrate {
-        /// Simulated-microscope config (TOML).
-        #[arg(long, value_name = "FILE", default_value = "configs/sim-hopg.toml")]
-        config: PathBuf,
+        /// A job file, or a simulated-microscope config (TOML); default
+        /// configs/calibrate-hopg.toml (--quick: configs/calibrate-hopg-quick.toml).
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
         /// Output folder.
         #[arg(long, value_name = "DIR", default_value = "target/spmcal/calibrate")]
         out: PathBuf,
@@ -34,7 +35,7 @@ enum Command {
         #[arg(long)]
         quick: bool,
     },
-    /// Benchmarks: writes results.json and regenerates docs/RESULTS.md.
+    /// Benchmarks: writes results.json and figures into --out (and docs/ with --write-docs).
     Bench {
         /// A reduced run.
         #[arg(long)]
@@ -45,6 +46,10 @@ enum Command {
         /// Output folder for results.json.
         #[arg(long, value_name = "DIR", default_value = "target/bench")]
         out: PathBuf,
+        /// Regenerate the committed docs/RESULTS.md and docs/results/bench/ from this run
+        /// (never with --quick; without this flag nothing under docs/ is touched).
+        #[arg(long, conflicts_with = "quick")]
+        write_docs: bool,
     },
 }
 
@@ -57,25 +62,29 @@ fn main() {
             plan,
             out,
             quick,
-        } => {
-            let default_plan = workspace_root.join(if quick {
-                "configs/plan-hopg-small.toml"
-            } else {
-                "configs/plan-hopg.toml"
-            });
-            calibrate::run(
-                &workspace_root.join(config),
-                plan.map(|p| workspace_root.join(p)).as_deref(),
-                &default_plan,
-                &workspace_root.join(out),
+        } => calibrate::run(
+            &workspace_root,
+            &calibrate::CalibrateArgs {
+                config: config.map(|c| workspace_root.join(c)),
+                plan: plan.map(|p| workspace_root.join(p)),
+                out: workspace_root.join(out),
                 quick,
-            )
-        }
+            },
+        ),
         Command::Bench {
             quick,
             gwyddion,
             out,
-        } => bench::run(&workspace_root, &workspace_root.join(out), quick, gwyddion),
+            write_docs,
+        } => bench::run(
+            &workspace_root,
+            &workspace_root.join(out),
+            bench::Options {
+                quick,
+                with_gwyddion: gwyddion,
+                write_docs,
+            },
+        ),
     };
     if let Err(error) = result {
         eprintln!("xtask: error: {error}");

@@ -66,6 +66,122 @@ pub struct PlanConfig {
     /// (issue 15); absent = no vertical measurements (records carry no Kz).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub steps: Option<crate::vertical::StepSearchConfig>,
+    /// The controller's tuning constants (fractions of the lattice or of a raster, counts of
+    /// sightings). Optional in a plan file: absent, [`TuningConfig::RECOMMENDED`] is used and
+    /// written back by [`PlanConfig::to_toml_string`], so a stored plan always states them.
+    #[serde(default = "TuningConfig::recommended")]
+    pub tuning: TuningConfig,
+}
+
+/// The controller's tuning constants: how features are told apart, paired and captured, and
+/// how fast a drift the skipping monitor accepts. Every value is dimensionless or a count;
+/// the defaults ([`TuningConfig::RECOMMENDED`]) are the values the method was validated with
+/// (`docs/results/calibration.md`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TuningConfig {
+    /// Smallest separation of two detected features, as a fraction of the lattice constant
+    /// (default 0.5: neighbouring atoms are a lattice constant apart; noise maxima closer
+    /// than half of it are one feature). In (0, 1].
+    pub detection_separation_fraction: f64,
+    /// The fastest drift the skipping monitor accepts moves a feature by this fraction of
+    /// the tracking segment's side over one cycle (default 0.4: the feature stays inside
+    /// the segment it is searched in). In (0, 0.5].
+    pub monitor_drift_segment_fraction: f64,
+    /// Radius within which a counter-scan pairs a direct and a counter sighting, fraction of
+    /// the lattice constant (default 0.35: nearer to one's own atom than to the neighbour).
+    /// In (0, 0.5).
+    pub counter_match_radius_fraction: f64,
+    /// A measured vector farther than this fraction of its length from the expected one
+    /// caught another feature (default 0.35). In (0, 0.5).
+    pub vector_match_tolerance_fraction: f64,
+    /// Consecutive sightings whose drift is below the limit before the attachment counts as
+    /// settled (default 3). ≥ 1.
+    pub attach_settle_sightings: u32,
+    /// Sightings per drift-velocity fit during the attachment (default 4). ≥ 2.
+    pub attach_velocity_window: u32,
+    /// A sighting within this fraction of the lattice constant of the prediction is the
+    /// same feature during the attachment (default 0.4). In (0, 0.5].
+    pub attach_capture_radius_fraction: f64,
+}
+
+impl TuningConfig {
+    /// The values the method was validated with.
+    pub const RECOMMENDED: Self = Self {
+        detection_separation_fraction: 0.5,
+        monitor_drift_segment_fraction: 0.4,
+        counter_match_radius_fraction: 0.35,
+        vector_match_tolerance_fraction: 0.35,
+        attach_settle_sightings: 3,
+        attach_velocity_window: 4,
+        attach_capture_radius_fraction: 0.4,
+    };
+
+    /// [`TuningConfig::RECOMMENDED`] (for serde).
+    #[must_use]
+    pub fn recommended() -> Self {
+        Self::RECOMMENDED
+    }
+
+    fn validate(&self) -> Result<(), ValidationError> {
+        let fraction = |field: &str, v: f64, max: f64, max_inclusive: bool| {
+            let ok = v.is_finite() && v > 0.0 && if max_inclusive { v <= max } else { v < max };
+            if ok {
+                Ok(())
+            } else {
+                Err(ValidationError::new(
+                    format!("plan.tuning.{field}"),
+                    format!(
+                        "must be in (0, {max}{}, got {v}",
+                        if max_inclusive { "]" } else { ")" }
+                    ),
+                ))
+            }
+        };
+        fraction(
+            "detection_separation_fraction",
+            self.detection_separation_fraction,
+            1.0,
+            true,
+        )?;
+        fraction(
+            "monitor_drift_segment_fraction",
+            self.monitor_drift_segment_fraction,
+            0.5,
+            true,
+        )?;
+        fraction(
+            "counter_match_radius_fraction",
+            self.counter_match_radius_fraction,
+            0.5,
+            false,
+        )?;
+        fraction(
+            "vector_match_tolerance_fraction",
+            self.vector_match_tolerance_fraction,
+            0.5,
+            false,
+        )?;
+        fraction(
+            "attach_capture_radius_fraction",
+            self.attach_capture_radius_fraction,
+            0.5,
+            true,
+        )?;
+        if self.attach_settle_sightings < 1 {
+            return Err(ValidationError::new(
+                "plan.tuning.attach_settle_sightings",
+                "must be at least 1",
+            ));
+        }
+        if self.attach_velocity_window < 2 {
+            return Err(ValidationError::new(
+                "plan.tuning.attach_velocity_window",
+                "must be at least 2 (a velocity needs two sightings)",
+            ));
+        }
+        Ok(())
+    }
 }
 
 /// The calibration standard (a crystal lattice and its steps).
@@ -348,86 +464,7 @@ pub enum MeasurementMethod {
     CounterScan,
 }
 
-/// Why a plan configuration could not be loaded.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum ConfigError {
-    /// The file could not be read.
-    #[error("cannot read plan config `{path}`: {source}")]
-    Io {
-        /// The file.
-        path: String,
-        /// The OS error.
-        #[source]
-        source: std::io::Error,
-    },
-    /// Malformed TOML, an unknown field, a missing field or a value of the wrong type.
-    #[error("{source_name}{}: {}{message}", line_suffix(*line, *column), field_prefix(field.as_deref()))]
-    Parse {
-        /// File name or other label.
-        source_name: String,
-        /// 1-based line, when known.
-        line: Option<usize>,
-        /// 1-based column, when known.
-        column: Option<usize>,
-        /// Dotted path of the field, when known.
-        field: Option<String>,
-        /// The parser's message.
-        message: String,
-    },
-    /// A value is well-formed but invalid.
-    #[error("{source_name}{}: field `{field}` {reason}", line_suffix(*line, None))]
-    Invalid {
-        /// File name or other label.
-        source_name: String,
-        /// 1-based line of the field, when found.
-        line: Option<usize>,
-        /// Dotted path of the field, e.g. `plan.skipping.cycles`.
-        field: String,
-        /// What is wrong.
-        reason: String,
-    },
-}
-
-impl ConfigError {
-    /// Dotted path of the offending field, when known.
-    pub fn field(&self) -> Option<&str> {
-        match self {
-            Self::Io { .. } => None,
-            Self::Parse { field, .. } => field.as_deref(),
-            Self::Invalid { field, .. } => Some(field),
-        }
-    }
-    /// 1-based line, when known.
-    pub fn line(&self) -> Option<usize> {
-        match self {
-            Self::Io { .. } => None,
-            Self::Parse { line, .. } | Self::Invalid { line, .. } => *line,
-        }
-    }
-}
-
-fn line_suffix(line: Option<usize>, column: Option<usize>) -> String {
-    match (line, column) {
-        (Some(l), Some(c)) => format!(":{l}:{c}"),
-        (Some(l), None) => format!(":{l}"),
-        _ => String::new(),
-    }
-}
-
-fn field_prefix(field: Option<&str>) -> String {
-    field.map(|f| format!("field `{f}`: ")).unwrap_or_default()
-}
-
-/// A semantic validation failure: dotted field path (relative to `plan`) and reason.
-#[derive(Clone, Debug, PartialEq, thiserror::Error)]
-#[error("field `{field}` {reason}")]
-pub struct ValidationError {
-    /// Dotted path of the field, e.g. `plan.skipping.cycles`.
-    pub field: String,
-    /// What is wrong.
-    pub reason: String,
-}
+pub use spm_config::{ConfigError, ValidationError};
 
 /// The document: only `[plan]` is read; other tables are ignored (their owners parse them).
 #[derive(Deserialize)]
@@ -442,29 +479,10 @@ impl PlanConfig {
     /// # Errors
     /// [`ConfigError::Parse`] or [`ConfigError::Invalid`] naming the line and field.
     pub fn from_toml_str(text: &str, source_name: &str) -> Result<Self, ConfigError> {
-        let doc: Document = toml::from_str(text).map_err(|e| {
-            let message = e.message().trim().to_owned();
-            let (line, column, field) = match e.span() {
-                Some(span) => {
-                    let (l, c) = line_column(text, span.start);
-                    (Some(l), Some(c), field_at(text, span.start, &message))
-                }
-                None => (None, None, quoted_name(&message)),
-            };
-            ConfigError::Parse {
-                source_name: source_name.to_owned(),
-                line,
-                column,
-                field,
-                message,
-            }
-        })?;
-        doc.plan.validate().map_err(|v| ConfigError::Invalid {
-            source_name: source_name.to_owned(),
-            line: locate_field_line(text, &v.field),
-            field: v.field,
-            reason: v.reason,
-        })?;
+        let doc: Document = spm_config::parse_toml(text, source_name)?;
+        doc.plan
+            .validate()
+            .map_err(|v| ConfigError::invalid(text, source_name, v))?;
         Ok(doc.plan)
     }
 
@@ -474,12 +492,8 @@ impl PlanConfig {
     /// [`ConfigError::Io`] and as [`PlanConfig::from_toml_str`].
     pub fn from_file(path: impl AsRef<Path>) -> Result<Self, ConfigError> {
         let path = path.as_ref();
-        let name = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
-            path: name.clone(),
-            source,
-        })?;
-        Self::from_toml_str(&text, &name)
+        let text = spm_config::read_config_file(path)?;
+        Self::from_toml_str(&text, &path.display().to_string())
     }
 
     /// The plan as a TOML document with a `[plan]` table.
@@ -499,6 +513,7 @@ impl PlanConfig {
     /// # Errors
     /// The first invalid field.
     pub fn validate(&self) -> Result<(), ValidationError> {
+        self.tuning.validate()?;
         let bad = |field: &str, reason: String| {
             Err(ValidationError {
                 field: format!("plan.{field}"),
@@ -756,171 +771,23 @@ impl PlanConfig {
     /// A small HOPG plan for a 16-bit scanner of about 0.02 nm/count (the simulator's
     /// `room_temperature_tube` and `ideal` scenarios): a 3×3 lateral net (step 20000 counts,
     /// margin 8000), one Z level, 2 kept skipping cycles per vector, the skipping variant of
-    /// Fig. 3a. Equals `configs/plan-hopg-small.toml`.
+    /// Fig. 3a. Parsed from `scenarios/plan-hopg-small.toml` (`configs/plan-hopg-small.toml`).
     pub fn hopg_small_net() -> Self {
-        Self {
-            scanner_id: "sim-hopg".into(),
-            repeats: 1,
-            standard: StandardConfig {
-                lattice_constant_nm: 0.2461,
-                lcs_angle_deg: 60.0,
-                feature: FeaturePolarity::Hills,
-                nominal_nm_per_count: 0.02,
-                length_tolerance_fraction: 0.3,
-                angle_tolerance_deg: 15.0,
-                step_height_nm: None,
-            },
-            net: NetConfig {
-                kind: NetKind::LateralPlanes,
-                step_counts: 20000,
-                margin_counts: 8000,
-                z_levels: vec![ZLevel {
-                    nominal_z_counts: 0,
-                    coarse_steps: None,
-                }],
-                y_planes_counts: None,
-            },
-            pause: PauseLaw {
-                base_s: 0.5,
-                per_count_s: 5e-4,
-                per_coarse_step_s: 0.0,
-                max_s: 30.0,
-            },
-            motion: MotionConfig {
-                pixel_dwell_s: 1e-4,
-                move_speed_counts_per_s: 20000.0,
-                settle_s: 0.01,
-            },
-            attach: AttachConfig {
-                first_size_counts: 36.0,
-                first_pixels: 24,
-                segment_size_counts: 12.0,
-                segment_pixels: 12,
-                max_attachments: 40,
-                skip: false,
-            },
-            aperture: ApertureConfig {
-                size_counts: 50.0,
-                pixels: 48,
-            },
-            skipping: SkippingConfig {
-                cycles: 2,
-                idle_cycles: 1,
-                max_restarts: 2,
-            },
-            drift: DriftConfig {
-                max_speed_nm_per_s: 0.2,
-                max_change_nm_per_s: 0.1,
-            },
-            failures: FailureConfig {
-                max_attempts_per_node: 3,
-                transient_retries_per_node: 3,
-            },
-            variant: VariantConfig {
-                attach_to: AttachTarget::FeatureA,
-                neighbours: NeighbourSet::Lcs,
-                bc_redundancy: false,
-                measurement: MeasurementMethod::Skipping,
-            },
-            steps: None,
-        }
+        // The text is part of the program; the crate's tests parse it.
+        #[allow(clippy::expect_used)]
+        Self::from_toml_str(
+            include_str!("../scenarios/plan-hopg-small.toml"),
+            "plan-hopg-small.toml",
+        )
+        .expect("the shipped plan parses and validates")
     }
 }
 
-fn line_column(text: &str, offset: usize) -> (usize, usize) {
-    let offset = offset.min(text.len());
-    let before = text.get(..offset).unwrap_or("");
-    let line = before.matches('\n').count() + 1;
-    let column = before.rsplit('\n').next().map_or(0, |s| s.chars().count()) + 1;
-    (line, column)
-}
-
-/// The name inside the first pair of backticks of a serde message ("unknown field `x`",
-/// "missing field `x`").
-fn quoted_name(message: &str) -> Option<String> {
-    let start = message.find('`')? + 1;
-    let len = message.get(start..)?.find('`')?;
-    message.get(start..start + len).map(str::to_owned)
-}
-
-fn strip_comment(line: &str) -> &str {
-    let mut in_string = false;
-    for (k, ch) in line.char_indices() {
-        match ch {
-            '"' => in_string = !in_string,
-            '#' if !in_string => return line.get(..k).unwrap_or(line),
-            _ => {}
-        }
-    }
-    line
-}
-
-fn header(line: &str) -> Option<String> {
-    let t = strip_comment(line).trim();
-    t.starts_with('[').then(|| {
-        t.trim_start_matches('[')
-            .trim_end_matches(']')
-            .trim()
-            .to_owned()
-    })
-}
-
-/// The dotted field at a parse error's offset: the table in force plus the key of the line,
-/// or the name the message quotes (unknown/missing field).
-fn field_at(text: &str, offset: usize, message: &str) -> Option<String> {
-    let lines: Vec<&str> = text.split('\n').collect();
-    let (line, _) = line_column(text, offset);
-    let index = line.checked_sub(1)?;
-    let table = lines
-        .iter()
-        .take(index + 1)
-        .rev()
-        .find_map(|l| header(l))
-        .unwrap_or_default();
-    let join = |key: &str| {
-        if table.is_empty() {
-            key.to_owned()
-        } else {
-            format!("{table}.{key}")
-        }
-    };
-    if (message.contains("unknown field") || message.contains("missing field"))
-        && let Some(name) = quoted_name(message)
-    {
-        return Some(join(&name));
-    }
-    let content = strip_comment(lines.get(index)?).trim();
-    if content.starts_with('[') {
-        return Some(table);
-    }
-    let (key, _) = content.split_once('=')?;
-    Some(join(key.trim()))
-}
-
-/// Best-effort 1-based line of a dotted field (`plan.skipping.cycles`) in a TOML text:
-/// the key line inside its table, else the table header.
+/// The 1-based line of a dotted field (`plan.skipping.cycles`) in a TOML text: the key's
+/// line, else the line of the deepest table of the path that is written.
+#[must_use]
 pub fn locate_field_line(text: &str, field: &str) -> Option<usize> {
-    let (table, key) = field.rsplit_once('.')?;
-    let mut current = String::new();
-    let mut table_line = None;
-    for (index, raw) in text.split('\n').enumerate() {
-        if let Some(h) = header(raw) {
-            current = h;
-            if current == table {
-                table_line = Some(index + 1);
-            }
-            continue;
-        }
-        if current == table {
-            let content = strip_comment(raw).trim();
-            if let Some((k, _)) = content.split_once('=')
-                && k.trim() == key
-            {
-                return Some(index + 1);
-            }
-        }
-    }
-    table_line.or_else(|| locate_field_line(text, table))
+    spm_config::TomlLocator::new(text).line_of(field)
 }
 
 #[cfg(test)]

@@ -51,6 +51,7 @@
 pub mod config;
 pub mod lcc;
 pub mod machine;
+pub mod measure;
 pub mod plan;
 pub mod runner;
 pub mod vertical;
@@ -58,7 +59,8 @@ pub mod vertical;
 pub use config::{
     ApertureConfig, AttachConfig, AttachTarget, ConfigError, DriftConfig, FailureConfig,
     FeaturePolarity, MeasurementMethod, MotionConfig, NeighbourSet, NetConfig, NetKind, PlanConfig,
-    SkippingConfig, StandardConfig, ValidationError, VariantConfig, locate_field_line,
+    SkippingConfig, StandardConfig, TuningConfig, ValidationError, VariantConfig,
+    locate_field_line,
 };
 pub use lcc::{
     CountCovariance, KzEstimate, LccError, LccEstimate, Metric, StandardVector, StepObservation,
@@ -66,8 +68,7 @@ pub use lcc::{
 };
 pub use machine::{
     Action, Anchor, ApertureResult, AttachResult, CounterResult, CycleCounts, Event, Failure,
-    GiveUpReason, MachineParams, NodeMachine, NodeMeasurement, SKIP_VECTOR_TOLERANCE, SkipResult,
-    VectorTarget,
+    GiveUpReason, MachineParams, NodeMachine, NodeMeasurement, SkipResult, VectorTarget,
 };
 pub use plan::{GridNode, NetGeometry, NetPlan, PauseLaw, PlanError, PlanVisit, ZLevel};
 pub use runner::{

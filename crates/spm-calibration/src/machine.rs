@@ -28,26 +28,45 @@ use spm_hal::{CountPoint, CountVector, CountVelocity, Counts, ErrorKind, Radians
 pub struct Anchor {
     /// Position, counts.
     pub position: CountPoint,
-    /// Instrument time of the position, seconds.
-    pub time: Seconds,
+    /// Instrument time of the sighting, seconds; `None` for a place that was never seen
+    /// (the node itself, when the aperture around it stands in for the attachment).
+    pub time: Option<Seconds>,
 }
 
 impl Anchor {
     /// The position expected at `t` with drift `v`.
     pub fn predict(&self, v: CountVelocity, t: Seconds) -> CountPoint {
-        self.position + v.displacement(t - self.time)
+        match self.time {
+            Some(seen) => self.position + v.displacement(t - seen),
+            None => self.position,
+        }
     }
 }
 
 /// One vector to measure: from a feature (relative to A) to another.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct VectorTarget {
-    /// Start feature relative to A, counts (zero for A itself; A→B for B↔C).
-    pub from_offset: CountVector,
+    /// Where the vector starts: at A, or (B↔C) at the end of another vector.
+    pub start: VectorStart,
     /// Approximate vector from the start feature to the end feature, counts.
     pub estimate: CountVector,
     /// The true vector in the standard's frame, nm.
     pub standard: StandardVector,
+}
+
+/// Where a measured vector starts.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum VectorStart {
+    /// At the feature A.
+    AtA,
+    /// At the end feature of the vector `index` of [`NodeMachine::targets`] (B↔C starts at
+    /// B, the end of A→B): its measured value once known, else `estimate` from A.
+    AtEndOf {
+        /// Index of that vector.
+        index: usize,
+        /// Its approximate value, counts.
+        estimate: CountVector,
+    },
 }
 
 /// What the executor must do next.
@@ -224,12 +243,6 @@ pub enum Event {
     Failed(Failure),
 }
 
-/// The largest |skipped − aperture| difference of a vector, as a fraction of its length,
-/// accepted as the same vector. The aperture's single-scan estimate is off by a few per cent
-/// (drift, creep); the nearest wrong feature makes the difference at least one lattice
-/// constant, i.e. a fraction ≳ 1 (the counter-scan match uses the same limit).
-pub const SKIP_VECTOR_TOLERANCE: f64 = 0.35;
-
 /// Why a node was given up (stored as its text in the CDB).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, thiserror::Error)]
 #[serde(tag = "reason", rename_all = "snake_case")]
@@ -257,7 +270,7 @@ pub enum GiveUpReason {
         restarts: u32,
     },
     /// A skipped vector disagrees with the same vector seen in the aperture by more than
-    /// [`SKIP_VECTOR_TOLERANCE`] of its length: an attachment caught a neighbouring
+    /// `tuning.vector_match_tolerance_fraction` of its length: an attachment caught a neighbouring
     /// feature (the probe landed more than half a lattice constant off), so the half-sum
     /// measured another vector of the lattice.
     #[error(
@@ -354,6 +367,9 @@ pub struct MachineParams {
     pub max_attempts: u32,
     /// Transient errors per node.
     pub transient_retries: u32,
+    /// A measured vector farther than this fraction of its length from the expected one
+    /// caught another feature (plan `tuning.vector_match_tolerance_fraction`).
+    pub vector_match_tolerance: f64,
 }
 
 impl MachineParams {
@@ -369,6 +385,7 @@ impl MachineParams {
             lcs_angle: plan.standard.lcs_angle(),
             max_attempts: plan.failures.max_attempts_per_node.max(1),
             transient_retries: plan.failures.transient_retries_per_node,
+            vector_match_tolerance: plan.tuning.vector_match_tolerance_fraction,
         }
     }
 }
@@ -491,7 +508,7 @@ impl NodeMachine {
             Action::Aperture {
                 centre: Anchor {
                     position: node,
-                    time: Seconds(f64::NAN),
+                    time: None,
                 },
             }
         } else {
@@ -514,7 +531,6 @@ impl NodeMachine {
     }
 
     fn plan_targets(&mut self, aperture: &ApertureResult) -> bool {
-        let zero = CountVector::default();
         let a = self.params.lattice_constant_nm;
         let mut targets = Vec::new();
         match (self.params.neighbours, aperture.lcs) {
@@ -522,7 +538,7 @@ impl NodeMachine {
                 let first = aperture.neighbours[0];
                 for &n in &aperture.neighbours {
                     targets.push(VectorTarget {
-                        from_offset: zero,
+                        start: VectorStart::AtA,
                         estimate: n,
                         standard: self.standard_for(first, n),
                     });
@@ -535,12 +551,12 @@ impl NodeMachine {
                     -1.0
                 };
                 targets.push(VectorTarget {
-                    from_offset: zero,
+                    start: VectorStart::AtA,
                     estimate: ab,
                     standard: StandardVector::from_nm(a, 0.0),
                 });
                 targets.push(VectorTarget {
-                    from_offset: zero,
+                    start: VectorStart::AtA,
                     estimate: ac,
                     standard: StandardVector::polar(
                         spm_hal::Nanometres(a),
@@ -553,7 +569,10 @@ impl NodeMachine {
         if self.params.bc_redundancy && targets.len() >= 2 {
             let (b, c) = (targets[0], targets[1]);
             targets.push(VectorTarget {
-                from_offset: b.estimate,
+                start: VectorStart::AtEndOf {
+                    index: 0,
+                    estimate: b.estimate,
+                },
                 estimate: c.estimate - b.estimate,
                 standard: c.standard.minus(b.standard),
             });
@@ -571,14 +590,12 @@ impl NodeMachine {
         }
         let target = self.targets[index];
         // The start feature: A, or (B↔C) A plus the measured A→B when available.
-        let from_offset = self
-            .measured
-            .iter()
-            .zip(self.targets.iter())
-            .find(|(_, t)| {
-                t.from_offset == CountVector::default() && t.estimate == target.from_offset
-            })
-            .map_or(target.from_offset, |(m, _)| m.measured);
+        let from_offset = match target.start {
+            VectorStart::AtA => CountVector::default(),
+            VectorStart::AtEndOf { index, estimate } => {
+                self.measured.get(index).map_or(estimate, |m| m.measured)
+            }
+        };
         self.stage = Stage::Measuring(index);
         Action::Skip {
             index,
@@ -602,7 +619,7 @@ impl NodeMachine {
                     .measured
                     .iter()
                     .zip(self.targets.iter())
-                    .filter(|(_, t)| t.from_offset == CountVector::default())
+                    .filter(|(_, t)| t.start == VectorStart::AtA)
                     .map(|(m, _)| m.measured)
                     .collect();
                 let n = (ends.len() + 1) as f64;
@@ -682,7 +699,8 @@ impl NodeMachine {
                         let length = target.estimate.norm().value();
                         let deviation_fraction = (vector - target.estimate).norm().value()
                             / length.max(f64::MIN_POSITIVE);
-                        if deviation_fraction.is_nan() || deviation_fraction > SKIP_VECTOR_TOLERANCE
+                        if deviation_fraction.is_nan()
+                            || deviation_fraction > self.params.vector_match_tolerance
                         {
                             return self.redo(GiveUpReason::WrongFeature { deviation_fraction });
                         }
@@ -691,7 +709,7 @@ impl NodeMachine {
                     if self
                         .targets
                         .get(index)
-                        .is_some_and(|t| t.from_offset == CountVector::default())
+                        .is_some_and(|t| t.start == VectorStart::AtA)
                     {
                         self.a = Some(a);
                     }
@@ -718,7 +736,7 @@ impl NodeMachine {
                 self.measured.clear();
                 let mut used = Vec::new();
                 for t in self.targets.clone() {
-                    if t.from_offset != CountVector::default() {
+                    if t.start != VectorStart::AtA {
                         // B↔C is implied by the same scan: no independent information.
                         continue;
                     }
@@ -730,7 +748,7 @@ impl NodeMachine {
                         .map(|(i, (v, c))| (i, *v, *c, (*v - t.estimate).norm().value()))
                         .min_by(|x, y| x.3.total_cmp(&y.3));
                     if let Some((i, v, c, d)) = best
-                        && d < SKIP_VECTOR_TOLERANCE * t.estimate.norm().value()
+                        && d < self.params.vector_match_tolerance * t.estimate.norm().value()
                     {
                         used.push(i);
                         self.measured.push(VectorObservation {
@@ -740,8 +758,7 @@ impl NodeMachine {
                         });
                     }
                 }
-                self.targets
-                    .retain(|t| t.from_offset == CountVector::default());
+                self.targets.retain(|t| t.start == VectorStart::AtA);
                 if self.measured.len() < 2 {
                     return self.redo(GiveUpReason::NoLcs);
                 }
@@ -751,7 +768,7 @@ impl NodeMachine {
                     .measured
                     .iter()
                     .map(|m| VectorTarget {
-                        from_offset: CountVector::default(),
+                        start: VectorStart::AtA,
                         estimate: m.measured,
                         standard: m.standard,
                     })

@@ -16,10 +16,9 @@
 //! caller reads the wall clock once ([`RunOptions::start_unix_s`]), the library never.
 
 use crate::config::{FeaturePolarity, PlanConfig};
-use crate::lcc::CountCovariance;
 use crate::machine::{
-    Action, Anchor, ApertureResult, AttachResult, CounterResult, CycleCounts, Event, Failure,
-    GiveUpReason, MachineParams, NodeMachine, NodeMeasurement, SkipResult, vector_covariance,
+    Action, Anchor, ApertureResult, AttachResult, CycleCounts, Event, Failure, GiveUpReason,
+    MachineParams, NodeMachine, NodeMeasurement, SkipResult,
 };
 use crate::plan::{GridNode, NetPlan, PlanError, PlanVisit};
 use serde::{Deserialize, Serialize};
@@ -29,7 +28,7 @@ use spm_fos::{
     MonitorParams, Motion, Raster, SkipOutcome, SkipParams, SpoilReason,
 };
 use spm_hal::{
-    CountVector, CountVelocity, Counts, Error as _, ErrorKind, Microscope, Nanometres, Seconds,
+    CountPoint, CountVector, CountVelocity, Error as _, ErrorKind, Microscope, Nanometres, Seconds,
 };
 use spm_records::{LccRecord, NodeDone, NodeState, PlanNode, RunInfo, RunStatus};
 pub use spm_records::{MemoryStore, MemoryStoreError, ProgressStore};
@@ -167,9 +166,11 @@ fn raster(size_counts: f64, pixels: u32, dwell_s: f64) -> Raster {
 impl FosParams {
     /// Converts the plan: sizes to rasters, nm/s to counts/s with the nominal sensitivity,
     /// the attachment timeout from `max_attachments`, the monitor's speed limit from the
-    /// segment (a feature must not drift more than 0.4 segment over one cycle).
+    /// segment (a feature must not drift more than `tuning.monitor_drift_segment_fraction`
+    /// of the segment over one cycle).
     pub fn from_plan(plan: &PlanConfig) -> Self {
         let s = &plan.standard;
+        let tuning = &plan.tuning;
         let dwell = plan.motion.pixel_dwell_s;
         let motion = Motion {
             speed_counts_per_s: plan.motion.move_speed_counts_per_s,
@@ -182,7 +183,9 @@ impl FosParams {
         };
         let detection = |r: &Raster| DetectionConfig {
             polarity,
-            min_separation_px: (0.5 * spacing_counts / r.pixel_step_counts).max(1.5),
+            min_separation_px: (tuning.detection_separation_fraction * spacing_counts
+                / r.pixel_step_counts)
+                .max(1.5),
             ..DetectionConfig::default()
         };
         let first = raster(
@@ -202,14 +205,25 @@ impl FosParams {
         let track_s = segment.duration_s() + hop_s;
         let timeout_s =
             first.duration_s() + f64::from(plan.attach.max_attachments) * track_s + 1e-9;
-        let mut attach = AttachParams::new(first, segment, speed_limit, timeout_s);
-        attach.first_detection = detection(&first);
-        attach.segment_detection = detection(&segment);
-        attach.motion = motion;
+        let attach = AttachParams {
+            first,
+            segment,
+            first_detection: detection(&first),
+            segment_detection: detection(&segment),
+            motion,
+            velocity_limit_counts_per_s: speed_limit,
+            settle_count: tuning.attach_settle_sightings as usize,
+            velocity_window: tuning.attach_velocity_window as usize,
+            timeout_s,
+            attachment_interval_s: 0.0,
+            capture_radius_fraction: tuning.attach_capture_radius_fraction,
+        };
         let cycle_s = 2.0 * track_s;
         let monitor = MonitorParams {
             velocity_tolerance_counts_per_s: to_counts(plan.drift.max_change_nm_per_s),
-            max_speed_counts_per_s: (0.4 * segment.side_counts() / cycle_s).max(speed_limit),
+            max_speed_counts_per_s: (tuning.monitor_drift_segment_fraction * segment.side_counts()
+                / cycle_s)
+                .max(speed_limit),
             idle_cycles: plan.skipping.idle_cycles as usize,
             required_cycles: plan.skipping.cycles as usize,
             max_restarts: plan.skipping.max_restarts as usize,
@@ -241,10 +255,23 @@ impl FosParams {
                 raster: aperture,
                 detection: detection(&aperture),
                 motion,
-                match_radius_counts: 0.35 * spacing_counts,
+                match_radius_counts: tuning.counter_match_radius_fraction * spacing_counts,
                 drift_prior: CountVelocity::ZERO,
             },
         }
+    }
+}
+
+/// Instrument time to UTC: the run's first instrument time and its wall-clock start.
+#[derive(Clone, Copy, Debug)]
+struct RunClock {
+    clock0: Seconds,
+    start_unix_s: f64,
+}
+
+impl RunClock {
+    fn unix(self, t: Seconds) -> f64 {
+        self.start_unix_s + (t - self.clock0).value()
     }
 }
 
@@ -433,109 +460,32 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
                 tracing::info!("run interrupted by the observer");
                 break;
             }
-            let here = self.microscope.position().unwrap_or(visit.grid.position());
-            let lateral = previous.map_or_else(
-                || here.distance(visit.grid.position()),
-                |p| p.position().distance(visit.grid.position()),
-            );
+            let from = match previous {
+                Some(p) => p.position(),
+                None => self.read_retrying(|m| m.position())?,
+            };
+            let lateral = from.distance(visit.grid.position());
             let coarse_delta = match (coarse_now, visit.grid.coarse_steps) {
                 (Some(a), Some(b)) => b - a,
                 _ => 0,
             };
             let pause = self.config.pause.pause(lateral, coarse_delta);
-            let node_span = tracing::info_span!(
-                "node",
-                repeat = visit.repeat_index,
-                node = visit.node_index,
-                x = visit.grid.x_counts,
-                y = visit.grid.y_counts,
-                z = visit.grid.z_counts
-            );
-            let _node = node_span.enter();
-            let mut machine = NodeMachine::new(*visit, params.clone(), pause);
-            let mut event = Event::Begin;
-            loop {
-                let action = machine.step(event);
-                event = match action {
-                    Action::Finished(measurement) => {
-                        let z = self.microscope.z_position().map_or(f64::NAN, |z| z.value());
-                        let now = self.microscope.now().unwrap_or(clock0);
-                        let mut record = self.record(&options.run_id, &measurement, z, unix(now));
-                        // Vertical axis (issue 15): the LCS's level and Kz from a nearby step.
-                        if let Some(search) =
-                            crate::vertical::at_node(self.microscope, &self.config, &mut record)
-                        {
-                            report.kz.count(&search);
-                            self.observer.kz_searched(visit, &search);
-                        }
-                        let done = NodeDone {
-                            repeat_index: visit.repeat_index,
-                            node_index: visit.node_index,
-                            attempts: measurement.attempts,
-                            finished_unix_s: unix(now),
-                        };
-                        self.store
-                            .commit_node(&options.run_id, &done, &[record])
-                            .map_err(Self::store_err)?;
-                        report.nodes_done += 1;
-                        report.records += 1;
-                        report.cycles = add(report.cycles, measurement.cycles);
-                        tracing::info!(
-                            kx = measurement.lcc.kx.value(),
-                            ky = measurement.lcc.ky.value(),
-                            alpha = measurement.lcc.alpha.value(),
-                            "node measured"
-                        );
-                        // The next node (a net step away) ranks its LCS candidates through
-                        // this node's calibration rather than the nominal sensitivity.
-                        let (sin, cos) = measurement.lcc.alpha.value().sin_cos();
-                        let (kx, ky) = (measurement.lcc.kx.value(), measurement.lcc.ky.value());
-                        self.fos.aperture.lcs.prior_nm_per_count =
-                            Some([[kx, ky * sin], [0.0, ky * cos]]);
-                        self.observer.node_finished(&measurement);
-                        break;
-                    }
-                    Action::GiveUp(reason) => {
-                        let now = self.microscope.now().unwrap_or(clock0);
-                        self.store
-                            .give_up_node(
-                                &options.run_id,
-                                &NodeDone {
-                                    repeat_index: visit.repeat_index,
-                                    node_index: visit.node_index,
-                                    attempts: machine.attempt(),
-                                    finished_unix_s: unix(now),
-                                },
-                                &reason.to_string(),
-                            )
-                            .map_err(Self::store_err)?;
-                        report.cycles = add(report.cycles, machine.cycles());
-                        tracing::warn!(%reason, "node given up");
-                        self.observer.node_given_up(visit, &reason);
-                        report.given_up.push(GivenUpVisit {
-                            repeat_index: visit.repeat_index,
-                            node_index: visit.node_index,
-                            node: [
-                                visit.grid.x_counts,
-                                visit.grid.y_counts,
-                                visit.grid.z_counts,
-                            ],
-                            reason,
-                        });
-                        break;
-                    }
-                    other => {
-                        if let Action::MoveAndPause { .. } = other {
-                            self.observer.node_started(visit, machine.attempt());
-                        }
-                        self.execute(visit, other, &mut coarse_now)?
-                    }
-                };
-            }
-            report.transient_errors += machine.transient_errors();
+            let clock = RunClock {
+                clock0,
+                start_unix_s: options.start_unix_s,
+            };
+            self.run_visit(
+                visit,
+                &params,
+                pause,
+                &mut coarse_now,
+                &options.run_id,
+                clock,
+                &mut report,
+            )?;
             previous = Some(visit.grid);
         }
-        let end = self.microscope.now().unwrap_or(clock0);
+        let end = self.read_retrying(|m| m.now())?;
         report.instrument_time_s = (end - clock0).value();
         if !report.interrupted {
             self.store
@@ -549,6 +499,187 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             "calibration run ends"
         );
         Ok(report)
+    }
+
+    /// A read of the instrument's state, retried on transient errors up to the plan's
+    /// `failures.transient_retries_per_node`; a permanent error or too many transient ones
+    /// fail the run (it stays resumable).
+    fn read_retrying<T>(
+        &mut self,
+        mut read: impl FnMut(&mut M) -> Result<T, M::Error>,
+    ) -> Result<T, RunError> {
+        let mut attempts = 0;
+        loop {
+            match read(&mut *self.microscope) {
+                Ok(v) => return Ok(v),
+                Err(e)
+                    if e.kind().is_transient()
+                        && attempts < self.config.failures.transient_retries_per_node =>
+                {
+                    attempts += 1;
+                    tracing::warn!(error = %e, attempts, "instrument read failed; retrying");
+                }
+                Err(e) => {
+                    return Err(RunError::Instrument {
+                        kind: e.kind(),
+                        message: e.to_string(),
+                    });
+                }
+            }
+        }
+    }
+
+    /// Runs one visit's node machine to its end and stores the result.
+    #[allow(clippy::too_many_arguments)]
+    fn run_visit(
+        &mut self,
+        visit: &PlanVisit,
+        params: &MachineParams,
+        pause: Seconds,
+        coarse_now: &mut Option<i64>,
+        run_id: &str,
+        clock: RunClock,
+        report: &mut RunReport,
+    ) -> Result<(), RunError> {
+        let node_span = tracing::info_span!(
+            "node",
+            repeat = visit.repeat_index,
+            node = visit.node_index,
+            x = visit.grid.x_counts,
+            y = visit.grid.y_counts,
+            z = visit.grid.z_counts
+        );
+        let _node = node_span.enter();
+        let mut machine = NodeMachine::new(*visit, params.clone(), pause);
+        let mut event = Event::Begin;
+        loop {
+            event = match machine.step(event) {
+                Action::Finished(measurement) => {
+                    self.commit_measured(visit, &measurement, run_id, clock, report)?;
+                    break;
+                }
+                Action::GiveUp(reason) => {
+                    let attempts = machine.attempt();
+                    report.cycles = add(report.cycles, machine.cycles());
+                    self.commit_given_up(visit, reason, attempts, run_id, clock, report)?;
+                    break;
+                }
+                other => {
+                    if let Action::MoveAndPause { .. } = other {
+                        self.observer.node_started(visit, machine.attempt());
+                    }
+                    self.execute(visit, other, coarse_now)?
+                }
+            };
+        }
+        report.transient_errors += machine.transient_errors();
+        Ok(())
+    }
+
+    /// Stores a measured visit (one transaction) and lets the next node rank its LCS
+    /// candidates through this node's calibration. The LCS level and the time are read from
+    /// the instrument; when those reads fail past the transient retries, the visit is given
+    /// up rather than stored with a guessed date.
+    fn commit_measured(
+        &mut self,
+        visit: &PlanVisit,
+        measurement: &NodeMeasurement,
+        run_id: &str,
+        clock: RunClock,
+        report: &mut RunReport,
+    ) -> Result<(), RunError> {
+        let read = self
+            .read_retrying(|m| m.z_position())
+            .and_then(|z| Ok((z, self.read_retrying(|m| m.now())?)));
+        let (z, now) = match read {
+            Ok(read) => read,
+            Err(RunError::Instrument { kind, message }) if kind.is_transient() => {
+                let reason = GiveUpReason::TransientErrors {
+                    count: self.config.failures.transient_retries_per_node + 1,
+                    kind: Some(kind),
+                    message: format!(
+                        "reading the LCS level and time after the measurement: {message}"
+                    ),
+                };
+                report.cycles = add(report.cycles, measurement.cycles);
+                return self.commit_given_up(
+                    visit,
+                    reason,
+                    measurement.attempts,
+                    run_id,
+                    clock,
+                    report,
+                );
+            }
+            Err(e) => return Err(e),
+        };
+        let at_unix_s = clock.unix(now);
+        let mut record = self.record(run_id, measurement, z.value(), at_unix_s);
+        // Vertical axis (issue 15): the LCS's level and Kz from a nearby step.
+        if let Some(search) = crate::vertical::at_node(self.microscope, &self.config, &mut record)
+        {
+            report.kz.count(&search);
+            self.observer.kz_searched(visit, &search);
+        }
+        let done = NodeDone {
+            repeat_index: visit.repeat_index,
+            node_index: visit.node_index,
+            attempts: measurement.attempts,
+            finished_unix_s: at_unix_s,
+        };
+        self.store
+            .commit_node(run_id, &done, &[record])
+            .map_err(Self::store_err)?;
+        report.nodes_done += 1;
+        report.records += 1;
+        report.cycles = add(report.cycles, measurement.cycles);
+        tracing::info!(
+            kx = measurement.lcc.kx.value(),
+            ky = measurement.lcc.ky.value(),
+            alpha = measurement.lcc.alpha.value(),
+            "node measured"
+        );
+        self.fos.aperture.lcs.prior_nm_per_count = Some(measurement.lcc.matrix());
+        self.observer.node_finished(measurement);
+        Ok(())
+    }
+
+    /// Marks a visit given up with its reason.
+    fn commit_given_up(
+        &mut self,
+        visit: &PlanVisit,
+        reason: GiveUpReason,
+        attempts: u32,
+        run_id: &str,
+        clock: RunClock,
+        report: &mut RunReport,
+    ) -> Result<(), RunError> {
+        let now = self.read_retrying(|m| m.now())?;
+        self.store
+            .give_up_node(
+                run_id,
+                &NodeDone {
+                    repeat_index: visit.repeat_index,
+                    node_index: visit.node_index,
+                    attempts,
+                    finished_unix_s: clock.unix(now),
+                },
+                &reason.to_string(),
+            )
+            .map_err(Self::store_err)?;
+        tracing::warn!(%reason, "node given up");
+        self.observer.node_given_up(visit, &reason);
+        report.given_up.push(GivenUpVisit {
+            repeat_index: visit.repeat_index,
+            node_index: visit.node_index,
+            node: [
+                visit.grid.x_counts,
+                visit.grid.y_counts,
+                visit.grid.z_counts,
+            ],
+            reason,
+        });
+        Ok(())
     }
 
     fn record(&self, run_id: &str, m: &NodeMeasurement, z: f64, at_unix_s: f64) -> LccRecord {
@@ -598,250 +729,221 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
         action: Action,
         coarse_now: &mut Option<i64>,
     ) -> Result<Event, RunError> {
-        let mic = &mut *self.microscope;
         match action {
-            Action::MoveAndPause { node, pause } => {
-                let _s = tracing::debug_span!("pause", pause_s = pause.value()).entered();
-                if let Some(target) = node.coarse_steps {
-                    let current = *coarse_now;
-                    let Some(stage) = mic.coarse_z() else {
-                        return Err(RunError::Parameters(
-                            "the plan sets coarse-stage positions but the instrument has no coarse stage".into(),
-                        ));
-                    };
-                    let from = match current {
-                        Some(c) => c,
-                        None => match stage.position_steps() {
-                            Ok(p) => p,
-                            Err(e) => return Ok(Event::Failed(instrument(e))),
-                        },
-                    };
-                    if target != from
-                        && let Err(e) = stage.step(target - from)
-                    {
-                        return Ok(Event::Failed(instrument(e)));
-                    }
-                    *coarse_now = Some(target);
-                }
-                let request = spm_hal::MoveRequest {
-                    target: node.position(),
-                    speed_counts_per_s: self.config.motion.move_speed_counts_per_s,
-                    settle: Seconds(self.config.motion.settle_s),
-                };
-                if let Err(e) = mic.move_to(request) {
-                    return Ok(Event::Failed(instrument(e)));
-                }
-                if let Err(e) = mic.wait(pause) {
-                    return Ok(Event::Failed(instrument(e)));
-                }
-                Ok(Event::Paused)
-            }
-            Action::Attach { near } => {
-                let _s = tracing::debug_span!("attach").entered();
-                match spm_fos::attach(mic, near, &self.fos.attach) {
-                    Ok(r) => {
-                        self.observer.attach_sightings(visit, &r.history);
-                        let last_t = r.history.last().map(|s| s.time());
-                        for v in &r.velocities {
-                            self.observer.drift_estimate(
-                                visit,
-                                *v,
-                                last_t.unwrap_or(Seconds::ZERO),
-                            );
-                        }
-                        Ok(Event::Attached(match r.outcome {
-                            AttachOutcome::Settled { velocity } => match r.feature {
-                                Some(f) => AttachResult::Settled {
-                                    feature: Anchor {
-                                        position: f.position,
-                                        time: f.time,
-                                    },
-                                    drift: velocity,
-                                },
-                                None => AttachResult::FeatureLost,
-                            },
-                            AttachOutcome::TimedOut { velocity } => {
-                                AttachResult::DriftNotSettled { drift: velocity }
-                            }
-                            AttachOutcome::FeatureLost { .. } => AttachResult::FeatureLost,
-                        }))
-                    }
-                    Err(e) => Ok(Event::Failed(fos_failure(e)?)),
-                }
-            }
-            Action::Aperture { centre } => {
-                let _s = tracing::debug_span!("aperture").entered();
-                // The captured feature (just attached: its drift is below the limit), or the
-                // node for Fig. 3b.
-                let target = centre.position;
-                match spm_fos::aperture(mic, target, &self.fos.aperture) {
-                    Ok(r) => {
-                        let Some(a) = r.a.and_then(|i| r.feature(i)).copied() else {
-                            return Ok(Event::ApertureScanned(ApertureResult {
-                                a: centre,
-                                lcs: None,
-                                neighbours: Vec::new(),
-                            }));
-                        };
-                        let neighbours = r
-                            .neighbours
-                            .iter()
-                            .filter_map(|&i| r.feature(i))
-                            .map(|f| f.position - a.position)
-                            .collect();
-                        Ok(Event::ApertureScanned(ApertureResult {
-                            a: Anchor {
-                                position: a.position,
-                                time: a.time,
-                            },
-                            lcs: r.lcs.map(|l| (l.ab, l.ac)),
-                            neighbours,
-                        }))
-                    }
-                    Err(e) => Ok(Event::Failed(fos_failure(e)?)),
-                }
-            }
+            Action::MoveAndPause { node, pause } => self.move_and_pause(node, pause, coarse_now),
+            Action::Attach { near } => self.attach(visit, near),
+            Action::Aperture { centre } => self.aperture(centre),
             Action::Skip {
                 index,
                 from,
                 estimate,
                 drift,
-            } => {
-                let _s = tracing::debug_span!("skip", vector = index).entered();
-                // fos predicts A at its next scan from the sighting time and the drift.
-                match spm_fos::skip(
-                    mic,
-                    from.position,
-                    from.time,
-                    estimate,
-                    drift,
-                    &self.fos.skip,
-                ) {
-                    Ok(r) => {
-                        for c in &r.cycles {
-                            if let Decision::Discard(reason) = c.decision {
-                                self.observer.cycle_spoiled(visit, &reason);
-                            }
-                            if c.cycle.velocity.norm_counts_per_s().is_finite() {
-                                self.observer.drift_estimate(
-                                    visit,
-                                    c.cycle.velocity,
-                                    c.cycle.a_end.time(),
-                                );
-                            }
-                        }
-                        let cycles = CycleCounts {
-                            kept: r.kept.len() as u32,
-                            discarded: r.discarded as u32,
-                            idle: r.idle as u32,
-                            restarts: r.restarts as u32,
-                        };
-                        match (r.outcome, r.vector) {
-                            (SkipOutcome::Completed, Some(vector)) => {
-                                // Localisation uncertainty of one cycle's vector:
-                                // σ_B² + ½(σ_A,start² + σ_A,end²) per component.
-                                let (mut lx, mut ly, mut n) = (0.0, 0.0, 0usize);
-                                for &i in &r.kept {
-                                    if let Some(c) = r.cycles.get(i) {
-                                        let u = |f: &spm_features::Feature| {
-                                            (
-                                                f.uncertainty.sigma_x.value().powi(2),
-                                                f.uncertainty.sigma_y.value().powi(2),
-                                            )
-                                        };
-                                        let (bx, by) = u(&c.cycle.b.feature);
-                                        let (sx, sy) = u(&c.cycle.a_start.feature);
-                                        let (ex, ey) = u(&c.cycle.a_end.feature);
-                                        lx += bx + 0.5 * (sx + ex);
-                                        ly += by + 0.5 * (sy + ey);
-                                        n += 1;
-                                    }
-                                }
-                                let n_f = n.max(1) as f64;
-                                let local = CountVector::new(
-                                    Counts((lx / n_f).sqrt()),
-                                    Counts((ly / n_f).sqrt()),
-                                );
-                                let covariance: CountCovariance =
-                                    vector_covariance(r.sigma, local, n);
-                                Ok(Event::Skipped(SkipResult::Completed {
-                                    vector,
-                                    covariance,
-                                    a: Anchor {
-                                        position: r.a.position(),
-                                        time: r.a.time(),
-                                    },
-                                    drift: r.drift,
-                                    cycles,
-                                }))
-                            }
-                            _ => Ok(Event::Skipped(SkipResult::Unstable { cycles })),
-                        }
-                    }
-                    Err(e) => Ok(Event::Failed(fos_failure(e)?)),
-                }
-            }
-            Action::CounterScan { centre, drift } => {
-                let _s = tracing::debug_span!("counter_scan").entered();
-                let mut params = self.fos.counter.clone();
-                params.drift_prior = drift;
-                let now = mic.now().unwrap_or(centre.time);
-                let target = if centre.time.is_finite() {
-                    centre.predict(drift, now)
-                } else {
-                    centre.position
-                };
-                match spm_fos::counter_scan(mic, target, &params) {
-                    Ok(r) => {
-                        self.observer
-                            .drift_estimate(visit, r.velocity, r.reference_time);
-                        let Some(a) = r.common.iter().min_by(|x, y| {
-                            x.drift_free
-                                .distance(target)
-                                .value()
-                                .total_cmp(&y.drift_free.distance(target).value())
-                        }) else {
-                            return Ok(Event::Failed(Failure::Measurement {
-                                message: "counter-scan found no common feature".into(),
-                            }));
-                        };
-                        let ua = a.direct.uncertainty;
-                        let vectors = r
-                            .common
-                            .iter()
-                            .filter(|c| c.drift_free != a.drift_free)
-                            .map(|c| {
-                                let u = c.direct.uncertainty;
-                                (
-                                    c.drift_free - a.drift_free,
-                                    CountCovariance {
-                                        xx_counts2: 0.5
-                                            * (ua.sigma_x.value().powi(2)
-                                                + u.sigma_x.value().powi(2)),
-                                        xy_counts2: 0.0,
-                                        yy_counts2: 0.5
-                                            * (ua.sigma_y.value().powi(2)
-                                                + u.sigma_y.value().powi(2)),
-                                    },
-                                )
-                            })
-                            .collect();
-                        Ok(Event::CounterScanned(CounterResult {
-                            a: Anchor {
-                                position: a.drift_free,
-                                time: r.reference_time,
-                            },
-                            vectors,
-                            drift: r.velocity,
-                        }))
-                    }
-                    Err(e) => Ok(Event::Failed(fos_failure(e)?)),
-                }
-            }
-            Action::Finished(_) | Action::GiveUp(_) => Ok(Event::Failed(Failure::Measurement {
-                message: "terminal action executed".into(),
-            })),
+            } => self.skip(visit, index, from, estimate, drift),
+            Action::CounterScan { centre, drift } => self.counter_scan(visit, centre, drift),
+            Action::Finished(_) | Action::GiveUp(_) => Err(RunError::Parameters(
+                "the node machine's terminal step reached the executor".into(),
+            )),
         }
+    }
+
+    /// Moves the coarse stage (when the node sets a level) and the scanner to the node, and
+    /// pauses.
+    fn move_and_pause(
+        &mut self,
+        node: GridNode,
+        pause: Seconds,
+        coarse_now: &mut Option<i64>,
+    ) -> Result<Event, RunError> {
+        let _s = tracing::debug_span!("pause", pause_s = pause.value()).entered();
+        let mic = &mut *self.microscope;
+        if let Some(target) = node.coarse_steps {
+            let Some(stage) = mic.coarse_z() else {
+                return Err(RunError::Parameters(
+                    "the plan sets coarse-stage positions but the instrument has no coarse stage"
+                        .into(),
+                ));
+            };
+            let from = match *coarse_now {
+                Some(c) => c,
+                None => match stage.position_steps() {
+                    Ok(p) => p,
+                    Err(e) => return Ok(Event::Failed(instrument(e))),
+                },
+            };
+            if target != from
+                && let Err(e) = stage.step(target - from)
+            {
+                // Where the stage ended is unknown: read it again next time.
+                *coarse_now = None;
+                return Ok(Event::Failed(instrument(e)));
+            }
+            *coarse_now = Some(target);
+        }
+        let request = spm_hal::MoveRequest {
+            target: node.position(),
+            speed_counts_per_s: self.config.motion.move_speed_counts_per_s,
+            settle: Seconds(self.config.motion.settle_s),
+        };
+        if let Err(e) = mic.move_to(request) {
+            return Ok(Event::Failed(instrument(e)));
+        }
+        if let Err(e) = mic.wait(pause) {
+            return Ok(Event::Failed(instrument(e)));
+        }
+        Ok(Event::Paused)
+    }
+
+    /// Attaches to the feature nearest `near` and waits for the drift to settle.
+    fn attach(&mut self, visit: &PlanVisit, near: CountPoint) -> Result<Event, RunError> {
+        let _s = tracing::debug_span!("attach").entered();
+        let r = match spm_fos::attach(&mut *self.microscope, near, &self.fos.attach) {
+            Ok(r) => r,
+            Err(e) => return Ok(Event::Failed(fos_failure(e)?)),
+        };
+        self.observer.attach_sightings(visit, &r.history);
+        if let Some(last_t) = r.history.last().map(spm_fos::Sighting::time) {
+            for v in &r.velocities {
+                self.observer.drift_estimate(visit, *v, last_t);
+            }
+        }
+        Ok(Event::Attached(match r.outcome {
+            AttachOutcome::Settled { velocity } => match r.feature {
+                Some(f) => AttachResult::Settled {
+                    feature: Anchor {
+                        position: f.position,
+                        time: Some(f.time),
+                    },
+                    drift: velocity,
+                },
+                None => AttachResult::FeatureLost,
+            },
+            AttachOutcome::TimedOut { velocity } => {
+                AttachResult::DriftNotSettled { drift: velocity }
+            }
+            AttachOutcome::FeatureLost { .. } => AttachResult::FeatureLost,
+        }))
+    }
+
+    /// Scans the aperture around `centre` (the captured feature, or the node for Fig. 3b)
+    /// and recognises the LCS.
+    fn aperture(&mut self, centre: Anchor) -> Result<Event, RunError> {
+        let _s = tracing::debug_span!("aperture").entered();
+        let r = match spm_fos::aperture(&mut *self.microscope, centre.position, &self.fos.aperture)
+        {
+            Ok(r) => r,
+            Err(e) => return Ok(Event::Failed(fos_failure(e)?)),
+        };
+        let Some(a) = r.a.and_then(|i| r.feature(i)).copied() else {
+            return Ok(Event::ApertureScanned(ApertureResult {
+                a: centre,
+                lcs: None,
+                neighbours: Vec::new(),
+            }));
+        };
+        let neighbours = r
+            .neighbours
+            .iter()
+            .filter_map(|&i| r.feature(i))
+            .map(|f| f.position - a.position)
+            .collect();
+        Ok(Event::ApertureScanned(ApertureResult {
+            a: Anchor {
+                position: a.position,
+                time: Some(a.time),
+            },
+            lcs: r.lcs.map(|l| (l.ab, l.ac)),
+            neighbours,
+        }))
+    }
+
+    /// Measures one vector drift-free by skipping from `from` to the feature `estimate`
+    /// away and back.
+    fn skip(
+        &mut self,
+        visit: &PlanVisit,
+        index: usize,
+        from: Anchor,
+        estimate: CountVector,
+        drift: CountVelocity,
+    ) -> Result<Event, RunError> {
+        let _s = tracing::debug_span!("skip", vector = index).entered();
+        // fos predicts the start feature at its next scan from its sighting and the drift;
+        // a place never seen is taken as seen now.
+        let seen = match from.time {
+            Some(t) => t,
+            None => match self.microscope.now() {
+                Ok(t) => t,
+                Err(e) => return Ok(Event::Failed(instrument(e))),
+            },
+        };
+        let r = match spm_fos::skip(
+            &mut *self.microscope,
+            from.position,
+            seen,
+            estimate,
+            drift,
+            &self.fos.skip,
+        ) {
+            Ok(r) => r,
+            Err(e) => return Ok(Event::Failed(fos_failure(e)?)),
+        };
+        for c in &r.cycles {
+            if let Decision::Discard(reason) = c.decision {
+                self.observer.cycle_spoiled(visit, &reason);
+            }
+            if c.cycle.velocity.norm_counts_per_s().is_finite() {
+                self.observer
+                    .drift_estimate(visit, c.cycle.velocity, c.cycle.a_end.time());
+            }
+        }
+        let cycles = CycleCounts {
+            kept: r.kept.len() as u32,
+            discarded: r.discarded as u32,
+            idle: r.idle as u32,
+            restarts: r.restarts as u32,
+        };
+        Ok(Event::Skipped(match (r.outcome, r.vector) {
+            (SkipOutcome::Completed, Some(vector)) => SkipResult::Completed {
+                vector,
+                covariance: crate::measure::skip_vector_covariance(&r),
+                a: Anchor {
+                    position: r.a.position(),
+                    time: Some(r.a.time()),
+                },
+                drift: r.drift,
+                cycles,
+            },
+            _ => SkipResult::Unstable { cycles },
+        }))
+    }
+
+    /// Measures all vectors at once by counter-scanning the aperture around `centre`.
+    fn counter_scan(
+        &mut self,
+        visit: &PlanVisit,
+        centre: Anchor,
+        drift: CountVelocity,
+    ) -> Result<Event, RunError> {
+        let _s = tracing::debug_span!("counter_scan").entered();
+        let mut params = self.fos.counter.clone();
+        params.drift_prior = drift;
+        let now = match self.microscope.now() {
+            Ok(t) => t,
+            Err(e) => return Ok(Event::Failed(instrument(e))),
+        };
+        let target = centre.predict(drift, now);
+        let r = match spm_fos::counter_scan(&mut *self.microscope, target, &params) {
+            Ok(r) => r,
+            Err(e) => return Ok(Event::Failed(fos_failure(e)?)),
+        };
+        self.observer
+            .drift_estimate(visit, r.velocity, r.reference_time);
+        Ok(match crate::measure::counter_scan_vectors(&r, target) {
+            Some(result) => Event::CounterScanned(result),
+            None => Event::Failed(Failure::Measurement {
+                message: "counter-scan found no common feature".into(),
+            }),
+        })
     }
 }
 

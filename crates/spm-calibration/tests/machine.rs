@@ -28,7 +28,7 @@ fn machine(edit: impl FnOnce(&mut PlanConfig)) -> NodeMachine {
 fn anchor(x: f64, y: f64) -> Anchor {
     Anchor {
         position: CountPoint::from_counts(x, y),
-        time: Seconds(10.0),
+        time: Some(Seconds(10.0)),
     }
 }
 
@@ -326,5 +326,141 @@ fn a_skipped_vector_that_caught_another_feature_redoes_the_node() {
         m.step(completed(ab * 1.1, 2, 0)),
         Action::Skip { index: 1, .. }
     ));
-    const { assert!(spm_calibration::SKIP_VECTOR_TOLERANCE < 1.0) };
+    const { assert!(spm_calibration::TuningConfig::RECOMMENDED.vector_match_tolerance_fraction < 1.0) };
+}
+
+/// The machine's answer to each event as a short name: `move`, `attach`, `aperture`,
+/// `skip<i>` (with `@B` when the vector starts at another vector's end), `counter`,
+/// `finished`, `give-up:<reason kind>`.
+fn name(action: &Action) -> String {
+    match action {
+        Action::MoveAndPause { .. } => "move".into(),
+        Action::Attach { .. } => "attach".into(),
+        Action::Aperture { centre } => {
+            if centre.time.is_some() {
+                "aperture".into()
+            } else {
+                "aperture@node".into()
+            }
+        }
+        Action::Skip { index, from, .. } => {
+            if from.position == anchor(5.0, 5.0).position
+                || from.position == anchor(5.5, 5.0).position
+            {
+                format!("skip{index}")
+            } else {
+                format!("skip{index}@B")
+            }
+        }
+        Action::CounterScan { .. } => "counter".into(),
+        Action::Finished(_) => "finished".into(),
+        Action::GiveUp(reason) => format!(
+            "give-up:{}",
+            format!("{reason:?}")
+                .split([' ', '{', '('])
+                .next()
+                .unwrap_or_default()
+        ),
+    }
+}
+
+/// Feeds `events` to a fresh machine (after `edit` of the small plan) and compares the
+/// transcript of its actions with `expect` (names separated by spaces).
+fn check(edit: impl FnOnce(&mut PlanConfig), events: Vec<Event>, expect: &str) {
+    let mut m = machine(edit);
+    let got: Vec<String> = events.into_iter().map(|e| name(&m.step(e))).collect();
+    assert_eq!(got.join(" "), expect);
+}
+
+fn transient() -> Event {
+    Event::Failed(Failure::Transient {
+        kind: Some(ErrorKind::Timeout),
+        message: "link".into(),
+    })
+}
+
+fn counter_result() -> Event {
+    let (ab, ac) = lcs();
+    Event::CounterScanned(spm_calibration::CounterResult {
+        a: anchor(5.0, 5.0),
+        vectors: vec![(ab, CountCovariance::EXACT), (ac, CountCovariance::EXACT)],
+        drift: CountVelocity::ZERO,
+    })
+}
+
+#[test]
+fn transcripts_of_the_plan_variants() {
+    let (ab, ac) = lcs();
+    // Fig. 2: attach to A, aperture, skip A↔B, A↔C.
+    check(
+        |_| {},
+        vec![
+            Event::Begin,
+            Event::Paused,
+            settled(),
+            aperture(),
+            completed(ab, 2, 0),
+            completed(ac, 2, 0),
+        ],
+        "move attach aperture skip0 skip1 finished",
+    );
+    // Fig. 3b: the aperture around the node (never seen: no time) stands in for the
+    // attachment.
+    check(
+        |c| c.variant.attach_to = spm_calibration::AttachTarget::LcsCentre,
+        vec![Event::Begin, Event::Paused, aperture(), completed(ab, 2, 0)],
+        "move aperture@node skip0 skip1",
+    );
+    // B↔C redundancy: the third vector starts at the end of A→B, as measured.
+    check(
+        |c| c.variant.bc_redundancy = true,
+        vec![
+            Event::Begin,
+            Event::Paused,
+            settled(),
+            aperture(),
+            completed(ab, 2, 0),
+            completed(ac, 2, 0),
+        ],
+        "move attach aperture skip0 skip1 skip2@B",
+    );
+    // Counter-scanning measures both vectors from one pair of scans.
+    check(
+        |c| c.variant.measurement = MeasurementMethod::CounterScan,
+        vec![
+            Event::Begin,
+            Event::Paused,
+            settled(),
+            aperture(),
+            counter_result(),
+        ],
+        "move attach aperture counter finished",
+    );
+    // A transient failure redoes the visit from the move without using up an attempt.
+    check(
+        |_| {},
+        vec![Event::Begin, Event::Paused, transient(), Event::Paused],
+        "move attach move attach",
+    );
+    // An aperture without an LCS, as often as attempts allow, gives the node up.
+    let no_lcs = || {
+        Event::ApertureScanned(ApertureResult {
+            a: anchor(5.0, 5.0),
+            lcs: None,
+            neighbours: vec![],
+        })
+    };
+    check(
+        |c| c.failures.max_attempts_per_node = 2,
+        vec![
+            Event::Begin,
+            Event::Paused,
+            settled(),
+            no_lcs(),
+            Event::Paused,
+            settled(),
+            no_lcs(),
+        ],
+        "move attach aperture move attach aperture give-up:NoLcs",
+    );
 }

@@ -344,85 +344,12 @@ pub struct FaultConfig {
 // ---------------------------------------------------------------------------
 // Errors
 
-/// Why a configuration could not be loaded.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum ConfigError {
-    /// The file could not be read.
-    #[error("cannot read simulator config `{path}`: {source}")]
-    Io {
-        /// The file.
-        path: String,
-        /// The OS error.
-        #[source]
-        source: std::io::Error,
-    },
-    /// The TOML is malformed, has an unknown field or a value of the wrong type.
-    #[error("{source_name}{}: {}{message}", line_suffix(*line, *column), field_prefix(field.as_deref()))]
-    Parse {
-        /// File name or other label of the text.
-        source_name: String,
-        /// 1-based line, when known.
-        line: Option<usize>,
-        /// 1-based column, when known.
-        column: Option<usize>,
-        /// Dotted path of the offending field, when known.
-        field: Option<String>,
-        /// The parser's message.
-        message: String,
-    },
-    /// A value is syntactically fine but physically invalid.
-    #[error("{source_name}{}: field `{field}` {reason}", line_suffix(*line, None))]
-    Invalid {
-        /// File name or other label of the text.
-        source_name: String,
-        /// 1-based line of the field, when it can be found.
-        line: Option<usize>,
-        /// Dotted path of the field, e.g. `scanner.nonlinearity_x.cubic`.
-        field: String,
-        /// What is wrong.
-        reason: String,
-    },
-}
+pub use spm_config::{ConfigError, ValidationError};
 
-fn line_suffix(line: Option<usize>, column: Option<usize>) -> String {
-    match (line, column) {
-        (Some(l), Some(c)) => format!(":{l}:{c}"),
-        (Some(l), None) => format!(":{l}"),
-        _ => String::new(),
+impl spm_config::Validate for SimConfig {
+    fn validate(&self) -> Result<(), ValidationError> {
+        SimConfig::validate(self)
     }
-}
-
-fn field_prefix(field: Option<&str>) -> String {
-    field.map(|f| format!("field `{f}`: ")).unwrap_or_default()
-}
-
-impl ConfigError {
-    /// Dotted path of the offending field, when known.
-    pub fn field(&self) -> Option<&str> {
-        match self {
-            Self::Io { .. } => None,
-            Self::Parse { field, .. } => field.as_deref(),
-            Self::Invalid { field, .. } => Some(field),
-        }
-    }
-    /// 1-based line of the problem, when known.
-    pub fn line(&self) -> Option<usize> {
-        match self {
-            Self::Io { .. } => None,
-            Self::Parse { line, .. } | Self::Invalid { line, .. } => *line,
-        }
-    }
-}
-
-/// A semantic validation failure, before it is located in a file.
-#[derive(Clone, Debug, PartialEq, thiserror::Error)]
-#[error("field `{field}` {reason}")]
-pub struct ValidationError {
-    /// Dotted path of the field.
-    pub field: String,
-    /// What is wrong.
-    pub reason: String,
 }
 
 // ---------------------------------------------------------------------------
@@ -431,40 +358,12 @@ pub struct ValidationError {
 impl SimConfig {
     /// Parses and validates a TOML text; `source_name` labels errors (a file name).
     pub fn from_toml_str(text: &str, source_name: &str) -> Result<Self, ConfigError> {
-        let config: SimConfig = toml::from_str(text).map_err(|e| {
-            let (line, column, field) = match e.span() {
-                Some(span) => {
-                    let (l, c) = line_column(text, span.start);
-                    (Some(l), Some(c), field_at(text, span.start, e.message()))
-                }
-                None => (None, None, unknown_field_name(e.message())),
-            };
-            ConfigError::Parse {
-                source_name: source_name.to_owned(),
-                line,
-                column,
-                field,
-                message: e.message().trim().to_owned(),
-            }
-        })?;
-        config.validate().map_err(|v| ConfigError::Invalid {
-            source_name: source_name.to_owned(),
-            line: locate_field_line(text, &v.field),
-            field: v.field,
-            reason: v.reason,
-        })?;
-        Ok(config)
+        spm_config::parse_and_validate(text, source_name)
     }
 
     /// Reads, parses and validates a TOML file.
     pub fn from_file(path: impl AsRef<Path>) -> Result<Self, ConfigError> {
-        let path = path.as_ref();
-        let name = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
-            path: name.clone(),
-            source,
-        })?;
-        Self::from_toml_str(&text, &name)
+        spm_config::load_file(path.as_ref())
     }
 
     /// What the instrument of this config offers (as the simulator reports it), for
@@ -1004,346 +903,33 @@ impl Checker<'_> {
     }
 }
 
-/// 1-based line and column of a byte offset.
-fn line_column(text: &str, offset: usize) -> (usize, usize) {
-    let offset = offset.min(text.len());
-    let before = text.get(..offset).unwrap_or("");
-    let line = before.matches('\n').count() + 1;
-    let column = before.rsplit('\n').next().map_or(0, |s| s.chars().count()) + 1;
-    (line, column)
-}
-
-/// The name inside the first pair of backticks of an "unknown field" message.
-fn unknown_field_name(message: &str) -> Option<String> {
-    if !message.contains("unknown field") && !message.contains("unknown variant") {
-        return None;
-    }
-    let start = message.find('`')? + 1;
-    let len = message.get(start..)?.find('`')?;
-    message.get(start..start + len).map(str::to_owned)
-}
-
-/// Strips a TOML line comment (outside strings, good enough for config files).
-fn strip_comment(line: &str) -> &str {
-    let mut in_string = false;
-    for (k, ch) in line.char_indices() {
-        match ch {
-            '"' => in_string = !in_string,
-            '#' if !in_string => return line.get(..k).unwrap_or(line),
-            _ => {}
-        }
-    }
-    line
-}
-
-/// The table header (`a.b` of `[a.b]` or `[[a.b]]`) in force at `line_index` (0-based).
-fn table_at(lines: &[&str], line_index: usize) -> String {
-    for line in lines.iter().take(line_index + 1).rev() {
-        let t = strip_comment(line).trim();
-        if t.starts_with('[') {
-            return t
-                .trim_start_matches('[')
-                .trim_end_matches(']')
-                .trim()
-                .to_owned();
-        }
-    }
-    String::new()
-}
-
-/// Best-effort dotted path of the field at a byte offset of a TOML text.
-fn field_at(text: &str, offset: usize, message: &str) -> Option<String> {
-    let lines: Vec<&str> = text.split('\n').collect();
-    let (line, _) = line_column(text, offset);
-    let index = line.checked_sub(1)?;
-    let table = table_at(&lines, index);
-    let join = |key: &str| {
-        if table.is_empty() {
-            key.to_owned()
-        } else {
-            format!("{table}.{key}")
-        }
-    };
-    if let Some(name) = unknown_field_name(message) {
-        return Some(join(&name));
-    }
-    let content = strip_comment(lines.get(index)?).trim();
-    if content.starts_with('[') {
-        return Some(table);
-    }
-    let (key, _) = content.split_once('=')?;
-    Some(join(key.trim()))
-}
-
-/// Best-effort 1-based line of a dotted field path in a TOML text.
-pub(crate) fn locate_field_line(text: &str, field: &str) -> Option<usize> {
-    let clean = |s: &str| -> String {
-        // `steps[2].width_nm` → `steps.width_nm` (array tables are matched by name).
-        let mut out = String::new();
-        let mut depth = 0;
-        for ch in s.chars() {
-            match ch {
-                '[' => depth += 1,
-                ']' => depth -= 1,
-                _ if depth == 0 => out.push(ch),
-                _ => {}
-            }
-        }
-        out
-    };
-    let field = clean(field);
-    let (table, key) = match field.rsplit_once('.') {
-        Some((t, k)) => (t.to_owned(), k.to_owned()),
-        None => (String::new(), field.clone()),
-    };
-    let lines: Vec<&str> = text.split('\n').collect();
-    let mut current = String::new();
-    for (index, raw) in lines.iter().enumerate() {
-        let line = strip_comment(raw).trim();
-        if line.starts_with('[') {
-            current = line
-                .trim_start_matches('[')
-                .trim_end_matches(']')
-                .trim()
-                .to_owned();
-            continue;
-        }
-        let Some((k, rest)) = line.split_once('=') else {
-            continue;
-        };
-        let k = k.trim();
-        if current == table && k == key {
-            return Some(index + 1);
-        }
-        // Inline table: `nonlinearity_x = { quadratic = 0.1, cubic = nan }`.
-        let full = if current.is_empty() {
-            k.to_owned()
-        } else {
-            format!("{current}.{k}")
-        };
-        if full == table && (rest.contains(&format!("{key} ")) || rest.contains(&format!("{key}=")))
-        {
-            return Some(index + 1);
-        }
-    }
-    None
-}
-
 // ---------------------------------------------------------------------------
 // Named scenarios
 
 impl SimConfig {
+    /// A scenario shipped with the crate (`scenarios/*.toml`, also `configs/*.toml` of the
+    /// workspace). The texts are part of the program, parsed by the same loader as any user
+    /// file; the crate's tests parse each of them, so this cannot fail in a released build.
+    #[allow(clippy::expect_used)]
+    fn embedded(text: &str, name: &str) -> Self {
+        Self::from_toml_str(text, name).expect("a shipped scenario parses and validates")
+    }
+
     /// All effects off: a linear orthogonal scanner (0.02 nm/count on both
     /// axes, 0.004 nm/count in Z), no hysteresis, creep, drift, noise,
     /// quantisation or faults, a perfect HOPG lattice (a = 0.2461 nm,
-    /// rotation 0). Equals `configs/sim-ideal.toml`.
+    /// rotation 0). Parsed from `scenarios/sim-ideal.toml` (`configs/sim-ideal.toml`).
     pub fn ideal() -> Self {
-        Self {
-            seed: 1,
-            instrument: InstrumentConfig {
-                lateral_half_range_counts: 32768.0,
-                z_half_range_counts: 32768.0,
-                max_pixels_per_line: 4096,
-                max_lines: 4096,
-                min_pixel_dwell_s: 1e-6,
-                counter_scan: true,
-                backward_trace: true,
-                initial_z_extension_nm: 0.0,
-                call_overhead_s: 0.0,
-                coarse_z: None,
-            },
-            surface: SurfaceConfig::Hopg(HopgConfig {
-                lattice_constant_nm: 0.2461,
-                corrugation_nm: 0.08,
-                hollow_asymmetry: 0.3,
-                rotation_deg: 0.0,
-                step_height_nm: 0.3354,
-                steps: Vec::new(),
-                vacancy_fraction: 0.0,
-                domains: Vec::new(),
-            }),
-            scanner: ScannerConfig {
-                sensitivity_x_nm_per_count: 0.02,
-                sensitivity_y_nm_per_count: 0.02,
-                sensitivity_z_nm_per_count: 0.004,
-                nonlinearity_x: NonlinearityConfig {
-                    quadratic: 0.0,
-                    cubic: 0.0,
-                },
-                nonlinearity_y: NonlinearityConfig {
-                    quadratic: 0.0,
-                    cubic: 0.0,
-                },
-                nonorthogonality_deg: 0.0,
-                crosstalk_x_from_y: 0.0,
-                crosstalk_y_from_x: 0.0,
-                bow_x_from_y: 0.0,
-                bow_y_from_x: 0.0,
-                tilt_x_from_z: 0.0,
-                tilt_y_from_z: 0.0,
-                lateral_sensitivity_change_per_z: 0.0,
-                bowl_curvature_per_nm: 0.0,
-                hysteresis_x: HysteresisConfig {
-                    width_fraction: 0.0,
-                    min_threshold_counts: 512.0,
-                    max_threshold_counts: 16384.0,
-                    operators: 1,
-                },
-                hysteresis_y: HysteresisConfig {
-                    width_fraction: 0.0,
-                    min_threshold_counts: 512.0,
-                    max_threshold_counts: 16384.0,
-                    operators: 1,
-                },
-                creep: CreepConfig {
-                    log_slope_per_decade: 0.0,
-                    min_time_constant_s: 0.02,
-                    max_time_constant_s: 2000.0,
-                    elements_per_decade: 1,
-                },
-                z_manipulator: None,
-            },
-            drift: DriftConfig {
-                velocity_x_nm_per_s: 0.0,
-                velocity_y_nm_per_s: 0.0,
-                warmup_amplitude_x_nm: 0.0,
-                warmup_amplitude_y_nm: 0.0,
-                warmup_time_constant_s: 600.0,
-                velocity_random_walk_nm_per_s_per_sqrt_s: 0.0,
-                random_walk_interval_s: 0.1,
-                jump_rate_per_s: 0.0,
-                jump_sigma_nm: 0.0,
-            },
-            measurement: MeasurementConfig {
-                z_white_noise_nm: 0.0,
-                z_flicker_noise_nm: 0.0,
-                flicker_min_frequency_hz: 0.01,
-                flicker_max_frequency_hz: 1000.0,
-                lateral_jitter_nm: 0.0,
-                quantise_lateral_dac: false,
-                quantise_z_adc: false,
-                feedback_time_constant_s: 0.0,
-            },
-            faults: FaultConfig::none(),
-        }
+        Self::embedded(
+            include_str!("../scenarios/sim-ideal.toml"),
+            "sim-ideal.toml",
+        )
     }
 
     /// A room-temperature tube scanner over HOPG with every effect on at
-    /// realistic magnitudes. Equals `configs/sim-hopg.toml`.
+    /// realistic magnitudes. Parsed from `scenarios/sim-hopg.toml` (`configs/sim-hopg.toml`).
     pub fn room_temperature_tube() -> Self {
-        Self {
-            seed: 20261121,
-            instrument: InstrumentConfig {
-                lateral_half_range_counts: 32768.0,
-                z_half_range_counts: 32768.0,
-                max_pixels_per_line: 4096,
-                max_lines: 4096,
-                min_pixel_dwell_s: 1e-6,
-                counter_scan: true,
-                backward_trace: true,
-                initial_z_extension_nm: 40.0,
-                call_overhead_s: 0.002,
-                coarse_z: Some(CoarseZConfig {
-                    min_steps: -2000,
-                    max_steps: 2000,
-                    step_nm: 50.0,
-                    step_time_s: 0.002,
-                }),
-            },
-            surface: SurfaceConfig::Hopg(HopgConfig {
-                lattice_constant_nm: 0.2461,
-                corrugation_nm: 0.08,
-                hollow_asymmetry: 0.3,
-                rotation_deg: 12.0,
-                step_height_nm: 0.3354,
-                steps: vec![StepEdgeConfig {
-                    point_x_nm: 420.0,
-                    point_y_nm: 0.0,
-                    direction_deg: 80.0,
-                    width_nm: 0.5,
-                }],
-                vacancy_fraction: 0.001,
-                domains: vec![DomainConfig {
-                    centre_x_nm: -450.0,
-                    centre_y_nm: 420.0,
-                    radius_nm: 120.0,
-                    rotation_deg: 17.0,
-                }],
-            }),
-            scanner: ScannerConfig {
-                sensitivity_x_nm_per_count: 0.02,
-                sensitivity_y_nm_per_count: 0.0215,
-                sensitivity_z_nm_per_count: 0.004,
-                nonlinearity_x: NonlinearityConfig {
-                    quadratic: 0.03,
-                    cubic: 0.05,
-                },
-                nonlinearity_y: NonlinearityConfig {
-                    quadratic: -0.025,
-                    cubic: 0.04,
-                },
-                nonorthogonality_deg: 1.5,
-                crosstalk_x_from_y: 0.004,
-                crosstalk_y_from_x: -0.006,
-                bow_x_from_y: 0.008,
-                bow_y_from_x: 0.005,
-                tilt_x_from_z: 0.03,
-                tilt_y_from_z: -0.02,
-                lateral_sensitivity_change_per_z: 0.03,
-                bowl_curvature_per_nm: 5e-7,
-                hysteresis_x: HysteresisConfig {
-                    width_fraction: 0.04,
-                    min_threshold_counts: 512.0,
-                    max_threshold_counts: 16384.0,
-                    operators: 16,
-                },
-                hysteresis_y: HysteresisConfig {
-                    width_fraction: 0.05,
-                    min_threshold_counts: 512.0,
-                    max_threshold_counts: 16384.0,
-                    operators: 16,
-                },
-                creep: CreepConfig {
-                    log_slope_per_decade: 0.015,
-                    min_time_constant_s: 0.02,
-                    max_time_constant_s: 2000.0,
-                    elements_per_decade: 3,
-                },
-                z_manipulator: None,
-            },
-            drift: DriftConfig {
-                velocity_x_nm_per_s: 0.012,
-                velocity_y_nm_per_s: -0.007,
-                warmup_amplitude_x_nm: 1.5,
-                warmup_amplitude_y_nm: -0.8,
-                warmup_time_constant_s: 600.0,
-                velocity_random_walk_nm_per_s_per_sqrt_s: 2e-5,
-                random_walk_interval_s: 0.1,
-                jump_rate_per_s: 2.8e-4,
-                jump_sigma_nm: 0.05,
-            },
-            measurement: MeasurementConfig {
-                z_white_noise_nm: 0.003,
-                z_flicker_noise_nm: 0.004,
-                flicker_min_frequency_hz: 0.01,
-                flicker_max_frequency_hz: 1000.0,
-                lateral_jitter_nm: 0.002,
-                quantise_lateral_dac: true,
-                quantise_z_adc: true,
-                feedback_time_constant_s: 5e-5,
-            },
-            faults: FaultConfig {
-                timeout_probability_per_call: 0.0005,
-                communication_probability_per_call: 0.0005,
-                feedback_lost_rate_per_s: 1e-4,
-                tip_change_rate_per_s: 2e-5,
-                drift_burst_rate_per_s: 1e-4,
-                timeout_duration_s: 1.0,
-                drift_burst_speed_nm_per_s: 0.2,
-                drift_burst_duration_s: 5.0,
-                tip_change_jump_sigma_nm: 0.3,
-            },
-        }
+        Self::embedded(include_str!("../scenarios/sim-hopg.toml"), "sim-hopg.toml")
     }
 
     /// This config with every random fault rate set to zero (scheduled faults
@@ -1371,31 +957,5 @@ impl FaultConfig {
             drift_burst_duration_s: 5.0,
             tip_change_jump_sigma_nm: 0.3,
         }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    #![allow(clippy::unwrap_used)]
-    use super::*;
-
-    #[test]
-    fn line_and_column_are_one_based() {
-        assert_eq!(line_column("a\nbc\n", 3), (2, 2));
-        assert_eq!(line_column("abc", 0), (1, 1));
-    }
-
-    #[test]
-    fn fields_are_located_in_tables_and_inline_tables() {
-        let text = "seed = 1\n[scanner]\nnonlinearity_x = { quadratic = 0.1, cubic = nan }\n[scanner.creep]\nmin_time_constant_s = -1\n";
-        assert_eq!(
-            locate_field_line(text, "scanner.nonlinearity_x.cubic"),
-            Some(3)
-        );
-        assert_eq!(
-            locate_field_line(text, "scanner.creep.min_time_constant_s"),
-            Some(5)
-        );
-        assert_eq!(locate_field_line(text, "seed"), Some(1));
     }
 }

@@ -126,12 +126,21 @@ fn now_unix_s() -> f64 {
         .map_or(0.0, |d| d.as_secs_f64())
 }
 
+/// What the report after the run holds.
+#[derive(Debug, Clone, Copy)]
+pub struct ReportOptions {
+    /// Take the image benchmark's test images (simulated backends).
+    pub image_benchmark: bool,
+    /// A reduced report (smoke runs).
+    pub quick: bool,
+}
+
 pub fn run(
     config: &Path,
     cdb: Option<&Path>,
     resume: bool,
     out: Option<&Path>,
-    image_benchmark: bool,
+    report_options: ReportOptions,
 ) -> Result<(), CliError> {
     let stop = StopRequest::install()?;
     let job = Job::from_file(config).map_err(|e| CliError::BadInput(e.to_string()))?;
@@ -207,8 +216,14 @@ pub fn run(
         }));
     }
     let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s);
-    let report = finish_with(&cdb_path, &out, &record, false, image_benchmark)
-        .map_err(|e| CliError::RunFailed(e.to_string()))?;
+    let report = finish_with(
+        &cdb_path,
+        &out,
+        &record,
+        report_options.quick,
+        report_options.image_benchmark,
+    )
+    .map_err(|e| CliError::RunFailed(e.to_string()))?;
     crate::outln!(
         "run {}: {} visits measured now ({} before), {} given up, {} records; CDB {}; report {}",
         run_id,
@@ -219,10 +234,8 @@ pub fn run(
         cdb_path.display(),
         out.join("report.json").display()
     );
-    if let Some(images) = &report.images {
-        for line in images.summary_table().lines() {
-            crate::outln!("{line}");
-        }
+    for line in report.summary_text().lines() {
+        crate::outln!("{line}");
     }
     Ok(())
 }

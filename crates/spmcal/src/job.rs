@@ -4,7 +4,7 @@
 //!
 //! ```toml
 //! [backend]
-//! kind = "sim"                 # the simulated microscope (the only backend built in so far)
+//! kind = "sim"                 # which backend: one variant of [`BackendConfig`]
 //! sim_config = "sim-hopg.toml" # the simulator's config, relative to this file
 //!
 //! [plan]                       # spm-calibration's PlanConfig
@@ -16,7 +16,11 @@
 //! `plan_file = "plan-hopg.toml"` (relative to the job file; its `[plan]` table is used).
 //! `cargo xtask calibrate --config SIM.toml --plan PLAN.toml` builds the same
 //! job from a simulator config and a plan file (see [`Job::from_parts`]).
+//!
+//! The `[backend]` table is a typed, internally tagged enum ([`BackendConfig`]): adding a
+//! backend is one crate plus one variant here and one arm in `run::run_job`.
 
+use serde::Deserialize;
 use spm_calibration::PlanConfig;
 use spm_sim::SimConfig;
 use std::path::{Path, PathBuf};
@@ -33,15 +37,11 @@ pub enum JobError {
         /// The cause.
         source: std::io::Error,
     },
-    /// The file is not TOML.
-    #[error("{path}: not valid TOML: {message}")]
-    Syntax {
-        /// The file.
-        path: PathBuf,
-        /// toml's message (with line and column).
-        message: String,
-    },
-    /// A field of the job table is missing or wrong.
+    /// A job, plan or simulator config is not valid TOML, or a field of it is unknown,
+    /// missing or wrong (the message names the file, line and field).
+    #[error("{0}")]
+    Config(#[from] spm_config::ConfigError),
+    /// A field of the job is inconsistent with another (the message names file and line).
     #[error("{path}{}: field `{field}`: {message}", line.map(|l| format!(":{l}")).unwrap_or_default())]
     Field {
         /// The file.
@@ -53,12 +53,6 @@ pub enum JobError {
         /// What is wrong.
         message: String,
     },
-    /// The plan is invalid (the message names file, line and field).
-    #[error("{0}")]
-    Plan(#[from] spm_calibration::ConfigError),
-    /// The simulator config is invalid (the message names file, line and field).
-    #[error("{0}")]
-    Sim(#[from] spm_sim::ConfigError),
     /// A config file is not a regular file (a FIFO, a device, a directory) or too large.
     #[error("{path}: {message}")]
     NotAConfigFile {
@@ -71,18 +65,60 @@ pub enum JobError {
 
 /// Largest config file (job, plan or simulator) read, bytes: configs are small hand-written
 /// files; anything larger is a mistake (e.g. a data file given as a config).
-pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
+pub const MAX_CONFIG_BYTES: u64 = spm_config::MAX_CONFIG_BYTES;
 
 /// Largest number of visits (nodes × repeats) of one run: a week of instrument time at
 /// well under a second per visit. A larger plan is almost surely a typo (`step_counts = 1`).
 pub const MAX_TOTAL_VISITS: usize = 1_000_000;
 
-/// The backend a job runs on.
+/// The `[backend]` table of a job file: which instrument the job runs on.
+#[derive(Debug, Clone, PartialEq, Deserialize, serde::Serialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+#[non_exhaustive]
+pub enum BackendConfig {
+    /// The simulated microscope (spm-sim).
+    Sim {
+        /// The simulator's config file, relative to the job file.
+        sim_config: PathBuf,
+    },
+}
+
+/// The top level of a job file. `[plan]` is parsed by spm-calibration (its own diagnostics);
+/// here it is only present or not.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct JobFile {
+    backend: BackendConfig,
+    #[serde(default)]
+    plan: Option<toml::Table>,
+    #[serde(default)]
+    plan_file: Option<PathBuf>,
+}
+
+/// The top level of a plan file: a `[plan]` table and nothing else.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PlanFile {
+    #[allow(dead_code)]
+    plan: toml::Table,
+}
+
+/// The backend a job runs on, loaded.
 #[derive(Debug, Clone)]
 #[non_exhaustive]
 pub enum Backend {
     /// The simulated microscope with this configuration.
     Sim(Box<SimConfig>),
+}
+
+impl Backend {
+    /// What the instrument offers, for checking a plan before anything is built.
+    #[must_use]
+    pub fn capabilities(&self) -> spm_hal::Capabilities {
+        match self {
+            Self::Sim(config) => config.capabilities(),
+        }
+    }
 }
 
 /// A loaded, validated job.
@@ -97,96 +133,41 @@ pub struct Job {
 }
 
 impl Job {
-    /// Loads a job file (`[backend]` + `[plan]`).
+    /// Loads a job file (`[backend]` + `[plan]` or `plan_file`).
+    ///
+    /// # Errors
+    /// A [`JobError`] naming the file, line and field.
     pub fn from_file(path: &Path) -> Result<Self, JobError> {
         let text = read(path)?;
-        let table: toml::Table = text
-            .parse()
-            .map_err(|e: toml::de::Error| JobError::Syntax {
-                path: path.to_path_buf(),
-                message: e.to_string(),
-            })?;
-        let field = |field: &str, message: &str| JobError::Field {
-            path: path.to_path_buf(),
-            line: line_of(&text, field),
-            field: field.to_owned(),
-            message: message.to_owned(),
-        };
-        let backend = table
-            .get("backend")
-            .and_then(toml::Value::as_table)
-            .ok_or_else(|| field("backend", "a job file needs a [backend] table"))?;
-        for key in backend.keys() {
-            if !["kind", "sim_config"].contains(&key.as_str()) {
-                return Err(field(
-                    &format!("backend.{key}"),
-                    "unknown field (expected `kind`, `sim_config`)",
-                ));
+        let source_name = path.display().to_string();
+        let file: JobFile = spm_config::parse_toml(&text, &source_name)?;
+        let dir = path.parent().unwrap_or(Path::new("."));
+        let (plan, plan_text, plan_source) = match (&file.plan_file, &file.plan) {
+            (Some(_), Some(_)) => {
+                return Err(JobError::Field {
+                    path: path.to_path_buf(),
+                    line: spm_config::TomlLocator::new(&text).line_of("plan_file"),
+                    field: "plan_file".to_owned(),
+                    message: "give either plan_file or [plan], not both".to_owned(),
+                });
             }
-        }
-        let kind = match backend.get("kind") {
-            Some(toml::Value::String(kind)) => kind.as_str(),
-            Some(other) => {
-                return Err(field(
-                    "backend.kind",
-                    &format!("must be a string (\"sim\"), found {}", other.type_str()),
-                ));
-            }
-            None => return Err(field("backend.kind", "missing (a string: \"sim\")")),
-        };
-        if kind != "sim" {
-            return Err(field(
-                "backend.kind",
-                &format!("unknown backend {kind:?} (known: \"sim\")"),
-            ));
-        }
-        let sim_path = match backend.get("sim_config") {
-            Some(toml::Value::String(p)) => p.as_str(),
-            Some(other) => {
-                return Err(field(
-                    "backend.sim_config",
-                    &format!("must be a string (a file path), found {}", other.type_str()),
-                ));
-            }
-            None => {
-                return Err(field(
-                    "backend.sim_config",
-                    "missing (the simulator config file, relative to the job file)",
-                ));
-            }
-        };
-        let sim_path = path.parent().unwrap_or(Path::new(".")).join(sim_path);
-        for key in table.keys() {
-            if !["backend", "plan", "plan_file"].contains(&key.as_str()) {
-                return Err(field(
-                    key,
-                    "unknown top-level field (expected [backend], [plan] or plan_file)",
-                ));
-            }
-        }
-        let plan = match table.get("plan_file") {
-            Some(toml::Value::String(plan_file)) => {
-                if table.contains_key("plan") {
-                    return Err(field(
-                        "plan_file",
-                        "give either plan_file or [plan], not both",
-                    ));
-                }
-                let plan_path = path.parent().unwrap_or(Path::new(".")).join(plan_file);
+            (Some(plan_file), None) => {
+                let plan_path = dir.join(plan_file);
                 let (plan, plan_text) = Self::read_plan(&plan_path)?;
                 (plan, plan_text, plan_path.display().to_string())
             }
-            Some(_) => return Err(field("plan_file", "must be a string (a file path)")),
-            None => (
-                PlanConfig::from_toml_str(&text, &path.display().to_string())?,
+            (None, _) => (
+                PlanConfig::from_toml_str(&text, &source_name)?,
                 text.clone(),
-                path.display().to_string(),
+                source_name.clone(),
             ),
         };
-        let (plan, plan_text, plan_source) = plan;
-        let job = Self::from_parts(&sim_path, plan, format!("{text}\n{plan_text}"))?;
-        let Backend::Sim(sim) = &job.backend;
-        Self::check_plan_on_backend(&job.plan, sim, &plan_source, &plan_text)?;
+        let job = match &file.backend {
+            BackendConfig::Sim { sim_config } => {
+                Self::from_parts(&dir.join(sim_config), plan, format!("{text}\n{plan_text}"))?
+            }
+        };
+        Self::check_plan_on_backend(&job.plan, &job.backend, &plan_source, &plan_text)?;
         Ok(job)
     }
 
@@ -209,22 +190,14 @@ impl Job {
     }
 
     /// A plan file: a `[plan]` table and nothing else at the top level.
+    ///
+    /// # Errors
+    /// A [`JobError`] naming the file, line and field.
     pub fn read_plan(path: &Path) -> Result<(PlanConfig, String), JobError> {
         let text = read(path)?;
-        let plan = PlanConfig::from_toml_str(&text, &path.display().to_string())?;
-        if let Ok(table) = text.parse::<toml::Table>() {
-            for key in table.keys() {
-                if key != "plan" {
-                    return Err(JobError::Field {
-                        path: path.to_path_buf(),
-                        line: line_of(&text, key),
-                        field: key.clone(),
-                        message: "unknown top-level field of a plan file (expected only [plan])"
-                            .to_owned(),
-                    });
-                }
-            }
-        }
+        let source_name = path.display().to_string();
+        let plan = PlanConfig::from_toml_str(&text, &source_name)?;
+        spm_config::parse_toml::<PlanFile>(&text, &source_name)?;
         Ok((plan, text))
     }
 
@@ -234,19 +207,15 @@ impl Job {
         let Ok(text) = read(path) else {
             return Vec::new();
         };
-        let Ok(table) = text.parse::<toml::Table>() else {
+        let Ok(file) = toml::from_str::<JobFile>(&text) else {
             return Vec::new();
         };
         let dir = path.parent().unwrap_or(Path::new("."));
         let mut files = Vec::new();
-        if let Some(p) = table
-            .get("backend")
-            .and_then(|b| b.get("sim_config"))
-            .and_then(toml::Value::as_str)
-        {
-            files.push(dir.join(p));
+        match &file.backend {
+            BackendConfig::Sim { sim_config } => files.push(dir.join(sim_config)),
         }
-        if let Some(p) = table.get("plan_file").and_then(toml::Value::as_str) {
+        if let Some(p) = &file.plan_file {
             files.push(dir.join(p));
         }
         files
@@ -257,19 +226,19 @@ impl Job {
     /// the plan's fields.
     fn check_plan_on_backend(
         plan: &PlanConfig,
-        sim: &SimConfig,
+        backend: &Backend,
         plan_source: &str,
         plan_text: &str,
     ) -> Result<(), JobError> {
         let invalid = |field: &str, reason: String| {
-            JobError::Plan(spm_calibration::ConfigError::Invalid {
+            JobError::Config(spm_config::ConfigError::Invalid {
                 source_name: plan_source.to_owned(),
                 line: spm_calibration::locate_field_line(plan_text, field),
                 field: field.to_owned(),
                 reason,
             })
         };
-        let capabilities = sim.capabilities();
+        let capabilities = backend.capabilities();
         let geometry = plan.net.geometry(&capabilities).map_err(|e| match e {
             spm_calibration::PlanError::Invalid { field, reason } => {
                 invalid(&format!("plan.net.{field}"), reason)
@@ -332,39 +301,6 @@ impl Job {
         }
         Ok(())
     }
-}
-
-/// 1-based line of a dotted field (`backend.kind`, `plan_file`) in a job file: the line
-/// assigning its last key inside its table (top level before any table header), else the
-/// line of its table header. A text search (jobs are small, hand-written files); `None` when
-/// nothing matches.
-fn line_of(text: &str, dotted: &str) -> Option<usize> {
-    let (table, key) = dotted.rsplit_once('.').unwrap_or(("", dotted));
-    let mut current = String::new();
-    let mut header_line = None;
-    for (i, raw) in text.lines().enumerate() {
-        let line = raw.trim();
-        if let Some(name) = line.strip_prefix('[') {
-            current = name
-                .trim_start_matches('[')
-                .split(']')
-                .next()
-                .unwrap_or("")
-                .trim()
-                .to_owned();
-            if current == table {
-                header_line = Some(i + 1);
-            }
-            continue;
-        }
-        let assigns = line
-            .strip_prefix(key)
-            .is_some_and(|rest| rest.trim_start().starts_with('='));
-        if current == table && assigns {
-            return Some(i + 1);
-        }
-    }
-    header_line
 }
 
 /// Reads a config file: a regular file (checked before opening: a FIFO would block, a

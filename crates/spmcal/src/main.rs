@@ -60,6 +60,10 @@ enum Command {
         /// method on them (report.json `images`; simulated backends only; adds minutes).
         #[arg(long)]
         image_benchmark: bool,
+        /// A reduced report (a coarser accuracy grid; with --image-benchmark, 2 sizes and 1
+        /// dwell instead of 3 and 2): seconds instead of minutes, for smoke runs.
+        #[arg(long)]
+        quick: bool,
     },
     /// Fit regression surfaces through the CDB's coefficients.
     Fit {
@@ -337,12 +341,16 @@ fn run(command: Command) -> Result<(), CliError> {
             resume,
             out,
             image_benchmark,
+            quick,
         } => calibrate_cmd::run(
             &config,
             cdb.as_deref(),
             resume,
             out.as_deref(),
-            image_benchmark,
+            calibrate_cmd::ReportOptions {
+                image_benchmark,
+                quick,
+            },
         ),
         Command::Correct {
             image,

@@ -159,6 +159,82 @@ impl<'a> RunRecord<'a> {
     }
 }
 
+impl CalibrationReport {
+    /// The report's summary as a person reads it after a run: counts and times, the
+    /// surfaces, the accuracy per method, the images section and the node LCCs against the
+    /// oracle (the last three when the backend has one).
+    #[must_use]
+    pub fn summary_text(&self) -> String {
+        use std::fmt::Write as _;
+        let mut t = String::new();
+        let _ = writeln!(
+            t,
+            "nodes {} × repeats {} → {} records; {} given up; cycles kept {} discarded {}",
+            self.nodes,
+            self.repeats,
+            self.records,
+            self.run.given_up.len(),
+            self.run.cycles.kept,
+            self.run.cycles.discarded
+        );
+        let _ = writeln!(
+            t,
+            "instrument time {:.0} s; wall time {:.1} s ({:.2} ms per node)",
+            self.instrument_time_s, self.wall_time_s, self.wall_time_per_node_ms
+        );
+        let r = &self.regression;
+        let _ = writeln!(
+            t,
+            "surfaces: K̄x degree {} σ {:.2e}; K̄y degree {} σ {:.2e}; α degree {} σ {:.2e} rad",
+            r.kx.degree, r.kx.sigma, r.ky.degree, r.ky.sigma, r.alpha.degree, r.alpha.sigma
+        );
+        if let Some(a) = &self.accuracy {
+            let _ = writeln!(
+                t,
+                "{:<12} {:>12} {:>12} {:>16} {:>16}",
+                "method", "RMS pm", "max pm", "mean lattice %", "max lattice %"
+            );
+            for (name, m) in [
+                ("uncorrected", &a.uncorrected),
+                ("lumped", &a.lumped),
+                ("affine", &a.affine),
+                ("distributed", &a.distributed),
+            ]
+            .into_iter()
+            .chain(a.polynomial.as_ref().map(|p| ("polynomial", p)))
+            {
+                let _ = writeln!(
+                    t,
+                    "{:<12} {:>12.1} {:>12.1} {:>16.4} {:>16.4}",
+                    name, m.rms_pm, m.max_pm, m.mean_lattice_error_pct, m.max_lattice_error_pct
+                );
+            }
+            let _ = writeln!(
+                t,
+                "distributed / lumped RMS = {:.3} (target ≤ 0.1)",
+                a.distributed_over_lumped_rms
+            );
+        }
+        if let Some(images) = &self.images {
+            t.push_str(&images.summary_table());
+        }
+        if let Some(e) = &self.node_lcc_error {
+            let _ = writeln!(
+                t,
+                "node LCCs vs oracle ({} records): K̄x {:+.3} ± {:.3} %, K̄y {:+.3} ± {:.3} %, α {:+.2} ± {:.2} mrad (mean, RMS)",
+                e.n,
+                e.kx_mean_pct,
+                e.kx_rms_pct,
+                e.ky_mean_pct,
+                e.ky_rms_pct,
+                e.alpha_mean_mrad,
+                e.alpha_rms_mrad
+            );
+        }
+        t
+    }
+}
+
 /// Fits, evaluates and writes `surfaces.json`, `report.json` and the figures into `out`.
 pub fn finish(
     cdb_path: &Path,

@@ -18,7 +18,10 @@ pub enum JobRunError {
     Cdb(#[from] spm_cdb::CdbError),
     /// The backend cannot be built from its config.
     #[error("backend: {0}")]
-    Backend(String),
+    Backend(#[source] Box<dyn std::error::Error + Send + Sync>),
+    /// Every run id derived from the requested one is taken.
+    #[error("no free run id: {0:?} and 10000 derived ids are all taken")]
+    NoFreeRunId(String),
     /// The calibration failed as a whole.
     #[error(transparent)]
     Run(#[from] RunError),
@@ -63,7 +66,7 @@ impl JobRunError {
                 inner.kind(),
                 spm_cdb::ErrorKind::Sqlite | spm_cdb::ErrorKind::Io
             ),
-            Self::Backend(_) | Self::Run(_) => false,
+            Self::Backend(_) | Self::Run(_) | Self::NoFreeRunId(_) => false,
         }
     }
 }
@@ -128,7 +131,7 @@ fn create_unique_run(cdb: &mut Cdb, base: &str, run: &RunInfo) -> Result<String,
         }
     }
     Err(last.map_or_else(
-        || JobRunError::Backend("no free run id".into()),
+        || JobRunError::NoFreeRunId(base.to_owned()),
         JobRunError::from,
     ))
 }
@@ -305,9 +308,9 @@ pub fn run_job<O: Observer>(
     observer: &mut O,
 ) -> Result<JobOutcome, JobRunError> {
     verify_existing_cdb(cdb_path)?;
-    let Backend::Sim(config) = &job.backend;
-    let mut sim =
-        Simulator::new((**config).clone()).map_err(|e| JobRunError::Backend(e.to_string()))?;
+    // The instrument is opened before the CDB is touched: a backend that cannot be built
+    // leaves no run behind.
+    let instrument = open_backend(&job.backend)?;
     let mut cdb = Cdb::open(cdb_path)?;
     let run_id = match start {
         RunStart::New { run_id } => {
@@ -346,16 +349,61 @@ pub fn run_job<O: Observer>(
         start_unix_s,
         config_text: job.provenance_text.clone(),
     };
-    let mut recorder = spm_hal::recording::CommandRecorder::new(&mut sim, MAX_COMMANDS);
-    let result = Calibrator::new(&mut recorder, &mut cdb, observer, job.plan.clone())
-        .and_then(|mut calibrator| calibrator.run(&options));
+    match instrument {
+        Instrument::Sim(mut sim) => {
+            let (result, commands) = calibrate_on(&mut *sim, &mut cdb, observer, job, &options);
+            let report = settle(result, &mut cdb, &options, start_unix_s)?;
+            Ok(JobOutcome {
+                report,
+                simulator: Some(*sim),
+                commands,
+            })
+        }
+    }
+}
+
+/// An opened instrument of one of the [`Backend`]s.
+enum Instrument {
+    /// The simulated microscope.
+    Sim(Box<Simulator>),
+}
+
+/// Builds the job's instrument.
+fn open_backend(backend: &Backend) -> Result<Instrument, JobRunError> {
+    match backend {
+        Backend::Sim(config) => Simulator::new((**config).clone())
+            .map(|sim| Instrument::Sim(Box::new(sim)))
+            .map_err(|e| JobRunError::Backend(Box::new(e))),
+    }
+}
+
+/// Runs the plan on any instrument, recording its lateral commands (the creep model's input).
+fn calibrate_on<M: spm_hal::Microscope, O: Observer>(
+    microscope: &mut M,
+    cdb: &mut Cdb,
+    observer: &mut O,
+    job: &Job,
+    options: &RunOptions,
+) -> (
+    Result<RunReport, RunError>,
+    Vec<spm_hal::recording::CommandEvent>,
+) {
+    let mut recorder = spm_hal::recording::CommandRecorder::new(microscope, MAX_COMMANDS);
+    let result = Calibrator::new(&mut recorder, &mut *cdb, observer, job.plan.clone())
+        .and_then(|mut calibrator| calibrator.run(options));
     let (_, commands) = recorder.into_parts();
+    (result, commands)
+}
+
+/// The run's result; a plan the instrument cannot carry out marks the run failed.
+fn settle(
+    result: Result<RunReport, RunError>,
+    cdb: &mut Cdb,
+    options: &RunOptions,
+    start_unix_s: f64,
+) -> Result<RunReport, JobRunError> {
     match result {
-        Ok(report) => Ok(JobOutcome {
-            report,
-            simulator: Some(sim),
-            commands,
-        }),
+        Ok(report) => Ok(report),
         Err(error) => {
             // Never leave a run 'running' that nothing will continue on its own: a plan the
             // instrument cannot carry out is marked failed (the runner marks instrument

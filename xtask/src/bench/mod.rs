@@ -110,7 +110,23 @@ pub struct Results {
     pub gwyddion: Section<gwyddion::GwyddionResults>,
 }
 
-pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<(), XtaskError> {
+/// What `cargo xtask bench` was asked to do.
+#[derive(Debug, Clone, Copy)]
+pub struct Options {
+    /// A reduced run.
+    pub quick: bool,
+    /// Also run the Gwyddion side-by-side comparison.
+    pub with_gwyddion: bool,
+    /// Regenerate the committed docs/ from this run.
+    pub write_docs: bool,
+}
+
+pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> {
+    let Options {
+        quick,
+        with_gwyddion,
+        write_docs,
+    } = options;
     let started = Instant::now();
     std::fs::create_dir_all(out)
         .map_err(|e| XtaskError::step(format!("creating {}", out.display()), e))?;
@@ -127,6 +143,7 @@ pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<
         root: root.to_path_buf(),
         out: out.to_path_buf(),
         quick,
+        write_docs,
     };
     let accuracy = timed("accuracy", || accuracy::run(&ctx));
     let budget = timed("budget", || budget::run(&ctx));
@@ -152,6 +169,9 @@ pub fn run(root: &Path, out: &Path, quick: bool, with_gwyddion: bool) -> Result<
     }
     if with_gwyddion {
         command.push_str(" --gwyddion");
+    }
+    if write_docs {
+        command.push_str(" --write-docs");
     }
     let (commit, uncommitted) = source_state(root);
     let results = Results {
@@ -180,6 +200,8 @@ pub struct Context {
     pub out: PathBuf,
     /// Reduced run.
     pub quick: bool,
+    /// Regenerate the committed docs/ (`--write-docs`).
+    pub write_docs: bool,
 }
 
 impl Context {

@@ -787,11 +787,11 @@ pub fn write(ctx: &Context, results: &Results) -> Result<(), XtaskError> {
     let out_md = ctx.out.join("RESULTS.md");
     std::fs::write(&out_md, &md)
         .map_err(|e| XtaskError::step(format!("writing {}", out_md.display()), e))?;
-    if ctx.quick {
-        // A smoke run never rewrites committed files: docs/ is regenerated only by the full
-        // `cargo xtask bench`.
+    if !ctx.write_docs || ctx.quick {
+        // Only an explicit `cargo xtask bench --write-docs` rewrites committed files; a smoke
+        // run or a run into another folder leaves docs/ as committed.
         println!(
-            "wrote {} and {} (--quick: docs/ left as committed)",
+            "wrote {} and {} (docs/ left as committed; --write-docs regenerates it)",
             results_path.display(),
             out_md.display()
         );

@@ -616,8 +616,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
         let at_unix_s = clock.unix(now);
         let mut record = self.record(run_id, measurement, z.value(), at_unix_s);
         // Vertical axis (issue 15): the LCS's level and Kz from a nearby step.
-        if let Some(search) = crate::vertical::at_node(self.microscope, &self.config, &mut record)
-        {
+        if let Some(search) = crate::vertical::at_node(self.microscope, &self.config, &mut record) {
             report.kz.count(&search);
             self.observer.kz_searched(visit, &search);
         }

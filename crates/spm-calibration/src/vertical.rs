@@ -257,8 +257,13 @@ pub fn measure_node<M: Microscope + ?Sized>(
             }
         }
     }
+    // Box averages that locate the edge span ~1 nm (several atoms), whatever the pixel.
+    let pixel_nm = lateral_nm_per_count * config.window_size_counts
+        / f64::from(config.window_pixels.max(2) - 1);
     let step_config = StepConfig {
         height_tolerance_fraction: config.height_tolerance_fraction,
+        smoothing_px: ((1.0 / pixel_nm).round() as usize).clamp(2, 64),
+        min_terrace_px: ((2.0 / pixel_nm).round() as usize).clamp(6, 256),
         ..StepConfig::monatomic(
             step_height_nm / config.nominal_kz_nm_per_count,
             config.edge_mask_nm

@@ -18,6 +18,7 @@ mod gwyddion;
 mod productivity;
 mod report;
 mod speed;
+mod vertical;
 
 use crate::XtaskError;
 use serde::Serialize;
@@ -108,6 +109,8 @@ pub struct Results {
     pub speed: Section<speed::SpeedResults>,
     /// Gwyddion side by side.
     pub gwyddion: Section<gwyddion::GwyddionResults>,
+    /// The vertical axis: Kz, the bowl, the z-dependence (issue 15).
+    pub vertical: Section<vertical::VerticalResults>,
 }
 
 /// What `cargo xtask bench` was asked to do.
@@ -151,6 +154,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
     let productivity = timed("productivity", || productivity::run(&ctx));
     let crb = timed("crb", || crb::run(&ctx));
     let speed = timed("speed", || speed::run(&ctx, accuracy.measured()));
+    let vertical = timed("vertical", || vertical::run(&ctx));
     let gwyddion = timed("gwyddion", || {
         if with_gwyddion {
             gwyddion::run(&ctx)
@@ -188,6 +192,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
         crb,
         speed,
         gwyddion,
+        vertical,
     };
     report::write(&ctx, &results)
 }

@@ -41,3 +41,37 @@ pub fn bowl_counts(
         .as_ref()
         .map(|b| b.surface.evaluate(x_counts, y_counts) - b.surface.evaluate(0.0, 0.0)))
 }
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use crate::{CorrectionField, PlaneSurfaces, Provenance};
+
+    fn plane(z: f64, kx: f64) -> PlaneSurfaces {
+        PlaneSurfaces::constant(z, kx, kx, 0.0).unwrap()
+    }
+
+    #[test]
+    fn the_field_at_z_blends_the_bracketing_planes() {
+        let provenance = Provenance {
+            scanner_id: "s".into(),
+            fit_since: None,
+            fit_until: None,
+            n_records: 2,
+        };
+        let set =
+            SurfaceSet::new(provenance, vec![plane(0.0, 0.020), plane(10000.0, 0.021)]).unwrap();
+        for (z, expected) in [
+            (0.0, 0.020),
+            (2500.0, 0.02025),
+            (10000.0, 0.021),
+            (-5.0, 0.020),
+        ] {
+            let f = field_at_z(&set, z, Route::Exact).unwrap();
+            let k = f.form(123.0, -456.0).kx_nm_per_count;
+            assert!((k - expected).abs() < 1e-15, "z {z}: {k} vs {expected}");
+        }
+        assert_eq!(bowl_counts(&set, 0.0, 1.0, 2.0).unwrap(), None);
+    }
+}

@@ -43,7 +43,10 @@ pub fn run(ctx: &Context) -> Result<VerticalResults, XtaskError> {
     let all = calibrate(&job, &ctx.scratch("vertical")?, true, false)?;
     let mut hidden = job.clone();
     let Backend::Sim(sim) = &mut hidden.backend else {
-        return Err(XtaskError::step(JOB, "the vertical job must run on the simulator"));
+        return Err(XtaskError::step(
+            JOB,
+            "the vertical job must run on the simulator",
+        ));
     };
     if let Some(z) = &mut sim.scanner.z_manipulator {
         z.kz_drift_per_hour = 0.03;

@@ -17,6 +17,7 @@ pub mod microscope;
 pub mod mock;
 pub mod recording;
 pub mod scan;
+pub mod truth;
 pub mod units;
 
 pub use microscope::{

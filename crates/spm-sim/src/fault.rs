@@ -151,6 +151,9 @@ pub enum SimError {
         /// Why.
         reason: String,
     },
+    /// A simulator could not be built from its configuration.
+    #[error("invalid simulator configuration: {0}")]
+    Config(#[from] crate::ValidationError),
 }
 
 impl spm_hal::Error for SimError {
@@ -160,7 +163,7 @@ impl spm_hal::Error for SimError {
             Self::Communication { .. } => ErrorKind::Communication,
             Self::FeedbackLost { .. } => ErrorKind::FeedbackLost,
             Self::OutOfRange { .. } => ErrorKind::OutOfRange,
-            Self::InvalidRequest { .. } => ErrorKind::Other,
+            Self::InvalidRequest { .. } | Self::Config(_) => ErrorKind::Other,
         }
     }
 }

@@ -137,5 +137,7 @@ pub use fault::{FaultEvent, FaultEventKind, FaultKind, FaultTrigger, Operation, 
 pub use oracle::Oracle;
 pub use scanner::{Creep, Jacobian, Lcc, PlayHysteresis, StaticMap, creep_elements};
 pub use sim::Simulator;
+
+mod truth;
 pub use surface::{FeatureKind, FeatureSite, Surface};
 pub use vertical::{VerticalOracle, ZCrosstalk, ZManipulatorConfig, ZMap};

@@ -1,7 +1,7 @@
-//! Calibration accuracy against the simulator's oracle (DESIGN §11).
+//! Calibration accuracy against a ground truth (the simulator's oracle, DESIGN §11).
 //!
 //! Two figures per correction method, both relative to the *true* local
-//! calibration coefficients of the simulated scanner ([`spm_sim::Oracle::true_lcc`],
+//! calibration coefficients of the simulated scanner ([`spm_hal::truth::GroundTruth::true_lcc`],
 //! the small-signal LCCs at the reference state):
 //!
 //! - **Residual distortion** over the calibrated region: a raster covering the
@@ -26,8 +26,8 @@ use spm_correction::{
     CoordinateMap, CorrectionError, CorrectionField, FnField, FormCoefficients, Integration,
     Parallelism, PlaneSurfaces, RasterGeometry, Route, correct_raster,
 };
+use spm_hal::truth::GroundTruth;
 use spm_hal::{CountPoint, Counts, ScanDirection};
-use spm_sim::Oracle;
 
 /// The region and sampling of the evaluation.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -68,13 +68,13 @@ pub struct Accuracy {
 }
 
 /// The oracle's true LCC field as a correction field.
-fn true_field<'a>(
-    oracle: &'a Oracle<'a>,
+fn true_field<'a, T: GroundTruth + Sync + ?Sized>(
+    oracle: &'a T,
     z_counts: f64,
 ) -> FnField<impl Fn(f64, f64) -> FormCoefficients + Sync + 'a> {
     FnField(move |x: f64, y: f64| {
         let lcc = oracle.true_lcc(CountPoint::from_counts(x, y), Counts(z_counts));
-        FormCoefficients::from_lcc(lcc.kx.value(), lcc.ky.value(), lcc.alpha.value())
+        FormCoefficients::from_lcc(lcc.kx_nm_per_count, lcc.ky_nm_per_count, lcc.alpha_rad)
     })
 }
 
@@ -92,8 +92,8 @@ fn raster(
 }
 
 /// Evaluates one method's surfaces against the oracle.
-pub fn evaluate(
-    oracle: &Oracle<'_>,
+pub fn evaluate<T: GroundTruth + Sync + ?Sized>(
+    oracle: &T,
     plane: &PlaneSurfaces,
     grid: &EvaluationGrid,
 ) -> Result<Accuracy, CorrectionError> {
@@ -136,8 +136,8 @@ pub(crate) const CUBIC_TERMS: [(i32, i32); 10] = [
 /// (hysteresis, creep, higher orders) and the drift during the one slow image.
 /// The correction field is the polynomial's local shape: its Jacobian with the
 /// local rotation removed, as (K̄x, K̄y sin α, K̄y cos α).
-pub fn polynomial_baseline(
-    oracle: &Oracle<'_>,
+pub fn polynomial_baseline<T: GroundTruth + Sync + ?Sized>(
+    oracle: &T,
     grid: &EvaluationGrid,
     image: &PolynomialImage,
 ) -> Result<Accuracy, CorrectionError> {
@@ -226,8 +226,8 @@ pub(crate) fn least_squares<T>(
 }
 
 /// Evaluates any correction field against the oracle (see the module doc).
-pub fn evaluate_field(
-    oracle: &Oracle<'_>,
+pub fn evaluate_field<T: GroundTruth + Sync + ?Sized>(
+    oracle: &T,
     method: &(impl CorrectionField + ?Sized),
     grid: &EvaluationGrid,
 ) -> Result<Accuracy, CorrectionError> {

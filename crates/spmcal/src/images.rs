@@ -34,11 +34,11 @@ use spm_correction::{
 };
 use spm_features::{DetectionConfig, Feature, LatticeConfig, detect, lattice_vectors};
 use spm_hal::recording::CommandRecorder;
+use spm_hal::truth::{GratingSample, SimulatedInstrument};
 use spm_hal::{
     CountPoint, Counts, HeightMap, Microscope, MoveRequest, NmPoint, ScanDirection, ScanRequest,
     Seconds, TraceHalf,
 };
-use spm_sim::Simulator;
 use std::collections::BTreeMap;
 
 /// Why the image benchmark failed.
@@ -252,8 +252,8 @@ const ATTEMPTS: usize = 4;
 ///
 /// # Errors
 /// [`ImageBenchmarkError::Instrument`] when an image fails [`ATTEMPTS`] times.
-pub fn take_test_images(
-    instrument: &mut CommandRecorder<Simulator>,
+pub fn take_test_images<S: SimulatedInstrument>(
+    instrument: &mut CommandRecorder<S>,
     region: &CountRegion,
     config: &ImageSetConfig,
 ) -> Result<Vec<TestImage>, ImageBenchmarkError> {
@@ -300,9 +300,9 @@ pub fn take_test_images(
                     for direction in [ScanDirection::Direct, ScanDirection::Counter] {
                         let request = request.clone().with_direction(direction);
                         let frame = retry(images.len(), "scan", || sim.scan(&request))?;
-                        let oracle = sim.inner_mut().oracle();
-                        let truth = oracle.last_scan_tip_positions();
-                        let effective: Vec<[f64; 2]> = oracle
+                        let truth = sim.inner_mut().last_scan_tip_positions();
+                        let effective: Vec<[f64; 2]> = sim
+                            .inner_mut()
                             .last_scan_effective_inputs()
                             .iter()
                             .map(|p| [p.x.value(), p.y.value()])
@@ -1204,21 +1204,20 @@ impl GratingConfig {
 ///
 /// # Errors
 /// [`ImageBenchmarkError::Grating`] when the image cannot be taken, indexed or fitted.
-pub fn grating_polynomial(
-    physics: &spm_sim::SimConfig,
+pub fn grating_polynomial<S: SimulatedInstrument>(
+    instrument: &S,
+    nominal_nm_per_count: f64,
     region: &CountRegion,
     grating: &GratingConfig,
 ) -> Result<CubicMap, ImageBenchmarkError> {
-    let mut config = physics.clone().without_random_faults();
-    config.seed ^= 0x6772_6174_696e_6721; // its own session on its own sample
-    config.surface = spm_sim::SurfaceConfig::SquareLattice(spm_sim::LatticeConfig {
-        lattice_constant_nm: grating.nominal_pitch_nm * grating.true_over_nominal,
-        feature_height_nm: grating.height_nm,
-        feature_sigma_nm: grating.sigma_nm,
-        rotation_deg: grating.rotation_deg,
-    });
-    let mut sim =
-        Simulator::new(config).map_err(|e| ImageBenchmarkError::Grating(e.to_string()))?;
+    let mut sim = instrument
+        .grating_twin(&GratingSample {
+            pitch_nm: grating.nominal_pitch_nm * grating.true_over_nominal,
+            height_nm: grating.height_nm,
+            sigma_nm: grating.sigma_nm,
+            rotation_deg: grating.rotation_deg,
+        })
+        .map_err(|e| ImageBenchmarkError::Grating(e.to_string()))?;
     let side =
         (region.x_max_counts - region.x_min_counts).max(region.y_max_counts - region.y_min_counts);
     let n = grating.pixels.max(16);
@@ -1236,7 +1235,7 @@ pub fn grating_polynomial(
         .map_err(|e| ImageBenchmarkError::Grating(format!("grating image: {e}")))?;
     // Nominal period in pixels: the scanner's large-signal gain is unknown to the user, so
     // the detection is told only the order of magnitude.
-    let period_px = grating.nominal_pitch_nm / (physics.scanner.sensitivity_x_nm_per_count * step);
+    let period_px = grating.nominal_pitch_nm / (nominal_nm_per_count * step);
     let config = DetectionConfig {
         min_separation_px: 0.4 * period_px,
         max_fit_radius_px: (0.5 * period_px).max(3.0),

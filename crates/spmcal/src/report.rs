@@ -9,7 +9,7 @@ use serde::Serialize;
 use spm_calibration::{PlanConfig, RunReport};
 use spm_cdb::{Cdb, CdbRead, RecordFilter};
 use spm_correction::PlaneSurfaces;
-use spm_sim::Simulator;
+use spm_hal::truth::{GroundTruth, SimulatedInstrument};
 use std::path::Path;
 
 /// Highest degree tried by BIC for every coefficient surface.
@@ -124,8 +124,8 @@ pub struct RunRecord<'a> {
     pub plan: &'a PlanConfig,
     /// The calibrator's report.
     pub run: &'a RunReport,
-    /// The simulator, when the backend was simulated.
-    pub simulator: Option<&'a Simulator>,
+    /// The instrument's ground truth, when the backend has one (a simulator).
+    pub truth: Option<&'a dyn TruthSource>,
     /// Drift estimates.
     pub drift: &'a [DriftSample],
     /// Measured nodes.
@@ -136,6 +136,35 @@ pub struct RunRecord<'a> {
     pub commands: &'a [spm_hal::recording::CommandEvent],
     /// Wall time of the run, s.
     pub wall_time_s: f64,
+}
+
+/// What a report judges a calibration against: a ground truth that can also take the image
+/// benchmark's test images (object-safe: the report never names the backend).
+pub trait TruthSource: GroundTruth + Sync {
+    /// Takes the image benchmark's test images on a copy of the instrument and judges every
+    /// correction method on them.
+    ///
+    /// # Errors
+    /// [`ReportError`] when the images cannot be taken or judged.
+    fn image_benchmark(
+        &self,
+        record: &RunRecord<'_>,
+        region: &Region,
+        planes: &[(&str, &PlaneSurfaces)],
+        quick: bool,
+    ) -> Result<crate::images::ImageBenchmark, ReportError>;
+}
+
+impl<S: SimulatedInstrument + Sync> TruthSource for S {
+    fn image_benchmark(
+        &self,
+        record: &RunRecord<'_>,
+        region: &Region,
+        planes: &[(&str, &PlaneSurfaces)],
+        quick: bool,
+    ) -> Result<crate::images::ImageBenchmark, ReportError> {
+        image_benchmark(self, record, region, planes, quick)
+    }
 }
 
 impl<'a> RunRecord<'a> {
@@ -149,7 +178,7 @@ impl<'a> RunRecord<'a> {
         Self {
             plan,
             run: &outcome.report,
-            simulator: outcome.simulator.as_ref(),
+            truth: outcome.instrument.truth(),
             drift: &samples.drift,
             nodes: &samples.nodes,
             attach_tracks: &samples.attach_tracks,
@@ -292,9 +321,9 @@ pub fn finish_with(
     let region = Region::around(record.nodes, 0.0)
         .filter(|r| r.x_max_counts > r.x_min_counts && r.y_max_counts > r.y_min_counts);
     let mut images = None;
-    let accuracy = match (record.simulator, region, fitted.set.planes.first()) {
-        (Some(sim), Some(region), Some(plane)) => {
-            let oracle = sim.oracle();
+    let accuracy = match (record.truth, region, fitted.set.planes.first()) {
+        (Some(truth), Some(region), Some(plane)) => {
+            let oracle = truth;
             let grid = EvaluationGrid {
                 x_min_counts: region.x_min_counts,
                 x_max_counts: region.x_max_counts,
@@ -339,8 +368,7 @@ pub fn finish_with(
             let (kx, ky, alpha) = mean_of(&every);
             let affine = PlaneSurfaces::constant(z, kx, ky, alpha)?;
             images = if with_images {
-                Some(image_benchmark(
-                    sim,
+                Some(truth.image_benchmark(
                     record,
                     &region,
                     &[
@@ -354,14 +382,14 @@ pub fn finish_with(
             } else {
                 None
             };
-            let uncorrected = evaluate(&oracle, &uncorrected, &grid)?;
-            let lumped = evaluate(&oracle, &lumped, &grid)?;
-            let affine = evaluate(&oracle, &affine, &grid)?;
-            let distributed = evaluate(&oracle, plane, &grid)?;
+            let uncorrected = evaluate(oracle, &uncorrected, &grid)?;
+            let lumped = evaluate(oracle, &lumped, &grid)?;
+            let affine = evaluate(oracle, &affine, &grid)?;
+            let distributed = evaluate(oracle, plane, &grid)?;
             let v = oracle.drift_velocity(oracle.now());
             let lines = POLYNOMIAL_LINES as f64;
             let polynomial = polynomial_baseline(
-                &oracle,
+                oracle,
                 &grid,
                 &PolynomialImage {
                     control_points: POLYNOMIAL_CONTROL,
@@ -424,9 +452,8 @@ pub fn finish_with(
         record.plan.standard.nominal_nm_per_count,
     )?;
 
-    let node_lcc_error = record.simulator.and_then(|sim| {
-        let oracle = sim.oracle();
-        let z = spm_hal::Counts(oracle.z_now().value());
+    let node_lcc_error = record.truth.and_then(|oracle| {
+        let z = oracle.z_now();
         let mut e = Vec::with_capacity(all.len());
         for r in &all {
             let truth = oracle.true_lcc(
@@ -434,9 +461,9 @@ pub fn finish_with(
                 z,
             );
             e.push((
-                (r.kx_nm_per_count / truth.kx.value() - 1.0) * 100.0,
-                (r.ky_nm_per_count / truth.ky.value() - 1.0) * 100.0,
-                (r.alpha_rad - truth.alpha.value()) * 1e3,
+                (r.kx_nm_per_count / truth.kx_nm_per_count - 1.0) * 100.0,
+                (r.ky_nm_per_count / truth.ky_nm_per_count - 1.0) * 100.0,
+                (r.alpha_rad - truth.alpha_rad) * 1e3,
             ));
         }
         if e.is_empty() {
@@ -502,8 +529,8 @@ pub const CREEP_FIT_DRIFT_WINDOW_S: f64 = 300.0;
 /// distributed calibration along the effective trajectory of the creep law identified from
 /// the run, and two labelled bounds (the oracle's true dynamics; a per-image polynomial on
 /// exact positions).
-fn image_benchmark(
-    sim: &Simulator,
+fn image_benchmark<S: SimulatedInstrument + Sync>(
+    sim: &S,
     record: &RunRecord<'_>,
     region: &Region,
     planes: &[(&str, &PlaneSurfaces)],
@@ -523,7 +550,8 @@ fn image_benchmark(
     };
     let config = ImageSetConfig::standard(plan, quick);
     let grating = grating_polynomial(
-        sim.config(),
+        sim,
+        plan.standard.nominal_nm_per_count,
         &region,
         &GratingConfig::standard(4.0 * plan.motion.pixel_dwell_s),
     )?;
@@ -615,7 +643,7 @@ fn image_benchmark(
     // References (labelled bounds, not competitors): the oracle's true static LCC field, the
     // distributed surfaces along the oracle's true effective trajectory, and a per-image cubic
     // on exact positions.
-    let oracle = sim.oracle();
+    let oracle = sim;
     let z = oracle.z_now();
     methods.push(ImageMethod {
         name: "oracle_static_field".to_owned(),
@@ -623,9 +651,9 @@ fn image_benchmark(
             move |x: f64, y: f64| {
                 let lcc = oracle.true_lcc(spm_hal::CountPoint::from_counts(x, y), z);
                 spm_correction::FormCoefficients::from_lcc(
-                    lcc.kx.value(),
-                    lcc.ky.value(),
-                    lcc.alpha.value(),
+                    lcc.kx_nm_per_count,
+                    lcc.ky_nm_per_count,
+                    lcc.alpha_rad,
                 )
             },
         ))),
@@ -641,7 +669,7 @@ fn image_benchmark(
                     .collect()
             })
             .collect();
-        let (gx, gy) = oracle.reference_gain();
+        let [gx, gy] = oracle.reference_gain();
         methods.push(ImageMethod {
             name: "bound_distributed_true_dynamics".to_owned(),
             correction: ImageCorrection::EffectivePath {

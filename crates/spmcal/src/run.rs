@@ -287,8 +287,8 @@ pub enum RunStart {
 pub struct JobOutcome {
     /// The calibrator's report.
     pub report: RunReport,
-    /// The simulator after the run (for the oracle), when the backend is simulated.
-    pub simulator: Option<Simulator>,
+    /// The instrument after the run (its ground truth, when it has one).
+    pub instrument: FinishedInstrument,
     /// The lateral commands of the run with their instrument times (the creep model's input).
     pub commands: Vec<spm_hal::recording::CommandEvent>,
 }
@@ -355,9 +355,43 @@ pub fn run_job<O: Observer>(
             let report = settle(result, &mut cdb, &options, start_unix_s)?;
             Ok(JobOutcome {
                 report,
-                simulator: Some(*sim),
+                instrument: FinishedInstrument::Sim(sim),
                 commands,
             })
+        }
+    }
+}
+
+/// The instrument a job ran on, kept after the run for the report.
+#[non_exhaustive]
+pub enum FinishedInstrument {
+    /// The simulated microscope (its oracle is the ground truth).
+    Sim(Box<Simulator>),
+}
+
+impl FinishedInstrument {
+    /// The ground truth the report judges the calibration against, when the backend has one.
+    #[must_use]
+    pub fn truth(&self) -> Option<&dyn crate::report::TruthSource> {
+        match self {
+            Self::Sim(sim) => Some(&**sim),
+        }
+    }
+
+    /// The simulator, when the backend is simulated (tests and benchmarks that read its
+    /// oracle directly).
+    #[must_use]
+    pub fn simulator(&self) -> Option<&Simulator> {
+        match self {
+            Self::Sim(sim) => Some(sim),
+        }
+    }
+
+    /// The simulator, owned.
+    #[must_use]
+    pub fn into_simulator(self) -> Option<Simulator> {
+        match self {
+            Self::Sim(sim) => Some(*sim),
         }
     }
 }

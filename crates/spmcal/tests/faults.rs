@@ -239,7 +239,7 @@ fn calibrate(name: &str, faults: Option<FaultConfig>, p_feature_lost: f64) -> Ou
     let record = RunRecord {
         plan: &plan,
         run: &run,
-        simulator: Some(&microscope.sim),
+        truth: Some(&microscope.sim),
         drift: &recorder.drift,
         nodes: &recorder.nodes,
         attach_tracks: &recorder.attach_tracks,

@@ -95,7 +95,8 @@ pub fn calibrate_small_net(
     SmallNetCalibration {
         report,
         simulator: outcome
-            .simulator
+            .instrument
+            .into_simulator()
             .expect("a simulated backend returns its simulator"),
         surfaces,
         plan: job.plan,

@@ -273,7 +273,7 @@ pub fn calibrate(
     let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s);
     let report = finish_with(&cdb_path, dir, &record, quick, with_images)
         .map_err(|e| XtaskError::step(format!("report in {}", dir.display()), e))?;
-    let node_mean_k_rms_pct = match outcome.simulator.as_ref() {
+    let node_mean_k_rms_pct = match outcome.instrument.simulator() {
         Some(sim) => node_mean_error(&cdb_path, sim)?,
         None => None,
     };

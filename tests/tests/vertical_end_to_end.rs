@@ -57,7 +57,10 @@ fn calibrate_3d(name: &str, modify: impl Fn(&mut SimConfig)) -> Calibration3d {
     let _ = std::fs::remove_dir_all(&out);
     Calibration3d {
         report,
-        simulator: outcome.simulator.expect("simulated backend"),
+        simulator: outcome
+            .instrument
+            .into_simulator()
+            .expect("simulated backend"),
         surfaces,
     }
 }

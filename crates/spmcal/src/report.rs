@@ -496,7 +496,7 @@ pub fn finish_with(
         accuracy,
         images,
         node_lcc_error,
-        vertical: record.simulator.and_then(|sim| {
+        vertical: record.truth.and_then(|truth| {
             if !fitted
                 .set
                 .planes
@@ -505,7 +505,7 @@ pub fn finish_with(
             {
                 return None;
             }
-            crate::vertical::evaluate(sim, record.plan, &fitted.set, &all)
+            crate::vertical::evaluate(truth, record.plan, &fitted.set, &all)
         }),
         run: record.run.clone(),
         notes,

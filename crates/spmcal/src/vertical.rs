@@ -6,9 +6,9 @@ use crate::surfaces::{RegressionSummary, SurfaceFitError, SurfaceFitOptions, ext
 use serde::Serialize;
 use spm_cdb::{CdbRead, RecordFilter};
 use spm_correction::{PlaneSurfaces, SurfaceSet};
+use spm_hal::truth::{GroundTruth, LateralState, VerticalTruth};
 use spm_hal::{CountPoint, Counts};
 use spm_records::LccRecord;
-use spm_sim::Simulator;
 
 /// Fits the plane's bowl (the LCSs' Z over x, y) when the plane's records come from a run that
 /// measured the vertical axis (at least one record with Kz; without it `lcs_z_counts` is a
@@ -272,16 +272,16 @@ fn weighted_slope(points: &[(f64, f64, f64)]) -> Option<(f64, f64)> {
     Some((sxy / sxx, (1.0 / sxx).sqrt()))
 }
 
-/// The vertical figures of a fitted surface set against the simulator's oracle. `records`
-/// are the records the surfaces were fitted from.
+/// The vertical figures of a fitted surface set against an instrument's ground truth (the
+/// simulator's oracle); `None` when it does not model the vertical axis. `records` are the
+/// records the surfaces were fitted from.
 pub fn evaluate(
-    sim: &Simulator,
+    truth: &dyn GroundTruth,
     plan: &spm_calibration::PlanConfig,
     set: &SurfaceSet,
     records: &[LccRecord],
 ) -> Option<VerticalReport> {
-    let oracle = sim.oracle();
-    let vertical = oracle.vertical();
+    let vertical: &dyn VerticalTruth = truth.vertical()?;
     let mut planes = Vec::new();
     let mut kz_errors = Vec::new();
     // (time h, relative residual) of every Kz record.
@@ -311,7 +311,7 @@ pub fn evaluate(
         if let Some(kz) = &plane.kz_nm_per_count {
             for r in &in_plane {
                 let u = CountPoint::from_counts(r.lcs_x_counts, r.lcs_y_counts);
-                let truth = vertical.just_moved().kz_at(u, Counts(level)).value();
+                let truth = vertical.kz_at(u, Counts(level), LateralState::JustMoved);
                 let fitted = kz.surface.evaluate(r.lcs_x_counts, r.lcs_y_counts);
                 errors.push(100.0 * (fitted / truth - 1.0).abs());
                 if let (Some(k), Some(uk)) = (r.kz_nm_per_count, r.u_kz_nm_per_count)
@@ -338,7 +338,7 @@ pub fn evaluate(
                 .map_or(0.0, |k| spm_regression::n_terms(k.surface.degree()) as f64);
         let kz_chi2_per_dof = (dof >= 1.0).then(|| chi2 / dof);
         // Bowl against the truth, both relative to their means over the nodes.
-        let bowl_fraction = |truth: spm_sim::VerticalOracle<'_>| {
+        let bowl_fraction = |state: LateralState| {
             plane.bowl_z_counts.as_ref().and_then(|b| {
                 let pairs: Vec<(f64, f64)> = in_plane
                     .iter()
@@ -346,7 +346,7 @@ pub fn evaluate(
                         let u = CountPoint::from_counts(r.lcs_x_counts, r.lcs_y_counts);
                         (
                             b.surface.evaluate(r.lcs_x_counts, r.lcs_y_counts),
-                            truth.flat_sample_z_reading(u, coarse).value(),
+                            vertical.flat_sample_z_reading(u, coarse, state).value(),
                         )
                     })
                     .collect();
@@ -363,8 +363,8 @@ pub fn evaluate(
                 (rms_t > 0.0).then(|| rms_r / rms_t)
             })
         };
-        let bowl_residual_fraction = bowl_fraction(vertical.just_moved());
-        let bowl_residual_fraction_settled_creep = bowl_fraction(vertical);
+        let bowl_residual_fraction = bowl_fraction(LateralState::JustMoved);
+        let bowl_residual_fraction_settled_creep = bowl_fraction(LateralState::CreepSettled);
         // K̄x, K̄y at the field centre of the records (for the z-dependence).
         let xs: Vec<f64> = in_plane.iter().map(|r| r.lcs_x_counts).collect();
         let ys: Vec<f64> = in_plane.iter().map(|r| r.lcs_y_counts).collect();
@@ -383,8 +383,8 @@ pub fn evaluate(
         let t = vertical.true_lcc_at_reading(CountPoint::from_counts(cx, cy), Counts(level));
         slopes_x.push((level, kx, sx.max(1e-12)));
         slopes_y.push((level, ky, sy.max(1e-12)));
-        truth_x.push((level, t.kx.value(), 1.0));
-        truth_y.push((level, t.ky.value(), 1.0));
+        truth_x.push((level, t.kx_nm_per_count, 1.0));
+        truth_y.push((level, t.ky_nm_per_count, 1.0));
         kz_errors.extend(errors.iter().copied());
         planes.push(PlaneVertical {
             z_counts: plane.z_counts,

@@ -44,7 +44,6 @@ pub struct ZManipulatorConfig {
     pub ripple_period_counts: f64,
     /// Fractional change of Kz per hour of instrument time (aging, temperature): a Z effect
     /// a calibration that takes Kz as static does not model. Typical: 0 (off).
-    #[serde(default)]
     pub kz_drift_per_hour: f64,
 }
 

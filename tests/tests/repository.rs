@@ -1,5 +1,6 @@
 //! Repository checks as ordinary tests: the invariants of docs/ARCHITECTURE.md.
 
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 fn workspace_root() -> PathBuf {
@@ -152,4 +153,800 @@ fn the_readme_names_the_two_commands() {
     let text = std::fs::read_to_string(workspace_root().join("README.md")).expect("README.md");
     assert!(text.contains("cargo xtask calibrate"));
     assert!(text.contains("cargo test --workspace"));
+}
+
+// ---------------------------------------------------------------------------------------------
+// `cargo metadata`: the dependency graph as cargo resolves it.
+// ---------------------------------------------------------------------------------------------
+
+/// The cargo that runs the tests (`$CARGO`), else `cargo` on the path.
+fn cargo() -> std::process::Command {
+    let program = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+    std::process::Command::new(program)
+}
+
+/// The host's target triple (`rustc -vV`), so that `cargo metadata` resolves (and needs) only
+/// the packages of this platform.
+fn host_triple() -> String {
+    let rustc = std::env::var_os("RUSTC").unwrap_or_else(|| "rustc".into());
+    let output = std::process::Command::new(rustc)
+        .arg("-vV")
+        .output()
+        .expect("rustc runs");
+    String::from_utf8_lossy(&output.stdout)
+        .lines()
+        .find_map(|l| l.strip_prefix("host: "))
+        .expect("rustc -vV names the host")
+        .trim()
+        .to_owned()
+}
+
+/// `cargo metadata --format-version 1 --all-features --filter-platform <host>` of a manifest,
+/// parsed. Offline first (everything a build of the workspace fetched is in cargo's cache); when
+/// a package the build never needed is missing there (an optional feature's dependency), once
+/// more with the registry reachable.
+fn metadata_of(manifest: &Path) -> serde_json::Value {
+    let host = host_triple();
+    let run = |offline: bool| {
+        let mut command = cargo();
+        command
+            .args(["metadata", "--format-version", "1", "--all-features"])
+            .args(["--filter-platform", &host])
+            .arg("--manifest-path")
+            .arg(manifest);
+        if offline {
+            command.arg("--offline");
+        }
+        command.output().expect("cargo runs")
+    };
+    let mut output = run(true);
+    if !output.status.success() {
+        output = run(false);
+    }
+    assert!(
+        output.status.success(),
+        "cargo metadata --manifest-path {} failed:\n{}",
+        manifest.display(),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    serde_json::from_slice(&output.stdout).expect("cargo metadata prints JSON")
+}
+
+fn workspace_metadata() -> serde_json::Value {
+    metadata_of(&workspace_root().join("Cargo.toml"))
+}
+
+fn packages(metadata: &serde_json::Value) -> &[serde_json::Value] {
+    metadata["packages"].as_array().map_or(&[], Vec::as_slice)
+}
+
+fn str_of<'a>(value: &'a serde_json::Value, key: &str) -> &'a str {
+    value[key].as_str().unwrap_or_default()
+}
+
+/// Names of the workspace members.
+fn member_names(metadata: &serde_json::Value) -> BTreeSet<String> {
+    let ids: BTreeSet<&str> = metadata["workspace_members"]
+        .as_array()
+        .map(|a| a.iter().filter_map(serde_json::Value::as_str).collect())
+        .unwrap_or_default();
+    packages(metadata)
+        .iter()
+        .filter(|p| ids.contains(str_of(p, "id")))
+        .map(|p| str_of(p, "name").to_owned())
+        .collect()
+}
+
+fn package_named<'a>(metadata: &'a serde_json::Value, name: &str) -> &'a serde_json::Value {
+    let members = member_names(metadata);
+    packages(metadata)
+        .iter()
+        .find(|p| str_of(p, "name") == name && (members.contains(name) || p["source"].is_null()))
+        .unwrap_or_else(|| panic!("cargo metadata has no package {name}"))
+}
+
+/// Every package name in the normal (non-dev) dependency tree of `root_name`, transitively,
+/// as resolved by cargo (build dependencies included: they are linked into build scripts).
+fn dependency_tree(metadata: &serde_json::Value, root_name: &str) -> BTreeSet<String> {
+    let root_id = str_of(package_named(metadata, root_name), "id").to_owned();
+    let nodes: BTreeMap<&str, &serde_json::Value> = metadata["resolve"]["nodes"]
+        .as_array()
+        .expect("cargo metadata has a resolve graph")
+        .iter()
+        .map(|n| (str_of(n, "id"), n))
+        .collect();
+    let name_of: BTreeMap<&str, &str> = packages(metadata)
+        .iter()
+        .map(|p| (str_of(p, "id"), str_of(p, "name")))
+        .collect();
+    let mut seen = BTreeSet::new();
+    let mut stack = vec![root_id];
+    let mut names = BTreeSet::new();
+    while let Some(id) = stack.pop() {
+        if !seen.insert(id.clone()) {
+            continue;
+        }
+        let Some(node) = nodes.get(id.as_str()) else {
+            continue;
+        };
+        for dep in node["deps"].as_array().map_or(&[][..], Vec::as_slice) {
+            let not_dev_only = dep["dep_kinds"]
+                .as_array()
+                .is_some_and(|kinds| kinds.iter().any(|k| k["kind"].as_str() != Some("dev")));
+            if not_dev_only {
+                let pkg = str_of(dep, "pkg");
+                names.insert(name_of.get(pkg).copied().unwrap_or(pkg).to_owned());
+                stack.push(pkg.to_owned());
+            }
+        }
+    }
+    names
+}
+
+#[test]
+fn spm_calibration_links_no_sqlite() {
+    let tree = dependency_tree(&workspace_metadata(), "spm-calibration");
+    for forbidden in ["rusqlite", "libsqlite3-sys", "spm-cdb"] {
+        assert!(
+            !tree.contains(forbidden),
+            "spm-calibration's dependency tree holds {forbidden}: the controller talks to its \
+             store through the ProgressStore trait and must not compile SQLite (issue 17, item 1)"
+        );
+    }
+}
+
+/// A scratch crate outside the workspace that depends on `spm-correction` alone, by path, as a
+/// user's program would: its resolved dependency tree holds neither the simulator nor SQLite.
+#[test]
+fn a_crate_using_spm_correction_alone_pulls_in_neither_simulator_nor_sqlite() {
+    let dir =
+        std::env::temp_dir().join(format!("spmcal-scratch-correction-{}", std::process::id()));
+    std::fs::create_dir_all(dir.join("src")).expect("temporary folder");
+    let correction = workspace_root().join("crates").join("spm-correction");
+    let manifest = format!(
+        "[package]\nname = \"scratch-user\"\nversion = \"0.0.0\"\nedition = \"2024\"\n\
+         publish = false\n\n[dependencies]\nspm-correction = {{ path = {path} }}\n\n\
+         [workspace]\n",
+        path = toml::Value::String(correction.display().to_string())
+    );
+    std::fs::write(dir.join("Cargo.toml"), manifest).expect("scratch manifest");
+    std::fs::write(
+        dir.join("src").join("main.rs"),
+        "fn main() { let _ = spm_correction::Parallelism::AllCores; }\n",
+    )
+    .expect("scratch main.rs");
+    // The workspace's lock file, so that resolution is offline and picks the tested versions.
+    std::fs::copy(workspace_root().join("Cargo.lock"), dir.join("Cargo.lock"))
+        .expect("Cargo.lock copied");
+    let metadata = metadata_of(&dir.join("Cargo.toml"));
+    let tree = dependency_tree(&metadata, "scratch-user");
+    let _ = std::fs::remove_dir_all(&dir);
+    assert!(
+        tree.contains("spm-correction") && tree.contains("spm-hal"),
+        "the scratch crate's tree misses spm-correction or spm-hal: {tree:?}"
+    );
+    for forbidden in ["spm-sim", "spm-cdb", "rusqlite", "libsqlite3-sys"] {
+        assert!(
+            !tree.contains(forbidden),
+            "a crate depending on spm-correction alone pulls in {forbidden}: {tree:?}"
+        );
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The codemap of docs/ARCHITECTURE.md against the manifests.
+// ---------------------------------------------------------------------------------------------
+
+fn architecture_text() -> String {
+    std::fs::read_to_string(workspace_root().join("docs").join("ARCHITECTURE.md"))
+        .expect("docs/ARCHITECTURE.md exists")
+}
+
+/// The lines of the first fenced block opened with ```` ```<tag> ````.
+fn fenced_block(text: &str, tag: &str) -> Vec<String> {
+    let opening = format!("```{tag}");
+    text.lines()
+        .skip_while(|line| line.trim() != opening)
+        .skip(1)
+        .take_while(|line| line.trim() != "```")
+        .map(str::to_owned)
+        .collect()
+}
+
+/// One line of the codemap: `crate -> dep dep? ... ; never: pkg pkg`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct CodemapLine {
+    name: String,
+    /// Workspace dependencies, `true` when optional (written `name?`).
+    depends_on: BTreeMap<String, bool>,
+    /// Packages that must be absent from the crate's whole dependency tree.
+    never: BTreeSet<String>,
+}
+
+impl CodemapLine {
+    fn parse(line: &str) -> Option<Self> {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            return None;
+        }
+        let (edges, never) = match line.split_once(';') {
+            Some((edges, rest)) => (edges, rest.trim().strip_prefix("never:").unwrap_or(rest)),
+            None => (line, ""),
+        };
+        let (name, deps) = edges.split_once("->").unwrap_or((edges, ""));
+        let words = |s: &str| -> Vec<String> {
+            s.split([' ', ','])
+                .filter(|w| !w.is_empty())
+                .map(str::to_owned)
+                .collect()
+        };
+        Some(Self {
+            name: name.trim().to_owned(),
+            depends_on: words(deps)
+                .into_iter()
+                .map(|d| match d.strip_suffix('?') {
+                    Some(optional) => (optional.to_owned(), true),
+                    None => (d, false),
+                })
+                .collect(),
+            never: words(never).into_iter().collect(),
+        })
+    }
+
+    fn render(&self) -> String {
+        let deps: Vec<String> = self
+            .depends_on
+            .iter()
+            .map(|(d, optional)| {
+                if *optional {
+                    format!("{d}?")
+                } else {
+                    d.clone()
+                }
+            })
+            .collect();
+        let mut line = format!("{} -> {}", self.name, deps.join(" "));
+        if !self.never.is_empty() {
+            let never: Vec<&str> = self.never.iter().map(String::as_str).collect();
+            line = format!("{}  ; never: {}", line.trim_end(), never.join(" "));
+        }
+        line.trim_end().to_owned()
+    }
+}
+
+fn codemap() -> Vec<CodemapLine> {
+    let lines: Vec<CodemapLine> = fenced_block(&architecture_text(), "codemap")
+        .iter()
+        .filter_map(|l| CodemapLine::parse(l))
+        .collect();
+    assert!(
+        !lines.is_empty(),
+        "docs/ARCHITECTURE.md has no ```codemap block (one line per crate: \
+         `crate -> workspace deps ; never: packages`)"
+    );
+    lines
+}
+
+/// The workspace dependencies of `name` in its manifest (normal and build, not dev), with
+/// whether each is optional.
+fn manifest_workspace_deps(
+    metadata: &serde_json::Value,
+    name: &str,
+    members: &BTreeSet<String>,
+) -> BTreeMap<String, bool> {
+    let mut deps = BTreeMap::new();
+    for dep in package_named(metadata, name)["dependencies"]
+        .as_array()
+        .map_or(&[][..], Vec::as_slice)
+    {
+        let dep_name = str_of(dep, "name");
+        if dep["kind"].as_str() == Some("dev") || !members.contains(dep_name) {
+            continue;
+        }
+        let optional = dep["optional"].as_bool().unwrap_or(false);
+        let entry = deps.entry(dep_name.to_owned()).or_insert(optional);
+        *entry = *entry && optional;
+    }
+    deps
+}
+
+#[test]
+fn the_codemap_matches_the_manifests() {
+    let metadata = workspace_metadata();
+    let members = member_names(&metadata);
+    let map = codemap();
+    let mut problems = Vec::new();
+    let mut listed = BTreeSet::new();
+    for line in &map {
+        if !listed.insert(line.name.clone()) {
+            problems.push(format!("`{}` has two lines; keep one", line.name));
+        }
+        if !members.contains(&line.name) {
+            problems.push(format!(
+                "`{}` is no workspace crate: remove its line `{}`",
+                line.name,
+                line.render()
+            ));
+            continue;
+        }
+        let actual = manifest_workspace_deps(&metadata, &line.name, &members);
+        if actual != line.depends_on {
+            let fixed = CodemapLine {
+                depends_on: actual,
+                ..line.clone()
+            };
+            problems.push(format!(
+                "the manifest of `{}` says otherwise: replace `{}` with `{}`",
+                line.name,
+                line.render(),
+                fixed.render()
+            ));
+        }
+        let tree = dependency_tree(&metadata, &line.name);
+        for absent in &line.never {
+            if tree.contains(absent) {
+                problems.push(format!(
+                    "`{}` must never link `{absent}` (codemap), but its dependency tree holds it",
+                    line.name
+                ));
+            }
+        }
+    }
+    for name in members.difference(&listed) {
+        let line = CodemapLine {
+            name: name.clone(),
+            depends_on: manifest_workspace_deps(&metadata, name, &members),
+            never: BTreeSet::new(),
+        };
+        problems.push(format!(
+            "crate `{name}` is missing from the codemap: add the line `{}` (and its \
+             `; never:` list and its invariants)",
+            line.render()
+        ));
+    }
+    assert!(
+        problems.is_empty(),
+        "docs/ARCHITECTURE.md ```codemap block:\n  - {}",
+        problems.join("\n  - ")
+    );
+}
+
+// ---------------------------------------------------------------------------------------------
+// Crates importable one by one: metadata, README with an example, `cargo package`.
+// ---------------------------------------------------------------------------------------------
+
+/// Workspace members that may be published (`publish` not set to `false`).
+fn publishable_members(metadata: &serde_json::Value) -> Vec<&serde_json::Value> {
+    let members = member_names(metadata);
+    packages(metadata)
+        .iter()
+        .filter(|p| members.contains(str_of(p, "name")) && p["source"].is_null())
+        .filter(|p| {
+            p["publish"]
+                .as_array()
+                .is_none_or(|registries| !registries.is_empty())
+        })
+        .collect()
+}
+
+#[test]
+fn every_publishable_crate_has_metadata_and_a_readme_with_an_example() {
+    let metadata = workspace_metadata();
+    let mut problems = Vec::new();
+    for package in publishable_members(&metadata) {
+        let name = str_of(package, "name");
+        let dir = Path::new(str_of(package, "manifest_path"))
+            .parent()
+            .expect("a manifest lives in a folder")
+            .to_path_buf();
+        for field in ["description", "license", "readme"] {
+            if str_of(package, field).trim().is_empty() {
+                problems.push(format!("{name}: Cargo.toml [package] has no `{field}`"));
+            }
+        }
+        if package["keywords"].as_array().is_none_or(Vec::is_empty) {
+            problems.push(format!("{name}: Cargo.toml [package] has no `keywords`"));
+        }
+        let repository = str_of(package, "repository");
+        if repository.contains("example") || repository.contains("invalid") {
+            problems.push(format!(
+                "{name}: placeholder repository URL `{repository}`; name a real one or none"
+            ));
+        }
+        let readme = dir.join("README.md");
+        let Ok(text) = std::fs::read_to_string(&readme) else {
+            problems.push(format!("{name}: {} is missing", readme.display()));
+            continue;
+        };
+        if !text.contains("```rust") && !text.contains("```sh") {
+            problems.push(format!(
+                "{name}: README.md has no usage example (a ```rust block, run as a doctest)"
+            ));
+        }
+        let is_lib = package["targets"].as_array().is_some_and(|targets| {
+            targets.iter().any(|t| {
+                t["kind"]
+                    .as_array()
+                    .is_some_and(|k| k.iter().any(|k| k.as_str() == Some("lib")))
+            })
+        });
+        if is_lib {
+            let lib_rs =
+                std::fs::read_to_string(dir.join("src").join("lib.rs")).unwrap_or_default();
+            if !lib_rs.contains("#![doc = include_str!(\"../README.md\")]") {
+                problems.push(format!(
+                    "{name}: src/lib.rs lacks `#![doc = include_str!(\"../README.md\")]`, so the \
+                     README's example is not compiled and run as a doctest"
+                ));
+            }
+        }
+    }
+    assert!(problems.is_empty(), "{}", problems.join("\n"));
+}
+
+/// `cargo package --workspace --exclude <unpublishable> --no-verify --offline`: every
+/// publishable crate packages, its workspace dependencies resolved against the other packaged
+/// crates (cargo's local overlay). `cargo package -p X --no-verify` alone would look the
+/// unpublished `spm-*` dependencies up on crates.io; `-p X --no-verify --exclude-lockfile`
+/// is the single-crate form.
+#[test]
+fn every_publishable_crate_packages() {
+    let metadata = workspace_metadata();
+    let publishable: BTreeSet<&str> = publishable_members(&metadata)
+        .iter()
+        .map(|p| str_of(p, "name"))
+        .collect();
+    let target = std::env::temp_dir().join(format!("spmcal-package-{}", std::process::id()));
+    let mut command = cargo();
+    command
+        .current_dir(workspace_root())
+        .env("CARGO_TARGET_DIR", &target)
+        .args([
+            "package",
+            "--workspace",
+            "--no-verify",
+            "--offline",
+            "--allow-dirty",
+        ]);
+    for name in member_names(&metadata) {
+        if !publishable.contains(name.as_str()) {
+            command.args(["--exclude", &name]);
+        }
+    }
+    let output = command.output().expect("cargo runs");
+    let _ = std::fs::remove_dir_all(&target);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "cargo package failed:\n{stderr}");
+    for name in publishable {
+        assert!(
+            stderr.contains(&format!("Packaging {name} v")),
+            "cargo package did not package {name}:\n{stderr}"
+        );
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Functions of library code, parsed with syn: lengths and the equation index.
+// ---------------------------------------------------------------------------------------------
+
+/// A function with a body in a source file.
+#[derive(Debug, Clone)]
+struct FnInfo {
+    /// The type of its `impl` block (last path segment), `None` for free functions.
+    owner: Option<String>,
+    name: String,
+    /// Its doc comment, lines joined.
+    doc: String,
+    /// First line of the item (its first attribute or doc line, else the `fn` line), 1-based.
+    item_line: usize,
+    /// Line of the `fn` keyword.
+    fn_line: usize,
+    /// Line of the closing brace of the body.
+    end_line: usize,
+    /// Inside `#[cfg(test)]` code or a `#[test]` function.
+    test_code: bool,
+}
+
+impl FnInfo {
+    fn lines(&self) -> usize {
+        self.end_line + 1 - self.fn_line
+    }
+}
+
+fn is_test_attr(attr: &syn::Attribute) -> bool {
+    attr.path().is_ident("test")
+        || (attr.path().is_ident("cfg")
+            && attr
+                .parse_args::<syn::Ident>()
+                .is_ok_and(|ident| ident == "test"))
+}
+
+fn doc_of(attrs: &[syn::Attribute]) -> String {
+    attrs
+        .iter()
+        .filter(|a| a.path().is_ident("doc"))
+        .filter_map(|a| match &a.meta {
+            syn::Meta::NameValue(nv) => match &nv.value {
+                syn::Expr::Lit(syn::ExprLit {
+                    lit: syn::Lit::Str(s),
+                    ..
+                }) => Some(s.value()),
+                _ => None,
+            },
+            _ => None,
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+#[derive(Default)]
+struct FnCollector {
+    owner: Vec<Option<String>>,
+    test_depth: usize,
+    found: Vec<FnInfo>,
+}
+
+impl FnCollector {
+    fn push(&mut self, attrs: &[syn::Attribute], sig: &syn::Signature, block: &syn::Block) {
+        let fn_line = sig.fn_token.span.start().line;
+        let item_line = attrs
+            .iter()
+            .map(|a| a.pound_token.span.start().line)
+            .chain([fn_line])
+            .min()
+            .unwrap_or(fn_line);
+        self.found.push(FnInfo {
+            owner: self.owner.last().cloned().flatten(),
+            name: sig.ident.to_string(),
+            doc: doc_of(attrs),
+            item_line,
+            fn_line,
+            end_line: block.brace_token.span.close().start().line,
+            test_code: self.test_depth > 0 || attrs.iter().any(is_test_attr),
+        });
+    }
+}
+
+impl<'ast> syn::visit::Visit<'ast> for FnCollector {
+    fn visit_item_mod(&mut self, module: &'ast syn::ItemMod) {
+        let test = module.attrs.iter().any(is_test_attr);
+        self.test_depth += usize::from(test);
+        syn::visit::visit_item_mod(self, module);
+        self.test_depth -= usize::from(test);
+    }
+
+    fn visit_item_fn(&mut self, item: &'ast syn::ItemFn) {
+        self.push(&item.attrs, &item.sig, &item.block);
+        self.owner.push(None);
+        syn::visit::visit_item_fn(self, item);
+        self.owner.pop();
+    }
+
+    fn visit_item_impl(&mut self, item: &'ast syn::ItemImpl) {
+        let owner = match item.self_ty.as_ref() {
+            syn::Type::Path(p) => p.path.segments.last().map(|s| s.ident.to_string()),
+            _ => None,
+        };
+        self.owner.push(owner);
+        syn::visit::visit_item_impl(self, item);
+        self.owner.pop();
+    }
+
+    fn visit_item_trait(&mut self, item: &'ast syn::ItemTrait) {
+        self.owner.push(Some(item.ident.to_string()));
+        syn::visit::visit_item_trait(self, item);
+        self.owner.pop();
+    }
+
+    fn visit_impl_item_fn(&mut self, item: &'ast syn::ImplItemFn) {
+        self.push(&item.attrs, &item.sig, &item.block);
+        self.owner.push(None);
+        syn::visit::visit_impl_item_fn(self, item);
+        self.owner.pop();
+    }
+
+    fn visit_trait_item_fn(&mut self, item: &'ast syn::TraitItemFn) {
+        if let Some(block) = &item.default {
+            self.push(&item.attrs, &item.sig, block);
+        }
+        self.owner.push(None);
+        syn::visit::visit_trait_item_fn(self, item);
+        self.owner.pop();
+    }
+}
+
+/// Every function with a body in a Rust source file.
+fn functions_in(path: &Path) -> Vec<FnInfo> {
+    let text = std::fs::read_to_string(path)
+        .unwrap_or_else(|e| panic!("{} is unreadable: {e}", path.display()));
+    let file =
+        syn::parse_file(&text).unwrap_or_else(|e| panic!("{} does not parse: {e}", path.display()));
+    let mut collector = FnCollector::default();
+    syn::visit::Visit::visit_file(&mut collector, &file);
+    collector.found
+}
+
+/// The longest a library function may be without a `// long-function: <reason>` comment.
+const MAX_FUNCTION_LINES: usize = 150;
+
+/// The reason written in a `// long-function: <reason>` comment in the lines just above the
+/// function (the comment block above its attributes, or among its attributes and doc lines).
+fn long_function_reason(source_lines: &[&str], function: &FnInfo) -> Option<String> {
+    let marker = "// long-function:";
+    let reason_in = |line: &str| {
+        line.trim()
+            .strip_prefix(marker)
+            .map(str::trim)
+            .filter(|reason| !reason.is_empty())
+            .map(str::to_owned)
+    };
+    // Lines are 1-based; index i holds line i + 1.
+    let attrs = (function.item_line - 1)..(function.fn_line - 1);
+    if let Some(reason) = attrs
+        .filter_map(|i| source_lines.get(i))
+        .find_map(|l| reason_in(l))
+    {
+        return Some(reason);
+    }
+    source_lines[..function.item_line - 1]
+        .iter()
+        .rev()
+        .take_while(|l| l.trim_start().starts_with("//") && !l.trim_start().starts_with("///"))
+        .find_map(|l| reason_in(l))
+}
+
+#[test]
+fn no_library_function_is_longer_than_150_lines_without_a_reason() {
+    let mut offenders = Vec::new();
+    for name in crate_names() {
+        for file in rust_sources(&workspace_root().join("crates").join(&name).join("src")) {
+            let text = std::fs::read_to_string(&file).expect("source readable");
+            let lines: Vec<&str> = text.lines().collect();
+            for function in functions_in(&file) {
+                if function.test_code || function.lines() <= MAX_FUNCTION_LINES {
+                    continue;
+                }
+                if long_function_reason(&lines, &function).is_none() {
+                    let relative = file.strip_prefix(workspace_root()).unwrap_or(&file);
+                    offenders.push(format!(
+                        "{}:{} fn {}{} is {} lines",
+                        relative.display(),
+                        function.fn_line,
+                        function
+                            .owner
+                            .as_ref()
+                            .map(|o| format!("{o}::"))
+                            .unwrap_or_default(),
+                        function.name,
+                        function.lines()
+                    ));
+                }
+            }
+        }
+    }
+    assert!(
+        offenders.is_empty(),
+        "library functions over {MAX_FUNCTION_LINES} lines: split them, or write \
+         `// long-function: <reason>` just above the fn:\n  {}",
+        offenders.join("\n  ")
+    );
+}
+
+#[test]
+fn the_length_check_measures_functions_and_reads_reasons() {
+    let dir = std::env::temp_dir().join(format!("spmcal-fnlen-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temporary folder");
+    let file = dir.join("sample.rs");
+    let body = "    let _ = 1;\n".repeat(3);
+    let text = format!(
+        "/// Doc.\n// long-function: a table\n#[inline]\npub fn a() {{\n{body}}}\n\n\
+         struct S;\nimpl S {{\n    fn b(&self) {{}}\n}}\n\n#[cfg(test)]\nmod tests {{\n    \
+         #[test]\n    fn c() {{}}\n}}\n"
+    );
+    std::fs::write(&file, &text).expect("sample written");
+    let found = functions_in(&file);
+    let _ = std::fs::remove_dir_all(&dir);
+    let lines: Vec<&str> = text.lines().collect();
+    let a = &found[0];
+    assert_eq!(
+        (a.name.as_str(), a.item_line, a.fn_line, a.lines()),
+        ("a", 1, 4, 5)
+    );
+    assert_eq!(long_function_reason(&lines, a).as_deref(), Some("a table"));
+    assert_eq!(a.doc.trim(), "Doc.");
+    let b = &found[1];
+    assert_eq!(
+        (b.owner.as_deref(), b.name.as_str(), b.lines()),
+        (Some("S"), "b", 1)
+    );
+    assert_eq!(long_function_reason(&lines, b), None);
+    assert!(!a.test_code && !b.test_code && found[2].test_code);
+}
+
+/// One row of the equation index: `| (N) | … | `path::function`, … |`.
+fn equation_index() -> BTreeMap<u32, Vec<String>> {
+    let text = architecture_text();
+    let section: Vec<&str> = text
+        .lines()
+        .skip_while(|l| !l.starts_with("## Equation index"))
+        .skip(1)
+        .take_while(|l| !l.starts_with("## "))
+        .collect();
+    let mut index = BTreeMap::new();
+    for row in section.iter().filter(|l| l.trim_start().starts_with('|')) {
+        let cells: Vec<&str> = row.trim().trim_matches('|').split('|').collect();
+        let Some(number) = cells
+            .first()
+            .map(|c| c.trim().trim_start_matches("eq.").trim())
+            .and_then(|c| c.strip_prefix('(')?.strip_suffix(')')?.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        let functions: Vec<String> = cells
+            .last()
+            .map(|c| c.split('`').skip(1).step_by(2).map(str::to_owned).collect())
+            .unwrap_or_default();
+        index.insert(number, functions);
+    }
+    index
+}
+
+#[test]
+fn every_equation_of_the_paper_resolves_to_a_function_that_says_so() {
+    let index = equation_index();
+    let mut problems = Vec::new();
+    for n in 1..=14 {
+        match index.get(&n) {
+            None => problems.push(format!("eq. ({n}) has no row in the equation index")),
+            Some(functions) if functions.is_empty() => {
+                problems.push(format!("eq. ({n}) names no function (write `path.rs::fn`)"));
+            }
+            Some(_) => {}
+        }
+    }
+    for (n, functions) in &index {
+        if !(1..=14).contains(n) {
+            problems.push(format!(
+                "eq. ({n}) is not an equation of the paper, (1)-(14)"
+            ));
+        }
+        for entry in functions {
+            let Some((path, item)) = entry.split_once(".rs::") else {
+                problems.push(format!("eq. ({n}): `{entry}` is not `path.rs::function`"));
+                continue;
+            };
+            let file = workspace_root().join(format!("{path}.rs"));
+            if !file.is_file() {
+                problems.push(format!("eq. ({n}): {}.rs does not exist", path));
+                continue;
+            }
+            let (owner, name) = match item.rsplit_once("::") {
+                Some((owner, name)) => (Some(owner), name),
+                None => (None, item),
+            };
+            let candidates: Vec<FnInfo> = functions_in(&file)
+                .into_iter()
+                .filter(|f| !f.test_code && f.name == name && f.owner.as_deref() == owner)
+                .collect();
+            if candidates.is_empty() {
+                problems.push(format!("eq. ({n}): {path}.rs has no `fn {item}`"));
+                continue;
+            }
+            let says = |f: &FnInfo| {
+                f.doc.lines().any(|line| {
+                    line.trim().starts_with("Implements eq") && line.contains(&format!("({n})"))
+                })
+            };
+            if !candidates.iter().any(says) {
+                problems.push(format!(
+                    "eq. ({n}): `{entry}` lacks the doc line `/// Implements eq. ({n}).`"
+                ));
+            }
+        }
+    }
+    assert!(
+        problems.is_empty(),
+        "docs/ARCHITECTURE.md, equation index:\n  {}",
+        problems.join("\n  ")
+    );
 }

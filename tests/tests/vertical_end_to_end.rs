@@ -121,7 +121,7 @@ fn kz_bowl_and_z_dependence_are_recovered_with_every_effect_on() {
                 .expect("inverse");
             sim.move_to(spm_hal::MoveRequest {
                 target,
-                speed_counts_per_s: 20000.0,
+                speed: spm_hal::CountsPerSecond(20000.0),
                 settle: Seconds(0.5),
             })
             .expect("move");

@@ -309,17 +309,13 @@ impl LccEstimate {
 
     /// The matrix M (nm per count) mapping a count vector to nanometres in the scanner-aligned
     /// frame (x along the scanner's X axis).
-    pub fn matrix(&self) -> [[f64; 2]; 2] {
-        let (s, c) = self.alpha.value().sin_cos();
-        [
-            [self.kx.value(), self.ky.value() * s],
-            [0.0, self.ky.value() * c],
-        ]
+    pub fn matrix(&self) -> spm_hal::NmPerCountMatrix {
+        spm_hal::NmPerCountMatrix::from_lcc(self.kx, self.ky, self.alpha)
     }
 
     /// A count vector in nanometres in the scanner-aligned frame.
     pub fn to_nm(&self, v: CountVector) -> (Nanometres, Nanometres) {
-        let m = self.matrix();
+        let m = self.matrix().rows();
         (
             Nanometres(m[0][0] * v.x.value() + m[0][1] * v.y.value()),
             Nanometres(m[1][1] * v.y.value()),

@@ -46,6 +46,7 @@
 //!   +0.16 ± 0.20 %; without drift or without hysteresis the excess stays. The likely cause is
 //!   the creep reaction to the skipping hops themselves (not drift, so not cancelled by the
 //!   half-sum); the evidence is modest (ignored test `diagnose_bias_sources`).
+#![doc = include_str!("../README.md")]
 #![warn(missing_docs)]
 
 pub mod config;

@@ -138,8 +138,16 @@ pub enum RunError {
         message: String,
     },
     /// A parameter derived from the plan was rejected by the FOS layer.
-    #[error("invalid operation parameters: {0}")]
-    Parameters(String),
+    #[error("invalid operation parameter `{field}`: {reason}")]
+    Parameters {
+        /// The parameter.
+        field: &'static str,
+        /// What is wrong with it.
+        reason: &'static str,
+    },
+    /// The instrument cannot do what the plan asks.
+    #[error("the instrument cannot do what the plan asks: {0}")]
+    Unsupported(&'static str),
 }
 
 /// The FOS parameters derived from a plan (rasters in counts, tolerances in counts/s).
@@ -237,10 +245,10 @@ impl FosParams {
                 ac: Nanometres(s.lattice_constant_nm),
                 angle_bac: s.lcs_angle(),
             },
-            nominal_nm_per_count: s.nominal_nm_per_count,
+            nominal_sensitivity: spm_hal::NmPerCount(s.nominal_nm_per_count),
             length_tolerance: s.length_tolerance_fraction,
             angle_tolerance_rad: s.angle_tolerance_deg.to_radians(),
-            prior_nm_per_count: None,
+            prior: None,
         };
         Self {
             attach,
@@ -306,9 +314,8 @@ fn fos_failure<E: spm_hal::Error>(error: FosError<E>) -> Result<Failure, RunErro
             kind: None,
             message: error.to_string(),
         }),
-        FosError::InvalidParameter { .. } | FosError::Unsupported(_) => {
-            Err(RunError::Parameters(error.to_string()))
-        }
+        FosError::InvalidParameter { field, reason } => Err(RunError::Parameters { field, reason }),
+        FosError::Unsupported(what) => Err(RunError::Unsupported(what)),
         other => Ok(Failure::Measurement {
             message: other.to_string(),
         }),
@@ -384,7 +391,9 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
                     kind: ErrorKind::Aborted,
                     ..
                 } => Some(RunStatus::Aborted),
-                RunError::Instrument { .. } | RunError::Parameters(_) => Some(RunStatus::Failed),
+                RunError::Instrument { .. }
+                | RunError::Parameters { .. }
+                | RunError::Unsupported(_) => Some(RunStatus::Failed),
                 _ => None,
             };
             if let Some(status) = status {
@@ -638,7 +647,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             alpha = measurement.lcc.alpha.value(),
             "node measured"
         );
-        self.fos.aperture.lcs.prior_nm_per_count = Some(measurement.lcc.matrix());
+        self.fos.aperture.lcs.prior = Some(measurement.lcc.matrix());
         self.observer.node_finished(measurement);
         Ok(())
     }
@@ -682,7 +691,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
     }
 
     fn record(&self, run_id: &str, m: &NodeMeasurement, z: f64, at_unix_s: f64) -> LccRecord {
-        let matrix = m.lcc.matrix();
+        let matrix = m.lcc.matrix().rows();
         let (vx, vy) = (m.drift.x_counts_per_s, m.drift.y_counts_per_s);
         let finite = |v: f64| if v.is_finite() { v } else { 0.0 };
         LccRecord {
@@ -739,8 +748,8 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
                 drift,
             } => self.skip(visit, index, from, estimate, drift),
             Action::CounterScan { centre, drift } => self.counter_scan(visit, centre, drift),
-            Action::Finished(_) | Action::GiveUp(_) => Err(RunError::Parameters(
-                "the node machine's terminal step reached the executor".into(),
+            Action::Finished(_) | Action::GiveUp(_) => Err(RunError::Unsupported(
+                "a terminal step of the node machine as an instrument action",
             )),
         }
     }
@@ -757,9 +766,8 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
         let mic = &mut *self.microscope;
         if let Some(target) = node.coarse_steps {
             let Some(stage) = mic.coarse_z() else {
-                return Err(RunError::Parameters(
-                    "the plan sets coarse-stage positions but the instrument has no coarse stage"
-                        .into(),
+                return Err(RunError::Unsupported(
+                    "coarse-stage positions (the instrument has no coarse stage)",
                 ));
             };
             let from = match *coarse_now {
@@ -780,7 +788,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
         }
         let request = spm_hal::MoveRequest {
             target: node.position(),
-            speed_counts_per_s: self.config.motion.move_speed_counts_per_s,
+            speed: spm_hal::CountsPerSecond(self.config.motion.move_speed_counts_per_s),
             settle: Seconds(self.config.motion.settle_s),
         };
         if let Err(e) = mic.move_to(request) {

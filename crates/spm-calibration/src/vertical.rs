@@ -291,7 +291,7 @@ pub fn measure_node<M: Microscope + ?Sized>(
         let frame = loop {
             let moved = mic.move_to(MoveRequest {
                 target: request.origin,
-                speed_counts_per_s: motion.move_speed_counts_per_s,
+                speed: spm_hal::CountsPerSecond(motion.move_speed_counts_per_s),
                 settle: Seconds(motion.settle_s),
             });
             match moved.and_then(|()| mic.scan(&request)) {

@@ -108,7 +108,7 @@ fn a_step_beside_the_node_gives_kz_and_a_double_step_is_rejected_with_its_reason
             let node = sim.oracle().commanded_for_sample_point(at).unwrap();
             sim.move_to(MoveRequest {
                 target: node,
-                speed_counts_per_s: 20000.0,
+                speed: spm_hal::CountsPerSecond(20000.0),
                 settle: Seconds(0.5),
             })
             .unwrap();

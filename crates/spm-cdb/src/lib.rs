@@ -26,6 +26,7 @@
 //! # Reading
 //! Queries are methods of the [`CdbRead`] trait, implemented by [`Cdb`] (each query its own
 //! snapshot) and by [`Snapshot`] (all queries in one read transaction).
+#![doc = include_str!("../README.md")]
 
 pub mod bench_support;
 mod columns;

@@ -26,6 +26,7 @@
 //! assert_eq!(err.line(), Some(3));
 //! assert!(err.to_string().starts_with("scanner.toml:3:1: field `scanner.gian`: unknown field"));
 //! ```
+#![doc = include_str!("../README.md")]
 
 mod locate;
 

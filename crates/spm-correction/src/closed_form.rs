@@ -61,6 +61,8 @@ impl Plane {
 /// Written as in the paper. Where |c₁·y| < 0.5 the closed form divides a small difference by c₁
 /// (and is undefined at c₁ = 0); there the c₁ → 0 limit is taken through the Taylor series of
 /// the same integrals, which agrees with the closed form to rounding.
+///
+/// Implements eq. (10).
 #[must_use]
 pub fn eq10(a: Plane, b: Plane, c: Plane, x0: f64, y0: f64, x: f64, y: f64) -> (f64, f64) {
     let x_line = (a.k0 + a.k_y * (y0 + y) + a.k_x * x0) * x + 0.5 * a.k_x * x * x;
@@ -86,6 +88,8 @@ pub fn eq10(a: Plane, b: Plane, c: Plane, x0: f64, y0: f64, x: f64, y: f64) -> (
 /// Eq. (12): corrected (x̄, ȳ) in nm of the direct-image pixel at offset (`x`, `y`) counts from
 /// (`x0`, `y0`), with K̄x^r = `a` and the product surfaces K̄yx^r = `e`, K̄yy^r = `f` of eq. (11),
 /// summed term by term over the raw-coordinate coefficients as printed.
+///
+/// Implements eq. (12).
 #[must_use]
 pub fn eq12(
     a: &Polynomial2,

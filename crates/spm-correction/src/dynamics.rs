@@ -175,7 +175,7 @@ impl CommandHistory {
                     *end_s,
                     [from.x.value(), from.y.value()],
                     [request.target.x.value(), request.target.y.value()],
-                    request.speed_counts_per_s,
+                    request.speed.value(),
                     request.settle.value(),
                 ),
                 CommandEvent::Wait { end_s, .. } => self.hold_until(*end_s),

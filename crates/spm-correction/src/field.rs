@@ -32,6 +32,8 @@ pub struct FormCoefficients {
 impl FormCoefficients {
     /// The coefficients of an oblique scanner with lumped K̄x, K̄y (nm/count) and obliquity α
     /// (rad): (K̄x, K̄y sin α, K̄y cos α).
+    ///
+    /// Implements eq. (3): Kx = K̄x + K̄y sin α, Ky = K̄y cos α, kept as three terms.
     #[must_use]
     pub fn from_lcc(kx_nm_per_count: f64, ky_nm_per_count: f64, alpha_rad: f64) -> Self {
         let (s, c) = alpha_rad.sin_cos();
@@ -222,6 +224,9 @@ impl SurfaceField {
 }
 
 impl CorrectionField for SurfaceField {
+    /// The summands of eq. (3) taken from the regression surfaces.
+    ///
+    /// Implements eq. (4).
     #[inline]
     fn form(&self, x: f64, y: f64) -> FormCoefficients {
         FormCoefficients::from_lcc(
@@ -256,6 +261,9 @@ pub struct ProductField {
 }
 
 impl CorrectionField for ProductField {
+    /// K̄y sin α and K̄y cos α from their own regression surfaces.
+    ///
+    /// Implements eq. (11).
     #[inline]
     fn form(&self, x: f64, y: f64) -> FormCoefficients {
         FormCoefficients {
@@ -321,6 +329,8 @@ fn series(b: f64, b1: f64, c1: f64, length: f64, derivs: [f64; 4]) -> f64 {
 }
 
 /// ∫₀ᴸ (b + b1 s) sin(c + c1 s) ds, closed form (eq. 10) or series for small |c1 L|.
+///
+/// Implements eq. (10): its sine integral.
 #[must_use]
 pub fn linear_times_sin(b: f64, b1: f64, c: f64, c1: f64, length: f64) -> f64 {
     if (c1 * length).abs() < SERIES_THRESHOLD {
@@ -334,6 +344,8 @@ pub fn linear_times_sin(b: f64, b1: f64, c: f64, c1: f64, length: f64) -> f64 {
 }
 
 /// ∫₀ᴸ (b + b1 s) cos(c + c1 s) ds, closed form (eq. 10) or series for small |c1 L|.
+///
+/// Implements eq. (10): its cosine integral.
 #[must_use]
 pub fn linear_times_cos(b: f64, b1: f64, c: f64, c1: f64, length: f64) -> f64 {
     if (c1 * length).abs() < SERIES_THRESHOLD {

@@ -8,6 +8,8 @@ use crate::{CorrectionError, PlaneSurfaces};
 /// plane when present (so the X,Y⇒Z crosstalk of a flat sample is removed) and the plane's
 /// z otherwise. NaN pixels (missing data) stay NaN.
 ///
+/// Implements eq. (1), its z̄ line: z̄ = Kz^r(x, y)·Δz.
+///
 /// # Errors
 /// [`CorrectionError::MissingSurface`] without Kz; [`CorrectionError::SizeMismatch`];
 /// [`CorrectionError::NonFinite`] for an infinite height or a non-finite Kz/bowl value.

@@ -33,6 +33,7 @@
 //!                         Parallelism::AllCores)?;
 //! # let _ = image_nm; Ok(()) }
 //! ```
+#![doc = include_str!("../README.md")]
 #![warn(missing_docs)]
 
 pub mod bench_support;

@@ -354,6 +354,8 @@ impl CoordinateMap {
 
 /// ∫ from a to b of g by eq. (8) sums over unit steps (value at the arrival point) or by
 /// quadrature.
+///
+/// Implements eq. (8): the sums over unit steps.
 fn gap_integral(
     integration: &Integration,
     a: f64,
@@ -387,6 +389,8 @@ enum Column {
 }
 
 /// ∫ from y(row_anchor) to y(j) of K̄yx or K̄yy along the column x, for every row j.
+///
+/// Implements eq. (9): the y integrals along the line-start column.
 fn column_integrals<F: CorrectionField + ?Sized>(
     field: &F,
     geometry: &RasterGeometry,
@@ -429,6 +433,8 @@ fn column_integrals<F: CorrectionField + ?Sized>(
 }
 
 /// ∫ from x(anchor_column) to x(i) of K̄x along the line y, for every column (into `out`).
+///
+/// Implements eq. (9): the x integral along a line.
 fn line_integrals<F: CorrectionField + ?Sized>(
     field: &F,
     geometry: &RasterGeometry,
@@ -609,6 +615,8 @@ impl<'f, F: CorrectionField + ?Sized> RasterLines<'f, F> {
 
 /// Corrected coordinates of every pixel of a direct or counter raster, in the common frame
 /// described in the [module documentation](self) (nm from the corrected origin corner).
+///
+/// Implements eq. (7): every pixel of a direct or counter raster.
 ///
 /// # Errors
 /// [`CorrectionError::NonIntegerStep`] for [`Integration::Sums`] with a fractional pixel step;

@@ -24,6 +24,8 @@ fn check_path(path: &[CountPoint]) -> Result<(), CorrectionError> {
 /// step adds K̄x·Δx + K̄yx·Δy to x̄ and K̄yy·Δy to ȳ, with the coefficients taken at the point the
 /// step arrives at. Returns the corrected position of every point, nm, the first at (0, 0).
 ///
+/// Implements eqs. (1) and (5): x̄, ȳ as sums of the local unit steps.
+///
 /// # Errors
 /// [`CorrectionError::Empty`], [`CorrectionError::NonFinite`],
 /// [`CorrectionError::NotAUnitStep`].
@@ -61,6 +63,8 @@ pub fn correct_unit_steps<F: CorrectionField + ?Sized>(
 /// along a raster path reproduces [`crate::correct_raster`]); other segments use `quadrature`
 /// (panels no longer than its `max_panel_counts` along the segment). Returns the corrected
 /// position of every vertex, nm, the first at (0, 0).
+///
+/// Implements eq. (5) along a piecewise-linear path, by quadrature.
 ///
 /// # Errors
 /// [`CorrectionError::Empty`], [`CorrectionError::NonFinite`].

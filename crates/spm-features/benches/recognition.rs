@@ -38,7 +38,7 @@ fn bench(c: &mut Criterion) {
         min_separation_px: 0.4 * hopg.a_counts / step64.value(),
         ..DetectionConfig::default()
     };
-    let lcs = LcsConfig::hopg(0.005);
+    let lcs = LcsConfig::hopg(spm_hal::NmPerCount(0.005));
     let found = detect(&aperture, &config64).unwrap();
     println!("aperture 64x64: {} features", found.features.len());
     c.bench_function("detect_aperture_64x64", |b| {

@@ -1,7 +1,7 @@
 //! Hill and pit detection with sub-pixel localisation, quality and rejection.
 
 use crate::error::{FeatureError, positive};
-use crate::fit::{Sample, fit_gaussian};
+use crate::fit::{GaussianFit, Sample, fit_gaussian};
 use serde::{Deserialize, Serialize};
 use spm_hal::{CountPoint, Counts, HeightMap, Seconds};
 
@@ -500,19 +500,15 @@ fn interpolated_time(map: &HeightMap, column: f64, row: f64) -> Option<Seconds> 
     Some(Seconds(top * (1.0 - fr) + bottom * fr))
 }
 
-fn localise(
-    map: &HeightMap,
-    z: &[f64],
+/// The starting point of the fit: quadratic interpolation of the smoothed peak for the offset
+/// (x, y) from the candidate pixel, the width from its curvature (or the configured width).
+fn initial_guess(
     smoothed: &[f64],
+    nx: usize,
     candidate: &Candidate,
     config: &DetectionConfig,
-    samples: &mut Vec<Sample>,
-) -> Result<Feature, RejectInfo> {
-    let (nx, ny) = (map.columns, map.rows);
-    let (c, r) = (candidate.column, candidate.row);
-    let reject = |reason| (c as f64, r as f64, reason);
-    // Initial guess: quadratic interpolation of the smoothed peak, width from its curvature.
-    let i = r * nx + c;
+) -> (f64, f64, f64) {
+    let i = candidate.row * nx + candidate.column;
     let v = smoothed[i];
     let dxx = smoothed[i - 1] - 2.0 * v + smoothed[i + 1];
     let dyy = smoothed[i - nx] - 2.0 * v + smoothed[i + nx];
@@ -537,7 +533,100 @@ fn localise(
     }
     .clamp(config.min_width_px.max(0.5), config.max_width_px)
     .min((config.min_separation_px / 1.5).max(config.min_width_px));
-    let s_init = config.width_px.unwrap_or(s_init);
+    (x_init, y_init, config.width_px.unwrap_or(s_init))
+}
+
+/// Radius of the fit window for a feature of `width` px: within about half the feature
+/// spacing, so that neighbours do not enter it.
+fn fit_radius(config: &DetectionConfig, width: f64) -> f64 {
+    (config.fit_radius_sigmas * width)
+        .min(1.25 * config.min_separation_px)
+        .clamp(config.min_fit_radius_px, config.max_fit_radius_px)
+}
+
+/// Fills `samples` with the pixels within `radius` of `centre`, relative to the rounded
+/// centre, which it returns.
+fn window_samples(
+    z: &[f64],
+    nx: usize,
+    ny: usize,
+    centre: (f64, f64),
+    radius: f64,
+    samples: &mut Vec<Sample>,
+) -> (f64, f64) {
+    let (cx, cy) = (centre.0.round(), centre.1.round());
+    samples.clear();
+    let rad = radius.ceil() as i64;
+    let (cxi, cyi) = (cx as i64, cy as i64);
+    for yy in (cyi - rad).max(0)..=(cyi + rad).min(ny as i64 - 1) {
+        for xx in (cxi - rad).max(0)..=(cxi + rad).min(nx as i64 - 1) {
+            let ddx = xx as f64 - centre.0;
+            let ddy = yy as f64 - centre.1;
+            if ddx * ddx + ddy * ddy <= radius * radius {
+                samples.push(Sample {
+                    dx: xx as f64 - cx,
+                    dy: yy as f64 - cy,
+                    z: z[yy as usize * nx + xx as usize],
+                });
+            }
+        }
+    }
+    (cx, cy)
+}
+
+/// The Gaussian fit of one window. A free-width fit first (unless the width is given); when
+/// the amplitude–width–background triple degenerates (low SNR, small window) or the free width
+/// lands far from the estimate (a spike, the background), the width is held at its estimate.
+fn fit_window(
+    samples: &[Sample],
+    init: [f64; crate::fit::NPAR],
+    s_max: f64,
+    config: &DetectionConfig,
+) -> Option<GaussianFit> {
+    let free = if config.width_px.is_none() {
+        fit_gaussian(
+            samples,
+            init,
+            config.min_width_px,
+            s_max,
+            config.max_iterations,
+            false,
+        )
+    } else {
+        None
+    };
+    let free = free.filter(|fit| fit.params[3] > 0.5 * init[3] && fit.params[3] < 2.0 * init[3]);
+    if free.is_some() {
+        return free;
+    }
+    let mut fixed = init;
+    fixed[3] = config
+        .width_px
+        .unwrap_or(init[3])
+        .clamp(config.min_width_px, s_max);
+    fit_gaussian(
+        samples,
+        fixed,
+        config.min_width_px,
+        config.max_width_px,
+        config.max_iterations,
+        true,
+    )
+}
+
+fn localise(
+    map: &HeightMap,
+    z: &[f64],
+    smoothed: &[f64],
+    candidate: &Candidate,
+    config: &DetectionConfig,
+    samples: &mut Vec<Sample>,
+) -> Result<Feature, RejectInfo> {
+    let (nx, ny) = (map.columns, map.rows);
+    let (c, r) = (candidate.column, candidate.row);
+    let reject = |reason| (c as f64, r as f64, reason);
+    let i = r * nx + c;
+    let (x_init, y_init, s_init) = initial_guess(smoothed, nx, candidate, config);
 
     let mut centre = (c as f64 + x_init, r as f64 + y_init);
     let mut params = [
@@ -554,26 +643,8 @@ fn localise(
     for pass in 0..2 {
         // The window stays within about half the feature spacing so that
         // neighbours do not enter it.
-        let radius = (config.fit_radius_sigmas * width)
-            .min(1.25 * config.min_separation_px)
-            .clamp(config.min_fit_radius_px, config.max_fit_radius_px);
-        let (cx, cy) = (centre.0.round(), centre.1.round());
-        samples.clear();
-        let rad = radius.ceil() as i64;
-        let (cxi, cyi) = (cx as i64, cy as i64);
-        for yy in (cyi - rad).max(0)..=(cyi + rad).min(ny as i64 - 1) {
-            for xx in (cxi - rad).max(0)..=(cxi + rad).min(nx as i64 - 1) {
-                let ddx = xx as f64 - centre.0;
-                let ddy = yy as f64 - centre.1;
-                if ddx * ddx + ddy * ddy <= radius * radius {
-                    samples.push(Sample {
-                        dx: xx as f64 - cx,
-                        dy: yy as f64 - cy,
-                        z: z[yy as usize * nx + xx as usize],
-                    });
-                }
-            }
-        }
+        let radius = fit_radius(config, width);
+        let (cx, cy) = window_samples(z, nx, ny, centre, radius, samples);
         // Parameters are relative to (cx, cy); convert the current centre.
         let init = [
             centre.0 - cx,
@@ -586,45 +657,8 @@ fn localise(
             .max_width_px
             .min(radius)
             .max(config.min_width_px * 1.01);
-        // A free-width fit first (unless the width is given); when the
-        // amplitude–width–background triple degenerates (low SNR, small
-        // window), the width is held at its current estimate.
-        let free = if config.width_px.is_none() {
-            fit_gaussian(
-                samples,
-                init,
-                config.min_width_px,
-                s_max,
-                config.max_iterations,
-                false,
-            )
-        } else {
-            None
-        };
-        // A free width far from the estimate means the fit latched onto noise
-        // (a spike) or onto the background: hold the width instead.
-        let free =
-            free.filter(|fit| fit.params[3] > 0.5 * init[3] && fit.params[3] < 2.0 * init[3]);
-        let fit = match free {
-            Some(fit) => fit,
-            None => {
-                let mut fixed = init;
-                fixed[3] = config
-                    .width_px
-                    .unwrap_or(init[3])
-                    .clamp(config.min_width_px, s_max);
-                let Some(fit) = fit_gaussian(
-                    samples,
-                    fixed,
-                    config.min_width_px,
-                    config.max_width_px,
-                    config.max_iterations,
-                    true,
-                ) else {
-                    return Err(reject(RejectReason::FitFailed));
-                };
-                fit
-            }
+        let Some(fit) = fit_window(samples, init, s_max, config) else {
+            return Err(reject(RejectReason::FitFailed));
         };
         let new_centre = (cx + fit.params[0], cy + fit.params[1]);
         params = fit.params;
@@ -634,9 +668,7 @@ fn localise(
         result = Some(fit);
         // The first window is good enough when the fit barely moved and the
         // width is close to the one that sized the window.
-        let new_radius = (config.fit_radius_sigmas * width)
-            .min(1.25 * config.min_separation_px)
-            .clamp(config.min_fit_radius_px, config.max_fit_radius_px);
+        let new_radius = fit_radius(config, width);
         if pass == 0 && moved < 1.0 && (new_radius - radius).abs() < 1.0 {
             break;
         }

@@ -4,7 +4,7 @@
 use crate::detect::Feature;
 use crate::error::{FeatureError, positive};
 use serde::{Deserialize, Serialize};
-use spm_hal::{CountPoint, CountVector, Counts, Nanometres, Radians};
+use spm_hal::{CountPoint, CountVector, Counts, Nanometres, NmPerCount, NmPerCountMatrix, Radians};
 
 /// HOPG β-atom lattice constant, nm.
 pub const HOPG_LATTICE_NM: f64 = 0.2461;
@@ -40,8 +40,8 @@ impl LcsStandard {
 pub struct LcsConfig {
     /// The standard triangle.
     pub standard: LcsStandard,
-    /// Approximate scanner sensitivity, nm per count (same for x and y).
-    pub nominal_nm_per_count: f64,
+    /// Approximate scanner sensitivity (same for x and y).
+    pub nominal_sensitivity: NmPerCount,
     /// Accepted relative deviation of a side from its expected length in
     /// counts. Default 0.35.
     pub length_tolerance: f64,
@@ -57,33 +57,33 @@ pub struct LcsConfig {
     /// calibration tells them apart. `None` (default): admitted through the nominal
     /// sensitivity.
     #[serde(default)]
-    pub prior_nm_per_count: Option<[[f64; 2]; 2]>,
+    pub prior: Option<NmPerCountMatrix>,
 }
 
 impl LcsConfig {
     /// HOPG with the default tolerances and the given nominal nm/count.
-    pub fn hopg(nominal_nm_per_count: f64) -> Self {
+    pub fn hopg(nominal_sensitivity: NmPerCount) -> Self {
         Self {
             standard: LcsStandard::hopg(),
-            nominal_nm_per_count,
+            nominal_sensitivity,
             length_tolerance: 0.35,
             angle_tolerance_rad: 0.35,
-            prior_nm_per_count: None,
+            prior: None,
         }
     }
 
     fn validate(&self) -> Result<(), FeatureError> {
-        positive("nominal_nm_per_count", self.nominal_nm_per_count)?;
+        positive("nominal_sensitivity", self.nominal_sensitivity.value())?;
         positive("length_tolerance", self.length_tolerance)?;
         positive("angle_tolerance_rad", self.angle_tolerance_rad)?;
         positive("standard.ab", self.standard.ab.value())?;
         positive("standard.ac", self.standard.ac.value())?;
         positive("standard.angle_bac", self.standard.angle_bac.value())?;
-        if let Some(m) = self.prior_nm_per_count {
+        if let Some(NmPerCountMatrix(m)) = self.prior {
             let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
             if !(m.iter().flatten().all(|v| v.is_finite()) && det.is_finite() && det != 0.0) {
                 return Err(FeatureError::InvalidConfig {
-                    field: "prior_nm_per_count",
+                    field: "prior",
                     reason: "must be a finite, invertible 2×2 map",
                 });
             }
@@ -96,9 +96,9 @@ impl LcsConfig {
     /// smallest singular value (the direction in which a nanometre takes the most counts).
     pub fn reach_counts(&self) -> f64 {
         let longest_nm = self.standard.ab.value().max(self.standard.ac.value());
-        let nm_per_count = match self.prior_nm_per_count {
-            None => self.nominal_nm_per_count,
-            Some(m) => {
+        let nm_per_count = match self.prior {
+            None => self.nominal_sensitivity.value(),
+            Some(NmPerCountMatrix(m)) => {
                 // σ_min² of M: the smaller eigenvalue of MᵀM.
                 let (a, b, c, d) = (m[0][0], m[0][1], m[1][0], m[1][1]);
                 let (p, q, r) = (a * a + c * c, a * b + c * d, b * b + d * d);
@@ -113,8 +113,8 @@ impl LcsConfig {
     /// Expected |AB| and |AC| in counts (through the nominal sensitivity).
     pub fn expected_counts(&self) -> (Counts, Counts) {
         (
-            Counts(self.standard.ab.value() / self.nominal_nm_per_count),
-            Counts(self.standard.ac.value() / self.nominal_nm_per_count),
+            Counts(self.standard.ab.value() / self.nominal_sensitivity.value()),
+            Counts(self.standard.ac.value() / self.nominal_sensitivity.value()),
         )
     }
 }
@@ -161,9 +161,9 @@ fn triangle(features: &[Feature], a: usize, b: usize, c: usize, config: &LcsConf
         angle - config.standard.angle_bac.value(),
     );
     // The gate: through the prior when there is one.
-    let (dab, dac, dangle) = match config.prior_nm_per_count {
+    let (dab, dac, dangle) = match config.prior {
         None => nominal,
-        Some(m) => {
+        Some(NmPerCountMatrix(m)) => {
             let map = |v: CountVector| {
                 let (x, y) = (v.x.value(), v.y.value());
                 (m[0][0] * x + m[0][1] * y, m[1][0] * x + m[1][1] * y)

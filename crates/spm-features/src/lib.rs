@@ -30,6 +30,7 @@
 //! assert!((f.position.y.value() - 98.6).abs() < 1e-3);
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
+#![doc = include_str!("../README.md")]
 #![warn(missing_docs)]
 
 pub mod crb;

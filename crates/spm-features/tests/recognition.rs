@@ -214,7 +214,7 @@ fn lattice_vectors_and_lcs_of_an_aperture() {
     }
 
     // LCS at the atom nearest the centre: six neighbours, each forming an LCS.
-    let config = LcsConfig::hopg(NM_PER_COUNT * 1.15); // a 15 % wrong nominal sensitivity
+    let config = LcsConfig::hopg(spm_hal::NmPerCount(NM_PER_COUNT * 1.15)); // a 15 % wrong nominal sensitivity
     let a = found.nearest_index(centre).unwrap();
     let triangles = lcs_with_vertex(&found.features, a, &config).unwrap();
     assert_eq!(triangles.len(), 6, "{triangles:?}");
@@ -236,7 +236,7 @@ fn lattice_vectors_and_lcs_of_an_aperture() {
         .unwrap();
     assert!(lcs.centroid.distance(target).value() < 0.05 * hopg.a_counts);
     // Far-off nominal sensitivity: nothing matches.
-    let wrong = LcsConfig::hopg(NM_PER_COUNT * 2.0);
+    let wrong = LcsConfig::hopg(spm_hal::NmPerCount(NM_PER_COUNT * 2.0));
     assert!(
         find_lcs_nearest(&found.features, target, &wrong)
             .unwrap()
@@ -246,7 +246,7 @@ fn lattice_vectors_and_lcs_of_an_aperture() {
     // true map the far-off nominal finds all six again; with a prior twice off, none.
     let k = NM_PER_COUNT;
     let prior_true = LcsConfig {
-        prior_nm_per_count: Some([[k, 0.0], [0.0, k]]),
+        prior: Some(spm_hal::NmPerCountMatrix([[k, 0.0], [0.0, k]])),
         ..wrong.clone()
     };
     assert_eq!(
@@ -256,7 +256,7 @@ fn lattice_vectors_and_lcs_of_an_aperture() {
         6
     );
     let prior_wrong = LcsConfig {
-        prior_nm_per_count: Some([[2.0 * k, 0.0], [0.0, 2.0 * k]]),
+        prior: Some(spm_hal::NmPerCountMatrix([[2.0 * k, 0.0], [0.0, 2.0 * k]])),
         ..config.clone()
     };
     assert!(
@@ -265,7 +265,7 @@ fn lattice_vectors_and_lcs_of_an_aperture() {
             .is_empty()
     );
     let singular = LcsConfig {
-        prior_nm_per_count: Some([[k, k], [k, k]]),
+        prior: Some(spm_hal::NmPerCountMatrix([[k, k], [k, k]])),
         ..config.clone()
     };
     assert!(lcs_with_vertex(&found.features, a, &singular).is_err());

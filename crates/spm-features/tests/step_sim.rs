@@ -45,7 +45,7 @@ fn scan(sim: &mut Simulator, at: NmPoint) -> (spm_hal::HeightMap, spm_hal::Heigh
         let target = sim.oracle().commanded_for_sample_point(at).unwrap();
         sim.move_to(spm_hal::MoveRequest {
             target,
-            speed_counts_per_s: 20000.0,
+            speed: spm_hal::CountsPerSecond(20000.0),
             settle: Seconds(0.5),
         })
         .unwrap();

@@ -84,17 +84,8 @@ fn line_name(n: usize) -> String {
     }
 }
 
-/// Parses an ISO 28600 file held in memory.
-pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
-    let ctx = Ctx::new(path);
-    if !bytes.starts_with(MAGIC.as_bytes()) {
-        let shown = String::from_utf8_lossy(&bytes[..bytes.len().min(36)]).into_owned();
-        return Err(ctx.bad_magic(
-            Format::Iso28600,
-            format!("expected {MAGIC:?}, found {shown:?}"),
-        ));
-    }
-    // Header: lines up to "end of header".
+/// The header lines up to "end of header" (without it) and the byte offset of the data.
+fn header_lines<'a>(ctx: Ctx<'_>, bytes: &'a [u8]) -> Result<(Vec<&'a str>, usize)> {
     let mut lines: Vec<&str> = Vec::new();
     let mut pos = 0usize;
     let mut data_start = None;
@@ -122,6 +113,99 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
     }
     let data_start =
         data_start.ok_or_else(|| ctx.truncated("header (\"end of header\")", 0, 0, bytes.len()))?;
+    Ok((lines, data_start))
+}
+
+/// The data lines after the header: `n` points of `channels_n` comma-separated values each.
+fn data_values(
+    ctx: Ctx<'_>,
+    bytes: &[u8],
+    data_start: usize,
+    header_lines: usize,
+    n: usize,
+    channels_n: usize,
+) -> Result<Vec<Vec<f64>>> {
+    let mut values: Vec<Vec<f64>> = vec![Vec::with_capacity(n); channels_n];
+    let mut line_no = header_lines + 1;
+    let mut point = 0usize;
+    let text = utf8(ctx, &bytes[data_start..], "data", data_start)?;
+    for line in text.lines() {
+        line_no += 1;
+        let t = line.trim();
+        if t.is_empty() {
+            continue;
+        }
+        if t == END_DATA {
+            break;
+        }
+        if point >= n {
+            return Err(ctx.invalid_data(
+                data_start,
+                format!("line {line_no}: more than {n} data points"),
+            ));
+        }
+        let mut cells = t.split(',');
+        for (c, ch_values) in values.iter_mut().enumerate() {
+            let cell = cells.next().ok_or_else(|| {
+                ctx.invalid_data(
+                    data_start,
+                    format!("line {line_no}: missing value of channel {}", c + 1),
+                )
+            })?;
+            let v: f64 = cell.trim().parse().map_err(|_| {
+                ctx.invalid_data(
+                    data_start,
+                    format!("line {line_no}: {cell:?} is not a number"),
+                )
+            })?;
+            if !v.is_finite() {
+                return Err(
+                    ctx.invalid_data(data_start, format!("line {line_no}: non-finite value"))
+                );
+            }
+            ch_values.push(v);
+        }
+        point += 1;
+    }
+    if point < n {
+        return Err(ctx.truncated(
+            format!("data ({point} of {n} points present)"),
+            data_start,
+            n,
+            point,
+        ));
+    }
+
+    Ok(values)
+}
+
+/// The date of the experiment (header lines 9 to 14), when the file gives one.
+fn recorded(lines: &[&str]) -> Option<DateTime> {
+    let num = |k: usize| lines.get(k - 1).and_then(|s| s.trim().parse::<i64>().ok());
+    match (num(9), num(10), num(11), num(12), num(13), num(14)) {
+        (Some(y), Some(mo), Some(d), Some(h), Some(mi), Some(s)) if y > 0 => DateTime::new(
+            i32::try_from(y).unwrap_or(0),
+            u8::try_from(mo).unwrap_or(0),
+            u8::try_from(d).unwrap_or(0),
+            u8::try_from(h).unwrap_or(0),
+            u8::try_from(mi).unwrap_or(0),
+            u8::try_from(s).unwrap_or(0),
+        ),
+        _ => None,
+    }
+}
+
+/// Parses an ISO 28600 file held in memory.
+pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
+    let ctx = Ctx::new(path);
+    if !bytes.starts_with(MAGIC.as_bytes()) {
+        let shown = String::from_utf8_lossy(&bytes[..bytes.len().min(36)]).into_owned();
+        return Err(ctx.bad_magic(
+            Format::Iso28600,
+            format!("expected {MAGIC:?}, found {shown:?}"),
+        ));
+    }
+    let (lines, data_start) = header_lines(ctx, bytes)?;
     let field = |n: usize| -> Result<&str> {
         lines
             .get(n - 1)
@@ -209,71 +293,9 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
 
     // Data.
     let n = nx * ny;
-    let mut values: Vec<Vec<f64>> = vec![Vec::with_capacity(n); channels_n];
-    let mut line_no = lines.len() + 1;
-    let mut point = 0usize;
-    let text = utf8(ctx, &bytes[data_start..], "data", data_start)?;
-    for line in text.lines() {
-        line_no += 1;
-        let t = line.trim();
-        if t.is_empty() {
-            continue;
-        }
-        if t == END_DATA {
-            break;
-        }
-        if point >= n {
-            return Err(ctx.invalid_data(
-                data_start,
-                format!("line {line_no}: more than {n} data points"),
-            ));
-        }
-        let mut cells = t.split(',');
-        for (c, ch_values) in values.iter_mut().enumerate() {
-            let cell = cells.next().ok_or_else(|| {
-                ctx.invalid_data(
-                    data_start,
-                    format!("line {line_no}: missing value of channel {}", c + 1),
-                )
-            })?;
-            let v: f64 = cell.trim().parse().map_err(|_| {
-                ctx.invalid_data(
-                    data_start,
-                    format!("line {line_no}: {cell:?} is not a number"),
-                )
-            })?;
-            if !v.is_finite() {
-                return Err(
-                    ctx.invalid_data(data_start, format!("line {line_no}: non-finite value"))
-                );
-            }
-            ch_values.push(v);
-        }
-        point += 1;
-    }
-    if point < n {
-        return Err(ctx.truncated(
-            format!("data ({point} of {n} points present)"),
-            data_start,
-            n,
-            point,
-        ));
-    }
+    let values = data_values(ctx, bytes, data_start, lines.len(), n, channels_n)?;
 
-    let recorded = {
-        let num = |k: usize| field(k).ok().and_then(|s| s.parse::<i64>().ok());
-        match (num(9), num(10), num(11), num(12), num(13), num(14)) {
-            (Some(y), Some(mo), Some(d), Some(h), Some(mi), Some(s)) if y > 0 => DateTime::new(
-                i32::try_from(y).unwrap_or(0),
-                u8::try_from(mo).unwrap_or(0),
-                u8::try_from(d).unwrap_or(0),
-                u8::try_from(h).unwrap_or(0),
-                u8::try_from(mi).unwrap_or(0),
-                u8::try_from(s).unwrap_or(0),
-            ),
-            _ => None,
-        }
-    };
+    let recorded = recorded(&lines);
     let line_time_s = field(38)
         .ok()
         .and_then(|s| s.parse::<f64>().ok())

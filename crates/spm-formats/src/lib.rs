@@ -16,6 +16,7 @@
 //! the limits ([`MAX_PIXELS`], [`MAX_SIDE_PIXELS`]) and against the bytes actually present
 //! before anything is allocated; failures are [`FormatError`]s naming the file and the field
 //! or byte offset, with a [`FormatError::kind`] to match on.
+#![doc = include_str!("../README.md")]
 
 mod error;
 mod gsf;

@@ -241,6 +241,111 @@ fn parse_date(date: &str, time: &str) -> Option<DateTime> {
     )
 }
 
+/// The page's header entries (`Page{n}.Name`), in the order of the file.
+fn push_page_header(
+    header: &mut Vec<(String, String)>,
+    page: usize,
+    data_type: u32,
+    ph: &PageHeader,
+    strings: &[String],
+) {
+    let key = |name: &str| format!("Page{page}.{name}");
+    header.push((key("DataType"), data_type.to_string()));
+    header.push((key("PageType"), ph.page_type.to_string()));
+    header.push((key("XSize"), ph.x_size.to_string()));
+    header.push((key("YSize"), ph.y_size.to_string()));
+    let dir_name = match ph.scan_dir {
+        0 => "SCAN_RIGHT",
+        1 => "SCAN_LEFT",
+        2 => "SCAN_UP",
+        3 => "SCAN_DOWN",
+        _ => "unknown",
+    };
+    header.push((key("ScanDirection"), dir_name.to_string()));
+    for (name, v) in [
+        ("XScale", ph.x_scale),
+        ("YScale", ph.y_scale),
+        ("ZScale", ph.z_scale),
+        ("XOffset", ph.x_offset),
+        ("YOffset", ph.y_offset),
+        ("ZOffset", ph.z_offset),
+        ("Period", ph.period),
+        ("Bias", ph.bias),
+        ("Current", ph.current),
+        ("Angle", ph.angle),
+    ] {
+        header.push((key(name), format!("{v:e}")));
+    }
+    for (i, s) in strings.iter().enumerate() {
+        let name = STRING_NAMES
+            .get(i)
+            .map_or_else(|| format!("String{i}"), |n| (*n).to_string());
+        header.push((key(&name), s.clone()));
+    }
+}
+
+/// The image of an image page in display orientation, scaled to its Z unit: (nx, ny, data,
+/// whether the slow axis ran upwards).
+fn page_image(
+    ctx: Ctx<'_>,
+    bytes: &[u8],
+    page: usize,
+    ph: &PageHeader,
+    data_obj: Object,
+) -> Result<(usize, usize, Vec<f64>, bool)> {
+    let key = |name: &str| format!("Page{page}.{name}");
+    let (nx, ny) = ctx.check_grid(
+        &format!("page {page} x/y size"),
+        u64::from(ph.x_size),
+        u64::from(ph.y_size),
+        1,
+        4,
+        (data_obj.offset, data_obj.size),
+    )?;
+    let n = nx * ny;
+    if data_obj.size != 4 * n {
+        return Err(ctx.invalid_data(
+            data_obj.offset,
+            format!(
+                "page {page} data holds {} bytes, expected {}",
+                data_obj.size,
+                4 * n
+            ),
+        ));
+    }
+    for (name, v) in [
+        ("XScale", ph.x_scale),
+        ("YScale", ph.y_scale),
+        ("ZScale", ph.z_scale),
+    ] {
+        if !v.is_finite() || v == 0.0 {
+            return Err(ctx.invalid(key(name), format!("{v} is not a finite non-zero scale")));
+        }
+    }
+    if !ph.z_offset.is_finite() {
+        return Err(ctx.invalid(key("ZOffset"), "not finite"));
+    }
+    let block = ctx.slice(bytes, data_obj.offset, 4 * n, &format!("page {page} data"))?;
+    let (zs, zo) = (f64::from(ph.z_scale), f64::from(ph.z_offset));
+    let stored: Vec<f64> = block
+        .chunks_exact(4)
+        .map(|c| f64::from(i32::from_le_bytes([c[0], c[1], c[2], c[3]])) * zs + zo)
+        .collect();
+    let mirror_x = ph.x_scale < 0.0;
+    let flip_y = ph.y_scale > 0.0;
+    let mut data = Vec::with_capacity(n);
+    for row in 0..ny {
+        let src = if flip_y { ny - 1 - row } else { row };
+        let line = &stored[src * nx..(src + 1) * nx];
+        if mirror_x {
+            data.extend(line.iter().rev());
+        } else {
+            data.extend_from_slice(line);
+        }
+    }
+    Ok((nx, ny, data, flip_y))
+}
+
 /// Parses an RHK `.sm4` file held in memory.
 pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
     let ctx = Ctx::new(path);
@@ -318,93 +423,14 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
         };
         let string = |i: usize| strings.get(i).map(String::as_str).unwrap_or("");
         let key = |name: &str| format!("Page{page}.{name}");
-        header.push((key("DataType"), data_type.to_string()));
-        header.push((key("PageType"), ph.page_type.to_string()));
-        header.push((key("XSize"), ph.x_size.to_string()));
-        header.push((key("YSize"), ph.y_size.to_string()));
-        let dir_name = match ph.scan_dir {
-            0 => "SCAN_RIGHT",
-            1 => "SCAN_LEFT",
-            2 => "SCAN_UP",
-            3 => "SCAN_DOWN",
-            _ => "unknown",
-        };
-        header.push((key("ScanDirection"), dir_name.to_string()));
-        for (name, v) in [
-            ("XScale", ph.x_scale),
-            ("YScale", ph.y_scale),
-            ("ZScale", ph.z_scale),
-            ("XOffset", ph.x_offset),
-            ("YOffset", ph.y_offset),
-            ("ZOffset", ph.z_offset),
-            ("Period", ph.period),
-            ("Bias", ph.bias),
-            ("Current", ph.current),
-            ("Angle", ph.angle),
-        ] {
-            header.push((key(name), format!("{v:e}")));
-        }
-        for (i, s) in strings.iter().enumerate() {
-            let name = STRING_NAMES
-                .get(i)
-                .map_or_else(|| format!("String{i}"), |n| (*n).to_string());
-            header.push((key(&name), s.clone()));
-        }
+        push_page_header(&mut header, page, data_type, &ph, &strings);
         if data_type != 0 {
             continue; // spectra and other non-image pages are listed in the header only
         }
 
         let data_obj = find(&objects, OBJ_PAGE_DATA)
             .ok_or_else(|| ctx.missing(format!("page {page} data object")))?;
-        let (nx, ny) = ctx.check_grid(
-            &format!("page {page} x/y size"),
-            u64::from(ph.x_size),
-            u64::from(ph.y_size),
-            1,
-            4,
-            (data_obj.offset, data_obj.size),
-        )?;
-        let n = nx * ny;
-        if data_obj.size != 4 * n {
-            return Err(ctx.invalid_data(
-                data_obj.offset,
-                format!(
-                    "page {page} data holds {} bytes, expected {}",
-                    data_obj.size,
-                    4 * n
-                ),
-            ));
-        }
-        for (name, v) in [
-            ("XScale", ph.x_scale),
-            ("YScale", ph.y_scale),
-            ("ZScale", ph.z_scale),
-        ] {
-            if !v.is_finite() || v == 0.0 {
-                return Err(ctx.invalid(key(name), format!("{v} is not a finite non-zero scale")));
-            }
-        }
-        if !ph.z_offset.is_finite() {
-            return Err(ctx.invalid(key("ZOffset"), "not finite"));
-        }
-        let block = ctx.slice(bytes, data_obj.offset, 4 * n, &format!("page {page} data"))?;
-        let (zs, zo) = (f64::from(ph.z_scale), f64::from(ph.z_offset));
-        let stored: Vec<f64> = block
-            .chunks_exact(4)
-            .map(|c| f64::from(i32::from_le_bytes([c[0], c[1], c[2], c[3]])) * zs + zo)
-            .collect();
-        let mirror_x = ph.x_scale < 0.0;
-        let flip_y = ph.y_scale > 0.0;
-        let mut data = Vec::with_capacity(n);
-        for row in 0..ny {
-            let src = if flip_y { ny - 1 - row } else { row };
-            let line = &stored[src * nx..(src + 1) * nx];
-            if mirror_x {
-                data.extend(line.iter().rev());
-            } else {
-                data.extend_from_slice(line);
-            }
-        }
+        let (nx, ny, data, flip_y) = page_image(ctx, bytes, page, &ph, data_obj)?;
         let direction = if ph.scan_dir == 1 {
             Direction::Backward
         } else {

@@ -172,6 +172,130 @@ fn parse_recorded(header: &[(String, String)]) -> Option<DateTime> {
     )
 }
 
+/// Scan geometry and line timing from the header, the same for every channel.
+struct ScanGeometry {
+    size_m: Option<(f64, f64)>,
+    center_m: Option<(f64, f64)>,
+    angle_deg: Option<f64>,
+    scan_dir: Option<ScanDir>,
+    /// Forward and backward line times, s.
+    times: Option<(f64, f64)>,
+}
+
+impl ScanGeometry {
+    fn read(ctx: Ctx<'_>, header: &[(String, String)]) -> Result<Self> {
+        let size_m = match get(header, "SCAN_RANGE") {
+            Some(v) => Some(two_numbers(ctx, "SCAN_RANGE", v)?),
+            None => None,
+        };
+        let center_m = match get(header, "SCAN_OFFSET") {
+            Some(v) => Some(two_numbers(ctx, "SCAN_OFFSET", v)?),
+            None => None,
+        };
+        let angle_deg = match get(header, "SCAN_ANGLE") {
+            Some(v) if !v.trim().is_empty() => Some(parse_f64(ctx, "SCAN_ANGLE", v)?),
+            _ => None,
+        };
+        let scan_dir = match get(header, "SCAN_DIR").map(|s| s.trim().to_ascii_lowercase()) {
+            Some(s) if s == "down" => Some(ScanDir::Down),
+            Some(s) if s == "up" => Some(ScanDir::Up),
+            Some(s) => {
+                return Err(ctx.invalid("SCAN_DIR", format!("expected up or down, found {s:?}")));
+            }
+            None => None,
+        };
+        let times = match get(header, "SCAN_TIME") {
+            Some(v) => {
+                let (f, b) = two_numbers(ctx, "SCAN_TIME", v)?;
+                if f <= 0.0 || b < 0.0 {
+                    return Err(
+                        ctx.invalid("SCAN_TIME", format!("non-positive line time in {v:?}"))
+                    );
+                }
+                Some((f, b))
+            }
+            None => None,
+        };
+        Ok(Self {
+            size_m,
+            center_m,
+            angle_deg,
+            scan_dir,
+            times,
+        })
+    }
+
+    /// `ch` with this geometry and the timing of its trace direction.
+    fn apply(&self, mut ch: Channel, direction: Direction) -> Channel {
+        if let Some((sx, sy)) = self.size_m {
+            ch = ch.with_size_nm(sx * 1e9, sy * 1e9);
+        }
+        if let Some((cx, cy)) = self.center_m {
+            ch = ch.with_center_nm(cx * 1e9, cy * 1e9);
+        }
+        if let Some(a) = self.angle_deg {
+            ch = ch.with_angle_deg(a);
+        }
+        if let Some(d) = self.scan_dir {
+            ch = ch.with_scan_dir(d);
+        }
+        if let Some((tf, tb)) = self.times {
+            let (line_time_s, first) = match direction {
+                Direction::Forward => (tf, 0.0),
+                Direction::Backward => (tb, tf),
+            };
+            ch = ch.with_timing(LineTiming {
+                line_time_s,
+                line_period_s: tf + tb,
+                first_line_start_s: first,
+            });
+        }
+        ch
+    }
+}
+
+/// The f32 values of one image block starting at byte `offset`; infinite values are refused.
+fn decode_f32(ctx: Ctx<'_>, block: &[u8], offset: usize, big_endian: bool) -> Result<Vec<f64>> {
+    let mut stored = Vec::with_capacity(block.len() / 4);
+    for (k, c) in block.chunks_exact(4).enumerate() {
+        let raw = [c[0], c[1], c[2], c[3]];
+        let v = if big_endian {
+            f32::from_be_bytes(raw)
+        } else {
+            f32::from_le_bytes(raw)
+        };
+        if v.is_infinite() {
+            return Err(ctx.invalid_data(offset + 4 * k, "infinite value"));
+        }
+        stored.push(f64::from(v));
+    }
+    Ok(stored)
+}
+
+/// Stored order = acquisition order. Display: top line first, x increasing.
+fn display_order(
+    stored: &[f64],
+    nx: usize,
+    ny: usize,
+    scan_dir: Option<ScanDir>,
+    direction: Direction,
+) -> Vec<f64> {
+    let mut data = Vec::with_capacity(nx * ny);
+    for row in 0..ny {
+        let src_row = if scan_dir == Some(ScanDir::Up) {
+            ny - 1 - row
+        } else {
+            row
+        };
+        let line = &stored[src_row * nx..(src_row + 1) * nx];
+        match direction {
+            Direction::Forward => data.extend_from_slice(line),
+            Direction::Backward => data.extend(line.iter().rev()),
+        }
+    }
+    data
+}
+
 /// Parses a Nanonis scan file held in memory.
 pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
     let ctx = Ctx::new(path);
@@ -228,34 +352,8 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
         (data_offset, bytes.len() - data_offset),
     )?;
 
-    let size_m = match get(&header, "SCAN_RANGE") {
-        Some(v) => Some(two_numbers(ctx, "SCAN_RANGE", v)?),
-        None => None,
-    };
-    let center_m = match get(&header, "SCAN_OFFSET") {
-        Some(v) => Some(two_numbers(ctx, "SCAN_OFFSET", v)?),
-        None => None,
-    };
-    let angle_deg = match get(&header, "SCAN_ANGLE") {
-        Some(v) if !v.trim().is_empty() => Some(parse_f64(ctx, "SCAN_ANGLE", v)?),
-        _ => None,
-    };
-    let scan_dir = match get(&header, "SCAN_DIR").map(|s| s.trim().to_ascii_lowercase()) {
-        Some(s) if s == "down" => Some(ScanDir::Down),
-        Some(s) if s == "up" => Some(ScanDir::Up),
-        Some(s) => return Err(ctx.invalid("SCAN_DIR", format!("expected up or down, found {s:?}"))),
-        None => None,
-    };
-    let times = match get(&header, "SCAN_TIME") {
-        Some(v) => {
-            let (f, b) = two_numbers(ctx, "SCAN_TIME", v)?;
-            if f <= 0.0 || b < 0.0 {
-                return Err(ctx.invalid("SCAN_TIME", format!("non-positive line time in {v:?}")));
-            }
-            Some((f, b))
-        }
-        None => None,
-    };
+    let geometry = ScanGeometry::read(ctx, &header)?;
+    let (scan_dir, times) = (geometry.scan_dir, geometry.times);
 
     let n = nx * ny;
     let mut channels = Vec::with_capacity(images);
@@ -268,35 +366,10 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
                 n * 4,
                 &format!("{} {} image", spec.name, direction),
             )?;
-            let mut stored = Vec::with_capacity(n);
-            for (k, c) in block.chunks_exact(4).enumerate() {
-                let raw = [c[0], c[1], c[2], c[3]];
-                let v = if big_endian {
-                    f32::from_be_bytes(raw)
-                } else {
-                    f32::from_le_bytes(raw)
-                };
-                if v.is_infinite() {
-                    return Err(ctx.invalid_data(offset + 4 * k, "infinite value"));
-                }
-                stored.push(f64::from(v));
-            }
+            let stored = decode_f32(ctx, block, offset, big_endian)?;
             offset += n * 4;
-            // Stored order = acquisition order. Display: top line first, x increasing.
-            let mut data = Vec::with_capacity(n);
-            for row in 0..ny {
-                let src_row = if scan_dir == Some(ScanDir::Up) {
-                    ny - 1 - row
-                } else {
-                    row
-                };
-                let line = &stored[src_row * nx..(src_row + 1) * nx];
-                match direction {
-                    Direction::Forward => data.extend_from_slice(line),
-                    Direction::Backward => data.extend(line.iter().rev()),
-                }
-            }
-            let mut ch = Channel::new(
+            let data = display_order(&stored, nx, ny, scan_dir, direction);
+            let ch = Channel::new(
                 spec.name.clone(),
                 direction,
                 spec.unit.clone(),
@@ -305,29 +378,7 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
                 data,
             )
             .map_err(|_| ctx.invalid("SCAN_PIXELS", "grid does not match data"))?;
-            if let Some((sx, sy)) = size_m {
-                ch = ch.with_size_nm(sx * 1e9, sy * 1e9);
-            }
-            if let Some((cx, cy)) = center_m {
-                ch = ch.with_center_nm(cx * 1e9, cy * 1e9);
-            }
-            if let Some(a) = angle_deg {
-                ch = ch.with_angle_deg(a);
-            }
-            if let Some(d) = scan_dir {
-                ch = ch.with_scan_dir(d);
-            }
-            if let Some((tf, tb)) = times {
-                let (line_time_s, first) = match direction {
-                    Direction::Forward => (tf, 0.0),
-                    Direction::Backward => (tb, tf),
-                };
-                ch = ch.with_timing(LineTiming {
-                    line_time_s,
-                    line_period_s: tf + tb,
-                    first_line_start_s: first,
-                });
-            }
+            let ch = geometry.apply(ch, direction);
             channels.push(ch);
         }
     }

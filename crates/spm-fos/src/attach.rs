@@ -57,7 +57,7 @@ impl AttachParams {
             segment,
             first_detection: DetectionConfig::default(),
             segment_detection: DetectionConfig::default(),
-            motion: Motion::default(),
+            motion: Motion::TYPICAL,
             velocity_limit_counts_per_s,
             settle_count: 3,
             velocity_window: 4,

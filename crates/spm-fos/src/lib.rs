@@ -16,6 +16,7 @@
 //! Everything is generic over the backend; nothing here knows whether it
 //! drives a simulator or an instrument. Velocities are the apparent motion
 //! of the surface in scanner counts per second.
+#![doc = include_str!("../README.md")]
 #![warn(missing_docs)]
 
 mod acquire;

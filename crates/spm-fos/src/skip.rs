@@ -33,7 +33,7 @@ impl SkipParams {
         Self {
             segment,
             detection: DetectionConfig::default(),
-            motion: Motion::default(),
+            motion: Motion::TYPICAL,
             max_cycles: 4 * monitor.required_cycles.max(1) + 8,
             monitor,
             capture_radius_fraction: 0.4,

@@ -351,8 +351,8 @@ fn aperture_finds_the_lcs_around_a() {
     let params = ApertureParams {
         raster,
         detection: detection(raster.pixel_step_counts),
-        lcs: LcsConfig::hopg(NM_PER_COUNT * 0.9),
-        motion: Motion::default(),
+        lcs: LcsConfig::hopg(spm_hal::NmPerCount(NM_PER_COUNT * 0.9)),
+        motion: Motion::TYPICAL,
     };
     let report = aperture(&mut m, atom(1, 1), &params).unwrap();
     m.done().unwrap();
@@ -377,7 +377,7 @@ fn counter_scanning_recovers_the_drift() {
     let params = CounterScanParams {
         raster,
         detection: detection(raster.pixel_step_counts),
-        motion: Motion::default(),
+        motion: Motion::TYPICAL,
         match_radius_counts: 0.3 * A,
         drift_prior: CountVelocity::ZERO,
     };
@@ -456,8 +456,8 @@ fn single_scan_error(v: (f64, f64), seed: u64) -> f64 {
     let params = ApertureParams {
         raster,
         detection: detection(raster.pixel_step_counts),
-        lcs: LcsConfig::hopg(NM_PER_COUNT),
-        motion: Motion::default(),
+        lcs: LcsConfig::hopg(spm_hal::NmPerCount(NM_PER_COUNT)),
+        motion: Motion::TYPICAL,
     };
     let report = aperture(&mut m, atom(0, 0), &params).unwrap();
     let a = report.feature(report.a.unwrap()).unwrap().position;

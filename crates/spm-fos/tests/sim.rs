@@ -57,8 +57,8 @@ fn aperture_params() -> ApertureParams {
             ..raster(64)
         },
         detection: detection(),
-        lcs: LcsConfig::hopg(K),
-        motion: Motion::default(),
+        lcs: LcsConfig::hopg(spm_hal::NmPerCount(K)),
+        motion: Motion::TYPICAL,
     }
 }
 
@@ -227,7 +227,7 @@ fn counter_scanning_recovers_the_drift_velocity() {
                 ..raster(64)
             },
             detection: detection(),
-            motion: Motion::default(),
+            motion: Motion::TYPICAL,
             match_radius_counts: 0.35 * A,
             drift_prior: CountVelocity::ZERO,
         };
@@ -291,7 +291,7 @@ fn attach_after_a_node_move_settles_only_when_creep_has_died_out() {
         let node = CountPoint::from_counts(6000.0, 4000.0);
         sim.move_to(MoveRequest {
             target: node,
-            speed_counts_per_s: 20_000.0,
+            speed: spm_hal::CountsPerSecond(20_000.0),
             settle: Seconds(0.0),
         })
         .unwrap();

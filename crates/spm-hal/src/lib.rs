@@ -11,6 +11,7 @@
 //! stage) is found by [`Microscope::coarse_z`] and [`Capabilities`], not by
 //! "unsupported" errors. [`mock::ScriptedMicroscope`] is an expectation-queue
 //! backend with fault injection for tests of generic code.
+#![doc = include_str!("../README.md")]
 #![warn(missing_docs)]
 
 pub mod microscope;
@@ -28,6 +29,6 @@ pub use scan::{
     TraceImage,
 };
 pub use units::{
-    CountPoint, CountVector, CountVelocity, Counts, Nanometres, NmPerCount, NmPoint, NmVelocity,
-    Radians, Seconds,
+    CountPoint, CountVector, CountVelocity, Counts, CountsPerSecond, Nanometres, NmPerCount,
+    NmPerCountMatrix, NmPoint, NmVelocity, Radians, Seconds,
 };

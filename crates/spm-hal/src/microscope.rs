@@ -1,7 +1,7 @@
 //! The `Microscope` trait: the one I/O boundary between algorithms and an instrument.
 
 use crate::scan::{Frame, ScanRequest};
-use crate::units::{CountPoint, Counts, Seconds};
+use crate::units::{CountPoint, Counts, CountsPerSecond, Seconds};
 use serde::{Deserialize, Serialize};
 
 /// What went wrong, in terms every backend shares. Algorithms match on this,
@@ -102,8 +102,8 @@ pub struct Capabilities {
 pub struct MoveRequest {
     /// Target position, counts.
     pub target: CountPoint,
-    /// Speed of the move, counts per second (> 0).
-    pub speed_counts_per_s: f64,
+    /// Speed of the move (> 0).
+    pub speed: CountsPerSecond,
     /// Time to wait at the target before returning, seconds (≥ 0).
     pub settle: Seconds,
 }

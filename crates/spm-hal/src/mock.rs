@@ -367,8 +367,8 @@ impl Microscope for ScriptedMicroscope {
             });
         }
         let length = self.position.distance(request.target);
-        if request.speed_counts_per_s > 0.0 && request.speed_counts_per_s.is_finite() {
-            self.clock += Seconds(length.value() / request.speed_counts_per_s);
+        if request.speed.value() > 0.0 && request.speed.value().is_finite() {
+            self.clock += Seconds(length.value() / request.speed.value());
         }
         self.clock += request.settle.max(Seconds::ZERO);
         self.position = request.target;
@@ -478,7 +478,7 @@ mod tests {
         let error = m
             .move_to(MoveRequest {
                 target: CountPoint::from_counts(1.0, 1.0),
-                speed_counts_per_s: 100.0,
+                speed: crate::CountsPerSecond(100.0),
                 settle: Seconds(0.0),
             })
             .unwrap_err();
@@ -504,7 +504,7 @@ mod tests {
         });
         let far = MoveRequest {
             target: CountPoint::from_counts(50.0, 5.0),
-            speed_counts_per_s: 10.0,
+            speed: crate::CountsPerSecond(10.0),
             settle: Seconds(0.0),
         };
         assert!(m.move_to(far).is_err());

@@ -212,6 +212,74 @@ impl Mul<Counts> for NmPerCount {
     }
 }
 
+/// A speed along a path, scanner counts per second (a move's speed).
+#[derive(Clone, Copy, Debug, Default, PartialEq, PartialOrd, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct CountsPerSecond(pub f64);
+
+impl CountsPerSecond {
+    /// The bare number in counts per second.
+    #[inline]
+    pub const fn value(self) -> f64 {
+        self.0
+    }
+
+    /// The time to travel `length` at this speed (infinite at a speed ≤ 0).
+    #[must_use]
+    pub fn time_for(self, length: Counts) -> Seconds {
+        if self.0 > 0.0 {
+            Seconds(length.0.abs() / self.0)
+        } else {
+            Seconds(f64::INFINITY)
+        }
+    }
+}
+
+/// A local metric of the scanner: the 2 × 2 matrix that maps a count vector to nanometres,
+/// `[[K̄x, K̄y·sin α], [0, K̄y·cos α]]` in the scanner-aligned frame (DESIGN §4), row-major.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct NmPerCountMatrix(pub [[f64; 2]; 2]);
+
+impl NmPerCountMatrix {
+    /// From the local calibration coefficients K̄x, K̄y (nm/count) and α (rad).
+    #[must_use]
+    pub fn from_lcc(kx: NmPerCount, ky: NmPerCount, alpha: Radians) -> Self {
+        let (s, c) = alpha.0.sin_cos();
+        Self([[kx.0, ky.0 * s], [0.0, ky.0 * c]])
+    }
+
+    /// The rows.
+    #[must_use]
+    pub const fn rows(self) -> [[f64; 2]; 2] {
+        self.0
+    }
+
+    /// The image of a count vector, nm.
+    #[must_use]
+    pub fn apply(self, v: CountVector) -> (Nanometres, Nanometres) {
+        let m = self.0;
+        (
+            Nanometres(m[0][0] * v.x.0 + m[0][1] * v.y.0),
+            Nanometres(m[1][0] * v.x.0 + m[1][1] * v.y.0),
+        )
+    }
+
+    /// The count vector whose image is `(x, y)` nm; `None` for a singular matrix.
+    #[must_use]
+    pub fn solve(self, x: Nanometres, y: Nanometres) -> Option<CountVector> {
+        let m = self.0;
+        let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+        if !(det.is_finite() && det.abs() > f64::MIN_POSITIVE) {
+            return None;
+        }
+        Some(CountVector::new(
+            Counts((m[1][1] * x.0 - m[0][1] * y.0) / det),
+            Counts((m[0][0] * y.0 - m[1][0] * x.0) / det),
+        ))
+    }
+}
+
 /// A velocity in scanner counts per second (drift measured in scanner coordinates).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct CountVelocity {

@@ -370,6 +370,148 @@ fn robust_sigma(residual: &[f64], mask: &[bool]) -> f64 {
     1.4826 * abs[abs.len() / 2]
 }
 
+/// χ² of the 4×4 position-cell means of the residual against the noise, over groups.
+#[derive(Default)]
+struct SpatialCells {
+    chi2: f64,
+    dof: usize,
+    excess: f64,
+    cells: usize,
+}
+
+impl SpatialCells {
+    /// Adds the cells of one (frame, direction) group `idx` with its mean and variance.
+    fn add_group(
+        &mut self,
+        obs: &[Obs],
+        residual: &[f64],
+        idx: &[usize],
+        mean: [f64; 2],
+        var: [f64; 2],
+    ) {
+        let mut cells: BTreeMap<(i64, i64), ([f64; 2], usize)> = BTreeMap::new();
+        for &k in idx {
+            let c = [0, 1].map(|a| (((obs[k].xi[a] + 1.0) * 2.0).floor() as i64).clamp(0, 3));
+            let e = cells.entry((c[0], c[1])).or_insert(([0.0, 0.0], 0));
+            e.0[0] += residual[2 * k] - mean[0];
+            e.0[1] += residual[2 * k + 1] - mean[1];
+            e.1 += 1;
+        }
+        let noise = 0.5 * (var[0] + var[1]);
+        for (sum, m) in cells.values() {
+            if *m < 4 || noise <= 0.0 {
+                continue;
+            }
+            for v in sum {
+                let cm = v / *m as f64;
+                self.chi2 += cm * cm * *m as f64 / noise;
+                self.dof += 1;
+                self.excess += (cm * cm - noise / *m as f64).max(0.0);
+                self.cells += 1;
+            }
+        }
+    }
+
+    /// The z of the χ² excess and the RMS of the position-dependent part, nm.
+    fn z_and_rms(&self) -> (f64, f64) {
+        let z = if self.dof > 0 {
+            (self.chi2 - self.dof as f64) / (2.0 * self.dof as f64).sqrt()
+        } else {
+            0.0
+        };
+        let rms = if self.cells > 0 {
+            (2.0 * self.excess / self.cells as f64).sqrt()
+        } else {
+            0.0
+        };
+        (z, rms)
+    }
+}
+
+/// Forward − backward mean residual within one frame: the largest significant offset per axis
+/// and the largest z.
+fn direction_offset(
+    group_means: &BTreeMap<(usize, u8), GroupStats>,
+    threshold: f64,
+) -> ([f64; 2], f64) {
+    let mut dir_offset = [0.0_f64, 0.0];
+    let mut dir_z: f64 = 0.0;
+    for (&(frame, d), &(mf, vf, nf)) in group_means {
+        if d != 0 {
+            continue;
+        }
+        let Some(&(mb, vb, nb)) = group_means.get(&(frame, 1)) else {
+            continue;
+        };
+        for a in 0..2 {
+            let delta = mf[a] - mb[a];
+            let se = (vf[a] / nf as f64 + vb[a] / nb as f64).sqrt().max(1e-300);
+            let z = delta.abs() / se;
+            if z > dir_z {
+                dir_z = z;
+            }
+            if z > threshold && delta.abs() > dir_offset[a].abs() {
+                dir_offset[a] = delta;
+            }
+        }
+    }
+    (dir_offset, dir_z)
+}
+
+/// Neighbour pairs in a set of series.
+fn pairs(series: &[Vec<f64>]) -> usize {
+    series
+        .iter()
+        .map(|s| s.len().saturating_sub(1))
+        .sum::<usize>()
+}
+
+/// The pooled variance about each series' own mean (series shorter than 2 skipped).
+fn series_variance(series: &[Vec<f64>]) -> f64 {
+    let (mut sum, mut n) = (0.0, 0usize);
+    for s in series {
+        if s.len() < 2 {
+            continue;
+        }
+        let m = s.iter().sum::<f64>() / s.len() as f64;
+        sum += s.iter().map(|v| (v - m).powi(2)).sum::<f64>();
+        n += s.len();
+    }
+    if n > 0 { sum / n as f64 } else { 0.0 }
+}
+
+/// A reason for every time-ordered or line-mean residual series whose lag-1 autocorrelation is
+/// both significant (z over `threshold`) and relevant (amplitude at least `relevance_nm`).
+fn autocorrelation_reasons(
+    lag: [f64; 4],
+    n_pairs: [usize; 4],
+    vars: [f64; 4],
+    threshold: f64,
+    relevance_nm: f64,
+    reasons: &mut Vec<String>,
+) {
+    let names = [
+        "time-ordered x",
+        "time-ordered y",
+        "line-mean x",
+        "line-mean y",
+    ];
+    for i in 0..4 {
+        // ρ₁ ≈ var(signal)/var(total) for a slow signal in white noise: the
+        // correlated part has RMS √(ρ₁·var) per axis (√2 for a vector).
+        let rho = lag[i] / (n_pairs[i].max(1) as f64).sqrt();
+        let amplitude = (rho.max(0.0) * vars[i]).sqrt() * std::f64::consts::SQRT_2;
+        if lag[i] > threshold && amplitude >= relevance_nm {
+            reasons.push(format!(
+                "{} residual autocorrelated (z = {:.1}, ≈ {:.1} pm)",
+                names[i],
+                lag[i],
+                1000.0 * amplitude
+            ));
+        }
+    }
+}
+
 /// Residual-structure tests. `relevance_nm` is the smallest RMS displacement
 /// that matters: statistically significant structure smaller than it is noted
 /// but does not make the residual "unexplained".
@@ -401,10 +543,7 @@ fn structure(
             / (2 * used.len()) as f64
     };
     let mut reasons = Vec::new();
-    let mut spatial_chi2 = 0.0;
-    let mut spatial_dof = 0usize;
-    let mut spatial_excess = 0.0;
-    let mut spatial_cells = 0usize;
+    let mut spatial = SpatialCells::default();
     let mut frame_excess: f64 = 0.0;
     let mut frame_z: f64 = 0.0;
     let mut group_means: BTreeMap<(usize, u8), GroupStats> = BTreeMap::new();
@@ -463,106 +602,19 @@ fn structure(
             frame_excess = excess;
         }
         // 4×4 position cells: χ² of the cell means against the noise.
-        let mut cells: BTreeMap<(i64, i64), ([f64; 2], usize)> = BTreeMap::new();
-        for &k in &idx {
-            let c = [0, 1].map(|a| (((obs[k].xi[a] + 1.0) * 2.0).floor() as i64).clamp(0, 3));
-            let e = cells.entry((c[0], c[1])).or_insert(([0.0, 0.0], 0));
-            e.0[0] += residual[2 * k] - mean[0];
-            e.0[1] += residual[2 * k + 1] - mean[1];
-            e.1 += 1;
-        }
-        let noise = 0.5 * (var[0] + var[1]);
-        for (sum, m) in cells.values() {
-            if *m < 4 || noise <= 0.0 {
-                continue;
-            }
-            for v in sum {
-                let cm = v / *m as f64;
-                spatial_chi2 += cm * cm * *m as f64 / noise;
-                spatial_dof += 1;
-                spatial_excess += (cm * cm - noise / *m as f64).max(0.0);
-                spatial_cells += 1;
-            }
-        }
+        spatial.add_group(obs, residual, &idx, mean, var);
     }
-    // Forward − backward within one frame.
-    let mut dir_offset = [0.0_f64, 0.0];
-    let mut dir_z: f64 = 0.0;
-    for (&(frame, d), &(mf, vf, nf)) in &group_means {
-        if d != 0 {
-            continue;
-        }
-        let Some(&(mb, vb, nb)) = group_means.get(&(frame, 1)) else {
-            continue;
-        };
-        for a in 0..2 {
-            let delta = mf[a] - mb[a];
-            let se = (vf[a] / nf as f64 + vb[a] / nb as f64).sqrt().max(1e-300);
-            let z = delta.abs() / se;
-            if z > dir_z {
-                dir_z = z;
-            }
-            if z > threshold && delta.abs() > dir_offset[a].abs() {
-                dir_offset[a] = delta;
-            }
-        }
-    }
-    let spatial_z = if spatial_dof > 0 {
-        (spatial_chi2 - spatial_dof as f64) / (2.0 * spatial_dof as f64).sqrt()
-    } else {
-        0.0
-    };
-    let spatial_rms = if spatial_cells > 0 {
-        (2.0 * spatial_excess / spatial_cells as f64).sqrt()
-    } else {
-        0.0
-    };
+    let (dir_offset, dir_z) = direction_offset(&group_means, threshold);
+    let (spatial_z, spatial_rms) = spatial.z_and_rms();
     let lag = [lag1_z(&sx), lag1_z(&sy), lag1_z(&lx), lag1_z(&ly)];
-    let pairs = |series: &[Vec<f64>]| {
-        series
-            .iter()
-            .map(|s| s.len().saturating_sub(1))
-            .sum::<usize>()
-    };
     let n_pairs = [pairs(&sx), pairs(&sy), pairs(&lx), pairs(&ly)];
-    let names = [
-        "time-ordered x",
-        "time-ordered y",
-        "line-mean x",
-        "line-mean y",
-    ];
-    let series_var = |series: &[Vec<f64>]| {
-        let (mut sum, mut n) = (0.0, 0usize);
-        for s in series {
-            if s.len() < 2 {
-                continue;
-            }
-            let m = s.iter().sum::<f64>() / s.len() as f64;
-            sum += s.iter().map(|v| (v - m).powi(2)).sum::<f64>();
-            n += s.len();
-        }
-        if n > 0 { sum / n as f64 } else { 0.0 }
-    };
     let vars = [
-        series_var(&sx),
-        series_var(&sy),
-        series_var(&lx),
-        series_var(&ly),
+        series_variance(&sx),
+        series_variance(&sy),
+        series_variance(&lx),
+        series_variance(&ly),
     ];
-    for i in 0..4 {
-        // ρ₁ ≈ var(signal)/var(total) for a slow signal in white noise: the
-        // correlated part has RMS √(ρ₁·var) per axis (√2 for a vector).
-        let rho = lag[i] / (n_pairs[i].max(1) as f64).sqrt();
-        let amplitude = (rho.max(0.0) * vars[i]).sqrt() * std::f64::consts::SQRT_2;
-        if lag[i] > threshold && amplitude >= relevance_nm {
-            reasons.push(format!(
-                "{} residual autocorrelated (z = {:.1}, ≈ {:.1} pm)",
-                names[i],
-                lag[i],
-                1000.0 * amplitude
-            ));
-        }
-    }
+    autocorrelation_reasons(lag, n_pairs, vars, threshold, relevance_nm, &mut reasons);
     if dir_z > threshold && dir_offset[0].hypot(dir_offset[1]) >= relevance_nm {
         reasons.push(format!(
             "forward and backward differ by ({:.1}, {:.1}) pm (z = {:.1})",
@@ -1032,6 +1084,7 @@ fn encompasses(
 }
 
 /// Like [`diagnose_features`] with the lattice sites given (e.g. from a simulator's oracle).
+// long-function: the forward model selection shares one fit state (candidate set, residuals, BIC ledger) across its stages; issue 18 rewrites this loop into separate stages
 pub fn diagnose_indexed(
     set: &FeatureSet,
     sites: &[Option<[i64; 2]>],

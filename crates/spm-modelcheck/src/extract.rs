@@ -261,6 +261,94 @@ impl FrameSettings {
     }
 }
 
+/// The forward height channel of a file (or its backward one when the file holds only that
+/// direction), and the backward channel of the same name when there is one.
+fn height_channels<'f>(
+    file: &'f SpmFile,
+    ex: &ExtractOptions,
+    path: &str,
+) -> Result<(&'f Channel, Option<&'f Channel>), ModelCheckError> {
+    let is_height = |c: &&Channel| match &ex.channel {
+        Some(name) => c.name() == name,
+        None => c.unit() == "m",
+    };
+    let heights: Vec<&Channel> = file.channels.iter().filter(is_height).collect();
+    let Some(forward) = heights
+        .iter()
+        .find(|c| c.direction() == Direction::Forward)
+        .or_else(|| heights.first())
+        .copied()
+    else {
+        return Err(ModelCheckError::MissingMetadata {
+            path: path.to_owned(),
+            reason: match &ex.channel {
+                Some(name) => format!("no channel named {name:?}"),
+                None => format!(
+                    "no height channel (unit m) among {} channel(s): {}",
+                    file.channels.len(),
+                    file.channels
+                        .iter()
+                        .map(|c| format!("{} [{}] {:?}", c.name(), c.unit(), c.direction()))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+            },
+        });
+    };
+    let backward = heights
+        .iter()
+        .find(|c| c.direction() == Direction::Backward && c.name() == forward.name())
+        .copied()
+        .filter(|b| !std::ptr::eq(*b, forward));
+    Ok((forward, backward))
+}
+
+/// The levelled channel as a height map in scanner geometry (row index grows with y; display
+/// row 0 is the top), one pixel per count, and which pixels were not scanned (NaN).
+fn geometric_map(channel: &Channel) -> (HeightMap, Vec<bool>) {
+    let (nx, ny) = (channel.nx(), channel.ny());
+    let (values, nan) = level(channel);
+    let mut z = vec![0.0; nx * ny];
+    let mut bad = vec![false; nx * ny];
+    for r in 0..ny {
+        for c in 0..nx {
+            z[(ny - 1 - r) * nx + c] = values[r * nx + c];
+            bad[(ny - 1 - r) * nx + c] = nan[r * nx + c];
+        }
+    }
+    let map = HeightMap {
+        origin: CountPoint::from_counts(0.0, 0.0),
+        pixel_step: Counts(1.0),
+        columns: nx,
+        rows: ny,
+        z_counts: z,
+        time_s: vec![0.0; nx * ny],
+    };
+    (map, bad)
+}
+
+/// Whether an unscanned pixel lies within `a_px` pixels of the feature.
+fn near_unscanned(
+    f: &FeatureObservation,
+    pixel_nm: [f64; 2],
+    (nx, ny): (usize, usize),
+    a_px: i64,
+    bad: &[bool],
+) -> bool {
+    let c = (f.x_nm / pixel_nm[0] + 0.5 * (nx as f64 - 1.0)).round() as i64;
+    let r = (f.y_nm / pixel_nm[1] + 0.5 * (ny as f64 - 1.0)).round() as i64;
+    (-a_px..=a_px).any(|dr| {
+        (-a_px..=a_px).any(|dc| {
+            let (rr, cc) = (r + dr, c + dc);
+            rr >= 0
+                && cc >= 0
+                && (rr as usize) < ny
+                && (cc as usize) < nx
+                && bad[rr as usize * nx + cc as usize]
+        })
+    })
+}
+
 /// Extracts feature observations from the height channels (forward and
 /// backward) of each file. Frame `i` of the result is file `i`.
 pub fn extract_features(
@@ -281,41 +369,7 @@ pub fn extract_features(
     let mut first_settings: Option<(String, FrameSettings)> = None;
     for (frame_index, (file, start)) in files.iter().enumerate() {
         let path = file.source.display().to_string();
-        let is_height = |c: &&Channel| match &ex.channel {
-            Some(name) => c.name() == name,
-            None => c.unit() == "m",
-        };
-        let heights: Vec<&Channel> = file.channels.iter().filter(is_height).collect();
-        // The first height channel's forward image, or its backward image when
-        // the file holds only that direction.
-        let Some(first) = heights
-            .iter()
-            .find(|c| c.direction() == Direction::Forward)
-            .or_else(|| heights.first())
-            .copied()
-        else {
-            return Err(ModelCheckError::MissingMetadata {
-                path,
-                reason: match &ex.channel {
-                    Some(name) => format!("no channel named {name:?}"),
-                    None => format!(
-                        "no height channel (unit m) among {} channel(s): {}",
-                        file.channels.len(),
-                        file.channels
-                            .iter()
-                            .map(|c| format!("{} [{}] {:?}", c.name(), c.unit(), c.direction()))
-                            .collect::<Vec<_>>()
-                            .join(", ")
-                    ),
-                },
-            });
-        };
-        let forward = first;
-        let backward = heights
-            .iter()
-            .find(|c| c.direction() == Direction::Backward && c.name() == forward.name())
-            .copied()
-            .filter(|b| !std::ptr::eq(*b, forward));
+        let (forward, backward) = height_channels(file, ex, &path)?;
         let (Some(sx), Some(sy)) = (forward.size_x_nm(), forward.size_y_nm()) else {
             return Err(ModelCheckError::MissingMetadata {
                 path,
@@ -390,24 +444,7 @@ pub fn extract_features(
                 },
                 |t| t.first_line_start_s,
             );
-            let (values, nan) = level(channel);
-            // Geometry: row index grows with y (display row 0 is the top).
-            let mut z = vec![0.0; nx * ny];
-            let mut bad = vec![false; nx * ny];
-            for r in 0..ny {
-                for c in 0..nx {
-                    z[(ny - 1 - r) * nx + c] = values[r * nx + c];
-                    bad[(ny - 1 - r) * nx + c] = nan[r * nx + c];
-                }
-            }
-            let map = HeightMap {
-                origin: CountPoint::from_counts(0.0, 0.0),
-                pixel_step: Counts(1.0),
-                columns: nx,
-                rows: ny,
-                z_counts: z,
-                time_s: vec![0.0; nx * ny],
-            };
+            let (map, bad) = geometric_map(channel);
             let scan_up = channel.scan_dir().or(file.scan_dir) == Some(ScanDir::Up);
             let time_and_line = |column: f64, row: f64| {
                 let display_row = (ny as f64 - 1.0) - row;
@@ -434,18 +471,7 @@ pub fn extract_features(
             // Drop features next to unscanned (NaN) pixels.
             let a_px = (lattice.a_nm() / pixel_nm[0]).ceil() as i64;
             for f in feats {
-                let c = (f.x_nm / pixel_nm[0] + 0.5 * (nx as f64 - 1.0)).round() as i64;
-                let r = (f.y_nm / pixel_nm[1] + 0.5 * (ny as f64 - 1.0)).round() as i64;
-                let near_nan = (-a_px..=a_px).any(|dr| {
-                    (-a_px..=a_px).any(|dc| {
-                        let (rr, cc) = (r + dr, c + dc);
-                        rr >= 0
-                            && cc >= 0
-                            && (rr as usize) < ny
-                            && (cc as usize) < nx
-                            && bad[rr as usize * nx + cc as usize]
-                    })
-                });
+                let near_nan = near_unscanned(&f, pixel_nm, (nx, ny), a_px, &bad);
                 if !near_nan {
                     set.features.push(f);
                 }

@@ -394,6 +394,7 @@ fn inverse(b1: [f64; 2], b2: [f64; 2]) -> Option<[[f64; 2]; 2]> {
 }
 
 /// Indexes every feature of `set` to a lattice site.
+// long-function: one breadth-first indexing walk whose queue, seeds and per-frame registration are shared by every step; issue 18 replaces its seeding
 pub fn index_features(
     set: &FeatureSet,
     lattice: &LatticeSpec,

@@ -37,6 +37,7 @@
 //! the claimed lattice are refused ([`ModelCheckError::NotTheLattice`]).
 //! The constant parts of nonorthogonality and linear crosstalk are inside the
 //! baseline's lumped linear scanner and cannot be told apart from it.
+#![doc = include_str!("../README.md")]
 #![warn(missing_docs)]
 
 mod diagnose;

@@ -13,6 +13,7 @@
 //! - [`LccRecord::check`]: the validity rules every store applies before writing.
 //! - [`ProgressStore`]: begin a run, read the plan's states, commit a node in one
 //!   transaction, give a node up, finish the run.
+#![doc = include_str!("../README.md")]
 
 mod columns;
 mod model;

@@ -12,7 +12,7 @@ use crate::polynomial::{MAX_DEGREE, n_terms, term_powers};
 use crate::{Polynomial2, RegressionError};
 
 /// Rows reduced per QR block.
-const BLOCK_ROWS: usize = 1024;
+pub(crate) const BLOCK_ROWS: usize = 1024;
 
 /// Observations z_i at points (x_i, y_i), optionally weighted (structure of arrays).
 ///
@@ -145,7 +145,7 @@ pub struct PolyFit {
 }
 
 /// Centre and half-range of a coordinate (half-range 1 if all points coincide).
-fn normalisation(v: &[f64]) -> (f64, f64) {
+pub(crate) fn normalisation(v: &[f64]) -> (f64, f64) {
     let (lo, hi) = v
         .iter()
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &t| {
@@ -179,7 +179,70 @@ pub(crate) fn design_row(u: f64, v: f64, degree: u32, row: &mut [f64]) {
     }
 }
 
+/// Fills `row` with √w times the design row of point `i` (normalised coordinates) and returns
+/// √w·z_i; `None` for a point of zero weight.
+pub(crate) fn weighted_row(
+    obs: &Observations<'_>,
+    i: usize,
+    degree: u32,
+    (cx, sx): (f64, f64),
+    (cy, sy): (f64, f64),
+    row: &mut [f64],
+) -> Option<f64> {
+    let w = obs.weight_of(i);
+    if w <= 0.0 {
+        return None;
+    }
+    let sw = w.sqrt();
+    design_row((obs.x[i] - cx) / sx, (obs.y[i] - cy) / sy, degree, row);
+    for val in row.iter_mut() {
+        *val *= sw;
+    }
+    Some(sw * obs.value[i])
+}
+
+/// The least-squares reduction of the weighted design matrix: R (m × m, upper triangular)
+/// and Qᵀb, by a streaming Householder QR (blocks of [`BLOCK_ROWS`] rows stacked under the
+/// running R and re-factorised), O(m²) memory whatever the number of points.
+pub(crate) fn streaming_qr(
+    obs: &Observations<'_>,
+    degree: u32,
+    norm_x: (f64, f64),
+    norm_y: (f64, f64),
+) -> (DMatrix<f64>, DVector<f64>) {
+    let m = n_terms(degree);
+    let mut r = DMatrix::<f64>::zeros(m, m);
+    let mut qtb = DVector::<f64>::zeros(m);
+    let mut row = vec![0.0; m];
+    let n = obs.len();
+    let mut start = 0;
+    while start < n {
+        let end = (start + BLOCK_ROWS).min(n);
+        let rows = m + (end - start);
+        let mut a = DMatrix::<f64>::zeros(rows, m);
+        let mut b = DVector::<f64>::zeros(rows);
+        a.view_mut((0, 0), (m, m)).copy_from(&r);
+        b.rows_mut(0, m).copy_from(&qtb);
+        for (k, i) in (start..end).enumerate() {
+            if let Some(z) = weighted_row(obs, i, degree, norm_x, norm_y, &mut row) {
+                for (c, val) in row.iter().enumerate() {
+                    a[(m + k, c)] = *val;
+                }
+                b[m + k] = z;
+            }
+        }
+        let qr = a.qr();
+        qr.q_tr_mul(&mut b);
+        r = qr.r();
+        qtb.copy_from(&b.rows(0, m));
+        start = end;
+    }
+    (r, qtb)
+}
+
 /// Weighted least-squares fit of a total-degree-`degree` polynomial surface (eq. 6).
+///
+/// Implements eq. (6): the coefficient vector by least squares.
 ///
 /// # Errors
 /// [`RegressionError::DegreeTooHigh`]; input errors of [`Observations::validate`];
@@ -208,38 +271,7 @@ pub fn fit(
     }
     let (cx, sx) = normalisation(obs.x);
     let (cy, sy) = normalisation(obs.y);
-
-    // Streaming QR: [R; block] → R'.
-    let mut r = DMatrix::<f64>::zeros(m, m);
-    let mut qtb = DVector::<f64>::zeros(m);
-    let mut row = vec![0.0; m];
-    let n = obs.len();
-    let mut start = 0;
-    while start < n {
-        let end = (start + BLOCK_ROWS).min(n);
-        let rows = m + (end - start);
-        let mut a = DMatrix::<f64>::zeros(rows, m);
-        let mut b = DVector::<f64>::zeros(rows);
-        a.view_mut((0, 0), (m, m)).copy_from(&r);
-        b.rows_mut(0, m).copy_from(&qtb);
-        for (k, i) in (start..end).enumerate() {
-            let w = obs.weight_of(i);
-            if w <= 0.0 {
-                continue;
-            }
-            let sw = w.sqrt();
-            design_row((obs.x[i] - cx) / sx, (obs.y[i] - cy) / sy, degree, &mut row);
-            for (c, val) in row.iter().enumerate() {
-                a[(m + k, c)] = sw * val;
-            }
-            b[m + k] = sw * obs.value[i];
-        }
-        let qr = a.qr();
-        qr.q_tr_mul(&mut b);
-        r = qr.r();
-        qtb.copy_from(&b.rows(0, m));
-        start = end;
-    }
+    let (r, qtb) = streaming_qr(obs, degree, (cx, sx), (cy, sy));
 
     let sv = r.clone().svd(false, false).singular_values;
     let smax = sv.iter().copied().fold(0.0_f64, f64::max);
@@ -267,7 +299,7 @@ pub fn fit(
         .map_err(|_| ill())?;
 
     let (mut rss, mut wrss) = (0.0, 0.0);
-    for i in 0..n {
+    for i in 0..obs.len() {
         let w = obs.weight_of(i);
         if w <= 0.0 {
             continue;

@@ -8,7 +8,10 @@
 //!
 //! Pure: no IO, no clock, no random numbers. Every failure is a typed [`RegressionError`];
 //! no function returns NaN for finite input.
+#![doc = include_str!("../README.md")]
 
+#[cfg(feature = "faer")]
+pub mod bench_support;
 mod error;
 mod fit;
 mod polynomial;

@@ -22,6 +22,8 @@ pub fn n_terms(degree: u32) -> usize {
 /// `1, y, x, xy, y², x², xy², x²y, y³, x³, xy³, x²y², x³y, y⁴, x⁴, …`
 ///
 /// which reproduces the paper's p_x = (0, 0, 1, 1, 0, 2, …), p_y = (0, 1, 0, 1, 2, 0, …).
+///
+/// Implements eq. (6): the power vectors p_x, p_y.
 pub fn term_powers(degree: u32) -> impl Iterator<Item = (u32, u32)> + Clone {
     (0..=degree).flat_map(|n| {
         let count = if n == 0 { 1 } else { n + 1 };
@@ -249,6 +251,8 @@ impl Polynomial2 {
     }
 
     /// f(x, y).
+    ///
+    /// Implements eq. (6): Σ a·x^p_x·y^p_y.
     #[must_use]
     pub fn evaluate(&self, x: f64, y: f64) -> f64 {
         let (u, v) = self.normalise(x, y);
@@ -283,6 +287,8 @@ impl Polynomial2 {
     }
 
     /// Analytic ∫ f(x, y) dx from `x_a` to `x_b` at fixed `y` (the first integral of eq. 9).
+    ///
+    /// Implements eq. (12): the analytic x integral of eq. (6).
     #[must_use]
     pub fn integrate_x(&self, x_a: f64, x_b: f64, y: f64) -> f64 {
         let (ua, v) = self.normalise(x_a, y);
@@ -297,6 +303,8 @@ impl Polynomial2 {
     }
 
     /// Analytic ∫ f(x, y) dy from `y_a` to `y_b` at fixed `x` (the y integrals of eq. 9).
+    ///
+    /// Implements eq. (12): the analytic y integral of eq. (6).
     #[must_use]
     pub fn integrate_y(&self, x: f64, y_a: f64, y_b: f64) -> f64 {
         let (u, va) = self.normalise(x, y_a);

@@ -8,6 +8,8 @@ use crate::{Polynomial2, RegressionError};
 /// their regression surface, over the points with positive weight (weights are otherwise not
 /// used: eq. 14 is unweighted).
 ///
+/// Implements eq. (14).
+///
 /// # Errors
 /// Input errors of [`Observations::validate`]; [`RegressionError::TooFewPoints`] if n < 2.
 pub fn sigma(surface: &Polynomial2, obs: &Observations<'_>) -> Result<f64, RegressionError> {
@@ -54,6 +56,8 @@ pub struct DeltaMax {
 /// (both ends included), `reference` = (x₀, y₀) chosen by the caller (the origin of the
 /// image for virtual calibration, the scanner origin for real calibration). A measure of how
 /// far the surface is from the horizontal plane of an ideal scanner.
+///
+/// Implements eq. (13).
 ///
 /// # Errors
 /// [`RegressionError::InvalidArgument`] for a grid with fewer than 1 point per axis or a field
@@ -119,6 +123,8 @@ pub fn delta_max(
 
 /// The products K̄y·sin α and K̄y·cos α of eq. (11), through which the product surfaces
 /// K̄yx^r and K̄yy^r are fitted (fit each with [`crate::fit`] like any other LCC).
+///
+/// Implements eq. (11): the values the product surfaces are fitted to.
 ///
 /// # Errors
 /// [`RegressionError::LengthMismatch`], [`RegressionError::NonFinite`].

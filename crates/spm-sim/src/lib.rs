@@ -117,6 +117,7 @@
 //! [`SimError`] of the matching [`spm_hal::ErrorKind`]; tip changes and drift
 //! bursts change the data only. Everything is logged with its time
 //! ([`Oracle::fault_log`]), including spontaneous drift jumps.
+#![doc = include_str!("../README.md")]
 #![warn(missing_docs)]
 
 pub mod config;

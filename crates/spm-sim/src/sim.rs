@@ -1028,7 +1028,7 @@ impl Microscope for Simulator {
     fn move_to(&mut self, request: MoveRequest) -> Result<(), SimError> {
         self.begin_call(Operation::MoveTo, true)?;
         let target = self.check_point(request.target, "move target")?;
-        let speed = request.speed_counts_per_s;
+        let speed = request.speed.value();
         if !(speed.is_finite() && speed > 0.0) {
             return Err(SimError::InvalidRequest {
                 reason: format!("move speed {speed} counts/s must be finite and > 0"),

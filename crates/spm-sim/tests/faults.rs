@@ -35,7 +35,7 @@ fn call_faults_return_the_matching_error_kind() {
     let e = sim
         .move_to(MoveRequest {
             target: CountPoint::from_counts(500.0, 0.0),
-            speed_counts_per_s: 1e4,
+            speed: spm_hal::CountsPerSecond(1e4),
             settle: Seconds(0.0),
         })
         .unwrap_err();
@@ -166,7 +166,7 @@ fn random_faults_at_high_rates_never_panic_and_are_all_logged() {
             0 => sim.scan(&request()).map(|_| ()),
             1 => sim.move_to(MoveRequest {
                 target: CountPoint::from_counts(100.0 + f64::from(k), 50.0),
-                speed_counts_per_s: 1e3,
+                speed: spm_hal::CountsPerSecond(1e3),
                 settle: Seconds(0.05),
             }),
             _ => sim.wait(Seconds(0.2)),
@@ -213,7 +213,7 @@ fn bad_requests_are_typed_errors() {
     let e = sim
         .move_to(MoveRequest {
             target: CountPoint::from_counts(0.0, 0.0),
-            speed_counts_per_s: 0.0,
+            speed: spm_hal::CountsPerSecond(0.0),
             settle: Seconds(0.0),
         })
         .unwrap_err();

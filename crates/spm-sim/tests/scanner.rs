@@ -12,7 +12,7 @@ use spm_sim::{Lcc, SimConfig, Simulator};
 fn move_fast(sim: &mut Simulator, x: f64, y: f64) {
     sim.move_to(MoveRequest {
         target: CountPoint::from_counts(x, y),
-        speed_counts_per_s: 1e8,
+        speed: spm_hal::CountsPerSecond(1e8),
         settle: Seconds(0.0),
     })
     .unwrap();
@@ -280,7 +280,7 @@ fn the_oracle_inverse_finds_where_a_lattice_site_appears() {
         .unwrap();
     sim.move_to(spm_hal::MoveRequest {
         target,
-        speed_counts_per_s: 1e9,
+        speed: spm_hal::CountsPerSecond(1e9),
         settle: Seconds(0.0),
     })
     .unwrap();

@@ -285,7 +285,7 @@ pub fn take_test_images<S: SimulatedInstrument>(
                     retry(images.len(), "move", || {
                         sim.move_to(MoveRequest {
                             target: centre_point,
-                            speed_counts_per_s: config.move_speed_counts_per_s,
+                            speed: spm_hal::CountsPerSecond(config.move_speed_counts_per_s),
                             settle: Seconds(config.settle_s),
                         })
                     })?;

@@ -13,6 +13,7 @@
 //! The binary (`src/main.rs`) parses arguments, installs the tracing
 //! subscriber and maps errors to exit codes; everything here returns typed
 //! errors and prints nothing.
+#![doc = include_str!("../README.md")]
 
 pub mod accuracy;
 pub mod images;

@@ -257,6 +257,8 @@ pub fn fit_from_cdb(
 }
 
 /// Fits the surfaces of one Z plane from its records.
+///
+/// Implements eq. (2): the regression surfaces of one fixed Z position z_i.
 pub fn fit_plane(
     z_counts: i64,
     columns: &LccColumns,

@@ -115,8 +115,8 @@ fn one_run(seed: u64, v: f64) -> Result<Option<(f64, f64, Vec<f64>)>, XtaskError
     let ap_params = ApertureParams {
         raster: raster(64, 3e-4),
         detection: detection(),
-        lcs: LcsConfig::hopg(K),
-        motion: Motion::default(),
+        lcs: LcsConfig::hopg(spm_hal::NmPerCount(K)),
+        motion: Motion::TYPICAL,
     };
     let ap =
         aperture(&mut sim, a0.position, &ap_params).map_err(|e| XtaskError::step("aperture", e))?;
@@ -160,7 +160,7 @@ fn one_run(seed: u64, v: f64) -> Result<Option<(f64, f64, Vec<f64>)>, XtaskError
     let params = CounterScanParams {
         raster: raster(64, 3e-4),
         detection: detection(),
-        motion: Motion::default(),
+        motion: Motion::TYPICAL,
         match_radius_counts: 0.35 * A,
         drift_prior: drift,
     };

@@ -15,6 +15,7 @@ mod budget;
 mod crb;
 mod drift;
 mod gwyddion;
+mod linalg;
 mod productivity;
 mod report;
 mod speed;
@@ -111,6 +112,8 @@ pub struct Results {
     pub gwyddion: Section<gwyddion::GwyddionResults>,
     /// The vertical axis: Kz, the bowl, the z-dependence (issue 15).
     pub vertical: Section<vertical::VerticalResults>,
+    /// Large least squares, nalgebra beside faer.
+    pub linalg: Section<linalg::LinalgResults>,
 }
 
 /// What `cargo xtask bench` was asked to do.
@@ -165,6 +168,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
             ))
         }
     });
+    let linalg = timed("linalg", || linalg::run(&ctx));
     let mut machine = machine;
     machine.load_average_end = load_average();
     let mut command = String::from("cargo xtask bench");
@@ -193,6 +197,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
         speed,
         gwyddion,
         vertical,
+        linalg,
     };
     report::write(&ctx, &results)
 }

@@ -574,6 +574,7 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
             let _ = writeln!(md, "Peer rows missing: {missing}\n");
         }
     }
+    super::linalg::markdown(&mut md, &results.linalg);
 
     if !figures.is_empty() {
         let _ = writeln!(md, "## Figures\n");

@@ -62,6 +62,10 @@ pub struct PlanConfig {
     pub failures: FailureConfig,
     /// Which variant of the method (paper §6).
     pub variant: VariantConfig,
+    /// Kz from monatomic steps searched near every node, and the LCS's level for the bowl
+    /// (issue 15); absent = no vertical measurements (records carry no Kz).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub steps: Option<crate::vertical::StepSearchConfig>,
     /// The controller's tuning constants (fractions of the lattice or of a raster, counts of
     /// sightings). Optional in a plan file: absent, [`TuningConfig::RECOMMENDED`] is used and
     /// written back by [`PlanConfig::to_toml_string`], so a stored plan always states them.
@@ -199,9 +203,9 @@ pub struct StandardConfig {
     pub length_tolerance_fraction: f64,
     /// Accepted deviation of the LCS angle, degrees.
     pub angle_tolerance_deg: f64,
-    /// Height of a monatomic step, nm (HOPG: 0.3354), for Kz. The controller does not yet
-    /// locate steps by itself: Kz is computed with [`crate::solve_kz`] from step heights
-    /// measured separately, and records carry no Kz (`kz_nm_per_count = None`).
+    /// Height of a monatomic step, nm (HOPG: 0.3354), for Kz: with a `[plan.steps]` table the
+    /// controller searches a step near every node ([`crate::vertical`]); without one records
+    /// carry no Kz (`kz_nm_per_count = None`).
     pub step_height_nm: Option<f64>,
 }
 
@@ -289,6 +293,7 @@ impl NetConfig {
             let start = lo + leftover / 2;
             Ok((start, start + n * self.step_counts))
         };
+        crate::vertical::check_coarse_levels(&self.z_levels, capabilities)?;
         let (x0, x1) = span(
             capabilities.field_min.x.value(),
             capabilities.field_max.x.value(),
@@ -603,6 +608,17 @@ impl PlanConfig {
             1e-3,
             60.0,
         )?;
+        if let Some(steps) = &self.steps {
+            if s.step_height_nm.is_none() {
+                return bad(
+                    "standard.step_height_nm",
+                    "is required when [plan.steps] searches steps for Kz".into(),
+                );
+            }
+            if let Err((field, reason)) = steps.check() {
+                return bad(&field, reason);
+            }
+        }
         if let Some(h) = s.step_height_nm {
             within("standard.step_height_nm", h, 1e-3, 100.0)?;
         }

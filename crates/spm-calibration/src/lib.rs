@@ -55,6 +55,7 @@ pub mod machine;
 pub mod measure;
 pub mod plan;
 pub mod runner;
+pub mod vertical;
 
 pub use config::{
     ApertureConfig, AttachConfig, AttachTarget, ConfigError, DriftConfig, FailureConfig,
@@ -75,3 +76,4 @@ pub use runner::{
     Calibrator, FosParams, GivenUpVisit, MemoryStore, MemoryStoreError, NoObserver, Observer,
     ProgressStore, RunError, RunOptions, RunReport,
 };
+pub use vertical::{KzOutcome, KzSearch, StepSearchConfig};

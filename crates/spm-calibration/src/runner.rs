@@ -50,6 +50,8 @@ pub trait Observer {
     fn attach_sightings(&mut self, _visit: &PlanVisit, _sightings: &[spm_fos::Sighting]) {}
     /// A new drift velocity estimate at instrument time `at`.
     fn drift_estimate(&mut self, _visit: &PlanVisit, _velocity: CountVelocity, _at: Seconds) {}
+    /// The vertical measurements at a visit (plans with `[plan.steps]`).
+    fn kz_searched(&mut self, _visit: &PlanVisit, _search: &crate::vertical::KzSearch) {}
     /// Asked before every visit: `false` stops the run cleanly (it stays resumable).
     fn keep_going(&mut self) -> bool {
         true
@@ -112,6 +114,9 @@ pub struct RunReport {
     pub instrument_time_s: f64,
     /// True when stopped by the observer before the plan's end.
     pub interrupted: bool,
+    /// Step searches for Kz (plans with `[plan.steps]`).
+    #[serde(default)]
+    pub kz: crate::vertical::KzTally,
 }
 
 /// Why a run failed as a whole.
@@ -625,7 +630,12 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             Err(e) => return Err(e),
         };
         let at_unix_s = clock.unix(now);
-        let record = self.record(run_id, measurement, z.value(), at_unix_s);
+        let mut record = self.record(run_id, measurement, z.value(), at_unix_s);
+        // Vertical axis (issue 15): the LCS's level and Kz from a nearby step.
+        if let Some(search) = crate::vertical::at_node(self.microscope, &self.config, &mut record) {
+            report.kz.count(&search);
+            self.observer.kz_searched(visit, &search);
+        }
         let done = NodeDone {
             repeat_index: visit.repeat_index,
             node_index: visit.node_index,
@@ -722,6 +732,8 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             cycles_kept: m.cycles.kept,
             cycles_discarded: m.cycles.discarded,
             quality: m.quality(),
+            kz_x_counts: None,
+            kz_y_counts: None,
         }
     }
 

@@ -119,9 +119,19 @@ fn a_plan_needing_a_coarse_stage_is_refused_without_one() {
         .lenient_moves_and_waits(true);
     let mut store = MemoryStore::default();
     let mut observer = Counting::default();
+    // Refused when the controller is built, naming the field (issue 15), before any run.
     let error = Calibrator::new(&mut mock, &mut store, &mut observer, plan)
-        .unwrap()
-        .run(&options())
-        .unwrap_err();
-    assert!(matches!(error, RunError::Unsupported(_)), "{error}");
+        .err()
+        .expect("refused");
+    assert!(
+        matches!(
+            error,
+            RunError::Plan(spm_calibration::PlanError::Invalid {
+                field: "z_levels.coarse_steps",
+                ..
+            })
+        ),
+        "{error}"
+    );
+    assert!(store.runs.is_empty());
 }

@@ -49,5 +49,7 @@ pub fn synthetic_record(i: u64, per_run: u64, run_ids: &[String]) -> LccRecord {
         cycles_kept: 8,
         cycles_discarded: 1,
         quality: 0.9,
+        kz_x_counts: None,
+        kz_y_counts: None,
     }
 }

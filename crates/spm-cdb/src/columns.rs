@@ -53,7 +53,7 @@ pub(crate) fn insert_record(
 
 /// Reads a row selected with [`RECORD_COLUMNS`] (starting at column 0).
 pub(crate) fn record_from_row(row: &Row<'_>) -> rusqlite::Result<LccRecord> {
-    let mut values: [OwnedColumnValue; 25] =
+    let mut values: [OwnedColumnValue; 27] =
         std::array::from_fn(|_| OwnedColumnValue::OptionalReal(None));
     for (i, (col, slot)) in LCC_RECORD_COLUMNS.iter().zip(values.iter_mut()).enumerate() {
         *slot = match col.kind {

@@ -87,19 +87,34 @@ pub fn redact_url(url: &str) -> String {
 /// Versions of the PostgreSQL schema. History as in [`crate::SCHEMA_VERSION`]:
 /// - v1: runs, progress, records without standard uncertainties.
 /// - v2: records gain the standard uncertainties (NULL = unknown for records migrated from v1).
+/// - v3: records gain `kz_x_counts`, `kz_y_counts`, where Kz was measured (NULL = no Kz).
 const V1_DESCRIPTION: &str = "runs, progress, records";
 
 /// Record columns added by later versions (absent from the v1 `records` table).
-const ADDED_AFTER_V1: [&str; 4] = UNCERTAINTY_COLUMNS;
+const ADDED_AFTER_V1: [&str; 6] = [
+    UNCERTAINTY_COLUMNS[0],
+    UNCERTAINTY_COLUMNS[1],
+    UNCERTAINTY_COLUMNS[2],
+    UNCERTAINTY_COLUMNS[3],
+    "kz_x_counts",
+    "kz_y_counts",
+];
 
 /// Migration steps: `MIGRATIONS[k]` takes version k+1 to k+2 (description, SQL).
-const MIGRATIONS: &[(&str, &str)] = &[(
-    "standard uncertainties",
-    "ALTER TABLE records ADD COLUMN u_kx_nm_per_count DOUBLE PRECISION;
+const MIGRATIONS: &[(&str, &str)] = &[
+    (
+        "standard uncertainties",
+        "ALTER TABLE records ADD COLUMN u_kx_nm_per_count DOUBLE PRECISION;
      ALTER TABLE records ADD COLUMN u_ky_nm_per_count DOUBLE PRECISION;
      ALTER TABLE records ADD COLUMN u_alpha_rad DOUBLE PRECISION;
      ALTER TABLE records ADD COLUMN u_kz_nm_per_count DOUBLE PRECISION;",
-)];
+    ),
+    (
+        "where Kz was measured",
+        "ALTER TABLE records ADD COLUMN kz_x_counts DOUBLE PRECISION;
+     ALTER TABLE records ADD COLUMN kz_y_counts DOUBLE PRECISION;",
+    ),
+];
 
 /// The PostgreSQL type and constraint of a record column kind.
 fn sql_type(kind: ColumnKind) -> &'static str {
@@ -210,11 +225,11 @@ impl ToSql for Bind<'_> {
     postgres::types::to_sql_checked!();
 }
 
-fn binds(r: &LccRecord) -> [Bind<'_>; 25] {
+fn binds(r: &LccRecord) -> [Bind<'_>; LCC_RECORD_COLUMNS.len()] {
     r.column_values().map(Bind)
 }
 
-fn bind_refs<'a>(values: &'a [Bind<'a>; 25]) -> Vec<&'a (dyn ToSql + Sync)> {
+fn bind_refs<'a>(values: &'a [Bind<'a>; LCC_RECORD_COLUMNS.len()]) -> Vec<&'a (dyn ToSql + Sync)> {
     values.iter().map(|b| b as &(dyn ToSql + Sync)).collect()
 }
 
@@ -233,7 +248,7 @@ fn record_from_row(path: &Path, row: &Row) -> Result<LccRecord> {
         path: path.to_path_buf(),
         reason: e.to_string(),
     };
-    let mut values: [OwnedColumnValue; 25] =
+    let mut values: [OwnedColumnValue; LCC_RECORD_COLUMNS.len()] =
         std::array::from_fn(|_| OwnedColumnValue::OptionalReal(None));
     for (i, (col, slot)) in LCC_RECORD_COLUMNS.iter().zip(values.iter_mut()).enumerate() {
         *slot = match col.kind {

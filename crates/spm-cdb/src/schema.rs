@@ -5,6 +5,9 @@
 //! - v1: runs, progress, records without standard uncertainties.
 //! - v2: records gain `u_kx_nm_per_count`, `u_ky_nm_per_count`, `u_alpha_rad`,
 //!   `u_kz_nm_per_count` (NULL = unknown for records migrated from v1).
+//! - v3: records gain `kz_x_counts`, `kz_y_counts`, where Kz was measured (the step's edge
+//!   point; NULL for records without Kz and for records migrated from v2, whose values are
+//!   left untouched).
 //!
 //! Indexes are kept to two on `records` (the unique (run, repeat, node, lcs) key and
 //! (scanner, z plane, time), which also serves scanner + time-window queries) because each
@@ -16,13 +19,13 @@ use std::path::Path;
 use crate::error::{CdbError, Result};
 
 /// Schema version written by this library.
-pub const SCHEMA_VERSION: i64 = 2;
+pub const SCHEMA_VERSION: i64 = 3;
 
 /// `PRAGMA application_id` of a spmcal CDB ("SPMC").
 pub const APPLICATION_ID: i64 = 0x5350_4D43;
 
 /// The complete current schema, used for new files.
-const SCHEMA_V2: &str = "
+const SCHEMA_V3: &str = "
 CREATE TABLE runs (
     run_id          TEXT PRIMARY KEY NOT NULL,
     scanner_id      TEXT NOT NULL,
@@ -73,7 +76,9 @@ CREATE TABLE records (
     u_kx_nm_per_count REAL,
     u_ky_nm_per_count REAL,
     u_alpha_rad       REAL,
-    u_kz_nm_per_count REAL
+    u_kz_nm_per_count REAL,
+    kz_x_counts       REAL,
+    kz_y_counts       REAL
 );
 CREATE UNIQUE INDEX records_node ON records (run_id, repeat_index, node_index, lcs_index);
 CREATE INDEX records_plane ON records (scanner_id, node_z_counts, acquired_unix_s);
@@ -87,8 +92,14 @@ ALTER TABLE records ADD COLUMN u_alpha_rad REAL;
 ALTER TABLE records ADD COLUMN u_kz_nm_per_count REAL;
 ";
 
+/// v2 → v3: where Kz was measured.
+const MIGRATE_V2_TO_V3: &str = "
+ALTER TABLE records ADD COLUMN kz_x_counts REAL;
+ALTER TABLE records ADD COLUMN kz_y_counts REAL;
+";
+
 /// Migration steps: `MIGRATIONS[k]` takes version k+1 to k+2.
-const MIGRATIONS: &[&str] = &[MIGRATE_V1_TO_V2];
+const MIGRATIONS: &[&str] = &[MIGRATE_V1_TO_V2, MIGRATE_V2_TO_V3];
 
 /// What a read-only look at a file found.
 pub(crate) struct Probe {
@@ -162,7 +173,7 @@ pub(crate) fn initialise_or_migrate(conn: &mut Connection, path: &Path) -> Resul
         };
         if version == 0 {
             tracing::info!(path = %path.display(), version = SCHEMA_VERSION, "creating CDB schema");
-            tx.execute_batch(SCHEMA_V2).map_err(step)?;
+            tx.execute_batch(SCHEMA_V3).map_err(step)?;
             tx.pragma_update(None, "application_id", APPLICATION_ID)
                 .map_err(step)?;
             tx.pragma_update(None, "user_version", SCHEMA_VERSION)

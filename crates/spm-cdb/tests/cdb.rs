@@ -371,11 +371,15 @@ fn migrates_v1_file() {
     assert_eq!(std::fs::read(&path).unwrap(), before);
 
     let mut cdb = Cdb::open(&path).unwrap();
-    assert_eq!(cdb.schema_version().unwrap(), 2);
+    // v1 → v2 → v3 in one open; the stored values are untouched, the new columns NULL.
+    assert_eq!(cdb.schema_version().unwrap(), SCHEMA_VERSION);
+    assert_eq!(SCHEMA_VERSION, 3);
     let old = cdb.records(&RecordFilter::default()).unwrap();
     assert_eq!(old.len(), 1);
     assert_eq!(old[0].kx_nm_per_count, 0.0201);
+    assert_eq!((old[0].lcs_x_counts, old[0].quality), (0.5, 0.8));
     assert_eq!((old[0].u_kx_nm_per_count, old[0].u_alpha_rad), (None, None));
+    assert_eq!((old[0].kz_x_counts, old[0].kz_y_counts), (None, None));
     assert!(cdb.check().unwrap().is_ok(), "{:?}", cdb.check().unwrap());
     // the migrated file takes v2 records and resumes the old plan
     let r = cdb.run("old-run").unwrap().unwrap();

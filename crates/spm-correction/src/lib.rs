@@ -49,6 +49,7 @@ mod raster;
 mod resample;
 mod surfaces;
 mod trajectory;
+mod vertical;
 
 pub use drift::{
     CounterPairCorrection, DriftEstimate, FeatureMatch, FeatureSighting, SightingPair,
@@ -75,3 +76,4 @@ pub use surfaces::{
     SURFACES_FORMAT_VERSION, SurfaceSet,
 };
 pub use trajectory::{correct_polyline, correct_unit_steps};
+pub use vertical::{bowl_counts, field_at_z};

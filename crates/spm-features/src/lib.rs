@@ -39,6 +39,7 @@ mod error;
 mod fit;
 mod lattice;
 mod lcs;
+pub mod step;
 
 pub use crb::{
     CramerRaoBound, GaussianFeatureModel, design_cramer_rao, gaussian_cramer_rao,
@@ -54,3 +55,4 @@ pub use lcs::{
     HOPG_LATTICE_NM, Lcs, LcsConfig, LcsStandard, find_lcs_at_nearest_vertex, find_lcs_nearest,
     lcs_neighbours, lcs_with_vertex,
 };
+pub use step::{StepConfig, StepMeasurement, StepRejection, measure_step, measure_step_pair};

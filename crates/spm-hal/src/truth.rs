@@ -33,6 +33,36 @@ pub trait GroundTruth {
     /// Large-signal gain per axis from commanded to effective input in the reference state
     /// (dimensionless, ≈ 1 + the hysteresis and creep weights).
     fn reference_gain(&self) -> [f64; 2];
+    /// The vertical axis' truth (Kz field, bowl), when the instrument models it.
+    fn vertical(&self) -> Option<&dyn VerticalTruth> {
+        None
+    }
+}
+
+/// Which reference state lateral positions are taken in by [`VerticalTruth`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LateralState {
+    /// Hysteresis on the major-loop midline, creep settled (as [`GroundTruth::true_lcc`]).
+    CreepSettled,
+    /// Right after a move: hysteresis midline, creep not yet reacted (a node is measured
+    /// seconds after its move).
+    JustMoved,
+}
+
+/// The true vertical axis of an instrument whose physics is known (issue 15).
+pub trait VerticalTruth {
+    /// True local Kz, nm per count, at a commanded point and Z reading.
+    fn kz_at(&self, commanded: CountPoint, z: Counts, state: LateralState) -> f64;
+    /// The Z reading (counts) of a flat, level sample at a commanded point with the coarse
+    /// stage at `coarse_steps`: the bowl as the controller sees it.
+    fn flat_sample_z_reading(
+        &self,
+        commanded: CountPoint,
+        coarse_steps: i64,
+        state: LateralState,
+    ) -> Counts;
+    /// True LCCs (creep-settled reference) at a commanded point for a Z *reading*.
+    fn true_lcc_at_reading(&self, commanded: CountPoint, z: Counts) -> TrueLcc;
 }
 
 /// A square grating to image with the same instrument physics (the realistic per-image

@@ -30,7 +30,7 @@ const fn column(name: &'static str, kind: ColumnKind) -> LccColumn {
 }
 
 /// The record columns in storage order (the [`LccRecord`] field order).
-pub const LCC_RECORD_COLUMNS: [LccColumn; 25] = [
+pub const LCC_RECORD_COLUMNS: [LccColumn; 27] = [
     column("scanner_id", ColumnKind::Text),
     column("run_id", ColumnKind::Text),
     column("acquired_unix_s", ColumnKind::Real),
@@ -56,6 +56,8 @@ pub const LCC_RECORD_COLUMNS: [LccColumn; 25] = [
     column("cycles_kept", ColumnKind::Integer),
     column("cycles_discarded", ColumnKind::Integer),
     column("quality", ColumnKind::Real),
+    column("kz_x_counts", ColumnKind::OptionalReal),
+    column("kz_y_counts", ColumnKind::OptionalReal),
 ];
 
 /// Columns that hold a scale factor (nm per count) and must be > 0 when present.
@@ -118,7 +120,7 @@ pub struct RecordProblem {
 impl LccRecord {
     /// The record's values in [`LCC_RECORD_COLUMNS`] order (integers widened to `i64`).
     #[must_use]
-    pub fn column_values(&self) -> [ColumnValue<'_>; 25] {
+    pub fn column_values(&self) -> [ColumnValue<'_>; 27] {
         use ColumnValue::{Integer, OptionalReal, Real, Text};
         [
             Text(&self.scanner_id),
@@ -146,6 +148,8 @@ impl LccRecord {
             Integer(i64::from(self.cycles_kept)),
             Integer(i64::from(self.cycles_discarded)),
             Real(self.quality),
+            OptionalReal(self.kz_x_counts),
+            OptionalReal(self.kz_y_counts),
         ]
     }
 
@@ -155,7 +159,7 @@ impl LccRecord {
     /// A [`RecordProblem`] naming the first column whose value has the wrong kind or does not
     /// fit the field (a negative index, say). The values are not otherwise checked; use
     /// [`LccRecord::check`] for that.
-    pub fn from_column_values(values: [OwnedColumnValue; 25]) -> Result<Self, RecordProblem> {
+    pub fn from_column_values(values: [OwnedColumnValue; 27]) -> Result<Self, RecordProblem> {
         let mut reader = ColumnReader {
             values: values.into_iter(),
             at: 0,
@@ -192,6 +196,8 @@ impl LccRecord {
             cycles_kept: reader.index()?,
             cycles_discarded: reader.index()?,
             quality: reader.real()?,
+            kz_x_counts: reader.optional_real()?,
+            kz_y_counts: reader.optional_real()?,
         })
     }
 
@@ -244,7 +250,7 @@ impl LccRecord {
 }
 
 struct ColumnReader {
-    values: std::array::IntoIter<OwnedColumnValue, 25>,
+    values: std::array::IntoIter<OwnedColumnValue, 27>,
     at: usize,
 }
 
@@ -335,10 +341,12 @@ mod tests {
             cycles_kept: 5,
             cycles_discarded: 1,
             quality: 0.9,
+            kz_x_counts: None,
+            kz_y_counts: None,
         }
     }
 
-    fn owned(r: &LccRecord) -> [OwnedColumnValue; 25] {
+    fn owned(r: &LccRecord) -> [OwnedColumnValue; 27] {
         r.column_values().map(|v| match v {
             ColumnValue::Text(t) => OwnedColumnValue::Text(t.to_owned()),
             ColumnValue::Real(v) => OwnedColumnValue::Real(v),

@@ -59,6 +59,11 @@ pub struct LccRecord {
     pub cycles_discarded: u32,
     /// Quality score (higher is better; the controller defines the scale).
     pub quality: f64,
+    /// Where Kz was measured (the step's edge point), x, counts; `None` without Kz (and for
+    /// records written before schema v3).
+    pub kz_x_counts: Option<f64>,
+    /// Where Kz was measured, y, counts.
+    pub kz_y_counts: Option<f64>,
 }
 
 /// Status of a calibration run.

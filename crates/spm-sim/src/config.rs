@@ -221,6 +221,10 @@ pub struct ScannerConfig {
     pub hysteresis_y: HysteresisConfig,
     /// Creep (both lateral axes).
     pub creep: CreepConfig,
+    /// Nonlinear Z manipulator whose Kz varies with z and over the field
+    /// ([`crate::vertical`]); absent = linear, Kz = `sensitivity_z_nm_per_count` everywhere.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_manipulator: Option<crate::vertical::ZManipulatorConfig>,
 }
 
 /// Static nonlinearity of one axis: the axis displacement in "linear counts"
@@ -607,6 +611,11 @@ impl SimConfig {
             0.0,
             1.0,
         )?;
+        if let Some(z) = &s.z_manipulator
+            && let Err((field, reason)) = crate::vertical::check(z)
+        {
+            return v.fail(&format!("scanner.z_manipulator.{field}"), &reason);
+        }
         for (name, h) in [
             ("scanner.hysteresis_x", &s.hysteresis_x),
             ("scanner.hysteresis_y", &s.hysteresis_y),

@@ -127,6 +127,7 @@ pub mod oracle;
 pub mod scanner;
 pub mod sim;
 pub mod surface;
+pub mod vertical;
 
 pub use config::{
     CoarseZConfig, ConfigError, CreepConfig, DomainConfig, DriftConfig, FaultConfig, HopgConfig,
@@ -140,3 +141,4 @@ pub use sim::Simulator;
 
 mod truth;
 pub use surface::{FeatureKind, FeatureSite, Surface};
+pub use vertical::{VerticalOracle, ZCrosstalk, ZManipulatorConfig, ZMap};

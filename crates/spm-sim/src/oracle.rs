@@ -82,13 +82,25 @@ impl<'a> Oracle<'a> {
         Lcc::from_jacobian(self.jacobian(effective, z))
     }
 
-    /// True Kz, nm/count.
+    /// The Z-manipulator view: true Kz field, bowl, Z⇒X/Y crosstalk ([`crate::vertical`]).
+    pub fn vertical(&self) -> crate::vertical::VerticalOracle<'a> {
+        crate::vertical::VerticalOracle::new(self.sim)
+    }
+
+    /// Nominal Kz (at z = 0, field centre), nm/count; see [`vertical`](Self::vertical) for
+    /// the field of a nonlinear manipulator.
     pub fn kz(&self) -> NmPerCount {
         NmPerCount(self.sim.map.kz_nm_per_count())
     }
 
     /// The Z reading now without noise (the feedback state), counts.
     pub fn z_now(&self) -> Counts {
+        Counts(self.sim.z_reading_noiseless())
+    }
+
+    /// The static map's Z argument now: the extension in nominal counts (extension / Kz₀);
+    /// equals [`z_now`](Self::z_now) for a linear Z manipulator.
+    pub fn z_map_argument_now(&self) -> Counts {
         Counts(self.sim.z_counts_noiseless())
     }
 
@@ -129,7 +141,10 @@ impl<'a> Oracle<'a> {
     /// Compare measured LCCs with this (taken right after the measurement)
     /// for the 0.1 %-level check.
     pub fn lcc_now(&self, commanded: CountPoint) -> Lcc {
-        self.lcc(self.effective_input_for(commanded), self.z_now())
+        self.lcc(
+            self.effective_input_for(commanded),
+            self.z_map_argument_now(),
+        )
     }
 
     /// Large-signal gain of each axis from commanded to effective input in the

@@ -7,6 +7,7 @@ use crate::fault::{FaultEvent, FaultEventKind, FaultKind, FaultTrigger, Operatio
 use crate::oracle::Oracle;
 use crate::scanner::{Creep, PlayHysteresis, StaticMap};
 use crate::surface::Surface;
+use crate::vertical::ZMap;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -104,6 +105,8 @@ pub struct Simulator {
     pub(crate) config: SimConfig,
     pub(crate) surface: Surface,
     pub(crate) map: StaticMap,
+    /// The Z manipulator's characteristic (extension ⇄ Z counts).
+    pub(crate) zmap: ZMap,
     pub(crate) scanner: ScannerState,
     pub(crate) drift: Drift,
     flicker: Flicker,
@@ -156,6 +159,12 @@ impl Simulator {
         let i = &config.instrument;
         let s = &config.scanner;
         let map = StaticMap::new(s, i.lateral_half_range_counts, i.z_half_range_counts);
+        let zmap = ZMap::new(
+            s.sensitivity_z_nm_per_count,
+            i.z_half_range_counts,
+            i.lateral_half_range_counts,
+            s.z_manipulator.clone(),
+        );
         let scanner = ScannerState {
             hysteresis: [
                 PlayHysteresis::new(&s.hysteresis_x, i.lateral_half_range_counts, 0.0),
@@ -177,6 +186,7 @@ impl Simulator {
         let mut sim = Self {
             surface,
             map,
+            zmap,
             scanner,
             drift,
             flicker,
@@ -260,8 +270,14 @@ impl Simulator {
         self.map.position(ue[0], ue[1], self.z_counts_noiseless())
     }
 
+    /// The static map's Z argument: the extension in nominal counts (extension / Kz₀).
     pub(crate) fn z_counts_noiseless(&self) -> f64 {
         self.z_nm / self.map.kz_nm_per_count()
+    }
+
+    /// The Z reading without noise (counts) through the Z characteristic.
+    pub(crate) fn z_reading_noiseless(&self) -> f64 {
+        self.zmap.counts_of(self.z_nm, self.scanner.effective())
     }
 
     /// Image height of the surface under sample point `s` with the current tip.
@@ -314,7 +330,10 @@ impl Simulator {
         } else {
             0.0
         };
-        let z = (self.z_nm + n + self.flicker.value()) / self.map.kz_nm_per_count();
+        let z = self.zmap.counts_of(
+            self.z_nm + n + self.flicker.value(),
+            self.scanner.effective(),
+        );
         if self.config.measurement.quantise_z_adc {
             round_code(z)
         } else {
@@ -349,6 +368,7 @@ impl Simulator {
         }
         self.scanner.advance(dt_s);
         self.time_s += dt_s;
+        self.zmap.set_time(self.time_s);
         self.flush_drift(self.time_s);
         self.flicker.advance_all(dt_s, &mut self.noise_rng);
         let target = self.feedback_target_nm(self.time_s, None);
@@ -697,6 +717,7 @@ impl Simulator {
     fn pixel(&mut self, u: [f64; 2], t_mid: f64, f: &PixelFactors, record: bool) -> f64 {
         let q = self.quantise_lateral(u);
         self.scanner.set(q);
+        self.zmap.set_time(t_mid);
         let x = self.scanner.input;
         self.scanner.creep_offset = [
             self.scanner.creep[0].advance_with(x[0], &f.creep_decays),
@@ -729,7 +750,9 @@ impl Simulator {
         } else {
             0.0
         };
-        let z = (self.z_nm + n + self.flicker.value()) / kz;
+        let z = self
+            .zmap
+            .counts_of(self.z_nm + n + self.flicker.value(), ue);
         if self.config.measurement.quantise_z_adc {
             round_code(z)
         } else {

@@ -28,6 +28,41 @@ impl GroundTruth for Simulator {
         let (gx, gy) = self.oracle().reference_gain();
         [gx, gy]
     }
+    fn vertical(&self) -> Option<&dyn spm_hal::truth::VerticalTruth> {
+        Some(self)
+    }
+}
+
+impl spm_hal::truth::VerticalTruth for Simulator {
+    fn kz_at(&self, commanded: CountPoint, z: Counts, state: spm_hal::truth::LateralState) -> f64 {
+        self.vertical_in(state).kz_at(commanded, z).value()
+    }
+    fn flat_sample_z_reading(
+        &self,
+        commanded: CountPoint,
+        coarse_steps: i64,
+        state: spm_hal::truth::LateralState,
+    ) -> Counts {
+        self.vertical_in(state)
+            .flat_sample_z_reading(commanded, coarse_steps)
+    }
+    fn true_lcc_at_reading(&self, commanded: CountPoint, z: Counts) -> TrueLcc {
+        let lcc = self.oracle().vertical().true_lcc_at_reading(commanded, z);
+        TrueLcc {
+            kx_nm_per_count: lcc.kx.value(),
+            ky_nm_per_count: lcc.ky.value(),
+            alpha_rad: lcc.alpha.value(),
+        }
+    }
+}
+
+impl Simulator {
+    fn vertical_in(&self, state: spm_hal::truth::LateralState) -> crate::VerticalOracle<'_> {
+        match state {
+            spm_hal::truth::LateralState::CreepSettled => self.oracle().vertical(),
+            spm_hal::truth::LateralState::JustMoved => self.oracle().vertical().just_moved(),
+        }
+    }
 }
 
 /// Salt of the grating twin's seed: its own session on its own sample.

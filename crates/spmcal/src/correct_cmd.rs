@@ -150,6 +150,7 @@ pub fn run(
     out: &Path,
     direction: RasterDirection,
     nominal_nm_per_count: Option<f64>,
+    z_counts: Option<f64>,
 ) -> Result<(), CliError> {
     crate::files::check_input(image, "image")?;
     crate::files::check_output(out, "--out", &[image, surfaces])?;
@@ -165,11 +166,27 @@ pub fn run(
         .map_err(|_| bad(format!("{}: not UTF-8 text", surfaces.display())))?;
     let set = SurfaceSet::from_json_str(&text)
         .map_err(|e| bad(format!("{}: {e}", surfaces.display())))?;
+    if let Some(z) = z_counts
+        && !z.is_finite()
+    {
+        return Err(bad(format!("--z-counts {z} must be a finite number")));
+    }
     let plane = set
-        .plane_nearest(0.0)
+        .plane_nearest(z_counts.unwrap_or(0.0))
         .map_err(|e| bad(format!("{}: {e}", surfaces.display())))?;
+    // The lateral field at the image's Z level: the bracketing planes blended (issue 15).
+    let field =
+        spm_correction::field_at_z(&set, z_counts.unwrap_or(plane.z_counts), Route::Products)
+            .map_err(|e| bad(format!("{}: {e}", surfaces.display())))?;
     let geometry = geometry(&file, channel, nominal_nm_per_count, image)?;
     check_plane(plane, &geometry, surfaces)?;
+    if let Some(z) = z_counts {
+        let (lower, upper, _) = set
+            .bracketing_planes(z)
+            .map_err(|e| bad(format!("{}: {e}", surfaces.display())))?;
+        check_plane(lower, &geometry, surfaces)?;
+        check_plane(upper, &geometry, surfaces)?;
+    }
     if !channel.data().iter().any(|v| v.is_finite()) {
         return Err(bad(format!(
             "{}: channel {:?} holds no finite height (all NaN or infinite)",
@@ -188,7 +205,7 @@ pub fn run(
         RasterDirection::Counter => ScanDirection::Counter,
     };
     let (grid, resampled) = correct_and_resample(
-        &plane.field(Route::Products),
+        &field,
         &geometry,
         scan_direction,
         &Integration::default(),

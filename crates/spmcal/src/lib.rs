@@ -28,3 +28,4 @@ pub mod report;
 pub mod run;
 pub mod simulate;
 pub mod surfaces;
+pub mod vertical;

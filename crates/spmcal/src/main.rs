@@ -103,6 +103,11 @@ enum Command {
         /// record their raster in scanner counts.
         #[arg(long, value_name = "K")]
         nominal_nm_per_count: Option<f64>,
+        /// Z level of the image (its mean Z reading, counts): the lateral field is blended
+        /// between the calibrated Z planes bracketing it (the Z⇒X/Y change of the lateral
+        /// sensitivities). Default: the plane nearest z = 0.
+        #[arg(long, value_name = "Z", allow_hyphen_values = true)]
+        z_counts: Option<f64>,
     },
     /// Describe an SPM file: format, channels, directions, pixels, size, times, header.
     Info {
@@ -394,7 +399,15 @@ fn run(command: Command) -> Result<(), CliError> {
             out,
             direction,
             nominal_nm_per_count,
-        } => correct_cmd::run(&image, &surfaces, &out, direction, nominal_nm_per_count),
+            z_counts,
+        } => correct_cmd::run(
+            &image,
+            &surfaces,
+            &out,
+            direction,
+            nominal_nm_per_count,
+            z_counts,
+        ),
         Command::Diagnose {
             files,
             lattice,

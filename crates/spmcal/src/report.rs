@@ -179,6 +179,8 @@ pub struct CalibrationReport {
     pub images: Option<crate::images::ImageBenchmark>,
     /// Every record's LCCs against the oracle's true LCCs (simulated backends only).
     pub node_lcc_error: Option<NodeLccError>,
+    /// The vertical axis against the oracle (simulated backends, runs that measured Kz).
+    pub vertical: Option<crate::vertical::VerticalReport>,
     /// The calibrator's own report (cycles, given-up nodes with reasons, …).
     pub run: RunReport,
     /// The drift estimates of the run.
@@ -564,6 +566,17 @@ pub fn finish_with(
         accuracy,
         images,
         node_lcc_error,
+        vertical: record.truth.and_then(|truth| {
+            if !fitted
+                .set
+                .planes
+                .iter()
+                .any(|p| p.kz_nm_per_count.is_some())
+            {
+                return None;
+            }
+            crate::vertical::evaluate(truth, record.plan, &fitted.set, &all)
+        }),
         run: record.run.clone(),
         drift,
         notes,

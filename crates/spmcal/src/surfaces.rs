@@ -159,6 +159,8 @@ pub struct RegressionSummary {
     pub alpha: SurfaceSummary,
     /// Kz^r (nm/count), when measured.
     pub kz: Option<SurfaceSummary>,
+    /// The bowl (Z counts of the LCSs over the plane), when the plan measured the LCS levels.
+    pub bowl: Option<SurfaceSummary>,
 }
 
 /// Surfaces and their summary.
@@ -226,6 +228,9 @@ pub fn fit_from_cdb(
         }
         n_records += columns.len();
         let (plane, plane_summary) = fit_plane(z, &columns, options)?;
+        // The bowl from the LCSs' Z (issue 15; plans with `[plan.steps]`).
+        let (plane, plane_summary) =
+            crate::vertical::with_bowl(cdb, &filter, plane, plane_summary, options)?;
         if summary.is_none() || z == 0 {
             summary = Some(plane_summary);
         }
@@ -316,11 +321,12 @@ pub fn fit_plane(
             ky: ky_summary,
             alpha: alpha_summary,
             kz: kz_summary,
+            bowl: None,
         },
     ))
 }
 
-fn extent(x: &[f64], y: &[f64]) -> Field {
+pub(crate) fn extent(x: &[f64], y: &[f64]) -> Field {
     let fold = |v: &[f64]| {
         v.iter()
             .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &t| {
@@ -337,7 +343,7 @@ fn extent(x: &[f64], y: &[f64]) -> Field {
     }
 }
 
-fn fit_one(
+pub(crate) fn fit_one(
     coefficient: &'static str,
     z_counts: i64,
     x: &[f64],

@@ -21,6 +21,7 @@ mod postgres;
 mod productivity;
 mod report;
 mod speed;
+mod vertical;
 
 use crate::XtaskError;
 use serde::Serialize;
@@ -111,6 +112,8 @@ pub struct Results {
     pub speed: Section<speed::SpeedResults>,
     /// Gwyddion side by side.
     pub gwyddion: Section<gwyddion::GwyddionResults>,
+    /// The vertical axis: Kz, the bowl, the z-dependence (issue 15).
+    pub vertical: Section<vertical::VerticalResults>,
     /// Large least squares, nalgebra beside faer.
     pub linalg: Section<linalg::LinalgResults>,
     /// Nanonis TCP overhead: wall time per node over loopback ÷ in process.
@@ -162,6 +165,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
     let speed = timed("speed", || speed::run(&ctx, accuracy.measured()));
     let nanonis = timed("nanonis", || nanonis::run(&ctx));
     let postgres = timed("postgres", || postgres::run(&ctx));
+    let vertical = timed("vertical", || vertical::run(&ctx));
     let gwyddion = timed("gwyddion", || {
         if with_gwyddion {
             gwyddion::run(&ctx)
@@ -200,6 +204,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
         crb,
         speed,
         gwyddion,
+        vertical,
         linalg,
         nanonis,
         postgres,

@@ -81,6 +81,8 @@ pub fn record(run: &RunInfo, node: &PlanNode, lcs_index: u32, t_unix_s: f64) -> 
         cycles_kept: 8,
         cycles_discarded: 2,
         quality: 0.9,
+        kz_x_counts: None,
+        kz_y_counts: None,
     }
 }
 

@@ -397,6 +397,7 @@ impl SimConfig {
 
     /// Like [`validate`](Self::validate), with every field path prefixed by
     /// `prefix` (e.g. `"backend.sim."`) for configs embedded in bigger ones.
+    // long-function: a flat table of independent range checks, one per config field in the order of the config's documentation
     pub fn validate_with_prefix(&self, prefix: &str) -> Result<(), ValidationError> {
         let v = Checker { prefix };
         let i = &self.instrument;

@@ -760,6 +760,7 @@ impl Simulator {
         }
     }
 
+    // long-function: the raster's physics in acquisition order (commanded path, hysteresis, creep, drift, Z reading, noise per pixel) shares one mutable state per pixel; a split would pass that state through every piece
     fn scan_impl(&mut self, request: &ScanRequest) -> Result<Frame, SimError> {
         self.begin_call(Operation::Scan, true)?;
         request.validate().map_err(|e| SimError::InvalidRequest {

@@ -392,167 +392,31 @@ pub fn finish_with(
     // those) has no raster to judge: no accuracy, said in the notes.
     let region = Region::around(record.nodes, 0.0)
         .filter(|r| r.x_max_counts > r.x_min_counts && r.y_max_counts > r.y_min_counts);
-    let mut images = None;
-    let accuracy = match (record.truth, region, fitted.set.planes.first()) {
+    let (accuracy, images) = match (record.truth, region, fitted.set.planes.first()) {
         (Some(truth), Some(region), Some(plane)) => {
-            let oracle = truth;
-            let grid = EvaluationGrid {
-                x_min_counts: region.x_min_counts,
-                x_max_counts: region.x_max_counts,
-                y_min_counts: region.y_min_counts,
-                y_max_counts: region.y_max_counts,
-                z_counts: oracle.z_now().value(),
-                field_pixels: if quick { 33 } else { 65 },
-                image_places: if quick { 5 } else { 9 },
-                image_side_counts: record.plan.aperture.size_counts,
-                lattice_constant_nm: record.plan.standard.lattice_constant_nm,
-            };
-            let z = plane.z_counts;
-            let nominal = record.plan.standard.nominal_nm_per_count;
-            let uncorrected = PlaneSurfaces::constant(z, nominal, nominal, 0.0)?;
-            let centre = (
-                0.5 * (region.x_min_counts + region.x_max_counts),
-                0.5 * (region.y_min_counts + region.y_max_counts),
-            );
-            let nearest = all
-                .iter()
-                .min_by(|a, b| {
-                    let da = (a.lcs_x_counts - centre.0).hypot(a.lcs_y_counts - centre.1);
-                    let db = (b.lcs_x_counts - centre.0).hypot(b.lcs_y_counts - centre.1);
-                    da.total_cmp(&db)
-                })
-                .map(|r| (r.node_x_counts, r.node_y_counts));
-            let mean_of = |records: &[&spm_cdb::LccRecord]| {
-                let n = records.len().max(1) as f64;
-                (
-                    records.iter().map(|r| r.kx_nm_per_count).sum::<f64>() / n,
-                    records.iter().map(|r| r.ky_nm_per_count).sum::<f64>() / n,
-                    records.iter().map(|r| r.alpha_rad).sum::<f64>() / n,
-                )
-            };
-            let centre_records: Vec<&spm_cdb::LccRecord> = all
-                .iter()
-                .filter(|r| Some((r.node_x_counts, r.node_y_counts)) == nearest)
-                .collect();
-            let (kx, ky, alpha) = mean_of(&centre_records);
-            let lumped = PlaneSurfaces::constant(z, kx, ky, alpha)?;
-            let every: Vec<&spm_cdb::LccRecord> = all.iter().collect();
-            let (kx, ky, alpha) = mean_of(&every);
-            let affine = PlaneSurfaces::constant(z, kx, ky, alpha)?;
-            images = if with_images {
-                Some(truth.image_benchmark(
-                    record,
-                    &region,
-                    &[
-                        ("uncorrected", &uncorrected),
-                        ("lumped", &lumped),
-                        ("affine", &affine),
-                        ("distributed", plane),
-                    ],
-                    quick,
-                )?)
-            } else {
-                None
-            };
-            let uncorrected = evaluate(oracle, &uncorrected, &grid)?;
-            let lumped = evaluate(oracle, &lumped, &grid)?;
-            let affine = evaluate(oracle, &affine, &grid)?;
-            let distributed = evaluate(oracle, plane, &grid)?;
-            let v = oracle.drift_velocity(oracle.now());
-            let lines = POLYNOMIAL_LINES as f64;
-            let polynomial = polynomial_baseline(
-                oracle,
-                &grid,
-                &PolynomialImage {
-                    control_points: POLYNOMIAL_CONTROL,
-                    image_time_s: lines * 2.0 * lines * record.plan.motion.pixel_dwell_s,
-                    drift_nm_per_s: (v.x_nm_per_s, v.y_nm_per_s),
-                },
-            )?;
-            Some(AccuracyTable {
-                distributed_over_lumped_rms: distributed.rms_pm / lumped.rms_pm,
-                uncorrected,
-                lumped,
-                affine,
-                polynomial: Some(polynomial),
-                distributed,
-            })
+            let (accuracy, images) =
+                accuracy_section(truth, record, &region, plane, &all, quick, with_images)?;
+            (Some(accuracy), images)
         }
         _ => {
             notes.push(
                 "accuracy: needs a simulated backend (the oracle) and measured nodes that span an area"
                     .to_owned(),
             );
-            None
+            (None, None)
         }
     };
 
-    let mut figures = Vec::new();
-    if let (Some(region), Some(plane)) = (
-        Region::around(record.nodes, 0.08),
-        fitted.set.planes.first(),
-    ) {
-        let summary = &fitted.summary;
-        for (coefficient, surface, summary) in [
-            (Coefficient::Kx, &plane.kx_nm_per_count.surface, &summary.kx),
-            (Coefficient::Ky, &plane.ky_nm_per_count.surface, &summary.ky),
-            (Coefficient::Alpha, &plane.alpha_rad.surface, &summary.alpha),
-        ] {
-            figures.push(plots::lcc_map(
-                coefficient,
-                surface,
-                summary,
-                record.nodes,
-                &region,
-            )?);
-        }
-        figures.push(plots::trajectory_plot(record.nodes)?);
-    }
     let drift = DriftHistory::of(record.drift, record.plan.standard.nominal_nm_per_count);
-    if drift.estimates > 0 {
-        figures.push(plots::drift_plot(
-            record.drift,
-            record.plan.standard.nominal_nm_per_count,
-        )?);
-    } else {
+    if drift.estimates == 0 {
         notes.push("drift: no drift estimate was made in this invocation (no figure)".to_owned());
     }
+    let figures = figures(record, &fitted, drift.estimates > 0)?;
     for figure in &figures {
         write(&out.join(&figure.file), &figure.png)?;
     }
 
-    let node_lcc_error = record.truth.and_then(|oracle| {
-        let z = oracle.z_now();
-        let mut e = Vec::with_capacity(all.len());
-        for r in &all {
-            let truth = oracle.true_lcc(
-                spm_hal::CountPoint::from_counts(r.lcs_x_counts, r.lcs_y_counts),
-                z,
-            );
-            e.push((
-                (r.kx_nm_per_count / truth.kx_nm_per_count - 1.0) * 100.0,
-                (r.ky_nm_per_count / truth.ky_nm_per_count - 1.0) * 100.0,
-                (r.alpha_rad - truth.alpha_rad) * 1e3,
-            ));
-        }
-        if e.is_empty() {
-            return None;
-        }
-        let n = e.len() as f64;
-        let mean = |f: fn(&(f64, f64, f64)) -> f64| e.iter().map(f).sum::<f64>() / n;
-        let rms = |f: fn(&(f64, f64, f64)) -> f64| {
-            (e.iter().map(|v| f(v).powi(2)).sum::<f64>() / n).sqrt()
-        };
-        Some(NodeLccError {
-            n: e.len(),
-            kx_mean_pct: mean(|v| v.0),
-            kx_rms_pct: rms(|v| v.0),
-            ky_mean_pct: mean(|v| v.1),
-            ky_rms_pct: rms(|v| v.1),
-            alpha_mean_mrad: mean(|v| v.2),
-            alpha_rms_mrad: rms(|v| v.2),
-        })
-    });
+    let node_lcc_error = record.truth.and_then(|truth| node_lcc_error(truth, &all));
     let measured = record.run.nodes_done.max(1) as f64;
     let report = CalibrationReport {
         scanner_id: record.plan.scanner_id.clone(),
@@ -593,6 +457,174 @@ pub fn finish_with(
     Ok(report)
 }
 
+/// The accuracy table against the ground truth over the nodes' region, and the image
+/// benchmark (when asked for) on the same methods.
+#[allow(clippy::too_many_arguments)]
+fn accuracy_section(
+    truth: &dyn TruthSource,
+    record: &RunRecord<'_>,
+    region: &Region,
+    plane: &PlaneSurfaces,
+    all: &[spm_cdb::LccRecord],
+    quick: bool,
+    with_images: bool,
+) -> Result<(AccuracyTable, Option<crate::images::ImageBenchmark>), ReportError> {
+    let oracle = truth;
+    let grid = EvaluationGrid {
+        x_min_counts: region.x_min_counts,
+        x_max_counts: region.x_max_counts,
+        y_min_counts: region.y_min_counts,
+        y_max_counts: region.y_max_counts,
+        z_counts: oracle.z_now().value(),
+        field_pixels: if quick { 33 } else { 65 },
+        image_places: if quick { 5 } else { 9 },
+        image_side_counts: record.plan.aperture.size_counts,
+        lattice_constant_nm: record.plan.standard.lattice_constant_nm,
+    };
+    let z = plane.z_counts;
+    let nominal = record.plan.standard.nominal_nm_per_count;
+    let uncorrected = PlaneSurfaces::constant(z, nominal, nominal, 0.0)?;
+    let centre = (
+        0.5 * (region.x_min_counts + region.x_max_counts),
+        0.5 * (region.y_min_counts + region.y_max_counts),
+    );
+    let nearest = all
+        .iter()
+        .min_by(|a, b| {
+            let da = (a.lcs_x_counts - centre.0).hypot(a.lcs_y_counts - centre.1);
+            let db = (b.lcs_x_counts - centre.0).hypot(b.lcs_y_counts - centre.1);
+            da.total_cmp(&db)
+        })
+        .map(|r| (r.node_x_counts, r.node_y_counts));
+    let mean_of = |records: &[&spm_cdb::LccRecord]| {
+        let n = records.len().max(1) as f64;
+        (
+            records.iter().map(|r| r.kx_nm_per_count).sum::<f64>() / n,
+            records.iter().map(|r| r.ky_nm_per_count).sum::<f64>() / n,
+            records.iter().map(|r| r.alpha_rad).sum::<f64>() / n,
+        )
+    };
+    let centre_records: Vec<&spm_cdb::LccRecord> = all
+        .iter()
+        .filter(|r| Some((r.node_x_counts, r.node_y_counts)) == nearest)
+        .collect();
+    let (kx, ky, alpha) = mean_of(&centre_records);
+    let lumped = PlaneSurfaces::constant(z, kx, ky, alpha)?;
+    let every: Vec<&spm_cdb::LccRecord> = all.iter().collect();
+    let (kx, ky, alpha) = mean_of(&every);
+    let affine = PlaneSurfaces::constant(z, kx, ky, alpha)?;
+    let images = if with_images {
+        Some(truth.image_benchmark(
+            record,
+            region,
+            &[
+                ("uncorrected", &uncorrected),
+                ("lumped", &lumped),
+                ("affine", &affine),
+                ("distributed", plane),
+            ],
+            quick,
+        )?)
+    } else {
+        None
+    };
+    let uncorrected = evaluate(oracle, &uncorrected, &grid)?;
+    let lumped = evaluate(oracle, &lumped, &grid)?;
+    let affine = evaluate(oracle, &affine, &grid)?;
+    let distributed = evaluate(oracle, plane, &grid)?;
+    let v = oracle.drift_velocity(oracle.now());
+    let lines = POLYNOMIAL_LINES as f64;
+    let polynomial = polynomial_baseline(
+        oracle,
+        &grid,
+        &PolynomialImage {
+            control_points: POLYNOMIAL_CONTROL,
+            image_time_s: lines * 2.0 * lines * record.plan.motion.pixel_dwell_s,
+            drift_nm_per_s: (v.x_nm_per_s, v.y_nm_per_s),
+        },
+    )?;
+    let accuracy = AccuracyTable {
+        distributed_over_lumped_rms: distributed.rms_pm / lumped.rms_pm,
+        uncorrected,
+        lumped,
+        affine,
+        polynomial: Some(polynomial),
+        distributed,
+    };
+    Ok((accuracy, images))
+}
+
+/// The report's figures: the LCC surfaces with the measured nodes, the trajectory and (when
+/// there are drift estimates) the drift history.
+fn figures(
+    record: &RunRecord<'_>,
+    fitted: &crate::surfaces::FittedSurfaces,
+    with_drift: bool,
+) -> Result<Vec<plots::Figure>, ReportError> {
+    let mut figures = Vec::new();
+    if let (Some(region), Some(plane)) = (
+        Region::around(record.nodes, 0.08),
+        fitted.set.planes.first(),
+    ) {
+        let summary = &fitted.summary;
+        for (coefficient, surface, summary) in [
+            (Coefficient::Kx, &plane.kx_nm_per_count.surface, &summary.kx),
+            (Coefficient::Ky, &plane.ky_nm_per_count.surface, &summary.ky),
+            (Coefficient::Alpha, &plane.alpha_rad.surface, &summary.alpha),
+        ] {
+            figures.push(plots::lcc_map(
+                coefficient,
+                surface,
+                summary,
+                record.nodes,
+                &region,
+            )?);
+        }
+        figures.push(plots::trajectory_plot(record.nodes)?);
+    }
+    if with_drift {
+        figures.push(plots::drift_plot(
+            record.drift,
+            record.plan.standard.nominal_nm_per_count,
+        )?);
+    }
+
+    Ok(figures)
+}
+
+/// Every record's LCCs against the truth at its LCS centre: mean and RMS per coefficient.
+fn node_lcc_error(oracle: &dyn TruthSource, all: &[spm_cdb::LccRecord]) -> Option<NodeLccError> {
+    let z = oracle.z_now();
+    let mut e = Vec::with_capacity(all.len());
+    for r in all {
+        let truth = oracle.true_lcc(
+            spm_hal::CountPoint::from_counts(r.lcs_x_counts, r.lcs_y_counts),
+            z,
+        );
+        e.push((
+            (r.kx_nm_per_count / truth.kx_nm_per_count - 1.0) * 100.0,
+            (r.ky_nm_per_count / truth.ky_nm_per_count - 1.0) * 100.0,
+            (r.alpha_rad - truth.alpha_rad) * 1e3,
+        ));
+    }
+    if e.is_empty() {
+        return None;
+    }
+    let n = e.len() as f64;
+    let mean = |f: fn(&(f64, f64, f64)) -> f64| e.iter().map(f).sum::<f64>() / n;
+    let rms =
+        |f: fn(&(f64, f64, f64)) -> f64| (e.iter().map(|v| f(v).powi(2)).sum::<f64>() / n).sqrt();
+    Some(NodeLccError {
+        n: e.len(),
+        kx_mean_pct: mean(|v| v.0),
+        kx_rms_pct: rms(|v| v.0),
+        ky_mean_pct: mean(|v| v.1),
+        ky_rms_pct: rms(|v| v.1),
+        alpha_mean_mrad: mean(|v| v.2),
+        alpha_rms_mrad: rms(|v| v.2),
+    })
+}
+
 /// Shortest and longest time constant of the creep law's shape, s, and elements per decade:
 /// the log law over the scales that matter to images (a line, 10 ms, to a session, hours).
 pub const CREEP_LAW_SHAPE: (f64, f64, u32) = (0.01, 1.0e4, 3);
@@ -604,6 +636,7 @@ pub const CREEP_FIT_DRIFT_WINDOW_S: f64 = 300.0;
 /// distributed calibration along the effective trajectory of the creep law identified from
 /// the run, and two labelled bounds (the oracle's true dynamics; a per-image polynomial on
 /// exact positions).
+// long-function: one recipe in order: take the images, identify the creep law from the run, then the list of methods, each built from the results above it
 fn image_benchmark<S: SimulatedInstrument + Sync>(
     sim: &S,
     record: &RunRecord<'_>,

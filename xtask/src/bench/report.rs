@@ -669,6 +669,9 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
         }
     }
     super::linalg::markdown(&mut md, &results.linalg);
+    nanonis_section(&mut md, &results.nanonis);
+    postgres_section(&mut md, &results.postgres);
+    vertical_section(&mut md, &results.vertical);
 
     if !figures.is_empty() {
         let _ = writeln!(md, "## Figures\n");
@@ -800,6 +803,148 @@ fn images_table(md: &mut String, images: &spmcal::images::ImageBenchmark) {
 }
 
 /// The error budget section.
+/// The Nanonis backend's overhead over loopback TCP (issue 14).
+fn nanonis_section(md: &mut String, section: &Section<super::nanonis::NanonisResults>) {
+    let _ = writeln!(md, "## A Nanonis controller over TCP: overhead\n");
+    match section {
+        Section::Measured(r) => {
+            let _ = writeln!(
+                md,
+                "The same calibration ({} nodes, one pass; fastest of {} runs per side) in process \
+                 and through `spmcal nanonis-sim` over loopback TCP (`[backend] kind = \"nanonis\"`). \
+                 Wall time only: the simulated instrument time per node is the same on both sides \
+                 ({:.1} s).\n\n\
+                 | in process, ms per node | over TCP, ms per node | TCP ÷ in process | protocol commands per node |\n\
+                 |---|---|---|---|\n\
+                 | {:.2} | {:.2} | {:.2} | {:.0} |\n\n\
+                 Target ≤ 1.5×. Every protocol command is a round trip on loopback; the ratio \
+                 grows with machine load (other builds on these 2 cores).\n",
+                r.nodes,
+                r.repeats,
+                r.instrument_s_per_node,
+                r.in_process_ms_per_node,
+                r.tcp_ms_per_node,
+                r.ratio,
+                r.commands_per_node
+            );
+        }
+        Section::Missing { missing } => {
+            let _ = writeln!(md, "Not measured: {missing}\n");
+        }
+    }
+}
+
+/// The CDB on SQLite and on a shared PostgreSQL database (issue 16).
+fn postgres_section(md: &mut String, section: &Section<super::postgres::PostgresResults>) {
+    let _ = writeln!(
+        md,
+        "## The calibration database: SQLite and shared PostgreSQL\n"
+    );
+    match section {
+        Section::Measured(r) => {
+            let _ = writeln!(
+                md,
+                "PostgreSQL {} (a private server, fsync on) beside the SQLite file \
+                 (`synchronous = FULL`).\n\n\
+                 | back end | records | insert s (one transaction) | records/s | query s | query + fit s |\n\
+                 |---|---|---|---|---|---|",
+                r.server_version
+            );
+            for b in &r.bulk {
+                let _ = writeln!(
+                    md,
+                    "| {} | {} | {:.2} | {:.0} | {:.2} | {:.2} |",
+                    b.backend,
+                    b.records,
+                    b.insert_s,
+                    b.insert_records_per_s,
+                    b.query_s,
+                    b.query_and_fit_s
+                );
+            }
+            let _ = writeln!(
+                md,
+                "\nConcurrent calibrations into one database (one scanner each):\n\n\
+                 | back end | calibrations | wall s | records reported | stored | lost | duplicated | visits pending | check |\n\
+                 |---|---|---|---|---|---|---|---|---|"
+            );
+            for c in &r.concurrent {
+                let _ = writeln!(
+                    md,
+                    "| {} | {} | {:.1} | {} | {} | {} | {} | {} | {} |",
+                    c.backend,
+                    c.calibrations,
+                    c.wall_time_s,
+                    c.records_reported,
+                    c.records_stored,
+                    c.records_lost,
+                    c.records_duplicated,
+                    c.visits_pending,
+                    if c.check_clean {
+                        "clean"
+                    } else {
+                        "**problems**"
+                    }
+                );
+            }
+            let _ = writeln!(
+                md,
+                "\nThe SIGKILL-and-resume test runs on both back ends \
+                 (`cargo test -p spmcal --test crash -- --nocapture` prints the kills survived).\n"
+            );
+        }
+        Section::Missing { missing } => {
+            let _ = writeln!(md, "Not measured: {missing}\n");
+        }
+    }
+}
+
+/// The vertical axis against the oracle (issue 15).
+fn vertical_section(md: &mut String, section: &Section<super::vertical::VerticalResults>) {
+    let _ = writeln!(md, "## The vertical axis: Kz, the bowl, Z levels\n");
+    match section {
+        Section::Measured(r) => {
+            let opt = |v: Option<f64>, digits: usize| {
+                v.map_or_else(|| "—".to_owned(), |v| format!("{v:.digits$}"))
+            };
+            let _ = writeln!(
+                md,
+                "`spmcal calibrate --config {}` with every effect on: {} records, Kz measured at {} \
+                 visits ({} without a step in reach), {:.1} s wall time.\n",
+                r.job, r.records, r.kz_measured, r.kz_no_step_in_reach, r.wall_time_s
+            );
+            if let Some(v) = &r.vertical {
+                let _ = writeln!(
+                    md,
+                    "| Kz surface error mean % | max % | bowl residual (fraction of the bowl) | z-dependence of K̄x, K̄y within 2σ |\n\
+                     |---|---|---|---|\n\
+                     | {} | {} | {} | {} |\n",
+                    opt(v.kz_mean_error_pct, 3),
+                    opt(v.kz_max_error_pct, 3),
+                    opt(v.bowl_residual_fraction, 3),
+                    v.z_crosstalk_recovered
+                        .map_or("—", |ok| if ok { "yes" } else { "**no**" })
+                );
+            }
+            let _ = writeln!(
+                md,
+                "A Kz drifting 3 %/h, unknown to the calibration: residual trend {} %/h, t = {} \
+                 ({}).\n",
+                opt(r.hidden_kz_drift_trend_pct_per_hour, 2),
+                opt(r.hidden_kz_drift_trend_t, 1),
+                if r.hidden_kz_drift_flagged {
+                    "flagged as a structured residual"
+                } else {
+                    "**not flagged**"
+                }
+            );
+        }
+        Section::Missing { missing } => {
+            let _ = writeln!(md, "Not measured: {missing}\n");
+        }
+    }
+}
+
 fn budget_section(md: &mut String, budget: &Section<super::budget::BudgetResults>) {
     let _ = writeln!(md, "## Error budget of the images (issue 12)\n");
     match budget {

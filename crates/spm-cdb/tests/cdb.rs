@@ -815,7 +815,7 @@ fn postgres_migrates_v1_database() {
     assert_eq!(pg_versions(&url), [1]);
 
     let mut cdb = PgCdb::open(&url).unwrap();
-    assert_eq!(pg_versions(&url), [1, 2]);
+    assert_eq!(pg_versions(&url), [1, 2, 3]);
     assert_eq!(cdb.schema_version().unwrap(), SCHEMA_VERSION);
     let old = cdb.records(&RecordFilter::default()).unwrap();
     assert_eq!(old.len(), 1);

@@ -206,6 +206,7 @@ fn strongest_jump(line: &[f64], w: usize) -> Option<(usize, f64)> {
 ///
 /// # Errors
 /// [`StepRejection`] naming why the scan gives no monatomic step height.
+// long-function: one measurement in the order a reader checks it (edge, terraces, per-line offsets, both directions), each typed rejection where its evidence is computed
 pub fn measure_step(
     map: &HeightMap,
     config: &StepConfig,

@@ -275,6 +275,7 @@ fn weighted_slope(points: &[(f64, f64, f64)]) -> Option<(f64, f64)> {
 /// The vertical figures of a fitted surface set against an instrument's ground truth (the
 /// simulator's oracle); `None` when it does not model the vertical axis. `records` are the
 /// records the surfaces were fitted from.
+// long-function: one report section: per plane, the Kz, bowl and z-slope comparisons against the truth share the plane's fitted surfaces and records
 pub fn evaluate(
     truth: &dyn GroundTruth,
     plan: &spm_calibration::PlanConfig,

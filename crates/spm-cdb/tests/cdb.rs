@@ -835,7 +835,7 @@ fn postgres_migrates_v1_database() {
     assert_eq!(all[1].u_kx_nm_per_count, Some(1e-5));
     drop(cdb);
     drop(PgCdb::open(&url).unwrap()); // a no-op
-    assert_eq!(pg_versions(&url), [1, 2]);
+    assert_eq!(pg_versions(&url), [1, 2, 3]);
     let ro = PgCdb::open_read_only(&url).unwrap();
     assert_eq!(ro.count_records(&RecordFilter::default()).unwrap(), 2);
 }

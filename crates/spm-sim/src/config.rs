@@ -61,6 +61,14 @@ pub struct InstrumentConfig {
     pub initial_z_extension_nm: f64,
     /// Instrument time consumed by every call (command round trip), s. Typical: 0.002; ideal: 0.
     pub call_overhead_s: f64,
+    /// Interlace: how far the controller advances the slow-axis (y) command between the two
+    /// halves of every scan line, counts, along the slow-scan direction (towards the next line:
+    /// +y for direct rasters, −y for counter rasters). A controller that steps the slow axis in
+    /// two parts per line (one at each turn-around) or ramps it through the line advances it by
+    /// a fraction of the line pitch; the second half of every line then runs that far beyond
+    /// the first, and its features appear displaced against the slow-scan direction. The command
+    /// saturates at the field edge. Typical: 0; ideal: 0.
+    pub retrace_slow_axis_advance_counts: f64,
     /// The coarse approach stage; absent = no software-driven stage.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub coarse_z: Option<CoarseZConfig>,
@@ -194,6 +202,14 @@ pub struct ScannerConfig {
     pub nonlinearity_y: NonlinearityConfig,
     /// Angle by which the Y axis leans towards +X from the perpendicular, degrees. Typical: 1.5.
     pub nonorthogonality_deg: f64,
+    /// Field-dependent obliquity (shear gradient), x part: the X input gains
+    /// `gₓ·uₓ·u_y/H` counts (H = lateral half range) before the static map, so the Y axis leans
+    /// by an extra gₓ·uₓ/H rad (× Kx/Ky) that grows across the field — e.g. quadrant electrodes of
+    /// unequal width. Dimensionless, |gₓ| ≤ 0.3. Typical: 0; ideal: 0.
+    pub shear_gradient_x: f64,
+    /// Field-dependent obliquity, y part: the Y input gains `g_y·uₓ·u_y/H` counts (the X axis
+    /// tilts by g_y·u_y/H across the field). Dimensionless, |g_y| ≤ 0.3. Typical: 0; ideal: 0.
+    pub shear_gradient_y: f64,
     /// Linear crosstalk: X displacement per Y displacement, nm/nm. Typical: 0.004.
     pub crosstalk_x_from_y: f64,
     /// Linear crosstalk: Y displacement per X displacement, nm/nm. Typical: -0.006.
@@ -271,7 +287,7 @@ pub struct CreepConfig {
     pub elements_per_decade: u32,
 }
 
-/// Thermal drift of the tip relative to the sample.
+/// Thermal drift and mechanical vibration of the tip relative to the sample.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DriftConfig {
@@ -293,6 +309,17 @@ pub struct DriftConfig {
     pub jump_rate_per_s: f64,
     /// Standard deviation of a jump per axis, nm. Typical: 0.05.
     pub jump_sigma_nm: f64,
+    /// Lateral vibration of the tip relative to the sample (building, pump, cooling
+    /// machinery): `Aₓ·cos(2πf·t + φₓ)` along x, nm (≥ 0). Typical: 0; ideal: 0.
+    pub vibration_amplitude_x_nm: f64,
+    /// Vibration amplitude along y, `A_y·cos(2πf·t + φ_y)`, nm (≥ 0). Typical: 0; ideal: 0.
+    pub vibration_amplitude_y_nm: f64,
+    /// Vibration frequency f, Hz (≥ 0; t is the instrument clock). Typical: 50; ideal: 50.
+    pub vibration_frequency_hz: f64,
+    /// Vibration phase φₓ at t = 0, rad, in [−2π, 2π]. Typical: 0; ideal: 0.
+    pub vibration_phase_x_rad: f64,
+    /// Vibration phase φ_y at t = 0, rad, in [−2π, 2π]. Typical: 0; ideal: 0.
+    pub vibration_phase_y_rad: f64,
 }
 
 /// The measurement chain.
@@ -434,6 +461,12 @@ impl SimConfig {
             1e6,
         )?;
         v.range("instrument.call_overhead_s", i.call_overhead_s, 0.0, 10.0)?;
+        v.range(
+            "instrument.retrace_slow_axis_advance_counts",
+            i.retrace_slow_axis_advance_counts,
+            -0.25 * i.lateral_half_range_counts,
+            0.25 * i.lateral_half_range_counts,
+        )?;
         if let Some(c) = &i.coarse_z {
             if c.min_steps > c.max_steps {
                 return v.fail("instrument.coarse_z.max_steps", "must be ≥ min_steps");
@@ -584,6 +617,8 @@ impl SimConfig {
             -20.0,
             20.0,
         )?;
+        v.range("scanner.shear_gradient_x", s.shear_gradient_x, -0.3, 0.3)?;
+        v.range("scanner.shear_gradient_y", s.shear_gradient_y, -0.3, 0.3)?;
         v.range(
             "scanner.crosstalk_x_from_y",
             s.crosstalk_x_from_y,
@@ -742,6 +777,37 @@ impl SimConfig {
             );
         }
         v.range("drift.jump_sigma_nm", d.jump_sigma_nm, 0.0, 1e3)?;
+        v.range(
+            "drift.vibration_amplitude_x_nm",
+            d.vibration_amplitude_x_nm,
+            0.0,
+            1e3,
+        )?;
+        v.range(
+            "drift.vibration_amplitude_y_nm",
+            d.vibration_amplitude_y_nm,
+            0.0,
+            1e3,
+        )?;
+        v.range(
+            "drift.vibration_frequency_hz",
+            d.vibration_frequency_hz,
+            0.0,
+            1e6,
+        )?;
+        let tau = std::f64::consts::TAU;
+        v.range(
+            "drift.vibration_phase_x_rad",
+            d.vibration_phase_x_rad,
+            -tau,
+            tau,
+        )?;
+        v.range(
+            "drift.vibration_phase_y_rad",
+            d.vibration_phase_y_rad,
+            -tau,
+            tau,
+        )?;
         let m = &self.measurement;
         v.range(
             "measurement.z_white_noise_nm",

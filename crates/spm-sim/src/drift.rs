@@ -1,7 +1,9 @@
 //! Thermal drift of the tip relative to the sample, a function of time only.
 //!
-//! `d(t) = v·t + A·(1 − e^{−t/τw}) + RW(t) + Σ jumps + Σ bursts + Σ tip jumps`
+//! `d(t) = v·t + A·(1 − e^{−t/τw}) + RW(t) + Σ jumps + Σ bursts + Σ tip jumps + vib(t)`
 //!
+//! - The vibration (building, pump): `vib_a(t) = A_a·cos(2πf·t + φ_a)` per axis, a
+//!   deterministic function of the instrument clock.
 //! - The random walk acts on the *velocity*: knots every `Δ` (config
 //!   `random_walk_interval_s`) with `v_{j+1} = v_j + σ·√Δ·N(0,1)` per axis,
 //!   velocity linear between knots, displacement its exact integral. Its
@@ -52,6 +54,10 @@ pub(crate) struct Drift {
     interval_jump: Vec<Option<Jump>>,
     bursts: Vec<Burst>,
     tip_jumps: Vec<Jump>,
+    /// Vibration amplitudes (nm), angular frequency (rad/s), phases (rad).
+    vibration_amplitude_nm: [f64; 2],
+    vibration_omega_rad_per_s: f64,
+    vibration_phase_rad: [f64; 2],
 }
 
 impl Drift {
@@ -71,6 +77,9 @@ impl Drift {
             interval_jump: Vec::new(),
             bursts: Vec::new(),
             tip_jumps: Vec::new(),
+            vibration_amplitude_nm: [c.vibration_amplitude_x_nm, c.vibration_amplitude_y_nm],
+            vibration_omega_rad_per_s: std::f64::consts::TAU * c.vibration_frequency_hz,
+            vibration_phase_rad: [c.vibration_phase_x_rad, c.vibration_phase_y_rad],
         };
         d.extend_one();
         d
@@ -188,7 +197,21 @@ impl Drift {
                 d[1] += jp.displacement_nm[1];
             }
         }
-        d
+        let v = self.vibration(t_s);
+        [d[0] + v[0], d[1] + v[1]]
+    }
+
+    /// The vibration part of the displacement at `t_s`, nm: `A·cos(ωt + φ)` per axis
+    /// (a periodic function of the clock, also at t < 0).
+    #[inline]
+    pub(crate) fn vibration(&self, t_s: f64) -> [f64; 2] {
+        let a = self.vibration_amplitude_nm;
+        if a == [0.0; 2] {
+            return [0.0; 2];
+        }
+        let w = self.vibration_omega_rad_per_s;
+        let p = self.vibration_phase_rad;
+        [a[0] * (w * t_s + p[0]).cos(), a[1] * (w * t_s + p[1]).cos()]
     }
 
     /// Drift velocity at `t_s`, nm/s (jumps excluded: they are steps).
@@ -209,6 +232,14 @@ impl Drift {
             if t >= b.start_s && t < b.start_s + b.duration_s {
                 v[0] += b.velocity_nm_per_s[0];
                 v[1] += b.velocity_nm_per_s[1];
+            }
+        }
+        let a = self.vibration_amplitude_nm;
+        let w = self.vibration_omega_rad_per_s;
+        let p = self.vibration_phase_rad;
+        for k in 0..2 {
+            if a[k] != 0.0 {
+                v[k] -= a[k] * w * (w * t_s + p[k]).sin();
             }
         }
         v

@@ -174,14 +174,21 @@ impl<'a> Oracle<'a> {
         self.lcc(self.reference_effective_input(commanded), z)
     }
 
-    /// Drift displacement of the tip relative to the sample at `t`, nm
-    /// (exact for t up to now; later times hold the random walk's last velocity).
+    /// Drift displacement of the tip relative to the sample at `t`, nm, the
+    /// configured vibration included (exact for t up to now; later times hold
+    /// the random walk's last velocity).
     pub fn drift_displacement(&self, t: Seconds) -> NmPoint {
         let d = self.sim.drift.displacement(t.value());
         NmPoint::from_nm(d[0], d[1])
     }
 
-    /// Drift velocity at `t`, nm/s (jumps are steps and not included).
+    /// The vibration part of [`drift_displacement`](Self::drift_displacement) at `t`, nm.
+    pub fn vibration_displacement(&self, t: Seconds) -> NmPoint {
+        let v = self.sim.drift.vibration(t.value());
+        NmPoint::from_nm(v[0], v[1])
+    }
+
+    /// Drift velocity at `t`, nm/s (the vibration's included; jumps are steps and not included).
     pub fn drift_velocity(&self, t: Seconds) -> NmVelocity {
         let v = self.sim.drift.velocity(t.value());
         NmVelocity {

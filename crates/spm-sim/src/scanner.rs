@@ -12,7 +12,8 @@ use spm_hal::{NmPerCount, Radians};
 /// the scanner frame (nm):
 ///
 /// ```text
-/// sx = uₑx / H,  gx = uₑx·(1 + qx·sx + cx·sx²)        (same for y)
+/// vx = uₑx + γx·uₑx·uₑy/H,  vy = uₑy + γy·uₑx·uₑy/H    (shear gradient)
+/// sx = vx / H,  gx = vx·(1 + qx·sx + cx·sx²)          (same for y)
 /// k  = 1 + λ·z / Hz                                    (Z-dependent sensitivity)
 /// X  = Kx·k·gx,  Y = Ky·k·gy
 /// px = X + Y·(sin α₀ + cyx + byx·sy) + tx·Kz·z
@@ -31,6 +32,8 @@ pub struct StaticMap {
     cy: f64,
     sin_a: f64,
     cos_a: f64,
+    shear_x: f64,
+    shear_y: f64,
     cyx: f64,
     cxy: f64,
     byx: f64,
@@ -61,6 +64,8 @@ impl StaticMap {
             cy: s.nonlinearity_y.cubic,
             sin_a,
             cos_a,
+            shear_x: s.shear_gradient_x,
+            shear_y: s.shear_gradient_y,
             cyx: s.crosstalk_x_from_y,
             cxy: s.crosstalk_y_from_x,
             byx: s.bow_x_from_y,
@@ -80,6 +85,7 @@ impl StaticMap {
     /// Tip position (nm, scanner frame) for effective input (counts) and Z extension (counts).
     #[inline]
     pub fn position(&self, ux: f64, uy: f64, z_counts: f64) -> [f64; 2] {
+        let [ux, uy] = self.sheared(ux, uy);
         let sx = ux / self.half_counts;
         let sy = uy / self.half_counts;
         let k = 1.0 + self.z_coupling * z_counts / self.z_half_counts;
@@ -92,8 +98,41 @@ impl StaticMap {
         ]
     }
 
-    /// Analytic Jacobian ∂p/∂uₑ (nm/count) at effective input and Z extension.
+    /// The input after the field-dependent obliquity (shear gradient):
+    /// `v = u + (γx, γy)·uₓ·u_y/H`, counts.
+    #[inline]
+    pub fn sheared(&self, ux: f64, uy: f64) -> [f64; 2] {
+        if self.shear_x == 0.0 && self.shear_y == 0.0 {
+            return [ux, uy];
+        }
+        let p = ux * uy / self.half_counts;
+        [ux + self.shear_x * p, uy + self.shear_y * p]
+    }
+
+    /// Analytic Jacobian ∂p/∂uₑ (nm/count) at effective input and Z extension:
+    /// the static map's ∂p/∂v times the shear's ∂v/∂uₑ.
     pub fn jacobian(&self, ux: f64, uy: f64, z_counts: f64) -> Jacobian {
+        let h = self.half_counts;
+        let [vx, vy] = self.sheared(ux, uy);
+        let m = self.jacobian_of_sheared(vx, vy, z_counts);
+        let s = [
+            [1.0 + self.shear_x * uy / h, self.shear_x * ux / h],
+            [self.shear_y * uy / h, 1.0 + self.shear_y * ux / h],
+        ];
+        [
+            [
+                m[0][0] * s[0][0] + m[0][1] * s[1][0],
+                m[0][0] * s[0][1] + m[0][1] * s[1][1],
+            ],
+            [
+                m[1][0] * s[0][0] + m[1][1] * s[1][0],
+                m[1][0] * s[0][1] + m[1][1] * s[1][1],
+            ],
+        ]
+    }
+
+    /// ∂p/∂v of the map after the shear (v = sheared input, counts).
+    fn jacobian_of_sheared(&self, ux: f64, uy: f64, z_counts: f64) -> Jacobian {
         let h = self.half_counts;
         let sx = ux / h;
         let sy = uy / h;

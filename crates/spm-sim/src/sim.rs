@@ -859,25 +859,35 @@ impl Simulator {
         } else {
             (x_lo, x_hi)
         };
-        let lumped = (backward.is_none() && lumped_n >= 8 && linear_x).then(|| {
-            let creep = self.scanner.creep[0].ramp_coefficients(&factors.creep_decays, lumped_n);
-            // The medium processes miss the updates of the skipped pixels
-            // 0, 8, 16, … < lumped_n: one AR step covers their blocks.
-            let medium_blocks = lumped_n.div_ceil(MEDIUM_FLICKER_PIXELS);
-            let medium_s = (medium_blocks * MEDIUM_FLICKER_PIXELS) as f64 * dwell;
-            let flicker: Vec<(usize, (f64, f64))> = factors
-                .fast_flicker
-                .iter()
-                .map(|&(k, _)| (k, self.flicker.coefficients(k, lumped_n as f64 * dwell)))
-                .chain(
-                    factors
-                        .medium_flicker
-                        .iter()
-                        .map(|&(k, _)| (k, self.flicker.coefficients(k, medium_s))),
-                )
-                .collect();
-            (creep, flicker)
-        });
+        // Interlace: the second half of every line runs `advance` counts further
+        // along the slow-scan direction (the command saturates at the field edge).
+        let advance = self.config.instrument.retrace_slow_axis_advance_counts
+            * match request.direction {
+                ScanDirection::Direct => 1.0,
+                ScanDirection::Counter => -1.0,
+            };
+        let field_h = self.config.instrument.lateral_half_range_counts;
+        let lumped =
+            (backward.is_none() && lumped_n >= 8 && linear_x && advance == 0.0).then(|| {
+                let creep =
+                    self.scanner.creep[0].ramp_coefficients(&factors.creep_decays, lumped_n);
+                // The medium processes miss the updates of the skipped pixels
+                // 0, 8, 16, … < lumped_n: one AR step covers their blocks.
+                let medium_blocks = lumped_n.div_ceil(MEDIUM_FLICKER_PIXELS);
+                let medium_s = (medium_blocks * MEDIUM_FLICKER_PIXELS) as f64 * dwell;
+                let flicker: Vec<(usize, (f64, f64))> = factors
+                    .fast_flicker
+                    .iter()
+                    .map(|&(k, _)| (k, self.flicker.coefficients(k, lumped_n as f64 * dwell)))
+                    .chain(
+                        factors
+                            .medium_flicker
+                            .iter()
+                            .map(|&(k, _)| (k, self.flicker.coefficients(k, medium_s))),
+                    )
+                    .collect();
+                (creep, flicker)
+            });
         for line in 0..ny {
             let row = match request.direction {
                 ScanDirection::Direct => line,
@@ -895,6 +905,11 @@ impl Simulator {
                         | (ScanDirection::Counter, TraceHalf::Backward)
                 );
                 let half_index = if half == TraceHalf::Forward { 0 } else { 1 };
+                let y = if half == TraceHalf::Backward && advance != 0.0 {
+                    (y + advance).clamp(-field_h, field_h - 1.0)
+                } else {
+                    y
+                };
                 let base = start + ((2 * line + half_index) * nx) as f64 * dwell;
                 let mut first_pixel = 0;
                 if let Some((creep, flicker)) = lumped.as_ref()

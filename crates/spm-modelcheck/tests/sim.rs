@@ -381,8 +381,9 @@ fn named(d: &Diagnosis, effect: EffectKind, naming: Naming) -> Result<(), String
     }
 }
 
-/// Seeds per effect and how many must pass (the issue's "≥ 5 of 6").
-const SEEDS_PER_EFFECT: u64 = 6;
+/// Seeds per effect and how many must pass: all 5 (the issue asks for ≥ 5 of 6
+/// cases; five seeds keep this debug-profile suite near a minute on two cores).
+const SEEDS_PER_EFFECT: u64 = 5;
 const MUST_PASS: usize = 5;
 
 /// Hides `effect` at `SEEDS_PER_EFFECT` seeds (amplitude factor k 0.7–1.3):

@@ -15,7 +15,7 @@ use spm_modelcheck::{
     diagnose, sim_patch,
 };
 use spm_sim::{HopgConfig, Si7x7Config, SimConfig, SurfaceConfig};
-use spmcal::simulate::{scan_program, simulate};
+use spmcal::simulate::{move_history, scan_program, simulate};
 use std::path::{Path, PathBuf};
 
 /// Image statistics of the first height channel pair, pm.
@@ -213,12 +213,14 @@ fn main() {
                 .min(0.25 * program.pixels[0] as f64 * 8.0);
             h.min_threshold_counts = h.min_threshold_counts.min(0.5 * h.max_threshold_counts);
         }
+        let (history, frame_start_s) = move_history(&program, base.instrument.call_overhead_s);
         let ctx = SimContext {
             nominal_nm_per_count: nominal,
             half_range_counts: base.instrument.lateral_half_range_counts,
-            time_offset_s: 0.0,
+            time_offset_s: frame_start_s,
             warmup_time_constant_s: 60.0,
             pixel_dwell_s: Some(program.line_time_s / program.pixels[0] as f64),
+            move_history: Some(history),
         };
         let text = toml::to_string(&base).unwrap();
         let mut results = Vec::new();

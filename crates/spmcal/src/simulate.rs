@@ -62,6 +62,48 @@ pub fn scan_program(file: &SpmFile) -> Result<ScanProgram, SimulateError> {
     })
 }
 
+/// The move history [`simulate`] puts the simulator through, for
+/// `spm_modelcheck::SimContext` (the creep mapping): the scanner rests at the
+/// field centre, approaches the first pixel at the scan speed, and sweeps one
+/// frame, the fast axis about the centre, the slow axis from the first line to
+/// the last (up scans from the bottom, down scans from the top). Times are on
+/// the file's time axis (0 = the frame's start); the second value is the
+/// simulator's clock at that instant (the `time_offset_s` of the context),
+/// with `call_overhead_s` the simulator's time per call.
+pub fn move_history(
+    program: &ScanProgram,
+    call_overhead_s: f64,
+) -> (spm_modelcheck::MoveHistory, f64) {
+    let [nx, ny] = program.pixels;
+    let pixel_nm = program.size_nm[0] / nx.max(1) as f64;
+    let half_y_nm = 0.5 * (ny.max(1) - 1) as f64 * pixel_nm;
+    let half_x_nm = 0.5 * (nx.max(1) - 1) as f64 * pixel_nm;
+    let dwell_s = program.line_time_s / nx.max(1) as f64;
+    let approach_s = half_x_nm.hypot(half_y_nm) * dwell_s / pixel_nm.max(1e-300);
+    let frame_s = 2.0 * program.line_time_s * ny as f64;
+    let first_y = match program.scan_dir {
+        ScanDir::Up => -half_y_nm,
+        ScanDir::Down => half_y_nm,
+    };
+    let knot = |time_s: f64, y_nm: f64| spm_modelcheck::InputKnot {
+        time_s,
+        x_nm: 0.0,
+        y_nm,
+    };
+    (
+        spm_modelcheck::MoveHistory {
+            knots: vec![
+                knot(-approach_s, 0.0),
+                knot(0.0, first_y),
+                knot(frame_s, -first_y),
+            ],
+            frames_s: vec![[0.0, frame_s]],
+            line_period_s: 2.0 * program.line_time_s,
+        },
+        call_overhead_s.max(0.0) + approach_s,
+    )
+}
+
 /// Runs `program` on the simulator of `config` at the field centre and
 /// returns the `.sxm` scan. `nominal_nm_per_count` is the calibration the
 /// instrument's software believes (pixels are commanded with it and the file

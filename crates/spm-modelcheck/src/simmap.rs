@@ -530,7 +530,7 @@ fn creep_slope(
         .collect();
     let (mut num, mut den) = (0.0, 0.0);
     for (f, &[t0, t1]) in h.frames_s.iter().enumerate() {
-        if !(t1 > t0) {
+        if t1.partial_cmp(&t0) != Some(std::cmp::Ordering::Greater) {
             continue;
         }
         let times: Vec<f64> = (0..400)
@@ -548,7 +548,7 @@ fn creep_slope(
             den += r * r;
         }
     }
-    if !(den > 0.0) {
+    if den.is_nan() || den <= 0.0 {
         return Err("the move history does not drive creep in the frames".to_owned());
     }
     let w = num / den;

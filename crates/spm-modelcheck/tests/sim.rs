@@ -381,6 +381,9 @@ fn named(d: &Diagnosis, effect: EffectKind, naming: Naming) -> Result<(), String
     }
 }
 
+/// A truth config and an optional scheduled tip change (time s, jump nm).
+type Truth = (SimConfig, Option<(f64, [f64; 2])>);
+
 /// Seeds per effect and how many must pass: all 5 (the issue asks for ≥ 5 of 6
 /// cases; five seeds keep this debug-profile suite near a minute on two cores).
 const SEEDS_PER_EFFECT: u64 = 5;
@@ -395,7 +398,7 @@ fn check(
     effect: EffectKind,
     first_seed: u64,
     naming: Naming,
-    build: impl Fn(u64, f64) -> (SimConfig, Option<(f64, [f64; 2])>) + Sync,
+    build: impl Fn(u64, f64) -> Truth + Sync,
     verify: impl Fn(&Diagnosis, f64) -> Result<(), String> + Sync,
 ) {
     let seeds: Vec<u64> = (first_seed..first_seed + SEEDS_PER_EFFECT).collect();
@@ -439,7 +442,7 @@ fn check(
 }
 
 /// A config effect alone.
-fn hidden(effect: EffectKind) -> impl Fn(u64, f64) -> (SimConfig, Option<(f64, [f64; 2])>) + Sync {
+fn hidden(effect: EffectKind) -> impl Fn(u64, f64) -> Truth + Sync {
     move |seed, k| (with_effect(base_config(seed), effect, k), None)
 }
 

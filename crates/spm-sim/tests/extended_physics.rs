@@ -228,7 +228,8 @@ fn the_shear_gradient_adds_g_ux_uy_over_h_to_the_input() {
 
 #[test]
 fn the_new_fields_are_validated_with_their_paths() {
-    let cases: [(&str, fn(&mut SimConfig)); 5] = [
+    type Edit = fn(&mut SimConfig);
+    let cases: [(&str, Edit); 5] = [
         ("drift.vibration_amplitude_x_nm", |c| {
             c.drift.vibration_amplitude_x_nm = -1.0
         }),

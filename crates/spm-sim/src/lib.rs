@@ -2,9 +2,10 @@
 //!
 //! [`Simulator`] implements [`spm_hal::Microscope`]: a deterministic model of a
 //! room-temperature tube scanner over a crystal standard (HOPG, Si(111)-7×7,
-//! generic lattices) with static nonlinearity, nonorthogonality, crosstalk,
-//! Z couplings, rate-independent hysteresis, logarithmic creep, thermal drift,
-//! measurement noise, feedback lag, quantisation and faults on demand. The
+//! generic lattices) with static nonlinearity, nonorthogonality (constant and
+//! field-dependent), crosstalk, Z couplings, rate-independent hysteresis,
+//! logarithmic creep, thermal drift, lateral vibration, interlace, measurement
+//! noise, feedback lag, quantisation and faults on demand. The
 //! ground truth is reachable only through [`Simulator::oracle`] ([`Oracle`]).
 //!
 //! ```
@@ -44,7 +45,8 @@
 //! through **hysteresis** and **creep** to the *effective input*
 //! `uₑ = u + h + c`, and the **static map** F gives the tip position in the
 //! scanner frame: `p = F(uₑ, z)` (see [`StaticMap`] for F: per-axis cubic
-//! nonlinearity normalised to the half range, nonorthogonality α₀, linear and
+//! nonlinearity normalised to the half range, a shear gradient (field-dependent
+//! obliquity: the input gains `(γx, γy)·uₓ·u_y/H` before the map), nonorthogonality α₀, linear and
 //! quadratic ("bow") X⇔Y crosstalk, Z⇒X/Y tilt, Z-dependent lateral
 //! sensitivity; the tube arc adds a bowl `c·r²/2` to the image). The sample
 //! point under the tip is `p + d(t)` (drift) + lateral jitter.
@@ -103,7 +105,11 @@
 //!
 //! ## Drift and measurement
 //! Drift ([`DriftConfig`]): constant velocity, warm-up exponential, velocity
-//! random walk, Poisson jumps, plus drift bursts and tip-change jumps (faults).
+//! random walk, Poisson jumps, a lateral vibration `A·cos(2πf·t + φ)` per axis
+//! (building, pumps), plus drift bursts and tip-change jumps (faults).
+//! Interlace (`instrument.retrace_slow_axis_advance_counts`): the controller
+//! advances the slow-axis command between the two halves of every line, so the
+//! second half runs that far along the slow-scan direction.
 //! Z: the feedback output follows `reference + topography(sample point) +
 //! bowl` through a first-order lag (time constant `feedback_time_constant_s`,
 //! acting along the fast axis in both trace directions); the reading adds white

@@ -100,7 +100,14 @@ fn value(d: &BTreeMap<String, crate::ParamValue>, key: &str) -> f64 {
 /// linear crosstalk is zero (it is inside J); frame-relative nonlinearity and
 /// bow coefficients are rescaled to the field for a frame centred on the field
 /// centre (`q_field = q_frame·H/W`, `c_field = c_frame·(H/W)²`); hysteresis maps
-/// to play operators whose thresholds all open within the frame.
+/// to play operators whose thresholds all open within the frame; the shear
+/// gradient to `scanner.shear_gradient_{x,y}` (`γx = gx·H_field/H_frame`,
+/// `γy = gy·H_field/W_frame`); a vibration to `drift.vibration_*` (phases moved to
+/// the simulator's clock); an interlace to `instrument.retrace_slow_axis_advance_counts`
+/// (`δ = −separation/(Ky·cos α)`); creep to the relaxation chain through the move
+/// history ([`MoveHistory`]: its γ from the chain's closed-form response, and the
+/// chain's gain, drift and loop that the linear fit and a hysteresis finding
+/// already hold taken out of them). Tip changes become scheduled faults.
 pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPatch {
     // The linear part of the model the findings extend: the final fit's.
     let b = if with_findings {
@@ -609,5 +616,65 @@ impl SimPatch {
     /// The values as TOML text (nested tables), for reports.
     pub fn to_toml(&self) -> String {
         self.apply_to_toml("").unwrap_or_default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    fn knot(time_s: f64, x_nm: f64, y_nm: f64) -> InputKnot {
+        InputKnot { time_s, x_nm, y_nm }
+    }
+
+    #[test]
+    fn the_chain_follows_a_step_and_a_ramp_in_closed_form() {
+        let taus = [0.1, 1.0, 10.0];
+        // A step of 5 nm at t = 0 (a zero-length piece), then held.
+        let step = [
+            knot(-1.0, 0.0, 0.0),
+            knot(0.0, 0.0, 0.0),
+            knot(0.0, 5.0, 0.0),
+        ];
+        let times = [0.05, 0.5, 3.0, 30.0];
+        let got = chain_response(&step, 0, &taus, &times);
+        for (t, g) in times.iter().zip(&got) {
+            let expected: f64 = taus.iter().map(|tau| 5.0 * (1.0 - (-t / tau).exp())).sum();
+            assert!((g - expected).abs() < 1e-12, "t {t}: {g} vs {expected}");
+        }
+        // A ramp y = 2·t from rest: s(t) = 2·(t − τ·(1 − e^(−t/τ))).
+        let ramp = [knot(0.0, 0.0, 0.0), knot(100.0, 0.0, 200.0)];
+        let got = chain_response(&ramp, 1, &taus, &times);
+        for (t, g) in times.iter().zip(&got) {
+            let expected: f64 = taus
+                .iter()
+                .map(|tau| 2.0 * (t - tau * (1.0 - (-t / tau).exp())))
+                .sum();
+            assert!((g - expected).abs() < 1e-9, "t {t}: {g} vs {expected}");
+        }
+    }
+
+    #[test]
+    fn the_lg_coefficient_recovers_a_synthetic_amplitude() {
+        let t: Vec<f64> = (0..300).map(|i| 0.1 * f64::from(i)).collect();
+        let g: Vec<f64> = t.iter().map(|t| (1.0 + t / 0.5).log10()).collect();
+        let y: Vec<f64> = t
+            .iter()
+            .zip(&g)
+            .map(|(t, g)| 3.0 - 0.2 * t + 1.7 * g)
+            .collect();
+        assert!((lg_coefficient(&t, &g, &y) - 1.7).abs() < 1e-9);
+    }
+
+    #[test]
+    fn angles_wrap_into_minus_pi_to_pi() {
+        for (a, w) in [
+            (0.5, 0.5),
+            (7.0, 7.0 - std::f64::consts::TAU),
+            (-4.0, -4.0 + std::f64::consts::TAU),
+        ] {
+            assert!((wrap_rad(a) - w).abs() < 1e-12);
+        }
     }
 }

@@ -785,3 +785,37 @@ fn degenerate_inputs_give_errors_not_panics() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A fast-SPM-like movie: many short frames, fast axis driven sinusoidally.
+/// `FRAMES=40 cargo test -p spm-modelcheck --test image explore_movie -- --ignored --nocapture`
+#[test]
+#[ignore = "exploration: a long movie"]
+fn explore_movie() {
+    let frames: usize = std::env::var("FRAMES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(20);
+    let program = Program {
+        pixels: 64,
+        size_nm: 3.2,
+        line_time_s: 0.002,
+        frames: (0..frames)
+            .map(|f| {
+                if f % 2 == 0 {
+                    spm_formats::ScanDir::Down
+                } else {
+                    spm_formats::ScanDir::Up
+                }
+            })
+            .collect(),
+        gap_s: 0.0,
+        ..Program::default()
+    };
+    let started = std::time::Instant::now();
+    let d = run(&program, Hidden::SineDrive { beta_rad: 1.2 }, 1, "movie");
+    println!(
+        "{frames} frames in {:?}: {}",
+        started.elapsed(),
+        summary(&d)
+    );
+}

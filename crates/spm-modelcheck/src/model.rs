@@ -572,7 +572,7 @@ pub(crate) fn solve(
             .iter()
             .zip(&member)
             .all(|(v, m)| *v == 0.0 || m.is_none());
-        if indicator && disjoint && col.iter().any(|v| *v == 1.0) {
+        if indicator && disjoint && col.contains(&1.0) {
             for (r, v) in col.iter().enumerate() {
                 if *v == 1.0 {
                     member[r] = Some(groups.len());

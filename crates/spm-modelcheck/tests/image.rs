@@ -537,6 +537,65 @@ fn a_sinusoidal_fast_axis_drive_is_followed() {
     );
 }
 
+/// A fast-SPM-like movie: many frames shorter than the record time's one
+/// second resolution, fast drift, a vibration. The frames are placed one
+/// after another within their stamped seconds (not on top of each other), so
+/// the vibration (4.5 cycles per frame) keeps its phase from frame to frame
+/// and is named with its frequency, and the drift comes out.
+#[test]
+fn a_fast_movie_with_second_resolution_stamps_is_timed_and_followed() {
+    let program = Program {
+        pixels: 48,
+        size_nm: 2.4,
+        line_time_s: 0.002,
+        frames: (0..12)
+            .map(|f| {
+                if f % 2 == 0 {
+                    spm_formats::ScanDir::Down
+                } else {
+                    spm_formats::ScanDir::Up
+                }
+            })
+            .collect(),
+        gap_s: 0.0,
+        drift_nm_per_s: [0.4, -0.3],
+        ..Program::default()
+    };
+    let d = run(
+        &program,
+        Hidden::Vibration {
+            amplitude_nm: [0.012, 0.008],
+            frequency_hz: 23.7,
+        },
+        12,
+        "movie",
+    );
+    assert_eq!(
+        d.effects_found().first(),
+        Some(&"periodic_vibration"),
+        "{}",
+        summary(&d)
+    );
+    let f = d.findings[0].parameters["frequency_hz"].value;
+    assert!((f - 23.7).abs() < 0.1, "{f} Hz: {}", summary(&d));
+    assert!(d.baseline.drift_separable, "{}", summary(&d));
+    let v = |k: &str| d.baseline.parameters[k].value;
+    let speed = v("drift_x_nm_per_s").hypot(v("drift_y_nm_per_s"));
+    let truth = 0.4_f64.hypot(0.3);
+    assert!(
+        (speed - truth).abs() < 0.1 * truth,
+        "drift {speed} nm/s against {truth}: {}",
+        summary(&d)
+    );
+    let amplitude = d.findings[0].parameters["amplitude_x_nm"];
+    let truth_x = vibration_image_amplitudes(&program, [0.012, 0.008])[0];
+    assert!(
+        (amplitude.value - truth_x).abs() < 3.0 * amplitude.sigma + 0.1 * truth_x,
+        "x amplitude {amplitude:?} against {truth_x}: {}",
+        summary(&d)
+    );
+}
+
 /// Frames of different scan series (another size) are diagnosed with a
 /// warning naming the difference.
 #[test]

@@ -263,7 +263,7 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
             angle_deg: 0.0,
             line_time_s: [program.line_time_s, program.line_time_s],
             scan_dir: dir_y,
-            recorded: date_plus(start.round() as u64),
+            recorded: date_plus(start.floor() as u64),
             bias_v: 0.1,
             comment: format!("image-level generator, hidden {hidden:?}"),
             channels: vec![SxmChannel {
@@ -276,7 +276,13 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
         let path = dir.join(format!("frame{f}.sxm"));
         std::fs::write(&path, encode_sxm(&scan, &path).unwrap()).unwrap();
         paths.push(path);
-        start = (start + duration + program.gap_s).round();
+        // Whole seconds between frames with a pause (stamps are exact);
+        // back to back without one (a movie: stamps truncate).
+        start = if program.gap_s > 0.0 {
+            (start + duration + program.gap_s).round()
+        } else {
+            start + duration
+        };
     }
     paths
 }

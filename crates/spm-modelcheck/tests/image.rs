@@ -436,13 +436,13 @@ fn a_peer_drift_hysteresis_creep_model_is_explained() {
     }
 }
 
-/// Trace/retrace separations up to 0.7 a mid-line (0.17 nm on graphite):
+/// Trace/retrace separations up to 1.2 a mid-line (0.09–0.30 nm on graphite):
 /// the other half of each frame is registered at the line ends, so the
 /// separation is measured, not mistaken for a neighbouring site.
 #[test]
 fn large_hysteresis_does_not_misindex_the_other_half() {
     let program = Program::default();
-    for (i, half) in [0.045, 0.067, 0.085].into_iter().enumerate() {
+    for (i, half) in [0.045, 0.067, 0.085, 0.125, 0.15].into_iter().enumerate() {
         let d = run(
             &program,
             Hidden::Hysteresis {
@@ -877,4 +877,38 @@ fn explore_movie() {
         started.elapsed(),
         summary(&d)
     );
+}
+
+/// Clean sets over a sweep of scan programs (pixels, size, noise,
+/// corrugation, rotation, line time): any finding is printed.
+/// `cargo test -p spm-modelcheck --test image explore_clean_sweep -- --ignored --nocapture`
+#[test]
+#[ignore = "exploration: clean sets over many scan programs"]
+fn explore_clean_sweep() {
+    let mut case = 0u64;
+    for pixels in [64usize, 128, 200] {
+        for (size_nm, noise_nm, corrugation_nm) in
+            [(3.0, 0.001, 0.02), (6.0, 0.003, 0.05), (10.0, 0.002, 0.03)]
+        {
+            case += 1;
+            let program = Program {
+                pixels,
+                size_nm,
+                z_noise_nm: noise_nm,
+                corrugation_nm,
+                rotation_rad: 0.37 * case as f64,
+                line_time_s: 0.02 * (1 + case % 4) as f64,
+                ..Program::default()
+            };
+            let d = run(&program, Hidden::None, 2000 + case, "clean-sweep");
+            println!(
+                "px {pixels} size {size_nm} noise {noise_nm} corr {corrugation_nm}: findings {:?} unexplained {} {:?}; baseline {:.2} pm σloc {:.2}",
+                d.effects_found(),
+                d.unexplained,
+                d.residual_structure.reasons,
+                d.baseline.rms_pm,
+                d.localisation_sigma_pm
+            );
+        }
+    }
 }

@@ -900,7 +900,14 @@ fn explore_clean_sweep() {
                 line_time_s: 0.02 * (1 + case % 4) as f64,
                 ..Program::default()
             };
-            let d = run(&program, Hidden::None, 2000 + case, "clean-sweep");
+            let paths = write_frames(&program, Hidden::None, 2000 + case, "clean-sweep");
+            let d = match run_paths(&paths, program.a_nm) {
+                Ok(d) => d,
+                Err(e) => {
+                    println!("px {pixels} size {size_nm}: {e}");
+                    continue;
+                }
+            };
             println!(
                 "px {pixels} size {size_nm} noise {noise_nm} corr {corrugation_nm}: findings {:?} unexplained {} {:?}; baseline {:.2} pm σloc {:.2}",
                 d.effects_found(),

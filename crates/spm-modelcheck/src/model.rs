@@ -567,16 +567,27 @@ pub(crate) fn solve(
     let mut member: Vec<Option<usize>> = vec![None; n_rows];
     let mut groups: Vec<usize> = Vec::new();
     for (j, col) in cols.iter().enumerate() {
-        let indicator = col.len() == n_rows && col.iter().all(|v| *v == 0.0 || *v == 1.0);
-        let disjoint = col
-            .iter()
-            .zip(&member)
-            .all(|(v, m)| *v == 0.0 || m.is_none());
-        if indicator && disjoint && col.contains(&1.0) {
-            for (r, v) in col.iter().enumerate() {
-                if *v == 1.0 {
-                    member[r] = Some(groups.len());
+        // One pass: 0/1 values only, disjoint from the groups taken so far.
+        if col.len() != n_rows {
+            continue;
+        }
+        let mut ones = Vec::new();
+        let mut usable = true;
+        for (r, v) in col.iter().enumerate() {
+            if *v == 1.0 {
+                if member[r].is_some() {
+                    usable = false;
+                    break;
                 }
+                ones.push(r);
+            } else if *v != 0.0 {
+                usable = false;
+                break;
+            }
+        }
+        if usable && !ones.is_empty() {
+            for r in ones {
+                member[r] = Some(groups.len());
             }
             groups.push(j);
         }
@@ -643,11 +654,16 @@ pub(crate) fn solve(
                 .sum::<f64>();
     }
     let mut residual = target.to_vec();
-    for (j, col) in cols.iter().enumerate() {
+    for &j in &others {
         if coef[j] != 0.0 {
-            for (r, c) in residual.iter_mut().zip(col) {
+            for (r, c) in residual.iter_mut().zip(&cols[j]) {
                 *r -= coef[j] * c;
             }
+        }
+    }
+    for (r, m) in residual.iter_mut().zip(&member) {
+        if let Some(g) = m {
+            *r -= coef[groups[*g]];
         }
     }
     let rss: f64 = (0..n_rows)

@@ -505,6 +505,27 @@ pub fn diagnose(
         files.push((spm_formats::read_any(&input.path)?, input.start_time_s));
     }
     let set = extract_features(&files, lattice, ex)?;
+    if set.features.is_empty() {
+        // Say why in the user's terms: a lattice sampled too coarsely to
+        // localise features, or no feature of that period at all.
+        let finest_px = set
+            .frames
+            .iter()
+            .filter_map(|f| f.pixel_nm)
+            .map(|p| lattice.a_nm() / p[0].max(p[1]))
+            .fold(f64::NAN, f64::max);
+        return Err(ModelCheckError::NotTheLattice {
+            context: format!("{} frame(s)", set.frames.len()),
+            reason: if finest_px.is_finite() {
+                format!(
+                    "no features found; the claimed lattice constant spans {finest_px:.1} px \
+                     (atoms need about 4 px or more to be localised)"
+                )
+            } else {
+                "no features found".to_owned()
+            },
+        });
+    }
     tracing::info!(
         features = set.features.len(),
         frames = set.frames.len(),

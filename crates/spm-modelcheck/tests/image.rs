@@ -239,6 +239,38 @@ fn hidden_effects(program: &Program, k: f64) -> Vec<HiddenCase> {
             },
             vec![("quadratic_x", 0.02 * k), ("cubic_x", 0.015 * k)],
         ),
+        // Creep after the move to each frame (both frames, same move size).
+        (
+            EffectKind::Creep,
+            Hidden::Creep {
+                nm_per_decade: [0.05 * k, -0.035 * k],
+                time_constant_s: 0.5,
+            },
+            vec![
+                ("creep_x_nm_per_decade_frame0", 0.05 * k),
+                ("creep_y_nm_per_decade_frame0", -0.035 * k),
+                ("creep_x_nm_per_decade_frame1", 0.05 * k),
+            ],
+        ),
+        (
+            EffectKind::CrosstalkXy,
+            Hidden::Bow {
+                x_from_y: 0.012 * k,
+                y_from_x: -0.009 * k,
+            },
+            vec![("bow_x_from_y", 0.012 * k), ("bow_y_from_x", -0.009 * k)],
+        ),
+        (
+            EffectKind::Nonorthogonality,
+            Hidden::ShearGradient {
+                x: 0.012 * k,
+                y: -0.01 * k,
+            },
+            vec![
+                ("shear_gradient_x", 0.012 * k),
+                ("shear_gradient_y", -0.01 * k),
+            ],
+        ),
         // Backward lines 25–45 pm along the slow axis (input): their features
         // appear displaced by minus the tip's displacement, in the image axes.
         (

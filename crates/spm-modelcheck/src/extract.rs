@@ -365,7 +365,7 @@ pub fn extract_features(
         });
     let mut set = FeatureSet::default();
     let first_record = files.iter().find_map(|(f, _)| f.recorded).map(seconds_of);
-    let mut next_start = 0.0;
+    let mut next_start = 0.0_f64;
     let mut first_settings: Option<(String, FrameSettings)> = None;
     for (frame_index, (file, start)) in files.iter().enumerate() {
         let path = file.source.display().to_string();
@@ -408,7 +408,18 @@ pub fn extract_features(
         );
         let start_s = match (start, file.recorded, first_record) {
             (Some(s), _, _) => *s,
-            (None, Some(rec), Some(first)) => seconds_of(rec) - first,
+            // A record time is stamped to the second: the true start lies in
+            // [rec, rec + 1 s). Frames shorter than a second (a fast-SPM
+            // movie) share stamps, so each starts where the previous ended
+            // when that is within its second, not on top of it.
+            (None, Some(rec), Some(first)) => {
+                let rec_s = seconds_of(rec) - first;
+                if set.frames.is_empty() {
+                    rec_s
+                } else {
+                    next_start.clamp(rec_s, rec_s + 1.0)
+                }
+            }
             _ => next_start,
         };
         next_start = start_s + line_period * ny as f64;
@@ -494,6 +505,27 @@ pub fn diagnose(
         files.push((spm_formats::read_any(&input.path)?, input.start_time_s));
     }
     let set = extract_features(&files, lattice, ex)?;
+    if set.features.is_empty() {
+        // Say why in the user's terms: a lattice sampled too coarsely to
+        // localise features, or no feature of that period at all.
+        let finest_px = set
+            .frames
+            .iter()
+            .filter_map(|f| f.pixel_nm)
+            .map(|p| lattice.a_nm() / p[0].max(p[1]))
+            .fold(f64::NAN, f64::max);
+        return Err(ModelCheckError::NotTheLattice {
+            context: format!("{} frame(s)", set.frames.len()),
+            reason: if finest_px.is_finite() {
+                format!(
+                    "no features found; the claimed lattice constant spans {finest_px:.1} px \
+                     (atoms need about 4 px or more to be localised)"
+                )
+            } else {
+                "no features found".to_owned()
+            },
+        });
+    }
     tracing::info!(
         features = set.features.len(),
         frames = set.frames.len(),

@@ -48,7 +48,24 @@ pub enum Hidden {
         quadratic: f64,
         cubic: f64,
     },
-    /// Backward lines shifted along y (interlace), nm: no library effect.
+    /// Piezo creep after the move to each frame's start: input displacement
+    /// c·lg(1 + t′/τ) per axis (nominal nm per decade), t′ since the frame
+    /// start.
+    Creep {
+        nm_per_decade: [f64; 2],
+        time_constant_s: f64,
+    },
+    /// Quadratic crosstalk (guidance bow): input x += b_x·H·η², y += b_y·W·ξ².
+    Bow {
+        x_from_y: f64,
+        y_from_x: f64,
+    },
+    /// Obliquity varying over the field: input x += g_x·W·ξη, y += g_y·H·ξη.
+    ShearGradient {
+        x: f64,
+        y: f64,
+    },
+    /// Backward lines shifted along y (interlace), nm.
     Interlace {
         dy_nm: f64,
     },
@@ -219,6 +236,24 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
                         Hidden::SineDrive { beta_rad } => {
                             u[0] = half * (beta_rad * xi).sin() / beta_rad.sin();
                         }
+                        Hidden::Creep {
+                            nm_per_decade,
+                            time_constant_s,
+                        } => {
+                            let g = (1.0 + (t - start) / time_constant_s).log10();
+                            u[0] += nm_per_decade[0] * g;
+                            u[1] += nm_per_decade[1] * g;
+                        }
+                        Hidden::Bow { x_from_y, y_from_x } => {
+                            let eta = u[1] / half;
+                            u[0] += x_from_y * half * eta * eta;
+                            u[1] += y_from_x * half * xi * xi;
+                        }
+                        Hidden::ShearGradient { x, y } => {
+                            let eta = u[1] / half;
+                            u[0] += x * half * xi * eta;
+                            u[1] += y * half * xi * eta;
+                        }
                         Hidden::Interlace { dy_nm } => {
                             if s < 0.0 {
                                 u[1] += dy_nm;
@@ -263,7 +298,7 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
             angle_deg: 0.0,
             line_time_s: [program.line_time_s, program.line_time_s],
             scan_dir: dir_y,
-            recorded: date_plus(start.round() as u64),
+            recorded: date_plus(start.floor() as u64),
             bias_v: 0.1,
             comment: format!("image-level generator, hidden {hidden:?}"),
             channels: vec![SxmChannel {
@@ -276,7 +311,13 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
         let path = dir.join(format!("frame{f}.sxm"));
         std::fs::write(&path, encode_sxm(&scan, &path).unwrap()).unwrap();
         paths.push(path);
-        start = (start + duration + program.gap_s).round();
+        // Whole seconds between frames with a pause (stamps are exact);
+        // back to back without one (a movie: stamps truncate).
+        start = if program.gap_s > 0.0 {
+            (start + duration + program.gap_s).round()
+        } else {
+            start + duration
+        };
     }
     paths
 }

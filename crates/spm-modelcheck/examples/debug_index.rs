@@ -54,6 +54,40 @@ fn main() {
             );
         }
     }
+    // Trace − retrace: each backward feature against the nearest forward one of its frame.
+    for k in 0..set.frames.len() {
+        let fw: Vec<_> = set
+            .features
+            .iter()
+            .filter(|f| f.frame_index == k && f.direction == LineDirection::Forward)
+            .collect();
+        let (mut sum, mut n) = ([0.0, 0.0], 0usize);
+        for b in set
+            .features
+            .iter()
+            .filter(|f| f.frame_index == k && f.direction == LineDirection::Backward)
+        {
+            let near = fw.iter().min_by(|p, q| {
+                (p.x_nm - b.x_nm)
+                    .hypot(p.y_nm - b.y_nm)
+                    .total_cmp(&(q.x_nm - b.x_nm).hypot(q.y_nm - b.y_nm))
+            });
+            if let Some(f) = near
+                && (f.x_nm - b.x_nm).hypot(f.y_nm - b.y_nm) < 0.3 * lattice.a_nm()
+            {
+                sum[0] += f.x_nm - b.x_nm;
+                sum[1] += f.y_nm - b.y_nm;
+                n += 1;
+            }
+        }
+        if n > 0 {
+            println!(
+                "frame {k}: forward − backward mean ({:.1}, {:.1}) pm over {n} pairs",
+                1000.0 * sum[0] / n as f64,
+                1000.0 * sum[1] / n as f64
+            );
+        }
+    }
     match index_features(&set, &lattice) {
         Ok(idx) => {
             let b = &idx.basis;

@@ -315,7 +315,7 @@ pub(crate) fn find_lattice(img: &Image<'_>, search: &LatticeSearch) -> Option<Pe
 /// vectors, and the fundamental itself may be weak (Si 7×7 images often show their
 /// second and third shells brightest). Candidate basis vectors are the peaks, their
 /// differences and their halves and thirds within the search range; the basis indexing
-/// the most peak weight (ln contrast) wins, and among near-equal ones the coarsest
+/// the most peak weight (contrast) wins, and among near-equal ones the coarsest
 /// reciprocal lattice (the smallest real cell that explains the spots). The basis is
 /// then refitted to all indexed peaks by least squares.
 // long-function: candidate generation, scoring and the least-squares refit share the peak list
@@ -364,7 +364,9 @@ fn index_peaks(sig: &[([f64; 2], f64)], search: &LatticeSearch, tol_k: f64) -> O
     // As generous as the diagnosis's refusal test (30°, a factor 1.6): a strongly
     // distorted image (one slow axis 0.64 of nominal) still shows its lattice.
     let wanted: &[f64] = if search.hex { &[60.0, 120.0] } else { &[90.0] };
-    let weight = |c: f64| c.ln().max(0.0);
+    // Contrast weights: the lattice must explain the strong spots; weak local maxima
+    // along a step's streak or from noise barely count.
+    let weight = |c: f64| c;
     let total: f64 = sig.iter().map(|s| weight(s.1)).sum();
     let index_of = |g1: [f64; 2], g2: [f64; 2], k: [f64; 2]| -> Option<[i64; 2]> {
         let det = g1[0] * g2[1] - g1[1] * g2[0];
@@ -420,7 +422,8 @@ fn index_peaks(sig: &[([f64; 2], f64)], search: &LatticeSearch, tol_k: f64) -> O
     })
 }
 
-/// Least-squares basis from indexed peaks: k ≈ m·g₁ + n·g₂ (weights ln contrast).
+/// Least-squares basis from indexed peaks: k ≈ m·g₁ + n·g₂ (weights ln contrast: every
+/// indexed spot pins the basis, the strong ones somewhat more).
 fn refit(harmonics: &[([i64; 2], [f64; 2], f64)]) -> Option<[[f64; 2]; 2]> {
     let (mut a, mut b) = ([[0.0; 2]; 2], [[0.0; 2]; 2]);
     for (mn, k, c) in harmonics {

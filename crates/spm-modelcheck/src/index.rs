@@ -258,6 +258,12 @@ fn fourier_registration(
     (q_f > 0.5 && q_f > q_nn + 0.1).then_some((k1, k2))
 }
 
+/// The refusal test's measure on a point set: the fraction of points whose nearest
+/// neighbour is a lattice vector of their own nearest-neighbour basis (0 when no basis).
+pub(crate) fn own_nn_fraction(points: &[[f64; 2]]) -> f64 {
+    measure_basis(points, None).map_or(0.0, |(b1, b2)| nn_fraction(points, b1, b2))
+}
+
 /// Fraction of points whose nearest neighbour is a lattice vector of (b1, b2)
 /// within 0.2 in basis units.
 fn nn_fraction(points: &[[f64; 2]], b1: [f64; 2], b2: [f64; 2]) -> f64 {

@@ -179,7 +179,7 @@ impl Windowed {
 
 /// Maximises `f` from `start` by a compass search whose step halves from `step` to
 /// `step / 256`.
-fn climb(f: &dyn Fn([f64; 2]) -> f64, start: [f64; 2], step: f64) -> ([f64; 2], f64) {
+pub(crate) fn climb(f: &dyn Fn([f64; 2]) -> f64, start: [f64; 2], step: f64) -> ([f64; 2], f64) {
     let (mut x, mut best) = (start, f(start));
     let mut h = step;
     while h > step / 256.0 {

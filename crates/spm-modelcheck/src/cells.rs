@@ -23,7 +23,7 @@
 //!    distortion does not accumulate into a wrong site), the template refolded over the
 //!    accepted cells only, and every cell located again.
 
-use nalgebra::{DMatrix, DVector, Matrix4, Vector4};
+use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use spm_features::Polarity;
 use std::f64::consts::{PI, TAU};
 
@@ -784,7 +784,27 @@ fn ncc(z: &[f64], t: &[f64], w: &[f64]) -> f64 {
     if d > 0.0 { c / d } else { 0.0 }
 }
 
-/// Locates one cell: coarse correlation over ±`search` cell, then Gauss–Newton.
+/// Subtracts from `v` its weighted mean over each image line (`line[k]` = the line of
+/// pixel k, 0-based within the window).
+fn demean_lines(v: &mut [f64], line: &[usize], w: &[f64], lines: usize) {
+    let (mut s, mut sw) = (vec![0.0; lines], vec![0.0; lines]);
+    for ((x, l), ww) in v.iter().zip(line).zip(w) {
+        s[*l] += ww * x;
+        sw[*l] += ww;
+    }
+    for (x, l) in v.iter_mut().zip(line) {
+        if sw[*l] > 0.0 {
+            *x -= s[*l] / sw[*l];
+        }
+    }
+}
+
+/// Locates one cell: coarse correlation over ±0.3 cell, then Gauss–Newton on
+/// z ≈ c_line + β·T(f − δ). Every image line in the window gets its own offset c_line
+/// (projected out): the line levelling's leakage of partial periods into each line's
+/// offset and tilt, and the feedback's line-to-line offsets, are stripes that would
+/// otherwise pull the cell along the slow axis (by up to 60 pm at the frame's sides on
+/// the synthetic cells of tests/cells.rs).
 // long-function: the window, the coarse search and the Gauss–Newton fit share the window's pixels
 fn locate_one(img: &Image<'_>, t: &Template, geo: &Geometry, site: [i64; 2]) -> Result<Cell, Miss> {
     let fs = [
@@ -794,7 +814,7 @@ fn locate_one(img: &Image<'_>, t: &Template, geo: &Geometry, site: [i64; 2]) -> 
     let p0 = geo.p.eval(fs);
     let j = geo.q.jacobian(p0);
     let r = geo.radius_px;
-    let (mut fz, mut zs, mut ws) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut fz, mut zs, mut ws, mut line) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let (mut full, mut inside) = (0.0, 0.0);
     let (r0, r1) = ((p0[1] - r).floor() as i64, (p0[1] + r).ceil() as i64);
     let (c0, c1) = ((p0[0] - r).floor() as i64, (p0[0] + r).ceil() as i64);
@@ -820,73 +840,92 @@ fn locate_one(img: &Image<'_>, t: &Template, geo: &Geometry, site: [i64; 2]) -> 
             ]);
             zs.push(z);
             ws.push(w);
+            line.push((row - r0) as usize);
         }
     }
     if full <= 0.0 || inside < 0.6 * full || zs.len() < 12 {
         return Err(Miss::Outside);
     }
+    let lines = (r1 - r0 + 1) as usize;
+    let mut zd = zs.clone();
+    demean_lines(&mut zd, &line, &ws, lines);
+    let raw = |d: [f64; 2], exact: bool| -> Vec<f64> {
+        fz.iter()
+            .map(|f| {
+                if exact {
+                    t.value(f[0] - d[0], f[1] - d[1])
+                } else {
+                    t.linear(f[0] - d[0], f[1] - d[1])
+                }
+            })
+            .collect()
+    };
+    let model = |d: [f64; 2], exact: bool| -> Vec<f64> {
+        let mut v: Vec<f64> = fz
+            .iter()
+            .map(|f| {
+                if exact {
+                    t.value(f[0] - d[0], f[1] - d[1])
+                } else {
+                    t.linear(f[0] - d[0], f[1] - d[1])
+                }
+            })
+            .collect();
+        demean_lines(&mut v, &line, &ws, lines);
+        v
+    };
     // Coarse search: at most 9 × 9 shifts within ±0.3 cell.
     let search = 0.3;
     let n = ((search / geo.step).ceil() as i64).clamp(1, 4);
     let ds = search / n as f64;
-    let stride = (zs.len() / 600).max(1);
-    let sub = |v: &Vec<f64>| v.iter().step_by(stride).copied().collect::<Vec<f64>>();
-    let (zsub, wsub) = (sub(&zs), sub(&ws));
-    let fsub: Vec<[f64; 2]> = fz.iter().step_by(stride).copied().collect();
     let mut best = ([0.0, 0.0], f64::NEG_INFINITY);
     for a in -n..=n {
         for b in -n..=n {
             let d = [a as f64 * ds, b as f64 * ds];
-            let tv: Vec<f64> = fsub
-                .iter()
-                .map(|f| t.linear(f[0] - d[0], f[1] - d[1]))
-                .collect();
-            let c = ncc(&zsub, &tv, &wsub);
+            // The basin from the full 2-D correlation (line offsets kept: the
+            // slow-axis structure tells the cell from its neighbours' adatoms).
+            let c = ncc(&zs, &raw(d, false), &ws);
             if c > best.1 {
                 best = (d, c);
             }
         }
     }
-    // Gauss–Newton on z ≈ α + β·T(f − δ).
-    let mut d = best.0;
-    let model = |d: [f64; 2]| -> Vec<f64> {
-        fz.iter()
-            .map(|f| t.value(f[0] - d[0], f[1] - d[1]))
-            .collect()
-    };
-    let lin = |tv: &[f64]| {
-        let sw: f64 = ws.iter().sum();
-        let tm = tv.iter().zip(&ws).map(|(a, b)| a * b).sum::<f64>() / sw;
-        let zm = zs.iter().zip(&ws).map(|(a, b)| a * b).sum::<f64>() / sw;
-        let (mut c, mut v) = (0.0, 0.0);
-        for ((a, b), w) in tv.iter().zip(&zs).zip(&ws) {
-            c += w * (a - tm) * (b - zm);
-            v += w * (a - tm).powi(2);
-        }
-        let beta = if v > 0.0 { c / v } else { 0.0 };
-        (zm - beta * tm, beta)
-    };
-    let rss = |th: &Vector4<f64>, tv: &[f64]| {
+    // Gauss–Newton on the line-demeaned z ≈ β·T̃(f − δ).
+    let rss = |beta: f64, tv: &[f64]| {
         tv.iter()
-            .zip(&zs)
+            .zip(&zd)
             .zip(&ws)
-            .map(|((t, z), w)| w * (z - th[0] - th[1] * t).powi(2))
+            .map(|((t, z), w)| w * (z - beta * t).powi(2))
             .sum::<f64>()
     };
-    let tv0 = model(d);
-    let (a0, b0) = lin(&tv0);
-    let mut th = Vector4::new(a0, b0, d[0], d[1]);
-    let mut cur = rss(&th, &tv0);
-    let mut normal = Matrix4::zeros();
+    let tv0 = model(best.0, true);
+    let (c, v) = tv0
+        .iter()
+        .zip(&zd)
+        .zip(&ws)
+        .fold((0.0, 0.0), |(c, v), ((t, z), w)| {
+            (c + w * t * z, v + w * t * t)
+        });
+    let mut th = Vector3::new(if v > 0.0 { c / v } else { 0.0 }, best.0[0], best.0[1]);
+    let mut cur = rss(th[0], &tv0);
+    let mut normal = Matrix3::zeros();
     for _ in 0..12 {
-        let dd = [th[2], th[3]];
-        let tv = model(dd);
-        let mut ntn = Matrix4::zeros();
-        let mut ntr = Vector4::zeros();
-        for (k, f) in fz.iter().enumerate() {
+        let dd = [th[1], th[2]];
+        let tv = model(dd, true);
+        let mut gx: Vec<f64> = Vec::with_capacity(fz.len());
+        let mut gy: Vec<f64> = Vec::with_capacity(fz.len());
+        for f in &fz {
             let g = t.gradient(f[0] - dd[0], f[1] - dd[1]);
-            let row = Vector4::new(1.0, tv[k], -th[1] * g[0], -th[1] * g[1]);
-            let res = zs[k] - th[0] - th[1] * tv[k];
+            gx.push(g[0]);
+            gy.push(g[1]);
+        }
+        demean_lines(&mut gx, &line, &ws, lines);
+        demean_lines(&mut gy, &line, &ws, lines);
+        let mut ntn = Matrix3::zeros();
+        let mut ntr = Vector3::zeros();
+        for k in 0..fz.len() {
+            let row = Vector3::new(tv[k], -th[0] * gx[k], -th[0] * gy[k]);
+            let res = zd[k] - th[0] * tv[k];
             ntn += ws[k] * row * row.transpose();
             ntr += ws[k] * res * row;
         }
@@ -898,21 +937,20 @@ fn locate_one(img: &Image<'_>, t: &Template, geo: &Geometry, site: [i64; 2]) -> 
         let mut improved = false;
         for _ in 0..6 {
             let trial = th + lambda * step;
-            let v = rss(&trial, &model([trial[2], trial[3]]));
+            let v = rss(trial[0], &model([trial[1], trial[2]], true));
             if v.is_finite() && v <= cur {
                 (th, cur, improved) = (trial, v, true);
                 break;
             }
             lambda *= 0.5;
         }
-        if !improved || (lambda * step[2]).hypot(lambda * step[3]) < 1e-5 {
+        if !improved || (lambda * step[1]).hypot(lambda * step[2]) < 1e-5 {
             break;
         }
     }
-    d = [th[2], th[3]];
-    let tv = model(d);
-    let correlation = ncc(&zs, &tv, &ws);
-    if !(th[1] > 0.0 && d[0].abs() < 0.45 && d[1].abs() < 0.45 && correlation >= MIN_CORRELATION) {
+    let d = [th[1], th[2]];
+    let correlation = ncc(&zd, &model(d, true), &ws);
+    if !(th[0] > 0.0 && d[0].abs() < 0.45 && d[1].abs() < 0.45 && correlation >= MIN_CORRELATION) {
         return Err(Miss::Poor);
     }
     // Position: p0 + J⁻¹·δ; covariance s²·(JᵀWJ)⁻¹ mapped to pixels.
@@ -928,9 +966,10 @@ fn locate_one(img: &Image<'_>, t: &Template, geo: &Geometry, site: [i64; 2]) -> 
         p0[0] + ji[0][0] * d[0] + ji[0][1] * d[1],
         p0[1] + ji[1][0] * d[0] + ji[1][1] * d[1],
     ];
-    let s2 = cur / (zs.len() as f64 - 4.0).max(1.0);
+    let dof = zs.len() as f64 - 3.0 - lines as f64;
+    let s2 = cur / dof.max(1.0);
     let cov = normal.try_inverse().ok_or(Miss::Poor)? * s2;
-    let cd = [[cov[(2, 2)], cov[(2, 3)]], [cov[(3, 2)], cov[(3, 3)]]];
+    let cd = [[cov[(1, 1)], cov[(1, 2)]], [cov[(2, 1)], cov[(2, 2)]]];
     // C_px = J⁻¹·C_δ·J⁻ᵀ; per-axis σ = √(trace / 2).
     let mut trace = 0.0;
     for row in &ji {

@@ -296,16 +296,14 @@ pub(crate) fn find_lattice(img: &Image<'_>, search: &LatticeSearch) -> Option<Pe
     for s in &mut sig {
         s.0 = climb(&|q| win.power(q), s.0, step).0;
     }
-    if std::env::var_os("SPM_CELLS_DEBUG").is_some() {
-        for (k, c) in &sig {
-            eprintln!(
-                "  peak k ({:.4}, {:.4}) |k| {:.4}/unit, angle {:.1}°, contrast {c:.0}",
-                k[0],
-                k[1],
-                norm(*k),
-                k[1].atan2(k[0]).to_degrees()
-            );
-        }
+    for (k, c) in &sig {
+        tracing::debug!(
+            kx = k[0],
+            ky = k[1],
+            k_per_unit = norm(*k),
+            contrast = c,
+            "spectrum peak"
+        );
     }
     index_peaks(&sig, search, step)
 }

@@ -484,26 +484,17 @@ fn cell_features(
         ny: map.rows,
     };
     let run = cells::locate_cells(&img, peaks, ctx.map_ctx.polarity, reference);
-    if std::env::var_os("SPM_CELLS_DEBUG").is_some() {
-        eprintln!(
-            "{}: peaks {:?} contrast {:?} -> {:?}",
-            ctx.label,
-            peaks.k,
-            peaks.contrast,
-            run.as_ref()
-                .map(|r| (r.cells.len(), r.candidates, r.origin))
+    if let Some(r) = &run {
+        let mut c: Vec<f64> = r.cells.iter().map(|c| c.correlation).collect();
+        c.sort_by(f64::total_cmp);
+        tracing::debug!(
+            label = %ctx.label,
+            k = ?peaks.k,
+            contrast = ?peaks.contrast,
+            origin = ?r.origin,
+            median_correlation = c.get(c.len() / 2).copied().unwrap_or(0.0),
+            "cell localiser"
         );
-        if let Some(r) = &run {
-            let mut c: Vec<f64> = r.cells.iter().map(|c| c.correlation).collect();
-            c.sort_by(f64::total_cmp);
-            let q = |f: f64| c.get((f * c.len() as f64) as usize).copied().unwrap_or(0.0);
-            eprintln!(
-                "  correlation q10 {:.2} q50 {:.2} q90 {:.2}",
-                q(0.1),
-                q(0.5),
-                q(0.9)
-            );
-        }
     }
     let run = run?;
     let (nx, ny) = (map.columns as f64, map.rows as f64);
@@ -561,9 +552,7 @@ fn channel_features(
             }
         };
         let Some(peaks) = peaks else {
-            if std::env::var_os("SPM_CELLS_DEBUG").is_some() {
-                eprintln!("{}: no lattice peaks", ctx.label);
-            }
+            tracing::debug!(label = %ctx.label, "no lattice peaks in the spectrum");
             *mode = Mode::Plain;
             return plain();
         };
@@ -574,12 +563,6 @@ fn channel_features(
             let pts: Vec<[f64; 2]> = found.iter().map(|f| [f.x_nm, f.y_nm]).collect();
             let q = crate::index::own_nn_fraction(&pts);
             tracing::debug!(q, "plain detector: nearest neighbours on lattice vectors");
-            if std::env::var_os("SPM_CELLS_DEBUG").is_some() {
-                eprintln!(
-                    "{}: plain nearest neighbours on lattice vectors: {q:.2}",
-                    ctx.label
-                );
-            }
             if q >= PLAIN_NN_FRACTION {
                 *mode = Mode::Plain;
                 return Ok(found);
@@ -814,4 +797,64 @@ pub fn diagnose_paths(
         })
         .collect();
     diagnose(&inputs, lattice, options, &ExtractOptions::default())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn hex_peaks(k: f64) -> Peaks {
+        let k1 = [k, 0.0];
+        let k2 = [0.5 * k, 0.75f64.sqrt() * k];
+        Peaks {
+            k: [k1, k2],
+            contrast: [100.0, 100.0],
+            harmonics: vec![([1, 0], k1, 100.0), ([0, 1], k2, 100.0)],
+        }
+    }
+
+    #[test]
+    fn a_cell_is_resolved_when_its_second_shell_is_below_nyquist() {
+        // Second shell of a triangular reciprocal lattice: √3·|k| (here along y).
+        for (k, resolved) in [(0.2, true), (0.28, true), (0.3, false), (0.4, false)] {
+            let r = unresolved(&hex_peaks(k));
+            assert_eq!(r.is_none(), resolved, "|k| = {k}: {r:?}");
+        }
+    }
+
+    #[test]
+    fn a_file_without_size_is_calibrated_from_its_lattice() {
+        // Corner-hole-like pits on a triangular lattice of 12 px (rotated 7°), with a
+        // second, weaker feature per cell: pixel pitch = a / 12 px.
+        let (n, a_px) = (128usize, 12.0);
+        let (c, s) = (7f64.to_radians().cos(), 7f64.to_radians().sin());
+        let b1 = [a_px * c, a_px * s];
+        let b2 = [
+            a_px * (0.5 * c - 0.75f64.sqrt() * s),
+            a_px * (0.5 * s + 0.75f64.sqrt() * c),
+        ];
+        let det = b1[0] * b2[1] - b2[0] * b1[1];
+        let mut data = Vec::with_capacity(n * n);
+        for r in 0..n {
+            for col in 0..n {
+                let (x, y) = (col as f64, r as f64);
+                let u = (b2[1] * x - b2[0] * y) / det;
+                let v = (-b1[1] * x + b1[0] * y) / det;
+                let mut h = 0.0;
+                for (fu, fv, amp) in [(0.0, 0.0, -1.0), (1.0 / 3.0, 1.0 / 3.0, 0.5)] {
+                    let du = (u - fu) - (u - fu).round();
+                    let dv = (v - fv) - (v - fv).round();
+                    let p = [du * b1[0] + dv * b2[0], du * b1[1] + dv * b2[1]];
+                    h += amp * (-(p[0] * p[0] + p[1] * p[1]) / 4.0).exp();
+                }
+                data.push(1e-11 * h);
+            }
+        }
+        let channel = Channel::new("Z", Direction::Forward, "m", n, n, data).expect("channel");
+        assert!(channel.size_x_nm().is_none());
+        let lattice = LatticeSpec::parse("si7x7").expect("lattice");
+        let (pixel, _) = self_calibrate(&channel, &lattice).expect("calibrated");
+        let truth = SI7X7_A_NM / a_px;
+        assert!((pixel / truth - 1.0).abs() < 0.01, "{pixel} vs {truth}");
+    }
 }

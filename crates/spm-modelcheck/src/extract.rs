@@ -631,6 +631,10 @@ pub fn extract_features(
     };
     for (frame_index, (file, start)) in files.iter().enumerate() {
         let path = file.source.display().to_string();
+        let name = file
+            .source
+            .file_name()
+            .map_or_else(|| path.clone(), |n| n.to_string_lossy().into_owned());
         let (forward, backward) = height_channels(file, ex, &path)?;
         let (nx, ny) = (forward.nx(), forward.ny());
         let (sx, sy) = match (forward.size_x_nm(), forward.size_y_nm()) {
@@ -645,7 +649,7 @@ pub fn extract_features(
                     });
                 };
                 set.warnings.push(format!(
-                    "{path}: no physical size stored; pixel pitch {pixel:.5} nm self-calibrated \
+                    "{name}: no physical size stored; pixel pitch {pixel:.5} nm self-calibrated \
                      from the lattice in the image (cell of {:.1} px² set to the claimed {:.4} nm \
                      lattice's): scales are relative to that, the lattice constant is not measured",
                     peaks.cell_area_px(),
@@ -746,7 +750,7 @@ pub fn extract_features(
                     frame_index,
                 },
                 time_and_line: &time_and_line,
-                label: format!("{path}, {}", format!("{direction:?}").to_lowercase()),
+                label: format!("{name}, {}", format!("{direction:?}").to_lowercase()),
             };
             let feats = channel_features(&mut mode, &map, &bad, &ctx, lattice, ex)?;
             // Drop features next to unscanned (NaN) pixels.

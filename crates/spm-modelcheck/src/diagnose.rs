@@ -899,6 +899,17 @@ pub fn diagnose_features(
     let indexing = index_features(set, lattice)?;
     let mut d = diagnose_indexed(set, &indexing.sites, &indexing.basis, options)?;
     d.warnings.extend(indexing.warnings);
+    // A frame that gave nothing (NaN-filled by an aborted scan, flat, out of
+    // range) is left out of the fit: say so rather than diagnosing fewer
+    // frames than were given without a word.
+    for (f, frame) in set.frames.iter().enumerate() {
+        if !set.features.iter().any(|o| o.frame_index == f) {
+            d.warnings.push(format!(
+                "frame {f} ({}) gave no features and was left out",
+                frame.label
+            ));
+        }
+    }
     Ok(d)
 }
 
@@ -1002,6 +1013,17 @@ fn implausible(
             let jump = v("jump_x_nm").hypot(v("jump_y_nm"));
             if jump > 3.0 * lattice_a_nm {
                 return bad(format!("tip jump {jump:.3} nm > 3a"));
+            }
+        }
+        EffectKind::Interlace => {
+            // Beyond half a lattice constant the other direction's features
+            // are indexed to the neighbouring site: a fitted separation that
+            // large is an indexing artefact, not an interlace offset.
+            let sep = v("separation_y_nm");
+            if sep.abs() > 0.5 * lattice_a_nm {
+                return bad(format!(
+                    "interlace separation {sep:.3} nm > a/2 (indexing, not interlace)"
+                ));
             }
         }
     }

@@ -623,7 +623,7 @@ pub fn extract_features(
         });
     let mut set = FeatureSet::default();
     let first_record = files.iter().find_map(|(f, _)| f.recorded).map(seconds_of);
-    let mut next_start = 0.0;
+    let mut next_start = 0.0_f64;
     let mut first_settings: Option<(String, FrameSettings)> = None;
     let mut mode = match ex.localiser {
         Localiser::Features => Mode::Plain,
@@ -689,7 +689,18 @@ pub fn extract_features(
         );
         let start_s = match (start, file.recorded, first_record) {
             (Some(s), _, _) => *s,
-            (None, Some(rec), Some(first)) => seconds_of(rec) - first,
+            // A record time is stamped to the second: the true start lies in
+            // [rec, rec + 1 s). Frames shorter than a second (a fast-SPM
+            // movie) share stamps, so each starts where the previous ended
+            // when that is within its second, not on top of it.
+            (None, Some(rec), Some(first)) => {
+                let rec_s = seconds_of(rec) - first;
+                if set.frames.is_empty() {
+                    rec_s
+                } else {
+                    next_start.clamp(rec_s, rec_s + 1.0)
+                }
+            }
             _ => next_start,
         };
         next_start = start_s + line_period * ny as f64;

@@ -3,7 +3,7 @@
 //! Given measured images of a crystal lattice (or feature lists), fit the
 //! baseline model — the known lattice seen through a lumped linear scanner
 //! (scales, obliquity, rotation) with constant drift and per-frame offsets —
-//! show what it gets wrong, name the physical cause from a library of nine
+//! show what it gets wrong, name the physical cause from a library of ten
 //! effects by evidence, extend the model, and measure the gain on held-out
 //! features (DESIGN §10, §13).
 //!
@@ -27,6 +27,7 @@
 //! | `feedback_lag` | fast-axis input −s·v·τ | `time_constant_s`, `shift_nm` |
 //! | `periodic_vibration` | A·cos(2πft + φ) per axis | `amplitude_{x,y}_nm`, `frequency_hz`, `phase_{x,y}_rad` |
 //! | `tip_change` | jump (jx, jy) from time t_c on | `jump_{x,y}_nm`, `time_s` |
+//! | `interlace` | slow-axis displacement ±½·d of forward/backward lines (d: backward features relative to forward) | `separation_y_nm` |
 //!
 //! ξ is the commanded position over the frame half-size (W along x, H along y).
 //! Time-dependent tip–sample effects are seen through each feature's footprint

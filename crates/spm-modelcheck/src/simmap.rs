@@ -192,6 +192,9 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
                 ),
                 EffectKind::PeriodicVibration => unmapped
                     .push("periodic_vibration: spm-sim has no lateral vibration source".to_owned()),
+                EffectKind::Interlace => unmapped.push(
+                    "interlace: spm-sim has no direction-dependent slow-axis offset".to_owned(),
+                ),
             }
         }
     }

@@ -153,7 +153,7 @@ impl LatticeSpec {
     }
 }
 
-/// The nine candidate effects of the library (DESIGN §13 vocabulary).
+/// The ten candidate effects of the library (DESIGN §13 vocabulary).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum EffectKind {
@@ -175,11 +175,13 @@ pub enum EffectKind {
     PeriodicVibration,
     /// Sudden lateral jump of the image (tip apex change).
     TipChange,
+    /// Backward lines displaced along the slow axis relative to forward ones.
+    Interlace,
 }
 
 impl EffectKind {
     /// All effects, in library order.
-    pub const ALL: [EffectKind; 9] = [
+    pub const ALL: [EffectKind; 10] = [
         Self::DriftAcceleration,
         Self::Creep,
         Self::Hysteresis,
@@ -189,6 +191,7 @@ impl EffectKind {
         Self::FeedbackLag,
         Self::PeriodicVibration,
         Self::TipChange,
+        Self::Interlace,
     ];
 
     /// The JSON name.
@@ -203,6 +206,7 @@ impl EffectKind {
             Self::FeedbackLag => "feedback_lag",
             Self::PeriodicVibration => "periodic_vibration",
             Self::TipChange => "tip_change",
+            Self::Interlace => "interlace",
         }
     }
 
@@ -241,6 +245,9 @@ impl EffectKind {
             Self::TipChange => {
                 "the tip apex changed: the whole image jumps laterally at one moment"
             }
+            Self::Interlace => {
+                "backward lines sit at another slow-axis position than forward ones (slow-axis input stepped or ramped with the fast-axis direction, tube bending)"
+            }
         }
     }
 }
@@ -249,7 +256,7 @@ impl EffectKind {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Options {
-    /// Candidate effects searched (default: all nine).
+    /// Candidate effects searched (default: all ten).
     pub effects: Vec<EffectKind>,
     /// ΔBIC (after the look-elsewhere penalty) an effect needs to be accepted.
     /// Default 10 ("very strong" evidence); calibrated by the null tests.

@@ -57,6 +57,21 @@ pub enum Hidden {
     SineDrive {
         beta_rad: f64,
     },
+    /// The drift + hysteresis + creep model of a peer (Yothers, Browder &
+    /// Bumm, Rev. Sci. Instrum. 88, 013708 (2017)), implemented from its
+    /// equations: the drift *velocity* of each axis is v + b·t + c/(t′ + t₀)
+    /// (t′ since the frame start: creep after the move to the frame, which
+    /// integrates to c·ln(1 + t′/t₀)), and the fast axis's local scale after
+    /// each turnaround grows as a power of the time since the line start, so
+    /// a line reaches x = −W + 2W·τ^(1+p) (τ the fraction of the line time;
+    /// retrace mirrored). The trace/retrace separation is largest mid-line
+    /// and vanishes at the line ends, but is not the library's polynomial.
+    PeerDriftHysteresisCreep {
+        acceleration_nm_per_s2: [f64; 2],
+        creep_nm: [f64; 2],
+        creep_time_constant_s: f64,
+        hysteresis_exponent: f64,
+    },
 }
 
 /// The scan program and the instrument's linear part.
@@ -209,6 +224,21 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
                                 u[1] += dy_nm;
                             }
                         }
+                        Hidden::PeerDriftHysteresisCreep {
+                            acceleration_nm_per_s2,
+                            creep_nm,
+                            creep_time_constant_s,
+                            hysteresis_exponent,
+                        } => {
+                            let tau_line = (k as f64 + 0.5) / n as f64;
+                            let reach = 2.0 * tau_line.powf(1.0 + hysteresis_exponent) - 1.0;
+                            u[0] = s * half * reach;
+                            let t_frame = t - start;
+                            let log = (1.0 + t_frame / creep_time_constant_s).ln();
+                            for a in 0..2 {
+                                d[a] += 0.5 * acceleration_nm_per_s2[a] * t * t + creep_nm[a] * log;
+                            }
+                        }
                     }
                     let q = [
                         j[0][0] * u[0] + j[0][1] * u[1] + d[0],
@@ -233,7 +263,7 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
             angle_deg: 0.0,
             line_time_s: [program.line_time_s, program.line_time_s],
             scan_dir: dir_y,
-            recorded: date_plus(start.round() as u64),
+            recorded: date_plus(start.floor() as u64),
             bias_v: 0.1,
             comment: format!("image-level generator, hidden {hidden:?}"),
             channels: vec![SxmChannel {
@@ -246,7 +276,13 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
         let path = dir.join(format!("frame{f}.sxm"));
         std::fs::write(&path, encode_sxm(&scan, &path).unwrap()).unwrap();
         paths.push(path);
-        start = (start + duration + program.gap_s).round();
+        // Whole seconds between frames with a pause (stamps are exact);
+        // back to back without one (a movie: stamps truncate).
+        start = if program.gap_s > 0.0 {
+            (start + duration + program.gap_s).round()
+        } else {
+            start + duration
+        };
     }
     paths
 }

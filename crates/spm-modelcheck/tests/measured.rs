@@ -124,7 +124,8 @@ fn the_si7x7_drift_pair_is_indexed_cell_by_cell() {
         "{per_group} features per image, {expected:.0} cells in the field"
     );
     assert!(d.unindexed * 100 <= d.features_used);
-    // The lumped linear baseline far below a cell (was 1661 pm with the pit detector),
+    // The lumped linear baseline far below a cell (was 1661 pm with the pit detector;
+    // what remains is the lag's ±0.24 nm trace/retrace split and the slow axis's bow),
     // the final model within a few localisation σ of the data.
     let a_pm = 1000.0 * SI7X7_A_NM;
     assert!(d.baseline.rms_pm < 0.12 * a_pm, "{}", d.baseline.rms_pm);
@@ -134,14 +135,22 @@ fn the_si7x7_drift_pair_is_indexed_cell_by_cell() {
         d.final_report.rms_pm
     );
     assert!(d.warnings.is_empty(), "{:?}", d.warnings);
-    // What stays unexplained is a trace/retrace offset along the slow axis (see
+    // The causes: the feedback's lag and the slow axis's nonlinearity, and backward
+    // lines displaced along the slow axis (interlace; the offset is in the data: see
     // the_trace_retrace_offset_is_in_the_data_not_the_localiser).
-    assert!(d.unexplained);
+    for effect in ["feedback_lag", "scanner_nonlinearity", "interlace"] {
+        assert!(
+            d.findings.iter().any(|f| f.effect == effect),
+            "{effect} not among {:?}",
+            d.findings.iter().map(|f| &f.effect).collect::<Vec<_>>()
+        );
+    }
+    // Whatever stays unexplained is small structure, not indexing.
     assert!(
-        d.residual_structure
+        !d.residual_structure
             .reasons
             .iter()
-            .any(|r| r.starts_with("forward and backward differ")),
+            .any(|r| r.contains("quarter of the lattice")),
         "{:?}",
         d.residual_structure.reasons
     );

@@ -2,7 +2,10 @@
 //! and writes `docs/modelcheck/<dataset>.json` and `.png`.
 //!
 //! `cargo run -p spm-modelcheck --example measured [DATASET…]`
-//! (datasets: si7x7-drift-pair, si7x7-051, graphite-sm4, hopg-terrace; default all).
+//! (datasets: si7x7-drift-pair, si7x7-028, si7x7-032, si7x7-051, si7x7-012,
+//! si7x7-raw-defects, si7x7-raw-step-edge, si7x7-raw-step-edge-atoms, graphite-sm4,
+//! hopg-terrace; default all). A refused dataset gets `{"refused": REASON}` as its JSON:
+//! the refusal is its verdict.
 #![allow(clippy::unwrap_used)]
 
 use spm_modelcheck::{ExtractOptions, ImageInput, LatticeSpec, Options, diagnose, write_png};
@@ -21,6 +24,22 @@ fn datasets() -> Vec<(&'static str, &'static str, Vec<&'static str>)> {
         ("si7x7-028", "si7x7", vec!["si7x7-nanonis/Si_7x7_028.sxm"]),
         ("si7x7-032", "si7x7", vec!["si7x7-nanonis/Si_7x7_032.sxm"]),
         ("si7x7-051", "si7x7", vec!["si7x7-nanonis/Si_7x7_051.sxm"]),
+        ("si7x7-012", "si7x7", vec!["si7x7-nanonis/Si_7x7_012.sxm"]),
+        (
+            "si7x7-raw-defects",
+            "si7x7",
+            vec!["si7x7-raw/image_with_defects.dat"],
+        ),
+        (
+            "si7x7-raw-step-edge",
+            "si7x7",
+            vec!["si7x7-raw/image_with_step_edge.dat"],
+        ),
+        (
+            "si7x7-raw-step-edge-atoms",
+            "si7x7",
+            vec!["si7x7-raw/image_with_step_edge_and_atoms.dat"],
+        ),
         (
             "graphite-sm4",
             "hopg",
@@ -70,7 +89,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 );
                 println!("{json}");
             }
-            Err(e) => println!("== {name}: error: {e}"),
+            Err(e) => {
+                let json = serde_json::to_string_pretty(&serde_json::json!({
+                    "refused": e.to_string(),
+                    "error": format!("{e:?}").split([' ', '{', '(']).next().unwrap_or(""),
+                }))?;
+                std::fs::write(out.join(format!("{name}.json")), &json)?;
+                println!("== {name}: refused: {e}");
+            }
         }
     }
     Ok(())

@@ -1,5 +1,6 @@
 //! From image files to feature observations with acquisition times.
 
+use crate::cells::{self, Image, LatticeSearch, Peaks, Template};
 use crate::diagnose::{Diagnosis, diagnose_features};
 use crate::types::{
     FeatureObservation, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError,
@@ -21,6 +22,8 @@ pub struct ExtractOptions {
     pub default_line_time_s: f64,
     /// Smallest signal-to-noise ratio of a feature (see spm-features). Default 4.
     pub min_snr: f64,
+    /// Which localiser finds the features. Default: [`Localiser::Auto`].
+    pub localiser: Localiser,
 }
 
 impl Default for ExtractOptions {
@@ -30,9 +33,35 @@ impl Default for ExtractOptions {
             channel: None,
             default_line_time_s: 1.0,
             min_snr: 4.0,
+            localiser: Localiser::Auto,
         }
     }
 }
+
+/// Which localiser turns an image into features.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Localiser {
+    /// By evidence, decided on the first image: the cell-template localiser when the
+    /// image's power spectrum shows the claimed lattice and either its cell is a known
+    /// pattern (Si(111)-7×7) or the plain detector puts fewer than a third of its
+    /// features' nearest neighbours on lattice vectors (not the lattice by the diagnosis's
+    /// own test); the plain detector otherwise.
+    Auto,
+    /// One feature per hill or pit (spm-features' Gaussian localiser).
+    Features,
+    /// One feature per unit cell: the mean cell folded from the image, fitted to every
+    /// cell (see `cells.rs`).
+    Cells,
+}
+
+/// Below this fraction of plain features with a lattice vector (of their own
+/// nearest-neighbour basis) to their nearest neighbour — where the diagnosis would refuse
+/// the plain features as not the lattice although the spectrum shows it —
+/// [`Localiser::Auto`] takes the cell localiser (a clean atomic lattice gives 0.8–1; the
+/// HOPG terrace with its step 0.56, and there the plain path with the structure-factor
+/// registration is better: 44 pm baseline against 47–123 pm by cells, whose single
+/// template phase does not follow the two terraces' registry).
+const PLAIN_NN_FRACTION: f64 = 0.33;
 
 /// One image input: a file and, optionally, its start time on a common axis.
 #[derive(Clone, Debug, PartialEq)]
@@ -349,8 +378,237 @@ fn near_unscanned(
     })
 }
 
+/// The cell localiser's reference: the first image's lattice and template.
+#[derive(Clone, Debug)]
+struct CellReference {
+    peaks: Peaks,
+    template: Option<(Template, [f64; 2])>,
+}
+
+/// How the images of one extraction are localised (decided on the first image).
+#[derive(Clone, Debug)]
+enum Mode {
+    Undecided,
+    Plain,
+    Cells(CellReference),
+}
+
+/// The claimed lattice's first peaks, cycles per nm: within a factor 1.6 of the row
+/// period (the diagnosis's refusal test allows no more; the fundamental is the
+/// smallest-|k| pair found, so the √3 harmonics cannot be taken for it).
+fn lattice_search(lattice: &LatticeSpec, pixel_nm: [f64; 2]) -> LatticeSearch {
+    let a = lattice.a_nm();
+    let (row, hex) = match lattice {
+        LatticeSpec::Hex { .. } => (a * 0.75f64.sqrt(), true),
+        LatticeSpec::Square { .. } => (a, false),
+    };
+    LatticeSearch {
+        pixel: pixel_nm,
+        k_range: [1.0 / (1.6 * row), 1.6 / row],
+        hex,
+    }
+}
+
+/// `Some(reason)` when the lattice's cell pattern is not resolved by the pixels: the
+/// second shell of its reciprocal lattice (the first harmonics beyond the period itself)
+/// must lie below the pixel Nyquist frequency, else a cell is one blurred, aliased
+/// cosine and no point of it can be localised.
+fn unresolved(peaks: &Peaks) -> Option<String> {
+    let [k1, k2] = peaks.k;
+    let first = k1[0].hypot(k1[1]).max(k2[0].hypot(k2[1]));
+    let mut worst: f64 = 0.0;
+    for m in -2i32..=2 {
+        for n in -2i32..=2 {
+            let k = [
+                m as f64 * k1[0] + n as f64 * k2[0],
+                m as f64 * k1[1] + n as f64 * k2[1],
+            ];
+            let len = k[0].hypot(k[1]);
+            if len > 1.05 * first && len < 1.9 * first {
+                worst = worst.max(k[0].abs()).max(k[1].abs());
+            }
+        }
+    }
+    let a_px = peaks.cell_area_px().sqrt();
+    (worst >= 0.5).then(|| {
+        format!(
+            "the lattice is in the image (spectrum peaks {:.0}× and {:.0}× their ring), but a \
+             cell spans only {a_px:.1} px: its pattern's second harmonics ({:.2} cycles/px) lie \
+             beyond the pixel Nyquist limit (0.5), so a cell is one aliased cosine and no \
+             point of it can be localised; image it with at least {:.0} px per cell",
+            peaks.contrast[0],
+            peaks.contrast[1],
+            worst,
+            (a_px * 2.0 * worst).ceil()
+        )
+    })
+}
+
+/// Pixel pitch of a file without a physical size, from the lattice's fundamental in
+/// its image and the claimed lattice constant; `None` when no lattice is seen.
+fn self_calibrate(channel: &Channel, lattice: &LatticeSpec) -> Option<(f64, Peaks)> {
+    let (map, bad) = geometric_map(channel);
+    let img = Image {
+        z: &map.z_counts,
+        bad: &bad,
+        nx: map.columns,
+        ny: map.rows,
+    };
+    let mut search = lattice_search(lattice, [1.0, 1.0]);
+    search.k_range = [0.0, 0.5 * std::f64::consts::SQRT_2];
+    let peaks = cells::find_lattice(&img, &search)?;
+    let sin_gamma = lattice.basis_angle_rad().sin();
+    let a_px = (peaks.cell_area_px() / sin_gamma).sqrt();
+    Some((lattice.a_nm() / a_px, peaks))
+}
+
+/// Where the features of one channel go.
+struct ChannelCtx<'c> {
+    map_ctx: MapContext,
+    time_and_line: &'c dyn Fn(f64, f64) -> (f64, usize),
+    label: String,
+}
+
+/// Features of one channel by the cell localiser, or `None` when it finds too few cells.
+fn cell_features(
+    map: &HeightMap,
+    bad: &[bool],
+    ctx: &ChannelCtx<'_>,
+    peaks: &Peaks,
+    reference: Option<(&Template, [f64; 2])>,
+) -> Option<(Vec<FeatureObservation>, cells::CellRun)> {
+    let img = Image {
+        z: &map.z_counts,
+        bad,
+        nx: map.columns,
+        ny: map.rows,
+    };
+    let run = cells::locate_cells(&img, peaks, ctx.map_ctx.polarity, reference);
+    if let Some(r) = &run {
+        let mut c: Vec<f64> = r.cells.iter().map(|c| c.correlation).collect();
+        c.sort_by(f64::total_cmp);
+        tracing::debug!(
+            label = %ctx.label,
+            k = ?peaks.k,
+            contrast = ?peaks.contrast,
+            origin = ?r.origin,
+            median_correlation = c.get(c.len() / 2).copied().unwrap_or(0.0),
+            "cell localiser"
+        );
+    }
+    let run = run?;
+    let (nx, ny) = (map.columns as f64, map.rows as f64);
+    let px = ctx.map_ctx.pixel_nm;
+    let feats = run
+        .cells
+        .iter()
+        .map(|c| {
+            let (time_s, line_index) = (ctx.time_and_line)(c.pos[0], c.pos[1]);
+            FeatureObservation {
+                x_nm: (c.pos[0] - 0.5 * (nx - 1.0)) * px[0],
+                y_nm: (c.pos[1] - 0.5 * (ny - 1.0)) * px[1],
+                time_s,
+                direction: ctx.map_ctx.direction,
+                frame_index: ctx.map_ctx.frame_index,
+                line_index,
+                sigma_nm: Some(c.sigma_px * px[0]),
+                // The fit window (cos² of radius R ≈ a Gaussian of σ ≈ R/2.6) is the
+                // footprint over lines.
+                width_nm: Some(run.radius_px / 2.6 * px[1]),
+                fit_radius_nm: Some(run.radius_px * px[1]),
+            }
+        })
+        .collect::<Vec<_>>();
+    tracing::debug!(
+        label = %ctx.label,
+        cells = feats.len(),
+        candidates = run.candidates,
+        "cells located"
+    );
+    (feats.len() >= 6).then_some((feats, run))
+}
+
+/// The features of one channel: decides the mode on the first channel, then localises.
+fn channel_features(
+    mode: &mut Mode,
+    map: &HeightMap,
+    bad: &[bool],
+    ctx: &ChannelCtx<'_>,
+    lattice: &LatticeSpec,
+    ex: &ExtractOptions,
+) -> Result<Vec<FeatureObservation>, ModelCheckError> {
+    let plain = || features_from_height_map(map, &ctx.map_ctx, ctx.time_and_line);
+    let img = Image {
+        z: &map.z_counts,
+        bad,
+        nx: map.columns,
+        ny: map.rows,
+    };
+    if let Mode::Undecided = mode {
+        let peaks = match ex.localiser {
+            Localiser::Features => None,
+            Localiser::Auto | Localiser::Cells => {
+                cells::find_lattice(&img, &lattice_search(lattice, ctx.map_ctx.pixel_nm))
+            }
+        };
+        let Some(peaks) = peaks else {
+            tracing::debug!(label = %ctx.label, "no lattice peaks in the spectrum");
+            *mode = Mode::Plain;
+            return plain();
+        };
+        let pattern_cell = (lattice.a_nm() - SI7X7_A_NM).abs() < 1e-6;
+        let mut plain_found = None;
+        if ex.localiser == Localiser::Auto && !pattern_cell {
+            let found = plain()?;
+            let pts: Vec<[f64; 2]> = found.iter().map(|f| [f.x_nm, f.y_nm]).collect();
+            let q = crate::index::own_nn_fraction(&pts);
+            tracing::debug!(q, "plain detector: nearest neighbours on lattice vectors");
+            if q >= PLAIN_NN_FRACTION {
+                *mode = Mode::Plain;
+                return Ok(found);
+            }
+            plain_found = Some(found);
+        }
+        if let Some(reason) = unresolved(&peaks) {
+            return Err(ModelCheckError::Unresolved {
+                context: ctx.label.clone(),
+                reason,
+            });
+        }
+        match cell_features(map, bad, ctx, &peaks, None) {
+            Some((feats, run)) => {
+                *mode = Mode::Cells(CellReference {
+                    peaks,
+                    template: Some((run.template, run.origin)),
+                });
+                return Ok(feats);
+            }
+            None => {
+                *mode = Mode::Plain;
+                return match plain_found {
+                    Some(f) => Ok(f),
+                    None => plain(),
+                };
+            }
+        }
+    }
+    match mode {
+        Mode::Cells(reference) => {
+            let peaks = cells::follow_lattice(&img, &reference.peaks);
+            let refd = reference.template.as_ref().map(|(t, o)| (t, *o));
+            Ok(cell_features(map, bad, ctx, &peaks, refd).map_or_else(Vec::new, |r| r.0))
+        }
+        _ => plain(),
+    }
+}
+
 /// Extracts feature observations from the height channels (forward and
 /// backward) of each file. Frame `i` of the result is file `i`.
+///
+/// A file without a physical size (raw height arrays) is self-calibrated: its pixel
+/// pitch makes the cell of the lattice's fundamental in the image the claimed
+/// lattice's (a warning says so; its scales are then relative to that).
+// long-function: one pass over files and channels sharing the time axis, the scan-series check and the localiser's reference
 pub fn extract_features(
     files: &[(SpmFile, Option<f64>)],
     lattice: &LatticeSpec,
@@ -367,16 +625,39 @@ pub fn extract_features(
     let first_record = files.iter().find_map(|(f, _)| f.recorded).map(seconds_of);
     let mut next_start = 0.0_f64;
     let mut first_settings: Option<(String, FrameSettings)> = None;
+    let mut mode = match ex.localiser {
+        Localiser::Features => Mode::Plain,
+        _ => Mode::Undecided,
+    };
     for (frame_index, (file, start)) in files.iter().enumerate() {
         let path = file.source.display().to_string();
+        let name = file
+            .source
+            .file_name()
+            .map_or_else(|| path.clone(), |n| n.to_string_lossy().into_owned());
         let (forward, backward) = height_channels(file, ex, &path)?;
-        let (Some(sx), Some(sy)) = (forward.size_x_nm(), forward.size_y_nm()) else {
-            return Err(ModelCheckError::MissingMetadata {
-                path,
-                reason: "no physical size".to_owned(),
-            });
-        };
         let (nx, ny) = (forward.nx(), forward.ny());
+        let (sx, sy) = match (forward.size_x_nm(), forward.size_y_nm()) {
+            (Some(sx), Some(sy)) => (sx, sy),
+            _ => {
+                let Some((pixel, peaks)) = self_calibrate(forward, lattice) else {
+                    return Err(ModelCheckError::MissingMetadata {
+                        path,
+                        reason: "no physical size stored, and no lattice in the image's power \
+                                 spectrum to self-calibrate the pixel pitch from"
+                            .to_owned(),
+                    });
+                };
+                set.warnings.push(format!(
+                    "{name}: no physical size stored; pixel pitch {pixel:.5} nm self-calibrated \
+                     from the lattice in the image (cell of {:.1} px² set to the claimed {:.4} nm \
+                     lattice's): scales are relative to that, the lattice constant is not measured",
+                    peaks.cell_area_px(),
+                    lattice.a_nm()
+                ));
+                (pixel * nx as f64, pixel * ny as f64)
+            }
+        };
         let timing = forward.timing();
         let line_time = timing.map_or(ex.default_line_time_s, |t| t.line_time_s);
         let settings = FrameSettings {
@@ -470,15 +751,19 @@ pub fn extract_features(
                     + (acq_col + 0.5) * line_time / nx as f64;
                 (t, acq_row.round().max(0.0) as usize)
             };
-            let ctx = MapContext {
-                pixel_nm,
-                polarity,
-                a_nm: lattice.a_nm(),
-                min_snr: ex.min_snr,
-                direction,
-                frame_index,
+            let ctx = ChannelCtx {
+                map_ctx: MapContext {
+                    pixel_nm,
+                    polarity,
+                    a_nm: lattice.a_nm(),
+                    min_snr: ex.min_snr,
+                    direction,
+                    frame_index,
+                },
+                time_and_line: &time_and_line,
+                label: format!("{name}, {}", format!("{direction:?}").to_lowercase()),
             };
-            let feats = features_from_height_map(&map, &ctx, &time_and_line)?;
+            let feats = channel_features(&mut mode, &map, &bad, &ctx, lattice, ex)?;
             // Drop features next to unscanned (NaN) pixels.
             let a_px = (lattice.a_nm() / pixel_nm[0]).ceil() as i64;
             for f in feats {
@@ -548,4 +833,64 @@ pub fn diagnose_paths(
         })
         .collect();
     diagnose(&inputs, lattice, options, &ExtractOptions::default())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn hex_peaks(k: f64) -> Peaks {
+        let k1 = [k, 0.0];
+        let k2 = [0.5 * k, 0.75f64.sqrt() * k];
+        Peaks {
+            k: [k1, k2],
+            contrast: [100.0, 100.0],
+            harmonics: vec![([1, 0], k1, 100.0), ([0, 1], k2, 100.0)],
+        }
+    }
+
+    #[test]
+    fn a_cell_is_resolved_when_its_second_shell_is_below_nyquist() {
+        // Second shell of a triangular reciprocal lattice: √3·|k| (here along y).
+        for (k, resolved) in [(0.2, true), (0.28, true), (0.3, false), (0.4, false)] {
+            let r = unresolved(&hex_peaks(k));
+            assert_eq!(r.is_none(), resolved, "|k| = {k}: {r:?}");
+        }
+    }
+
+    #[test]
+    fn a_file_without_size_is_calibrated_from_its_lattice() {
+        // Corner-hole-like pits on a triangular lattice of 12 px (rotated 7°), with a
+        // second, weaker feature per cell: pixel pitch = a / 12 px.
+        let (n, a_px) = (128usize, 12.0);
+        let (c, s) = (7f64.to_radians().cos(), 7f64.to_radians().sin());
+        let b1 = [a_px * c, a_px * s];
+        let b2 = [
+            a_px * (0.5 * c - 0.75f64.sqrt() * s),
+            a_px * (0.5 * s + 0.75f64.sqrt() * c),
+        ];
+        let det = b1[0] * b2[1] - b2[0] * b1[1];
+        let mut data = Vec::with_capacity(n * n);
+        for r in 0..n {
+            for col in 0..n {
+                let (x, y) = (col as f64, r as f64);
+                let u = (b2[1] * x - b2[0] * y) / det;
+                let v = (-b1[1] * x + b1[0] * y) / det;
+                let mut h = 0.0;
+                for (fu, fv, amp) in [(0.0, 0.0, -1.0), (1.0 / 3.0, 1.0 / 3.0, 0.5)] {
+                    let du = (u - fu) - (u - fu).round();
+                    let dv = (v - fv) - (v - fv).round();
+                    let p = [du * b1[0] + dv * b2[0], du * b1[1] + dv * b2[1]];
+                    h += amp * (-(p[0] * p[0] + p[1] * p[1]) / 4.0).exp();
+                }
+                data.push(1e-11 * h);
+            }
+        }
+        let channel = Channel::new("Z", Direction::Forward, "m", n, n, data).expect("channel");
+        assert!(channel.size_x_nm().is_none());
+        let lattice = LatticeSpec::parse("si7x7").expect("lattice");
+        let (pixel, _) = self_calibrate(&channel, &lattice).expect("calibrated");
+        let truth = SI7X7_A_NM / a_px;
+        assert!((pixel / truth - 1.0).abs() < 0.01, "{pixel} vs {truth}");
+    }
 }

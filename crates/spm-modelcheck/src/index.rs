@@ -258,6 +258,12 @@ fn fourier_registration(
     (q_f > 0.5 && q_f > q_nn + 0.1).then_some((k1, k2))
 }
 
+/// The refusal test's measure on a point set: the fraction of points whose nearest
+/// neighbour is a lattice vector of their own nearest-neighbour basis (0 when no basis).
+pub(crate) fn own_nn_fraction(points: &[[f64; 2]]) -> f64 {
+    measure_basis(points, None).map_or(0.0, |(b1, b2)| nn_fraction(points, b1, b2))
+}
+
 /// Fraction of points whose nearest neighbour is a lattice vector of (b1, b2)
 /// within 0.2 in basis units.
 fn nn_fraction(points: &[[f64; 2]], b1: [f64; 2], b2: [f64; 2]) -> f64 {
@@ -285,13 +291,25 @@ fn nn_fraction(points: &[[f64; 2]], b1: [f64; 2], b2: [f64; 2]) -> f64 {
     good as f64 / points.len().max(1) as f64
 }
 
-/// A group's own reciprocal vectors near the reference ones (±15 % in length,
-/// ±8° in direction).
+/// A group's own reciprocal vectors: the structure factor's local maxima reached by
+/// climbing from the reference's (accepted within ±15 % in length and ±8° in direction).
+/// Another frame or direction of one series is distorted differently, but by far less
+/// than the distance to the pattern's other peaks; a free search of the window (as
+/// before) could jump to one of them — a Si 7×7 pit set's fractional-order peaks gave
+/// the forward and backward images of `Si_7x7_028` lattices 19 % apart.
 fn refine_reciprocal(points: &[[f64; 2]], k1: [f64; 2], k2: [f64; 2]) -> ([f64; 2], [f64; 2]) {
     let near = |k: [f64; 2]| {
-        let (r, t) = (k[0].hypot(k[1]), k[1].atan2(k[0]));
-        let d = 8f64.to_radians();
-        peak(points, [0.85 * r, 1.15 * r], [t - d, t + d]).map_or(k, |p| p.0)
+        let r = k[0].hypot(k[1]);
+        let (q, _) = crate::cells::climb(&|q| structure_factor(points, q), k, 0.01 * r);
+        let (rq, turn) = (
+            q[0].hypot(q[1]),
+            (k[0] * q[1] - k[1] * q[0]).atan2(k[0] * q[0] + k[1] * q[1]),
+        );
+        if (rq / r - 1.0).abs() <= 0.15 && turn.abs() <= 8f64.to_radians() {
+            q
+        } else {
+            k
+        }
     };
     (near(k1), near(k2))
 }
@@ -469,7 +487,14 @@ pub fn index_features(
         if pts.len() < 6 {
             continue;
         }
-        let (g1, g2) = refine_basis(&pts, b1, b2).unwrap_or((b1, b2));
+        // The group's own lattice, found the way it will be indexed: by the structure
+        // factor's peaks followed from the reference's, or by its neighbour vectors.
+        let from_k = phase_mode.and_then(|(k1, k2)| {
+            let (q1, q2) = refine_reciprocal(&pts, k1, k2);
+            inverse([q1[0], q2[0]], [q1[1], q2[1]])
+                .map(|inv| ([inv[0][0], inv[1][0]], [inv[0][1], inv[1][1]]))
+        });
+        let (g1, g2) = from_k.unwrap_or_else(|| refine_basis(&pts, b1, b2).unwrap_or((b1, b2)));
         let (g, n) = check_lattice(&pts, g1, g2, lattice, &label(*key))?;
         good_total += g;
         n_total += n;

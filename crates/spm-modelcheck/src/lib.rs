@@ -41,6 +41,7 @@
 #![doc = include_str!("../README.md")]
 #![warn(missing_docs)]
 
+mod cells;
 mod diagnose;
 mod extract;
 mod index;
@@ -54,7 +55,7 @@ pub use diagnose::{
     ResidualPoint, ResidualStructure, diagnose_features, diagnose_indexed,
 };
 pub use extract::{
-    ExtractOptions, ImageInput, MapContext, diagnose, diagnose_paths, extract_features,
+    ExtractOptions, ImageInput, Localiser, MapContext, diagnose, diagnose_paths, extract_features,
     features_from_height_map,
 };
 pub use index::{Indexing, MeasuredBasis, index_features};

@@ -352,6 +352,16 @@ pub enum ModelCheckError {
         /// What failed.
         reason: String,
     },
+    /// The claimed lattice is in the images, but its features cannot be localised
+    /// (e.g. a cell pattern sampled too coarsely): the diagnosis refuses rather than
+    /// fitting features that are not the lattice's.
+    #[error("the lattice cannot be localised in {context}: {reason}")]
+    Unresolved {
+        /// Which image.
+        context: String,
+        /// Why.
+        reason: String,
+    },
     /// The input is inconsistent (bad frame index, non-finite values, …).
     #[error("invalid input: {0}")]
     InvalidInput(String),

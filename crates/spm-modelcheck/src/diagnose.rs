@@ -615,7 +615,11 @@ fn structure(
         series_variance(&ly),
     ];
     autocorrelation_reasons(lag, n_pairs, vars, threshold, relevance_nm, &mut reasons);
-    if dir_z > threshold && dir_offset[0].hypot(dir_offset[1]) >= relevance_nm {
+    // A correction of a forward/backward difference d moves each feature by
+    // d/2 (both directions meet in the middle): that is what must be
+    // relevant, as for the `interlace` and `feedback_lag` candidates, whose
+    // explained displacement is judged the same way.
+    if dir_z > threshold && 0.5 * dir_offset[0].hypot(dir_offset[1]) >= relevance_nm {
         reasons.push(format!(
             "forward and backward differ by ({:.1}, {:.1}) pm (z = {:.1})",
             1000.0 * dir_offset[0],

@@ -152,9 +152,26 @@ fn run_sim(like: &Path, config: SimConfig, nominal: f64, out: &Path) {
 }
 
 fn main() {
-    let sets: [(&str, &str, &str); 4] = [
+    let sets: [(&str, &str, &str); 9] = [
         ("si7x7-051", "si7x7", "si7x7-nanonis/Si_7x7_051.sxm"),
         ("si7x7-028", "si7x7", "si7x7-nanonis/Si_7x7_028.sxm"),
+        ("si7x7-032", "si7x7", "si7x7-nanonis/Si_7x7_032.sxm"),
+        ("si7x7-012", "si7x7", "si7x7-nanonis/Si_7x7_012.sxm"),
+        (
+            "si7x7-raw-defects",
+            "si7x7",
+            "si7x7-raw/image_with_defects.dat",
+        ),
+        (
+            "si7x7-raw-step-edge",
+            "si7x7",
+            "si7x7-raw/image_with_step_edge.dat",
+        ),
+        (
+            "si7x7-raw-step-edge-atoms",
+            "si7x7",
+            "si7x7-raw/image_with_step_edge_and_atoms.dat",
+        ),
         (
             "graphite-sm4",
             "hopg",
@@ -181,7 +198,15 @@ fn main() {
             }
         };
         let file = read_any(&path).unwrap();
-        let program = scan_program(&file).unwrap();
+        // A file without a scan program (no size or line time stored: the
+        // raw Si 7×7 files) has nothing to re-run on the simulator.
+        let program = match scan_program(&file) {
+            Ok(program) => program,
+            Err(e) => {
+                println!("| {name} | no scan program to simulate | {e} | | | |");
+                continue;
+            }
+        };
         let pixel_nm = program.size_nm[0] / program.pixels[0] as f64;
         let nominal = pixel_nm / 8.0;
         let meas = stats(&path);

@@ -75,6 +75,18 @@ fn line_spectrum(d: &Diagnosis, final_model: bool) -> Vec<(f64, f64)> {
 
 type Area<'a> = DrawingArea<BitMapBackend<'a>, plotters::coord::Shift>;
 
+/// A tick label without trailing zeros (−25, 2.5, 0.125), so five of them fit
+/// a panel's width.
+fn tick(v: &f64) -> String {
+    let text = format!("{v:.3}");
+    let text = text.trim_end_matches('0').trim_end_matches('.');
+    if text == "-0" {
+        "0".to_owned()
+    } else {
+        text.to_owned()
+    }
+}
+
 fn scatter_panel(
     area: &Area<'_>,
     title: &str,
@@ -90,7 +102,7 @@ fn scatter_panel(
         .x_label_area_size(if text { 32 } else { 4 })
         .y_label_area_size(if text { 52 } else { 4 });
     if text {
-        builder.caption(title, ("sans-serif", 18));
+        builder.caption(title, ("sans-serif", 15));
     }
     let mut chart = builder
         .build_cartesian_2d(x0..x1, y0..y1)
@@ -98,7 +110,12 @@ fn scatter_panel(
     let mut mesh = chart.configure_mesh();
     mesh.light_line_style(WHITE.mix(0.0));
     if text {
-        mesh.x_desc(x_label).y_desc("residual / pm");
+        mesh.x_desc(x_label)
+            .y_desc("residual / pm")
+            .x_labels(5)
+            .y_labels(6)
+            .x_label_formatter(&tick)
+            .y_label_formatter(&tick);
     } else {
         mesh.disable_x_axis().disable_y_axis();
     }
@@ -132,7 +149,7 @@ fn draw(d: &Diagnosis, path: &Path, title: &str) -> Result<(), String> {
     let text = register_system_font();
     let root = BitMapBackend::new(path, (1000, 600)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| e.to_string())?;
-    let (header, body) = root.split_vertically(if text { 70 } else { 4 });
+    let (header, body) = root.split_vertically(if text { 84 } else { 4 });
     if text {
         let found = if d.findings.is_empty() {
             "none".to_owned()
@@ -147,20 +164,19 @@ fn draw(d: &Diagnosis, path: &Path, title: &str) -> Result<(), String> {
             .draw_text(title, &("sans-serif", 22).into_text_style(&header), (10, 6))
             .map_err(|e| e.to_string())?;
         let line = format!(
-            "baseline RMS {:.1} pm (held-out {:.1}) → final {:.1} pm (held-out {:.1});  found: {};  unexplained: {}.   blue = x, red = y; light = backward",
+            "baseline RMS {:.1} pm (held-out {:.1}) → final {:.1} pm (held-out {:.1});  unexplained: {}.   blue = x, red = y; light = backward",
             d.baseline.rms_pm,
             d.baseline.heldout_rms_pm,
             d.final_report.rms_pm,
             d.final_report.heldout_rms_pm,
-            found,
             d.unexplained
         );
+        let style = ("sans-serif", 13).into_text_style(&header);
         header
-            .draw_text(
-                &line,
-                &("sans-serif", 13).into_text_style(&header),
-                (10, 38),
-            )
+            .draw_text(&line, &style, (10, 36))
+            .map_err(|e| e.to_string())?;
+        header
+            .draw_text(&format!("found: {found}"), &style, (10, 56))
             .map_err(|e| e.to_string())?;
     }
     let panels = body.split_evenly((2, 3));
@@ -202,8 +218,8 @@ fn draw(d: &Diagnosis, path: &Path, title: &str) -> Result<(), String> {
     )?;
     scatter_panel(
         &panels[3],
-        "baseline residual by frame (x offset = frame)",
-        "frame + line/lines",
+        "baseline residual by frame",
+        "frame + line / lines",
         &used
             .iter()
             .flat_map(|r| {
@@ -227,7 +243,7 @@ fn draw(d: &Diagnosis, path: &Path, title: &str) -> Result<(), String> {
             .x_label_area_size(if text { 32 } else { 4 })
             .y_label_area_size(if text { 52 } else { 4 });
         if text {
-            builder.caption("spectrum of line-mean residual", ("sans-serif", 18));
+            builder.caption("spectrum of line-mean residual", ("sans-serif", 15));
         }
         let mut chart = builder
             .build_cartesian_2d(x0.max(0.0)..x1, 0.0..y1.max(1e-9))
@@ -235,7 +251,12 @@ fn draw(d: &Diagnosis, path: &Path, title: &str) -> Result<(), String> {
         let mut mesh = chart.configure_mesh();
         mesh.light_line_style(WHITE.mix(0.0));
         if text {
-            mesh.x_desc("cycles per line").y_desc("amplitude / pm");
+            mesh.x_desc("cycles per line")
+                .y_desc("amplitude / pm")
+                .x_labels(6)
+                .y_labels(6)
+                .x_label_formatter(&tick)
+                .y_label_formatter(&tick);
         } else {
             mesh.disable_x_axis().disable_y_axis();
         }

@@ -1174,6 +1174,15 @@ mod tests {
         z
     }
 
+    /// A hexagonal lattice search within ±35 % of a 10.5 px period.
+    fn search_near_10_5_px() -> LatticeSearch {
+        LatticeSearch {
+            pixel: [1.0, 1.0],
+            k_range: [1.0 / (1.35 * 10.5), 1.35 / 10.5],
+            hex: true,
+        }
+    }
+
     #[test]
     fn finds_the_lattice_peaks_of_a_pattern() {
         let b = [[12.0, 1.0], [6.5, 10.6]];
@@ -1185,11 +1194,7 @@ mod tests {
             nx: 128,
             ny: 128,
         };
-        let search = LatticeSearch {
-            pixel: [1.0, 1.0],
-            k_range: [1.0 / (1.35 * 10.5), 1.35 / 10.5],
-            hex: true,
-        };
+        let search = search_near_10_5_px();
         let peaks = find_lattice(&img, &search).expect("lattice");
         // Every true reciprocal vector is ±(m k1 + n k2) of the found ones with |m|,|n| ≤ 1.
         let area_true = (b[0][0] * b[1][1] - b[1][0] * b[0][1]).abs();
@@ -1212,11 +1217,7 @@ mod tests {
             nx: 128,
             ny: 128,
         };
-        let search = LatticeSearch {
-            pixel: [1.0, 1.0],
-            k_range: [1.0 / (1.35 * 10.5), 1.35 / 10.5],
-            hex: true,
-        };
+        let search = search_near_10_5_px();
         assert!(find_lattice(&img, &search).is_none());
     }
 

@@ -262,7 +262,7 @@ fn every_located_cell_sits_on_its_true_corner_hole() {
         "rms {rms} vs σ {sigma}"
     );
     // Most intact cells whose window lies in the field are found.
-    let interior = sites
+    let intact_inside: Vec<_> = sites
         .iter()
         .filter(|(ij, u)| {
             u[0].abs() < half - 0.75 * a
@@ -270,17 +270,12 @@ fn every_located_cell_sits_on_its_true_corner_hole() {
                 && !surface.missing.contains(ij)
                 && !surface.adsorbates.iter().any(|(s, _)| s == ij)
         })
+        .collect();
+    let interior = intact_inside
+        .iter()
         .filter(|(ij, _)| located.contains(ij))
         .count();
-    let interior_total = sites
-        .iter()
-        .filter(|(ij, u)| {
-            u[0].abs() < half - 0.75 * a
-                && u[1].abs() < half - 0.75 * a
-                && !surface.missing.contains(ij)
-                && !surface.adsorbates.iter().any(|(s, _)| s == ij)
-        })
-        .count();
+    let interior_total = intact_inside.len();
     assert!(
         interior * 10 >= interior_total * 9,
         "{interior} of {interior_total} intact interior cells located"

@@ -569,6 +569,19 @@ fn a_sinusoidal_fast_axis_drive_is_followed() {
     );
 }
 
+/// Slow-axis directions of a movie scanned down, up, down, … (no flyback).
+fn alternating_frames(frames: usize) -> Vec<spm_formats::ScanDir> {
+    (0..frames)
+        .map(|f| {
+            if f % 2 == 0 {
+                spm_formats::ScanDir::Down
+            } else {
+                spm_formats::ScanDir::Up
+            }
+        })
+        .collect()
+}
+
 /// A fast-SPM-like movie: many frames shorter than the record time's one
 /// second resolution, fast drift, a vibration. The frames are placed one
 /// after another within their stamped seconds (not on top of each other), so
@@ -580,15 +593,7 @@ fn a_fast_movie_with_second_resolution_stamps_is_timed_and_followed() {
         pixels: 48,
         size_nm: 2.4,
         line_time_s: 0.002,
-        frames: (0..12)
-            .map(|f| {
-                if f % 2 == 0 {
-                    spm_formats::ScanDir::Down
-                } else {
-                    spm_formats::ScanDir::Up
-                }
-            })
-            .collect(),
+        frames: alternating_frames(12),
         gap_s: 0.0,
         drift_nm_per_s: [0.4, -0.3],
         ..Program::default()
@@ -905,15 +910,7 @@ fn explore_movie() {
         pixels: 64,
         size_nm: 3.2,
         line_time_s: 0.002,
-        frames: (0..frames)
-            .map(|f| {
-                if f % 2 == 0 {
-                    spm_formats::ScanDir::Down
-                } else {
-                    spm_formats::ScanDir::Up
-                }
-            })
-            .collect(),
+        frames: alternating_frames(frames),
         gap_s: 0.0,
         ..Program::default()
     };

@@ -672,10 +672,31 @@ pub(crate) fn solve(
         .sum();
     let rank = rank_reduced + counts.iter().filter(|n| **n > 0).count();
     let sigma2 = rss / n_eq.saturating_sub(rank).max(1) as f64;
-    // Unit covariance (per σ²) of all coefficients, then scaled.
+    let cov = offsets_covariance(p, &others, &groups, &counts, &means, &cov_beta);
+    Ok(Fit {
+        coef,
+        cov: cov * sigma2,
+        residual,
+        rss,
+        n_eq,
+        rank,
+    })
+}
+
+/// The unit covariance (per σ²) of all coefficients of [`solve`] from that of
+/// the non-offset ones (`cov_beta`): var c_g = 1/n_g + m_gᵀ·C·m_g,
+/// cov(c_g, β) = −m_gᵀ·C, cov(c_g, c_h) = m_gᵀ·C·m_h (g ≠ h).
+fn offsets_covariance(
+    p: usize,
+    others: &[usize],
+    groups: &[usize],
+    counts: &[usize],
+    means: &[Vec<f64>],
+    cov_beta: &DMatrix<f64>,
+) -> DMatrix<f64> {
     let mut cov = DMatrix::<f64>::zeros(p, p);
     let m_of = |g: usize| DVector::from_iterator(others.len(), means.iter().map(|m| m[g]));
-    let cm: Vec<DVector<f64>> = (0..groups.len()).map(|g| &cov_beta * m_of(g)).collect();
+    let cm: Vec<DVector<f64>> = (0..groups.len()).map(|g| cov_beta * m_of(g)).collect();
     for (a, &ja) in others.iter().enumerate() {
         for (b, &jb) in others.iter().enumerate() {
             cov[(ja, jb)] = cov_beta[(a, b)];
@@ -694,14 +715,7 @@ pub(crate) fn solve(
             cov[(jg, jh)] = v;
         }
     }
-    Ok(Fit {
-        coef,
-        cov: cov * sigma2,
-        residual,
-        rss,
-        n_eq,
-        rank,
-    })
+    cov
 }
 
 /// [`solve`] without the indicator elimination: a QR factorisation of the

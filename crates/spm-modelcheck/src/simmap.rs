@@ -132,164 +132,40 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
     set("scanner.crosstalk_x_from_y", 0.0);
     set("scanner.crosstalk_y_from_x", 0.0);
     set("surface.*.rotation_deg", -value(b, "rotation_deg"));
-    let mut vx = value(b, "drift_x_nm_per_s");
-    let mut vy = value(b, "drift_y_nm_per_s");
-    let mut values = std::mem::take(&mut p.values);
-    let mut unmapped = Vec::new();
-    let mut tips = Vec::new();
-    let mut creep: Option<CreepChain> = None;
+    let mut m = Mapped {
+        values: std::mem::take(&mut p.values),
+        vx: value(b, "drift_x_nm_per_s"),
+        vy: value(b, "drift_y_nm_per_s"),
+        unmapped: Vec::new(),
+        tips: Vec::new(),
+        creep: None,
+    };
     if with_findings {
         let frame_half = d.frame_half_nm.first().copied().unwrap_or([1.0, 1.0]);
         let field_half_nm = ctx.half_range_counts * n0;
-        let rx = field_half_nm / frame_half[0].max(1e-12);
-        let ry = field_half_nm / frame_half[1].max(1e-12);
+        let env = FrameScale {
+            linear: b,
+            frame_half,
+            rx: field_half_nm / frame_half[0].max(1e-12),
+            ry: field_half_nm / frame_half[1].max(1e-12),
+            n0,
+        };
         for f in &d.findings {
             let fp = &f.parameters;
             let Some(kind) = EffectKind::from_name(&f.effect) else {
                 continue;
             };
-            let mut put = |k: &str, v: f64| {
-                values.insert(k.to_owned(), v);
-            };
-            match kind {
-                EffectKind::DriftAcceleration => {
-                    // d(t) = v·t + A·(1 − e^(−t/T)): acceleration −A/T²·e^(−t/T).
-                    let tau = ctx.warmup_time_constant_s.max(1e-9);
-                    let t_mid = d.time_origin_s + ctx.time_offset_s;
-                    let e = (t_mid / tau).exp();
-                    let ax = value(fp, "acceleration_x_nm_per_s2");
-                    let ay = value(fp, "acceleration_y_nm_per_s2");
-                    put("drift.warmup_time_constant_s", tau);
-                    put("drift.warmup_amplitude_x_nm", -ax * tau * tau * e);
-                    put("drift.warmup_amplitude_y_nm", -ay * tau * tau * e);
-                    vx += ax * tau;
-                    vy += ay * tau;
-                }
-                EffectKind::ScannerNonlinearity => {
-                    put(
-                        "scanner.nonlinearity_x.quadratic",
-                        value(fp, "quadratic_x") * rx,
-                    );
-                    put(
-                        "scanner.nonlinearity_x.cubic",
-                        value(fp, "cubic_x") * rx * rx,
-                    );
-                    put(
-                        "scanner.nonlinearity_y.quadratic",
-                        value(fp, "quadratic_y") * ry,
-                    );
-                    put(
-                        "scanner.nonlinearity_y.cubic",
-                        value(fp, "cubic_y") * ry * ry,
-                    );
-                }
-                EffectKind::CrosstalkXy => {
-                    // px += Ky·uy·byx·uy/H ⇒ Δux = (Ky/Kx)·byx·uy²/H.
-                    let k = value(b, "scale_y") / value(b, "scale_x").max(1e-12);
-                    put(
-                        "scanner.bow_x_from_y",
-                        value(fp, "bow_x_from_y") * (frame_half[1] / frame_half[0]) * ry
-                            / k.max(1e-12),
-                    );
-                    put(
-                        "scanner.bow_y_from_x",
-                        value(fp, "bow_y_from_x") * (frame_half[0] / frame_half[1]) * rx * k,
-                    );
-                }
-                EffectKind::FeedbackLag => {
-                    let tau = value(fp, "time_constant_s").max(0.0);
-                    let tau_sim = match ctx.pixel_dwell_s {
-                        Some(dwell) if dwell > 0.0 && tau > 0.0 => {
-                            let d = tau / (dwell + tau);
-                            -dwell / d.ln()
-                        }
-                        _ => tau,
-                    };
-                    put("measurement.feedback_time_constant_s", tau_sim);
-                }
-                EffectKind::Hysteresis => {
-                    let h = value(fp, "branch_half_separation_fraction");
-                    let w_counts = frame_half[0] / n0;
-                    put(
-                        "scanner.hysteresis_x.width_fraction",
-                        (h * w_counts / ctx.half_range_counts).max(0.0),
-                    );
-                    put("scanner.hysteresis_x.max_threshold_counts", 0.5 * w_counts);
-                    put(
-                        "scanner.hysteresis_x.min_threshold_counts",
-                        0.5 * w_counts / 16.0,
-                    );
-                    put("scanner.hysteresis_x.operators", 16.0);
-                }
-                EffectKind::TipChange => tips.push(TipChangeEvent {
-                    time_s: value(fp, "time_s") + ctx.time_offset_s,
-                    jump_x_nm: value(fp, "jump_x_nm"),
-                    jump_y_nm: value(fp, "jump_y_nm"),
-                }),
-                EffectKind::Creep => match creep_slope(fp, ctx.move_history.as_ref()) {
-                    Ok(chain) => {
-                        put("scanner.creep.log_slope_per_decade", chain.gamma);
-                        put("scanner.creep.min_time_constant_s", CREEP_MIN_TAU_S);
-                        put("scanner.creep.max_time_constant_s", CREEP_MAX_TAU_S);
-                        put(
-                            "scanner.creep.elements_per_decade",
-                            f64::from(CREEP_PER_DECADE),
-                        );
-                        creep = Some(chain);
-                    }
-                    Err(why) => unmapped.push(format!("creep: {why}")),
-                },
-                EffectKind::Nonorthogonality => {
-                    // Model: Δuₓ = gₓ·W·ξₓ·ξ_y = gₓ·uₓ·u_y/H_frame (and Δu_y = g_y·uₓ·u_y/W_frame);
-                    // spm-sim: Δuₓ = γₓ·uₓ·u_y/H_field ⇒ γₓ = gₓ·H_field/H_frame.
-                    put(
-                        "scanner.shear_gradient_x",
-                        value(fp, "shear_gradient_x") * ry,
-                    );
-                    put(
-                        "scanner.shear_gradient_y",
-                        value(fp, "shear_gradient_y") * rx,
-                    );
-                }
-                EffectKind::PeriodicVibration => {
-                    // Model: d = A·cos(ω·t − φ), t from the observation span's middle
-                    // (φ = atan2(sin part, cos part)); spm-sim: A·cos(ω·T + φ_sim), T its clock.
-                    let f_hz = value(fp, "frequency_hz").max(0.0);
-                    let w = std::f64::consts::TAU * f_hz;
-                    let t0 = d.time_origin_s + ctx.time_offset_s;
-                    put("drift.vibration_frequency_hz", f_hz);
-                    for axis in ["x", "y"] {
-                        put(
-                            &format!("drift.vibration_amplitude_{axis}_nm"),
-                            value(fp, &format!("amplitude_{axis}_nm")).abs(),
-                        );
-                        put(
-                            &format!("drift.vibration_phase_{axis}_rad"),
-                            wrap_rad(-value(fp, &format!("phase_{axis}_rad")) - w * t0),
-                        );
-                    }
-                }
-                EffectKind::Interlace => {
-                    // Model: backward-line features sit `separation_y_nm` further along image y
-                    // than forward ones (a tip–sample offset −sep/2·s). spm-sim: the second half
-                    // of every line runs δ counts further along the slow-scan direction, the tip
-                    // Ky·δ further, so its features appear Ky·δ back; for direct rasters (second
-                    // half = backward) and counter ones (second half = forward, stepping −y)
-                    // alike, sep = −Ky·cos α·δ.
-                    let ky =
-                        value(b, "scale_y") * n0 * value(b, "obliquity_deg").to_radians().cos();
-                    if ky > 0.0 {
-                        put(
-                            "instrument.retrace_slow_axis_advance_counts",
-                            -value(fp, "separation_y_nm") / ky,
-                        );
-                    } else {
-                        unmapped.push(format!("interlace: slow-axis scale {ky} nm per count"));
-                    }
-                }
-            }
+            map_finding(&mut m, kind, fp, d, ctx, &env);
         }
     }
+    let Mapped {
+        mut values,
+        vx,
+        mut vy,
+        unmapped,
+        tips,
+        creep,
+    } = m;
     if let (Some(chain), Some(h)) = (&creep, ctx.move_history.as_ref()) {
         // The lumped linear scanner of the fit has absorbed the chain's in-phase
         // response to the sweeps (a gain), and a trace/retrace loop found as
@@ -339,6 +215,185 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
     p.unmapped = unmapped;
     p.tip_changes = tips;
     p
+}
+
+/// What the findings map to, collected finding by finding.
+struct Mapped {
+    values: BTreeMap<String, f64>,
+    vx: f64,
+    vy: f64,
+    unmapped: Vec<String>,
+    tips: Vec<TipChangeEvent>,
+    creep: Option<CreepChain>,
+}
+
+impl Mapped {
+    fn put(&mut self, key: &str, v: f64) {
+        self.values.insert(key.to_owned(), v);
+    }
+}
+
+/// The linear scanner the findings extend and the frame's place in the field.
+struct FrameScale<'a> {
+    /// The fit's linear parameters (scales, obliquity, rotation, drift).
+    linear: &'a BTreeMap<String, crate::ParamValue>,
+    /// Frame half-size (x, y), nominal nm.
+    frame_half: [f64; 2],
+    /// Field half-size over frame half-size along x and y.
+    rx: f64,
+    ry: f64,
+    /// Nominal nm per count.
+    n0: f64,
+}
+
+/// One finding as spm-sim configuration values (see [`sim_patch`]).
+fn map_finding(
+    m: &mut Mapped,
+    kind: EffectKind,
+    fp: &BTreeMap<String, crate::ParamValue>,
+    d: &Diagnosis,
+    ctx: &SimContext,
+    env: &FrameScale<'_>,
+) {
+    match kind {
+        EffectKind::DriftAcceleration => {
+            // d(t) = v·t + A·(1 − e^(−t/T)): acceleration −A/T²·e^(−t/T).
+            let tau = ctx.warmup_time_constant_s.max(1e-9);
+            let t_mid = d.time_origin_s + ctx.time_offset_s;
+            let e = (t_mid / tau).exp();
+            let ax = value(fp, "acceleration_x_nm_per_s2");
+            let ay = value(fp, "acceleration_y_nm_per_s2");
+            m.put("drift.warmup_time_constant_s", tau);
+            m.put("drift.warmup_amplitude_x_nm", -ax * tau * tau * e);
+            m.put("drift.warmup_amplitude_y_nm", -ay * tau * tau * e);
+            m.vx += ax * tau;
+            m.vy += ay * tau;
+        }
+        EffectKind::ScannerNonlinearity => {
+            m.put(
+                "scanner.nonlinearity_x.quadratic",
+                value(fp, "quadratic_x") * env.rx,
+            );
+            m.put(
+                "scanner.nonlinearity_x.cubic",
+                value(fp, "cubic_x") * env.rx * env.rx,
+            );
+            m.put(
+                "scanner.nonlinearity_y.quadratic",
+                value(fp, "quadratic_y") * env.ry,
+            );
+            m.put(
+                "scanner.nonlinearity_y.cubic",
+                value(fp, "cubic_y") * env.ry * env.ry,
+            );
+        }
+        EffectKind::CrosstalkXy => {
+            // px += Ky·uy·byx·uy/H ⇒ Δux = (Ky/Kx)·byx·uy²/H.
+            let k = value(env.linear, "scale_y") / value(env.linear, "scale_x").max(1e-12);
+            m.put(
+                "scanner.bow_x_from_y",
+                value(fp, "bow_x_from_y") * (env.frame_half[1] / env.frame_half[0]) * env.ry
+                    / k.max(1e-12),
+            );
+            m.put(
+                "scanner.bow_y_from_x",
+                value(fp, "bow_y_from_x") * (env.frame_half[0] / env.frame_half[1]) * env.rx * k,
+            );
+        }
+        EffectKind::FeedbackLag => {
+            let tau = value(fp, "time_constant_s").max(0.0);
+            let tau_sim = match ctx.pixel_dwell_s {
+                Some(dwell) if dwell > 0.0 && tau > 0.0 => {
+                    let d = tau / (dwell + tau);
+                    -dwell / d.ln()
+                }
+                _ => tau,
+            };
+            m.put("measurement.feedback_time_constant_s", tau_sim);
+        }
+        EffectKind::Hysteresis => {
+            let h = value(fp, "branch_half_separation_fraction");
+            let w_counts = env.frame_half[0] / env.n0;
+            m.put(
+                "scanner.hysteresis_x.width_fraction",
+                (h * w_counts / ctx.half_range_counts).max(0.0),
+            );
+            m.put("scanner.hysteresis_x.max_threshold_counts", 0.5 * w_counts);
+            m.put(
+                "scanner.hysteresis_x.min_threshold_counts",
+                0.5 * w_counts / 16.0,
+            );
+            m.put("scanner.hysteresis_x.operators", 16.0);
+        }
+        EffectKind::TipChange => m.tips.push(TipChangeEvent {
+            time_s: value(fp, "time_s") + ctx.time_offset_s,
+            jump_x_nm: value(fp, "jump_x_nm"),
+            jump_y_nm: value(fp, "jump_y_nm"),
+        }),
+        EffectKind::Creep => match creep_slope(fp, ctx.move_history.as_ref()) {
+            Ok(chain) => {
+                m.put("scanner.creep.log_slope_per_decade", chain.gamma);
+                m.put("scanner.creep.min_time_constant_s", CREEP_MIN_TAU_S);
+                m.put("scanner.creep.max_time_constant_s", CREEP_MAX_TAU_S);
+                m.put(
+                    "scanner.creep.elements_per_decade",
+                    f64::from(CREEP_PER_DECADE),
+                );
+                m.creep = Some(chain);
+            }
+            Err(why) => m.unmapped.push(format!("creep: {why}")),
+        },
+        EffectKind::Nonorthogonality => {
+            // Model: Δuₓ = gₓ·W·ξₓ·ξ_y = gₓ·uₓ·u_y/H_frame (and Δu_y = g_y·uₓ·u_y/W_frame);
+            // spm-sim: Δuₓ = γₓ·uₓ·u_y/H_field ⇒ γₓ = gₓ·H_field/H_frame.
+            m.put(
+                "scanner.shear_gradient_x",
+                value(fp, "shear_gradient_x") * env.ry,
+            );
+            m.put(
+                "scanner.shear_gradient_y",
+                value(fp, "shear_gradient_y") * env.rx,
+            );
+        }
+        EffectKind::PeriodicVibration => {
+            // Model: d = A·cos(ω·t − φ), t from the observation span's middle
+            // (φ = atan2(sin part, cos part)); spm-sim: A·cos(ω·T + φ_sim), T its clock.
+            let f_hz = value(fp, "frequency_hz").max(0.0);
+            let w = std::f64::consts::TAU * f_hz;
+            let t0 = d.time_origin_s + ctx.time_offset_s;
+            m.put("drift.vibration_frequency_hz", f_hz);
+            for axis in ["x", "y"] {
+                m.put(
+                    &format!("drift.vibration_amplitude_{axis}_nm"),
+                    value(fp, &format!("amplitude_{axis}_nm")).abs(),
+                );
+                m.put(
+                    &format!("drift.vibration_phase_{axis}_rad"),
+                    wrap_rad(-value(fp, &format!("phase_{axis}_rad")) - w * t0),
+                );
+            }
+        }
+        EffectKind::Interlace => {
+            // Model: backward-line features sit `separation_y_nm` further along image y
+            // than forward ones (a tip–sample offset −sep/2·s). spm-sim: the second half
+            // of every line runs δ counts further along the slow-scan direction, the tip
+            // Ky·δ further, so its features appear Ky·δ back; for direct rasters (second
+            // half = backward) and counter ones (second half = forward, stepping −y)
+            // alike, sep = −Ky·cos α·δ.
+            let ky = value(env.linear, "scale_y")
+                * env.n0
+                * value(env.linear, "obliquity_deg").to_radians().cos();
+            if ky > 0.0 {
+                m.put(
+                    "instrument.retrace_slow_axis_advance_counts",
+                    -value(fp, "separation_y_nm") / ky,
+                );
+            } else {
+                m.unmapped
+                    .push(format!("interlace: slow-axis scale {ky} nm per count"));
+            }
+        }
+    }
 }
 
 /// An angle in (−π, π], rad.

@@ -863,6 +863,10 @@ fn degenerate_inputs_give_errors_not_panics() {
                 paths.len(),
                 result.map(|d| summary(&d))
             );
+            // The same files claimed as Si(111)-7×7 (the cell localiser's path).
+            if let Ok(d) = run_paths(&paths, spm_modelcheck::SI7X7_A_NM) {
+                assert!(d.final_report.rms_pm.is_finite(), "{name}: {}", summary(&d));
+            }
         }
     }
     // The frames with no lattice at all are refused, not diagnosed.

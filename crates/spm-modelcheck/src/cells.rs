@@ -1174,28 +1174,29 @@ mod tests {
         z
     }
 
-    /// A hexagonal lattice search within ±35 % of a 10.5 px period.
-    fn search_near_10_5_px() -> LatticeSearch {
-        LatticeSearch {
+    /// The lattice of a 128×128 image with no bad pixels, searched as
+    /// hexagonal within ±35 % of a 10.5 px period.
+    fn find_lattice_near_10_5_px(z: &[f64]) -> Option<Peaks> {
+        let bad = vec![false; z.len()];
+        let img = Image {
+            z,
+            bad: &bad,
+            nx: 128,
+            ny: 128,
+        };
+        let search = LatticeSearch {
             pixel: [1.0, 1.0],
             k_range: [1.0 / (1.35 * 10.5), 1.35 / 10.5],
             hex: true,
-        }
+        };
+        find_lattice(&img, &search)
     }
 
     #[test]
     fn finds_the_lattice_peaks_of_a_pattern() {
         let b = [[12.0, 1.0], [6.5, 10.6]];
         let z = synth(128, 128, b, [40.3, 50.7]);
-        let bad = vec![false; z.len()];
-        let img = Image {
-            z: &z,
-            bad: &bad,
-            nx: 128,
-            ny: 128,
-        };
-        let search = search_near_10_5_px();
-        let peaks = find_lattice(&img, &search).expect("lattice");
+        let peaks = find_lattice_near_10_5_px(&z).expect("lattice");
         // Every true reciprocal vector is ±(m k1 + n k2) of the found ones with |m|,|n| ≤ 1.
         let area_true = (b[0][0] * b[1][1] - b[1][0] * b[0][1]).abs();
         assert!(
@@ -1210,15 +1211,7 @@ mod tests {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
         let z: Vec<f64> = (0..128 * 128).map(|_| rng.random::<f64>() - 0.5).collect();
-        let bad = vec![false; z.len()];
-        let img = Image {
-            z: &z,
-            bad: &bad,
-            nx: 128,
-            ny: 128,
-        };
-        let search = search_near_10_5_px();
-        assert!(find_lattice(&img, &search).is_none());
+        assert!(find_lattice_near_10_5_px(&z).is_none());
     }
 
     #[test]

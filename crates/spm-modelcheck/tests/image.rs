@@ -14,6 +14,14 @@ use spm_modelcheck::{
 use std::path::PathBuf;
 
 fn run_paths(paths: &[PathBuf], a_nm: f64) -> Result<Diagnosis, ModelCheckError> {
+    run_paths_with(paths, a_nm, &Options::default())
+}
+
+fn run_paths_with(
+    paths: &[PathBuf],
+    a_nm: f64,
+    options: &Options,
+) -> Result<Diagnosis, ModelCheckError> {
     let inputs: Vec<ImageInput> = paths
         .iter()
         .map(|p| ImageInput {
@@ -24,7 +32,7 @@ fn run_paths(paths: &[PathBuf], a_nm: f64) -> Result<Diagnosis, ModelCheckError>
     diagnose(
         &inputs,
         &LatticeSpec::Hex { a_nm },
-        &Options::default(),
+        options,
         &ExtractOptions::default(),
     )
 }
@@ -409,18 +417,10 @@ fn clean_images_give_no_finding() {
 fn an_interlace_offset_outside_the_search_is_unexplained() {
     let program = Program::default();
     let paths = write_frames(&program, Hidden::Interlace { dy_nm: 0.03 }, 77, "interlace");
-    let inputs: Vec<ImageInput> = paths
-        .iter()
-        .map(|p| ImageInput {
-            path: p.clone(),
-            start_time_s: None,
-        })
-        .collect();
-    let d = diagnose(
-        &inputs,
-        &LatticeSpec::Hex { a_nm: program.a_nm },
+    let d = run_paths_with(
+        &paths,
+        program.a_nm,
         &Options::default().without(EffectKind::Interlace),
-        &ExtractOptions::default(),
     )
     .unwrap();
     assert!(d.unexplained, "{}", summary(&d));

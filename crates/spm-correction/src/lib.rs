@@ -72,7 +72,7 @@ pub use resample::{
     resample, resample_into,
 };
 pub use surfaces::{
-    BlendedField, FittedSurface, PlaneField, PlaneSurfaces, Provenance, Route,
+    BlendedField, CountRegion, CountsConvention, FittedSurface, PlaneField, PlaneSurfaces, Provenance, Route,
     SURFACES_FORMAT_VERSION, SurfaceSet,
 };
 pub use trajectory::{correct_polyline, correct_unit_steps};

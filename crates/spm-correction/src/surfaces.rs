@@ -5,6 +5,16 @@
 //! reading of a flat sample, X,Y⇒Z crosstalk); each a [`Polynomial2`] with its σ (eq. 14) and
 //! degree. Plus provenance: scanner, fit time window, number of records.
 //!
+//! ## The calibration file (format version 2)
+//! Version 2 is one self-describing calibration file: beside the surfaces it records the
+//! calibrated region of every plane ([`CountRegion`], where the records lie — a correction
+//! outside it extrapolates the polynomials), and in [`Provenance`] the counts convention
+//! ([`CountsConvention`]) and nominal sensitivity the run used, the spmcal version and commit
+//! that fitted it, when, and a SHA-256 digest of the records used. Every field added in version
+//! 2 is optional on the way in, so a version-1 `surfaces.json` is still read (its calibrated
+//! region is then the normalisation box of its K̄x polynomial, which is the records' extent by
+//! construction of the fit).
+//!
 //! The stored LCC surfaces stay separate (DESIGN §9): the products are an *additional* pair,
 //! used by eq. (12); [`Route::Exact`] ignores them.
 
@@ -17,7 +27,7 @@ use crate::field::{
 };
 
 /// Version of the `surfaces.json` layout written by this crate.
-pub const SURFACES_FORMAT_VERSION: u32 = 1;
+pub const SURFACES_FORMAT_VERSION: u32 = 2;
 
 /// One regression surface with its statistics.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -92,6 +102,102 @@ pub struct PlaneSurfaces {
     /// crosstalk). Heights are measured from it when present.
     #[serde(default)]
     pub bowl_z_counts: Option<FittedSurface>,
+    /// Where the plane's records lie (LCS centres, counts), widened by half a net cell (the
+    /// area the outermost nodes stand for). Absent in version-1 files: see
+    /// [`PlaneSurfaces::calibrated_region`].
+    #[serde(default)]
+    pub calibrated_region_counts: Option<CountRegion>,
+}
+
+/// An axis-parallel rectangle of the scanner field, counts.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CountRegion {
+    /// Lower x bound, counts.
+    pub x_min_counts: f64,
+    /// Upper x bound, counts.
+    pub x_max_counts: f64,
+    /// Lower y bound, counts.
+    pub y_min_counts: f64,
+    /// Upper y bound, counts.
+    pub y_max_counts: f64,
+}
+
+impl CountRegion {
+    /// The bounding box of points, widened by `margin_counts` on every side; `None` for no
+    /// point or a non-finite one.
+    #[must_use]
+    pub fn bounding(x: &[f64], y: &[f64], margin_counts: f64) -> Option<Self> {
+        if x.is_empty() || x.len() != y.len() || !margin_counts.is_finite() {
+            return None;
+        }
+        let fold = |v: &[f64]| {
+            v.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &t| {
+                (lo.min(t), hi.max(t))
+            })
+        };
+        let (x_min, x_max) = fold(x);
+        let (y_min, y_max) = fold(y);
+        let region = Self {
+            x_min_counts: x_min - margin_counts,
+            x_max_counts: x_max + margin_counts,
+            y_min_counts: y_min - margin_counts,
+            y_max_counts: y_max + margin_counts,
+        };
+        region.is_valid().then_some(region)
+    }
+
+    /// Finite bounds with min ≤ max on both axes.
+    #[must_use]
+    pub fn is_valid(&self) -> bool {
+        [
+            self.x_min_counts,
+            self.x_max_counts,
+            self.y_min_counts,
+            self.y_max_counts,
+        ]
+        .iter()
+        .all(|v| v.is_finite())
+            && self.x_min_counts <= self.x_max_counts
+            && self.y_min_counts <= self.y_max_counts
+    }
+
+    /// How far (counts) the point lies outside the region; 0 inside or on the border.
+    #[must_use]
+    pub fn distance_outside_counts(&self, x: f64, y: f64) -> f64 {
+        let dx = (self.x_min_counts - x).max(x - self.x_max_counts).max(0.0);
+        let dy = (self.y_min_counts - y).max(y - self.y_max_counts).max(0.0);
+        dx.hypot(dy)
+    }
+}
+
+/// How scanner counts relate to the field: what a file's raster in counts means.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CountsConvention {
+    /// Signed counts, 0 at the field centre, +x along the fast axis of an unrotated frame and
+    /// +y along its slow axis (away from the first line of an upward scan). spm-sim, the
+    /// Nanonis backend and the files spmcal writes use it.
+    CentredSigned,
+}
+
+impl CountsConvention {
+    /// The name stored in files (`spmcal_counts_convention`).
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::CentredSigned => "centred_signed",
+        }
+    }
+
+    /// Parses a stored name.
+    #[must_use]
+    pub fn parse(text: &str) -> Option<Self> {
+        match text.trim() {
+            "centred_signed" => Some(Self::CentredSigned),
+            _ => None,
+        }
+    }
 }
 
 /// Which coefficients drive the correction.
@@ -148,6 +254,22 @@ impl CorrectionField for PlaneField {
 }
 
 impl PlaneSurfaces {
+    /// The calibrated region: the stored one, or for a version-1 file the normalisation box
+    /// (centre ± half-range) of the K̄x polynomial, which the fit sets to the records' extent.
+    #[must_use]
+    pub fn calibrated_region(&self) -> CountRegion {
+        self.calibrated_region_counts.unwrap_or_else(|| {
+            let (cx, cy) = self.kx_nm_per_count.surface.center();
+            let (sx, sy) = self.kx_nm_per_count.surface.scale();
+            CountRegion {
+                x_min_counts: cx - sx,
+                x_max_counts: cx + sx,
+                y_min_counts: cy - sy,
+                y_max_counts: cy + sy,
+            }
+        })
+    }
+
     /// A plane with constant coefficients (a lumped calibration), products exact, no Kz/bowl.
     ///
     /// # Errors
@@ -169,6 +291,7 @@ impl PlaneSurfaces {
             kyy_nm_per_count: FittedSurface::constant(ky_nm_per_count * c)?,
             kz_nm_per_count: None,
             bowl_z_counts: None,
+            calibrated_region_counts: None,
         })
     }
 
@@ -194,6 +317,14 @@ impl PlaneSurfaces {
     /// # Errors
     /// [`CorrectionError::InvalidSurfaces`].
     pub fn validate(&self) -> Result<(), CorrectionError> {
+        if let Some(region) = &self.calibrated_region_counts
+            && !region.is_valid()
+        {
+            return Err(CorrectionError::InvalidSurfaces(format!(
+                "plane z = {}: calibrated_region_counts {region:?} must be finite with min <= max",
+                self.z_counts
+            )));
+        }
         if !self.z_counts.is_finite() {
             return Err(CorrectionError::InvalidSurfaces(format!(
                 "plane z {} is not finite",
@@ -228,12 +359,34 @@ pub struct Provenance {
     pub fit_until: Option<String>,
     /// Number of CDB records used over all planes.
     pub n_records: usize,
+    /// How the calibration's counts relate to the field (version 2).
+    #[serde(default)]
+    pub counts_convention: Option<CountsConvention>,
+    /// The nominal sensitivity the calibration runs assumed (their plans'
+    /// `standard.nominal_nm_per_count`), nm per count (version 2).
+    #[serde(default)]
+    pub nominal_nm_per_count: Option<f64>,
+    /// The runs whose records were used (version 2).
+    #[serde(default)]
+    pub run_ids: Vec<String>,
+    /// SHA-256 (hex) of the records used, in the CDB's export order (version 2).
+    #[serde(default)]
+    pub records_sha256: Option<String>,
+    /// When the file was written (RFC 3339 UTC; version 2).
+    #[serde(default)]
+    pub written_utc: Option<String>,
+    /// The spmcal version that fitted it (version 2).
+    #[serde(default)]
+    pub spmcal_version: Option<String>,
+    /// The git commit spmcal was built from, when known (version 2).
+    #[serde(default)]
+    pub spmcal_commit: Option<String>,
 }
 
 /// All regression surfaces of one scanner: what `surfaces.json` holds.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SurfaceSet {
-    /// Layout version ([`SURFACES_FORMAT_VERSION`]).
+    /// Layout version ([`SURFACES_FORMAT_VERSION`]; 1 and 2 are read).
     pub format_version: u32,
     /// Scanner, time window, record count.
     pub provenance: Provenance,
@@ -271,6 +424,13 @@ impl SurfaceSet {
             return Err(CorrectionError::InvalidSurfaces(format!(
                 "format version {} is newer than {SURFACES_FORMAT_VERSION}",
                 self.format_version
+            )));
+        }
+        if let Some(k) = self.provenance.nominal_nm_per_count
+            && !(k.is_finite() && k > 0.0)
+        {
+            return Err(CorrectionError::InvalidSurfaces(format!(
+                "provenance.nominal_nm_per_count {k} must be finite and > 0"
             )));
         }
         for p in &self.planes {

@@ -59,6 +59,7 @@ mod tests {
             fit_since: None,
             fit_until: None,
             n_records: 2,
+            ..Provenance::default()
         };
         let set =
             SurfaceSet::new(provenance, vec![plane(0.0, 0.020), plane(10000.0, 0.021)]).unwrap();

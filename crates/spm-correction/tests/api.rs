@@ -35,6 +35,7 @@ fn plane(z_counts: f64) -> PlaneSurfaces {
         kyy_nm_per_count: surface(0.0121, 3, 4.0),
         kz_nm_per_count: Some(surface(0.002, 1, 5.0)),
         bowl_z_counts: None,
+            calibrated_region_counts: None,
     }
 }
 
@@ -45,6 +46,7 @@ fn set() -> SurfaceSet {
             fit_since: Some("2026-11-01T00:00:00Z".into()),
             fit_until: None,
             n_records: 800,
+            ..Provenance::default()
         },
         vec![plane(0.0), plane(50_000.0)],
     )

@@ -5,7 +5,8 @@
 //! so the data start at a multiple of 4; then `XRes·YRes` little-endian IEEE float32 values,
 //! row by row, the first row at the top. `XRes`, `YRes` are required; `XReal`, `YReal`
 //! (physical size in base units, default 1), `XOffset`, `YOffset`, `XYUnits`, `ZUnits`,
-//! `Title` are optional. Any other keys are free-form metadata.
+//! `Title` are optional. Any other keys are free-form metadata. NaN values mark pixels without
+//! data (Gwyddion masks them on import); infinite values are refused both ways.
 
 use std::fmt::Write as _;
 use std::path::Path;
@@ -102,8 +103,10 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
     let mut data = Vec::with_capacity(n);
     for (k, c) in bytes[data_start..].chunks_exact(4).enumerate() {
         let v = f32::from_le_bytes([c[0], c[1], c[2], c[3]]);
-        if !v.is_finite() {
-            return Err(ctx.invalid_data(data_start + 4 * k, format!("non-finite value {v}")));
+        // NaN marks a pixel without data (Gwyddion reads it so, and masks it); an infinite
+        // value is no measurement at all.
+        if v.is_infinite() {
+            return Err(ctx.invalid_data(data_start + 4 * k, format!("infinite value {v}")));
         }
         data.push(f64::from(v));
     }
@@ -181,9 +184,10 @@ fn encode_with_ctx(channel: &Channel, extra: &[(&str, &str)], ctx: Ctx<'_>) -> R
     out.reserve(4 * channel.data().len());
     for (i, &v) in channel.data().iter().enumerate() {
         let f = v as f32;
-        if !f.is_finite() {
+        if f.is_infinite() {
             return Err(ctx.invalid_input(format!(
-                "value {v} at pixel {i} is not a finite float32 (GSF stores float32)"
+                "value {v} at pixel {i} is not a finite float32 (GSF stores float32; NaN marks a \
+                 pixel without data)"
             )));
         }
         out.extend_from_slice(&f.to_le_bytes());

@@ -5,7 +5,7 @@
 //! timing) plus the complete header as ordered key/value pairs. [`read_any`] detects the
 //! format from the magic bytes (falling back to the extension); [`read_bytes`] does the same
 //! for a buffer already in memory. [`write_gsf`] writes one channel as a Gwyddion Simple
-//! Field. (Rendering a channel as a PNG is `spm_plot::render_png`: this crate reads and
+//! Field, [`write_gwy`] any number of channels with their metadata as a Gwyddion native file. (Rendering a channel as a PNG is `spm_plot::render_png`: this crate reads and
 //! writes files and draws nothing.)
 //!
 //! Orientation: a channel's data are in display orientation (row 0 = top, x to the right);
@@ -21,6 +21,7 @@
 
 mod error;
 mod gsf;
+mod gwy;
 mod iso28600;
 mod model;
 mod raw;
@@ -33,6 +34,7 @@ use std::path::Path;
 
 pub use error::{ErrorKind, FormatError, MAX_PIXELS, MAX_SIDE_PIXELS, Result};
 pub use gsf::{encode_gsf, read_gsf, write_gsf};
+pub use gwy::{encode_gwy, write_gwy};
 pub use iso28600::read_iso28600;
 pub use model::{
     Channel, ChannelInfo, DateTime, Direction, Format, Image, Info, LineTiming, ScanDir, SpmFile,

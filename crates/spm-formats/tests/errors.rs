@@ -151,8 +151,11 @@ fn gsf_bad_inputs() {
     assert_eq!(err(&huge, "huge.gsf").kind(), ErrorKind::TooLarge);
     let huge = gsf_bytes("XRes = 31623\nYRes = 31623\n", &[1.0]);
     assert_eq!(err(&huge, "huge2.gsf").kind(), ErrorKind::TooLarge);
+    // NaN is a pixel without data; an infinite value is refused.
     let nan = gsf_bytes("XRes = 2\nYRes = 1\n", &[1.0, f32::NAN]);
-    let e = err(&nan, "nan.gsf");
+    assert!(read_bytes(&nan, Path::new("nan.gsf")).is_ok());
+    let inf = gsf_bytes("XRes = 2\nYRes = 1\n", &[1.0, f32::INFINITY]);
+    let e = err(&inf, "inf.gsf");
     assert_eq!(e.kind(), ErrorKind::InvalidData);
     let missing = gsf_bytes("XRes = 2\n", &[1.0, 2.0]);
     assert_eq!(err(&missing, "missing.gsf").kind(), ErrorKind::MissingField);

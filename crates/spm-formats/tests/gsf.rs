@@ -110,8 +110,20 @@ fn header_padding_is_never_empty() {
 }
 
 #[test]
+fn nan_marks_pixels_without_data_both_ways() {
+    let ch = Channel::new("z", Direction::Forward, "m", 2, 1, vec![0.5, f64::NAN])
+        .unwrap()
+        .with_size_nm(1.0, 1.0);
+    let bytes = encode_gsf(&ch, &[]).unwrap();
+    let back = read_bytes(&bytes, Path::new("mem.gsf")).unwrap();
+    assert_eq!(back.channels[0].data()[0], 0.5);
+    assert!(back.channels[0].data()[1].is_nan());
+    assert_eq!(back.channels[0].nan_count(), 1);
+}
+
+#[test]
 fn writer_rejects_what_gsf_cannot_hold() {
-    let ch = Channel::new("z", Direction::Forward, "m", 2, 1, vec![0.0, f64::NAN])
+    let ch = Channel::new("z", Direction::Forward, "m", 2, 1, vec![0.0, f64::INFINITY])
         .unwrap()
         .with_size_nm(1.0, 1.0);
     assert_eq!(

@@ -1,4 +1,5 @@
-//! `spmcal fit --cdb PATH [--scanner ID] [--since DATE] [--until DATE] --out surfaces.json`.
+//! `spmcal fit --cdb PATH [--scanner ID] [--since DATE] [--until DATE] --out calibration.json`:
+//! the calibration file (format version 2: surfaces, calibrated region, provenance).
 
 use crate::cdb_cmd::cdb_error;
 use crate::dates::parse_window;
@@ -46,16 +47,20 @@ pub fn run(
             fitted.excluded_records
         );
     }
-    let json = fitted
-        .set
+    let mut set = fitted.set;
+    set.provenance.written_utc = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .ok()
+        .map(|d| spm_cdb::rfc3339_utc(d.as_secs_f64()));
+    let json = set
         .to_json_string()
         .map_err(|e| CliError::RunFailed(e.to_string()))?;
     crate::write_atomically(out, json.as_bytes())?;
     let s = fitted.summary;
     crate::outln!(
         "{} planes, {} records → {}",
-        fitted.set.planes.len(),
-        fitted.set.provenance.n_records,
+        set.planes.len(),
+        set.provenance.n_records,
         out.display()
     );
     crate::outln!(

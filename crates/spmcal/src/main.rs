@@ -86,19 +86,36 @@ enum Command {
         #[arg(long, value_name = "FILE")]
         out: PathBuf,
     },
-    /// Correct an image with regression surfaces.
+    /// Correct image files with a calibration file (`spmcal fit`): the file's own raster
+    /// (size, offset, angle, slow direction, both halves), every channel by one map, NaN
+    /// where no data lies, the source header and the calibration's provenance kept.
     Correct {
-        /// The image file (any format spmcal reads).
-        image: PathBuf,
-        /// Surfaces written by `spmcal fit`.
-        #[arg(long, value_name = "FILE")]
-        surfaces: PathBuf,
-        /// Output Gwyddion Simple Field.
-        #[arg(long, value_name = "OUT.gsf")]
-        out: PathBuf,
-        /// Raster direction of the image.
-        #[arg(long, value_enum, default_value_t = RasterDirection::Direct)]
-        direction: RasterDirection,
+        /// The image files (any format spmcal reads).
+        #[arg(required = true)]
+        images: Vec<PathBuf>,
+        /// The calibration file written by `spmcal fit` (a version-1 surfaces.json too).
+        #[arg(long, visible_alias = "surfaces", value_name = "CALIBRATION.json")]
+        calibration: PathBuf,
+        /// Output file for one image: .gwy (every channel and the metadata) or .gsf (one
+        /// channel per file: the height channel, or with `--channel` several files named
+        /// OUT.CHANNEL.DIRECTION.gsf).
+        #[arg(long, value_name = "OUT.gwy|OUT.gsf", conflicts_with = "out_dir")]
+        out: Option<PathBuf>,
+        /// Output directory for any number of images: IMAGE-STEM.corrected.gwy (or .gsf with
+        /// `--format gsf`).
+        #[arg(long, value_name = "DIR")]
+        out_dir: Option<PathBuf>,
+        /// Format of the files written into `--out-dir`.
+        #[arg(long, value_enum, default_value_t = OutFormat::Gwy, requires = "out_dir")]
+        format: OutFormat,
+        /// Channels to correct: a channel name (both halves) or `all`. Default: every channel
+        /// into a .gwy, the forward height channel into a .gsf.
+        #[arg(long, value_name = "NAME|all")]
+        channel: Option<String>,
+        /// Override the file's raster path: `direct` (+x lines, slow axis up) or `counter`
+        /// (−x lines from the far corner, slow axis down). Default: as the file records it.
+        #[arg(long, value_enum)]
+        direction: Option<RasterDirection>,
         /// The controller's nominal sensitivity, nm per count, for files that do not
         /// record their raster in scanner counts.
         #[arg(long, value_name = "K")]
@@ -108,6 +125,14 @@ enum Command {
         /// sensitivities). Default: the plane nearest z = 0.
         #[arg(long, value_name = "Z", allow_hyphen_values = true)]
         z_counts: Option<f64>,
+        /// The scanner the images were taken with (checked against the calibration when the
+        /// file does not name its scanner).
+        #[arg(long, value_name = "ID")]
+        scanner: Option<String>,
+        /// Correct an image that reaches beyond the calibrated region (the surfaces are
+        /// extrapolated there; the output is marked `spmcal_extrapolated`).
+        #[arg(long)]
+        allow_extrapolation: bool,
     },
     /// Describe an SPM file: format, channels, directions, pixels, size, times, header.
     Info {
@@ -210,6 +235,15 @@ enum CdbCommand {
     },
 }
 
+/// Format of the corrected files written into a directory.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum OutFormat {
+    /// Gwyddion native: every channel and the metadata in one file.
+    Gwy,
+    /// Gwyddion Simple Field: one file per channel.
+    Gsf,
+}
+
 /// Raster direction of an image to correct.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum RasterDirection {
@@ -274,11 +308,17 @@ impl Command {
             }
             Self::Fit { cdb, out, .. } => paths.extend([cdb.clone(), out.clone()]),
             Self::Correct {
-                image,
-                surfaces,
+                images,
+                calibration,
                 out,
+                out_dir,
                 ..
-            } => paths.extend([image.clone(), surfaces.clone(), out.clone()]),
+            } => {
+                paths.extend(images.iter().cloned());
+                paths.push(calibration.clone());
+                paths.extend(out.iter().cloned());
+                paths.extend(out_dir.iter().cloned());
+            }
             Self::Info { file, .. } => paths.push(file.clone()),
             Self::Diagnose {
                 files, json, png, ..
@@ -394,20 +434,30 @@ fn run(command: Command) -> Result<(), CliError> {
             },
         ),
         Command::Correct {
-            image,
-            surfaces,
+            images,
+            calibration,
             out,
+            out_dir,
+            format,
+            channel,
             direction,
             nominal_nm_per_count,
             z_counts,
-        } => correct_cmd::run(
-            &image,
-            &surfaces,
-            &out,
+            scanner,
+            allow_extrapolation,
+        } => correct_cmd::run(&correct_cmd::CorrectArgs {
+            images: &images,
+            calibration: &calibration,
+            out: out.as_deref(),
+            out_dir: out_dir.as_deref(),
+            format,
+            channel: channel.as_deref(),
             direction,
             nominal_nm_per_count,
             z_counts,
-        ),
+            scanner: scanner.as_deref(),
+            allow_extrapolation,
+        }),
         Command::Diagnose {
             files,
             lattice,

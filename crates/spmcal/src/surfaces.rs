@@ -3,7 +3,9 @@
 
 use serde::Serialize;
 use spm_cdb::{CdbRead, LccColumns, RecordFilter};
-use spm_correction::{FittedSurface, PlaneSurfaces, Provenance, SurfaceSet};
+use spm_correction::{
+    CountRegion, CountsConvention, FittedSurface, PlaneSurfaces, Provenance, SurfaceSet,
+};
 use spm_regression::{Criterion, Field, Observations, SelectionOptions, delta_max, select_degree};
 
 /// Why surfaces could not be fitted.
@@ -75,24 +77,33 @@ fn describe_selection(scanner: Option<&str>, since: Option<&str>, until: Option<
     parts.join(", ")
 }
 
-/// Keeps the records that `cdb check` accepts (finite centre, K̄x, K̄y > 0, |α| < π/2,
-/// Kz > 0 where given); returns how many were left out.
+/// What `cdb check` accepts of a record's regression inputs: finite centre, K̄x, K̄y > 0,
+/// |α| < π/2, Kz > 0 where given.
+fn usable(x: f64, y: f64, kx: f64, ky: f64, alpha: f64, kz: Option<f64>) -> bool {
+    x.is_finite()
+        && y.is_finite()
+        && kx.is_finite()
+        && kx > 0.0
+        && ky.is_finite()
+        && ky > 0.0
+        && alpha.is_finite()
+        && alpha.abs() < std::f64::consts::FRAC_PI_2
+        && kz.is_none_or(|kz| kz.is_finite() && kz > 0.0)
+}
+
+/// Keeps the records that `cdb check` accepts ([`usable`]); returns how many were left out.
 fn keep_valid(columns: &mut LccColumns) -> usize {
     let n = columns.len();
     let keep: Vec<bool> = (0..n)
         .map(|i| {
-            let kx = columns.kx_nm_per_count[i];
-            let ky = columns.ky_nm_per_count[i];
-            let alpha = columns.alpha_rad[i];
-            columns.lcs_x_counts[i].is_finite()
-                && columns.lcs_y_counts[i].is_finite()
-                && kx.is_finite()
-                && kx > 0.0
-                && ky.is_finite()
-                && ky > 0.0
-                && alpha.is_finite()
-                && alpha.abs() < std::f64::consts::FRAC_PI_2
-                && columns.kz_nm_per_count[i].is_none_or(|kz| kz.is_finite() && kz > 0.0)
+            usable(
+                columns.lcs_x_counts[i],
+                columns.lcs_y_counts[i],
+                columns.kx_nm_per_count[i],
+                columns.ky_nm_per_count[i],
+                columns.alpha_rad[i],
+                columns.kz_nm_per_count[i],
+            )
         })
         .collect();
     let excluded = keep.iter().filter(|k| !**k).count();
@@ -243,17 +254,101 @@ pub fn fit_from_cdb(
             until: until_unix_s.map(spm_cdb::rfc3339_utc),
         });
     };
+    let used = records_used(cdb, &scanner_id, since_unix_s, until_unix_s)?;
     let provenance = Provenance {
         scanner_id,
         fit_since: since_unix_s.map(spm_cdb::rfc3339_utc),
         fit_until: until_unix_s.map(spm_cdb::rfc3339_utc),
         n_records,
+        counts_convention: Some(CountsConvention::CentredSigned),
+        nominal_nm_per_count: used.nominal_nm_per_count,
+        run_ids: used.run_ids,
+        records_sha256: Some(used.sha256),
+        written_utc: None,
+        spmcal_version: Some(env!("CARGO_PKG_VERSION").to_owned()),
+        spmcal_commit: option_env!("SPMCAL_GIT_COMMIT").map(str::to_owned),
     };
     Ok(FittedSurfaces {
         set: SurfaceSet::new(provenance, planes)?,
         summary,
         excluded_records,
     })
+}
+
+/// What the provenance of a calibration file says of the records it was fitted from.
+struct RecordsUsed {
+    run_ids: Vec<String>,
+    sha256: String,
+    nominal_nm_per_count: Option<f64>,
+}
+
+/// The runs, the SHA-256 (hex) and the nominal sensitivity of the records a fit uses: those of
+/// the selection that [`usable`] keeps, hashed as their JSON lines in acquisition order.
+fn records_used(
+    cdb: &dyn CdbRead,
+    scanner_id: &str,
+    since_unix_s: Option<f64>,
+    until_unix_s: Option<f64>,
+) -> Result<RecordsUsed, SurfaceFitError> {
+    use sha2::Digest as _;
+    let filter = RecordFilter::scanner(scanner_id).with_window(since_unix_s, until_unix_s);
+    let mut hasher = sha2::Sha256::new();
+    let mut run_ids: Vec<String> = Vec::new();
+    cdb.for_each_record(&filter, &mut |record| {
+        if usable(
+            record.lcs_x_counts,
+            record.lcs_y_counts,
+            record.kx_nm_per_count,
+            record.ky_nm_per_count,
+            record.alpha_rad,
+            record.kz_nm_per_count,
+        ) {
+            // Serialising a plain record cannot fail; an empty line would still be hashed.
+            let line = serde_json::to_vec(&record).unwrap_or_default();
+            hasher.update(&line);
+            hasher.update(b"\n");
+            if !run_ids.contains(&record.run_id) {
+                run_ids.push(record.run_id);
+            }
+        }
+        Ok(())
+    })?;
+    let sha256 = hasher
+        .finalize()
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect::<String>();
+    // The runs' plans state the nominal sensitivity; it is recorded when they agree.
+    let mut nominal: Option<f64> = None;
+    let mut agree = true;
+    for id in &run_ids {
+        let Some(run) = cdb.run(id)? else { continue };
+        match plan_nominal_nm_per_count(&run.config) {
+            Some(k) => match nominal {
+                None => nominal = Some(k),
+                Some(n) if (n - k).abs() <= 1e-9 * n.abs() => {}
+                Some(_) => agree = false,
+            },
+            None => agree = false,
+        }
+    }
+    Ok(RecordsUsed {
+        run_ids,
+        sha256,
+        nominal_nm_per_count: if agree { nominal } else { None },
+    })
+}
+
+/// `plan.standard.nominal_nm_per_count` of a run's stored job text (TOML), if it parses.
+fn plan_nominal_nm_per_count(config: &str) -> Option<f64> {
+    let value: toml::Value = toml::from_str(config).ok()?;
+    let k = value
+        .get("plan")?
+        .get("standard")?
+        .get("nominal_nm_per_count")?;
+    k.as_float()
+        .or_else(|| k.as_integer().map(|i| i as f64))
+        .filter(|k| k.is_finite() && *k > 0.0)
 }
 
 /// Fits the surfaces of one Z plane from its records.
@@ -313,6 +408,7 @@ pub fn fit_plane(
         kyy_nm_per_count: kyy_surface,
         kz_nm_per_count: kz,
         bowl_z_counts: None,
+            calibrated_region_counts: CountRegion::bounding(x, y, 0.0),
     };
     Ok((
         plane,

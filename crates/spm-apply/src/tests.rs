@@ -1,0 +1,311 @@
+//! Unit tests against closed forms: linear fields, whose corrected coordinates are a linear
+//! map of the commanded ones on any path.
+#![allow(clippy::unwrap_used)]
+
+use super::*;
+use spm_correction::{FittedSurface, PlaneSurfaces, Provenance};
+use spm_regression::{Polynomial2, n_terms};
+
+/// A uniform field: K̄x, K̄y, α constant.
+fn uniform(kx: f64, ky: f64, alpha: f64) -> SurfaceSet {
+    let mut plane = PlaneSurfaces::constant(0.0, kx, ky, alpha).unwrap();
+    plane.calibrated_region_counts = Some(CountRegion {
+        x_min_counts: -30_000.0,
+        x_max_counts: 30_000.0,
+        y_min_counts: -30_000.0,
+        y_max_counts: 30_000.0,
+    });
+    plane.n_records = 100;
+    SurfaceSet::new(
+        Provenance {
+            scanner_id: "test-scanner".into(),
+            n_records: 100,
+            nominal_nm_per_count: Some(0.02),
+            counts_convention: Some(CountsConvention::CentredSigned),
+            ..Provenance::default()
+        },
+        vec![plane],
+    )
+    .unwrap()
+}
+
+/// A field whose coefficients vary over the plane (cubic surfaces).
+fn curved() -> SurfaceSet {
+    let surface = |base: f64, seed: f64| {
+        let c = (0..n_terms(3))
+            .map(|k| {
+                if k == 0 {
+                    base
+                } else {
+                    base * 0.04 * ((k as f64 + seed) * 1.3).sin()
+                }
+            })
+            .collect();
+        FittedSurface::new(
+            Polynomial2::new(3, (0.0, 0.0), (30_000.0, 30_000.0), c).unwrap(),
+            base * 0.001,
+        )
+    };
+    let plane = PlaneSurfaces {
+        z_counts: 0.0,
+        n_records: 300,
+        kx_nm_per_count: surface(0.020, 0.0),
+        ky_nm_per_count: surface(0.019, 1.0),
+        alpha_rad: surface(0.02, 2.0),
+        kyx_nm_per_count: surface(0.0004, 3.0),
+        kyy_nm_per_count: surface(0.019, 4.0),
+        kz_nm_per_count: None,
+        bowl_z_counts: None,
+        calibrated_region_counts: CountRegion::bounding(&[-30_000.0, 30_000.0], &[-30_000.0, 30_000.0], 0.0),
+    };
+    SurfaceSet::new(
+        Provenance {
+            scanner_id: "test-scanner".into(),
+            n_records: 300,
+            ..Provenance::default()
+        },
+        vec![plane],
+    )
+    .unwrap()
+}
+
+fn raster(columns: usize, rows: usize, angle_deg: f64, path: RasterPath) -> FileRaster {
+    FileRaster {
+        columns,
+        rows,
+        centre: CountPoint::from_counts(1200.0, -800.0),
+        step_x_counts: 10.0,
+        step_y_counts: 10.0,
+        angle_ccw_rad: angle_deg.to_radians(),
+        path,
+        counts: CountsSource::Recorded,
+    }
+}
+
+fn map_point(map: &CoordinateMap, column: usize, map_row: usize) -> [f64; 2] {
+    let p = map.point(column, map_row).unwrap();
+    [p.x.value(), p.y.value()]
+}
+
+#[test]
+fn the_polyline_path_reproduces_the_analytic_direct_raster() {
+    let set = curved();
+    let field = set.planes[0].field(Route::Products);
+    let r = raster(17, 13, 0.0, RasterPath::Trace(ScanDir::Up));
+    let (fast, _) = coordinate_map(&field, &r).unwrap();
+    let general = general_map(&field, &r, &Quadrature::default()).unwrap();
+    for row in 0..13 {
+        for column in 0..17 {
+            let a = map_point(&fast, column, row);
+            let b = map_point(&general, column, row);
+            assert!(
+                (a[0] - b[0]).abs() < 1e-9 && (a[1] - b[1]).abs() < 1e-9,
+                "pixel ({column}, {row}): analytic {a:?}, polyline {b:?}"
+            );
+        }
+    }
+}
+
+/// A uniform field is the linear map M = [[kx, ky sin α], [0, ky cos α]] on the scanner's
+/// counts; in the frame's axes the corrected offset of a pixel from the first pixel is
+/// R(−θ)·M·(p − p₀) whatever the path, rotation or direction.
+#[test]
+fn a_rotated_raster_in_a_uniform_oblique_field_matches_the_closed_form() {
+    let (kx, ky, alpha) = (0.021, 0.018, 0.05);
+    let set = uniform(kx, ky, alpha);
+    let field = set.planes[0].field(Route::Products);
+    for (angle, path) in [
+        (30.0, RasterPath::Trace(ScanDir::Up)),
+        (-10.0, RasterPath::Trace(ScanDir::Down)),
+        (135.0, RasterPath::Counter),
+        (0.0, RasterPath::Trace(ScanDir::Down)),
+    ] {
+        let r = raster(9, 7, angle, path);
+        let (map, _) = coordinate_map(&field, &r).unwrap();
+        let (s, c) = r.angle_ccw_rad.sin_cos();
+        let expected = |column: usize, display_row: usize| {
+            let p = r.pixel_counts(column as f64, display_row as f64);
+            let (x, y) = (p.x.value(), p.y.value());
+            let (mx, my) = (kx * x + ky * alpha.sin() * y, ky * alpha.cos() * y);
+            [mx * c + my * s, -mx * s + my * c]
+        };
+        let e0 = expected(0, 0);
+        let m0 = map_point(&map, 0, 6);
+        for display_row in 0..7 {
+            for column in 0..9 {
+                let e = expected(column, display_row);
+                let m = map_point(&map, column, 6 - display_row);
+                let (dx, dy) = ((m[0] - m0[0]) - (e[0] - e0[0]), (m[1] - m0[1]) - (e[1] - e0[1]));
+                assert!(
+                    dx.abs() < 1e-9 && dy.abs() < 1e-9,
+                    "angle {angle}, {path:?}, pixel ({column}, {display_row}): off by ({dx:e}, {dy:e}) nm"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn the_pixel_positions_follow_the_frame_angle_counter_clockwise() {
+    let r = raster(3, 3, 90.0, RasterPath::Trace(ScanDir::Up));
+    // Rotated by 90° counter-clockwise, the frame's +x (right) is the scanner's +y.
+    let right = r.pixel_counts(2.0, 1.0);
+    assert!((right.x.value() - 1200.0).abs() < 1e-9);
+    assert!((right.y.value() - (-800.0 + 10.0)).abs() < 1e-9);
+    // And the frame's top is the scanner's −x.
+    let top = r.pixel_counts(1.0, 0.0);
+    assert!((top.x.value() - (1200.0 - 10.0)).abs() < 1e-9);
+    assert!((top.y.value() - (-800.0)).abs() < 1e-9);
+}
+
+fn sim_file(nx: usize, ny: usize, headers: &[(&str, &str)]) -> SpmFile {
+    let data: Vec<f64> = (0..nx * ny)
+        .map(|i| ((i % nx) as f64 * 0.7).sin() * 1e-10)
+        .collect();
+    let channel = Channel::new("Z", Direction::Forward, "m", nx, ny, data)
+        .unwrap()
+        .with_size_nm(nx as f64 * 0.2, ny as f64 * 0.2)
+        .with_center_nm(0.0, 0.0);
+    SpmFile {
+        source: PathBuf::from("test.gsf"),
+        format: Format::Gsf,
+        channels: vec![channel],
+        header: headers
+            .iter()
+            .map(|(k, v)| ((*k).to_owned(), (*v).to_owned()))
+            .collect(),
+        scan_dir: None,
+        line_time_s: None,
+        recorded: None,
+    }
+}
+
+fn nominal(k: f64) -> ApplyOptions {
+    ApplyOptions {
+        nominal_nm_per_count: Some(k),
+        ..ApplyOptions::default()
+    }
+}
+
+#[test]
+fn the_guard_rails_refuse_with_the_field_named() {
+    let set = uniform(0.02, 0.02, 0.0);
+    let check = |file: SpmFile, options: ApplyOptions, expect: &str| {
+        let error = correct_file(&file, &set, &options).unwrap_err();
+        let text = error.to_string();
+        assert!(error.is_bad_input(), "{text}");
+        assert!(text.contains(expect), "expected {expect:?} in: {text}");
+    };
+    check(
+        sim_file(16, 16, &[(KEY_CORRECTED, "yes")]),
+        nominal(0.02),
+        "already corrected",
+    );
+    check(
+        sim_file(16, 16, &[("spmcal_surfaces", "s.json")]),
+        nominal(0.02),
+        "already corrected",
+    );
+    check(
+        sim_file(16, 16, &[(KEY_SCANNER, "other")]),
+        nominal(0.02),
+        "spmcal_scanner_id",
+    );
+    check(
+        sim_file(16, 16, &[]),
+        ApplyOptions {
+            scanner_id: Some("other".into()),
+            ..nominal(0.02)
+        },
+        "\"other\"",
+    );
+    // A sensitivity given in m instead of nm.
+    check(sim_file(16, 16, &[]), nominal(0.02e-9), "--nominal-nm-per-count");
+    check(sim_file(16, 16, &[]), nominal(0.2), "factor");
+    check(
+        sim_file(
+            16,
+            16,
+            &[
+                (KEY_ORIGIN_X, "0"),
+                (KEY_ORIGIN_Y, "0"),
+                (KEY_STEP, "10"),
+                (KEY_CONVENTION, "corner_unsigned"),
+            ],
+        ),
+        ApplyOptions::default(),
+        "spmcal_counts_convention",
+    );
+    // 3.2 nm over 16 px at 0.02 nm/count centred 3 µm away.
+    let mut far = sim_file(16, 16, &[]);
+    far.channels[0] = far.channels[0].clone().with_center_nm(3000.0, 0.0);
+    check(far, nominal(0.02), "--allow-extrapolation");
+    // 200 nm at 0.02 nm/count spans 10⁴ counts: inside; 2 µm spans 10⁵: outside.
+    let mut large = sim_file(16, 16, &[]);
+    large.channels[0] = large.channels[0].clone().with_size_nm(2000.0, 2000.0);
+    check(large, nominal(0.02), "beyond the calibrated region");
+    check(sim_file(16, 16, &[]), ApplyOptions::default(), "--nominal-nm-per-count");
+    check(
+        sim_file(16, 16, &[]),
+        ApplyOptions {
+            channels: ChannelSelection::Named("Current".into()),
+            ..nominal(0.02)
+        },
+        "Z (forward)",
+    );
+}
+
+#[test]
+fn extrapolation_when_allowed_is_marked_and_unknown_pixels_are_nan() {
+    let set = uniform(0.02, 0.02, 0.01);
+    let mut file = sim_file(32, 32, &[("Bias", "0.4 V")]);
+    file.channels[0] = file.channels[0].clone().with_center_nm(700.0, 0.0);
+    let options = ApplyOptions {
+        allow_extrapolation: true,
+        ..nominal(0.02)
+    };
+    let out = correct_file(&file, &set, &options).unwrap();
+    assert!(out.extrapolated_counts.is_some());
+    let get = |k: &str| {
+        out.metadata
+            .iter()
+            .find(|(key, _)| key == k)
+            .map(|(_, v)| v.as_str())
+    };
+    assert!(get("spmcal_extrapolated").unwrap().starts_with("yes"));
+    assert_eq!(get("source_Bias"), Some("0.4 V"));
+    assert_eq!(get(KEY_CORRECTED), Some("yes"));
+    // The oblique field shears the raster: the output's corners hold no data, as NaN.
+    let data = out.channels[0].data();
+    assert!(out.unknown_pixels > 0);
+    assert_eq!(data.iter().filter(|v| v.is_nan()).count(), out.unknown_pixels);
+    assert!(data.iter().any(|v| v.is_finite()));
+}
+
+#[test]
+fn an_identity_calibration_reproduces_the_image() {
+    let set = uniform(0.02, 0.02, 0.0);
+    let file = sim_file(24, 20, &[]);
+    let out = correct_file(&file, &set, &nominal(0.02)).unwrap();
+    let ch = &out.channels[0];
+    assert_eq!((ch.nx(), ch.ny()), (24, 20));
+    assert!((ch.size_x_nm().unwrap() - 24.0 * 0.2).abs() < 1e-9);
+    for (a, b) in ch.data().iter().zip(file.channels[0].data()) {
+        assert!((a - b).abs() < 1e-18, "{a} vs {b}");
+    }
+    assert_eq!(out.unknown_pixels, 0);
+}
+
+#[test]
+fn output_names_name_what_spmcal_writes() {
+    assert_eq!(
+        OutputKind::of_path(Path::new("a/x.GSF")).unwrap(),
+        OutputKind::Gsf
+    );
+    assert_eq!(
+        OutputKind::of_path(Path::new("x.gwy")).unwrap(),
+        OutputKind::Gwy
+    );
+    let error = OutputKind::of_path(Path::new("x.png")).unwrap_err().to_string();
+    assert!(error.contains("--out") && error.contains(".png"), "{error}");
+}

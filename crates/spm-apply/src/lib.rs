@@ -399,8 +399,9 @@ impl FileRaster {
             return Err(ApplyError::Option {
                 option: "--nominal-nm-per-count",
                 reason: format!(
-                    "{k} nm/count ({field}) must lie in [1e-9, 1e3] (a 1 µm field over 2¹⁶ \
-                     counts is 0.015)"
+                    "{}: {k:e} nm/count ({field}) must lie in [1e-9, 1e3] (a 1 µm field over 2¹⁶ \
+                     counts is 0.015; a sensitivity in m instead of nm is 10⁹ too small)",
+                    file.source.display()
                 ),
             });
         }

@@ -171,3 +171,105 @@ fn gsf_defaults_follow_the_spec() {
     assert_eq!(c.size_x_nm(), Some(1e9));
     assert_eq!(f.header_value("XRes"), Some("2"));
 }
+
+/// Gwyddion itself (Debian's `gwyddion`; `.ci/run` installs it) renders a file we wrote: the
+/// thumbnail of channel `channel` as rows of luminance, with its width and height.
+fn gwyddion_renders(file: &Path, channel: usize) -> (usize, usize, Vec<f64>) {
+    let png_path = file.with_extension(format!("{channel}.png"));
+    let status = std::process::Command::new("gwyddion-thumbnailer")
+        .args(["-c", &channel.to_string(), "gnome2", "128"])
+        .arg(file)
+        .arg(&png_path)
+        .status()
+        .unwrap_or_else(|e| {
+            panic!(
+                "gwyddion-thumbnailer could not be run ({e}): install Debian's `gwyddion` \
+                 package (apt-get install -y gwyddion); .ci/run does"
+            )
+        });
+    assert!(status.success(), "Gwyddion could not open {}", file.display());
+    let decoder = png::Decoder::new(std::io::BufReader::new(
+        std::fs::File::open(&png_path).unwrap(),
+    ));
+    let mut reader = decoder.read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    let channels = info.color_type.samples();
+    let (w, h) = (info.width as usize, info.height as usize);
+    let luma = (0..w * h)
+        .map(|i| {
+            let p = &buf[i * channels..];
+            if channels >= 3 {
+                0.299 * f64::from(p[0]) + 0.587 * f64::from(p[1]) + 0.114 * f64::from(p[2])
+            } else {
+                f64::from(p[0])
+            }
+        })
+        .collect();
+    (w, h, luma)
+}
+
+/// Mean luminance over a fraction box (x0, x1, y0, y1) of the picture (y from the top).
+fn mean_box(w: usize, h: usize, luma: &[f64], b: (f64, f64, f64, f64)) -> f64 {
+    let (x0, x1) = ((b.0 * w as f64) as usize, (b.1 * w as f64) as usize);
+    let (y0, y1) = ((b.2 * h as f64) as usize, (b.3 * h as f64) as usize);
+    let mut sum = 0.0;
+    let mut n = 0.0;
+    for y in y0..y1 {
+        for x in x0..x1 {
+            sum += luma[y * w + x];
+            n += 1.0;
+        }
+    }
+    sum / n
+}
+
+/// A forward channel rising to the right and a backward one rising to the top, each with a
+/// corner without data (NaN): Gwyddion must open the `.gwy` (both channels) and the `.gsf`,
+/// and draw them the right way round.
+#[test]
+fn gwyddion_reads_our_gwy_and_gsf_with_nan() {
+    let dir = std::env::temp_dir().join(format!("spm-formats-gwy-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (nx, ny) = (64, 48);
+    let ramp = |f: &dyn Fn(usize, usize) -> f64| -> Vec<f64> {
+        (0..nx * ny)
+            .map(|i| {
+                let (row, col) = (i / nx, i % nx);
+                if row < 8 && col < 8 { f64::NAN } else { f(row, col) }
+            })
+            .collect()
+    };
+    let right = Channel::new("Z", Direction::Forward, "m", nx, ny, ramp(&|_, c| c as f64 * 1e-11))
+        .unwrap()
+        .with_size_nm(6.4, 4.8)
+        .with_center_nm(10.0, -5.0);
+    let up = Channel::new("Z", Direction::Backward, "m", nx, ny, ramp(&|r, _| (ny - r) as f64 * 1e-11))
+        .unwrap()
+        .with_size_nm(6.4, 4.8);
+    let gwy = dir.join("two.gwy");
+    let meta = vec![("spmcal_corrected".to_owned(), "yes".to_owned())];
+    spm_formats::write_gwy(&gwy, &[right.clone(), up], &meta).unwrap();
+    let (w, h, luma) = gwyddion_renders(&gwy, 0);
+    assert!(w > h, "the 64 × 48 channel drawn {w} × {h}");
+    let (left, rightside) = (
+        mean_box(w, h, &luma, (0.0, 0.3, 0.5, 1.0)),
+        mean_box(w, h, &luma, (0.7, 1.0, 0.5, 1.0)),
+    );
+    assert!(rightside > left + 60.0, "channel 0: left {left}, right {rightside}");
+    let (w, h, luma) = gwyddion_renders(&gwy, 1);
+    let (top, bottom) = (
+        mean_box(w, h, &luma, (0.3, 1.0, 0.0, 0.3)),
+        mean_box(w, h, &luma, (0.3, 1.0, 0.7, 1.0)),
+    );
+    assert!(top > bottom + 60.0, "channel 1: top {top}, bottom {bottom}");
+    let gsf = dir.join("right.gsf");
+    write_gsf(&gsf, &right, &[]).unwrap();
+    let (w, h, luma) = gwyddion_renders(&gsf, 0);
+    let (left, rightside) = (
+        mean_box(w, h, &luma, (0.0, 0.3, 0.5, 1.0)),
+        mean_box(w, h, &luma, (0.7, 1.0, 0.5, 1.0)),
+    );
+    assert!(rightside > left + 60.0, "gsf: left {left}, right {rightside}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -209,14 +209,20 @@ pub fn run(args: &CorrectArgs<'_>) -> Result<(), CliError> {
     for image in args.images {
         crate::files::check_input(image, "image")?;
     }
-    let set = read_calibration(args.calibration)?;
+    // Read once, after the first image (whose errors are reported first).
+    let mut calibration: Option<SurfaceSet> = None;
     for (image, (out, kind)) in args.images.iter().zip(&outs) {
         let mut inputs: Vec<&Path> = args.images.iter().map(PathBuf::as_path).collect();
         inputs.push(args.calibration);
         crate::files::check_output(out, "--out", &inputs)?;
         let file = spm_formats::read_any(image).map_err(|e| CliError::BadInput(e.to_string()))?;
+        let set = match calibration.take() {
+            Some(set) => set,
+            None => read_calibration(args.calibration)?,
+        };
         let corrected = spm_apply::correct_file(&file, &set, &options(args, *kind))
             .map_err(|e| apply_error(e, args.calibration))?;
+        calibration = Some(set);
         let written = write(&corrected, out, *kind, args.calibration, &inputs)?;
         let first = corrected.channels.first();
         crate::outln!(

@@ -59,6 +59,11 @@ pub const KEY_CONVENTION: &str = "spmcal_counts_convention";
 /// Header field: the controller's nominal sensitivity when the file was taken, nm/count.
 pub const KEY_NOMINAL: &str = "spmcal_nominal_nm_per_count";
 
+/// Header field: the path of the raster as spmcal's own files record it (`direct`: +x lines,
+/// slow axis up; `counter`: −x lines from the far corner, slow axis down; `down`: +x lines,
+/// slow axis down).
+pub const KEY_SCAN_PATH: &str = "spmcal_scan_path";
+
 /// A nominal sensitivity and the calibration's may differ by up to this factor either way
 /// (a real scanner differs from its datasheet by tens of %; a unit slip is a factor 10³–10⁹).
 pub const MAX_SENSITIVITY_RATIO: f64 = 2.0;
@@ -357,7 +362,21 @@ impl FileRaster {
             reason,
         };
         let slow = channel.scan_dir().or(file.scan_dir).unwrap_or(ScanDir::Up);
-        let path = path.unwrap_or(RasterPath::Trace(slow));
+        let recorded_path = match file.header_value(KEY_SCAN_PATH).map(str::trim) {
+            None => None,
+            Some("direct") => Some(RasterPath::Trace(ScanDir::Up)),
+            Some("down") => Some(RasterPath::Trace(ScanDir::Down)),
+            Some("counter") => Some(RasterPath::Counter),
+            Some(other) => {
+                return Err(header(
+                    KEY_SCAN_PATH,
+                    format!("{other:?} is not one of direct, down, counter"),
+                ));
+            }
+        };
+        let path = path
+            .or(recorded_path)
+            .unwrap_or(RasterPath::Trace(slow));
         let recorded = (
             header_number(file, KEY_ORIGIN_X)?,
             header_number(file, KEY_ORIGIN_Y)?,
@@ -1012,7 +1031,8 @@ pub fn correct_file(
             return Err(ApplyError::Channel {
                 file: file.source.clone(),
                 reason: format!(
-                    "channel {:?} ({}) holds no finite value",
+                    "channel {:?} ({}) holds no finite height or value (every pixel NaN or \
+                     infinite)",
                     channel.name(),
                     channel.direction().as_str()
                 ),

@@ -192,7 +192,7 @@ fn gwyddion_renders(file: &Path, channel: usize) -> (usize, usize, Vec<f64>) {
         std::fs::File::open(&png_path).unwrap(),
     ));
     let mut reader = decoder.read_info().unwrap();
-    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let mut buf = vec![0; reader.output_buffer_size()];
     let info = reader.next_frame(&mut buf).unwrap();
     let channels = info.color_type.samples();
     let (w, h) = (info.width as usize, info.height as usize);

@@ -61,6 +61,10 @@ fn outputs(args: &CorrectArgs<'_>) -> Result<Vec<(PathBuf, OutputKind)>, CliErro
                     args.images.len()
                 )));
             }
+            // An output that is an input is refused first: that is the worse mistake.
+            let mut inputs: Vec<&Path> = args.images.iter().map(PathBuf::as_path).collect();
+            inputs.push(args.calibration);
+            crate::files::check_output(out, "--out", &inputs)?;
             let kind = OutputKind::of_path(out).map_err(bad)?;
             Ok(vec![(out.to_path_buf(), kind)])
         }
@@ -222,6 +226,16 @@ pub fn run(args: &CorrectArgs<'_>) -> Result<(), CliError> {
         };
         let corrected = spm_apply::correct_file(&file, &set, &options(args, *kind))
             .map_err(|e| apply_error(e, args.calibration))?;
+        if file.header_value(spm_apply::KEY_SCANNER).is_none() && args.scanner.is_none() {
+            use std::io::Write as _;
+            let _ = writeln!(
+                std::io::stderr(),
+                "spmcal: warning: {}: the file does not name its scanner, so it was not checked \
+                 against the calibration's ({:?}); give --scanner ID to check it",
+                image.display(),
+                set.provenance.scanner_id
+            );
+        }
         calibration = Some(set);
         let written = write(&corrected, out, *kind, args.calibration, &inputs)?;
         let first = corrected.channels.first();

@@ -489,6 +489,10 @@ pub enum ImageCorrection<'a> {
     Map(CubicMap),
     /// The bound: a cubic fitted to each image's own true positions (exact, per image).
     PerImageBound,
+    /// What a user gets from `spmcal correct`: each image written as a file with what a
+    /// controller records (its raster in counts, direction, scanner), read back, checked by the
+    /// guard rails and mapped by `spm_apply` with the calibration file.
+    UserFile(Box<spm_correction::SurfaceSet>),
     /// A correction field integrated along each image's *effective* trajectory
     /// (`spm_correction::dynamics`): `offsets[image]` = uₑ − u per pixel in acquisition order,
     /// the field evaluated at uₑ / `gain`.
@@ -685,6 +689,7 @@ fn coordinate_map(
             let points: Vec<[f64; 2]> = u.iter().map(|p| fit.eval(p[0], p[1])).collect();
             map_from_points(&points, nx, ny)?
         }
+        ImageCorrection::UserFile(set) => user_file_map(set, image)?,
         ImageCorrection::EffectivePath {
             field,
             offsets,
@@ -710,6 +715,75 @@ fn coordinate_map(
             spm_correction::dynamics::to_geometry_map(&acquisition, nx, ny, image.direction)?
         }
     })
+}
+
+/// [`ImageCorrection::UserFile`]: the image as a `.gsf` in memory (heights in display
+/// orientation, the raster in counts, the scan path, the scanner and counts convention), read
+/// back and mapped through `spm_apply` as `spmcal correct` does.
+fn user_file_map(
+    set: &spm_correction::SurfaceSet,
+    image: &TestImage,
+) -> Result<CoordinateMap, ImageBenchmarkError> {
+    use spm_apply::{
+        ApplyOptions, FileRaster, KEY_CONVENTION, KEY_ORIGIN_X, KEY_ORIGIN_Y, KEY_SCANNER,
+        KEY_SCAN_PATH, KEY_STEP,
+    };
+    let m = &image.map;
+    let fail = |what: String| ImageBenchmarkError::Config(format!("user file: {what}"));
+    let mut display = Vec::with_capacity(m.columns * m.rows);
+    for row in (0..m.rows).rev() {
+        display.extend_from_slice(&m.z_counts[row * m.columns..(row + 1) * m.columns]);
+    }
+    let k = set.provenance.nominal_nm_per_count.unwrap_or(1.0);
+    let side = |n: usize| m.pixel_step.value() * n as f64 * k;
+    let channel = spm_formats::Channel::new(
+        "Z",
+        spm_formats::Direction::Forward,
+        "counts",
+        m.columns,
+        m.rows,
+        display,
+    )
+    .map_err(|e| fail(e.to_string()))?
+    .with_size_nm(side(m.columns), side(m.rows));
+    let (x0, y0, step) = (
+        m.origin.x.value().to_string(),
+        m.origin.y.value().to_string(),
+        m.pixel_step.value().to_string(),
+    );
+    let path = match image.direction {
+        ScanDirection::Direct => "direct",
+        ScanDirection::Counter => "counter",
+    };
+    let bytes = spm_formats::encode_gsf(
+        &channel,
+        &[
+            (KEY_ORIGIN_X, x0.as_str()),
+            (KEY_ORIGIN_Y, y0.as_str()),
+            (KEY_STEP, step.as_str()),
+            (KEY_SCAN_PATH, path),
+            (KEY_SCANNER, set.provenance.scanner_id.as_str()),
+            (KEY_CONVENTION, "centred_signed"),
+        ],
+    )
+    .map_err(|e| fail(e.to_string()))?;
+    let file = spm_formats::read_bytes(&bytes, std::path::Path::new("test-image.gsf"))
+        .map_err(|e| fail(e.to_string()))?;
+    let channel = file
+        .channels
+        .first()
+        .ok_or_else(|| fail("no channel read back".to_owned()))?;
+    let raster = FileRaster::of(&file, channel, None, None).map_err(|e| fail(e.to_string()))?;
+    let plane = set.plane_nearest(0.0)?;
+    // The benchmark's places reach the field's edge: extrapolation is allowed (and measured).
+    let options = ApplyOptions {
+        allow_extrapolation: true,
+        ..ApplyOptions::default()
+    };
+    spm_apply::check(&file, set, plane, &raster, &options).map_err(|e| fail(e.to_string()))?;
+    let field = plane.field(spm_correction::Route::Products);
+    let (map, _) = spm_apply::coordinate_map(&field, &raster)?;
+    Ok(map)
 }
 
 fn position_figures(corrected: &[[f64; 2]], image: &TestImage, nominal: f64) -> (f64, f64, f64) {

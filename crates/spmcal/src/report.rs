@@ -636,7 +636,7 @@ pub const CREEP_FIT_DRIFT_WINDOW_S: f64 = 300.0;
 /// distributed calibration along the effective trajectory of the creep law identified from
 /// the run, and two labelled bounds (the oracle's true dynamics; a per-image polynomial on
 /// exact positions).
-// long-function: one recipe in order: take the images, identify the creep law from the run, then the list of methods, each built from the results above it
+// long-function: one recipe in order: take the images, identify the creep law from the run, then the list of methods, each built from the results above it (the user-file row included)
 fn image_benchmark<S: SimulatedInstrument + Sync>(
     sim: &S,
     record: &RunRecord<'_>,
@@ -742,6 +742,24 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
                 offsets: split(offsets),
                 gain: [gain, gain],
             },
+        });
+    }
+    if let Some((_, distributed)) = planes.iter().find(|(name, _)| *name == "distributed") {
+        // `spmcal correct`'s library path with the calibration file (static field: no
+        // recorded history is applied yet).
+        let set = spm_correction::SurfaceSet::new(
+            spm_correction::Provenance {
+                scanner_id: plan.scanner_id.clone(),
+                n_records: distributed.n_records,
+                nominal_nm_per_count: Some(plan.standard.nominal_nm_per_count),
+                counts_convention: Some(spm_correction::CountsConvention::CentredSigned),
+                ..spm_correction::Provenance::default()
+            },
+            vec![(*distributed).clone()],
+        )?;
+        methods.push(ImageMethod {
+            name: "user_file_alone".to_owned(),
+            correction: ImageCorrection::UserFile(Box::new(set)),
         });
     }
     methods.push(ImageMethod {

@@ -10,8 +10,14 @@ fn main() {
     let git_dir = root.join(".git");
     if git_dir.join("HEAD").exists() {
         println!("cargo:rerun-if-changed={}", git_dir.join("HEAD").display());
-        println!("cargo:rerun-if-changed={}", git_dir.join("refs/heads").display());
-        println!("cargo:rerun-if-changed={}", git_dir.join("packed-refs").display());
+        println!(
+            "cargo:rerun-if-changed={}",
+            git_dir.join("refs/heads").display()
+        );
+        println!(
+            "cargo:rerun-if-changed={}",
+            git_dir.join("packed-refs").display()
+        );
     } else if git_dir.is_file() {
         // A worktree: .git is a file naming the real git directory.
         println!("cargo:rerun-if-changed={}", git_dir.display());

@@ -374,9 +374,7 @@ impl FileRaster {
                 ));
             }
         };
-        let path = path
-            .or(recorded_path)
-            .unwrap_or(RasterPath::Trace(slow));
+        let path = path.or(recorded_path).unwrap_or(RasterPath::Trace(slow));
         let recorded = (
             header_number(file, KEY_ORIGIN_X)?,
             header_number(file, KEY_ORIGIN_Y)?,
@@ -579,7 +577,8 @@ pub fn check(
     }
     let region = plane.calibrated_region();
     let image = raster.bounds();
-    let side = (region.x_max_counts - region.x_min_counts).max(region.y_max_counts - region.y_min_counts);
+    let side =
+        (region.x_max_counts - region.x_min_counts).max(region.y_max_counts - region.y_min_counts);
     let w = raster.columns as f64 - 1.0;
     let h = raster.rows as f64 - 1.0;
     let distance = [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)]
@@ -640,8 +639,8 @@ pub fn check_coefficients(
         for column in samples(raster.columns) {
             let p = raster.pixel_counts(column, row);
             let (x, y) = (p.x.value(), p.y.value());
-            let fail = |field: &'static str, value: f64, reason: &'static str| {
-                ApplyError::Calibration {
+            let fail =
+                |field: &'static str, value: f64, reason: &'static str| ApplyError::Calibration {
                     file: file.source.clone(),
                     z_counts: plane.z_counts,
                     field,
@@ -649,12 +648,20 @@ pub fn check_coefficients(
                     x_counts: x,
                     y_counts: y,
                     reason,
-                }
-            };
+                };
             for (field, value) in [
-                ("kx_nm_per_count", plane.kx_nm_per_count.surface.evaluate(x, y)),
-                ("ky_nm_per_count", plane.ky_nm_per_count.surface.evaluate(x, y)),
-                ("kyy_nm_per_count", plane.kyy_nm_per_count.surface.evaluate(x, y)),
+                (
+                    "kx_nm_per_count",
+                    plane.kx_nm_per_count.surface.evaluate(x, y),
+                ),
+                (
+                    "ky_nm_per_count",
+                    plane.ky_nm_per_count.surface.evaluate(x, y),
+                ),
+                (
+                    "kyy_nm_per_count",
+                    plane.kyy_nm_per_count.surface.evaluate(x, y),
+                ),
             ] {
                 if !(value.is_finite() && (lo..=hi).contains(&value)) {
                     return Err(fail(field, value, "is outside [1e-9, 1e3] nm/count"));
@@ -1004,14 +1011,16 @@ pub fn correct_file(
     check_coefficients(file, plane, &raster)?;
     if options.z_counts.is_some() {
         let z = options.z_counts.unwrap_or(plane.z_counts);
-        let (lower, upper, _) = set
-            .bracketing_planes(z)
-            .map_err(|e| correction("map", e))?;
+        let (lower, upper, _) = set.bracketing_planes(z).map_err(|e| correction("map", e))?;
         check_coefficients(file, lower, &raster)?;
         check_coefficients(file, upper, &raster)?;
     }
-    let field = field_at_z(set, options.z_counts.unwrap_or(plane.z_counts), Route::Products)
-        .map_err(|e| correction("map", e))?;
+    let field = field_at_z(
+        set,
+        options.z_counts.unwrap_or(plane.z_counts),
+        Route::Products,
+    )
+    .map_err(|e| correction("map", e))?;
     let (map, first_nm) = coordinate_map(&field, &raster).map_err(|e| correction("map", e))?;
     let grid = OutputGrid::covering(&map, None).map_err(|e| correction("map", e))?;
     let step_nm = grid.step_nm.value();
@@ -1106,7 +1115,8 @@ fn metadata(
 ) -> Vec<(String, String)> {
     let p = &set.provenance;
     let region = plane.calibrated_region();
-    let mut m: Vec<(String, String)> = vec![
+    let mut m: Vec<(String, String)> =
+        vec![
         (KEY_CORRECTED.into(), "yes".into()),
         ("spmcal_corrector_version".into(), env!("CARGO_PKG_VERSION").into()),
         ("spmcal_source_file".into(), file.source.display().to_string()),

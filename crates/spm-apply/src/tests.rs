@@ -56,7 +56,11 @@ fn curved() -> SurfaceSet {
         kyy_nm_per_count: surface(0.019, 4.0),
         kz_nm_per_count: None,
         bowl_z_counts: None,
-        calibrated_region_counts: CountRegion::bounding(&[-30_000.0, 30_000.0], &[-30_000.0, 30_000.0], 0.0),
+        calibrated_region_counts: CountRegion::bounding(
+            &[-30_000.0, 30_000.0],
+            &[-30_000.0, 30_000.0],
+            0.0,
+        ),
     };
     SurfaceSet::new(
         Provenance {
@@ -135,7 +139,10 @@ fn a_rotated_raster_in_a_uniform_oblique_field_matches_the_closed_form() {
             for column in 0..9 {
                 let e = expected(column, display_row);
                 let m = map_point(&map, column, 6 - display_row);
-                let (dx, dy) = ((m[0] - m0[0]) - (e[0] - e0[0]), (m[1] - m0[1]) - (e[1] - e0[1]));
+                let (dx, dy) = (
+                    (m[0] - m0[0]) - (e[0] - e0[0]),
+                    (m[1] - m0[1]) - (e[1] - e0[1]),
+                );
                 assert!(
                     dx.abs() < 1e-9 && dy.abs() < 1e-9,
                     "angle {angle}, {path:?}, pixel ({column}, {display_row}): off by ({dx:e}, {dy:e}) nm"
@@ -220,7 +227,11 @@ fn the_guard_rails_refuse_with_the_field_named() {
         "\"other\"",
     );
     // A sensitivity given in m instead of nm.
-    check(sim_file(16, 16, &[]), nominal(0.02e-9), "--nominal-nm-per-count");
+    check(
+        sim_file(16, 16, &[]),
+        nominal(0.02e-9),
+        "--nominal-nm-per-count",
+    );
     check(sim_file(16, 16, &[]), nominal(0.2), "factor");
     check(
         sim_file(
@@ -244,7 +255,11 @@ fn the_guard_rails_refuse_with_the_field_named() {
     let mut large = sim_file(16, 16, &[]);
     large.channels[0] = large.channels[0].clone().with_size_nm(2000.0, 2000.0);
     check(large, nominal(0.02), "beyond the calibrated region");
-    check(sim_file(16, 16, &[]), ApplyOptions::default(), "--nominal-nm-per-count");
+    check(
+        sim_file(16, 16, &[]),
+        ApplyOptions::default(),
+        "--nominal-nm-per-count",
+    );
     check(
         sim_file(16, 16, &[]),
         ApplyOptions {
@@ -278,7 +293,10 @@ fn extrapolation_when_allowed_is_marked_and_unknown_pixels_are_nan() {
     // The oblique field shears the raster: the output's corners hold no data, as NaN.
     let data = out.channels[0].data();
     assert!(out.unknown_pixels > 0);
-    assert_eq!(data.iter().filter(|v| v.is_nan()).count(), out.unknown_pixels);
+    assert_eq!(
+        data.iter().filter(|v| v.is_nan()).count(),
+        out.unknown_pixels
+    );
     assert!(data.iter().any(|v| v.is_finite()));
 }
 
@@ -306,6 +324,8 @@ fn output_names_name_what_spmcal_writes() {
         OutputKind::of_path(Path::new("x.gwy")).unwrap(),
         OutputKind::Gwy
     );
-    let error = OutputKind::of_path(Path::new("x.png")).unwrap_err().to_string();
+    let error = OutputKind::of_path(Path::new("x.png"))
+        .unwrap_err()
+        .to_string();
     assert!(error.contains("--out") && error.contains(".png"), "{error}");
 }

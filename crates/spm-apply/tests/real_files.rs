@@ -98,7 +98,12 @@ fn the_sxm_offset_and_angle_move_and_turn_the_raster() {
     // The right edge's middle is 127.5 steps of 20/256/0.02 = 3.90625 counts along the frame's
     // x, turned 30° clockwise: (+cos 30°, −sin 30°)·498.046875 counts (row 127.5 is the middle).
     let p = r.pixel_counts(255.0, 127.5);
-    close(p.x.value(), 498.046_875 * 30f64.to_radians().cos(), 1e-6, "right x");
+    close(
+        p.x.value(),
+        498.046_875 * 30f64.to_radians().cos(),
+        1e-6,
+        "right x",
+    );
     close(p.y.value(), -498.046_875 * 0.5, 1e-6, "right y");
 }
 
@@ -118,15 +123,25 @@ fn an_identity_calibration_reproduces_every_channel_of_a_real_file() {
         close(a.center_y_nm().unwrap(), 0.0, 1e-9, "centre y");
         let mut differ = 0;
         for (x, y) in a.data().iter().zip(b.data()) {
-            if x.is_nan() != y.is_nan() || (x.is_finite() && (x - y).abs() > 1e-6 * y.abs().max(1e-15)) {
+            if x.is_nan() != y.is_nan()
+                || (x.is_finite() && (x - y).abs() > 1e-6 * y.abs().max(1e-15))
+            {
                 differ += 1;
             }
         }
         assert_eq!(differ, 0, "{} {:?}", a.name(), a.direction());
     }
-    let get = |k: &str| out.metadata.iter().find(|(key, _)| key == k).map(|(_, v)| v.clone());
+    let get = |k: &str| {
+        out.metadata
+            .iter()
+            .find(|(key, _)| key == k)
+            .map(|(_, v)| v.clone())
+    };
     assert_eq!(get("source_BIAS").as_deref(), Some("-2.000E+0"));
-    assert_eq!(get("spmcal_raster_path").as_deref(), Some("lines +x, slow axis down"));
+    assert_eq!(
+        get("spmcal_raster_path").as_deref(),
+        Some("lines +x, slow axis down")
+    );
     assert!(get("source_REC_DATE").is_some());
 }
 
@@ -153,8 +168,18 @@ fn a_scale_error_is_removed_on_both_halves() {
     for c in &out.channels {
         // Width: 255 steps of 1.1·(20/256) nm, plus one pixel of the output grid.
         let step = c.size_x_nm().unwrap() / c.nx() as f64;
-        close((c.nx() - 1) as f64 * step, 255.0 * 1.1 * 20.0 / 256.0, step, "width");
-        close((c.ny() - 1) as f64 * step, 255.0 * 20.0 / 256.0, step, "height");
+        close(
+            (c.nx() - 1) as f64 * step,
+            255.0 * 1.1 * 20.0 / 256.0,
+            step,
+            "width",
+        );
+        close(
+            (c.ny() - 1) as f64 * step,
+            255.0 * 20.0 / 256.0,
+            step,
+            "height",
+        );
         // The centre: 5000 counts × 0.022 nm per count along x, −2000 × 0.02 along y.
         close(c.center_x_nm().unwrap(), 110.0, step, "centre x");
         close(c.center_y_nm().unwrap(), -40.0, step, "centre y");
@@ -179,8 +204,18 @@ fn the_sm4_offset_angle_and_halves_are_honoured() {
     // turned 10° counter-clockwise.
     let half = 127.5 * topo.pixel_x_nm().unwrap() / 0.001;
     let p = r.pixel_counts(255.0, 127.5);
-    close(p.x.value(), -12_814.023 + half * 10f64.to_radians().cos(), 1e-2, "right x");
-    close(p.y.value(), 16_329.706 + half * 10f64.to_radians().sin(), 1e-2, "right y");
+    close(
+        p.x.value(),
+        -12_814.023 + half * 10f64.to_radians().cos(),
+        1e-2,
+        "right x",
+    );
+    close(
+        p.y.value(),
+        16_329.706 + half * 10f64.to_radians().sin(),
+        1e-2,
+        "right y",
+    );
     // Both halves of every channel, one map, the frame's centre and angle kept.
     let set = calibration(0.001, 0.001, 0.0, 0.001);
     let out = correct_file(&file, &set, &with_k(0.001)).unwrap();
@@ -192,8 +227,18 @@ fn the_sm4_offset_angle_and_halves_are_honoured() {
         .count();
     assert_eq!(backward, 3);
     for c in &out.channels {
-        close(c.center_x_nm().unwrap(), -12.814_023, 1e-5, "output centre x");
-        close(c.center_y_nm().unwrap(), 16.329_706, 1e-5, "output centre y");
+        close(
+            c.center_x_nm().unwrap(),
+            -12.814_023,
+            1e-5,
+            "output centre x",
+        );
+        close(
+            c.center_y_nm().unwrap(),
+            16.329_706,
+            1e-5,
+            "output centre y",
+        );
         close(c.angle_deg().unwrap(), 10.0, 1e-9, "output angle");
         // The identity calibration keeps every pixel: no NaN appears where the file had data.
         assert_eq!(c.nan_count(), 0, "{} {:?}", c.name(), c.direction());
@@ -211,7 +256,12 @@ fn the_iso28600_raster_is_downward_and_centred() {
     close(r.step_x_counts, 11.4807 / 512.0 / 0.01, 1e-9, "step");
     close(r.centre.x.value(), 0.0, 1e-9, "centre x");
     let first = r.pixel_counts(0.0, 0.0);
-    close(first.y.value(), 255.5 * 11.4807 / 512.0 / 0.01, 1e-9, "top line y");
+    close(
+        first.y.value(),
+        255.5 * 11.4807 / 512.0 / 0.01,
+        1e-9,
+        "top line y",
+    );
     // A calibration of another scanner is refused; so is a sensitivity in m.
     let set = calibration(0.01, 0.01, 0.0, 0.01);
     let other = ApplyOptions {
@@ -219,7 +269,15 @@ fn the_iso28600_raster_is_downward_and_centred() {
         ..with_k(0.01)
     };
     let e = correct_file(&file, &set, &other).unwrap_err().to_string();
-    assert!(e.contains("graphiteterrace.spm") && e.contains("lab-stm"), "{e}");
-    let e = correct_file(&file, &set, &with_k(1e-11)).unwrap_err().to_string();
-    assert!(e.contains("graphiteterrace.spm") && e.contains("1e-11"), "{e}");
+    assert!(
+        e.contains("graphiteterrace.spm") && e.contains("lab-stm"),
+        "{e}"
+    );
+    let e = correct_file(&file, &set, &with_k(1e-11))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("graphiteterrace.spm") && e.contains("1e-11"),
+        "{e}"
+    );
 }

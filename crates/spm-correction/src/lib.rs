@@ -72,8 +72,8 @@ pub use resample::{
     resample, resample_into,
 };
 pub use surfaces::{
-    BlendedField, CountRegion, CountsConvention, FittedSurface, PlaneField, PlaneSurfaces, Provenance, Route,
-    SURFACES_FORMAT_VERSION, SurfaceSet,
+    BlendedField, CountRegion, CountsConvention, FittedSurface, PlaneField, PlaneSurfaces,
+    Provenance, Route, SURFACES_FORMAT_VERSION, SurfaceSet,
 };
 pub use trajectory::{correct_polyline, correct_unit_steps};
 pub use vertical::{bowl_counts, field_at_z};

@@ -132,9 +132,10 @@ impl CountRegion {
             return None;
         }
         let fold = |v: &[f64]| {
-            v.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &t| {
-                (lo.min(t), hi.max(t))
-            })
+            v.iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &t| {
+                    (lo.min(t), hi.max(t))
+                })
         };
         let (x_min, x_max) = fold(x);
         let (y_min, y_max) = fold(y);

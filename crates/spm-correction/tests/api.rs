@@ -35,7 +35,7 @@ fn plane(z_counts: f64) -> PlaneSurfaces {
         kyy_nm_per_count: surface(0.0121, 3, 4.0),
         kz_nm_per_count: Some(surface(0.002, 1, 5.0)),
         bowl_z_counts: None,
-            calibrated_region_counts: None,
+        calibrated_region_counts: None,
     }
 }
 

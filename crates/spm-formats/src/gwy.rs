@@ -47,8 +47,7 @@ impl Object {
     fn string(&mut self, name: &str, value: &str) {
         self.name(name, b's');
         // A NUL would end the string early: strings are written without them.
-        self.body
-            .extend(value.bytes().filter(|&b| b != 0));
+        self.body.extend(value.bytes().filter(|&b| b != 0));
         self.body.push(0);
     }
 

@@ -187,7 +187,11 @@ fn gwyddion_renders(file: &Path, channel: usize) -> (usize, usize, Vec<f64>) {
                  package (apt-get install -y gwyddion); .ci/run does"
             )
         });
-    assert!(status.success(), "Gwyddion could not open {}", file.display());
+    assert!(
+        status.success(),
+        "Gwyddion could not open {}",
+        file.display()
+    );
     let decoder = png::Decoder::new(std::io::BufReader::new(
         std::fs::File::open(&png_path).unwrap(),
     ));
@@ -236,17 +240,35 @@ fn gwyddion_reads_our_gwy_and_gsf_with_nan() {
         (0..nx * ny)
             .map(|i| {
                 let (row, col) = (i / nx, i % nx);
-                if row < 8 && col < 8 { f64::NAN } else { f(row, col) }
+                if row < 8 && col < 8 {
+                    f64::NAN
+                } else {
+                    f(row, col)
+                }
             })
             .collect()
     };
-    let right = Channel::new("Z", Direction::Forward, "m", nx, ny, ramp(&|_, c| c as f64 * 1e-11))
-        .unwrap()
-        .with_size_nm(6.4, 4.8)
-        .with_center_nm(10.0, -5.0);
-    let up = Channel::new("Z", Direction::Backward, "m", nx, ny, ramp(&|r, _| (ny - r) as f64 * 1e-11))
-        .unwrap()
-        .with_size_nm(6.4, 4.8);
+    let right = Channel::new(
+        "Z",
+        Direction::Forward,
+        "m",
+        nx,
+        ny,
+        ramp(&|_, c| c as f64 * 1e-11),
+    )
+    .unwrap()
+    .with_size_nm(6.4, 4.8)
+    .with_center_nm(10.0, -5.0);
+    let up = Channel::new(
+        "Z",
+        Direction::Backward,
+        "m",
+        nx,
+        ny,
+        ramp(&|r, _| (ny - r) as f64 * 1e-11),
+    )
+    .unwrap()
+    .with_size_nm(6.4, 4.8);
     let gwy = dir.join("two.gwy");
     let meta = vec![("spmcal_corrected".to_owned(), "yes".to_owned())];
     spm_formats::write_gwy(&gwy, &[right.clone(), up], &meta).unwrap();
@@ -256,7 +278,10 @@ fn gwyddion_reads_our_gwy_and_gsf_with_nan() {
         mean_box(w, h, &luma, (0.0, 0.3, 0.5, 1.0)),
         mean_box(w, h, &luma, (0.7, 1.0, 0.5, 1.0)),
     );
-    assert!(rightside > left + 60.0, "channel 0: left {left}, right {rightside}");
+    assert!(
+        rightside > left + 60.0,
+        "channel 0: left {left}, right {rightside}"
+    );
     let (w, h, luma) = gwyddion_renders(&gwy, 1);
     let (top, bottom) = (
         mean_box(w, h, &luma, (0.3, 1.0, 0.0, 0.3)),
@@ -270,6 +295,9 @@ fn gwyddion_reads_our_gwy_and_gsf_with_nan() {
         mean_box(w, h, &luma, (0.0, 0.3, 0.5, 1.0)),
         mean_box(w, h, &luma, (0.7, 1.0, 0.5, 1.0)),
     );
-    assert!(rightside > left + 60.0, "gsf: left {left}, right {rightside}");
+    assert!(
+        rightside > left + 60.0,
+        "gsf: left {left}, right {rightside}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }

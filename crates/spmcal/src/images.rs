@@ -725,8 +725,8 @@ fn user_file_map(
     image: &TestImage,
 ) -> Result<CoordinateMap, ImageBenchmarkError> {
     use spm_apply::{
-        ApplyOptions, FileRaster, KEY_CONVENTION, KEY_ORIGIN_X, KEY_ORIGIN_Y, KEY_SCANNER,
-        KEY_SCAN_PATH, KEY_STEP,
+        ApplyOptions, FileRaster, KEY_CONVENTION, KEY_ORIGIN_X, KEY_ORIGIN_Y, KEY_SCAN_PATH,
+        KEY_SCANNER, KEY_STEP,
     };
     let m = &image.map;
     let fail = |what: String| ImageBenchmarkError::Config(format!("user file: {what}"));

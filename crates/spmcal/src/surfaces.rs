@@ -408,7 +408,7 @@ pub fn fit_plane(
         kyy_nm_per_count: kyy_surface,
         kz_nm_per_count: kz,
         bowl_z_counts: None,
-            calibrated_region_counts: CountRegion::bounding(x, y, 0.0),
+        calibrated_region_counts: CountRegion::bounding(x, y, 0.0),
     };
     Ok((
         plane,

@@ -134,10 +134,12 @@ enum Command {
         #[arg(long)]
         allow_extrapolation: bool,
     },
-    /// Describe an SPM file: format, channels, directions, pixels, size, times, header.
+    /// Describe SPM files: format, pixels, size, offset, scan angle, direction, line time, date,
+    /// channels (several files: one line each).
     Info {
-        /// The file.
-        file: PathBuf,
+        /// The files: one gets a full description, several a one-line-per-file table.
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
@@ -319,7 +321,7 @@ impl Command {
                 paths.extend(out.iter().cloned());
                 paths.extend(out_dir.iter().cloned());
             }
-            Self::Info { file, .. } => paths.push(file.clone()),
+            Self::Info { files, .. } => paths.extend(files.iter().cloned()),
             Self::Diagnose {
                 files, json, png, ..
             } => {
@@ -359,7 +361,10 @@ fn check_log(log: &std::path::Path, command: &Command) -> Result<(), error::CliE
 
 /// Logs go to a file when asked, otherwise warnings and errors go to stderr.
 fn install_subscriber(log: Option<&std::path::Path>) -> Option<()> {
+    use std::io::IsTerminal as _;
     use tracing_subscriber::EnvFilter;
+    // Colour codes only for a person's terminal, never into a file or a pipe.
+    let stderr_is_terminal = std::io::stderr().is_terminal();
     let filter = EnvFilter::try_from_env("SPMCAL_LOG").unwrap_or_else(|_| EnvFilter::new("info"));
     let append = |path: &std::path::Path| {
         std::fs::OpenOptions::new()
@@ -382,12 +387,14 @@ fn install_subscriber(log: Option<&std::path::Path>) -> Option<()> {
             );
             let _ = tracing_subscriber::fmt()
                 .with_env_filter(EnvFilter::new("warn"))
+                .with_ansi(stderr_is_terminal)
                 .with_writer(std::io::stderr)
                 .try_init();
         }
         None => {
             let _ = tracing_subscriber::fmt()
                 .with_env_filter(EnvFilter::new("warn"))
+                .with_ansi(stderr_is_terminal)
                 .with_writer(std::io::stderr)
                 .try_init();
         }
@@ -397,7 +404,7 @@ fn install_subscriber(log: Option<&std::path::Path>) -> Option<()> {
 
 fn run(command: Command) -> Result<(), CliError> {
     match command {
-        Command::Info { file, json } => info::run(&file, json),
+        Command::Info { files, json } => info::run(&files, json),
         Command::Fit {
             cdb,
             scanner,

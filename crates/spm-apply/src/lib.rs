@@ -383,7 +383,7 @@ impl FileRaster {
         if let (Some(x0), Some(y0), Some(step)) = recorded
             && nominal_nm_per_count.is_none()
         {
-            if !(step > 0.0) {
+            if step.is_nan() || step <= 0.0 {
                 return Err(header(KEY_STEP, format!("{step} must be > 0")));
             }
             let half = |n: usize| step * (n as f64 - 1.0) / 2.0;

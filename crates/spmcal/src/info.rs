@@ -67,10 +67,9 @@ pub fn run(files: &[PathBuf], json: bool) -> Result<(), CliError> {
         [one] => full(&files[0], one),
         many => table(files, many),
     }
-    Ok(())
 }
 
-fn full(file: &Path, spm: &spm_formats::SpmFile) {
+fn full(file: &Path, spm: &spm_formats::SpmFile) -> Result<(), CliError> {
     let info = spm.info();
     crate::outln!("file:      {}", file.display());
     crate::outln!("format:    {}", info.format);
@@ -106,9 +105,10 @@ fn full(file: &Path, spm: &spm_formats::SpmFile) {
         );
     }
     crate::outln!("header:    {} entries", info.header.len());
+    Ok(())
 }
 
-fn table(files: &[PathBuf], spms: &[spm_formats::SpmFile]) {
+fn table(files: &[PathBuf], spms: &[spm_formats::SpmFile]) -> Result<(), CliError> {
     let mut rows = vec![[
         "file".to_owned(),
         "format".to_owned(),
@@ -151,6 +151,7 @@ fn table(files: &[PathBuf], spms: &[spm_formats::SpmFile]) {
             .collect();
         crate::outln!("{}", line.join("  ").trim_end());
     }
+    Ok(())
 }
 
 #[cfg(test)]

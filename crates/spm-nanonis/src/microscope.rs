@@ -718,6 +718,18 @@ impl NanonisMicroscope {
             z_counts: Vec::with_capacity(n * ny),
             time_s: Vec::with_capacity(n * ny),
         });
+        // Started upwards; a frame the controller scanned downwards (a bouncy scan left on,
+        // a start by someone else) has its lines in the other order in time: not the
+        // scan requested.
+        for data in std::iter::once(&forward).chain(backward.as_ref()) {
+            if data.direction_up != 1 {
+                return Err(NanonisError::new(
+                    NanonisErrorKind::Controller,
+                    "the controller scanned the frame downwards; it was started upwards",
+                )
+                .in_command("Scan.FrameDataGrab"));
+            }
+        }
         for line in 0..ny {
             // Rows come top line first: for an upward scan the last line acquired.
             let row = ny - 1 - line;

@@ -136,7 +136,20 @@ def session(n):
     # -- Scan properties, module list in the vendor's encoding.
     modules = ["Z-Controller", "Bias"]
     call("Scan.PropsSet", n.Scan_PropsSet, 2, 2, 3, "conformance", "a comment", modules, 3)
-    v = call("Scan.PropsGet", n.Scan_PropsGet)
+    # nanonis-spm 1.0.9's Scan_PropsGet declares the parameters-per-module array "*+i",
+    # which its parser treats as a string array (adding a list to its offset): it raises
+    # TypeError on any server. The same reply through the vendor's machinery with the int
+    # array declared as its other arrays are ("*i").
+    seen.add("Scan.PropsGet")
+    try:
+        n.Scan_PropsGet()
+        vendor_ok = True
+    except TypeError:
+        vendor_ok = False
+    print(f"note: Scan_PropsGet of nanonis-spm decodes: {vendor_ok}", file=sys.stderr)
+    v = call("Scan.PropsGet", n.quickSend, "Scan.PropsGet", [], [],
+             ["I", "I", "I", "i", "*-c", "i", "*-c", "i", "i", "*+c", "i", "*i", "i", "i",
+              "*+c", "I"])
     if v:
         check("Scan.PropsGet", v[0:3] == [0, 0, 2], f"continuous, bouncy, autosave {v[0:3]}")
         check("Scan.PropsGet", v[4] == "conformance" and v[6] == "a comment", f"{v}")
@@ -229,7 +242,10 @@ def session(n):
               f"{rows} × {columns}, up {up} vs {expected[:3]}")
         check("Scan.FrameDataGrab", up == direction_up, f"direction {up}")
         flat = [float(x) for x in data.flatten()]
-        check("Scan.FrameDataGrab", flat == expected[3:], "data differ from the simulator's")
+        truth_data = [f32(x) for x in expected[3:]]
+        differ = sum(1 for a, b in zip(flat, truth_data) if a != b)
+        check("Scan.FrameDataGrab", len(flat) == len(truth_data) and differ == 0,
+              f"{differ} of {len(flat)} values differ from the simulator's")
         check("Scan.FrameDataGrab", all(abs(x) <= z_half_m * (1 + 1e-6) for x in flat),
               "data beyond the Z range")
 

@@ -1090,7 +1090,8 @@ impl State {
                         self.counts_to_m(caps.field_max),
                     );
                     return Err(format!(
-                        "out of range: target ({x_m}, {y_m}) m is outside the scan range                          [{}, {}] × [{}, {}] m",
+                        "out of range: target ({x_m:.4e}, {y_m:.4e}) m is outside the scan \
+                         range [{:.4e}, {:.4e}] × [{:.4e}, {:.4e}] m",
                         lo.0, hi.0, lo.1, hi.1
                     ));
                 }

@@ -160,16 +160,16 @@ def session(n):
     call("Scan.BufferSet", n.Scan_BufferSet, [30], 100, 40)
     v = call("Scan.BufferGet", n.Scan_BufferGet)
     check("Scan.BufferGet", v == [1, [(30,)], 96, 40], f"{v}")
-    call("Scan.BufferSet", n.Scan_BufferSet, [30], 64, 48)
+    call("Scan.BufferSet", n.Scan_BufferSet, [30], 32, 16)
     v = call("Scan.BufferGet", n.Scan_BufferGet)
-    check("Scan.BufferGet", v == [1, [(30,)], 64, 48], f"{v}")
+    check("Scan.BufferGet", v == [1, [(30,)], 32, 16], f"{v}")
 
-    frame = [f32(2e-8), f32(-1e-8), f32(1.28e-8), f32(0.96e-8), 0.0]
+    frame = [f32(2e-8), f32(-1e-8), f32(0.64e-8), f32(0.32e-8), 0.0]
     call("Scan.FrameSet", n.Scan_FrameSet, *frame)
     v = call("Scan.FrameGet", n.Scan_FrameGet)
     check("Scan.FrameGet", v == frame, f"{v} vs {frame}")
 
-    line_s = 0.0064  # 1e-4 s per pixel
+    line_s = 0.0032  # 1e-4 s per pixel
     call("Scan.SpeedSet", n.Scan_SpeedSet, 0.0, 0.0, line_s, line_s, 2, 1.0)
     v = call("Scan.SpeedGet", n.Scan_SpeedGet)
     if v:
@@ -262,7 +262,7 @@ def session(n):
     frame_check(1, 1)
     frame_check(1, 0)
     duration = now() - t0
-    check("Scan.Action", duration >= 48 * 2 * line_s, f"the scan took {duration} s")
+    check("Scan.Action", duration >= 16 * 2 * line_s, f"the scan took {duration} s")
 
     call("Scan.Action", n.Scan_Action, 0, 0)
     call("Scan.WaitEndOfScan", n.Scan_WaitEndOfScan, 60000)
@@ -320,11 +320,45 @@ def session(n):
         fail("Nonexistent.Command", f"{result!r}")
 
 
+class Recorder:
+    """The vendor client's socket, recording every request it sends and the bytes it
+    reads back (one exchange per request)."""
+
+    def __init__(self, connection):
+        self.connection = connection
+        self.exchanges = []
+
+    def send(self, data):
+        self.exchanges.append([bytes(data), b""])
+        return self.connection.send(data)
+
+    def recv(self, n):
+        data = self.connection.recv(n)
+        if self.exchanges:
+            self.exchanges[-1][1] += data
+        return data
+
+    def settimeout(self, t):
+        self.connection.settimeout(t)
+
+    def close(self):
+        self.connection.close()
+
+    def write(self, path):
+        with open(path, "w") as f:
+            f.write("# nanonis-spm 1.0.9 against nanonis-sim (crates/spm-nanonis-sim/conformance):\n")
+            f.write("# per exchange, '>' the request frame the vendor client sent, '<' the reply.\n")
+            for request, reply in self.exchanges:
+                f.write("> " + request.hex() + "\n")
+                f.write("< " + reply.hex() + "\n")
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--port", type=int, required=True)
+    parser.add_argument("--capture", help="write the frames exchanged to this file")
     args = parser.parse_args()
-    connection = socket.create_connection(("127.0.0.1", args.port), timeout=30)
+    connection = Recorder(socket.create_connection(("127.0.0.1", args.port), timeout=30))
     n = nanonis_spm.Nanonis(connection)
     try:
         session(n)
@@ -333,6 +367,8 @@ def main():
         fail("session", f"{type(e).__name__}: {e}")
     finally:
         connection.close()
+        if args.capture:
+            connection.write(args.capture)
     missing = [c for c in IMPLEMENTED if c not in seen]
     for c in missing:
         fail(c, "not exercised")

@@ -6,8 +6,11 @@
 //! stdin/stdout.
 //!
 //! ```text
-//! cargo run -p spm-nanonis-sim --example vendor_conformance -- PYTHON [SCRIPT]
+//! cargo run -p spm-nanonis-sim --example vendor_conformance -- PYTHON [SCRIPT [CAPTURE]]
 //! ```
+//!
+//! With `CAPTURE`, the script also writes the frames the vendor client exchanged (the
+//! fixture `tests/data/vendor_session.txt` of `tests/vendor_frames.rs` was made so).
 //!
 //! `PYTHON` must have `nanonis-spm` and `numpy` (`.ci/run` makes a venv in
 //! `target/venv`). Exit status: 0 when every command interoperates.
@@ -88,7 +91,7 @@ impl Truth {
     }
 }
 
-fn run(python: &str, script: &Path) -> Result<bool, String> {
+fn run(python: &str, script: &Path, capture: Option<&Path>) -> Result<bool, String> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let mut sim = SimConfig::from_file(root.join("../../configs/sim-hopg.toml"))
         .map_err(|e| e.to_string())?
@@ -133,10 +136,12 @@ fn run(python: &str, script: &Path) -> Result<bool, String> {
         "nanonis-sim on 127.0.0.1:{port}; running {}",
         script.display()
     );
-    let mut child = Command::new(python)
-        .arg(script)
-        .arg("--port")
-        .arg(port.to_string())
+    let mut command = Command::new(python);
+    command.arg(script).arg("--port").arg(port.to_string());
+    if let Some(capture) = capture {
+        command.arg("--capture").arg(capture);
+    }
+    let mut child = command
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .spawn()
@@ -179,7 +184,8 @@ fn main() -> ExitCode {
         || Path::new(env!("CARGO_MANIFEST_DIR")).join("conformance/vendor_client.py"),
         PathBuf::from,
     );
-    match run(&python, &script) {
+    let capture = args.next().map(PathBuf::from);
+    match run(&python, &script, capture.as_deref()) {
         Ok(true) => ExitCode::SUCCESS,
         Ok(false) => ExitCode::FAILURE,
         Err(e) => {

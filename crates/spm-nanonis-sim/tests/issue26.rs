@@ -669,3 +669,40 @@ fn d10_z_saturates_at_its_range() {
     assert!((z.abs() - 0.5 * range).abs() < 1e-3 * range, "{z}");
     assert_eq!(z.signum(), wanted.signum());
 }
+
+/// Commands the server does not implement: zeros for their documented return arguments,
+/// then the error, so that a client decoding the command's reply (as the vendor client
+/// does, return arguments first) reads the error and not garbage.
+#[test]
+fn unimplemented_commands_fail_cleanly() {
+    let server = start(hopg());
+    let mut stream = TcpStream::connect(server.addr()).unwrap();
+    // Bias.Get returns one float32 (manual); Bias.Set none; an unknown name none.
+    for (command, body, zeros) in [
+        ("Bias.Get", Vec::new(), 4),
+        ("Bias.Set", 0.1f32.to_be_bytes().to_vec(), 0),
+        ("Nonexistent.Command", Vec::new(), 0),
+    ] {
+        let reply = vendor_exchange(&mut stream, command, &body);
+        assert!(reply[..zeros].iter().all(|&b| b == 0), "{command}");
+        let status = u32::from_be_bytes([
+            reply[zeros],
+            reply[zeros + 1],
+            reply[zeros + 2],
+            reply[zeros + 3],
+        ]);
+        assert_eq!(status, 1, "{command}");
+        let text = format!("nanonis-sim does not implement {command}");
+        let size = u32::from_be_bytes([
+            reply[zeros + 4],
+            reply[zeros + 5],
+            reply[zeros + 6],
+            reply[zeros + 7],
+        ]);
+        assert_eq!(size as usize, text.len());
+        assert_eq!(&reply[zeros + 8..], text.as_bytes());
+    }
+    // The connection is still in step.
+    let reply = vendor_exchange(&mut stream, "ZCtrl.OnOffGet", &[]);
+    assert_eq!(reply, [0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0, 0]);
+}

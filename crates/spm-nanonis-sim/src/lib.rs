@@ -51,8 +51,9 @@
 //!     a downward frame costs one simulator call overhead and one pixel step of travel
 //!     more per line than an upward one. Frame data come top row first either way and the
 //!     reply's direction says which way the frame was scanned.
-//!   - *Frame angles* other than 0° and 180° are refused: spm-sim's rasters are
-//!     axis-aligned.
+//!   - *Frame angles*: 0° and 180° are spm-sim's direct and counter rasters; any other
+//!     angle turns the direct raster about the frame's centre (clockwise for positive
+//!     angles, as the manual has it; `spm_sim::Simulator::scan_turned`).
 //!   - *Non-square pixels* (e.g. 100 pixels coerced to 96 on a square frame of 100 lines)
 //!     are scanned: the simulator scans each line with square pixels at the line spacing,
 //!     and each line is resampled (linear interpolation) at the frame's pixel centres.

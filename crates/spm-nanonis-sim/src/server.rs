@@ -13,7 +13,7 @@ use spm_nanonis::commands::{
     Version, motor_direction, scan_action,
 };
 use spm_nanonis::{PIXEL_PACKET, metres_per_count};
-use spm_sim::{SimConfig, Simulator};
+use spm_sim::{RasterTurn, SimConfig, Simulator};
 use std::io::{Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -247,6 +247,8 @@ struct ScanPlan {
     /// Pixels per line of the simulator's (square-pixel) scan: `columns`, or for a frame
     /// with non-square pixels the line length over the line spacing.
     sim_columns: usize,
+    /// The frame's turn about its centre, for angles other than 0° and 180°.
+    turn: Option<RasterTurn>,
 }
 
 #[derive(Debug)]
@@ -290,8 +292,12 @@ fn run_scan(
 ) -> Result<Frame, String> {
     let mut request = request.clone();
     request.record_backward = backward;
+    let mut scan = |r: &ScanRequest| match plan.turn {
+        None => sim.scan(r),
+        Some(turn) => sim.scan_turned(r, turn),
+    };
     if plan.direction_up == 1 {
-        return sim.scan(&request).map_err(|e| describe(&e));
+        return scan(&request).map_err(|e| describe(&e));
     }
     let lines = request.lines;
     let mut frame = Frame {
@@ -320,7 +326,7 @@ fn run_scan(
             lines: 1,
             ..request.clone()
         };
-        let part = sim.scan(&one).map_err(|e| describe(&e))?;
+        let part = scan(&one).map_err(|e| describe(&e))?;
         frame.forward.z_counts.extend(part.forward.z_counts);
         frame.forward.time_s.extend(part.forward.time_s);
         if let (Some(all), Some(half)) = (frame.backward.as_mut(), part.backward) {
@@ -639,15 +645,17 @@ impl State {
             ));
         }
         let f = self.frame;
-        let direction = if f.angle_deg == 0.0 {
-            ScanDirection::Direct
+        // 0° and 180° are the simulator's direct and counter rasters; any other angle turns
+        // a direct raster about the frame's centre (the manual: positive = clockwise).
+        let (direction, angle_rad) = if f.angle_deg == 0.0 {
+            (ScanDirection::Direct, None)
         } else if f.angle_deg == 180.0 || f.angle_deg == -180.0 {
-            ScanDirection::Counter
+            (ScanDirection::Counter, None)
         } else {
-            return Err(format!(
-                "nanonis-sim turns frames by 0° or 180° only, not {}°",
-                f.angle_deg
-            ));
+            (
+                ScanDirection::Direct,
+                Some(-decimal(f.angle_deg).to_radians()),
+            )
         };
         let pixels = self.buffer.pixels as u32;
         let lines = self.buffer.lines as u32;
@@ -710,6 +718,7 @@ impl State {
                 rows: lines as usize,
                 columns: pixels as usize,
                 sim_columns: sim_columns as usize,
+                turn: angle_rad.map(|angle_rad| RasterTurn { centre, angle_rad }),
             },
             paused: false,
             seen_running: false,

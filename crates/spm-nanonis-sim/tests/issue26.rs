@@ -706,3 +706,43 @@ fn unimplemented_commands_fail_cleanly() {
     let reply = vendor_exchange(&mut stream, "ZCtrl.OnOffGet", &[]);
     assert_eq!(reply, [0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0, 0]);
 }
+
+/// D9: a frame turned by 90° (clockwise) images the region of the unturned frame turned
+/// with it (an ideal instrument): its line j, pixel i is the unturned frame's line N−1−i,
+/// pixel j; in the grab's rows (top first) T[r][i] = U[i][N−1−r].
+#[test]
+fn d9_frames_turn_by_any_angle() {
+    let n = 32;
+    let mut frames = Vec::new();
+    for angle_deg in [0.0, 90.0] {
+        let server = start(SimConfig::ideal());
+        let mut c = client(&server);
+        let mut frame = square_frame(1.6e-8);
+        frame.angle_deg = angle_deg;
+        prepare(&mut c, frame, n as i32, n as i32, 0.0032);
+        start_scan(&mut c, 1);
+        assert_eq!(wait_end(&mut c), 0);
+        frames.push(grab(&mut c, 1));
+    }
+    let (u, t) = (&frames[0], &frames[1]);
+    let spread = u.data.iter().fold(0.0f32, |m, z| m.max(z.abs()));
+    let mut worst = 0.0f32;
+    for r in 0..n {
+        for i in 0..n {
+            let (a, b) = (t.data[r * n + i], u.data[i * n + (n - 1 - r)]);
+            worst = worst.max((a - b).abs());
+        }
+    }
+    assert!(
+        worst <= 1e-3 * spread,
+        "largest difference {worst} of {spread}"
+    );
+    // And not by accident: the unturned frame is not symmetric that way.
+    let mut differs = 0.0f32;
+    for r in 0..n {
+        for i in 0..n {
+            differs = differs.max((t.data[r * n + i] - u.data[r * n + i]).abs());
+        }
+    }
+    assert!(differs > 10.0 * worst.max(1e-3 * spread), "{differs}");
+}

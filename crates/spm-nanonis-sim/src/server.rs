@@ -1308,6 +1308,11 @@ impl ServerHandle {
         f(&lock(&self.shared).sim)
     }
 
+    /// Runs `f` on the simulator, mutably (tests: switch the oracle's recording on).
+    pub fn with_simulator_mut<T>(&self, f: impl FnOnce(&mut Simulator) -> T) -> T {
+        f(&mut lock(&self.shared).sim)
+    }
+
     /// Stops at once, as a killed process would: the listener closes and every open
     /// connection is shut down.
     pub fn kill(mut self) {

@@ -65,6 +65,7 @@ fn backend(server: &ServerHandle) -> NanonisMicroscope {
         max_lines: 4096,
         min_pixel_dwell_s: 1e-6,
         coarse_z: None,
+        frame_angle_deg: 0.0,
     })
     .unwrap()
 }

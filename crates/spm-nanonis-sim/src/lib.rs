@@ -27,7 +27,9 @@
 //!   and a scan when its data are first needed (the first `Scan.FrameDataGrab` says
 //!   whether the backward trace is wanted). Every command that observes the instrument
 //!   first completes what is pending, so nothing of this is visible to a client except
-//!   that errors of a scan are reported by the data grab.
+//!   that errors of a scan are reported by the data grab, and an instrument fault during
+//!   a Follow-Me move (a simulated fault; a target out of range is refused by
+//!   `FolMe.XYPosSet` itself) by the command that completes the move.
 //! - **Where a controller's behaviour is uncertain**, the server follows the manual and the
 //!   vendor's Python client (`nanonis-spm` 1.0.9), which `conformance/vendor_client.py`
 //!   drives through a whole session (README):

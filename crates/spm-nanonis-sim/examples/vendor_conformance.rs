@@ -24,6 +24,9 @@ use spm_sim::SimConfig;
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode, Stdio};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
 
 struct Truth {
     server: ServerHandle,
@@ -149,6 +152,23 @@ fn run(python: &str, script: &Path, capture: Option<&Path>) -> Result<bool, Stri
     let (Some(mut to_script), Some(from_script)) = (child.stdin.take(), child.stdout.take()) else {
         return Err("no pipes to the script".into());
     };
+    // A session takes seconds; one that hangs (the vendor client waits up to 1000 s for a
+    // reply) is ended after two minutes, by its process id.
+    let finished = Arc::new(AtomicBool::new(false));
+    let watchdog = {
+        let finished = Arc::clone(&finished);
+        let pid = child.id();
+        std::thread::spawn(move || {
+            for _ in 0..1200 {
+                std::thread::sleep(Duration::from_millis(100));
+                if finished.load(Ordering::SeqCst) {
+                    return;
+                }
+            }
+            eprintln!("vendor_conformance: the session takes over 2 minutes; ending it");
+            let _ = Command::new("kill").arg(pid.to_string()).status();
+        })
+    };
     let mut result = None;
     for line in BufReader::new(from_script).lines() {
         let line = line.map_err(|e| e.to_string())?;
@@ -166,6 +186,8 @@ fn run(python: &str, script: &Path, capture: Option<&Path>) -> Result<bool, Stri
         }
     }
     let status = child.wait().map_err(|e| e.to_string())?;
+    finished.store(true, Ordering::SeqCst);
+    let _ = watchdog.join();
     let stats = truth.server.stats();
     eprintln!(
         "server: {} commands, {} malformed; script: {status}; result {result:?}",

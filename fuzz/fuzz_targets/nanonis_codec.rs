@@ -10,7 +10,7 @@ use libfuzzer_sys::fuzz_target;
 use spm_nanonis::codec::{HEADER_LEN, decode_request_header, decode_response_header};
 use spm_nanonis::commands::{Request, ScanBuffer, ScanFrame, ScanProps, ScanSpeed, Schema};
 
-const COMMANDS: [&str; 31] = [
+const COMMANDS: [&str; 34] = [
     "Util.VersionGet",
     "Piezo.CalibrGet",
     "Piezo.RangeGet",
@@ -28,12 +28,15 @@ const COMMANDS: [&str; 31] = [
     "Scan.BufferSet",
     "Scan.BufferGet",
     "Scan.PropsSet",
+    "Scan.PropsGet",
+    "Scan.XYPosGet",
     "Scan.SpeedSet",
     "Scan.SpeedGet",
     "Scan.FrameDataGrab",
     "FolMe.XYPosSet",
     "FolMe.XYPosGet",
     "FolMe.SpeedSet",
+    "FolMe.SpeedGet",
     "FolMe.Stop",
     "ZCtrl.ZPosGet",
     "ZCtrl.OnOffSet",
@@ -93,6 +96,9 @@ fn requests() -> Vec<Request> {
         },
         Request::FolMeXYPosGet { wait_newest: 0 },
         Request::ZCtrlZPosGet,
+        Request::ScanPropsGet,
+        Request::ScanXYPosGet { wait_newest: 1 },
+        Request::FolMeSpeedGet,
         Request::MotorFreqAmpGet(3),
         Request::SignalsValsGet {
             indexes: vec![126, 127],
@@ -133,6 +139,6 @@ fuzz_target!(|data: &[u8]| {
     }
     let _ = decode_response_header(&header);
     for request in requests() {
-        let _ = request.decode_reply(body);
+        let _ = request.decode_reply(body, schema);
     }
 });

@@ -111,6 +111,7 @@ fn nanonis_config(port: u16, command_timeout_s: f64) -> NanonisConfig {
         max_lines: 4096,
         min_pixel_dwell_s: 1e-6,
         coarse_z: None,
+        frame_angle_deg: 0.0,
     }
 }
 

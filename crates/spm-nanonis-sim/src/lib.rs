@@ -27,11 +27,62 @@
 //!   and a scan when its data are first needed (the first `Scan.FrameDataGrab` says
 //!   whether the backward trace is wanted). Every command that observes the instrument
 //!   first completes what is pending, so nothing of this is visible to a client except
-//!   that errors of a scan are reported by the data grab.
+//!   that errors of a scan are reported by the data grab, and an instrument fault during
+//!   a Follow-Me move (a simulated fault; a target out of range is refused by
+//!   `FolMe.XYPosSet` itself) by the command that completes the move.
+//! - **Where a controller's behaviour is uncertain**, the server follows the manual and the
+//!   vendor's Python client (`nanonis-spm` 1.0.9), which `conformance/vendor_client.py`
+//!   drives through a whole session (README):
+//!   - *Both halves of the last frame* stay readable until the next scan starts, in any
+//!     order and after any other command, from any connection. A frame whose first
+//!     execution recorded only the forward trace keeps a copy of the instrument as it was
+//!     when the scan began; a later backward grab simulates the frame there again with the
+//!     retrace recorded and keeps its backward half. Its deterministic physics is that of
+//!     the frame; its noise is drawn independently of the forward half's. The instrument
+//!     itself is not touched, so a run stays identical to the same run in process.
+//!   - *`Scan.StatusGet`*: 1 from `Scan.Action` start until the scan's end is observed —
+//!     `Scan.WaitEndOfScan`, a data grab or any command that observes the instrument, or a
+//!     second poll (the simulator runs a frame in one piece: the first poll after the
+//!     start sees it running, the next one finds it ended and simulated). A
+//!     `Scan.WaitEndOfScan` after such an end returns at once with that end of scan.
+//!   - *Pause and resume* (`Scan.Action` 2 and 3) hold a frame at its start: while paused
+//!     it runs (status 1), its data are NaN (nothing acquired) and no end of scan comes
+//!     (waits time out); resumed, it runs whole.
+//!   - *Scanning down* (`Scan.Action` with direction 0, as in the vendor's examples): the
+//!     frame's top line first; simulated line by line (spm-sim's rasters step upwards), so
+//!     a downward frame costs one simulator call overhead and one pixel step of travel
+//!     more per line than an upward one. Frame data come top row first either way and the
+//!     reply's direction says which way the frame was scanned.
+//!   - *Frame angles*: 0° and 180° are spm-sim's direct and counter rasters; any other
+//!     angle turns the direct raster about the frame's centre (clockwise for positive
+//!     angles, as the manual has it; `spm_sim::Simulator::scan_turned`).
+//!   - *Non-square pixels* (e.g. 100 pixels coerced to 96 on a square frame of 100 lines)
+//!     are scanned: the simulator scans each line with square pixels at the line spacing,
+//!     and each line is resampled (linear interpolation) at the frame's pixel centres.
+//!   - *`FolMe.SpeedSet` with "use scan speed"* (custom 0) moves at the scan's forward
+//!     speed; `FolMe.SpeedGet` answers the custom speed and the flag.
+//!   - *A Follow-Me target outside the range* is refused by `FolMe.XYPosSet` itself, even
+//!     when the move is executed with the settle that follows.
+//!   - *`ZCtrl.OnOffSet`* switches the feedback; with it off, scans and moves are refused
+//!     (the simulator does not model constant-height operation).
+//!   - *Z saturates*: `ZCtrl.ZPosGet`, the Z signal and frame data never leave the Z
+//!     range `Piezo.RangeGet` gives; beyond it the reading is the end of the range.
+//!   - *X and Y coarse steps* take the motor's step time; spm-sim has no lateral stage, so
+//!     the simulated sample stays where it is.
+//!   - *`Scan.PropsSet`'s module list*: the size field of the string array is accepted
+//!     both as the bytes the elements occupy (the manual's wording) and as `4 × count`
+//!     (what the vendor client sends; see `spm_nanonis::codec`). `Scan.PropsGet` answers
+//!     the exact byte total (the vendor client advances by it), no module parameters
+//!     (a 0 × 0 array, which the vendor client decodes) and autosave/autopaste in the
+//!     Get coding (0 = all, 1 = next, 2 = off).
+//!   - *Commands it does not implement* get zeros for their documented return arguments
+//!     (every count 0) followed by the error "nanonis-sim does not implement …", so that
+//!     a client decoding the command's reply reads the error, not garbage.
 //! - **Socket-level fault injection** ([`SocketFaults`], seeded): error replies, replies
 //!   written one byte at a time, delays, stalls longer than the client's timeout,
 //!   connections dropped before or after executing a command, and a scan left running.
 
+mod neutral;
 pub mod server;
 
 pub use server::{Server, ServerConfig, ServerError, ServerHandle, ServerStats, SocketFaults};

@@ -7,13 +7,13 @@ use spm_hal::{
     CountPoint, Counts, Error as _, ErrorKind, Frame, Microscope, MoveRequest, ScanDirection,
     ScanRequest, Seconds,
 };
-use spm_nanonis::codec::{self, ErrorSection, HEADER_LEN};
+use spm_nanonis::codec::{self, CodecError, ErrorSection, HEADER_LEN};
 use spm_nanonis::commands::{
-    DriftComp, FrameData, Reply, Request, ScanBuffer, ScanFrame, ScanSpeed, Schema, Version,
-    motor_direction, scan_action,
+    DriftComp, FrameData, Reply, Request, ScanBuffer, ScanFrame, ScanPropsState, ScanSpeed, Schema,
+    Version, motor_direction, scan_action,
 };
 use spm_nanonis::{PIXEL_PACKET, metres_per_count};
-use spm_sim::{SimConfig, Simulator};
+use spm_sim::{RasterTurn, SimConfig, Simulator};
 use std::io::{Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -236,18 +236,125 @@ enum Fault {
     Stall,
 }
 
+/// How a frame of the controller maps onto simulator scans.
+#[derive(Clone, Debug, PartialEq)]
+struct ScanPlan {
+    /// 1 = up (the first line acquired is the frame's bottom row), 0 = down.
+    direction_up: u32,
+    /// Rows (lines) and columns (pixels per line) of the frame.
+    rows: usize,
+    columns: usize,
+    /// Pixels per line of the simulator's (square-pixel) scan: `columns`, or for a frame
+    /// with non-square pixels the line length over the line spacing.
+    sim_columns: usize,
+    /// The frame's turn about its centre, for angles other than 0° and 180°.
+    turn: Option<RasterTurn>,
+}
+
+#[derive(Debug)]
+struct PendingScan {
+    /// The simulator's raster (origin at the smallest x and y).
+    request: ScanRequest,
+    plan: ScanPlan,
+    /// Paused (`Scan.Action` 2) and not resumed yet.
+    paused: bool,
+    /// A `Scan.StatusGet` has seen it running.
+    seen_running: bool,
+    /// `Scan.WaitEndOfScan` has returned for it: it has ended, and is simulated when
+    /// its data or the instrument are next observed.
+    ended: bool,
+}
+
 #[derive(Debug)]
 enum Pending {
     None,
     Move { target: CountPoint, speed: f64 },
-    Scan(ScanRequest),
+    Scan(Box<PendingScan>),
 }
 
 #[derive(Debug)]
 struct LastScan {
     frame: Result<Frame, String>,
-    rows: usize,
-    columns: usize,
+    request: ScanRequest,
+    plan: ScanPlan,
+    /// The instrument as it was when the scan began, kept while the backward trace has
+    /// not been recorded: a later backward grab simulates it there (see the crate docs).
+    snapshot: Option<Box<Simulator>>,
+}
+
+/// Runs a frame on `sim`: one simulator scan for an upward frame; a downward frame line by
+/// line from the frame's top (spm-sim's rasters step their lines upwards).
+fn run_scan(
+    sim: &mut Simulator,
+    request: &ScanRequest,
+    plan: &ScanPlan,
+    backward: bool,
+) -> Result<Frame, String> {
+    let mut request = request.clone();
+    request.record_backward = backward;
+    let mut scan = |r: &ScanRequest| match plan.turn {
+        None => sim.scan(r),
+        Some(turn) => sim.scan_turned(r, turn),
+    };
+    if plan.direction_up == 1 {
+        return scan(&request).map_err(|e| describe(&e));
+    }
+    let lines = request.lines;
+    let mut frame = Frame {
+        request: request.clone(),
+        forward: spm_hal::TraceImage {
+            z_counts: Vec::with_capacity(plan.rows * plan.sim_columns),
+            time_s: Vec::with_capacity(plan.rows * plan.sim_columns),
+        },
+        backward: backward.then(|| spm_hal::TraceImage {
+            z_counts: Vec::with_capacity(plan.rows * plan.sim_columns),
+            time_s: Vec::with_capacity(plan.rows * plan.sim_columns),
+        }),
+    };
+    for line in 0..lines {
+        // The frame's top row: the largest y of a direct raster, the smallest of a
+        // counter one (its frame is turned by 180°).
+        let row = match request.direction {
+            ScanDirection::Direct => lines - 1 - line,
+            ScanDirection::Counter => line,
+        };
+        let one = ScanRequest {
+            origin: CountPoint::from_counts(
+                request.origin.x.value(),
+                request.origin.y.value() + f64::from(row) * request.pixel_step.value(),
+            ),
+            lines: 1,
+            ..request.clone()
+        };
+        let part = scan(&one).map_err(|e| describe(&e))?;
+        frame.forward.z_counts.extend(part.forward.z_counts);
+        frame.forward.time_s.extend(part.forward.time_s);
+        if let (Some(all), Some(half)) = (frame.backward.as_mut(), part.backward) {
+            all.z_counts.extend(half.z_counts);
+            all.time_s.extend(half.time_s);
+        }
+    }
+    Ok(frame)
+}
+
+/// Line `values` (the simulator's `sim_columns` pixels, left to right in the frame)
+/// resampled at the centres of the frame's `columns` pixels by linear interpolation; the
+/// identity when the two agree.
+fn resample(values: &[f64], columns: usize, out: &mut Vec<f64>) {
+    let n = values.len();
+    if n == columns || n == 0 {
+        out.extend_from_slice(values);
+        return;
+    }
+    // Both rasters span the same line, centred: pixel c of the frame at (c + ½)/columns of
+    // it, simulator pixel j at (j + ½)/n.
+    for c in 0..columns {
+        let f = ((c as f64 + 0.5) / columns as f64 * n as f64 - 0.5).clamp(0.0, (n - 1) as f64);
+        let j = (f.floor() as usize).min(n - 1);
+        let k = (j + 1).min(n - 1);
+        let w = f - j as f64;
+        out.push(values[j] * (1.0 - w) + values[k] * w);
+    }
 }
 
 struct State {
@@ -264,9 +371,23 @@ struct State {
     buffer: ScanBuffer,
     frame: ScanFrame,
     speed: ScanSpeed,
-    folme_speed: Option<f32>,
+    /// `FolMe.SpeedSet`: the custom speed, m/s, and whether it is used (else the scan
+    /// speed is).
+    folme_speed_m_per_s: f32,
+    folme_custom: bool,
+    /// `ZCtrl.OnOffSet`.
+    z_on: bool,
+    /// `Scan.PropsSet` values kept for `Scan.PropsGet` (autosave and autopaste in the
+    /// coding of `Scan.PropsGet`: 0 = all, 1 = next, 2 = off).
+    autosave: u32,
+    autopaste: u32,
+    series_name: String,
+    comment: String,
+    modules: Vec<String>,
     pending: Pending,
     last_scan: Option<LastScan>,
+    /// A scan has ended (or been simulated) that no `Scan.WaitEndOfScan` returned for.
+    end_unwaited: bool,
     leftover_running: bool,
     rng: ChaCha8Rng,
     stats: ServerStats,
@@ -356,9 +477,17 @@ impl State {
                 keep: 1,
                 speed_ratio: 1.0,
             },
-            folme_speed: None,
+            folme_speed_m_per_s: 1e-7,
+            folme_custom: false,
+            z_on: true,
+            autosave: 2,
+            autopaste: 2,
+            series_name: String::new(),
+            comment: String::new(),
+            modules: Vec::new(),
             pending: Pending::None,
             last_scan: None,
+            end_unwaited: false,
             leftover_running: false,
             rng,
             stats: ServerStats::default(),
@@ -395,6 +524,31 @@ impl State {
         Fault::None
     }
 
+    /// `Motor.StartMove` along X or Y: the steps take their time; spm-sim models no
+    /// lateral stage, so the simulated sample stays where it is (documented in the crate).
+    fn lateral_motor_steps(&mut self, steps: u16) -> Result<Reply, String> {
+        let Some(c) = self.sim.config().instrument.coarse_z.as_ref() else {
+            return Err("no motor module is configured".into());
+        };
+        let duration = f64::from(steps) * c.step_time_s;
+        self.sim.wait(Seconds(duration)).map_err(|e| describe(&e))?;
+        Ok(Reply::Empty)
+    }
+
+    /// A `Scan.WaitEndOfScan` that no end of scan ends: it waits its timeout.
+    fn wait_out(&mut self, timeout_ms: i32) -> Result<Reply, String> {
+        if timeout_ms < 0 {
+            return Err("nanonis-sim: waiting forever with no scan running".into());
+        }
+        self.sim
+            .wait(Seconds(f64::from(timeout_ms) * 1e-3))
+            .map_err(|e| describe(&e))?;
+        Ok(Reply::WaitEndOfScan {
+            timed_out: 1,
+            file_path: String::new(),
+        })
+    }
+
     fn counts_to_m(&self, p: CountPoint) -> (f64, f64) {
         (
             p.x.value() * self.m_per_count[0],
@@ -413,19 +567,47 @@ impl State {
         Ok(())
     }
 
+    /// Refuses an operation the simulator cannot model with the feedback off.
+    fn feedback_on(&self) -> Result<(), String> {
+        if self.z_on {
+            Ok(())
+        } else {
+            Err(
+                "nanonis-sim does not model constant-height operation: the Z feedback is off \
+                 (switch it on with ZCtrl.OnOffSet)"
+                    .into(),
+            )
+        }
+    }
+
+    /// A Z reading in metres: the Z output saturates at the ends of its range (a reading
+    /// beyond them is the feedback asking for more than the piezo gives).
+    fn z_metres(&self, z_counts: f64) -> f32 {
+        let h = self.sim.config().instrument.z_half_range_counts;
+        (z_counts.clamp(-h, h - 1.0) * self.m_per_count[2]) as f32
+    }
+
     /// Completes a pending move (with no settle) or scan (recording the backward trace
-    /// when `backward` is set).
+    /// when `backward` is set). A paused scan stays pending: the pause holds it at its
+    /// start.
     fn flush(&mut self, backward: bool) -> Result<(), String> {
         match std::mem::replace(&mut self.pending, Pending::None) {
             Pending::None => Ok(()),
             Pending::Move { target, speed } => self.do_move(target, speed, 0.0),
-            Pending::Scan(mut request) => {
-                request.record_backward = backward;
-                let frame = self.sim.scan(&request).map_err(|e| describe(&e));
+            Pending::Scan(scan) if scan.paused => {
+                self.pending = Pending::Scan(scan);
+                Ok(())
+            }
+            Pending::Scan(scan) => {
+                let PendingScan { request, plan, .. } = *scan;
+                // The instrument before the scan, for a backward trace asked later.
+                let snapshot = (!backward).then(|| Box::new(self.sim.clone()));
+                let frame = run_scan(&mut self.sim, &request, &plan, backward);
                 self.last_scan = Some(LastScan {
                     frame,
-                    rows: request.lines as usize,
-                    columns: request.pixels_per_line as usize,
+                    request,
+                    plan,
+                    snapshot,
                 });
                 Ok(())
             }
@@ -442,20 +624,19 @@ impl State {
             .map_err(|e| describe(&e))
     }
 
+    // long-function: the checks of a scan start in the controller's order, then the raster.
     fn start_scan(&mut self, direction_up: u32) -> Result<(), String> {
         self.flush(false)?;
         if self.leftover_running {
             return Err("busy: a scan is already running".into());
         }
         self.compensation_off()?;
+        self.feedback_on()?;
         if self.continuous || self.bouncy {
             return Err(
                 "nanonis-sim scans one frame at a time: switch continuous and bouncy scanning off"
                     .into(),
             );
-        }
-        if direction_up != 1 {
-            return Err("nanonis-sim scans upwards only (direction 1)".into());
         }
         if self.buffer.channels != [self.config.z_channel] {
             return Err(format!(
@@ -464,25 +645,42 @@ impl State {
             ));
         }
         let f = self.frame;
-        let direction = if f.angle_deg == 0.0 {
-            ScanDirection::Direct
+        // 0° and 180° are the simulator's direct and counter rasters; any other angle turns
+        // a direct raster about the frame's centre (the manual: positive = clockwise).
+        let (direction, angle_rad) = if f.angle_deg == 0.0 {
+            (ScanDirection::Direct, None)
         } else if f.angle_deg == 180.0 || f.angle_deg == -180.0 {
-            ScanDirection::Counter
+            (ScanDirection::Counter, None)
         } else {
-            return Err(format!(
-                "nanonis-sim turns frames by 0° or 180° only, not {}°",
-                f.angle_deg
-            ));
+            (
+                ScanDirection::Direct,
+                Some(-decimal(f.angle_deg).to_radians()),
+            )
         };
         let pixels = self.buffer.pixels as u32;
         let lines = self.buffer.lines as u32;
-        let step_x = decimal(f.width_m) / f64::from(pixels) / self.m_per_count[0];
+        let width = decimal(f.width_m) / self.m_per_count[0];
+        let step_x = width / f64::from(pixels);
         let step_y = decimal(f.height_m) / f64::from(lines) / self.m_per_count[1];
-        if !(step_x > 0.0 && step_y > 0.0) || ((step_x - step_y) / step_x).abs() > 1e-5 {
-            return Err(format!(
-                "nanonis-sim scans square pixels: {step_x} × {step_y} counts"
-            ));
+        if !(step_x.is_finite() && step_y.is_finite() && step_x > 0.0 && step_y > 0.0) {
+            return Err(format!("invalid pixel size {step_x} × {step_y} counts"));
         }
+        // Square pixels are scanned as they are; otherwise the simulator (square pixels
+        // only) scans the frame's lines with the line spacing as its pixel step, and each
+        // line is resampled to the frame's pixels.
+        let (step, sim_columns) = if ((step_x - step_y) / step_x).abs() <= 1e-5 {
+            (step_x, pixels)
+        } else {
+            let n = (width / step_y).round().max(1.0);
+            let max = f64::from(self.sim.capabilities().max_pixels_per_line);
+            if n > max {
+                return Err(format!(
+                    "out of range: the frame's lines need {n} pixels at the line spacing \
+                     (at most {max})"
+                ));
+            }
+            (step_y, n as u32)
+        };
         let s = self.speed;
         if s.forward_line_s != s.backward_line_s
             || s.forward_line_s.is_nan()
@@ -495,26 +693,81 @@ impl State {
         }
         // The dwell a user meant: the shortest decimal at float32 precision of line time ÷
         // pixels (4.8 ms ÷ 48 is 9.999999999999999e-5 s in float64, 1e-4 s meant).
-        let dwell = decimal((decimal(s.forward_line_s) / f64::from(pixels)) as f32);
+        let dwell = decimal((decimal(s.forward_line_s) / f64::from(sim_columns)) as f32);
         // Pixel i of a line at left + (i + ½)·width/pixels; the frame centre is the raster's.
         let centre = CountPoint::from_counts(
             decimal(f.centre_x_m) / self.m_per_count[0],
             decimal(f.centre_y_m) / self.m_per_count[1],
         );
         let origin = CountPoint::from_counts(
-            centre.x.value() - 0.5 * f64::from(pixels - 1) * step_x,
-            centre.y.value() - 0.5 * f64::from(lines - 1) * step_x,
+            centre.x.value() - 0.5 * f64::from(sim_columns - 1) * step,
+            centre.y.value() - 0.5 * f64::from(lines - 1) * step,
         );
-        self.pending = Pending::Scan(ScanRequest {
-            origin,
-            pixel_step: Counts(step_x),
-            pixels_per_line: pixels,
-            lines,
-            direction,
-            pixel_dwell: Seconds(dwell),
-            record_backward: false,
-        });
+        self.pending = Pending::Scan(Box::new(PendingScan {
+            request: ScanRequest {
+                origin,
+                pixel_step: Counts(step),
+                pixels_per_line: sim_columns,
+                lines,
+                direction,
+                pixel_dwell: Seconds(dwell),
+                record_backward: false,
+            },
+            plan: ScanPlan {
+                direction_up,
+                rows: lines as usize,
+                columns: pixels as usize,
+                sim_columns: sim_columns as usize,
+                turn: angle_rad.map(|angle_rad| RasterTurn { centre, angle_rad }),
+            },
+            paused: false,
+            seen_running: false,
+            ended: false,
+        }));
         self.last_scan = None;
+        self.end_unwaited = true;
+        Ok(())
+    }
+
+    /// `Scan.StatusGet`. The simulator runs a frame in one piece, so a poll is a moment at
+    /// which the scan either still runs or has ended: the first poll after the start sees
+    /// it running, the next one (with nothing in between that observed the instrument)
+    /// finds it ended, as simulated then. A paused scan runs until it is stopped.
+    fn scan_status(&mut self) -> Result<u32, String> {
+        if self.leftover_running {
+            return Ok(1);
+        }
+        let Pending::Scan(scan) = &mut self.pending else {
+            return Ok(0);
+        };
+        if scan.ended {
+            return Ok(0);
+        }
+        if scan.paused || !scan.seen_running {
+            scan.seen_running = true;
+            return Ok(1);
+        }
+        self.flush(false)?;
+        Ok(0)
+    }
+
+    /// The backward half of the last frame, simulated from the snapshot taken when the
+    /// scan began if its first execution did not record it.
+    fn record_backward_half(&mut self) -> Result<(), String> {
+        let Some(last) = self.last_scan.as_mut() else {
+            return Ok(());
+        };
+        let Ok(frame) = last.frame.as_mut() else {
+            return Ok(());
+        };
+        if frame.backward.is_some() {
+            return Ok(());
+        }
+        let Some(mut shadow) = last.snapshot.take() else {
+            return Err("backward data were not recorded".into());
+        };
+        let again = run_scan(&mut shadow, &last.request, &last.plan, true)?;
+        frame.backward = again.backward;
         Ok(())
     }
 
@@ -522,42 +775,71 @@ impl State {
         if i64::from(channel) != i64::from(self.config.z_channel) {
             return Err(format!("channel {channel} is not recorded"));
         }
-        if matches!(self.pending, Pending::Scan(_)) {
+        if let Pending::Scan(scan) = &self.pending {
+            if scan.paused {
+                // Paused at its start: nothing acquired yet (NaN, as a controller's buffer).
+                let plan = &scan.plan;
+                return Ok(Reply::FrameData(FrameData {
+                    channel_name: "Z (m)".into(),
+                    rows: plan.rows,
+                    columns: plan.columns,
+                    data: vec![f32::NAN; plan.rows * plan.columns],
+                    direction_up: plan.direction_up,
+                }));
+            }
             self.flush(forward == 0)?;
+        }
+        if forward == 0 {
+            self.record_backward_half()?;
         }
         let Some(last) = &self.last_scan else {
             return Err("no scan data: no scan has run".into());
         };
         let frame = last.frame.as_ref().map_err(Clone::clone)?;
-        let (rows, columns) = (last.rows, last.columns);
+        let plan = &last.plan;
+        let (rows, n) = (plan.rows, plan.sim_columns);
         let image = if forward == 1 {
             &frame.forward
         } else {
-            frame.backward.as_ref().ok_or_else(|| {
-                "backward data were not recorded (the scan's first grab asked for the forward \
-                 data)"
-                    .to_owned()
-            })?
+            frame
+                .backward
+                .as_ref()
+                .ok_or_else(|| "backward data were not recorded".to_owned())?
         };
-        let mut data = Vec::with_capacity(rows * columns);
+        if image.z_counts.len() != rows * n {
+            return Err(format!(
+                "the scan recorded {} pixels for {rows} × {n}",
+                image.z_counts.len()
+            ));
+        }
+        let mut data = Vec::with_capacity(rows * plan.columns);
+        let mut line_values = Vec::with_capacity(n);
+        let mut resampled = Vec::with_capacity(plan.columns);
         for row in 0..rows {
-            let line = rows - 1 - row;
-            let acquired = &image.z_counts[line * columns..(line + 1) * columns];
-            for column in 0..columns {
-                let z = if forward == 1 {
-                    acquired[column]
-                } else {
-                    acquired[columns - 1 - column]
-                };
-                data.push((z * self.m_per_count[2]) as f32);
+            // Rows top first: the last line acquired of an upward frame, the first of a
+            // downward one.
+            let line = if plan.direction_up == 1 {
+                rows - 1 - row
+            } else {
+                row
+            };
+            let acquired = &image.z_counts[line * n..(line + 1) * n];
+            line_values.clear();
+            if forward == 1 {
+                line_values.extend_from_slice(acquired);
+            } else {
+                line_values.extend(acquired.iter().rev());
             }
+            resampled.clear();
+            resample(&line_values, plan.columns, &mut resampled);
+            data.extend(resampled.iter().map(|&z| self.z_metres(z)));
         }
         Ok(Reply::FrameData(FrameData {
             channel_name: "Z (m)".into(),
             rows,
-            columns,
+            columns: plan.columns,
             data,
-            direction_up: 1,
+            direction_up: plan.direction_up,
         }))
     }
 
@@ -610,20 +892,42 @@ impl State {
                     if matches!(self.pending, Pending::Scan(_)) {
                         self.pending = Pending::None;
                     }
+                    self.end_unwaited = false;
+                    Ok(Reply::Empty)
+                }
+                scan_action::PAUSE | scan_action::RESUME => {
+                    // With no scan running there is nothing to pause or resume.
+                    if let Pending::Scan(scan) = &mut self.pending
+                        && !scan.ended
+                    {
+                        scan.paused = *action == scan_action::PAUSE;
+                    }
                     Ok(Reply::Empty)
                 }
                 other => Err(format!("nanonis-sim does not model scan action {other}")),
             },
-            Request::ScanStatusGet => Ok(Reply::U32(u32::from(self.leftover_running))),
+            Request::ScanStatusGet => self.scan_status().map(Reply::U32),
             Request::ScanWaitEndOfScan { timeout_ms } => {
                 match std::mem::replace(&mut self.pending, Pending::None) {
-                    Pending::Scan(request) => {
+                    Pending::Scan(mut scan) if !scan.paused && !scan.ended => {
                         // The scan ends; it is simulated when its data are needed.
-                        self.pending = Pending::Scan(request);
+                        scan.ended = true;
+                        self.pending = Pending::Scan(scan);
+                        self.end_unwaited = false;
                         Ok(Reply::WaitEndOfScan {
                             timed_out: 0,
                             file_path: String::new(),
                         })
+                    }
+                    Pending::Scan(scan) => {
+                        // Paused (no end of scan comes) or already ended (the next end of
+                        // scan is not coming): the wait times out, after the scan if it ran.
+                        let paused = scan.paused;
+                        self.pending = Pending::Scan(scan);
+                        if !paused {
+                            self.flush(false)?;
+                        }
+                        self.wait_out(*timeout_ms)
                     }
                     Pending::Move { target, speed } => {
                         let settle = f64::from((*timeout_ms).max(0)) * 1e-3;
@@ -633,18 +937,16 @@ impl State {
                             file_path: String::new(),
                         })
                     }
-                    Pending::None => {
-                        if *timeout_ms < 0 {
-                            return Err("nanonis-sim: waiting forever with no scan running".into());
-                        }
-                        self.sim
-                            .wait(Seconds(f64::from(*timeout_ms) * 1e-3))
-                            .map_err(|e| describe(&e))?;
+                    Pending::None if self.end_unwaited => {
+                        // A scan ended (simulated because something observed it) before
+                        // this wait: its end of scan is the one waited for.
+                        self.end_unwaited = false;
                         Ok(Reply::WaitEndOfScan {
-                            timed_out: 1,
+                            timed_out: 0,
                             file_path: String::new(),
                         })
                     }
+                    Pending::None => self.wait_out(*timeout_ms),
                 }
             }
             Request::ScanFrameSet(f) => {
@@ -697,7 +999,42 @@ impl State {
                     2 => self.bouncy = false,
                     _ => {}
                 }
+                // Set: 0 = no change, 1 = all, 2 = next, 3 = off; Get: 0 = all, 1 = next,
+                // 2 = off.
+                if (1..=3).contains(&p.autosave) {
+                    self.autosave = p.autosave - 1;
+                }
+                if let Some(a) = p.autopaste
+                    && (1..=3).contains(&a)
+                {
+                    self.autopaste = a - 1;
+                }
+                // Empty strings and an empty module list are taken as set (the manual
+                // documents no "no change" value for them).
+                self.series_name.clone_from(&p.series_name);
+                self.comment.clone_from(&p.comment);
+                self.modules.clone_from(&p.modules);
                 Ok(Reply::Empty)
+            }
+            Request::ScanPropsGet => Ok(Reply::Props(ScanPropsState {
+                continuous: u32::from(self.continuous),
+                bouncy: u32::from(self.bouncy),
+                autosave: self.autosave,
+                series_name: self.series_name.clone(),
+                comment: self.comment.clone(),
+                modules: self.modules.clone(),
+                // The simulator has no module parameters to save.
+                parameters_per_module: vec![0; self.modules.len()],
+                parameter_rows: 0,
+                parameter_columns: 0,
+                parameters: Vec::new(),
+                autopaste: self.schema.props_set_autopaste.then_some(self.autopaste),
+            })),
+            Request::ScanXYPosGet { .. } => {
+                self.flush(false)?;
+                let p = self.sim.position().map_err(|e| describe(&e))?;
+                let (x_m, y_m) = self.counts_to_m(p);
+                Ok(Reply::F32x2([x_m as f32, y_m as f32]))
             }
             Request::ScanSpeedSet(s) => {
                 let width = f64::from(self.frame.width_m);
@@ -734,16 +1071,39 @@ impl State {
             } => {
                 self.flush(false)?;
                 self.compensation_off()?;
-                let Some(speed_m) = self.folme_speed else {
-                    return Err(
-                        "nanonis-sim needs a custom Follow-Me speed (FolMe.SpeedSet)".into(),
-                    );
+                self.feedback_on()?;
+                // Custom speed, or the scan's forward speed ("use scan speed").
+                let speed_m = if self.folme_custom {
+                    self.folme_speed_m_per_s
+                } else {
+                    self.speed.forward_speed_m_per_s
                 };
+                if !(speed_m.is_finite() && speed_m > 0.0) {
+                    return Err(format!("the Follow-Me speed {speed_m} m/s is not positive"));
+                }
                 if !(x_m.is_finite() && y_m.is_finite()) {
                     return Err("target is not finite".into());
                 }
                 let mut target =
                     CountPoint::from_counts(x_m / self.m_per_count[0], y_m / self.m_per_count[1]);
+                // Checked now, so that the error is this command's even when the move
+                // itself is executed with the settle that follows it.
+                let caps = self.sim.capabilities();
+                if target.x < caps.field_min.x
+                    || target.y < caps.field_min.y
+                    || target.x > caps.field_max.x
+                    || target.y > caps.field_max.y
+                {
+                    let (lo, hi) = (
+                        self.counts_to_m(caps.field_min),
+                        self.counts_to_m(caps.field_max),
+                    );
+                    return Err(format!(
+                        "out of range: target ({x_m:.4e}, {y_m:.4e}) m is outside the scan \
+                         range [{:.4e}, {:.4e}] × [{:.4e}, {:.4e}] m",
+                        lo.0, hi.0, lo.1, hi.1
+                    ));
+                }
                 // Metres → counts is exact only to ~1e-12 counts: a target that close to the
                 // commanded position is the commanded position (a move of length 0, as the
                 // client meant it, not one of 1e-12 counts).
@@ -771,16 +1131,21 @@ impl State {
                 speed_m_per_s,
                 custom,
             } => {
-                if *custom == 1 {
-                    if !(speed_m_per_s.is_finite() && *speed_m_per_s > 0.0) {
-                        return Err(format!("speed {speed_m_per_s} m/s is not positive"));
-                    }
-                    self.folme_speed = Some(*speed_m_per_s);
-                } else {
-                    self.folme_speed = None;
+                let valid = speed_m_per_s.is_finite() && *speed_m_per_s > 0.0;
+                if *custom == 1 && !valid {
+                    return Err(format!("speed {speed_m_per_s} m/s is not positive"));
                 }
+                // With "use scan speed" the value is kept only when it is a speed.
+                if valid {
+                    self.folme_speed_m_per_s = *speed_m_per_s;
+                }
+                self.folme_custom = *custom == 1;
                 Ok(Reply::Empty)
             }
+            Request::FolMeSpeedGet => Ok(Reply::FolMeSpeed {
+                speed_m_per_s: self.folme_speed_m_per_s,
+                custom: u32::from(self.folme_custom),
+            }),
             Request::FolMeStop | Request::MotorStopMove => {
                 if matches!(self.pending, Pending::Move { .. }) {
                     self.flush(false)?;
@@ -790,21 +1155,26 @@ impl State {
             Request::ZCtrlZPosGet => {
                 self.flush(false)?;
                 let z = self.sim.z_position().map_err(|e| describe(&e))?;
-                Ok(Reply::F32((z.value() * self.m_per_count[2]) as f32))
+                Ok(Reply::F32(self.z_metres(z.value())))
             }
-            Request::ZCtrlOnOffSet(_) => Ok(Reply::Empty),
-            Request::ZCtrlOnOffGet => Ok(Reply::U32(1)),
+            Request::ZCtrlOnOffSet(on) => {
+                self.z_on = *on == 1;
+                Ok(Reply::Empty)
+            }
+            Request::ZCtrlOnOffGet => Ok(Reply::U32(u32::from(self.z_on))),
             Request::MotorStartMove {
                 direction, steps, ..
             } => {
                 self.flush(false)?;
+                self.feedback_on()?;
                 let signed = match *direction {
                     motor_direction::Z_MINUS => i64::from(*steps),
                     motor_direction::Z_PLUS => -i64::from(*steps),
-                    other => {
-                        return Err(format!(
-                            "nanonis-sim moves the motor along Z only, not {other}"
-                        ));
+                    _ => {
+                        // X and Y: the sample slides under the tip by a distance no
+                        // simulator state follows; the steps are taken (time passes)
+                        // and the surface stays where it is.
+                        return self.lateral_motor_steps(*steps);
                     }
                 };
                 let Some(stage) = self.sim.coarse_z() else {
@@ -832,7 +1202,7 @@ impl State {
                         values.push((t - whole) as f32);
                     } else if i == self.config.z_channel {
                         let z = self.sim.z_position().map_err(|e| describe(&e))?;
-                        values.push((z.value() * self.m_per_count[2]) as f32);
+                        values.push(self.z_metres(z.value()));
                     } else {
                         return Err(format!("nanonis-sim does not publish signal {i}"));
                     }
@@ -938,6 +1308,11 @@ impl ServerHandle {
         f(&lock(&self.shared).sim)
     }
 
+    /// Runs `f` on the simulator, mutably (tests: switch the oracle's recording on).
+    pub fn with_simulator_mut<T>(&self, f: impl FnOnce(&mut Simulator) -> T) -> T {
+        f(&mut lock(&self.shared).sim)
+    }
+
     /// Stops at once, as a killed process would: the listener closes and every open
     /// connection is shut down.
     pub fn kill(mut self) {
@@ -1009,6 +1384,17 @@ fn encode_reply(command: &str, reply: &Reply, error: &ErrorSection) -> Option<Ve
     Some(bytes)
 }
 
+fn encode_raw_reply(command: &str, zeros: usize, error: &ErrorSection) -> Option<Vec<u8>> {
+    let mut body = vec![0u8; zeros];
+    let mut tail = codec::Writer::new();
+    error.encode(&mut tail).ok()?;
+    body.extend_from_slice(&tail.into_bytes());
+    let header = codec::encode_response_header(command, body.len()).ok()?;
+    let mut bytes = header.to_vec();
+    bytes.extend_from_slice(&body);
+    Some(bytes)
+}
+
 fn serve_connection(mut stream: TcpStream, shared: &Shared, stop: &AtomicBool) {
     serve_commands(&mut stream, shared, stop);
     // Shut the socket down whatever the reason (the accept loop keeps a clone for `kill`,
@@ -1050,6 +1436,16 @@ fn serve_commands(stream: &mut TcpStream, shared: &Shared, stop: &AtomicBool) {
                     state.stats.injected_drops_before += 1;
                     return;
                 }
+                (_, Err(CodecError::UnknownCommand(name))) => {
+                    // Zeros for its return arguments (every count 0), then the error: a
+                    // client decoding the command's documented reply reads the error.
+                    tracing::debug!(command = %name, "nanonis-sim: command not implemented");
+                    encode_raw_reply(
+                        &header.command,
+                        crate::neutral::neutral_len(&name),
+                        &ErrorSection::error(format!("nanonis-sim does not implement {name}")),
+                    )
+                }
                 (_, Err(e)) => {
                     state.stats.malformed += 1;
                     tracing::debug!(error = %e, command = %header.command, "nanonis-sim: invalid request");
@@ -1063,7 +1459,7 @@ fn serve_commands(stream: &mut TcpStream, shared: &Shared, stop: &AtomicBool) {
                     state.stats.injected_error_replies += 1;
                     encode_reply(
                         &header.command,
-                        &request.neutral_reply(),
+                        &request.neutral_reply(state.schema),
                         &ErrorSection::error("busy: injected fault (error reply)"),
                     )
                 }
@@ -1071,7 +1467,7 @@ fn serve_commands(stream: &mut TcpStream, shared: &Shared, stop: &AtomicBool) {
                     Ok(reply) => encode_reply(&header.command, &reply, &ErrorSection::ok()),
                     Err(description) => encode_reply(
                         &header.command,
-                        &request.neutral_reply(),
+                        &request.neutral_reply(state.schema),
                         &ErrorSection::error(description),
                     ),
                 },

@@ -42,6 +42,7 @@ fn client_config(port: u16) -> NanonisConfig {
         max_lines: 4096,
         min_pixel_dwell_s: 1e-6,
         coarse_z: None,
+        frame_angle_deg: 0.0,
     }
 }
 

@@ -385,6 +385,6 @@ fn transact(
         .read_exact(&mut reply_body)
         .map_err(|e| io_error("read reply body", &e))?;
     request
-        .decode_reply(&reply_body)
+        .decode_reply(&reply_body, schema)
         .map_err(|e| NanonisError::protocol(name, &e))
 }

@@ -15,6 +15,18 @@
 //!   1-D string arrays by their size in bytes and their element count, each element
 //!   prefixed by its own size.
 //!
+//! ## The size field of a string array
+//! The manual calls the first field of a 1-D string array "the size in bytes of the
+//! array", which read literally is what the elements occupy (each `4 +` its length). The
+//! vendor's own client (`nanonis-spm` 1.0.9, `handleArrayString`) sends `4 × count`
+//! instead, and decodes the arrays of a reply by element count and each element's prefix,
+//! advancing by the size field; other public clients that send string arrays copy the
+//! vendor's encoding. A controller therefore reads request arrays by count and prefixes:
+//! the client sends the vendor's encoding ([`Writer::string_array_vendor`]), a reply
+//! carries the exact byte total ([`Writer::string_array`], which the vendor client needs
+//! to find what follows), and [`Reader::string_array`] accepts either value of the size
+//! field and refuses any other (the array is still read by count and prefixes).
+//!
 //! Decoding never panics and never trusts a size: every read is bounds-checked, sizes
 //! are checked against what is left of the body *before* anything is allocated, and a
 //! body must be consumed exactly ([`Reader::finish`]).
@@ -354,12 +366,46 @@ impl Writer {
             self.f32(v);
         }
     }
-    /// A 1-D string array with its size in bytes and element count in front, each element
-    /// prefixed by its size.
+    /// A 1-D string array with its size in bytes (the exact total the elements occupy)
+    /// and element count in front, each element prefixed by its size: the form of a reply.
     pub fn string_array(&mut self, values: &[String]) -> Result<(), CodecError> {
         let bytes: usize = values.iter().map(|s| 4 + s.len()).sum();
         self.i32(len_i32("string array size", bytes)?);
+        self.string_array_elements(values)
+    }
+    /// A 1-D string array as the vendor's client sends it in a request: the size field is
+    /// `4 × count` (see the module documentation), then the count and the elements.
+    pub fn string_array_vendor(&mut self, values: &[String]) -> Result<(), CodecError> {
+        let bytes = values.len().checked_mul(4).ok_or(CodecError::Encode {
+            what: "string array size",
+            reason: "too many elements".into(),
+        })?;
+        self.i32(len_i32("string array size", bytes)?);
+        self.string_array_elements(values)
+    }
+    fn string_array_elements(&mut self, values: &[String]) -> Result<(), CodecError> {
         self.i32(len_i32("string array count", values.len())?);
+        for s in values {
+            self.string(s)?;
+        }
+        Ok(())
+    }
+    /// A 2-D string array: rows and columns in front, then `rows × columns` strings row
+    /// by row, each prefixed by its size.
+    pub fn string_2d(
+        &mut self,
+        rows: usize,
+        columns: usize,
+        values: &[String],
+    ) -> Result<(), CodecError> {
+        if rows.checked_mul(columns) != Some(values.len()) {
+            return Err(CodecError::Encode {
+                what: "2-D string array",
+                reason: format!("{rows} × {columns} ≠ {} values", values.len()),
+            });
+        }
+        self.i32(len_i32("rows", rows)?);
+        self.i32(len_i32("columns", columns)?);
         for s in values {
             self.string(s)?;
         }
@@ -492,10 +538,11 @@ impl<'a> Reader<'a> {
         let n = self.check_count(what, n as i64, 4)?;
         (0..n).map(|_| self.f32(what)).collect()
     }
-    /// A 1-D string array: size in bytes, count, then each element prefixed by its size.
-    /// The size in bytes must equal what the elements occupy.
+    /// A 1-D string array: size field, count, then each element prefixed by its size. The
+    /// size field must be either what the elements occupy (the manual's reading) or
+    /// `4 × count` (the vendor client's encoding); see the module documentation.
     pub fn string_array(&mut self, what: &'static str) -> Result<Vec<String>, CodecError> {
-        let bytes = self.count(what, 1)?;
+        let size = self.i32(what)?;
         let start = self.pos;
         let n = self.count(what, 4)?;
         let mut out = Vec::with_capacity(n);
@@ -503,13 +550,39 @@ impl<'a> Reader<'a> {
             out.push(self.string(what)?);
         }
         let used = self.pos - start - 4;
-        if used != bytes {
+        let vendor = n.checked_mul(4);
+        if usize::try_from(size)
+            .ok()
+            .is_none_or(|size| size != used && Some(size) != vendor)
+        {
             return Err(CodecError::InvalidSize {
                 what,
-                size: bytes as i64,
+                size: i64::from(size),
             });
         }
         Ok(out)
+    }
+    /// A 2-D string array: rows, columns, then `rows × columns` strings, each prefixed by
+    /// its size (row by row).
+    pub fn string_2d(
+        &mut self,
+        what: &'static str,
+    ) -> Result<(usize, usize, Vec<String>), CodecError> {
+        let rows = self.i32(what)?;
+        let columns = self.i32(what)?;
+        if rows < 0 || columns < 0 {
+            return Err(CodecError::InvalidSize {
+                what,
+                size: i64::from(rows.min(columns)),
+            });
+        }
+        // Every element has at least its 4-byte prefix.
+        let n = self.check_count(what, i64::from(rows) * i64::from(columns), 4)?;
+        let mut values = Vec::with_capacity(n);
+        for _ in 0..n {
+            values.push(self.string(what)?);
+        }
+        Ok((rows as usize, columns as usize, values))
     }
     /// A 2-D `float32` array: rows, columns, then `rows × columns` values row-major.
     pub fn f32_2d(&mut self, what: &'static str) -> Result<(usize, usize, Vec<f32>), CodecError> {

@@ -35,12 +35,24 @@ pub mod scan_action {
     pub const START: u16 = 0;
     /// Stop.
     pub const STOP: u16 = 1;
+    /// Pause.
+    pub const PAUSE: u16 = 2;
+    /// Resume.
+    pub const RESUME: u16 = 3;
     /// Largest documented action.
     pub const MAX: u16 = 6;
 }
 
 /// `Motor.StartMove` directions (0 = X+, …, 4 = Z+, 5 = Z−).
 pub mod motor_direction {
+    /// X+.
+    pub const X_PLUS: u32 = 0;
+    /// X−.
+    pub const X_MINUS: u32 = 1;
+    /// Y+.
+    pub const Y_PLUS: u32 = 2;
+    /// Y−.
+    pub const Y_MINUS: u32 = 3;
     /// Z+.
     pub const Z_PLUS: u32 = 4;
     /// Z−.
@@ -105,6 +117,13 @@ pub enum Request {
     ScanBufferGet,
     /// `Scan.PropsSet` (the form is given by the [`Schema`]).
     ScanPropsSet(ScanProps),
+    /// `Scan.PropsGet` (the reply's form is given by the [`Schema`]).
+    ScanPropsGet,
+    /// `Scan.XYPosGet`: the X and Y signals, m.
+    ScanXYPosGet {
+        /// 1 = wait for newest data.
+        wait_newest: u32,
+    },
     /// `Scan.SpeedSet`.
     ScanSpeedSet(ScanSpeed),
     /// `Scan.SpeedGet`.
@@ -137,6 +156,8 @@ pub enum Request {
         /// 1 = custom speed, 0 = scan speed.
         custom: u32,
     },
+    /// `FolMe.SpeedGet`.
+    FolMeSpeedGet,
     /// `FolMe.Stop`.
     FolMeStop,
     /// `ZCtrl.ZPosGet`.
@@ -211,6 +232,33 @@ pub struct ScanProps {
     /// Modules whose parameters are saved in the file header.
     pub modules: Vec<String>,
     /// 0 = no change, 1 = all, 2 = next, 3 = off; `None` on releases without the argument.
+    pub autopaste: Option<u32>,
+}
+
+/// `Scan.PropsGet` return arguments.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ScanPropsState {
+    /// 0 = off, 1 = on.
+    pub continuous: u32,
+    /// 0 = off, 1 = on.
+    pub bouncy: u32,
+    /// 0 = all, 1 = next, 2 = off (not the coding of `Scan.PropsSet`).
+    pub autosave: u32,
+    /// Series name.
+    pub series_name: String,
+    /// Comment.
+    pub comment: String,
+    /// Modules whose parameters are saved in the file header.
+    pub modules: Vec<String>,
+    /// Number of parameters of each module.
+    pub parameters_per_module: Vec<i32>,
+    /// Rows of the parameters array (one per module with parameters).
+    pub parameter_rows: usize,
+    /// Columns of the parameters array.
+    pub parameter_columns: usize,
+    /// The parameters, row by row.
+    pub parameters: Vec<String>,
+    /// 0 = all, 1 = next, 2 = off (as autosave); `None` on releases without the argument.
     pub autopaste: Option<u32>,
 }
 
@@ -303,6 +351,15 @@ pub enum Reply {
     Buffer(ScanBuffer),
     /// `Scan.SpeedGet`.
     Speed(ScanSpeed),
+    /// `Scan.PropsGet`.
+    Props(ScanPropsState),
+    /// `FolMe.SpeedGet`.
+    FolMeSpeed {
+        /// Follow-Me speed, m/s.
+        speed_m_per_s: f32,
+        /// 1 = the custom speed is used, 0 = the scan speed.
+        custom: u32,
+    },
     /// `Scan.FrameDataGrab`.
     FrameData(FrameData),
     /// `FolMe.XYPosGet`.
@@ -347,12 +404,15 @@ impl Request {
             Self::ScanBufferSet(_) => "Scan.BufferSet",
             Self::ScanBufferGet => "Scan.BufferGet",
             Self::ScanPropsSet(_) => "Scan.PropsSet",
+            Self::ScanPropsGet => "Scan.PropsGet",
+            Self::ScanXYPosGet { .. } => "Scan.XYPosGet",
             Self::ScanSpeedSet(_) => "Scan.SpeedSet",
             Self::ScanSpeedGet => "Scan.SpeedGet",
             Self::ScanFrameDataGrab { .. } => "Scan.FrameDataGrab",
             Self::FolMeXYPosSet { .. } => "FolMe.XYPosSet",
             Self::FolMeXYPosGet { .. } => "FolMe.XYPosGet",
             Self::FolMeSpeedSet { .. } => "FolMe.SpeedSet",
+            Self::FolMeSpeedGet => "FolMe.SpeedGet",
             Self::FolMeStop => "FolMe.Stop",
             Self::ZCtrlZPosGet => "ZCtrl.ZPosGet",
             Self::ZCtrlOnOffSet(_) => "ZCtrl.OnOffSet",
@@ -400,6 +460,8 @@ impl Request {
             | Self::ScanFrameGet
             | Self::ScanBufferGet
             | Self::ScanSpeedGet
+            | Self::ScanPropsGet
+            | Self::FolMeSpeedGet
             | Self::FolMeStop
             | Self::ZCtrlZPosGet
             | Self::ZCtrlOnOffGet
@@ -434,7 +496,8 @@ impl Request {
                 w.u32(p.autosave);
                 w.string(&p.series_name)?;
                 w.string(&p.comment)?;
-                w.string_array(&p.modules)?;
+                // The vendor client's encoding of the size field (see `codec`).
+                w.string_array_vendor(&p.modules)?;
                 match (schema.props_set_autopaste, p.autopaste) {
                     (true, Some(a)) => w.u32(a),
                     (false, None) => {}
@@ -462,7 +525,9 @@ impl Request {
                 w.f64(*y_m);
                 w.u32(*wait_end_of_move);
             }
-            Self::FolMeXYPosGet { wait_newest } => w.u32(*wait_newest),
+            Self::FolMeXYPosGet { wait_newest } | Self::ScanXYPosGet { wait_newest } => {
+                w.u32(*wait_newest)
+            }
             Self::FolMeSpeedSet {
                 speed_m_per_s,
                 custom,
@@ -514,6 +579,8 @@ impl Request {
             "Scan.FrameGet" => Self::ScanFrameGet,
             "Scan.BufferGet" => Self::ScanBufferGet,
             "Scan.SpeedGet" => Self::ScanSpeedGet,
+            "Scan.PropsGet" => Self::ScanPropsGet,
+            "FolMe.SpeedGet" => Self::FolMeSpeedGet,
             "FolMe.Stop" => Self::FolMeStop,
             "ZCtrl.ZPosGet" => Self::ZCtrlZPosGet,
             "ZCtrl.OnOffGet" => Self::ZCtrlOnOffGet,
@@ -598,6 +665,9 @@ impl Request {
                 y_m: r.f64("y")?,
                 wait_end_of_move: flag("wait end of move", r.u32("wait end of move")?, 1)?,
             },
+            "Scan.XYPosGet" => Self::ScanXYPosGet {
+                wait_newest: flag("wait for newest data", r.u32("wait for newest data")?, 1)?,
+            },
             "FolMe.XYPosGet" => Self::FolMeXYPosGet {
                 wait_newest: flag("wait for newest data", r.u32("wait for newest data")?, 1)?,
             },
@@ -637,7 +707,11 @@ impl Request {
 
     /// Decodes the reply body to this request: its return arguments and the error section;
     /// the body must be consumed exactly.
-    pub fn decode_reply(&self, body: &[u8]) -> Result<(Reply, ErrorSection), CodecError> {
+    pub fn decode_reply(
+        &self,
+        body: &[u8],
+        schema: Schema,
+    ) -> Result<(Reply, ErrorSection), CodecError> {
         let mut r = Reader::new(body);
         let reply = match self {
             Self::UtilVersionGet => {
@@ -653,9 +727,14 @@ impl Request {
             Self::PiezoCalibrGet | Self::PiezoRangeGet => {
                 Reply::F32x3([r.f32("x")?, r.f32("y")?, r.f32("z")?])
             }
-            Self::PiezoTiltGet | Self::MotorFreqAmpGet(_) => {
+            Self::PiezoTiltGet | Self::MotorFreqAmpGet(_) | Self::ScanXYPosGet { .. } => {
                 Reply::F32x2([r.f32("first")?, r.f32("second")?])
             }
+            Self::FolMeSpeedGet => Reply::FolMeSpeed {
+                speed_m_per_s: r.f32("speed")?,
+                custom: r.u32("custom speed")?,
+            },
+            Self::ScanPropsGet => Reply::Props(decode_props(&mut r, schema)?),
             Self::ZCtrlZPosGet => Reply::F32(r.f32("z position")?),
             Self::PiezoHystOnOffGet | Self::ScanStatusGet | Self::ZCtrlOnOffGet => {
                 Reply::U32(r.u32("status")?)
@@ -718,7 +797,7 @@ impl Request {
 
     /// The reply a server sends with an error: the return arguments at their neutral
     /// values (the manual places the error section after them in every response).
-    pub fn neutral_reply(&self) -> Reply {
+    pub fn neutral_reply(&self, schema: Schema) -> Reply {
         match self {
             Self::UtilVersionGet => Reply::Version(Version {
                 product_line: String::new(),
@@ -727,7 +806,26 @@ impl Request {
                 rt_release: 0,
             }),
             Self::PiezoCalibrGet | Self::PiezoRangeGet => Reply::F32x3([0.0; 3]),
-            Self::PiezoTiltGet | Self::MotorFreqAmpGet(_) => Reply::F32x2([0.0; 2]),
+            Self::PiezoTiltGet | Self::MotorFreqAmpGet(_) | Self::ScanXYPosGet { .. } => {
+                Reply::F32x2([0.0; 2])
+            }
+            Self::FolMeSpeedGet => Reply::FolMeSpeed {
+                speed_m_per_s: 0.0,
+                custom: 0,
+            },
+            Self::ScanPropsGet => Reply::Props(ScanPropsState {
+                continuous: 0,
+                bouncy: 0,
+                autosave: 0,
+                series_name: String::new(),
+                comment: String::new(),
+                modules: Vec::new(),
+                parameters_per_module: Vec::new(),
+                parameter_rows: 0,
+                parameter_columns: 0,
+                parameters: Vec::new(),
+                autopaste: schema.props_set_autopaste.then_some(0),
+            }),
             Self::ZCtrlZPosGet => Reply::F32(0.0),
             Self::PiezoHystOnOffGet | Self::ScanStatusGet | Self::ZCtrlOnOffGet => Reply::U32(0),
             Self::PiezoDriftCompGet => Reply::DriftComp(DriftComp {
@@ -814,6 +912,30 @@ impl Reply {
             Self::Frame(f) => encode_frame(&mut w, f),
             Self::Buffer(b) => encode_buffer(&mut w, b)?,
             Self::Speed(s) => encode_speed(&mut w, s),
+            Self::Props(p) => {
+                w.u32(p.continuous);
+                w.u32(p.bouncy);
+                w.u32(p.autosave);
+                w.string(&p.series_name)?;
+                w.string(&p.comment)?;
+                w.string_array(&p.modules)?;
+                w.i32(len_i32(
+                    "parameters per module",
+                    p.parameters_per_module.len(),
+                )?);
+                w.i32_array(&p.parameters_per_module);
+                w.string_2d(p.parameter_rows, p.parameter_columns, &p.parameters)?;
+                if let Some(a) = p.autopaste {
+                    w.u32(a);
+                }
+            }
+            Self::FolMeSpeed {
+                speed_m_per_s,
+                custom,
+            } => {
+                w.f32(*speed_m_per_s);
+                w.u32(*custom);
+            }
             Self::FrameData(d) => {
                 w.string(&d.channel_name)?;
                 w.f32_2d(d.rows, d.columns, &d.data)?;
@@ -834,6 +956,43 @@ impl Reply {
         error.encode(&mut w)?;
         Ok(w.into_bytes())
     }
+}
+
+fn len_i32(what: &'static str, n: usize) -> Result<i32, CodecError> {
+    i32::try_from(n).map_err(|_| CodecError::Encode {
+        what,
+        reason: "too many".into(),
+    })
+}
+
+fn decode_props(r: &mut Reader<'_>, schema: Schema) -> Result<ScanPropsState, CodecError> {
+    let continuous = r.u32("continuous scan")?;
+    let bouncy = r.u32("bouncy scan")?;
+    let autosave = r.u32("autosave")?;
+    let series_name = r.string("series name")?;
+    let comment = r.string("comment")?;
+    let modules = r.string_array("modules names")?;
+    let n = r.count("parameters per module size", 4)?;
+    let parameters_per_module = r.i32_array("parameters per module", n)?;
+    let (parameter_rows, parameter_columns, parameters) = r.string_2d("parameters")?;
+    let autopaste = if schema.props_set_autopaste {
+        Some(r.u32("autopaste")?)
+    } else {
+        None
+    };
+    Ok(ScanPropsState {
+        continuous,
+        bouncy,
+        autosave,
+        series_name,
+        comment,
+        modules,
+        parameters_per_module,
+        parameter_rows,
+        parameter_columns,
+        parameters,
+        autopaste,
+    })
 }
 
 fn encode_frame(w: &mut Writer, f: &ScanFrame) {
@@ -910,9 +1069,9 @@ mod tests {
         let body = request.encode(schema).expect("encodes");
         let back = Request::decode(request.name(), &body, schema).expect("decodes");
         assert_eq!(back, request);
-        let reply = request.neutral_reply();
+        let reply = request.neutral_reply(schema);
         let bytes = reply.encode(&ErrorSection::error("x")).expect("encodes");
-        let (decoded, error) = request.decode_reply(&bytes).expect("reply decodes");
+        let (decoded, error) = request.decode_reply(&bytes, schema).expect("reply decodes");
         assert_eq!(decoded, reply, "{}", request.name());
         assert_eq!(error, ErrorSection::error("x"));
     }
@@ -967,10 +1126,104 @@ mod tests {
                     indexes: vec![126, 127],
                     wait_newest: 0,
                 },
+                Request::ScanPropsGet,
+                Request::ScanXYPosGet { wait_newest: 1 },
+                Request::FolMeSpeedGet,
             ] {
                 check_round_trip(request, schema);
             }
         }
+    }
+
+    /// The body of `Scan.PropsSet` as the vendor's Python client (`nanonis-spm` 1.0.9)
+    /// builds it: `handleArrayString` writes `4 × count` as the modules' size field.
+    fn vendor_props_set(modules: &[&str], size_field: i32) -> Vec<u8> {
+        let mut body = Vec::new();
+        for v in [2u32, 2, 3] {
+            body.extend_from_slice(&v.to_be_bytes());
+        }
+        for s in ["series", ""] {
+            body.extend_from_slice(&(s.len() as i32).to_be_bytes());
+            body.extend_from_slice(s.as_bytes());
+        }
+        body.extend_from_slice(&size_field.to_be_bytes());
+        body.extend_from_slice(&(modules.len() as i32).to_be_bytes());
+        for m in modules {
+            body.extend_from_slice(&(m.len() as i32).to_be_bytes());
+            body.extend_from_slice(m.as_bytes());
+        }
+        body.extend_from_slice(&3u32.to_be_bytes());
+        body
+    }
+
+    #[test]
+    fn props_set_module_lists_use_the_vendor_clients_size_field() {
+        let schema = Schema::for_release(14718);
+        let modules = ["Z-Controller", "Bias"];
+        let expected = Request::ScanPropsSet(ScanProps {
+            continuous: 2,
+            bouncy: 2,
+            autosave: 3,
+            series_name: "series".into(),
+            comment: String::new(),
+            modules: modules.iter().map(|m| (*m).to_owned()).collect(),
+            autopaste: Some(3),
+        });
+        // What the vendor sends, byte for byte, is what this client sends.
+        let vendor = vendor_props_set(&modules, 4 * 2);
+        assert_eq!(expected.encode(schema).expect("encodes"), vendor);
+        assert_eq!(
+            Request::decode("Scan.PropsSet", &vendor, schema).expect("vendor form"),
+            expected
+        );
+        // The manual's literal reading (the bytes the elements occupy) is accepted too.
+        let exact = (4 + 12) + (4 + 4);
+        assert_eq!(
+            Request::decode("Scan.PropsSet", &vendor_props_set(&modules, exact), schema)
+                .expect("exact form"),
+            expected
+        );
+        // Any other size is refused, by name.
+        for bad in [0, 7, exact + 4, -8] {
+            assert!(
+                matches!(
+                    Request::decode("Scan.PropsSet", &vendor_props_set(&modules, bad), schema),
+                    Err(CodecError::InvalidSize {
+                        what: "modules names",
+                        ..
+                    })
+                ),
+                "size field {bad}"
+            );
+        }
+    }
+
+    #[test]
+    fn props_get_replies_carry_the_exact_byte_total_the_vendor_client_advances_by() {
+        let schema = Schema::for_release(14718);
+        let reply = Reply::Props(ScanPropsState {
+            continuous: 0,
+            bouncy: 1,
+            autosave: 2,
+            series_name: "img".into(),
+            comment: "c".into(),
+            modules: vec!["Z-Controller".into(), "Bias".into()],
+            parameters_per_module: vec![0, 0],
+            parameter_rows: 0,
+            parameter_columns: 0,
+            parameters: Vec::new(),
+            autopaste: Some(2),
+        });
+        let bytes = reply.encode(&ErrorSection::ok()).expect("encodes");
+        // continuous, bouncy, autosave, "img", "c", then the modules' size field.
+        let at = 12 + 4 + 3 + 4 + 1;
+        let size = i32::from_be_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]]);
+        assert_eq!(size, (4 + 12) + (4 + 4));
+        let (decoded, error) = Request::ScanPropsGet
+            .decode_reply(&bytes, schema)
+            .expect("decodes");
+        assert_eq!(decoded, reply);
+        assert_eq!(error, ErrorSection::ok());
     }
 
     #[test]

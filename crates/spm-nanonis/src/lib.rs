@@ -65,6 +65,16 @@
 //!   `start` = the controller time at the end of the scan − `lines·(t_fwd + t_bwd)`.
 //! - **Counter scans** use the frame turned by 180°: its forward traces run along −x and
 //!   its lines step along −y.
+//! - **A frame angle** ([`NanonisConfig::frame_angle_deg`], positive clockwise as in
+//!   `Scan.FrameSet`) turns the counts convention with it: counts are scaled to metres
+//!   and turned by the angle, so moves, positions and every scan frame (counter scans at
+//!   the angle + 180°) are on the turned axes, and the field is the largest square of the
+//!   turned axes inside the controller's range.
+//! - **Frames scanned downwards** (`Scan.FrameDataGrab`'s direction 0: a bouncy scan left
+//!   on, a start by someone else) acquired their lines in the other order in time: not the
+//!   scan requested, an error.
+//! - **`Scan.PropsSet`'s module list** is sent as the vendor's client sends it (the string
+//!   array's size field `4 × count`; see [`codec`] for the choice).
 //! - **Frame data** (`Scan.FrameDataGrab`) come top line first (for an upward scan the
 //!   last line acquired) and left to right in the frame for both directions; pixels not
 //!   acquired are NaN, which is an error, never data.

@@ -94,6 +94,12 @@ pub struct NanonisConfig {
     pub min_pixel_dwell_s: f64,
     /// The coarse Z motor, when software may drive it (its presence is still queried).
     pub coarse_z: Option<CoarseZConfig>,
+    /// The frame angle of the counts convention, degrees, positive clockwise (the sense of
+    /// `Scan.FrameSet`): the counts axes are the controller's X and Y turned by it, every
+    /// scan frame is turned by it (counter scans by it + 180°), and the field is the
+    /// largest square of the turned axes inside the controller's range. 0 by default.
+    #[serde(default)]
+    pub frame_angle_deg: f64,
 }
 
 impl NanonisConfig {
@@ -153,6 +159,15 @@ impl NanonisConfig {
         if !(self.min_pixel_dwell_s.is_finite() && self.min_pixel_dwell_s > 0.0) {
             return invalid("min_pixel_dwell_s", "must be a finite time > 0".into());
         }
+        if !(self.frame_angle_deg.is_finite() && self.frame_angle_deg.abs() <= 360.0) {
+            return invalid(
+                "frame_angle_deg",
+                format!(
+                    "{} is not an angle in [-360, 360] degrees",
+                    self.frame_angle_deg
+                ),
+            );
+        }
         if let Some(c) = &self.coarse_z {
             if c.min_steps > 0 || c.max_steps < 0 {
                 return invalid("coarse_z", "[min_steps, max_steps] must contain 0".into());
@@ -176,7 +191,16 @@ impl NanonisConfig {
     /// The capabilities this configuration gives (the coarse stage as configured; the
     /// backend drops it when the controller has no motor module).
     pub fn capabilities(&self) -> Capabilities {
-        let half = 2f64.powi(self.lateral_dac_bits as i32 - 1);
+        // A square of the turned axes inside the controller's square range: its half side
+        // is the range's over |cos| + |sin| (1 for multiples of 90°).
+        let (sin, cos) = self.frame_angle_deg.to_radians().sin_cos();
+        let shrink = cos.abs() + sin.abs();
+        let shrink = if (shrink - 1.0).abs() < 1e-12 {
+            1.0
+        } else {
+            shrink
+        };
+        let half = (2f64.powi(self.lateral_dac_bits as i32 - 1) / shrink).floor();
         let z_half = 2f64.powi(self.z_dac_bits as i32 - 1);
         Capabilities {
             field_min: CountPoint::from_counts(-half, -half),
@@ -446,10 +470,31 @@ impl NanonisMicroscope {
         Ok(())
     }
 
+    /// The controller's X and Y, m, of a point in counts: scaled by the counts convention,
+    /// then turned clockwise by the frame angle.
     fn to_metres(&self, p: CountPoint) -> (f64, f64) {
-        (
+        let (x, y) = (
             p.x.value() * self.lateral_m_per_count[0],
             p.y.value() * self.lateral_m_per_count[1],
+        );
+        if self.config.frame_angle_deg == 0.0 {
+            return (x, y);
+        }
+        let (s, c) = self.config.frame_angle_deg.to_radians().sin_cos();
+        (c * x + s * y, -s * x + c * y)
+    }
+
+    /// The point in counts of the controller's X and Y, m (the inverse of `to_metres`).
+    fn counts_of_metres(&self, x_m: f64, y_m: f64) -> CountPoint {
+        let (x, y) = if self.config.frame_angle_deg == 0.0 {
+            (x_m, y_m)
+        } else {
+            let (s, c) = self.config.frame_angle_deg.to_radians().sin_cos();
+            (c * x_m - s * y_m, s * x_m + c * y_m)
+        };
+        CountPoint::from_counts(
+            x / self.lateral_m_per_count[0],
+            y / self.lateral_m_per_count[1],
         )
     }
 
@@ -591,10 +636,20 @@ impl NanonisMicroscope {
         let height_m = f64::from(lines) * step * self.lateral_m_per_count[1];
         // Counter scans: the frame turned by 180°, so its +x runs along −x and its "up"
         // along −y.
-        let angle_deg = match request.direction {
-            ScanDirection::Direct => 0.0,
-            ScanDirection::Counter => 180.0,
-        };
+        // Both turned further by the frame angle of the counts convention.
+        let turned = self.config.frame_angle_deg
+            + match request.direction {
+                ScanDirection::Direct => 0.0,
+                ScanDirection::Counter => 180.0,
+            };
+        // In (−180°, 180°].
+        let angle_deg = if turned > 180.0 {
+            turned - 360.0
+        } else if turned <= -180.0 {
+            turned + 360.0
+        } else {
+            turned
+        } as f32;
         self.invalidate_on_reconnect();
         self.stop_running_scan()?;
         if self.sent.buffer != Some((n16 as i32, lines as i32)) {
@@ -718,6 +773,18 @@ impl NanonisMicroscope {
             z_counts: Vec::with_capacity(n * ny),
             time_s: Vec::with_capacity(n * ny),
         });
+        // Started upwards; a frame the controller scanned downwards (a bouncy scan left on,
+        // a start by someone else) has its lines in the other order in time: not the
+        // scan requested.
+        for data in std::iter::once(&forward).chain(backward.as_ref()) {
+            if data.direction_up != 1 {
+                return Err(NanonisError::new(
+                    NanonisErrorKind::Controller,
+                    "the controller scanned the frame downwards; it was started upwards",
+                )
+                .in_command("Scan.FrameDataGrab"));
+            }
+        }
         for line in 0..ny {
             // Rows come top line first: for an upward scan the last line acquired.
             let row = ny - 1 - line;
@@ -849,10 +916,7 @@ impl Microscope for NanonisMicroscope {
             .client
             .call(&Request::FolMeXYPosGet { wait_newest: 0 })?
         {
-            Reply::XY { x_m, y_m } => Ok(CountPoint::from_counts(
-                x_m / self.lateral_m_per_count[0],
-                y_m / self.lateral_m_per_count[1],
-            )),
+            Reply::XY { x_m, y_m } => Ok(self.counts_of_metres(x_m, y_m)),
             other => Err(unexpected("FolMe.XYPosGet", &other)),
         }
     }

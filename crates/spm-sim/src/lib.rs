@@ -143,7 +143,7 @@ pub use config::{
 pub use fault::{FaultEvent, FaultEventKind, FaultKind, FaultTrigger, Operation, SimError};
 pub use oracle::Oracle;
 pub use scanner::{Creep, Jacobian, Lcc, PlayHysteresis, StaticMap, creep_elements};
-pub use sim::Simulator;
+pub use sim::{RasterTurn, Simulator};
 
 mod truth;
 pub use surface::{FeatureKind, FeatureSite, Surface};

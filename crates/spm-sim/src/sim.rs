@@ -761,7 +761,17 @@ impl Simulator {
     }
 
     // long-function: the raster's physics in acquisition order (commanded path, hysteresis, creep, drift, Z reading, noise per pixel) shares one mutable state per pixel; a split would pass that state through every piece
-    fn scan_impl(&mut self, request: &ScanRequest) -> Result<Frame, SimError> {
+    fn scan_impl(
+        &mut self,
+        request: &ScanRequest,
+        turn: Option<RasterTurn>,
+    ) -> Result<Frame, SimError> {
+        // A turn by 0 is no turn (and leaves every position's bits as they are).
+        let turn = turn.filter(|t| t.angle_rad != 0.0);
+        let place = |x: f64, y: f64| match turn {
+            None => [x, y],
+            Some(t) => t.apply(x, y),
+        };
         self.begin_call(Operation::Scan, true)?;
         request.validate().map_err(|e| SimError::InvalidRequest {
             reason: e.to_string(),
@@ -791,11 +801,13 @@ impl Simulator {
                 reason: "counter scans are not supported by this configuration".to_owned(),
             });
         }
-        request
-            .check_inside(caps.field_min, caps.field_max)
-            .map_err(|e| SimError::OutOfRange {
-                reason: e.to_string(),
-            })?;
+        match turn {
+            None => request.check_inside(caps.field_min, caps.field_max),
+            Some(t) => t.check_inside(request, caps.field_min, caps.field_max),
+        }
+        .map_err(|e| SimError::OutOfRange {
+            reason: e.to_string(),
+        })?;
         let nx = request.pixels_per_line as usize;
         let ny = request.lines as usize;
         let dwell = request.pixel_dwell.value();
@@ -803,7 +815,7 @@ impl Simulator {
         // Approach the first pixel at the scan speed.
         let first = request.commanded_position(TraceHalf::Forward, 0, 0);
         self.travel(
-            [first.x.value(), first.y.value()],
+            place(first.x.value(), first.y.value()),
             step / dwell,
             Operation::Scan,
         )?;
@@ -868,26 +880,27 @@ impl Simulator {
             };
         let field_h = self.config.instrument.lateral_half_range_counts;
         let lumped =
-            (backward.is_none() && lumped_n >= 8 && linear_x && advance == 0.0).then(|| {
-                let creep =
-                    self.scanner.creep[0].ramp_coefficients(&factors.creep_decays, lumped_n);
-                // The medium processes miss the updates of the skipped pixels
-                // 0, 8, 16, … < lumped_n: one AR step covers their blocks.
-                let medium_blocks = lumped_n.div_ceil(MEDIUM_FLICKER_PIXELS);
-                let medium_s = (medium_blocks * MEDIUM_FLICKER_PIXELS) as f64 * dwell;
-                let flicker: Vec<(usize, (f64, f64))> = factors
-                    .fast_flicker
-                    .iter()
-                    .map(|&(k, _)| (k, self.flicker.coefficients(k, lumped_n as f64 * dwell)))
-                    .chain(
-                        factors
-                            .medium_flicker
-                            .iter()
-                            .map(|&(k, _)| (k, self.flicker.coefficients(k, medium_s))),
-                    )
-                    .collect();
-                (creep, flicker)
-            });
+            (turn.is_none() && backward.is_none() && lumped_n >= 8 && linear_x && advance == 0.0)
+                .then(|| {
+                    let creep =
+                        self.scanner.creep[0].ramp_coefficients(&factors.creep_decays, lumped_n);
+                    // The medium processes miss the updates of the skipped pixels
+                    // 0, 8, 16, … < lumped_n: one AR step covers their blocks.
+                    let medium_blocks = lumped_n.div_ceil(MEDIUM_FLICKER_PIXELS);
+                    let medium_s = (medium_blocks * MEDIUM_FLICKER_PIXELS) as f64 * dwell;
+                    let flicker: Vec<(usize, (f64, f64))> = factors
+                        .fast_flicker
+                        .iter()
+                        .map(|&(k, _)| (k, self.flicker.coefficients(k, lumped_n as f64 * dwell)))
+                        .chain(
+                            factors
+                                .medium_flicker
+                                .iter()
+                                .map(|&(k, _)| (k, self.flicker.coefficients(k, medium_s))),
+                        )
+                        .collect();
+                    (creep, flicker)
+                });
         for line in 0..ny {
             let row = match request.direction {
                 ScanDirection::Direct => line,
@@ -963,8 +976,9 @@ impl Simulator {
                     }
                     let column = if runs_plus_x { pixel } else { nx - 1 - pixel };
                     let x = ox + step * column as f64;
-                    self.command = [x, y];
-                    let z = self.pixel([x, y], t_mid, &factors, record);
+                    let p = place(x, y);
+                    self.command = p;
+                    let z = self.pixel(p, t_mid, &factors, record);
                     if half == TraceHalf::Forward {
                         forward.z_counts.push(z);
                         forward.time_s.push(t_mid);
@@ -989,6 +1003,74 @@ impl Simulator {
             forward,
             backward,
         })
+    }
+}
+
+/// A raster turned about a point, as a controller's frame angle turns its frame: every
+/// commanded position of the raster turned by `angle_rad` (counter-clockwise) about
+/// `centre`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RasterTurn {
+    /// The point turned about, counts.
+    pub centre: CountPoint,
+    /// The angle, radians, counter-clockwise.
+    pub angle_rad: f64,
+}
+
+impl RasterTurn {
+    fn apply(&self, x: f64, y: f64) -> [f64; 2] {
+        let (s, c) = self.angle_rad.sin_cos();
+        let (cx, cy) = (self.centre.x.value(), self.centre.y.value());
+        let (dx, dy) = (x - cx, y - cy);
+        [cx + c * dx - s * dy, cy + s * dx + c * dy]
+    }
+
+    fn check_inside(
+        &self,
+        request: &ScanRequest,
+        min: CountPoint,
+        max: CountPoint,
+    ) -> Result<(), spm_hal::ScanRequestError> {
+        let (far_x, far_y) = request.far_corner();
+        let (x0, y0) = (request.origin.x.value(), request.origin.y.value());
+        let (x1, y1) = (far_x.value(), far_y.value());
+        let corners = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)].map(|(x, y)| self.apply(x, y));
+        let lo = corners
+            .iter()
+            .fold([f64::INFINITY; 2], |m, p| [m[0].min(p[0]), m[1].min(p[1])]);
+        let hi = corners.iter().fold([f64::NEG_INFINITY; 2], |m, p| {
+            [m[0].max(p[0]), m[1].max(p[1])]
+        });
+        if lo[0] < min.x.value()
+            || lo[1] < min.y.value()
+            || hi[0] > max.x.value()
+            || hi[1] > max.y.value()
+        {
+            return Err(spm_hal::ScanRequestError::OutsideField {
+                min_x: lo[0],
+                max_x: hi[0],
+                min_y: lo[1],
+                max_y: hi[1],
+            });
+        }
+        Ok(())
+    }
+}
+
+impl Simulator {
+    /// A raster scan turned about a point ([`RasterTurn`]): the physics of
+    /// [`Microscope::scan`] along the turned path. The frame's request is the raster before
+    /// the turn; a turn by 0 is exactly [`Microscope::scan`].
+    pub fn scan_turned(
+        &mut self,
+        request: &ScanRequest,
+        turn: RasterTurn,
+    ) -> Result<Frame, SimError> {
+        let result = self.scan_impl(request, Some(turn));
+        if let Err(e) = &result {
+            tracing::debug!(error = %e, "simulated turned scan failed");
+        }
+        result
     }
 }
 
@@ -1061,7 +1143,7 @@ impl Microscope for Simulator {
     }
 
     fn scan(&mut self, request: &ScanRequest) -> Result<Frame, SimError> {
-        let result = self.scan_impl(request);
+        let result = self.scan_impl(request, None);
         if let Err(e) = &result {
             tracing::debug!(error = %e, "simulated scan failed");
         }

@@ -126,8 +126,10 @@ fn table(files: &[PathBuf], spms: &[spm_formats::SpmFile]) -> Result<(), CliErro
         let info = spm.info();
         let (offset, angle) = geometry(spm);
         rows.push([
-            file.file_name()
-                .map_or_else(|| file.display().to_string(), |n| n.to_string_lossy().into_owned()),
+            file.file_name().map_or_else(
+                || file.display().to_string(),
+                |n| n.to_string_lossy().into_owned(),
+            ),
             info.format.to_string(),
             info.pixels.map_or_else(dash, |[x, y]| format!("{x}×{y}")),
             info.size_nm

@@ -422,20 +422,22 @@ pub fn fit_plane(
     ))
 }
 
+/// The records' bounding box (the calibrated region's one definition,
+/// [`CountRegion::bounding`]); an empty or non-finite set has no extent (infinite bounds).
 pub(crate) fn extent(x: &[f64], y: &[f64]) -> Field {
-    let fold = |v: &[f64]| {
-        v.iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &t| {
-                (lo.min(t), hi.max(t))
-            })
-    };
-    let (x_min, x_max) = fold(x);
-    let (y_min, y_max) = fold(y);
-    Field {
-        x_min,
-        x_max,
-        y_min,
-        y_max,
+    match CountRegion::bounding(x, y, 0.0) {
+        Some(r) => Field {
+            x_min: r.x_min_counts,
+            x_max: r.x_max_counts,
+            y_min: r.y_min_counts,
+            y_max: r.y_max_counts,
+        },
+        None => Field {
+            x_min: f64::INFINITY,
+            x_max: f64::NEG_INFINITY,
+            y_min: f64::INFINITY,
+            y_max: f64::NEG_INFINITY,
+        },
     }
 }
 

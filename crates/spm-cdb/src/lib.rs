@@ -338,6 +338,17 @@ fn invalid(path: &Path, reason: String) -> CdbError {
     }
 }
 
+/// Checks a run's ids before it is stored ([`spm_records::id_problem`]: not blank, no
+/// control or format characters).
+pub(crate) fn check_run_ids(path: &Path, run: &RunInfo) -> Result<()> {
+    for (what, id) in [("run id", &run.run_id), ("scanner id", &run.scanner_id)] {
+        if let Some(why) = spm_records::id_problem(id) {
+            return Err(invalid(path, format!("{what} {why}")));
+        }
+    }
+    Ok(())
+}
+
 fn check_time(path: &Path, what: &str, t: f64) -> Result<()> {
     if t.is_finite() {
         Ok(())
@@ -418,7 +429,8 @@ fn create_atomically(path: &Path, options: &OpenOptions) -> Result<()> {
     };
     remove_tmp();
     let result = (|| {
-        let err = |e| CdbError::sqlite(&tmp, e);
+        // Errors name the CDB, not the hidden file it is made in.
+        let err = |e| CdbError::sqlite(path, e);
         let mut conn = Connection::open_with_flags(
             &tmp,
             OpenFlags::SQLITE_OPEN_READ_WRITE
@@ -432,7 +444,7 @@ fn create_atomically(path: &Path, options: &OpenOptions) -> Result<()> {
             .map_err(err)?;
         conn.pragma_update(None, "synchronous", "FULL")
             .map_err(err)?;
-        schema::initialise_or_migrate(&mut conn, &tmp)?;
+        schema::initialise_or_migrate(&mut conn, path)?;
         // Closing the only connection checkpoints the WAL into the file and deletes it.
         conn.close().map_err(|(_, e)| err(e))?;
         match std::fs::hard_link(&tmp, path) {
@@ -446,6 +458,30 @@ fn create_atomically(path: &Path, options: &OpenOptions) -> Result<()> {
     })();
     remove_tmp();
     result
+}
+
+/// Checks that the folder a new CDB goes into exists (issue 25: a CDB in a missing folder
+/// failed with an SQLite error naming the hidden file it is created in, exit 1).
+fn check_folder(path: &Path) -> Result<()> {
+    let folder = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => return Ok(()),
+    };
+    match std::fs::metadata(folder) {
+        Ok(meta) if meta.is_dir() => Ok(()),
+        Ok(_) => Err(CdbError::NotFound {
+            path: path.to_path_buf(),
+            what: format!("folder {} (it is not a directory)", folder.display()),
+        }),
+        Err(_) => Err(CdbError::NotFound {
+            path: path.to_path_buf(),
+            what: format!(
+                "folder {} (create it first: a new database is made only in an existing \
+                 folder)",
+                folder.display()
+            ),
+        }),
+    }
 }
 
 /// The hidden creation files (`.NAME.creating-PID` and its `-wal`, `-shm`, `-journal`)
@@ -570,6 +606,7 @@ impl Cdb {
                 what: "database file".into(),
             });
         } else {
+            check_folder(&path)?;
             create_atomically(&path, options)?;
         }
         let mut conn = Connection::open_with_flags(
@@ -696,9 +733,7 @@ impl Cdb {
     /// or non-finite times.
     pub fn create_run(&mut self, run: &RunInfo) -> Result<()> {
         let path = self.path.clone();
-        if run.run_id.is_empty() || run.scanner_id.is_empty() {
-            return Err(invalid(&path, "empty run or scanner id".into()));
-        }
+        check_run_ids(&path, run)?;
         check_time(&path, "started_unix_s", run.started_unix_s)?;
         if let Some(t) = run.finished_unix_s {
             check_time(&path, "finished_unix_s", t)?;

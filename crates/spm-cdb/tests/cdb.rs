@@ -991,3 +991,212 @@ fn postgres_one_node_from_two_programs_is_stored_once() {
     assert_eq!(cdb.progress_summary(&r.run_id).unwrap().done, 40);
     assert!(cdb.check().unwrap().is_ok());
 }
+
+/// Issue 25 item 5: `PRAGMA integrity_check` on a read-only connection skips CHECK
+/// constraints, so a run status damaged to "finishe\0" and a plan state outside its set
+/// passed `cdb check`. Each is now found by a query, as is a NULL in a NOT NULL column
+/// (which integrity_check reports, but as structural damage that ended the check before
+/// the other findings).
+#[test]
+fn sqlite_check_finds_check_and_not_null_violations() {
+    let path = db_path("constraint_violations");
+    let r = run("run-1", "S", T0);
+    let nodes = plan(3);
+    {
+        let mut cdb = Cdb::open(&path).unwrap();
+        cdb.create_run(&r).unwrap();
+        cdb.register_plan(&r.run_id, &nodes).unwrap();
+        cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &nodes[0], 0, T0)])
+            .unwrap();
+    }
+    let raw = Connection::open(&path).unwrap();
+    raw.execute_batch(
+        "PRAGMA ignore_check_constraints = ON;
+         UPDATE runs SET status = CAST(X'66696E6973686500' AS TEXT);
+         UPDATE progress SET state = 'dome' WHERE node_index = 1;",
+    )
+    .unwrap();
+    drop(raw);
+    let report = Cdb::open_read_only(&path).unwrap().check().unwrap();
+    let kinds: Vec<&str> = report.problems.iter().map(|p| p.kind.as_str()).collect();
+    assert!(!report.is_ok(), "damage not found: {report:?}");
+    for expected in ["invalid_status", "invalid_state"] {
+        assert!(
+            kinds.contains(&expected),
+            "{expected} missing in {report:?}"
+        );
+    }
+    assert!(
+        report
+            .problems
+            .iter()
+            .any(|p| p.detail.contains("66696E6973686500")),
+        "the damaged bytes are shown: {report:?}"
+    );
+    // A NULL where the schema says NOT NULL (only possible by editing the schema) is
+    // found as well, with the CHECK violations.
+    let raw = Connection::open(&path).unwrap();
+    raw.execute_batch(
+        "PRAGMA writable_schema = ON;
+         UPDATE sqlite_master SET sql = replace(sql, 'config          TEXT NOT NULL', \
+           'config          TEXT') WHERE name = 'runs';",
+    )
+    .unwrap();
+    drop(raw);
+    let raw = Connection::open(&path).unwrap();
+    raw.execute_batch("UPDATE runs SET config = NULL;").unwrap();
+    raw.execute_batch(
+        "PRAGMA writable_schema = ON;
+         UPDATE sqlite_master SET sql = replace(sql, 'config          TEXT,', \
+           'config          TEXT NOT NULL,') WHERE name = 'runs';",
+    )
+    .unwrap();
+    drop(raw);
+    let report = Cdb::open_read_only(&path).unwrap().check().unwrap();
+    let kinds: Vec<&str> = report.problems.iter().map(|p| p.kind.as_str()).collect();
+    for expected in ["invalid_status", "invalid_state", "null_value"] {
+        assert!(
+            kinds.contains(&expected),
+            "{expected} missing in {report:?}"
+        );
+    }
+    assert!(
+        report
+            .problems
+            .iter()
+            .any(|p| p.detail.contains("runs.config") && p.detail.contains("run-1")),
+        "{report:?}"
+    );
+}
+
+/// Issue 25 item 17: a scanner id such as `=1+2+cmd|calc!A0` was exported unquoted, so a
+/// spreadsheet opening the CSV ran it as a formula. Text fields are now quoted and a
+/// leading `=`, `+`, `-`, `@` (or tab, CR) is neutralised with `'` (OWASP); ids with bidi
+/// or other format characters are refused when stored.
+#[test]
+fn csv_export_neutralises_formulas_and_ids_refuse_format_characters() {
+    let path = db_path("csv_injection");
+    let mut cdb = Cdb::open(&path).unwrap();
+    for (k, id) in ["=1+2+cmd|calc!A0", "@SUM(A1)", "-2+3", "+A1", "plain"]
+        .into_iter()
+        .enumerate()
+    {
+        let r = run(&format!("run-{k}"), id, T0 + k as f64);
+        let nodes = plan(1);
+        cdb.create_run(&r).unwrap();
+        cdb.register_plan(&r.run_id, &nodes).unwrap();
+        cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &nodes[0], 0, T0)])
+            .unwrap();
+    }
+    let mut out = Vec::new();
+    cdb.export_csv(&RecordFilter::default(), &mut out).unwrap();
+    let text = String::from_utf8(out).unwrap();
+    for line in text.lines().skip(1) {
+        let scanner = line.split(',').nth(1).unwrap();
+        assert!(scanner.starts_with('"'), "unquoted text field in {line}");
+        let inner = scanner.trim_matches('"');
+        assert!(
+            !inner.starts_with(['=', '+', '-', '@']),
+            "formula left in {line}"
+        );
+    }
+    assert!(text.contains("\"'=1+2+cmd|calc!A0\""), "{text}");
+    assert!(text.contains("\"plain\""), "{text}");
+    // Negative numbers stay numbers.
+    assert!(
+        text.contains(",-0.5,") || text.contains(",-0.02,"),
+        "{text}"
+    );
+    for bad in [
+        "scan\u{202E}ner",
+        "a\u{200B}b",
+        "tab\there",
+        "x\u{2066}y",
+        "nul\0",
+    ] {
+        let r = run(&format!("bad-{}", bad.len()), bad, T0);
+        let e = cdb.create_run(&r).unwrap_err();
+        assert_eq!(e.kind(), ErrorKind::InvalidInput, "{bad:?}: {e}");
+        assert!(e.to_string().contains("scanner id"), "{e}");
+        let mut run_id_bad = run("ok", "S", T0);
+        run_id_bad.run_id = bad.to_owned();
+        assert_eq!(
+            cdb.create_run(&run_id_bad).unwrap_err().kind(),
+            ErrorKind::InvalidInput
+        );
+    }
+    assert!(cdb.check().unwrap().is_ok());
+}
+
+/// The URL of `url`'s database for another role (trust authentication on the test server).
+fn as_role(url: &str, role: &str) -> String {
+    url.replacen("postgres://postgres@", &format!("postgres://{role}@"), 1)
+}
+
+/// Issue 25 item 8: an account whose own schema is on its `search_path` (the default
+/// `"$user", public`) reads a CDB made in `public`; the schema lookups filtered on
+/// `current_schema()` (the account's empty schema) while the queries found `public`'s
+/// tables, so `check` reported every column missing.
+#[test]
+fn postgres_an_account_with_its_own_schema_reads_a_cdb_in_public() {
+    let pg = common::postgres();
+    let url = pg.fresh("pg_own_schema");
+    let r = run("run-1", "S", T0);
+    let nodes = plan(2);
+    {
+        let mut cdb = PgCdb::open(&url).unwrap();
+        cdb.create_run(&r).unwrap();
+        cdb.register_plan(&r.run_id, &nodes).unwrap();
+        cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &nodes[0], 0, T0)])
+            .unwrap();
+    }
+    pg.raw_sql(
+        &url,
+        "DROP ROLE IF EXISTS alice; CREATE ROLE alice LOGIN;
+         GRANT SELECT ON ALL TABLES IN SCHEMA public TO alice;
+         CREATE SCHEMA alice AUTHORIZATION alice;",
+    );
+    let cdb = PgCdb::open_read_only(&as_role(&url, "alice")).unwrap();
+    let report = cdb.check().unwrap();
+    assert!(report.is_ok(), "{report:?}");
+    assert_eq!(cdb.count_records(&RecordFilter::default()).unwrap(), 1);
+    assert_eq!(cdb.runs(None).unwrap().len(), 1);
+}
+
+/// Issue 25 item 9: every server-side error read "PostgreSQL error: db error". The
+/// server's message and SQLSTATE are shown, and a missing database or a missing privilege
+/// is `AccessDenied` (bad input), not a run failure.
+#[test]
+fn postgres_server_errors_show_the_servers_message_and_access_errors_are_bad_input() {
+    let pg = common::postgres();
+    let url = pg.fresh("pg_messages");
+    drop(PgCdb::open(&url).unwrap());
+    let missing = url.replace("/pg_messages", "/pg_no_such_database");
+    let e = PgCdb::open_read_only(&missing).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::AccessDenied, "{e}");
+    let text = e.to_string();
+    assert!(
+        text.contains("pg_no_such_database") && text.contains("does not exist"),
+        "{text}"
+    );
+    assert!(text.contains("3D000"), "{text}");
+    assert!(!text.contains("db error"), "{text}");
+    pg.raw_sql(&url, "DROP ROLE IF EXISTS bob; CREATE ROLE bob LOGIN;");
+    let e = PgCdb::open_read_only(&as_role(&url, "bob")).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::AccessDenied, "{e}");
+    assert!(e.to_string().contains("permission denied"), "{e}");
+    assert!(e.to_string().contains("42501"), "{e}");
+    // A server error of another kind names the server's words too.
+    let mut cdb = PgCdb::open(&url).unwrap();
+    let e = cdb
+        .batch_execute_raw("SELECT * FROM no_such_table")
+        .unwrap_err();
+    assert!(
+        e.to_string().contains("no_such_table") && e.to_string().contains("42P01"),
+        "{e}"
+    );
+    // A URL without a host is bad input naming what is missing.
+    let e = PgCdb::open_read_only("postgres://").unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::InvalidInput, "{e}");
+    assert!(e.to_string().contains("no host"), "{e}");
+}

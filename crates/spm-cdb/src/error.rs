@@ -35,6 +35,9 @@ pub enum ErrorKind {
     /// not exist, or the account lacks a privilege (bad input: the URL or the account is
     /// wrong, not the run).
     AccessDenied,
+    /// The database, its write-ahead log and its identity file do not belong together (a
+    /// foreign or stale `-wal`, a replaced or restored file); nothing was written.
+    IdentityMismatch,
 }
 
 /// An error of the calibration database; every variant names the database file.
@@ -143,6 +146,14 @@ pub enum CdbError {
         /// Underlying SQLite error.
         source: rusqlite::Error,
     },
+    /// See [`ErrorKind::IdentityMismatch`].
+    #[error("{}: {reason}", path.display())]
+    IdentityMismatch {
+        /// Database file.
+        path: PathBuf,
+        /// What does not belong, and how to put it right.
+        reason: String,
+    },
     /// See [`ErrorKind::AccessDenied`].
     #[error("{}: access denied: {reason}", path.display())]
     AccessDenied {
@@ -179,6 +190,7 @@ impl CdbError {
             Self::Io { .. } => ErrorKind::Io,
             Self::Sqlite { .. } => ErrorKind::Sqlite,
             Self::AccessDenied { .. } => ErrorKind::AccessDenied,
+            Self::IdentityMismatch { .. } => ErrorKind::IdentityMismatch,
             #[cfg(feature = "postgres")]
             Self::Postgres { .. } => ErrorKind::Postgres,
         }
@@ -199,7 +211,8 @@ impl CdbError {
             | Self::Busy { path, .. }
             | Self::Io { path, .. }
             | Self::Sqlite { path, .. }
-            | Self::AccessDenied { path, .. } => path,
+            | Self::AccessDenied { path, .. }
+            | Self::IdentityMismatch { path, .. } => path,
             #[cfg(feature = "postgres")]
             Self::Postgres { path, .. } => path,
         }

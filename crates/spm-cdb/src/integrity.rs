@@ -256,6 +256,17 @@ pub(crate) fn check(conn: &Connection, path: &Path) -> Result<IntegrityReport> {
          AND (reason IS NULL OR reason = '')",
     )?;
     c.rows(
+        "identity",
+        "SELECT 'cdb_identity holds ' || count(*) || ' rows, expected 1' FROM cdb_identity \
+         HAVING count(*) != 1",
+    )?;
+    c.rows(
+        "foreign_run",
+        "SELECT 'run ' || quote(run_id) || ': cdb_id ' || quote(cdb_id) || \
+         ' is not this database''s id' FROM runs WHERE coalesce(cdb_id, '') != \
+         coalesce((SELECT id FROM cdb_identity ORDER BY rowid LIMIT 1), '') ORDER BY run_id",
+    )?;
+    c.rows(
         "scanner_mismatch",
         "SELECT 'record id ' || r.id || ': scanner ' || quote(r.scanner_id) || \
          ' but run ' || quote(r.run_id) || ' is on ' || quote(u.scanner_id) \

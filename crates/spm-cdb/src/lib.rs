@@ -39,6 +39,7 @@ pub mod bench_support;
 mod columns;
 mod error;
 mod export;
+mod identity;
 mod integrity;
 #[cfg(feature = "postgres")]
 pub mod pg_server;
@@ -591,6 +592,7 @@ impl Cdb {
         if path.exists() {
             // Look read-only first: a file we refuse must not be written to, not even by
             // switching its journal mode.
+            let looked = identity::Looked::before_open(&path);
             let ro = Connection::open_with_flags(
                 &path,
                 OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX,
@@ -599,6 +601,7 @@ impl Cdb {
             ro.busy_timeout(options.busy_timeout).map_err(err)?;
             let p = schema::probe(&ro).map_err(err)?;
             schema::check_probe(&path, &p)?;
+            looked.verify(&path, &ro)?;
             drop(ro);
         } else if !options.create {
             return Err(CdbError::NotFound {
@@ -607,6 +610,8 @@ impl Cdb {
             });
         } else {
             check_folder(&path)?;
+            // A new database: an identity file left by a removed one means nothing.
+            identity::remove_stale_sidecar(&path);
             create_atomically(&path, options)?;
         }
         let mut conn = Connection::open_with_flags(
@@ -632,6 +637,9 @@ impl Cdb {
             .map_err(err)?;
         tune_cache(&conn).map_err(err)?;
         schema::initialise_or_migrate(&mut conn, &path)?;
+        if let Some(current) = identity::read(&conn).map_err(err)? {
+            identity::write_sidecar(&path, &current);
+        }
         tracing::debug!(path = %path.display(), "CDB open");
         Ok(Self { conn, path })
     }
@@ -650,6 +658,7 @@ impl Cdb {
                 what: "database file".into(),
             });
         }
+        let looked = identity::Looked::before_open(&path);
         let open = |immutable: bool| -> rusqlite::Result<(Connection, schema::Probe)> {
             let flags = OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX;
             let conn = if immutable {
@@ -677,6 +686,9 @@ impl Cdb {
         };
         tune_cache(&conn).map_err(err)?;
         schema::check_probe(&path, &p)?;
+        if p.user_version >= SCHEMA_VERSION {
+            looked.verify(&path, &conn)?;
+        }
         if p.user_version == 0 {
             return Err(CdbError::NotACdb {
                 path,
@@ -720,6 +732,18 @@ impl Cdb {
         })
     }
 
+    /// Commits a write transaction after stepping the identity's generation, then records
+    /// the new generation in the identity file (see [`identity`]).
+    fn commit(path: &Path, tx: rusqlite::Transaction<'_>) -> Result<()> {
+        let err = |e| CdbError::sqlite(path, e);
+        let stamp = identity::bump(&tx).map_err(err)?;
+        tx.commit().map_err(err)?;
+        if let Some(stamp) = stamp {
+            identity::write_sidecar(path, &stamp);
+        }
+        Ok(())
+    }
+
     fn write_tx(&mut self) -> Result<rusqlite::Transaction<'_>> {
         self.conn
             .transaction_with_behavior(TransactionBehavior::Immediate)
@@ -748,7 +772,8 @@ impl Cdb {
         }
         tx.execute(
             "INSERT INTO runs (run_id, scanner_id, config, started_unix_s, finished_unix_s, \
-             status) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+             status, cdb_id) VALUES (?1, ?2, ?3, ?4, ?5, ?6, \
+             (SELECT id FROM cdb_identity ORDER BY rowid LIMIT 1))",
             params![
                 run.run_id,
                 run.scanner_id,
@@ -759,7 +784,7 @@ impl Cdb {
             ],
         )
         .map_err(err)?;
-        tx.commit().map_err(err)?;
+        Self::commit(&path, tx)?;
         tracing::info!(run_id = %run.run_id, scanner_id = %run.scanner_id, "run created");
         Ok(())
     }
@@ -778,8 +803,8 @@ impl Cdb {
         let path = self.path.clone();
         check_time(&path, "finished_unix_s", finished_unix_s)?;
         let err = |e| CdbError::sqlite(&path, e);
-        let n = self
-            .conn
+        let tx = self.write_tx()?;
+        let n = tx
             .execute(
                 "UPDATE runs SET status = ?2, finished_unix_s = ?3 WHERE run_id = ?1",
                 params![run_id, status.as_str(), finished_unix_s],
@@ -791,6 +816,7 @@ impl Cdb {
                 what: format!("run {run_id:?}"),
             });
         }
+        Self::commit(&path, tx)?;
         tracing::info!(run_id, status = status.as_str(), "run finished");
         Ok(())
     }
@@ -819,7 +845,7 @@ impl Cdb {
             params![run_id],
         )
         .map_err(err)?;
-        tx.commit().map_err(err)?;
+        Self::commit(&path, tx)?;
         tracing::info!(run_id, "run reopened");
         Ok(())
     }
@@ -888,7 +914,7 @@ impl Cdb {
                 .map_err(err)?;
             }
         }
-        tx.commit().map_err(err)?;
+        Self::commit(&path, tx)?;
         tracing::debug!(run_id, nodes = nodes.len(), "plan registered");
         Ok(())
     }
@@ -976,7 +1002,7 @@ impl Cdb {
             ],
         )
         .map_err(err)?;
-        tx.commit().map_err(err)?;
+        Self::commit(&path, tx)?;
         tracing::debug!(
             run_id,
             repeat = done.repeat_index,
@@ -1049,7 +1075,7 @@ impl Cdb {
             ],
         )
         .map_err(err)?;
-        tx.commit().map_err(err)?;
+        Self::commit(&path, tx)?;
         tracing::warn!(run_id, repeat_index, node_index, reason, "node given up");
         Ok(())
     }
@@ -1081,7 +1107,7 @@ impl Cdb {
                 n += 1;
             }
         }
-        tx.commit().map_err(err)?;
+        Self::commit(&path, tx)?;
         tracing::info!(records = n, "records imported");
         Ok(n)
     }

@@ -160,6 +160,9 @@ fn percent_encode(text: &str) -> String {
 /// - v1: runs, progress, records without standard uncertainties.
 /// - v2: records gain the standard uncertainties (NULL = unknown for records migrated from v1).
 /// - v3: records gain `kz_x_counts`, `kz_y_counts`, where Kz was measured (NULL = no Kz).
+/// - v4: the CDB identity: `cdb_identity` (a random id, a generation) and `runs.cdb_id`
+///   (the database's id in every run row; the write-ahead-log checks of the file are the
+///   server's business here).
 const V1_DESCRIPTION: &str = "runs, progress, records";
 
 /// Record columns added by later versions (absent from the v1 `records` table).
@@ -185,6 +188,14 @@ const MIGRATIONS: &[(&str, &str)] = &[
         "where Kz was measured",
         "ALTER TABLE records ADD COLUMN kz_x_counts DOUBLE PRECISION;
      ALTER TABLE records ADD COLUMN kz_y_counts DOUBLE PRECISION;",
+    ),
+    (
+        "the CDB identity",
+        "CREATE TABLE cdb_identity (id TEXT NOT NULL, generation BIGINT NOT NULL);
+     INSERT INTO cdb_identity (id, generation)
+         VALUES (md5(random()::TEXT || clock_timestamp()::TEXT), 1);
+     ALTER TABLE runs ADD COLUMN cdb_id TEXT;
+     UPDATE runs SET cdb_id = (SELECT id FROM cdb_identity);",
     ),
 ];
 
@@ -774,7 +785,8 @@ impl PgCdb {
             .get_mut()
             .execute(
                 "INSERT INTO runs (run_id, scanner_id, config, started_unix_s, finished_unix_s, \
-                 status) VALUES ($1, $2, $3, $4, $5, $6) ON CONFLICT (run_id) DO NOTHING",
+                 status, cdb_id) VALUES ($1, $2, $3, $4, $5, $6, \
+                 (SELECT id FROM cdb_identity LIMIT 1)) ON CONFLICT (run_id) DO NOTHING",
                 &[
                     &run.run_id,
                     &run.scanner_id,
@@ -1478,6 +1490,9 @@ fn expected_columns() -> Vec<(&'static str, &'static str, &'static str, bool)> {
         ("runs", "started_unix_s", "double precision", false),
         ("runs", "finished_unix_s", "double precision", true),
         ("runs", "status", "text", false),
+        ("runs", "cdb_id", "text", true),
+        ("cdb_identity", "id", "text", false),
+        ("cdb_identity", "generation", "bigint", false),
         ("records", "id", "bigint", false),
     ];
     for c in [
@@ -1513,7 +1528,8 @@ fn stored_columns(db: &PgCdb) -> Result<HashMap<(String, String), (String, bool)
     db.query_rows(
         "SELECT table_name::TEXT, column_name::TEXT, data_type::TEXT, is_nullable = 'YES' \
          FROM information_schema.columns WHERE table_schema = current_schema() \
-         AND table_name IN ('schema_version', 'runs', 'progress', 'records')",
+         AND table_name IN ('schema_version', 'runs', 'progress', 'records', \
+         'cdb_identity')",
         &[],
     )?
     .iter()
@@ -1654,6 +1670,17 @@ fn integrity_check(db: &PgCdb) -> Result<IntegrityReport> {
         "SELECT 'run ' || quote_literal(run_id) || ', repeat ' || repeat_index || ', node ' || \
          node_index || ' given up without a reason' FROM progress WHERE state = 'given_up' \
          AND (reason IS NULL OR btrim(reason) = '')",
+    )?;
+    c.rows(
+        "identity",
+        "SELECT 'cdb_identity holds ' || count(*) || ' rows, expected 1' FROM cdb_identity \
+         HAVING count(*) <> 1",
+    )?;
+    c.rows(
+        "foreign_run",
+        "SELECT 'run ' || quote_literal(run_id) || ': cdb_id ' || quote_nullable(cdb_id) || \
+         ' is not this database''s id' FROM runs WHERE coalesce(cdb_id, '') <> \
+         coalesce((SELECT id FROM cdb_identity LIMIT 1), '') ORDER BY run_id",
     )?;
     c.rows(
         "scanner_mismatch",

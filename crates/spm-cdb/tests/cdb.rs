@@ -371,9 +371,9 @@ fn migrates_v1_file() {
     assert_eq!(std::fs::read(&path).unwrap(), before);
 
     let mut cdb = Cdb::open(&path).unwrap();
-    // v1 → v2 → v3 in one open; the stored values are untouched, the new columns NULL.
+    // v1 → v2 → v3 → v4 in one open; the stored values are untouched, the new columns NULL.
     assert_eq!(cdb.schema_version().unwrap(), SCHEMA_VERSION);
-    assert_eq!(SCHEMA_VERSION, 3);
+    assert_eq!(SCHEMA_VERSION, 4);
     let old = cdb.records(&RecordFilter::default()).unwrap();
     assert_eq!(old.len(), 1);
     assert_eq!(old[0].kx_nm_per_count, 0.0201);
@@ -815,7 +815,7 @@ fn postgres_migrates_v1_database() {
     assert_eq!(pg_versions(&url), [1]);
 
     let mut cdb = PgCdb::open(&url).unwrap();
-    assert_eq!(pg_versions(&url), [1, 2, 3]);
+    assert_eq!(pg_versions(&url), [1, 2, 3, 4]);
     assert_eq!(cdb.schema_version().unwrap(), SCHEMA_VERSION);
     let old = cdb.records(&RecordFilter::default()).unwrap();
     assert_eq!(old.len(), 1);
@@ -835,7 +835,7 @@ fn postgres_migrates_v1_database() {
     assert_eq!(all[1].u_kx_nm_per_count, Some(1e-5));
     drop(cdb);
     drop(PgCdb::open(&url).unwrap()); // a no-op
-    assert_eq!(pg_versions(&url), [1, 2, 3]);
+    assert_eq!(pg_versions(&url), [1, 2, 3, 4]);
     let ro = PgCdb::open_read_only(&url).unwrap();
     assert_eq!(ro.count_records(&RecordFilter::default()).unwrap(), 2);
 }
@@ -1199,4 +1199,116 @@ fn postgres_server_errors_show_the_servers_message_and_access_errors_are_bad_inp
     let e = PgCdb::open_read_only("postgres://").unwrap_err();
     assert_eq!(e.kind(), ErrorKind::InvalidInput, "{e}");
     assert!(e.to_string().contains("no host"), "{e}");
+}
+
+/// A CDB with one run and `nodes` committed nodes, left open (its write-ahead log holds
+/// the commits).
+fn open_with_commits(path: &std::path::Path, scanner: &str, nodes: u32) -> Cdb {
+    let r = run("run-1", scanner, T0);
+    let plan_nodes = plan(3);
+    let mut cdb = Cdb::open(path).unwrap();
+    cdb.create_run(&r).unwrap();
+    cdb.register_plan(&r.run_id, &plan_nodes).unwrap();
+    for n in &plan_nodes[..nodes as usize] {
+        let t = T0 + f64::from(n.node_index);
+        cdb.commit_node(&r.run_id, &done(n.node_index, t), &[record(&r, n, 0, t)])
+            .unwrap();
+    }
+    cdb
+}
+
+fn with_suffix(path: &std::path::Path, suffix: &str) -> std::path::PathBuf {
+    let mut s = path.as_os_str().to_owned();
+    s.push(suffix);
+    s.into()
+}
+
+/// Issue 25 item 2: SQLite replays a `-wal` beside a database without asking whether it
+/// belongs: a log copied from another CDB, or left from before (older than the database),
+/// was applied silently and the check said ok. Both are now refused before anything is
+/// written, with the way out in the message; a database older than its identity file
+/// (a restored backup) too.
+#[test]
+fn sqlite_a_foreign_or_stale_log_is_refused_before_anything_is_written() {
+    // A foreign log: A's log beside B.
+    let a = db_path("identity_a");
+    let b = db_path("identity_b");
+    let cdb_a = open_with_commits(&a, "A", 2);
+    let log_of_a = std::fs::read(with_suffix(&a, "-wal")).unwrap();
+    assert!(!log_of_a.is_empty());
+    drop(cdb_a);
+    drop(open_with_commits(&b, "B", 1));
+    std::fs::write(with_suffix(&b, "-wal"), &log_of_a).unwrap();
+    let before = (std::fs::read(&b).unwrap(), log_of_a.clone());
+    for e in [
+        Cdb::open_read_only(&b).unwrap_err(),
+        Cdb::open(&b).unwrap_err(),
+    ] {
+        assert_eq!(e.kind(), ErrorKind::IdentityMismatch, "{e}");
+        let text = e.to_string();
+        assert!(
+            text.contains("does not belong") && text.contains("mv "),
+            "{text}"
+        );
+    }
+    let after = (
+        std::fs::read(&b).unwrap(),
+        std::fs::read(with_suffix(&b, "-wal")).unwrap(),
+    );
+    assert!(
+        after == before,
+        "a refused open wrote to the database or its log"
+    );
+    // Moved aside as the message says, B opens as it was.
+    std::fs::rename(with_suffix(&b, "-wal"), with_suffix(&b, "-wal.stale")).unwrap();
+    let _ = std::fs::remove_file(with_suffix(&b, "-shm"));
+    let cdb_b = Cdb::open_read_only(&b).unwrap();
+    assert_eq!(cdb_b.scanners().unwrap(), vec!["B".to_owned()]);
+    assert!(cdb_b.check().unwrap().is_ok());
+    drop(cdb_b);
+
+    // A stale log: the log of an earlier moment beside the database that went on.
+    let c = db_path("identity_stale");
+    let cdb_c = open_with_commits(&c, "C", 1);
+    let early_log = std::fs::read(with_suffix(&c, "-wal")).unwrap();
+    drop(cdb_c);
+    let mut cdb_c = Cdb::open(&c).unwrap();
+    let r = cdb_c.run("run-1").unwrap().unwrap();
+    let nodes = plan(3);
+    cdb_c
+        .commit_node(
+            "run-1",
+            &done(1, T0 + 9.0),
+            &[record(&r, &nodes[1], 0, T0 + 9.0)],
+        )
+        .unwrap();
+    drop(cdb_c);
+    std::fs::write(with_suffix(&c, "-wal"), &early_log).unwrap();
+    let e = Cdb::open_read_only(&c).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::IdentityMismatch, "{e}");
+    assert!(e.to_string().contains("older than the database"), "{e}");
+    std::fs::remove_file(with_suffix(&c, "-wal")).unwrap();
+    let _ = std::fs::remove_file(with_suffix(&c, "-shm"));
+    assert_eq!(
+        Cdb::open_read_only(&c)
+            .unwrap()
+            .count_records(&RecordFilter::default())
+            .unwrap(),
+        2
+    );
+
+    // A restored backup: the file is older than the generation its identity file records.
+    let backup = std::fs::read(&c).unwrap();
+    {
+        let mut cdb_c = Cdb::open(&c).unwrap();
+        cdb_c
+            .finish_run("run-1", RunStatus::Finished, T0 + 99.0)
+            .unwrap();
+    }
+    std::fs::write(&c, &backup).unwrap();
+    let e = Cdb::open(&c).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::IdentityMismatch, "{e}");
+    assert!(e.to_string().contains("-identity"), "{e}");
+    std::fs::remove_file(with_suffix(&c, "-identity")).unwrap();
+    assert!(Cdb::open(&c).unwrap().check().unwrap().is_ok());
 }

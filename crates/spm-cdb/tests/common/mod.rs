@@ -9,7 +9,7 @@ pub fn db_path(name: &str) -> PathBuf {
     let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("spm-cdb-tests");
     std::fs::create_dir_all(&dir).unwrap();
     let p = dir.join(format!("{name}.sqlite"));
-    for suffix in ["", "-wal", "-shm", "-journal"] {
+    for suffix in ["", "-wal", "-shm", "-journal", "-identity"] {
         let mut f = p.clone().into_os_string();
         f.push(suffix);
         let _ = std::fs::remove_file(PathBuf::from(f));

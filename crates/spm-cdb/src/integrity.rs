@@ -218,6 +218,27 @@ pub(crate) fn check(conn: &Connection, path: &Path) -> Result<IntegrityReport> {
             &format!("typeof({col}) = 'integer' AND {col} < 0"),
         )?;
     }
+    relation_checks(&mut c)?;
+    let runs = run_configs(conn, path)?;
+    plausibility_pass(
+        &runs,
+        &mut |each| crate::query::for_each_record(conn, path, &RecordFilter::default(), each),
+        &mut c.report,
+    )?;
+    if !c.report.problems.is_empty() {
+        tracing::warn!(
+            path = %path.display(),
+            problems = c.report.problems.len(),
+            "CDB integrity problems"
+        );
+    }
+    Ok(c.report)
+}
+
+/// How records, plan nodes and runs relate: no duplicate record, done nodes with records
+/// and unfinished ones without, records at their plan node and on their run's scanner,
+/// given-up nodes with a reason, one identity row and every run of this database.
+fn relation_checks(c: &mut Checker<'_>) -> Result<()> {
     c.rows(
         "duplicate_record",
         "SELECT 'run ' || quote(run_id) || ', repeat ' || quote(repeat_index) || ', node ' || \
@@ -273,20 +294,7 @@ pub(crate) fn check(conn: &Connection, path: &Path) -> Result<IntegrityReport> {
          FROM records r JOIN runs u ON r.run_id = u.run_id \
          WHERE r.scanner_id != u.scanner_id ORDER BY r.id",
     )?;
-    let runs = run_configs(conn, path)?;
-    plausibility_pass(
-        &runs,
-        &mut |each| crate::query::for_each_record(conn, path, &RecordFilter::default(), each),
-        &mut c.report,
-    )?;
-    if !c.report.problems.is_empty() {
-        tracing::warn!(
-            path = %path.display(),
-            problems = c.report.problems.len(),
-            "CDB integrity problems"
-        );
-    }
-    Ok(c.report)
+    Ok(())
 }
 
 /// `(run id, configuration text)` of every run whose both are text.

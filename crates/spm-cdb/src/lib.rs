@@ -16,6 +16,11 @@
 //!   roll back the last commits after a power cut; the fsync costs ~milliseconds per node
 //!   against seconds of instrument time per node, so FULL is the right default.
 //!   [`Synchronous::Normal`] is available for bulk imports.
+//! - Identity (schema v4, [`ErrorKind::IdentityMismatch`]): a random id and a generation
+//!   stepped by every write transaction, the id in every run row, and both in a
+//!   `NAME-identity` file outside the write-ahead log; an open refuses, before writing
+//!   anything, a `-wal` of another database or one older than the file, and a file older
+//!   than its identity file (a restored backup).
 //! - One transaction per node: [`Cdb::commit_node`] writes the node's records and marks its
 //!   plan entry done atomically; [`Cdb::import_records`] writes many records in one transaction.
 //!
@@ -486,8 +491,9 @@ fn check_folder(path: &Path) -> Result<()> {
 }
 
 /// The hidden creation files (`.NAME.creating-PID` and its `-wal`, `-shm`, `-journal`)
-/// that a process killed while creating the CDB at `path` left beside it, when that
-/// process is gone.
+/// that a process killed while creating the CDB at `path` left beside it, and the
+/// temporary identity files (`.NAME-identity.tmp-PID`) of a writer killed while writing
+/// one, when that process is gone.
 fn creation_leftovers(path: &Path) -> Vec<PathBuf> {
     let Some(name) = path.file_name().map(|n| n.to_string_lossy().into_owned()) else {
         return Vec::new();
@@ -497,13 +503,18 @@ fn creation_leftovers(path: &Path) -> Vec<PathBuf> {
         _ => PathBuf::from("."),
     };
     let prefix = format!(".{name}.creating-");
+    // The identity file's temporary (`identity::write_sidecar`) of a killed writer.
+    let identity_prefix = format!(".{name}-identity.tmp-");
     let Ok(entries) = std::fs::read_dir(&dir) else {
         return Vec::new();
     };
     let mut found = Vec::new();
     for entry in entries.flatten() {
         let file_name = entry.file_name().to_string_lossy().into_owned();
-        let Some(rest) = file_name.strip_prefix(&prefix) else {
+        let Some(rest) = file_name
+            .strip_prefix(&prefix)
+            .or_else(|| file_name.strip_prefix(&identity_prefix))
+        else {
             continue;
         };
         let pid_text = ["-wal", "-shm", "-journal"]

@@ -1557,6 +1557,21 @@ pub fn records_table_columns(db: &PgCdb) -> Result<HashMap<String, (String, bool
         .collect())
 }
 
+/// The records against their run's plausibility limits (as on SQLite).
+fn plausibility_check(db: &PgCdb, report: &mut IntegrityReport) -> Result<()> {
+    let runs: Vec<(String, String)> = db
+        .query_rows("SELECT run_id, config FROM runs", &[])?
+        .iter()
+        .map(|r| Ok((r.try_get(0)?, r.try_get(1)?)))
+        .collect::<std::result::Result<_, postgres::Error>>()
+        .map_err(db.err())?;
+    crate::integrity::plausibility_pass(
+        &runs,
+        &mut |each| db.for_each_record(&RecordFilter::default(), each),
+        report,
+    )
+}
+
 fn integrity_check(db: &PgCdb) -> Result<IntegrityReport> {
     let mut c = Checker {
         db,
@@ -1689,17 +1704,7 @@ fn integrity_check(db: &PgCdb) -> Result<IntegrityReport> {
          FROM records r JOIN runs u ON r.run_id = u.run_id \
          WHERE r.scanner_id <> u.scanner_id ORDER BY r.id",
     )?;
-    let runs: Vec<(String, String)> = db
-        .query_rows("SELECT run_id, config FROM runs", &[])?
-        .iter()
-        .map(|r| Ok((r.try_get(0)?, r.try_get(1)?)))
-        .collect::<std::result::Result<_, postgres::Error>>()
-        .map_err(db.err())?;
-    crate::integrity::plausibility_pass(
-        &runs,
-        &mut |each| db.for_each_record(&RecordFilter::default(), each),
-        &mut c.report,
-    )?;
+    plausibility_check(db, &mut c.report)?;
     if !c.report.problems.is_empty() {
         tracing::warn!(
             url = %db.path.display(),

@@ -1411,7 +1411,7 @@ fn issue25_07_huge_claims_are_refused_before_memory_is_spent() {
     let sparse = dir.path("sparse.gsf");
     {
         let mut head = b"Gwyddion Simple Field 1.0\nXRes = 16383\nYRes = 16383\n".to_vec();
-        while head.len() % 4 != 0 || head.last() != Some(&0) {
+        while !head.len().is_multiple_of(4) || head.last() != Some(&0) {
             head.push(0);
         }
         std::fs::write(&sparse, &head).unwrap();
@@ -1430,7 +1430,7 @@ fn issue25_07_huge_claims_are_refused_before_memory_is_spent() {
             bytes.extend_from_slice(b"a=1\n");
         }
         bytes.push(0);
-        while bytes.len() % 4 != 0 {
+        while !bytes.len().is_multiple_of(4) {
             bytes.push(0);
         }
         bytes.extend_from_slice(&1.0f32.to_le_bytes());

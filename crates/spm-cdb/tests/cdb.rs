@@ -1312,3 +1312,42 @@ fn sqlite_a_foreign_or_stale_log_is_refused_before_anything_is_written() {
     std::fs::remove_file(with_suffix(&c, "-identity")).unwrap();
     assert!(Cdb::open(&c).unwrap().check().unwrap().is_ok());
 }
+
+/// Issue 25 item 9, authentication: a wrong password and a missing one are `AccessDenied`
+/// (bad input, exit 2) with the server's words, never showing the password.
+#[test]
+fn postgres_authentication_failures_are_access_denied() {
+    let pg = common::postgres();
+    let url = pg.fresh("pg_auth");
+    drop(PgCdb::open(&url).unwrap());
+    pg.raw_sql(
+        &url,
+        "DROP ROLE IF EXISTS mallory; CREATE ROLE mallory LOGIN PASSWORD 'right-one';",
+    );
+    // Password authentication for this role only, ahead of the test server's `trust`.
+    let hba = pg.data_dir().join("pg_hba.conf");
+    let rules = std::fs::read_to_string(&hba).unwrap();
+    std::fs::write(
+        &hba,
+        format!("host all mallory 127.0.0.1/32 scram-sha-256\n{rules}"),
+    )
+    .unwrap();
+    pg.raw_sql(&url, "SELECT pg_reload_conf();");
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    let wrong = url.replacen("postgres://postgres@", "postgres://mallory:wrong-one@", 1);
+    let e = PgCdb::open_read_only(&wrong).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::AccessDenied, "{e}");
+    let text = e.to_string();
+    assert!(
+        text.contains("28P01") && text.contains("password authentication failed"),
+        "{text}"
+    );
+    assert!(!text.contains("wrong-one"), "{text}");
+    let none = url.replacen("postgres://postgres@", "postgres://mallory@", 1);
+    let e = PgCdb::open_read_only(&none).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::AccessDenied, "{e}");
+    assert!(e.to_string().contains("password missing"), "{e}");
+    let right = url.replacen("postgres://postgres@", "postgres://mallory:right-one@", 1);
+    let e = PgCdb::open_read_only(&right).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::AccessDenied, "no privilege yet: {e}");
+}

@@ -223,6 +223,13 @@ pub struct Postgres {
     server: spm_cdb::pg_server::TestServer,
 }
 
+impl Postgres {
+    /// The server's data folder (its `pg_hba.conf`).
+    pub fn data_dir(&self) -> std::path::PathBuf {
+        self.server.dir().join("data")
+    }
+}
+
 /// The test binary's PostgreSQL server, started on first use. Panics with the harness's
 /// message (naming what is missing) if PostgreSQL is not installed.
 pub fn postgres() -> &'static Postgres {

@@ -31,6 +31,13 @@ pub enum ErrorKind {
     Sqlite,
     /// Any other PostgreSQL failure (connection refused or lost, server error).
     Postgres,
+    /// The PostgreSQL server refused the account: authentication failed, the database does
+    /// not exist, or the account lacks a privilege (bad input: the URL or the account is
+    /// wrong, not the run).
+    AccessDenied,
+    /// The database, its write-ahead log and its identity file do not belong together (a
+    /// foreign or stale `-wal`, a replaced or restored file); nothing was written.
+    IdentityMismatch,
 }
 
 /// An error of the calibration database; every variant names the database file.
@@ -139,9 +146,25 @@ pub enum CdbError {
         /// Underlying SQLite error.
         source: rusqlite::Error,
     },
+    /// See [`ErrorKind::IdentityMismatch`].
+    #[error("{}: {reason}", path.display())]
+    IdentityMismatch {
+        /// Database file.
+        path: PathBuf,
+        /// What does not belong, and how to put it right.
+        reason: String,
+    },
+    /// See [`ErrorKind::AccessDenied`].
+    #[error("{}: access denied: {reason}", path.display())]
+    AccessDenied {
+        /// The database URL (without its password).
+        path: PathBuf,
+        /// The server's message.
+        reason: String,
+    },
     /// See [`ErrorKind::Postgres`].
     #[cfg(feature = "postgres")]
-    #[error("{}: PostgreSQL error: {source}", path.display())]
+    #[error("{}: PostgreSQL error: {}", path.display(), postgres_message(source))]
     Postgres {
         /// The database URL (without its password).
         path: PathBuf,
@@ -166,6 +189,8 @@ impl CdbError {
             Self::Busy { .. } => ErrorKind::Busy,
             Self::Io { .. } => ErrorKind::Io,
             Self::Sqlite { .. } => ErrorKind::Sqlite,
+            Self::AccessDenied { .. } => ErrorKind::AccessDenied,
+            Self::IdentityMismatch { .. } => ErrorKind::IdentityMismatch,
             #[cfg(feature = "postgres")]
             Self::Postgres { .. } => ErrorKind::Postgres,
         }
@@ -185,7 +210,9 @@ impl CdbError {
             | Self::Corrupt { path, .. }
             | Self::Busy { path, .. }
             | Self::Io { path, .. }
-            | Self::Sqlite { path, .. } => path,
+            | Self::Sqlite { path, .. }
+            | Self::AccessDenied { path, .. }
+            | Self::IdentityMismatch { path, .. } => path,
             #[cfg(feature = "postgres")]
             Self::Postgres { path, .. } => path,
         }
@@ -223,6 +250,37 @@ impl CdbError {
     }
 }
 
+/// A PostgreSQL client error in words: for an error the server sent, its severity,
+/// message, detail, hint and SQLSTATE (the client's own text is only "db error"); for
+/// others the client's text and its cause ("error connecting to server: Connection
+/// refused").
+#[cfg(feature = "postgres")]
+#[must_use]
+pub fn postgres_message(error: &postgres::Error) -> String {
+    if let Some(db) = error.as_db_error() {
+        let mut text = format!(
+            "{}: {} (SQLSTATE {})",
+            db.severity(),
+            db.message(),
+            db.code().code()
+        );
+        if let Some(detail) = db.detail() {
+            text.push_str(&format!("; detail: {detail}"));
+        }
+        if let Some(hint) = db.hint() {
+            text.push_str(&format!("; hint: {hint}"));
+        }
+        return text;
+    }
+    let mut text = error.to_string();
+    let mut cause = std::error::Error::source(error);
+    while let Some(c) = cause {
+        text.push_str(&format!(": {c}"));
+        cause = c.source();
+    }
+    text
+}
+
 #[cfg(feature = "postgres")]
 impl CdbError {
     /// Classifies a PostgreSQL client error by its SQLSTATE.
@@ -230,8 +288,17 @@ impl CdbError {
         use postgres::error::SqlState;
         let path = path.to_path_buf();
         let Some(code) = source.code().cloned() else {
+            // The client's own "invalid configuration" when connecting: the server asked
+            // for a password the URL does not give.
+            if source.to_string().starts_with("invalid configuration") {
+                return Self::AccessDenied {
+                    path,
+                    reason: postgres_message(&source),
+                };
+            }
             return Self::Postgres { path, source };
         };
+        let message = postgres_message(&source);
         if code == SqlState::UNIQUE_VIOLATION
             || code == SqlState::FOREIGN_KEY_VIOLATION
             || code == SqlState::CHECK_VIOLATION
@@ -239,7 +306,7 @@ impl CdbError {
         {
             Self::Conflict {
                 path,
-                reason: source.to_string(),
+                reason: message,
             }
         } else if code == SqlState::T_R_SERIALIZATION_FAILURE
             || code == SqlState::T_R_DEADLOCK_DETECTED
@@ -247,12 +314,21 @@ impl CdbError {
         {
             Self::Conflict {
                 path,
-                reason: format!("concurrent update: {source}"),
+                reason: format!("concurrent update: {message}"),
             }
         } else if code == SqlState::READ_ONLY_SQL_TRANSACTION {
             Self::InvalidInput {
                 path,
-                reason: format!("the database was opened read-only: {source}"),
+                reason: format!("the database was opened read-only: {message}"),
+            }
+        } else if code == SqlState::INVALID_PASSWORD
+            || code == SqlState::INVALID_AUTHORIZATION_SPECIFICATION
+            || code == SqlState::INVALID_CATALOG_NAME
+            || code == SqlState::INSUFFICIENT_PRIVILEGE
+        {
+            Self::AccessDenied {
+                path,
+                reason: message,
             }
         } else {
             Self::Postgres { path, source }

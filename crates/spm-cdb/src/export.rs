@@ -35,12 +35,16 @@ pub fn rfc3339_utc(t_unix_s: f64) -> String {
         .unwrap_or_default()
 }
 
+/// A text field: always quoted, and a leading `=`, `+`, `-`, `@`, tab or carriage return
+/// (what a spreadsheet reads as a formula) neutralised with a leading `'` (OWASP CSV
+/// injection; issue 25). Numbers are written as numbers and never start a formula.
 fn csv_text(s: &str) -> String {
-    if s.contains([',', '"', '\n', '\r']) {
-        format!("\"{}\"", s.replace('"', "\"\""))
+    let neutral = if s.starts_with(['=', '+', '-', '@', '\t', '\r']) {
+        "'"
     } else {
-        s.to_owned()
-    }
+        ""
+    };
+    format!("\"{neutral}{}\"", s.replace('"', "\"\""))
 }
 
 fn csv_line(r: &LccRecord) -> String {

@@ -4,7 +4,11 @@ use rusqlite::Connection;
 use std::path::Path;
 
 use crate::error::{CdbError, Result};
-use spm_records::{ColumnKind, IntegrityProblem, IntegrityReport, LCC_RECORD_COLUMNS};
+use spm_records::{
+    ColumnKind, IntegrityProblem, IntegrityReport, LCC_RECORD_COLUMNS, LccRecord, Plausibility,
+    RecordFilter,
+};
+use std::collections::HashMap;
 
 /// Report at most this many rows per kind of problem.
 const MAX_ROWS_PER_CHECK: usize = 1000;
@@ -64,6 +68,62 @@ impl Checker<'_> {
     }
 }
 
+/// How a row of each table is named in a finding.
+const ROW_NAMES: [(&str, &str); 3] = [
+    ("runs", "'run ' || quote(run_id)"),
+    (
+        "progress",
+        "'run ' || quote(run_id) || ', repeat ' || quote(repeat_index) || ', node ' || \
+         quote(node_index)",
+    ),
+    ("records", "'record id ' || id"),
+];
+
+/// The schema's CHECK and NOT NULL constraints, queried explicitly: `PRAGMA
+/// integrity_check` skips them on a read-only connection (issue 25), so a damaged run
+/// status or a NULL where the schema forbids one would otherwise pass. (`typeof(c) =
+/// 'null'`, not `c IS NULL`: SQLite folds the latter to false on a NOT NULL column.)
+fn constraint_checks(c: &mut Checker<'_>) -> Result<()> {
+    c.rows(
+        "invalid_status",
+        "SELECT 'run ' || quote(run_id) || ': status ' || quote(status) || ' (bytes ' || \
+         hex(status) || ') is not running, finished, failed or aborted' FROM runs \
+         WHERE typeof(status) != 'text' OR status NOT IN \
+         ('running', 'finished', 'failed', 'aborted') ORDER BY run_id",
+    )?;
+    c.rows(
+        "invalid_state",
+        "SELECT 'run ' || quote(run_id) || ', repeat ' || quote(repeat_index) || ', node ' || \
+         quote(node_index) || ': state ' || quote(state) || ' (bytes ' || hex(state) || \
+         ') is not pending, done or given_up' FROM progress WHERE \
+         typeof(state) != 'text' OR state NOT IN ('pending', 'done', 'given_up') \
+         ORDER BY run_id, repeat_index, node_index",
+    )?;
+    for (table, row_name) in ROW_NAMES {
+        let columns: Vec<String> = {
+            let err = |e| CdbError::sqlite(c.path, e);
+            let mut stmt = c
+                .conn
+                .prepare("SELECT name FROM pragma_table_info(?1) WHERE \"notnull\" ORDER BY cid")
+                .map_err(err)?;
+            stmt.query_map([table], |r| r.get::<_, String>(0))
+                .map_err(err)?
+                .collect::<rusqlite::Result<_>>()
+                .map_err(err)?
+        };
+        for column in columns {
+            c.rows(
+                "null_value",
+                &format!(
+                    "SELECT {row_name} || ': {table}.{column} is NULL (the schema says NOT \
+                     NULL)' FROM {table} WHERE typeof(\"{column}\") = 'null'"
+                ),
+            )?;
+        }
+    }
+    Ok(())
+}
+
 pub(crate) fn check(conn: &Connection, path: &Path) -> Result<IntegrityReport> {
     let err = |e| CdbError::sqlite(path, e);
     let mut c = Checker {
@@ -95,6 +155,15 @@ pub(crate) fn check(conn: &Connection, path: &Path) -> Result<IntegrityReport> {
             .collect::<rusqlite::Result<Vec<_>>>()
             .map_err(err)?;
         c.report.sqlite.extend(fk);
+    }
+    // The schema's constraints, also when the structure is damaged (integrity_check
+    // reports a NULL in a NOT NULL column as such): a query that fails on a damaged file
+    // leaves the structural findings to speak.
+    if let Err(e) = constraint_checks(&mut c) {
+        if c.report.sqlite.is_empty() {
+            return Err(e);
+        }
+        tracing::debug!(error = %e, "constraint checks on a damaged file");
     }
     if !c.report.sqlite.is_empty() {
         // Structural damage: semantic queries may be meaningless.
@@ -149,6 +218,27 @@ pub(crate) fn check(conn: &Connection, path: &Path) -> Result<IntegrityReport> {
             &format!("typeof({col}) = 'integer' AND {col} < 0"),
         )?;
     }
+    relation_checks(&mut c)?;
+    let runs = run_configs(conn, path)?;
+    plausibility_pass(
+        &runs,
+        &mut |each| crate::query::for_each_record(conn, path, &RecordFilter::default(), each),
+        &mut c.report,
+    )?;
+    if !c.report.problems.is_empty() {
+        tracing::warn!(
+            path = %path.display(),
+            problems = c.report.problems.len(),
+            "CDB integrity problems"
+        );
+    }
+    Ok(c.report)
+}
+
+/// How records, plan nodes and runs relate: no duplicate record, done nodes with records
+/// and unfinished ones without, records at their plan node and on their run's scanner,
+/// given-up nodes with a reason, one identity row and every run of this database.
+fn relation_checks(c: &mut Checker<'_>) -> Result<()> {
     c.rows(
         "duplicate_record",
         "SELECT 'run ' || quote(run_id) || ', repeat ' || quote(repeat_index) || ', node ' || \
@@ -187,18 +277,91 @@ pub(crate) fn check(conn: &Connection, path: &Path) -> Result<IntegrityReport> {
          AND (reason IS NULL OR reason = '')",
     )?;
     c.rows(
+        "identity",
+        "SELECT 'cdb_identity holds ' || count(*) || ' rows, expected 1' FROM cdb_identity \
+         HAVING count(*) != 1",
+    )?;
+    c.rows(
+        "foreign_run",
+        "SELECT 'run ' || quote(run_id) || ': cdb_id ' || quote(cdb_id) || \
+         ' is not this database''s id' FROM runs WHERE coalesce(cdb_id, '') != \
+         coalesce((SELECT id FROM cdb_identity ORDER BY rowid LIMIT 1), '') ORDER BY run_id",
+    )?;
+    c.rows(
         "scanner_mismatch",
         "SELECT 'record id ' || r.id || ': scanner ' || quote(r.scanner_id) || \
          ' but run ' || quote(r.run_id) || ' is on ' || quote(u.scanner_id) \
          FROM records r JOIN runs u ON r.run_id = u.run_id \
          WHERE r.scanner_id != u.scanner_id ORDER BY r.id",
     )?;
-    if !c.report.problems.is_empty() {
-        tracing::warn!(
-            path = %path.display(),
-            problems = c.report.problems.len(),
-            "CDB integrity problems"
-        );
+    Ok(())
+}
+
+/// `(run id, configuration text)` of every run whose both are text.
+fn run_configs(conn: &Connection, path: &Path) -> Result<Vec<(String, String)>> {
+    let err = |e| CdbError::sqlite(path, e);
+    let mut stmt = conn
+        .prepare(
+            "SELECT run_id, config FROM runs WHERE typeof(run_id) = 'text' \
+             AND typeof(config) = 'text'",
+        )
+        .map_err(err)?;
+    stmt.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
+        .map_err(err)?
+        .collect::<rusqlite::Result<_>>()
+        .map_err(err)
+}
+
+/// Reports every record that breaks its run's plausibility limits
+/// ([`LccRecord::implausibility`]: field, distance from its node, nominal sensitivity), as
+/// `implausible_record`. A record that cannot be decoded ends the pass with an
+/// `undecodable_record` problem (the other checks name its columns).
+pub(crate) fn plausibility_pass(
+    runs: &[(String, String)],
+    records: &mut crate::query::RecordSource<'_>,
+    report: &mut IntegrityReport,
+) -> Result<()> {
+    let limits: HashMap<&str, Plausibility> = runs
+        .iter()
+        .map(|(id, config)| (id.as_str(), Plausibility::from_run_config(config)))
+        .filter(|(_, p)| !p.is_empty())
+        .collect();
+    if limits.is_empty() {
+        return Ok(());
     }
-    Ok(c.report)
+    let mut found = 0usize;
+    let result = records(&mut |r: LccRecord| {
+        let Some(why) = limits
+            .get(r.run_id.as_str())
+            .and_then(|p| r.implausibility(p))
+        else {
+            return Ok(());
+        };
+        found += 1;
+        if found <= MAX_ROWS_PER_CHECK {
+            report.problems.push(IntegrityProblem {
+                kind: "implausible_record".into(),
+                detail: format!(
+                    "run {:?}, repeat {}, node {}, lcs {}: {why}",
+                    r.run_id, r.repeat_index, r.node_index, r.lcs_index
+                ),
+            });
+        } else if found == MAX_ROWS_PER_CHECK + 1 {
+            report.problems.push(IntegrityProblem {
+                kind: "implausible_record".into(),
+                detail: format!("… more than {MAX_ROWS_PER_CHECK} rows"),
+            });
+        }
+        Ok(())
+    });
+    match result {
+        Err(e) if e.kind() == crate::ErrorKind::Corrupt => {
+            report.problems.push(IntegrityProblem {
+                kind: "undecodable_record".into(),
+                detail: e.to_string(),
+            });
+            Ok(())
+        }
+        other => other,
+    }
 }

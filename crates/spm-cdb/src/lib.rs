@@ -16,6 +16,11 @@
 //!   roll back the last commits after a power cut; the fsync costs ~milliseconds per node
 //!   against seconds of instrument time per node, so FULL is the right default.
 //!   [`Synchronous::Normal`] is available for bulk imports.
+//! - Identity (schema v4, [`ErrorKind::IdentityMismatch`]): a random id and a generation
+//!   stepped by every write transaction, the id in every run row, and both in a
+//!   `NAME-identity` file outside the write-ahead log; an open refuses, before writing
+//!   anything, a `-wal` of another database or one older than the file, and a file older
+//!   than its identity file (a restored backup).
 //! - One transaction per node: [`Cdb::commit_node`] writes the node's records and marks its
 //!   plan entry done atomically; [`Cdb::import_records`] writes many records in one transaction.
 //!
@@ -39,6 +44,7 @@ pub mod bench_support;
 mod columns;
 mod error;
 mod export;
+mod identity;
 mod integrity;
 #[cfg(feature = "postgres")]
 pub mod pg_server;
@@ -338,6 +344,17 @@ fn invalid(path: &Path, reason: String) -> CdbError {
     }
 }
 
+/// Checks a run's ids before it is stored ([`spm_records::id_problem`]: not blank, no
+/// control or format characters).
+pub(crate) fn check_run_ids(path: &Path, run: &RunInfo) -> Result<()> {
+    for (what, id) in [("run id", &run.run_id), ("scanner id", &run.scanner_id)] {
+        if let Some(why) = spm_records::id_problem(id) {
+            return Err(invalid(path, format!("{what} {why}")));
+        }
+    }
+    Ok(())
+}
+
 fn check_time(path: &Path, what: &str, t: f64) -> Result<()> {
     if t.is_finite() {
         Ok(())
@@ -418,7 +435,8 @@ fn create_atomically(path: &Path, options: &OpenOptions) -> Result<()> {
     };
     remove_tmp();
     let result = (|| {
-        let err = |e| CdbError::sqlite(&tmp, e);
+        // Errors name the CDB, not the hidden file it is made in.
+        let err = |e| CdbError::sqlite(path, e);
         let mut conn = Connection::open_with_flags(
             &tmp,
             OpenFlags::SQLITE_OPEN_READ_WRITE
@@ -432,7 +450,7 @@ fn create_atomically(path: &Path, options: &OpenOptions) -> Result<()> {
             .map_err(err)?;
         conn.pragma_update(None, "synchronous", "FULL")
             .map_err(err)?;
-        schema::initialise_or_migrate(&mut conn, &tmp)?;
+        schema::initialise_or_migrate(&mut conn, path)?;
         // Closing the only connection checkpoints the WAL into the file and deletes it.
         conn.close().map_err(|(_, e)| err(e))?;
         match std::fs::hard_link(&tmp, path) {
@@ -448,9 +466,34 @@ fn create_atomically(path: &Path, options: &OpenOptions) -> Result<()> {
     result
 }
 
+/// Checks that the folder a new CDB goes into exists (issue 25: a CDB in a missing folder
+/// failed with an SQLite error naming the hidden file it is created in, exit 1).
+fn check_folder(path: &Path) -> Result<()> {
+    let folder = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => return Ok(()),
+    };
+    match std::fs::metadata(folder) {
+        Ok(meta) if meta.is_dir() => Ok(()),
+        Ok(_) => Err(CdbError::NotFound {
+            path: path.to_path_buf(),
+            what: format!("folder {} (it is not a directory)", folder.display()),
+        }),
+        Err(_) => Err(CdbError::NotFound {
+            path: path.to_path_buf(),
+            what: format!(
+                "folder {} (create it first: a new database is made only in an existing \
+                 folder)",
+                folder.display()
+            ),
+        }),
+    }
+}
+
 /// The hidden creation files (`.NAME.creating-PID` and its `-wal`, `-shm`, `-journal`)
-/// that a process killed while creating the CDB at `path` left beside it, when that
-/// process is gone.
+/// that a process killed while creating the CDB at `path` left beside it, and the
+/// temporary identity files (`.NAME-identity.tmp-PID`) of a writer killed while writing
+/// one, when that process is gone.
 fn creation_leftovers(path: &Path) -> Vec<PathBuf> {
     let Some(name) = path.file_name().map(|n| n.to_string_lossy().into_owned()) else {
         return Vec::new();
@@ -460,13 +503,18 @@ fn creation_leftovers(path: &Path) -> Vec<PathBuf> {
         _ => PathBuf::from("."),
     };
     let prefix = format!(".{name}.creating-");
+    // The identity file's temporary (`identity::write_sidecar`) of a killed writer.
+    let identity_prefix = format!(".{name}-identity.tmp-");
     let Ok(entries) = std::fs::read_dir(&dir) else {
         return Vec::new();
     };
     let mut found = Vec::new();
     for entry in entries.flatten() {
         let file_name = entry.file_name().to_string_lossy().into_owned();
-        let Some(rest) = file_name.strip_prefix(&prefix) else {
+        let Some(rest) = file_name
+            .strip_prefix(&prefix)
+            .or_else(|| file_name.strip_prefix(&identity_prefix))
+        else {
             continue;
         };
         let pid_text = ["-wal", "-shm", "-journal"]
@@ -555,6 +603,7 @@ impl Cdb {
         if path.exists() {
             // Look read-only first: a file we refuse must not be written to, not even by
             // switching its journal mode.
+            let looked = identity::Looked::before_open(&path);
             let ro = Connection::open_with_flags(
                 &path,
                 OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX,
@@ -563,6 +612,7 @@ impl Cdb {
             ro.busy_timeout(options.busy_timeout).map_err(err)?;
             let p = schema::probe(&ro).map_err(err)?;
             schema::check_probe(&path, &p)?;
+            looked.verify(&path, &ro)?;
             drop(ro);
         } else if !options.create {
             return Err(CdbError::NotFound {
@@ -570,6 +620,9 @@ impl Cdb {
                 what: "database file".into(),
             });
         } else {
+            check_folder(&path)?;
+            // A new database: an identity file left by a removed one means nothing.
+            identity::remove_stale_sidecar(&path);
             create_atomically(&path, options)?;
         }
         let mut conn = Connection::open_with_flags(
@@ -595,6 +648,9 @@ impl Cdb {
             .map_err(err)?;
         tune_cache(&conn).map_err(err)?;
         schema::initialise_or_migrate(&mut conn, &path)?;
+        if let Some(current) = identity::read(&conn).map_err(err)? {
+            identity::write_sidecar(&path, &current);
+        }
         tracing::debug!(path = %path.display(), "CDB open");
         Ok(Self { conn, path })
     }
@@ -613,6 +669,7 @@ impl Cdb {
                 what: "database file".into(),
             });
         }
+        let looked = identity::Looked::before_open(&path);
         let open = |immutable: bool| -> rusqlite::Result<(Connection, schema::Probe)> {
             let flags = OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX;
             let conn = if immutable {
@@ -640,6 +697,9 @@ impl Cdb {
         };
         tune_cache(&conn).map_err(err)?;
         schema::check_probe(&path, &p)?;
+        if p.user_version >= SCHEMA_VERSION {
+            looked.verify(&path, &conn)?;
+        }
         if p.user_version == 0 {
             return Err(CdbError::NotACdb {
                 path,
@@ -683,6 +743,18 @@ impl Cdb {
         })
     }
 
+    /// Commits a write transaction after stepping the identity's generation, then records
+    /// the new generation in the identity file (see [`identity`]).
+    fn commit(path: &Path, tx: rusqlite::Transaction<'_>) -> Result<()> {
+        let err = |e| CdbError::sqlite(path, e);
+        let stamp = identity::bump(&tx).map_err(err)?;
+        tx.commit().map_err(err)?;
+        if let Some(stamp) = stamp {
+            identity::write_sidecar(path, &stamp);
+        }
+        Ok(())
+    }
+
     fn write_tx(&mut self) -> Result<rusqlite::Transaction<'_>> {
         self.conn
             .transaction_with_behavior(TransactionBehavior::Immediate)
@@ -696,9 +768,7 @@ impl Cdb {
     /// or non-finite times.
     pub fn create_run(&mut self, run: &RunInfo) -> Result<()> {
         let path = self.path.clone();
-        if run.run_id.is_empty() || run.scanner_id.is_empty() {
-            return Err(invalid(&path, "empty run or scanner id".into()));
-        }
+        check_run_ids(&path, run)?;
         check_time(&path, "started_unix_s", run.started_unix_s)?;
         if let Some(t) = run.finished_unix_s {
             check_time(&path, "finished_unix_s", t)?;
@@ -713,7 +783,8 @@ impl Cdb {
         }
         tx.execute(
             "INSERT INTO runs (run_id, scanner_id, config, started_unix_s, finished_unix_s, \
-             status) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+             status, cdb_id) VALUES (?1, ?2, ?3, ?4, ?5, ?6, \
+             (SELECT id FROM cdb_identity ORDER BY rowid LIMIT 1))",
             params![
                 run.run_id,
                 run.scanner_id,
@@ -724,7 +795,7 @@ impl Cdb {
             ],
         )
         .map_err(err)?;
-        tx.commit().map_err(err)?;
+        Self::commit(&path, tx)?;
         tracing::info!(run_id = %run.run_id, scanner_id = %run.scanner_id, "run created");
         Ok(())
     }
@@ -743,8 +814,8 @@ impl Cdb {
         let path = self.path.clone();
         check_time(&path, "finished_unix_s", finished_unix_s)?;
         let err = |e| CdbError::sqlite(&path, e);
-        let n = self
-            .conn
+        let tx = self.write_tx()?;
+        let n = tx
             .execute(
                 "UPDATE runs SET status = ?2, finished_unix_s = ?3 WHERE run_id = ?1",
                 params![run_id, status.as_str(), finished_unix_s],
@@ -756,6 +827,7 @@ impl Cdb {
                 what: format!("run {run_id:?}"),
             });
         }
+        Self::commit(&path, tx)?;
         tracing::info!(run_id, status = status.as_str(), "run finished");
         Ok(())
     }
@@ -784,7 +856,7 @@ impl Cdb {
             params![run_id],
         )
         .map_err(err)?;
-        tx.commit().map_err(err)?;
+        Self::commit(&path, tx)?;
         tracing::info!(run_id, "run reopened");
         Ok(())
     }
@@ -853,7 +925,7 @@ impl Cdb {
                 .map_err(err)?;
             }
         }
-        tx.commit().map_err(err)?;
+        Self::commit(&path, tx)?;
         tracing::debug!(run_id, nodes = nodes.len(), "plan registered");
         Ok(())
     }
@@ -941,7 +1013,7 @@ impl Cdb {
             ],
         )
         .map_err(err)?;
-        tx.commit().map_err(err)?;
+        Self::commit(&path, tx)?;
         tracing::debug!(
             run_id,
             repeat = done.repeat_index,
@@ -1014,7 +1086,7 @@ impl Cdb {
             ],
         )
         .map_err(err)?;
-        tx.commit().map_err(err)?;
+        Self::commit(&path, tx)?;
         tracing::warn!(run_id, repeat_index, node_index, reason, "node given up");
         Ok(())
     }
@@ -1046,7 +1118,7 @@ impl Cdb {
                 n += 1;
             }
         }
-        tx.commit().map_err(err)?;
+        Self::commit(&path, tx)?;
         tracing::info!(records = n, "records imported");
         Ok(n)
     }

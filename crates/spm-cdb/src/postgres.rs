@@ -36,7 +36,7 @@ use postgres::{Client, NoTls, Row, Statement};
 
 use crate::error::{CdbError, Result};
 use crate::schema::{APPLICATION_ID, SCHEMA_VERSION};
-use crate::{CdbRead, check_belongs, check_time, invalid, validate_record};
+use crate::{CdbRead, check_belongs, check_run_ids, check_time, invalid, validate_record};
 use spm_records::{
     ColumnKind, ColumnValue, IntegrityProblem, IntegrityReport, LCC_RECORD_COLUMNS, LccColumns,
     LccRecord, NodeDone, NodeProgress, NodeState, OwnedColumnValue, PlanNode, ProgressStore,
@@ -51,35 +51,107 @@ pub fn is_postgres_url(location: &str) -> bool {
     lower.starts_with("postgres://") || lower.starts_with("postgresql://")
 }
 
-/// The URL with any password replaced by `***` (for messages and errors).
+/// The URL for messages, errors and logs, rebuilt from the *parsed* configuration (the
+/// same parser the connection uses) without the password: `scheme://user[:***]@host[:port]
+/// /dbname`, with `:***` wherever a password was given (in the user info or as a
+/// parameter, however spelled or percent-encoded). Only the user, hosts, ports (other than
+/// 5432), Unix-socket folder, database and connect timeout are shown; a URL the parser
+/// rejects is not shown at all (issue 25: redacting the text itself missed passwords
+/// holding `/` or `?`).
 #[must_use]
 pub fn redact_url(url: &str) -> String {
-    let mut out = url.to_owned();
-    if let Some(scheme_end) = out.find("://") {
-        let rest_start = scheme_end + 3;
-        let authority_end = out[rest_start..]
-            .find(['/', '?'])
-            .map_or(out.len(), |i| rest_start + i);
-        if let Some(at) = out[rest_start..authority_end].rfind('@') {
-            let userinfo = &out[rest_start..rest_start + at];
-            if let Some(colon) = userinfo.find(':') {
-                out.replace_range(rest_start + colon + 1..rest_start + at, "***");
+    let trimmed = url.trim();
+    let scheme = if trimmed.to_ascii_lowercase().starts_with("postgresql://") {
+        "postgresql"
+    } else if trimmed.to_ascii_lowercase().starts_with("postgres://") {
+        "postgres"
+    } else {
+        return url.to_owned();
+    };
+    // The parser expects the scheme in lower case.
+    let lowered = format!("{scheme}://{}", &trimmed[scheme.len() + 3..]);
+    let Ok(config) = postgres::Config::from_str(&lowered) else {
+        return format!("{scheme}://(a malformed URL, not shown)");
+    };
+    shown_config(scheme, &config)
+}
+
+/// `scheme://user[:***]@hosts/dbname[?host=…&connect_timeout=…]` of a parsed configuration.
+fn shown_config(scheme: &str, config: &postgres::Config) -> String {
+    use postgres::config::Host;
+    let mut out = format!("{scheme}://");
+    if let Some(user) = config.get_user() {
+        out.push_str(&percent_encode(user));
+        if config.get_password().is_some() {
+            out.push_str(":***");
+        }
+        out.push('@');
+    } else if config.get_password().is_some() {
+        out.push_str(":***@");
+    }
+    let ports = config.get_ports();
+    let port_of = |i: usize| ports.get(i).or_else(|| ports.first()).copied();
+    let mut tcp = Vec::new();
+    let mut sockets = Vec::new();
+    for (i, host) in config.get_hosts().iter().enumerate() {
+        match host {
+            Host::Tcp(name) => {
+                let mut h = if name.contains(':') {
+                    format!("[{name}]")
+                } else {
+                    percent_encode(name)
+                };
+                if let Some(port) = port_of(i).filter(|&p| p != 5432) {
+                    h.push_str(&format!(":{port}"));
+                }
+                tcp.push(h);
             }
+            #[cfg(unix)]
+            Host::Unix(path) => sockets.push(path.display().to_string()),
         }
     }
-    if let Some(q) = out.find('?') {
-        let (head, query) = out.split_at(q + 1);
-        let redacted: Vec<String> = query
-            .split('&')
-            .map(|kv| {
-                if kv.to_ascii_lowercase().starts_with("password=") {
-                    "password=***".to_owned()
-                } else {
-                    kv.to_owned()
-                }
+    if tcp.is_empty() && sockets.is_empty() {
+        tcp = config
+            .get_hostaddrs()
+            .iter()
+            .map(|a| match a {
+                std::net::IpAddr::V6(v6) => format!("[{v6}]"),
+                std::net::IpAddr::V4(v4) => v4.to_string(),
             })
             .collect();
-        out = format!("{head}{}", redacted.join("&"));
+    }
+    out.push_str(&tcp.join(","));
+    out.push('/');
+    if let Some(db) = config.get_dbname() {
+        out.push_str(&percent_encode(db));
+    }
+    let mut params: Vec<String> = sockets.iter().map(|s| format!("host={s}")).collect();
+    if let Some(t) = config.get_connect_timeout() {
+        params.push(format!("connect_timeout={}", t.as_secs()));
+    }
+    if !params.is_empty() {
+        out.push('?');
+        out.push_str(&params.join("&"));
+    }
+    out
+}
+
+/// Percent-encodes the characters that would make a shown URL ambiguous.
+fn percent_encode(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for c in text.chars() {
+        match c {
+            '%' | '@' | ':' | '/' | '?' | '&' | '=' | '#' | ',' | '[' | ']' => {
+                out.push_str(&format!("%{:02X}", u32::from(c)));
+            }
+            c if c.is_control() => {
+                let mut buf = [0; 4];
+                for b in c.encode_utf8(&mut buf).bytes() {
+                    out.push_str(&format!("%{b:02X}"));
+                }
+            }
+            c => out.push(c),
+        }
     }
     out
 }
@@ -88,6 +160,9 @@ pub fn redact_url(url: &str) -> String {
 /// - v1: runs, progress, records without standard uncertainties.
 /// - v2: records gain the standard uncertainties (NULL = unknown for records migrated from v1).
 /// - v3: records gain `kz_x_counts`, `kz_y_counts`, where Kz was measured (NULL = no Kz).
+/// - v4: the CDB identity: `cdb_identity` (a random id, a generation) and `runs.cdb_id`
+///   (the database's id in every run row; the write-ahead-log checks of the file are the
+///   server's business here).
 const V1_DESCRIPTION: &str = "runs, progress, records";
 
 /// Record columns added by later versions (absent from the v1 `records` table).
@@ -113,6 +188,14 @@ const MIGRATIONS: &[(&str, &str)] = &[
         "where Kz was measured",
         "ALTER TABLE records ADD COLUMN kz_x_counts DOUBLE PRECISION;
      ALTER TABLE records ADD COLUMN kz_y_counts DOUBLE PRECISION;",
+    ),
+    (
+        "the CDB identity",
+        "CREATE TABLE cdb_identity (id TEXT NOT NULL, generation BIGINT NOT NULL);
+     INSERT INTO cdb_identity (id, generation)
+         VALUES (md5(random()::TEXT || clock_timestamp()::TEXT), 1);
+     ALTER TABLE runs ADD COLUMN cdb_id TEXT;
+     UPDATE runs SET cdb_id = (SELECT id FROM cdb_identity);",
     ),
 ];
 
@@ -506,15 +589,84 @@ fn connect(url: &str, path: &Path, read_only: bool) -> Result<Client> {
     let mut config =
         postgres::Config::from_str(url.trim()).map_err(|e| CdbError::InvalidInput {
             path: path.to_path_buf(),
-            reason: format!("not a PostgreSQL URL: {e}"),
+            reason: format!(
+                "not a PostgreSQL URL: {}",
+                crate::error::postgres_message(&e)
+            ),
         })?;
+    check_config(path, &config)?;
     config.application_name("spmcal");
     if read_only {
         config.options("-c default_transaction_read_only=on");
     }
-    config
+    let mut client = config
         .connect(NoTls)
-        .map_err(|e| CdbError::postgres(path, e))
+        .map_err(|e| CdbError::postgres(path, e))?;
+    pin_schema(&mut client, path)?;
+    Ok(client)
+}
+
+/// Resolves the one schema the CDB lives in and pins the session's `search_path` to it, so
+/// that every query and every catalogue lookup (the probe's table count, the check's
+/// column list, both filtered on `current_schema()`) mean the same tables (issue 25: an
+/// account with its own schema on its `search_path` had its lookups filtered on its own,
+/// empty schema while the queries found the CDB in `public`). The schema is the one where
+/// `schema_version` resolves through the account's `search_path`, else the first existing
+/// schema of that path (where a new CDB is created).
+fn pin_schema(client: &mut Client, path: &Path) -> Result<()> {
+    let err = |e| CdbError::postgres(path, e);
+    let row = client
+        .query_one(
+            "SELECT coalesce((SELECT n.nspname::TEXT FROM pg_catalog.pg_class c \
+             JOIN pg_catalog.pg_namespace n ON n.oid = c.relnamespace \
+             WHERE c.oid = to_regclass('schema_version')), current_schema()::TEXT)",
+            &[],
+        )
+        .map_err(err)?;
+    let schema: Option<String> = row.try_get(0).map_err(err)?;
+    let Some(schema) = schema else {
+        return Err(CdbError::InvalidInput {
+            path: path.to_path_buf(),
+            reason: "no schema of the account's search_path exists: create one or set \
+                     search_path"
+                .into(),
+        });
+    };
+    client
+        .execute(
+            "SELECT pg_catalog.set_config('search_path', pg_catalog.quote_ident($1), false)",
+            &[&schema],
+        )
+        .map_err(err)?;
+    tracing::debug!(url = %path.display(), schema, "CDB schema resolved");
+    Ok(())
+}
+
+/// The checks the client makes when connecting, made first so that a URL without a host
+/// or user is bad input (exit 2) naming what is missing, not a connection failure
+/// ("invalid configuration", issue 25). (A missing user or database is the server's
+/// default, as with libpq.)
+fn check_config(path: &Path, config: &postgres::Config) -> Result<()> {
+    let bad = |reason: &str| {
+        Err(CdbError::InvalidInput {
+            path: path.to_path_buf(),
+            reason: format!("the PostgreSQL URL {reason}"),
+        })
+    };
+    let hosts = config.get_hosts().len().max(config.get_hostaddrs().len());
+    if hosts == 0 {
+        return bad("names no host: give postgres://user@host[:port]/database");
+    }
+    if !config.get_hosts().is_empty()
+        && !config.get_hostaddrs().is_empty()
+        && config.get_hosts().len() != config.get_hostaddrs().len()
+    {
+        return bad("names a different number of hosts and hostaddrs");
+    }
+    if config.get_ports().len() > 1 && config.get_ports().len() != hosts {
+        return bad("names a different number of ports and hosts");
+    }
+    Ok(())
 }
 
 impl PgCdb {
@@ -623,9 +775,7 @@ impl PgCdb {
     /// or non-finite times.
     pub fn create_run(&mut self, run: &RunInfo) -> Result<()> {
         let path = self.path.clone();
-        if run.run_id.is_empty() || run.scanner_id.is_empty() {
-            return Err(invalid(&path, "empty run or scanner id".into()));
-        }
+        check_run_ids(&path, run)?;
         check_time(&path, "started_unix_s", run.started_unix_s)?;
         if let Some(t) = run.finished_unix_s {
             check_time(&path, "finished_unix_s", t)?;
@@ -635,7 +785,8 @@ impl PgCdb {
             .get_mut()
             .execute(
                 "INSERT INTO runs (run_id, scanner_id, config, started_unix_s, finished_unix_s, \
-                 status) VALUES ($1, $2, $3, $4, $5, $6) ON CONFLICT (run_id) DO NOTHING",
+                 status, cdb_id) VALUES ($1, $2, $3, $4, $5, $6, \
+                 (SELECT id FROM cdb_identity LIMIT 1)) ON CONFLICT (run_id) DO NOTHING",
                 &[
                     &run.run_id,
                     &run.scanner_id,
@@ -1339,6 +1490,9 @@ fn expected_columns() -> Vec<(&'static str, &'static str, &'static str, bool)> {
         ("runs", "started_unix_s", "double precision", false),
         ("runs", "finished_unix_s", "double precision", true),
         ("runs", "status", "text", false),
+        ("runs", "cdb_id", "text", true),
+        ("cdb_identity", "id", "text", false),
+        ("cdb_identity", "generation", "bigint", false),
         ("records", "id", "bigint", false),
     ];
     for c in [
@@ -1374,7 +1528,8 @@ fn stored_columns(db: &PgCdb) -> Result<HashMap<(String, String), (String, bool)
     db.query_rows(
         "SELECT table_name::TEXT, column_name::TEXT, data_type::TEXT, is_nullable = 'YES' \
          FROM information_schema.columns WHERE table_schema = current_schema() \
-         AND table_name IN ('schema_version', 'runs', 'progress', 'records')",
+         AND table_name IN ('schema_version', 'runs', 'progress', 'records', \
+         'cdb_identity')",
         &[],
     )?
     .iter()
@@ -1400,6 +1555,21 @@ pub fn records_table_columns(db: &PgCdb) -> Result<HashMap<String, (String, bool
         .filter(|((t, _), _)| t == "records")
         .map(|((_, c), v)| (c, v))
         .collect())
+}
+
+/// The records against their run's plausibility limits (as on SQLite).
+fn plausibility_check(db: &PgCdb, report: &mut IntegrityReport) -> Result<()> {
+    let runs: Vec<(String, String)> = db
+        .query_rows("SELECT run_id, config FROM runs", &[])?
+        .iter()
+        .map(|r| Ok((r.try_get(0)?, r.try_get(1)?)))
+        .collect::<std::result::Result<_, postgres::Error>>()
+        .map_err(db.err())?;
+    crate::integrity::plausibility_pass(
+        &runs,
+        &mut |each| db.for_each_record(&RecordFilter::default(), each),
+        report,
+    )
 }
 
 fn integrity_check(db: &PgCdb) -> Result<IntegrityReport> {
@@ -1517,12 +1687,24 @@ fn integrity_check(db: &PgCdb) -> Result<IntegrityReport> {
          AND (reason IS NULL OR btrim(reason) = '')",
     )?;
     c.rows(
+        "identity",
+        "SELECT 'cdb_identity holds ' || count(*) || ' rows, expected 1' FROM cdb_identity \
+         HAVING count(*) <> 1",
+    )?;
+    c.rows(
+        "foreign_run",
+        "SELECT 'run ' || quote_literal(run_id) || ': cdb_id ' || quote_nullable(cdb_id) || \
+         ' is not this database''s id' FROM runs WHERE coalesce(cdb_id, '') <> \
+         coalesce((SELECT id FROM cdb_identity LIMIT 1), '') ORDER BY run_id",
+    )?;
+    c.rows(
         "scanner_mismatch",
         "SELECT 'record id ' || r.id || ': scanner ' || quote_literal(r.scanner_id) || \
          ' but run ' || quote_literal(r.run_id) || ' is on ' || quote_literal(u.scanner_id) \
          FROM records r JOIN runs u ON r.run_id = u.run_id \
          WHERE r.scanner_id <> u.scanner_id ORDER BY r.id",
     )?;
+    plausibility_check(db, &mut c.report)?;
     if !c.report.problems.is_empty() {
         tracing::warn!(
             url = %db.path.display(),
@@ -1589,7 +1771,8 @@ mod tests {
     #[test]
     fn recognises_and_redacts_urls() {
         for (url, is_pg, shown) in [
-            ("postgres://u@h:5432/db", true, "postgres://u@h:5432/db"),
+            ("postgres://u@h:5432/db", true, "postgres://u@h/db"),
+            ("postgres://u@h:5433/db", true, "postgres://u@h:5433/db"),
             (
                 "postgresql://u:secret@h/db",
                 true,
@@ -1598,7 +1781,7 @@ mod tests {
             (
                 "postgres://u@h/db?password=x&sslmode=disable",
                 true,
-                "postgres://u@h/db?password=***&sslmode=disable",
+                "postgres://u:***@h/db",
             ),
             ("cdb.sqlite", false, "cdb.sqlite"),
             ("./postgres/cdb.sqlite", false, "./postgres/cdb.sqlite"),
@@ -1606,6 +1789,40 @@ mod tests {
             assert_eq!(is_postgres_url(url), is_pg, "{url}");
             assert_eq!(redact_url(url), shown, "{url}");
         }
+    }
+
+    /// Issue 25 item 3: the client's parser takes everything before the first `@` as the
+    /// credentials, so a password holding `/` or `?` (or given as a percent-encoded
+    /// `?password=`) was printed in clear by a redaction that parsed the string itself.
+    #[test]
+    fn passwords_never_survive_redaction_however_they_are_spelled() {
+        for (url, secret) in [
+            ("postgres://u:pa/ss@h:5432/db", "pa/ss"),
+            ("postgres://u:pa?ss@h/db", "pa?ss"),
+            ("postgres://u:p@ss@h/db", "ss@h"),
+            ("postgres://u@h/db?password=hunter2", "hunter2"),
+            ("postgres://u@h/db?pass%77ord=hunter2", "hunter2"),
+            (
+                "postgres://u@h/db?sslmode=disable&password=hunter2",
+                "hunter2",
+            ),
+            ("postgres://u:se%2Fcret@h/db", "se%2Fcret"),
+            ("postgres://u:hunter2@h:notaport/db", "hunter2"),
+            ("postgres://u:hunter2@%2Ftmp%2Fsock/db", "hunter2"),
+        ] {
+            let shown = redact_url(url);
+            assert!(!shown.contains(secret), "{url} shown as {shown}");
+            assert!(!shown.contains("hunter2"), "{shown}");
+            assert!(shown.starts_with("postgres://"), "{shown}");
+        }
+        assert_eq!(
+            redact_url("postgres://u:pa/ss@h/db"),
+            "postgres://u:***@h/db"
+        );
+        assert_eq!(
+            redact_url("postgres://u@%2Ftmp%2Fsock/db"),
+            "postgres://u@/db?host=/tmp/sock"
+        );
     }
 
     #[test]

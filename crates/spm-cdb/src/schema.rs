@@ -8,6 +8,10 @@
 //! - v3: records gain `kz_x_counts`, `kz_y_counts`, where Kz was measured (the step's edge
 //!   point; NULL for records without Kz and for records migrated from v2, whose values are
 //!   left untouched).
+//! - v4: the CDB identity (issue 25): `cdb_identity` holds one row, a random id and a
+//!   generation that every write transaction increments; every run row carries the id
+//!   (`runs.cdb_id`; runs of a migrated file get the id the migration draws). See
+//!   [`crate::identity`].
 //!
 //! Indexes are kept to two on `records` (the unique (run, repeat, node, lcs) key and
 //! (scanner, z plane, time), which also serves scanner + time-window queries) because each
@@ -19,20 +23,28 @@ use std::path::Path;
 use crate::error::{CdbError, Result};
 
 /// Schema version written by this library.
-pub const SCHEMA_VERSION: i64 = 3;
+pub const SCHEMA_VERSION: i64 = 4;
 
 /// `PRAGMA application_id` of a spmcal CDB ("SPMC").
 pub const APPLICATION_ID: i64 = 0x5350_4D43;
 
-/// The complete current schema, used for new files.
-const SCHEMA_V3: &str = "
+/// The complete current schema, used for new files. The identity table comes first, so
+/// that its root is page 2 in every new file.
+const SCHEMA_V4: &str = "
+CREATE TABLE cdb_identity (
+    id         TEXT NOT NULL,
+    generation INTEGER NOT NULL
+);
+INSERT INTO cdb_identity (id, generation) VALUES (lower(hex(randomblob(16))), 1);
+
 CREATE TABLE runs (
     run_id          TEXT PRIMARY KEY NOT NULL,
     scanner_id      TEXT NOT NULL,
     config          TEXT NOT NULL,
     started_unix_s  REAL NOT NULL,
     finished_unix_s REAL,
-    status          TEXT NOT NULL CHECK (status IN ('running', 'finished', 'failed', 'aborted'))
+    status          TEXT NOT NULL CHECK (status IN ('running', 'finished', 'failed', 'aborted')),
+    cdb_id          TEXT
 );
 CREATE INDEX runs_scanner ON runs (scanner_id, started_unix_s);
 
@@ -98,8 +110,16 @@ ALTER TABLE records ADD COLUMN kz_x_counts REAL;
 ALTER TABLE records ADD COLUMN kz_y_counts REAL;
 ";
 
+/// v3 → v4: the CDB identity.
+const MIGRATE_V3_TO_V4: &str = "
+CREATE TABLE cdb_identity (id TEXT NOT NULL, generation INTEGER NOT NULL);
+INSERT INTO cdb_identity (id, generation) VALUES (lower(hex(randomblob(16))), 1);
+ALTER TABLE runs ADD COLUMN cdb_id TEXT;
+UPDATE runs SET cdb_id = (SELECT id FROM cdb_identity);
+";
+
 /// Migration steps: `MIGRATIONS[k]` takes version k+1 to k+2.
-const MIGRATIONS: &[&str] = &[MIGRATE_V1_TO_V2, MIGRATE_V2_TO_V3];
+const MIGRATIONS: &[&str] = &[MIGRATE_V1_TO_V2, MIGRATE_V2_TO_V3, MIGRATE_V3_TO_V4];
 
 /// What a read-only look at a file found.
 pub(crate) struct Probe {
@@ -173,7 +193,7 @@ pub(crate) fn initialise_or_migrate(conn: &mut Connection, path: &Path) -> Resul
         };
         if version == 0 {
             tracing::info!(path = %path.display(), version = SCHEMA_VERSION, "creating CDB schema");
-            tx.execute_batch(SCHEMA_V3).map_err(step)?;
+            tx.execute_batch(SCHEMA_V4).map_err(step)?;
             tx.pragma_update(None, "application_id", APPLICATION_ID)
                 .map_err(step)?;
             tx.pragma_update(None, "user_version", SCHEMA_VERSION)

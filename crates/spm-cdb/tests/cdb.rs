@@ -371,9 +371,9 @@ fn migrates_v1_file() {
     assert_eq!(std::fs::read(&path).unwrap(), before);
 
     let mut cdb = Cdb::open(&path).unwrap();
-    // v1 → v2 → v3 in one open; the stored values are untouched, the new columns NULL.
+    // v1 → v2 → v3 → v4 in one open; the stored values are untouched, the new columns NULL.
     assert_eq!(cdb.schema_version().unwrap(), SCHEMA_VERSION);
-    assert_eq!(SCHEMA_VERSION, 3);
+    assert_eq!(SCHEMA_VERSION, 4);
     let old = cdb.records(&RecordFilter::default()).unwrap();
     assert_eq!(old.len(), 1);
     assert_eq!(old[0].kx_nm_per_count, 0.0201);
@@ -815,7 +815,7 @@ fn postgres_migrates_v1_database() {
     assert_eq!(pg_versions(&url), [1]);
 
     let mut cdb = PgCdb::open(&url).unwrap();
-    assert_eq!(pg_versions(&url), [1, 2, 3]);
+    assert_eq!(pg_versions(&url), [1, 2, 3, 4]);
     assert_eq!(cdb.schema_version().unwrap(), SCHEMA_VERSION);
     let old = cdb.records(&RecordFilter::default()).unwrap();
     assert_eq!(old.len(), 1);
@@ -835,7 +835,7 @@ fn postgres_migrates_v1_database() {
     assert_eq!(all[1].u_kx_nm_per_count, Some(1e-5));
     drop(cdb);
     drop(PgCdb::open(&url).unwrap()); // a no-op
-    assert_eq!(pg_versions(&url), [1, 2, 3]);
+    assert_eq!(pg_versions(&url), [1, 2, 3, 4]);
     let ro = PgCdb::open_read_only(&url).unwrap();
     assert_eq!(ro.count_records(&RecordFilter::default()).unwrap(), 2);
 }
@@ -990,4 +990,364 @@ fn postgres_one_node_from_two_programs_is_stored_once() {
     assert_eq!(cdb.count_records(&RecordFilter::default()).unwrap(), 120);
     assert_eq!(cdb.progress_summary(&r.run_id).unwrap().done, 40);
     assert!(cdb.check().unwrap().is_ok());
+}
+
+/// Issue 25 item 5: `PRAGMA integrity_check` on a read-only connection skips CHECK
+/// constraints, so a run status damaged to "finishe\0" and a plan state outside its set
+/// passed `cdb check`. Each is now found by a query, as is a NULL in a NOT NULL column
+/// (which integrity_check reports, but as structural damage that ended the check before
+/// the other findings).
+#[test]
+fn sqlite_check_finds_check_and_not_null_violations() {
+    let path = db_path("constraint_violations");
+    let r = run("run-1", "S", T0);
+    let nodes = plan(3);
+    {
+        let mut cdb = Cdb::open(&path).unwrap();
+        cdb.create_run(&r).unwrap();
+        cdb.register_plan(&r.run_id, &nodes).unwrap();
+        cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &nodes[0], 0, T0)])
+            .unwrap();
+    }
+    let raw = Connection::open(&path).unwrap();
+    raw.execute_batch(
+        "PRAGMA ignore_check_constraints = ON;
+         UPDATE runs SET status = CAST(X'66696E6973686500' AS TEXT);
+         UPDATE progress SET state = 'dome' WHERE node_index = 1;",
+    )
+    .unwrap();
+    drop(raw);
+    let report = Cdb::open_read_only(&path).unwrap().check().unwrap();
+    let kinds: Vec<&str> = report.problems.iter().map(|p| p.kind.as_str()).collect();
+    assert!(!report.is_ok(), "damage not found: {report:?}");
+    for expected in ["invalid_status", "invalid_state"] {
+        assert!(
+            kinds.contains(&expected),
+            "{expected} missing in {report:?}"
+        );
+    }
+    assert!(
+        report
+            .problems
+            .iter()
+            .any(|p| p.detail.contains("66696E6973686500")),
+        "the damaged bytes are shown: {report:?}"
+    );
+    // A NULL where the schema says NOT NULL (only possible by editing the schema) is
+    // found as well, with the CHECK violations.
+    let raw = Connection::open(&path).unwrap();
+    raw.execute_batch(
+        "PRAGMA writable_schema = ON;
+         UPDATE sqlite_master SET sql = replace(sql, 'config          TEXT NOT NULL', \
+           'config          TEXT') WHERE name = 'runs';",
+    )
+    .unwrap();
+    drop(raw);
+    let raw = Connection::open(&path).unwrap();
+    raw.execute_batch("UPDATE runs SET config = NULL;").unwrap();
+    raw.execute_batch(
+        "PRAGMA writable_schema = ON;
+         UPDATE sqlite_master SET sql = replace(sql, 'config          TEXT,', \
+           'config          TEXT NOT NULL,') WHERE name = 'runs';",
+    )
+    .unwrap();
+    drop(raw);
+    let report = Cdb::open_read_only(&path).unwrap().check().unwrap();
+    let kinds: Vec<&str> = report.problems.iter().map(|p| p.kind.as_str()).collect();
+    for expected in ["invalid_status", "invalid_state", "null_value"] {
+        assert!(
+            kinds.contains(&expected),
+            "{expected} missing in {report:?}"
+        );
+    }
+    assert!(
+        report
+            .problems
+            .iter()
+            .any(|p| p.detail.contains("runs.config") && p.detail.contains("run-1")),
+        "{report:?}"
+    );
+}
+
+/// Issue 25 item 17: a scanner id such as `=1+2+cmd|calc!A0` was exported unquoted, so a
+/// spreadsheet opening the CSV ran it as a formula. Text fields are now quoted and a
+/// leading `=`, `+`, `-`, `@` (or tab, CR) is neutralised with `'` (OWASP); ids with bidi
+/// or other format characters are refused when stored.
+#[test]
+fn csv_export_neutralises_formulas_and_ids_refuse_format_characters() {
+    let path = db_path("csv_injection");
+    let mut cdb = Cdb::open(&path).unwrap();
+    for (k, id) in ["=1+2+cmd|calc!A0", "@SUM(A1)", "-2+3", "+A1", "plain"]
+        .into_iter()
+        .enumerate()
+    {
+        let r = run(&format!("run-{k}"), id, T0 + k as f64);
+        let nodes = plan(1);
+        cdb.create_run(&r).unwrap();
+        cdb.register_plan(&r.run_id, &nodes).unwrap();
+        cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &nodes[0], 0, T0)])
+            .unwrap();
+    }
+    let mut out = Vec::new();
+    cdb.export_csv(&RecordFilter::default(), &mut out).unwrap();
+    let text = String::from_utf8(out).unwrap();
+    for line in text.lines().skip(1) {
+        let scanner = line.split(',').nth(1).unwrap();
+        assert!(scanner.starts_with('"'), "unquoted text field in {line}");
+        let inner = scanner.trim_matches('"');
+        assert!(
+            !inner.starts_with(['=', '+', '-', '@']),
+            "formula left in {line}"
+        );
+    }
+    assert!(text.contains("\"'=1+2+cmd|calc!A0\""), "{text}");
+    assert!(text.contains("\"plain\""), "{text}");
+    // Negative numbers stay numbers.
+    assert!(
+        text.contains(",-0.5,") || text.contains(",-0.02,"),
+        "{text}"
+    );
+    for bad in [
+        "scan\u{202E}ner",
+        "a\u{200B}b",
+        "tab\there",
+        "x\u{2066}y",
+        "nul\0",
+    ] {
+        let r = run(&format!("bad-{}", bad.len()), bad, T0);
+        let e = cdb.create_run(&r).unwrap_err();
+        assert_eq!(e.kind(), ErrorKind::InvalidInput, "{bad:?}: {e}");
+        assert!(e.to_string().contains("scanner id"), "{e}");
+        let mut run_id_bad = run("ok", "S", T0);
+        run_id_bad.run_id = bad.to_owned();
+        assert_eq!(
+            cdb.create_run(&run_id_bad).unwrap_err().kind(),
+            ErrorKind::InvalidInput
+        );
+    }
+    assert!(cdb.check().unwrap().is_ok());
+}
+
+/// The URL of `url`'s database for another role (trust authentication on the test server).
+fn as_role(url: &str, role: &str) -> String {
+    url.replacen("postgres://postgres@", &format!("postgres://{role}@"), 1)
+}
+
+/// Issue 25 item 8: an account whose own schema is on its `search_path` (the default
+/// `"$user", public`) reads a CDB made in `public`; the schema lookups filtered on
+/// `current_schema()` (the account's empty schema) while the queries found `public`'s
+/// tables, so `check` reported every column missing.
+#[test]
+fn postgres_an_account_with_its_own_schema_reads_a_cdb_in_public() {
+    let pg = common::postgres();
+    let url = pg.fresh("pg_own_schema");
+    let r = run("run-1", "S", T0);
+    let nodes = plan(2);
+    {
+        let mut cdb = PgCdb::open(&url).unwrap();
+        cdb.create_run(&r).unwrap();
+        cdb.register_plan(&r.run_id, &nodes).unwrap();
+        cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &nodes[0], 0, T0)])
+            .unwrap();
+    }
+    pg.raw_sql(
+        &url,
+        "DROP ROLE IF EXISTS alice; CREATE ROLE alice LOGIN;
+         GRANT SELECT ON ALL TABLES IN SCHEMA public TO alice;
+         CREATE SCHEMA alice AUTHORIZATION alice;",
+    );
+    let cdb = PgCdb::open_read_only(&as_role(&url, "alice")).unwrap();
+    let report = cdb.check().unwrap();
+    assert!(report.is_ok(), "{report:?}");
+    assert_eq!(cdb.count_records(&RecordFilter::default()).unwrap(), 1);
+    assert_eq!(cdb.runs(None).unwrap().len(), 1);
+}
+
+/// Issue 25 item 9: every server-side error read "PostgreSQL error: db error". The
+/// server's message and SQLSTATE are shown, and a missing database or a missing privilege
+/// is `AccessDenied` (bad input), not a run failure.
+#[test]
+fn postgres_server_errors_show_the_servers_message_and_access_errors_are_bad_input() {
+    let pg = common::postgres();
+    let url = pg.fresh("pg_messages");
+    drop(PgCdb::open(&url).unwrap());
+    let missing = url.replace("/pg_messages", "/pg_no_such_database");
+    let e = PgCdb::open_read_only(&missing).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::AccessDenied, "{e}");
+    let text = e.to_string();
+    assert!(
+        text.contains("pg_no_such_database") && text.contains("does not exist"),
+        "{text}"
+    );
+    assert!(text.contains("3D000"), "{text}");
+    assert!(!text.contains("db error"), "{text}");
+    pg.raw_sql(&url, "DROP ROLE IF EXISTS bob; CREATE ROLE bob LOGIN;");
+    let e = PgCdb::open_read_only(&as_role(&url, "bob")).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::AccessDenied, "{e}");
+    assert!(e.to_string().contains("permission denied"), "{e}");
+    assert!(e.to_string().contains("42501"), "{e}");
+    // A server error of another kind names the server's words too.
+    let mut cdb = PgCdb::open(&url).unwrap();
+    let e = cdb
+        .batch_execute_raw("SELECT * FROM no_such_table")
+        .unwrap_err();
+    assert!(
+        e.to_string().contains("no_such_table") && e.to_string().contains("42P01"),
+        "{e}"
+    );
+    // A URL without a host is bad input naming what is missing.
+    let e = PgCdb::open_read_only("postgres://").unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::InvalidInput, "{e}");
+    assert!(e.to_string().contains("no host"), "{e}");
+}
+
+/// A CDB with one run and `nodes` committed nodes, left open (its write-ahead log holds
+/// the commits).
+fn open_with_commits(path: &std::path::Path, scanner: &str, nodes: u32) -> Cdb {
+    let r = run("run-1", scanner, T0);
+    let plan_nodes = plan(3);
+    let mut cdb = Cdb::open(path).unwrap();
+    cdb.create_run(&r).unwrap();
+    cdb.register_plan(&r.run_id, &plan_nodes).unwrap();
+    for n in &plan_nodes[..nodes as usize] {
+        let t = T0 + f64::from(n.node_index);
+        cdb.commit_node(&r.run_id, &done(n.node_index, t), &[record(&r, n, 0, t)])
+            .unwrap();
+    }
+    cdb
+}
+
+fn with_suffix(path: &std::path::Path, suffix: &str) -> std::path::PathBuf {
+    let mut s = path.as_os_str().to_owned();
+    s.push(suffix);
+    s.into()
+}
+
+/// Issue 25 item 2: SQLite replays a `-wal` beside a database without asking whether it
+/// belongs: a log copied from another CDB, or left from before (older than the database),
+/// was applied silently and the check said ok. Both are now refused before anything is
+/// written, with the way out in the message; a database older than its identity file
+/// (a restored backup) too.
+#[test]
+fn sqlite_a_foreign_or_stale_log_is_refused_before_anything_is_written() {
+    // A foreign log: A's log beside B.
+    let a = db_path("identity_a");
+    let b = db_path("identity_b");
+    let cdb_a = open_with_commits(&a, "A", 2);
+    let log_of_a = std::fs::read(with_suffix(&a, "-wal")).unwrap();
+    assert!(!log_of_a.is_empty());
+    drop(cdb_a);
+    drop(open_with_commits(&b, "B", 1));
+    std::fs::write(with_suffix(&b, "-wal"), &log_of_a).unwrap();
+    let before = (std::fs::read(&b).unwrap(), log_of_a.clone());
+    for e in [
+        Cdb::open_read_only(&b).unwrap_err(),
+        Cdb::open(&b).unwrap_err(),
+    ] {
+        assert_eq!(e.kind(), ErrorKind::IdentityMismatch, "{e}");
+        let text = e.to_string();
+        assert!(
+            text.contains("does not belong") && text.contains("mv "),
+            "{text}"
+        );
+    }
+    let after = (
+        std::fs::read(&b).unwrap(),
+        std::fs::read(with_suffix(&b, "-wal")).unwrap(),
+    );
+    assert!(
+        after == before,
+        "a refused open wrote to the database or its log"
+    );
+    // Moved aside as the message says, B opens as it was.
+    std::fs::rename(with_suffix(&b, "-wal"), with_suffix(&b, "-wal.stale")).unwrap();
+    let _ = std::fs::remove_file(with_suffix(&b, "-shm"));
+    let cdb_b = Cdb::open_read_only(&b).unwrap();
+    assert_eq!(cdb_b.scanners().unwrap(), vec!["B".to_owned()]);
+    assert!(cdb_b.check().unwrap().is_ok());
+    drop(cdb_b);
+
+    // A stale log: the log of an earlier moment beside the database that went on.
+    let c = db_path("identity_stale");
+    let cdb_c = open_with_commits(&c, "C", 1);
+    let early_log = std::fs::read(with_suffix(&c, "-wal")).unwrap();
+    drop(cdb_c);
+    let mut cdb_c = Cdb::open(&c).unwrap();
+    let r = cdb_c.run("run-1").unwrap().unwrap();
+    let nodes = plan(3);
+    cdb_c
+        .commit_node(
+            "run-1",
+            &done(1, T0 + 9.0),
+            &[record(&r, &nodes[1], 0, T0 + 9.0)],
+        )
+        .unwrap();
+    drop(cdb_c);
+    std::fs::write(with_suffix(&c, "-wal"), &early_log).unwrap();
+    let e = Cdb::open_read_only(&c).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::IdentityMismatch, "{e}");
+    assert!(e.to_string().contains("older than the database"), "{e}");
+    std::fs::remove_file(with_suffix(&c, "-wal")).unwrap();
+    let _ = std::fs::remove_file(with_suffix(&c, "-shm"));
+    assert_eq!(
+        Cdb::open_read_only(&c)
+            .unwrap()
+            .count_records(&RecordFilter::default())
+            .unwrap(),
+        2
+    );
+
+    // A restored backup: the file is older than the generation its identity file records.
+    let backup = std::fs::read(&c).unwrap();
+    {
+        let mut cdb_c = Cdb::open(&c).unwrap();
+        cdb_c
+            .finish_run("run-1", RunStatus::Finished, T0 + 99.0)
+            .unwrap();
+    }
+    std::fs::write(&c, &backup).unwrap();
+    let e = Cdb::open(&c).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::IdentityMismatch, "{e}");
+    assert!(e.to_string().contains("-identity"), "{e}");
+    std::fs::remove_file(with_suffix(&c, "-identity")).unwrap();
+    assert!(Cdb::open(&c).unwrap().check().unwrap().is_ok());
+}
+
+/// Issue 25 item 9, authentication: a wrong password and a missing one are `AccessDenied`
+/// (bad input, exit 2) with the server's words, never showing the password.
+#[test]
+fn postgres_authentication_failures_are_access_denied() {
+    let pg = common::postgres();
+    let url = pg.fresh("pg_auth");
+    drop(PgCdb::open(&url).unwrap());
+    pg.raw_sql(
+        &url,
+        "DROP ROLE IF EXISTS mallory; CREATE ROLE mallory LOGIN PASSWORD 'right-one';",
+    );
+    // Password authentication for this role only, ahead of the test server's `trust`.
+    let hba = pg.data_dir().join("pg_hba.conf");
+    let rules = std::fs::read_to_string(&hba).unwrap();
+    std::fs::write(
+        &hba,
+        format!("host all mallory 127.0.0.1/32 scram-sha-256\n{rules}"),
+    )
+    .unwrap();
+    pg.raw_sql(&url, "SELECT pg_reload_conf();");
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    let wrong = url.replacen("postgres://postgres@", "postgres://mallory:wrong-one@", 1);
+    let e = PgCdb::open_read_only(&wrong).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::AccessDenied, "{e}");
+    let text = e.to_string();
+    assert!(
+        text.contains("28P01") && text.contains("password authentication failed"),
+        "{text}"
+    );
+    assert!(!text.contains("wrong-one"), "{text}");
+    let none = url.replacen("postgres://postgres@", "postgres://mallory@", 1);
+    let e = PgCdb::open_read_only(&none).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::AccessDenied, "{e}");
+    assert!(e.to_string().contains("password missing"), "{e}");
+    let right = url.replacen("postgres://postgres@", "postgres://mallory:right-one@", 1);
+    let e = PgCdb::open_read_only(&right).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::AccessDenied, "no privilege yet: {e}");
 }

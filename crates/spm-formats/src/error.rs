@@ -356,6 +356,44 @@ impl<'a> Ctx<'a> {
     }
 }
 
+/// Largest accepted header (bytes of header text): real headers are below 100 KB.
+pub const MAX_HEADER_BYTES: u64 = 1 << 20;
+/// Largest accepted number of header entries: real headers hold a few hundred.
+pub const MAX_HEADER_ENTRIES: u64 = 10_000;
+
+impl Ctx<'_> {
+    /// Refuses a header of more than [`MAX_HEADER_BYTES`] bytes, before it is parsed.
+    pub fn check_header_bytes(&self, bytes: usize) -> Result<()> {
+        if bytes as u64 > MAX_HEADER_BYTES {
+            return Err(self.too_large("header (bytes)", bytes as u64, MAX_HEADER_BYTES));
+        }
+        Ok(())
+    }
+
+    /// Refuses a header of more than [`MAX_HEADER_ENTRIES`] entries, before the next one is
+    /// stored.
+    pub fn check_header_entries(&self, entries: usize) -> Result<()> {
+        if entries as u64 >= MAX_HEADER_ENTRIES {
+            return Err(self.too_large("header (entries)", entries as u64 + 1, MAX_HEADER_ENTRIES));
+        }
+        Ok(())
+    }
+
+    /// An empty vector with room for `n` elements, or a `TooLarge` error naming `field`
+    /// when the memory cannot be had (instead of aborting the process).
+    pub fn vec_with_capacity<T>(&self, n: usize, field: &str) -> Result<Vec<T>> {
+        let mut v = Vec::new();
+        v.try_reserve_exact(n).map_err(|_| {
+            self.too_large(
+                format!("{field} (bytes of memory; not available)"),
+                (n as u64).saturating_mul(std::mem::size_of::<T>() as u64),
+                0,
+            )
+        })?;
+        Ok(v)
+    }
+}
+
 /// Largest accepted number of pixels along one side of an image.
 pub const MAX_SIDE_PIXELS: u64 = 1 << 16;
 /// Largest accepted number of pixels in one image (16384 × 16384).

@@ -38,10 +38,19 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
             format!("expected \"Gwyddion Simple Field 1.0\\n\", found {shown:?}"),
         ));
     }
-    let nul = bytes
-        .iter()
-        .position(|&b| b == 0)
-        .ok_or_else(|| ctx.truncated("NUL padding after the header", bytes.len(), 1, 0))?;
+    // The header ends at the first NUL; it is looked for only as far as a header may go.
+    let limit = MAGIC.len() + crate::MAX_HEADER_BYTES as usize + 1;
+    let nul = match bytes[..bytes.len().min(limit)].iter().position(|&b| b == 0) {
+        Some(k) => k,
+        None if bytes.len() > limit => {
+            return Err(ctx.too_large(
+                "header (bytes)",
+                bytes.len() as u64,
+                crate::MAX_HEADER_BYTES,
+            ));
+        }
+        None => return Err(ctx.truncated("NUL padding after the header", bytes.len(), 1, 0)),
+    };
     let data_start = (nul / 4 + 1) * 4;
     let pad = ctx.slice(bytes, nul, data_start - nul, "NUL padding")?;
     if let Some(k) = pad.iter().position(|&b| b != 0) {
@@ -50,6 +59,7 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
             "header padding must be NUL bytes up to a multiple of 4",
         ));
     }
+    ctx.check_header_bytes(nul - MAGIC.len())?;
     let text = utf8(ctx, &bytes[MAGIC.len()..nul], "header", MAGIC.len())?;
 
     let mut header: Vec<(String, String)> = Vec::new();
@@ -58,6 +68,7 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
         if line.is_empty() {
             continue;
         }
+        ctx.check_header_entries(header.len())?;
         let (k, v) = line.split_once('=').ok_or_else(|| {
             ctx.invalid(
                 format!("header line {}", i + 2),
@@ -100,7 +111,7 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
     let x_off = real("XOffset")?.unwrap_or(0.0);
     let y_off = real("YOffset")?.unwrap_or(0.0);
 
-    let mut data = Vec::with_capacity(n);
+    let mut data = ctx.vec_with_capacity(n, "XRes×YRes data")?;
     for (k, c) in bytes[data_start..].chunks_exact(4).enumerate() {
         let v = f32::from_le_bytes([c[0], c[1], c[2], c[3]]);
         // NaN marks a pixel without data (Gwyddion reads it so, and masks it); an infinite

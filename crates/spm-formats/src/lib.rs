@@ -32,7 +32,10 @@ mod text;
 
 use std::path::Path;
 
-pub use error::{ErrorKind, FormatError, MAX_PIXELS, MAX_SIDE_PIXELS, Result};
+pub use error::{
+    ErrorKind, FormatError, MAX_HEADER_BYTES, MAX_HEADER_ENTRIES, MAX_PIXELS, MAX_SIDE_PIXELS,
+    Result,
+};
 pub use gsf::{encode_gsf, read_gsf, write_gsf};
 pub use gwy::{encode_gwy, write_gwy};
 pub use iso28600::read_iso28600;
@@ -56,18 +59,52 @@ pub fn read_any(path: impl AsRef<Path>) -> Result<SpmFile> {
     read_bytes(&bytes, path)
 }
 
-/// Reads a whole file with a size cap.
+/// Files longer than this are read only when their blocks are on disk (see [`read_file`]).
+const SPARSE_CHECK_BYTES: u64 = 64 << 20;
+
+/// Reads a whole file with a size cap. The buffer is reserved with `try_reserve` (no
+/// abort when memory is short), and a long file whose length is mostly holes (a sparse
+/// file: fewer than 1/16 of its bytes allocated on disk) is refused before it is read: no
+/// instrument writes one, and its zeros would make a claimed giant image look complete
+/// (issue 25: a 4 KiB sparse GSF claiming 16383² pixels took 3.15 GB).
 pub(crate) fn read_file(path: &Path) -> Result<Vec<u8>> {
+    use std::io::Read;
     let io = |source| FormatError::Io {
         path: path.to_path_buf(),
         action: "cannot read",
         source,
     };
-    let len = std::fs::metadata(path).map_err(io)?.len();
+    let ctx = Ctx::new(path);
+    let meta = std::fs::metadata(path).map_err(io)?;
+    let len = meta.len();
     if len > MAX_FILE_BYTES {
-        return Err(Ctx::new(path).too_large("file length", len, MAX_FILE_BYTES));
+        return Err(ctx.too_large("file length", len, MAX_FILE_BYTES));
     }
-    std::fs::read(path).map_err(io)
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        let on_disk = meta.blocks().saturating_mul(512);
+        if len > SPARSE_CHECK_BYTES && on_disk < len / 16 {
+            return Err(ctx.invalid(
+                "file",
+                format!(
+                    "a sparse file: {len} bytes long but only {on_disk} bytes on disk (the \
+                     rest are holes); not a recorded image"
+                ),
+            ));
+        }
+    }
+    let mut bytes: Vec<u8> =
+        ctx.vec_with_capacity(usize::try_from(len).unwrap_or(usize::MAX), "file")?;
+    std::fs::File::open(path)
+        .map_err(io)?
+        .take(MAX_FILE_BYTES + 1)
+        .read_to_end(&mut bytes)
+        .map_err(io)?;
+    if bytes.len() as u64 > MAX_FILE_BYTES {
+        return Err(ctx.too_large("file length", bytes.len() as u64, MAX_FILE_BYTES));
+    }
+    Ok(bytes)
 }
 
 /// Detects the format of `bytes` from magic bytes, then from the extension of `name`.

@@ -57,7 +57,7 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
             ),
         ));
     }
-    let mut data = Vec::with_capacity(n);
+    let mut data = ctx.vec_with_capacity(n, "data")?;
     for (k, c) in bytes[HEADER_BYTES..].chunks_exact(8).enumerate() {
         let v = f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]);
         if !v.is_finite() {

@@ -333,7 +333,7 @@ fn page_image(
         .collect();
     let mirror_x = ph.x_scale < 0.0;
     let flip_y = ph.y_scale > 0.0;
-    let mut data = Vec::with_capacity(n);
+    let mut data = ctx.vec_with_capacity(n, "page data")?;
     for row in 0..ny {
         let src = if flip_y { ny - 1 - row } else { row };
         let line = &stored[src * nx..(src + 1) * nx];

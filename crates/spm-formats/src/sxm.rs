@@ -37,7 +37,7 @@ fn find(haystack: &[u8], needle: &[u8]) -> Option<usize> {
 }
 
 /// Splits the header text into `(tag, value)` pairs in file order.
-fn parse_tags(text: &str) -> Vec<(String, String)> {
+fn parse_tags(ctx: Ctx<'_>, text: &str) -> Result<Vec<(String, String)>> {
     let mut out: Vec<(String, String)> = Vec::new();
     let mut current: Option<(String, Vec<&str>)> = None;
     for line in text.lines() {
@@ -50,6 +50,7 @@ fn parse_tags(text: &str) -> Vec<(String, String)> {
             && t.starts_with(':');
         if is_tag {
             if let Some((tag, lines)) = current.take() {
+                ctx.check_header_entries(out.len())?;
                 out.push((tag, join_value(&lines)));
             }
             current = Some((trimmed[1..trimmed.len() - 1].to_string(), Vec::new()));
@@ -58,9 +59,10 @@ fn parse_tags(text: &str) -> Vec<(String, String)> {
         }
     }
     if let Some((tag, lines)) = current {
+        ctx.check_header_entries(out.len())?;
         out.push((tag, join_value(&lines)));
     }
-    out
+    Ok(out)
 }
 
 fn join_value(lines: &[&str]) -> String {
@@ -256,7 +258,7 @@ impl ScanGeometry {
 
 /// The f32 values of one image block starting at byte `offset`; infinite values are refused.
 fn decode_f32(ctx: Ctx<'_>, block: &[u8], offset: usize, big_endian: bool) -> Result<Vec<f64>> {
-    let mut stored = Vec::with_capacity(block.len() / 4);
+    let mut stored = ctx.vec_with_capacity(block.len() / 4, "image data")?;
     for (k, c) in block.chunks_exact(4).enumerate() {
         let raw = [c[0], c[1], c[2], c[3]];
         let v = if big_endian {
@@ -306,8 +308,19 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
             format!("expected \":NANONIS_VERSION:\", found {shown:?}"),
         ));
     }
-    let end = find(bytes, END_TAG)
-        .ok_or_else(|| ctx.truncated("header end tag :SCANIT_END:", 0, 0, bytes.len()))?;
+    // The end tag is looked for only as far as a header may go.
+    let limit = crate::MAX_HEADER_BYTES as usize + END_TAG.len();
+    let end = match find(&bytes[..bytes.len().min(limit)], END_TAG) {
+        Some(end) => end,
+        None if bytes.len() > limit => {
+            return Err(ctx.too_large(
+                "header (bytes)",
+                bytes.len() as u64,
+                crate::MAX_HEADER_BYTES,
+            ));
+        }
+        None => return Err(ctx.truncated("header end tag :SCANIT_END:", 0, 0, bytes.len())),
+    };
     let text = utf8(ctx, &bytes[..end], "header", 0)?;
     let after = end + END_TAG.len();
     let window = &bytes[after..bytes.len().min(after + 64)];
@@ -315,7 +328,7 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
         .map(|p| after + p + DATA_MARK.len())
         .ok_or_else(|| ctx.truncated("data start mark 0x1A 0x04", after, 2, bytes.len() - after))?;
 
-    let header = parse_tags(text);
+    let header = parse_tags(ctx, text)?;
 
     let scanit = get(&header, "SCANIT_TYPE").ok_or_else(|| ctx.missing("SCANIT_TYPE"))?;
     let upper = scanit.to_ascii_uppercase();

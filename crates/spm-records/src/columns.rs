@@ -220,8 +220,10 @@ impl LccRecord {
     pub fn check(&self) -> Result<(), RecordProblem> {
         for (col, value) in LCC_RECORD_COLUMNS.iter().zip(self.column_values()) {
             match value {
-                ColumnValue::Text(t) if t.trim().is_empty() => {
-                    return Err(self.problem(col.name, "is empty".into()));
+                ColumnValue::Text(t) => {
+                    if let Some(why) = id_problem(t) {
+                        return Err(self.problem(col.name, why));
+                    }
                 }
                 ColumnValue::Real(v) | ColumnValue::OptionalReal(Some(v)) if !v.is_finite() => {
                     return Err(self.problem(col.name, format!("= {v} is not finite")));
@@ -247,6 +249,51 @@ impl LccRecord {
         }
         Ok(())
     }
+}
+
+/// Unicode format characters (category Cf: bidi controls, zero-width characters, …) and
+/// the other invisible code points that make one id look like another or reorder the text
+/// around it.
+fn is_format_char(c: char) -> bool {
+    matches!(
+        u32::from(c),
+        0x00AD
+            | 0x0600..=0x0605
+            | 0x061C
+            | 0x06DD
+            | 0x070F
+            | 0x0890..=0x0891
+            | 0x08E2
+            | 0x180E
+            | 0x200B..=0x200F
+            | 0x2028..=0x202E
+            | 0x2060..=0x206F
+            | 0xFEFF
+            | 0xFFF9..=0xFFFB
+            | 0x110BD
+            | 0x110CD
+            | 0x13430..=0x1343F
+            | 0x1BCA0..=0x1BCA3
+            | 0x1D173..=0x1D17A
+            | 0xE0001
+            | 0xE0020..=0xE007F
+    )
+}
+
+/// Why `id` (a scanner or run id) cannot be stored, or `None` when it can: an id is not
+/// blank and holds no control character and no format character (bidi overrides and
+/// isolates, zero-width characters: issue 25, they make ids look alike and reorder the
+/// text around them in reports and exports).
+#[must_use]
+pub fn id_problem(id: &str) -> Option<String> {
+    if id.trim().is_empty() {
+        return Some("is empty".into());
+    }
+    let bad = id.chars().find(|&c| c.is_control() || is_format_char(c))?;
+    Some(format!(
+        "{id:?} holds the control or format character U+{:04X}; ids must be visible text",
+        u32::from(bad)
+    ))
 }
 
 struct ColumnReader {

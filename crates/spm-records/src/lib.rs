@@ -10,22 +10,26 @@
 //! - [`LCC_RECORD_COLUMNS`]: the one definition of the record columns (name, kind, order)
 //!   that every store's schema, insert, select and export are built from;
 //!   [`LccRecord::column_values`] and [`LccRecord::from_column_values`] convert.
-//! - [`LccRecord::check`]: the validity rules every store applies before writing.
+//! - [`LccRecord::check`]: the validity rules every store applies before writing;
+//!   [`LccRecord::implausibility`]: the range rules against the run's [`Plausibility`]
+//!   limits (field, aperture, nominal sensitivity) that `cdb check` and the fit apply.
 //! - [`ProgressStore`]: begin a run, read the plan's states, commit a node in one
 //!   transaction, give a node up, finish the run.
 #![doc = include_str!("../README.md")]
 
 mod columns;
 mod model;
+mod plausibility;
 mod store;
 
 pub use columns::{
     ColumnKind, ColumnValue, LCC_RECORD_COLUMNS, LccColumn, OwnedColumnValue, POSITIVE_COLUMNS,
-    RecordProblem, UNCERTAINTY_COLUMNS,
+    RecordProblem, UNCERTAINTY_COLUMNS, id_problem,
 };
 pub use model::{
     Coefficient, CoefficientStat, IntegrityProblem, IntegrityReport, LccColumns, LccRecord,
     NodeDone, NodeProgress, NodeState, PlanNode, ProgressSummary, RecordFilter, RunInfo, RunStatus,
     TrendGrouping, TrendPoint,
 };
+pub use plausibility::{APERTURES_FROM_NODE, NOMINAL_FACTOR, Plausibility};
 pub use store::{MemoryStore, MemoryStoreError, ProgressStore};

@@ -136,6 +136,36 @@ pub struct ReportOptions {
     pub quick: bool,
 }
 
+/// Refuses a CDB file (or one of its `-wal`/`-shm`/`-journal`/`-identity` companions) that is where
+/// the run writes a report file or that file's temporary `NAME.partial`: compared by
+/// location, so also when neither exists yet (issue 25: a new CDB named
+/// `OUT/report.json` was replaced by the report, every record lost, exit 0).
+fn check_cdb_is_no_report_file(cdb: &Path, out: &Path) -> Result<(), CliError> {
+    let cdb_files: Vec<PathBuf> = ["", "-wal", "-shm", "-journal", "-identity"]
+        .iter()
+        .map(|suffix| {
+            let mut s = cdb.as_os_str().to_owned();
+            s.push(suffix);
+            files::location(Path::new(&s))
+        })
+        .collect();
+    for name in OUTPUT_FILES {
+        let target = out.join(name);
+        for written in [target.clone(), target.with_extension("partial")] {
+            if cdb_files.contains(&files::location(&written)) {
+                return Err(CliError::BadInput(format!(
+                    "--cdb {}: is where the run writes its report file {} (--out {}); \
+                     give the calibration database another name or folder",
+                    cdb.display(),
+                    written.display(),
+                    out.display()
+                )));
+            }
+        }
+    }
+    Ok(())
+}
+
 pub fn run(
     config: &Path,
     cdb: Option<&Path>,
@@ -158,6 +188,7 @@ pub fn run(
         files::check_input(&cdb_path, "calibration database")?;
     }
     if cdb_is_file {
+        check_cdb_is_no_report_file(&cdb_path, &out)?;
         files::check_output(&cdb_path, "--cdb", &input_refs)?;
     }
     let mut protected = input_refs.clone();

@@ -57,7 +57,7 @@ pub fn cdb_error(error: spm_cdb::CdbError) -> CliError {
 
 pub fn check(path: &Path) -> Result<(), CliError> {
     let handle = open_read_only(path)?;
-    let snapshot = handle.snapshot().map_err(cdb_error)?;
+    let snapshot = handle.snapshot_unfiltered().map_err(cdb_error)?;
     let cdb: &dyn CdbRead = &*snapshot;
     let report = cdb.check().map_err(cdb_error)?;
     if report.is_ok() {
@@ -111,7 +111,7 @@ fn write_csv(cdb: &CdbHandle, csv: &Path, partial: &Path) -> Result<u64, CliErro
         inner: std::io::BufWriter::new(file),
         error: None,
     };
-    let snapshot = cdb.snapshot().map_err(cdb_error)?;
+    let snapshot = cdb.snapshot_unfiltered().map_err(cdb_error)?;
     let exported = snapshot.export_csv(&RecordFilter::default(), &mut writer);
     let flushed = writer.flush();
     if let Some(e) = writer.error.take() {
@@ -131,7 +131,7 @@ fn write_csv(cdb: &CdbHandle, csv: &Path, partial: &Path) -> Result<u64, CliErro
 
 pub fn trend(path: &Path) -> Result<(), CliError> {
     let cdb = open_read_only(path)?;
-    let snapshot = cdb.snapshot().map_err(cdb_error)?;
+    let snapshot = cdb.snapshot_unfiltered().map_err(cdb_error)?;
     for scanner in snapshot.scanners().map_err(cdb_error)? {
         crate::outln!("scanner {scanner}");
         for (coefficient, label, scale, unit) in [

@@ -8,9 +8,10 @@
 
 use spm_cdb::postgres::{PgCdb, is_postgres_url, redact_url};
 use spm_cdb::{
-    Cdb, CdbError, CdbRead, LccRecord, NodeDone, NodeState, PlanNode, ProgressStore, RunInfo,
-    RunStatus,
+    Cdb, CdbError, CdbRead, IntegrityReport, LccColumns, LccRecord, NodeDone, NodeProgress,
+    NodeState, PlanNode, ProgressStore, ProgressSummary, RecordFilter, RunInfo, RunStatus,
 };
+use spm_records::Plausibility;
 use std::collections::HashMap;
 use std::path::Path;
 
@@ -71,11 +72,23 @@ impl CdbHandle {
         }
     }
 
-    /// A read transaction: every query through it sees one committed state.
+    /// A read transaction for fitting: every query through it sees one committed state,
+    /// and the records that break their run's plausibility limits (as `cdb check` reports
+    /// them: [`spm_cdb::LccRecord::implausibility`]) are left out of `columns`, `records`
+    /// and `count_records`, with a warning (issue 25: a bit-rotten LCS went into the fit).
     ///
     /// # Errors
     /// The back end's errors.
     pub fn snapshot(&self) -> Result<Box<dyn CdbRead + '_>, CdbError> {
+        let inner = self.snapshot_unfiltered()?;
+        Ok(Box::new(Plausible::new(inner)))
+    }
+
+    /// A read transaction that sees every stored record (check, export, trend).
+    ///
+    /// # Errors
+    /// The back end's errors.
+    pub fn snapshot_unfiltered(&self) -> Result<Box<dyn CdbRead + '_>, CdbError> {
         Ok(match self {
             Self::Sqlite(c) => Box::new(c.snapshot()?),
             Self::Postgres(c) => Box::new(c.snapshot()?),
@@ -151,5 +164,126 @@ impl ProgressStore for CdbHandle {
             Self::Sqlite(c) => c.finish_run(run_id, status, at_unix_s),
             Self::Postgres(c) => c.finish_run(run_id, status, at_unix_s),
         }
+    }
+}
+
+/// Reads through a snapshot, leaving out the records that break their run's plausibility
+/// limits (the rule `cdb check` reports as `implausible_record`).
+struct Plausible<'a> {
+    inner: Box<dyn CdbRead + 'a>,
+    limits: HashMap<String, Plausibility>,
+}
+
+impl<'a> Plausible<'a> {
+    fn new(inner: Box<dyn CdbRead + 'a>) -> Self {
+        // A run that cannot be decoded gives no limits here; `cdb check` names it.
+        let limits = match inner.runs(None) {
+            Ok(runs) => runs
+                .into_iter()
+                .map(|r| (r.run_id, Plausibility::from_run_config(&r.config)))
+                .filter(|(_, p)| !p.is_empty())
+                .collect(),
+            Err(e) => {
+                tracing::debug!(error = %e, "runs unreadable: no plausibility limits");
+                HashMap::new()
+            }
+        };
+        Self { inner, limits }
+    }
+
+    fn plausible(&self, r: &LccRecord) -> bool {
+        self.limits
+            .get(&r.run_id)
+            .is_none_or(|p| r.implausibility(p).is_none())
+    }
+
+    fn warn(&self, excluded: usize) {
+        if excluded > 0 {
+            tracing::warn!(
+                cdb = %self.inner.path().display(),
+                excluded,
+                "records outside their run's plausibility limits (field, distance from the \
+                 node, nominal sensitivity; as `spmcal cdb check` reports them) left out"
+            );
+        }
+    }
+}
+
+impl CdbRead for Plausible<'_> {
+    fn path(&self) -> &Path {
+        self.inner.path()
+    }
+    fn schema_version(&self) -> Result<i64, CdbError> {
+        self.inner.schema_version()
+    }
+    fn for_each_record(
+        &self,
+        filter: &RecordFilter,
+        each: &mut dyn FnMut(LccRecord) -> Result<(), CdbError>,
+    ) -> Result<(), CdbError> {
+        let mut excluded = 0;
+        self.inner.for_each_record(filter, &mut |r| {
+            if self.plausible(&r) {
+                each(r)
+            } else {
+                excluded += 1;
+                Ok(())
+            }
+        })?;
+        self.warn(excluded);
+        Ok(())
+    }
+    fn count_records(&self, filter: &RecordFilter) -> Result<u64, CdbError> {
+        if self.limits.is_empty() {
+            return self.inner.count_records(filter);
+        }
+        let mut n = 0;
+        self.inner.for_each_record(filter, &mut |r| {
+            n += u64::from(self.plausible(&r));
+            Ok(())
+        })?;
+        Ok(n)
+    }
+    fn columns(&self, filter: &RecordFilter) -> Result<LccColumns, CdbError> {
+        if self.limits.is_empty() {
+            return self.inner.columns(filter);
+        }
+        let mut c = LccColumns::default();
+        self.for_each_record(filter, &mut |r| {
+            c.lcs_x_counts.push(r.lcs_x_counts);
+            c.lcs_y_counts.push(r.lcs_y_counts);
+            c.node_z_counts.push(r.node_z_counts);
+            c.acquired_unix_s.push(r.acquired_unix_s);
+            c.kx_nm_per_count.push(r.kx_nm_per_count);
+            c.ky_nm_per_count.push(r.ky_nm_per_count);
+            c.alpha_rad.push(r.alpha_rad);
+            c.kz_nm_per_count.push(r.kz_nm_per_count);
+            Ok(())
+        })?;
+        Ok(c)
+    }
+    fn scanners(&self) -> Result<Vec<String>, CdbError> {
+        self.inner.scanners()
+    }
+    fn z_planes(&self, scanner_id: &str) -> Result<Vec<i64>, CdbError> {
+        self.inner.z_planes(scanner_id)
+    }
+    fn run(&self, run_id: &str) -> Result<Option<RunInfo>, CdbError> {
+        self.inner.run(run_id)
+    }
+    fn runs(&self, scanner_id: Option<&str>) -> Result<Vec<RunInfo>, CdbError> {
+        self.inner.runs(scanner_id)
+    }
+    fn progress(&self, run_id: &str) -> Result<Vec<NodeProgress>, CdbError> {
+        self.inner.progress(run_id)
+    }
+    fn next_pending(&self, run_id: &str) -> Result<Option<PlanNode>, CdbError> {
+        self.inner.next_pending(run_id)
+    }
+    fn progress_summary(&self, run_id: &str) -> Result<ProgressSummary, CdbError> {
+        self.inner.progress_summary(run_id)
+    }
+    fn check(&self) -> Result<IntegrityReport, CdbError> {
+        self.inner.check()
     }
 }

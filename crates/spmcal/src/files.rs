@@ -2,9 +2,10 @@
 //!
 //! - Inputs must be regular files, checked *before* opening (a FIFO would block the open,
 //!   a device such as `/dev/zero` would be read until memory runs out).
-//! - Outputs must be regular files or new, and never the same file (device + inode, so
-//!   also through links and other spellings) as an input, the CDB (or its `-wal`/`-shm`
-//!   companions) or the log.
+//! - Outputs must be regular files or new, and never the same file as an input, the CDB
+//!   (or its `-wal`/`-shm` companions) or the log: compared by location (the resolved
+//!   parent plus the name, so also for files that do not exist yet, issue 25) and, for
+//!   existing files, by identity (device + inode, so also through hard links).
 //! - Standard output that is closed or full ends the program with a typed error (exit 1,
 //!   no panic).
 
@@ -89,9 +90,46 @@ pub fn check_input(path: &Path, what: &str) -> Result<std::fs::Metadata, CliErro
     }
 }
 
-/// The files that an output must never be: `inputs`, their SQLite companions (`-wal`,
-/// `-shm`, `-journal`) and the log.
-fn protected(inputs: &[&Path]) -> Vec<(PathBuf, FileId)> {
+/// Where `path` is, whether or not the file exists: absolute, its longest existing
+/// ancestor resolved (symbolic links, `..`) and the rest appended lexically. Two spellings
+/// of one place give the same location, so a file that does not exist yet (a new CDB, a
+/// report not written yet) is compared by where it will be, not by an identity it does
+/// not have.
+pub fn location(path: &Path) -> PathBuf {
+    let absolute = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+    for ancestor in absolute.ancestors() {
+        let Ok(resolved) = std::fs::canonicalize(ancestor) else {
+            continue;
+        };
+        let Ok(rest) = absolute.strip_prefix(ancestor) else {
+            break;
+        };
+        let mut out = resolved;
+        for component in rest.components() {
+            match component {
+                std::path::Component::CurDir => {}
+                std::path::Component::ParentDir => {
+                    out.pop();
+                }
+                other => out.push(other.as_os_str()),
+            }
+        }
+        return out;
+    }
+    absolute
+}
+
+/// A file an output must never be: its name, its location and, when it exists, its
+/// identity.
+struct Protected {
+    path: PathBuf,
+    location: PathBuf,
+    id: Option<FileId>,
+}
+
+/// The files that an output must never be: `inputs`, their CDB companions (`-wal`,
+/// `-shm`, `-journal`, `-identity`) and the log, whether they exist or not.
+fn protected(inputs: &[&Path]) -> Vec<Protected> {
     let mut paths: Vec<PathBuf> = Vec::new();
     for p in inputs
         .iter()
@@ -99,7 +137,7 @@ fn protected(inputs: &[&Path]) -> Vec<(PathBuf, FileId)> {
         .chain(LOG.get().map(PathBuf::as_path))
     {
         paths.push(p.to_path_buf());
-        for suffix in ["-wal", "-shm", "-journal"] {
+        for suffix in ["-wal", "-shm", "-journal", "-identity"] {
             let mut s = p.as_os_str().to_owned();
             s.push(suffix);
             paths.push(PathBuf::from(s));
@@ -107,13 +145,23 @@ fn protected(inputs: &[&Path]) -> Vec<(PathBuf, FileId)> {
     }
     paths
         .into_iter()
-        .filter_map(|p| identity(&p).map(|id| (p, id)))
+        .map(|path| Protected {
+            location: location(&path),
+            id: identity(&path),
+            path,
+        })
         .collect()
 }
 
 /// Checks that `out` may be written: new, or an existing regular file that is none of
 /// `inputs` (nor the CDB's companions, nor the log). `flag` names the option.
 pub fn check_output(out: &Path, flag: &str, inputs: &[&Path]) -> Result<(), CliError> {
+    let out_location = location(out);
+    let clash = |id: Option<FileId>| {
+        protected(inputs)
+            .into_iter()
+            .find(|p| p.location == out_location || (id.is_some() && p.id == id))
+    };
     let meta = match std::fs::metadata(out) {
         Ok(meta) => meta,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
@@ -123,6 +171,9 @@ pub fn check_output(out: &Path, flag: &str, inputs: &[&Path]) -> Result<(), CliE
                     "{flag} {}: a dangling symbolic link; give a regular file",
                     out.display()
                 )));
+            }
+            if let Some(p) = clash(None) {
+                return Err(same_file(flag, out, &p.path));
             }
             return Ok(());
         }
@@ -135,18 +186,18 @@ pub fn check_output(out: &Path, flag: &str, inputs: &[&Path]) -> Result<(), CliE
             kind_of(&meta)
         )));
     }
-    if let Some(id) = id_of(&meta) {
-        for (p, other) in protected(inputs) {
-            if other == id {
-                return Err(CliError::BadInput(format!(
-                    "{flag} {}: is the same file as {}; refusing to overwrite it",
-                    out.display(),
-                    p.display()
-                )));
-            }
-        }
+    if let Some(p) = clash(id_of(&meta)) {
+        return Err(same_file(flag, out, &p.path));
     }
     Ok(())
+}
+
+fn same_file(flag: &str, out: &Path, other: &Path) -> CliError {
+    CliError::BadInput(format!(
+        "{flag} {}: is the same file as {}; refusing to overwrite it",
+        out.display(),
+        other.display()
+    ))
 }
 
 /// Checks that no two of `outputs` are the same file (by name or identity).
@@ -154,7 +205,7 @@ pub fn check_distinct_outputs(outputs: &[(&str, &Path)]) -> Result<(), CliError>
     for (i, (flag_a, a)) in outputs.iter().enumerate() {
         for (flag_b, b) in outputs.iter().skip(i + 1) {
             let same_id = matches!((identity(a), identity(b)), (Some(x), Some(y)) if x == y);
-            if a == b || same_id {
+            if a == b || same_id || location(a) == location(b) {
                 return Err(CliError::BadInput(format!(
                     "{flag_a} and {flag_b} name the same file {}",
                     a.display()

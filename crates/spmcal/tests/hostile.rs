@@ -1262,3 +1262,270 @@ fn item_21_the_reading_commands_work_in_a_read_only_place() {
     }
     assert!(stdout(&run(&["cdb", "check", &inside])).contains("9 records"));
 }
+
+// ---------------------------------------------------------------------------------------
+// Issue 25 (reliability, third pass): `issue25_NN_…` per item of that issue.
+
+#[test]
+fn issue25_01_a_new_cdb_where_a_report_file_goes_is_refused() {
+    let dir = Scratch::new("r01");
+    let job = write_job(&dir, &[], &[]);
+    let out_dir = dir.s("out");
+    // Another spelling of the same folder (through a folder that exists and `..`).
+    std::fs::create_dir_all(dir.path("x")).unwrap();
+    let other_spelling = dir.path("x/../out");
+    for (name, folder) in [
+        ("report.json", dir.path("out")),
+        ("surfaces.json", dir.path("out")),
+        ("report.html", other_spelling.clone()),
+        ("drift.png", other_spelling.clone()),
+        ("report.partial", dir.path("out")),
+    ] {
+        let cdb = folder.join(name).display().to_string();
+        let out = run(&[
+            "calibrate",
+            "--config",
+            &job,
+            "--cdb",
+            &cdb,
+            "--out",
+            &out_dir,
+        ]);
+        assert_bad_input(&out, &cdb, &["--cdb", name, "report file"]);
+        assert!(!dir.path("out").join(name).exists(), "{name} written");
+    }
+    // An existing CDB there is refused too, and kept.
+    let cdb = dir.s("out/report.json");
+    std::fs::create_dir_all(dir.path("out")).unwrap();
+    std::fs::rename(calibrated(&dir), &cdb).unwrap();
+    let before = bytes(&cdb);
+    let out = run(&[
+        "calibrate",
+        "--config",
+        &job,
+        "--cdb",
+        &cdb,
+        "--out",
+        &out_dir,
+    ]);
+    assert_bad_input(&out, "existing", &["--cdb"]);
+    assert_eq!(bytes(&cdb), before);
+    assert_eq!(count_records(&cdb), 9);
+}
+
+#[test]
+fn issue25_18_a_cdb_in_a_missing_folder_or_a_url_without_host_is_bad_input() {
+    let dir = Scratch::new("r18");
+    let job = write_job(&dir, &[], &[]);
+    let cdb = dir.s("missing/c.sqlite");
+    let out = run(&[
+        "calibrate",
+        "--config",
+        &job,
+        "--cdb",
+        &cdb,
+        "--out",
+        &dir.s("out"),
+    ]);
+    assert_bad_input(&out, "missing folder", &["missing", "folder"]);
+    assert!(!stderr(&out).contains(".creating-"), "{}", stderr(&out));
+    for args in [
+        vec!["cdb", "check", "postgres://"],
+        vec!["cdb", "export", "postgres://", "--csv", &dir.s("e.csv")],
+        vec!["cdb", "check", "postgresql://u@/db"],
+    ] {
+        let out = run(&args);
+        assert_bad_input(&out, &format!("{args:?}"), &["no host"]);
+    }
+}
+
+#[test]
+fn issue25_03_a_password_is_never_shown_however_it_is_spelled() {
+    let dir = Scratch::new("r03");
+    let closed = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().port()
+    };
+    let log = dir.s("log.txt");
+    for (url, secret) in [
+        (
+            format!("postgres://u:pa/ss9@127.0.0.1:{closed}/db"),
+            "pa/ss9",
+        ),
+        (
+            format!("postgres://u:pa?ss9@127.0.0.1:{closed}/db"),
+            "pa?ss9",
+        ),
+        (
+            format!("postgres://u@127.0.0.1:{closed}/db?password=hunter2"),
+            "hunter2",
+        ),
+        (
+            format!("postgres://u@127.0.0.1:{closed}/db?pass%77ord=hunter2"),
+            "hunter2",
+        ),
+    ] {
+        for args in [
+            vec!["--log", &log, "cdb", "check", &url],
+            vec!["--log", &log, "cdb", "trend", &url],
+        ] {
+            let out = run(&args);
+            assert!(
+                matches!(code(&out), Some(1 | 2)),
+                "{args:?}: {}",
+                stderr(&out)
+            );
+            for text in [
+                stdout(&out),
+                stderr(&out),
+                std::fs::read_to_string(&log).unwrap_or_default(),
+            ] {
+                assert!(!text.contains(secret), "{url}: shown in {text}");
+            }
+            assert!(stderr(&out).contains("u:***@127.0.0.1"), "{}", stderr(&out));
+        }
+    }
+}
+
+/// Runs `spmcal ARGS` with its address space limited to `limit_kib` (`ulimit -v`).
+fn run_limited(limit_kib: u64, args: &[&str]) -> Output {
+    let child = Command::new("sh")
+        .arg("-c")
+        .arg(format!("ulimit -v {limit_kib} && exec \"$0\" \"$@\""))
+        .arg(bin())
+        .args(args)
+        .current_dir(scratch_cwd())
+        .env("NO_COLOR", "1")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("sh starts");
+    wait_bounded(child, args)
+}
+
+#[test]
+fn issue25_07_huge_claims_are_refused_before_memory_is_spent() {
+    let dir = Scratch::new("r07");
+    // A sparse GSF claiming 16383² pixels: 4 KiB on disk, 1 GiB long.
+    let sparse = dir.path("sparse.gsf");
+    {
+        let mut head = b"Gwyddion Simple Field 1.0\nXRes = 16383\nYRes = 16383\n".to_vec();
+        while !head.len().is_multiple_of(4) || head.last() != Some(&0) {
+            head.push(0);
+        }
+        std::fs::write(&sparse, &head).unwrap();
+        let file = std::fs::OpenOptions::new()
+            .write(true)
+            .open(&sparse)
+            .unwrap();
+        file.set_len(head.len() as u64 + 4 * 16383 * 16383).unwrap();
+    }
+    // A header of 10⁷ entries (40 MB).
+    let entries = dir.path("entries.gsf");
+    {
+        let mut bytes = b"Gwyddion Simple Field 1.0\nXRes = 1\nYRes = 1\n".to_vec();
+        bytes.reserve(40_000_100);
+        for _ in 0..10_000_000 {
+            bytes.extend_from_slice(b"a=1\n");
+        }
+        bytes.push(0);
+        while !bytes.len().is_multiple_of(4) {
+            bytes.push(0);
+        }
+        bytes.extend_from_slice(&1.0f32.to_le_bytes());
+        std::fs::write(&entries, bytes).unwrap();
+    }
+    for (file, mentions) in [(&sparse, ["holes"]), (&entries, ["header (bytes)"])] {
+        let f = file.display().to_string();
+        let out = run_limited(768 * 1024, &["info", &f]);
+        assert_bad_input(&out, &f, &mentions);
+    }
+}
+
+#[test]
+fn issue25_06_bit_rot_is_found_by_check_and_left_out_of_the_fit() {
+    let dir = Scratch::new("r06");
+    let cdb = calibrated(&dir);
+    check_passes(&cdb);
+    // An LCS y of −1.38·10⁹ counts on a ±32 768-count scanner; a K̄x 100 × the nominal.
+    sql(
+        &cdb,
+        "UPDATE records SET lcs_y_counts = -1.38e9 WHERE rowid = 2",
+    );
+    sql(
+        &cdb,
+        "UPDATE records SET kx_nm_per_count = 2.0 WHERE rowid = 5",
+    );
+    let out = run(&["cdb", "check", &cdb]);
+    assert_eq!(code(&out), Some(1), "{}{}", stdout(&out), stderr(&out));
+    let text = stdout(&out);
+    assert_eq!(text.matches("implausible_record").count(), 2, "{text}");
+    assert!(
+        text.contains("lcs_y_counts") && text.contains("kx_nm_per_count"),
+        "{text}"
+    );
+    let out_json = dir.s("s.json");
+    let out = run(&["fit", "--cdb", &cdb, "--out", &out_json]);
+    assert_eq!(code(&out), Some(0), "{}", stderr(&out));
+    assert!(stderr(&out).contains("left out"), "{}", stderr(&out));
+    let json: serde_json::Value = serde_json::from_slice(&bytes(&out_json)).unwrap();
+    assert_eq!(json["provenance"]["n_records"], 7);
+}
+
+#[test]
+fn issue25_02_a_foreign_log_beside_the_cdb_is_refused_with_exit_2() {
+    let dir = Scratch::new("r02");
+    let job = write_job(&dir, &[], &[]);
+    let a = calibrated(&dir);
+    let b = dir.s("b.sqlite");
+    let out = run(&[
+        "calibrate",
+        "--config",
+        &job,
+        "--cdb",
+        &b,
+        "--out",
+        &dir.s("o2"),
+    ]);
+    assert_eq!(code(&out), Some(0), "{}", stderr(&out));
+    // A's write-ahead log, taken while A is open with a commit in it, laid beside B.
+    let log_of_a = {
+        let mut cdb = Cdb::open(&a).unwrap();
+        cdb.create_run(&spm_cdb::RunInfo {
+            run_id: "extra".into(),
+            scanner_id: "sim-hopg".into(),
+            config: "[plan]\n".into(),
+            started_unix_s: 1.8e9,
+            finished_unix_s: None,
+            status: spm_cdb::RunStatus::Running,
+        })
+        .unwrap();
+        bytes(&format!("{a}-wal"))
+    };
+    std::fs::write(format!("{b}-wal"), &log_of_a).unwrap();
+    let before = bytes(&b);
+    for args in [
+        vec!["cdb", "check", b.as_str()],
+        vec!["cdb", "export", b.as_str(), "--csv", &dir.s("e.csv")],
+        vec!["fit", "--cdb", b.as_str(), "--out", &dir.s("s.json")],
+        vec![
+            "calibrate",
+            "--config",
+            &job,
+            "--cdb",
+            b.as_str(),
+            "--out",
+            &dir.s("o3"),
+        ],
+    ] {
+        let out = run(&args);
+        assert_bad_input(&out, &format!("{args:?}"), &["does not belong", "mv "]);
+        assert_eq!(bytes(&b), before, "{args:?} wrote to the CDB");
+        assert_eq!(
+            bytes(&format!("{b}-wal")),
+            log_of_a,
+            "{args:?} wrote to the log"
+        );
+    }
+}

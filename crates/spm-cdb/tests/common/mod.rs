@@ -9,7 +9,7 @@ pub fn db_path(name: &str) -> PathBuf {
     let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("spm-cdb-tests");
     std::fs::create_dir_all(&dir).unwrap();
     let p = dir.join(format!("{name}.sqlite"));
-    for suffix in ["", "-wal", "-shm", "-journal"] {
+    for suffix in ["", "-wal", "-shm", "-journal", "-identity"] {
         let mut f = p.clone().into_os_string();
         f.push(suffix);
         let _ = std::fs::remove_file(PathBuf::from(f));
@@ -221,6 +221,13 @@ impl Backend for Sqlite {
 /// exits), one database per test.
 pub struct Postgres {
     server: spm_cdb::pg_server::TestServer,
+}
+
+impl Postgres {
+    /// The server's data folder (its `pg_hba.conf`).
+    pub fn data_dir(&self) -> std::path::PathBuf {
+        self.server.dir().join("data")
+    }
 }
 
 /// The test binary's PostgreSQL server, started on first use. Panics with the harness's

@@ -9,9 +9,14 @@
 //! Per channel `n` the container holds `/n/data` (a `GwyDataField`: `xres`, `yres`, `xreal`,
 //! `yreal`, `xoff`, `yoff` in metres, `si_unit_xy`, `si_unit_z` as `GwySIUnit { unitstr }`, and
 //! `data`, row 0 at the top), `/n/data/title`, `/n/meta` (a `GwyContainer` of strings), and
-//! when the channel has pixels without data, `/n/mask` (1 where the value is NaN). NaN values
-//! are kept as NaN: Gwyddion's own loaders mark missing data with a mask, and a value that is
-//! not there is never replaced by one that looks like data.
+//! when the channel has pixels without data, `/n/mask` (1 where the value is NaN).
+//!
+//! Pixels without data: Gwyddion's data fields must be finite (a NaN makes its range and
+//! histogram undefined and it draws nothing), and its own importers mark missing data with a
+//! mask. So a `.gwy` carries them the Gwyddion way: the mask `/n/mask` is 1 there (Gwyddion
+//! draws it over the image and its tools exclude masked pixels), and the data field holds the
+//! mean of the valid pixels underneath, as Gwyddion's importers do. The `.gsf` writer keeps
+//! NaN itself (Gwyddion masks it on import).
 
 use std::path::Path;
 
@@ -110,7 +115,7 @@ fn data_field(channel: &Channel, values: &[f64], unit_z: &str, ctx: Ctx<'_>) -> 
 
 /// Encodes channels and their metadata as a `.gwy` file (see the module docs). `metadata` is
 /// written for every channel (the source header and what was done to it). Infinite values are
-/// refused; NaN marks a pixel without data and gets a mask.
+/// refused; a NaN pixel (no data) is masked (see the module docs).
 ///
 /// # Errors
 /// [`crate::ErrorKind::InvalidInput`] for no channel, a channel without a positive physical
@@ -148,11 +153,22 @@ fn encode_with_ctx(
             Direction::Forward => channel.name().to_owned(),
             Direction::Backward => format!("{} (backward)", channel.name()),
         };
-        let field = data_field(channel, channel.data(), channel.unit(), ctx)?;
+        let data = channel.data();
+        let valid: Vec<f64> = data.iter().copied().filter(|v| v.is_finite()).collect();
+        let mean = if valid.is_empty() {
+            0.0
+        } else {
+            valid.iter().sum::<f64>() / valid.len() as f64
+        };
+        let values: Vec<f64> = data
+            .iter()
+            .map(|v| if v.is_nan() { mean } else { *v })
+            .collect();
+        let field = data_field(channel, &values, channel.unit(), ctx)?;
         container.object(&format!("/{n}/data"), "GwyDataField", &field)?;
         container.string(&format!("/{n}/data/title"), &title);
         container.object(&format!("/{n}/meta"), "GwyContainer", &meta)?;
-        if channel.data().iter().any(|v| v.is_nan()) {
+        if valid.len() < data.len() {
             let mask: Vec<f64> = channel
                 .data()
                 .iter()

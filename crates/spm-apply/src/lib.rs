@@ -412,7 +412,8 @@ impl FileRaster {
                 });
             }
         };
-        if !(k.is_finite() && (1e-9..=1e3).contains(&k)) {
+        let (lo, hi) = SENSITIVITY_RANGE_NM_PER_COUNT;
+        if !(k.is_finite() && (lo..=hi).contains(&k)) {
             return Err(ApplyError::Option {
                 option: "--nominal-nm-per-count",
                 reason: format!(

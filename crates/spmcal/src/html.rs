@@ -42,6 +42,27 @@ pub enum Cell {
     },
 }
 
+/// `value` with `digits` significant digits: fixed-point in [10⁻³, 10⁶) (at most six decimals),
+/// scientific outside; `–` when not finite, `0` for zero. The one number format of what spmcal
+/// shows a person (report cells, figure labels, `spmcal info`).
+#[must_use]
+pub fn significant_text(value: f64, digits: usize) -> String {
+    if !value.is_finite() {
+        return "–".to_owned();
+    }
+    if value == 0.0 {
+        return "0".to_owned();
+    }
+    let a = value.abs();
+    let digits = digits.max(1);
+    if (1e-3..1e6).contains(&a) {
+        let decimals = (digits as i64 - 1 - a.log10().floor() as i64).clamp(0, 6) as usize;
+        format!("{value:.decimals$}")
+    } else {
+        format!("{value:.*e}", digits - 1)
+    }
+}
+
 impl Cell {
     /// A text cell.
     pub fn text(text: impl Into<String>) -> Self {
@@ -60,20 +81,10 @@ impl Cell {
 
     /// A number shown with three significant digits (`–` when not finite).
     pub fn significant(value: f64) -> Self {
-        let text = if !value.is_finite() {
-            "–".to_owned()
-        } else if value == 0.0 {
-            "0".to_owned()
-        } else {
-            let a = value.abs();
-            if (1e-3..1e6).contains(&a) {
-                let decimals = (2 - a.log10().floor() as i64).clamp(0, 6) as usize;
-                format!("{value:.decimals$}")
-            } else {
-                format!("{value:.2e}")
-            }
-        };
-        Self::Number { value, text }
+        Self::Number {
+            value,
+            text: significant_text(value, 3),
+        }
     }
 
     /// A count.

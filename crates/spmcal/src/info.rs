@@ -3,34 +3,28 @@
 use crate::error::CliError;
 use std::path::{Path, PathBuf};
 
-/// A number with `significant` significant digits and no trailing zeros (`1 nm`, not
-/// `0.9999999717180685 nm`).
+/// A number with `significant` significant digits ([`spmcal::html::significant_text`]) and no
+/// trailing zeros (`1 nm`, not `0.9999999717180685 nm`).
 fn human(value: f64, significant: usize) -> String {
-    if !value.is_finite() {
-        return value.to_string();
-    }
-    if value == 0.0 {
-        return "0".to_owned();
-    }
-    let magnitude = value.abs().log10().floor() as i32;
-    if !(-3..7).contains(&magnitude) {
-        let text = format!("{:.*e}", significant.saturating_sub(1), value);
-        return match text.split_once('e') {
-            Some((mantissa, exponent)) if mantissa.contains('.') => format!(
-                "{}e{exponent}",
-                mantissa.trim_end_matches('0').trim_end_matches('.')
-            ),
-            _ => text,
-        };
-    }
-    let decimals = (significant as i32 - 1 - magnitude).max(0) as usize;
-    let text = format!("{value:.decimals$}");
-    let text = if text.contains('.') {
-        text.trim_end_matches('0').trim_end_matches('.').to_owned()
-    } else {
-        text
+    let text = spmcal::html::significant_text(value, significant);
+    let (mantissa, exponent) = match text.split_once('e') {
+        Some((m, e)) => (m.to_owned(), format!("e{e}")),
+        None => (text, String::new()),
     };
-    if text == "-0" { "0".to_owned() } else { text }
+    let mantissa = if mantissa.contains('.') {
+        mantissa
+            .trim_end_matches('0')
+            .trim_end_matches('.')
+            .to_owned()
+    } else {
+        mantissa
+    };
+    let mantissa = if mantissa == "-0" {
+        "0".to_owned()
+    } else {
+        mantissa
+    };
+    format!("{mantissa}{exponent}")
 }
 
 /// The geometry of the file's first channel: (offset x, y nm; angle degrees).

@@ -43,6 +43,7 @@ pub mod dynamics;
 mod error;
 mod field;
 mod height;
+pub mod hysteresis;
 mod parallel;
 mod quadrature;
 mod raster;

@@ -14,12 +14,14 @@
 pub mod bench_support;
 mod error;
 mod fit;
+mod lsq;
 mod polynomial;
 mod select;
 mod stats;
 
 pub use error::RegressionError;
 pub use fit::{FitOptions, Observations, PolyFit, fit};
+pub use lsq::{LinearFit, least_squares};
 pub use polynomial::{MAX_DEGREE, Polynomial2, n_terms, term_index, term_powers};
 pub use select::{Criterion, DegreeScore, Selection, SelectionOptions, select_degree};
 pub use stats::{DeltaMax, Field, delta_max, product_values, sigma};

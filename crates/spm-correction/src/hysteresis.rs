@@ -1,0 +1,495 @@
+//! Rate-independent hysteresis of the scanner axes and the scanner dynamics model a
+//! calibration file carries (issue 23).
+//!
+//! **Why Prandtl–Ishlinskii.** The raster's own hysteresis is what limits large images (the
+//! error budget: 1.7–2.25 % of the side against a 0.21 % bound with the creep model alone).
+//! A play-operator (Prandtl–Ishlinskii, PI) operator `h = Σ wᵢ·yᵢ`,
+//! `yᵢ ← max(u − rᵢ, min(u + rᵢ, yᵢ))`, is
+//! - linear in its weights, so it is identified by one (sign-constrained) least-squares fit
+//!   from any sequence of commands, not only from symmetric loops ([`fit_dynamics`]);
+//! - exact for any history with wiping-out memory (its state is the vector yᵢ);
+//! - amplitude dependent and rate independent, which is what trace/retrace rasters at a
+//!   ladder of sizes and two line rates separate from creep (rate dependent);
+//! - symmetric, which is what a piezo tube's loops are to within the budget. Preisach
+//!   would add asymmetric loops at the cost of a 2-D density the ladder cannot fix; Lapshin's
+//!   parametric loop (RSI 91, 065106, 2020) describes one loop shape per amplitude but not
+//!   arbitrary histories (a raster after a move), which the correction needs.
+//!
+//! The model of one axis in counts: effective input `uₑ = x + c`, `x = u + h(u-history)`,
+//! `c` the creep of x ([`crate::dynamics::CreepLaw`]). Its large-signal gain on the
+//! demagnetised midline is `(1 + W_h)·(1 + W_c)`, `W_h = Σwᵢ`.
+//!
+//! Pure: no IO, no clock.
+
+use serde::{Deserialize, Serialize};
+
+use crate::dynamics::{CommandHistory, CreepLaw, creep_offsets};
+use crate::error::CorrectionError;
+
+/// Format name of a serialised [`ScannerDynamics`].
+pub const DYNAMICS_FORMAT: &str = "spmcal-dynamics";
+/// Format version of a serialised [`ScannerDynamics`].
+pub const DYNAMICS_FORMAT_VERSION: u32 = 1;
+
+/// A PI hysteresis operator of one axis: thresholds (counts) and weights (dimensionless).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlayHysteresis {
+    /// Play thresholds rᵢ, counts, increasing, ≥ 0.
+    pub thresholds_counts: Vec<f64>,
+    /// Weights wᵢ ≥ 0 (dimensionless).
+    pub weights: Vec<f64>,
+}
+
+impl PlayHysteresis {
+    /// No hysteresis.
+    #[must_use]
+    pub fn none() -> Self {
+        Self {
+            thresholds_counts: Vec::new(),
+            weights: Vec::new(),
+        }
+    }
+
+    /// Checks the operator.
+    ///
+    /// # Errors
+    /// [`CorrectionError::InvalidArgument`] naming the field.
+    pub fn validate(&self, what: &str) -> Result<(), CorrectionError> {
+        if self.thresholds_counts.len() != self.weights.len() {
+            return Err(CorrectionError::InvalidArgument(format!(
+                "{what}: {} thresholds but {} weights",
+                self.thresholds_counts.len(),
+                self.weights.len()
+            )));
+        }
+        if self
+            .thresholds_counts
+            .iter()
+            .any(|r| !(r.is_finite() && *r >= 0.0))
+            || self.thresholds_counts.windows(2).any(|w| w[1] <= w[0])
+        {
+            return Err(CorrectionError::InvalidArgument(format!(
+                "{what}.thresholds_counts must be finite, ≥ 0 and increasing"
+            )));
+        }
+        if self.weights.iter().any(|w| !(w.is_finite() && *w >= 0.0)) {
+            return Err(CorrectionError::InvalidArgument(format!(
+                "{what}.weights must be finite and ≥ 0"
+            )));
+        }
+        Ok(())
+    }
+
+    /// Large-signal weight W_h = Σwᵢ.
+    #[must_use]
+    pub fn total_weight(&self) -> f64 {
+        self.weights.iter().sum()
+    }
+
+    /// Branch separation `h_down(u) − h_up(u)` of the periodic loop between `−amplitude` and
+    /// `+amplitude` (about its centre) at `u`, counts: `Σ wᵢ·(min(u + rᵢ, A − rᵢ) −
+    /// max(u − rᵢ, rᵢ − A))⁺` — the closed form of the operator on a symmetric cycle.
+    #[must_use]
+    pub fn loop_separation_counts(&self, amplitude_counts: f64, u_counts: f64) -> f64 {
+        self.thresholds_counts
+            .iter()
+            .zip(&self.weights)
+            .map(|(&r, &w)| {
+                let down = (u_counts + r).min(amplitude_counts - r);
+                let up = (u_counts - r).max(r - amplitude_counts);
+                w * (down - up).max(0.0)
+            })
+            .sum()
+    }
+}
+
+/// Play states of one axis (the operator outputs yᵢ, counts).
+#[derive(Debug, Clone, PartialEq)]
+struct PlayState {
+    outputs: Vec<f64>,
+}
+
+impl PlayState {
+    fn settled(thresholds: usize, u: f64) -> Self {
+        Self {
+            outputs: vec![u; thresholds],
+        }
+    }
+
+    fn apply(&mut self, thresholds: &[f64], u: f64) {
+        for (y, r) in self.outputs.iter_mut().zip(thresholds) {
+            *y = (u - r).max((u + r).min(*y));
+        }
+    }
+
+    /// The outputs after applying `u` to a copy (a query inside a monotone segment).
+    fn peek(&self, thresholds: &[f64], u: f64, out: &mut Vec<f64>) {
+        out.clear();
+        out.extend(
+            self.outputs
+                .iter()
+                .zip(thresholds)
+                .map(|(y, r)| (u - r).max((u + r).min(*y))),
+        );
+    }
+}
+
+/// The play outputs yᵢ (unit weight, counts) of `thresholds` on one axis at every query time,
+/// replaying `history` from a demagnetised state at its first command. Queries in
+/// non-decreasing time order. Exact: the command is monotone within each segment.
+///
+/// # Errors
+/// [`CorrectionError::Empty`], [`CorrectionError::InvalidArgument`] for unsorted times.
+pub fn play_outputs(
+    history: &CommandHistory,
+    axis: usize,
+    thresholds_counts: &[f64],
+    query_times_s: &[f64],
+) -> Result<Vec<Vec<f64>>, CorrectionError> {
+    let segments = history.segments();
+    let first = segments
+        .first()
+        .ok_or(CorrectionError::Empty("command history"))?;
+    if query_times_s.iter().any(|t| !t.is_finite()) || query_times_s.windows(2).any(|w| w[1] < w[0])
+    {
+        return Err(CorrectionError::InvalidArgument(
+            "query times must be finite and in time order".to_owned(),
+        ));
+    }
+    let axis = axis.min(1);
+    let mut state = PlayState::settled(thresholds_counts.len(), first.from_counts[axis]);
+    let mut out = Vec::with_capacity(query_times_s.len());
+    let mut scratch = Vec::new();
+    let mut q = 0;
+    for seg in segments {
+        while q < query_times_s.len() && query_times_s[q] <= seg.end_s {
+            let u = seg.at(query_times_s[q])[axis];
+            state.peek(thresholds_counts, u, &mut scratch);
+            out.push(scratch.clone());
+            q += 1;
+        }
+        state.apply(thresholds_counts, seg.to_counts[axis]);
+    }
+    while q < query_times_s.len() {
+        out.push(state.outputs.clone());
+        q += 1;
+    }
+    Ok(out)
+}
+
+/// Creep law parameters as stored (see [`CreepLaw::log_spaced`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CreepParameters {
+    /// Weight w of every relaxation element (dimensionless).
+    pub weight: f64,
+    /// Shortest time constant, s.
+    pub min_time_constant_s: f64,
+    /// Longest time constant, s.
+    pub max_time_constant_s: f64,
+    /// Elements per decade.
+    pub elements_per_decade: u32,
+}
+
+impl CreepParameters {
+    /// The law.
+    ///
+    /// # Errors
+    /// As [`CreepLaw::log_spaced`].
+    pub fn law(&self) -> Result<CreepLaw, CorrectionError> {
+        CreepLaw::log_spaced(
+            self.weight,
+            self.min_time_constant_s,
+            self.max_time_constant_s,
+            self.elements_per_decade,
+        )
+    }
+
+    /// Of a law.
+    #[must_use]
+    pub fn of(law: &CreepLaw, elements_per_decade: u32) -> Self {
+        let taus = law.time_constants_s();
+        Self {
+            weight: law.weight(),
+            min_time_constant_s: taus.first().copied().unwrap_or(1.0),
+            max_time_constant_s: taus.last().copied().unwrap_or(1.0),
+            elements_per_decade,
+        }
+    }
+}
+
+/// How the dynamics were identified.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DynamicsIdentification {
+    /// Trace/retrace sightings used (both axes).
+    pub sightings: usize,
+    /// Ladder sizes (line lengths), counts.
+    pub ladder_counts: Vec<f64>,
+    /// Line rates used, lines per second.
+    pub line_rates_hz: Vec<f64>,
+    /// RMS residual of the fit, counts.
+    pub residual_rms_counts: f64,
+    /// Fitted signal lag (feedback), s.
+    pub signal_lag_s: f64,
+    /// Standard error of the creep weight.
+    pub creep_weight_sigma: f64,
+    /// What was not identified and why (empty = everything).
+    #[serde(default)]
+    pub notes: Vec<String>,
+}
+
+/// The scanner's dynamics: hysteresis per lateral axis and the creep law.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScannerDynamics {
+    /// [`DYNAMICS_FORMAT`].
+    pub format: String,
+    /// [`DYNAMICS_FORMAT_VERSION`].
+    pub version: u32,
+    /// X hysteresis.
+    pub hysteresis_x: PlayHysteresis,
+    /// Y hysteresis.
+    pub hysteresis_y: PlayHysteresis,
+    /// Creep of both axes.
+    pub creep: CreepParameters,
+    /// How it was identified.
+    #[serde(default)]
+    pub identification: DynamicsIdentification,
+}
+
+impl ScannerDynamics {
+    /// Checks every field.
+    ///
+    /// # Errors
+    /// [`CorrectionError::InvalidArgument`] naming the field.
+    pub fn validate(&self) -> Result<(), CorrectionError> {
+        if self.format != DYNAMICS_FORMAT || self.version != DYNAMICS_FORMAT_VERSION {
+            return Err(CorrectionError::InvalidArgument(format!(
+                "dynamics format {:?} version {} (this build reads {DYNAMICS_FORMAT:?} version {DYNAMICS_FORMAT_VERSION})",
+                self.format, self.version
+            )));
+        }
+        self.hysteresis_x.validate("dynamics.hysteresis_x")?;
+        self.hysteresis_y.validate("dynamics.hysteresis_y")?;
+        self.creep.law().map(|_| ())
+    }
+
+    /// Large-signal gain per axis on the demagnetised midline, settled creep:
+    /// `(1 + W_h)·(1 + W_c)`.
+    ///
+    /// # Errors
+    /// As [`CreepParameters::law`].
+    pub fn gain(&self) -> Result<[f64; 2], CorrectionError> {
+        let wc = self.creep.law()?.total_weight();
+        Ok([
+            (1.0 + self.hysteresis_x.total_weight()) * (1.0 + wc),
+            (1.0 + self.hysteresis_y.total_weight()) * (1.0 + wc),
+        ])
+    }
+
+    /// `uₑ − u` (counts, per axis) at every query time of `history`: the hysteresis h of the
+    /// commands, then the creep of `x = u + h` (DESIGN §4's model). Queries in time order.
+    ///
+    /// # Errors
+    /// As [`play_outputs`] and [`creep_offsets`].
+    pub fn offsets(
+        &self,
+        history: &CommandHistory,
+        query_times_s: &[f64],
+    ) -> Result<Vec<[f64; 2]>, CorrectionError> {
+        let law = self.creep.law()?;
+        // Hysteresis at the queries and at every vertex (for the creep's input).
+        let mut times: Vec<f64> = history
+            .segments()
+            .iter()
+            .map(|s| s.end_s)
+            .chain(query_times_s.iter().copied())
+            .filter(|t| t.is_finite())
+            .collect();
+        times.sort_by(f64::total_cmp);
+        times.dedup();
+        let mut h_at = Vec::with_capacity(2);
+        for (axis, model) in [&self.hysteresis_x, &self.hysteresis_y].iter().enumerate() {
+            let ys = play_outputs(history, axis, &model.thresholds_counts, &times)?;
+            h_at.push(
+                ys.iter()
+                    .map(|y| y.iter().zip(&model.weights).map(|(y, w)| y * w).sum::<f64>())
+                    .collect::<Vec<f64>>(),
+            );
+        }
+        // x = u + h as a piecewise-linear history through the merged times.
+        let mut x_history = CommandHistory::default();
+        let segments = history.segments();
+        let mut s = 0;
+        for (k, &t) in times.iter().enumerate() {
+            while s + 1 < segments.len() && segments[s].end_s < t {
+                s += 1;
+            }
+            let u = segments.get(s).map_or([0.0; 2], |seg| seg.at(t));
+            x_history.ramp_to(t, [u[0] + h_at[0][k], u[1] + h_at[1][k]]);
+        }
+        let c = creep_offsets(&x_history, &law, query_times_s)?;
+        let index_of = |t: f64| times.partition_point(|&v| v < t);
+        Ok(query_times_s
+            .iter()
+            .zip(&c)
+            .map(|(&t, c)| {
+                let k = index_of(t).min(times.len().saturating_sub(1));
+                [h_at[0][k] + c[0], h_at[1][k] + c[1]]
+            })
+            .collect())
+    }
+}
+
+/// Two sightings of one sample point along one axis: the command had `u_first_counts` at
+/// `t_first_s` and `u_second_counts` at `t_second_s` when the probe saw it, moving at the given
+/// command velocities (counts/s, signed) — a feature in a trace and in the retrace of the same
+/// line (x), or in a direct and its counter-scanned frame (y).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SamePoint {
+    /// 0 = x, 1 = y.
+    pub axis: usize,
+    /// First sighting time, s.
+    pub t_first_s: f64,
+    /// Command at the first sighting, counts.
+    pub u_first_counts: f64,
+    /// Command velocity at the first sighting, counts/s.
+    pub v_first_counts_per_s: f64,
+    /// Second sighting time, s (≥ first).
+    pub t_second_s: f64,
+    /// Command at the second sighting, counts.
+    pub u_second_counts: f64,
+    /// Command velocity at the second sighting, counts/s.
+    pub v_second_counts_per_s: f64,
+    /// Drift group: sightings of one group share one drift velocity.
+    pub group: usize,
+}
+
+/// What [`fit_dynamics`] fits.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DynamicsFitSetup {
+    /// Candidate play thresholds per axis, counts (increasing).
+    pub thresholds_counts: [Vec<f64>; 2],
+    /// Creep law shape (its weight is fitted).
+    pub creep_shape: CreepParameters,
+}
+
+/// Identifies per axis the PI weights, jointly with one creep weight, a signal lag and one
+/// drift velocity per group, from same-point sightings: `u₂ − u₁ = Σwᵢ(yᵢ(t₁) − yᵢ(t₂)) +
+/// w_c(c̃(t₁) − c̃(t₂)) + v_g(t₂ − t₁) + δ(u̇₂ − u̇₁)` (c̃ the unit-weight creep of the
+/// commands; δ the lag of the recorded signal behind the command). Weights ≥ 0.
+///
+/// # Errors
+/// [`CorrectionError::Empty`] without sightings; [`CorrectionError::InvalidArgument`] when
+/// the data do not determine the model.
+pub fn fit_dynamics(
+    history: &CommandHistory,
+    sightings: &[SamePoint],
+    setup: &DynamicsFitSetup,
+) -> Result<ScannerDynamics, CorrectionError> {
+    let usable: Vec<&SamePoint> = sightings
+        .iter()
+        .filter(|s| {
+            s.t_first_s.is_finite()
+                && s.t_second_s.is_finite()
+                && s.u_first_counts.is_finite()
+                && s.u_second_counts.is_finite()
+                && s.v_first_counts_per_s.is_finite()
+                && s.v_second_counts_per_s.is_finite()
+        })
+        .collect();
+    if usable.is_empty() {
+        return Err(CorrectionError::Empty("same-point sightings"));
+    }
+    let groups: Vec<usize> = {
+        let mut g: Vec<usize> = usable.iter().map(|s| s.group * 2 + s.axis.min(1)).collect();
+        g.sort_unstable();
+        g.dedup();
+        g
+    };
+    let unit_creep = CreepParameters {
+        weight: 1.0,
+        ..setup.creep_shape.clone()
+    }
+    .law()?;
+    // Regressors: play outputs and unit creep at every sighting time, per axis.
+    let mut times: Vec<f64> = usable
+        .iter()
+        .flat_map(|s| [s.t_first_s, s.t_second_s])
+        .collect();
+    times.sort_by(f64::total_cmp);
+    times.dedup();
+    let index_of = |t: f64| times.partition_point(|&v| v < t);
+    let plays = [
+        play_outputs(history, 0, &setup.thresholds_counts[0], &times)?,
+        play_outputs(history, 1, &setup.thresholds_counts[1], &times)?,
+    ];
+    let creep = creep_offsets(history, &unit_creep, &times)?;
+    let (n0, n1) = (
+        setup.thresholds_counts[0].len(),
+        setup.thresholds_counts[1].len(),
+    );
+    let columns = n0 + n1 + 2 + groups.len();
+    let mut rows = Vec::with_capacity(usable.len());
+    let mut rhs = Vec::with_capacity(usable.len());
+    for s in &usable {
+        let axis = s.axis.min(1);
+        let (i1, i2) = (index_of(s.t_first_s), index_of(s.t_second_s));
+        let mut row = vec![0.0; columns];
+        let offset = if axis == 0 { 0 } else { n0 };
+        for (k, (y1, y2)) in plays[axis][i1].iter().zip(&plays[axis][i2]).enumerate() {
+            row[offset + k] = y1 - y2;
+        }
+        row[n0 + n1] = creep[i1][axis] - creep[i2][axis];
+        row[n0 + n1 + 1] = s.v_second_counts_per_s - s.v_first_counts_per_s;
+        let g = groups.partition_point(|&g| g < s.group * 2 + axis);
+        row[n0 + n1 + 2 + g] = s.t_second_s - s.t_first_s;
+        rows.push(row);
+        rhs.push(s.u_second_counts - s.u_first_counts);
+    }
+    // Columns without any signal (an axis without sightings) are dropped.
+    let keep: Vec<usize> = (0..columns)
+        .filter(|&j| rows.iter().any(|r: &Vec<f64>| r[j] != 0.0))
+        .collect();
+    let reduced: Vec<Vec<f64>> = rows
+        .iter()
+        .map(|r| keep.iter().map(|&j| r[j]).collect())
+        .collect();
+    let non_negative: Vec<bool> = keep.iter().map(|&j| j <= n0 + n1).collect();
+    let fit = spm_regression::least_squares(&reduced, &rhs, &non_negative)
+        .map_err(|e| CorrectionError::InvalidArgument(format!("dynamics fit: {e}")))?;
+    let mut full = vec![0.0; columns];
+    let mut sigma = vec![0.0; columns];
+    for (c, &j) in keep.iter().enumerate() {
+        full[j] = fit.coefficients[c];
+        sigma[j] = fit.standard_errors[c];
+    }
+    Ok(ScannerDynamics {
+        format: DYNAMICS_FORMAT.to_owned(),
+        version: DYNAMICS_FORMAT_VERSION,
+        hysteresis_x: PlayHysteresis {
+            thresholds_counts: setup.thresholds_counts[0].clone(),
+            weights: full[..n0].to_vec(),
+        },
+        hysteresis_y: PlayHysteresis {
+            thresholds_counts: setup.thresholds_counts[1].clone(),
+            weights: full[n0..n0 + n1].to_vec(),
+        },
+        creep: CreepParameters {
+            weight: full[n0 + n1],
+            ..setup.creep_shape.clone()
+        },
+        identification: DynamicsIdentification {
+            sightings: usable.len(),
+            residual_rms_counts: fit.residual_rms,
+            signal_lag_s: full[n0 + n1 + 1],
+            creep_weight_sigma: sigma[n0 + n1],
+            ..DynamicsIdentification::default()
+        },
+    })
+}
+
+#[cfg(test)]
+mod tests;

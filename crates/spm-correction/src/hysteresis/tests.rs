@@ -1,0 +1,212 @@
+#![allow(clippy::unwrap_used)]
+use super::*;
+
+/// The truth of these tests: play operators stepped command by command (written
+/// independently of [`play_outputs`]), h = Σ wᵢ·yᵢ.
+fn naive_h(thresholds: &[f64], weights: &[f64], commands: &[f64]) -> Vec<f64> {
+    let mut y = vec![commands[0]; thresholds.len()];
+    commands
+        .iter()
+        .map(|&u| {
+            for (yi, r) in y.iter_mut().zip(thresholds) {
+                if u - *yi > *r {
+                    *yi = u - r;
+                } else if *yi - u > *r {
+                    *yi = u + r;
+                }
+            }
+            y.iter().zip(weights).map(|(a, b)| a * b).sum()
+        })
+        .collect()
+}
+
+fn model() -> PlayHysteresis {
+    PlayHysteresis {
+        thresholds_counts: vec![300.0, 900.0, 2000.0],
+        weights: vec![0.01, 0.02, 0.015],
+    }
+}
+
+/// A symmetric periodic cycle ±A: the replayed branches differ by the closed-form separation.
+#[test]
+fn a_symmetric_cycle_has_the_closed_form_separation() {
+    let m = model();
+    let a = 2500.0;
+    let mut h = CommandHistory::default();
+    h.ramp_to(0.0, [0.0, 0.0]);
+    h.ramp_to(1.0, [a, 0.0]);
+    h.ramp_to(3.0, [-a, 0.0]);
+    h.ramp_to(5.0, [a, 0.0]); // up branch from −A
+    h.ramp_to(7.0, [-a, 0.0]); // down branch from +A
+    for u in [-2000.0, -500.0, 0.0, 700.0, 2400.0] {
+        let t_up = 3.0 + 2.0 * (u + a) / (2.0 * a);
+        let t_down = 5.0 + 2.0 * (a - u) / (2.0 * a);
+        let ys = play_outputs(&h, 0, &m.thresholds_counts, &[t_up, t_down]).unwrap();
+        let hv = |y: &Vec<f64>| y.iter().zip(&m.weights).map(|(a, b)| a * b).sum::<f64>();
+        let sep = hv(&ys[1]) - hv(&ys[0]);
+        let closed = m.loop_separation_counts(a, u);
+        assert!((sep - closed).abs() < 1e-9, "u {u}: {sep} vs {closed}");
+        // The naive truth agrees.
+        let commands: Vec<f64> = (0..=7000)
+            .map(|k| h.segments().iter().find(|s| s.end_s >= f64::from(k) * 1e-3).unwrap().at(f64::from(k) * 1e-3)[0])
+            .collect();
+        let naive = naive_h(&m.thresholds_counts, &m.weights, &commands);
+        let at = |t: f64| naive[(t * 1e3).round() as usize];
+        assert!((at(t_down) - at(t_up) - closed).abs() < 0.05 * closed.abs() + 0.5);
+    }
+    // Closed form at the centre: Σ 2·wᵢ·min(rᵢ, A − rᵢ).
+    let centre: f64 = m
+        .thresholds_counts
+        .iter()
+        .zip(&m.weights)
+        .map(|(r, w)| 2.0 * w * r.min(a - r))
+        .sum();
+    assert!((m.loop_separation_counts(a, 0.0) - centre).abs() < 1e-12);
+}
+
+/// Synthetic trace/retrace lines at a ladder of sizes and two rates, with creep, drift and a
+/// signal lag: the fit recovers the loop the truth predicts at every ladder size.
+#[test]
+fn the_fit_recovers_the_loops_of_a_ladder() {
+    let truth = PlayHysteresis {
+        thresholds_counts: vec![400.0, 1100.0, 1800.0, 2600.0, 3400.0],
+        weights: vec![0.012, 0.009, 0.011, 0.008, 0.01],
+    };
+    let creep_truth = CreepParameters {
+        weight: 0.004,
+        min_time_constant_s: 0.01,
+        max_time_constant_s: 1000.0,
+        elements_per_decade: 3,
+    };
+    let lag_s = 2e-4;
+    let drift_counts_per_s = 3.0;
+    let mut history = CommandHistory::default();
+    history.ramp_to(0.0, [0.0, 0.0]);
+    let mut t = 0.0;
+    let mut lines: Vec<(f64, f64, f64, f64)> = Vec::new(); // (start, length, line time, x0)
+    for &length in &[500.0, 2000.0, 8000.0] {
+        for &half_line_s in &[0.05, 0.2] {
+            let x0 = -0.5 * length;
+            t += 0.5;
+            history.ramp_to(t, [x0, 0.0]);
+            for _ in 0..3 {
+                lines.push((t, length, half_line_s, x0));
+                history.ramp_to(t + half_line_s, [x0 + length, 0.0]);
+                history.ramp_to(t + 2.0 * half_line_s, [x0, 0.0]);
+                t += 2.0 * half_line_s;
+            }
+        }
+    }
+    history.hold_until(t + 1.0);
+    // Truth on a dense timeline: e(t) = u + h + c(u + h) + drift; the recorded signal lags.
+    let dt = 2e-4;
+    let n = (t / dt) as usize;
+    let times: Vec<f64> = (0..n).map(|k| k as f64 * dt).collect();
+    let mut s = 0;
+    let u: Vec<f64> = times
+        .iter()
+        .map(|&ti| {
+            while history.segments()[s].end_s < ti {
+                s += 1;
+            }
+            history.segments()[s].at(ti)[0]
+        })
+        .collect();
+    let hv = naive_h(&truth.thresholds_counts, &truth.weights, &u);
+    let mut xh = CommandHistory::default();
+    for (k, &ti) in times.iter().enumerate() {
+        xh.ramp_to(ti, [u[k] + hv[k], 0.0]);
+    }
+    let c = creep_offsets(&xh, &creep_truth.law().unwrap(), &times).unwrap();
+    let e: Vec<f64> = (0..n)
+        .map(|k| u[k] + hv[k] + c[k][0] + drift_counts_per_s * times[k])
+        .collect();
+    // Sightings: features every 37 counts; in each line's trace and retrace the command at
+    // which the (lagged) signal shows e = feature.
+    let mut sightings = Vec::new();
+    let lag_k = (lag_s / dt).round() as usize;
+    for (line, &(start, length, half_s, x0)) in lines.iter().enumerate() {
+        let k0 = (start / dt).ceil() as usize + lag_k;
+        let k1 = ((start + half_s) / dt) as usize;
+        let k2 = ((start + 2.0 * half_s) / dt) as usize;
+        let speed = length / half_s;
+        let mut feature = x0 + 0.1 * length;
+        while feature < x0 + 0.9 * length {
+            let find = |from: usize, to: usize| -> Option<(f64, f64)> {
+                (from..to.min(n - 1)).find_map(|k| {
+                    let (a, b) = (e[k - lag_k] - feature, e[k + 1 - lag_k] - feature);
+                    (a * b <= 0.0 && a != b).then(|| {
+                        let f = a / (a - b);
+                        (times[k] + f * dt, u[k] + f * (u[k + 1] - u[k]))
+                    })
+                })
+            };
+            if let (Some((t1, u1)), Some((t2, u2))) = (find(k0, k1), find(k1 + lag_k, k2)) {
+                sightings.push(SamePoint {
+                    axis: 0,
+                    t_first_s: t1,
+                    u_first_counts: u1,
+                    v_first_counts_per_s: speed,
+                    t_second_s: t2,
+                    u_second_counts: u2,
+                    v_second_counts_per_s: -speed,
+                    group: line,
+                });
+            }
+            feature += 37.0;
+        }
+    }
+    assert!(sightings.len() > 300, "{}", sightings.len());
+    let grid: Vec<f64> = (1..=40).map(|k| 100.0 * f64::from(k)).collect();
+    let fit = fit_dynamics(
+        &history,
+        &sightings,
+        &DynamicsFitSetup {
+            thresholds_counts: [grid, Vec::new()],
+            creep_shape: CreepParameters {
+                weight: 0.0,
+                ..creep_truth.clone()
+            },
+        },
+    )
+    .unwrap();
+    for amplitude in [250.0, 1000.0, 4000.0] {
+        for u in [-0.5 * amplitude, 0.0, 0.5 * amplitude] {
+            let want = truth.loop_separation_counts(amplitude, u);
+            let got = fit.hysteresis_x.loop_separation_counts(amplitude, u);
+            assert!(
+                (got - want).abs() <= 0.1 * want + 0.3,
+                "A {amplitude} u {u}: {got} vs {want} ({fit:?})"
+            );
+        }
+    }
+    assert!((fit.identification.signal_lag_s - lag_s).abs() < 0.3 * lag_s, "{fit:?}");
+}
+
+/// The dynamics of a file: serialised and read back unchanged; a wrong version is refused.
+#[test]
+fn dynamics_round_trip_and_refuse_other_versions() {
+    let d = ScannerDynamics {
+        format: DYNAMICS_FORMAT.to_owned(),
+        version: DYNAMICS_FORMAT_VERSION,
+        hysteresis_x: model(),
+        hysteresis_y: PlayHysteresis::none(),
+        creep: CreepParameters {
+            weight: 0.004,
+            min_time_constant_s: 0.01,
+            max_time_constant_s: 1e4,
+            elements_per_decade: 3,
+        },
+        identification: DynamicsIdentification::default(),
+    };
+    d.validate().unwrap();
+    let text = serde_json::to_string(&d).unwrap();
+    let back: ScannerDynamics = serde_json::from_str(&text).unwrap();
+    assert_eq!(back, d);
+    let mut bad = d.clone();
+    bad.version = 99;
+    assert!(bad.validate().is_err());
+    let mut bad = d;
+    bad.hysteresis_x.weights[0] = -0.1;
+    assert!(bad.validate().is_err());
+}

@@ -39,6 +39,7 @@ mod error;
 mod fit;
 mod lattice;
 mod lcs;
+mod shift;
 pub mod step;
 
 pub use crb::{
@@ -50,6 +51,7 @@ pub use detect::{
     PositionUncertainty, RejectReason, Rejection, detect, nearest_index,
 };
 pub use error::FeatureError;
+pub use shift::{ColumnShift, ShiftConfig, trace_retrace_shifts};
 pub use lattice::{Lattice, LatticeConfig, LatticeVector, lattice_vectors};
 pub use lcs::{
     HOPG_LATTICE_NM, Lcs, LcsConfig, LcsStandard, find_lcs_at_nearest_vertex, find_lcs_nearest,

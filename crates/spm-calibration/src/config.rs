@@ -71,6 +71,9 @@ pub struct PlanConfig {
     /// written back by [`PlanConfig::to_toml_string`], so a stored plan always states them.
     #[serde(default = "TuningConfig::recommended")]
     pub tuning: TuningConfig,
+    /// The dynamics stage (`[dynamics]`, issue 23): absent = the defaults (on).
+    #[serde(default)]
+    pub dynamics: crate::dynamics::DynamicsConfig,
 }
 
 /// The controller's tuning constants: how features are told apart, paired and captured, and
@@ -515,6 +518,12 @@ impl PlanConfig {
     // long-function: a flat table of independent range checks, one per plan field in the order of the plan's documentation; splitting it would scatter the table
     pub fn validate(&self) -> Result<(), ValidationError> {
         self.tuning.validate()?;
+        self.dynamics
+            .validate()
+            .map_err(|(field, reason)| ValidationError {
+                field: format!("plan.{field}"),
+                reason,
+            })?;
         let bad = |field: &str, reason: String| {
             Err(ValidationError {
                 field: format!("plan.{field}"),

@@ -50,6 +50,7 @@
 #![warn(missing_docs)]
 
 pub mod config;
+pub mod dynamics;
 pub mod lcc;
 pub mod machine;
 pub mod measure;

@@ -257,6 +257,12 @@ impl CreepLaw {
         self.weight * self.taus_s.len() as f64
     }
 
+    /// Log slope γ between 0.1 s and 10 s: `ΔL(10 s)/ΔL(0.1 s) = 1 + 2γ` (DESIGN §4's law).
+    pub fn gamma_per_decade(&self) -> f64 {
+        let (r01, r10) = (self.step_response(0.1), self.step_response(10.0));
+        ((1.0 + r10) / (1.0 + r01) - 1.0) / 2.0
+    }
+
     /// Fractional creep t seconds after a step from rest: w·Σ(1 − e^{−t/τₖ}).
     pub fn step_response(&self, t_s: f64) -> f64 {
         self.weight
@@ -502,10 +508,8 @@ pub fn fit_creep_law(
         ));
     }
     let law = shape.with_weight(w.max(0.0));
-    let r01 = law.step_response(0.1);
-    let r10 = law.step_response(10.0);
     Ok(CreepFit {
-        gamma_per_decade: ((1.0 + r10) / (1.0 + r01) - 1.0) / 2.0,
+        gamma_per_decade: law.gamma_per_decade(),
         law,
         weight_sigma: (sigma2 * inverse_00).sqrt(),
         sightings: points.len(),

@@ -300,36 +300,11 @@ impl ScannerDynamics {
         query_times_s: &[f64],
     ) -> Result<Vec<[f64; 2]>, CorrectionError> {
         let law = self.creep.law()?;
-        // Hysteresis at the queries and at every vertex (for the creep's input).
-        let mut times: Vec<f64> = history
-            .segments()
-            .iter()
-            .map(|s| s.end_s)
-            .chain(query_times_s.iter().copied())
-            .filter(|t| t.is_finite())
-            .collect();
-        times.sort_by(f64::total_cmp);
-        times.dedup();
-        let mut h_at = Vec::with_capacity(2);
-        for (axis, model) in [&self.hysteresis_x, &self.hysteresis_y].iter().enumerate() {
-            let ys = play_outputs(history, axis, &model.thresholds_counts, &times)?;
-            h_at.push(
-                ys.iter()
-                    .map(|y| y.iter().zip(&model.weights).map(|(y, w)| y * w).sum::<f64>())
-                    .collect::<Vec<f64>>(),
-            );
-        }
-        // x = u + h as a piecewise-linear history through the merged times.
-        let mut x_history = CommandHistory::default();
-        let segments = history.segments();
-        let mut s = 0;
-        for (k, &t) in times.iter().enumerate() {
-            while s + 1 < segments.len() && segments[s].end_s < t {
-                s += 1;
-            }
-            let u = segments.get(s).map_or([0.0; 2], |seg| seg.at(t));
-            x_history.ramp_to(t, [u[0] + h_at[0][k], u[1] + h_at[1][k]]);
-        }
+        let (times, h_at, x_history) = post_hysteresis_input(
+            history,
+            [&self.hysteresis_x, &self.hysteresis_y],
+            query_times_s,
+        )?;
         let c = creep_offsets(&x_history, &law, query_times_s)?;
         let index_of = |t: f64| times.partition_point(|&v| v < t);
         Ok(query_times_s
@@ -342,6 +317,57 @@ impl ScannerDynamics {
             .collect())
     }
 }
+
+/// (merged times, h per axis at them, the x = u + h history).
+type PostHysteresis = (Vec<f64>, Vec<Vec<f64>>, CommandHistory);
+
+/// The hysteresis h per axis at the merged times (every vertex of `history` and every query)
+/// and the post-hysteresis input `x = u + h` as a piecewise-linear history through them (the
+/// creep's input in DESIGN §4's model). Returns (merged times, h per axis at them, x history).
+fn post_hysteresis_input(
+    history: &CommandHistory,
+    models: [&PlayHysteresis; 2],
+    query_times_s: &[f64],
+) -> Result<PostHysteresis, CorrectionError> {
+    let mut times: Vec<f64> = history
+        .segments()
+        .iter()
+        .map(|s| s.end_s)
+        .chain(query_times_s.iter().copied())
+        .filter(|t| t.is_finite())
+        .collect();
+    times.sort_by(f64::total_cmp);
+    times.dedup();
+    let mut h_at = Vec::with_capacity(2);
+    for (axis, model) in models.iter().enumerate() {
+        let ys = play_outputs(history, axis, &model.thresholds_counts, &times)?;
+        h_at.push(
+            ys.iter()
+                .map(|y| {
+                    y.iter()
+                        .zip(&model.weights)
+                        .map(|(y, w)| y * w)
+                        .sum::<f64>()
+                })
+                .collect::<Vec<f64>>(),
+        );
+    }
+    let mut x_history = CommandHistory::default();
+    let segments = history.segments();
+    let mut s = 0;
+    for (k, &t) in times.iter().enumerate() {
+        while s + 1 < segments.len() && segments[s].end_s < t {
+            s += 1;
+        }
+        let u = segments.get(s).map_or([0.0; 2], |seg| seg.at(t));
+        x_history.ramp_to(t, [u[0] + h_at[0][k], u[1] + h_at[1][k]]);
+    }
+    Ok((times, h_at, x_history))
+}
+
+/// Passes of [`fit_dynamics`]: the creep's input x = u + h needs the hysteresis of the
+/// previous pass (the coupling is weak, W_h ≈ 0.1–0.2, so a few passes converge).
+const FIT_PASSES: usize = 4;
 
 /// Two sightings of one sample point along one axis: the command had `u_first_counts` at
 /// `t_first_s` and `u_second_counts` at `t_second_s` when the probe saw it, moving at the given
@@ -426,15 +452,65 @@ pub fn fit_dynamics(
         play_outputs(history, 0, &setup.thresholds_counts[0], &times)?,
         play_outputs(history, 1, &setup.thresholds_counts[1], &times)?,
     ];
-    let creep = creep_offsets(history, &unit_creep, &times)?;
     let (n0, n1) = (
         setup.thresholds_counts[0].len(),
         setup.thresholds_counts[1].len(),
     );
+    // Pass 1 drives the creep by the commands; later passes by x = u + h of the previous pass.
+    let mut hysteresis = [PlayHysteresis::none(), PlayHysteresis::none()];
+    let mut result = None;
+    for _ in 0..FIT_PASSES {
+        let (_, _, x_history) =
+            post_hysteresis_input(history, [&hysteresis[0], &hysteresis[1]], &times)?;
+        let creep = creep_offsets(&x_history, &unit_creep, &times)?;
+        let (full, sigma, fit) = solve_pass(&usable, &plays, &creep, &groups, n0, n1, &index_of)?;
+        hysteresis = [
+            PlayHysteresis {
+                thresholds_counts: setup.thresholds_counts[0].clone(),
+                weights: full[..n0].to_vec(),
+            },
+            PlayHysteresis {
+                thresholds_counts: setup.thresholds_counts[1].clone(),
+                weights: full[n0..n0 + n1].to_vec(),
+            },
+        ];
+        result = Some((full, sigma, fit));
+    }
+    let (full, sigma, fit) = result.ok_or(CorrectionError::Empty("dynamics fit passes"))?;
+    Ok(ScannerDynamics {
+        format: DYNAMICS_FORMAT.to_owned(),
+        version: DYNAMICS_FORMAT_VERSION,
+        hysteresis_x: hysteresis[0].clone(),
+        hysteresis_y: hysteresis[1].clone(),
+        creep: CreepParameters {
+            weight: full[n0 + n1],
+            ..setup.creep_shape.clone()
+        },
+        identification: DynamicsIdentification {
+            sightings: usable.len(),
+            residual_rms_counts: fit.residual_rms,
+            signal_lag_s: full[n0 + n1 + 1],
+            creep_weight_sigma: sigma[n0 + n1],
+            ..DynamicsIdentification::default()
+        },
+    })
+}
+
+/// One least-squares pass of [`fit_dynamics`]: (coefficients, standard errors, the fit).
+#[allow(clippy::too_many_arguments)]
+fn solve_pass(
+    usable: &[&SamePoint],
+    plays: &[Vec<Vec<f64>>; 2],
+    creep: &[[f64; 2]],
+    groups: &[usize],
+    n0: usize,
+    n1: usize,
+    index_of: &dyn Fn(f64) -> usize,
+) -> Result<(Vec<f64>, Vec<f64>, spm_regression::LinearFit), CorrectionError> {
     let columns = n0 + n1 + 2 + groups.len();
     let mut rows = Vec::with_capacity(usable.len());
     let mut rhs = Vec::with_capacity(usable.len());
-    for s in &usable {
+    for s in usable {
         let axis = s.axis.min(1);
         let (i1, i2) = (index_of(s.t_first_s), index_of(s.t_second_s));
         let mut row = vec![0.0; columns];
@@ -466,29 +542,57 @@ pub fn fit_dynamics(
         full[j] = fit.coefficients[c];
         sigma[j] = fit.standard_errors[c];
     }
-    Ok(ScannerDynamics {
-        format: DYNAMICS_FORMAT.to_owned(),
-        version: DYNAMICS_FORMAT_VERSION,
-        hysteresis_x: PlayHysteresis {
-            thresholds_counts: setup.thresholds_counts[0].clone(),
-            weights: full[..n0].to_vec(),
-        },
-        hysteresis_y: PlayHysteresis {
-            thresholds_counts: setup.thresholds_counts[1].clone(),
-            weights: full[n0..n0 + n1].to_vec(),
-        },
-        creep: CreepParameters {
-            weight: full[n0 + n1],
-            ..setup.creep_shape.clone()
-        },
-        identification: DynamicsIdentification {
-            sightings: usable.len(),
-            residual_rms_counts: fit.residual_rms,
-            signal_lag_s: full[n0 + n1 + 1],
-            creep_weight_sigma: sigma[n0 + n1],
-            ..DynamicsIdentification::default()
-        },
-    })
+    Ok((full, sigma, fit))
+}
+
+/// Same-point sightings of a trace/retrace frame (scanner geometry halves of a direct
+/// raster) from tracked shifts `(trace column, shift px)`: the trace at column c and the
+/// retrace at column c + shift saw the same sample point. One sighting per shift, timed on
+/// the middle row; `group` is the drift group of the frame.
+#[must_use]
+pub fn line_pair_sightings(
+    forward: &spm_hal::HeightMap,
+    backward: &spm_hal::HeightMap,
+    shifts: &[(f64, f64)],
+    group: usize,
+) -> Vec<SamePoint> {
+    let (nx, ny) = (forward.columns, forward.rows);
+    if nx < 2 || ny == 0 || backward.columns != nx || backward.rows != ny {
+        return Vec::new();
+    }
+    let row = ny / 2;
+    let time = |map: &spm_hal::HeightMap, column: f64| -> Option<(f64, f64)> {
+        if !(column >= 0.0 && column <= (nx - 1) as f64) {
+            return None;
+        }
+        let i = (column.floor() as usize).min(nx - 2);
+        let f = column - i as f64;
+        let t0 = *map.time_s.get(row * nx + i)?;
+        let t1 = *map.time_s.get(row * nx + i + 1)?;
+        // Command velocity: one pixel step per (t1 − t0).
+        let dt = t1 - t0;
+        (dt != 0.0).then(|| (t0 + f * dt, map.pixel_step.value() / dt))
+    };
+    shifts
+        .iter()
+        .filter_map(|&(column, shift)| {
+            let (t1, v1) = time(forward, column)?;
+            let (t2, v2) = time(backward, column + shift)?;
+            let step = forward.pixel_step.value();
+            Some(SamePoint {
+                axis: 0,
+                t_first_s: t1.min(t2),
+                u_first_counts: forward.origin.x.value()
+                    + step * if t1 <= t2 { column } else { column + shift },
+                v_first_counts_per_s: if t1 <= t2 { v1 } else { v2 },
+                t_second_s: t1.max(t2),
+                u_second_counts: forward.origin.x.value()
+                    + step * if t1 <= t2 { column + shift } else { column },
+                v_second_counts_per_s: if t1 <= t2 { v2 } else { v1 },
+                group,
+            })
+        })
+        .collect()
 }
 
 #[cfg(test)]

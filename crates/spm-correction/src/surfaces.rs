@@ -27,7 +27,11 @@ use crate::field::{
 };
 
 /// Version of the `surfaces.json` layout written by this crate.
-pub const SURFACES_FORMAT_VERSION: u32 = 2;
+///
+/// History: 1 the surfaces and a short provenance; 2 the calibrated region per plane and the
+/// full provenance; 3 the scanner dynamics ([`crate::hysteresis::ScannerDynamics`]). Every
+/// older version is read.
+pub const SURFACES_FORMAT_VERSION: u32 = 3;
 
 /// One regression surface with its statistics.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -387,12 +391,15 @@ pub struct Provenance {
 /// All regression surfaces of one scanner: what `surfaces.json` holds.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SurfaceSet {
-    /// Layout version ([`SURFACES_FORMAT_VERSION`]; 1 and 2 are read).
+    /// Layout version ([`SURFACES_FORMAT_VERSION`]; every older one is read).
     pub format_version: u32,
     /// Scanner, time window, record count.
     pub provenance: Provenance,
     /// One entry per Z plane.
     pub planes: Vec<PlaneSurfaces>,
+    /// The scanner's dynamics identified in situ (v3; absent = static correction only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dynamics: Option<crate::hysteresis::ScannerDynamics>,
 }
 
 impl SurfaceSet {
@@ -408,6 +415,7 @@ impl SurfaceSet {
             format_version: SURFACES_FORMAT_VERSION,
             provenance,
             planes,
+            dynamics: None,
         };
         set.validate()?;
         Ok(set)
@@ -436,6 +444,10 @@ impl SurfaceSet {
         }
         for p in &self.planes {
             p.validate()?;
+        }
+        if let Some(d) = &self.dynamics {
+            d.validate()
+                .map_err(|e| CorrectionError::InvalidSurfaces(format!("dynamics: {e}")))?;
         }
         for (i, a) in self.planes.iter().enumerate() {
             if self.planes[i + 1..]

@@ -51,10 +51,10 @@ pub use detect::{
     PositionUncertainty, RejectReason, Rejection, detect, nearest_index,
 };
 pub use error::FeatureError;
-pub use shift::{ColumnShift, ShiftConfig, trace_retrace_shifts};
 pub use lattice::{Lattice, LatticeConfig, LatticeVector, lattice_vectors};
 pub use lcs::{
     HOPG_LATTICE_NM, Lcs, LcsConfig, LcsStandard, find_lcs_at_nearest_vertex, find_lcs_nearest,
     lcs_neighbours, lcs_with_vertex,
 };
+pub use shift::{ColumnShift, ShiftConfig, trace_retrace_shifts};
 pub use step::{StepConfig, StepMeasurement, StepRejection, measure_step, measure_step_pair};

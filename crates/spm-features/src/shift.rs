@@ -17,9 +17,9 @@ use crate::error::FeatureError;
 /// Parameters of [`trace_retrace_shifts`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ShiftConfig {
-    /// Window width, pixels (≥ 4). Default 24.
+    /// Window width, pixels (≥ 4). Default 16.
     pub window_px: usize,
-    /// Distance between window centres, pixels (≥ 1). Default 8.
+    /// Distance between window centres, pixels (≥ 1). Default 4.
     pub step_px: usize,
     /// Search half-width around the prediction, pixels (≥ 1). Default 1.
     pub search_px: usize,
@@ -31,8 +31,8 @@ pub struct ShiftConfig {
 impl Default for ShiftConfig {
     fn default() -> Self {
         Self {
-            window_px: 24,
-            step_px: 8,
+            window_px: 16,
+            step_px: 4,
             search_px: 1,
             min_correlation: 0.5,
         }
@@ -50,13 +50,76 @@ pub struct ColumnShift {
     pub correlation: f64,
 }
 
-/// Tracks the trace → retrace shift along the lines (module docs).
+/// Tracks the trace → retrace shift along the lines from both ends (module docs): from the
+/// first column rightwards and from the last column leftwards (both ends are reversal points,
+/// where the branches meet). A window is returned only where both trackings agree to within
+/// [`AGREEMENT_PX`]; one that slipped a lattice period disagrees from the slip on. Returns the
+/// agreeing windows and how many windows disagreed.
+///
+/// # Errors
+/// As the one-way tracking: [`FeatureError::InconsistentMap`], [`FeatureError::NonFinite`],
+/// [`FeatureError::MapTooSmall`], [`FeatureError::InvalidConfig`].
+pub fn trace_retrace_shifts(
+    trace: &[f64],
+    retrace: &[f64],
+    columns: usize,
+    rows: usize,
+    config: &ShiftConfig,
+) -> Result<(Vec<ColumnShift>, usize), FeatureError> {
+    let forward = track_one_way(trace, retrace, columns, rows, config)?;
+    let mirror = |img: &[f64]| -> Vec<f64> {
+        img.chunks(columns)
+            .flat_map(|row| row.iter().rev().copied())
+            .collect()
+    };
+    let backward = track_one_way(&mirror(trace), &mirror(retrace), columns, rows, config)?;
+    let last = (columns - 1) as f64;
+    // The right-to-left tracking in trace columns, increasing.
+    let mut other: Vec<(f64, f64)> = backward
+        .iter()
+        .map(|b| (last - b.column, -b.shift_px))
+        .collect();
+    other.sort_by(|p, q| p.0.total_cmp(&q.0));
+    let mut agreeing = Vec::new();
+    let mut disagreeing = 0;
+    for a in &forward {
+        let k = other.partition_point(|p| p.0 < a.column);
+        let (Some(lo), Some(hi)) = (k.checked_sub(1).and_then(|i| other.get(i)), other.get(k))
+        else {
+            continue;
+        };
+        if hi.0 - lo.0 > 2.0 * config.step_px as f64 {
+            continue;
+        }
+        let f = if hi.0 > lo.0 {
+            (a.column - lo.0) / (hi.0 - lo.0)
+        } else {
+            0.0
+        };
+        let b_shift = lo.1 + f * (hi.1 - lo.1);
+        if (a.shift_px - b_shift).abs() <= AGREEMENT_PX {
+            agreeing.push(ColumnShift {
+                column: a.column,
+                shift_px: 0.5 * (a.shift_px + b_shift),
+                correlation: a.correlation,
+            });
+        } else {
+            disagreeing += 1;
+        }
+    }
+    Ok((agreeing, disagreeing))
+}
+
+/// Largest difference of the two trackings' shifts at one window, pixels.
+pub const AGREEMENT_PX: f64 = 0.5;
+
+/// Tracks the trace → retrace shift along the lines in one direction (module docs).
 ///
 /// # Errors
 /// [`FeatureError::InconsistentMap`] for arrays that do not match the size,
 /// [`FeatureError::NonFinite`] for NaN/∞ heights, [`FeatureError::MapTooSmall`] when fewer
 /// columns than two windows, [`FeatureError::InvalidConfig`] for a bad config.
-pub fn trace_retrace_shifts(
+fn track_one_way(
     trace: &[f64],
     retrace: &[f64],
     columns: usize,
@@ -79,11 +142,7 @@ pub fn trace_retrace_shifts(
             time_len: n,
         });
     }
-    if let Some(index) = trace
-        .iter()
-        .chain(retrace)
-        .position(|v| !v.is_finite())
-    {
+    if let Some(index) = trace.iter().chain(retrace).position(|v| !v.is_finite()) {
         let index = index % n;
         return Err(FeatureError::NonFinite {
             what: "height",
@@ -240,11 +299,15 @@ mod tests {
                 retrace.push(pattern(x0, r));
             }
         }
-        let shifts =
+        let (shifts, disagreeing) =
             trace_retrace_shifts(&trace, &retrace, columns, rows, &ShiftConfig::default()).unwrap();
+        assert_eq!(disagreeing, 0);
         assert!(shifts.len() > 100);
         let mut worst: f64 = 0.0;
-        for s in shifts.iter().filter(|s| s.column + s.shift_px + 12.0 < columns as f64) {
+        for s in shifts
+            .iter()
+            .filter(|s| s.column + s.shift_px + 12.0 < columns as f64)
+        {
             worst = worst.max((s.shift_px - truth(s.column)).abs());
         }
         assert!(worst < 0.25, "worst {worst}");

@@ -174,10 +174,14 @@ fn solve_passive(
     let svd = ap.svd(true, true);
     let s_max = svd.singular_values.max();
     let s_min = svd.singular_values.min();
-    if !(s_max > 0.0) || s_min <= RANK_TOLERANCE * s_max {
+    if s_max.is_nan() || s_max <= 0.0 || s_min <= RANK_TOLERANCE * s_max {
         return Err(RegressionError::IllConditioned {
             degree: 0,
-            condition_number: if s_min > 0.0 { s_max / s_min } else { f64::INFINITY },
+            condition_number: if s_min > 0.0 {
+                s_max / s_min
+            } else {
+                f64::INFINITY
+            },
             threshold: 1.0 / RANK_TOLERANCE,
         });
     }
@@ -246,7 +250,11 @@ mod tests {
             Err(RegressionError::TooFewPoints { .. })
         ));
         assert!(matches!(
-            least_squares(&[vec![1.0, 2.0], vec![2.0, 4.0]], &[1.0, 2.0], &[false, false]),
+            least_squares(
+                &[vec![1.0, 2.0], vec![2.0, 4.0]],
+                &[1.0, 2.0],
+                &[false, false]
+            ),
             Err(RegressionError::IllConditioned { .. })
         ));
     }

@@ -120,6 +120,12 @@ impl<'a> Oracle<'a> {
         point(self.sim.scanner.creep_offset)
     }
 
+    /// The hysteresis operator of an axis (0 = x, 1 = y): its play thresholds (counts) and
+    /// the one weight every operator has (h = w·Σyᵢ).
+    pub fn hysteresis_operator(&self, axis: usize) -> (Vec<f64>, f64) {
+        self.sim.scanner.hysteresis[axis.min(1)].operator()
+    }
+
     /// The dead band `[lo, hi]` of an axis (0 = x, 1 = y) in commanded counts:
     /// while the command stays inside it the hysteresis state is frozen.
     pub fn hysteresis_dead_band(&self, axis: usize) -> (Counts, Counts) {

@@ -329,6 +329,11 @@ impl PlayHysteresis {
         self.weight * self.thresholds.len() as f64
     }
 
+    /// Thresholds (counts) and the common weight.
+    pub fn operator(&self) -> (Vec<f64>, f64) {
+        (self.thresholds.clone(), self.weight)
+    }
+
     /// The dead band `[lo, hi]` (counts) inside which the state is frozen.
     pub fn dead_band(&self) -> (f64, f64) {
         (self.band_lo, self.band_hi)

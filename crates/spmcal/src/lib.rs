@@ -19,6 +19,7 @@
 
 pub mod accuracy;
 pub mod cdb_handle;
+pub mod dynamics;
 pub mod html;
 pub mod images;
 pub mod job;

@@ -181,6 +181,9 @@ pub struct CalibrationReport {
     pub node_lcc_error: Option<NodeLccError>,
     /// The vertical axis against the oracle (simulated backends, runs that measured Kz).
     pub vertical: Option<crate::vertical::VerticalReport>,
+    /// The scanner dynamics identified in situ (issue 23), against the simulator's own where
+    /// there is one.
+    pub dynamics: Option<crate::dynamics::DynamicsReport>,
     /// The calibrator's own report (cycles, given-up nodes with reasons, …).
     pub run: RunReport,
     /// The drift estimates of the run.
@@ -205,6 +208,10 @@ pub struct RunRecord<'a> {
     pub attach_tracks: &'a [spm_correction::dynamics::AttachTrack],
     /// The run's lateral commands (for the creep law).
     pub commands: &'a [spm_hal::recording::CommandEvent],
+    /// The dynamics stage's ladder rasters.
+    pub ladder: &'a [spm_calibration::dynamics::LadderFrame],
+    /// The simulator's own dynamics, when the backend is a simulator.
+    pub true_dynamics: Option<crate::dynamics::TrueDynamics>,
     /// Wall time of the run, s.
     pub wall_time_s: f64,
 }
@@ -254,6 +261,11 @@ impl<'a> RunRecord<'a> {
             nodes: &samples.nodes,
             attach_tracks: &samples.attach_tracks,
             commands: &outcome.commands,
+            ladder: &outcome.ladder,
+            true_dynamics: outcome
+                .instrument
+                .simulator()
+                .map(crate::dynamics::TrueDynamics::of),
             wall_time_s,
         }
     }
@@ -367,6 +379,15 @@ pub fn finish_with(
         None,
         &SurfaceFitOptions::bic_up_to(MAX_SURFACE_DEGREE),
     )?;
+    let dynamics = crate::dynamics::identify(
+        record.commands,
+        record.attach_tracks,
+        record.ladder,
+        CREEP_LAW_SHAPE,
+        record.true_dynamics.as_ref(),
+    );
+    let mut fitted = fitted;
+    fitted.set.dynamics = dynamics.model.clone();
     let surfaces_json = fitted.set.to_json_string()?;
     write(&out.join("surfaces.json"), surfaces_json.as_bytes())?;
     let records = snapshot.count_records(&RecordFilter::default().with_run(&record.run.run_id))?;
@@ -441,6 +462,7 @@ pub fn finish_with(
             }
             crate::vertical::evaluate(truth, record.plan, &fitted.set, &all)
         }),
+        dynamics: (dynamics.frames > 0 || dynamics.model.is_some()).then_some(dynamics),
         run: record.run.clone(),
         drift,
         notes,

@@ -312,6 +312,8 @@ pub struct JobOutcome {
     pub instrument: FinishedInstrument,
     /// The lateral commands of the run with their instrument times (the creep model's input).
     pub commands: Vec<spm_hal::recording::CommandEvent>,
+    /// The dynamics stage's ladder rasters (empty when the stage was off or failed).
+    pub ladder: Vec<spm_calibration::dynamics::LadderFrame>,
 }
 
 /// Most lateral commands a run keeps for the creep model (the oldest are dropped beyond it;
@@ -382,21 +384,25 @@ pub fn run_job<O: Observer>(
     };
     match instrument {
         Instrument::Sim(mut sim) => {
-            let (result, commands) = calibrate_on(&mut *sim, &mut cdb, observer, job, &options);
+            let (result, commands, ladder) =
+                calibrate_on(&mut *sim, &mut cdb, observer, job, &options);
             let report = settle(result, &mut cdb, &options, start_unix_s)?;
             Ok(JobOutcome {
                 report,
                 instrument: FinishedInstrument::Sim(sim),
                 commands,
+                ladder,
             })
         }
         Instrument::Nanonis(mut nanonis) => {
-            let (result, commands) = calibrate_on(&mut *nanonis, &mut cdb, observer, job, &options);
+            let (result, commands, ladder) =
+                calibrate_on(&mut *nanonis, &mut cdb, observer, job, &options);
             let report = settle(result, &mut cdb, &options, start_unix_s)?;
             Ok(JobOutcome {
                 report,
                 instrument: FinishedInstrument::Nanonis(nanonis),
                 commands,
+                ladder,
             })
         }
     }
@@ -479,12 +485,53 @@ fn calibrate_on<M: spm_hal::Microscope, O: Observer>(
 ) -> (
     Result<RunReport, RunError>,
     Vec<spm_hal::recording::CommandEvent>,
+    Vec<spm_calibration::dynamics::LadderFrame>,
 ) {
     let mut recorder = spm_hal::recording::CommandRecorder::new(microscope, MAX_COMMANDS);
     let result = Calibrator::new(&mut recorder, &mut *cdb, observer, job.plan.clone())
         .and_then(|mut calibrator| calibrator.run(options));
+    let ladder = match &result {
+        Ok(_) if job.plan.dynamics.enabled => dynamics_stage(&mut recorder, &job.plan),
+        _ => Vec::new(),
+    };
     let (_, commands) = recorder.into_parts();
-    (result, commands)
+    (result, commands, ladder)
+}
+
+/// The dynamics stage after the net (issue 23): the ladder rasters around the field's centre,
+/// inside the net's margin. A failed stage is logged and leaves the run without dynamics.
+fn dynamics_stage<M: spm_hal::Microscope>(
+    microscope: &mut M,
+    plan: &spm_calibration::PlanConfig,
+) -> Vec<spm_calibration::dynamics::LadderFrame> {
+    let caps = microscope.capabilities();
+    let centre = spm_hal::CountPoint::from_counts(
+        (0.5 * (caps.field_min.x.value() + caps.field_max.x.value())).round(),
+        (0.5 * (caps.field_min.y.value() + caps.field_max.y.value())).round(),
+    );
+    let longest = plan
+        .dynamics
+        .ladder_counts
+        .iter()
+        .fold(0.0_f64, |a, &b| a.max(b));
+    let margin = plan.net.margin_counts as f64 + 0.5 * longest;
+    let half = [
+        (0.5 * (caps.field_max.x.value() - caps.field_min.x.value()) - margin).max(0.0),
+        (0.5 * (caps.field_max.y.value() - caps.field_min.y.value()) - margin).max(0.0),
+    ];
+    match spm_calibration::dynamics::scan_ladder(
+        microscope,
+        &plan.dynamics,
+        &plan.standard,
+        centre,
+        half,
+    ) {
+        Ok(frames) => frames,
+        Err(e) => {
+            tracing::warn!("dynamics stage stopped: {e}");
+            Vec::new()
+        }
+    }
 }
 
 /// The run's result; a plan the instrument cannot carry out marks the run failed.

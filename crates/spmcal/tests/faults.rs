@@ -244,6 +244,8 @@ fn calibrate(name: &str, faults: Option<FaultConfig>, p_feature_lost: f64) -> Ou
         nodes: &recorder.nodes,
         attach_tracks: &recorder.attach_tracks,
         commands: &[],
+        ladder: &[],
+        true_dynamics: None,
         wall_time_s: 0.0,
     };
     let report = finish_with(&cdb_path, &out, &record, true, false).expect("surfaces and accuracy");

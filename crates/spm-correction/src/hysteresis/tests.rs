@@ -48,7 +48,13 @@ fn a_symmetric_cycle_has_the_closed_form_separation() {
         assert!((sep - closed).abs() < 1e-9, "u {u}: {sep} vs {closed}");
         // The naive truth agrees.
         let commands: Vec<f64> = (0..=7000)
-            .map(|k| h.segments().iter().find(|s| s.end_s >= f64::from(k) * 1e-3).unwrap().at(f64::from(k) * 1e-3)[0])
+            .map(|k| {
+                h.segments()
+                    .iter()
+                    .find(|s| s.end_s >= f64::from(k) * 1e-3)
+                    .unwrap()
+                    .at(f64::from(k) * 1e-3)[0]
+            })
             .collect();
         let naive = naive_h(&m.thresholds_counts, &m.weights, &commands);
         let at = |t: f64| naive[(t * 1e3).round() as usize];
@@ -180,7 +186,10 @@ fn the_fit_recovers_the_loops_of_a_ladder() {
             );
         }
     }
-    assert!((fit.identification.signal_lag_s - lag_s).abs() < 0.3 * lag_s, "{fit:?}");
+    assert!(
+        (fit.identification.signal_lag_s - lag_s).abs() < 0.3 * lag_s,
+        "{fit:?}"
+    );
 }
 
 /// The dynamics of a file: serialised and read back unchanged; a wrong version is refused.

@@ -1,0 +1,233 @@
+//! The dynamics stage (issue 23): trace/retrace rasters of the standard at a ladder of line
+//! lengths and two line rates, at a few places in the field, through any [`Microscope`].
+//! The standard's lattice is the only ruler: what the trace shows at one column the retrace
+//! shows elsewhere, by the raster's hysteresis, its creep and the signal's lag, which
+//! `spm_correction::hysteresis::fit_dynamics` separates (amplitude dependent, rate
+//! independent: hysteresis; rate dependent: creep and lag).
+//!
+//! The stage only scans; the frames go to the caller with the run's command log.
+
+use serde::{Deserialize, Serialize};
+use spm_hal::{
+    CountPoint, Counts, CountsPerSecond, Frame, Microscope, MoveRequest, ScanDirection,
+    ScanRequest, Seconds,
+};
+
+use crate::config::StandardConfig;
+
+/// The dynamics stage of a plan (`[dynamics]`); absent in a plan file = the defaults, so old
+/// plans stay valid and gain the stage. `enabled = false` skips it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DynamicsConfig {
+    /// Run the stage. Default true.
+    pub enabled: bool,
+    /// Line lengths of the ladder, counts (≥ 3 sizes spanning ≥ 10×). Default
+    /// [512, 2048, 8192]; each is cut to what the instrument's pixels per line allow. Longer
+    /// lines at the default resolution lose the lattice's phase somewhere along the line on
+    /// sim-hopg (the two-way tracking disagrees) and are dropped by the fit's caller.
+    pub ladder_counts: Vec<f64>,
+    /// Pixels per lattice constant along the lines (sets the pixel step from the standard's
+    /// lattice constant and nominal sensitivity). Default 4.
+    pub pixels_per_lattice_constant: f64,
+    /// Lines per frame (trace + retrace each). Default 4.
+    pub lines: u32,
+    /// Pixel dwells, s: two line rates. Default [1e-4, 4e-4].
+    pub pixel_dwells_s: Vec<f64>,
+    /// Places, as fractions (−1…1) of the net's half-extent from its centre. Default the
+    /// centre and two opposite diagonal points at ±0.5.
+    pub places: Vec<[f64; 2]>,
+    /// Wait at each frame's first pixel before scanning it, s: the creep of the move there
+    /// must not shift the retrace against the trace by a lattice period. Default 10.
+    pub settle_s: f64,
+    /// Speed of the move to each frame, counts/s. Default 20 000.
+    pub move_speed_counts_per_s: f64,
+}
+
+impl Default for DynamicsConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            ladder_counts: vec![512.0, 2048.0, 8192.0],
+            pixels_per_lattice_constant: 4.0,
+            lines: 4,
+            pixel_dwells_s: vec![1e-4, 4e-4],
+            places: vec![[0.0, 0.0], [-0.5, 0.5], [0.5, -0.5]],
+            settle_s: 10.0,
+            move_speed_counts_per_s: 20_000.0,
+        }
+    }
+}
+
+impl DynamicsConfig {
+    /// Checks the values; the error names the field.
+    ///
+    /// # Errors
+    /// `(field, reason)`.
+    pub fn validate(&self) -> Result<(), (&'static str, String)> {
+        if self
+            .ladder_counts
+            .iter()
+            .any(|l| !(l.is_finite() && *l > 0.0))
+        {
+            return Err(("dynamics.ladder_counts", "lengths must be > 0".into()));
+        }
+        if self.enabled {
+            let (lo, hi) = self
+                .ladder_counts
+                .iter()
+                .fold((f64::INFINITY, 0.0_f64), |(lo, hi), &l| {
+                    (lo.min(l), hi.max(l))
+                });
+            if self.ladder_counts.len() < 3 || hi < 10.0 * lo {
+                return Err((
+                    "dynamics.ladder_counts",
+                    "at least 3 sizes spanning at least 10× are needed".into(),
+                ));
+            }
+            if self.pixel_dwells_s.len() < 2 {
+                return Err((
+                    "dynamics.pixel_dwells_s",
+                    "two line rates are needed".into(),
+                ));
+            }
+        }
+        if !(self.pixels_per_lattice_constant.is_finite()
+            && self.pixels_per_lattice_constant >= 2.5)
+        {
+            return Err((
+                "dynamics.pixels_per_lattice_constant",
+                "must be ≥ 2.5 (the lattice must be resolved)".into(),
+            ));
+        }
+        if !(self.settle_s.is_finite() && self.settle_s >= 0.0) {
+            return Err(("dynamics.settle_s", "must be ≥ 0".into()));
+        }
+        if !(self.move_speed_counts_per_s.is_finite() && self.move_speed_counts_per_s > 0.0) {
+            return Err(("dynamics.move_speed_counts_per_s", "must be > 0".into()));
+        }
+        if self.lines == 0 {
+            return Err(("dynamics.lines", "must be ≥ 1".into()));
+        }
+        if self
+            .pixel_dwells_s
+            .iter()
+            .any(|d| !(d.is_finite() && *d > 0.0))
+        {
+            return Err(("dynamics.pixel_dwells_s", "dwells must be > 0".into()));
+        }
+        if self
+            .places
+            .iter()
+            .any(|p| !(p[0].abs() <= 1.0 && p[1].abs() <= 1.0))
+        {
+            return Err(("dynamics.places", "fractions must lie in [−1, 1]".into()));
+        }
+        Ok(())
+    }
+
+    /// The pixel step for a standard, counts (≥ 1).
+    #[must_use]
+    pub fn pixel_step_counts(&self, standard: &StandardConfig) -> f64 {
+        (standard.lattice_constant_nm
+            / standard.nominal_nm_per_count
+            / self.pixels_per_lattice_constant)
+            .floor()
+            .max(1.0)
+    }
+}
+
+/// One ladder raster as scanned.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LadderFrame {
+    /// Place index in the config.
+    pub place: usize,
+    /// Line length, counts.
+    pub length_counts: f64,
+    /// The frame (forward and backward halves).
+    pub frame: Frame,
+}
+
+/// Scans the ladder at every place and dwell (place, dwell, size order), centred on
+/// `centre ± fraction·half_extent`, clipped to the instrument's pixels per line.
+///
+/// # Errors
+/// The backend's error; the caller decides whether a failed stage fails the run.
+pub fn scan_ladder<M: Microscope>(
+    microscope: &mut M,
+    config: &DynamicsConfig,
+    standard: &StandardConfig,
+    centre: CountPoint,
+    half_extent_counts: [f64; 2],
+) -> Result<Vec<LadderFrame>, M::Error> {
+    let step = config.pixel_step_counts(standard);
+    let caps = microscope.capabilities();
+    let max_pixels = caps.max_pixels_per_line.max(2);
+    let mut out = Vec::new();
+    for (place, fraction) in config.places.iter().enumerate() {
+        let at = [
+            centre.x.value() + fraction[0] * half_extent_counts[0],
+            centre.y.value() + fraction[1] * half_extent_counts[1],
+        ];
+        for &dwell in &config.pixel_dwells_s {
+            for &length in &config.ladder_counts {
+                let pixels = ((length / step).round() as u32 + 1).clamp(2, max_pixels);
+                let length = step * f64::from(pixels - 1);
+                let request = ScanRequest {
+                    origin: CountPoint::from_counts(
+                        (at[0] - 0.5 * length).round(),
+                        (at[1] - 0.5 * step * f64::from(config.lines)).round(),
+                    ),
+                    pixel_step: Counts(step),
+                    pixels_per_line: pixels,
+                    lines: config.lines,
+                    direction: ScanDirection::Direct,
+                    pixel_dwell: Seconds(dwell),
+                    record_backward: true,
+                };
+                microscope.move_to(MoveRequest {
+                    target: request.origin,
+                    speed: CountsPerSecond(config.move_speed_counts_per_s),
+                    settle: Seconds(config.settle_s),
+                })?;
+                let frame = microscope.scan(&request)?;
+                out.push(LadderFrame {
+                    place,
+                    length_counts: length,
+                    frame,
+                });
+            }
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn the_defaults_validate_and_bad_ladders_are_refused() {
+        DynamicsConfig::default().validate().unwrap();
+        let short = DynamicsConfig {
+            ladder_counts: vec![512.0, 1024.0, 2048.0],
+            ..DynamicsConfig::default()
+        };
+        assert_eq!(short.validate().unwrap_err().0, "dynamics.ladder_counts");
+        let one_rate = DynamicsConfig {
+            pixel_dwells_s: vec![1e-4],
+            ..DynamicsConfig::default()
+        };
+        assert_eq!(
+            one_rate.validate().unwrap_err().0,
+            "dynamics.pixel_dwells_s"
+        );
+        let off = DynamicsConfig {
+            enabled: false,
+            pixel_dwells_s: vec![1e-4],
+            ..DynamicsConfig::default()
+        };
+        off.validate().unwrap();
+    }
+}

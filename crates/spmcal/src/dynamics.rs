@@ -1,0 +1,275 @@
+//! The scanner dynamics of a run (issue 23): the dynamics stage's ladder rasters and the
+//! attachment tracks turned into same-point sightings, fitted by
+//! `spm_correction::hysteresis::fit_dynamics`, and judged against the simulator's own
+//! operator where there is one (the loop each predicts at every ladder size).
+//!
+//! Glue only: the shift tracking is `spm_features::trace_retrace_shifts`, the sightings and
+//! the fit are `spm_correction::hysteresis`.
+
+use serde::Serialize;
+use spm_calibration::dynamics::LadderFrame;
+use spm_correction::dynamics::{AttachTrack, CommandHistory};
+use spm_correction::hysteresis::{
+    CreepParameters, DynamicsFitSetup, PlayHysteresis, SamePoint, ScannerDynamics, fit_dynamics,
+    line_pair_sightings,
+};
+use spm_hal::TraceHalf;
+
+/// Drift windows of the attachment tracks, s (the drift is taken constant within one).
+const TRACK_DRIFT_WINDOW_S: f64 = 300.0;
+/// Shifts with a smaller peak correlation are not used.
+const MIN_SHIFT_CORRELATION: f64 = 0.5;
+/// Fewest well-correlated windows a ladder frame must give to be used.
+const MIN_WINDOWS: usize = 8;
+
+/// The simulator's own dynamics, for the report's comparison.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrueDynamics {
+    /// Per axis: the true operator.
+    pub hysteresis: [PlayHysteresis; 2],
+    /// γ of the true creep law, per decade.
+    pub creep_gamma_per_decade: f64,
+}
+
+impl TrueDynamics {
+    /// Of a simulator.
+    #[must_use]
+    pub fn of(sim: &spm_sim::Simulator) -> Self {
+        let oracle = sim.oracle();
+        let axis = |a: usize| {
+            let (thresholds, weight) = oracle.hysteresis_operator(a);
+            PlayHysteresis {
+                weights: vec![weight; thresholds.len()],
+                thresholds_counts: thresholds,
+            }
+        };
+        Self {
+            hysteresis: [axis(0), axis(1)],
+            creep_gamma_per_decade: sim.config().scanner.creep.log_slope_per_decade,
+        }
+    }
+}
+
+/// One ladder size's loop: identified against true.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LoopRow {
+    /// Line length, counts.
+    pub length_counts: f64,
+    /// Branch separation at the loop's centre, identified, counts.
+    pub separation_centre_counts: f64,
+    /// The same from the simulator's operator (absent without a simulator).
+    pub true_separation_centre_counts: Option<f64>,
+    /// Identified / true (absent without a simulator).
+    pub ratio: Option<f64>,
+}
+
+/// The dynamics section of report.json.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DynamicsReport {
+    /// The identified model (absent when it could not be identified).
+    pub model: Option<ScannerDynamics>,
+    /// Ladder frames scanned, and those whose tracked shift closed.
+    pub frames: usize,
+    /// Frames used.
+    pub frames_used: usize,
+    /// Same-point sightings from the ladder.
+    pub ladder_sightings: usize,
+    /// Same-point sightings from the attachment tracks.
+    pub track_sightings: usize,
+    /// The x loop at each ladder size.
+    pub loops_x: Vec<LoopRow>,
+    /// Identified creep γ per decade (0.1 s … 10 s).
+    pub creep_gamma_per_decade: Option<f64>,
+    /// The simulator's γ.
+    pub true_creep_gamma_per_decade: Option<f64>,
+    /// What was not identified, and why.
+    pub notes: Vec<String>,
+}
+
+/// The map without its first row (`None` with fewer than two rows).
+fn without_first_line(map: &spm_hal::HeightMap) -> Option<spm_hal::HeightMap> {
+    (map.rows >= 2).then(|| spm_hal::HeightMap {
+        origin: spm_hal::CountPoint::new(map.origin.x, map.origin.y + map.pixel_step),
+        pixel_step: map.pixel_step,
+        columns: map.columns,
+        rows: map.rows - 1,
+        z_counts: map.z_counts[map.columns..].to_vec(),
+        time_s: map.time_s[map.columns..].to_vec(),
+    })
+}
+
+/// Identifies the run's dynamics (module docs).
+#[must_use]
+pub fn identify(
+    commands: &[spm_hal::recording::CommandEvent],
+    tracks: &[AttachTrack],
+    ladder: &[LadderFrame],
+    creep_shape: (f64, f64, u32),
+    truth: Option<&TrueDynamics>,
+) -> DynamicsReport {
+    let mut notes = Vec::new();
+    let history = CommandHistory::from_events(commands);
+    let mut sightings: Vec<SamePoint> = Vec::new();
+    let mut frames_used = 0;
+    let mut windows_disagreeing = 0;
+    let mut lengths: Vec<f64> = Vec::new();
+    for (index, frame) in ladder.iter().enumerate() {
+        let (Ok(forward), Ok(backward)) = (
+            frame.frame.height_map(TraceHalf::Forward),
+            frame.frame.height_map(TraceHalf::Backward),
+        ) else {
+            continue;
+        };
+        // The first line's trace follows the approach, not the previous retrace: its branch
+        // differs from the periodic loop of the others, so it is left out.
+        let (Some(forward), Some(backward)) =
+            (without_first_line(&forward), without_first_line(&backward))
+        else {
+            continue;
+        };
+        let Ok((shifts, disagreeing)) = spm_features::trace_retrace_shifts(
+            &forward.z_counts,
+            &backward.z_counts,
+            forward.columns,
+            forward.rows,
+            &spm_features::ShiftConfig::default(),
+        ) else {
+            continue;
+        };
+        let good: Vec<(f64, f64)> = shifts
+            .iter()
+            .filter(|s| s.correlation >= MIN_SHIFT_CORRELATION)
+            .map(|s| (s.column, s.shift_px))
+            .collect();
+        // Where the two trackings disagree one of them slipped a lattice period: only the
+        // windows where both agree are used.
+        windows_disagreeing += disagreeing;
+        if good.len() < MIN_WINDOWS {
+            continue;
+        }
+        frames_used += 1;
+        if !lengths.contains(&frame.length_counts) {
+            lengths.push(frame.length_counts);
+        }
+        sightings.extend(line_pair_sightings(&forward, &backward, &good, index));
+    }
+    let ladder_sightings = sightings.len();
+    if windows_disagreeing > 0 {
+        notes.push(format!(
+            "{windows_disagreeing} shift windows left out: the trackings from the two ends of \
+             their line disagreed (one slipped a lattice period)"
+        ));
+    }
+    if frames_used < ladder.len() {
+        notes.push(format!(
+            "{} of {} ladder frames dropped (fewer than {MIN_WINDOWS} windows where the two trackings agreed and the lattice correlated)",
+            ladder.len() - frames_used,
+            ladder.len()
+        ));
+    }
+    // Attachment tracks: every later sighting against the first, both axes (creep and drift).
+    let group0 = ladder.len();
+    for track in tracks {
+        let Some(&(t0, x0, y0)) = track.sightings.first() else {
+            continue;
+        };
+        for &(t, x, y) in track.sightings.iter().skip(1) {
+            let group = group0 + (t / TRACK_DRIFT_WINDOW_S).floor().max(0.0) as usize;
+            for (axis, (a, b)) in [(x0, x), (y0, y)].into_iter().enumerate() {
+                sightings.push(SamePoint {
+                    axis,
+                    t_first_s: t0,
+                    u_first_counts: a,
+                    v_first_counts_per_s: 0.0,
+                    t_second_s: t,
+                    u_second_counts: b,
+                    v_second_counts_per_s: 0.0,
+                    group,
+                });
+            }
+        }
+    }
+    let track_sightings = sightings.len() - ladder_sightings;
+    lengths.sort_by(f64::total_cmp);
+    let (tau_min, tau_max, per_decade) = creep_shape;
+    let grid_x: Vec<f64> = match (lengths.first(), lengths.last()) {
+        (Some(&lo), Some(&hi)) => {
+            let step = (0.25 * lo).max(1.0);
+            let n = (0.5 * hi / step).floor() as usize;
+            (1..=n).map(|k| step * k as f64).collect()
+        }
+        _ => Vec::new(),
+    };
+    if grid_x.is_empty() {
+        notes.push("x hysteresis not identified: no ladder frame could be used".to_owned());
+    }
+    notes.push(
+        "y hysteresis not identified: the ladder scans lines along x only (counter-scanned \
+         pairs for the slow axis are not measured yet)"
+            .to_owned(),
+    );
+    let setup = DynamicsFitSetup {
+        thresholds_counts: [grid_x, Vec::new()],
+        creep_shape: CreepParameters {
+            weight: 0.0,
+            min_time_constant_s: tau_min,
+            max_time_constant_s: tau_max,
+            elements_per_decade: per_decade,
+        },
+    };
+    let model = match fit_dynamics(&history, &sightings, &setup) {
+        Ok(mut m) => {
+            m.identification.ladder_counts = lengths.clone();
+            m.identification.line_rates_hz = ladder
+                .iter()
+                .map(|f| {
+                    1.0 / (2.0
+                        * f64::from(f.frame.request.pixels_per_line)
+                        * f.frame.request.pixel_dwell.value())
+                })
+                .fold(Vec::new(), |mut v: Vec<f64>, r| {
+                    if !v.iter().any(|x| (x / r - 1.0).abs() < 1e-9) {
+                        v.push(r);
+                    }
+                    v
+                });
+            m.identification.notes = notes.clone();
+            Some(m)
+        }
+        Err(e) => {
+            notes.push(format!("dynamics not identified: {e}"));
+            None
+        }
+    };
+    let loops_x = lengths
+        .iter()
+        .map(|&length| {
+            let a = 0.5 * length;
+            let got = model
+                .as_ref()
+                .map_or(0.0, |m| m.hysteresis_x.loop_separation_counts(a, 0.0));
+            let want = truth.map(|t| t.hysteresis[0].loop_separation_counts(a, 0.0));
+            LoopRow {
+                length_counts: length,
+                separation_centre_counts: got,
+                true_separation_centre_counts: want,
+                ratio: want.filter(|w| *w > 0.0).map(|w| got / w),
+            }
+        })
+        .collect();
+    let creep_gamma_per_decade = model
+        .as_ref()
+        .and_then(|m| m.creep.law().ok())
+        .map(|law| law.gamma_per_decade());
+    DynamicsReport {
+        model,
+        frames: ladder.len(),
+        frames_used,
+        ladder_sightings,
+        track_sightings,
+        loops_x,
+        creep_gamma_per_decade,
+        true_creep_gamma_per_decade: truth.map(|t| t.creep_gamma_per_decade),
+        notes,
+    }
+}

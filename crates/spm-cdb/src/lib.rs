@@ -23,6 +23,11 @@
 //!   than its identity file (a restored backup).
 //! - One transaction per node: [`Cdb::commit_node`] writes the node's records and marks its
 //!   plan entry done atomically; [`Cdb::import_records`] writes many records in one transaction.
+//! - Scanner dynamics (schema v5): [`Cdb::store_dynamics`] keeps each identification of a
+//!   scanner's hysteresis and creep ([`DynamicsRecord`], a versioned JSON object checked by
+//!   [`DynamicsRecord::check`]) dated beside the LCCs; [`CdbRead::dynamics_for_scanner`] and
+//!   [`CdbRead::latest_dynamics`] read them back. The model's types live in `spm-correction`,
+//!   which this crate does not link.
 //!
 //! # Time
 //! The library reads no clock: every time is supplied by the caller as UTC seconds since the

@@ -146,7 +146,11 @@ pub(crate) fn problem(id: i64, d: &DynamicsRecord) -> Option<IntegrityProblem> {
 /// Applies [`problem`] to every row of `dynamics` whose columns have their types and whose
 /// version is in range (the SQL rules of `cdb check` name the others), at most `max`
 /// findings per kind.
-pub(crate) fn check_rows(conn: &Connection, path: &Path, max: usize) -> Result<Vec<IntegrityProblem>> {
+pub(crate) fn check_rows(
+    conn: &Connection,
+    path: &Path,
+    max: usize,
+) -> Result<Vec<IntegrityProblem>> {
     let err = |e| CdbError::sqlite(path, e);
     let mut stmt = conn
         .prepare(&format!(

@@ -95,7 +95,10 @@ pub(crate) fn select_dynamics(
     filter: &RecordFilter,
 ) -> Vec<DynamicsRecord> {
     dynamics.retain(|d| {
-        filter.scanner_id.as_ref().is_none_or(|s| *s == d.scanner_id)
+        filter
+            .scanner_id
+            .as_ref()
+            .is_none_or(|s| *s == d.scanner_id)
             && filter.run_id.as_ref().is_none_or(|r| *r == d.run_id)
             && filter.since_unix_s.is_none_or(|t| d.identified_unix_s >= t)
             && filter.until_unix_s.is_none_or(|t| d.identified_unix_s <= t)

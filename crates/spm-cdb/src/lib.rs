@@ -69,9 +69,9 @@ pub use error::{CdbError, ErrorKind, Result};
 pub use export::{CSV_HEADER, rfc3339_utc};
 pub use schema::{APPLICATION_ID, SCHEMA_VERSION};
 pub use spm_records::{
-    Coefficient, CoefficientStat, DynamicsProblem, DynamicsRecord, IntegrityProblem, IntegrityReport, LccColumns, LccRecord,
-    NodeDone, NodeProgress, NodeState, PlanNode, ProgressStore, ProgressSummary, RecordFilter,
-    RunInfo, RunStatus, TrendGrouping, TrendPoint,
+    Coefficient, CoefficientStat, DynamicsProblem, DynamicsRecord, IntegrityProblem,
+    IntegrityReport, LccColumns, LccRecord, NodeDone, NodeProgress, NodeState, PlanNode,
+    ProgressStore, ProgressSummary, RecordFilter, RunInfo, RunStatus, TrendGrouping, TrendPoint,
 };
 
 /// SQLite `synchronous` setting (with WAL).
@@ -280,10 +280,8 @@ pub trait CdbRead {
     /// # Errors
     /// As [`CdbRead::export_csv`].
     fn export_json(&self, filter: &RecordFilter, out: &mut dyn Write) -> Result<u64> {
-        let dynamics = export::select_dynamics(
-            self.dynamics(filter.scanner_id.as_deref())?,
-            filter,
-        );
+        let dynamics =
+            export::select_dynamics(self.dynamics(filter.scanner_id.as_deref())?, filter);
         export::json(
             self.path(),
             &mut |each| self.for_each_record(filter, each),

@@ -34,14 +34,14 @@ use std::sync::LazyLock;
 use postgres::types::{ToSql, Type};
 use postgres::{Client, NoTls, Row, Statement};
 
+use crate::dynamics::DYNAMICS_COLUMNS;
 use crate::error::{CdbError, Result};
 use crate::schema::{APPLICATION_ID, SCHEMA_VERSION};
-use crate::dynamics::DYNAMICS_COLUMNS;
 use crate::{CdbRead, check_belongs, check_run_ids, check_time, invalid, validate_record};
 use spm_records::{
-    ColumnKind, ColumnValue, DynamicsRecord, IntegrityProblem, IntegrityReport, LCC_RECORD_COLUMNS, LccColumns,
-    LccRecord, NodeDone, NodeProgress, NodeState, OwnedColumnValue, PlanNode, ProgressStore,
-    ProgressSummary, RecordFilter, RunInfo, RunStatus, UNCERTAINTY_COLUMNS,
+    ColumnKind, ColumnValue, DynamicsRecord, IntegrityProblem, IntegrityReport, LCC_RECORD_COLUMNS,
+    LccColumns, LccRecord, NodeDone, NodeProgress, NodeState, OwnedColumnValue, PlanNode,
+    ProgressStore, ProgressSummary, RecordFilter, RunInfo, RunStatus, UNCERTAINTY_COLUMNS,
 };
 
 /// True if `location` names a PostgreSQL database (`postgres://` or `postgresql://`) rather
@@ -1169,9 +1169,7 @@ impl PgCdb {
             .map_err(err)?;
         crate::dynamics::check_run_scanner(&path, dynamics, &run_scanner)?;
         tx.execute(
-            &format!(
-                "INSERT INTO dynamics ({DYNAMICS_COLUMNS}) VALUES ($1, $2, $3, $4, $5, $6)"
-            ),
+            &format!("INSERT INTO dynamics ({DYNAMICS_COLUMNS}) VALUES ($1, $2, $3, $4, $5, $6)"),
             &[
                 &dynamics.run_id,
                 &dynamics.scanner_id,

@@ -1395,7 +1395,10 @@ fn dynamics_are_stored_dated_per_scanner_and_validated(b: &'static dyn Backend) 
         [d1.clone(), d1b.clone(), d2.clone(), t.clone()]
     );
     // The model text comes back byte for byte.
-    assert_eq!(cdb.latest_dynamics("S").unwrap().unwrap().model_json, d2.model_json);
+    assert_eq!(
+        cdb.latest_dynamics("S").unwrap().unwrap().model_json,
+        d2.model_json
+    );
 
     // Refusals: each names its field or its run; nothing is written.
     let spoil = |f: &dyn Fn(&mut spm_cdb::DynamicsRecord)| {
@@ -1458,7 +1461,7 @@ fn dynamics_are_stored_dated_per_scanner_and_validated(b: &'static dyn Backend) 
         Some(d2.clone())
     );
     let ro = b.open_read_only(&path).unwrap();
-    assert_eq!(ro.dynamics_for_scanner("T").unwrap(), [t.clone()]);
+    assert_eq!(ro.dynamics_for_scanner("T").unwrap(), [t]);
 
     // JSON export: "records" as before, "dynamics" selected like the records.
     let mut json = Vec::new();
@@ -1467,8 +1470,7 @@ fn dynamics_are_stored_dated_per_scanner_and_validated(b: &'static dyn Backend) 
     let v: serde_json::Value = serde_json::from_slice(&json).unwrap();
     assert_eq!(v["schema_version"], 5);
     assert_eq!(v["records"], serde_json::json!([]));
-    let back: Vec<spm_cdb::DynamicsRecord> =
-        serde_json::from_value(v["dynamics"].clone()).unwrap();
+    let back: Vec<spm_cdb::DynamicsRecord> = serde_json::from_value(v["dynamics"].clone()).unwrap();
     assert_eq!(back, [d1.clone(), d1b.clone(), d2.clone()]);
     let mut json = Vec::new();
     ro.export_json(
@@ -1477,8 +1479,7 @@ fn dynamics_are_stored_dated_per_scanner_and_validated(b: &'static dyn Backend) 
     )
     .unwrap();
     let v: serde_json::Value = serde_json::from_slice(&json).unwrap();
-    let back: Vec<spm_cdb::DynamicsRecord> =
-        serde_json::from_value(v["dynamics"].clone()).unwrap();
+    let back: Vec<spm_cdb::DynamicsRecord> = serde_json::from_value(v["dynamics"].clone()).unwrap();
     assert_eq!(back, [d2]);
 }
 
@@ -1525,8 +1526,14 @@ fn integrity_check_finds_bad_dynamics(b: &'static dyn Backend) {
     assert!(!report.is_ok());
     let json = found("invalid_model_json");
     assert_eq!(json.len(), 2, "{report:?}");
-    assert!(json[0].contains("dynamics id 2") && json[0].contains("not JSON"), "{json:?}");
-    assert!(json[1].contains("dynamics id 3") && json[1].contains("JSON object"), "{json:?}");
+    assert!(
+        json[0].contains("dynamics id 2") && json[0].contains("not JSON"),
+        "{json:?}"
+    );
+    assert!(
+        json[1].contains("dynamics id 3") && json[1].contains("JSON object"),
+        "{json:?}"
+    );
     let time = found("non_finite");
     assert_eq!(time.len(), 1, "{report:?}");
     assert!(time[0].contains("dynamics id 4") && time[0].contains("identified_unix_s"));
@@ -1666,14 +1673,12 @@ fn sqlite_rows(conn: &Connection) -> Vec<(String, Vec<Vec<rusqlite::types::Value
 }
 
 fn dynamics_schema(conn: &Connection) -> Vec<(String, String)> {
-    conn.prepare(
-        "SELECT name, sql FROM sqlite_master WHERE tbl_name = 'dynamics' ORDER BY name",
-    )
-    .unwrap()
-    .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
-    .unwrap()
-    .collect::<rusqlite::Result<_>>()
-    .unwrap()
+    conn.prepare("SELECT name, sql FROM sqlite_master WHERE tbl_name = 'dynamics' ORDER BY name")
+        .unwrap()
+        .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
+        .unwrap()
+        .collect::<rusqlite::Result<_>>()
+        .unwrap()
 }
 
 /// A v4 file migrates to v5 with every pre-existing row (runs, progress, records and the
@@ -1717,7 +1722,11 @@ fn sqlite_migrates_v4_file_leaving_every_row_untouched() {
     cdb.store_dynamics(&d).unwrap();
     assert_eq!(cdb.latest_dynamics("S").unwrap(), Some(d));
     let after = sqlite_rows(cdb.connection());
-    assert_eq!(after[1..], before[1..], "only the identity's generation moves");
+    assert_eq!(
+        after[1..],
+        before[1..],
+        "only the identity's generation moves"
+    );
     let generation = |rows: &[(String, Vec<Vec<rusqlite::types::Value>>)]| rows[0].1[0][1].clone();
     assert_eq!(generation(&before), rusqlite::types::Value::Integer(7));
     assert_eq!(generation(&after), rusqlite::types::Value::Integer(8));
@@ -1761,8 +1770,12 @@ fn postgres_migrates_v4_database_leaving_every_row_untouched() {
         let mut v4 = PgCdb::open_at_version(&url, 4).unwrap();
         v4.create_run(&r).unwrap();
         v4.register_plan(&r.run_id, &nodes).unwrap();
-        v4.commit_node(&r.run_id, &done(0, T0 + 10.0), &[record(&r, &nodes[0], 0, T0)])
-            .unwrap();
+        v4.commit_node(
+            &r.run_id,
+            &done(0, T0 + 10.0),
+            &[record(&r, &nodes[0], 0, T0)],
+        )
+        .unwrap();
         v4.give_up_node(&r.run_id, 0, 1, "no feature", 3, T0 + 20.0)
             .unwrap();
     }
@@ -1782,5 +1795,11 @@ fn postgres_migrates_v4_database_leaving_every_row_untouched() {
     assert_eq!(cdb.latest_dynamics("S").unwrap(), Some(d));
     assert_eq!(pg_rows(&url), before);
     drop(cdb);
-    assert!(PgCdb::open_read_only(&url).unwrap().check().unwrap().is_ok());
+    assert!(
+        PgCdb::open_read_only(&url)
+            .unwrap()
+            .check()
+            .unwrap()
+            .is_ok()
+    );
 }

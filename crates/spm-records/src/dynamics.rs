@@ -66,9 +66,7 @@ pub enum DynamicsProblem {
         run_id: String,
     },
     /// `model_json` is larger than [`DYNAMICS_MODEL_MAX_BYTES`].
-    #[error(
-        "dynamics (run {run_id:?}): model_json is {bytes} bytes, more than the {max} allowed"
-    )]
+    #[error("dynamics (run {run_id:?}): model_json is {bytes} bytes, more than the {max} allowed")]
     TooLarge {
         /// Run of the record.
         run_id: String,
@@ -194,20 +192,34 @@ mod tests {
         good().check().unwrap();
     }
 
+    type Spoil = Box<dyn Fn(&mut DynamicsRecord)>;
+
     #[test]
     fn every_rule_names_its_field() {
-        let cases: Vec<(&str, Box<dyn Fn(&mut DynamicsRecord)>)> = vec![
+        let cases: Vec<(&str, Spoil)> = vec![
             ("run_id", Box::new(|r| r.run_id = " ".into())),
-            ("scanner_id", Box::new(|r| r.scanner_id = "a\u{202E}b".into())),
+            (
+                "scanner_id",
+                Box::new(|r| r.scanner_id = "a\u{202E}b".into()),
+            ),
             ("model_format", Box::new(|r| r.model_format = String::new())),
-            ("model_format", Box::new(|r| r.model_format = "f".repeat(129))),
-            ("identified_unix_s", Box::new(|r| r.identified_unix_s = f64::NAN)),
+            (
+                "model_format",
+                Box::new(|r| r.model_format = "f".repeat(129)),
+            ),
+            (
+                "identified_unix_s",
+                Box::new(|r| r.identified_unix_s = f64::NAN),
+            ),
             (
                 "identified_unix_s",
                 Box::new(|r| r.identified_unix_s = f64::INFINITY),
             ),
             ("identified_unix_s", Box::new(|r| r.identified_unix_s = 0.0)),
-            ("identified_unix_s", Box::new(|r| r.identified_unix_s = -1.0)),
+            (
+                "identified_unix_s",
+                Box::new(|r| r.identified_unix_s = -1.0),
+            ),
             ("model_version", Box::new(|r| r.model_version = 0)),
             ("model_json", Box::new(|r| r.model_json = "{".into())),
             ("model_json", Box::new(|r| r.model_json = "[1, 2]".into())),

@@ -8,8 +8,9 @@
 
 use spm_cdb::postgres::{PgCdb, is_postgres_url, redact_url};
 use spm_cdb::{
-    Cdb, CdbError, CdbRead, DynamicsRecord, IntegrityReport, LccColumns, LccRecord, NodeDone, NodeProgress,
-    NodeState, PlanNode, ProgressStore, ProgressSummary, RecordFilter, RunInfo, RunStatus,
+    Cdb, CdbError, CdbRead, DynamicsRecord, IntegrityReport, LccColumns, LccRecord, NodeDone,
+    NodeProgress, NodeState, PlanNode, ProgressStore, ProgressSummary, RecordFilter, RunInfo,
+    RunStatus,
 };
 use spm_records::Plausibility;
 use std::collections::HashMap;

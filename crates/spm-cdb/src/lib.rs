@@ -739,7 +739,9 @@ impl Cdb {
         };
         tune_cache(&conn).map_err(err)?;
         schema::check_probe(&path, &p)?;
-        if p.user_version >= SCHEMA_VERSION {
+        // Files that carry an identity (v4 on) are checked first: a v4 file with a foreign
+        // log is an identity mismatch before it is an outdated schema.
+        if p.user_version >= schema::IDENTITY_VERSION {
             looked.verify(&path, &conn)?;
         }
         if p.user_version == 0 {

@@ -29,6 +29,9 @@ use crate::error::{CdbError, Result};
 /// Schema version written by this library.
 pub const SCHEMA_VERSION: i64 = 5;
 
+/// The first schema version with the CDB identity ([`crate::identity`]).
+pub(crate) const IDENTITY_VERSION: i64 = 4;
+
 /// `PRAGMA application_id` of a spmcal CDB ("SPMC").
 pub const APPLICATION_ID: i64 = 0x5350_4D43;
 

@@ -1803,3 +1803,35 @@ fn postgres_migrates_v4_database_leaving_every_row_untouched() {
             .is_ok()
     );
 }
+
+/// A v4 file (it has the identity) with another database's log beside it is refused
+/// read-only as an identity mismatch, as before v5 — not passed over as merely outdated —
+/// and the files stay as they were.
+#[test]
+fn sqlite_a_v4_file_with_a_foreign_log_is_still_an_identity_mismatch() {
+    let make = |name: &str, id: &str| {
+        let path = db_path(name);
+        let raw = Connection::open(&path).unwrap();
+        raw.execute_batch(&V4_DDL.replace("0123456789abcdef0123456789abcdef", id))
+            .unwrap();
+        let _: String = raw
+            .query_row("PRAGMA journal_mode = WAL", [], |r| r.get(0))
+            .unwrap();
+        (path, raw)
+    };
+    let (a, raw_a) = make("v4_identity_a", "aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaa");
+    drop(raw_a);
+    let (b, raw_b) = make("v4_identity_b", "bbbbbbbbbbbbbbbbbbbbbbbbbbbbbbbb");
+    raw_b
+        .execute_batch("PRAGMA wal_autocheckpoint = 0; UPDATE cdb_identity SET generation = 8;")
+        .unwrap();
+    let log_of_b = std::fs::read(with_suffix(&b, "-wal")).unwrap();
+    assert!(!log_of_b.is_empty());
+    std::fs::write(with_suffix(&a, "-wal"), &log_of_b).unwrap();
+    let before = std::fs::read(&a).unwrap();
+    let e = Cdb::open_read_only(&a).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::IdentityMismatch, "{e}");
+    assert_eq!(std::fs::read(&a).unwrap(), before);
+    assert_eq!(std::fs::read(with_suffix(&a, "-wal")).unwrap(), log_of_b);
+    drop(raw_b);
+}

@@ -1380,7 +1380,8 @@ fn dynamics_are_stored_dated_per_scanner_and_validated(b: &'static dyn Backend) 
     let d1 = common::dynamics(&r1, T0 + 3_600.0, 0.01);
     let d1b = common::dynamics(&r1, T0 + 3_600.0, 0.011);
     let t = common::dynamics(&r3, T0 + 100_000.0, 0.03);
-    for d in [&d2, &d1, &d1b, &t] {
+    let t2 = common::dynamics(&r3, T0 + 100_000.0, 0.031);
+    for d in [&d2, &d1, &d1b, &t, &t2] {
         cdb.store_dynamics(d).unwrap();
     }
     assert_eq!(
@@ -1388,11 +1389,12 @@ fn dynamics_are_stored_dated_per_scanner_and_validated(b: &'static dyn Backend) 
         [d1.clone(), d1b.clone(), d2.clone()]
     );
     assert_eq!(cdb.latest_dynamics("S").unwrap(), Some(d2.clone()));
-    assert_eq!(cdb.latest_dynamics("T").unwrap(), Some(t.clone()));
+    // Of two at one time, the one stored later is the newer.
+    assert_eq!(cdb.latest_dynamics("T").unwrap(), Some(t2.clone()));
     assert_eq!(cdb.latest_dynamics("U").unwrap(), None);
     assert_eq!(
         cdb.dynamics(None).unwrap(),
-        [d1.clone(), d1b.clone(), d2.clone(), t.clone()]
+        [d1.clone(), d1b.clone(), d2.clone(), t.clone(), t2.clone()]
     );
     // The model text comes back byte for byte.
     assert_eq!(
@@ -1452,7 +1454,7 @@ fn dynamics_are_stored_dated_per_scanner_and_validated(b: &'static dyn Backend) 
         assert_eq!(e.kind(), kind, "{e}");
         assert!(e.to_string().contains(names), "{names} not named: {e}");
     }
-    assert_eq!(cdb.dynamics(None).unwrap().len(), 4);
+    assert_eq!(cdb.dynamics(None).unwrap().len(), 5);
     assert!(cdb.check().unwrap().is_ok(), "{:?}", cdb.check().unwrap());
 
     // A snapshot and a read-only open read them too.
@@ -1461,7 +1463,7 @@ fn dynamics_are_stored_dated_per_scanner_and_validated(b: &'static dyn Backend) 
         Some(d2.clone())
     );
     let ro = b.open_read_only(&path).unwrap();
-    assert_eq!(ro.dynamics_for_scanner("T").unwrap(), [t]);
+    assert_eq!(ro.dynamics_for_scanner("T").unwrap(), [t, t2]);
 
     // JSON export: "records" as before, "dynamics" selected like the records.
     let mut json = Vec::new();

@@ -7,7 +7,7 @@ use std::path::Path;
 use crate::error::{CdbError, Result};
 use spm_records::{DynamicsProblem, DynamicsRecord, IntegrityProblem};
 
-/// The columns of a [`DynamicsRecord`], in its field order.
+/// [`spm_records::DYNAMICS_RECORD_COLUMNS`] as an SQL column list (checked by a test).
 pub(crate) const DYNAMICS_COLUMNS: &str =
     "run_id, scanner_id, identified_unix_s, model_format, model_version, model_json";
 
@@ -210,5 +210,16 @@ impl Findings {
 
     pub(crate) fn into_problems(self) -> Vec<IntegrityProblem> {
         self.problems
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn the_sql_column_list_is_the_records_one() {
+        assert_eq!(
+            super::DYNAMICS_COLUMNS,
+            spm_records::DYNAMICS_RECORD_COLUMNS.join(", ")
+        );
     }
 }

@@ -69,9 +69,10 @@ pub use error::{CdbError, ErrorKind, Result};
 pub use export::{CSV_HEADER, rfc3339_utc};
 pub use schema::{APPLICATION_ID, SCHEMA_VERSION};
 pub use spm_records::{
-    Coefficient, CoefficientStat, DynamicsProblem, DynamicsRecord, IntegrityProblem,
-    IntegrityReport, LccColumns, LccRecord, NodeDone, NodeProgress, NodeState, PlanNode,
-    ProgressStore, ProgressSummary, RecordFilter, RunInfo, RunStatus, TrendGrouping, TrendPoint,
+    Coefficient, CoefficientStat, DYNAMICS_MODEL_MAX_BYTES, DYNAMICS_RECORD_COLUMNS,
+    DynamicsProblem, DynamicsRecord, IntegrityProblem, IntegrityReport, LccColumns, LccRecord,
+    NodeDone, NodeProgress, NodeState, PlanNode, ProgressStore, ProgressSummary, RecordFilter,
+    RunInfo, RunStatus, TrendGrouping, TrendPoint,
 };
 
 /// SQLite `synchronous` setting (with WAL).

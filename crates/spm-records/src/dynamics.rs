@@ -11,6 +11,17 @@ use serde::{Deserialize, Serialize};
 
 use crate::columns::id_problem;
 
+/// The columns every store keeps a [`DynamicsRecord`] in, in field order (the one list
+/// their schemas, inserts and selects follow; the field names of the record).
+pub const DYNAMICS_RECORD_COLUMNS: [&str; 6] = [
+    "run_id",
+    "scanner_id",
+    "identified_unix_s",
+    "model_format",
+    "model_version",
+    "model_json",
+];
+
 /// Largest `model_json` a store accepts, in bytes (1 MiB).
 pub const DYNAMICS_MODEL_MAX_BYTES: usize = 1 << 20;
 
@@ -190,6 +201,23 @@ mod tests {
     #[test]
     fn a_valid_record_passes() {
         good().check().unwrap();
+    }
+
+    #[test]
+    fn the_column_list_is_the_records_fields_in_order() {
+        let text = serde_json::to_string(&good()).unwrap();
+        let mut at = 0;
+        for column in DYNAMICS_RECORD_COLUMNS {
+            let found = text[at..]
+                .find(&format!("\"{column}\":"))
+                .unwrap_or_else(|| panic!("{column} missing or out of order in {text}"));
+            at += found;
+        }
+        let value: serde_json::Value = serde_json::from_str(&text).unwrap();
+        assert_eq!(
+            value.as_object().unwrap().len(),
+            DYNAMICS_RECORD_COLUMNS.len()
+        );
     }
 
     type Spoil = Box<dyn Fn(&mut DynamicsRecord)>;

@@ -30,7 +30,8 @@ pub use columns::{
     RecordProblem, UNCERTAINTY_COLUMNS, id_problem,
 };
 pub use dynamics::{
-    DYNAMICS_FORMAT_MAX_BYTES, DYNAMICS_MODEL_MAX_BYTES, DynamicsProblem, DynamicsRecord,
+    DYNAMICS_FORMAT_MAX_BYTES, DYNAMICS_MODEL_MAX_BYTES, DYNAMICS_RECORD_COLUMNS, DynamicsProblem,
+    DynamicsRecord,
 };
 pub use model::{
     Coefficient, CoefficientStat, IntegrityProblem, IntegrityReport, LccColumns, LccRecord,

@@ -6,7 +6,7 @@ use std::path::Path;
 use crate::error::{CdbError, Result};
 use crate::query::RecordSource;
 use crate::schema::SCHEMA_VERSION;
-use spm_records::LccRecord;
+use spm_records::{DynamicsRecord, LccRecord, RecordFilter};
 
 /// CSV header: `acquired_utc` (RFC 3339) then the record columns
 /// ([`spm_records::LCC_RECORD_COLUMNS`]) in order.
@@ -88,7 +88,30 @@ pub(crate) fn csv(path: &Path, source: &mut RecordSource<'_>, out: &mut dyn Writ
     Ok(n)
 }
 
-pub(crate) fn json(path: &Path, source: &mut RecordSource<'_>, out: &mut dyn Write) -> Result<u64> {
+/// The dynamics a record filter selects: its scanner (already applied by the query), run
+/// and time window (on `identified_unix_s`); the Z plane does not apply.
+pub(crate) fn select_dynamics(
+    mut dynamics: Vec<DynamicsRecord>,
+    filter: &RecordFilter,
+) -> Vec<DynamicsRecord> {
+    dynamics.retain(|d| {
+        filter
+            .scanner_id
+            .as_ref()
+            .is_none_or(|s| *s == d.scanner_id)
+            && filter.run_id.as_ref().is_none_or(|r| *r == d.run_id)
+            && filter.since_unix_s.is_none_or(|t| d.identified_unix_s >= t)
+            && filter.until_unix_s.is_none_or(|t| d.identified_unix_s <= t)
+    });
+    dynamics
+}
+
+pub(crate) fn json(
+    path: &Path,
+    source: &mut RecordSource<'_>,
+    dynamics: &[DynamicsRecord],
+    out: &mut dyn Write,
+) -> Result<u64> {
     let e = io(path, "writing JSON export");
     write!(out, "{{\"schema_version\":{SCHEMA_VERSION},\"records\":[").map_err(&e)?;
     let mut n = 0u64;
@@ -105,6 +128,16 @@ pub(crate) fn json(path: &Path, source: &mut RecordSource<'_>, out: &mut dyn Wri
             source: std::io::Error::other(err),
         })
     })?;
+    out.write_all(b"\n],\"dynamics\":[").map_err(&e)?;
+    for (k, d) in dynamics.iter().enumerate() {
+        out.write_all(if k > 0 { b",\n" } else { b"\n" })
+            .map_err(&e)?;
+        serde_json::to_writer(&mut *out, d).map_err(|err| CdbError::Io {
+            path: path.to_path_buf(),
+            context: "writing JSON export".into(),
+            source: std::io::Error::other(err),
+        })?;
+    }
     out.write_all(b"\n]}\n").map_err(&e)?;
     out.flush().map_err(&e)?;
     Ok(n)

@@ -69,7 +69,7 @@ impl Checker<'_> {
 }
 
 /// How a row of each table is named in a finding.
-const ROW_NAMES: [(&str, &str); 3] = [
+const ROW_NAMES: [(&str, &str); 4] = [
     ("runs", "'run ' || quote(run_id)"),
     (
         "progress",
@@ -77,6 +77,7 @@ const ROW_NAMES: [(&str, &str); 3] = [
          quote(node_index)",
     ),
     ("records", "'record id ' || id"),
+    ("dynamics", "'dynamics id ' || id"),
 ];
 
 /// The schema's CHECK and NOT NULL constraints, queried explicitly: `PRAGMA
@@ -165,6 +166,14 @@ pub(crate) fn check(conn: &Connection, path: &Path) -> Result<IntegrityReport> {
         }
         tracing::debug!(error = %e, "constraint checks on a damaged file");
     }
+    // The dynamics, also when a foreign key is broken (a model whose run is gone is one of
+    // the things looked for).
+    if let Err(e) = dynamics_checks(&mut c) {
+        if c.report.sqlite.is_empty() {
+            return Err(e);
+        }
+        tracing::debug!(error = %e, "dynamics checks on a damaged file");
+    }
     if !c.report.sqlite.is_empty() {
         // Structural damage: semantic queries may be meaningless.
         return Ok(c.report);
@@ -233,6 +242,54 @@ pub(crate) fn check(conn: &Connection, path: &Path) -> Result<IntegrityReport> {
         );
     }
     Ok(c.report)
+}
+
+/// The scanner dynamics (schema v5): every column of its type, the version in range, the
+/// run stored and on the same scanner, and every row obeying [`DynamicsRecord::check`]
+/// (the time finite and > 0, the model a JSON object of bounded size, visible ids).
+///
+/// [`DynamicsRecord::check`]: spm_records::DynamicsRecord::check
+fn dynamics_checks(c: &mut Checker<'_>) -> Result<()> {
+    for (column, types) in [
+        ("run_id", "'text'"),
+        ("scanner_id", "'text'"),
+        ("identified_unix_s", "'real', 'integer'"),
+        ("model_format", "'text'"),
+        ("model_version", "'integer'"),
+        ("model_json", "'text'"),
+    ] {
+        c.rows(
+            "bad_type",
+            &format!(
+                "SELECT 'dynamics id ' || id || ': {column} is ' || typeof({column}) || \
+                 ', not {}' FROM dynamics WHERE typeof({column}) NOT IN ({types}, 'null') \
+                 ORDER BY id",
+                types.replace('\'', "")
+            ),
+        )?;
+    }
+    c.rows(
+        "invalid_dynamics",
+        "SELECT 'dynamics id ' || id || ': model_version ' || model_version || \
+         ' is not in 1..=4294967295' FROM dynamics WHERE typeof(model_version) = 'integer' \
+         AND model_version NOT BETWEEN 1 AND 4294967295 ORDER BY id",
+    )?;
+    c.rows(
+        "dynamics_without_run",
+        "SELECT 'dynamics id ' || d.id || ': run ' || quote(d.run_id) || ' does not exist' \
+         FROM dynamics d WHERE NOT EXISTS (SELECT 1 FROM runs u WHERE u.run_id = d.run_id) \
+         ORDER BY d.id",
+    )?;
+    c.rows(
+        "scanner_mismatch",
+        "SELECT 'dynamics id ' || d.id || ': scanner ' || quote(d.scanner_id) || \
+         ' but run ' || quote(d.run_id) || ' is on ' || quote(u.scanner_id) \
+         FROM dynamics d JOIN runs u ON d.run_id = u.run_id \
+         WHERE d.scanner_id != u.scanner_id ORDER BY d.id",
+    )?;
+    let found = crate::dynamics::check_rows(c.conn, c.path, MAX_ROWS_PER_CHECK)?;
+    c.report.problems.extend(found);
+    Ok(())
 }
 
 /// How records, plan nodes and runs relate: no duplicate record, done nodes with records

@@ -23,6 +23,11 @@
 //!   than its identity file (a restored backup).
 //! - One transaction per node: [`Cdb::commit_node`] writes the node's records and marks its
 //!   plan entry done atomically; [`Cdb::import_records`] writes many records in one transaction.
+//! - Scanner dynamics (schema v5): [`Cdb::store_dynamics`] keeps each identification of a
+//!   scanner's hysteresis and creep ([`DynamicsRecord`], a versioned JSON object checked by
+//!   [`DynamicsRecord::check`]) dated beside the LCCs; [`CdbRead::dynamics_for_scanner`] and
+//!   [`CdbRead::latest_dynamics`] read them back. The model's types live in `spm-correction`,
+//!   which this crate does not link.
 //!
 //! # Time
 //! The library reads no clock: every time is supplied by the caller as UTC seconds since the
@@ -42,6 +47,7 @@
 
 pub mod bench_support;
 mod columns;
+mod dynamics;
 mod error;
 mod export;
 mod identity;
@@ -63,7 +69,8 @@ pub use error::{CdbError, ErrorKind, Result};
 pub use export::{CSV_HEADER, rfc3339_utc};
 pub use schema::{APPLICATION_ID, SCHEMA_VERSION};
 pub use spm_records::{
-    Coefficient, CoefficientStat, IntegrityProblem, IntegrityReport, LccColumns, LccRecord,
+    Coefficient, CoefficientStat, DYNAMICS_MODEL_MAX_BYTES, DYNAMICS_RECORD_COLUMNS,
+    DynamicsProblem, DynamicsRecord, IntegrityProblem, IntegrityReport, LccColumns, LccRecord,
     NodeDone, NodeProgress, NodeState, PlanNode, ProgressStore, ProgressSummary, RecordFilter,
     RunInfo, RunStatus, TrendGrouping, TrendPoint,
 };
@@ -212,6 +219,28 @@ pub trait CdbRead {
     /// As [`CdbRead::run`].
     fn progress_summary(&self, run_id: &str) -> Result<ProgressSummary>;
 
+    /// The scanner dynamics stored (schema v5): of one scanner, or of every scanner (by
+    /// scanner id), each oldest first (by `identified_unix_s`, then in the order stored).
+    ///
+    /// # Errors
+    /// [`ErrorKind::Corrupt`] for a row that cannot be decoded; database errors.
+    fn dynamics(&self, scanner_id: Option<&str>) -> Result<Vec<DynamicsRecord>>;
+
+    /// The dynamics identified for a scanner, oldest first, newest last.
+    ///
+    /// # Errors
+    /// As [`CdbRead::dynamics`].
+    fn dynamics_for_scanner(&self, scanner_id: &str) -> Result<Vec<DynamicsRecord>> {
+        self.dynamics(Some(scanner_id))
+    }
+
+    /// The newest dynamics of a scanner (the last of [`CdbRead::dynamics_for_scanner`]), or
+    /// `None` when none was stored.
+    ///
+    /// # Errors
+    /// As [`CdbRead::dynamics`].
+    fn latest_dynamics(&self, scanner_id: &str) -> Result<Option<DynamicsRecord>>;
+
     /// Age dynamics: one coefficient against date, as mean and standard uncertainty per group
     /// (per run, per UTC day, or per node and run), ordered by mean time.
     ///
@@ -244,14 +273,20 @@ pub trait CdbRead {
     }
 
     /// Writes the selected records as JSON
-    /// `{"schema_version": N, "records": [LccRecord, …]}`; returns the number of records.
+    /// `{"schema_version": N, "records": [LccRecord, …], "dynamics": [DynamicsRecord, …]}`;
+    /// returns the number of records. The dynamics are selected by the filter's scanner,
+    /// run and time window (on `identified_unix_s`; the Z plane does not apply to them).
+    /// Read through a snapshot for records and dynamics of one committed state.
     ///
     /// # Errors
     /// As [`CdbRead::export_csv`].
     fn export_json(&self, filter: &RecordFilter, out: &mut dyn Write) -> Result<u64> {
+        let dynamics =
+            export::select_dynamics(self.dynamics(filter.scanner_id.as_deref())?, filter);
         export::json(
             self.path(),
             &mut |each| self.for_each_record(filter, each),
+            &dynamics,
             out,
         )
     }
@@ -261,7 +296,9 @@ pub trait CdbRead {
     /// semantic checks: finite values, K̄x, K̄y, Kz > 0, |α| < π/2, non-negative uncertainties
     /// and counts, every done plan node has records and no unfinished one has any, records
     /// match their plan node and run's scanner, no duplicate (run, repeat, node, lcs),
-    /// given-up nodes have a reason.
+    /// given-up nodes have a reason; stored dynamics obey [`DynamicsRecord::check`] (finite
+    /// time > 0, the model a JSON object of bounded size), their run exists and is on their
+    /// scanner.
     ///
     /// # Errors
     /// Database errors while checking (problems found are in the report, not errors).
@@ -313,6 +350,12 @@ macro_rules! sqlite_read {
             }
             fn progress_summary(&self, run_id: &str) -> Result<ProgressSummary> {
                 query::progress_summary(self.sqlite(), &self.path, run_id)
+            }
+            fn dynamics(&self, scanner_id: Option<&str>) -> Result<Vec<DynamicsRecord>> {
+                dynamics::list(self.sqlite(), &self.path, scanner_id)
+            }
+            fn latest_dynamics(&self, scanner_id: &str) -> Result<Option<DynamicsRecord>> {
+                dynamics::latest(self.sqlite(), &self.path, scanner_id)
             }
             fn check(&self) -> Result<IntegrityReport> {
                 integrity::check(self.sqlite(), &self.path)
@@ -697,7 +740,9 @@ impl Cdb {
         };
         tune_cache(&conn).map_err(err)?;
         schema::check_probe(&path, &p)?;
-        if p.user_version >= SCHEMA_VERSION {
+        // Files that carry an identity (v4 on) are checked first: a v4 file with a foreign
+        // log is an identity mismatch before it is an outdated schema.
+        if p.user_version >= schema::IDENTITY_VERSION {
             looked.verify(&path, &conn)?;
         }
         if p.user_version == 0 {
@@ -1088,6 +1133,30 @@ impl Cdb {
         .map_err(err)?;
         Self::commit(&path, tx)?;
         tracing::warn!(run_id, repeat_index, node_index, reason, "node given up");
+        Ok(())
+    }
+
+    /// Stores the scanner dynamics a run identified, in one transaction that steps the
+    /// identity's generation like every write. The run must be stored and on the record's
+    /// scanner.
+    ///
+    /// # Errors
+    /// [`ErrorKind::InvalidInput`] for a record that breaks [`DynamicsRecord::check`] (the
+    /// message names the field) or whose scanner is not its run's; [`ErrorKind::NotFound`]
+    /// for an unknown run. Nothing is written on error.
+    pub fn store_dynamics(&mut self, dynamics: &DynamicsRecord) -> Result<()> {
+        let path = self.path.clone();
+        dynamics::validate(&path, dynamics)?;
+        let tx = self.write_tx()?;
+        dynamics::insert(&tx, &path, dynamics)?;
+        Self::commit(&path, tx)?;
+        tracing::info!(
+            run_id = %dynamics.run_id,
+            scanner_id = %dynamics.scanner_id,
+            model_format = %dynamics.model_format,
+            model_version = dynamics.model_version,
+            "scanner dynamics stored"
+        );
         Ok(())
     }
 

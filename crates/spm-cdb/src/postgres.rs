@@ -34,13 +34,14 @@ use std::sync::LazyLock;
 use postgres::types::{ToSql, Type};
 use postgres::{Client, NoTls, Row, Statement};
 
+use crate::dynamics::DYNAMICS_COLUMNS;
 use crate::error::{CdbError, Result};
 use crate::schema::{APPLICATION_ID, SCHEMA_VERSION};
 use crate::{CdbRead, check_belongs, check_run_ids, check_time, invalid, validate_record};
 use spm_records::{
-    ColumnKind, ColumnValue, IntegrityProblem, IntegrityReport, LCC_RECORD_COLUMNS, LccColumns,
-    LccRecord, NodeDone, NodeProgress, NodeState, OwnedColumnValue, PlanNode, ProgressStore,
-    ProgressSummary, RecordFilter, RunInfo, RunStatus, UNCERTAINTY_COLUMNS,
+    ColumnKind, ColumnValue, DynamicsRecord, IntegrityProblem, IntegrityReport, LCC_RECORD_COLUMNS,
+    LccColumns, LccRecord, NodeDone, NodeProgress, NodeState, OwnedColumnValue, PlanNode,
+    ProgressStore, ProgressSummary, RecordFilter, RunInfo, RunStatus, UNCERTAINTY_COLUMNS,
 };
 
 /// True if `location` names a PostgreSQL database (`postgres://` or `postgresql://`) rather
@@ -163,6 +164,11 @@ fn percent_encode(text: &str) -> String {
 /// - v4: the CDB identity: `cdb_identity` (a random id, a generation) and `runs.cdb_id`
 ///   (the database's id in every run row; the write-ahead-log checks of the file are the
 ///   server's business here).
+/// - v5: the scanner dynamics: `dynamics` (run, scanner, time, model format and version,
+///   the model as a JSON object in text, kept byte for byte), indexed by (scanner, time).
+///   The migration only adds the table: runs, progress, records and the identity stay as
+///   they are. Like the other writes here, storing dynamics leaves the identity's
+///   generation alone (the log is the server's business).
 const V1_DESCRIPTION: &str = "runs, progress, records";
 
 /// Record columns added by later versions (absent from the v1 `records` table).
@@ -196,6 +202,25 @@ const MIGRATIONS: &[(&str, &str)] = &[
          VALUES (md5(random()::TEXT || clock_timestamp()::TEXT), 1);
      ALTER TABLE runs ADD COLUMN cdb_id TEXT;
      UPDATE runs SET cdb_id = (SELECT id FROM cdb_identity);",
+    ),
+    (
+        "the scanner dynamics",
+        "CREATE TABLE dynamics (
+         id                BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY,
+         run_id            TEXT NOT NULL REFERENCES runs (run_id),
+         scanner_id        TEXT NOT NULL CONSTRAINT dynamics_scanner_id_text
+                               CHECK (btrim(scanner_id) <> ''),
+         identified_unix_s DOUBLE PRECISION NOT NULL CONSTRAINT dynamics_time_finite
+                               CHECK (identified_unix_s > 0
+                                      AND identified_unix_s < 'Infinity'::float8),
+         model_format      TEXT NOT NULL CONSTRAINT dynamics_model_format_text
+                               CHECK (btrim(model_format) <> ''),
+         model_version     BIGINT NOT NULL CONSTRAINT dynamics_model_version_range
+                               CHECK (model_version BETWEEN 1 AND 4294967295),
+         model_json        TEXT NOT NULL CONSTRAINT dynamics_model_json_object
+                               CHECK (json_typeof(model_json::json) = 'object')
+     );
+     CREATE INDEX dynamics_scanner ON dynamics (scanner_id, identified_unix_s);",
     ),
 ];
 
@@ -1119,6 +1144,53 @@ impl PgCdb {
         Ok(())
     }
 
+    /// Stores the scanner dynamics a run identified, in one transaction that holds the run
+    /// row's share lock. The run must be stored and on the record's scanner. (Like every
+    /// write on PostgreSQL, it leaves the identity's generation alone.)
+    ///
+    /// # Errors
+    /// [`ErrorKind::InvalidInput`] for a record that breaks
+    /// [`spm_records::DynamicsRecord::check`] (the message names the field) or whose scanner
+    /// is not its run's; [`ErrorKind::NotFound`] for an unknown run. Nothing is written on
+    /// error.
+    pub fn store_dynamics(&mut self, dynamics: &DynamicsRecord) -> Result<()> {
+        let path = self.path.clone();
+        crate::dynamics::validate(&path, dynamics)?;
+        let err = |e| CdbError::postgres(&path, e);
+        let mut tx = self.client.get_mut().transaction().map_err(err)?;
+        let run_scanner: String = tx
+            .query_opt(
+                "SELECT scanner_id FROM runs WHERE run_id = $1 FOR SHARE",
+                &[&dynamics.run_id],
+            )
+            .map_err(err)?
+            .ok_or_else(|| crate::dynamics::unknown_run(&path, dynamics))?
+            .try_get(0)
+            .map_err(err)?;
+        crate::dynamics::check_run_scanner(&path, dynamics, &run_scanner)?;
+        tx.execute(
+            &format!("INSERT INTO dynamics ({DYNAMICS_COLUMNS}) VALUES ($1, $2, $3, $4, $5, $6)"),
+            &[
+                &dynamics.run_id,
+                &dynamics.scanner_id,
+                &dynamics.identified_unix_s,
+                &dynamics.model_format,
+                &i64::from(dynamics.model_version),
+                &dynamics.model_json,
+            ],
+        )
+        .map_err(err)?;
+        tx.commit().map_err(err)?;
+        tracing::info!(
+            run_id = %dynamics.run_id,
+            scanner_id = %dynamics.scanner_id,
+            model_format = %dynamics.model_format,
+            model_version = dynamics.model_version,
+            "scanner dynamics stored"
+        );
+        Ok(())
+    }
+
     /// Bulk import: inserts records (of existing runs, outside any plan) in one transaction
     /// with a binary `COPY`. Returns the number inserted.
     ///
@@ -1184,6 +1256,18 @@ fn run_from_row(path: &Path, r: &Row) -> Result<RunInfo> {
 
 const PROGRESS_COLUMNS: &str = "repeat_index, node_index, node_x_counts, node_y_counts, \
 node_z_counts, state, reason, attempts, updated_unix_s";
+
+fn dynamics_from_row(path: &Path, r: &Row) -> Result<DynamicsRecord> {
+    let err = |e| CdbError::postgres(path, e);
+    Ok(DynamicsRecord {
+        run_id: r.try_get(0).map_err(err)?,
+        scanner_id: r.try_get(1).map_err(err)?,
+        identified_unix_s: r.try_get(2).map_err(err)?,
+        model_format: r.try_get(3).map_err(err)?,
+        model_version: crate::dynamics::stored_version(path, r.try_get(4).map_err(err)?)?,
+        model_json: r.try_get(5).map_err(err)?,
+    })
+}
 
 fn progress_from_row(path: &Path, r: &Row) -> Result<NodeProgress> {
     let err = |e| CdbError::postgres(path, e);
@@ -1389,6 +1473,32 @@ impl CdbRead for PgCdb {
         Ok(s)
     }
 
+    fn dynamics(&self, scanner_id: Option<&str>) -> Result<Vec<DynamicsRecord>> {
+        self.query_rows(
+            &format!(
+                "SELECT {DYNAMICS_COLUMNS} FROM dynamics WHERE $1::TEXT IS NULL \
+                 OR scanner_id = $1 ORDER BY scanner_id, identified_unix_s, id"
+            ),
+            &[&scanner_id],
+        )?
+        .iter()
+        .map(|r| dynamics_from_row(&self.path, r))
+        .collect()
+    }
+
+    fn latest_dynamics(&self, scanner_id: &str) -> Result<Option<DynamicsRecord>> {
+        let rows = self.query_rows(
+            &format!(
+                "SELECT {DYNAMICS_COLUMNS} FROM dynamics WHERE scanner_id = $1 \
+                 ORDER BY identified_unix_s DESC, id DESC LIMIT 1"
+            ),
+            &[&scanner_id],
+        )?;
+        rows.first()
+            .map(|r| dynamics_from_row(&self.path, r))
+            .transpose()
+    }
+
     fn check(&self) -> Result<IntegrityReport> {
         integrity_check(self)
     }
@@ -1424,6 +1534,8 @@ impl CdbRead for PgSnapshot<'_> {
         progress(run_id: &str) -> Vec<NodeProgress>;
         next_pending(run_id: &str) -> Option<PlanNode>;
         progress_summary(run_id: &str) -> ProgressSummary;
+        dynamics(scanner_id: Option<&str>) -> Vec<DynamicsRecord>;
+        latest_dynamics(scanner_id: &str) -> Option<DynamicsRecord>;
         check() -> IntegrityReport;
     }
 }
@@ -1520,6 +1632,15 @@ fn expected_columns() -> Vec<(&'static str, &'static str, &'static str, bool)> {
         };
         v.push(("records", c.name, ty, nullable));
     }
+    v.extend([
+        ("dynamics", "id", "bigint", false),
+        ("dynamics", "run_id", "text", false),
+        ("dynamics", "scanner_id", "text", false),
+        ("dynamics", "identified_unix_s", "double precision", false),
+        ("dynamics", "model_format", "text", false),
+        ("dynamics", "model_version", "bigint", false),
+        ("dynamics", "model_json", "text", false),
+    ]);
     v
 }
 
@@ -1529,7 +1650,7 @@ fn stored_columns(db: &PgCdb) -> Result<HashMap<(String, String), (String, bool)
         "SELECT table_name::TEXT, column_name::TEXT, data_type::TEXT, is_nullable = 'YES' \
          FROM information_schema.columns WHERE table_schema = current_schema() \
          AND table_name IN ('schema_version', 'runs', 'progress', 'records', \
-         'cdb_identity')",
+         'cdb_identity', 'dynamics')",
         &[],
     )?
     .iter()
@@ -1570,6 +1691,62 @@ fn plausibility_check(db: &PgCdb, report: &mut IntegrityReport) -> Result<()> {
         &mut |each| db.for_each_record(&RecordFilter::default(), each),
         report,
     )
+}
+
+/// The scanner dynamics (as on SQLite): the run stored and on the same scanner, every row
+/// obeying [`DynamicsRecord::check`]. (The server enforces the column types, NOT NULL and
+/// the schema's CHECKs; these rules find what got past them, e.g. with a constraint
+/// dropped.)
+fn dynamics_check(c: &mut Checker<'_>) -> Result<()> {
+    use postgres::fallible_iterator::FallibleIterator;
+    c.rows(
+        "dynamics_without_run",
+        "SELECT 'dynamics id ' || d.id || ': run ' || quote_literal(d.run_id) || \
+         ' does not exist' FROM dynamics d WHERE NOT EXISTS \
+         (SELECT 1 FROM runs u WHERE u.run_id = d.run_id) ORDER BY d.id",
+    )?;
+    c.rows(
+        "scanner_mismatch",
+        "SELECT 'dynamics id ' || d.id || ': scanner ' || quote_literal(d.scanner_id) || \
+         ' but run ' || quote_literal(d.run_id) || ' is on ' || quote_literal(u.scanner_id) \
+         FROM dynamics d JOIN runs u ON d.run_id = u.run_id \
+         WHERE d.scanner_id <> u.scanner_id ORDER BY d.id",
+    )?;
+    c.rows(
+        "invalid_dynamics",
+        "SELECT 'dynamics id ' || id || ': model_version ' || model_version || \
+         ' is not in 1..=4294967295' FROM dynamics \
+         WHERE model_version NOT BETWEEN 1 AND 4294967295 ORDER BY id",
+    )?;
+    let db = c.db;
+    let mut found = crate::dynamics::Findings::new(MAX_ROWS_PER_CHECK.unsigned_abs() as usize);
+    {
+        let mut client = db.client()?;
+        let mut rows = client
+            .query_raw(
+                &format!(
+                    "SELECT id, {DYNAMICS_COLUMNS} FROM dynamics \
+                     WHERE model_version BETWEEN 1 AND 4294967295 ORDER BY id"
+                ),
+                std::iter::empty::<&(dyn ToSql + Sync)>(),
+            )
+            .map_err(db.err())?;
+        while let Some(r) = rows.next().map_err(db.err())? {
+            let id: i64 = r.try_get(0).map_err(db.err())?;
+            let version: i64 = r.try_get(5).map_err(db.err())?;
+            let d = DynamicsRecord {
+                run_id: r.try_get(1).map_err(db.err())?,
+                scanner_id: r.try_get(2).map_err(db.err())?,
+                identified_unix_s: r.try_get(3).map_err(db.err())?,
+                model_format: r.try_get(4).map_err(db.err())?,
+                model_version: crate::dynamics::stored_version(&db.path, version)?,
+                model_json: r.try_get(6).map_err(db.err())?,
+            };
+            found.add(crate::dynamics::problem(id, &d));
+        }
+    }
+    c.report.problems.extend(found.into_problems());
+    Ok(())
 }
 
 fn integrity_check(db: &PgCdb) -> Result<IntegrityReport> {
@@ -1704,6 +1881,7 @@ fn integrity_check(db: &PgCdb) -> Result<IntegrityReport> {
          FROM records r JOIN runs u ON r.run_id = u.run_id \
          WHERE r.scanner_id <> u.scanner_id ORDER BY r.id",
     )?;
+    dynamics_check(&mut c)?;
     plausibility_check(db, &mut c.report)?;
     if !c.report.problems.is_empty() {
         tracing::warn!(

@@ -12,6 +12,10 @@
 //!   generation that every write transaction increments; every run row carries the id
 //!   (`runs.cdb_id`; runs of a migrated file get the id the migration draws). See
 //!   [`crate::identity`].
+//! - v5: the scanner dynamics (issue 23): `dynamics` holds the hysteresis and creep models
+//!   runs identified, one row per identification (run, scanner, time, format and version,
+//!   the model as a JSON object), indexed by (scanner, time). The migration only adds the
+//!   table and its index: runs, progress, records and the identity are left as they are.
 //!
 //! Indexes are kept to two on `records` (the unique (run, repeat, node, lcs) key and
 //! (scanner, z plane, time), which also serves scanner + time-window queries) because each
@@ -23,13 +27,16 @@ use std::path::Path;
 use crate::error::{CdbError, Result};
 
 /// Schema version written by this library.
-pub const SCHEMA_VERSION: i64 = 4;
+pub const SCHEMA_VERSION: i64 = 5;
+
+/// The first schema version with the CDB identity ([`crate::identity`]).
+pub(crate) const IDENTITY_VERSION: i64 = 4;
 
 /// `PRAGMA application_id` of a spmcal CDB ("SPMC").
 pub const APPLICATION_ID: i64 = 0x5350_4D43;
 
-/// The complete current schema, used for new files. The identity table comes first, so
-/// that its root is page 2 in every new file.
+/// The schema of v4, used with [`DYNAMICS_V5`] for new files. The identity table comes
+/// first, so that its root is page 2 in every new file.
 const SCHEMA_V4: &str = "
 CREATE TABLE cdb_identity (
     id         TEXT NOT NULL,
@@ -96,6 +103,26 @@ CREATE UNIQUE INDEX records_node ON records (run_id, repeat_index, node_index, l
 CREATE INDEX records_plane ON records (scanner_id, node_z_counts, acquired_unix_s);
 ";
 
+/// The `dynamics` table of v5 (new files and the v4 → v5 migration alike). The CHECKs
+/// repeat the rules of [`spm_records::DynamicsRecord::check`] that SQL can state (the size
+/// limit and the visible-text rule of the ids are left to it and to `cdb check`).
+const DYNAMICS_V5: &str = "
+CREATE TABLE dynamics (
+    id                INTEGER PRIMARY KEY,
+    run_id            TEXT NOT NULL REFERENCES runs (run_id),
+    scanner_id        TEXT NOT NULL CHECK (length(scanner_id) > 0),
+    identified_unix_s REAL NOT NULL CHECK (typeof(identified_unix_s) = 'real'
+                          AND identified_unix_s > 0
+                          AND identified_unix_s <= 1.7976931348623157e308),
+    model_format      TEXT NOT NULL CHECK (length(model_format) > 0),
+    model_version     INTEGER NOT NULL CHECK (typeof(model_version) = 'integer'
+                          AND model_version BETWEEN 1 AND 4294967295),
+    model_json        TEXT NOT NULL CHECK (json_valid(model_json)
+                          AND json_type(model_json) = 'object')
+);
+CREATE INDEX dynamics_scanner ON dynamics (scanner_id, identified_unix_s);
+";
+
 /// v1 → v2: standard uncertainties.
 const MIGRATE_V1_TO_V2: &str = "
 ALTER TABLE records ADD COLUMN u_kx_nm_per_count REAL;
@@ -118,8 +145,13 @@ ALTER TABLE runs ADD COLUMN cdb_id TEXT;
 UPDATE runs SET cdb_id = (SELECT id FROM cdb_identity);
 ";
 
-/// Migration steps: `MIGRATIONS[k]` takes version k+1 to k+2.
-const MIGRATIONS: &[&str] = &[MIGRATE_V1_TO_V2, MIGRATE_V2_TO_V3, MIGRATE_V3_TO_V4];
+/// Migration steps: `MIGRATIONS[k]` takes version k+1 to k+2 (v4 → v5 is [`DYNAMICS_V5`]).
+const MIGRATIONS: &[&str] = &[
+    MIGRATE_V1_TO_V2,
+    MIGRATE_V2_TO_V3,
+    MIGRATE_V3_TO_V4,
+    DYNAMICS_V5,
+];
 
 /// What a read-only look at a file found.
 pub(crate) struct Probe {
@@ -194,6 +226,7 @@ pub(crate) fn initialise_or_migrate(conn: &mut Connection, path: &Path) -> Resul
         if version == 0 {
             tracing::info!(path = %path.display(), version = SCHEMA_VERSION, "creating CDB schema");
             tx.execute_batch(SCHEMA_V4).map_err(step)?;
+            tx.execute_batch(DYNAMICS_V5).map_err(step)?;
             tx.pragma_update(None, "application_id", APPLICATION_ID)
                 .map_err(step)?;
             tx.pragma_update(None, "user_version", SCHEMA_VERSION)

@@ -32,6 +32,8 @@ on_both_backends!(
     reads_always_see_whole_nodes,
     integrity_check_finds_corruption,
     concurrent_runs_of_four_scanners_lose_nothing,
+    dynamics_are_stored_dated_per_scanner_and_validated,
+    integrity_check_finds_bad_dynamics,
 );
 
 fn round_trip_queries_and_resume(b: &'static dyn Backend) {
@@ -371,9 +373,10 @@ fn migrates_v1_file() {
     assert_eq!(std::fs::read(&path).unwrap(), before);
 
     let mut cdb = Cdb::open(&path).unwrap();
-    // v1 → v2 → v3 → v4 in one open; the stored values are untouched, the new columns NULL.
+    // v1 → v2 → v3 → v4 → v5 in one open; the stored values are untouched, the new columns
+    // NULL.
     assert_eq!(cdb.schema_version().unwrap(), SCHEMA_VERSION);
-    assert_eq!(SCHEMA_VERSION, 4);
+    assert_eq!(SCHEMA_VERSION, 5);
     let old = cdb.records(&RecordFilter::default()).unwrap();
     assert_eq!(old.len(), 1);
     assert_eq!(old[0].kx_nm_per_count, 0.0201);
@@ -815,7 +818,7 @@ fn postgres_migrates_v1_database() {
     assert_eq!(pg_versions(&url), [1]);
 
     let mut cdb = PgCdb::open(&url).unwrap();
-    assert_eq!(pg_versions(&url), [1, 2, 3, 4]);
+    assert_eq!(pg_versions(&url), [1, 2, 3, 4, 5]);
     assert_eq!(cdb.schema_version().unwrap(), SCHEMA_VERSION);
     let old = cdb.records(&RecordFilter::default()).unwrap();
     assert_eq!(old.len(), 1);
@@ -835,7 +838,7 @@ fn postgres_migrates_v1_database() {
     assert_eq!(all[1].u_kx_nm_per_count, Some(1e-5));
     drop(cdb);
     drop(PgCdb::open(&url).unwrap()); // a no-op
-    assert_eq!(pg_versions(&url), [1, 2, 3, 4]);
+    assert_eq!(pg_versions(&url), [1, 2, 3, 4, 5]);
     let ro = PgCdb::open_read_only(&url).unwrap();
     assert_eq!(ro.count_records(&RecordFilter::default()).unwrap(), 2);
 }
@@ -1350,4 +1353,487 @@ fn postgres_authentication_failures_are_access_denied() {
     let right = url.replacen("postgres://postgres@", "postgres://mallory:right-one@", 1);
     let e = PgCdb::open_read_only(&right).unwrap_err();
     assert_eq!(e.kind(), ErrorKind::AccessDenied, "no privilege yet: {e}");
+}
+
+// ---------------------------------------------------------------------------------------
+// Scanner dynamics (schema v5, issue 23).
+
+/// `store_dynamics` keeps every identification of every scanner; the queries give them
+/// oldest first and the newest alone, whatever order they were stored in; invalid records,
+/// unknown runs and another scanner's run are refused with typed errors and write
+/// nothing; the JSON export carries them beside the records.
+fn dynamics_are_stored_dated_per_scanner_and_validated(b: &'static dyn Backend) {
+    let path = b.fresh("dynamics_store");
+    let (r1, r2, r3) = (
+        run("run-1", "S", T0),
+        run("run-2", "S", T0 + 86_400.0),
+        run("run-3", "T", T0),
+    );
+    let mut cdb = b.open(&path);
+    for r in [&r1, &r2, &r3] {
+        cdb.create_run(r).unwrap();
+    }
+    assert_eq!(cdb.dynamics_for_scanner("S").unwrap(), []);
+    assert_eq!(cdb.latest_dynamics("S").unwrap(), None);
+    // Stored newest first, and two of one time (the later stored is the newer).
+    let d2 = common::dynamics(&r2, T0 + 90_000.0, 0.02);
+    let d1 = common::dynamics(&r1, T0 + 3_600.0, 0.01);
+    let d1b = common::dynamics(&r1, T0 + 3_600.0, 0.011);
+    let t = common::dynamics(&r3, T0 + 100_000.0, 0.03);
+    let t2 = common::dynamics(&r3, T0 + 100_000.0, 0.031);
+    for d in [&d2, &d1, &d1b, &t, &t2] {
+        cdb.store_dynamics(d).unwrap();
+    }
+    assert_eq!(
+        cdb.dynamics_for_scanner("S").unwrap(),
+        [d1.clone(), d1b.clone(), d2.clone()]
+    );
+    assert_eq!(cdb.latest_dynamics("S").unwrap(), Some(d2.clone()));
+    // Of two at one time, the one stored later is the newer.
+    assert_eq!(cdb.latest_dynamics("T").unwrap(), Some(t2.clone()));
+    assert_eq!(cdb.latest_dynamics("U").unwrap(), None);
+    assert_eq!(
+        cdb.dynamics(None).unwrap(),
+        [d1.clone(), d1b.clone(), d2.clone(), t.clone(), t2.clone()]
+    );
+    // The model text comes back byte for byte.
+    assert_eq!(
+        cdb.latest_dynamics("S").unwrap().unwrap().model_json,
+        d2.model_json
+    );
+
+    // Refusals: each names its field or its run; nothing is written.
+    let spoil = |f: &dyn Fn(&mut spm_cdb::DynamicsRecord)| {
+        let mut d = common::dynamics(&r1, T0 + 7_200.0, 0.5);
+        f(&mut d);
+        d
+    };
+    for (d, kind, names) in [
+        (
+            spoil(&|d| d.model_json = "{\"creep\": ".into()),
+            ErrorKind::InvalidInput,
+            "model_json",
+        ),
+        (
+            spoil(&|d| d.model_json = "[0.1, 0.2]".into()),
+            ErrorKind::InvalidInput,
+            "model_json",
+        ),
+        (
+            spoil(&|d| d.identified_unix_s = f64::NAN),
+            ErrorKind::InvalidInput,
+            "identified_unix_s",
+        ),
+        (
+            spoil(&|d| d.identified_unix_s = f64::INFINITY),
+            ErrorKind::InvalidInput,
+            "identified_unix_s",
+        ),
+        (
+            spoil(&|d| d.scanner_id = String::new()),
+            ErrorKind::InvalidInput,
+            "scanner_id",
+        ),
+        (
+            spoil(&|d| d.model_version = 0),
+            ErrorKind::InvalidInput,
+            "model_version",
+        ),
+        (
+            spoil(&|d| d.run_id = "no-such-run".into()),
+            ErrorKind::NotFound,
+            "no-such-run",
+        ),
+        (
+            spoil(&|d| d.scanner_id = "T".into()),
+            ErrorKind::InvalidInput,
+            "scanner",
+        ),
+    ] {
+        let e = cdb.store_dynamics(&d).unwrap_err();
+        assert_eq!(e.kind(), kind, "{e}");
+        assert!(e.to_string().contains(names), "{names} not named: {e}");
+    }
+    assert_eq!(cdb.dynamics(None).unwrap().len(), 5);
+    assert!(cdb.check().unwrap().is_ok(), "{:?}", cdb.check().unwrap());
+
+    // A snapshot and a read-only open read them too.
+    assert_eq!(
+        cdb.snapshot().unwrap().latest_dynamics("S").unwrap(),
+        Some(d2.clone())
+    );
+    let ro = b.open_read_only(&path).unwrap();
+    assert_eq!(ro.dynamics_for_scanner("T").unwrap(), [t, t2]);
+
+    // JSON export: "records" as before, "dynamics" selected like the records.
+    let mut json = Vec::new();
+    ro.export_json(&RecordFilter::scanner("S"), &mut json)
+        .unwrap();
+    let v: serde_json::Value = serde_json::from_slice(&json).unwrap();
+    assert_eq!(v["schema_version"], 5);
+    assert_eq!(v["records"], serde_json::json!([]));
+    let back: Vec<spm_cdb::DynamicsRecord> = serde_json::from_value(v["dynamics"].clone()).unwrap();
+    assert_eq!(back, [d1.clone(), d1b.clone(), d2.clone()]);
+    let mut json = Vec::new();
+    ro.export_json(
+        &RecordFilter::scanner("S").with_window(Some(T0 + 86_400.0), None),
+        &mut json,
+    )
+    .unwrap();
+    let v: serde_json::Value = serde_json::from_slice(&json).unwrap();
+    let back: Vec<spm_cdb::DynamicsRecord> = serde_json::from_value(v["dynamics"].clone()).unwrap();
+    assert_eq!(back, [d2]);
+}
+
+/// `cdb check` finds dynamics rows that got past the schema (its constraints lifted
+/// behind the library's back): a model that is not JSON or not an object, a non-finite
+/// time, a missing run, another scanner than the run's, and names each row once.
+fn integrity_check_finds_bad_dynamics(b: &'static dyn Backend) {
+    let path = b.fresh("dynamics_check");
+    let r = run("run-1", "S", T0);
+    {
+        let mut cdb = b.open(&path);
+        cdb.create_run(&r).unwrap();
+        cdb.store_dynamics(&common::dynamics(&r, T0 + 60.0, 0.01))
+            .unwrap();
+        assert!(cdb.check().unwrap().is_ok());
+    }
+    let row = |run_id: &str, scanner: &str, t: &str, json: &str| {
+        format!(
+            "INSERT INTO dynamics (run_id, scanner_id, identified_unix_s, model_format, \
+             model_version, model_json) VALUES ('{run_id}', '{scanner}', {t}, \
+             'spmcal-dynamics', 1, '{json}');"
+        )
+    };
+    let sql = [
+        b.lift_dynamics_constraints().to_owned(),
+        row("run-1", "S", "1704067300.0", "{\"creep\": "),
+        row("run-1", "S", "1704067301.0", "[1, 2]"),
+        row("run-1", "S", b.infinity_literal(), "{}"),
+        row("gone-run", "S", "1704067302.0", "{}"),
+        row("run-1", "T", "1704067303.0", "{}"),
+    ]
+    .concat();
+    b.raw_sql(&path, &sql);
+    let cdb = b.open(&path);
+    let report = cdb.check().unwrap();
+    let found = |kind: &str| {
+        report
+            .problems
+            .iter()
+            .filter(|p| p.kind == kind)
+            .map(|p| p.detail.clone())
+            .collect::<Vec<_>>()
+    };
+    assert!(!report.is_ok());
+    let json = found("invalid_model_json");
+    assert_eq!(json.len(), 2, "{report:?}");
+    assert!(
+        json[0].contains("dynamics id 2") && json[0].contains("not JSON"),
+        "{json:?}"
+    );
+    assert!(
+        json[1].contains("dynamics id 3") && json[1].contains("JSON object"),
+        "{json:?}"
+    );
+    let time = found("non_finite");
+    assert_eq!(time.len(), 1, "{report:?}");
+    assert!(time[0].contains("dynamics id 4") && time[0].contains("identified_unix_s"));
+    let gone = found("dynamics_without_run");
+    assert_eq!(gone.len(), 1, "{report:?}");
+    assert!(gone[0].contains("gone-run"), "{gone:?}");
+    let mismatch = found("scanner_mismatch");
+    assert_eq!(mismatch.len(), 1, "{report:?}");
+    assert!(mismatch[0].contains("dynamics id 6"), "{mismatch:?}");
+    // the valid row (id 1) is not named anywhere
+    assert!(
+        report
+            .problems
+            .iter()
+            .all(|p| !p.detail.contains("dynamics id 1:")),
+        "{report:?}"
+    );
+    assert_eq!(report.problems.len(), 5, "{report:?}");
+}
+
+/// Schema v4 as shipped (issue 25), with a fixed identity and rows of every table.
+const V4_DDL: &str = "CREATE TABLE cdb_identity (
+    id         TEXT NOT NULL,
+    generation INTEGER NOT NULL
+);
+INSERT INTO cdb_identity (id, generation) VALUES ('0123456789abcdef0123456789abcdef', 7);
+
+CREATE TABLE runs (
+    run_id          TEXT PRIMARY KEY NOT NULL,
+    scanner_id      TEXT NOT NULL,
+    config          TEXT NOT NULL,
+    started_unix_s  REAL NOT NULL,
+    finished_unix_s REAL,
+    status          TEXT NOT NULL CHECK (status IN ('running', 'finished', 'failed', 'aborted')),
+    cdb_id          TEXT
+);
+CREATE INDEX runs_scanner ON runs (scanner_id, started_unix_s);
+
+CREATE TABLE progress (
+    run_id         TEXT NOT NULL REFERENCES runs (run_id),
+    repeat_index   INTEGER NOT NULL,
+    node_index     INTEGER NOT NULL,
+    node_x_counts  INTEGER NOT NULL,
+    node_y_counts  INTEGER NOT NULL,
+    node_z_counts  INTEGER NOT NULL,
+    state          TEXT NOT NULL CHECK (state IN ('pending', 'done', 'given_up')),
+    reason         TEXT,
+    attempts       INTEGER NOT NULL DEFAULT 0,
+    updated_unix_s REAL,
+    PRIMARY KEY (run_id, repeat_index, node_index)
+) WITHOUT ROWID;
+
+CREATE TABLE records (
+    id                INTEGER PRIMARY KEY,
+    scanner_id        TEXT NOT NULL,
+    run_id            TEXT NOT NULL REFERENCES runs (run_id),
+    acquired_unix_s   REAL NOT NULL,
+    repeat_index      INTEGER NOT NULL,
+    node_index        INTEGER NOT NULL,
+    lcs_index         INTEGER NOT NULL DEFAULT 0,
+    node_x_counts     INTEGER NOT NULL,
+    node_y_counts     INTEGER NOT NULL,
+    node_z_counts     INTEGER NOT NULL,
+    lcs_x_counts      REAL NOT NULL,
+    lcs_y_counts      REAL NOT NULL,
+    lcs_z_counts      REAL NOT NULL,
+    kx_nm_per_count   REAL NOT NULL,
+    ky_nm_per_count   REAL NOT NULL,
+    alpha_rad         REAL NOT NULL,
+    kz_nm_per_count   REAL,
+    drift_vx_nm_per_s REAL NOT NULL,
+    drift_vy_nm_per_s REAL NOT NULL,
+    cycles_kept       INTEGER NOT NULL,
+    cycles_discarded  INTEGER NOT NULL,
+    quality           REAL NOT NULL,
+    u_kx_nm_per_count REAL,
+    u_ky_nm_per_count REAL,
+    u_alpha_rad       REAL,
+    u_kz_nm_per_count REAL,
+    kz_x_counts       REAL,
+    kz_y_counts       REAL
+);
+CREATE UNIQUE INDEX records_node ON records (run_id, repeat_index, node_index, lcs_index);
+CREATE INDEX records_plane ON records (scanner_id, node_z_counts, acquired_unix_s);
+
+INSERT INTO runs VALUES ('old-run', 'S', '[plan]
+nodes = 3
+', 1600000000.0, NULL, 'running',
+  '0123456789abcdef0123456789abcdef');
+INSERT INTO runs VALUES ('done-run', 'S', '[plan]', 1600001000.0, 1600002000.0, 'finished',
+  '0123456789abcdef0123456789abcdef');
+INSERT INTO progress VALUES ('old-run', 0, 0, 0, 0, 0, 'done', NULL, 1, 1600000060.0);
+INSERT INTO progress VALUES ('old-run', 0, 1, 1000, 0, 0, 'pending', NULL, 0, NULL);
+INSERT INTO progress VALUES ('old-run', 0, 2, 2000, 0, 0, 'given_up', 'no feature', 3,
+  1600000090.0);
+INSERT INTO progress VALUES ('done-run', 0, 0, 0, 0, 500, 'done', NULL, 2, 1600001500.0);
+INSERT INTO records (scanner_id, run_id, acquired_unix_s, repeat_index, node_index, lcs_index,
+  node_x_counts, node_y_counts, node_z_counts, lcs_x_counts, lcs_y_counts, lcs_z_counts,
+  kx_nm_per_count, ky_nm_per_count, alpha_rad, kz_nm_per_count, drift_vx_nm_per_s,
+  drift_vy_nm_per_s, cycles_kept, cycles_discarded, quality, u_kx_nm_per_count,
+  u_ky_nm_per_count, u_alpha_rad, u_kz_nm_per_count, kz_x_counts, kz_y_counts)
+  VALUES ('S', 'old-run', 1600000050.0, 0, 0, 0, 0, 0, 0, 0.5, -0.5, 0.0,
+          0.0201, 0.0199, 0.0012, NULL, 0.01, 0.02, 6, 1, 0.8, NULL, NULL, NULL, NULL, NULL, NULL),
+         ('S', 'done-run', 1600001400.0, 0, 0, 0, 0, 0, 500, 0.25, 0.125, 500.5,
+          0.0202, 0.0198, -0.0011, 0.003, -0.01, 0.03, 8, 0, 0.95, 1e-5, 2e-5, 1e-3, 1e-4,
+          0.75, -0.25);
+PRAGMA application_id = 1397771587;
+PRAGMA user_version = 4;
+";
+
+/// Every row of the tables a v4 file has, with each value's stored type.
+fn sqlite_rows(conn: &Connection) -> Vec<(String, Vec<Vec<rusqlite::types::Value>>)> {
+    [
+        ("cdb_identity", "rowid"),
+        ("runs", "run_id"),
+        ("progress", "run_id, repeat_index, node_index"),
+        ("records", "id"),
+    ]
+    .iter()
+    .map(|(table, order)| {
+        let mut stmt = conn
+            .prepare(&format!("SELECT * FROM {table} ORDER BY {order}"))
+            .unwrap();
+        let n = stmt.column_count();
+        let rows = stmt
+            .query_map([], |r| {
+                (0..n)
+                    .map(|k| r.get::<_, rusqlite::types::Value>(k))
+                    .collect::<rusqlite::Result<Vec<_>>>()
+            })
+            .unwrap()
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .unwrap();
+        ((*table).to_owned(), rows)
+    })
+    .collect()
+}
+
+fn dynamics_schema(conn: &Connection) -> Vec<(String, String)> {
+    conn.prepare("SELECT name, sql FROM sqlite_master WHERE tbl_name = 'dynamics' ORDER BY name")
+        .unwrap()
+        .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
+        .unwrap()
+        .collect::<rusqlite::Result<_>>()
+        .unwrap()
+}
+
+/// A v4 file migrates to v5 with every pre-existing row (runs, progress, records and the
+/// identity, values and stored types) untouched and the `dynamics` table of a new file;
+/// the migrated file takes dynamics, and storing them steps the identity's generation.
+#[test]
+fn sqlite_migrates_v4_file_leaving_every_row_untouched() {
+    let path = db_path("migrate_v4");
+    let before = {
+        let raw = Connection::open(&path).unwrap();
+        raw.execute_batch(V4_DDL).unwrap();
+        sqlite_rows(&raw)
+    };
+    assert_eq!(before[0].1.len(), 1);
+    assert_eq!(before[3].1.len(), 2);
+    // read-only cannot migrate: refused, file untouched
+    let bytes = std::fs::read(&path).unwrap();
+    let e = Cdb::open_read_only(&path).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::OutdatedSchema);
+    assert_eq!(std::fs::read(&path).unwrap(), bytes);
+
+    let mut cdb = Cdb::open(&path).unwrap();
+    assert_eq!(cdb.schema_version().unwrap(), 5);
+    assert_eq!(sqlite_rows(cdb.connection()), before);
+    assert!(cdb.check().unwrap().is_ok(), "{:?}", cdb.check().unwrap());
+    assert_eq!(cdb.dynamics(None).unwrap(), []);
+    // The migrated table is the one a new file gets.
+    let fresh = Cdb::open(db_path("migrate_v4_fresh")).unwrap();
+    assert_eq!(fresh.schema_version().unwrap(), 5);
+    assert_eq!(dynamics_schema(cdb.connection()).len(), 2);
+    assert_eq!(
+        dynamics_schema(cdb.connection()),
+        dynamics_schema(fresh.connection())
+    );
+    // The old run's records read as before, and the old run takes dynamics.
+    let old = cdb.records(&RecordFilter::default()).unwrap();
+    assert_eq!(old.len(), 2);
+    assert_eq!(old[1].kz_x_counts, Some(0.75));
+    let r = cdb.run("old-run").unwrap().unwrap();
+    let d = common::dynamics(&r, 1_600_000_100.0, 0.01);
+    cdb.store_dynamics(&d).unwrap();
+    assert_eq!(cdb.latest_dynamics("S").unwrap(), Some(d));
+    let after = sqlite_rows(cdb.connection());
+    assert_eq!(
+        after[1..],
+        before[1..],
+        "only the identity's generation moves"
+    );
+    let generation = |rows: &[(String, Vec<Vec<rusqlite::types::Value>>)]| rows[0].1[0][1].clone();
+    assert_eq!(generation(&before), rusqlite::types::Value::Integer(7));
+    assert_eq!(generation(&after), rusqlite::types::Value::Integer(8));
+    drop(cdb);
+    let sidecar = std::fs::read_to_string(with_suffix(&path, "-identity")).unwrap();
+    assert!(sidecar.contains("generation=8"), "{sidecar}");
+    assert!(Cdb::open_read_only(&path).unwrap().check().unwrap().is_ok());
+}
+
+/// Every row of the tables a v4 database has, as JSON text.
+fn pg_rows(url: &str) -> Vec<String> {
+    let mut c = ::postgres::Client::connect(url, ::postgres::NoTls).unwrap();
+    let mut out = Vec::new();
+    for (table, order) in [
+        ("cdb_identity", "id"),
+        ("runs", "run_id"),
+        ("progress", "run_id, repeat_index, node_index"),
+        ("records", "id"),
+    ] {
+        for r in c
+            .query(
+                &format!("SELECT row_to_json(t)::TEXT FROM {table} t ORDER BY {order}"),
+                &[],
+            )
+            .unwrap()
+        {
+            out.push(format!("{table}: {}", r.get::<_, String>(0)));
+        }
+    }
+    out
+}
+
+/// A v4 PostgreSQL database migrates to v5 with every pre-existing row untouched.
+#[test]
+fn postgres_migrates_v4_database_leaving_every_row_untouched() {
+    let pg = common::postgres();
+    let url = pg.fresh("pg_migrate_v4");
+    let r = run("old-run", "S", T0);
+    let nodes = plan(2);
+    {
+        let mut v4 = PgCdb::open_at_version(&url, 4).unwrap();
+        v4.create_run(&r).unwrap();
+        v4.register_plan(&r.run_id, &nodes).unwrap();
+        v4.commit_node(
+            &r.run_id,
+            &done(0, T0 + 10.0),
+            &[record(&r, &nodes[0], 0, T0)],
+        )
+        .unwrap();
+        v4.give_up_node(&r.run_id, 0, 1, "no feature", 3, T0 + 20.0)
+            .unwrap();
+    }
+    assert_eq!(pg_versions(&url), [1, 2, 3, 4]);
+    let before = pg_rows(&url);
+    assert_eq!(before.len(), 1 + 1 + 4 + 1, "{before:#?}");
+    let e = PgCdb::open_read_only(&url).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::OutdatedSchema, "{e}");
+
+    let mut cdb = PgCdb::open(&url).unwrap();
+    assert_eq!(pg_versions(&url), [1, 2, 3, 4, 5]);
+    assert_eq!(pg_rows(&url), before);
+    assert!(cdb.check().unwrap().is_ok(), "{:?}", cdb.check().unwrap());
+    assert_eq!(cdb.dynamics(None).unwrap(), []);
+    let d = common::dynamics(&r, T0 + 30.0, 0.01);
+    cdb.store_dynamics(&d).unwrap();
+    assert_eq!(cdb.latest_dynamics("S").unwrap(), Some(d));
+    assert_eq!(pg_rows(&url), before);
+    drop(cdb);
+    assert!(
+        PgCdb::open_read_only(&url)
+            .unwrap()
+            .check()
+            .unwrap()
+            .is_ok()
+    );
+}
+
+/// A v4 file (it has the identity) with another database's log beside it is refused
+/// read-only as an identity mismatch, as before v5 — not passed over as merely outdated —
+/// and the files stay as they were.
+#[test]
+fn sqlite_a_v4_file_with_a_foreign_log_is_still_an_identity_mismatch() {
+    let make = |name: &str, id: &str| {
+        let path = db_path(name);
+        let raw = Connection::open(&path).unwrap();
+        raw.execute_batch(&V4_DDL.replace("0123456789abcdef0123456789abcdef", id))
+            .unwrap();
+        let _: String = raw
+            .query_row("PRAGMA journal_mode = WAL", [], |r| r.get(0))
+            .unwrap();
+        (path, raw)
+    };
+    let (a, raw_a) = make("v4_identity_a", "aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaa");
+    drop(raw_a);
+    let (b, raw_b) = make("v4_identity_b", "bbbbbbbbbbbbbbbbbbbbbbbbbbbbbbbb");
+    raw_b
+        .execute_batch("PRAGMA wal_autocheckpoint = 0; UPDATE cdb_identity SET generation = 8;")
+        .unwrap();
+    let log_of_b = std::fs::read(with_suffix(&b, "-wal")).unwrap();
+    assert!(!log_of_b.is_empty());
+    std::fs::write(with_suffix(&a, "-wal"), &log_of_b).unwrap();
+    let before = std::fs::read(&a).unwrap();
+    let e = Cdb::open_read_only(&a).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::IdentityMismatch, "{e}");
+    assert_eq!(std::fs::read(&a).unwrap(), before);
+    assert_eq!(std::fs::read(with_suffix(&a, "-wal")).unwrap(), log_of_b);
+    drop(raw_b);
 }

@@ -13,11 +13,14 @@
 //! - [`LccRecord::check`]: the validity rules every store applies before writing;
 //!   [`LccRecord::implausibility`]: the range rules against the run's [`Plausibility`]
 //!   limits (field, aperture, nominal sensitivity) that `cdb check` and the fit apply.
+//! - [`DynamicsRecord`]: the scanner dynamics (hysteresis, creep) a run identified, as a
+//!   versioned JSON object the stores keep beside the LCCs; [`DynamicsRecord::check`].
 //! - [`ProgressStore`]: begin a run, read the plan's states, commit a node in one
 //!   transaction, give a node up, finish the run.
 #![doc = include_str!("../README.md")]
 
 mod columns;
+mod dynamics;
 mod model;
 mod plausibility;
 mod store;
@@ -25,6 +28,10 @@ mod store;
 pub use columns::{
     ColumnKind, ColumnValue, LCC_RECORD_COLUMNS, LccColumn, OwnedColumnValue, POSITIVE_COLUMNS,
     RecordProblem, UNCERTAINTY_COLUMNS, id_problem,
+};
+pub use dynamics::{
+    DYNAMICS_FORMAT_MAX_BYTES, DYNAMICS_MODEL_MAX_BYTES, DYNAMICS_RECORD_COLUMNS, DynamicsProblem,
+    DynamicsRecord,
 };
 pub use model::{
     Coefficient, CoefficientStat, IntegrityProblem, IntegrityReport, LccColumns, LccRecord,

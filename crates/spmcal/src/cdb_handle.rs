@@ -8,8 +8,9 @@
 
 use spm_cdb::postgres::{PgCdb, is_postgres_url, redact_url};
 use spm_cdb::{
-    Cdb, CdbError, CdbRead, IntegrityReport, LccColumns, LccRecord, NodeDone, NodeProgress,
-    NodeState, PlanNode, ProgressStore, ProgressSummary, RecordFilter, RunInfo, RunStatus,
+    Cdb, CdbError, CdbRead, DynamicsRecord, IntegrityReport, LccColumns, LccRecord, NodeDone,
+    NodeProgress, NodeState, PlanNode, ProgressStore, ProgressSummary, RecordFilter, RunInfo,
+    RunStatus,
 };
 use spm_records::Plausibility;
 use std::collections::HashMap;
@@ -104,6 +105,36 @@ impl CdbHandle {
             Self::Sqlite(c) => c.create_run(run),
             Self::Postgres(c) => c.create_run(run),
         }
+    }
+
+    /// Stores the scanner dynamics a run identified (one transaction; the run must be
+    /// stored and on the record's scanner).
+    ///
+    /// # Errors
+    /// [`spm_cdb::ErrorKind::InvalidInput`] for an invalid record (the message names the
+    /// field) or a scanner other than the run's; [`spm_cdb::ErrorKind::NotFound`] for an
+    /// unknown run; the back end's errors.
+    pub fn store_dynamics(&mut self, dynamics: &DynamicsRecord) -> Result<(), CdbError> {
+        match self {
+            Self::Sqlite(c) => c.store_dynamics(dynamics),
+            Self::Postgres(c) => c.store_dynamics(dynamics),
+        }
+    }
+
+    /// The dynamics identified for a scanner, oldest first, newest last.
+    ///
+    /// # Errors
+    /// The back end's errors.
+    pub fn dynamics_for_scanner(&self, scanner_id: &str) -> Result<Vec<DynamicsRecord>, CdbError> {
+        self.read().dynamics_for_scanner(scanner_id)
+    }
+
+    /// The newest dynamics of a scanner, `None` when none was stored.
+    ///
+    /// # Errors
+    /// The back end's errors.
+    pub fn latest_dynamics(&self, scanner_id: &str) -> Result<Option<DynamicsRecord>, CdbError> {
+        self.read().latest_dynamics(scanner_id)
     }
 
     /// Sets an unfinished run back to 'running' for a resume.
@@ -282,6 +313,12 @@ impl CdbRead for Plausible<'_> {
     }
     fn progress_summary(&self, run_id: &str) -> Result<ProgressSummary, CdbError> {
         self.inner.progress_summary(run_id)
+    }
+    fn dynamics(&self, scanner_id: Option<&str>) -> Result<Vec<DynamicsRecord>, CdbError> {
+        self.inner.dynamics(scanner_id)
+    }
+    fn latest_dynamics(&self, scanner_id: &str) -> Result<Option<DynamicsRecord>, CdbError> {
+        self.inner.latest_dynamics(scanner_id)
     }
     fn check(&self) -> Result<IntegrityReport, CdbError> {
         self.inner.check()

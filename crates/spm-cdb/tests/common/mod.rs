@@ -1,7 +1,7 @@
 //! Shared helpers of the CDB tests.
 #![allow(clippy::unwrap_used, dead_code)]
 
-use spm_cdb::{LccRecord, PlanNode, RunInfo, RunStatus};
+use spm_cdb::{DynamicsRecord, LccRecord, PlanNode, RunInfo, RunStatus};
 use std::path::PathBuf;
 
 /// A fresh path for a test database (removed with its WAL/SHM files if left over).
@@ -111,6 +111,7 @@ pub trait Store: CdbRead + Send {
     fn finish_run(&mut self, run_id: &str, status: RunStatus, at_unix_s: f64) -> Result<()>;
     fn reopen_run(&mut self, run_id: &str) -> Result<()>;
     fn import_records(&mut self, records: &[LccRecord]) -> Result<u64>;
+    fn store_dynamics(&mut self, dynamics: &DynamicsRecord) -> Result<()>;
     fn snapshot(&self) -> Result<Box<dyn CdbRead + '_>>;
 }
 
@@ -164,6 +165,9 @@ macro_rules! store {
             fn import_records(&mut self, records: &[LccRecord]) -> Result<u64> {
                 <$t>::import_records(self, records)
             }
+            fn store_dynamics(&mut self, dynamics: &DynamicsRecord) -> Result<()> {
+                <$t>::store_dynamics(self, dynamics)
+            }
             fn snapshot(&self) -> Result<Box<dyn CdbRead + '_>> {
                 Ok(Box::new(<$t>::snapshot(self)?))
             }
@@ -188,6 +192,24 @@ pub trait Backend: Sync {
     fn shown(&self, location: &str) -> std::path::PathBuf;
     /// An SQL literal for +∞ that the back end stores in a REAL / DOUBLE PRECISION column.
     fn infinity_literal(&self) -> &'static str;
+    /// SQL that lets the statements after it (in the same `raw_sql` call) write `dynamics`
+    /// rows the schema forbids: a missing run, a non-finite time, a model that is not a
+    /// JSON object (damage behind the library's back).
+    fn lift_dynamics_constraints(&self) -> &'static str;
+}
+
+/// Scanner dynamics identified by `run` at `t` (a small valid model).
+pub fn dynamics(run: &RunInfo, t_unix_s: f64, gamma: f64) -> DynamicsRecord {
+    DynamicsRecord {
+        run_id: run.run_id.clone(),
+        scanner_id: run.scanner_id.clone(),
+        identified_unix_s: t_unix_s,
+        model_format: "spmcal-dynamics".into(),
+        model_version: 1,
+        model_json: format!(
+            r#"{{"creep":{{"gamma":{gamma},"tau_s":1.0}},"hysteresis":{{"x":[0.1,0.2],"y":[]}}}}"#
+        ),
+    }
 }
 
 /// The embedded SQLite file.
@@ -214,6 +236,9 @@ impl Backend for Sqlite {
     }
     fn infinity_literal(&self) -> &'static str {
         "9e999"
+    }
+    fn lift_dynamics_constraints(&self) -> &'static str {
+        "PRAGMA foreign_keys = OFF; PRAGMA ignore_check_constraints = ON;"
     }
 }
 
@@ -261,6 +286,10 @@ impl Backend for Postgres {
     }
     fn infinity_literal(&self) -> &'static str {
         "'Infinity'"
+    }
+    fn lift_dynamics_constraints(&self) -> &'static str {
+        "ALTER TABLE dynamics DROP CONSTRAINT dynamics_run_id_fkey, \
+         DROP CONSTRAINT dynamics_time_finite, DROP CONSTRAINT dynamics_model_json_object;"
     }
 }
 

@@ -388,6 +388,31 @@ pub fn finish_with(
     );
     let mut fitted = fitted;
     fitted.set.dynamics = dynamics.model.clone();
+    if let Some(model) = &dynamics.model {
+        // Dated, per scanner, beside the LCCs: when the run that identified it finished.
+        let run = snapshot
+            .runs(Some(&record.plan.scanner_id))?
+            .into_iter()
+            .find(|r| r.run_id == record.run.run_id);
+        let already = snapshot
+            .dynamics(Some(&record.plan.scanner_id))?
+            .iter()
+            .any(|d| d.run_id == record.run.run_id);
+        if let (Some(run), false) = (run, already) {
+            let stored = spm_records::DynamicsRecord {
+                run_id: run.run_id.clone(),
+                scanner_id: run.scanner_id.clone(),
+                identified_unix_s: run.finished_unix_s.unwrap_or(run.started_unix_s),
+                model_format: spm_correction::hysteresis::DYNAMICS_FORMAT.to_owned(),
+                model_version: spm_correction::hysteresis::DYNAMICS_FORMAT_VERSION,
+                model_json: serde_json::to_string(model).map_err(|e| ReportError::Write {
+                    path: "dynamics".to_owned(),
+                    message: e.to_string(),
+                })?,
+            };
+            crate::cdb_handle::CdbHandle::open(cdb_path)?.store_dynamics(&stored)?;
+        }
+    }
     let surfaces_json = fitted.set.to_json_string()?;
     write(&out.join("surfaces.json"), surfaces_json.as_bytes())?;
     let records = snapshot.count_records(&RecordFilter::default().with_run(&record.run.run_id))?;

@@ -55,6 +55,14 @@ pub enum SurfaceFitError {
     /// The assembled surfaces are invalid.
     #[error(transparent)]
     Correction(#[from] spm_correction::CorrectionError),
+    /// The CDB's newest dynamics of the scanner cannot be read as a model.
+    #[error("the dynamics stored by run {run_id} cannot be read: {message}")]
+    Dynamics {
+        /// The run that stored them.
+        run_id: String,
+        /// Why.
+        message: String,
+    },
 }
 
 /// Fewest valid records a plane needs: σ (eq. 14) has n − 1 degrees of freedom for the
@@ -256,7 +264,7 @@ pub fn fit_from_cdb(
     };
     let used = records_used(cdb, &scanner_id, since_unix_s, until_unix_s)?;
     let provenance = Provenance {
-        scanner_id,
+        scanner_id: scanner_id.clone(),
         fit_since: since_unix_s.map(spm_cdb::rfc3339_utc),
         fit_until: until_unix_s.map(spm_cdb::rfc3339_utc),
         n_records,
@@ -268,11 +276,40 @@ pub fn fit_from_cdb(
         spmcal_version: Some(env!("CARGO_PKG_VERSION").to_owned()),
         spmcal_commit: option_env!("SPMCAL_GIT_COMMIT").map(str::to_owned),
     };
+    let mut set = SurfaceSet::new(provenance, planes)?;
+    set.dynamics = newest_dynamics(cdb, &scanner_id, until_unix_s)?;
+    set.validate()?;
     Ok(FittedSurfaces {
-        set: SurfaceSet::new(provenance, planes)?,
+        set,
         summary,
         excluded_records,
     })
+}
+
+/// The scanner's newest dynamics identified no later than `until_unix_s` (if given).
+fn newest_dynamics(
+    cdb: &dyn CdbRead,
+    scanner_id: &str,
+    until_unix_s: Option<f64>,
+) -> Result<Option<spm_correction::hysteresis::ScannerDynamics>, SurfaceFitError> {
+    let Some(stored) = cdb
+        .dynamics(Some(scanner_id))?
+        .into_iter()
+        .filter(|d| until_unix_s.is_none_or(|u| d.identified_unix_s <= u))
+        .next_back()
+    else {
+        return Ok(None);
+    };
+    let model: spm_correction::hysteresis::ScannerDynamics =
+        serde_json::from_str(&stored.model_json).map_err(|e| SurfaceFitError::Dynamics {
+            run_id: stored.run_id.clone(),
+            message: e.to_string(),
+        })?;
+    model.validate().map_err(|e| SurfaceFitError::Dynamics {
+        run_id: stored.run_id.clone(),
+        message: e.to_string(),
+    })?;
+    Ok(Some(model))
 }
 
 /// What the provenance of a calibration file says of the records it was fitted from.

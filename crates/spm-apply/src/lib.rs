@@ -36,6 +36,8 @@
 
 use std::path::{Path, PathBuf};
 
+pub mod dynamic;
+
 use spm_correction::{
     CoordinateMap, CorrectionError, CorrectionField, CountRegion, CountsConvention, Integration,
     Interpolation, OutputGrid, Parallelism, PlaneSurfaces, Quadrature, RasterGeometry, Route,
@@ -63,6 +65,9 @@ pub const KEY_NOMINAL: &str = "spmcal_nominal_nm_per_count";
 /// slow axis up; `counter`: −x lines from the far corner, slow axis down; `down`: +x lines,
 /// slow axis down).
 pub const KEY_SCAN_PATH: &str = "spmcal_scan_path";
+
+/// Header field: the duration of one trace (one retrace), s, as spmcal's own files record it.
+pub const KEY_LINE_TIME: &str = "spmcal_line_time_s";
 
 /// A nominal sensitivity and the calibration's may differ by up to this factor either way
 /// (a real scanner differs from its datasheet by tens of %; a unit slip is a factor 10³–10⁹).
@@ -267,6 +272,8 @@ pub struct ApplyOptions {
     pub scanner_id: Option<String>,
     /// Override of the file's path: [`RasterPath::Counter`] for a counter-scanned frame.
     pub path: Option<RasterPath>,
+    /// Apply the static field only, even when the calibration file holds dynamics.
+    pub static_only: bool,
     /// Interpolation of the resampling.
     pub interpolation: Interpolation,
 }
@@ -314,6 +321,9 @@ pub struct FileRaster {
     pub path: RasterPath,
     /// Where the counts come from.
     pub counts: CountsSource,
+    /// Duration of one trace (or retrace), s, when the file says it (`.sxm` `SCAN_TIME`,
+    /// `.sm4` line period, spmcal's own [`KEY_LINE_TIME`]): the raster's dynamics need it.
+    pub line_time_s: Option<f64>,
 }
 
 /// The scan angle of a channel, counter-clockwise positive, degrees (see the crate docs):
@@ -356,6 +366,17 @@ impl FileRaster {
         path: Option<RasterPath>,
     ) -> Result<Self, ApplyError> {
         let (columns, rows) = (channel.nx(), channel.ny());
+        let line_time_s = match header_number(file, KEY_LINE_TIME)? {
+            Some(t) if t > 0.0 => Some(t),
+            Some(t) => {
+                return Err(ApplyError::Header {
+                    file: file.source.clone(),
+                    field: KEY_LINE_TIME.to_owned(),
+                    reason: format!("{t} s: a line takes a positive time"),
+                });
+            }
+            None => file.line_time_s.filter(|t| t.is_finite() && *t > 0.0),
+        };
         let header = |field: &str, reason: String| ApplyError::Header {
             file: file.source.clone(),
             field: field.to_owned(),
@@ -388,6 +409,7 @@ impl FileRaster {
             }
             let half = |n: usize| step * (n as f64 - 1.0) / 2.0;
             return Ok(Self {
+                line_time_s,
                 columns,
                 rows,
                 centre: CountPoint::from_counts(x0 + half(columns), y0 + half(rows)),
@@ -446,6 +468,7 @@ impl FileRaster {
             return Err(header("offset", format!("({cx}, {cy}) nm is not finite")));
         }
         Ok(Self {
+            line_time_s,
             columns,
             rows,
             centre: CountPoint::from_counts(cx / k, cy / k),
@@ -842,6 +865,11 @@ pub enum DynamicsUsed {
     /// Static field only: the raster's hysteresis and the creep of the move that brought the
     /// probe there are not corrected.
     None,
+    /// The calibration file holds dynamics, but the file states no line time.
+    NoLineTime,
+    /// The raster's hysteresis and creep along the file's own raster (trace or retrace per
+    /// channel); of the approach move nothing is known (settled start assumed).
+    Raster,
 }
 
 impl DynamicsUsed {
@@ -852,6 +880,15 @@ impl DynamicsUsed {
             Self::None => {
                 "none: static distributed field only (eqs. 5-12); the raster's hysteresis and \
                  the creep of the approach move are not corrected"
+            }
+            Self::NoLineTime => {
+                "none: the calibration holds the scanner's dynamics but the file states no line \
+                 time; static distributed field only (eqs. 5-12)"
+            }
+            Self::Raster => {
+                "raster: the file's own raster (trace and retrace at its line time) replayed \
+                 through the calibration's hysteresis and creep; the approach move's creep: \
+                 none known (a settled start is assumed)"
             }
         }
     }
@@ -1022,7 +1059,46 @@ pub fn correct_file(
         Route::Products,
     )
     .map_err(|e| correction("map", e))?;
-    let (map, first_nm) = coordinate_map(&field, &raster).map_err(|e| correction("map", e))?;
+    // The raster's dynamics when the calibration file has them and the file states its line
+    // time; else the static field (eqs. 5-12).
+    let with_dynamics = if options.static_only {
+        None
+    } else {
+        set.dynamics
+            .as_ref()
+            .filter(|_| raster.line_time_s.is_some())
+    };
+    let dynamics_used = match (with_dynamics, &set.dynamics) {
+        (Some(_), _) => DynamicsUsed::Raster,
+        (None, Some(_)) if !options.static_only => DynamicsUsed::NoLineTime,
+        _ => DynamicsUsed::None,
+    };
+    let map_of = |half: dynamic::Half| -> Result<(CoordinateMap, [f64; 2]), ApplyError> {
+        match with_dynamics {
+            Some(d) => {
+                dynamic::dynamic_map(&field, &raster, d, half).map_err(|e| correction("map", e))
+            }
+            None => coordinate_map(&field, &raster).map_err(|e| correction("map", e)),
+        }
+    };
+    let half_of = |channel: &Channel| match channel.direction() {
+        Direction::Backward => dynamic::Half::Retrace,
+        _ => dynamic::Half::Trace,
+    };
+    let (map, first_nm) = map_of(half_of(first))?;
+    let other_half = match (with_dynamics, half_of(first)) {
+        (None, _) => None,
+        (Some(_), dynamic::Half::Trace) => channels
+            .iter()
+            .any(|c| half_of(c) == dynamic::Half::Retrace)
+            .then(|| map_of(dynamic::Half::Retrace))
+            .transpose()?,
+        (Some(_), dynamic::Half::Retrace) => channels
+            .iter()
+            .any(|c| half_of(c) == dynamic::Half::Trace)
+            .then(|| map_of(dynamic::Half::Trace))
+            .transpose()?,
+    };
     let grid = OutputGrid::covering(&map, None).map_err(|e| correction("map", e))?;
     let step_nm = grid.step_nm.value();
     // The output grid's centre in the scanner's axes, from the field's origin.
@@ -1048,9 +1124,21 @@ pub fn correct_file(
                 ),
             });
         }
+        // The other half's map, expressed in this one's frame (both from the field's origin).
+        let shifted;
+        let channel_map = match &other_half {
+            Some((other, other_first)) if half_of(channel) != half_of(first) => {
+                let (dx, dy) = (other_first[0] - first_nm[0], other_first[1] - first_nm[1]);
+                let (du, dv) = (dx * c + dy * s, -dx * s + dy * c);
+                shifted = dynamic::translated(other, du, dv)
+                    .map_err(|e| correction(channel.name(), e))?;
+                &shifted
+            }
+            _ => &map,
+        };
         let resampled = resample(
             &heights,
-            &map,
+            channel_map,
             &grid,
             options.interpolation,
             Parallelism::AllCores,
@@ -1089,9 +1177,12 @@ pub fn correct_file(
         set,
         plane,
         &raster,
-        expected,
-        extrapolated_counts,
-        unknown_pixels,
+        &Facts {
+            expected_error_nm: expected,
+            extrapolated_counts,
+            unknown_pixels,
+            dynamics: dynamics_used,
+        },
     );
     Ok(Corrected {
         channels: out,
@@ -1099,10 +1190,18 @@ pub fn correct_file(
         raster,
         unknown_pixels,
         extrapolated_counts,
-        dynamics: DynamicsUsed::None,
+        dynamics: dynamics_used,
         expected_error_nm: expected,
         step_nm,
     })
+}
+
+/// What a correction found, for its output's metadata.
+struct Facts {
+    expected_error_nm: f64,
+    extrapolated_counts: Option<f64>,
+    unknown_pixels: usize,
+    dynamics: DynamicsUsed,
 }
 
 fn metadata(
@@ -1110,10 +1209,14 @@ fn metadata(
     set: &SurfaceSet,
     plane: &PlaneSurfaces,
     raster: &FileRaster,
-    expected_error_nm: f64,
-    extrapolated_counts: Option<f64>,
-    unknown_pixels: usize,
+    facts: &Facts,
 ) -> Vec<(String, String)> {
+    let Facts {
+        expected_error_nm,
+        extrapolated_counts,
+        unknown_pixels,
+        dynamics,
+    } = *facts;
     let p = &set.provenance;
     let region = plane.calibrated_region();
     let mut m: Vec<(String, String)> =
@@ -1192,7 +1295,7 @@ fn metadata(
         ),
         (
             "spmcal_dynamics".into(),
-            DynamicsUsed::None.describe().into(),
+            dynamics.describe().into(),
         ),
         (
             "spmcal_expected_error_nm".into(),

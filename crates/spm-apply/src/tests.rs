@@ -83,6 +83,7 @@ fn raster(columns: usize, rows: usize, angle_deg: f64, path: RasterPath) -> File
         angle_ccw_rad: angle_deg.to_radians(),
         path,
         counts: CountsSource::Recorded,
+        line_time_s: None,
     }
 }
 

@@ -178,6 +178,58 @@ pub fn play_outputs(
     Ok(out)
 }
 
+/// The hysteresis `h = Σ wᵢ·yᵢ` (counts) of one axis at every query time, replaying `history`
+/// like [`play_outputs`] without keeping every operator's output (one number per query).
+///
+/// # Errors
+/// As [`play_outputs`].
+pub fn hysteresis_offsets(
+    history: &CommandHistory,
+    axis: usize,
+    model: &PlayHysteresis,
+    query_times_s: &[f64],
+) -> Result<Vec<f64>, CorrectionError> {
+    let segments = history.segments();
+    let first = segments
+        .first()
+        .ok_or(CorrectionError::Empty("command history"))?;
+    if query_times_s.iter().any(|t| !t.is_finite()) || query_times_s.windows(2).any(|w| w[1] < w[0])
+    {
+        return Err(CorrectionError::InvalidArgument(
+            "query times must be finite and in time order".to_owned(),
+        ));
+    }
+    let axis = axis.min(1);
+    let thresholds = &model.thresholds_counts;
+    let mut state = PlayState::settled(thresholds.len(), first.from_counts[axis]);
+    let weighted = |state: &PlayState, u: f64| -> f64 {
+        state
+            .outputs
+            .iter()
+            .zip(thresholds)
+            .zip(&model.weights)
+            .map(|((y, r), w)| w * (u - r).max((u + r).min(*y)))
+            .sum()
+    };
+    let mut out = Vec::with_capacity(query_times_s.len());
+    let mut q = 0;
+    for seg in segments {
+        while q < query_times_s.len() && query_times_s[q] <= seg.end_s {
+            out.push(weighted(&state, seg.at(query_times_s[q])[axis]));
+            q += 1;
+        }
+        state.apply(thresholds, seg.to_counts[axis]);
+    }
+    let last = state
+        .outputs
+        .iter()
+        .zip(&model.weights)
+        .map(|(y, w)| w * y)
+        .sum::<f64>();
+    out.resize(query_times_s.len(), last);
+    Ok(out)
+}
+
 /// Creep law parameters as stored (see [`CreepLaw::log_spaced`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -26,6 +26,7 @@ pub struct CorrectArgs<'a> {
     pub z_counts: Option<f64>,
     pub scanner: Option<&'a str>,
     pub allow_extrapolation: bool,
+    pub static_only: bool,
 }
 
 fn apply_error(error: ApplyError, calibration: &Path) -> CliError {
@@ -125,6 +126,7 @@ fn options(args: &CorrectArgs<'_>, kind: OutputKind) -> ApplyOptions {
             RasterDirection::Direct => RasterPath::Trace(ScanDir::Up),
             RasterDirection::Counter => RasterPath::Counter,
         }),
+        static_only: args.static_only,
         interpolation: spm_correction::Interpolation::Bilinear,
     }
 }
@@ -256,6 +258,10 @@ pub fn run(args: &CorrectArgs<'_>) -> Result<(), CliError> {
             corrected.expected_error_nm,
             match corrected.dynamics {
                 spm_apply::DynamicsUsed::None => "none (static field)",
+                spm_apply::DynamicsUsed::NoLineTime =>
+                    "none: the file states no line time (static field)",
+                spm_apply::DynamicsUsed::Raster =>
+                    "the raster's hysteresis and creep (approach creep unknown)",
             },
             if corrected.extrapolated_counts.is_some() {
                 "; EXTRAPOLATED beyond the calibrated region"

@@ -725,8 +725,8 @@ fn user_file_map(
     image: &TestImage,
 ) -> Result<CoordinateMap, ImageBenchmarkError> {
     use spm_apply::{
-        ApplyOptions, FileRaster, KEY_CONVENTION, KEY_ORIGIN_X, KEY_ORIGIN_Y, KEY_SCAN_PATH,
-        KEY_SCANNER, KEY_STEP,
+        ApplyOptions, FileRaster, KEY_CONVENTION, KEY_LINE_TIME, KEY_ORIGIN_X, KEY_ORIGIN_Y,
+        KEY_SCAN_PATH, KEY_SCANNER, KEY_STEP,
     };
     let m = &image.map;
     let fail = |what: String| ImageBenchmarkError::Config(format!("user file: {what}"));
@@ -755,6 +755,8 @@ fn user_file_map(
         ScanDirection::Direct => "direct",
         ScanDirection::Counter => "counter",
     };
+    // What a controller records: the duration of one trace.
+    let line_time = (image.dwell_s * m.columns as f64).to_string();
     let bytes = spm_formats::encode_gsf(
         &channel,
         &[
@@ -764,6 +766,7 @@ fn user_file_map(
             (KEY_SCAN_PATH, path),
             (KEY_SCANNER, set.provenance.scanner_id.as_str()),
             (KEY_CONVENTION, "centred_signed"),
+            (KEY_LINE_TIME, line_time.as_str()),
         ],
     )
     .map_err(|e| fail(e.to_string()))?;
@@ -782,7 +785,12 @@ fn user_file_map(
     };
     spm_apply::check(&file, set, plane, &raster, &options).map_err(|e| fail(e.to_string()))?;
     let field = plane.field(spm_correction::Route::Products);
-    let (map, _) = spm_apply::coordinate_map(&field, &raster)?;
+    let (map, _) = match &set.dynamics {
+        Some(d) => {
+            spm_apply::dynamic::dynamic_map(&field, &raster, d, spm_apply::dynamic::Half::Trace)?
+        }
+        None => spm_apply::coordinate_map(&field, &raster)?,
+    };
     Ok(map)
 }
 

@@ -133,6 +133,10 @@ enum Command {
         /// extrapolated there; the output is marked `spmcal_extrapolated`).
         #[arg(long)]
         allow_extrapolation: bool,
+        /// Apply the static field only, even when the calibration file holds the scanner's
+        /// dynamics (the raster's hysteresis and creep are then not corrected).
+        #[arg(long = "static")]
+        static_only: bool,
     },
     /// Describe SPM files: format, pixels, size, offset, scan angle, direction, line time, date,
     /// channels (several files: one line each).
@@ -452,6 +456,7 @@ fn run(command: Command) -> Result<(), CliError> {
             z_counts,
             scanner,
             allow_extrapolation,
+            static_only,
         } => correct_cmd::run(&correct_cmd::CorrectArgs {
             images: &images,
             calibration: &calibration,
@@ -464,6 +469,7 @@ fn run(command: Command) -> Result<(), CliError> {
             z_counts,
             scanner: scanner.as_deref(),
             allow_extrapolation,
+            static_only,
         }),
         Command::Diagnose {
             files,

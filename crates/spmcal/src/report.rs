@@ -10,6 +10,7 @@ use serde::Serialize;
 use spm_calibration::{PlanConfig, RunReport};
 use spm_cdb::RecordFilter;
 use spm_correction::PlaneSurfaces;
+use spm_correction::hysteresis::ScannerDynamics;
 use spm_hal::truth::{GroundTruth, SimulatedInstrument};
 use std::path::Path;
 
@@ -229,6 +230,7 @@ pub trait TruthSource: GroundTruth + Sync {
         record: &RunRecord<'_>,
         region: &Region,
         planes: &[(&str, &PlaneSurfaces)],
+        dynamics: Option<&ScannerDynamics>,
         quick: bool,
     ) -> Result<crate::images::ImageBenchmark, ReportError>;
 }
@@ -239,9 +241,10 @@ impl<S: SimulatedInstrument + Sync> TruthSource for S {
         record: &RunRecord<'_>,
         region: &Region,
         planes: &[(&str, &PlaneSurfaces)],
+        dynamics: Option<&ScannerDynamics>,
         quick: bool,
     ) -> Result<crate::images::ImageBenchmark, ReportError> {
-        image_benchmark(self, record, region, planes, quick)
+        image_benchmark(self, record, region, planes, dynamics, quick)
     }
 }
 
@@ -440,8 +443,16 @@ pub fn finish_with(
         .filter(|r| r.x_max_counts > r.x_min_counts && r.y_max_counts > r.y_min_counts);
     let (accuracy, images) = match (record.truth, region, fitted.set.planes.first()) {
         (Some(truth), Some(region), Some(plane)) => {
-            let (accuracy, images) =
-                accuracy_section(truth, record, &region, plane, &all, quick, with_images)?;
+            let (accuracy, images) = accuracy_section(
+                truth,
+                record,
+                &region,
+                plane,
+                &all,
+                dynamics.model.as_ref(),
+                quick,
+                with_images,
+            )?;
             (Some(accuracy), images)
         }
         _ => {
@@ -513,6 +524,7 @@ fn accuracy_section(
     region: &Region,
     plane: &PlaneSurfaces,
     all: &[spm_cdb::LccRecord],
+    dynamics: Option<&ScannerDynamics>,
     quick: bool,
     with_images: bool,
 ) -> Result<(AccuracyTable, Option<crate::images::ImageBenchmark>), ReportError> {
@@ -570,6 +582,7 @@ fn accuracy_section(
                 ("affine", &affine),
                 ("distributed", plane),
             ],
+            dynamics,
             quick,
         )?)
     } else {
@@ -689,6 +702,7 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
     record: &RunRecord<'_>,
     region: &Region,
     planes: &[(&str, &PlaneSurfaces)],
+    identified: Option<&ScannerDynamics>,
     quick: bool,
 ) -> Result<crate::images::ImageBenchmark, ReportError> {
     use crate::images::{
@@ -804,6 +818,14 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
             },
             vec![(*distributed).clone()],
         )?;
+        if let Some(d) = identified {
+            let mut with = set.clone();
+            with.dynamics = Some(d.clone());
+            methods.push(ImageMethod {
+                name: "user_file_dynamics".to_owned(),
+                correction: ImageCorrection::UserFile(Box::new(with)),
+            });
+        }
         methods.push(ImageMethod {
             name: "user_file_alone".to_owned(),
             correction: ImageCorrection::UserFile(Box::new(set)),

@@ -295,8 +295,7 @@ fn newest_dynamics(
     let Some(stored) = cdb
         .dynamics(Some(scanner_id))?
         .into_iter()
-        .filter(|d| until_unix_s.is_none_or(|u| d.identified_unix_s <= u))
-        .next_back()
+        .rfind(|d| until_unix_s.is_none_or(|u| d.identified_unix_s <= u))
     else {
         return Ok(None);
     };

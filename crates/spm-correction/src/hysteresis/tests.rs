@@ -219,3 +219,24 @@ fn dynamics_round_trip_and_refuse_other_versions() {
     bad.hysteresis_x.weights[0] = -0.1;
     assert!(bad.validate().is_err());
 }
+
+/// The streaming hysteresis equals the weighted operator outputs, on a history with reversals
+/// inside segments' queries and after its end.
+#[test]
+fn streamed_hysteresis_equals_the_weighted_outputs() {
+    let m = model();
+    let mut h = CommandHistory::default();
+    h.ramp_to(0.0, [0.0, 0.0]);
+    h.ramp_to(1.0, [3000.0, -200.0]);
+    h.ramp_to(1.5, [-1000.0, 400.0]);
+    h.ramp_to(2.5, [2500.0, 0.0]);
+    let times: Vec<f64> = (0..=60).map(|k| 0.05 * f64::from(k)).collect();
+    for axis in 0..2 {
+        let ys = play_outputs(&h, axis, &m.thresholds_counts, &times).unwrap();
+        let streamed = hysteresis_offsets(&h, axis, &m, &times).unwrap();
+        for (y, s) in ys.iter().zip(&streamed) {
+            let want: f64 = y.iter().zip(&m.weights).map(|(a, b)| a * b).sum();
+            assert!((want - s).abs() < 1e-12, "{want} vs {s}");
+        }
+    }
+}

@@ -330,3 +330,111 @@ fn output_names_name_what_spmcal_writes() {
         .to_string();
     assert!(error.contains("--out") && error.contains(".png"), "{error}");
 }
+
+fn dynamics_of(
+    hysteresis_x: spm_correction::hysteresis::PlayHysteresis,
+    creep_weight: f64,
+) -> spm_correction::hysteresis::ScannerDynamics {
+    use spm_correction::hysteresis::*;
+    ScannerDynamics {
+        format: DYNAMICS_FORMAT.to_owned(),
+        version: DYNAMICS_FORMAT_VERSION,
+        hysteresis_x,
+        hysteresis_y: PlayHysteresis::none(),
+        creep: CreepParameters {
+            weight: creep_weight,
+            min_time_constant_s: 0.01,
+            max_time_constant_s: 1e4,
+            elements_per_decade: 3,
+        },
+        identification: DynamicsIdentification::default(),
+    }
+}
+
+/// Dynamics that do nothing (no hysteresis, no creep) reproduce the static path, on a curved
+/// field, a rotated raster and every path; the retrace half too.
+#[test]
+fn null_dynamics_reproduce_the_static_map() {
+    let set = curved();
+    let field = set.planes[0].field(Route::Products);
+    let null = dynamics_of(spm_correction::hysteresis::PlayHysteresis::none(), 0.0);
+    for (angle, path) in [
+        (0.0, RasterPath::Trace(ScanDir::Up)),
+        (25.0, RasterPath::Trace(ScanDir::Down)),
+        (-40.0, RasterPath::Counter),
+    ] {
+        let mut r = raster(17, 13, angle, path);
+        r.line_time_s = Some(0.05);
+        let (stat, stat_first) = coordinate_map(&field, &r).unwrap();
+        for half in [dynamic::Half::Trace, dynamic::Half::Retrace] {
+            let (dynm, first) = dynamic::dynamic_map(&field, &r, &null, half).unwrap();
+            // Both relative to their own first pixel: compare pixel differences.
+            let origin_s = map_point(&stat, 0, 0);
+            let origin_d = map_point(&dynm, 0, 0);
+            for row in 0..13 {
+                for column in 0..17 {
+                    let a = map_point(&stat, column, row);
+                    let b = map_point(&dynm, column, row);
+                    let (da, db) = (
+                        [a[0] - origin_s[0], a[1] - origin_s[1]],
+                        [b[0] - origin_d[0], b[1] - origin_d[1]],
+                    );
+                    // The retrace chains its lines from the other end: on a curved field eq. (5)
+                    // depends on the path, by well under a picometre here.
+                    let tolerance = match half {
+                        dynamic::Half::Trace => 2e-4,
+                        dynamic::Half::Retrace => 1e-3,
+                    };
+                    assert!(
+                        (da[0] - db[0]).abs() < tolerance && (da[1] - db[1]).abs() < tolerance,
+                        "{path:?} {angle}° {half:?} ({column}, {row}): static {da:?}, dynamic {db:?}"
+                    );
+                }
+            }
+            assert!(first[0].is_finite() && stat_first[0].is_finite());
+        }
+    }
+}
+
+/// One play operator (threshold r, weight w) in a uniform field: along every trace after the
+/// first, the effective input is u + w·max(u − r, u₀ + r) (the operator released at the
+/// previous retrace's end u₀), so a pixel's x offset from the line's first pixel is
+/// K·[(u − u₀) + w·(max(u − r, u₀ + r) − (u₀ + r))].
+#[test]
+fn one_play_operator_shifts_the_trace_by_its_closed_form() {
+    let (k, r, w) = (0.02, 40.0, 0.05);
+    let set = uniform(k, k, 0.0);
+    let field = set.planes[0].field(Route::Products);
+    let op = spm_correction::hysteresis::PlayHysteresis {
+        thresholds_counts: vec![r],
+        weights: vec![w],
+    };
+    let d = dynamics_of(op, 0.0);
+    let mut rr = raster(33, 5, 0.0, RasterPath::Trace(ScanDir::Up));
+    rr.line_time_s = Some(0.1);
+    let (map, _) = dynamic::dynamic_map(&field, &rr, &d, dynamic::Half::Trace).unwrap();
+    let step = rr.step_x_counts;
+    // Map rows are bottom-up; every line but the first acquired (the bottom one, map row 0).
+    for map_row in 1..5 {
+        let x0 = map_point(&map, 0, map_row)[0];
+        for column in 0..33 {
+            let du = step * column as f64;
+            let y = (du - r).max(r) - r; // relative to u₀
+            let want = k * (du + w * y);
+            let got = map_point(&map, column, map_row)[0] - x0;
+            assert!(
+                (got - want).abs() < 1e-9,
+                "row {map_row} col {column}: {got} vs {want}"
+            );
+        }
+    }
+    // The static map lacks exactly the operator's part: K·w·(L − 2r) over the line.
+    let (stat, _) = coordinate_map(&field, &rr).unwrap();
+    let kink = map_point(&map, 32, 2)[0] - map_point(&map, 0, 2)[0];
+    let flat = map_point(&stat, 32, 2)[0] - map_point(&stat, 0, 2)[0];
+    let part = k * w * (32.0 * step - 2.0 * r);
+    assert!(
+        (kink - flat - part).abs() < 1e-9,
+        "{kink} vs {flat} + {part}"
+    );
+}

@@ -73,8 +73,8 @@ fn replay(raster: &FileRaster, line_time_s: f64) -> Replay {
 }
 
 /// The coordinate map of one half of `raster` along its effective trajectory, and the nm
-/// position (from the field's origin, static reference state) of the half's first acquired
-/// pixel, which the map's coordinates are relative to.
+/// position (from the field's origin, static reference state) of the raster's bottom-left
+/// pixel, which the map's coordinates are relative to (both halves, every path).
 ///
 /// # Errors
 /// [`CorrectionError::InvalidArgument`] without a line time; as the dynamics' replay and
@@ -103,27 +103,92 @@ pub fn dynamic_map<F: CorrectionField + ?Sized>(
         Half::Retrace => 1,
     }];
     let times: Vec<f64> = pixels.iter().map(|p| p.2).collect();
+    let offsets = dynamics.offsets(&replay.history, &times)?;
+    map_along(field, raster, dynamics, pixels, &offsets)
+}
+
+/// [`dynamic_map`] along a *recorded* command history (a command log that holds the probe's
+/// moves before the frame and the frame's raster): `pixel_times_s` are the instrument times
+/// of this half's pixels in acquisition order, on the history's clock. The creep of the
+/// approach move is then corrected as well.
+///
+/// # Errors
+/// [`CorrectionError::SizeMismatch`] when the times do not match the raster; as
+/// [`dynamic_map`].
+pub fn recorded_map<F: CorrectionField + ?Sized>(
+    field: &F,
+    raster: &FileRaster,
+    dynamics: &ScannerDynamics,
+    half: Half,
+    history: &CommandHistory,
+    pixel_times_s: &[f64],
+) -> Result<(CoordinateMap, [f64; 2]), CorrectionError> {
+    let (nx, ny) = (raster.columns, raster.rows);
+    if pixel_times_s.len() != nx * ny {
+        return Err(CorrectionError::SizeMismatch {
+            what: "pixel times",
+            expected: nx * ny,
+            got: pixel_times_s.len(),
+        });
+    }
+    // The file's geometry gives the commands; the record gives when.
+    let replay = replay(raster, raster.line_time_s.unwrap_or(1.0));
+    let pixels = &replay.pixels[match half {
+        Half::Trace => 0,
+        Half::Retrace => 1,
+    }];
+    let offsets = dynamics.offsets(history, pixel_times_s)?;
+    map_along(field, raster, dynamics, pixels, &offsets)
+}
+
+/// The map of a half's pixels (display column, display row, time, commanded) with their
+/// effective-input offsets (see [`dynamic_map`]).
+fn map_along<F: CorrectionField + ?Sized>(
+    field: &F,
+    raster: &FileRaster,
+    dynamics: &ScannerDynamics,
+    pixels: &[(usize, usize, f64, CountPoint)],
+    offsets: &[[f64; 2]],
+) -> Result<(CoordinateMap, [f64; 2]), CorrectionError> {
+    let (nx, ny) = (raster.columns, raster.rows);
     let commanded: Vec<[f64; 2]> = pixels
         .iter()
         .map(|p| [p.3.x.value(), p.3.y.value()])
         .collect();
-    let offsets = dynamics.offsets(&replay.history, &times)?;
     let gain = dynamics.gain()?;
-    let reference = commanded[0];
-    let along = correct_effective_raster(field, nx, ny, &commanded, &offsets, gain, reference)?;
-    let zero = pixels[0].3;
-    let to_zero = correct_polyline(
+    let reference = commanded
+        .first()
+        .copied()
+        .ok_or(CorrectionError::Empty("raster with no pixel"))?;
+    let along = correct_effective_raster(field, nx, ny, &commanded, offsets, gain, reference)?;
+    // Every half and every path of one place shares the frame of the raster's bottom-left
+    // pixel (as the static path does): the first acquired pixel is placed from it along the
+    // static field.
+    let corner = raster.pixel_counts(0.0, ny as f64 - 1.0);
+    let quadrature = Quadrature::default();
+    let last = |points: Vec<spm_hal::NmPoint>| {
+        points
+            .last()
+            .map_or([0.0, 0.0], |p| [p.x.value(), p.y.value()])
+    };
+    let first_nm = last(correct_polyline(
         field,
         &[
             CountPoint::from_counts(0.0, 0.0),
-            CountPoint::from_counts(zero.x.value(), 0.0),
-            zero,
+            CountPoint::from_counts(corner.x.value(), 0.0),
+            corner,
         ],
-        &Quadrature::default(),
-    )?;
-    let first_nm = to_zero
-        .last()
-        .map_or([0.0, 0.0], |p| [p.x.value(), p.y.value()]);
+        &quadrature,
+    )?);
+    let to_first = last(correct_polyline(
+        field,
+        &[corner, pixels[0].3],
+        &quadrature,
+    )?);
+    let along: Vec<[f64; 2]> = along
+        .iter()
+        .map(|p| [p[0] + to_first[0], p[1] + to_first[1]])
+        .collect();
     let (s, c) = raster.angle_ccw_rad.sin_cos();
     let mut x_nm = vec![0.0; nx * ny];
     let mut y_nm = vec![0.0; nx * ny];

@@ -450,8 +450,11 @@ pub struct SamePoint {
 pub struct DynamicsFitSetup {
     /// Candidate play thresholds per axis, counts (increasing).
     pub thresholds_counts: [Vec<f64>; 2],
-    /// Creep law shape (its weight is fitted).
+    /// Creep law shape (its weight is fitted unless fixed).
     pub creep_shape: CreepParameters,
+    /// A creep weight identified elsewhere (the attachment tracks, where creep alone moves
+    /// the features): the fit then subtracts its creep and identifies the rest.
+    pub fixed_creep_weight: Option<f64>,
 }
 
 /// Identifies per axis the PI weights, jointly with one creep weight, a signal lag and one
@@ -515,7 +518,18 @@ pub fn fit_dynamics(
         let (_, _, x_history) =
             post_hysteresis_input(history, [&hysteresis[0], &hysteresis[1]], &times)?;
         let creep = creep_offsets(&x_history, &unit_creep, &times)?;
-        let (full, sigma, fit) = solve_pass(&usable, &plays, &creep, &groups, n0, n1, &index_of)?;
+        let (mut full, sigma, fit) = solve_pass(
+            &usable,
+            &plays,
+            &creep,
+            &groups,
+            (n0, n1),
+            setup.fixed_creep_weight,
+            &index_of,
+        )?;
+        if let Some(w) = setup.fixed_creep_weight {
+            full[n0 + n1] = w;
+        }
         hysteresis = [
             PlayHysteresis {
                 thresholds_counts: setup.thresholds_counts[0].clone(),
@@ -549,14 +563,13 @@ pub fn fit_dynamics(
 }
 
 /// One least-squares pass of [`fit_dynamics`]: (coefficients, standard errors, the fit).
-#[allow(clippy::too_many_arguments)]
 fn solve_pass(
     usable: &[&SamePoint],
     plays: &[Vec<Vec<f64>>; 2],
     creep: &[[f64; 2]],
     groups: &[usize],
-    n0: usize,
-    n1: usize,
+    (n0, n1): (usize, usize),
+    fixed_creep_weight: Option<f64>,
     index_of: &dyn Fn(f64) -> usize,
 ) -> Result<(Vec<f64>, Vec<f64>, spm_regression::LinearFit), CorrectionError> {
     let columns = n0 + n1 + 2 + groups.len();
@@ -570,12 +583,18 @@ fn solve_pass(
         for (k, (y1, y2)) in plays[axis][i1].iter().zip(&plays[axis][i2]).enumerate() {
             row[offset + k] = y1 - y2;
         }
-        row[n0 + n1] = creep[i1][axis] - creep[i2][axis];
+        let creep_part = creep[i1][axis] - creep[i2][axis];
+        let known = fixed_creep_weight.map_or(0.0, |w| w * creep_part);
+        row[n0 + n1] = if fixed_creep_weight.is_some() {
+            0.0
+        } else {
+            creep_part
+        };
         row[n0 + n1 + 1] = s.v_second_counts_per_s - s.v_first_counts_per_s;
         let g = groups.partition_point(|&g| g < s.group * 2 + axis);
         row[n0 + n1 + 2 + g] = s.t_second_s - s.t_first_s;
         rows.push(row);
-        rhs.push(s.u_second_counts - s.u_first_counts);
+        rhs.push(s.u_second_counts - s.u_first_counts - known);
     }
     // Columns without any signal (an axis without sightings) are dropped.
     let keep: Vec<usize> = (0..columns)

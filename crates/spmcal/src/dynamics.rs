@@ -141,10 +141,10 @@ pub fn identify(
             .filter(|s| s.correlation >= MIN_SHIFT_CORRELATION)
             .map(|s| (s.column, s.shift_px))
             .collect();
-        // Where the two trackings disagree one of them slipped a lattice period: only the
-        // windows where both agree are used.
+        // Where the two trackings disagree one of them slipped a lattice period, and the
+        // agreeing windows of such a line may hold a slip of both: the frame is left out.
         windows_disagreeing += disagreeing;
-        if good.len() < MIN_WINDOWS {
+        if good.len() < MIN_WINDOWS || disagreeing > 0 {
             continue;
         }
         frames_used += 1;
@@ -156,8 +156,8 @@ pub fn identify(
     let ladder_sightings = sightings.len();
     if windows_disagreeing > 0 {
         notes.push(format!(
-            "{windows_disagreeing} shift windows left out: the trackings from the two ends of \
-             their line disagreed (one slipped a lattice period)"
+            "{windows_disagreeing} shift windows disagreed between the trackings from the two \
+             ends of their line (one slipped a lattice period); their frames are left out"
         ));
     }
     if frames_used < ladder.len() {
@@ -167,9 +167,36 @@ pub fn identify(
             ladder.len()
         ));
     }
+    // The creep from the attachment tracks, where creep and drift alone move the features
+    // (spm_correction::dynamics::fit_creep_law); the ladder then identifies the hysteresis
+    // with that creep subtracted. Without tracks, both from the ladder jointly.
+    let (tau_min, tau_max, per_decade) = creep_shape;
+    let track_creep = spm_correction::dynamics::CreepLaw::log_spaced(
+        0.0, tau_min, tau_max, per_decade,
+    )
+    .and_then(|shape| {
+        spm_correction::dynamics::fit_creep_law(&history, &shape, tracks, TRACK_DRIFT_WINDOW_S)
+    });
+    let fixed_creep_weight = match &track_creep {
+        Ok(fit) => {
+            notes.push(format!(
+                "creep from {} attachment tracks ({} sightings), hysteresis from the ladder with \
+                 that creep subtracted",
+                fit.tracks, fit.sightings
+            ));
+            Some(fit.law.weight())
+        }
+        Err(e) => {
+            notes.push(format!(
+                "creep and hysteresis both from the ladder (the attachment tracks did not fix \
+                 the creep: {e})"
+            ));
+            None
+        }
+    };
     // Attachment tracks: every later sighting against the first, both axes (creep and drift).
     let group0 = ladder.len();
-    for track in tracks {
+    for track in tracks.iter().filter(|_| fixed_creep_weight.is_none()) {
         let Some(&(t0, x0, y0)) = track.sightings.first() else {
             continue;
         };
@@ -191,7 +218,6 @@ pub fn identify(
     }
     let track_sightings = sightings.len() - ladder_sightings;
     lengths.sort_by(f64::total_cmp);
-    let (tau_min, tau_max, per_decade) = creep_shape;
     let grid_x: Vec<f64> = match (lengths.first(), lengths.last()) {
         (Some(&lo), Some(&hi)) => {
             let step = (0.25 * lo).max(1.0);
@@ -210,6 +236,7 @@ pub fn identify(
     );
     let setup = DynamicsFitSetup {
         thresholds_counts: [grid_x, Vec::new()],
+        fixed_creep_weight,
         creep_shape: CreepParameters {
             weight: 0.0,
             min_time_constant_s: tau_min,

@@ -493,6 +493,15 @@ pub enum ImageCorrection<'a> {
     /// controller records (its raster in counts, direction, scanner), read back, checked by the
     /// guard rails and mapped by `spm_apply` with the calibration file.
     UserFile(Box<spm_correction::SurfaceSet>),
+    /// [`ImageCorrection::UserFile`] with the command log recorded while the run and the
+    /// images were taken (what `spmcal scan` keeps): the creep of the approach move is
+    /// corrected too.
+    UserFileRecorded {
+        /// The calibration file (with its dynamics).
+        set: Box<spm_correction::SurfaceSet>,
+        /// The recorded commands: the run's and the images'.
+        history: spm_correction::dynamics::CommandHistory,
+    },
     /// A correction field integrated along each image's *effective* trajectory
     /// (`spm_correction::dynamics`): `offsets[image]` = uₑ − u per pixel in acquisition order,
     /// the field evaluated at uₑ / `gain`.
@@ -689,7 +698,10 @@ fn coordinate_map(
             let points: Vec<[f64; 2]> = u.iter().map(|p| fit.eval(p[0], p[1])).collect();
             map_from_points(&points, nx, ny)?
         }
-        ImageCorrection::UserFile(set) => user_file_map(set, image)?,
+        ImageCorrection::UserFile(set) => user_file_map(set, image, None)?,
+        ImageCorrection::UserFileRecorded { set, history } => {
+            user_file_map(set, image, Some(history))?
+        }
         ImageCorrection::EffectivePath {
             field,
             offsets,
@@ -723,6 +735,7 @@ fn coordinate_map(
 fn user_file_map(
     set: &spm_correction::SurfaceSet,
     image: &TestImage,
+    recorded: Option<&spm_correction::dynamics::CommandHistory>,
 ) -> Result<CoordinateMap, ImageBenchmarkError> {
     use spm_apply::{
         ApplyOptions, FileRaster, KEY_CONVENTION, KEY_LINE_TIME, KEY_ORIGIN_X, KEY_ORIGIN_Y,
@@ -785,11 +798,18 @@ fn user_file_map(
     };
     spm_apply::check(&file, set, plane, &raster, &options).map_err(|e| fail(e.to_string()))?;
     let field = plane.field(spm_correction::Route::Products);
-    let (map, _) = match &set.dynamics {
-        Some(d) => {
-            spm_apply::dynamic::dynamic_map(&field, &raster, d, spm_apply::dynamic::Half::Trace)?
-        }
-        None => spm_apply::coordinate_map(&field, &raster)?,
+    let half = spm_apply::dynamic::Half::Trace;
+    let (map, _) = match (&set.dynamics, recorded) {
+        (Some(d), Some(history)) => spm_apply::dynamic::recorded_map(
+            &field,
+            &raster,
+            d,
+            half,
+            history,
+            &image.time_acquisition_s,
+        )?,
+        (Some(d), None) => spm_apply::dynamic::dynamic_map(&field, &raster, d, half)?,
+        (None, _) => spm_apply::coordinate_map(&field, &raster)?,
     };
     Ok(map)
 }

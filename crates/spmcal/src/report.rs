@@ -822,6 +822,13 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
             let mut with = set.clone();
             with.dynamics = Some(d.clone());
             methods.push(ImageMethod {
+                name: "user_file_recorded_history".to_owned(),
+                correction: ImageCorrection::UserFileRecorded {
+                    set: Box::new(with.clone()),
+                    history: history.clone(),
+                },
+            });
+            methods.push(ImageMethod {
                 name: "user_file_dynamics".to_owned(),
                 correction: ImageCorrection::UserFile(Box::new(with)),
             });

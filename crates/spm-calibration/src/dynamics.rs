@@ -23,22 +23,23 @@ pub struct DynamicsConfig {
     /// Run the stage. Default true.
     pub enabled: bool,
     /// Line lengths of the ladder, counts (≥ 3 sizes spanning ≥ 10×). Default
-    /// [512, 2048, 8192]; each is cut to what the instrument's pixels per line allow. Longer
-    /// lines at the default resolution lose the lattice's phase somewhere along the line on
-    /// sim-hopg (the two-way tracking disagrees) and are dropped by the fit's caller.
+    /// [512, 2048, 8192, 16384]; each is cut to what the instrument's pixels per line allow
+    /// (16384 becomes 12285 at 4096 pixels of 3 counts).
     pub ladder_counts: Vec<f64>,
     /// Pixels per lattice constant along the lines (sets the pixel step from the standard's
     /// lattice constant and nominal sensitivity). Default 4.
     pub pixels_per_lattice_constant: f64,
-    /// Lines per frame (trace + retrace each). Default 4.
+    /// Lines per frame (trace + retrace each; the first, which follows the approach, is not
+    /// used). Default 8: with fewer, lines of thousands of pixels lose the lattice's phase
+    /// between trace and retrace somewhere (sim-hopg, 3 counts per pixel).
     pub lines: u32,
     /// Pixel dwells, s: two line rates. Default [1e-4, 4e-4].
     pub pixel_dwells_s: Vec<f64>,
     /// Places, as fractions (−1…1) of the net's half-extent from its centre. Default the
     /// centre and two opposite diagonal points at ±0.5.
     pub places: Vec<[f64; 2]>,
-    /// Wait at each frame's first pixel before scanning it, s: the creep of the move there
-    /// must not shift the retrace against the trace by a lattice period. Default 10.
+    /// Wait at each frame's centre before scanning it, s: the creep of the move there must
+    /// not shift the retrace against the trace by a lattice period. Default 10.
     pub settle_s: f64,
     /// Speed of the move to each frame, counts/s. Default 20 000.
     pub move_speed_counts_per_s: f64,
@@ -48,9 +49,9 @@ impl Default for DynamicsConfig {
     fn default() -> Self {
         Self {
             enabled: true,
-            ladder_counts: vec![512.0, 2048.0, 8192.0],
+            ladder_counts: vec![512.0, 2048.0, 8192.0, 16384.0],
             pixels_per_lattice_constant: 4.0,
-            lines: 4,
+            lines: 8,
             pixel_dwells_s: vec![1e-4, 4e-4],
             places: vec![[0.0, 0.0], [-0.5, 0.5], [0.5, -0.5]],
             settle_s: 10.0,
@@ -185,8 +186,12 @@ pub fn scan_ladder<M: Microscope>(
                     pixel_dwell: Seconds(dwell),
                     record_backward: true,
                 };
+                // Settled at the frame's centre, the raster's mean position: creep then has
+                // little to relax towards during the frame (settled at a corner, it creeps
+                // back towards the centre by counts per second through the first lines, a
+                // trace/retrace shift of more than a lattice period at the line's start).
                 microscope.move_to(MoveRequest {
-                    target: request.origin,
+                    target: CountPoint::from_counts(at[0].round(), at[1].round()),
                     speed: CountsPerSecond(config.move_speed_counts_per_s),
                     settle: Seconds(config.settle_s),
                 })?;

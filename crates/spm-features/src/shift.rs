@@ -119,7 +119,7 @@ pub const AGREEMENT_PX: f64 = 0.5;
 /// [`FeatureError::InconsistentMap`] for arrays that do not match the size,
 /// [`FeatureError::NonFinite`] for NaN/∞ heights, [`FeatureError::MapTooSmall`] when fewer
 /// columns than two windows, [`FeatureError::InvalidConfig`] for a bad config.
-fn track_one_way(
+pub fn track_one_way(
     trace: &[f64],
     retrace: &[f64],
     columns: usize,

@@ -26,7 +26,10 @@ fn main() {
         let mut lines = text.lines();
         let a = parse(lines.next().unwrap());
         let b = parse(lines.next().unwrap());
-        let rows = env("ROWS", 4.0) as usize;
+        let rows: usize = lines
+            .next()
+            .and_then(|l| l.trim().parse().ok())
+            .unwrap_or(4);
         let columns = a.len() / rows;
         let skip = env("SKIP", 0.0) as usize;
         let (shifts, dis) = spm_features::trace_retrace_shifts(
@@ -38,8 +41,40 @@ fn main() {
         )
         .unwrap();
         println!("{} windows {dis} disagreeing", shifts.len());
-        for s in shifts.iter().step_by(8) {
-            println!("{:7.1} {:7.2} {:.2}", s.column, s.shift_px, s.correlation);
+        let cfg = spm_features::ShiftConfig::default();
+        let fwd = spm_features::track_one_way(
+            &a[skip * columns..],
+            &b[skip * columns..],
+            columns,
+            rows - skip,
+            &cfg,
+        )
+        .unwrap();
+        let mirror = |img: &[f64]| -> Vec<f64> {
+            img.chunks(columns)
+                .flat_map(|r| r.iter().rev().copied())
+                .collect()
+        };
+        let bwd = spm_features::track_one_way(
+            &mirror(&a[skip * columns..]),
+            &mirror(&b[skip * columns..]),
+            columns,
+            rows - skip,
+            &cfg,
+        )
+        .unwrap();
+        let n = fwd.len();
+        for (i, f) in fwd.iter().enumerate().step_by((n / 40).max(1)) {
+            let bk = &bwd[n - 1 - i.min(n - 1)];
+            println!(
+                "{:7.1} fwd {:7.2} ({:.2})   bwd@{:7.1} {:7.2} ({:.2})",
+                f.column,
+                f.shift_px,
+                f.correlation,
+                (columns - 1) as f64 - bk.column,
+                -bk.shift_px,
+                bk.correlation
+            );
         }
         return;
     }
@@ -61,6 +96,17 @@ fn main() {
         thresholds_counts: thresholds,
     };
     let step = env("STEP", 4.0);
+    let pre_move = env("PRE_MOVE", 0.0);
+    if pre_move != 0.0 {
+        for target in [[-pre_move, pre_move], [pre_move, -pre_move], [0.0, 0.0]] {
+            sim.move_to(spm_hal::MoveRequest {
+                target: CountPoint::from_counts(target[0], target[1]),
+                speed: spm_hal::CountsPerSecond(20_000.0),
+                settle: Seconds(10.0),
+            })
+            .unwrap();
+        }
+    }
     let pre_wait = env("PRE_WAIT", 0.0);
     if pre_wait > 0.0 {
         sim.wait(Seconds(pre_wait)).unwrap();
@@ -78,13 +124,29 @@ fn main() {
             pixel_dwell: Seconds(dwell),
             record_backward: true,
         };
+        let settle = env("SETTLE", 0.0);
+        if settle > 0.0 {
+            rec.move_to(spm_hal::MoveRequest {
+                target: CountPoint::from_counts(0.0, 0.0),
+                speed: spm_hal::CountsPerSecond(20_000.0),
+                settle: Seconds(settle),
+            })
+            .unwrap();
+        }
         let frame = rec.scan(&request).unwrap();
-        let f = frame.height_map(TraceHalf::Forward).unwrap();
-        let b = frame.height_map(TraceHalf::Backward).unwrap();
-        if group == 0 {
+        let skip_lines = env("SKIP_LINES", 0.0) as usize;
+        let strip = |mut m: spm_hal::HeightMap| {
+            m.z_counts.drain(..skip_lines * m.columns);
+            m.time_s.drain(..skip_lines * m.columns);
+            m.rows -= skip_lines;
+            m
+        };
+        let f = strip(frame.height_map(TraceHalf::Forward).unwrap());
+        let b = strip(frame.height_map(TraceHalf::Backward).unwrap());
+        if group == env("DUMP_GROUP", 99.0) as usize {
             let _ = std::fs::write(
-                "/tmp/probe0.json",
-                format!("{:?}\n{:?}", f.z_counts, b.z_counts),
+                "/tmp/probe.txt",
+                format!("{:?}\n{:?}\n{}", f.z_counts, b.z_counts, f.rows),
             );
         }
         let (shifts, disagreeing) = spm_features::trace_retrace_shifts(

@@ -80,6 +80,8 @@ pub struct DynamicsReport {
     pub loops_x: Vec<LoopRow>,
     /// Identified creep γ per decade (0.1 s … 10 s).
     pub creep_gamma_per_decade: Option<f64>,
+    /// γ of the attachment tracks' creep fit alone (the cross-check).
+    pub track_creep_gamma_per_decade: Option<f64>,
     /// The simulator's γ.
     pub true_creep_gamma_per_decade: Option<f64>,
     /// What was not identified, and why.
@@ -167,9 +169,10 @@ pub fn identify(
             ladder.len()
         ));
     }
-    // The creep from the attachment tracks, where creep and drift alone move the features
-    // (spm_correction::dynamics::fit_creep_law); the ladder then identifies the hysteresis
-    // with that creep subtracted. Without tracks, both from the ladder jointly.
+    // Creep and hysteresis jointly: the ladder's two line rates separate the rate-dependent
+    // creep from the rate-independent hysteresis, and the attachment tracks (where creep and
+    // drift alone move the features) add the creep of long moves. The tracks' own creep fit
+    // (spm_correction::dynamics::fit_creep_law) is reported beside it as a cross-check.
     let (tau_min, tau_max, per_decade) = creep_shape;
     let track_creep = spm_correction::dynamics::CreepLaw::log_spaced(
         0.0, tau_min, tau_max, per_decade,
@@ -177,26 +180,10 @@ pub fn identify(
     .and_then(|shape| {
         spm_correction::dynamics::fit_creep_law(&history, &shape, tracks, TRACK_DRIFT_WINDOW_S)
     });
-    let fixed_creep_weight = match &track_creep {
-        Ok(fit) => {
-            notes.push(format!(
-                "creep from {} attachment tracks ({} sightings), hysteresis from the ladder with \
-                 that creep subtracted",
-                fit.tracks, fit.sightings
-            ));
-            Some(fit.law.weight())
-        }
-        Err(e) => {
-            notes.push(format!(
-                "creep and hysteresis both from the ladder (the attachment tracks did not fix \
-                 the creep: {e})"
-            ));
-            None
-        }
-    };
+    let track_creep_gamma_per_decade = track_creep.as_ref().ok().map(|f| f.gamma_per_decade);
     // Attachment tracks: every later sighting against the first, both axes (creep and drift).
     let group0 = ladder.len();
-    for track in tracks.iter().filter(|_| fixed_creep_weight.is_none()) {
+    for track in tracks {
         let Some(&(t0, x0, y0)) = track.sightings.first() else {
             continue;
         };
@@ -236,7 +223,7 @@ pub fn identify(
     );
     let setup = DynamicsFitSetup {
         thresholds_counts: [grid_x, Vec::new()],
-        fixed_creep_weight,
+        fixed_creep_weight: None,
         creep_shape: CreepParameters {
             weight: 0.0,
             min_time_constant_s: tau_min,
@@ -296,6 +283,7 @@ pub fn identify(
         track_sightings,
         loops_x,
         creep_gamma_per_decade,
+        track_creep_gamma_per_decade,
         true_creep_gamma_per_decade: truth.map(|t| t.creep_gamma_per_decade),
         notes,
     }

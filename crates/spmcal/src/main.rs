@@ -45,8 +45,36 @@ enum Command {
     /// Run the calibration plan of a config on the backend it names; append to the CDB.
     Calibrate {
         /// The job config (TOML): `[backend]` and `[plan]`.
-        #[arg(long, value_name = "FILE")]
-        config: PathBuf,
+        #[arg(long, value_name = "FILE", required_unless_present = "virtual_image", conflicts_with = "virtual_image")]
+        config: Option<PathBuf>,
+        /// Virtual calibration mode: calibrate on this stored image of a standard (any format
+        /// spmcal reads) instead of an instrument; the plan is built for the image.
+        #[arg(long = "virtual", value_name = "IMAGE", requires = "standard")]
+        virtual_image: Option<PathBuf>,
+        /// With --virtual: the standard the image shows, hopg (atoms, a = 0.2461 nm) or
+        /// si7x7 (corner holes, a = 2.688 nm).
+        #[arg(long, value_name = "hopg|si7x7", requires = "virtual_image")]
+        standard: Option<spm_calibration::StandardName>,
+        /// With --virtual: the height channel (default Z, else Topography, else the first in m).
+        #[arg(long, value_name = "NAME", requires = "virtual_image")]
+        channel: Option<String>,
+        /// With --virtual: nodes per side of the net (default 4).
+        #[arg(long, value_name = "N", requires = "virtual_image", default_value_t = 4)]
+        nodes: u32,
+        /// With --virtual: repeats l of the net (default 3).
+        #[arg(long, value_name = "L", requires = "virtual_image", default_value_t = 3)]
+        repeats: u32,
+        /// With --virtual: the virtual scanner's nominal sensitivity, nm per count (default:
+        /// the image's pixel size / 10).
+        #[arg(long, value_name = "NM", requires = "virtual_image")]
+        nominal_nm_per_count: Option<f64>,
+        /// With --virtual: the pixel size, nm, for files that state none (raw).
+        #[arg(long, value_name = "NM", requires = "virtual_image")]
+        pixel_nm: Option<f64>,
+        /// With --virtual: a consecutive frame of the same area scanned the other way,
+        /// served for counter scans.
+        #[arg(long, value_name = "IMAGE", requires = "virtual_image")]
+        counter_image: Option<PathBuf>,
         /// The calibration database: a file (created when missing; default OUT/cdb.sqlite)
         /// or a shared PostgreSQL database, postgres://USER@HOST:PORT/DB (the schema is
         /// created when missing).
@@ -296,10 +324,19 @@ impl Command {
         let mut paths = Vec::new();
         match self {
             Self::Calibrate {
-                config, cdb, out, ..
+                config,
+                virtual_image,
+                counter_image,
+                cdb,
+                out,
+                ..
             } => {
-                paths.push(config.clone());
-                paths.extend(spmcal::job::Job::referenced_files(config));
+                if let Some(config) = config {
+                    paths.push(config.clone());
+                    paths.extend(spmcal::job::Job::referenced_files(config));
+                }
+                paths.extend(virtual_image.iter().cloned());
+                paths.extend(counter_image.iter().cloned());
                 let out = out
                     .clone()
                     .unwrap_or_else(|| PathBuf::from(calibrate_cmd::DEFAULT_OUT));
@@ -425,13 +462,40 @@ fn run(command: Command) -> Result<(), CliError> {
         },
         Command::Calibrate {
             config,
+            virtual_image,
+            standard,
+            channel,
+            nodes,
+            repeats,
+            nominal_nm_per_count,
+            pixel_nm,
+            counter_image,
             cdb,
             resume,
             out,
             image_benchmark,
             quick,
         } => calibrate_cmd::run(
-            &config,
+            &match (config, virtual_image, standard) {
+                (_, Some(image), Some(standard)) => {
+                    calibrate_cmd::JobSource::Virtual(image, spmcal::virtual_mode::VirtualRunOptions {
+                        standard,
+                        channel,
+                        nominal_nm_per_count,
+                        nodes_per_side: nodes,
+                        repeats,
+                        pixel_nm,
+                        counter_image,
+                    })
+                }
+                (Some(config), _, _) => calibrate_cmd::JobSource::Config(config),
+                _ => {
+                    return Err(CliError::BadInput(
+                        "calibrate: give --config FILE, or --virtual IMAGE --standard hopg|si7x7"
+                            .into(),
+                    ));
+                }
+            },
             cdb.as_deref(),
             resume,
             out.as_deref(),

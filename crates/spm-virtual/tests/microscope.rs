@@ -214,3 +214,64 @@ fn a_file_channel_is_turned_into_scanner_geometry_in_nanometres() {
         Err(ImageError::NotAHeight { .. })
     ));
 }
+
+#[test]
+fn background_removal_takes_planes_away_and_keeps_a_lattice_by_the_closed_form() {
+    let (nx, ny) = (96usize, 80usize);
+    let period_px = 7.0;
+    let sigma_px = 6.0;
+    let omega = 2.0 * std::f64::consts::PI / period_px;
+    let h: Vec<f64> = (0..nx * ny)
+        .map(|i| {
+            let (x, y) = ((i % nx) as f64, (i / nx) as f64);
+            3.0 + 0.2 * x - 0.15 * y + 0.01 * (omega * x).cos()
+        })
+        .collect();
+    let image = StoredImage::new(h, nx, ny, 0.1, 0.1, ImageTiming { line_time_s: 0.1 }).unwrap();
+    let flat = image.without_background(sigma_px).unwrap();
+    // Gain of the high-pass at this period: 1 − exp(−2π²σ²/P²) (Gaussian's transform).
+    let gain = 1.0 - (-2.0 * std::f64::consts::PI.powi(2) * sigma_px.powi(2) / period_px.powi(2)).exp();
+    let reach = 25; // beyond 4 σ from every edge the window is whole
+    for row in reach..ny - reach {
+        for column in reach..nx - reach {
+            let expected = 0.01 * gain * (omega * column as f64).cos();
+            let v = flat.heights_nm()[row * nx + column];
+            assert!((v - expected).abs() < 1e-6, "({column}, {row}): {v} vs {expected}");
+        }
+    }
+    // A plane alone is removed everywhere, edges included.
+    let plane: Vec<f64> = (0..nx * ny)
+        .map(|i| 1.0 + 0.3 * (i % nx) as f64 + 0.7 * (i / nx) as f64)
+        .collect();
+    let plane = StoredImage::new(plane, nx, ny, 0.1, 0.1, ImageTiming { line_time_s: 0.1 })
+        .unwrap()
+        .without_background(sigma_px)
+        .unwrap();
+    assert!(plane.heights_nm().iter().all(|v| v.abs() < 1e-8));
+    assert!(image.without_background(0.0).is_err());
+}
+
+#[test]
+fn smoothing_attenuates_a_sinusoid_by_the_gaussians_transform() {
+    let (nx, ny) = (90usize, 40usize);
+    let (period_px, sigma_px) = (9.0, 1.2);
+    let omega = 2.0 * std::f64::consts::PI / period_px;
+    let h: Vec<f64> = (0..nx * ny).map(|i| (omega * (i % nx) as f64).sin()).collect();
+    let image = StoredImage::new(h, nx, ny, 0.1, 0.1, ImageTiming { line_time_s: 0.1 }).unwrap();
+    let smooth = image.smoothed(sigma_px).unwrap();
+    // The sampled Gaussian's transform: Σ w_k cos(ω k) / Σ w_k over the cut kernel.
+    let reach = (4.0 * sigma_px).ceil() as i32;
+    let w = |k: i32| (-0.5 * (f64::from(k) / sigma_px).powi(2)).exp();
+    let gain = (-reach..=reach).map(|k| w(k) * (omega * f64::from(k)).cos()).sum::<f64>()
+        / (-reach..=reach).map(w).sum::<f64>();
+    // Close to the continuous exp(−2π²σ²/P²).
+    let continuous = (-2.0 * std::f64::consts::PI.powi(2) * sigma_px.powi(2) / period_px.powi(2)).exp();
+    assert!((gain - continuous).abs() < 1e-3, "{gain} vs {continuous}");
+    for row in 0..ny {
+        for column in 6..nx - 6 {
+            let expected = gain * (omega * column as f64).sin();
+            let v = smooth.heights_nm()[row * nx + column];
+            assert!((v - expected).abs() < 1e-9, "({column}, {row}): {v} vs {expected}");
+        }
+    }
+}

@@ -6,7 +6,7 @@ fn main() {
     let std: spm_calibration::StandardName = args[2].parse().unwrap();
     let size_a: f64 = args[3].parse().unwrap();
     let px: u32 = args[4].parse().unwrap();
-    let opts = spmcal::virtual_mode::VirtualRunOptions::new(std);
+    let mut opts = spmcal::virtual_mode::VirtualRunOptions::new(std); opts.smoothing_sigma_lattice = std::env::var("VSMOOTH").ok().and_then(|s| s.parse().ok());
     let (_, backend, plan) = spmcal::virtual_mode::virtual_job(std::path::Path::new(&args[1]), &opts).unwrap();
     let mut m = backend.microscope().unwrap();
     let caps = m.capabilities();
@@ -14,7 +14,7 @@ fn main() {
     let size = size_a * a_c;
     let step = size / f64::from(px - 1);
     let mut hit = 0; let mut total = 0; let mut nfeat = 0;
-    for (fx, fy) in (0..100).map(|i| (0.1 + 0.08 * f64::from(i % 10) + 0.0123, 0.1 + 0.08 * f64::from(i / 10) + 0.0071)) {
+    for (fx, fy) in (0..100).map(|i| (0.32 + 0.04 * f64::from(i % 10) + 0.0123, 0.32 + 0.04 * f64::from(i / 10) + 0.0071)) {
         let c = CountPoint::from_counts(caps.field_min.x.value() + fx * (caps.field_max.x - caps.field_min.x).value(), caps.field_min.y.value() + fy * (caps.field_max.y - caps.field_min.y).value());
         let req = ScanRequest::centred_square(c, Counts(step), px, Seconds(1e-4));
         let f = m.scan(&req).unwrap();

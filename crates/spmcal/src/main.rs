@@ -75,6 +75,16 @@ enum Command {
         /// served for counter scans.
         #[arg(long, value_name = "IMAGE", requires = "virtual_image")]
         counter_image: Option<PathBuf>,
+        /// With --virtual: smooth the image by a Gaussian this many lattice constants wide
+        /// (default 0.05 for hopg, 0.15 for si7x7).
+        #[arg(long, value_name = "LATTICE", requires = "virtual_image")]
+        smooth: Option<f64>,
+        /// With --virtual: accepted LCS angle deviation, degrees.
+        #[arg(long, value_name = "DEG", requires = "virtual_image", default_value_t = 20.0)]
+        angle_tolerance_deg: f64,
+        /// With --virtual: accepted relative deviation of LCS sides.
+        #[arg(long, value_name = "FRACTION", requires = "virtual_image", default_value_t = 0.35)]
+        length_tolerance: f64,
         /// The calibration database: a file (created when missing; default OUT/cdb.sqlite)
         /// or a shared PostgreSQL database, postgres://USER@HOST:PORT/DB (the schema is
         /// created when missing).
@@ -470,6 +480,9 @@ fn run(command: Command) -> Result<(), CliError> {
             nominal_nm_per_count,
             pixel_nm,
             counter_image,
+            smooth,
+            angle_tolerance_deg,
+            length_tolerance,
             cdb,
             resume,
             out,
@@ -486,6 +499,9 @@ fn run(command: Command) -> Result<(), CliError> {
                         repeats,
                         pixel_nm,
                         counter_image,
+                        smoothing_sigma_lattice: smooth,
+                        angle_tolerance_deg,
+                        length_tolerance_fraction: length_tolerance,
                     })
                 }
                 (Some(config), _, _) => calibrate_cmd::JobSource::Config(config),

@@ -19,6 +19,10 @@ use std::path::{Path, PathBuf};
 /// across it.
 pub const MIN_PIXELS_PER_LATTICE: f64 = 6.0;
 
+/// The net's margin from the image's usable edge, lattice constants: half the aperture and
+/// a quarter lattice constant.
+pub const MARGIN_LATTICE: f64 = 2.25;
+
 /// Counts per image pixel of the default nominal sensitivity (pixel size / 10).
 pub const DEFAULT_COUNTS_PER_PIXEL: f64 = 10.0;
 
@@ -61,10 +65,17 @@ pub struct VirtualBackendConfig {
     pub smoothing_sigma_nm: Option<f64>,
 }
 
-/// Width of the smoothing `--virtual` applies, lattice constants (the lattice keeps
-/// `exp(−2π²·0.05²)` ≈ 95 % of its corrugation; on the HOPG terrace it lifts the share of
-/// tracking segments that recognise their atom from 57 % to 71 %).
-pub const SMOOTHING_SIGMA_LATTICE: f64 = 0.05;
+/// Width of the smoothing `--virtual` applies by default, lattice constants: for HOPG
+/// 0.05 (the lattice keeps `exp(−2π²·0.05²)` ≈ 95 % of its corrugation; on the HOPG
+/// terrace it lifts the share of tracking segments that recognise their atom from 57 % to
+/// 71 %); for Si(111)-7×7 as well (wider, 0.15, widens the corner holes until the
+/// detector takes them for defects on Si_7x7_051).
+#[must_use]
+pub fn default_smoothing_sigma_lattice(standard: StandardName) -> f64 {
+    match standard {
+        StandardName::Hopg | StandardName::Si7x7 => 0.05,
+    }
+}
 
 /// Width of the background `--virtual` removes, lattice constants: the lattice keeps more
 /// than 99.9 % of its corrugation, terraces and tilt are gone.
@@ -447,6 +458,13 @@ pub struct VirtualRunOptions {
     pub pixel_nm: Option<f64>,
     /// A counter frame (a consecutive frame scanned the other way).
     pub counter_image: Option<PathBuf>,
+    /// Width of the smoothing, lattice constants (default
+    /// [`default_smoothing_sigma_lattice`]).
+    pub smoothing_sigma_lattice: Option<f64>,
+    /// Accepted LCS angle deviation, degrees (default 20).
+    pub angle_tolerance_deg: f64,
+    /// Accepted relative LCS side deviation (default 0.35).
+    pub length_tolerance_fraction: f64,
 }
 
 impl VirtualRunOptions {
@@ -461,6 +479,9 @@ impl VirtualRunOptions {
             repeats: 3,
             pixel_nm: None,
             counter_image: None,
+            smoothing_sigma_lattice: None,
+            angle_tolerance_deg: 20.0,
+            length_tolerance_fraction: 0.35,
         }
     }
 }
@@ -498,7 +519,10 @@ pub fn virtual_job(
             BACKGROUND_SIGMA_LATTICE * options.standard.lattice_constant_nm(),
         ),
         smoothing_sigma_nm: Some(
-            SMOOTHING_SIGMA_LATTICE * options.standard.lattice_constant_nm(),
+            options
+                .smoothing_sigma_lattice
+                .unwrap_or_else(|| default_smoothing_sigma_lattice(options.standard))
+                * options.standard.lattice_constant_nm(),
         ),
     };
     let loaded = probe.load(Path::new(""))?;
@@ -517,7 +541,11 @@ pub fn virtual_job(
         params: VirtualParams::new(nominal),
         ..loaded
     };
-    let standard = options.standard.standard(nominal, 0.4, 25.0);
+    let standard = options.standard.standard(
+        nominal,
+        options.length_tolerance_fraction,
+        options.angle_tolerance_deg,
+    );
     check_standard(image, &backend.surface.forward, &standard)?;
     let plan = virtual_plan(image, &backend, standard, options)?;
     Ok((config, backend, plan))
@@ -559,9 +587,9 @@ fn virtual_plan(
     plan.pause.per_count_s = 0.0;
     plan.pause.max_s = 1.0;
     plan.standard = standard;
-    // Margin: half the aperture (2 a) plus the skipping neighbours' reach (1 a) and the
-    // attachment's half segment.
-    let margin = (3.5 * a_counts).ceil();
+    // Margin: half the aperture (2 a) and a quarter lattice constant for the attachment's
+    // wandering (the first attachment's window, 1.5 a, lies inside).
+    let margin = (MARGIN_LATTICE * a_counts).ceil();
     let caps = backend.capabilities();
     let width = (caps.field_max.x - caps.field_min.x).value();
     let height = (caps.field_max.y - caps.field_min.y).value();
@@ -573,12 +601,12 @@ fn virtual_plan(
         return Err(VirtualInputError::NetTooLarge {
             path: image.to_path_buf(),
             detail: format!(
-                "a net of {0} × {0} nodes with its margins of 3.5 lattice constants needs an \
-                 image of more than {1:.1} nm ({2:.1} lattice constants of {a_nm} nm) on its \
-                 shorter side; this one is {3:.1} nm",
+                "a net of {0} × {0} nodes with its margins of {MARGIN_LATTICE} lattice constants \
+                 needs an image of more than {1:.1} nm ({2:.1} lattice constants of {a_nm} nm) \
+                 on its shorter side; this one is {3:.1} nm",
                 options.nodes_per_side,
-                7.0 * a_nm,
-                7.0,
+                2.0 * MARGIN_LATTICE * a_nm,
+                2.0 * MARGIN_LATTICE,
                 width.min(height) * plan.standard.nominal_nm_per_count
             ),
         });

@@ -551,8 +551,11 @@ pub fn virtual_job(
     Ok((config, backend, plan))
 }
 
-/// The plan of [`virtual_job`] for a loaded backend.
-fn virtual_plan(
+/// The plan of [`virtual_job`] for a loaded backend (`image` names the run and the errors).
+///
+/// # Errors
+/// [`VirtualInputError::NetTooLarge`] when the net and its margins do not fit.
+pub fn virtual_plan(
     image: &Path,
     backend: &VirtualBackend,
     standard: StandardConfig,

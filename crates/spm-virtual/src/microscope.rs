@@ -16,7 +16,8 @@ pub const MAX_SCAN_PIXELS: u32 = 4096;
 pub struct VirtualParams {
     /// Nominal lateral sensitivity, nm per count (> 0; no default: it is the statement the
     /// calibration measures against). A count is `nominal_nm_per_count / pixel_nm` image
-    /// pixels along either axis; count 0 is pixel 0.
+    /// pixels along either axis; count 0 is the image's centre (the frame's offset, as a
+    /// controller records it).
     pub nominal_nm_per_count: f64,
     /// Z sensitivity, nm per Z count (> 0). Default 0.001 (1 pm per count).
     #[serde(default = "VirtualParams::default_z_nm_per_count")]
@@ -196,18 +197,29 @@ impl VirtualMicroscope {
         )
     }
 
+    /// The image's centre pixel `(column, row)`: count 0.
+    fn centre_pixel(&self) -> (f64, f64) {
+        let image = &self.surface.forward;
+        (
+            0.5 * (image.columns() as f64 - 1.0),
+            0.5 * (image.rows() as f64 - 1.0),
+        )
+    }
+
     /// The fractional image pixel `(column, row)` of a commanded position.
     #[must_use]
     pub fn pixel_of(&self, point: CountPoint) -> (f64, f64) {
         let (cx, cy) = self.counts_per_pixel();
-        (point.x.value() / cx, point.y.value() / cy)
+        let (c0, r0) = self.centre_pixel();
+        (point.x.value() / cx + c0, point.y.value() / cy + r0)
     }
 
     /// The commanded position of a fractional image pixel.
     #[must_use]
     pub fn counts_of(&self, column: f64, row: f64) -> CountPoint {
         let (cx, cy) = self.counts_per_pixel();
-        CountPoint::from_counts(column * cx, row * cy)
+        let (c0, r0) = self.centre_pixel();
+        CountPoint::from_counts((column - c0) * cx, (row - r0) * cy)
     }
 
     fn inside(&self, point: CountPoint) -> bool {

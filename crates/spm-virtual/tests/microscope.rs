@@ -21,18 +21,19 @@ fn plane(offset: f64, gx: f64, gy: f64) -> StoredImage {
 
 #[test]
 fn counts_map_to_pixels_through_the_nominal_sensitivity() {
-    // 0.05 nm per count: 4 counts per 0.2-nm column, 5 counts per 0.25-nm row.
+    // 0.05 nm per count: 4 counts per 0.2-nm column, 5 counts per 0.25-nm row; count 0 at
+    // the centre pixel (19.5, 14.5).
     let mut m = VirtualMicroscope::new(
         VirtualSurface::single(plane(0.0, 0.01, 0.1)),
         VirtualParams::new(0.05),
     )
     .unwrap();
     let caps = m.capabilities();
-    assert_eq!(caps.field_min, CountPoint::from_counts(4.0, 5.0));
-    assert_eq!(caps.field_max, CountPoint::from_counts(38.0 * 4.0, 28.0 * 5.0));
-    // One pixel at (column 7.25, row 3.5) = (29, 17.5) counts.
+    assert_eq!(caps.field_min, CountPoint::from_counts(-18.5 * 4.0, -13.5 * 5.0));
+    assert_eq!(caps.field_max, CountPoint::from_counts(18.5 * 4.0, 13.5 * 5.0));
+    // One pixel at (column 7.25, row 3.5) = ((7.25 − 19.5)·4, (3.5 − 14.5)·5) counts.
     let request = ScanRequest::centred_square(
-        CountPoint::from_counts(29.0, 17.5),
+        CountPoint::from_counts(-49.0, -55.0),
         Counts(1.0),
         1,
         Seconds(1e-3),
@@ -41,7 +42,7 @@ fn counts_map_to_pixels_through_the_nominal_sensitivity() {
     let expected_nm = 0.01 * 7.25 + 0.1 * 3.5;
     assert!((frame.forward.z_counts[0] * 0.001 - expected_nm).abs() < 1e-12);
     // The position reading is the command.
-    let target = CountPoint::from_counts(100.0, 60.0);
+    let target = CountPoint::from_counts(30.0, -20.0);
     m.move_to(MoveRequest {
         target,
         speed: CountsPerSecond(50.0),
@@ -71,7 +72,7 @@ fn moves_scans_and_waits_advance_the_clock_at_the_files_speed() {
     m.wait(Seconds(1.0)).unwrap();
     // A 6 × 4 raster with a 2-count step: half a column, 2 ms per column (0.08 s / 40).
     let request = ScanRequest {
-        origin: CountPoint::from_counts(20.0, 20.0),
+        origin: CountPoint::from_counts(-20.0, -20.0),
         pixel_step: Counts(2.0),
         pixels_per_line: 6,
         lines: 4,
@@ -101,7 +102,7 @@ fn backward_halves_and_counter_scans_are_served_from_their_own_frames() {
     };
     let mut m = VirtualMicroscope::new(surface, VirtualParams::new(0.05)).unwrap();
     let mut request = ScanRequest::centred_square(
-        CountPoint::from_counts(60.0, 60.0),
+        CountPoint::from_counts(0.0, 0.0),
         Counts(4.0),
         5,
         Seconds(1e-3),
@@ -126,7 +127,7 @@ fn a_counter_scan_of_one_image_sees_the_same_heights_in_reverse_order() {
     )
     .unwrap();
     let request = ScanRequest::centred_square(
-        CountPoint::from_counts(70.0, 70.0),
+        CountPoint::from_counts(10.0, 10.0),
         Counts(3.0),
         7,
         Seconds(1e-3),

@@ -123,7 +123,7 @@ fn lccs_measured_on_a_simulated_image_agree_with_the_oracle_within_their_uncerta
         record_backward: false,
     };
     let map = sim.scan(&request).unwrap().height_map(TraceHalf::Forward).unwrap();
-    // Virtual counts = simulator counts − origin: 1.5 counts per pixel at a nominal
+    // Virtual counts = simulator counts − the image's centre: 1.5 counts per pixel at a nominal
     // sensitivity a user would state (the mean of K̄x and K̄y at the image's centre, rounded).
     let centre = sim.oracle().true_lcc(
         CountPoint::from_counts(12_000.0 + 525.0, -8_000.0 + 525.0),
@@ -170,9 +170,10 @@ fn lccs_measured_on_a_simulated_image_agree_with_the_oracle_within_their_uncerta
     let mut worst: f64 = 0.0;
     let (mut sum_z2, mut relative_u_kx) = (0.0, Vec::new());
     for r in records {
+        let half = 0.5 * f64::from(n - 1) * step;
         let place = CountPoint::from_counts(
-            origin.x.value() + r.lcs_x_counts,
-            origin.y.value() + r.lcs_y_counts,
+            origin.x.value() + half + r.lcs_x_counts,
+            origin.y.value() + half + r.lcs_y_counts,
         );
         let truth = oracle.true_lcc(place, Counts(z.value()));
         relative_u_kx.push(r.u_kx_nm_per_count.unwrap() / r.kx_nm_per_count);

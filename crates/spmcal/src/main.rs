@@ -13,6 +13,7 @@ mod error;
 mod files;
 mod fit_cmd;
 mod info;
+mod lattice_cmd;
 mod nanonis_sim_cmd;
 mod simulate_cmd;
 
@@ -58,11 +59,12 @@ enum Command {
         /// With --virtual: the height channel (default Z, else Topography, else the first in m).
         #[arg(long, value_name = "NAME", requires = "virtual_image")]
         channel: Option<String>,
-        /// With --virtual: nodes per side of the net (default 4).
-        #[arg(long, value_name = "N", requires = "virtual_image", default_value_t = 4)]
+        /// With --virtual: nodes per side of the net (default 5).
+        #[arg(long, value_name = "N", requires = "virtual_image", default_value_t = 5)]
         nodes: u32,
-        /// With --virtual: repeats l of the net (default 3).
-        #[arg(long, value_name = "L", requires = "virtual_image", default_value_t = 3)]
+        /// With --virtual: repeats l of the net (default 1: a stored image does not change,
+        /// so a repeat returns the same coefficients).
+        #[arg(long, value_name = "L", requires = "virtual_image", default_value_t = 1)]
         repeats: u32,
         /// With --virtual: the virtual scanner's nominal sensitivity, nm per count (default:
         /// the image's pixel size / 10).
@@ -178,6 +180,25 @@ enum Command {
         /// The files: one gets a full description, several a one-line-per-file table.
         #[arg(required = true)]
         files: Vec<PathBuf>,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Measure the lattice of a standard on image files (before or after `spmcal correct`):
+    /// lattice constant and angle over the whole image and in a grid of cells.
+    Lattice {
+        /// The image files.
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+        /// The standard the images show: hopg or si7x7.
+        #[arg(long, value_name = "hopg|si7x7")]
+        standard: spm_calibration::StandardName,
+        /// Cells per side of the grid (default 4).
+        #[arg(long, value_name = "N", default_value_t = 4)]
+        grid: usize,
+        /// The height channel (default Z, else Topography, else the first in m).
+        #[arg(long, value_name = "NAME")]
+        channel: Option<String>,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
@@ -368,7 +389,9 @@ impl Command {
                 paths.extend(out.iter().cloned());
                 paths.extend(out_dir.iter().cloned());
             }
-            Self::Info { files, .. } => paths.extend(files.iter().cloned()),
+            Self::Info { files, .. } | Self::Lattice { files, .. } => {
+                paths.extend(files.iter().cloned());
+            }
             Self::Diagnose {
                 files, json, png, ..
             } => {
@@ -452,6 +475,13 @@ fn install_subscriber(log: Option<&std::path::Path>) -> Option<()> {
 fn run(command: Command) -> Result<(), CliError> {
     match command {
         Command::Info { files, json } => info::run(&files, json),
+        Command::Lattice {
+            files,
+            standard,
+            grid,
+            channel,
+            json,
+        } => lattice_cmd::run(&files, standard, grid, channel.as_deref(), json),
         Command::Fit {
             cdb,
             scanner,

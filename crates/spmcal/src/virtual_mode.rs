@@ -19,9 +19,14 @@ use std::path::{Path, PathBuf};
 /// across it.
 pub const MIN_PIXELS_PER_LATTICE: f64 = 6.0;
 
-/// The net's margin from the image's usable edge, lattice constants: half the aperture and
-/// a quarter lattice constant.
+/// The net's smallest margin from the image's usable edge, lattice constants: half the
+/// aperture and a quarter lattice constant (an aperture centred on a feature up to a
+/// lattice constant from its node may then leave the image: that visit is given up).
 pub const MARGIN_LATTICE: f64 = 2.25;
+
+/// The net's margin when the image is large enough ([`MARGIN_LATTICE`] otherwise): room for
+/// an aperture centred on a feature 1.5 lattice constants from its node.
+pub const ROOMY_MARGIN_LATTICE: f64 = 3.5;
 
 /// Counts per image pixel of the default nominal sensitivity (pixel size / 10).
 pub const DEFAULT_COUNTS_PER_PIXEL: f64 = 10.0;
@@ -450,9 +455,10 @@ pub struct VirtualRunOptions {
     pub channel: Option<String>,
     /// Nominal sensitivity, nm per count (default: pixel size / [`DEFAULT_COUNTS_PER_PIXEL`]).
     pub nominal_nm_per_count: Option<f64>,
-    /// Nodes per side of the net (default 4, at least 2).
+    /// Nodes per side of the net (default 5, at least 2).
     pub nodes_per_side: u32,
-    /// Repeats l (default 3).
+    /// Repeats l (default 1: a stored image does not change between repeats, so each
+    /// repeat returns the same coefficients at a node).
     pub repeats: u32,
     /// Pixel size, nm, for files without one.
     pub pixel_nm: Option<f64>,
@@ -475,8 +481,8 @@ impl VirtualRunOptions {
             standard,
             channel: None,
             nominal_nm_per_count: None,
-            nodes_per_side: 4,
-            repeats: 3,
+            nodes_per_side: 5,
+            repeats: 1,
             pixel_nm: None,
             counter_image: None,
             smoothing_sigma_lattice: None,
@@ -592,12 +598,15 @@ pub fn virtual_plan(
     plan.standard = standard;
     // Margin: half the aperture (2 a) and a quarter lattice constant for the attachment's
     // wandering (the first attachment's window, 1.5 a, lies inside).
-    let margin = (MARGIN_LATTICE * a_counts).ceil();
     let caps = backend.capabilities();
     let width = (caps.field_max.x - caps.field_min.x).value();
     let height = (caps.field_max.y - caps.field_min.y).value();
-    let span = width.min(height) - 2.0 * margin;
     let n = f64::from(options.nodes_per_side - 1);
+    // The roomy margin when the nodes stay at least a lattice constant apart with it.
+    let roomy = width.min(height) - 2.0 * ROOMY_MARGIN_LATTICE * a_counts >= n * a_counts;
+    let margin_lattice = if roomy { ROOMY_MARGIN_LATTICE } else { MARGIN_LATTICE };
+    let margin = (margin_lattice * a_counts).ceil();
+    let span = width.min(height) - 2.0 * margin;
     let step_counts = (span / n).floor();
     if !(step_counts >= 1.0) {
         let a_nm = plan.standard.lattice_constant_nm;
@@ -621,4 +630,116 @@ pub fn virtual_plan(
         detail: format!("the plan built for this image is invalid: {e}"),
     })?;
     Ok(plan)
+}
+
+/// The lattice measured in one cell of a grid over an image.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct CellLattice {
+    /// Cell column (0 = left).
+    pub column: usize,
+    /// Cell row (0 = bottom).
+    pub row: usize,
+    /// The lattice found, or `None` when the cell holds too few features.
+    pub lattice: Option<ImageLattice>,
+}
+
+/// The lattice of the standard measured on an image file, whole and in a `grid` × `grid`
+/// partition (spm-features: detector and neighbour statistics; the file's own pixel size).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LatticeSurvey {
+    /// The file.
+    pub file: PathBuf,
+    /// The standard.
+    pub standard: &'static str,
+    /// Its lattice constant, nm.
+    pub lattice_constant_nm: f64,
+    /// The whole image.
+    pub whole: Option<ImageLattice>,
+    /// The cells.
+    pub cells: Vec<CellLattice>,
+}
+
+impl ImageLattice {
+    /// Mean of the two basis lengths, nm.
+    #[must_use]
+    pub fn mean_length_nm(&self) -> f64 {
+        0.5 * (self.lengths_nm[0] + self.lengths_nm[1])
+    }
+
+    /// The angle between the basis vectors folded to the lattice's acute angle, degrees.
+    #[must_use]
+    pub fn acute_angle_deg(&self) -> f64 {
+        self.angle_deg.min(180.0 - self.angle_deg)
+    }
+}
+
+/// Measures the lattice of `standard` on an image file (the height channel, each part
+/// levelled and smoothed as `--virtual` serves an image), whole and in a `grid` × `grid`
+/// partition; a part with pixels without data (a corrected image's corners) gets no lattice.
+///
+/// # Errors
+/// [`VirtualInputError`] when the file cannot be read or has no height channel.
+pub fn survey_lattice(
+    path: &Path,
+    standard: StandardName,
+    channel: Option<&str>,
+    grid: usize,
+) -> Result<LatticeSurvey, VirtualInputError> {
+    let a = standard.lattice_constant_nm();
+    let file = spm_formats::read_any(path)?;
+    let (forward, _) = pick_channels(&file, channel).ok_or_else(|| VirtualInputError::NoChannel {
+        path: path.to_path_buf(),
+        wanted: channel.unwrap_or("Z (or Topography, or any in metres)").to_owned(),
+        available: file.channels.iter().map(|c| c.name().to_owned()).collect::<Vec<_>>().join(", "),
+    })?;
+    let image_error = |source| VirtualInputError::Image {
+        path: path.to_path_buf(),
+        channel: forward.name().to_owned(),
+        source,
+    };
+    let (Some(pixel_x_nm), Some(pixel_y_nm)) = (forward.pixel_x_nm(), forward.pixel_y_nm()) else {
+        return Err(image_error(spm_virtual::ImageError::NoPixelSize));
+    };
+    let scale = if forward.unit() == "nm" { 1.0 } else { 1e9 };
+    let polarity = match standard.feature() {
+        spm_calibration::FeaturePolarity::Hills => Polarity::Hill,
+        spm_calibration::FeaturePolarity::Pits => Polarity::Pit,
+    };
+    let (nx, ny) = (forward.nx(), forward.ny());
+    // A part in scanner geometry (rows from the bottom), levelled, smoothed, measured.
+    let measure = |column0: usize, row0: usize, w: usize, h: usize| -> Option<ImageLattice> {
+        let mut heights = Vec::with_capacity(w * h);
+        for row in row0..row0 + h {
+            let display_row = ny.checked_sub(row + 1)?;
+            for column in column0..column0 + w {
+                heights.push(forward.get(display_row, column)? * scale);
+            }
+        }
+        let timing = spm_virtual::ImageTiming { line_time_s: 0.1 };
+        let image = StoredImage::new(heights, w, h, pixel_x_nm, pixel_y_nm, timing).ok()?;
+        let image = image
+            .without_background(BACKGROUND_SIGMA_LATTICE * a / pixel_x_nm)
+            .and_then(|i| i.smoothed(default_smoothing_sigma_lattice(standard) * a / pixel_x_nm))
+            .ok()?;
+        measure_lattice(&image, polarity, a).ok()
+    };
+    let grid = grid.max(1);
+    let (w, h) = (nx / grid, ny / grid);
+    let mut cells = Vec::with_capacity(grid * grid);
+    for row in 0..grid {
+        for column in 0..grid {
+            cells.push(CellLattice {
+                column,
+                row,
+                lattice: measure(column * w, row * h, w, h),
+            });
+        }
+    }
+    Ok(LatticeSurvey {
+        file: path.to_path_buf(),
+        standard: standard.as_str(),
+        lattice_constant_nm: a,
+        whole: measure(0, 0, nx, ny),
+        cells,
+    })
 }

@@ -215,3 +215,40 @@ fn lccs_measured_on_a_simulated_image_agree_with_the_oracle_within_their_uncerta
     let variation = (kx_at(12_000.0 + 1050.0) - kx_at(12_000.0)).abs() / kx_at(12_000.0);
     assert!(variation > 3.0 * median_u, "variation {variation} vs median u {median_u}");
 }
+
+#[test]
+fn a_job_file_names_the_virtual_backend_and_its_plan_is_checked_against_the_image() {
+    let dir = std::env::temp_dir().join(format!("spmcal-virtual-job-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let image = lattice_file(&dir, "hopg.gsf", 160, 0.02, false);
+    let options = VirtualRunOptions::new(StandardName::Hopg);
+    let (_, _, plan) = spmcal::virtual_mode::virtual_job(&image, &options).unwrap();
+    let nominal = plan.standard.nominal_nm_per_count;
+    let job_text = format!(
+        "[backend]\nkind = \"virtual\"\nimage = \"hopg.gsf\"\nnominal_nm_per_count = {nominal}\n\n{}",
+        plan.to_toml_string().unwrap()
+    );
+    let job_path = dir.join("job.toml");
+    std::fs::write(&job_path, &job_text).unwrap();
+    let job = spmcal::job::Job::from_file(&job_path).unwrap();
+    assert!(matches!(job.backend, spmcal::job::Backend::Virtual(_)));
+    assert_eq!(
+        spmcal::job::Job::referenced_files(&job_path),
+        vec![dir.join("hopg.gsf")]
+    );
+    // The same job claiming Si(111)-7×7 corner holes (the plan scaled to stay the same in
+    // counts) is refused by the image check, naming the image.
+    let scaled = nominal * 2.688 / 0.2461;
+    let si = job_text
+        .replace(&format!("nominal_nm_per_count = {nominal}"), &format!("nominal_nm_per_count = {scaled}"))
+        .replace("name = \"hopg\"", "name = \"si7x7\"")
+        .replace("lattice_constant_nm = 0.2461", "lattice_constant_nm = 2.688")
+        .replace("feature = \"hills\"", "feature = \"pits\"");
+    std::fs::write(&job_path, &si).unwrap();
+    let message = spmcal::job::Job::from_file(&job_path).unwrap_err().to_string();
+    assert!(message.contains("hopg.gsf") && message.contains("does not show si7x7"), "{message}");
+    // Unknown fields of the virtual backend are refused.
+    std::fs::write(&job_path, job_text.replace("[backend]\n", "[backend]\ncolour = 3\n")).unwrap();
+    assert!(spmcal::job::Job::from_file(&job_path).is_err());
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -924,10 +924,16 @@ mod tests {
         let text = old.to_toml_string().unwrap();
         assert!(!text.contains("name ="), "{text}");
         let si = text
-            .replace("lattice_constant_nm = 0.2461", "name = \"si7x7\"\nlattice_constant_nm = 2.688")
+            .replace(
+                "lattice_constant_nm = 0.2461",
+                "name = \"si7x7\"\nlattice_constant_nm = 2.688",
+            )
             .replace("feature = \"hills\"", "feature = \"pits\"")
             // The same lattice in counts: ten times the lattice, ten times the nm per count.
-            .replace("nominal_nm_per_count = 0.02", "nominal_nm_per_count = 0.2184");
+            .replace(
+                "nominal_nm_per_count = 0.02",
+                "nominal_nm_per_count = 0.2184",
+            );
         let plan = PlanConfig::from_toml_str(&si, "si.toml").unwrap();
         assert_eq!(plan.standard.name, Some(StandardName::Si7x7));
         assert_eq!(
@@ -940,11 +946,21 @@ mod tests {
         );
         // A name contradicting the lattice or the polarity is refused with its line.
         let wrong = si.replace("feature = \"pits\"", "feature = \"hills\"");
-        let message = PlanConfig::from_toml_str(&wrong, "si.toml").unwrap_err().to_string();
+        let message = PlanConfig::from_toml_str(&wrong, "si.toml")
+            .unwrap_err()
+            .to_string();
         assert!(message.contains("plan.standard.feature"), "{message}");
-        let wrong = si.replace("lattice_constant_nm = 2.688", "lattice_constant_nm = 0.2461");
-        let message = PlanConfig::from_toml_str(&wrong, "si.toml").unwrap_err().to_string();
-        assert!(message.contains("plan.standard.lattice_constant_nm"), "{message}");
+        let wrong = si.replace(
+            "lattice_constant_nm = 2.688",
+            "lattice_constant_nm = 0.2461",
+        );
+        let message = PlanConfig::from_toml_str(&wrong, "si.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains("plan.standard.lattice_constant_nm"),
+            "{message}"
+        );
         assert_eq!("SI7x7".parse::<StandardName>(), Ok(StandardName::Si7x7));
         assert!("gold".parse::<StandardName>().is_err());
     }

@@ -25,7 +25,9 @@ pub enum ImageError {
         first_column: usize,
     },
     /// Fewer pixels than the interpolation needs.
-    #[error("{columns} × {rows} pixels is too small: a virtual surface needs at least {MIN_SIDE_PX} × {MIN_SIDE_PX}")]
+    #[error(
+        "{columns} × {rows} pixels is too small: a virtual surface needs at least {MIN_SIDE_PX} × {MIN_SIDE_PX}"
+    )]
     TooSmall {
         /// Columns.
         columns: usize,
@@ -192,11 +194,12 @@ impl StoredImage {
             }
         };
         let (nx, ny) = (channel.nx(), channel.ny());
-        let (pixel_x_nm, pixel_y_nm) = match (options.pixel_nm, channel.pixel_x_nm(), channel.pixel_y_nm()) {
-            (Some(p), _, _) => (p, p),
-            (None, Some(px), Some(py)) => (px, py),
-            _ => return Err(ImageError::NoPixelSize),
-        };
+        let (pixel_x_nm, pixel_y_nm) =
+            match (options.pixel_nm, channel.pixel_x_nm(), channel.pixel_y_nm()) {
+                (Some(p), _, _) => (p, p),
+                (None, Some(px), Some(py)) => (px, py),
+                _ => return Err(ImageError::NoPixelSize),
+            };
         let line_time_s = channel
             .timing()
             .map_or(options.fallback_line_time_s, |t| t.line_time_s);
@@ -292,7 +295,8 @@ impl StoredImage {
         let xs: Vec<f64> = (0..n).map(|i| (i % self.columns) as f64).collect();
         let ys: Vec<f64> = (0..n).map(|i| (i / self.columns) as f64).collect();
         let z = &self.heights_nm;
-        let product = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).collect::<Vec<_>>();
+        let product =
+            |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).collect::<Vec<_>>();
         let mz = mean(z)?;
         let mx = mean(&xs)?;
         let my = mean(&ys)?;
@@ -355,7 +359,13 @@ impl StoredImage {
         // One pass along x then one along y, each normalised by the weights inside.
         let pass = |input: &[f64], along_x: bool| -> Vec<f64> {
             let (lines, along) = if along_x { (ny, nx) } else { (nx, ny) };
-            let index = |line: usize, k: usize| if along_x { line * nx + k } else { k * nx + line };
+            let index = |line: usize, k: usize| {
+                if along_x {
+                    line * nx + k
+                } else {
+                    k * nx + line
+                }
+            };
             let mut out = vec![0.0; input.len()];
             for line in 0..lines {
                 for k in 0..along {

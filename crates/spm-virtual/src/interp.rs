@@ -103,15 +103,30 @@ mod tests {
     #[test]
     fn quadratic_surfaces_are_reproduced_exactly() {
         let (nx, ny) = (12usize, 9usize);
-        let q = |x: f64, y: f64| 0.3 + 1.7 * x - 0.4 * y + 0.05 * x * x - 0.02 * x * y + 0.07 * y * y;
+        let q =
+            |x: f64, y: f64| 0.3 + 1.7 * x - 0.4 * y + 0.05 * x * x - 0.02 * x * y + 0.07 * y * y;
         let values: Vec<f64> = (0..ny)
             .flat_map(|r| (0..nx).map(move |c| (c as f64, r as f64)))
             .map(|(x, y)| q(x, y))
             .collect();
-        let grid = Grid { values: &values, columns: nx, rows: ny };
-        for (x, y) in [(1.0, 1.0), (3.37, 2.91), (10.0, 7.0), (5.5, 6.25), (9.999, 1.001)] {
+        let grid = Grid {
+            values: &values,
+            columns: nx,
+            rows: ny,
+        };
+        for (x, y) in [
+            (1.0, 1.0),
+            (3.37, 2.91),
+            (10.0, 7.0),
+            (5.5, 6.25),
+            (9.999, 1.001),
+        ] {
             let v = grid.keys(x, y).unwrap();
-            assert!((v - q(x, y)).abs() < 1e-11, "({x}, {y}): {v} vs {}", q(x, y));
+            assert!(
+                (v - q(x, y)).abs() < 1e-11,
+                "({x}, {y}): {v} vs {}",
+                q(x, y)
+            );
         }
         assert_eq!(grid.keys(0.99, 3.0), None);
         assert_eq!(grid.keys(3.0, 7.01), None);
@@ -128,13 +143,20 @@ mod tests {
             let values: Vec<f64> = (0..4)
                 .flat_map(|_| (0..n).map(|c| (omega * c as f64).cos()))
                 .collect();
-            let grid = Grid { values: &values, columns: n, rows: 4 };
+            let grid = Grid {
+                values: &values,
+                columns: n,
+                rows: 4,
+            };
             let h = 1.125 * (omega / 2.0).cos() - 0.125 * (1.5 * omega).cos();
             for k in 1..n - 3 {
                 let x = k as f64 + 0.5;
                 let v = grid.keys(x, 1.5).unwrap();
                 let expected = (omega * x).cos() * h;
-                assert!((v - expected).abs() < 1e-12, "period {period_px}: {v} vs {expected}");
+                assert!(
+                    (v - expected).abs() < 1e-12,
+                    "period {period_px}: {v} vs {expected}"
+                );
             }
             // A band-limited interpolation: the response stays within 1 % of unity for the
             // ≥ 11-pixel periods a lattice constant is sampled with.

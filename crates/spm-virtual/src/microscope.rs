@@ -235,7 +235,9 @@ impl VirtualMicroscope {
         let s = &self.surface;
         match (half, direction) {
             (TraceHalf::Backward, _) => s.backward.as_ref().unwrap_or(&s.forward),
-            (TraceHalf::Forward, ScanDirection::Counter) => s.counter.as_ref().unwrap_or(&s.forward),
+            (TraceHalf::Forward, ScanDirection::Counter) => {
+                s.counter.as_ref().unwrap_or(&s.forward)
+            }
             (TraceHalf::Forward, ScanDirection::Direct) => &s.forward,
         }
     }

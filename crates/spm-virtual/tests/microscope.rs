@@ -29,8 +29,14 @@ fn counts_map_to_pixels_through_the_nominal_sensitivity() {
     )
     .unwrap();
     let caps = m.capabilities();
-    assert_eq!(caps.field_min, CountPoint::from_counts(-18.5 * 4.0, -13.5 * 5.0));
-    assert_eq!(caps.field_max, CountPoint::from_counts(18.5 * 4.0, 13.5 * 5.0));
+    assert_eq!(
+        caps.field_min,
+        CountPoint::from_counts(-18.5 * 4.0, -13.5 * 5.0)
+    );
+    assert_eq!(
+        caps.field_max,
+        CountPoint::from_counts(18.5 * 4.0, 13.5 * 5.0)
+    );
     // One pixel at (column 7.25, row 3.5) = ((7.25 − 19.5)·4, (3.5 − 14.5)·5) counts.
     let request = ScanRequest::centred_square(
         CountPoint::from_counts(-49.0, -55.0),
@@ -132,7 +138,11 @@ fn a_counter_scan_of_one_image_sees_the_same_heights_in_reverse_order() {
         7,
         Seconds(1e-3),
     );
-    let direct = m.scan(&request).unwrap().height_map(TraceHalf::Forward).unwrap();
+    let direct = m
+        .scan(&request)
+        .unwrap()
+        .height_map(TraceHalf::Forward)
+        .unwrap();
     let counter = m
         .scan(&request.with_direction(ScanDirection::Counter))
         .unwrap()
@@ -180,8 +190,15 @@ fn images_with_missing_data_or_too_few_pixels_are_refused() {
             first_column: 4
         }
     );
-    let e = StoredImage::new(vec![0.0; 16], 4, 4, 0.1, 0.1, ImageTiming { line_time_s: 0.1 })
-        .unwrap_err();
+    let e = StoredImage::new(
+        vec![0.0; 16],
+        4,
+        4,
+        0.1,
+        0.1,
+        ImageTiming { line_time_s: 0.1 },
+    )
+    .unwrap_err();
     assert!(matches!(e, ImageError::TooSmall { .. }));
     let mismatch = VirtualSurface {
         forward: plane(0.0, 0.0, 0.0),
@@ -199,17 +216,28 @@ fn a_file_channel_is_turned_into_scanner_geometry_in_nanometres() {
     for v in &mut data[..nx] {
         *v = 1e-9;
     }
-    let channel = spm_formats::Channel::new("Z", spm_formats::Direction::Forward, "m", nx, ny, data)
-        .unwrap()
-        .with_size_nm(4.0, 3.0);
-    let image = StoredImage::from_channel(&channel, &spm_virtual::ChannelOptions::default()).unwrap();
+    let channel =
+        spm_formats::Channel::new("Z", spm_formats::Direction::Forward, "m", nx, ny, data)
+            .unwrap()
+            .with_size_nm(4.0, 3.0);
+    let image =
+        StoredImage::from_channel(&channel, &spm_virtual::ChannelOptions::default()).unwrap();
     assert_eq!(image.pixel_x_nm(), 0.5);
     assert_eq!(image.pixel_y_nm(), 0.5);
     assert!((image.heights_nm()[(ny - 1) * nx] - 1.0).abs() < 1e-12);
     assert_eq!(image.heights_nm()[0], 0.0);
     // No timing in the channel: the documented fallback line time.
     assert_eq!(image.timing().line_time_s, 0.1);
-    let current = spm_formats::Channel::new("I", spm_formats::Direction::Forward, "A", nx, ny, vec![0.0; nx * ny]).unwrap().with_size_nm(4.0, 3.0);
+    let current = spm_formats::Channel::new(
+        "I",
+        spm_formats::Direction::Forward,
+        "A",
+        nx,
+        ny,
+        vec![0.0; nx * ny],
+    )
+    .unwrap()
+    .with_size_nm(4.0, 3.0);
     assert!(matches!(
         StoredImage::from_channel(&current, &spm_virtual::ChannelOptions::default()),
         Err(ImageError::NotAHeight { .. })
@@ -231,13 +259,17 @@ fn background_removal_takes_planes_away_and_keeps_a_lattice_by_the_closed_form()
     let image = StoredImage::new(h, nx, ny, 0.1, 0.1, ImageTiming { line_time_s: 0.1 }).unwrap();
     let flat = image.without_background(sigma_px).unwrap();
     // Gain of the high-pass at this period: 1 − exp(−2π²σ²/P²) (Gaussian's transform).
-    let gain = 1.0 - (-2.0 * std::f64::consts::PI.powi(2) * sigma_px.powi(2) / period_px.powi(2)).exp();
+    let gain =
+        1.0 - (-2.0 * std::f64::consts::PI.powi(2) * sigma_px.powi(2) / period_px.powi(2)).exp();
     let reach = 25; // beyond 4 σ from every edge the window is whole
     for row in reach..ny - reach {
         for column in reach..nx - reach {
             let expected = 0.01 * gain * (omega * column as f64).cos();
             let v = flat.heights_nm()[row * nx + column];
-            assert!((v - expected).abs() < 1e-6, "({column}, {row}): {v} vs {expected}");
+            assert!(
+                (v - expected).abs() < 1e-6,
+                "({column}, {row}): {v} vs {expected}"
+            );
         }
     }
     // A plane alone is removed everywhere, edges included.
@@ -257,22 +289,30 @@ fn smoothing_attenuates_a_sinusoid_by_the_gaussians_transform() {
     let (nx, ny) = (90usize, 40usize);
     let (period_px, sigma_px) = (9.0, 1.2);
     let omega = 2.0 * std::f64::consts::PI / period_px;
-    let h: Vec<f64> = (0..nx * ny).map(|i| (omega * (i % nx) as f64).sin()).collect();
+    let h: Vec<f64> = (0..nx * ny)
+        .map(|i| (omega * (i % nx) as f64).sin())
+        .collect();
     let image = StoredImage::new(h, nx, ny, 0.1, 0.1, ImageTiming { line_time_s: 0.1 }).unwrap();
     let smooth = image.smoothed(sigma_px).unwrap();
     // The sampled Gaussian's transform: Σ w_k cos(ω k) / Σ w_k over the cut kernel.
     let reach = (4.0 * sigma_px).ceil() as i32;
     let w = |k: i32| (-0.5 * (f64::from(k) / sigma_px).powi(2)).exp();
-    let gain = (-reach..=reach).map(|k| w(k) * (omega * f64::from(k)).cos()).sum::<f64>()
+    let gain = (-reach..=reach)
+        .map(|k| w(k) * (omega * f64::from(k)).cos())
+        .sum::<f64>()
         / (-reach..=reach).map(w).sum::<f64>();
     // Close to the continuous exp(−2π²σ²/P²).
-    let continuous = (-2.0 * std::f64::consts::PI.powi(2) * sigma_px.powi(2) / period_px.powi(2)).exp();
+    let continuous =
+        (-2.0 * std::f64::consts::PI.powi(2) * sigma_px.powi(2) / period_px.powi(2)).exp();
     assert!((gain - continuous).abs() < 1e-3, "{gain} vs {continuous}");
     for row in 0..ny {
         for column in 6..nx - 6 {
             let expected = gain * (omega * column as f64).sin();
             let v = smooth.heights_nm()[row * nx + column];
-            assert!((v - expected).abs() < 1e-9, "({column}, {row}): {v} vs {expected}");
+            assert!(
+                (v - expected).abs() < 1e-9,
+                "({column}, {row}): {v} vs {expected}"
+            );
         }
     }
 }

@@ -29,7 +29,9 @@ pub fn run(
     json: bool,
 ) -> Result<(), CliError> {
     if !(1..=16).contains(&grid) {
-        return Err(CliError::BadInput(format!("--grid {grid}: give 1 to 16 cells per side")));
+        return Err(CliError::BadInput(format!(
+            "--grid {grid}: give 1 to 16 cells per side"
+        )));
     }
     let mut surveys = Vec::with_capacity(files.len());
     for file in files {
@@ -50,7 +52,12 @@ pub fn run(
         crate::outln!("{}: {} (a = {a} nm)", s.file.display(), s.standard);
         crate::outln!("  whole image: {}", text(s.whole.as_ref(), a));
         for c in &s.cells {
-            crate::outln!("  cell ({}, {}): {}", c.column, c.row, text(c.lattice.as_ref(), a));
+            crate::outln!(
+                "  cell ({}, {}): {}",
+                c.column,
+                c.row,
+                text(c.lattice.as_ref(), a)
+            );
         }
         let found: Vec<&ImageLattice> = s.cells.iter().filter_map(|c| c.lattice.as_ref()).collect();
         if !found.is_empty() {

@@ -46,7 +46,12 @@ enum Command {
     /// Run the calibration plan of a config on the backend it names; append to the CDB.
     Calibrate {
         /// The job config (TOML): `[backend]` and `[plan]`.
-        #[arg(long, value_name = "FILE", required_unless_present = "virtual_image", conflicts_with = "virtual_image")]
+        #[arg(
+            long,
+            value_name = "FILE",
+            required_unless_present = "virtual_image",
+            conflicts_with = "virtual_image"
+        )]
         config: Option<PathBuf>,
         /// Virtual calibration mode: calibrate on this stored image of a standard (any format
         /// spmcal reads) instead of an instrument; the plan is built for the image.
@@ -60,11 +65,21 @@ enum Command {
         #[arg(long, value_name = "NAME", requires = "virtual_image")]
         channel: Option<String>,
         /// With --virtual: nodes per side of the net (default 5).
-        #[arg(long, value_name = "N", requires = "virtual_image", default_value_t = 5)]
+        #[arg(
+            long,
+            value_name = "N",
+            requires = "virtual_image",
+            default_value_t = 5
+        )]
         nodes: u32,
         /// With --virtual: repeats l of the net (default 1: a stored image does not change,
         /// so a repeat returns the same coefficients).
-        #[arg(long, value_name = "L", requires = "virtual_image", default_value_t = 1)]
+        #[arg(
+            long,
+            value_name = "L",
+            requires = "virtual_image",
+            default_value_t = 1
+        )]
         repeats: u32,
         /// With --virtual: the virtual scanner's nominal sensitivity, nm per count (default:
         /// the image's pixel size / 10).
@@ -82,10 +97,20 @@ enum Command {
         #[arg(long, value_name = "LATTICE", requires = "virtual_image")]
         smooth: Option<f64>,
         /// With --virtual: accepted LCS angle deviation, degrees.
-        #[arg(long, value_name = "DEG", requires = "virtual_image", default_value_t = 20.0)]
+        #[arg(
+            long,
+            value_name = "DEG",
+            requires = "virtual_image",
+            default_value_t = 20.0
+        )]
         angle_tolerance_deg: f64,
         /// With --virtual: accepted relative deviation of LCS sides.
-        #[arg(long, value_name = "FRACTION", requires = "virtual_image", default_value_t = 0.35)]
+        #[arg(
+            long,
+            value_name = "FRACTION",
+            requires = "virtual_image",
+            default_value_t = 0.35
+        )]
         length_tolerance: f64,
         /// The calibration database: a file (created when missing; default OUT/cdb.sqlite)
         /// or a shared PostgreSQL database, postgres://USER@HOST:PORT/DB (the schema is
@@ -520,8 +545,9 @@ fn run(command: Command) -> Result<(), CliError> {
             quick,
         } => calibrate_cmd::run(
             &match (config, virtual_image, standard) {
-                (_, Some(image), Some(standard)) => {
-                    calibrate_cmd::JobSource::Virtual(image, spmcal::virtual_mode::VirtualRunOptions {
+                (_, Some(image), Some(standard)) => calibrate_cmd::JobSource::Virtual(
+                    image,
+                    spmcal::virtual_mode::VirtualRunOptions {
                         standard,
                         channel,
                         nominal_nm_per_count,
@@ -532,8 +558,8 @@ fn run(command: Command) -> Result<(), CliError> {
                         smoothing_sigma_lattice: smooth,
                         angle_tolerance_deg,
                         length_tolerance_fraction: length_tolerance,
-                    })
-                }
+                    },
+                ),
                 (Some(config), _, _) => calibrate_cmd::JobSource::Config(config),
                 _ => {
                     return Err(CliError::BadInput(

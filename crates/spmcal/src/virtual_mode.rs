@@ -169,7 +169,9 @@ pub enum VirtualInputError {
         max_pixel_nm: f64,
     },
     /// The image does not show the standard.
-    #[error("{path}: does not show {standard} ({polarity} on a lattice of {lattice_nm} nm): {finding}")]
+    #[error(
+        "{path}: does not show {standard} ({polarity} on a lattice of {lattice_nm} nm): {finding}"
+    )]
     NotTheStandard {
         /// The file.
         path: PathBuf,
@@ -226,13 +228,11 @@ fn pick_channels<'a>(
     };
     let chosen = match wanted {
         Some(name) => forward(name)?,
-        None => forward("Z")
-            .or_else(|| forward("Topography"))
-            .or_else(|| {
-                file.channels
-                    .iter()
-                    .find(|c| c.direction() == Direction::Forward && c.unit() == "m")
-            })?,
+        None => forward("Z").or_else(|| forward("Topography")).or_else(|| {
+            file.channels
+                .iter()
+                .find(|c| c.direction() == Direction::Forward && c.unit() == "m")
+        })?,
     };
     let backward = file
         .channels
@@ -251,7 +251,9 @@ fn read_image(
     let (forward, backward) =
         pick_channels(&file, channel).ok_or_else(|| VirtualInputError::NoChannel {
             path: path.to_path_buf(),
-            wanted: channel.unwrap_or("Z (or Topography, or any in metres)").to_owned(),
+            wanted: channel
+                .unwrap_or("Z (or Topography, or any in metres)")
+                .to_owned(),
             available: file
                 .channels
                 .iter()
@@ -289,7 +291,8 @@ impl VirtualBackendConfig {
             Some(p) => Some(read_image(&dir.join(p), self.channel.as_deref(), &options)?.0),
             None => None,
         };
-        let (forward, backward, counter) = match (self.background_sigma_nm, self.smoothing_sigma_nm) {
+        let (forward, backward, counter) = match (self.background_sigma_nm, self.smoothing_sigma_nm)
+        {
             (None, None) => (forward, backward, counter),
             (background, smoothing) => {
                 let level = |image: StoredImage| {
@@ -367,15 +370,21 @@ pub fn measure_lattice(
     let found = detect(&pixel_map(image), &detection).map_err(|e| e.to_string())?;
     let lattice =
         lattice_vectors(&found.features, &LatticeConfig::default()).map_err(|e| e.to_string())?;
-    let (a, b) = lattice
-        .basis()
-        .ok_or_else(|| format!("{} features but no two lattice directions", found.features.len()))?;
+    let (a, b) = lattice.basis().ok_or_else(|| {
+        format!(
+            "{} features but no two lattice directions",
+            found.features.len()
+        )
+    })?;
     let nm = |v: spm_hal::CountVector| (v.x.value() * px, v.y.value() * py);
     let (ax, ay) = nm(a.vector);
     let (bx, by) = nm(b.vector);
     let la = ax.hypot(ay);
     let lb = bx.hypot(by);
-    let angle_deg = ((ax * bx + ay * by) / (la * lb)).clamp(-1.0, 1.0).acos().to_degrees();
+    let angle_deg = ((ax * bx + ay * by) / (la * lb))
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees();
     Ok(ImageLattice {
         features: found.features.len(),
         nearest_neighbour_nm: lattice.nearest_neighbour.value() * px.max(py),
@@ -399,7 +408,7 @@ pub fn check_standard(
     let pixel_nm = image.pixel_x_nm().max(image.pixel_y_nm());
     let name = standard
         .name
-        .map_or_else(|| format!("the plan's standard"), |n| n.as_str().to_owned());
+        .map_or_else(|| "the plan's standard".to_owned(), |n| n.as_str().to_owned());
     let per_lattice = a / pixel_nm;
     if per_lattice < MIN_PIXELS_PER_LATTICE {
         return Err(VirtualInputError::TooFewPixels {
@@ -537,7 +546,9 @@ pub fn virtual_job(
         .nominal_nm_per_count
         .unwrap_or(pixel_nm / DEFAULT_COUNTS_PER_PIXEL);
     if !(nominal.is_finite() && nominal > 0.0) {
-        return Err(parameter(format!("nominal sensitivity {nominal} nm per count")));
+        return Err(parameter(format!(
+            "nominal sensitivity {nominal} nm per count"
+        )));
     }
     let config = VirtualBackendConfig {
         nominal_nm_per_count: nominal,
@@ -604,11 +615,15 @@ pub fn virtual_plan(
     let n = f64::from(options.nodes_per_side - 1);
     // The roomy margin when the nodes stay at least a lattice constant apart with it.
     let roomy = width.min(height) - 2.0 * ROOMY_MARGIN_LATTICE * a_counts >= n * a_counts;
-    let margin_lattice = if roomy { ROOMY_MARGIN_LATTICE } else { MARGIN_LATTICE };
+    let margin_lattice = if roomy {
+        ROOMY_MARGIN_LATTICE
+    } else {
+        MARGIN_LATTICE
+    };
     let margin = (margin_lattice * a_counts).ceil();
     let span = width.min(height) - 2.0 * margin;
     let step_counts = (span / n).floor();
-    if !(step_counts >= 1.0) {
+    if step_counts.is_nan() || step_counts < 1.0 {
         let a_nm = plan.standard.lattice_constant_nm;
         return Err(VirtualInputError::NetTooLarge {
             path: image.to_path_buf(),
@@ -687,11 +702,19 @@ pub fn survey_lattice(
 ) -> Result<LatticeSurvey, VirtualInputError> {
     let a = standard.lattice_constant_nm();
     let file = spm_formats::read_any(path)?;
-    let (forward, _) = pick_channels(&file, channel).ok_or_else(|| VirtualInputError::NoChannel {
-        path: path.to_path_buf(),
-        wanted: channel.unwrap_or("Z (or Topography, or any in metres)").to_owned(),
-        available: file.channels.iter().map(|c| c.name().to_owned()).collect::<Vec<_>>().join(", "),
-    })?;
+    let (forward, _) =
+        pick_channels(&file, channel).ok_or_else(|| VirtualInputError::NoChannel {
+            path: path.to_path_buf(),
+            wanted: channel
+                .unwrap_or("Z (or Topography, or any in metres)")
+                .to_owned(),
+            available: file
+                .channels
+                .iter()
+                .map(|c| c.name().to_owned())
+                .collect::<Vec<_>>()
+                .join(", "),
+        })?;
     let image_error = |source| VirtualInputError::Image {
         path: path.to_path_buf(),
         channel: forward.name().to_owned(),

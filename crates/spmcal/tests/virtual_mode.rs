@@ -32,7 +32,8 @@ fn lattice_file(dir: &Path, name: &str, n: usize, pixel_nm: f64, hole: bool) -> 
                     z += 0.05e-9 * (-r2 / (2.0 * 0.05f64.powi(2))).exp();
                 }
             }
-            let missing = hole && (n / 3..n / 3 + 4).contains(&row) && (n / 2..n / 2 + 4).contains(&column);
+            let missing =
+                hole && (n / 3..n / 3 + 4).contains(&row) && (n / 2..n / 2 + 4).contains(&column);
             data.push(if missing { f64::NAN } else { z });
         }
     }
@@ -54,9 +55,17 @@ fn refuse(image: &Path, standard: &str, out: &Path, mentions: &[&str]) {
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&output.stderr);
-    assert_eq!(output.status.code(), Some(2), "{}: {stderr}", image.display());
+    assert_eq!(
+        output.status.code(),
+        Some(2),
+        "{}: {stderr}",
+        image.display()
+    );
     let name = image.file_name().unwrap().to_string_lossy();
-    assert!(stderr.contains(name.as_ref()), "the file is named: {stderr}");
+    assert!(
+        stderr.contains(name.as_ref()),
+        "the file is named: {stderr}"
+    );
     for m in mentions {
         assert!(stderr.contains(m), "{stderr:?} should mention {m:?}");
     }
@@ -73,7 +82,12 @@ fn bad_images_are_refused_with_exit_2_naming_the_file_and_the_reason() {
     refuse(&holed, "hopg", &out, &["16 pixels hold no finite height"]);
     // 0.06 nm pixels: 4.1 per lattice constant of HOPG, 6 needed.
     let coarse = lattice_file(&dir, "coarse.gsf", 160, 0.06, false);
-    refuse(&coarse, "hopg", &out, &["4.1 pixels per lattice constant", "needs at least 6"]);
+    refuse(
+        &coarse,
+        "hopg",
+        &out,
+        &["4.1 pixels per lattice constant", "needs at least 6"],
+    );
     // A HOPG lattice claimed to be Si(111)-7×7.
     let hopg = lattice_file(&dir, "hopg.gsf", 160, 0.02, false);
     refuse(&hopg, "si7x7", &out, &["does not show si7x7"]);
@@ -91,7 +105,10 @@ fn bad_images_are_refused_with_exit_2_naming_the_file_and_the_reason() {
 /// creep or hysteresis (a virtual image freezes them in; here the truth is the static map).
 fn distorted_simulator() -> Simulator {
     let text = include_str!("../../../configs/sim-ideal.toml")
-        .replace("sensitivity_y_nm_per_count = 0.02", "sensitivity_y_nm_per_count = 0.0215")
+        .replace(
+            "sensitivity_y_nm_per_count = 0.02",
+            "sensitivity_y_nm_per_count = 0.0215",
+        )
         .replace("nonorthogonality_deg = 0.0", "nonorthogonality_deg = 2.0")
         .replace("rotation_deg = 0.0", "rotation_deg = 12.0")
         .replace(
@@ -122,7 +139,11 @@ fn lccs_measured_on_a_simulated_image_agree_with_the_oracle_within_their_uncerta
         pixel_dwell: Seconds(1e-5),
         record_backward: false,
     };
-    let map = sim.scan(&request).unwrap().height_map(TraceHalf::Forward).unwrap();
+    let map = sim
+        .scan(&request)
+        .unwrap()
+        .height_map(TraceHalf::Forward)
+        .unwrap();
     // Virtual counts = simulator counts − the image's centre: 1.5 counts per pixel at a nominal
     // sensitivity a user would state (the mean of K̄x and K̄y at the image's centre, rounded).
     let centre = sim.oracle().true_lcc(
@@ -165,7 +186,11 @@ fn lccs_measured_on_a_simulated_image_agree_with_the_oracle_within_their_uncerta
     let oracle = sim.oracle();
     let z = spm_hal::truth::GroundTruth::z_now(&sim);
     let records = &store.records;
-    assert!(records.len() >= 20, "{} records of 32 visits", records.len());
+    assert!(
+        records.len() >= 20,
+        "{} records of 32 visits",
+        records.len()
+    );
     let (mut within, mut total) = (0usize, 0usize);
     let mut worst: f64 = 0.0;
     let (mut sum_z2, mut relative_u_kx) = (0.0, Vec::new());
@@ -203,7 +228,10 @@ fn lccs_measured_on_a_simulated_image_agree_with_the_oracle_within_their_uncerta
         records.len()
     );
     assert!(rms_z < 1.5, "RMS of (measured − oracle)/σ = {rms_z:.2}");
-    assert!(share >= 0.9, "{within}/{total} within 2σ, worst {worst:.2}σ");
+    assert!(
+        share >= 0.9,
+        "{within}/{total} within 2σ, worst {worst:.2}σ"
+    );
     // K̄x varies across the image by more than three uncertainties: a calibration that
     // missed the field (or read it at the wrong places) would fail the comparison above.
     let kx_at = |x: f64| {
@@ -213,7 +241,10 @@ fn lccs_measured_on_a_simulated_image_agree_with_the_oracle_within_their_uncerta
             .value()
     };
     let variation = (kx_at(12_000.0 + 1050.0) - kx_at(12_000.0)).abs() / kx_at(12_000.0);
-    assert!(variation > 3.0 * median_u, "variation {variation} vs median u {median_u}");
+    assert!(
+        variation > 3.0 * median_u,
+        "variation {variation} vs median u {median_u}"
+    );
 }
 
 #[test]
@@ -240,15 +271,30 @@ fn a_job_file_names_the_virtual_backend_and_its_plan_is_checked_against_the_imag
     // counts) is refused by the image check, naming the image.
     let scaled = nominal * 2.688 / 0.2461;
     let si = job_text
-        .replace(&format!("nominal_nm_per_count = {nominal}"), &format!("nominal_nm_per_count = {scaled}"))
+        .replace(
+            &format!("nominal_nm_per_count = {nominal}"),
+            &format!("nominal_nm_per_count = {scaled}"),
+        )
         .replace("name = \"hopg\"", "name = \"si7x7\"")
-        .replace("lattice_constant_nm = 0.2461", "lattice_constant_nm = 2.688")
+        .replace(
+            "lattice_constant_nm = 0.2461",
+            "lattice_constant_nm = 2.688",
+        )
         .replace("feature = \"hills\"", "feature = \"pits\"");
     std::fs::write(&job_path, &si).unwrap();
-    let message = spmcal::job::Job::from_file(&job_path).unwrap_err().to_string();
-    assert!(message.contains("hopg.gsf") && message.contains("does not show si7x7"), "{message}");
+    let message = spmcal::job::Job::from_file(&job_path)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        message.contains("hopg.gsf") && message.contains("does not show si7x7"),
+        "{message}"
+    );
     // Unknown fields of the virtual backend are refused.
-    std::fs::write(&job_path, job_text.replace("[backend]\n", "[backend]\ncolour = 3\n")).unwrap();
+    std::fs::write(
+        &job_path,
+        job_text.replace("[backend]\n", "[backend]\ncolour = 3\n"),
+    )
+    .unwrap();
     assert!(spmcal::job::Job::from_file(&job_path).is_err());
     std::fs::remove_dir_all(&dir).unwrap();
 }

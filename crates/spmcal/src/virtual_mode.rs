@@ -406,9 +406,10 @@ pub fn check_standard(
 ) -> Result<ImageLattice, VirtualInputError> {
     let a = standard.lattice_constant_nm;
     let pixel_nm = image.pixel_x_nm().max(image.pixel_y_nm());
-    let name = standard
-        .name
-        .map_or_else(|| "the plan's standard".to_owned(), |n| n.as_str().to_owned());
+    let name = standard.name.map_or_else(
+        || "the plan's standard".to_owned(),
+        |n| n.as_str().to_owned(),
+    );
     let per_lattice = a / pixel_nm;
     if per_lattice < MIN_PIXELS_PER_LATTICE {
         return Err(VirtualInputError::TooFewPixels {

@@ -3,19 +3,14 @@
 
 use crate::error::CliError;
 use spm_calibration::StandardName;
-use spmcal::virtual_mode::{ImageLattice, survey_lattice};
+use spmcal::virtual_mode::{PartLattice, survey_lattice};
 use std::path::PathBuf;
 
-fn text(lattice: Option<&ImageLattice>, a: f64) -> String {
+fn text(lattice: Option<&PartLattice>) -> String {
     match lattice {
         Some(l) => format!(
-            "a {:.4} nm ({:+.2} %), sides {:.4} / {:.4} nm, angle {:.2}°, {} features",
-            l.mean_length_nm(),
-            100.0 * (l.mean_length_nm() / a - 1.0),
-            l.lengths_nm[0],
-            l.lengths_nm[1],
-            l.acute_angle_deg(),
-            l.features
+            "scale x {:.3}, scale y {:.3}, obliquity {:+.2}°, {} features",
+            l.scale_x, l.scale_y, l.obliquity_deg, l.features
         ),
         None => "no lattice found".to_owned(),
     }
@@ -48,33 +43,38 @@ pub fn run(
         return Ok(());
     }
     for s in &surveys {
-        let a = s.lattice_constant_nm;
-        crate::outln!("{}: {} (a = {a} nm)", s.file.display(), s.standard);
-        crate::outln!("  whole image: {}", text(s.whole.as_ref(), a));
+        crate::outln!(
+            "{}: {} (a = {} nm)",
+            s.file.display(),
+            s.standard,
+            s.lattice_constant_nm
+        );
+        crate::outln!("  whole image: {}", text(s.whole.as_ref()));
         for c in &s.cells {
             crate::outln!(
                 "  cell ({}, {}): {}",
                 c.column,
                 c.row,
-                text(c.lattice.as_ref(), a)
+                text(c.lattice.as_ref())
             );
         }
-        let found: Vec<&ImageLattice> = s.cells.iter().filter_map(|c| c.lattice.as_ref()).collect();
+        let found: Vec<&PartLattice> = s.cells.iter().filter_map(|c| c.lattice.as_ref()).collect();
         if !found.is_empty() {
-            let worst_a = found
+            let worst_scale = found
                 .iter()
-                .map(|l| (l.mean_length_nm() / a - 1.0).abs())
+                .flat_map(|l| [l.scale_x, l.scale_y])
+                .map(|v| (v - 1.0).abs())
                 .fold(0.0, f64::max);
-            let worst_angle = found
+            let worst_obliquity = found
                 .iter()
-                .map(|l| (l.acute_angle_deg() - 60.0).abs())
+                .map(|l| l.obliquity_deg.abs())
                 .fold(0.0, f64::max);
             crate::outln!(
-                "  {} of {} cells: largest |a error| {:.2} %, largest |angle − 60°| {:.2}°",
+                "  {} of {} cells: largest |scale − 1| {:.2} %, largest |obliquity| {:.2}°",
                 found.len(),
                 s.cells.len(),
-                100.0 * worst_a,
-                worst_angle
+                100.0 * worst_scale,
+                worst_obliquity
             );
         }
     }

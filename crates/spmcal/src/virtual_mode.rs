@@ -648,19 +648,34 @@ pub fn virtual_plan(
     Ok(plan)
 }
 
+/// The lattice in one part of an image as `spmcal diagnose`'s baseline measures it
+/// (spm-modelcheck: the cell-template localiser for Si 7×7, the plain one for atoms; a
+/// lattice indexed and fitted with scales, obliquity, rotation and drift).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PartLattice {
+    /// Scale along x: apparent over true lattice length (1 = correct).
+    pub scale_x: f64,
+    /// Scale along y.
+    pub scale_y: f64,
+    /// Obliquity, degrees (0 = orthogonal axes).
+    pub obliquity_deg: f64,
+    /// Features used.
+    pub features: usize,
+}
+
 /// The lattice measured in one cell of a grid over an image.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct CellLattice {
     /// Cell column (0 = left).
     pub column: usize,
-    /// Cell row (0 = bottom).
+    /// Cell row (0 = top of the display).
     pub row: usize,
     /// The lattice found, or `None` when the cell holds too few features.
-    pub lattice: Option<ImageLattice>,
+    pub lattice: Option<PartLattice>,
 }
 
 /// The lattice of the standard measured on an image file, whole and in a `grid` × `grid`
-/// partition (spm-features: detector and neighbour statistics; the file's own pixel size).
+/// partition.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct LatticeSurvey {
     /// The file.
@@ -670,28 +685,18 @@ pub struct LatticeSurvey {
     /// Its lattice constant, nm.
     pub lattice_constant_nm: f64,
     /// The whole image.
-    pub whole: Option<ImageLattice>,
+    pub whole: Option<PartLattice>,
     /// The cells.
     pub cells: Vec<CellLattice>,
 }
 
-impl ImageLattice {
-    /// Mean of the two basis lengths, nm.
-    #[must_use]
-    pub fn mean_length_nm(&self) -> f64 {
-        0.5 * (self.lengths_nm[0] + self.lengths_nm[1])
-    }
+/// Fewest features a part's lattice is fitted to.
+const MIN_PART_FEATURES: usize = 12;
 
-    /// The angle between the basis vectors folded to the lattice's acute angle, degrees.
-    #[must_use]
-    pub fn acute_angle_deg(&self) -> f64 {
-        self.angle_deg.min(180.0 - self.angle_deg)
-    }
-}
-
-/// Measures the lattice of `standard` on an image file (the height channel, each part
-/// levelled and smoothed as `--virtual` serves an image), whole and in a `grid` × `grid`
-/// partition; a part with pixels without data (a corrected image's corners) gets no lattice.
+/// Measures the lattice of `standard` on an image file, whole and in a `grid` × `grid`
+/// partition, by spm-modelcheck's extraction and baseline fit (what `spmcal diagnose`
+/// reports), on the height channel; pixels without data (a corrected image's corners) are
+/// left out by the extraction.
 ///
 /// # Errors
 /// [`VirtualInputError`] when the file cannot be read or has no height channel.
@@ -716,36 +721,72 @@ pub fn survey_lattice(
                 .collect::<Vec<_>>()
                 .join(", "),
         })?;
-    let image_error = |source| VirtualInputError::Image {
-        path: path.to_path_buf(),
-        channel: forward.name().to_owned(),
-        source,
-    };
     let (Some(pixel_x_nm), Some(pixel_y_nm)) = (forward.pixel_x_nm(), forward.pixel_y_nm()) else {
-        return Err(image_error(spm_virtual::ImageError::NoPixelSize));
+        return Err(VirtualInputError::Image {
+            path: path.to_path_buf(),
+            channel: forward.name().to_owned(),
+            source: spm_virtual::ImageError::NoPixelSize,
+        });
     };
-    let scale = if forward.unit() == "nm" { 1.0 } else { 1e9 };
-    let polarity = match standard.feature() {
-        spm_calibration::FeaturePolarity::Hills => Polarity::Hill,
-        spm_calibration::FeaturePolarity::Pits => Polarity::Pit,
-    };
+    let spec = match standard {
+        StandardName::Hopg => spm_modelcheck::LatticeSpec::parse("hopg"),
+        StandardName::Si7x7 => spm_modelcheck::LatticeSpec::parse("si7x7"),
+    }
+    .map_err(|e| VirtualInputError::Parameter {
+        path: path.to_path_buf(),
+        detail: e.to_string(),
+    })?;
     let (nx, ny) = (forward.nx(), forward.ny());
-    // A part in scanner geometry (rows from the bottom), levelled, smoothed, measured.
-    let measure = |column0: usize, row0: usize, w: usize, h: usize| -> Option<ImageLattice> {
-        let mut heights = Vec::with_capacity(w * h);
+    // A part in display coordinates (row 0 = top) as a file of its own, measured.
+    let measure = |column0: usize, row0: usize, w: usize, h: usize| -> Option<PartLattice> {
+        let mut data = Vec::with_capacity(w * h);
         for row in row0..row0 + h {
-            let display_row = ny.checked_sub(row + 1)?;
             for column in column0..column0 + w {
-                heights.push(forward.get(display_row, column)? * scale);
+                data.push(forward.get(row, column)?);
             }
         }
-        let timing = spm_virtual::ImageTiming { line_time_s: 0.1 };
-        let image = StoredImage::new(heights, w, h, pixel_x_nm, pixel_y_nm, timing).ok()?;
-        let image = image
-            .without_background(BACKGROUND_SIGMA_LATTICE * a / pixel_x_nm)
-            .and_then(|i| i.smoothed(default_smoothing_sigma_lattice(standard) * a / pixel_x_nm))
-            .ok()?;
-        measure_lattice(&image, polarity, a).ok()
+        let mut part = spm_formats::Channel::new(
+            forward.name(),
+            spm_formats::Direction::Forward,
+            forward.unit(),
+            w,
+            h,
+            data,
+        )
+        .ok()?
+        .with_size_nm(w as f64 * pixel_x_nm, h as f64 * pixel_y_nm);
+        if let Some(dir) = forward.scan_dir() {
+            part = part.with_scan_dir(dir);
+        }
+        if let Some(t) = forward.timing() {
+            part = part.with_timing(t);
+        }
+        let part_file = spm_formats::SpmFile {
+            channels: vec![part],
+            header: Vec::new(),
+            ..file.clone()
+        };
+        let extract = spm_modelcheck::ExtractOptions {
+            channel: Some(forward.name().to_owned()),
+            ..spm_modelcheck::ExtractOptions::default()
+        };
+        let set = spm_modelcheck::extract_features(&[(part_file, None)], &spec, &extract).ok()?;
+        if set.features.len() < MIN_PART_FEATURES {
+            return None;
+        }
+        let options = spm_modelcheck::Options {
+            effects: Vec::new(),
+            max_findings: 0,
+            ..spm_modelcheck::Options::default()
+        };
+        let d = spm_modelcheck::diagnose_features(&set, &spec, &options).ok()?;
+        let p = |key: &str| d.baseline.parameters.get(key).map(|v| v.value);
+        Some(PartLattice {
+            scale_x: p("scale_x")?,
+            scale_y: p("scale_y")?,
+            obliquity_deg: p("obliquity_deg")?,
+            features: set.features.len(),
+        })
     };
     let grid = grid.max(1);
     let (w, h) = (nx / grid, ny / grid);

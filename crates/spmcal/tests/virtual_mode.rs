@@ -298,3 +298,29 @@ fn a_job_file_names_the_virtual_backend_and_its_plan_is_checked_against_the_imag
     assert!(spmcal::job::Job::from_file(&job_path).is_err());
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn the_measured_images_are_accepted_for_the_standard_they_show_and_refused_for_another() {
+    let si = spmcal_tests::measured_file("si7x7-nanonis/Si_7x7_051.sxm");
+    let hopg = spmcal_tests::measured_file("hopg-terrace-iso28600/graphiteterrace.spm");
+    let si7x7 = VirtualRunOptions::new(StandardName::Si7x7);
+    let atoms = VirtualRunOptions::new(StandardName::Hopg);
+    let (_, backend, plan) = spmcal::virtual_mode::virtual_job(&si, &si7x7).unwrap();
+    // The Nanonis file's both halves are served; 0.078-nm pixels, K = pixel / 10.
+    assert!(backend.surface.backward.is_some());
+    assert!((plan.standard.nominal_nm_per_count - 20.0 / 256.0 / 10.0).abs() < 1e-12);
+    spmcal::virtual_mode::virtual_job(&hopg, &atoms).unwrap();
+    // HOPG atoms on 0.078-nm pixels: 3.1 pixels per lattice constant.
+    let e = spmcal::virtual_mode::virtual_job(&si, &atoms)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("Si_7x7_051.sxm") && e.contains("needs at least 6"),
+        "{e}"
+    );
+    // The HOPG terrace claimed to show 7×7 corner holes.
+    let e = spmcal::virtual_mode::virtual_job(&hopg, &si7x7)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("graphiteterrace.spm"), "{e}");
+}

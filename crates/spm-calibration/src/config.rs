@@ -191,6 +191,11 @@ impl TuningConfig {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StandardConfig {
+    /// Which named standard this is (`"hopg"` or `"si7x7"`), optional: when given, the
+    /// lattice constant and the feature polarity must be the named standard's
+    /// ([`StandardName`]); absent (older plans), the fields below alone define the standard.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<StandardName>,
     /// Distance A–B (and A–C) of the LCS: the lattice constant, nm (HOPG: 0.2461).
     pub lattice_constant_nm: f64,
     /// Angle BAC of the LCS, degrees (HOPG triangular lattice: 60).
@@ -210,6 +215,90 @@ pub struct StandardConfig {
     /// controller searches a step near every node ([`crate::vertical`]); without one records
     /// carry no Kz (`kz_nm_per_count = None`).
     pub step_height_nm: Option<f64>,
+}
+
+/// The named calibration standards a plan can select.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StandardName {
+    /// HOPG: the β atoms seen by STM, hills on a triangular lattice, a = 0.2461 nm.
+    Hopg,
+    /// Si(111)-7×7: the corner holes of the 7×7 cell, pits on a triangular lattice,
+    /// a = 2.688 nm (7 × 0.384 nm).
+    Si7x7,
+}
+
+impl StandardName {
+    /// Every named standard.
+    pub const ALL: [Self; 2] = [Self::Hopg, Self::Si7x7];
+
+    /// The name as written in a plan (`hopg`, `si7x7`).
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Hopg => "hopg",
+            Self::Si7x7 => "si7x7",
+        }
+    }
+
+    /// The lattice constant, nm.
+    #[must_use]
+    pub fn lattice_constant_nm(self) -> f64 {
+        match self {
+            Self::Hopg => 0.2461,
+            Self::Si7x7 => 2.688,
+        }
+    }
+
+    /// Hills (HOPG atoms) or pits (7×7 corner holes).
+    #[must_use]
+    pub fn feature(self) -> FeaturePolarity {
+        match self {
+            Self::Hopg => FeaturePolarity::Hills,
+            Self::Si7x7 => FeaturePolarity::Pits,
+        }
+    }
+
+    /// Monatomic step height, nm (HOPG 0.3354, Si(111) 0.3135).
+    #[must_use]
+    pub fn step_height_nm(self) -> f64 {
+        match self {
+            Self::Hopg => 0.3354,
+            Self::Si7x7 => 0.3135,
+        }
+    }
+
+    /// The standard's `[plan.standard]` table with a nominal sensitivity (nm per count),
+    /// the 60° LCS, and the given tolerances (`length_tolerance_fraction` in (0, 1),
+    /// `angle_tolerance_deg` in degrees); no Kz (`step_height_nm` unset).
+    #[must_use]
+    pub fn standard(
+        self,
+        nominal_nm_per_count: f64,
+        length_tolerance_fraction: f64,
+        angle_tolerance_deg: f64,
+    ) -> StandardConfig {
+        StandardConfig {
+            name: Some(self),
+            lattice_constant_nm: self.lattice_constant_nm(),
+            lcs_angle_deg: 60.0,
+            feature: self.feature(),
+            nominal_nm_per_count,
+            length_tolerance_fraction,
+            angle_tolerance_deg,
+            step_height_nm: None,
+        }
+    }
+}
+
+impl std::str::FromStr for StandardName {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Self::ALL
+            .into_iter()
+            .find(|n| n.as_str().eq_ignore_ascii_case(s))
+            .ok_or_else(|| format!("unknown standard {s:?}: give hopg or si7x7"))
+    }
 }
 
 impl StandardConfig {
@@ -617,6 +706,29 @@ impl PlanConfig {
             1e-3,
             60.0,
         )?;
+        if let Some(name) = s.name {
+            let a = name.lattice_constant_nm();
+            if (s.lattice_constant_nm - a).abs() > 1e-3 * a {
+                return bad(
+                    "standard.lattice_constant_nm",
+                    format!(
+                        "is {} nm, but the standard named {:?} has {a} nm",
+                        s.lattice_constant_nm,
+                        name.as_str()
+                    ),
+                );
+            }
+            if s.feature != name.feature() {
+                return bad(
+                    "standard.feature",
+                    format!(
+                        "the standard named {:?} has {:?} features",
+                        name.as_str(),
+                        name.feature()
+                    ),
+                );
+            }
+        }
         if let Some(steps) = &self.steps {
             if s.step_height_nm.is_none() {
                 return bad(
@@ -812,6 +924,54 @@ mod tests {
         let text = plan.to_toml_string().unwrap();
         let back = PlanConfig::from_toml_str(&text, "mem.toml").unwrap();
         assert_eq!(plan, back);
+    }
+
+    #[test]
+    fn a_named_standard_is_selectable_and_checked_and_old_plans_stay_valid() {
+        let old = PlanConfig::hopg_small_net();
+        assert_eq!(old.standard.name, None);
+        let text = old.to_toml_string().unwrap();
+        assert!(!text.contains("name ="), "{text}");
+        let si = text
+            .replace(
+                "lattice_constant_nm = 0.2461",
+                "name = \"si7x7\"\nlattice_constant_nm = 2.688",
+            )
+            .replace("feature = \"hills\"", "feature = \"pits\"")
+            // The same lattice in counts: ten times the lattice, ten times the nm per count.
+            .replace(
+                "nominal_nm_per_count = 0.02",
+                "nominal_nm_per_count = 0.2184",
+            );
+        let plan = PlanConfig::from_toml_str(&si, "si.toml").unwrap();
+        assert_eq!(plan.standard.name, Some(StandardName::Si7x7));
+        assert_eq!(
+            plan.standard,
+            StandardName::Si7x7.standard(
+                plan.standard.nominal_nm_per_count,
+                plan.standard.length_tolerance_fraction,
+                plan.standard.angle_tolerance_deg
+            )
+        );
+        // A name contradicting the lattice or the polarity is refused with its line.
+        let wrong = si.replace("feature = \"pits\"", "feature = \"hills\"");
+        let message = PlanConfig::from_toml_str(&wrong, "si.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("plan.standard.feature"), "{message}");
+        let wrong = si.replace(
+            "lattice_constant_nm = 2.688",
+            "lattice_constant_nm = 0.2461",
+        );
+        let message = PlanConfig::from_toml_str(&wrong, "si.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains("plan.standard.lattice_constant_nm"),
+            "{message}"
+        );
+        assert_eq!("SI7x7".parse::<StandardName>(), Ok(StandardName::Si7x7));
+        assert!("gold".parse::<StandardName>().is_err());
     }
 
     #[test]

@@ -61,7 +61,7 @@ pub mod vertical;
 pub use config::{
     ApertureConfig, AttachConfig, AttachTarget, ConfigError, DriftConfig, FailureConfig,
     FeaturePolarity, MeasurementMethod, MotionConfig, NeighbourSet, NetConfig, NetKind, PlanConfig,
-    SkippingConfig, StandardConfig, TuningConfig, ValidationError, VariantConfig,
+    SkippingConfig, StandardConfig, StandardName, TuningConfig, ValidationError, VariantConfig,
     locate_field_line,
 };
 pub use lcc::{

@@ -166,21 +166,43 @@ fn check_cdb_is_no_report_file(cdb: &Path, out: &Path) -> Result<(), CliError> {
     Ok(())
 }
 
+/// Where the job comes from.
+#[derive(Debug, Clone)]
+pub enum JobSource {
+    /// A job file.
+    Config(PathBuf),
+    /// `--virtual IMAGE --standard NAME`: a stored image and the plan built for it.
+    Virtual(PathBuf, spmcal::virtual_mode::VirtualRunOptions),
+}
+
 pub fn run(
-    config: &Path,
+    source: &JobSource,
     cdb: Option<&Path>,
     resume: bool,
     out: Option<&Path>,
     report_options: ReportOptions,
 ) -> Result<(), CliError> {
     let stop = StopRequest::install()?;
-    let job = Job::from_file(config).map_err(|e| CliError::BadInput(e.to_string()))?;
+    let job = match source {
+        JobSource::Config(config) => Job::from_file(config),
+        JobSource::Virtual(image, options) => Job::virtual_image(image, options),
+    }
+    .map_err(|e| CliError::BadInput(e.to_string()))?;
     let out: PathBuf = out.map_or_else(|| PathBuf::from(DEFAULT_OUT), Path::to_path_buf);
     let cdb_path = cdb.map_or_else(|| out.join("cdb.sqlite"), Path::to_path_buf);
     // Every file the run reads must stay as it is: the CDB is none of the configs, and no
     // report file is a config or the CDB.
-    let mut inputs: Vec<PathBuf> = vec![config.to_path_buf()];
-    inputs.extend(Job::referenced_files(config));
+    let mut inputs: Vec<PathBuf> = Vec::new();
+    match source {
+        JobSource::Config(config) => {
+            inputs.push(config.clone());
+            inputs.extend(Job::referenced_files(config));
+        }
+        JobSource::Virtual(image, options) => {
+            inputs.push(image.clone());
+            inputs.extend(options.counter_image.iter().cloned());
+        }
+    }
     let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
     // A PostgreSQL URL names no file: the file guards apply to a CDB file only.
     let cdb_is_file = !spmcal::cdb_handle::is_postgres(&cdb_path);

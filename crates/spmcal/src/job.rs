@@ -53,6 +53,9 @@ pub enum JobError {
         /// What is wrong.
         message: String,
     },
+    /// A virtual calibration's image is refused (the message names the file and why).
+    #[error("{0}")]
+    Virtual(#[source] crate::virtual_mode::VirtualInputError),
     /// A config file is not a regular file (a FIFO, a device, a directory) or too large.
     #[error("{path}: {message}")]
     NotAConfigFile {
@@ -84,6 +87,9 @@ pub enum BackendConfig {
     /// A Nanonis controller over its TCP programming interface (spm-nanonis): host, port,
     /// timeouts, reconnects, the counts convention, the Z signal and the clock.
     Nanonis(spm_nanonis::NanonisConfig),
+    /// The virtual calibration mode (spm-virtual): a stored image of the standard served as
+    /// the surface: image file, channel, nominal sensitivity, optional counter frame.
+    Virtual(crate::virtual_mode::VirtualBackendConfig),
 }
 
 /// The top level of a job file. `[plan]` is parsed by spm-calibration (its own diagnostics);
@@ -114,6 +120,8 @@ pub enum Backend {
     Sim(Box<SimConfig>),
     /// A Nanonis controller (or `spmcal nanonis-sim`) over TCP.
     Nanonis(Box<spm_nanonis::NanonisConfig>),
+    /// A stored image served as the surface (the virtual calibration mode).
+    Virtual(Box<crate::virtual_mode::VirtualBackend>),
 }
 
 impl Backend {
@@ -123,6 +131,7 @@ impl Backend {
         match self {
             Self::Sim(config) => config.capabilities(),
             Self::Nanonis(config) => config.capabilities(),
+            Self::Virtual(backend) => backend.capabilities(),
         }
     }
 }
@@ -136,6 +145,12 @@ pub struct Job {
     pub plan: PlanConfig,
     /// The texts of the files the job came from (stored with the run as provenance).
     pub provenance_text: String,
+}
+
+/// The `[backend]` table of a generated job, for its provenance.
+#[derive(serde::Serialize)]
+struct BackendTable<'a> {
+    backend: &'a BackendConfig,
 }
 
 impl Job {
@@ -185,8 +200,46 @@ impl Job {
                     provenance_text: format!("# job\n{text}\n# plan\n{plan_text}"),
                 }
             }
+            BackendConfig::Virtual(config) => {
+                let backend = config.load(dir).map_err(JobError::Virtual)?;
+                crate::virtual_mode::check_standard(
+                    &backend.image,
+                    &backend.surface.forward,
+                    &plan.standard,
+                )
+                .map_err(JobError::Virtual)?;
+                Self {
+                    backend: Backend::Virtual(Box::new(backend)),
+                    plan,
+                    provenance_text: format!("# job\n{text}\n# plan\n{plan_text}"),
+                }
+            }
         };
         Self::check_plan_on_backend(&job.plan, &job.backend, &plan_source, &plan_text)?;
+        Ok(job)
+    }
+
+    /// The job `spmcal calibrate --virtual IMAGE --standard NAME` runs: the image checked
+    /// against the standard and a plan built for it ([`crate::virtual_mode::virtual_job`]).
+    ///
+    /// # Errors
+    /// [`JobError::Virtual`] naming the image and the reason.
+    pub fn virtual_image(
+        image: &Path,
+        options: &crate::virtual_mode::VirtualRunOptions,
+    ) -> Result<Self, JobError> {
+        let (config, backend, plan) =
+            crate::virtual_mode::virtual_job(image, options).map_err(JobError::Virtual)?;
+        let config = BackendConfig::Virtual(config);
+        let backend_text = toml::to_string(&BackendTable { backend: &config }).unwrap_or_default();
+        let plan_text = plan.to_toml_string().unwrap_or_default();
+        let job = Self {
+            backend: Backend::Virtual(Box::new(backend)),
+            plan,
+            provenance_text: format!("# job (--virtual)\n{backend_text}\n# plan\n{plan_text}"),
+        };
+        let source = format!("the plan built for {}", image.display());
+        Self::check_plan_on_backend(&job.plan, &job.backend, &source, &plan_text)?;
         Ok(job)
     }
 
@@ -234,6 +287,10 @@ impl Job {
         match &file.backend {
             BackendConfig::Sim { sim_config } => files.push(dir.join(sim_config)),
             BackendConfig::Nanonis(_) => {}
+            BackendConfig::Virtual(config) => {
+                files.push(dir.join(&config.image));
+                files.extend(config.counter_image.iter().map(|p| dir.join(p)));
+            }
         }
         if let Some(p) = &file.plan_file {
             files.push(dir.join(p));

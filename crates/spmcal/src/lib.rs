@@ -30,3 +30,4 @@ pub mod run;
 pub mod simulate;
 pub mod surfaces;
 pub mod vertical;
+pub mod virtual_mode;

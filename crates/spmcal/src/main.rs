@@ -13,6 +13,7 @@ mod error;
 mod files;
 mod fit_cmd;
 mod info;
+mod lattice_cmd;
 mod nanonis_sim_cmd;
 mod simulate_cmd;
 
@@ -45,8 +46,72 @@ enum Command {
     /// Run the calibration plan of a config on the backend it names; append to the CDB.
     Calibrate {
         /// The job config (TOML): `[backend]` and `[plan]`.
-        #[arg(long, value_name = "FILE")]
-        config: PathBuf,
+        #[arg(
+            long,
+            value_name = "FILE",
+            required_unless_present = "virtual_image",
+            conflicts_with = "virtual_image"
+        )]
+        config: Option<PathBuf>,
+        /// Virtual calibration mode: calibrate on this stored image of a standard (any format
+        /// spmcal reads) instead of an instrument; the plan is built for the image.
+        #[arg(long = "virtual", value_name = "IMAGE", requires = "standard")]
+        virtual_image: Option<PathBuf>,
+        /// With --virtual: the standard the image shows, hopg (atoms, a = 0.2461 nm) or
+        /// si7x7 (corner holes, a = 2.688 nm).
+        #[arg(long, value_name = "hopg|si7x7", requires = "virtual_image")]
+        standard: Option<spm_calibration::StandardName>,
+        /// With --virtual: the height channel (default Z, else Topography, else the first in m).
+        #[arg(long, value_name = "NAME", requires = "virtual_image")]
+        channel: Option<String>,
+        /// With --virtual: nodes per side of the net (default 5).
+        #[arg(
+            long,
+            value_name = "N",
+            requires = "virtual_image",
+            default_value_t = 5
+        )]
+        nodes: u32,
+        /// With --virtual: repeats l of the net (default 1: a stored image does not change,
+        /// so a repeat returns the same coefficients).
+        #[arg(
+            long,
+            value_name = "L",
+            requires = "virtual_image",
+            default_value_t = 1
+        )]
+        repeats: u32,
+        /// With --virtual: the virtual scanner's nominal sensitivity, nm per count (default:
+        /// the image's pixel size / 10).
+        #[arg(long, value_name = "NM", requires = "virtual_image")]
+        nominal_nm_per_count: Option<f64>,
+        /// With --virtual: the pixel size, nm, for files that state none (raw).
+        #[arg(long, value_name = "NM", requires = "virtual_image")]
+        pixel_nm: Option<f64>,
+        /// With --virtual: a consecutive frame of the same area scanned the other way,
+        /// served for counter scans.
+        #[arg(long, value_name = "IMAGE", requires = "virtual_image")]
+        counter_image: Option<PathBuf>,
+        /// With --virtual: smooth the image by a Gaussian this many lattice constants wide
+        /// (default 0.05 for hopg, 0.15 for si7x7).
+        #[arg(long, value_name = "LATTICE", requires = "virtual_image")]
+        smooth: Option<f64>,
+        /// With --virtual: accepted LCS angle deviation, degrees.
+        #[arg(
+            long,
+            value_name = "DEG",
+            requires = "virtual_image",
+            default_value_t = 20.0
+        )]
+        angle_tolerance_deg: f64,
+        /// With --virtual: accepted relative deviation of LCS sides.
+        #[arg(
+            long,
+            value_name = "FRACTION",
+            requires = "virtual_image",
+            default_value_t = 0.35
+        )]
+        length_tolerance: f64,
         /// The calibration database: a file (created when missing; default OUT/cdb.sqlite)
         /// or a shared PostgreSQL database, postgres://USER@HOST:PORT/DB (the schema is
         /// created when missing).
@@ -144,6 +209,25 @@ enum Command {
         /// The files: one gets a full description, several a one-line-per-file table.
         #[arg(required = true)]
         files: Vec<PathBuf>,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Measure the lattice of a standard on image files (before or after `spmcal correct`):
+    /// lattice constant and angle over the whole image and in a grid of cells.
+    Lattice {
+        /// The image files.
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+        /// The standard the images show: hopg or si7x7.
+        #[arg(long, value_name = "hopg|si7x7")]
+        standard: spm_calibration::StandardName,
+        /// Cells per side of the grid (default 4).
+        #[arg(long, value_name = "N", default_value_t = 4)]
+        grid: usize,
+        /// The height channel (default Z, else Topography, else the first in m).
+        #[arg(long, value_name = "NAME")]
+        channel: Option<String>,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
@@ -300,10 +384,19 @@ impl Command {
         let mut paths = Vec::new();
         match self {
             Self::Calibrate {
-                config, cdb, out, ..
+                config,
+                virtual_image,
+                counter_image,
+                cdb,
+                out,
+                ..
             } => {
-                paths.push(config.clone());
-                paths.extend(spmcal::job::Job::referenced_files(config));
+                if let Some(config) = config {
+                    paths.push(config.clone());
+                    paths.extend(spmcal::job::Job::referenced_files(config));
+                }
+                paths.extend(virtual_image.iter().cloned());
+                paths.extend(counter_image.iter().cloned());
                 let out = out
                     .clone()
                     .unwrap_or_else(|| PathBuf::from(calibrate_cmd::DEFAULT_OUT));
@@ -325,7 +418,9 @@ impl Command {
                 paths.extend(out.iter().cloned());
                 paths.extend(out_dir.iter().cloned());
             }
-            Self::Info { files, .. } => paths.extend(files.iter().cloned()),
+            Self::Info { files, .. } | Self::Lattice { files, .. } => {
+                paths.extend(files.iter().cloned());
+            }
             Self::Diagnose {
                 files, json, png, ..
             } => {
@@ -409,6 +504,13 @@ fn install_subscriber(log: Option<&std::path::Path>) -> Option<()> {
 fn run(command: Command) -> Result<(), CliError> {
     match command {
         Command::Info { files, json } => info::run(&files, json),
+        Command::Lattice {
+            files,
+            standard,
+            grid,
+            channel,
+            json,
+        } => lattice_cmd::run(&files, standard, grid, channel.as_deref(), json),
         Command::Fit {
             cdb,
             scanner,
@@ -429,13 +531,47 @@ fn run(command: Command) -> Result<(), CliError> {
         },
         Command::Calibrate {
             config,
+            virtual_image,
+            standard,
+            channel,
+            nodes,
+            repeats,
+            nominal_nm_per_count,
+            pixel_nm,
+            counter_image,
+            smooth,
+            angle_tolerance_deg,
+            length_tolerance,
             cdb,
             resume,
             out,
             image_benchmark,
             quick,
         } => calibrate_cmd::run(
-            &config,
+            &match (config, virtual_image, standard) {
+                (_, Some(image), Some(standard)) => calibrate_cmd::JobSource::Virtual(
+                    image,
+                    spmcal::virtual_mode::VirtualRunOptions {
+                        standard,
+                        channel,
+                        nominal_nm_per_count,
+                        nodes_per_side: nodes,
+                        repeats,
+                        pixel_nm,
+                        counter_image,
+                        smoothing_sigma_lattice: smooth,
+                        angle_tolerance_deg,
+                        length_tolerance_fraction: length_tolerance,
+                    },
+                ),
+                (Some(config), _, _) => calibrate_cmd::JobSource::Config(config),
+                _ => {
+                    return Err(CliError::BadInput(
+                        "calibrate: give --config FILE, or --virtual IMAGE --standard hopg|si7x7"
+                            .into(),
+                    ));
+                }
+            },
             cdb.as_deref(),
             resume,
             out.as_deref(),

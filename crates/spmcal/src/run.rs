@@ -342,7 +342,7 @@ pub fn run_job<O: Observer>(
             job.provenance_text.trim_end(),
             serde_json::to_string(nanonis.controller_state()).unwrap_or_default()
         ),
-        Instrument::Sim(_) => job.provenance_text.clone(),
+        Instrument::Sim(_) | Instrument::Virtual(_) => job.provenance_text.clone(),
     };
     let mut cdb = CdbHandle::open(cdb_path)?;
     let run_id = match start {
@@ -405,6 +405,15 @@ pub fn run_job<O: Observer>(
                 ladder,
             })
         }
+        Instrument::Virtual(mut virt) => {
+            let (result, commands) = calibrate_on(&mut *virt, &mut cdb, observer, job, &options);
+            let report = settle(result, &mut cdb, &options, start_unix_s)?;
+            Ok(JobOutcome {
+                report,
+                instrument: FinishedInstrument::Virtual(virt),
+                commands,
+            })
+        }
     }
 }
 
@@ -415,6 +424,8 @@ pub enum FinishedInstrument {
     Sim(Box<Simulator>),
     /// A Nanonis controller (no ground truth).
     Nanonis(Box<spm_nanonis::NanonisMicroscope>),
+    /// A stored image served as the surface (no ground truth).
+    Virtual(Box<spm_virtual::VirtualMicroscope>),
 }
 
 impl FinishedInstrument {
@@ -423,7 +434,7 @@ impl FinishedInstrument {
     pub fn truth(&self) -> Option<&dyn crate::report::TruthSource> {
         match self {
             Self::Sim(sim) => Some(&**sim),
-            Self::Nanonis(_) => None,
+            Self::Nanonis(_) | Self::Virtual(_) => None,
         }
     }
 
@@ -433,7 +444,7 @@ impl FinishedInstrument {
     pub fn simulator(&self) -> Option<&Simulator> {
         match self {
             Self::Sim(sim) => Some(sim),
-            Self::Nanonis(_) => None,
+            Self::Nanonis(_) | Self::Virtual(_) => None,
         }
     }
 
@@ -442,7 +453,7 @@ impl FinishedInstrument {
     pub fn into_simulator(self) -> Option<Simulator> {
         match self {
             Self::Sim(sim) => Some(*sim),
-            Self::Nanonis(_) => None,
+            Self::Nanonis(_) | Self::Virtual(_) => None,
         }
     }
 }
@@ -453,6 +464,8 @@ enum Instrument {
     Sim(Box<Simulator>),
     /// A Nanonis controller over TCP.
     Nanonis(Box<spm_nanonis::NanonisMicroscope>),
+    /// A stored image served as the surface.
+    Virtual(Box<spm_virtual::VirtualMicroscope>),
 }
 
 /// Builds the job's instrument.
@@ -472,6 +485,10 @@ fn open_backend(backend: &Backend) -> Result<Instrument, JobRunError> {
             );
             Ok(Instrument::Nanonis(Box::new(nanonis)))
         }
+        Backend::Virtual(backend) => backend
+            .microscope()
+            .map(|m| Instrument::Virtual(Box::new(m)))
+            .map_err(|e| JobRunError::Backend(Box::new(e))),
     }
 }
 

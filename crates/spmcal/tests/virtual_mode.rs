@@ -1,0 +1,326 @@
+//! The virtual calibration mode (issue 24): refusals of bad images (exit 2, the file and the
+//! reason named, nothing written), and the analytical solutions validated on a simulated
+//! image whose distortion the oracle knows (item 5).
+#![allow(clippy::unwrap_used)]
+
+use spm_calibration::{Calibrator, MemoryStore, NoObserver, RunOptions, StandardName};
+use spm_hal::{CountPoint, Counts, Microscope, ScanDirection, ScanRequest, Seconds, TraceHalf};
+use spm_sim::{SimConfig, Simulator};
+use spm_virtual::{ImageTiming, StoredImage, VirtualMicroscope, VirtualParams, VirtualSurface};
+use spmcal::virtual_mode::{VirtualBackend, VirtualRunOptions, virtual_plan};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// A triangular lattice of Gaussian hills, a = 0.2461 nm, on `n`² pixels of `pixel_nm`,
+/// written as a Gwyddion .gsf file.
+fn lattice_file(dir: &Path, name: &str, n: usize, pixel_nm: f64, hole: bool) -> PathBuf {
+    let a = 0.2461;
+    let (b1, b2) = ((a, 0.0), (0.5 * a, 0.75f64.sqrt() * a));
+    let mut data = Vec::with_capacity(n * n);
+    for row in 0..n {
+        for column in 0..n {
+            let (x, y) = (column as f64 * pixel_nm, row as f64 * pixel_nm);
+            // Fractional coordinates, then the nearest site's distance.
+            let j = y / b2.1;
+            let i = (x - j * b2.0) / b1.0;
+            let mut z = 0.0;
+            for di in -1..=1 {
+                for dj in -1..=1 {
+                    let (si, sj) = (i.round() + f64::from(di), j.round() + f64::from(dj));
+                    let (sx, sy) = (si * b1.0 + sj * b2.0, sj * b2.1);
+                    let r2 = (x - sx).powi(2) + (y - sy).powi(2);
+                    z += 0.05e-9 * (-r2 / (2.0 * 0.05f64.powi(2))).exp();
+                }
+            }
+            let missing =
+                hole && (n / 3..n / 3 + 4).contains(&row) && (n / 2..n / 2 + 4).contains(&column);
+            data.push(if missing { f64::NAN } else { z });
+        }
+    }
+    let side = n as f64 * pixel_nm;
+    let channel = spm_formats::Channel::new("Z", spm_formats::Direction::Forward, "m", n, n, data)
+        .unwrap()
+        .with_size_nm(side, side);
+    let path = dir.join(name);
+    spm_formats::write_gsf(&path, &channel, &[]).unwrap();
+    path
+}
+
+fn refuse(image: &Path, standard: &str, out: &Path, mentions: &[&str]) {
+    let output = Command::new(env!("CARGO_BIN_EXE_spmcal"))
+        .args(["calibrate", "--virtual"])
+        .arg(image)
+        .args(["--standard", standard, "--out"])
+        .arg(out)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(
+        output.status.code(),
+        Some(2),
+        "{}: {stderr}",
+        image.display()
+    );
+    let name = image.file_name().unwrap().to_string_lossy();
+    assert!(
+        stderr.contains(name.as_ref()),
+        "the file is named: {stderr}"
+    );
+    for m in mentions {
+        assert!(stderr.contains(m), "{stderr:?} should mention {m:?}");
+    }
+    assert!(!out.exists(), "nothing is written on a refusal");
+}
+
+#[test]
+fn bad_images_are_refused_with_exit_2_naming_the_file_and_the_reason() {
+    let dir = std::env::temp_dir().join(format!("spmcal-virtual-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let out = dir.join("out");
+    // Pixels without data.
+    let holed = lattice_file(&dir, "holed.gsf", 160, 0.02, true);
+    refuse(&holed, "hopg", &out, &["16 pixels hold no finite height"]);
+    // 0.06 nm pixels: 4.1 per lattice constant of HOPG, 6 needed.
+    let coarse = lattice_file(&dir, "coarse.gsf", 160, 0.06, false);
+    refuse(
+        &coarse,
+        "hopg",
+        &out,
+        &["4.1 pixels per lattice constant", "needs at least 6"],
+    );
+    // A HOPG lattice claimed to be Si(111)-7×7.
+    let hopg = lattice_file(&dir, "hopg.gsf", 160, 0.02, false);
+    refuse(&hopg, "si7x7", &out, &["does not show si7x7"]);
+    // A HOPG image of 3.9 lattice constants cannot hold a net with its margins.
+    let small = lattice_file(&dir, "small.gsf", 48, 0.02, false);
+    refuse(&small, "hopg", &out, &["needs an image of more than"]);
+    // The same lattice on a sufficient image is accepted by the checks (the control).
+    let options = VirtualRunOptions::new(StandardName::Hopg);
+    spmcal::virtual_mode::virtual_job(&hopg, &options).unwrap();
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A simulated scanner with a distortion the oracle knows: different X and Y sensitivities,
+/// 2° obliquity, strong nonlinearity (the LCCs vary by a few % across the image), no drift,
+/// creep or hysteresis (a virtual image freezes them in; here the truth is the static map).
+fn distorted_simulator() -> Simulator {
+    let text = include_str!("../../../configs/sim-ideal.toml")
+        .replace(
+            "sensitivity_y_nm_per_count = 0.02",
+            "sensitivity_y_nm_per_count = 0.0215",
+        )
+        .replace("nonorthogonality_deg = 0.0", "nonorthogonality_deg = 2.0")
+        .replace("rotation_deg = 0.0", "rotation_deg = 12.0")
+        .replace(
+            "nonlinearity_x = { quadratic = 0.0, cubic = 0.0 }",
+            "nonlinearity_x = { quadratic = 0.3, cubic = 0.3 }",
+        )
+        .replace(
+            "nonlinearity_y = { quadratic = 0.0, cubic = 0.0 }",
+            "nonlinearity_y = { quadratic = -0.3, cubic = 0.0 }",
+        )
+        .replace("z_white_noise_nm = 0.0", "z_white_noise_nm = 0.002");
+    Simulator::new(SimConfig::from_toml_str(&text, "sim-ideal.toml (distorted)").unwrap()).unwrap()
+}
+
+#[test]
+fn lccs_measured_on_a_simulated_image_agree_with_the_oracle_within_their_uncertainty() {
+    let mut sim = distorted_simulator();
+    // The image: 700 × 700 pixels, 1.5 counts apart (≈ 8 pixels per lattice constant),
+    // around (12000, −8000) counts where the nonlinearity tilts the LCC field.
+    let (n, step) = (700u32, 1.5);
+    let origin = CountPoint::from_counts(12_000.0, -8_000.0);
+    let request = ScanRequest {
+        origin,
+        pixel_step: Counts(step),
+        pixels_per_line: n,
+        lines: n,
+        direction: ScanDirection::Direct,
+        pixel_dwell: Seconds(1e-5),
+        record_backward: false,
+    };
+    let map = sim
+        .scan(&request)
+        .unwrap()
+        .height_map(TraceHalf::Forward)
+        .unwrap();
+    // Virtual counts = simulator counts − the image's centre: 1.5 counts per pixel at a nominal
+    // sensitivity a user would state (the mean of K̄x and K̄y at the image's centre, rounded).
+    let centre = sim.oracle().true_lcc(
+        CountPoint::from_counts(12_000.0 + 525.0, -8_000.0 + 525.0),
+        Counts(0.0),
+    );
+    let nominal = (0.5 * (centre.kx.value() + centre.ky.value()) * 1e4).round() / 1e4;
+    let heights_nm: Vec<f64> = map.z_counts.iter().map(|z| z * 0.004).collect();
+    let image = StoredImage::new(
+        heights_nm,
+        n as usize,
+        n as usize,
+        step * nominal,
+        step * nominal,
+        ImageTiming { line_time_s: 0.1 },
+    )
+    .unwrap();
+    let backend = VirtualBackend {
+        image: PathBuf::from("simulated.gsf"),
+        surface: VirtualSurface::single(image),
+        params: VirtualParams::new(nominal),
+    };
+    let mut options = VirtualRunOptions::new(StandardName::Hopg);
+    options.repeats = 2;
+    let standard = StandardName::Hopg.standard(nominal, 0.3, 15.0);
+    let plan = virtual_plan(Path::new("simulated.gsf"), &backend, standard, &options).unwrap();
+    let mut microscope: VirtualMicroscope = backend.microscope().unwrap();
+    assert_eq!(microscope.counts_per_pixel(), (step, step));
+    let mut store = MemoryStore::default();
+    let mut observer = NoObserver;
+    let run = RunOptions {
+        run_id: "virtual-sim".into(),
+        start_unix_s: 1.8e9,
+        config_text: plan.to_toml_string().unwrap(),
+    };
+    Calibrator::new(&mut microscope, &mut store, &mut observer, plan)
+        .unwrap()
+        .run(&run)
+        .unwrap();
+    let oracle = sim.oracle();
+    let z = spm_hal::truth::GroundTruth::z_now(&sim);
+    let records = &store.records;
+    assert!(
+        records.len() >= 20,
+        "{} records of 32 visits",
+        records.len()
+    );
+    let (mut within, mut total) = (0usize, 0usize);
+    let mut worst: f64 = 0.0;
+    let (mut sum_z2, mut relative_u_kx) = (0.0, Vec::new());
+    for r in records {
+        let half = 0.5 * f64::from(n - 1) * step;
+        let place = CountPoint::from_counts(
+            origin.x.value() + half + r.lcs_x_counts,
+            origin.y.value() + half + r.lcs_y_counts,
+        );
+        let truth = oracle.true_lcc(place, Counts(z.value()));
+        relative_u_kx.push(r.u_kx_nm_per_count.unwrap() / r.kx_nm_per_count);
+        for (measured, true_value, u) in [
+            (r.kx_nm_per_count, truth.kx.value(), r.u_kx_nm_per_count),
+            (r.ky_nm_per_count, truth.ky.value(), r.u_ky_nm_per_count),
+            (r.alpha_rad, truth.alpha.value(), r.u_alpha_rad),
+        ] {
+            let u = u.unwrap();
+            let z_score = (measured - true_value).abs() / u;
+            sum_z2 += z_score * z_score;
+            worst = worst.max(z_score);
+            total += 1;
+            within += usize::from(z_score <= 2.0);
+        }
+    }
+    let share = within as f64 / total as f64;
+    let rms_z = (sum_z2 / total as f64).sqrt();
+    relative_u_kx.sort_by(f64::total_cmp);
+    let median_u = relative_u_kx[relative_u_kx.len() / 2];
+    eprintln!(
+        "virtual mode on a simulated image: {within}/{total} coefficients within 2σ of the \
+         oracle ({:.1} %), worst {worst:.2}σ, RMS {rms_z:.2}σ, median u(K̄x)/K̄x {:.2} %, {} \
+         records",
+        100.0 * share,
+        100.0 * median_u,
+        records.len()
+    );
+    assert!(rms_z < 1.5, "RMS of (measured − oracle)/σ = {rms_z:.2}");
+    assert!(
+        share >= 0.9,
+        "{within}/{total} within 2σ, worst {worst:.2}σ"
+    );
+    // K̄x varies across the image by more than three uncertainties: a calibration that
+    // missed the field (or read it at the wrong places) would fail the comparison above.
+    let kx_at = |x: f64| {
+        oracle
+            .true_lcc(CountPoint::from_counts(x, -8_000.0), Counts(z.value()))
+            .kx
+            .value()
+    };
+    let variation = (kx_at(12_000.0 + 1050.0) - kx_at(12_000.0)).abs() / kx_at(12_000.0);
+    assert!(
+        variation > 3.0 * median_u,
+        "variation {variation} vs median u {median_u}"
+    );
+}
+
+#[test]
+fn a_job_file_names_the_virtual_backend_and_its_plan_is_checked_against_the_image() {
+    let dir = std::env::temp_dir().join(format!("spmcal-virtual-job-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let image = lattice_file(&dir, "hopg.gsf", 160, 0.02, false);
+    let options = VirtualRunOptions::new(StandardName::Hopg);
+    let (_, _, plan) = spmcal::virtual_mode::virtual_job(&image, &options).unwrap();
+    let nominal = plan.standard.nominal_nm_per_count;
+    let job_text = format!(
+        "[backend]\nkind = \"virtual\"\nimage = \"hopg.gsf\"\nnominal_nm_per_count = {nominal}\n\n{}",
+        plan.to_toml_string().unwrap()
+    );
+    let job_path = dir.join("job.toml");
+    std::fs::write(&job_path, &job_text).unwrap();
+    let job = spmcal::job::Job::from_file(&job_path).unwrap();
+    assert!(matches!(job.backend, spmcal::job::Backend::Virtual(_)));
+    assert_eq!(
+        spmcal::job::Job::referenced_files(&job_path),
+        vec![dir.join("hopg.gsf")]
+    );
+    // The same job claiming Si(111)-7×7 corner holes (the plan scaled to stay the same in
+    // counts) is refused by the image check, naming the image.
+    let scaled = nominal * 2.688 / 0.2461;
+    let si = job_text
+        .replace(
+            &format!("nominal_nm_per_count = {nominal}"),
+            &format!("nominal_nm_per_count = {scaled}"),
+        )
+        .replace("name = \"hopg\"", "name = \"si7x7\"")
+        .replace(
+            "lattice_constant_nm = 0.2461",
+            "lattice_constant_nm = 2.688",
+        )
+        .replace("feature = \"hills\"", "feature = \"pits\"");
+    std::fs::write(&job_path, &si).unwrap();
+    let message = spmcal::job::Job::from_file(&job_path)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        message.contains("hopg.gsf") && message.contains("does not show si7x7"),
+        "{message}"
+    );
+    // Unknown fields of the virtual backend are refused.
+    std::fs::write(
+        &job_path,
+        job_text.replace("[backend]\n", "[backend]\ncolour = 3\n"),
+    )
+    .unwrap();
+    assert!(spmcal::job::Job::from_file(&job_path).is_err());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn the_measured_images_are_accepted_for_the_standard_they_show_and_refused_for_another() {
+    let si = spmcal_tests::measured_file("si7x7-nanonis/Si_7x7_051.sxm");
+    let hopg = spmcal_tests::measured_file("hopg-terrace-iso28600/graphiteterrace.spm");
+    let si7x7 = VirtualRunOptions::new(StandardName::Si7x7);
+    let atoms = VirtualRunOptions::new(StandardName::Hopg);
+    let (_, backend, plan) = spmcal::virtual_mode::virtual_job(&si, &si7x7).unwrap();
+    // The Nanonis file's both halves are served; 0.078-nm pixels, K = pixel / 10.
+    assert!(backend.surface.backward.is_some());
+    assert!((plan.standard.nominal_nm_per_count - 20.0 / 256.0 / 10.0).abs() < 1e-12);
+    spmcal::virtual_mode::virtual_job(&hopg, &atoms).unwrap();
+    // HOPG atoms on 0.078-nm pixels: 3.1 pixels per lattice constant.
+    let e = spmcal::virtual_mode::virtual_job(&si, &atoms)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("Si_7x7_051.sxm") && e.contains("needs at least 6"),
+        "{e}"
+    );
+    // The HOPG terrace claimed to show 7×7 corner holes.
+    let e = spmcal::virtual_mode::virtual_job(&hopg, &si7x7)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("graphiteterrace.spm"), "{e}");
+}

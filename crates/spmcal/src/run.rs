@@ -406,12 +406,14 @@ pub fn run_job<O: Observer>(
             })
         }
         Instrument::Virtual(mut virt) => {
-            let (result, commands) = calibrate_on(&mut *virt, &mut cdb, observer, job, &options);
+            let (result, commands, ladder) =
+                calibrate_on(&mut *virt, &mut cdb, observer, job, &options);
             let report = settle(result, &mut cdb, &options, start_unix_s)?;
             Ok(JobOutcome {
                 report,
                 instrument: FinishedInstrument::Virtual(virt),
                 commands,
+                ladder,
             })
         }
     }

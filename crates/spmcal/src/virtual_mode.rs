@@ -593,6 +593,9 @@ pub fn virtual_plan(
             .map_or_else(|| "image".to_owned(), |s| s.to_string_lossy().into_owned())
     );
     plan.repeats = options.repeats;
+    // A stored image has no scanner dynamics of its own to identify (its trace and retrace
+    // are fixed): the dynamics stage is off in virtual mode.
+    plan.dynamics.enabled = false;
     plan.attach.first_size_counts = 3.0 * a_counts;
     plan.attach.first_pixels = pixels(3.0 * a_counts);
     // A tracking segment of two lattice constants: on measured images one of a lattice

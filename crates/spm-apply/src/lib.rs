@@ -37,6 +37,7 @@
 use std::path::{Path, PathBuf};
 
 pub mod dynamic;
+pub mod history;
 
 use spm_correction::{
     CoordinateMap, CorrectionError, CorrectionField, CountRegion, CountsConvention, Integration,
@@ -274,6 +275,9 @@ pub struct ApplyOptions {
     pub path: Option<RasterPath>,
     /// Apply the static field only, even when the calibration file holds dynamics.
     pub static_only: bool,
+    /// The command history the image was taken with (`spmcal scan`'s sidecar): with the
+    /// calibration's dynamics, the creep of the approach move is corrected too.
+    pub history: Option<history::ScanHistory>,
     /// Interpolation of the resampling.
     pub interpolation: Interpolation,
 }
@@ -870,6 +874,9 @@ pub enum DynamicsUsed {
     /// The raster's hysteresis and creep along the file's own raster (trace or retrace per
     /// channel); of the approach move nothing is known (settled start assumed).
     Raster,
+    /// The recorded command history (`spmcal scan`'s sidecar) through the dynamics: the
+    /// raster and every command before it, the approach move's creep included.
+    Recorded,
 }
 
 impl DynamicsUsed {
@@ -884,6 +891,10 @@ impl DynamicsUsed {
             Self::NoLineTime => {
                 "none: the calibration holds the scanner's dynamics but the file states no line \
                  time; static distributed field only (eqs. 5-12)"
+            }
+            Self::Recorded => {
+                "recorded: the scan's command history (the approach move and the raster) \
+                 replayed through the calibration's hysteresis and creep"
             }
             Self::Raster => {
                 "raster: the file's own raster (trace and retrace at its line time) replayed \
@@ -1068,17 +1079,33 @@ pub fn correct_file(
             .as_ref()
             .filter(|_| raster.line_time_s.is_some())
     };
+    let recorded = options.history.as_ref().filter(|_| with_dynamics.is_some());
+    let recorded_history = recorded.map(history::ScanHistory::command_history);
     let dynamics_used = match (with_dynamics, &set.dynamics) {
+        (Some(_), _) if recorded.is_some() => DynamicsUsed::Recorded,
         (Some(_), _) => DynamicsUsed::Raster,
         (None, Some(_)) if !options.static_only => DynamicsUsed::NoLineTime,
         _ => DynamicsUsed::None,
     };
     let map_of = |half: dynamic::Half| -> Result<(CoordinateMap, [f64; 2]), ApplyError> {
-        match with_dynamics {
-            Some(d) => {
+        match (with_dynamics, recorded, &recorded_history) {
+            (Some(d), Some(h), Some(commands)) => {
+                let times = match half {
+                    dynamic::Half::Trace => Some(&h.forward_pixel_times_s),
+                    dynamic::Half::Retrace => h.backward_pixel_times_s.as_ref(),
+                }
+                .ok_or_else(|| ApplyError::Option {
+                    option: "--history",
+                    reason: "the history holds no backward pixel times for a backward channel"
+                        .to_owned(),
+                })?;
+                dynamic::recorded_map(&field, &raster, d, half, commands, times)
+                    .map_err(|e| correction("map", e))
+            }
+            (Some(d), _, _) => {
                 dynamic::dynamic_map(&field, &raster, d, half).map_err(|e| correction("map", e))
             }
-            None => coordinate_map(&field, &raster).map_err(|e| correction("map", e)),
+            (None, _, _) => coordinate_map(&field, &raster).map_err(|e| correction("map", e)),
         }
     };
     let half_of = |channel: &Channel| match channel.direction() {

@@ -5,6 +5,7 @@
 
 use crate::error::CliError;
 use crate::{OutFormat, RasterDirection};
+use spm_apply::history::ScanHistory;
 use spm_apply::{ApplyError, ApplyOptions, ChannelSelection, Corrected, OutputKind, RasterPath};
 use spm_correction::SurfaceSet;
 use spm_formats::{Direction, ScanDir};
@@ -127,8 +128,25 @@ fn options(args: &CorrectArgs<'_>, kind: OutputKind) -> ApplyOptions {
             RasterDirection::Counter => RasterPath::Counter,
         }),
         static_only: args.static_only,
+        history: None,
         interpolation: spm_correction::Interpolation::Bilinear,
     }
+}
+
+/// The command history an image was taken with: `IMAGE.history.json` beside it, written by
+/// `spmcal scan` (none with `--static`).
+fn history_of(image: &Path, args: &CorrectArgs<'_>) -> Result<Option<ScanHistory>, CliError> {
+    let path = spm_apply::history::sidecar_of(image);
+    if args.static_only || !path.is_file() {
+        return Ok(None);
+    }
+    let bytes =
+        crate::files::read_limited(&path, "history", spm_apply::history::MAX_HISTORY_BYTES)?;
+    let text = String::from_utf8(bytes)
+        .map_err(|_| CliError::BadInput(format!("{}: not UTF-8 text", path.display())))?;
+    ScanHistory::from_json(&text, &path.display().to_string())
+        .map(Some)
+        .map_err(|e| CliError::BadInput(e.to_string()))
 }
 
 /// The file a channel of a multi-channel .gsf output goes to: OUT.CHANNEL.DIRECTION.gsf.
@@ -226,7 +244,11 @@ pub fn run(args: &CorrectArgs<'_>) -> Result<(), CliError> {
             Some(set) => set,
             None => read_calibration(args.calibration)?,
         };
-        let corrected = spm_apply::correct_file(&file, &set, &options(args, *kind))
+        let options = ApplyOptions {
+            history: history_of(image, args)?,
+            ..options(args, *kind)
+        };
+        let corrected = spm_apply::correct_file(&file, &set, &options)
             .map_err(|e| apply_error(e, args.calibration))?;
         if file.header_value(spm_apply::KEY_SCANNER).is_none() && args.scanner.is_none() {
             use std::io::Write as _;
@@ -262,6 +284,8 @@ pub fn run(args: &CorrectArgs<'_>) -> Result<(), CliError> {
                     "none: the file states no line time (static field)",
                 spm_apply::DynamicsUsed::Raster =>
                     "the raster's hysteresis and creep (approach creep unknown)",
+                spm_apply::DynamicsUsed::Recorded =>
+                    "the recorded history's hysteresis and creep (IMAGE.history.json)",
             },
             if corrected.extrapolated_counts.is_some() {
                 "; EXTRAPOLATED beyond the calibrated region"

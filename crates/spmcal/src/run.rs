@@ -593,3 +593,51 @@ pub fn mark_aborted(cdb_path: &Path, run_id: &str, at_unix_s: f64) -> Result<(),
     ProgressStore::finish_run(&mut cdb, run_id, RunStatus::Aborted, at_unix_s)?;
     Ok(())
 }
+
+/// One image taken on a job's backend with the backend's command log (`spmcal scan`): the
+/// probe moves to the frame's centre, settles, then rasters.
+pub struct RecordedScan {
+    /// The frame.
+    pub frame: spm_hal::Frame,
+    /// Every lateral command of the session, with instrument times.
+    pub events: Vec<spm_hal::recording::CommandEvent>,
+}
+
+/// Takes `request` on the job's backend (see [`RecordedScan`]).
+///
+/// # Errors
+/// [`JobRunError::Backend`] when the backend cannot be opened or refuses the move or scan.
+pub fn scan_recorded(
+    job: &Job,
+    request: &spm_hal::ScanRequest,
+    settle_s: f64,
+) -> Result<RecordedScan, JobRunError> {
+    fn on<M: spm_hal::Microscope>(
+        microscope: &mut M,
+        request: &spm_hal::ScanRequest,
+        settle_s: f64,
+    ) -> Result<RecordedScan, JobRunError>
+    where
+        M::Error: Send + Sync + 'static,
+    {
+        use spm_hal::Microscope as _;
+        let mut recorder = spm_hal::recording::CommandRecorder::new(microscope, MAX_COMMANDS);
+        let backend = |e: M::Error| JobRunError::Backend(Box::new(e));
+        let speed = request.pixel_step.value() / request.pixel_dwell.value();
+        recorder
+            .move_to(spm_hal::MoveRequest {
+                target: request.centre(),
+                speed: spm_hal::CountsPerSecond(speed),
+                settle: spm_hal::Seconds(settle_s),
+            })
+            .map_err(backend)?;
+        let frame = recorder.scan(request).map_err(backend)?;
+        let (_, events) = recorder.into_parts();
+        Ok(RecordedScan { frame, events })
+    }
+    match open_backend(&job.backend)? {
+        Instrument::Sim(mut sim) => on(&mut *sim, request, settle_s),
+        Instrument::Nanonis(mut nanonis) => on(&mut *nanonis, request, settle_s),
+        Instrument::Virtual(mut virt) => on(&mut *virt, request, settle_s),
+    }
+}

@@ -400,3 +400,108 @@ fn simulate_copies_the_scan_program_of_a_measured_file() {
     );
     let _ = std::fs::remove_dir_all(&scratch);
 }
+
+/// `spmcal scan` keeps the command history beside the image; `correct` applies the
+/// calibration's dynamics along it (and says so), `--static` does not, and a damaged history is
+/// refused with exit 2 naming the sidecar and the field.
+#[test]
+fn a_scanned_image_is_corrected_along_its_recorded_history() {
+    use spm_correction::hysteresis::{
+        CreepParameters, DYNAMICS_FORMAT, DYNAMICS_FORMAT_VERSION, DynamicsIdentification,
+        PlayHysteresis, ScannerDynamics,
+    };
+    let dir = std::env::temp_dir().join(format!("spmcal-scan-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let job = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/calibrate-hopg-quick.toml");
+    let image = dir.join("img.gsf");
+    let (code, _, stderr) = spmcal(&[
+        "scan",
+        "--config",
+        job.to_str().unwrap(),
+        "--out",
+        image.to_str().unwrap(),
+        "--size-counts",
+        "1024",
+        "--pixels",
+        "48",
+        "--x-counts",
+        "-3000",
+        "--settle-s",
+        "1",
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let sidecar = dir.join("img.gsf.history.json");
+    assert!(sidecar.is_file());
+    // A calibration with dynamics: a uniform field, one play operator, creep.
+    let mut plane = spm_correction::PlaneSurfaces::constant(0.0, 0.02, 0.02, 0.0).unwrap();
+    plane.calibrated_region_counts = Some(spm_correction::CountRegion {
+        x_min_counts: -30_000.0,
+        x_max_counts: 30_000.0,
+        y_min_counts: -30_000.0,
+        y_max_counts: 30_000.0,
+    });
+    let mut set = spm_correction::SurfaceSet::new(
+        spm_correction::Provenance {
+            scanner_id: "sim-hopg".into(),
+            n_records: 100,
+            nominal_nm_per_count: Some(0.02),
+            counts_convention: Some(spm_correction::CountsConvention::CentredSigned),
+            ..spm_correction::Provenance::default()
+        },
+        vec![plane],
+    )
+    .unwrap();
+    set.dynamics = Some(ScannerDynamics {
+        format: DYNAMICS_FORMAT.to_owned(),
+        version: DYNAMICS_FORMAT_VERSION,
+        hysteresis_x: PlayHysteresis {
+            thresholds_counts: vec![100.0, 300.0],
+            weights: vec![0.02, 0.03],
+        },
+        hysteresis_y: PlayHysteresis::none(),
+        creep: CreepParameters {
+            weight: 0.005,
+            min_time_constant_s: 0.01,
+            max_time_constant_s: 1e4,
+            elements_per_decade: 3,
+        },
+        identification: DynamicsIdentification::default(),
+    });
+    let calibration = dir.join("calibration.json");
+    std::fs::write(&calibration, set.to_json_string().unwrap()).unwrap();
+    let correct = |out: &str, extra: &[&str]| {
+        let out = dir.join(out);
+        let mut args = vec![
+            "correct",
+            image.to_str().unwrap(),
+            "--calibration",
+            calibration.to_str().unwrap(),
+            "--out",
+        ];
+        let out_text = out.to_str().unwrap().to_owned();
+        args.push(&out_text);
+        args.extend_from_slice(extra);
+        spmcal(&args)
+    };
+    let (code, stdout, stderr) = correct("recorded.gsf", &[]);
+    assert_eq!(code, 0, "{stderr}");
+    assert!(stdout.contains("recorded history"), "{stdout}");
+    let (code, stdout, stderr) = correct("static.gsf", &["--static"]);
+    assert_eq!(code, 0, "{stderr}");
+    assert!(stdout.contains("none (static field)"), "{stdout}");
+    let recorded = std::fs::read(dir.join("recorded.gsf")).unwrap();
+    let fixed = std::fs::read(dir.join("static.gsf")).unwrap();
+    assert_ne!(recorded, fixed, "the dynamics changed nothing");
+    // A damaged history: exit 2, the sidecar and the field named, nothing written.
+    let text = std::fs::read_to_string(&sidecar).unwrap();
+    std::fs::write(&sidecar, text.replacen("\"version\":1", "\"version\":7", 1)).unwrap();
+    let (code, _, stderr) = correct("damaged.gsf", &[]);
+    assert_eq!(code, 2, "{stderr}");
+    assert!(
+        stderr.contains("history.json") && stderr.contains("`format`"),
+        "{stderr}"
+    );
+    assert!(!dir.join("damaged.gsf").exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1003,6 +1003,153 @@ fn source_key(key: &str) -> String {
     out
 }
 
+/// The coordinate maps a file's channels are resampled with.
+struct Maps {
+    /// The first channel's half.
+    map: CoordinateMap,
+    /// Its frame's origin from the field's origin, nm.
+    first_nm: [f64; 2],
+    /// The other half's map and origin, when the dynamics make the halves differ and a channel
+    /// of it is selected.
+    other_half: Option<(CoordinateMap, [f64; 2])>,
+    /// What the maps include.
+    dynamics_used: DynamicsUsed,
+}
+
+/// The half of the frame a channel holds.
+fn half_of(channel: &Channel) -> dynamic::Half {
+    match channel.direction() {
+        Direction::Backward => dynamic::Half::Retrace,
+        Direction::Forward => dynamic::Half::Trace,
+    }
+}
+
+/// The maps of [`correct_file`]: the raster's dynamics (recorded or replayed) when the
+/// calibration file has them and the file states its line time, else the static field
+/// (eqs. 5-12).
+fn maps_for<F: CorrectionField + Sync>(
+    file: &SpmFile,
+    set: &SurfaceSet,
+    options: &ApplyOptions,
+    field: &F,
+    raster: &FileRaster,
+    channels: &[&Channel],
+) -> Result<Maps, ApplyError> {
+    let correction = |source: CorrectionError| ApplyError::Correction {
+        file: file.source.clone(),
+        channel: "map".to_owned(),
+        source,
+    };
+    let first = channels
+        .first()
+        .copied()
+        .ok_or_else(|| ApplyError::Channel {
+            file: file.source.clone(),
+            reason: "the file holds no image channel".to_owned(),
+        })?;
+    let with_dynamics = if options.static_only {
+        None
+    } else {
+        set.dynamics
+            .as_ref()
+            .filter(|_| raster.line_time_s.is_some())
+    };
+    let recorded = options.history.as_ref().filter(|_| with_dynamics.is_some());
+    let recorded_history = recorded.map(history::ScanHistory::command_history);
+    let dynamics_used = match (with_dynamics, &set.dynamics) {
+        (Some(_), _) if recorded.is_some() => DynamicsUsed::Recorded,
+        (Some(_), _) => DynamicsUsed::Raster,
+        (None, Some(_)) if !options.static_only => DynamicsUsed::NoLineTime,
+        _ => DynamicsUsed::None,
+    };
+    let map_of = |half: dynamic::Half| -> Result<(CoordinateMap, [f64; 2]), ApplyError> {
+        match (with_dynamics, recorded, &recorded_history) {
+            (Some(d), Some(h), Some(commands)) => {
+                let times = match half {
+                    dynamic::Half::Trace => Some(&h.forward_pixel_times_s),
+                    dynamic::Half::Retrace => h.backward_pixel_times_s.as_ref(),
+                }
+                .ok_or_else(|| ApplyError::Option {
+                    option: "--history",
+                    reason: "the history holds no backward pixel times for a backward channel"
+                        .to_owned(),
+                })?;
+                dynamic::recorded_map(field, raster, d, half, commands, times).map_err(correction)
+            }
+            (Some(d), _, _) => dynamic::dynamic_map(field, raster, d, half).map_err(correction),
+            (None, _, _) => coordinate_map(field, raster).map_err(correction),
+        }
+    };
+    let (map, first_nm) = map_of(half_of(first))?;
+    let other = match half_of(first) {
+        dynamic::Half::Trace => dynamic::Half::Retrace,
+        dynamic::Half::Retrace => dynamic::Half::Trace,
+    };
+    let other_half = if with_dynamics.is_some() && channels.iter().any(|c| half_of(c) == other) {
+        Some(map_of(other)?)
+    } else {
+        None
+    };
+    Ok(Maps {
+        map,
+        first_nm,
+        other_half,
+        dynamics_used,
+    })
+}
+
+/// A channel's values in scanner geometry (bottom row first), refused when none is finite.
+fn geometry_heights(file: &SpmFile, channel: &Channel) -> Result<Vec<f64>, ApplyError> {
+    let (nx, ny) = (channel.nx(), channel.ny());
+    let mut heights = Vec::with_capacity(nx * ny);
+    for row in (0..ny).rev() {
+        heights.extend_from_slice(&channel.data()[row * nx..(row + 1) * nx]);
+    }
+    if !heights.iter().any(|v| v.is_finite()) {
+        return Err(ApplyError::Channel {
+            file: file.source.clone(),
+            reason: format!(
+                "channel {:?} ({}) holds no finite height or value (every pixel NaN or \
+                 infinite)",
+                channel.name(),
+                channel.direction().as_str()
+            ),
+        });
+    }
+    Ok(heights)
+}
+
+/// The corrected channel on the output grid (display orientation), with its geometry.
+fn output_channel(
+    file: &SpmFile,
+    channel: &Channel,
+    grid: &OutputGrid,
+    display: Vec<f64>,
+    centre: [f64; 2],
+    angle_ccw_rad: f64,
+) -> Result<Channel, ApplyError> {
+    let step_nm = grid.step_nm.value();
+    let mut corrected = Channel::new(
+        channel.name(),
+        channel.direction(),
+        channel.unit(),
+        grid.columns,
+        grid.rows,
+        display,
+    )
+    .map_err(|e| ApplyError::Channel {
+        file: file.source.clone(),
+        reason: e.to_string(),
+    })?
+    .with_size_nm(step_nm * grid.columns as f64, step_nm * grid.rows as f64)
+    .with_center_nm(centre[0], centre[1])
+    .with_angle_deg(angle_ccw_rad.to_degrees());
+    if let Some(dir) = channel.scan_dir().or(file.scan_dir) {
+        corrected = corrected.with_scan_dir(dir);
+    }
+    Ok(corrected)
+}
+
 /// Corrects the selected channels of `file` with the calibration `set` (see the crate docs).
 ///
 /// # Errors
@@ -1070,62 +1217,12 @@ pub fn correct_file(
         Route::Products,
     )
     .map_err(|e| correction("map", e))?;
-    // The raster's dynamics when the calibration file has them and the file states its line
-    // time; else the static field (eqs. 5-12).
-    let with_dynamics = if options.static_only {
-        None
-    } else {
-        set.dynamics
-            .as_ref()
-            .filter(|_| raster.line_time_s.is_some())
-    };
-    let recorded = options.history.as_ref().filter(|_| with_dynamics.is_some());
-    let recorded_history = recorded.map(history::ScanHistory::command_history);
-    let dynamics_used = match (with_dynamics, &set.dynamics) {
-        (Some(_), _) if recorded.is_some() => DynamicsUsed::Recorded,
-        (Some(_), _) => DynamicsUsed::Raster,
-        (None, Some(_)) if !options.static_only => DynamicsUsed::NoLineTime,
-        _ => DynamicsUsed::None,
-    };
-    let map_of = |half: dynamic::Half| -> Result<(CoordinateMap, [f64; 2]), ApplyError> {
-        match (with_dynamics, recorded, &recorded_history) {
-            (Some(d), Some(h), Some(commands)) => {
-                let times = match half {
-                    dynamic::Half::Trace => Some(&h.forward_pixel_times_s),
-                    dynamic::Half::Retrace => h.backward_pixel_times_s.as_ref(),
-                }
-                .ok_or_else(|| ApplyError::Option {
-                    option: "--history",
-                    reason: "the history holds no backward pixel times for a backward channel"
-                        .to_owned(),
-                })?;
-                dynamic::recorded_map(&field, &raster, d, half, commands, times)
-                    .map_err(|e| correction("map", e))
-            }
-            (Some(d), _, _) => {
-                dynamic::dynamic_map(&field, &raster, d, half).map_err(|e| correction("map", e))
-            }
-            (None, _, _) => coordinate_map(&field, &raster).map_err(|e| correction("map", e)),
-        }
-    };
-    let half_of = |channel: &Channel| match channel.direction() {
-        Direction::Backward => dynamic::Half::Retrace,
-        _ => dynamic::Half::Trace,
-    };
-    let (map, first_nm) = map_of(half_of(first))?;
-    let other_half = match (with_dynamics, half_of(first)) {
-        (None, _) => None,
-        (Some(_), dynamic::Half::Trace) => channels
-            .iter()
-            .any(|c| half_of(c) == dynamic::Half::Retrace)
-            .then(|| map_of(dynamic::Half::Retrace))
-            .transpose()?,
-        (Some(_), dynamic::Half::Retrace) => channels
-            .iter()
-            .any(|c| half_of(c) == dynamic::Half::Trace)
-            .then(|| map_of(dynamic::Half::Trace))
-            .transpose()?,
-    };
+    let Maps {
+        map,
+        first_nm,
+        other_half,
+        dynamics_used,
+    } = maps_for(file, set, options, &field, &raster, &channels)?;
     let grid = OutputGrid::covering(&map, None).map_err(|e| correction("map", e))?;
     let step_nm = grid.step_nm.value();
     // The output grid's centre in the scanner's axes, from the field's origin.
@@ -1136,21 +1233,7 @@ pub fn correct_file(
     let mut out = Vec::with_capacity(channels.len());
     let mut unknown_pixels = 0;
     for (i, channel) in channels.iter().enumerate() {
-        let mut heights = Vec::with_capacity(nx * ny);
-        for row in (0..ny).rev() {
-            heights.extend_from_slice(&channel.data()[row * nx..(row + 1) * nx]);
-        }
-        if !heights.iter().any(|v| v.is_finite()) {
-            return Err(ApplyError::Channel {
-                file: file.source.clone(),
-                reason: format!(
-                    "channel {:?} ({}) holds no finite height or value (every pixel NaN or \
-                     infinite)",
-                    channel.name(),
-                    channel.direction().as_str()
-                ),
-            });
-        }
+        let heights = geometry_heights(file, channel)?;
         // The other half's map, expressed in this one's frame (both from the field's origin).
         let shifted;
         let channel_map = match &other_half {
@@ -1178,25 +1261,14 @@ pub fn correct_file(
         if i == 0 {
             unknown_pixels = display.iter().filter(|v| !v.is_finite()).count();
         }
-        let mut corrected = Channel::new(
-            channel.name(),
-            channel.direction(),
-            channel.unit(),
-            grid.columns,
-            grid.rows,
+        out.push(output_channel(
+            file,
+            channel,
+            &grid,
             display,
-        )
-        .map_err(|e| ApplyError::Channel {
-            file: file.source.clone(),
-            reason: e.to_string(),
-        })?
-        .with_size_nm(step_nm * grid.columns as f64, step_nm * grid.rows as f64)
-        .with_center_nm(centre[0], centre[1])
-        .with_angle_deg(raster.angle_ccw_rad.to_degrees());
-        if let Some(dir) = channel.scan_dir().or(file.scan_dir) {
-            corrected = corrected.with_scan_dir(dir);
-        }
-        out.push(corrected);
+            centre,
+            raster.angle_ccw_rad,
+        )?);
     }
     let expected = expected_error_nm(plane, &raster);
     let metadata = metadata(

@@ -3,9 +3,12 @@
 //! hysteresis weights and creep weight, per-track offsets, drift velocities).
 //!
 //! `minimise Σᵢ (Σⱼ Aᵢⱼ·xⱼ − bᵢ)²` subject to `xⱼ ≥ 0` for the columns flagged non-negative,
-//! by Lawson & Hanson's active-set method (*Solving Least Squares Problems*, 1974, ch. 23),
-//! with every unconstrained sub-problem solved by SVD on column-normalised columns (a rank
-//! test rather than normal equations). Unconstrained columns are always in the passive set.
+//! by Lawson & Hanson's active-set method (*Solving Least Squares Problems*, 1974, ch. 23).
+//! The columns are normalised to unit length and the normal matrix G = AᵀA (n × n) is formed
+//! once, so every sub-problem of the active set is a Cholesky solve of a few dozen unknowns
+//! however many rows there are; a pivot below [`RANK_TOLERANCE`] of the largest diagonal
+//! (with normalised columns: a direction determined to worse than about 10⁻⁶) is an
+//! ill-conditioned problem. Unconstrained columns are always in the passive set.
 
 use nalgebra::{DMatrix, DVector};
 
@@ -89,18 +92,20 @@ pub fn least_squares(
         })
         .collect();
     let a = DMatrix::from_fn(a.nrows(), n, |i, j| a[(i, j)] / scale[j]);
+    let g = a.transpose() * &a;
+    let c = a.transpose() * &b;
 
     let mut passive: Vec<bool> = non_negative.iter().map(|&c| !c).collect();
     let mut x = vec![0.0; n];
     // Start from the unconstrained columns alone.
     if passive.iter().any(|&p| p) {
-        x = solve_passive(&a, &b, &passive)?;
+        x = solve_passive(&g, &c, &passive)?;
     }
     let max_iterations = MAX_ITERATIONS_PER_COLUMN * n + 8;
     for _ in 0..max_iterations {
-        // Gradient of ½‖Ax − b‖² is Aᵀ(Ax − b); w = −gradient.
+        // Gradient of ½‖Ax − b‖² is G·x − Aᵀb; w = −gradient.
         let xv = DVector::from_column_slice(&x);
-        let w = a.transpose() * (&b - &a * &xv);
+        let w = &c - &g * &xv;
         let candidate = (0..n)
             .filter(|&j| !passive[j] && w[j] > 1e-12 * (1.0 + b.norm()))
             .max_by(|&i, &j| w[i].total_cmp(&w[j]));
@@ -108,7 +113,7 @@ pub fn least_squares(
         passive[j] = true;
         // Inner loop: keep the passive solution feasible.
         loop {
-            let z = solve_passive(&a, &b, &passive)?;
+            let z = solve_passive(&g, &c, &passive)?;
             let infeasible: Vec<usize> = (0..n)
                 .filter(|&k| passive[k] && non_negative[k] && z[k] <= 0.0)
                 .collect();
@@ -144,8 +149,8 @@ pub fn least_squares(
     let mut standard_errors = vec![0.0; n];
     let cols: Vec<usize> = (0..n).filter(|&j| passive[j]).collect();
     if !cols.is_empty() {
-        let ap = DMatrix::from_fn(m, cols.len(), |i, c| a[(i, cols[c])]);
-        if let Some(inv) = (ap.transpose() * &ap).try_inverse() {
+        let gp = DMatrix::from_fn(cols.len(), cols.len(), |i, j| g[(cols[i], cols[j])]);
+        if let Some(inv) = gp.try_inverse() {
             for (c, &j) in cols.iter().enumerate() {
                 standard_errors[j] = (s2 * inv[(c, c)].max(0.0)).sqrt() / scale[j];
             }
@@ -159,10 +164,11 @@ pub fn least_squares(
     })
 }
 
-/// Unconstrained least squares over the passive columns (others 0), by SVD.
+/// Unconstrained least squares over the passive columns (others 0): the normal equations
+/// `G_pp·x_p = c_p` by Cholesky, with the pivot test of the module docs.
 fn solve_passive(
-    a: &DMatrix<f64>,
-    b: &DVector<f64>,
+    g: &DMatrix<f64>,
+    c: &DVector<f64>,
     passive: &[bool],
 ) -> Result<Vec<f64>, RegressionError> {
     let cols: Vec<usize> = (0..passive.len()).filter(|&j| passive[j]).collect();
@@ -170,30 +176,32 @@ fn solve_passive(
     if cols.is_empty() {
         return Ok(x);
     }
-    let ap = DMatrix::from_fn(a.nrows(), cols.len(), |i, c| a[(i, cols[c])]);
-    let svd = ap.svd(true, true);
-    let s_max = svd.singular_values.max();
-    let s_min = svd.singular_values.min();
-    if s_max.is_nan() || s_max <= 0.0 || s_min <= RANK_TOLERANCE * s_max {
-        return Err(RegressionError::IllConditioned {
-            degree: 0,
-            condition_number: if s_min > 0.0 {
-                s_max / s_min
-            } else {
-                f64::INFINITY
-            },
-            threshold: 1.0 / RANK_TOLERANCE,
-        });
+    let k = cols.len();
+    let gp = DMatrix::from_fn(k, k, |i, j| g[(cols[i], cols[j])]);
+    let cp = DVector::from_fn(k, |i, _| c[cols[i]]);
+    let largest = (0..k).map(|i| gp[(i, i)]).fold(0.0_f64, f64::max);
+    let ill = |pivot: f64| RegressionError::IllConditioned {
+        degree: 0,
+        condition_number: if pivot > 0.0 {
+            (largest / pivot).sqrt()
+        } else {
+            f64::INFINITY
+        },
+        threshold: (1.0 / RANK_TOLERANCE).sqrt(),
+    };
+    let Some(cholesky) = gp.clone().cholesky() else {
+        return Err(ill(0.0));
+    };
+    let l = cholesky.l();
+    let smallest = (0..k)
+        .map(|i| l[(i, i)] * l[(i, i)])
+        .fold(f64::INFINITY, f64::min);
+    if largest.is_nan() || largest <= 0.0 || smallest <= RANK_TOLERANCE * largest {
+        return Err(ill(smallest));
     }
-    let z = svd
-        .solve(b, RANK_TOLERANCE * s_max)
-        .map_err(|_| RegressionError::IllConditioned {
-            degree: 0,
-            condition_number: f64::INFINITY,
-            threshold: 1.0 / RANK_TOLERANCE,
-        })?;
-    for (c, &j) in cols.iter().enumerate() {
-        x[j] = z[c];
+    let z = cholesky.solve(&cp);
+    for (i, &j) in cols.iter().enumerate() {
+        x[j] = z[i];
     }
     Ok(x)
 }

@@ -100,21 +100,22 @@ fn without_first_line(map: &spm_hal::HeightMap) -> Option<spm_hal::HeightMap> {
     })
 }
 
-/// Identifies the run's dynamics (module docs).
-#[must_use]
-pub fn identify(
-    commands: &[spm_hal::recording::CommandEvent],
-    tracks: &[AttachTrack],
-    ladder: &[LadderFrame],
-    creep_shape: (f64, f64, u32),
-    truth: Option<&TrueDynamics>,
-) -> DynamicsReport {
-    let mut notes = Vec::new();
-    let history = CommandHistory::from_events(commands);
-    let mut sightings: Vec<SamePoint> = Vec::new();
-    let mut frames_used = 0;
-    let mut windows_disagreeing = 0;
-    let mut lengths: Vec<f64> = Vec::new();
+/// What the ladder frames gave.
+struct LadderSightings {
+    sightings: Vec<SamePoint>,
+    frames_used: usize,
+    windows_disagreeing: usize,
+    lengths: Vec<f64>,
+}
+
+/// The same-point sightings of every ladder frame whose two-way shift tracking agrees.
+fn ladder_sightings(ladder: &[LadderFrame]) -> LadderSightings {
+    let mut out = LadderSightings {
+        sightings: Vec::new(),
+        frames_used: 0,
+        windows_disagreeing: 0,
+        lengths: Vec::new(),
+    };
     for (index, frame) in ladder.iter().enumerate() {
         let (Ok(forward), Ok(backward)) = (
             frame.frame.height_map(TraceHalf::Forward),
@@ -145,16 +146,37 @@ pub fn identify(
             .collect();
         // Where the two trackings disagree one of them slipped a lattice period, and the
         // agreeing windows of such a line may hold a slip of both: the frame is left out.
-        windows_disagreeing += disagreeing;
+        out.windows_disagreeing += disagreeing;
         if good.len() < MIN_WINDOWS || disagreeing > 0 {
             continue;
         }
-        frames_used += 1;
-        if !lengths.contains(&frame.length_counts) {
-            lengths.push(frame.length_counts);
+        out.frames_used += 1;
+        if !out.lengths.contains(&frame.length_counts) {
+            out.lengths.push(frame.length_counts);
         }
-        sightings.extend(line_pair_sightings(&forward, &backward, &good, index));
+        out.sightings
+            .extend(line_pair_sightings(&forward, &backward, &good, index));
     }
+    out
+}
+
+/// Identifies the run's dynamics (module docs).
+#[must_use]
+pub fn identify(
+    commands: &[spm_hal::recording::CommandEvent],
+    tracks: &[AttachTrack],
+    ladder: &[LadderFrame],
+    creep_shape: (f64, f64, u32),
+    truth: Option<&TrueDynamics>,
+) -> DynamicsReport {
+    let mut notes = Vec::new();
+    let history = CommandHistory::from_events(commands);
+    let LadderSightings {
+        mut sightings,
+        frames_used,
+        windows_disagreeing,
+        mut lengths,
+    } = ladder_sightings(ladder);
     let ladder_sightings = sightings.len();
     if windows_disagreeing > 0 {
         notes.push(format!(

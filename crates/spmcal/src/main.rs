@@ -207,35 +207,7 @@ enum Command {
     /// Take one image through a job's backend and keep the command history it was taken with
     /// (IMAGE.gsf and IMAGE.gsf.history.json): `spmcal correct` then corrects the creep of the
     /// approach move and the raster's dynamics with the calibration's dynamics.
-    Scan {
-        /// The job file whose backend (and plan: scanner id, nominal sensitivity, dwell) is used.
-        #[arg(long, value_name = "FILE")]
-        config: PathBuf,
-        /// The image to write (.gsf); the history goes to OUT.history.json beside it.
-        #[arg(long, value_name = "FILE")]
-        out: PathBuf,
-        /// Frame centre x, counts.
-        #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-        x_counts: f64,
-        /// Frame centre y, counts.
-        #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-        y_counts: f64,
-        /// Frame side, counts.
-        #[arg(long)]
-        size_counts: f64,
-        /// Pixels per line (and lines).
-        #[arg(long, default_value_t = 256)]
-        pixels: u32,
-        /// Pixel dwell, s (default: the plan's).
-        #[arg(long)]
-        dwell_s: Option<f64>,
-        /// Scan as a counter raster (−x lines from the far corner, stepping −y).
-        #[arg(long)]
-        counter: bool,
-        /// Wait at the frame's centre before the raster, s.
-        #[arg(long, default_value_t = 10.0)]
-        settle_s: f64,
-    },
+    Scan(scan_cmd::ScanArgs),
     /// Describe SPM files: format, pixels, size, offset, scan angle, direction, line time, date,
     /// channels (several files: one line each).
     Info {
@@ -439,11 +411,11 @@ impl Command {
                 }
             }
             Self::Fit { cdb, out, .. } => paths.extend([cdb.clone(), out.clone()]),
-            Self::Scan { config, out, .. } => {
-                paths.push(config.clone());
-                paths.extend(spmcal::job::Job::referenced_files(config));
-                paths.push(out.clone());
-                paths.push(spm_apply::history::sidecar_of(out));
+            Self::Scan(args) => {
+                paths.push(args.config.clone());
+                paths.extend(spmcal::job::Job::referenced_files(&args.config));
+                paths.push(args.out.clone());
+                paths.push(spm_apply::history::sidecar_of(&args.out));
             }
             Self::Correct {
                 images,
@@ -543,26 +515,7 @@ fn install_subscriber(log: Option<&std::path::Path>) -> Option<()> {
 fn run(command: Command) -> Result<(), CliError> {
     match command {
         Command::Info { files, json } => info::run(&files, json),
-        Command::Scan {
-            config,
-            out,
-            x_counts,
-            y_counts,
-            size_counts,
-            pixels,
-            dwell_s,
-            counter,
-            settle_s,
-        } => scan_cmd::run(&scan_cmd::ScanArgs {
-            config: &config,
-            out: &out,
-            centre_counts: [x_counts, y_counts],
-            size_counts,
-            pixels,
-            dwell_s,
-            counter,
-            settle_s,
-        }),
+        Command::Scan(args) => scan_cmd::run(&args),
         Command::Lattice {
             files,
             standard,

@@ -373,15 +373,9 @@ pub fn finish_with(
     quick: bool,
     with_images: bool,
 ) -> Result<CalibrationReport, ReportError> {
-    let cdb = crate::cdb_handle::CdbHandle::open_read_only(cdb_path)?;
-    let snapshot = cdb.snapshot()?;
-    let fitted = fit_from_cdb(
-        &*snapshot,
-        Some(&record.plan.scanner_id),
-        None,
-        None,
-        &SurfaceFitOptions::bic_up_to(MAX_SURFACE_DEGREE),
-    )?;
+    // The dynamics first: stored (through its own handle, closed before the report reads) once
+    // per run, and only when the dynamics stage gave frames (a run stopped before it, or with
+    // the stage off, leaves the scanner's earlier dynamics the newest).
     let dynamics = crate::dynamics::identify(
         record.commands,
         record.attach_tracks,
@@ -389,32 +383,21 @@ pub fn finish_with(
         CREEP_LAW_SHAPE,
         record.true_dynamics.as_ref(),
     );
-    let mut fitted = fitted;
-    fitted.set.dynamics = dynamics.model.clone();
-    if let Some(model) = &dynamics.model {
-        // Dated, per scanner, beside the LCCs: when the run that identified it finished.
-        let run = snapshot
-            .runs(Some(&record.plan.scanner_id))?
-            .into_iter()
-            .find(|r| r.run_id == record.run.run_id);
-        let already = snapshot
-            .dynamics(Some(&record.plan.scanner_id))?
-            .iter()
-            .any(|d| d.run_id == record.run.run_id);
-        if let (Some(run), false) = (run, already) {
-            let stored = spm_records::DynamicsRecord {
-                run_id: run.run_id.clone(),
-                scanner_id: run.scanner_id.clone(),
-                identified_unix_s: run.finished_unix_s.unwrap_or(run.started_unix_s),
-                model_format: spm_correction::hysteresis::DYNAMICS_FORMAT.to_owned(),
-                model_version: spm_correction::hysteresis::DYNAMICS_FORMAT_VERSION,
-                model_json: serde_json::to_string(model).map_err(|e| ReportError::Write {
-                    path: "dynamics".to_owned(),
-                    message: e.to_string(),
-                })?,
-            };
-            crate::cdb_handle::CdbHandle::open(cdb_path)?.store_dynamics(&stored)?;
-        }
+    let identified = dynamics.model.as_ref().filter(|_| dynamics.frames_used > 0);
+    if let Some(model) = identified {
+        store_dynamics_once(cdb_path, record, model)?;
+    }
+    let cdb = crate::cdb_handle::CdbHandle::open_read_only(cdb_path)?;
+    let snapshot = cdb.snapshot()?;
+    let mut fitted = fit_from_cdb(
+        &*snapshot,
+        Some(&record.plan.scanner_id),
+        None,
+        None,
+        &SurfaceFitOptions::bic_up_to(MAX_SURFACE_DEGREE),
+    )?;
+    if let Some(model) = identified {
+        fitted.set.dynamics = Some(model.clone());
     }
     let surfaces_json = fitted.set.to_json_string()?;
     write(&out.join("surfaces.json"), surfaces_json.as_bytes())?;
@@ -888,6 +871,44 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
     let mut bench = evaluate_images(&taken, &methods, &config)?;
     bench.dynamics = Some(dynamics);
     Ok(bench)
+}
+
+/// Stores a run's identified dynamics in the CDB, dated by when the run finished, unless the
+/// run stored them already (a regenerated report).
+fn store_dynamics_once(
+    cdb_path: &Path,
+    record: &RunRecord<'_>,
+    model: &ScannerDynamics,
+) -> Result<(), ReportError> {
+    let mut handle = crate::cdb_handle::CdbHandle::open(cdb_path)?;
+    let (run, already) = {
+        let read = handle.read();
+        let run = read
+            .runs(Some(&record.plan.scanner_id))?
+            .into_iter()
+            .find(|r| r.run_id == record.run.run_id);
+        let already = read
+            .dynamics(Some(&record.plan.scanner_id))?
+            .iter()
+            .any(|d| d.run_id == record.run.run_id);
+        (run, already)
+    };
+    let Some(run) = run.filter(|_| !already) else {
+        return Ok(());
+    };
+    let stored = spm_records::DynamicsRecord {
+        run_id: run.run_id.clone(),
+        scanner_id: run.scanner_id.clone(),
+        identified_unix_s: run.finished_unix_s.unwrap_or(run.started_unix_s),
+        model_format: spm_correction::hysteresis::DYNAMICS_FORMAT.to_owned(),
+        model_version: spm_correction::hysteresis::DYNAMICS_FORMAT_VERSION,
+        model_json: serde_json::to_string(model).map_err(|e| ReportError::Write {
+            path: "dynamics".to_owned(),
+            message: e.to_string(),
+        })?,
+    };
+    handle.store_dynamics(&stored)?;
+    Ok(())
 }
 
 fn write(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {

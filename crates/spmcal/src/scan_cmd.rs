@@ -2,7 +2,7 @@
 //! controller records and the command history the backend was driven with
 //! (`IMAGE.history.json`), so that `spmcal correct` applies the full dynamic correction to it.
 
-use std::path::Path;
+use std::path::PathBuf;
 
 use spm_apply::history::{HISTORY_FORMAT, HISTORY_VERSION, ScanHistory, sidecar_of};
 use spm_apply::{
@@ -14,19 +14,42 @@ use spmcal::job::Job;
 
 use crate::error::CliError;
 
-/// What to scan.
-pub struct ScanArgs<'a> {
-    pub config: &'a Path,
-    pub out: &'a Path,
-    pub centre_counts: [f64; 2],
+/// Take one image through a job's backend and keep the command history it was taken with
+/// (IMAGE.gsf and IMAGE.gsf.history.json): `spmcal correct` then corrects the creep of the
+/// approach move and the raster's dynamics with the calibration's dynamics.
+#[derive(Debug, clap::Args)]
+pub struct ScanArgs {
+    /// The job file whose backend (and plan: scanner id, nominal sensitivity, dwell) is used.
+    #[arg(long, value_name = "FILE")]
+    pub config: PathBuf,
+    /// The image to write (.gsf); the history goes to OUT.history.json beside it.
+    #[arg(long, value_name = "FILE")]
+    pub out: PathBuf,
+    /// Frame centre x, counts.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub x_counts: f64,
+    /// Frame centre y, counts.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub y_counts: f64,
+    /// Frame side, counts.
+    #[arg(long)]
     pub size_counts: f64,
+    /// Pixels per line (and lines).
+    #[arg(long, default_value_t = 256)]
     pub pixels: u32,
+    /// Pixel dwell, s (default: the plan's).
+    #[arg(long)]
     pub dwell_s: Option<f64>,
+    /// Scan as a counter raster (−x lines from the far corner, stepping −y).
+    #[arg(long)]
     pub counter: bool,
+    /// Wait at the frame's centre before the raster, s.
+    #[arg(long, default_value_t = 10.0)]
     pub settle_s: f64,
 }
 
-pub fn run(args: &ScanArgs<'_>) -> Result<(), CliError> {
+pub fn run(args: &ScanArgs) -> Result<(), CliError> {
+    let centre_counts = [args.x_counts, args.y_counts];
     if !args
         .out
         .extension()
@@ -47,21 +70,21 @@ pub fn run(args: &ScanArgs<'_>) -> Result<(), CliError> {
     if !(args.settle_s.is_finite() && args.settle_s >= 0.0) {
         return Err(bad("--settle-s must be a number ≥ 0"));
     }
-    if !args.centre_counts.iter().all(|v| v.is_finite()) {
+    if !centre_counts.iter().all(|v| v.is_finite()) {
         return Err(bad("--x-counts and --y-counts must be finite"));
     }
-    crate::files::check_input(args.config, "job")?;
-    let job = Job::from_file(args.config).map_err(|e| CliError::BadInput(e.to_string()))?;
+    crate::files::check_input(&args.config, "job")?;
+    let job = Job::from_file(&args.config).map_err(|e| CliError::BadInput(e.to_string()))?;
     let dwell = args.dwell_s.unwrap_or(job.plan.motion.pixel_dwell_s);
     if !(dwell.is_finite() && dwell > 0.0) {
         return Err(bad("--dwell-s must be a number > 0"));
     }
-    let sidecar = sidecar_of(args.out);
-    crate::files::check_output(args.out, "--out", &[args.config])?;
-    crate::files::check_output(&sidecar, "--out", &[args.config])?;
+    let sidecar = sidecar_of(&args.out);
+    crate::files::check_output(&args.out, "--out", &[&args.config])?;
+    crate::files::check_output(&sidecar, "--out", &[&args.config])?;
     let step = args.size_counts / f64::from(args.pixels - 1);
     let request = ScanRequest::centred_square(
-        CountPoint::from_counts(args.centre_counts[0], args.centre_counts[1]),
+        CountPoint::from_counts(centre_counts[0], centre_counts[1]),
         Counts(step),
         args.pixels,
         Seconds(dwell),
@@ -130,7 +153,7 @@ pub fn run(args: &ScanArgs<'_>) -> Result<(), CliError> {
         .to_json()
         .map_err(|e| CliError::RunFailed(e.to_string()))?;
     crate::files::write_atomically(&sidecar, json.as_bytes())?;
-    crate::files::write_atomically(args.out, &bytes)?;
+    crate::files::write_atomically(&args.out, &bytes)?;
     crate::outln!(
         "{} ({}×{} px, {:.4} nm per pixel at the nominal {k} nm/count) and its command history {} \
          ({} commands)",

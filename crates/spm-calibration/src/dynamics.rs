@@ -9,7 +9,7 @@
 
 use serde::{Deserialize, Serialize};
 use spm_hal::{
-    CountPoint, Counts, CountsPerSecond, Frame, Microscope, MoveRequest, ScanDirection,
+    CountPoint, Counts, CountsPerSecond, Error as _, Frame, Microscope, MoveRequest, ScanDirection,
     ScanRequest, Seconds,
 };
 
@@ -149,22 +149,34 @@ pub struct LadderFrame {
     pub frame: Frame,
 }
 
+/// Attempts per ladder frame: a transient failure (timeout, lost communication, feedback
+/// loss) is retried, as the net's visits are.
+pub const FRAME_ATTEMPTS: u32 = 3;
+
+/// The ladder as scanned, and the frames that could not be taken.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct LadderScan {
+    /// The frames taken.
+    pub frames: Vec<LadderFrame>,
+    /// Why each frame that is missing is missing (the backend's error).
+    pub failures: Vec<String>,
+}
+
 /// Scans the ladder at every place and dwell (place, dwell, size order), centred on
-/// `centre ± fraction·half_extent`, clipped to the instrument's pixels per line.
-///
-/// # Errors
-/// The backend's error; the caller decides whether a failed stage fails the run.
+/// `centre ± fraction·half_extent`, clipped to the instrument's pixels per line. A frame that
+/// fails [`FRAME_ATTEMPTS`] times, or once with a lasting error (out of range), is skipped and
+/// named in [`LadderScan::failures`]; the stage goes on.
 pub fn scan_ladder<M: Microscope>(
     microscope: &mut M,
     config: &DynamicsConfig,
     standard: &StandardConfig,
     centre: CountPoint,
     half_extent_counts: [f64; 2],
-) -> Result<Vec<LadderFrame>, M::Error> {
+) -> LadderScan {
     let step = config.pixel_step_counts(standard);
     let caps = microscope.capabilities();
     let max_pixels = caps.max_pixels_per_line.max(2);
-    let mut out = Vec::new();
+    let mut out = LadderScan::default();
     for (place, fraction) in config.places.iter().enumerate() {
         let at = [
             centre.x.value() + fraction[0] * half_extent_counts[0],
@@ -190,27 +202,95 @@ pub fn scan_ladder<M: Microscope>(
                 // little to relax towards during the frame (settled at a corner, it creeps
                 // back towards the centre by counts per second through the first lines, a
                 // trace/retrace shift of more than a lattice period at the line's start).
-                microscope.move_to(MoveRequest {
+                let settle = MoveRequest {
                     target: CountPoint::from_counts(at[0].round(), at[1].round()),
                     speed: CountsPerSecond(config.move_speed_counts_per_s),
                     settle: Seconds(config.settle_s),
-                })?;
-                let frame = microscope.scan(&request)?;
-                out.push(LadderFrame {
-                    place,
-                    length_counts: length,
-                    frame,
-                });
+                };
+                let mut attempt = 0;
+                loop {
+                    attempt += 1;
+                    let taken = microscope
+                        .move_to(settle)
+                        .and_then(|()| microscope.scan(&request));
+                    match taken {
+                        Ok(frame) => {
+                            out.frames.push(LadderFrame {
+                                place,
+                                length_counts: length,
+                                frame,
+                            });
+                            break;
+                        }
+                        Err(e) if e.kind().is_transient() && attempt < FRAME_ATTEMPTS => {}
+                        Err(e) => {
+                            out.failures.push(format!(
+                                "place {place}, {length} counts at {dwell} s per pixel: {e} \
+                                 (attempt {attempt})"
+                            ));
+                            break;
+                        }
+                    }
+                }
             }
         }
     }
-    Ok(out)
+    out
 }
 
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+
+    /// Transient failures are retried up to FRAME_ATTEMPTS; a lasting one skips the frame and
+    /// is named; the stage goes on either way.
+    #[test]
+    fn transient_failures_are_retried_and_lasting_ones_skip_the_frame() {
+        use spm_hal::ErrorKind;
+        use spm_hal::mock::{Expectation, Operation, ScriptedMicroscope};
+        let mut mock = ScriptedMicroscope::new(ScriptedMicroscope::default_capabilities())
+            .lenient_moves_and_waits(true);
+        mock.expect_all([
+            Expectation::fault(Operation::Scan, ErrorKind::Timeout),
+            Expectation::fault(Operation::Scan, ErrorKind::Communication),
+            Expectation::scan(|_, _| Counts(0.0)),
+            Expectation::fault(Operation::Scan, ErrorKind::OutOfRange),
+            Expectation::fault(Operation::Scan, ErrorKind::Timeout),
+            Expectation::fault(Operation::Scan, ErrorKind::Timeout),
+            Expectation::fault(Operation::Scan, ErrorKind::Timeout),
+        ]);
+        let config = DynamicsConfig {
+            ladder_counts: vec![64.0, 128.0, 256.0],
+            pixel_dwells_s: vec![1e-4],
+            places: vec![[0.0, 0.0]],
+            lines: 2,
+            ..DynamicsConfig::default()
+        };
+        let standard = crate::PlanConfig::hopg_small_net().standard;
+        let scan = scan_ladder(
+            &mut mock,
+            &config,
+            &standard,
+            CountPoint::from_counts(0.0, 0.0),
+            [1000.0, 1000.0],
+        );
+        assert_eq!(scan.frames.len(), 1, "{:?}", scan.failures);
+        // 64 counts at the 3-count step (4 pixels per HOPG lattice constant): 21 steps.
+        assert_eq!(scan.frames[0].length_counts, 63.0);
+        assert_eq!(scan.failures.len(), 2, "{:?}", scan.failures);
+        assert!(
+            scan.failures[0].contains("attempt 1"),
+            "{:?}",
+            scan.failures
+        );
+        assert!(
+            scan.failures[1].contains("attempt 3"),
+            "{:?}",
+            scan.failures
+        );
+        mock.done().unwrap();
+    }
 
     #[test]
     fn the_defaults_validate_and_bad_ladders_are_refused() {

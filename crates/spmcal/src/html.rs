@@ -448,6 +448,58 @@ pub fn images_tables(page: &mut Page, prefix: &str, images: &crate::images::Imag
     }
 }
 
+/// The scanner dynamics the run identified: the loop at each ladder size (against the
+/// simulator's own where there is one), the creep's log slope and what was not identified.
+fn dynamics_section(page: &mut Page, report: &CalibrationReport) {
+    let Some(d) = &report.dynamics else {
+        return;
+    };
+    page.section("dynamics", "Scanner dynamics identified in situ");
+    page.paragraph(&format!(
+        "{} of {} ladder frames used ({} same-point sightings, {} from the attachment tracks). \
+         The fast axis's hysteresis loop (branch separation at its centre, counts) at each \
+         ladder line:",
+        d.frames_used, d.frames, d.ladder_sightings, d.track_sightings
+    ));
+    let optional = |v: Option<f64>| v.map_or_else(|| Cell::text("—"), Cell::significant);
+    let rows: Vec<Row> = d
+        .loops_x
+        .iter()
+        .map(|l| {
+            Row::new(
+                format!("loop-{}", l.length_counts),
+                vec![
+                    Cell::significant(l.length_counts),
+                    Cell::significant(l.separation_centre_counts),
+                    optional(l.true_separation_centre_counts),
+                    optional(l.ratio),
+                ],
+            )
+        })
+        .collect();
+    page.table(
+        "dynamics-loops",
+        &[
+            "line (counts)",
+            "identified (counts)",
+            "simulator's (counts)",
+            "identified / simulator's",
+        ],
+        &rows,
+    );
+    let gamma = |v: Option<f64>| v.map_or_else(|| "—".to_owned(), |g| significant_text(g, 3));
+    page.paragraph(&format!(
+        "Creep log slope γ per decade: {} (joint fit), {} (attachment tracks alone), {} (the \
+         simulator's).",
+        gamma(d.creep_gamma_per_decade),
+        gamma(d.track_creep_gamma_per_decade),
+        gamma(d.true_creep_gamma_per_decade)
+    ));
+    if !d.notes.is_empty() {
+        page.list("dynamics-notes", &d.notes);
+    }
+}
+
 // long-function: one straight page, section after section in reading order; splitting it
 // would scatter the page's layout over helpers that each run once.
 /// The calibration report page: metadata, accuracy per method, the image benchmark, the
@@ -658,6 +710,7 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
         figure(&mut page, file);
     }
 
+    dynamics_section(&mut page, report);
     page.section("given-up", "Given-up nodes");
     if run.given_up.is_empty() {
         page.paragraph("None: every visit of this invocation was measured.");

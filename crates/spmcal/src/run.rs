@@ -538,19 +538,17 @@ fn dynamics_stage<M: spm_hal::Microscope>(
         (0.5 * (caps.field_max.x.value() - caps.field_min.x.value()) - margin).max(0.0),
         (0.5 * (caps.field_max.y.value() - caps.field_min.y.value()) - margin).max(0.0),
     ];
-    match spm_calibration::dynamics::scan_ladder(
+    let scan = spm_calibration::dynamics::scan_ladder(
         microscope,
         &plan.dynamics,
         &plan.standard,
         centre,
         half,
-    ) {
-        Ok(frames) => frames,
-        Err(e) => {
-            tracing::warn!("dynamics stage stopped: {e}");
-            Vec::new()
-        }
+    );
+    for failure in &scan.failures {
+        tracing::warn!("dynamics stage: a ladder frame was not taken: {failure}");
     }
+    scan.frames
 }
 
 /// The run's result; a plan the instrument cannot carry out marks the run failed.

@@ -296,15 +296,7 @@ pub fn creep_offsets(
     query_times_s: &[f64],
 ) -> Result<Vec<[f64; 2]>, CorrectionError> {
     let segments = history.segments();
-    let first = segments
-        .first()
-        .ok_or(CorrectionError::Empty("command history"))?;
-    if query_times_s.iter().any(|t| !t.is_finite()) || query_times_s.windows(2).any(|w| w[1] < w[0])
-    {
-        return Err(CorrectionError::InvalidArgument(
-            "query times must be finite and in time order".to_owned(),
-        ));
-    }
+    let first = first_of_replay(history, query_times_s)?;
     let w = law.weight;
     let taus = &law.taus_s;
     let mut states: Vec<[f64; 2]> = taus
@@ -363,6 +355,29 @@ pub fn creep_offsets(
         }
     }
     Ok(out)
+}
+
+/// The first segment of a history to replay at `query_times_s`, which must be finite and in
+/// time order.
+///
+/// # Errors
+/// [`CorrectionError::Empty`] for an empty history, [`CorrectionError::InvalidArgument`] for
+/// unsorted or non-finite query times.
+pub(crate) fn first_of_replay<'h>(
+    history: &'h CommandHistory,
+    query_times_s: &[f64],
+) -> Result<&'h CommandSegment, CorrectionError> {
+    let first = history
+        .segments()
+        .first()
+        .ok_or(CorrectionError::Empty("command history"))?;
+    if query_times_s.iter().any(|t| !t.is_finite()) || query_times_s.windows(2).any(|w| w[1] < w[0])
+    {
+        return Err(CorrectionError::InvalidArgument(
+            "query times must be finite and in time order".to_owned(),
+        ));
+    }
+    Ok(first)
 }
 
 /// One attachment sequence: the same feature re-found again and again after a node move.

@@ -148,15 +148,7 @@ pub fn play_outputs(
     query_times_s: &[f64],
 ) -> Result<Vec<Vec<f64>>, CorrectionError> {
     let segments = history.segments();
-    let first = segments
-        .first()
-        .ok_or(CorrectionError::Empty("command history"))?;
-    if query_times_s.iter().any(|t| !t.is_finite()) || query_times_s.windows(2).any(|w| w[1] < w[0])
-    {
-        return Err(CorrectionError::InvalidArgument(
-            "query times must be finite and in time order".to_owned(),
-        ));
-    }
+    let first = crate::dynamics::first_of_replay(history, query_times_s)?;
     let axis = axis.min(1);
     let mut state = PlayState::settled(thresholds_counts.len(), first.from_counts[axis]);
     let mut out = Vec::with_capacity(query_times_s.len());
@@ -190,15 +182,7 @@ pub fn hysteresis_offsets(
     query_times_s: &[f64],
 ) -> Result<Vec<f64>, CorrectionError> {
     let segments = history.segments();
-    let first = segments
-        .first()
-        .ok_or(CorrectionError::Empty("command history"))?;
-    if query_times_s.iter().any(|t| !t.is_finite()) || query_times_s.windows(2).any(|w| w[1] < w[0])
-    {
-        return Err(CorrectionError::InvalidArgument(
-            "query times must be finite and in time order".to_owned(),
-        ));
-    }
+    let first = crate::dynamics::first_of_replay(history, query_times_s)?;
     let axis = axis.min(1);
     let thresholds = &model.thresholds_counts;
     let mut state = PlayState::settled(thresholds.len(), first.from_counts[axis]);

@@ -376,14 +376,20 @@ pub fn finish_with(
     // The dynamics first: stored (through its own handle, closed before the report reads) once
     // per run, and only when the dynamics stage gave frames (a run stopped before it, or with
     // the stage off, leaves the scanner's earlier dynamics the newest).
-    let dynamics = crate::dynamics::identify(
-        record.commands,
-        record.attach_tracks,
-        record.ladder,
-        CREEP_LAW_SHAPE,
-        record.true_dynamics.as_ref(),
-    );
-    let identified = dynamics.model.as_ref().filter(|_| dynamics.frames_used > 0);
+    // Without the stage's frames (stage off, or the run stopped before it) nothing is
+    // identified.
+    let dynamics = (!record.ladder.is_empty()).then(|| {
+        crate::dynamics::identify(
+            record.commands,
+            record.attach_tracks,
+            record.ladder,
+            CREEP_LAW_SHAPE,
+            record.true_dynamics.as_ref(),
+        )
+    });
+    let identified = dynamics
+        .as_ref()
+        .and_then(|d| d.model.as_ref().filter(|_| d.frames_used > 0));
     if let Some(model) = identified {
         store_dynamics_once(cdb_path, record, model)?;
     }
@@ -432,7 +438,7 @@ pub fn finish_with(
                 &region,
                 plane,
                 &all,
-                dynamics.model.as_ref(),
+                identified,
                 quick,
                 with_images,
             )?;
@@ -481,7 +487,7 @@ pub fn finish_with(
             }
             crate::vertical::evaluate(truth, record.plan, &fitted.set, &all)
         }),
-        dynamics: (dynamics.frames > 0 || dynamics.model.is_some()).then_some(dynamics),
+        dynamics,
         run: record.run.clone(),
         drift,
         notes,

@@ -434,11 +434,8 @@ pub struct SamePoint {
 pub struct DynamicsFitSetup {
     /// Candidate play thresholds per axis, counts (increasing).
     pub thresholds_counts: [Vec<f64>; 2],
-    /// Creep law shape (its weight is fitted unless fixed).
+    /// Creep law shape (its weight is fitted).
     pub creep_shape: CreepParameters,
-    /// A creep weight identified elsewhere (the attachment tracks, where creep alone moves
-    /// the features): the fit then subtracts its creep and identifies the rest.
-    pub fixed_creep_weight: Option<f64>,
 }
 
 /// Identifies per axis the PI weights, jointly with one creep weight, a signal lag and one
@@ -502,18 +499,7 @@ pub fn fit_dynamics(
         let (_, _, x_history) =
             post_hysteresis_input(history, [&hysteresis[0], &hysteresis[1]], &times)?;
         let creep = creep_offsets(&x_history, &unit_creep, &times)?;
-        let (mut full, sigma, fit) = solve_pass(
-            &usable,
-            &plays,
-            &creep,
-            &groups,
-            (n0, n1),
-            setup.fixed_creep_weight,
-            &index_of,
-        )?;
-        if let Some(w) = setup.fixed_creep_weight {
-            full[n0 + n1] = w;
-        }
+        let (full, sigma, fit) = solve_pass(&usable, &plays, &creep, &groups, (n0, n1), &index_of)?;
         hysteresis = [
             PlayHysteresis {
                 thresholds_counts: setup.thresholds_counts[0].clone(),
@@ -553,7 +539,6 @@ fn solve_pass(
     creep: &[[f64; 2]],
     groups: &[usize],
     (n0, n1): (usize, usize),
-    fixed_creep_weight: Option<f64>,
     index_of: &dyn Fn(f64) -> usize,
 ) -> Result<(Vec<f64>, Vec<f64>, spm_regression::LinearFit), CorrectionError> {
     let columns = n0 + n1 + 2 + groups.len();
@@ -567,18 +552,12 @@ fn solve_pass(
         for (k, (y1, y2)) in plays[axis][i1].iter().zip(&plays[axis][i2]).enumerate() {
             row[offset + k] = y1 - y2;
         }
-        let creep_part = creep[i1][axis] - creep[i2][axis];
-        let known = fixed_creep_weight.map_or(0.0, |w| w * creep_part);
-        row[n0 + n1] = if fixed_creep_weight.is_some() {
-            0.0
-        } else {
-            creep_part
-        };
+        row[n0 + n1] = creep[i1][axis] - creep[i2][axis];
         row[n0 + n1 + 1] = s.v_second_counts_per_s - s.v_first_counts_per_s;
         let g = groups.partition_point(|&g| g < s.group * 2 + axis);
         row[n0 + n1 + 2 + g] = s.t_second_s - s.t_first_s;
         rows.push(row);
-        rhs.push(s.u_second_counts - s.u_first_counts - known);
+        rhs.push(s.u_second_counts - s.u_first_counts);
     }
     // Columns without any signal (an axis without sightings) are dropped.
     let keep: Vec<usize> = (0..columns)

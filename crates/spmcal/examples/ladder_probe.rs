@@ -220,7 +220,6 @@ fn main() {
         &points,
         &DynamicsFitSetup {
             thresholds_counts: [grid, Vec::new()],
-            fixed_creep_weight: None,
             creep_shape: CreepParameters {
                 weight: 0.0,
                 min_time_constant_s: std::env::var("TMIN")

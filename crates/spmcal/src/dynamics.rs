@@ -15,8 +15,6 @@ use spm_correction::hysteresis::{
 };
 use spm_hal::TraceHalf;
 
-/// Drift windows of the attachment tracks, s (the drift is taken constant within one).
-const TRACK_DRIFT_WINDOW_S: f64 = 300.0;
 /// Shifts with a smaller peak correlation are not used.
 const MIN_SHIFT_CORRELATION: f64 = 0.5;
 /// Fewest well-correlated windows a ladder frame must give to be used.
@@ -200,7 +198,12 @@ pub fn identify(
         0.0, tau_min, tau_max, per_decade,
     )
     .and_then(|shape| {
-        spm_correction::dynamics::fit_creep_law(&history, &shape, tracks, TRACK_DRIFT_WINDOW_S)
+        spm_correction::dynamics::fit_creep_law(
+            &history,
+            &shape,
+            tracks,
+            crate::report::CREEP_FIT_DRIFT_WINDOW_S,
+        )
     });
     let track_creep_gamma_per_decade = track_creep.as_ref().ok().map(|f| f.gamma_per_decade);
     // Attachment tracks: every later sighting against the first, both axes (creep and drift).
@@ -210,7 +213,10 @@ pub fn identify(
             continue;
         };
         for &(t, x, y) in track.sightings.iter().skip(1) {
-            let group = group0 + (t / TRACK_DRIFT_WINDOW_S).floor().max(0.0) as usize;
+            let group = group0
+                + (t / crate::report::CREEP_FIT_DRIFT_WINDOW_S)
+                    .floor()
+                    .max(0.0) as usize;
             for (axis, (a, b)) in [(x0, x), (y0, y)].into_iter().enumerate() {
                 sightings.push(SamePoint {
                     axis,
@@ -245,7 +251,6 @@ pub fn identify(
     );
     let setup = DynamicsFitSetup {
         thresholds_counts: [grid_x, Vec::new()],
-        fixed_creep_weight: None,
         creep_shape: CreepParameters {
             weight: 0.0,
             min_time_constant_s: tau_min,

@@ -169,7 +169,6 @@ fn the_fit_recovers_the_loops_of_a_ladder() {
         &sightings,
         &DynamicsFitSetup {
             thresholds_counts: [grid, Vec::new()],
-            fixed_creep_weight: None,
             creep_shape: CreepParameters {
                 weight: 0.0,
                 ..creep_truth.clone()

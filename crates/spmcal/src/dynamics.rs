@@ -158,6 +158,36 @@ fn ladder_sightings(ladder: &[LadderFrame]) -> LadderSightings {
     out
 }
 
+/// Same-point sightings of the attachment tracks: every later sighting against the first,
+/// both axes (creep and drift), drift groups from `group0` on, one per drift window.
+fn track_sightings(tracks: &[AttachTrack], group0: usize) -> Vec<SamePoint> {
+    let mut out = Vec::new();
+    for track in tracks {
+        let Some(&(t0, x0, y0)) = track.sightings.first() else {
+            continue;
+        };
+        for &(t, x, y) in track.sightings.iter().skip(1) {
+            let window = (t / crate::report::CREEP_FIT_DRIFT_WINDOW_S)
+                .floor()
+                .max(0.0);
+            let group = group0 + window as usize;
+            for (axis, (a, b)) in [(x0, x), (y0, y)].into_iter().enumerate() {
+                out.push(SamePoint {
+                    axis,
+                    t_first_s: t0,
+                    u_first_counts: a,
+                    v_first_counts_per_s: 0.0,
+                    t_second_s: t,
+                    u_second_counts: b,
+                    v_second_counts_per_s: 0.0,
+                    group,
+                });
+            }
+        }
+    }
+    out
+}
+
 /// Identifies the run's dynamics (module docs).
 #[must_use]
 pub fn identify(
@@ -206,31 +236,7 @@ pub fn identify(
         )
     });
     let track_creep_gamma_per_decade = track_creep.as_ref().ok().map(|f| f.gamma_per_decade);
-    // Attachment tracks: every later sighting against the first, both axes (creep and drift).
-    let group0 = ladder.len();
-    for track in tracks {
-        let Some(&(t0, x0, y0)) = track.sightings.first() else {
-            continue;
-        };
-        for &(t, x, y) in track.sightings.iter().skip(1) {
-            let group = group0
-                + (t / crate::report::CREEP_FIT_DRIFT_WINDOW_S)
-                    .floor()
-                    .max(0.0) as usize;
-            for (axis, (a, b)) in [(x0, x), (y0, y)].into_iter().enumerate() {
-                sightings.push(SamePoint {
-                    axis,
-                    t_first_s: t0,
-                    u_first_counts: a,
-                    v_first_counts_per_s: 0.0,
-                    t_second_s: t,
-                    u_second_counts: b,
-                    v_second_counts_per_s: 0.0,
-                    group,
-                });
-            }
-        }
-    }
+    sightings.extend(track_sightings(tracks, ladder.len()));
     let track_sightings = sightings.len() - ladder_sightings;
     lengths.sort_by(f64::total_cmp);
     let grid_x: Vec<f64> = match (lengths.first(), lengths.last()) {

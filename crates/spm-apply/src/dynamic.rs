@@ -2,7 +2,7 @@
 //! commands — every line's trace and retrace at the file's line time, the slow axis stepping
 //! between lines — through the calibration file's scanner dynamics (PI hysteresis per axis,
 //! then the creep of its output), and eq. (5) is summed over the increments of the effective
-//! input pixel to pixel (`spm_correction::dynamics::correct_effective_raster`).
+//! input pixel to pixel (`spm_correction::dynamics::correct_effective_path`).
 //!
 //! Of the probe's history before the frame nothing is known from a file alone: the replay
 //! starts settled at the frame's first pixel (no creep of the approach move, the hysteresis
@@ -10,7 +10,7 @@
 //! output ([`crate::DynamicsUsed`]).
 
 use spm_correction::CorrectionError;
-use spm_correction::dynamics::{CommandHistory, correct_effective_raster};
+use spm_correction::dynamics::{CommandHistory, correct_effective_path};
 use spm_correction::hysteresis::ScannerDynamics;
 use spm_correction::{CoordinateMap, CorrectionField, Quadrature, YCoordinates, correct_polyline};
 use spm_hal::CountPoint;
@@ -26,49 +26,78 @@ pub enum Half {
     Retrace,
 }
 
-/// Commanded position of every pixel of both halves and the instrument time at which it was
-/// taken, in acquisition order, with the command history of the frame.
-struct Replay {
-    history: CommandHistory,
-    /// Per half: (display column, display row, time s, commanded counts), acquisition order.
-    pixels: [Vec<(usize, usize, f64, CountPoint)>; 2],
-}
-
-fn replay(raster: &FileRaster, line_time_s: f64) -> Replay {
+/// The command history of a file's raster replayed at `line_time_s` per line: per line a
+/// trace and a retrace over the line's pixels, the slow axis stepping between lines.
+fn raster_history(raster: &FileRaster, order: &[usize], line_time_s: f64) -> CommandHistory {
     let (nx, ny) = (raster.columns, raster.rows);
     let dwell = line_time_s / nx as f64;
-    let order: Vec<usize> = raster.line_columns().collect();
     let mut history = CommandHistory::default();
-    let mut trace = Vec::with_capacity(nx * ny);
-    let mut retrace = Vec::with_capacity(nx * ny);
+    let (first, last) = (order[0], order[nx - 1]);
     for line in 0..ny {
         let row = raster.display_row(line);
         let base = 2.0 * line_time_s * line as f64;
-        let at = |column: usize| raster.pixel_counts(column as f64, row as f64);
-        let (first, last) = (order[0], order[nx - 1]);
-        let xy = |p: CountPoint| [p.x.value(), p.y.value()];
-        history.ramp_to(base + 0.5 * dwell, xy(at(first)));
-        history.ramp_to(base + (nx as f64 - 0.5) * dwell, xy(at(last)));
-        history.ramp_to(base + line_time_s + 0.5 * dwell, xy(at(last)));
-        history.ramp_to(
-            base + line_time_s + (nx as f64 - 0.5) * dwell,
-            xy(at(first)),
-        );
-        for (k, &column) in order.iter().enumerate() {
-            trace.push((column, row, base + (k as f64 + 0.5) * dwell, at(column)));
-        }
-        for (k, &column) in order.iter().rev().enumerate() {
-            retrace.push((
-                column,
-                row,
-                base + line_time_s + (k as f64 + 0.5) * dwell,
-                at(column),
-            ));
+        let at = |column: usize| {
+            let p = raster.pixel_counts(column as f64, row as f64);
+            [p.x.value(), p.y.value()]
+        };
+        history.ramp_to(base + 0.5 * dwell, at(first));
+        history.ramp_to(base + (nx as f64 - 0.5) * dwell, at(last));
+        history.ramp_to(base + line_time_s + 0.5 * dwell, at(last));
+        history.ramp_to(base + line_time_s + (nx as f64 - 0.5) * dwell, at(first));
+    }
+    history
+}
+
+/// The pixels of one half in acquisition order, computed on demand (a 2048² frame is 4 M
+/// pixels: nothing per pixel is stored beyond the replay's output).
+struct HalfPixels<'r> {
+    raster: &'r FileRaster,
+    /// Display columns in trace order.
+    order: Vec<usize>,
+    half: Half,
+}
+
+impl<'r> HalfPixels<'r> {
+    fn new(raster: &'r FileRaster, half: Half) -> Self {
+        Self {
+            raster,
+            order: raster.line_columns().collect(),
+            half,
         }
     }
-    Replay {
-        history,
-        pixels: [trace, retrace],
+
+    fn len(&self) -> usize {
+        self.raster.columns * self.raster.rows
+    }
+
+    /// (display column, display row) of the `i`-th acquired pixel.
+    fn pixel(&self, i: usize) -> (usize, usize) {
+        let nx = self.raster.columns;
+        let (line, k) = (i / nx, i % nx);
+        let column = match self.half {
+            Half::Trace => self.order[k],
+            Half::Retrace => self.order[nx - 1 - k],
+        };
+        (column, self.raster.display_row(line))
+    }
+
+    /// Commanded counts of the `i`-th acquired pixel.
+    fn commanded(&self, i: usize) -> CountPoint {
+        let (column, row) = self.pixel(i);
+        self.raster.pixel_counts(column as f64, row as f64)
+    }
+
+    /// Instrument time of the `i`-th acquired pixel at `line_time_s` per line, s.
+    fn time_s(&self, i: usize, line_time_s: f64) -> f64 {
+        let nx = self.raster.columns;
+        let dwell = line_time_s / nx as f64;
+        let (line, k) = (i / nx, i % nx);
+        let base = 2.0 * line_time_s * line as f64;
+        let start = match self.half {
+            Half::Trace => base,
+            Half::Retrace => base + line_time_s,
+        };
+        start + (k as f64 + 0.5) * dwell
     }
 }
 
@@ -78,7 +107,7 @@ fn replay(raster: &FileRaster, line_time_s: f64) -> Replay {
 ///
 /// # Errors
 /// [`CorrectionError::InvalidArgument`] without a line time; as the dynamics' replay and
-/// [`correct_effective_raster`].
+/// [`correct_effective_path`].
 pub fn dynamic_map<F: CorrectionField + ?Sized>(
     field: &F,
     raster: &FileRaster,
@@ -97,14 +126,32 @@ pub fn dynamic_map<F: CorrectionField + ?Sized>(
     if nx < 2 || ny < 1 {
         return Err(CorrectionError::Empty("raster with fewer than 2 columns"));
     }
-    let replay = replay(raster, line_time_s);
-    let pixels = &replay.pixels[match half {
-        Half::Trace => 0,
-        Half::Retrace => 1,
-    }];
-    let times: Vec<f64> = pixels.iter().map(|p| p.2).collect();
-    let offsets = dynamics.offsets(&replay.history, &times)?;
-    map_along(field, raster, dynamics, pixels, &offsets)
+    let pixels = HalfPixels::new(raster, half);
+    let history = raster_history(raster, &pixels.order, line_time_s);
+    let times: Vec<f64> = (0..pixels.len())
+        .map(|i| pixels.time_s(i, line_time_s))
+        .collect();
+    let ue = effective_input(dynamics, &pixels, &history, &times)?;
+    drop(times);
+    map_along(field, raster, dynamics, &pixels, &ue)
+}
+
+/// The effective input `uₑ = u + h + c` of every pixel of a half (acquisition order), counts.
+fn effective_input(
+    dynamics: &ScannerDynamics,
+    pixels: &HalfPixels<'_>,
+    history: &CommandHistory,
+    pixel_times_s: &[f64],
+) -> Result<Vec<[f64; 2]>, CorrectionError> {
+    let [x, y] = dynamics.offsets_per_axis(history, pixel_times_s)?;
+    Ok(x.iter()
+        .zip(&y)
+        .enumerate()
+        .map(|(i, (ox, oy))| {
+            let u = pixels.commanded(i);
+            [u.x.value() + ox, u.y.value() + oy]
+        })
+        .collect())
 }
 
 /// [`dynamic_map`] along a *recorded* command history (a command log that holds the probe's
@@ -131,36 +178,34 @@ pub fn recorded_map<F: CorrectionField + ?Sized>(
             got: pixel_times_s.len(),
         });
     }
+    if nx < 2 || ny < 1 {
+        return Err(CorrectionError::Empty("raster with fewer than 2 columns"));
+    }
     // The file's geometry gives the commands; the record gives when.
-    let replay = replay(raster, raster.line_time_s.unwrap_or(1.0));
-    let pixels = &replay.pixels[match half {
-        Half::Trace => 0,
-        Half::Retrace => 1,
-    }];
-    let offsets = dynamics.offsets(history, pixel_times_s)?;
-    map_along(field, raster, dynamics, pixels, &offsets)
+    let pixels = HalfPixels::new(raster, half);
+    let ue = effective_input(dynamics, &pixels, history, pixel_times_s)?;
+    map_along(field, raster, dynamics, &pixels, &ue)
 }
 
-/// The map of a half's pixels (display column, display row, time, commanded) with their
-/// effective-input offsets (see [`dynamic_map`]).
+/// The map of a half's pixels given their effective input `ue` (see [`dynamic_map`]).
 fn map_along<F: CorrectionField + ?Sized>(
     field: &F,
     raster: &FileRaster,
     dynamics: &ScannerDynamics,
-    pixels: &[(usize, usize, f64, CountPoint)],
-    offsets: &[[f64; 2]],
+    pixels: &HalfPixels<'_>,
+    ue: &[[f64; 2]],
 ) -> Result<(CoordinateMap, [f64; 2]), CorrectionError> {
     let (nx, ny) = (raster.columns, raster.rows);
-    let commanded: Vec<[f64; 2]> = pixels
-        .iter()
-        .map(|p| [p.3.x.value(), p.3.y.value()])
-        .collect();
     let gain = dynamics.gain()?;
-    let reference = commanded
-        .first()
-        .copied()
-        .ok_or(CorrectionError::Empty("raster with no pixel"))?;
-    let along = correct_effective_raster(field, nx, ny, &commanded, offsets, gain, reference)?;
+    let reference = pixels.commanded(0);
+    let mut along = correct_effective_path(
+        field,
+        nx,
+        ny,
+        ue,
+        gain,
+        [reference.x.value(), reference.y.value()],
+    )?;
     // Every half and every path of one place shares the frame of the raster's bottom-left
     // pixel (as the static path does): the first acquired pixel is placed from it along the
     // static field.
@@ -182,23 +227,23 @@ fn map_along<F: CorrectionField + ?Sized>(
     )?);
     let to_first = last(correct_polyline(
         field,
-        &[corner, pixels[0].3],
+        &[corner, pixels.commanded(0)],
         &quadrature,
     )?);
-    let along: Vec<[f64; 2]> = along
-        .iter()
-        .map(|p| [p[0] + to_first[0], p[1] + to_first[1]])
-        .collect();
+    for p in &mut along {
+        *p = [p[0] + to_first[0], p[1] + to_first[1]];
+    }
     let (s, c) = raster.angle_ccw_rad.sin_cos();
     let mut x_nm = vec![0.0; nx * ny];
     let mut y_nm = vec![0.0; nx * ny];
-    for (p, xy) in pixels.iter().zip(&along) {
-        let (column, row) = (p.0, p.1);
+    for (i, xy) in along.iter().enumerate() {
+        let (column, row) = pixels.pixel(i);
         let index = (ny - 1 - row) * nx + column;
         // Scanner axes → frame axes (rotation by −θ), as the static path does.
         x_nm[index] = xy[0] * c + xy[1] * s;
         y_nm[index] = -xy[0] * s + xy[1] * c;
     }
+    drop(along);
     let map = CoordinateMap::new(nx, ny, x_nm, YCoordinates::PerPixel(y_nm))?;
     Ok((map, first_nm))
 }

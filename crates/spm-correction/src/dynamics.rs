@@ -24,6 +24,7 @@
 
 use crate::error::CorrectionError;
 use crate::field::CorrectionField;
+use crate::parallel::{Parallelism, for_each_row};
 use crate::raster::{CoordinateMap, YCoordinates};
 use spm_hal::recording::CommandEvent;
 use spm_hal::{ScanDirection, ScanRequest};
@@ -619,14 +620,53 @@ pub fn correct_effective_raster(
             return Err(CorrectionError::NonFinite { what, index });
         }
     }
-    if !(gain[0] > 0.0 && gain[1] > 0.0) {
-        return Err(CorrectionError::InvalidArgument(format!("gain {gain:?}")));
-    }
     let ue: Vec<[f64; 2]> = commanded
         .iter()
         .zip(offsets)
         .map(|(u, o)| [u[0] + o[0], u[1] + o[1]])
         .collect();
+    correct_effective_path(field, columns, rows, &ue, gain, reference_commanded)
+}
+
+/// [`correct_effective_raster`] given the effective input `uₑ = u + offsets` of every pixel
+/// (acquisition order) directly.
+///
+/// # Errors
+/// [`CorrectionError::SizeMismatch`], [`CorrectionError::NonFinite`], [`CorrectionError::Empty`],
+/// [`CorrectionError::InvalidArgument`] for a gain that is not positive.
+pub fn correct_effective_path(
+    field: &(impl CorrectionField + ?Sized),
+    columns: usize,
+    rows: usize,
+    ue: &[[f64; 2]],
+    gain: [f64; 2],
+    reference_commanded: [f64; 2],
+) -> Result<Vec<[f64; 2]>, CorrectionError> {
+    let n = columns
+        .checked_mul(rows)
+        .ok_or(CorrectionError::Empty("raster size overflows"))?;
+    if n == 0 {
+        return Err(CorrectionError::Empty("raster with no pixel"));
+    }
+    if ue.len() != n {
+        return Err(CorrectionError::SizeMismatch {
+            what: "effective input",
+            expected: n,
+            got: ue.len(),
+        });
+    }
+    if let Some(index) = ue
+        .iter()
+        .position(|p| !(p[0].is_finite() && p[1].is_finite()))
+    {
+        return Err(CorrectionError::NonFinite {
+            what: "effective input",
+            index,
+        });
+    }
+    if !(gain[0] > 0.0 && gain[1] > 0.0) {
+        return Err(CorrectionError::InvalidArgument(format!("gain {gain:?}")));
+    }
     let step = |from: [f64; 2], to: [f64; 2]| -> [f64; 2] {
         let mid = [
             0.5 * (from[0] + to[0]) / gain[0],
@@ -644,6 +684,9 @@ pub fn correct_effective_raster(
         reference_commanded[0] * gain[0],
         reference_commanded[1] * gain[1],
     ];
+    // The line starts chain line to line; each line then sums its own increments (the lines
+    // are independent given their starts, so they run on every core, bit-identically).
+    let mut line_starts = Vec::with_capacity(rows);
     let mut line_start = step(reference, ue[0]);
     for line in 0..rows {
         let base = line * columns;
@@ -651,12 +694,16 @@ pub fn correct_effective_raster(
             let d = step(ue[base - columns], ue[base]);
             line_start = [line_start[0] + d[0], line_start[1] + d[1]];
         }
-        out[base] = line_start;
+        line_starts.push(line_start);
+    }
+    for_each_row(Parallelism::AllCores, &mut out, columns, |line, row| {
+        let base = line * columns;
+        row[0] = line_starts[line];
         for k in 1..columns {
             let d = step(ue[base + k - 1], ue[base + k]);
-            out[base + k] = [out[base + k - 1][0] + d[0], out[base + k - 1][1] + d[1]];
+            row[k] = [row[k - 1][0] + d[0], row[k - 1][1] + d[1]];
         }
-    }
+    })?;
     Ok(out)
 }
 

@@ -734,15 +734,23 @@ fn resample_newton(
     for_each_row(parallelism, out, grid.columns, |r, out_row| {
         let y = grid.y_nm(r);
         let mut guess = affine_guess(grid.x_nm(0), y);
+        // The previous node's solution: the next guess extrapolates the last two linearly
+        // (the map is smooth, so Newton then needs one step and its check, not two and one).
+        let mut previous: Option<(f64, f64)> = None;
         for (c, o) in out_row.iter_mut().enumerate() {
             let x = grid.x_nm(c);
             let solution = invert(x_nm, y_nm, nx, ny, (x, y), guess)
                 .or_else(|| invert(x_nm, y_nm, nx, ny, (x, y), affine_guess(x, y)));
             let Some((sc, sr)) = solution else {
                 guess = affine_guess(grid.x_nm(c + 1), y);
+                previous = None;
                 continue;
             };
-            guess = (sc, sr);
+            guess = match previous {
+                Some((pc, pr)) => (2.0 * sc - pc, 2.0 * sr - pr),
+                None => (sc, sr),
+            };
+            previous = Some((sc, sr));
             if sc < -tol || sr < -tol || sc > cmax + tol || sr > rmax + tol {
                 continue;
             }

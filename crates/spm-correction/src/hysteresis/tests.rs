@@ -1,5 +1,6 @@
 #![allow(clippy::unwrap_used)]
 use super::*;
+use crate::dynamics::creep_offsets;
 
 /// The truth of these tests: play operators stepped command by command (written
 /// independently of [`play_outputs`]), h = Σ wᵢ·yᵢ.
@@ -220,8 +221,8 @@ fn dynamics_round_trip_and_refuse_other_versions() {
     assert!(bad.validate().is_err());
 }
 
-/// The streaming hysteresis equals the weighted operator outputs, on a history with reversals
-/// inside segments' queries and after its end.
+/// The swept hysteresis of [`replay_axis`] equals the weighted operator outputs, on a history
+/// with reversals inside segments' queries and after its end.
 #[test]
 fn streamed_hysteresis_equals_the_weighted_outputs() {
     let m = model();
@@ -233,10 +234,102 @@ fn streamed_hysteresis_equals_the_weighted_outputs() {
     let times: Vec<f64> = (0..=60).map(|k| 0.05 * f64::from(k)).collect();
     for axis in 0..2 {
         let ys = play_outputs(&h, axis, &m.thresholds_counts, &times).unwrap();
-        let streamed = hysteresis_offsets(&h, axis, &m, &times).unwrap();
+        let law = CreepParameters {
+            weight: 0.0,
+            min_time_constant_s: 1.0,
+            max_time_constant_s: 1.0,
+            elements_per_decade: 1,
+        }
+        .law()
+        .unwrap();
+        let mut streamed = Vec::new();
+        replay_axis(&h, axis, &m, &law, &times, |h, _| streamed.push(h)).unwrap();
+        assert_eq!(streamed.len(), times.len());
         for (y, s) in ys.iter().zip(&streamed) {
             let want: f64 = y.iter().zip(&m.weights).map(|(a, b)| a * b).sum();
             assert!((want - s).abs() < 1e-12, "{want} vs {s}");
+        }
+    }
+}
+
+/// The streaming replay of [`ScannerDynamics::offsets`] equals (to 1e-9 counts) its definition
+/// composed from the separate pieces: h from [`play_outputs`] at every vertex and query, the
+/// post-hysteresis input x = u + h as a straight-piece history through them, its creep by
+/// [`crate::dynamics::creep_offsets`]; on a raster-like history with evenly spaced queries
+/// (where the replay reuses its exponentials across last-bit differences), reversals, a hold, and queries after the end.
+#[test]
+fn the_streaming_replay_equals_the_composed_definition() {
+    let d = ScannerDynamics {
+        format: DYNAMICS_FORMAT.to_owned(),
+        version: DYNAMICS_FORMAT_VERSION,
+        hysteresis_x: model(),
+        hysteresis_y: PlayHysteresis {
+            thresholds_counts: vec![100.0, 700.0],
+            weights: vec![0.03, 0.01],
+        },
+        creep: CreepParameters {
+            weight: 0.004,
+            min_time_constant_s: 0.01,
+            max_time_constant_s: 1e4,
+            elements_per_decade: 3,
+        },
+        identification: DynamicsIdentification::default(),
+    };
+    let mut h = CommandHistory::default();
+    h.ramp_to(0.0, [-4000.0, -3000.0]);
+    h.ramp_to(2.0, [0.0, 0.0]);
+    h.hold_until(5.0);
+    let mut times = Vec::new();
+    for line in 0..6 {
+        let base = 5.0 + 0.2 * f64::from(line);
+        let y = 40.0 * f64::from(line);
+        h.ramp_to(base + 0.1, [3000.0, y]);
+        h.ramp_to(base + 0.2, [0.0, y + 40.0]);
+        times.extend((0..64).map(|k| base + (f64::from(k) + 0.5) * 0.1 / 64.0));
+    }
+    times.extend([7.0, 9.5]);
+    let got = d.offsets(&h, &times).unwrap();
+
+    let mut merged: Vec<f64> = h.segments().iter().map(|s| s.end_s).collect();
+    merged.extend(&times);
+    merged.sort_by(f64::total_cmp);
+    merged.dedup();
+    let models = [&d.hysteresis_x, &d.hysteresis_y];
+    let hs: Vec<Vec<f64>> = (0..2)
+        .map(|axis| {
+            play_outputs(&h, axis, &models[axis].thresholds_counts, &merged)
+                .unwrap()
+                .iter()
+                .map(|y| {
+                    y.iter()
+                        .zip(&models[axis].weights)
+                        .map(|(y, w)| y * w)
+                        .sum()
+                })
+                .collect()
+        })
+        .collect();
+    let mut x = CommandHistory::default();
+    for (k, &t) in merged.iter().enumerate() {
+        let seg = h
+            .segments()
+            .iter()
+            .find(|s| s.end_s >= t)
+            .unwrap_or_else(|| h.segments().last().unwrap());
+        let u = seg.at(t);
+        x.ramp_to(t, [u[0] + hs[0][k], u[1] + hs[1][k]]);
+    }
+    let c = creep_offsets(&x, &d.creep.law().unwrap(), &times).unwrap();
+    for (i, &t) in times.iter().enumerate() {
+        let k = merged.partition_point(|&v| v < t);
+        let want = [hs[0][k] + c[i][0], hs[1][k] + c[i][1]];
+        for axis in 0..2 {
+            let e = (got[i][axis] - want[axis]).abs();
+            assert!(
+                e < 1e-9,
+                "query {i} at {t} s axis {axis}: {got:?} vs {want:?}",
+                got = got[i]
+            );
         }
     }
 }

@@ -1016,11 +1016,17 @@ struct Maps {
     dynamics_used: DynamicsUsed,
 }
 
-/// The half of the frame a channel holds.
-fn half_of(channel: &Channel) -> dynamic::Half {
-    match channel.direction() {
-        Direction::Backward => dynamic::Half::Retrace,
-        Direction::Forward => dynamic::Half::Trace,
+/// The half of the frame a channel holds. A channel's direction is that of its lines (forward
+/// = +x, as Nanonis and Gwyddion name them): the trace of a +x raster, the retrace of a
+/// counter raster (whose lines are traced −x first).
+fn half_of(channel: &Channel, path: RasterPath) -> dynamic::Half {
+    match (channel.direction(), path) {
+        (Direction::Forward, RasterPath::Trace(_)) | (Direction::Backward, RasterPath::Counter) => {
+            dynamic::Half::Trace
+        }
+        (Direction::Backward, RasterPath::Trace(_)) | (Direction::Forward, RasterPath::Counter) => {
+            dynamic::Half::Retrace
+        }
     }
 }
 
@@ -1080,16 +1086,17 @@ fn maps_for<F: CorrectionField + Sync>(
             (None, _, _) => coordinate_map(field, raster).map_err(correction),
         }
     };
-    let (map, first_nm) = map_of(half_of(first))?;
-    let other = match half_of(first) {
+    let (map, first_nm) = map_of(half_of(first, raster.path))?;
+    let other = match half_of(first, raster.path) {
         dynamic::Half::Trace => dynamic::Half::Retrace,
         dynamic::Half::Retrace => dynamic::Half::Trace,
     };
-    let other_half = if with_dynamics.is_some() && channels.iter().any(|c| half_of(c) == other) {
-        Some(map_of(other)?)
-    } else {
-        None
-    };
+    let other_half =
+        if with_dynamics.is_some() && channels.iter().any(|c| half_of(c, raster.path) == other) {
+            Some(map_of(other)?)
+        } else {
+            None
+        };
     Ok(Maps {
         map,
         first_nm,
@@ -1237,7 +1244,9 @@ pub fn correct_file(
         // The other half's map, expressed in this one's frame (both from the field's origin).
         let shifted;
         let channel_map = match &other_half {
-            Some((other, other_first)) if half_of(channel) != half_of(first) => {
+            Some((other, other_first))
+                if half_of(channel, raster.path) != half_of(first, raster.path) =>
+            {
                 let (dx, dy) = (other_first[0] - first_nm[0], other_first[1] - first_nm[1]);
                 let (du, dv) = (dx * c + dy * s, -dx * s + dy * c);
                 shifted = dynamic::translated(other, du, dv)

@@ -133,6 +133,31 @@ impl DateTime {
             second,
         })
     }
+
+    /// The UTC date-time `seconds` after 1970-01-01T00:00:00 (proleptic Gregorian calendar,
+    /// days to civil date after H. Hinnant's algorithm); `None` outside years ±2³¹.
+    #[must_use]
+    pub fn from_unix_seconds(seconds: i64) -> Option<Self> {
+        let days = seconds.div_euclid(86_400);
+        let of_day = seconds.rem_euclid(86_400);
+        let z = days + 719_468;
+        let era = z.div_euclid(146_097);
+        let doe = z.rem_euclid(146_097);
+        let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+        let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+        let mp = (5 * doy + 2) / 153;
+        let day = doy - (153 * mp + 2) / 5 + 1;
+        let month = if mp < 10 { mp + 3 } else { mp - 9 };
+        let year = yoe + era * 400 + i64::from(month <= 2);
+        Self::new(
+            i32::try_from(year).ok()?,
+            u8::try_from(month).ok()?,
+            u8::try_from(day).ok()?,
+            u8::try_from(of_day / 3600).ok()?,
+            u8::try_from(of_day % 3600 / 60).ok()?,
+            u8::try_from(of_day % 60).ok()?,
+        )
+    }
 }
 
 impl fmt::Display for DateTime {
@@ -553,4 +578,25 @@ pub struct Info {
     pub recorded: Option<String>,
     /// The full header as `[key, value]` pairs in file order.
     pub header: Vec<(String, String)>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::DateTime;
+
+    /// Unix seconds against dates computed by hand (`date -u -d @N`).
+    #[test]
+    fn unix_seconds_become_civil_dates() {
+        let check = |secs: i64, want: (i32, u8, u8, u8, u8, u8)| {
+            let d = DateTime::from_unix_seconds(secs)
+                .map(|d| (d.year, d.month, d.day, d.hour, d.minute, d.second));
+            assert_eq!(d, Some(want), "{secs}");
+        };
+        check(0, (1970, 1, 1, 0, 0, 0));
+        check(951_782_400, (2000, 2, 29, 0, 0, 0)); // a leap day of a 400-year leap year
+        check(1_795_000_000, (2026, 11, 18, 11, 6, 40));
+        check(-1, (1969, 12, 31, 23, 59, 59));
+        check(4_107_542_399, (2100, 2, 28, 23, 59, 59)); // 2100 is no leap year
+        check(4_107_542_400, (2100, 3, 1, 0, 0, 0));
+    }
 }

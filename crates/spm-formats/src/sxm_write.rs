@@ -46,6 +46,10 @@ pub struct SxmScan {
     pub comment: String,
     /// Channels (at least one).
     pub channels: Vec<SxmChannel>,
+    /// Further header tags `(name, value)`, written after `COMMENT` as `:name:` sections (the
+    /// reader keeps every tag): what a controller adds, or spmcal's raster in counts. Names
+    /// and values are kept on one line (`:`, newlines, tabs and NUL become spaces).
+    pub extra_header: Vec<(String, String)>,
 }
 
 fn invalid(path: &Path, reason: String) -> FormatError {
@@ -118,6 +122,16 @@ pub fn encode_sxm(scan: &SxmScan, path: &Path) -> Result<Vec<u8>> {
     tag("SCAN_DIR", scan.scan_dir.as_str());
     tag("BIAS", &format!("            {:.3E}", scan.bias_v));
     tag("COMMENT", &one_line(&scan.comment));
+    for (name, value) in &scan.extra_header {
+        let name = one_line(name).trim().replace(' ', "_");
+        if name.is_empty() {
+            return Err(invalid(
+                path,
+                "an extra header tag without a name".to_owned(),
+            ));
+        }
+        tag(&name, &one_line(value));
+    }
     let mut info = String::from("\tChannel\tName\tUnit\tDirection\tCalibration\tOffset");
     for (i, c) in scan.channels.iter().enumerate() {
         let dir = if c.backward.is_some() {

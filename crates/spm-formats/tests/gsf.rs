@@ -300,3 +300,82 @@ fn gwyddion_reads_our_gwy_and_gsf_with_nan() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Our `.sxm` writer as Gwyddion reads it: a frame whose sample rises to the top, written in
+/// acquisition order for a slow axis stepping up and for one stepping down (the first line
+/// acquired is then the top one), both halves (backward lines stored right to left). Gwyddion
+/// must draw every channel with the top bright, and the extra header tags must come back
+/// through our reader.
+#[test]
+fn gwyddion_reads_our_sxm_the_right_way_round() {
+    use spm_formats::{DateTime, ScanDir, SxmChannel, SxmScan, encode_sxm, read_any};
+    let dir = std::env::temp_dir().join(format!("spm-formats-sxm-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (nx, ny) = (64, 48);
+    // Height of the sample at display row r (0 = top) and column c: bright at the top, a
+    // small ramp to the right.
+    let z = |r: usize, c: usize| ((ny - r) as f64 * 1e-11) + c as f64 * 1e-13;
+    for scan_dir in [ScanDir::Up, ScanDir::Down] {
+        let acquisition = |plus_x: bool| -> Vec<f64> {
+            let mut out = Vec::with_capacity(nx * ny);
+            for line in 0..ny {
+                // Display row of the line acquired `line`-th.
+                let r = match scan_dir {
+                    ScanDir::Up => ny - 1 - line,
+                    ScanDir::Down => line,
+                };
+                for k in 0..nx {
+                    out.push(z(r, if plus_x { k } else { nx - 1 - k }));
+                }
+            }
+            out
+        };
+        let scan = SxmScan {
+            pixels: [nx, ny],
+            size_nm: [6.4, 4.8],
+            centre_nm: [10.0, -5.0],
+            angle_deg: 0.0,
+            line_time_s: [0.1, 0.1],
+            scan_dir,
+            recorded: DateTime::new(2026, 11, 26, 12, 0, 0).unwrap(),
+            bias_v: 0.5,
+            comment: "orientation test".to_owned(),
+            channels: vec![SxmChannel {
+                name: "Z".to_owned(),
+                unit: "m".to_owned(),
+                forward: acquisition(true),
+                backward: Some(acquisition(false)),
+            }],
+            extra_header: vec![("spmcal_scan_path".to_owned(), "counter".to_owned())],
+        };
+        let path = dir.join(format!("{}.sxm", scan_dir.as_str()));
+        std::fs::write(&path, encode_sxm(&scan, &path).unwrap()).unwrap();
+        for channel in [0, 1] {
+            let (w, h, luma) = gwyddion_renders(&path, channel);
+            assert!(w > h, "{path:?} channel {channel}: drawn {w} × {h}");
+            let (top, bottom) = (
+                mean_box(w, h, &luma, (0.0, 1.0, 0.0, 0.3)),
+                mean_box(w, h, &luma, (0.0, 1.0, 0.7, 1.0)),
+            );
+            assert!(
+                top > bottom + 60.0,
+                "{path:?} channel {channel}: top {top}, bottom {bottom}"
+            );
+        }
+        // Our reader: display order (top row first), both halves equal to the sample.
+        let file = read_any(&path).unwrap();
+        assert_eq!(file.channels.len(), 2);
+        assert_eq!(file.scan_dir, Some(scan_dir));
+        assert_eq!(file.header_value("spmcal_scan_path"), Some("counter"));
+        for ch in &file.channels {
+            for (i, v) in ch.data().iter().enumerate() {
+                let want = z(i / nx, i % nx);
+                assert!(
+                    (v - want).abs() < 1e-6 * want.abs(),
+                    "{path:?} pixel {i}: {v} vs {want}"
+                );
+            }
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -174,6 +174,7 @@ fn every_located_cell_sits_on_its_true_corner_hole() {
         recorded: DateTime::new(2024, 3, 5, 12, 0, 0).unwrap(),
         bias_v: 1.5,
         comment: "synthetic 7x7-like cells".into(),
+        extra_header: Vec::new(),
         channels: vec![SxmChannel {
             name: "Z".into(),
             unit: "m".into(),

@@ -717,6 +717,7 @@ fn write_raw_frame(
         recorded: spm_formats::DateTime::new(2024, 3, 5, 12, 0, 0).unwrap(),
         bias_v: 0.1,
         comment: String::new(),
+        extra_header: Vec::new(),
         channels: vec![spm_formats::SxmChannel {
             name: "Z".into(),
             unit: "m".into(),

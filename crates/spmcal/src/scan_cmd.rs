@@ -9,20 +9,23 @@ use spm_apply::{
     KEY_CONVENTION, KEY_LINE_TIME, KEY_NOMINAL, KEY_ORIGIN_X, KEY_ORIGIN_Y, KEY_SCAN_PATH,
     KEY_SCANNER, KEY_STEP,
 };
-use spm_hal::{CountPoint, Counts, ScanDirection, ScanRequest, Seconds, TraceHalf};
+use spm_formats::{DateTime, ScanDir, SxmChannel, SxmScan, encode_sxm};
+use spm_hal::{CountPoint, Counts, HeightMap, ScanDirection, ScanRequest, Seconds, TraceHalf};
 use spmcal::job::Job;
 
 use crate::error::CliError;
 
 /// Take one image through a job's backend and keep the command history it was taken with
-/// (IMAGE.gsf and IMAGE.gsf.history.json): `spmcal correct` then corrects the creep of the
-/// approach move and the raster's dynamics with the calibration's dynamics.
+/// (IMAGE.sxm or IMAGE.gsf, and IMAGE.….history.json): `spmcal correct` then corrects the
+/// creep of the approach move and the raster's dynamics with the calibration's dynamics.
 #[derive(Debug, clap::Args)]
 pub struct ScanArgs {
     /// The job file whose backend (and plan: scanner id, nominal sensitivity, dwell) is used.
     #[arg(long, value_name = "FILE")]
     pub config: PathBuf,
-    /// The image to write (.gsf); the history goes to OUT.history.json beside it.
+    /// The image to write: .sxm (Nanonis: both halves, +x lines as `forward`, the raster's
+    /// line time, direction and date, spmcal's raster in counts as extra tags) or .gsf (the
+    /// trace only); the history goes to OUT.history.json beside it.
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
     /// Frame centre x, counts.
@@ -50,16 +53,23 @@ pub struct ScanArgs {
 
 pub fn run(args: &ScanArgs) -> Result<(), CliError> {
     let centre_counts = [args.x_counts, args.y_counts];
-    if !args
+    let sxm = match args
         .out
         .extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("gsf"))
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .as_deref()
     {
-        return Err(CliError::BadInput(format!(
-            "--out {}: spmcal scan writes a Gwyddion .gsf image (and IMAGE.gsf.history.json)",
-            args.out.display()
-        )));
-    }
+        Some("sxm") => true,
+        Some("gsf") => false,
+        _ => {
+            return Err(CliError::BadInput(format!(
+                "--out {}: spmcal scan writes a Nanonis .sxm or a Gwyddion .gsf image (and \
+                 IMAGE.history.json beside it)",
+                args.out.display()
+            )));
+        }
+    };
     let bad = |what: &str| CliError::BadInput(what.to_owned());
     if !(args.size_counts.is_finite() && args.size_counts > 0.0) {
         return Err(bad("--size-counts must be a number > 0"));
@@ -83,7 +93,7 @@ pub fn run(args: &ScanArgs) -> Result<(), CliError> {
     crate::files::check_output(&args.out, "--out", &[&args.config])?;
     crate::files::check_output(&sidecar, "--out", &[&args.config])?;
     let step = args.size_counts / f64::from(args.pixels - 1);
-    let request = ScanRequest::centred_square(
+    let mut request = ScanRequest::centred_square(
         CountPoint::from_counts(centre_counts[0], centre_counts[1]),
         Counts(step),
         args.pixels,
@@ -94,53 +104,15 @@ pub fn run(args: &ScanArgs) -> Result<(), CliError> {
     } else {
         ScanDirection::Direct
     });
+    request.record_backward = sxm;
     let scan = spmcal::run::scan_recorded(&job, &request, args.settle_s)
         .map_err(|e| CliError::RunFailed(e.to_string()))?;
-    let map = scan
-        .frame
-        .height_map(TraceHalf::Forward)
-        .map_err(|e| CliError::RunFailed(e.to_string()))?;
-    // Display orientation: the top row first.
-    let mut display = Vec::with_capacity(map.columns * map.rows);
-    for row in (0..map.rows).rev() {
-        display.extend_from_slice(&map.z_counts[row * map.columns..(row + 1) * map.columns]);
-    }
     let k = job.plan.standard.nominal_nm_per_count;
-    let side = |n: usize| map.pixel_step.value() * n as f64 * k;
-    let channel = spm_formats::Channel::new(
-        "Z",
-        spm_formats::Direction::Forward,
-        "counts",
-        map.columns,
-        map.rows,
-        display,
-    )
-    .map_err(|e| CliError::RunFailed(e.to_string()))?
-    .with_size_nm(side(map.columns), side(map.rows));
-    let values = [
-        map.origin.x.value().to_string(),
-        map.origin.y.value().to_string(),
-        map.pixel_step.value().to_string(),
-        (dwell * f64::from(args.pixels)).to_string(),
-        k.to_string(),
-    ];
-    let bytes = spm_formats::encode_gsf(
-        &channel,
-        &[
-            (KEY_ORIGIN_X, values[0].as_str()),
-            (KEY_ORIGIN_Y, values[1].as_str()),
-            (KEY_STEP, values[2].as_str()),
-            (
-                KEY_SCAN_PATH,
-                if args.counter { "counter" } else { "direct" },
-            ),
-            (KEY_SCANNER, job.plan.scanner_id.as_str()),
-            (KEY_CONVENTION, "centred_signed"),
-            (KEY_LINE_TIME, values[3].as_str()),
-            (KEY_NOMINAL, values[4].as_str()),
-        ],
-    )
-    .map_err(|e| CliError::RunFailed(e.to_string()))?;
+    let (bytes, map) = if sxm {
+        encode_sxm_image(&scan, &job, args, dwell)?
+    } else {
+        encode_gsf_image(&scan, &job, args, dwell)?
+    };
     let history = ScanHistory {
         format: HISTORY_FORMAT.to_owned(),
         version: HISTORY_VERSION,
@@ -165,4 +137,148 @@ pub fn run(args: &ScanArgs) -> Result<(), CliError> {
         history.events.len()
     );
     Ok(())
+}
+
+/// spmcal's raster in counts, as header fields `correct` reads (`spm_apply::KEY_*`).
+fn raster_fields(
+    map: &HeightMap,
+    job: &Job,
+    args: &ScanArgs,
+    dwell_s: f64,
+) -> Vec<(&'static str, String)> {
+    vec![
+        (KEY_ORIGIN_X, map.origin.x.value().to_string()),
+        (KEY_ORIGIN_Y, map.origin.y.value().to_string()),
+        (KEY_STEP, map.pixel_step.value().to_string()),
+        (
+            KEY_SCAN_PATH,
+            if args.counter { "counter" } else { "direct" }.to_owned(),
+        ),
+        (KEY_SCANNER, job.plan.scanner_id.clone()),
+        (KEY_CONVENTION, "centred_signed".to_owned()),
+        (KEY_LINE_TIME, (dwell_s * map.columns as f64).to_string()),
+        (
+            KEY_NOMINAL,
+            job.plan.standard.nominal_nm_per_count.to_string(),
+        ),
+    ]
+}
+
+/// The trace as a one-channel .gsf (display orientation, top row first), labelled by the
+/// direction of its lines: `Forward` for +x (a direct raster), `Backward` for −x (a counter
+/// raster), as Nanonis and Gwyddion do.
+fn encode_gsf_image(
+    scan: &spmcal::run::RecordedScan,
+    job: &Job,
+    args: &ScanArgs,
+    dwell_s: f64,
+) -> Result<(Vec<u8>, HeightMap), CliError> {
+    let failed = |e: &dyn std::fmt::Display| CliError::RunFailed(e.to_string());
+    let map = scan
+        .frame
+        .height_map(TraceHalf::Forward)
+        .map_err(|e| failed(&e))?;
+    let mut display = Vec::with_capacity(map.columns * map.rows);
+    for row in (0..map.rows).rev() {
+        display.extend_from_slice(&map.z_counts[row * map.columns..(row + 1) * map.columns]);
+    }
+    let k = job.plan.standard.nominal_nm_per_count;
+    let side = |n: usize| map.pixel_step.value() * n as f64 * k;
+    let direction = if args.counter {
+        spm_formats::Direction::Backward
+    } else {
+        spm_formats::Direction::Forward
+    };
+    let channel =
+        spm_formats::Channel::new("Z", direction, "counts", map.columns, map.rows, display)
+            .map_err(|e| failed(&e))?
+            .with_size_nm(side(map.columns), side(map.rows));
+    let fields = raster_fields(&map, job, args, dwell_s);
+    let pairs: Vec<(&str, &str)> = fields.iter().map(|(k, v)| (*k, v.as_str())).collect();
+    let bytes = spm_formats::encode_gsf(&channel, &pairs).map_err(|e| failed(&e))?;
+    Ok((bytes, map))
+}
+
+/// Both halves as a Nanonis .sxm: `forward` holds the +x lines and `backward` the −x lines,
+/// each in acquisition order (a direct raster's trace is +x and steps up; a counter raster's
+/// trace is −x and steps down, `SCAN_DIR down`). Z in counts (the backend's unit), the frame
+/// centre and size at the plan's nominal sensitivity, the record date from the system clock
+/// (UTC), spmcal's raster in counts as extra tags.
+fn encode_sxm_image(
+    scan: &spmcal::run::RecordedScan,
+    job: &Job,
+    args: &ScanArgs,
+    dwell_s: f64,
+) -> Result<(Vec<u8>, HeightMap), CliError> {
+    let failed = |e: &dyn std::fmt::Display| CliError::RunFailed(e.to_string());
+    let trace = scan
+        .frame
+        .height_map(TraceHalf::Forward)
+        .map_err(|e| failed(&e))?;
+    let retrace = scan
+        .frame
+        .height_map(TraceHalf::Backward)
+        .map_err(|e| failed(&e))?;
+    let (nx, ny) = (trace.columns, trace.rows);
+    let scan_dir = if args.counter {
+        ScanDir::Down
+    } else {
+        ScanDir::Up
+    };
+    // Acquisition order of one half whose lines run +x (`plus_x`) or −x.
+    let acquisition = |map: &HeightMap, plus_x: bool| -> Vec<f64> {
+        let mut out = Vec::with_capacity(nx * ny);
+        for line in 0..ny {
+            let row = match scan_dir {
+                ScanDir::Up => line,
+                ScanDir::Down => ny - 1 - line,
+            };
+            for k in 0..nx {
+                let column = if plus_x { k } else { nx - 1 - k };
+                out.push(map.z_counts[row * nx + column]);
+            }
+        }
+        out
+    };
+    let (plus, minus) = if args.counter {
+        (&retrace, &trace)
+    } else {
+        (&trace, &retrace)
+    };
+    let k = job.plan.standard.nominal_nm_per_count;
+    let step_nm = trace.pixel_step.value() * k;
+    let recorded = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .ok()
+        .and_then(|d| i64::try_from(d.as_secs()).ok())
+        .and_then(DateTime::from_unix_seconds)
+        .or_else(|| DateTime::new(1970, 1, 1, 0, 0, 0))
+        .ok_or_else(|| CliError::RunFailed("no record date".to_owned()))?;
+    let sxm = SxmScan {
+        pixels: [nx, ny],
+        size_nm: [step_nm * nx as f64, step_nm * ny as f64],
+        centre_nm: [args.x_counts * k, args.y_counts * k],
+        angle_deg: 0.0,
+        line_time_s: [dwell_s * nx as f64, dwell_s * nx as f64],
+        scan_dir,
+        recorded,
+        bias_v: 0.0,
+        comment: format!(
+            "spmcal scan of scanner {} through the job {}",
+            job.plan.scanner_id,
+            args.config.display()
+        ),
+        channels: vec![SxmChannel {
+            name: "Z".to_owned(),
+            unit: "counts".to_owned(),
+            forward: acquisition(plus, true),
+            backward: Some(acquisition(minus, false)),
+        }],
+        extra_header: raster_fields(&trace, job, args, dwell_s)
+            .into_iter()
+            .map(|(k, v)| (k.to_owned(), v))
+            .collect(),
+    };
+    let bytes = encode_sxm(&sxm, &args.out).map_err(|e| failed(&e))?;
+    Ok((bytes, trace))
 }

@@ -192,6 +192,7 @@ pub fn simulate(
             .ok_or_else(|| SimulateError::Failed("no date".into()))?,
         bias_v: 0.0,
         comment: "spmcal simulate".to_owned(),
+        extra_header: Vec::new(),
         channels: vec![SxmChannel {
             name: "Z".to_owned(),
             unit: "m".to_owned(),

@@ -505,3 +505,145 @@ fn a_scanned_image_is_corrected_along_its_recorded_history() {
     assert!(!dir.join("damaged.gsf").exists());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `spmcal scan --out IMAGE.sxm` writes what a Nanonis controller writes: both halves named
+/// by the direction of their lines (forward = +x), the slow direction, the line time and
+/// spmcal's raster in counts. Independent truth for a counter raster (−x lines first,
+/// stepping down): the same scan written as `.gsf` (its trace only, labelled backward) must
+/// look like the `.sxm`'s backward half in display orientation, and less like its forward
+/// half (the retrace, displaced by the raster's hysteresis); `correct` then corrects both
+/// halves along the recorded history.
+#[test]
+fn a_scanned_sxm_names_its_halves_as_nanonis_does() {
+    let dir = std::env::temp_dir().join(format!("spmcal-scan-sxm-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let job = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/calibrate-hopg-quick.toml");
+    let scan = |out: &Path| {
+        let (code, _, stderr) = spmcal(&[
+            "scan",
+            "--config",
+            job.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--size-counts",
+            "1024",
+            "--pixels",
+            "48",
+            "--x-counts",
+            "-3000",
+            "--settle-s",
+            "1",
+            "--counter",
+        ]);
+        assert_eq!(code, 0, "{stderr}");
+    };
+    let sxm = dir.join("counter.sxm");
+    let gsf = dir.join("counter.gsf");
+    scan(&sxm);
+    scan(&gsf);
+    assert!(dir.join("counter.sxm.history.json").is_file());
+    let file = spm_formats::read_any(&sxm).unwrap();
+    assert_eq!(file.format, spm_formats::Format::NanonisSxm);
+    assert_eq!(file.scan_dir, Some(spm_formats::ScanDir::Down));
+    assert_eq!(file.header_value("spmcal_scan_path"), Some("counter"));
+    let line_time = file.line_time_s.unwrap();
+    let dwell = line_time / 48.0;
+    assert!(dwell > 0.0 && (line_time - 48.0 * dwell).abs() < 1e-12);
+    let half = |d: spm_formats::Direction| {
+        file.channels
+            .iter()
+            .find(|c| c.direction() == d)
+            .unwrap()
+            .data()
+            .to_vec()
+    };
+    let (forward, backward) = (
+        half(spm_formats::Direction::Forward),
+        half(spm_formats::Direction::Backward),
+    );
+    let trace = spm_formats::read_any(&gsf).unwrap();
+    assert_eq!(
+        trace.channels[0].direction(),
+        spm_formats::Direction::Backward
+    );
+    let trace = trace.channels[0].data().to_vec();
+    let correlation = |a: &[f64], b: &[f64]| {
+        let n = a.len() as f64;
+        let (ma, mb) = (a.iter().sum::<f64>() / n, b.iter().sum::<f64>() / n);
+        let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+        for (x, y) in a.iter().zip(b) {
+            ab += (x - ma) * (y - mb);
+            aa += (x - ma) * (x - ma);
+            bb += (y - mb) * (y - mb);
+        }
+        ab / (aa * bb).sqrt()
+    };
+    let flipped: Vec<f64> = backward
+        .chunks(48)
+        .rev()
+        .flat_map(|r| r.iter().copied())
+        .collect();
+    let (same, other, upside_down) = (
+        correlation(&backward, &trace),
+        correlation(&forward, &trace),
+        correlation(&flipped, &trace),
+    );
+    assert!(
+        same > 0.9 && same > other + 0.02 && upside_down < 0.5,
+        "correlation with the trace: backward {same}, forward {other}, backward upside down \
+         {upside_down}"
+    );
+    // Both halves corrected along the recorded history (a calibration with dynamics).
+    let mut plane = spm_correction::PlaneSurfaces::constant(0.0, 0.02, 0.02, 0.0).unwrap();
+    plane.calibrated_region_counts = Some(spm_correction::CountRegion {
+        x_min_counts: -30_000.0,
+        x_max_counts: 30_000.0,
+        y_min_counts: -30_000.0,
+        y_max_counts: 30_000.0,
+    });
+    let mut set = spm_correction::SurfaceSet::new(
+        spm_correction::Provenance {
+            scanner_id: "sim-hopg".into(),
+            n_records: 100,
+            nominal_nm_per_count: Some(0.02),
+            counts_convention: Some(spm_correction::CountsConvention::CentredSigned),
+            ..spm_correction::Provenance::default()
+        },
+        vec![plane],
+    )
+    .unwrap();
+    set.dynamics = Some(spm_correction::hysteresis::ScannerDynamics {
+        format: spm_correction::hysteresis::DYNAMICS_FORMAT.to_owned(),
+        version: spm_correction::hysteresis::DYNAMICS_FORMAT_VERSION,
+        hysteresis_x: spm_correction::hysteresis::PlayHysteresis {
+            thresholds_counts: vec![100.0, 300.0],
+            weights: vec![0.02, 0.03],
+        },
+        hysteresis_y: spm_correction::hysteresis::PlayHysteresis::none(),
+        creep: spm_correction::hysteresis::CreepParameters {
+            weight: 0.005,
+            min_time_constant_s: 0.01,
+            max_time_constant_s: 1e4,
+            elements_per_decade: 3,
+        },
+        identification: spm_correction::hysteresis::DynamicsIdentification::default(),
+    });
+    let calibration = dir.join("calibration.json");
+    std::fs::write(&calibration, set.to_json_string().unwrap()).unwrap();
+    let out = dir.join("counter.corrected.gwy");
+    let (code, stdout, stderr) = spmcal(&[
+        "correct",
+        sxm.to_str().unwrap(),
+        "--calibration",
+        calibration.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    assert!(
+        stdout.contains("2 channel(s)") && stdout.contains("recorded history"),
+        "{stdout}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -301,6 +301,7 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
             recorded: date_plus(start.floor() as u64),
             bias_v: 0.1,
             comment: format!("image-level generator, hidden {hidden:?}"),
+            extra_header: Vec::new(),
             channels: vec![SxmChannel {
                 name: "Z".into(),
                 unit: "m".into(),
@@ -371,6 +372,7 @@ pub fn write_no_lattice(program: &Program, blobs: bool, seed: u64, tag: &str) ->
         recorded: date_plus(0),
         bias_v: 0.1,
         comment: String::new(),
+        extra_header: Vec::new(),
         channels: vec![SxmChannel {
             name: "Z".into(),
             unit: "m".into(),

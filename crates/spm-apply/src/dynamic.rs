@@ -136,6 +136,32 @@ pub fn dynamic_map<F: CorrectionField + ?Sized>(
     map_along(field, raster, dynamics, &pixels, &ue)
 }
 
+/// The instrument time of every pixel of one half of `raster` as [`dynamic_map`] replays it
+/// (s from the first trace pixel), in the map's order (bottom row first).
+///
+/// # Errors
+/// [`CorrectionError::InvalidArgument`] without a line time, [`CorrectionError::Empty`] for a
+/// raster of fewer than 2 columns.
+pub fn pixel_times(raster: &FileRaster, half: Half) -> Result<Vec<f64>, CorrectionError> {
+    let line_time_s = raster
+        .line_time_s
+        .filter(|t| t.is_finite() && *t > 0.0)
+        .ok_or_else(|| {
+            CorrectionError::InvalidArgument("pixel times need the file's line time".to_owned())
+        })?;
+    let (nx, ny) = (raster.columns, raster.rows);
+    if nx < 2 || ny < 1 {
+        return Err(CorrectionError::Empty("raster with fewer than 2 columns"));
+    }
+    let pixels = HalfPixels::new(raster, half);
+    let mut times = vec![0.0; nx * ny];
+    for i in 0..pixels.len() {
+        let (column, row) = pixels.pixel(i);
+        times[(ny - 1 - row) * nx + column] = pixels.time_s(i, line_time_s);
+    }
+    Ok(times)
+}
+
 /// The effective input `uₑ = u + h + c` of every pixel of a half (acquisition order), counts.
 fn effective_input(
     dynamics: &ScannerDynamics,

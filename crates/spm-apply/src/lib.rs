@@ -38,6 +38,7 @@ use std::path::{Path, PathBuf};
 
 pub mod dynamic;
 pub mod history;
+pub mod ruler;
 
 use spm_correction::{
     CoordinateMap, CorrectionError, CorrectionField, CountRegion, CountsConvention, Integration,
@@ -280,6 +281,10 @@ pub struct ApplyOptions {
     pub history: Option<history::ScanHistory>,
     /// Interpolation of the resampling.
     pub interpolation: Interpolation,
+    /// Measure the approach move's creep and the drift against the standard's lattice in the
+    /// image itself ([`ruler`]), when the file is corrected along its own raster (no
+    /// recorded history).
+    pub ruler: Option<ruler::LatticeRuler>,
 }
 
 /// The path the scanner takes to every pixel.
@@ -877,6 +882,9 @@ pub enum DynamicsUsed {
     /// The recorded command history (`spmcal scan`'s sidecar) through the dynamics: the
     /// raster and every command before it, the approach move's creep included.
     Recorded,
+    /// [`DynamicsUsed::Raster`], and the approach move's creep and the drift measured against
+    /// the standard's lattice in the image ([`ruler`]; the estimate in `spmcal_ruler_*`).
+    RasterRuler,
 }
 
 impl DynamicsUsed {
@@ -895,6 +903,11 @@ impl DynamicsUsed {
             Self::Recorded => {
                 "recorded: the scan's command history (the approach move and the raster) \
                  replayed through the calibration's hysteresis and creep"
+            }
+            Self::RasterRuler => {
+                "raster + lattice ruler: the file's own raster replayed through the \
+                 calibration's hysteresis and creep; the approach move's creep and the drift \
+                 measured against the standard's lattice in the image (spmcal_ruler_*)"
             }
             Self::Raster => {
                 "raster: the file's own raster (trace and retrace at its line time) replayed \
@@ -922,6 +935,8 @@ pub struct Corrected {
     pub extrapolated_counts: Option<f64>,
     /// The dynamics used.
     pub dynamics: DynamicsUsed,
+    /// The lattice ruler's estimate of the approach creep and drift, when it was used.
+    pub ruler: Option<ruler::RulerEstimate>,
     /// Expected 1σ position error of the static correction over the image, nm (see
     /// [`expected_error_nm`]).
     pub expected_error_nm: f64,
@@ -1014,6 +1029,8 @@ struct Maps {
     other_half: Option<(CoordinateMap, [f64; 2])>,
     /// What the maps include.
     dynamics_used: DynamicsUsed,
+    /// The lattice ruler's estimate, when it was applied.
+    ruler: Option<ruler::RulerEstimate>,
 }
 
 /// The half of the frame a channel holds. A channel's direction is that of its lines (forward
@@ -1086,22 +1103,51 @@ fn maps_for<F: CorrectionField + Sync>(
             (None, _, _) => coordinate_map(field, raster).map_err(correction),
         }
     };
-    let (map, first_nm) = map_of(half_of(first, raster.path))?;
+    let (mut map, first_nm) = map_of(half_of(first, raster.path))?;
     let other = match half_of(first, raster.path) {
         dynamic::Half::Trace => dynamic::Half::Retrace,
         dynamic::Half::Retrace => dynamic::Half::Trace,
     };
-    let other_half =
+    let mut other_half =
         if with_dynamics.is_some() && channels.iter().any(|c| half_of(c, raster.path) == other) {
             Some(map_of(other)?)
         } else {
             None
         };
+    // The lattice ruler: the approach creep and drift from the first channel's atoms, removed
+    // from both halves along their own times.
+    let mut estimate = None;
+    let mut dynamics_used = dynamics_used;
+    if let (Some(ruler), Some(d), DynamicsUsed::Raster) =
+        (options.ruler.as_ref(), with_dynamics, dynamics_used)
+    {
+        let law = d.creep.law().map_err(correction)?;
+        let times =
+            dynamic::pixel_times(raster, half_of(first, raster.path)).map_err(correction)?;
+        let heights = geometry_heights(file, first)?;
+        let found = ruler::estimate_from_lattice(&heights, &map, &times, &law, ruler).map_err(
+            |source| ApplyError::Option {
+                option: "--ruler",
+                reason: format!("{}: {source}", file.source.display()),
+            },
+        )?;
+        map = found.corrected(&map, &times).map_err(correction)?;
+        if let Some((other_map, other_first)) = other_half.take() {
+            let times = dynamic::pixel_times(raster, other).map_err(correction)?;
+            other_half = Some((
+                found.corrected(&other_map, &times).map_err(correction)?,
+                other_first,
+            ));
+        }
+        dynamics_used = DynamicsUsed::RasterRuler;
+        estimate = Some(found);
+    }
     Ok(Maps {
         map,
         first_nm,
         other_half,
         dynamics_used,
+        ruler: estimate,
     })
 }
 
@@ -1229,6 +1275,7 @@ pub fn correct_file(
         first_nm,
         other_half,
         dynamics_used,
+        ruler,
     } = maps_for(file, set, options, &field, &raster, &channels)?;
     let grid = OutputGrid::covering(&map, None).map_err(|e| correction("map", e))?;
     let step_nm = grid.step_nm.value();
@@ -1290,6 +1337,7 @@ pub fn correct_file(
             extrapolated_counts,
             unknown_pixels,
             dynamics: dynamics_used,
+            ruler: ruler.clone(),
         },
     );
     Ok(Corrected {
@@ -1299,6 +1347,7 @@ pub fn correct_file(
         unknown_pixels,
         extrapolated_counts,
         dynamics: dynamics_used,
+        ruler,
         expected_error_nm: expected,
         step_nm,
     })
@@ -1310,6 +1359,7 @@ struct Facts {
     extrapolated_counts: Option<f64>,
     unknown_pixels: usize,
     dynamics: DynamicsUsed,
+    ruler: Option<ruler::RulerEstimate>,
 }
 
 fn metadata(
@@ -1324,14 +1374,20 @@ fn metadata(
         extrapolated_counts,
         unknown_pixels,
         dynamics,
+        ref ruler,
     } = *facts;
     let p = &set.provenance;
     let region = plane.calibrated_region();
-    let mut m: Vec<(String, String)> =
-        vec![
+    let mut m: Vec<(String, String)> = vec![
         (KEY_CORRECTED.into(), "yes".into()),
-        ("spmcal_corrector_version".into(), env!("CARGO_PKG_VERSION").into()),
-        ("spmcal_source_file".into(), file.source.display().to_string()),
+        (
+            "spmcal_corrector_version".into(),
+            env!("CARGO_PKG_VERSION").into(),
+        ),
+        (
+            "spmcal_source_file".into(),
+            file.source.display().to_string(),
+        ),
         ("spmcal_source_format".into(), file.format.id().into()),
         ("spmcal_calibration_scanner_id".into(), p.scanner_id.clone()),
         (
@@ -1401,14 +1457,16 @@ fn metadata(
                 RasterPath::Counter => "counter scan: lines -x, slow axis down".into(),
             },
         ),
-        (
-            "spmcal_dynamics".into(),
-            dynamics.describe().into(),
-        ),
+        ("spmcal_dynamics".into(), dynamics.describe().into()),
         (
             "spmcal_expected_error_nm".into(),
             format!("{expected_error_nm:.6}"),
         ),
+    ];
+    if let Some(r) = ruler {
+        m.extend(ruler_fields(r));
+    }
+    m.extend(vec![
         (
             "spmcal_expected_error_basis".into(),
             "1 sigma of the static surfaces (standard errors of K̄x, K̄yy, α over the image side); \
@@ -1429,7 +1487,7 @@ fn metadata(
                 None => "no".into(),
             },
         ),
-    ];
+    ]);
     if let Some(date) = file.recorded {
         m.push(("spmcal_source_recorded".into(), date.to_string()));
     }
@@ -1437,6 +1495,35 @@ fn metadata(
         m.push((source_key(key), value.replace(['\n', '\r', '\0'], " ")));
     }
     m
+}
+
+/// The lattice ruler's estimate as output metadata.
+fn ruler_fields(r: &ruler::RulerEstimate) -> [(String, String); 5] {
+    [
+        (
+            "spmcal_ruler_approach_amplitude_nm".to_owned(),
+            format!("{:.6} {:.6}", r.amplitude_nm[0], r.amplitude_nm[1]),
+        ),
+        (
+            "spmcal_ruler_since_move_s".to_owned(),
+            format!("{:.4}", r.since_move_s),
+        ),
+        (
+            "spmcal_ruler_drift_nm_per_s".to_owned(),
+            format!("{:.6e} {:.6e}", r.drift_nm_per_s[0], r.drift_nm_per_s[1]),
+        ),
+        (
+            "spmcal_ruler_atoms".to_owned(),
+            format!("{} located, {} indexed", r.atoms, r.indexed),
+        ),
+        (
+            "spmcal_ruler_lattice_rms_nm".to_owned(),
+            format!(
+                "{:.6} before, {:.6} after",
+                r.before_rms_nm, r.residual_rms_nm
+            ),
+        ),
+    ]
 }
 
 /// The output file kinds spmcal writes, from an output name's extension.

@@ -28,6 +28,7 @@ pub struct CorrectArgs<'a> {
     pub scanner: Option<&'a str>,
     pub allow_extrapolation: bool,
     pub static_only: bool,
+    pub ruler: Option<spm_apply::ruler::LatticeRuler>,
 }
 
 fn apply_error(error: ApplyError, calibration: &Path) -> CliError {
@@ -130,6 +131,7 @@ fn options(args: &CorrectArgs<'_>, kind: OutputKind) -> ApplyOptions {
         static_only: args.static_only,
         history: None,
         interpolation: spm_correction::Interpolation::Bilinear,
+        ruler: args.ruler,
     }
 }
 
@@ -286,6 +288,8 @@ pub fn run(args: &CorrectArgs<'_>) -> Result<(), CliError> {
                     "the raster's hysteresis and creep (approach creep unknown)",
                 spm_apply::DynamicsUsed::Recorded =>
                     "the recorded history's hysteresis and creep (IMAGE.history.json)",
+                spm_apply::DynamicsUsed::RasterRuler =>
+                    "the raster's hysteresis and creep; approach creep and drift from the lattice",
             },
             if corrected.extrapolated_counts.is_some() {
                 "; EXTRAPOLATED beyond the calibrated region"

@@ -32,6 +32,13 @@ macro_rules! outln {
 pub(crate) use outln;
 
 /// Distributed, drift-insensitive calibration of SPM scanners, and image correction.
+/// The lattice a `correct --ruler` measures against.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum RulerStandard {
+    /// HOPG: hexagonal, a = 0.246 nm.
+    Hopg,
+}
+
 #[derive(Debug, Parser)]
 #[command(name = "spmcal", version, about, long_about = None)]
 struct Cli {
@@ -203,10 +210,16 @@ enum Command {
         /// dynamics (the raster's hysteresis and creep are then not corrected).
         #[arg(long = "static")]
         static_only: bool,
+        /// Measure the approach move's creep and the drift against the standard's lattice in
+        /// each image (atomic resolution, ≥ 5 pixels per lattice constant) and remove them too
+        /// — for files corrected along their own raster, without a recorded history. `hopg`:
+        /// hexagonal, a = 0.246 nm.
+        #[arg(long, value_name = "STANDARD")]
+        ruler: Option<RulerStandard>,
     },
     /// Take one image through a job's backend and keep the command history it was taken with
-    /// (IMAGE.gsf and IMAGE.gsf.history.json): `spmcal correct` then corrects the creep of the
-    /// approach move and the raster's dynamics with the calibration's dynamics.
+    /// (IMAGE.sxm or IMAGE.gsf, and IMAGE.….history.json): `spmcal correct` then corrects the
+    /// creep of the approach move and the raster's dynamics with the calibration's dynamics.
     Scan(scan_cmd::ScanArgs),
     /// Describe SPM files: format, pixels, size, offset, scan angle, direction, line time, date,
     /// channels (several files: one line each).
@@ -605,6 +618,7 @@ fn run(command: Command) -> Result<(), CliError> {
             scanner,
             allow_extrapolation,
             static_only,
+            ruler,
         } => correct_cmd::run(&correct_cmd::CorrectArgs {
             images: &images,
             calibration: &calibration,
@@ -618,6 +632,9 @@ fn run(command: Command) -> Result<(), CliError> {
             scanner: scanner.as_deref(),
             allow_extrapolation,
             static_only,
+            ruler: ruler.map(|r| match r {
+                RulerStandard::Hopg => spm_apply::ruler::LatticeRuler::hopg(),
+            }),
         }),
         Command::Diagnose {
             files,

@@ -1,0 +1,449 @@
+//! The standard's lattice as the ruler of one image (issue 23, `spmcal correct --ruler`): the
+//! creep of the move that brought the probe there and the drift, estimated from the image
+//! alone.
+//!
+//! A file says nothing of the probe's history before its frame, so its dynamic correction
+//! ([`crate::dynamic::dynamic_map`]) starts settled. What it leaves is a function of time only:
+//!
+//! `e(t) = A·g(t + t_m) + v·t`, `g(t) = w·Σₖ e^{−t/τₖ}`
+//!
+//! (`e` the corrected position minus the true one, nm; `g` the creep still to come `t` after a
+//! unit step, of the calibration's own law; `t_m` the time from the end of the approach move
+//! to the frame's first pixel; `A` the move's creep amplitude, nm; `v` the drift, nm/s). Every
+//! atom of the image is seen at its own time, so the atoms of a known lattice (HOPG: hexagonal,
+//! a = 0.246 nm) sit at `O + R(θ)·B·n + e(t)`, n the atom's lattice index. The image's
+//! atoms are indexed by growing from the atom seen at the median time, neighbour by neighbour
+//! (a step between neighbours is never ambiguous, however far the frame is sheared), and
+//! `O`, the rotation `δθ` about the apparent one, `A` and `v` follow by linear least squares
+//! for each `t_m` of a log-spaced ladder; the `t_m` of the least residual is kept. Any `(A, t_m,
+//! v)` that fits the atoms gives the same `e` over the frame, so that `A` and `v` trade off for
+//! a late `t_m` does not matter.
+//!
+//! A static error of the calibration along the slow axis (K̄y, α) is a constant rate of `e`
+//! along y, so the ruler removes it too; along the fast axis it cannot (a line takes no time).
+//! Images whose lattice is not resolved (fewer than `min_pixels_per_constant` pixels per
+//! lattice constant) are refused, not guessed.
+
+use spm_correction::dynamics::CreepLaw;
+use spm_correction::{CoordinateMap, CorrectionError, YCoordinates};
+use spm_features::{DetectionConfig, Feature, LatticeConfig, detect, lattice_vectors};
+use spm_hal::{CountPoint, Counts, HeightMap};
+
+/// The lattice a ruler measures against.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LatticeRuler {
+    /// Nearest-neighbour distance of the hexagonal lattice, nm (HOPG 0.246).
+    pub constant_nm: f64,
+    /// Fewest pixels per lattice constant for the atoms to be located (default 5).
+    pub min_pixels_per_constant: f64,
+}
+
+impl LatticeRuler {
+    /// HOPG's surface lattice: hexagonal, a = 0.246 nm.
+    #[must_use]
+    pub fn hopg() -> Self {
+        Self {
+            constant_nm: 0.246,
+            min_pixels_per_constant: 5.0,
+        }
+    }
+}
+
+/// The approach creep and drift the ruler found (see the module doc).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RulerEstimate {
+    /// A, nm per axis.
+    pub amplitude_nm: [f64; 2],
+    /// t_m, s.
+    pub since_move_s: f64,
+    /// v, nm/s per axis.
+    pub drift_nm_per_s: [f64; 2],
+    /// Atoms located.
+    pub atoms: usize,
+    /// Atoms indexed and fitted.
+    pub indexed: usize,
+    /// RMS distance of the atoms from the lattice before the fit (offset and rotation
+    /// removed), nm.
+    pub before_rms_nm: f64,
+    /// RMS residual after it, nm.
+    pub residual_rms_nm: f64,
+    law: CreepLaw,
+}
+
+impl RulerEstimate {
+    /// g(t).
+    fn to_come(law: &CreepLaw, t_s: f64) -> f64 {
+        law.weight()
+            * law
+                .time_constants_s()
+                .iter()
+                .map(|tau| (-t_s.max(0.0) / tau).exp())
+                .sum::<f64>()
+    }
+
+    /// e(t), nm.
+    #[must_use]
+    pub fn error_nm(&self, t_s: f64) -> [f64; 2] {
+        let g = Self::to_come(&self.law, t_s + self.since_move_s);
+        [
+            self.amplitude_nm[0] * g + self.drift_nm_per_s[0] * t_s,
+            self.amplitude_nm[1] * g + self.drift_nm_per_s[1] * t_s,
+        ]
+    }
+
+    /// `map` with e(t) of every pixel removed (`times_s` per pixel, the map's order).
+    ///
+    /// # Errors
+    /// [`CorrectionError::SizeMismatch`]; as [`CoordinateMap::new`].
+    pub fn corrected(
+        &self,
+        map: &CoordinateMap,
+        times_s: &[f64],
+    ) -> Result<CoordinateMap, CorrectionError> {
+        let (nx, ny) = (map.columns(), map.rows());
+        if times_s.len() != nx * ny {
+            return Err(CorrectionError::SizeMismatch {
+                what: "pixel times",
+                expected: nx * ny,
+                got: times_s.len(),
+            });
+        }
+        let mut x = Vec::with_capacity(nx * ny);
+        let mut y = Vec::with_capacity(nx * ny);
+        for (i, &t) in times_s.iter().enumerate() {
+            let e = self.error_nm(t);
+            let p = map
+                .point(i % nx, i / nx)
+                .ok_or(CorrectionError::Empty("map pixel"))?;
+            x.push(p.x.value() - e[0]);
+            y.push(p.y.value() - e[1]);
+        }
+        CoordinateMap::new(nx, ny, x, YCoordinates::PerPixel(y))
+    }
+}
+
+/// An atom: corrected position (nm) and time (s), and its detection with the position
+/// replaced by the corrected one (what the lattice estimator reads).
+#[derive(Debug, Clone, Copy)]
+struct Atom {
+    p: [f64; 2],
+    t: f64,
+    feature: Feature,
+}
+
+/// The image's atoms at their corrected positions and times.
+fn atoms(
+    heights: &[f64],
+    map: &CoordinateMap,
+    times_s: &[f64],
+    ruler: &LatticeRuler,
+) -> Result<Vec<Atom>, CorrectionError> {
+    let (nx, ny) = (map.columns(), map.rows());
+    let (x0, x1, _, _) = map.bounds_nm();
+    let nm_per_px = (x1 - x0) / (nx.max(2) - 1) as f64;
+    let per_constant = ruler.constant_nm / nm_per_px;
+    if per_constant.is_nan() || per_constant < ruler.min_pixels_per_constant {
+        return Err(CorrectionError::InvalidArgument(format!(
+            "the lattice ruler needs ≥ {} pixels per lattice constant; this image has {per_constant:.2} \
+             ({nm_per_px:.4} nm per pixel, a = {} nm)",
+            ruler.min_pixels_per_constant, ruler.constant_nm
+        )));
+    }
+    let height_map = HeightMap {
+        origin: CountPoint::from_counts(0.0, 0.0),
+        pixel_step: Counts(1.0),
+        columns: nx,
+        rows: ny,
+        z_counts: heights
+            .iter()
+            .map(|v| if v.is_finite() { *v } else { 0.0 })
+            .collect(),
+        time_s: times_s.to_vec(),
+    };
+    let config = DetectionConfig {
+        min_separation_px: 0.5 * per_constant,
+        ..DetectionConfig::default()
+    };
+    let found = detect(&height_map, &config)
+        .map_err(|e| CorrectionError::InvalidArgument(format!("lattice ruler: {e}")))?;
+    Ok(found
+        .features
+        .iter()
+        .filter_map(|f: &Feature| {
+            let p = map.interpolate(f.column, f.row)?;
+            Some(Atom {
+                p: [p.x.value(), p.y.value()],
+                t: f.time.value(),
+                feature: Feature {
+                    position: CountPoint::from_counts(p.x.value(), p.y.value()),
+                    ..*f
+                },
+            })
+        })
+        .collect())
+}
+
+/// The lattice index of every atom reachable from the median-time atom by neighbour steps,
+/// and the apparent basis used.
+/// Per atom its lattice index (when reached), and the apparent basis, nm.
+type Indexing = (Vec<Option<[i64; 2]>>, [[f64; 2]; 2]);
+
+fn index(atoms: &[Atom]) -> Result<Indexing, CorrectionError> {
+    let as_features: Vec<Feature> = atoms.iter().map(|a| a.feature).collect();
+    let lattice = lattice_vectors(&as_features, &LatticeConfig::default())
+        .map_err(|e| CorrectionError::InvalidArgument(format!("lattice ruler: {e}")))?;
+    let (b1, b2) = lattice.basis().ok_or_else(|| {
+        CorrectionError::InvalidArgument("lattice ruler: fewer than two lattice directions".into())
+    })?;
+    let basis = [
+        [b1.vector.x.value(), b1.vector.y.value()],
+        [b2.vector.x.value(), b2.vector.y.value()],
+    ];
+    let det = basis[0][0] * basis[1][1] - basis[1][0] * basis[0][1];
+    if det == 0.0 || !det.is_finite() {
+        return Err(CorrectionError::InvalidArgument(
+            "lattice ruler: collinear lattice directions".into(),
+        ));
+    }
+    let reach = 1.3 * lattice.nearest_neighbour.value();
+    let step_of = |d: [f64; 2]| -> Option<[i64; 2]> {
+        let k1 = (d[0] * basis[1][1] - d[1] * basis[1][0]) / det;
+        let k2 = (basis[0][0] * d[1] - basis[0][1] * d[0]) / det;
+        let k = [k1.round(), k2.round()];
+        let r = [
+            d[0] - k[0] * basis[0][0] - k[1] * basis[1][0],
+            d[1] - k[0] * basis[0][1] - k[1] * basis[1][1],
+        ];
+        (r[0].hypot(r[1]) < 0.3 * lattice.nearest_neighbour.value())
+            .then_some([k[0] as i64, k[1] as i64])
+    };
+    let mut order: Vec<usize> = (0..atoms.len()).collect();
+    order.sort_by(|&a, &b| atoms[a].t.total_cmp(&atoms[b].t));
+    let seed = order[order.len() / 2];
+    let mut n: Vec<Option<[i64; 2]>> = vec![None; atoms.len()];
+    n[seed] = Some([0, 0]);
+    let mut queue = std::collections::VecDeque::from([seed]);
+    while let Some(i) = queue.pop_front() {
+        let Some(ni) = n[i] else { continue };
+        for (j, a) in atoms.iter().enumerate() {
+            if n[j].is_some() {
+                continue;
+            }
+            let d = [a.p[0] - atoms[i].p[0], a.p[1] - atoms[i].p[1]];
+            if d[0].hypot(d[1]) > reach {
+                continue;
+            }
+            if let Some(k) = step_of(d) {
+                n[j] = Some([ni[0] + k[0], ni[1] + k[1]]);
+                queue.push_back(j);
+            }
+        }
+    }
+    Ok((n, basis))
+}
+
+/// Estimates the approach creep and drift of one image from its lattice (see the module doc).
+/// `heights`, `map` and `times_s` in the map's order; `law` the calibration's creep law.
+///
+/// # Errors
+/// [`CorrectionError::InvalidArgument`] for an image whose lattice is not resolved or not
+/// found, [`CorrectionError::Empty`] with fewer than 12 indexed atoms.
+pub fn estimate_from_lattice(
+    heights: &[f64],
+    map: &CoordinateMap,
+    times_s: &[f64],
+    law: &CreepLaw,
+    ruler: &LatticeRuler,
+) -> Result<RulerEstimate, CorrectionError> {
+    let n_px = map.columns() * map.rows();
+    for (what, len) in [("heights", heights.len()), ("pixel times", times_s.len())] {
+        if len != n_px {
+            return Err(CorrectionError::SizeMismatch {
+                what,
+                expected: n_px,
+                got: len,
+            });
+        }
+    }
+    let atoms = atoms(heights, map, times_s, ruler)?;
+    let (n, apparent) = index(&atoms)?;
+    let used: Vec<(Atom, [i64; 2])> = atoms
+        .iter()
+        .zip(&n)
+        .filter_map(|(a, n)| n.map(|n| (*a, n)))
+        .collect();
+    if used.len() < 12 {
+        return Err(CorrectionError::Empty("indexed atoms (fewer than 12)"));
+    }
+    // The true basis at the apparent orientation: b₁ along the apparent first vector, b₂ at
+    // ±60° on the side of the apparent second.
+    let a = ruler.constant_nm;
+    let theta = apparent[0][1].atan2(apparent[0][0]);
+    let side = (apparent[0][0] * apparent[1][1] - apparent[0][1] * apparent[1][0]).signum();
+    let angle2 = theta
+        + side
+            * if (apparent[0][0] * apparent[1][0] + apparent[0][1] * apparent[1][1]) >= 0.0 {
+                std::f64::consts::FRAC_PI_3
+            } else {
+                2.0 * std::f64::consts::FRAC_PI_3
+            };
+    let b = [
+        [a * theta.cos(), a * theta.sin()],
+        [a * angle2.cos(), a * angle2.sin()],
+    ];
+    let lattice = |n: [i64; 2]| {
+        let (n1, n2) = (n[0] as f64, n[1] as f64);
+        [n1 * b[0][0] + n2 * b[1][0], n1 * b[0][1] + n2 * b[1][1]]
+    };
+    // Columns: O_x, O_y, δθ, A_x, A_y, v_x, v_y; two rows per atom.
+    let design = |tm: f64| -> (Vec<Vec<f64>>, Vec<f64>) {
+        let mut rows = Vec::with_capacity(2 * used.len());
+        let mut rhs = Vec::with_capacity(2 * used.len());
+        for (atom, n) in &used {
+            let l = lattice(*n);
+            let g = RulerEstimate::to_come(law, atom.t + tm);
+            rows.push(vec![1.0, 0.0, -l[1], g, 0.0, atom.t, 0.0]);
+            rhs.push(atom.p[0] - l[0]);
+            rows.push(vec![0.0, 1.0, l[0], 0.0, g, 0.0, atom.t]);
+            rhs.push(atom.p[1] - l[1]);
+        }
+        (rows, rhs)
+    };
+    let (rows, rhs) = design(1.0);
+    let rigid: Vec<Vec<f64>> = rows.iter().map(|r| r[..3].to_vec()).collect();
+    let before = spm_regression::least_squares(&rigid, &rhs, &[false; 3])
+        .map_err(|e| CorrectionError::InvalidArgument(format!("lattice ruler: {e}")))?;
+    let (from, to, per_decade) = (0.1_f64, 1e4_f64, 8_u32);
+    let steps = ((to / from).log10() * f64::from(per_decade)).ceil() as usize;
+    let mut best: Option<(f64, Vec<f64>, f64)> = None;
+    for k in 0..=steps {
+        let tm = from * 10f64.powf(k as f64 / f64::from(per_decade));
+        let (rows, rhs) = design(tm);
+        if let Ok(fit) = spm_regression::least_squares(&rows, &rhs, &[false; 7])
+            && best.as_ref().is_none_or(|b| fit.residual_rms < b.2)
+        {
+            best = Some((tm, fit.coefficients, fit.residual_rms));
+        }
+    }
+    let (since_move_s, c, residual_rms_nm) = best.ok_or_else(|| {
+        CorrectionError::InvalidArgument(
+            "lattice ruler: the atoms do not determine the approach creep and drift".into(),
+        )
+    })?;
+    Ok(RulerEstimate {
+        amplitude_nm: [c[3], c[4]],
+        since_move_s,
+        drift_nm_per_s: [c[5], c[6]],
+        atoms: atoms.len(),
+        indexed: used.len(),
+        before_rms_nm: before.residual_rms,
+        residual_rms_nm,
+        law: law.clone(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    /// A HOPG-like surface: Gaussian atoms on a hexagonal lattice (a = 0.246 nm) rotated by
+    /// `angle`.
+    fn surface(x: f64, y: f64, angle: f64) -> f64 {
+        let a = 0.246;
+        let (s, c) = angle.sin_cos();
+        let b1 = [a * c, a * s];
+        let b2 = [
+            a * (c * 0.5 - s * 0.75f64.sqrt()),
+            a * (s * 0.5 + c * 0.75f64.sqrt()),
+        ];
+        let det = b1[0] * b2[1] - b1[1] * b2[0];
+        let (k1, k2) = ((x * b2[1] - y * b2[0]) / det, (b1[0] * y - b1[1] * x) / det);
+        let mut z = 0.0;
+        for d1 in -1..=2 {
+            for d2 in -1..=2 {
+                let (n1, n2) = (k1.floor() + f64::from(d1), k2.floor() + f64::from(d2));
+                let (px, py) = (n1 * b1[0] + n2 * b2[0], n1 * b1[1] + n2 * b2[1]);
+                z += (-((x - px).powi(2) + (y - py).powi(2)) / (2.0 * 0.045f64.powi(2))).exp();
+            }
+        }
+        z
+    }
+
+    /// A 129² frame of a hexagonal lattice, corrected as a file alone is: every pixel seen
+    /// displaced by a hidden e(t) (approach creep and drift, ≈ 8 % of the side over the
+    /// frame). The ruler must take out 90 % of it, and refuse a frame whose lattice is not
+    /// resolved.
+    #[test]
+    fn the_lattice_finds_a_hidden_approach_creep_and_drift() {
+        let n = 129;
+        let step = 0.02;
+        let line_s = 0.1;
+        let law = CreepLaw::log_spaced(0.0055, 0.01, 1e4, 3).unwrap();
+        let hidden = RulerEstimate {
+            amplitude_nm: [-8.0, 5.0],
+            since_move_s: 2.0,
+            drift_nm_per_s: [0.003, -0.002],
+            atoms: 0,
+            indexed: 0,
+            before_rms_nm: 0.0,
+            residual_rms_nm: 0.0,
+            law: law.clone(),
+        };
+        let dwell = line_s / n as f64;
+        let mut times = vec![0.0; n * n];
+        let mut heights = vec![0.0; n * n];
+        let mut x = vec![0.0; n * n];
+        let mut y = vec![0.0; n * n];
+        for row in 0..n {
+            for col in 0..n {
+                let i = row * n + col;
+                let t = 2.0 * line_s * row as f64 + (col as f64 + 0.5) * dwell;
+                let p = [col as f64 * step, row as f64 * step];
+                let e = hidden.error_nm(t);
+                times[i] = t;
+                x[i] = p[0];
+                y[i] = p[1];
+                heights[i] = surface(p[0] - e[0], p[1] - e[1], 0.3);
+            }
+        }
+        let map = CoordinateMap::new(n, n, x, YCoordinates::PerPixel(y)).unwrap();
+        let estimate =
+            estimate_from_lattice(&heights, &map, &times, &law, &LatticeRuler::hopg()).unwrap();
+        // What is left of e over the frame, its mean (a rigid offset) removed.
+        let spread = |f: &dyn Fn(f64) -> [f64; 2]| {
+            let v: Vec<[f64; 2]> = times.iter().map(|&t| f(t)).collect();
+            let m = [
+                v.iter().map(|p| p[0]).sum::<f64>() / v.len() as f64,
+                v.iter().map(|p| p[1]).sum::<f64>() / v.len() as f64,
+            ];
+            (v.iter()
+                .map(|p| (p[0] - m[0]).powi(2) + (p[1] - m[1]).powi(2))
+                .sum::<f64>()
+                / v.len() as f64)
+                .sqrt()
+        };
+        let before = spread(&|t| hidden.error_nm(t));
+        let after = spread(&|t| {
+            let (e, f) = (hidden.error_nm(t), estimate.error_nm(t));
+            [e[0] - f[0], e[1] - f[1]]
+        });
+        assert!(
+            after < 0.1 * before,
+            "left of e: {before} nm → {after} nm; {estimate:?}"
+        );
+        assert!(estimate.indexed > 80, "{estimate:?}");
+        // Two pixels per lattice constant: refused, naming the need.
+        let coarse = CoordinateMap::new(
+            n,
+            n,
+            (0..n * n).map(|i| (i % n) as f64 * 0.12).collect(),
+            YCoordinates::PerPixel((0..n * n).map(|i| (i / n) as f64 * 0.12).collect()),
+        )
+        .unwrap();
+        let refused = estimate_from_lattice(&heights, &coarse, &times, &law, &LatticeRuler::hopg())
+            .unwrap_err()
+            .to_string();
+        assert!(refused.contains("pixels per lattice constant"), "{refused}");
+    }
+}

@@ -200,3 +200,31 @@ fn index_grid(positions: &[[f64; 2]], start: [f64; 2]) -> Option<Vec<(usize, (i3
     out.sort_unstable();
     Some(out)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_sheared_square_lattice_is_indexed_from_its_centre() {
+        // Pitch 10, a 2 % shear and a slight rotation: every feature gets its own (i, j).
+        let (a, b) = ([10.0, 0.3], [0.2, 10.2]);
+        let mut positions = Vec::new();
+        let mut truth = Vec::new();
+        for j in -4..=4_i32 {
+            for i in -4..=4_i32 {
+                let (fi, fj) = (f64::from(i), f64::from(j));
+                positions.push([100.0 + fi * a[0] + fj * b[0], 50.0 + fi * a[1] + fj * b[1]]);
+                truth.push((i, j));
+            }
+        }
+        let indexed = index_grid(&positions, [100.0, 50.0]);
+        let Some(indexed) = indexed else {
+            panic!("not indexed");
+        };
+        assert_eq!(indexed.len(), positions.len());
+        for (k, cell) in indexed {
+            assert_eq!(cell, truth[k], "feature {k}");
+        }
+    }
+}

@@ -1,7 +1,7 @@
 //! An end-to-end simulated calibration on a small net, judged against the
 //! simulator's oracle: the CDB is filled by the adaptive calibration, surfaces
 //! are fitted, and the corrected field is compared with the one the true LCC
-//! field gives (`spmcal::accuracy`).
+//! field gives (`spm_evaluation::accuracy`).
 //!
 //! The net is 6 × 6 nodes, one pass (36 LCC records instead of the default
 //! job's 768), so the targets of the default job (distributed ≤ 0.1 × lumped

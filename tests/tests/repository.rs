@@ -120,6 +120,7 @@ fn pure_crates_read_no_clock_and_no_global_rng() {
         "spm-features",
         "spm-regression",
         "spm-correction",
+        "spm-evaluation",
         "spm-sim",
     ] {
         for file in rust_sources(&workspace_root().join("crates").join(name).join("src")) {

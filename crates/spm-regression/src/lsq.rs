@@ -31,6 +31,10 @@ pub struct LinearFit {
     pub residual_rms: f64,
     /// Which columns ended at their bound 0 (active constraints).
     pub at_bound: Vec<bool>,
+    /// (AₚᵀAₚ)⁻¹ over the passive set, in the parameters' units (n × n; times the variance of
+    /// one observation it is the parameters' covariance): zero rows and columns for a column
+    /// held at its bound.
+    pub unscaled_covariance: Vec<Vec<f64>>,
 }
 
 /// Solves the (sign-constrained) linear least-squares problem described in the module docs.
@@ -147,12 +151,16 @@ pub fn least_squares(
     let dof = m.saturating_sub(k).max(1);
     let s2 = residual.norm_squared() / dof as f64;
     let mut standard_errors = vec![0.0; n];
+    let mut unscaled_covariance = vec![vec![0.0; n]; n];
     let cols: Vec<usize> = (0..n).filter(|&j| passive[j]).collect();
     if !cols.is_empty() {
         let gp = DMatrix::from_fn(cols.len(), cols.len(), |i, j| g[(cols[i], cols[j])]);
         if let Some(inv) = gp.try_inverse() {
             for (c, &j) in cols.iter().enumerate() {
                 standard_errors[j] = (s2 * inv[(c, c)].max(0.0)).sqrt() / scale[j];
+                for (d, &k) in cols.iter().enumerate() {
+                    unscaled_covariance[j][k] = inv[(c, d)] / (scale[j] * scale[k]);
+                }
             }
         }
     }
@@ -161,6 +169,7 @@ pub fn least_squares(
         standard_errors,
         residual_rms: (residual.norm_squared() / m as f64).sqrt(),
         at_bound: passive.iter().map(|&p| !p).collect(),
+        unscaled_covariance,
     })
 }
 
@@ -220,6 +229,22 @@ mod tests {
         assert!((fit.coefficients[0] - 3.0).abs() < 1e-12);
         assert!((fit.coefficients[1] + 0.5).abs() < 1e-12);
         assert!(fit.residual_rms < 1e-12);
+    }
+
+    /// The unscaled covariance of a straight line through x = 0 … 9 is (XᵀX)⁻¹ in closed
+    /// form: Sxx = Σ(x − x̄)² = 82.5, var(slope) = 1/Sxx, var(intercept) = Σx²/(n·Sxx),
+    /// cov = −x̄/Sxx.
+    #[test]
+    fn the_unscaled_covariance_is_the_inverse_normal_matrix() {
+        let rows: Vec<Vec<f64>> = (0..10).map(|i| vec![1.0, f64::from(i)]).collect();
+        let rhs = vec![0.0; 10];
+        let fit = least_squares(&rows, &rhs, &[false, false]).unwrap();
+        let c = &fit.unscaled_covariance;
+        let sxx = 82.5;
+        assert!((c[1][1] - 1.0 / sxx).abs() < 1e-14);
+        assert!((c[0][0] - 285.0 / (10.0 * sxx)).abs() < 1e-13);
+        assert!((c[0][1] + 4.5 / sxx).abs() < 1e-14);
+        assert!((c[0][1] - c[1][0]).abs() < 1e-15);
     }
 
     /// Lawson & Hanson's closed case: the unconstrained optimum has a negative coefficient;

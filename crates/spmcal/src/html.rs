@@ -275,7 +275,7 @@ const ACCURACY_HEADER: [&str; 6] = [
 ];
 
 /// One accuracy row.
-pub fn accuracy_row(method: &str, a: &crate::accuracy::Accuracy) -> Row {
+pub fn accuracy_row(method: &str, a: &spm_evaluation::accuracy::Accuracy) -> Row {
     Row::new(
         method,
         vec![
@@ -309,7 +309,11 @@ const IMAGES_HEADER: [&str; 9] = [
 
 /// The image benchmark: the summary line, per-method table and the identified dynamics;
 /// `prefix` makes the ids unique when a page holds several.
-pub fn images_tables(page: &mut Page, prefix: &str, images: &crate::images::ImageBenchmark) {
+pub fn images_tables(
+    page: &mut Page,
+    prefix: &str,
+    images: &spm_evaluation::images::ImageBenchmark,
+) {
     page.paragraph_with_id(
         &format!("{prefix}images-summary"),
         &format!(

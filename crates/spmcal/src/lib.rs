@@ -9,7 +9,6 @@
 //! - [`plots`]: PNG figures of a run (drawn with `spm-plot`).
 //! - [`report`]: after a run: surfaces.json, accuracy, report.json, figures, report.html.
 //! - [`html`]: the self-contained `report.html` (also used by `cargo xtask bench`).
-//! - [`accuracy`]: calibration accuracy against the simulator's oracle (DESIGN §11).
 //! - [`simulate`]: a measured file's scan program on the simulated microscope (`spmcal simulate`).
 //!
 //! The binary (`src/main.rs`) parses arguments, installs the tracing
@@ -17,11 +16,9 @@
 //! errors and prints nothing.
 #![doc = include_str!("../README.md")]
 
-pub mod accuracy;
 pub mod cdb_handle;
 pub mod dynamics;
 pub mod html;
-pub mod images;
 pub mod job;
 pub mod plots;
 pub mod progress;

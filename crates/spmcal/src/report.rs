@@ -2,7 +2,6 @@
 //! backends), `report.json`, `surfaces.json`, the PNG figures and `report.html` (the same
 //! [`CalibrationReport`] with the figures embedded, see [`crate::html`]).
 
-use crate::accuracy::{Accuracy, EvaluationGrid, PolynomialImage, evaluate, polynomial_baseline};
 use crate::plots::{self, Coefficient, Region};
 use crate::run::{DriftSample, NodeSample};
 use crate::surfaces::{RegressionSummary, SurfaceFitOptions, fit_from_cdb};
@@ -11,6 +10,9 @@ use spm_calibration::{PlanConfig, RunReport};
 use spm_cdb::RecordFilter;
 use spm_correction::PlaneSurfaces;
 use spm_correction::hysteresis::ScannerDynamics;
+use spm_evaluation::accuracy::{
+    Accuracy, EvaluationGrid, PolynomialImage, evaluate, polynomial_baseline,
+};
 use spm_hal::truth::{GroundTruth, SimulatedInstrument};
 use std::path::Path;
 
@@ -37,7 +39,7 @@ pub enum ReportError {
     Correction(#[from] spm_correction::CorrectionError),
     /// The image benchmark failed.
     #[error(transparent)]
-    Images(#[from] crate::images::ImageBenchmarkError),
+    Images(#[from] spm_evaluation::images::ImageBenchmarkError),
     /// A figure could not be written.
     #[error(transparent)]
     Plot(#[from] plots::PlotError),
@@ -177,7 +179,7 @@ pub struct CalibrationReport {
     pub accuracy: Option<AccuracyTable>,
     /// The image benchmark: test images taken after the run, as a user takes them, every
     /// method's position and lattice error on them (simulated backends only).
-    pub images: Option<crate::images::ImageBenchmark>,
+    pub images: Option<spm_evaluation::images::ImageBenchmark>,
     /// Every record's LCCs against the oracle's true LCCs (simulated backends only).
     pub node_lcc_error: Option<NodeLccError>,
     /// The vertical axis against the oracle (simulated backends, runs that measured Kz).
@@ -232,7 +234,7 @@ pub trait TruthSource: GroundTruth + Sync {
         planes: &[(&str, &PlaneSurfaces)],
         dynamics: Option<&ScannerDynamics>,
         quick: bool,
-    ) -> Result<crate::images::ImageBenchmark, ReportError>;
+    ) -> Result<spm_evaluation::images::ImageBenchmark, ReportError>;
 }
 
 impl<S: SimulatedInstrument + Sync> TruthSource for S {
@@ -243,7 +245,7 @@ impl<S: SimulatedInstrument + Sync> TruthSource for S {
         planes: &[(&str, &PlaneSurfaces)],
         dynamics: Option<&ScannerDynamics>,
         quick: bool,
-    ) -> Result<crate::images::ImageBenchmark, ReportError> {
+    ) -> Result<spm_evaluation::images::ImageBenchmark, ReportError> {
         image_benchmark(self, record, region, planes, dynamics, quick)
     }
 }
@@ -516,7 +518,13 @@ fn accuracy_section(
     dynamics: Option<&ScannerDynamics>,
     quick: bool,
     with_images: bool,
-) -> Result<(AccuracyTable, Option<crate::images::ImageBenchmark>), ReportError> {
+) -> Result<
+    (
+        AccuracyTable,
+        Option<spm_evaluation::images::ImageBenchmark>,
+    ),
+    ReportError,
+> {
     let oracle = truth;
     let grid = EvaluationGrid {
         x_min_counts: region.x_min_counts,
@@ -693,12 +701,12 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
     planes: &[(&str, &PlaneSurfaces)],
     identified: Option<&ScannerDynamics>,
     quick: bool,
-) -> Result<crate::images::ImageBenchmark, ReportError> {
-    use crate::images::{
+) -> Result<spm_evaluation::images::ImageBenchmark, ReportError> {
+    use spm_correction::dynamics::{CommandHistory, CreepLaw, creep_offsets, fit_creep_law};
+    use spm_evaluation::images::{
         CountRegion, DynamicsSummary, GratingConfig, ImageCorrection, ImageMethod, ImageSetConfig,
         evaluate_images, grating_polynomial, take_test_images,
     };
-    use spm_correction::dynamics::{CommandHistory, CreepLaw, creep_offsets, fit_creep_law};
     let plan = record.plan;
     let region = CountRegion {
         x_min_counts: region.x_min_counts,

@@ -182,7 +182,7 @@ pub struct VerticalReport {
 
 /// Leverage `x₀ᵀ(XᵀX)⁻¹x₀` of the point (x₀, y₀) for a polynomial of `degree` fitted at the
 /// points (x, y): the variance of the surface's value there is σ²·leverage. `None` when the
-/// normal matrix is singular.
+/// normal matrix is singular. (XᵀX)⁻¹ is the least-squares kernel's unscaled covariance.
 fn leverage(
     surface: &spm_regression::Polynomial2,
     x: &[f64],
@@ -192,46 +192,23 @@ fn leverage(
 ) -> Option<f64> {
     let (cx, cy) = surface.center();
     let (sx, sy) = surface.scale();
-    let powers: Vec<(u32, u32)> = spm_regression::term_powers(surface.degree()).collect();
     let row = |x: f64, y: f64| -> Vec<f64> {
         let (u, v) = ((x - cx) / sx, (y - cy) / sy);
-        powers
-            .iter()
-            .map(|&(px, py)| u.powi(px as i32) * v.powi(py as i32))
+        spm_regression::term_powers(surface.degree())
+            .map(|(px, py)| u.powi(px as i32) * v.powi(py as i32))
             .collect()
     };
-    let m = powers.len();
-    let mut a = vec![vec![0.0; m + 1]; m];
-    for (xi, yi) in x.iter().zip(y) {
-        let r = row(*xi, *yi);
-        for i in 0..m {
-            for j in 0..m {
-                a[i][j] += r[i] * r[j];
-            }
-        }
-    }
+    let rows: Vec<Vec<f64>> = x.iter().zip(y).map(|(xi, yi)| row(*xi, *yi)).collect();
+    let free = vec![false; spm_regression::n_terms(surface.degree())];
+    let fit = spm_regression::least_squares(&rows, &vec![0.0; rows.len()], &free).ok()?;
     let r0 = row(x0, y0);
-    for (i, ai) in a.iter_mut().enumerate() {
-        ai[m] = r0[i];
-    }
-    // Solve (XᵀX) w = x₀ by Gaussian elimination with partial pivoting.
-    for col in 0..m {
-        let pivot = (col..m).max_by(|&p, &q| a[p][col].abs().total_cmp(&a[q][col].abs()))?;
-        if a[pivot][col].abs() < 1e-12 {
-            return None;
-        }
-        a.swap(col, pivot);
-        let pivot_row = a[col].clone();
-        for (r, row) in a.iter_mut().enumerate() {
-            if r != col {
-                let f = row[col] / pivot_row[col];
-                for (v, p) in row.iter_mut().zip(&pivot_row).skip(col) {
-                    *v -= f * p;
-                }
-            }
-        }
-    }
-    Some((0..m).map(|i| r0[i] * a[i][m] / a[i][i]).sum())
+    Some(
+        fit.unscaled_covariance
+            .iter()
+            .zip(&r0)
+            .map(|(c, ri)| ri * c.iter().zip(&r0).map(|(cij, rj)| cij * rj).sum::<f64>())
+            .sum(),
+    )
 }
 
 /// Coarse-stage position of a plane label from the plan's Z levels.
@@ -245,31 +222,21 @@ fn coarse_of(plan: &spm_calibration::PlanConfig, z_counts: f64) -> i64 {
 }
 
 fn weighted_slope(points: &[(f64, f64, f64)]) -> Option<(f64, f64)> {
-    // (x, y, σ) → slope and its σ.
+    // (x, y, σ) → slope and its σ from the stated σs: y = a + b·x weighted by 1/σ², the
+    // rows scaled by 1/σ; var(b) is the unscaled covariance's (1, 1) element.
     if points.len() < 3 {
         return None;
     }
-    let w: Vec<f64> = points
+    let weight = |p: &(f64, f64, f64)| 1.0 / p.2.abs().max(1e-150);
+    let rows: Vec<Vec<f64>> = points
         .iter()
-        .map(|p| 1.0 / (p.2 * p.2).max(1e-300))
+        .map(|p| vec![weight(p), weight(p) * p.0])
         .collect();
-    let sw: f64 = w.iter().sum();
-    let mx = points.iter().zip(&w).map(|(p, w)| p.0 * w).sum::<f64>() / sw;
-    let my = points.iter().zip(&w).map(|(p, w)| p.1 * w).sum::<f64>() / sw;
-    let sxx: f64 = points
-        .iter()
-        .zip(&w)
-        .map(|(p, w)| w * (p.0 - mx).powi(2))
-        .sum();
-    if sxx <= 0.0 {
-        return None;
-    }
-    let sxy: f64 = points
-        .iter()
-        .zip(&w)
-        .map(|(p, w)| w * (p.0 - mx) * (p.1 - my))
-        .sum();
-    Some((sxy / sxx, (1.0 / sxx).sqrt()))
+    let rhs: Vec<f64> = points.iter().map(|p| weight(p) * p.1).collect();
+    let fit = spm_regression::least_squares(&rows, &rhs, &[false, false]).ok()?;
+    let slope = *fit.coefficients.get(1)?;
+    let variance = *fit.unscaled_covariance.get(1)?.get(1)?;
+    Some((slope, variance.max(0.0).sqrt()))
 }
 
 /// The vertical figures of a fitted surface set against an instrument's ground truth (the

@@ -6,7 +6,7 @@
 use super::{Context, calibrate};
 use crate::XtaskError;
 use serde::Serialize;
-use spmcal::accuracy::Accuracy;
+use spm_evaluation::accuracy::Accuracy;
 use spmcal::job::Job;
 
 /// The scanners, with their nonlinearity label.
@@ -60,7 +60,7 @@ pub struct ConfigAccuracy {
     /// spmcal's notes on how the figures were measured.
     pub notes: Vec<String>,
     /// The image benchmark: per method, the errors on test images taken as a user does.
-    pub images: Option<spmcal::images::ImageBenchmark>,
+    pub images: Option<spm_evaluation::images::ImageBenchmark>,
 }
 
 /// The accuracy section.

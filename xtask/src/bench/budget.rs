@@ -9,8 +9,8 @@
 use super::{Context, calibrate};
 use crate::XtaskError;
 use serde::Serialize;
+use spm_evaluation::images::ImageMethodSummary;
 use spm_sim::SimConfig;
-use spmcal::images::ImageMethodSummary;
 use spmcal::job::{Backend, Job};
 use std::collections::BTreeMap;
 

@@ -732,7 +732,7 @@ fn fragments(root: &Path) -> Result<String, XtaskError> {
 }
 
 /// The image benchmark's table of one calibration.
-fn images_table(md: &mut String, images: &spmcal::images::ImageBenchmark) {
+fn images_table(md: &mut String, images: &spm_evaluation::images::ImageBenchmark) {
     let _ = writeln!(
         md,
         "**On test images** ({} images = {} counter-scanned pairs; sides {} counts; dwells {} s; \

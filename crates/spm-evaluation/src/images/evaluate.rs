@@ -1,0 +1,434 @@
+//! The correction methods of the benchmark and their figures: every method corrects every
+//! image; position error against the true tip positions, lattice error on the corrected
+//! counter-scanned pair; summaries per method.
+
+use super::ImageBenchmarkError;
+use super::lattice::{atoms, measure_lattice};
+use super::take::{ImageSetConfig, ImageSize, TestImage};
+use super::user_file::user_file_map;
+use crate::cubic::CubicMap;
+use crate::rigid::rigid_residuals;
+use serde::Serialize;
+use spm_correction::dynamics::correct_effective_raster;
+use spm_correction::{
+    CoordinateMap, CorrectionError, CorrectionField, Integration, Parallelism, RasterGeometry,
+    YCoordinates, correct_raster,
+};
+use spm_features::Feature;
+use spm_hal::ScanDirection;
+use std::collections::BTreeMap;
+
+/// How a method turns an image into corrected coordinates.
+pub enum ImageCorrection<'a> {
+    /// A correction field integrated along the raster (eq. 9).
+    Field(Box<dyn CorrectionField + 'a>),
+    /// One polynomial map for every image (a grating calibration).
+    Map(CubicMap),
+    /// The bound: a cubic fitted to each image's own true positions (exact, per image).
+    PerImageBound,
+    /// What a user gets from `spmcal correct`: each image written as a file with what a
+    /// controller records (its raster in counts, direction, scanner), read back, checked by the
+    /// guard rails and mapped by `spm_apply` with the calibration file.
+    UserFile(Box<spm_correction::SurfaceSet>),
+    /// [`ImageCorrection::UserFile`] with the command log recorded while the run and the
+    /// images were taken (what `spmcal scan` keeps): the creep of the approach move is
+    /// corrected too.
+    UserFileRecorded {
+        /// The calibration file (with its dynamics).
+        set: Box<spm_correction::SurfaceSet>,
+        /// The recorded commands: the run's and the images'.
+        history: spm_correction::dynamics::CommandHistory,
+    },
+    /// A correction field integrated along each image's *effective* trajectory
+    /// (`spm_correction::dynamics`): `offsets[image]` = uₑ − u per pixel in acquisition order,
+    /// the field evaluated at uₑ / `gain`.
+    EffectivePath {
+        /// The LCC field.
+        field: Box<dyn CorrectionField + 'a>,
+        /// Per image (index in the set), per pixel: uₑ − u, counts.
+        offsets: Vec<Vec<[f64; 2]>>,
+        /// Large-signal gain per axis of the dynamics model.
+        gain: [f64; 2],
+    },
+}
+
+/// One correction method of the benchmark.
+pub struct ImageMethod<'a> {
+    /// Its name (report.json key).
+    pub name: String,
+    /// How it corrects.
+    pub correction: ImageCorrection<'a>,
+}
+
+/// Figures of one image under one method.
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct ImageFigures {
+    /// RMS position error after the best rigid motion, pm.
+    pub position_rms_pm: f64,
+    /// Max position error, pm.
+    pub position_max_pm: f64,
+    /// RMS position error, % of the image side.
+    pub position_rms_pct_of_side: f64,
+    /// Lattice-constant error on the corrected pair, % (None where not resolved or not found).
+    pub lattice_error_pct: Option<f64>,
+    /// Largest deviation of the lattice angles from 60°, degrees.
+    pub lattice_angle_error_deg: Option<f64>,
+}
+
+/// A method's summary over the set (report.json `images.methods.<name>`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ImageMethodSummary {
+    /// Mean |lattice error| over the pairs that resolve the lattice, %.
+    pub mean_lattice_error_pct: f64,
+    /// Max |lattice error|, %.
+    pub max_lattice_error_pct: f64,
+    /// Max lattice-angle error, degrees.
+    pub max_lattice_angle_error_deg: f64,
+    /// Pairs whose lattice was measured.
+    pub lattice_pairs: usize,
+    /// Pairs where the pipeline failed (counted as missing, not as zero).
+    pub lattice_failures: usize,
+    /// Root of the mean over images of the per-image mean-square position error, pm.
+    pub position_rms_pm: f64,
+    /// Largest position error in any image, pm.
+    pub position_max_pm: f64,
+    /// Mean over images of the per-image RMS position error, % of the image side.
+    pub position_rms_pct_of_side: f64,
+    /// Position RMS per image size (key: side in counts), pm.
+    pub position_rms_pm_by_size: BTreeMap<String, f64>,
+}
+
+/// The benchmark's result (report.json `images`).
+#[derive(Debug, Clone, Serialize)]
+pub struct ImageBenchmark {
+    /// Images taken (direct and counter counted separately).
+    pub count: usize,
+    /// Counter-scanned pairs.
+    pub pairs: usize,
+    /// Sizes, dwells and places.
+    pub sizes: Vec<ImageSize>,
+    /// Pixel dwells, s.
+    pub dwells_s: Vec<f64>,
+    /// Per method.
+    pub methods: BTreeMap<String, ImageMethodSummary>,
+    /// The scanner-dynamics model the `*_creep_model` methods used, as identified from the
+    /// run (None when it could not be identified).
+    pub dynamics: Option<DynamicsSummary>,
+    /// Per image: place, size, dwell, direction and every method's figures.
+    pub images: Vec<ImageRow>,
+}
+
+/// The identified creep law (spm_correction::dynamics::fit_creep_law) in report.json.
+#[derive(Debug, Clone, Serialize)]
+pub struct DynamicsSummary {
+    /// Weight w of every relaxation element.
+    pub creep_weight: f64,
+    /// Its standard error.
+    pub creep_weight_sigma: f64,
+    /// Time constants of the law's shape: shortest and longest, s, and per decade.
+    pub time_constants_s: [f64; 2],
+    /// Elements per decade.
+    pub elements_per_decade: u32,
+    /// Settled creep gain W = n·w.
+    pub settled_gain: f64,
+    /// Log slope γ of the law between 0.1 s and 10 s.
+    pub gamma_per_decade: f64,
+    /// Attachment tracks and sightings used.
+    pub tracks: usize,
+    /// Sightings used.
+    pub sightings: usize,
+    /// RMS residual of the tracks after the fit, counts.
+    pub residual_rms_counts: f64,
+    /// RMS of the fitted creep motion within the tracks, counts.
+    pub signal_rms_counts: f64,
+    /// Why it is missing, when it is.
+    pub note: Option<String>,
+}
+
+/// One image's row.
+#[derive(Debug, Clone, Serialize)]
+pub struct ImageRow {
+    /// Pair index.
+    pub pair: usize,
+    /// Place label.
+    pub place: String,
+    /// Side, counts.
+    pub side_counts: f64,
+    /// Pixel dwell, s.
+    pub dwell_s: f64,
+    /// "direct" or "counter".
+    pub direction: String,
+    /// Figures per method.
+    pub figures: BTreeMap<String, ImageFigures>,
+}
+
+fn geometry_of(image: &TestImage) -> Result<RasterGeometry, CorrectionError> {
+    RasterGeometry::of_height_map(&image.map)
+}
+
+/// Commanded counts of every pixel (geometry order).
+fn commanded(image: &TestImage) -> Vec<[f64; 2]> {
+    let m = &image.map;
+    let (x0, y0, s) = (m.origin.x.value(), m.origin.y.value(), m.pixel_step.value());
+    let mut out = Vec::with_capacity(m.columns * m.rows);
+    for row in 0..m.rows {
+        for column in 0..m.columns {
+            out.push([x0 + s * column as f64, y0 + s * row as f64]);
+        }
+    }
+    out
+}
+
+fn flatten(map: &CoordinateMap) -> Result<Vec<[f64; 2]>, CorrectionError> {
+    let mut out = Vec::with_capacity(map.columns() * map.rows());
+    for row in 0..map.rows() {
+        for column in 0..map.columns() {
+            let p = map.point(column, row).ok_or(CorrectionError::Empty(
+                "coordinate map smaller than its image",
+            ))?;
+            out.push([p.x.value(), p.y.value()]);
+        }
+    }
+    Ok(out)
+}
+
+fn map_from_points(
+    points: &[[f64; 2]],
+    columns: usize,
+    rows: usize,
+) -> Result<CoordinateMap, CorrectionError> {
+    CoordinateMap::new(
+        columns,
+        rows,
+        points.iter().map(|p| p[0]).collect(),
+        YCoordinates::PerPixel(points.iter().map(|p| p[1]).collect()),
+    )
+}
+
+/// The method's corrected coordinates of every pixel of image `index`, in scanner geometry.
+fn coordinate_map(
+    method: &ImageMethod<'_>,
+    image: &TestImage,
+    index: usize,
+) -> Result<CoordinateMap, ImageBenchmarkError> {
+    let (nx, ny) = (image.map.columns, image.map.rows);
+    Ok(match &method.correction {
+        ImageCorrection::Field(field) => correct_raster(
+            field.as_ref(),
+            &geometry_of(image)?,
+            image.direction,
+            &Integration::default(),
+            Parallelism::Sequential,
+        )?,
+        ImageCorrection::Map(map) => {
+            let points: Vec<[f64; 2]> = commanded(image)
+                .iter()
+                .map(|u| map.eval(u[0], u[1]))
+                .collect();
+            map_from_points(&points, nx, ny)?
+        }
+        ImageCorrection::PerImageBound => {
+            let u = commanded(image);
+            let fit = CubicMap::fit(&u, &image.truth_nm).map_err(|e| {
+                ImageBenchmarkError::Grating(format!("per-image bound: polynomial fit: {e}"))
+            })?;
+            let points: Vec<[f64; 2]> = u.iter().map(|p| fit.eval(p[0], p[1])).collect();
+            map_from_points(&points, nx, ny)?
+        }
+        ImageCorrection::UserFile(set) => user_file_map(set, image, None)?,
+        ImageCorrection::UserFileRecorded { set, history } => {
+            user_file_map(set, image, Some(history))?
+        }
+        ImageCorrection::EffectivePath {
+            field,
+            offsets,
+            gain,
+        } => {
+            let offsets = offsets.get(index).ok_or_else(|| {
+                ImageBenchmarkError::Config(format!("no effective-input offsets for image {index}"))
+            })?;
+            let n = image.commanded_acquisition.len().max(1) as f64;
+            let centre = image
+                .commanded_acquisition
+                .iter()
+                .fold([0.0, 0.0], |s, u| [s[0] + u[0] / n, s[1] + u[1] / n]);
+            let acquisition = correct_effective_raster(
+                field.as_ref(),
+                nx,
+                ny,
+                &image.commanded_acquisition,
+                offsets,
+                *gain,
+                centre,
+            )?;
+            spm_correction::dynamics::to_geometry_map(&acquisition, nx, ny, image.direction)?
+        }
+    })
+}
+fn position_figures(corrected: &[[f64; 2]], image: &TestImage, nominal: f64) -> (f64, f64, f64) {
+    let r = rigid_residuals(corrected, &image.truth_nm);
+    let n = r.len().max(1) as f64;
+    let ms = r.iter().map(|v| v * v).sum::<f64>() / n;
+    let max = r.iter().copied().fold(0.0_f64, f64::max);
+    let side_nm = image.size.side_counts() * nominal;
+    (ms.sqrt() * 1e3, max * 1e3, 100.0 * ms.sqrt() / side_nm)
+}
+
+/// Corrects every image with every method and summarises.
+///
+/// # Errors
+/// As the correction of an image.
+pub fn evaluate_images(
+    images: &[TestImage],
+    methods: &[ImageMethod<'_>],
+    config: &ImageSetConfig,
+) -> Result<ImageBenchmark, ImageBenchmarkError> {
+    let nominal = config.nominal_nm_per_count;
+    let a_true = config.lattice_constant_nm;
+    let mut rows: Vec<ImageRow> = images
+        .iter()
+        .map(|image| ImageRow {
+            pair: image.pair,
+            place: image.place.clone(),
+            side_counts: image.size.side_counts(),
+            dwell_s: image.dwell_s,
+            direction: match image.direction {
+                ScanDirection::Direct => "direct".to_owned(),
+                ScanDirection::Counter => "counter".to_owned(),
+            },
+            figures: BTreeMap::new(),
+        })
+        .collect();
+    let mut summaries = BTreeMap::new();
+    // The atoms of the raw images do not depend on the method: detected once per pair.
+    let mut raw_atoms: BTreeMap<usize, (Vec<Feature>, Vec<Feature>)> = BTreeMap::new();
+    for method in methods {
+        let mut ms_sum = 0.0;
+        let mut max_pm: f64 = 0.0;
+        let mut pct_sum = 0.0;
+        let mut by_size: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+        let mut lattice: Vec<f64> = Vec::new();
+        let mut angle_max: f64 = 0.0;
+        let mut failures = 0;
+        for (k, image) in images.iter().enumerate() {
+            let map = coordinate_map(method, image, k)?;
+            let corrected = flatten(&map)?;
+            let (rms, max, pct) = position_figures(&corrected, image, nominal);
+            ms_sum += rms * rms;
+            max_pm = max_pm.max(max);
+            pct_sum += pct;
+            let key = format!("{}", image.size.side_counts());
+            let e = by_size.entry(key).or_insert((0.0, 0));
+            e.0 += rms * rms;
+            e.1 += 1;
+            let mut figures = ImageFigures {
+                position_rms_pm: rms,
+                position_max_pm: max,
+                position_rms_pct_of_side: pct,
+                lattice_error_pct: None,
+                lattice_angle_error_deg: None,
+            };
+            // The lattice figure once per pair, on its direct image.
+            let period_px = config.lattice_constant_nm / nominal / image.size.step_counts.max(1e-9);
+            if image.direction == ScanDirection::Direct
+                && period_px >= config.min_pixels_per_lattice_constant
+                && let Some(counter) = images
+                    .get(k + 1)
+                    .filter(|c| c.pair == image.pair && c.direction == ScanDirection::Counter)
+            {
+                let counter_map = coordinate_map(method, counter, k + 1)?;
+                let raw = raw_atoms.entry(k).or_insert_with(|| {
+                    (atoms(&image.map, period_px), atoms(&counter.map, period_px))
+                });
+                let measured = measure_lattice(
+                    &map,
+                    &counter_map,
+                    &image.map,
+                    &counter.map,
+                    (&raw.0, &raw.1),
+                    a_true,
+                );
+                match measured {
+                    Some((a_nm, angle)) => {
+                        let e = 100.0 * (a_nm / config.lattice_constant_nm - 1.0);
+                        lattice.push(e.abs());
+                        angle_max = angle_max.max(angle);
+                        figures.lattice_error_pct = Some(e);
+                        figures.lattice_angle_error_deg = Some(angle);
+                    }
+                    None => failures += 1,
+                }
+            }
+            rows[k].figures.insert(method.name.clone(), figures);
+        }
+        let n = images.len().max(1) as f64;
+        let nl = lattice.len().max(1) as f64;
+        summaries.insert(
+            method.name.clone(),
+            ImageMethodSummary {
+                mean_lattice_error_pct: lattice.iter().sum::<f64>() / nl,
+                max_lattice_error_pct: lattice.iter().copied().fold(0.0, f64::max),
+                max_lattice_angle_error_deg: angle_max,
+                lattice_pairs: lattice.len(),
+                lattice_failures: failures,
+                position_rms_pm: (ms_sum / n).sqrt(),
+                position_max_pm: max_pm,
+                position_rms_pct_of_side: pct_sum / n,
+                position_rms_pm_by_size: by_size
+                    .into_iter()
+                    .map(|(k, (s, c))| (k, (s / c.max(1) as f64).sqrt()))
+                    .collect(),
+            },
+        );
+    }
+    Ok(ImageBenchmark {
+        count: images.len(),
+        pairs: images.last().map_or(0, |i| i.pair + 1),
+        sizes: config.sizes.clone(),
+        dwells_s: config.dwells_s.clone(),
+        methods: summaries,
+        dynamics: None,
+        images: rows,
+    })
+}
+
+impl ImageBenchmark {
+    /// The table the calibrate summary prints: one line per method.
+    pub fn summary_table(&self) -> String {
+        let mut out = format!(
+            "test images ({} images, {} counter-scanned pairs; position: true tip positions, drift excluded; lattice: corrected pairs, over the pairs measured)\n{:<33} {:>15} {:>15} {:>10} {:>14} {:>13} {:>14}\n",
+            self.count,
+            self.pairs,
+            "method",
+            "position RMS pm",
+            "position max pm",
+            "RMS % side",
+            "mean lattice %",
+            "max lattice %",
+            "pairs measured"
+        );
+        for (name, m) in &self.methods {
+            let (mean, max) = if m.lattice_pairs == 0 {
+                ("—".to_owned(), "—".to_owned())
+            } else {
+                (
+                    format!("{:.4}", m.mean_lattice_error_pct),
+                    format!("{:.4}", m.max_lattice_error_pct),
+                )
+            };
+            out.push_str(&format!(
+                "{:<33} {:>15.1} {:>15.1} {:>10.3} {:>14} {:>13} {:>8}/{:<5}\n",
+                name,
+                m.position_rms_pm,
+                m.position_max_pm,
+                m.position_rms_pct_of_side,
+                mean,
+                max,
+                m.lattice_pairs,
+                m.lattice_pairs + m.lattice_failures
+            ));
+        }
+        out
+    }
+}

@@ -1,0 +1,330 @@
+//! The lattice of a corrected counter-scanned pair: atoms detected on the raw images, matched
+//! across the pair in the corrected frame, the drift between the sightings estimated, the
+//! direct image moved to a common time, resampled onto a uniform nm grid, and its three
+//! lattice vectors measured.
+
+use spm_correction::{
+    CoordinateMap, FeatureMatch, FeatureSighting, Interpolation, OutputGrid, Parallelism,
+    SightingPair, drift_corrected_map, estimate_drift, resample,
+};
+use spm_features::{DetectionConfig, Feature, LatticeConfig, detect, lattice_vectors};
+use spm_hal::{CountPoint, Counts, HeightMap, NmPoint, Seconds};
+use spm_regression::least_squares;
+
+/// Atoms detected on a height map whose lattice period is `period_px` pixels (none when the
+/// detection fails).
+pub(crate) fn atoms(map: &HeightMap, period_px: f64) -> Vec<Feature> {
+    let config = DetectionConfig {
+        min_separation_px: 0.5 * period_px,
+        ..DetectionConfig::default()
+    };
+    detect(map, &config).map(|d| d.features).unwrap_or_default()
+}
+
+/// Mutual nearest neighbours between the direct features `subset` (positions shifted by
+/// `offset(i)`) and every counter feature, closer than `max`.
+fn mutual_matches(
+    direct: &[[f64; 2]],
+    counter: &[[f64; 2]],
+    subset: &[usize],
+    max: f64,
+    offset: impl Fn(usize) -> [f64; 2],
+) -> Vec<(usize, usize)> {
+    let shifted: Vec<[f64; 2]> = subset
+        .iter()
+        .map(|&i| {
+            let o = offset(i);
+            [direct[i][0] + o[0], direct[i][1] + o[1]]
+        })
+        .collect();
+    // Only neighbours within `max` count: a grid of `max`-sized cells finds them.
+    let cell = max.max(1e-12);
+    let key = |p: [f64; 2]| ((p[0] / cell).floor() as i64, (p[1] / cell).floor() as i64);
+    let grid = |set: &[[f64; 2]]| {
+        let mut g: std::collections::HashMap<(i64, i64), Vec<usize>> =
+            std::collections::HashMap::new();
+        for (i, p) in set.iter().enumerate() {
+            g.entry(key(*p)).or_default().push(i);
+        }
+        g
+    };
+    let counter_grid = grid(counter);
+    let shifted_grid = grid(&shifted);
+    let nearest = |p: [f64; 2],
+                   set: &[[f64; 2]],
+                   g: &std::collections::HashMap<(i64, i64), Vec<usize>>|
+     -> Option<(usize, f64)> {
+        let (cx, cy) = key(p);
+        let mut best: Option<(usize, f64)> = None;
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                for &i in g.get(&(cx + dx, cy + dy)).into_iter().flatten() {
+                    let d = (set[i][0] - p[0]).hypot(set[i][1] - p[1]);
+                    if best.is_none_or(|b| d < b.1 || (d == b.1 && i < b.0)) {
+                        best = Some((i, d));
+                    }
+                }
+            }
+        }
+        best
+    };
+    let mut out = Vec::new();
+    for (k, p) in shifted.iter().enumerate() {
+        let Some((j, distance)) = nearest(*p, counter, &counter_grid) else {
+            continue;
+        };
+        if distance <= max
+            && nearest(counter[j], &shifted, &shifted_grid).map(|(m, _)| m) == Some(k)
+        {
+            out.push((subset[k], j));
+        }
+    }
+    out
+}
+
+/// Atoms common to a counter-scanned pair. The two sightings of an atom are apart by the
+/// drift (and creep) over the time between them, which runs from about zero (the last
+/// direct line, the first counter line) to twice the image time: far more than a lattice
+/// period in a slow image. So the match grows from the rows seen close in time: first the
+/// few atoms with the shortest time apart, matched within `max`; their offsets give an
+/// apparent offset and velocity; then ever more atoms matched at the positions those
+/// predict, the fit renewed at every stage. Positions are the features' corrected
+/// coordinates in the two images' common frame (`frame`: the direct and the counter map; nm,
+/// `max` in nm too), where a good correction leaves only the drift between the sightings.
+pub fn match_features(
+    direct: &[Feature],
+    counter: &[Feature],
+    direct_map: &HeightMap,
+    counter_map: &HeightMap,
+    max: f64,
+    frame: (&CoordinateMap, &CoordinateMap),
+) -> Vec<FeatureMatch> {
+    let (nx, ny) = (direct_map.columns, direct_map.rows);
+    let position = |f: &Feature, map: &CoordinateMap| -> Option<[f64; 2]> {
+        map.interpolate(f.column, f.row)
+            .map(|p| [p.x.value(), p.y.value()])
+    };
+    // Features without a position in the frame are left out (kept indices).
+    let keep_d: Vec<usize> = (0..direct.len())
+        .filter(|&i| position(&direct[i], frame.0).is_some())
+        .collect();
+    let keep_c: Vec<usize> = (0..counter.len())
+        .filter(|&j| position(&counter[j], frame.1).is_some())
+        .collect();
+    let pd: Vec<[f64; 2]> = keep_d
+        .iter()
+        .filter_map(|&i| position(&direct[i], frame.0))
+        .collect();
+    let pc: Vec<[f64; 2]> = keep_c
+        .iter()
+        .filter_map(|&j| position(&counter[j], frame.1))
+        .collect();
+    let time_apart = |i: usize| -> f64 {
+        let f = &direct[keep_d[i]];
+        let c = (f.column.round().max(0.0) as usize).min(nx.saturating_sub(1));
+        let r = (f.row.round().max(0.0) as usize).min(ny.saturating_sub(1));
+        let k = r * nx + c;
+        match (counter_map.time_s.get(k), direct_map.time_s.get(k)) {
+            (Some(tc), Some(td)) => tc - td,
+            _ => f64::NAN,
+        }
+    };
+    let mut order: Vec<usize> = (0..pd.len())
+        .filter(|&i| time_apart(i).is_finite())
+        .collect();
+    order.sort_by(|&a, &b| time_apart(a).abs().total_cmp(&time_apart(b).abs()));
+    // offset(Δt) = a + v·Δt per axis, least squares over the matched pairs; when their times
+    // apart do not determine v (all alike), the mean offset.
+    let fit = |pairs: &[(usize, usize)]| -> Option<[[f64; 2]; 2]> {
+        if pairs.len() < 4 {
+            return None;
+        }
+        let rows: Vec<Vec<f64>> = pairs
+            .iter()
+            .map(|&(i, _)| vec![1.0, time_apart(i)])
+            .collect();
+        let axis = |k: usize| -> [f64; 2] {
+            let rhs: Vec<f64> = pairs.iter().map(|&(i, j)| pc[j][k] - pd[i][k]).collect();
+            match least_squares(&rows, &rhs, &[false, false]).map(|f| f.coefficients) {
+                Ok(c) if c.len() == 2 => [c[0], c[1]],
+                _ => [rhs.iter().sum::<f64>() / rhs.len() as f64, 0.0],
+            }
+        };
+        let ([ax, vx], [ay, vy]) = (axis(0), axis(1));
+        Some([[ax, ay], [vx, vy]])
+    };
+    let mut model = [[0.0_f64; 2]; 2];
+    let mut pairs = Vec::new();
+    // Stages of 4 %, 6 %, 9 %, … of the atoms (at least 6), then all of them, twice: each
+    // stage's prediction errs by the velocity error times its longer time apart.
+    let mut fraction = 0.04_f64;
+    for _ in 0..12 {
+        let take = ((order.len() as f64 * fraction.min(1.0)).ceil() as usize)
+            .max(6)
+            .min(order.len());
+        fraction *= 1.5;
+        pairs = mutual_matches(&pd, &pc, &order[..take], max, |i| {
+            let t = time_apart(i);
+            [model[0][0] + model[1][0] * t, model[0][1] + model[1][1] * t]
+        });
+        if let Some(m) = fit(&pairs) {
+            model = m;
+        }
+    }
+    let pairs: Vec<(usize, usize)> = pairs
+        .into_iter()
+        .map(|(i, j)| (keep_d[i], keep_c[j]))
+        .collect();
+    pairs
+        .into_iter()
+        .map(|(i, j)| FeatureMatch {
+            direct_column: direct[i].column,
+            direct_row: direct[i].row,
+            counter_column: counter[j].column,
+            counter_row: counter[j].row,
+        })
+        .collect()
+}
+
+/// Lattice constant (nm) and largest angle deviation from 60° (degrees) on the direct image of
+/// a pair, given both images' corrected coordinate maps (scanner geometry): the atoms common
+/// to both give the drift (`estimate_drift`), the direct map is moved to a common time, the
+/// image resampled onto a uniform nm grid and the lattice measured on it. `None` when the
+/// pipeline cannot measure.
+pub fn measure_lattice(
+    direct_coordinates: &CoordinateMap,
+    counter_coordinates: &CoordinateMap,
+    direct: &HeightMap,
+    counter: &HeightMap,
+    raw_atoms: (&[Feature], &[Feature]),
+    lattice_constant_nm: f64,
+) -> Option<(f64, f64)> {
+    let matches = match_features(
+        raw_atoms.0,
+        raw_atoms.1,
+        direct,
+        counter,
+        0.3 * lattice_constant_nm,
+        (direct_coordinates, counter_coordinates),
+    );
+    if matches.len() < 6 {
+        return None;
+    }
+    let (nx, ny) = (direct.columns, direct.rows);
+    let time_at = |times: &[f64], c: f64, r: f64| -> f64 {
+        let i = (c.round().max(0.0) as usize).min(nx - 1);
+        let j = (r.round().max(0.0) as usize).min(ny - 1);
+        times[j * nx + i]
+    };
+    let mut pairs = Vec::with_capacity(matches.len());
+    for m in &matches {
+        let pd = direct_coordinates.interpolate(m.direct_column, m.direct_row)?;
+        let pc = counter_coordinates.interpolate(m.counter_column, m.counter_row)?;
+        pairs.push(SightingPair {
+            direct: FeatureSighting {
+                position: pd,
+                time: Seconds(time_at(&direct.time_s, m.direct_column, m.direct_row)),
+            },
+            counter: FeatureSighting {
+                position: pc,
+                time: Seconds(time_at(&counter.time_s, m.counter_column, m.counter_row)),
+            },
+        });
+    }
+    let drift = estimate_drift(&pairs).ok()?;
+    // Matched atoms that a constant drift cannot explain to a fifth of a lattice constant are
+    // a failed match (or an image too distorted to match), not a lattice measurement.
+    if drift.residual_rms_nm.is_nan() || drift.residual_rms_nm > 0.2 * lattice_constant_nm {
+        return None;
+    }
+    let t_ref = Seconds(direct.time_s[direct.time_s.len() / 2]);
+    let moved =
+        drift_corrected_map(direct_coordinates, &direct.time_s, drift.velocity, t_ref).ok()?;
+    // The largest axis-aligned rectangle inside the corrected (sheared, drift-moved) image:
+    // inside its left and right columns and its first and last rows.
+    let m = &moved;
+    let (nc, nr) = (m.columns(), m.rows());
+    let (mut x0, mut x1, mut y0, mut y1) = (
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+    );
+    for r in 0..nr {
+        x0 = x0.max(m.point(0, r)?.x.value());
+        x1 = x1.min(m.point(nc - 1, r)?.x.value());
+    }
+    for c in 0..nc {
+        y0 = y0.max(m.point(c, 0)?.y.value());
+        y1 = y1.min(m.point(c, nr - 1)?.y.value());
+    }
+    if !(x1 > x0 && y1 > y0) {
+        return None;
+    }
+    let (bx0, bx1, by0, by1) = m.bounds_nm();
+    let pixels = (direct.columns.max(2) - 1) as f64;
+    let step = ((bx1 - bx0) + (by1 - by0)) / 2.0 / pixels;
+    let margin = 0.03 * (x1 - x0).min(y1 - y0);
+    let side = (x1 - x0).min(y1 - y0) - 2.0 * margin;
+    let n = (side / step).floor() as usize;
+    if n < 8 {
+        return None;
+    }
+    let grid = OutputGrid::new(
+        NmPoint::from_nm(x0 + margin, y0 + margin),
+        spm_hal::Nanometres(step),
+        n,
+        n,
+    )
+    .ok()?;
+    let image = resample(
+        &direct.z_counts,
+        &moved,
+        &grid,
+        Interpolation::Bilinear,
+        Parallelism::Sequential,
+    )
+    .ok()?;
+    if !image.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let map = HeightMap {
+        origin: CountPoint::from_counts(0.0, 0.0),
+        pixel_step: Counts(1.0),
+        columns: n,
+        rows: n,
+        z_counts: image,
+        time_s: vec![0.0; n * n],
+    };
+    let found = atoms(&map, lattice_constant_nm / step);
+    let lattice = lattice_vectors(&found, &LatticeConfig::default()).ok()?;
+    if lattice.vectors.len() < 3 {
+        return None;
+    }
+    let v: Vec<[f64; 2]> = lattice
+        .vectors
+        .iter()
+        .take(3)
+        .map(|l| [l.vector.x.value() * step, l.vector.y.value() * step])
+        .collect();
+    let a = v.iter().map(|p| p[0].hypot(p[1])).sum::<f64>() / 3.0;
+    // Three directions of one triangular lattice: lengths within a quarter of their mean.
+    // Anything else is a second-neighbour or spurious vector, not a measurement.
+    if v.iter().any(|p| (p[0].hypot(p[1]) / a - 1.0).abs() > 0.25) {
+        return None;
+    }
+    let mut worst: f64 = 0.0;
+    for i in 0..3 {
+        for j in (i + 1)..3 {
+            let cos = (v[i][0] * v[j][0] + v[i][1] * v[j][1])
+                / (v[i][0].hypot(v[i][1]) * v[j][0].hypot(v[j][1]));
+            let angle = cos.clamp(-1.0, 1.0).acos().to_degrees();
+            // Directions are unoriented: 60° and 120° are the same pair of lines.
+            let dev = (angle - 60.0).abs().min((angle - 120.0).abs());
+            worst = worst.max(dev);
+        }
+    }
+    // A triangular lattice's three directions are 60° apart; one further off than 15° is a
+    // spurious vector (a failed resampling or match), not a distorted lattice.
+    (worst <= 15.0).then_some((a, worst))
+}

@@ -1,0 +1,93 @@
+//! The `user_file_*` methods: each test image written as a file with what a controller
+//! records, read back and mapped by `spm_apply` with the calibration file, as `spmcal correct`
+//! does (in memory: no file is written).
+
+use super::ImageBenchmarkError;
+use super::take::TestImage;
+use spm_correction::CoordinateMap;
+use spm_hal::ScanDirection;
+
+/// [`ImageCorrection::UserFile`]: the image as a `.gsf` in memory (heights in display
+/// orientation, the raster in counts, the scan path, the scanner and counts convention), read
+/// back and mapped through `spm_apply` as `spmcal correct` does.
+pub(super) fn user_file_map(
+    set: &spm_correction::SurfaceSet,
+    image: &TestImage,
+    recorded: Option<&spm_correction::dynamics::CommandHistory>,
+) -> Result<CoordinateMap, ImageBenchmarkError> {
+    use spm_apply::{
+        ApplyOptions, FileRaster, KEY_CONVENTION, KEY_LINE_TIME, KEY_ORIGIN_X, KEY_ORIGIN_Y,
+        KEY_SCAN_PATH, KEY_SCANNER, KEY_STEP,
+    };
+    let m = &image.map;
+    let fail = |what: String| ImageBenchmarkError::Config(format!("user file: {what}"));
+    let mut display = Vec::with_capacity(m.columns * m.rows);
+    for row in (0..m.rows).rev() {
+        display.extend_from_slice(&m.z_counts[row * m.columns..(row + 1) * m.columns]);
+    }
+    let k = set.provenance.nominal_nm_per_count.unwrap_or(1.0);
+    let side = |n: usize| m.pixel_step.value() * n as f64 * k;
+    let channel = spm_formats::Channel::new(
+        "Z",
+        spm_formats::Direction::Forward,
+        "counts",
+        m.columns,
+        m.rows,
+        display,
+    )
+    .map_err(|e| fail(e.to_string()))?
+    .with_size_nm(side(m.columns), side(m.rows));
+    let (x0, y0, step) = (
+        m.origin.x.value().to_string(),
+        m.origin.y.value().to_string(),
+        m.pixel_step.value().to_string(),
+    );
+    let path = match image.direction {
+        ScanDirection::Direct => "direct",
+        ScanDirection::Counter => "counter",
+    };
+    // What a controller records: the duration of one trace.
+    let line_time = (image.dwell_s * m.columns as f64).to_string();
+    let bytes = spm_formats::encode_gsf(
+        &channel,
+        &[
+            (KEY_ORIGIN_X, x0.as_str()),
+            (KEY_ORIGIN_Y, y0.as_str()),
+            (KEY_STEP, step.as_str()),
+            (KEY_SCAN_PATH, path),
+            (KEY_SCANNER, set.provenance.scanner_id.as_str()),
+            (KEY_CONVENTION, "centred_signed"),
+            (KEY_LINE_TIME, line_time.as_str()),
+        ],
+    )
+    .map_err(|e| fail(e.to_string()))?;
+    let file = spm_formats::read_bytes(&bytes, std::path::Path::new("test-image.gsf"))
+        .map_err(|e| fail(e.to_string()))?;
+    let channel = file
+        .channels
+        .first()
+        .ok_or_else(|| fail("no channel read back".to_owned()))?;
+    let raster = FileRaster::of(&file, channel, None, None).map_err(|e| fail(e.to_string()))?;
+    let plane = set.plane_nearest(0.0)?;
+    // The benchmark's places reach the field's edge: extrapolation is allowed (and measured).
+    let options = ApplyOptions {
+        allow_extrapolation: true,
+        ..ApplyOptions::default()
+    };
+    spm_apply::check(&file, set, plane, &raster, &options).map_err(|e| fail(e.to_string()))?;
+    let field = plane.field(spm_correction::Route::Products);
+    let half = spm_apply::dynamic::Half::Trace;
+    let (map, _) = match (&set.dynamics, recorded) {
+        (Some(d), Some(history)) => spm_apply::dynamic::recorded_map(
+            &field,
+            &raster,
+            d,
+            half,
+            history,
+            &image.time_acquisition_s,
+        )?,
+        (Some(d), None) => spm_apply::dynamic::dynamic_map(&field, &raster, d, half)?,
+        (None, _) => spm_apply::coordinate_map(&field, &raster)?,
+    };
+    Ok(map)
+}

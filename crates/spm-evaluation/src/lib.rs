@@ -1,0 +1,27 @@
+//! # spm-evaluation: a scanner calibration judged against a ground truth
+//!
+//! - [`accuracy`]: a correction field's residual distortion over the calibrated region and
+//!   the lattice-constant error of small corrected images anywhere in it, against the true
+//!   LCC field of the instrument's oracle (DESIGN §11); the per-image polynomial baseline.
+//! - [`images`]: the image benchmark (issue 12): test images taken as a user takes them, every
+//!   method's position and lattice error on them, the realistic grating polynomial.
+//! - [`cubic`]: the total-degree-3 polynomial map of the conventional corrections.
+//! - [`rigid`]: residuals after the best rigid motion.
+//!
+//! The oracle is reached only through the `spm_hal::truth` traits; the simulator itself is
+//! never named. No I/O, no command line, no clock: the caller takes the instrument and writes
+//! the figures. Every fit is [`spm_regression::least_squares`] on the eq. (6) basis of
+//! [`spm_regression::Polynomial2`].
+#![doc = include_str!("../README.md")]
+
+pub mod accuracy;
+pub mod cubic;
+pub mod images;
+pub mod rigid;
+
+pub use accuracy::{
+    Accuracy, EvaluationGrid, PolynomialImage, evaluate, evaluate_field, polynomial_baseline,
+};
+pub use cubic::CubicMap;
+pub use images::ImageBenchmarkError;
+pub use rigid::rigid_residuals;

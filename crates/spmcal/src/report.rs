@@ -826,6 +826,16 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
                 },
             });
             methods.push(ImageMethod {
+                name: "user_file_ruler".to_owned(),
+                correction: ImageCorrection::UserFileRuler {
+                    set: Box::new(with.clone()),
+                    ruler: spm_apply::ruler::LatticeRuler {
+                        constant_nm: plan.standard.lattice_constant_nm,
+                        min_pixels_per_constant: 5.0,
+                    },
+                },
+            });
+            methods.push(ImageMethod {
                 name: "user_file_dynamics".to_owned(),
                 correction: ImageCorrection::UserFile(Box::new(with)),
             });

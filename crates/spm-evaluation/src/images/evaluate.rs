@@ -30,6 +30,15 @@ pub enum ImageCorrection<'a> {
     /// controller records (its raster in counts, direction, scanner), read back, checked by the
     /// guard rails and mapped by `spm_apply` with the calibration file.
     UserFile(Box<spm_correction::SurfaceSet>),
+    /// [`ImageCorrection::UserFile`] with the approach creep and drift measured against the
+    /// lattice in each image (`spmcal correct --ruler`; images whose lattice is not resolved
+    /// keep the file-alone map).
+    UserFileRuler {
+        /// The calibration file (with its dynamics).
+        set: Box<spm_correction::SurfaceSet>,
+        /// The lattice measured against.
+        ruler: spm_apply::ruler::LatticeRuler,
+    },
     /// [`ImageCorrection::UserFile`] with the command log recorded while the run and the
     /// images were taken (what `spmcal scan` keeps): the creep of the approach move is
     /// corrected too.
@@ -236,9 +245,12 @@ fn coordinate_map(
             let points: Vec<[f64; 2]> = u.iter().map(|p| fit.eval(p[0], p[1])).collect();
             map_from_points(&points, nx, ny)?
         }
-        ImageCorrection::UserFile(set) => user_file_map(set, image, None)?,
+        ImageCorrection::UserFile(set) => user_file_map(set, image, None, None)?,
+        ImageCorrection::UserFileRuler { set, ruler } => {
+            user_file_map(set, image, None, Some(ruler))?
+        }
         ImageCorrection::UserFileRecorded { set, history } => {
-            user_file_map(set, image, Some(history))?
+            user_file_map(set, image, Some(history), None)?
         }
         ImageCorrection::EffectivePath {
             field,

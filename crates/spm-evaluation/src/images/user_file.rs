@@ -10,10 +10,16 @@ use spm_hal::ScanDirection;
 /// [`ImageCorrection::UserFile`]: the image as a `.gsf` in memory (heights in display
 /// orientation, the raster in counts, the scan path, the scanner and counts convention), read
 /// back and mapped through `spm_apply` as `spmcal correct` does.
+///
+/// With `ruler` (and the calibration's dynamics, no recorded history), the approach creep and
+/// drift are then measured against the lattice in the image as `spmcal correct --ruler` does;
+/// an image whose lattice is not resolved (or not found) keeps the file-alone map, as a user
+/// whose `--ruler` is refused corrects without it.
 pub(super) fn user_file_map(
     set: &spm_correction::SurfaceSet,
     image: &TestImage,
     recorded: Option<&spm_correction::dynamics::CommandHistory>,
+    ruler: Option<&spm_apply::ruler::LatticeRuler>,
 ) -> Result<CoordinateMap, ImageBenchmarkError> {
     use spm_apply::{
         ApplyOptions, FileRaster, KEY_CONVENTION, KEY_LINE_TIME, KEY_ORIGIN_X, KEY_ORIGIN_Y,
@@ -89,5 +95,15 @@ pub(super) fn user_file_map(
         (Some(d), None) => spm_apply::dynamic::dynamic_map(&field, &raster, d, half)?,
         (None, _) => spm_apply::coordinate_map(&field, &raster)?,
     };
+    if let (Some(ruler), Some(d), None) = (ruler, &set.dynamics, recorded) {
+        let law = d.creep.law()?;
+        let times = spm_apply::dynamic::pixel_times(&raster, half)?;
+        // The heights in the map's order (scanner geometry, bottom row first).
+        if let Ok(found) =
+            spm_apply::ruler::estimate_from_lattice(&m.z_counts, &map, &times, &law, ruler)
+        {
+            return Ok(found.corrected(&map, &times)?);
+        }
+    }
     Ok(map)
 }

@@ -29,6 +29,11 @@ use spm_correction::{CoordinateMap, CorrectionError, YCoordinates};
 use spm_features::{DetectionConfig, Feature, LatticeConfig, detect, lattice_vectors};
 use spm_hal::{CountPoint, Counts, HeightMap};
 
+/// Fewest atoms indexed, as a fraction of those located, for a fit that spans the frame.
+const MIN_INDEXED_FRACTION: f64 = 0.7;
+/// Largest RMS distance of the atoms from the fitted lattice, in lattice constants.
+const MAX_RESIDUAL_FRACTION: f64 = 1.0;
+
 /// The lattice a ruler measures against.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LatticeRuler {
@@ -273,7 +278,8 @@ fn index(atoms: &[Atom]) -> Result<Indexing, CorrectionError> {
 ///
 /// # Errors
 /// [`CorrectionError::InvalidArgument`] for an image whose lattice is not resolved or not
-/// found, [`CorrectionError::Empty`] with fewer than 12 indexed atoms.
+/// found, indexed on less than 70 % of its atoms, or left more than a lattice constant off by
+/// the fit; [`CorrectionError::Empty`] with fewer than 12 indexed atoms.
 pub fn estimate_from_lattice(
     heights: &[f64],
     map: &CoordinateMap,
@@ -300,6 +306,15 @@ pub fn estimate_from_lattice(
         .collect();
     if used.len() < 12 {
         return Err(CorrectionError::Empty("indexed atoms (fewer than 12)"));
+    }
+    // A fit on a patch extrapolates wildly across the frame: the index must span it.
+    if (used.len() as f64) < MIN_INDEXED_FRACTION * atoms.len() as f64 {
+        return Err(CorrectionError::InvalidArgument(format!(
+            "lattice ruler: only {} of {} atoms could be indexed from one another (the image is \
+             too distorted, or not one lattice)",
+            used.len(),
+            atoms.len()
+        )));
     }
     // The true basis at the apparent orientation: b₁ along the apparent first vector, b₂ at
     // ±60° on the side of the apparent second.
@@ -356,6 +371,13 @@ pub fn estimate_from_lattice(
             "lattice ruler: the atoms do not determine the approach creep and drift".into(),
         )
     })?;
+    if residual_rms_nm > MAX_RESIDUAL_FRACTION * ruler.constant_nm {
+        return Err(CorrectionError::InvalidArgument(format!(
+            "lattice ruler: the atoms stay {residual_rms_nm:.3} nm RMS off the lattice after the \
+             fit (more than {MAX_RESIDUAL_FRACTION} a): the image's distortion is not a function \
+             of time alone"
+        )));
+    }
     Ok(RulerEstimate {
         amplitude_nm: [c[3], c[4]],
         since_move_s,
@@ -480,5 +502,17 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(refused.contains("pixels per lattice constant"), "{refused}");
+        // Two grains (the upper half's lattice turned by 20°): no index spans the frame, so
+        // no fit may extrapolate from one grain across the other.
+        let grains: Vec<f64> = (0..n * n)
+            .map(|i| {
+                let (px, py) = ((i % n) as f64 * step, (i / n) as f64 * step);
+                surface(px, py, if i / n < n / 2 { 0.3 } else { 0.65 })
+            })
+            .collect();
+        let refused = estimate_from_lattice(&grains, &map, &times, &law, &LatticeRuler::hopg())
+            .unwrap_err()
+            .to_string();
+        assert!(refused.contains("could be indexed"), "{refused}");
     }
 }

@@ -210,17 +210,38 @@ fn index(atoms: &[Atom]) -> Result<Indexing, CorrectionError> {
             "lattice ruler: collinear lattice directions".into(),
         ));
     }
-    let reach = 1.3 * lattice.nearest_neighbour.value();
-    let step_of = |d: [f64; 2]| -> Option<[i64; 2]> {
-        let k1 = (d[0] * basis[1][1] - d[1] * basis[1][0]) / det;
-        let k2 = (basis[0][0] * d[1] - basis[0][1] * d[0]) / det;
+    let nn = lattice.nearest_neighbour.value();
+    let reach = 1.3 * nn;
+    // The lattice step (k₁, k₂) that displacement `d` is in the basis `b`, when it is one to
+    // 0.3 nearest-neighbour distances, and how far off it is.
+    let step_of = |b: &[[f64; 2]; 2], d: [f64; 2]| -> Option<([i64; 2], f64)> {
+        let det = b[0][0] * b[1][1] - b[1][0] * b[0][1];
+        if det == 0.0 || !det.is_finite() {
+            return None;
+        }
+        let k1 = (d[0] * b[1][1] - d[1] * b[1][0]) / det;
+        let k2 = (b[0][0] * d[1] - b[0][1] * d[0]) / det;
         let k = [k1.round(), k2.round()];
         let r = [
-            d[0] - k[0] * basis[0][0] - k[1] * basis[1][0],
-            d[1] - k[0] * basis[0][1] - k[1] * basis[1][1],
+            d[0] - k[0] * b[0][0] - k[1] * b[1][0],
+            d[1] - k[0] * b[0][1] - k[1] * b[1][1],
         ];
-        (r[0].hypot(r[1]) < 0.3 * lattice.nearest_neighbour.value())
-            .then_some([k[0] as i64, k[1] as i64])
+        let off = r[0].hypot(r[1]);
+        (off < 0.3 * nn).then_some(([k[0] as i64, k[1] as i64], off))
+    };
+    // The basis a newly indexed atom carries on: its parent's, with the vector of the step just
+    // taken when that step was one basis vector (so that the basis follows a strain that changes
+    // across the frame, as creep's does).
+    let carried = |b: &[[f64; 2]; 2], k: [i64; 2], d: [f64; 2]| -> [[f64; 2]; 2] {
+        let mut out = *b;
+        match k {
+            [1, 0] => out[0] = d,
+            [-1, 0] => out[0] = [-d[0], -d[1]],
+            [0, 1] => out[1] = d,
+            [0, -1] => out[1] = [-d[0], -d[1]],
+            _ => {}
+        }
+        out
     };
     // Grow from the atom seen at the median time; a seed that is no lattice site (a defect,
     // noise) reaches few atoms, so the next seeds in time from the median are tried until one
@@ -236,11 +257,13 @@ fn index(atoms: &[Atom]) -> Result<Indexing, CorrectionError> {
     });
     let grow = |seed: usize| -> (Vec<Option<[i64; 2]>>, usize) {
         let mut n: Vec<Option<[i64; 2]>> = vec![None; atoms.len()];
+        let mut local = vec![basis; atoms.len()];
         n[seed] = Some([0, 0]);
         let mut reached = 1;
         let mut queue = std::collections::VecDeque::from([seed]);
         while let Some(i) = queue.pop_front() {
             let Some(ni) = n[i] else { continue };
+            let b = local[i];
             for (j, a) in atoms.iter().enumerate() {
                 if n[j].is_some() {
                     continue;
@@ -249,8 +272,11 @@ fn index(atoms: &[Atom]) -> Result<Indexing, CorrectionError> {
                 if d[0].hypot(d[1]) > reach {
                     continue;
                 }
-                if let Some(k) = step_of(d) {
+                if let Some((k, off)) = step_of(&b, d) {
                     n[j] = Some([ni[0] + k[0], ni[1] + k[1]]);
+                    // Only a clean step (a tenth of a neighbour distance) teaches the basis: a
+                    // defect near a site must not bend it.
+                    local[j] = if off < 0.1 * nn { carried(&b, k, d) } else { b };
                     reached += 1;
                     queue.push_back(j);
                 }

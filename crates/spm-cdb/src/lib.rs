@@ -45,6 +45,7 @@
 //! server for tests and benchmarks.
 #![doc = include_str!("../README.md")]
 
+mod backup;
 pub mod bench_support;
 mod columns;
 mod dynamics;
@@ -65,6 +66,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+pub use backup::BackupSummary;
 pub use error::{CdbError, ErrorKind, Result};
 pub use export::{CSV_HEADER, rfc3339_utc};
 pub use schema::{APPLICATION_ID, SCHEMA_VERSION};

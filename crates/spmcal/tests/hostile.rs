@@ -1670,3 +1670,63 @@ fn issue25_backup_while_a_writer_commits_is_one_committed_state() {
     check_passes(&src);
     assert_eq!(count_records(&src), n);
 }
+
+/// A process id that no longer exists: a child that has ended and been reaped.
+fn dead_pid() -> u32 {
+    let mut child = Command::new("true").spawn().expect("true starts");
+    let pid = child.id();
+    child.wait().unwrap();
+    assert!(!Path::new(&format!("/proc/{pid}")).exists());
+    pid
+}
+
+/// Issue 25 item 14: the `.NAME.partial-PID` file an interrupted `cdb export` or `fit`
+/// left is removed by the next writer of that target when its process is gone; a live
+/// writer's partial and another target's are kept, and the output is the same as without
+/// the leftovers.
+#[test]
+fn issue25_14_stale_partials_of_dead_writers_are_swept() {
+    let dir = Scratch::new("r14");
+    let cdb = calibrated(&dir);
+    let reference_csv = dir.s("reference.csv");
+    assert_eq!(
+        code(&run(&["cdb", "export", &cdb, "--csv", &reference_csv])),
+        Some(0)
+    );
+    let reference_fit = dir.s("reference.json");
+    let out = run(&["fit", "--cdb", &cdb, "--out", &reference_fit]);
+    assert_eq!(code(&out), Some(0), "fit: {}", stderr(&out));
+
+    let live = std::process::id();
+    for (target, args) in [
+        ("e.csv", vec!["cdb", "export", cdb.as_str(), "--csv"]),
+        ("s.json", vec!["fit", "--cdb", cdb.as_str(), "--out"]),
+    ] {
+        let dead = dir.path(&format!(".{target}.partial-{}", dead_pid()));
+        let alive = dir.path(&format!(".{target}.partial-{live}"));
+        let other = dir.path(&format!(".other-{target}.partial-{}", dead_pid()));
+        for p in [&dead, &alive, &other] {
+            std::fs::write(p, vec![b'x'; 1 << 20]).unwrap();
+        }
+        let mut args = args.clone();
+        let out_path = dir.s(target);
+        args.push(&out_path);
+        let out = run(&args);
+        assert_eq!(code(&out), Some(0), "{args:?}: {}", stderr(&out));
+        assert!(!dead.exists(), "{args:?} left the stale {}", dead.display());
+        assert!(alive.exists(), "{args:?} removed a live writer's partial");
+        assert!(other.exists(), "{args:?} removed another target's partial");
+        let _ = std::fs::remove_file(&alive);
+        let _ = std::fs::remove_file(&other);
+    }
+    assert_eq!(bytes(&dir.s("e.csv")), bytes(&reference_csv));
+    let fitted = |p: &str| {
+        let mut v: serde_json::Value = serde_json::from_slice(&bytes(p)).unwrap();
+        // The fit's own creation time differs from run to run.
+        if let Some(o) = v.as_object_mut() {
+            o.remove("provenance");
+        }
+        v
+    };
+    assert_eq!(fitted(&dir.s("s.json")), fitted(&reference_fit));
+}

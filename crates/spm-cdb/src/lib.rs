@@ -56,6 +56,8 @@ mod integrity;
 #[cfg(feature = "postgres")]
 pub mod pg_server;
 #[cfg(feature = "postgres")]
+mod pgpass;
+#[cfg(feature = "postgres")]
 pub mod postgres;
 mod query;
 mod schema;

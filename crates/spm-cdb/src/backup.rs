@@ -11,7 +11,8 @@
 //! synced, checked with `PRAGMA integrity_check`, then hard-linked into place (a link never
 //! replaces an existing file) and the sibling removed; the destination gets its own
 //! identity file (`NAME-identity`, see [`crate::identity`]). A failure leaves neither the
-//! destination nor the sibling behind.
+//! destination nor the sibling behind; the siblings of a backup that was killed are removed
+//! by the next backup to that destination once their process is gone.
 
 use crate::error::{CdbError, Result};
 use crate::{Cdb, identity};
@@ -46,6 +47,48 @@ fn sibling(dest: &Path) -> PathBuf {
         .file_name()
         .map_or_else(|| "cdb".into(), |n| n.to_string_lossy().into_owned());
     dest.with_file_name(format!(".{name}.backup-{}", std::process::id()))
+}
+
+/// Removes the hidden siblings (`.NAME.backup-PID` and companions) that backups to the same
+/// destination killed mid-copy left, when their process is gone; best effort.
+fn remove_stale_siblings(dest: &Path) {
+    let Some(name) = dest.file_name().map(|n| n.to_string_lossy().into_owned()) else {
+        return;
+    };
+    let dir = match dest.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let prefix = format!(".{name}.backup-");
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let file_name = entry.file_name().to_string_lossy().into_owned();
+        let Some(rest) = file_name.strip_prefix(&prefix) else {
+            continue;
+        };
+        let pid_text = ["-wal", "-shm", "-journal"]
+            .iter()
+            .find_map(|s| rest.strip_suffix(s))
+            .unwrap_or(rest);
+        let Ok(pid) = pid_text.parse::<u32>() else {
+            continue;
+        };
+        if pid != std::process::id()
+            && !crate::process_alive(pid)
+            && entry.file_type().is_ok_and(|t| t.is_file())
+        {
+            match std::fs::remove_file(entry.path()) {
+                Ok(()) => {
+                    tracing::info!(file = %entry.path().display(), "removed the leftover of an interrupted backup")
+                }
+                Err(e) => {
+                    tracing::debug!(file = %entry.path().display(), error = %e, "cannot remove a backup leftover")
+                }
+            }
+        }
+    }
 }
 
 fn remove_with_companions(path: &Path) {
@@ -87,6 +130,7 @@ impl Cdb {
     /// concern the copy).
     pub fn backup_to(&self, dest: &Path) -> Result<BackupSummary> {
         check_destination(dest)?;
+        remove_stale_siblings(dest);
         let tmp = sibling(dest);
         remove_with_companions(&tmp);
         let result = self.copy_into(&tmp, dest).and_then(|summary| {

@@ -1592,7 +1592,11 @@ fn issue25_backup_while_a_writer_commits_is_one_committed_state() {
     wait_for_commits(3);
     let before = *committed.lock().unwrap().last().unwrap();
     let backup = dir.s("backup.sqlite");
+    // What a backup killed mid-copy left: removed, its process being gone.
+    let killed = dir.path(&format!(".backup.sqlite.backup-{}", dead_pid()));
+    std::fs::write(&killed, vec![0_u8; 1 << 20]).unwrap();
     let out = run(&["cdb", "backup", &src, &backup]);
+    assert!(!killed.exists(), "the leftover of a killed backup stays");
     wait_for_commits(3);
     stop.store(true, Ordering::SeqCst);
     writer.join().unwrap();

@@ -45,6 +45,7 @@
 //! server for tests and benchmarks.
 #![doc = include_str!("../README.md")]
 
+mod backup;
 pub mod bench_support;
 mod columns;
 mod dynamics;
@@ -54,6 +55,8 @@ mod identity;
 mod integrity;
 #[cfg(feature = "postgres")]
 pub mod pg_server;
+#[cfg(feature = "postgres")]
+mod pgpass;
 #[cfg(feature = "postgres")]
 pub mod postgres;
 mod query;
@@ -65,6 +68,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+pub use backup::BackupSummary;
 pub use error::{CdbError, ErrorKind, Result};
 pub use export::{CSV_HEADER, rfc3339_utc};
 pub use schema::{APPLICATION_ID, SCHEMA_VERSION};
@@ -448,13 +452,20 @@ fn validate_record(path: &Path, r: &LccRecord) -> Result<()> {
     r.check().map_err(|p| invalid(path, p.to_string()))
 }
 
-/// Page cache of 64 MiB and memory-mapped reads of up to 1 GiB (address space only): bulk
-/// imports keep their index pages in memory and large scans avoid a read() per page.
+/// Page cache of 64 MiB (bulk imports keep their index pages in memory) and **no
+/// memory-mapped I/O**, on every connection: a mapping of the file turns a file that
+/// shrinks under it (a CDB copied over while a reader runs) into SIGBUS, a crash with no
+/// message (exit 135, 16 of 24 trials with the 1 GiB map this had, issue 25), where
+/// `read()` gives SQLite a short read it reports as an error. The cost, measured in
+/// docs/RELIABILITY.md §8, is 2–5 % on the regression's query of 10⁶ records.
 fn tune_cache(conn: &Connection) -> rusqlite::Result<()> {
     conn.pragma_update(None, "cache_size", -65_536)?;
-    conn.pragma_update_and_check(None, "mmap_size", 1_i64 << 30, |r| r.get::<_, i64>(0))?;
+    conn.pragma_update_and_check(None, "mmap_size", MMAP_SIZE, |r| r.get::<_, i64>(0))?;
     Ok(())
 }
+
+/// `PRAGMA mmap_size` of every connection: 0, no memory-mapped I/O (see [`tune_cache`]).
+pub const MMAP_SIZE: i64 = 0;
 
 use columns::{INSERT_RECORD, insert_record};
 

@@ -23,7 +23,9 @@
 //!
 //! # Connection
 //! `postgres://user[:password]@host[:port]/dbname` (or the libpq key-value form), plain TCP or
-//! a Unix socket (`?host=/run/postgresql`). Errors name the URL without its password.
+//! a Unix socket (`?host=/run/postgresql`). Errors name the URL without its password. A URL
+//! without a password takes it, as libpq does, from `PGPASSWORD`, else from the password file
+//! `PGPASSFILE` or `~/.pgpass` (mode 0600; see `pgpass.rs`).
 
 use std::cell::{RefCell, RefMut};
 use std::collections::HashMap;
@@ -620,6 +622,7 @@ fn connect(url: &str, path: &Path, read_only: bool) -> Result<Client> {
             ),
         })?;
     check_config(path, &config)?;
+    crate::pgpass::fill_in(&mut config);
     config.application_name("spmcal");
     if read_only {
         config.options("-c default_transaction_read_only=on");

@@ -1,4 +1,4 @@
-//! `spmcal cdb check|export|trend`.
+//! `spmcal cdb check|export|backup|trend`.
 
 use crate::error::CliError;
 use spm_cdb::{CdbRead, Coefficient, RecordFilter, TrendGrouping};
@@ -127,6 +127,59 @@ fn write_csv(cdb: &CdbHandle, csv: &Path, partial: &Path) -> Result<u64, CliErro
     drop(file);
     std::fs::rename(partial, csv).map_err(|e| CliError::io(csv, e))?;
     Ok(count)
+}
+
+/// `spmcal cdb backup SRC DEST`: a consistent copy of a SQLite CDB in a new file (see
+/// [`spm_cdb::Cdb::backup_to`]); a PostgreSQL CDB is backed up with `pg_dump`.
+pub fn backup(src: &Path, dest: &Path) -> Result<(), CliError> {
+    if is_postgres(src) {
+        return Err(CliError::BadInput(format!(
+            "{}: `spmcal cdb backup` copies SQLite files; back up a PostgreSQL CDB with \
+             pg_dump (e.g. `pg_dump --format=custom --file=cdb.dump DBNAME`, restored with \
+             pg_restore)",
+            shown(src)
+        )));
+    }
+    if is_postgres(dest) {
+        return Err(CliError::BadInput(format!(
+            "DEST {}: a backup is written to a file, not to a PostgreSQL database",
+            shown(dest)
+        )));
+    }
+    let same_id = matches!(
+        (crate::files::identity(src), crate::files::identity(dest)),
+        (Some(a), Some(b)) if a == b
+    );
+    if same_id || crate::files::location(src) == crate::files::location(dest) {
+        return Err(CliError::BadInput(format!(
+            "DEST {}: is the source database {}; refusing to overwrite it",
+            dest.display(),
+            src.display()
+        )));
+    }
+    if std::fs::symlink_metadata(dest).is_ok() {
+        return Err(CliError::BadInput(format!(
+            "DEST {}: exists; refusing to overwrite it (a backup goes to a new file)",
+            dest.display()
+        )));
+    }
+    crate::files::check_output(dest, "DEST", &[src])?;
+    let handle = open_read_only(src)?;
+    let CdbHandle::Sqlite(cdb) = &handle else {
+        return Err(CliError::BadInput(format!(
+            "{}: not a SQLite CDB",
+            shown(src)
+        )));
+    };
+    let summary = cdb.backup_to(dest).map_err(cdb_error)?;
+    crate::outln!(
+        "{} → {}: {} records, {} bytes, integrity ok",
+        src.display(),
+        dest.display(),
+        summary.records,
+        summary.bytes
+    );
+    Ok(())
 }
 
 pub fn trend(path: &Path) -> Result<(), CliError> {

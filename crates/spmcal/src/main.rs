@@ -335,6 +335,16 @@ enum CdbCommand {
         #[arg(long, value_name = "OUT")]
         csv: PathBuf,
     },
+    /// Copy a SQLite CDB to a new file, consistently also while a run writes (SQLite's
+    /// online backup API); the copy's integrity is checked. Restore: see README.
+    Backup {
+        /// The database file to copy.
+        #[arg(value_name = "SRC")]
+        src: PathBuf,
+        /// The new file (refused if it exists).
+        #[arg(value_name = "DEST")]
+        dest: PathBuf,
+    },
     /// Coefficients against date (age dynamics).
     Trend {
         /// The database: a file or postgres://USER@HOST:PORT/DB.
@@ -463,6 +473,7 @@ impl Command {
                     paths.push(path.clone());
                 }
                 CdbCommand::Export { path, csv } => paths.extend([path.clone(), csv.clone()]),
+                CdbCommand::Backup { src, dest } => paths.extend([src.clone(), dest.clone()]),
             },
         }
         paths
@@ -553,6 +564,7 @@ fn run(command: Command) -> Result<(), CliError> {
             CdbCommand::Check { path } => cdb_cmd::check(&path),
             CdbCommand::Export { path, csv } => cdb_cmd::export(&path, &csv),
             CdbCommand::Trend { path } => cdb_cmd::trend(&path),
+            CdbCommand::Backup { src, dest } => cdb_cmd::backup(&src, &dest),
         },
         Command::Calibrate {
             config,

@@ -1529,3 +1529,208 @@ fn issue25_02_a_foreign_log_beside_the_cdb_is_refused_with_exit_2() {
         );
     }
 }
+
+/// A CDB of `n` synthetic records (one run, no plausibility limits) at `path`.
+fn synthetic_cdb(path: &str, n: u64) -> Vec<String> {
+    let mut cdb = Cdb::open(path).unwrap();
+    let run = spm_cdb::RunInfo {
+        run_id: "bulk".into(),
+        scanner_id: spm_cdb::bench_support::SCANNER_ID.into(),
+        config: String::new(),
+        started_unix_s: spm_cdb::bench_support::T0_UNIX_S,
+        finished_unix_s: None,
+        status: spm_cdb::RunStatus::Running,
+    };
+    cdb.create_run(&run).unwrap();
+    let ids = vec![run.run_id];
+    cdb.import_records((0..n).map(|i| spm_cdb::bench_support::synthetic_record(i, u64::MAX, &ids)))
+        .unwrap();
+    ids
+}
+
+/// Issue 25 (backup and restore): `cdb backup` copies a CDB while another connection keeps
+/// committing; the copy passes `cdb check` and holds exactly one of the states the writer
+/// committed (a record count the writer reached, its records the first ones), and the
+/// documented restores give that state back. DEST that exists or is SRC, and a PostgreSQL
+/// source, are refused with exit 2.
+#[test]
+fn issue25_backup_while_a_writer_commits_is_one_committed_state() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::{Arc, Mutex};
+    const INITIAL: u64 = 60_000;
+    const BATCH: u64 = 40;
+    let dir = Scratch::new("backup");
+    let src = dir.s("src.sqlite");
+    let ids = synthetic_cdb(&src, INITIAL);
+    // Every record count the writer committed, in order.
+    let committed = Arc::new(Mutex::new(vec![INITIAL]));
+    let stop = Arc::new(AtomicBool::new(false));
+    let writer = {
+        let (src, committed, stop) = (src.clone(), committed.clone(), stop.clone());
+        std::thread::spawn(move || {
+            let mut cdb = Cdb::open(&src).unwrap();
+            let mut next = INITIAL;
+            while !stop.load(Ordering::SeqCst) {
+                cdb.import_records(
+                    (next..next + BATCH)
+                        .map(|i| spm_cdb::bench_support::synthetic_record(i, u64::MAX, &ids)),
+                )
+                .unwrap();
+                next += BATCH;
+                committed.lock().unwrap().push(next);
+            }
+        })
+    };
+    let wait_for_commits = |k: usize| {
+        let start = committed.lock().unwrap().len();
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while committed.lock().unwrap().len() < start + k {
+            assert!(Instant::now() < deadline, "the writer does not commit");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    };
+    wait_for_commits(3);
+    let before = *committed.lock().unwrap().last().unwrap();
+    let backup = dir.s("backup.sqlite");
+    // What a backup killed mid-copy left: removed, its process being gone.
+    let killed = dir.path(&format!(".backup.sqlite.backup-{}", dead_pid()));
+    std::fs::write(&killed, vec![0_u8; 1 << 20]).unwrap();
+    let out = run(&["cdb", "backup", &src, &backup]);
+    assert!(!killed.exists(), "the leftover of a killed backup stays");
+    wait_for_commits(3);
+    stop.store(true, Ordering::SeqCst);
+    writer.join().unwrap();
+    assert_eq!(code(&out), Some(0), "cdb backup: {}", stderr(&out));
+    let after = *committed.lock().unwrap().last().unwrap();
+
+    let n = count_records(&backup);
+    assert!(
+        committed.lock().unwrap().contains(&n) && (before..after).contains(&n),
+        "the backup holds {n} records: not a state committed during the backup ({before}..{after})"
+    );
+    let check = run(&["cdb", "check", &backup]);
+    assert_eq!(code(&check), Some(0), "cdb check: {}", stderr(&check));
+    assert!(
+        stdout(&check).contains(&format!("{n} records")),
+        "{}",
+        stdout(&check)
+    );
+    let last_node: i64 = Cdb::open_read_only(&backup)
+        .unwrap()
+        .connection()
+        .query_row("SELECT max(node_index) FROM records", [], |r| r.get(0))
+        .unwrap();
+    assert_eq!(last_node, i64::try_from(n).unwrap() - 1, "not a prefix");
+    let leftovers: Vec<_> = std::fs::read_dir(&dir.0)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|name| name.contains("backup-"))
+        .collect();
+    assert!(leftovers.is_empty(), "temporary files left: {leftovers:?}");
+
+    // Refusals: an existing DEST (left as it was), DEST = SRC in two spellings, a
+    // PostgreSQL source.
+    let kept = bytes(&backup);
+    let out = run(&["cdb", "backup", &src, &backup]);
+    assert_bad_input(&out, "existing DEST", &[&backup, "exists"]);
+    assert_eq!(bytes(&backup), kept);
+    let src_bytes = bytes(&src);
+    let other_spelling = format!("{}/./src.sqlite", dir.0.display());
+    for dest in [src.as_str(), other_spelling.as_str()] {
+        let out = run(&["cdb", "backup", &src, dest]);
+        assert_bad_input(&out, "DEST = SRC", &[dest, "source database"]);
+    }
+    assert_eq!(bytes(&src), src_bytes);
+    let out = run(&[
+        "cdb",
+        "backup",
+        "postgres://u@localhost:1/db",
+        &dir.s("pg.sqlite"),
+    ]);
+    assert_bad_input(&out, "PostgreSQL source", &["pg_dump"]);
+
+    // Restore 1: `cdb backup BACKUP CDB` into the emptied place of the CDB.
+    for suffix in ["", "-wal", "-shm", "-identity"] {
+        let _ = std::fs::rename(format!("{src}{suffix}"), dir.s(&format!("old{suffix}")));
+    }
+    let out = run(&["cdb", "backup", &backup, &src]);
+    assert_eq!(code(&out), Some(0), "restore by backup: {}", stderr(&out));
+    check_passes(&src);
+    assert_eq!(count_records(&src), n);
+    // Restore 2: copy the backup over a CDB that moved on, remove its -wal, -shm and
+    // -identity.
+    let mut cdb = Cdb::open(&src).unwrap();
+    cdb.import_records(
+        (n..n + 5)
+            .map(|i| spm_cdb::bench_support::synthetic_record(i, u64::MAX, &["bulk".to_owned()])),
+    )
+    .unwrap();
+    drop(cdb);
+    std::fs::copy(&backup, &src).unwrap();
+    for suffix in ["-wal", "-shm", "-identity"] {
+        let _ = std::fs::remove_file(format!("{src}{suffix}"));
+    }
+    check_passes(&src);
+    assert_eq!(count_records(&src), n);
+}
+
+/// A process id that no longer exists: a child that has ended and been reaped.
+fn dead_pid() -> u32 {
+    let mut child = Command::new("true").spawn().expect("true starts");
+    let pid = child.id();
+    child.wait().unwrap();
+    assert!(!Path::new(&format!("/proc/{pid}")).exists());
+    pid
+}
+
+/// Issue 25 item 14: the `.NAME.partial-PID` file an interrupted `cdb export` or `fit`
+/// left is removed by the next writer of that target when its process is gone; a live
+/// writer's partial and another target's are kept, and the output is the same as without
+/// the leftovers.
+#[test]
+fn issue25_14_stale_partials_of_dead_writers_are_swept() {
+    let dir = Scratch::new("r14");
+    let cdb = calibrated(&dir);
+    let reference_csv = dir.s("reference.csv");
+    assert_eq!(
+        code(&run(&["cdb", "export", &cdb, "--csv", &reference_csv])),
+        Some(0)
+    );
+    let reference_fit = dir.s("reference.json");
+    let out = run(&["fit", "--cdb", &cdb, "--out", &reference_fit]);
+    assert_eq!(code(&out), Some(0), "fit: {}", stderr(&out));
+
+    let live = std::process::id();
+    for (target, args) in [
+        ("e.csv", vec!["cdb", "export", cdb.as_str(), "--csv"]),
+        ("s.json", vec!["fit", "--cdb", cdb.as_str(), "--out"]),
+    ] {
+        let dead = dir.path(&format!(".{target}.partial-{}", dead_pid()));
+        let alive = dir.path(&format!(".{target}.partial-{live}"));
+        let other = dir.path(&format!(".other-{target}.partial-{}", dead_pid()));
+        for p in [&dead, &alive, &other] {
+            std::fs::write(p, vec![b'x'; 1 << 20]).unwrap();
+        }
+        let mut args = args.clone();
+        let out_path = dir.s(target);
+        args.push(&out_path);
+        let out = run(&args);
+        assert_eq!(code(&out), Some(0), "{args:?}: {}", stderr(&out));
+        assert!(!dead.exists(), "{args:?} left the stale {}", dead.display());
+        assert!(alive.exists(), "{args:?} removed a live writer's partial");
+        assert!(other.exists(), "{args:?} removed another target's partial");
+        let _ = std::fs::remove_file(&alive);
+        let _ = std::fs::remove_file(&other);
+    }
+    assert_eq!(bytes(&dir.s("e.csv")), bytes(&reference_csv));
+    let fitted = |p: &str| {
+        let mut v: serde_json::Value = serde_json::from_slice(&bytes(p)).unwrap();
+        // The fit's own creation time differs from run to run.
+        if let Some(o) = v.as_object_mut() {
+            o.remove("provenance");
+        }
+        v
+    };
+    assert_eq!(fitted(&dir.s("s.json")), fitted(&reference_fit));
+}

@@ -202,3 +202,82 @@ fn unreachable_server_is_a_run_failure_without_the_password() {
     assert!(!Path::new(&surfaces).exists());
     let _ = std::fs::remove_dir_all(&out_dir);
 }
+
+/// Issue 25 item 10: a URL without a password takes it, as libpq does, from `PGPASSWORD`,
+/// else from the password file `PGPASSFILE` (or `~/.pgpass`), which is ignored unless only
+/// its owner may read it. A role under `scram-sha-256` reads a CDB through each source.
+#[test]
+fn a_url_without_password_takes_it_from_pgpassword_or_the_password_file() {
+    use std::os::unix::fs::PermissionsExt;
+    let server = spm_cdb::pg_server::TestServer::start()
+        .unwrap_or_else(|e| panic!("cannot start the private PostgreSQL server: {e}"));
+    let url = server.create_database("pgpass").unwrap();
+    {
+        let mut cdb = PgCdb::open(&url).unwrap();
+        cdb.batch_execute_raw(
+            "DROP ROLE IF EXISTS reader; CREATE ROLE reader LOGIN PASSWORD 'pa:ss\\word'; \
+             GRANT USAGE ON SCHEMA public TO reader; \
+             GRANT SELECT ON ALL TABLES IN SCHEMA public TO reader;",
+        )
+        .unwrap();
+    }
+    let hba = server.dir().join("data/pg_hba.conf");
+    let rules = std::fs::read_to_string(&hba).unwrap();
+    std::fs::write(
+        &hba,
+        format!("host all reader 127.0.0.1/32 scram-sha-256\n{rules}"),
+    )
+    .unwrap();
+    {
+        let mut admin = PgCdb::open(&url).unwrap();
+        admin.batch_execute_raw("SELECT pg_reload_conf();").unwrap();
+    }
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    let reader = url.replacen("postgres://postgres@", "postgres://reader@", 1);
+    let dir = std::env::temp_dir().join(format!("spmcal-pgpass-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let passfile = dir.join("pgpass");
+    let port = server.port();
+    std::fs::write(
+        &passfile,
+        format!(
+            "# comment\n127.0.0.1:{port}:other:reader:wrong\n127.0.0.1:*:pgpass:reader:pa\\:ss\\\\word\n"
+        ),
+    )
+    .unwrap();
+    let check = |env: &[(&str, &str)]| {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_spmcal"));
+        cmd.args(["cdb", "check", &reader])
+            .env("NO_COLOR", "1")
+            .env("HOME", &dir)
+            .env_remove("PGPASSWORD")
+            .env_remove("PGPASSFILE");
+        for (k, v) in env {
+            cmd.env(k, v);
+        }
+        cmd.output().unwrap()
+    };
+    let file = passfile.to_str().unwrap();
+    std::fs::set_permissions(&passfile, std::fs::Permissions::from_mode(0o600)).unwrap();
+    ok(&check(&[("PGPASSFILE", file)]), "PGPASSFILE");
+    ok(&check(&[("PGPASSWORD", "pa:ss\\word")]), "PGPASSWORD");
+    std::fs::copy(&passfile, dir.join(".pgpass")).unwrap();
+    std::fs::set_permissions(dir.join(".pgpass"), std::fs::Permissions::from_mode(0o600)).unwrap();
+    ok(&check(&[]), "~/.pgpass");
+    // PGPASSWORD comes first; a file others may read is ignored (libpq's rule).
+    let out = check(&[("PGPASSWORD", "wrong"), ("PGPASSFILE", file)]);
+    assert_eq!(
+        out.status.code(),
+        Some(2),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    std::fs::remove_file(dir.join(".pgpass")).unwrap();
+    std::fs::set_permissions(&passfile, std::fs::Permissions::from_mode(0o644)).unwrap();
+    let out = check(&[("PGPASSFILE", file)]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("password missing"), "{err}");
+    assert!(!err.contains("ss\\word") && !err.contains("pa:ss"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

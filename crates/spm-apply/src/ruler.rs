@@ -13,7 +13,8 @@
 //! atom of the image is seen at its own time, so the atoms of a known lattice (HOPG: hexagonal,
 //! a = 0.246 nm) sit at `O + R(θ)·B·n + e(t)`, n the atom's lattice index. The image's
 //! atoms are indexed by growing from the atom seen at the median time, neighbour by neighbour
-//! (a step between neighbours is never ambiguous, however far the frame is sheared), and
+//! (a step between neighbours is never ambiguous, however far the frame is sheared; a frame the
+//! index does not span is first straightened by the drift of the indexed patch), and
 //! `O`, the rotation `δθ` about the apparent one, `A` and `v` follow by linear least squares
 //! for each `t_m` of a log-spaced ladder; the `t_m` of the least residual is kept. Any `(A, t_m,
 //! v)` that fits the atoms gives the same `e` over the frame, so that `A` and `v` trade off for
@@ -299,6 +300,62 @@ fn index(atoms: &[Atom]) -> Result<Indexing, CorrectionError> {
     Ok((n, basis))
 }
 
+/// The atoms that were indexed, with their indices.
+fn indexed(atoms: &[Atom], n: &[Option<[i64; 2]>]) -> Vec<(Atom, [i64; 2])> {
+    atoms
+        .iter()
+        .zip(n)
+        .filter_map(|(a, n)| n.map(|n| (*a, n)))
+        .collect()
+}
+
+/// The true basis (lattice constant `a`) at the apparent orientation: b₁ along the apparent
+/// first vector, b₂ at 60° or 120° on the side of the apparent second, as the apparent pair is.
+fn true_basis(apparent: &[[f64; 2]; 2], a: f64) -> [[f64; 2]; 2] {
+    let theta = apparent[0][1].atan2(apparent[0][0]);
+    let side = (apparent[0][0] * apparent[1][1] - apparent[0][1] * apparent[1][0]).signum();
+    let angle2 = theta
+        + side
+            * if (apparent[0][0] * apparent[1][0] + apparent[0][1] * apparent[1][1]) >= 0.0 {
+                std::f64::consts::FRAC_PI_3
+            } else {
+                2.0 * std::f64::consts::FRAC_PI_3
+            };
+    [
+        [a * theta.cos(), a * theta.sin()],
+        [a * angle2.cos(), a * angle2.sin()],
+    ]
+}
+
+/// The least-squares problem of the atoms against the lattice `b`, two rows per atom. Columns:
+/// O_x, O_y, δθ, then A_x, A_y (with `since_move_s`), then v_x, v_y.
+fn design(
+    used: &[(Atom, [i64; 2])],
+    b: &[[f64; 2]; 2],
+    law: &CreepLaw,
+    since_move_s: Option<f64>,
+) -> (Vec<Vec<f64>>, Vec<f64>) {
+    let mut rows = Vec::with_capacity(2 * used.len());
+    let mut rhs = Vec::with_capacity(2 * used.len());
+    for (atom, n) in used {
+        let (n1, n2) = (n[0] as f64, n[1] as f64);
+        let l = [n1 * b[0][0] + n2 * b[1][0], n1 * b[0][1] + n2 * b[1][1]];
+        let (mut x, mut y) = (vec![1.0, 0.0, -l[1]], vec![0.0, 1.0, l[0]]);
+        if let Some(tm) = since_move_s {
+            let g = RulerEstimate::to_come(law, atom.t + tm);
+            x.extend([g, 0.0]);
+            y.extend([0.0, g]);
+        }
+        x.extend([atom.t, 0.0]);
+        y.extend([0.0, atom.t]);
+        rows.push(x);
+        rhs.push(atom.p[0] - l[0]);
+        rows.push(y);
+        rhs.push(atom.p[1] - l[1]);
+    }
+    (rows, rhs)
+}
+
 /// Estimates the approach creep and drift of one image from its lattice (see the module doc).
 /// `heights`, `map` and `times_s` in the map's order; `law` the calibration's creep law.
 ///
@@ -323,13 +380,27 @@ pub fn estimate_from_lattice(
             });
         }
     }
-    let atoms = atoms(heights, map, times_s, ruler)?;
-    let (n, apparent) = index(&atoms)?;
-    let used: Vec<(Atom, [i64; 2])> = atoms
-        .iter()
-        .zip(&n)
-        .filter_map(|(a, n)| n.map(|n| (*a, n)))
-        .collect();
+    let mut atoms = atoms(heights, map, times_s, ruler)?;
+    let (mut n, mut apparent) = index(&atoms)?;
+    // A frame sheared too much for the index to span it: the drift fitted on the indexed patch
+    // (a linear function of time extrapolates mildly) straightens the atoms, and the index is
+    // grown again from them.
+    let mut pre_drift = [0.0; 2];
+    let reached = n.iter().flatten().count();
+    if reached >= 12 && (reached as f64) < MIN_INDEXED_FRACTION * atoms.len() as f64 {
+        let patch = indexed(&atoms, &n);
+        let b = true_basis(&apparent, ruler.constant_nm);
+        let (rows, rhs) = design(&patch, &b, law, None);
+        if let Ok(fit) = spm_regression::least_squares(&rows, &rhs, &[false; 5]) {
+            pre_drift = [fit.coefficients[3], fit.coefficients[4]];
+            for a in &mut atoms {
+                a.p = [a.p[0] - pre_drift[0] * a.t, a.p[1] - pre_drift[1] * a.t];
+                a.feature.position = CountPoint::from_counts(a.p[0], a.p[1]);
+            }
+            (n, apparent) = index(&atoms)?;
+        }
+    }
+    let used = indexed(&atoms, &n);
     if used.len() < 12 {
         return Err(CorrectionError::Empty("indexed atoms (fewer than 12)"));
     }
@@ -342,40 +413,8 @@ pub fn estimate_from_lattice(
             atoms.len()
         )));
     }
-    // The true basis at the apparent orientation: b₁ along the apparent first vector, b₂ at
-    // ±60° on the side of the apparent second.
-    let a = ruler.constant_nm;
-    let theta = apparent[0][1].atan2(apparent[0][0]);
-    let side = (apparent[0][0] * apparent[1][1] - apparent[0][1] * apparent[1][0]).signum();
-    let angle2 = theta
-        + side
-            * if (apparent[0][0] * apparent[1][0] + apparent[0][1] * apparent[1][1]) >= 0.0 {
-                std::f64::consts::FRAC_PI_3
-            } else {
-                2.0 * std::f64::consts::FRAC_PI_3
-            };
-    let b = [
-        [a * theta.cos(), a * theta.sin()],
-        [a * angle2.cos(), a * angle2.sin()],
-    ];
-    let lattice = |n: [i64; 2]| {
-        let (n1, n2) = (n[0] as f64, n[1] as f64);
-        [n1 * b[0][0] + n2 * b[1][0], n1 * b[0][1] + n2 * b[1][1]]
-    };
-    // Columns: O_x, O_y, δθ, A_x, A_y, v_x, v_y; two rows per atom.
-    let design = |tm: f64| -> (Vec<Vec<f64>>, Vec<f64>) {
-        let mut rows = Vec::with_capacity(2 * used.len());
-        let mut rhs = Vec::with_capacity(2 * used.len());
-        for (atom, n) in &used {
-            let l = lattice(*n);
-            let g = RulerEstimate::to_come(law, atom.t + tm);
-            rows.push(vec![1.0, 0.0, -l[1], g, 0.0, atom.t, 0.0]);
-            rhs.push(atom.p[0] - l[0]);
-            rows.push(vec![0.0, 1.0, l[0], 0.0, g, 0.0, atom.t]);
-            rhs.push(atom.p[1] - l[1]);
-        }
-        (rows, rhs)
-    };
+    let b = true_basis(&apparent, ruler.constant_nm);
+    let design = |tm: f64| design(&used, &b, law, Some(tm));
     let (rows, rhs) = design(1.0);
     let rigid: Vec<Vec<f64>> = rows.iter().map(|r| r[..3].to_vec()).collect();
     let before = spm_regression::least_squares(&rigid, &rhs, &[false; 3])
@@ -407,7 +446,7 @@ pub fn estimate_from_lattice(
     Ok(RulerEstimate {
         amplitude_nm: [c[3], c[4]],
         since_move_s,
-        drift_nm_per_s: [c[5], c[6]],
+        drift_nm_per_s: [c[5] + pre_drift[0], c[6] + pre_drift[1]],
         atoms: atoms.len(),
         indexed: used.len(),
         before_rms_nm: before.residual_rms,

@@ -79,12 +79,7 @@ pub struct RulerEstimate {
 impl RulerEstimate {
     /// g(t).
     fn to_come(law: &CreepLaw, t_s: f64) -> f64 {
-        law.weight()
-            * law
-                .time_constants_s()
-                .iter()
-                .map(|tau| (-t_s.max(0.0) / tau).exp())
-                .sum::<f64>()
+        law.still_to_come(t_s)
     }
 
     /// e(t), nm.

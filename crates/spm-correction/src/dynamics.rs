@@ -264,6 +264,17 @@ impl CreepLaw {
         ((1.0 + r10) / (1.0 + r01) - 1.0) / 2.0
     }
 
+    /// Fraction of a unit step still to creep t seconds after it (from rest): w·Σe^{−t/τₖ}
+    /// (the settled gain minus [`CreepLaw::step_response`]; t < 0 counts as 0).
+    pub fn still_to_come(&self, t_s: f64) -> f64 {
+        self.weight
+            * self
+                .taus_s
+                .iter()
+                .map(|tau| (-t_s.max(0.0) / tau).exp())
+                .sum::<f64>()
+    }
+
     /// Fractional creep t seconds after a step from rest: w·Σ(1 − e^{−t/τₖ}).
     pub fn step_response(&self, t_s: f64) -> f64 {
         self.weight

@@ -394,20 +394,21 @@ fn date_utc() -> String {
     )
 }
 
-/// Seconds since the Unix epoch as YYYY-MM-DD HH:MM (UTC; civil-from-days).
+/// Seconds since the Unix epoch as YYYY-MM-DD HH:MM (UTC; the calendar of
+/// `spm_formats::DateTime::from_unix_seconds`).
 fn civil_date(secs: u64) -> String {
-    let days = (secs / 86_400) as i64;
-    let (hh, mm) = ((secs % 86_400) / 3600, (secs % 3600) / 60);
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = doy - (153 * mp + 2) / 5 + 1;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 };
-    let y = yoe + era * 400 + i64::from(m <= 2);
-    format!("{y:04}-{m:02}-{d:02} {hh:02}:{mm:02}")
+    i64::try_from(secs)
+        .ok()
+        .and_then(spm_formats::DateTime::from_unix_seconds)
+        .map_or_else(
+            || format!("{secs} s after 1970"),
+            |d| {
+                format!(
+                    "{:04}-{:02}-{:02} {:02}:{:02}",
+                    d.year, d.month, d.day, d.hour, d.minute
+                )
+            },
+        )
 }
 
 /// Root mean square.

@@ -406,10 +406,6 @@ fn simulate_copies_the_scan_program_of_a_measured_file() {
 /// refused with exit 2 naming the sidecar and the field.
 #[test]
 fn a_scanned_image_is_corrected_along_its_recorded_history() {
-    use spm_correction::hysteresis::{
-        CreepParameters, DYNAMICS_FORMAT, DYNAMICS_FORMAT_VERSION, DynamicsIdentification,
-        PlayHysteresis, ScannerDynamics,
-    };
     let dir = std::env::temp_dir().join(format!("spmcal-scan-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
@@ -434,42 +430,7 @@ fn a_scanned_image_is_corrected_along_its_recorded_history() {
     let sidecar = dir.join("img.gsf.history.json");
     assert!(sidecar.is_file());
     // A calibration with dynamics: a uniform field, one play operator, creep.
-    let mut plane = spm_correction::PlaneSurfaces::constant(0.0, 0.02, 0.02, 0.0).unwrap();
-    plane.calibrated_region_counts = Some(spm_correction::CountRegion {
-        x_min_counts: -30_000.0,
-        x_max_counts: 30_000.0,
-        y_min_counts: -30_000.0,
-        y_max_counts: 30_000.0,
-    });
-    let mut set = spm_correction::SurfaceSet::new(
-        spm_correction::Provenance {
-            scanner_id: "sim-hopg".into(),
-            n_records: 100,
-            nominal_nm_per_count: Some(0.02),
-            counts_convention: Some(spm_correction::CountsConvention::CentredSigned),
-            ..spm_correction::Provenance::default()
-        },
-        vec![plane],
-    )
-    .unwrap();
-    set.dynamics = Some(ScannerDynamics {
-        format: DYNAMICS_FORMAT.to_owned(),
-        version: DYNAMICS_FORMAT_VERSION,
-        hysteresis_x: PlayHysteresis {
-            thresholds_counts: vec![100.0, 300.0],
-            weights: vec![0.02, 0.03],
-        },
-        hysteresis_y: PlayHysteresis::none(),
-        creep: CreepParameters {
-            weight: 0.005,
-            min_time_constant_s: 0.01,
-            max_time_constant_s: 1e4,
-            elements_per_decade: 3,
-        },
-        identification: DynamicsIdentification::default(),
-    });
-    let calibration = dir.join("calibration.json");
-    std::fs::write(&calibration, set.to_json_string().unwrap()).unwrap();
+    let calibration = dynamics_calibration(&dir);
     let correct = |out: &str, extra: &[&str]| {
         let out = dir.join(out);
         let mut args = vec![
@@ -595,6 +556,31 @@ fn a_scanned_sxm_names_its_halves_as_nanonis_does() {
          {upside_down}"
     );
     // Both halves corrected along the recorded history (a calibration with dynamics).
+    let calibration = dynamics_calibration(&dir);
+    let out = dir.join("counter.corrected.gwy");
+    let (code, stdout, stderr) = spmcal(&[
+        "correct",
+        sxm.to_str().unwrap(),
+        "--calibration",
+        calibration.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    assert!(
+        stdout.contains("2 channel(s)") && stdout.contains("recorded history"),
+        "{stdout}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `DIR/calibration.json`: a uniform field of scanner `sim-hopg` (0.02 nm/count, ±30 000
+/// counts) with dynamics (one fast-axis play operator pair, creep).
+fn dynamics_calibration(dir: &Path) -> std::path::PathBuf {
+    use spm_correction::hysteresis::{
+        CreepParameters, DYNAMICS_FORMAT, DYNAMICS_FORMAT_VERSION, DynamicsIdentification,
+        PlayHysteresis, ScannerDynamics,
+    };
     let mut plane = spm_correction::PlaneSurfaces::constant(0.0, 0.02, 0.02, 0.0).unwrap();
     plane.calibrated_region_counts = Some(spm_correction::CountRegion {
         x_min_counts: -30_000.0,
@@ -613,37 +599,23 @@ fn a_scanned_sxm_names_its_halves_as_nanonis_does() {
         vec![plane],
     )
     .unwrap();
-    set.dynamics = Some(spm_correction::hysteresis::ScannerDynamics {
-        format: spm_correction::hysteresis::DYNAMICS_FORMAT.to_owned(),
-        version: spm_correction::hysteresis::DYNAMICS_FORMAT_VERSION,
-        hysteresis_x: spm_correction::hysteresis::PlayHysteresis {
+    set.dynamics = Some(ScannerDynamics {
+        format: DYNAMICS_FORMAT.to_owned(),
+        version: DYNAMICS_FORMAT_VERSION,
+        hysteresis_x: PlayHysteresis {
             thresholds_counts: vec![100.0, 300.0],
             weights: vec![0.02, 0.03],
         },
-        hysteresis_y: spm_correction::hysteresis::PlayHysteresis::none(),
-        creep: spm_correction::hysteresis::CreepParameters {
+        hysteresis_y: PlayHysteresis::none(),
+        creep: CreepParameters {
             weight: 0.005,
             min_time_constant_s: 0.01,
             max_time_constant_s: 1e4,
             elements_per_decade: 3,
         },
-        identification: spm_correction::hysteresis::DynamicsIdentification::default(),
+        identification: DynamicsIdentification::default(),
     });
     let calibration = dir.join("calibration.json");
     std::fs::write(&calibration, set.to_json_string().unwrap()).unwrap();
-    let out = dir.join("counter.corrected.gwy");
-    let (code, stdout, stderr) = spmcal(&[
-        "correct",
-        sxm.to_str().unwrap(),
-        "--calibration",
-        calibration.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    assert_eq!(code, 0, "{stderr}");
-    assert!(
-        stdout.contains("2 channel(s)") && stdout.contains("recorded history"),
-        "{stdout}"
-    );
-    let _ = std::fs::remove_dir_all(&dir);
+    calibration
 }

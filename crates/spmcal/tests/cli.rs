@@ -576,6 +576,7 @@ fn a_scanned_sxm_names_its_halves_as_nanonis_does() {
 
 /// `DIR/calibration.json`: a uniform field of scanner `sim-hopg` (0.02 nm/count, ±30 000
 /// counts) with dynamics (one fast-axis play operator pair, creep).
+#[allow(clippy::unwrap_used)] // test set-up: a failure here is the test failing
 fn dynamics_calibration(dir: &Path) -> std::path::PathBuf {
     use spm_correction::hysteresis::{
         CreepParameters, DYNAMICS_FORMAT, DYNAMICS_FORMAT_VERSION, DynamicsIdentification,

@@ -74,6 +74,10 @@ pub struct PlanConfig {
     /// The dynamics stage (`[dynamics]`, issue 23): absent = the defaults (on).
     #[serde(default)]
     pub dynamics: crate::dynamics::DynamicsConfig,
+    /// The run's validation without an oracle (`[validation]`, issue 24): absent = the
+    /// defaults (10 % of the nodes held out, the verdicts' thresholds).
+    #[serde(default)]
+    pub validation: crate::run_validation::RunValidationConfig,
 }
 
 /// The controller's tuning constants: how features are told apart, paired and captured, and
@@ -608,6 +612,12 @@ impl PlanConfig {
     pub fn validate(&self) -> Result<(), ValidationError> {
         self.tuning.validate()?;
         self.dynamics
+            .validate()
+            .map_err(|(field, reason)| ValidationError {
+                field: format!("plan.{field}"),
+                reason,
+            })?;
+        self.validation
             .validate()
             .map_err(|(field, reason)| ValidationError {
                 field: format!("plan.{field}"),

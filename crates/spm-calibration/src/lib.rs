@@ -55,6 +55,7 @@ pub mod lcc;
 pub mod machine;
 pub mod measure;
 pub mod plan;
+pub mod run_validation;
 pub mod runner;
 pub mod vertical;
 

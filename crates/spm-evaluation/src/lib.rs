@@ -7,6 +7,8 @@
 //!   method's position and lattice error on them, the realistic grating polynomial.
 //! - [`cubic`]: the total-degree-3 polynomial map of the conventional corrections.
 //! - [`rigid`]: residuals after the best rigid motion.
+//! - [`validation`]: what a run says of itself without an oracle (held-out nodes, repeat
+//!   agreement), on any backend.
 //!
 //! The oracle is reached only through the `spm_hal::truth` traits; the simulator itself is
 //! never named. No I/O, no command line, no clock: the caller takes the instrument and writes
@@ -18,6 +20,7 @@ pub mod accuracy;
 pub mod cubic;
 pub mod images;
 pub mod rigid;
+pub mod validation;
 
 pub use accuracy::{
     Accuracy, EvaluationGrid, PolynomialImage, evaluate, evaluate_field, polynomial_baseline,

@@ -328,3 +328,126 @@ pub fn fit(
         condition_number,
     })
 }
+
+/// The leverage h₀ = x₀ᵀ(XᵀWX)⁻¹x₀ of each point of `at` for the design of `surface`'s degree
+/// and normalisation over the observations `obs` (their values are not used): the variance of
+/// the fitted surface at (x₀, y₀) in units of the variance of one observation of unit weight.
+/// A new measurement there differs from the surface's prediction with a standard deviation of
+/// σ·√(1 + h₀), σ the scatter of one measurement: the prediction interval of a least-squares
+/// fit.
+///
+/// # Errors
+/// Input errors of [`Observations::validate`]; [`RegressionError::TooFewPoints`] if fewer
+/// points with positive weight than terms; [`RegressionError::IllConditioned`] if the design
+/// is singular; [`RegressionError::NonFinite`] for a point of `at` that is not finite.
+pub fn leverages(
+    obs: &Observations<'_>,
+    surface: &Polynomial2,
+    at: &[(f64, f64)],
+) -> Result<Vec<f64>, RegressionError> {
+    let degree = surface.degree();
+    let usable = obs.validate()?;
+    let m = n_terms(degree);
+    if usable < m {
+        return Err(RegressionError::TooFewPoints {
+            degree,
+            needed: m,
+            got: usable,
+        });
+    }
+    if let Some(index) = at.iter().position(|p| !(p.0.is_finite() && p.1.is_finite())) {
+        return Err(RegressionError::NonFinite {
+            field: "leverage point",
+            index,
+        });
+    }
+    let (cx, cy) = surface.center();
+    let (sx, sy) = surface.scale();
+    let (r, _) = streaming_qr(obs, degree, (cx, sx), (cy, sy));
+    let ill = || RegressionError::IllConditioned {
+        degree,
+        condition_number: f64::INFINITY,
+        threshold: f64::INFINITY,
+    };
+    // XᵀWX = RᵀR, so h₀ = ‖R⁻ᵀx₀‖².
+    let rt = r.transpose();
+    let mut row = vec![0.0; m];
+    at.iter()
+        .map(|&(x, y)| {
+            design_row((x - cx) / sx, (y - cy) / sy, degree, &mut row);
+            let u = rt
+                .solve_lower_triangular(&DVector::from_column_slice(&row))
+                .ok_or_else(ill)?;
+            let h = u.norm_squared();
+            if h.is_finite() { Ok(h) } else { Err(ill()) }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod leverage_tests {
+    use super::*;
+
+    fn points(n: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        // Irregular, deterministic points over a field in counts.
+        let x: Vec<f64> = (0..n)
+            .map(|i| -4000.0 + 8000.0 * ((i as f64 * 0.618_034).fract()))
+            .collect();
+        let y: Vec<f64> = (0..n)
+            .map(|i| -3000.0 + 7000.0 * ((i as f64 * 0.414_214 + 0.1).fract()))
+            .collect();
+        let z = vec![0.0; n];
+        (x, y, z)
+    }
+
+    #[test]
+    fn leverage_of_a_plane_is_the_closed_form() {
+        let (x, y, z) = points(40);
+        let obs = Observations::new(&x, &y, &z);
+        let surface = fit(&obs, 1, &FitOptions::default()).expect("fit");
+        let n = x.len() as f64;
+        let (mx, my) = (x.iter().sum::<f64>() / n, y.iter().sum::<f64>() / n);
+        let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
+        for (a, b) in x.iter().zip(&y) {
+            sxx += (a - mx) * (a - mx);
+            sxy += (a - mx) * (b - my);
+            syy += (b - my) * (b - my);
+        }
+        let det = sxx * syy - sxy * sxy;
+        let at = [(0.0, 0.0), (5000.0, -2500.0), (-4000.0, 4000.0)];
+        let h = leverages(&obs, &surface.surface, &at).expect("leverages");
+        for ((x0, y0), h) in at.iter().zip(&h) {
+            let (dx, dy) = (x0 - mx, y0 - my);
+            let expected = 1.0 / n + (syy * dx * dx - 2.0 * sxy * dx * dy + sxx * dy * dy) / det;
+            assert!(
+                (h - expected).abs() < 1e-12 * expected.max(1.0),
+                "h({x0}, {y0}) = {h}, closed form {expected}"
+            );
+        }
+    }
+
+    #[test]
+    fn leverages_at_the_data_sum_to_the_number_of_terms() {
+        let (x, y, z) = points(60);
+        let obs = Observations::new(&x, &y, &z);
+        for degree in 0..=3 {
+            let surface = fit(&obs, degree, &FitOptions::default()).expect("fit");
+            let at: Vec<(f64, f64)> = x.iter().copied().zip(y.iter().copied()).collect();
+            let h = leverages(&obs, &surface.surface, &at).expect("leverages");
+            let trace: f64 = h.iter().sum();
+            assert!(
+                (trace - n_terms(degree) as f64).abs() < 1e-9,
+                "degree {degree}: trace of the hat matrix {trace}"
+            );
+            assert!(h.iter().all(|h| *h > 0.0 && *h <= 1.0 + 1e-12));
+        }
+    }
+
+    #[test]
+    fn a_point_that_is_not_finite_is_an_error() {
+        let (x, y, z) = points(10);
+        let obs = Observations::new(&x, &y, &z);
+        let surface = fit(&obs, 1, &FitOptions::default()).expect("fit");
+        assert!(leverages(&obs, &surface.surface, &[(f64::NAN, 0.0)]).is_err());
+    }
+}

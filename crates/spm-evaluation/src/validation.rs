@@ -11,8 +11,10 @@
 //!   scatter is compared with the records' own stated standard uncertainty, and the mean
 //!   change from the first to the last repeat shows a calibration that moved during the run.
 //!
-//! The corrected image of the standard is measured by the caller, which holds the instrument
-//! (`spmcal`'s validation step), with [`crate::images::lattice`].
+//! - [`lattice_check`]: counter-scanned pairs of the standard imaged over the calibrated
+//!   region after the run (by the caller, which holds the instrument:
+//!   [`crate::images::take_images_without_truth`]), corrected as `spmcal correct` does; the
+//!   lattice constant and angles measured on each, before and after.
 //!
 //! No I/O and no clock; the draw of held-out nodes is a seeded ChaCha permutation.
 
@@ -147,12 +149,26 @@ pub struct HeldOutCheck {
     pub reason: Option<String>,
 }
 
-/// The node indices to hold out: a seeded permutation of the distinct indices, the first
+/// Fewest held-out records for a verdict: below it the RMS ratio is reported without one.
+pub const MIN_RECORDS_FOR_VERDICT: usize = 10;
+
+/// Where a node stands: its commanded (x, y, z), counts. The net's node index is in
+/// trajectory order, which a serpentine plan reverses from one repeat to the next, so places,
+/// not indices, identify a node across repeats.
+pub type NodePlace = (i64, i64, i64);
+
+/// The place of a record's node.
+#[must_use]
+pub fn node_place(r: &LccRecord) -> NodePlace {
+    (r.node_x_counts, r.node_y_counts, r.node_z_counts)
+}
+
+/// The nodes to hold out: a seeded permutation of the distinct places, the first
 /// `round(share · n)` of it, at most all but three (a fit needs the rest), and none when
 /// `share` is 0.
 #[must_use]
-pub fn held_out_nodes(nodes: &BTreeSet<u32>, share: f64, seed: u64) -> BTreeSet<u32> {
-    let mut all: Vec<u32> = nodes.iter().copied().collect();
+pub fn held_out_nodes(nodes: &BTreeSet<NodePlace>, share: f64, seed: u64) -> BTreeSet<NodePlace> {
+    let mut all: Vec<NodePlace> = nodes.iter().copied().collect();
     let wanted = (share * all.len() as f64).round() as usize;
     let k = wanted.min(all.len().saturating_sub(3));
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
@@ -160,7 +176,8 @@ pub fn held_out_nodes(nodes: &BTreeSet<u32>, share: f64, seed: u64) -> BTreeSet<
     all.into_iter().take(k).collect()
 }
 
-/// The held-out check: the records of the held-out nodes ([`held_out_nodes`]) against the
+/// The held-out check: the records of the held-out nodes ([`held_out_nodes`], by place)
+/// against the
 /// surfaces `fit` makes from the other records of their Z plane. `fit(z, records)` must be the
 /// same procedure that makes the calibration file (degree selection included).
 ///
@@ -170,7 +187,7 @@ pub fn held_out_check<E: std::fmt::Display>(
     config: &RunValidationConfig,
     fit: impl Fn(i64, &[&LccRecord]) -> Result<PlaneSurfaces, E>,
 ) -> HeldOutCheck {
-    let nodes: BTreeSet<u32> = records.iter().map(|r| r.node_index).collect();
+    let nodes: BTreeSet<NodePlace> = records.iter().map(node_place).collect();
     let held = held_out_nodes(&nodes, config.holdout_share, config.holdout_seed);
     let mut check = HeldOutCheck {
         share: config.holdout_share,
@@ -195,7 +212,7 @@ pub fn held_out_check<E: std::fmt::Display>(
     let mut planes: BTreeMap<i64, (Vec<&LccRecord>, Vec<&LccRecord>)> = BTreeMap::new();
     for r in records {
         let entry = planes.entry(r.node_z_counts).or_default();
-        if held.contains(&r.node_index) {
+        if held.contains(&node_place(r)) {
             entry.1.push(r);
         } else {
             entry.0.push(r);
@@ -272,6 +289,14 @@ pub fn held_out_check<E: std::fmt::Display>(
         return check;
     }
     check.rms_z = rms(&all);
+    if check.records_held_out < MIN_RECORDS_FOR_VERDICT {
+        check.reason = Some(format!(
+            "{} held-out record(s): a verdict needs at least {MIN_RECORDS_FOR_VERDICT} (the RMS \
+             of a few unit normals scatters by ±1/√(2n))",
+            check.records_held_out
+        ));
+        return check;
+    }
     let [lo, hi] = config.holdout_rms_sigma_range;
     let out: Vec<String> = check
         .coefficients
@@ -328,7 +353,7 @@ pub struct RepeatCoefficient {
 pub struct RepeatAgreement {
     /// Largest number of repeats of a node.
     pub repeats: usize,
-    /// Places (run, Z plane, node and LCS index) measured in at least two repeats.
+    /// Places (run, node place and LCS index) measured in at least two repeats.
     pub places: usize,
     /// Per coefficient.
     pub coefficients: Vec<RepeatCoefficient>,
@@ -340,14 +365,14 @@ pub struct RepeatAgreement {
     pub reason: Option<String>,
 }
 
-/// The repeat agreement of `records`: each place (run, Z plane, node, LCS index) measured in
+/// The repeat agreement of `records`: each place (run, node place, LCS index) measured in
 /// two or more repeats contributes its records' deviations from its mean.
 #[must_use]
 pub fn repeat_agreement(records: &[LccRecord], config: &RunValidationConfig) -> RepeatAgreement {
-    let mut places: BTreeMap<(&str, i64, u32, u32), Vec<&LccRecord>> = BTreeMap::new();
+    let mut places: BTreeMap<(&str, NodePlace, u32), Vec<&LccRecord>> = BTreeMap::new();
     for r in records {
         places
-            .entry((r.run_id.as_str(), r.node_z_counts, r.node_index, r.lcs_index))
+            .entry((r.run_id.as_str(), node_place(r), r.lcs_index))
             .or_default()
             .push(r);
     }
@@ -449,6 +474,215 @@ pub fn repeat_agreement(records: &[LccRecord], config: &RunValidationConfig) -> 
     agreement
 }
 
+/// The lattice at one place of the corrected standard.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LatticePlace {
+    /// Place label ("centre", "corner −x −y", …).
+    pub place: String,
+    /// Lattice-constant error of the uncorrected pair (nominal sensitivity, drift removed by
+    /// the pair), % (None: not measured).
+    pub uncorrected_error_pct: Option<f64>,
+    /// Largest angle error of the uncorrected pair, degrees.
+    pub uncorrected_angle_error_deg: Option<f64>,
+    /// Lattice-constant error after `spmcal correct` with the run's calibration file, %.
+    pub corrected_error_pct: Option<f64>,
+    /// Largest angle error after it, degrees.
+    pub corrected_angle_error_deg: Option<f64>,
+}
+
+/// The lattice of the standard, imaged after the run over the calibrated region and
+/// corrected as a user corrects (`spmcal correct`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LatticeCheck {
+    /// The standard's lattice constant, nm.
+    pub lattice_constant_nm: f64,
+    /// Pixels per line and lines of each image.
+    pub pixels: u32,
+    /// Pixel step, counts.
+    pub step_counts: f64,
+    /// Every place.
+    pub places: Vec<LatticePlace>,
+    /// Places measured after correction.
+    pub corrected_measured: usize,
+    /// Largest |lattice-constant error| after correction, % (NaN: none measured).
+    pub corrected_max_error_pct: f64,
+    /// RMS lattice-constant error after correction, % (its spread over the field).
+    pub corrected_rms_error_pct: f64,
+    /// Largest angle error after correction, degrees.
+    pub corrected_max_angle_error_deg: f64,
+    /// RMS lattice-constant error of the uncorrected pairs, %.
+    pub uncorrected_rms_error_pct: f64,
+    /// The plan's thresholds: |error| %, angle degrees.
+    pub thresholds: [f64; 2],
+    /// Pass, warn or not measured.
+    pub verdict: Verdict,
+    /// Why not measured, or what is out of range.
+    pub reason: Option<String>,
+}
+
+/// The image set of the lattice check: `lattice_places_per_side`² places over the region, one
+/// size with at least 6 pixels per lattice constant (129 pixels, ≈ 20 lattice constants),
+/// the plan's dwell.
+#[must_use]
+pub fn lattice_image_set(plan: &spm_calibration::PlanConfig) -> crate::images::ImageSetConfig {
+    let a_counts = plan.standard.lattice_constant_nm / plan.standard.nominal_nm_per_count;
+    let step = (a_counts / 6.0).floor().max(1.0);
+    crate::images::ImageSetConfig {
+        places_per_side: plan.validation.lattice_places_per_side as usize,
+        sizes: vec![crate::images::ImageSize {
+            pixels: 129,
+            step_counts: step,
+        }],
+        dwells_s: vec![plan.motion.pixel_dwell_s],
+        pause: plan.pause,
+        move_speed_counts_per_s: plan.motion.move_speed_counts_per_s,
+        settle_s: plan.motion.settle_s,
+        lattice_constant_nm: plan.standard.lattice_constant_nm,
+        nominal_nm_per_count: plan.standard.nominal_nm_per_count,
+        min_pixels_per_lattice_constant: 5.0,
+    }
+}
+
+/// The lattice check on `images` (counter-scanned pairs taken with [`lattice_image_set`]):
+/// each pair's lattice uncorrected (the nominal sensitivity) and corrected with `set` as
+/// `spmcal correct` does.
+///
+/// # Errors
+/// As the correction of an image.
+pub fn lattice_check(
+    images: &[crate::images::TestImage],
+    set: &spm_correction::SurfaceSet,
+    config: &crate::images::ImageSetConfig,
+    thresholds: &RunValidationConfig,
+) -> Result<LatticeCheck, crate::images::ImageBenchmarkError> {
+    use crate::images::{ImageCorrection, ImageMethod, PairLattice, lattice_of_pairs};
+    let a = config.lattice_constant_nm;
+    let z = set.planes.first().map_or(0.0, |p| p.z_counts);
+    let nominal = PlaneSurfaces::constant(
+        z,
+        config.nominal_nm_per_count,
+        config.nominal_nm_per_count,
+        0.0,
+    )?;
+    let uncorrected = lattice_of_pairs(
+        images,
+        &ImageMethod {
+            name: "uncorrected".to_owned(),
+            correction: ImageCorrection::Field(Box::new(
+                nominal.field(spm_correction::Route::Products),
+            )),
+        },
+        config,
+    )?;
+    let corrected = lattice_of_pairs(
+        images,
+        &ImageMethod {
+            name: "user_file".to_owned(),
+            correction: ImageCorrection::UserFile(Box::new(set.clone())),
+        },
+        config,
+    )?;
+    let figures = |l: &PairLattice| match *l {
+        PairLattice::Measured { a_nm, angle_deg } => {
+            (Some(100.0 * (a_nm / a - 1.0)), Some(angle_deg))
+        }
+        _ => (None, None),
+    };
+    let places: Vec<LatticePlace> = uncorrected
+        .iter()
+        .zip(&corrected)
+        .map(|((_, place, u), (_, _, c))| {
+            let (ue, ua) = figures(u);
+            let (ce, ca) = figures(c);
+            LatticePlace {
+                place: place.clone(),
+                uncorrected_error_pct: ue,
+                uncorrected_angle_error_deg: ua,
+                corrected_error_pct: ce,
+                corrected_angle_error_deg: ca,
+            }
+        })
+        .collect();
+    let rms = |v: &[f64]| {
+        if v.is_empty() {
+            f64::NAN
+        } else {
+            (v.iter().map(|t| t * t).sum::<f64>() / v.len() as f64).sqrt()
+        }
+    };
+    let ce: Vec<f64> = places
+        .iter()
+        .filter_map(|p| p.corrected_error_pct)
+        .collect();
+    let ca: Vec<f64> = places
+        .iter()
+        .filter_map(|p| p.corrected_angle_error_deg)
+        .collect();
+    let ue: Vec<f64> = places
+        .iter()
+        .filter_map(|p| p.uncorrected_error_pct)
+        .collect();
+    let max_abs = |v: &[f64]| {
+        if v.is_empty() {
+            f64::NAN
+        } else {
+            v.iter().fold(0.0_f64, |m, t| m.max(t.abs()))
+        }
+    };
+    let (e_max, a_max) = (
+        thresholds.lattice_constant_error_pct_max,
+        thresholds.lattice_angle_error_deg_max,
+    );
+    let mut check = LatticeCheck {
+        lattice_constant_nm: a,
+        pixels: config.sizes.first().map_or(0, |s| s.pixels),
+        step_counts: config.sizes.first().map_or(0.0, |s| s.step_counts),
+        corrected_measured: ce.len(),
+        corrected_max_error_pct: max_abs(&ce),
+        corrected_rms_error_pct: rms(&ce),
+        corrected_max_angle_error_deg: max_abs(&ca),
+        uncorrected_rms_error_pct: rms(&ue),
+        places,
+        thresholds: [e_max, a_max],
+        verdict: Verdict::NotMeasured,
+        reason: None,
+    };
+    let failed = check.places.len() - check.corrected_measured;
+    if check.corrected_measured == 0 {
+        check.reason = Some(format!(
+            "the lattice was measured at none of {} places after correction",
+            check.places.len()
+        ));
+        return Ok(check);
+    }
+    let mut problems = Vec::new();
+    if check.corrected_max_error_pct > e_max {
+        problems.push(format!(
+            "lattice constant off by up to {:.2} % (pass ≤ {e_max} %)",
+            check.corrected_max_error_pct
+        ));
+    }
+    if check.corrected_max_angle_error_deg > a_max {
+        problems.push(format!(
+            "angles off by up to {:.2}° (pass ≤ {a_max}°)",
+            check.corrected_max_angle_error_deg
+        ));
+    }
+    if failed > 0 {
+        problems.push(format!(
+            "not measured at {failed} of {} places",
+            check.places.len()
+        ));
+    }
+    check.verdict = if problems.is_empty() {
+        Verdict::Pass
+    } else {
+        Verdict::Warn
+    };
+    check.reason = (!problems.is_empty()).then(|| problems.join("; "));
+    Ok(check)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -468,16 +702,25 @@ mod tests {
     /// Records on an `n`×`n` net, `repeats` passes, each LCC with Gaussian noise of standard
     /// deviation `noise` (relative for K, absolute rad for α) and a stated u of
     /// `stated_factor · noise`, plus `per_repeat` added to K̄x per repeat index.
-    fn records(n: u32, repeats: u32, noise: f64, stated_factor: f64, per_repeat: f64) -> Vec<LccRecord> {
+    fn records(
+        n: u32,
+        repeats: u32,
+        noise: f64,
+        stated_factor: f64,
+        per_repeat: f64,
+    ) -> Vec<LccRecord> {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
         let normal = Normal::new(0.0, 1.0).expect("normal");
         let mut out = Vec::new();
         for repeat in 0..repeats {
             for j in 0..n {
                 for i in 0..n {
-                    let x = -8000.0 + 16000.0 * f64::from(i) / f64::from(n - 1)
-                        + rng.random_range(-50.0..50.0);
+                    let node_x = -8000.0 + 16000.0 * f64::from(i) / f64::from(n - 1);
                     let y = -8000.0 + 16000.0 * f64::from(j) / f64::from(n - 1);
+                    // The LCS lies near its node; the trajectory is serpentine, so the node
+                    // index runs backwards in odd repeats.
+                    let x = node_x + rng.random_range(-50.0..50.0);
+                    let index = j * n + i;
                     let [kx, ky, alpha] = truth(x, y);
                     let e = |rng: &mut rand_chacha::ChaCha8Rng| normal.sample(rng) * noise;
                     out.push(LccRecord {
@@ -485,16 +728,19 @@ mod tests {
                         run_id: "r".into(),
                         acquired_unix_s: 0.0,
                         repeat_index: repeat,
-                        node_index: j * n + i,
+                        node_index: if repeat % 2 == 1 {
+                            n * n - 1 - index
+                        } else {
+                            index
+                        },
                         lcs_index: 0,
-                        node_x_counts: x as i64,
+                        node_x_counts: node_x as i64,
                         node_y_counts: y as i64,
                         node_z_counts: 0,
                         lcs_x_counts: x,
                         lcs_y_counts: y,
                         lcs_z_counts: 0.0,
-                        kx_nm_per_count: kx * (1.0 + e(&mut rng))
-                            + per_repeat * f64::from(repeat),
+                        kx_nm_per_count: kx * (1.0 + e(&mut rng)) + per_repeat * f64::from(repeat),
                         ky_nm_per_count: ky * (1.0 + e(&mut rng)),
                         alpha_rad: alpha + e(&mut rng),
                         kz_nm_per_count: None,
@@ -544,14 +790,14 @@ mod tests {
 
     #[test]
     fn the_draw_is_seeded_and_holds_the_share() {
-        let nodes: BTreeSet<u32> = (0..256).collect();
+        let nodes: BTreeSet<NodePlace> = (0..256).map(|i| (i % 16, i / 16, 0)).collect();
         let a = held_out_nodes(&nodes, 0.1, 1);
         assert_eq!(a.len(), 26);
         assert_eq!(a, held_out_nodes(&nodes, 0.1, 1));
         assert_ne!(a, held_out_nodes(&nodes, 0.1, 2));
         assert!(held_out_nodes(&nodes, 0.0, 1).is_empty());
         // A fit keeps at least three nodes.
-        let few: BTreeSet<u32> = (0..4).collect();
+        let few: BTreeSet<NodePlace> = (0..4).map(|i| (i, 0, 0)).collect();
         assert_eq!(held_out_nodes(&few, 0.5, 1).len(), 1);
     }
 
@@ -579,13 +825,13 @@ mod tests {
             ..RunValidationConfig::default()
         };
         let held = held_out_nodes(
-            &recs.iter().map(|r| r.node_index).collect(),
+            &recs.iter().map(node_place).collect(),
             config.holdout_share,
             config.holdout_seed,
         );
         // The held-out places see a K̄x 0.4 % off the field (a local defect the net's other
         // nodes cannot show): 4 σ.
-        for r in recs.iter_mut().filter(|r| held.contains(&r.node_index)) {
+        for r in recs.iter_mut().filter(|r| held.contains(&node_place(r))) {
             r.kx_nm_per_count *= 1.004;
         }
         let check = held_out_check(&recs, &config, fit_plane);
@@ -606,7 +852,10 @@ mod tests {
         assert_eq!(a.verdict, Verdict::Pass, "{a:?}");
         for c in &a.coefficients {
             assert!((0.85..1.15).contains(&c.scatter_over_stated), "{c:?}");
-            assert!(c.first_to_last_mean.abs() < 3.0 * c.first_to_last_se, "{c:?}");
+            assert!(
+                c.first_to_last_mean.abs() < 3.0 * c.first_to_last_se,
+                "{c:?}"
+            );
         }
     }
 

@@ -267,6 +267,28 @@ impl LccColumns {
     pub fn is_empty(&self) -> bool {
         self.kx_nm_per_count.is_empty()
     }
+
+    /// Appends one record's regression inputs.
+    pub fn push(&mut self, r: &LccRecord) {
+        self.lcs_x_counts.push(r.lcs_x_counts);
+        self.lcs_y_counts.push(r.lcs_y_counts);
+        self.node_z_counts.push(r.node_z_counts);
+        self.acquired_unix_s.push(r.acquired_unix_s);
+        self.kx_nm_per_count.push(r.kx_nm_per_count);
+        self.ky_nm_per_count.push(r.ky_nm_per_count);
+        self.alpha_rad.push(r.alpha_rad);
+        self.kz_nm_per_count.push(r.kz_nm_per_count);
+    }
+}
+
+impl<'a> FromIterator<&'a LccRecord> for LccColumns {
+    fn from_iter<I: IntoIterator<Item = &'a LccRecord>>(records: I) -> Self {
+        let mut columns = Self::default();
+        for r in records {
+            columns.push(r);
+        }
+        columns
+    }
 }
 
 /// A calibration coefficient tracked by a store's age-dynamics query.

@@ -355,7 +355,10 @@ pub fn leverages(
             got: usable,
         });
     }
-    if let Some(index) = at.iter().position(|p| !(p.0.is_finite() && p.1.is_finite())) {
+    if let Some(index) = at
+        .iter()
+        .position(|p| !(p.0.is_finite() && p.1.is_finite()))
+    {
         return Err(RegressionError::NonFinite {
             field: "leverage point",
             index,

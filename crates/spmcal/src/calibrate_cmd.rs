@@ -246,13 +246,14 @@ pub fn run(
     };
     let mut recorder = RecordingObserver::new(&mut stoppable);
     let started = Instant::now();
-    let outcome = run_job(&job, &cdb_path, start, start_unix_s, &mut recorder).map_err(|e| {
-        if e.is_bad_input() {
-            CliError::BadInput(e.to_string())
-        } else {
-            CliError::RunFailed(e.to_string())
-        }
-    })?;
+    let mut outcome =
+        run_job(&job, &cdb_path, start, start_unix_s, &mut recorder).map_err(|e| {
+            if e.is_bad_input() {
+                CliError::BadInput(e.to_string())
+            } else {
+                CliError::RunFailed(e.to_string())
+            }
+        })?;
     let wall_time_s = started.elapsed().as_secs_f64();
     let samples = recorder.into_samples();
     progress.finish();
@@ -273,7 +274,10 @@ pub fn run(
             ),
         }));
     }
-    let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s);
+    // The standard imaged over the calibrated region, for the validation's lattice check.
+    let standard = spmcal::run::standard_images(&mut outcome.instrument, &job.plan, &samples.nodes);
+    let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s)
+        .with_standard_images(standard.as_ref());
     let report = finish_with(
         &cdb_path,
         &out,

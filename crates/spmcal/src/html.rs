@@ -264,6 +264,120 @@ impl Page {
     }
 }
 
+/// The validation without an oracle (every backend): held-out nodes and repeat agreement,
+/// each with its verdict.
+fn validation_section(page: &mut Page, v: &crate::report::Validation) {
+    use spm_evaluation::validation::Verdict;
+    page.section(
+        "validation",
+        "Validation without an oracle (every backend, issue 24)",
+    );
+    let verdict = |v: Verdict, reason: &Option<String>| match reason {
+        Some(r) => format!("{}: {r}", v.as_str()),
+        None => v.as_str().to_owned(),
+    };
+    let h = &v.held_out;
+    page.paragraph_with_id(
+        "validation-held-out",
+        &format!(
+            "Held-out nodes: {} of {} nodes (share {}, seed {}) left out of a second fit by the \
+             same procedure; their {} records against its prediction. RMS of (measured − \
+             predicted)/(σ·√(1 + h)) = {} (pass range {}–{}). Verdict: {}.",
+            h.nodes_held_out,
+            h.nodes,
+            h.share,
+            h.seed,
+            h.records_held_out,
+            if h.rms_z.is_nan() {
+                "not measured".to_owned()
+            } else {
+                format!("{:.2}", h.rms_z)
+            },
+            h.pass_range[0],
+            h.pass_range[1],
+            verdict(h.verdict, &h.reason)
+        ),
+    );
+    if !h.coefficients.is_empty() {
+        let rows: Vec<Row> = h
+            .coefficients
+            .iter()
+            .map(|c| {
+                Row::new(
+                    c.coefficient,
+                    vec![
+                        Cell::text(c.coefficient),
+                        Cell::count(c.records),
+                        Cell::number(c.rms_z, 2),
+                        Cell::number(c.max_abs_z, 2),
+                        Cell::significant(c.rms_error),
+                        Cell::significant(c.rms_prediction_sd),
+                        Cell::text(c.unit),
+                    ],
+                )
+            })
+            .collect();
+        page.table(
+            "validation-held-out-table",
+            &[
+                "coefficient",
+                "records",
+                "RMS ratio",
+                "max |ratio|",
+                "RMS error",
+                "RMS predicted σ",
+                "unit",
+            ],
+            &rows,
+        );
+    }
+    let r = &v.repeats;
+    page.paragraph_with_id(
+        "validation-repeats",
+        &format!(
+            "Repeat agreement: {} place(s) measured in 2–{} repeats. Pooled repeat scatter over \
+             the records' stated uncertainty, at most {} to pass. Verdict: {}.",
+            r.places,
+            r.repeats,
+            r.scatter_over_stated_max,
+            verdict(r.verdict, &r.reason)
+        ),
+    );
+    if !r.coefficients.is_empty() {
+        let rows: Vec<Row> = r
+            .coefficients
+            .iter()
+            .map(|c| {
+                Row::new(
+                    c.coefficient,
+                    vec![
+                        Cell::text(c.coefficient),
+                        Cell::significant(c.pooled_scatter),
+                        Cell::significant(c.stated_u_rms),
+                        Cell::number(c.scatter_over_stated, 2),
+                        Cell::significant(c.first_to_last_mean),
+                        Cell::significant(c.first_to_last_se),
+                        Cell::text(c.unit),
+                    ],
+                )
+            })
+            .collect();
+        page.table(
+            "validation-repeats-table",
+            &[
+                "coefficient",
+                "pooled scatter",
+                "stated u (RMS)",
+                "scatter ÷ stated",
+                "last − first repeat (mean)",
+                "its standard error",
+                "unit",
+            ],
+            &rows,
+        );
+    }
+}
+
 /// Columns of an accuracy table (report.json `accuracy.<method>`).
 const ACCURACY_HEADER: [&str; 6] = [
     "method",
@@ -603,6 +717,8 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
         ),
     ];
     page.table("metadata-table", &["quantity", "value"], &rows);
+
+    validation_section(&mut page, &report.validation);
 
     page.section("accuracy", "Accuracy against the simulator's ground truth");
     match &report.accuracy {

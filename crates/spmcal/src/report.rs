@@ -187,12 +187,75 @@ pub struct CalibrationReport {
     /// The scanner dynamics identified in situ (issue 23), against the simulator's own where
     /// there is one.
     pub dynamics: Option<crate::dynamics::DynamicsReport>,
+    /// What the run says of itself without an oracle (issue 24): held-out nodes, repeat
+    /// agreement and the corrected standard's lattice, with pass/warn verdicts against the
+    /// plan's `[validation]` thresholds. Every backend.
+    pub validation: Validation,
     /// The calibrator's own report (cycles, given-up nodes with reasons, …).
     pub run: RunReport,
     /// The drift estimates of the run.
     pub drift: DriftHistory,
     /// How the figures were measured, and what is not.
     pub notes: Vec<String>,
+}
+
+/// Validation without an oracle (report.json's `validation`).
+#[derive(Debug, Clone, Serialize)]
+pub struct Validation {
+    /// Predicted against measured LCCs at the nodes held out of a second fit.
+    pub held_out: spm_evaluation::validation::HeldOutCheck,
+    /// Repeat-to-repeat agreement at each node.
+    pub repeats: spm_evaluation::validation::RepeatAgreement,
+    /// The corrected standard's lattice over the calibrated region (`None`: no images were
+    /// taken, e.g. `lattice_places_per_side = 0`).
+    pub lattice: Option<spm_evaluation::validation::LatticeCheck>,
+    /// Why the lattice check could not be made, when images were asked for.
+    pub lattice_failure: Option<String>,
+}
+
+impl Validation {
+    /// The checks over `records` (the scanner's records the surfaces were fitted from), and
+    /// the lattice of the standard's `images` corrected with `set`.
+    fn of(
+        records: &[spm_cdb::LccRecord],
+        plan: &PlanConfig,
+        set: &spm_correction::SurfaceSet,
+        images: Option<&Result<Vec<spm_evaluation::images::TestImage>, String>>,
+    ) -> Self {
+        let usable: Vec<spm_cdb::LccRecord> = records
+            .iter()
+            .filter(|r| crate::surfaces::record_is_usable(r))
+            .cloned()
+            .collect();
+        let options = SurfaceFitOptions::bic_up_to(MAX_SURFACE_DEGREE);
+        let held_out =
+            spm_evaluation::validation::held_out_check(&usable, &plan.validation, |z, records| {
+                crate::surfaces::fit_plane_of_records(z, records, &options)
+            });
+        let repeats = spm_evaluation::validation::repeat_agreement(&usable, &plan.validation);
+        let (lattice, lattice_failure) = match images {
+            None => (None, None),
+            Some(Err(e)) => (None, Some(format!("the images were not taken: {e}"))),
+            Some(Ok(images)) => match spm_evaluation::validation::lattice_check(
+                images,
+                set,
+                &spm_evaluation::validation::lattice_image_set(plan),
+                &plan.validation,
+            ) {
+                Ok(check) => (Some(check), None),
+                Err(e) => (
+                    None,
+                    Some(format!("the images could not be corrected: {e}")),
+                ),
+            },
+        };
+        Self {
+            held_out,
+            repeats,
+            lattice,
+            lattice_failure,
+        }
+    }
 }
 
 /// Everything the post-run steps need.
@@ -217,6 +280,9 @@ pub struct RunRecord<'a> {
     pub true_dynamics: Option<crate::dynamics::TrueDynamics>,
     /// Wall time of the run, s.
     pub wall_time_s: f64,
+    /// The standard imaged over the calibrated region after the run, for the validation's
+    /// lattice check ([`crate::run::standard_images`]); `None` when not taken.
+    pub standard_images: Option<&'a Result<Vec<spm_evaluation::images::TestImage>, String>>,
 }
 
 /// What a report judges a calibration against: a ground truth that can also take the image
@@ -272,6 +338,19 @@ impl<'a> RunRecord<'a> {
                 .simulator()
                 .map(crate::dynamics::TrueDynamics::of),
             wall_time_s,
+            standard_images: None,
+        }
+    }
+
+    /// The record with the standard's images for the validation's lattice check.
+    #[must_use]
+    pub fn with_standard_images(
+        self,
+        images: Option<&'a Result<Vec<spm_evaluation::images::TestImage>, String>>,
+    ) -> Self {
+        Self {
+            standard_images: images,
+            ..self
         }
     }
 }
@@ -348,6 +427,44 @@ impl CalibrationReport {
                 e.alpha_rms_mrad
             );
         }
+        let h = &self.validation.held_out;
+        let _ = writeln!(
+            t,
+            "validation, held-out nodes ({} of {}, {} records): RMS (measured − predicted)/σ = {:.2}, pass {}–{}: {}{}",
+            h.nodes_held_out,
+            h.nodes,
+            h.records_held_out,
+            h.rms_z,
+            h.pass_range[0],
+            h.pass_range[1],
+            h.verdict.as_str().to_uppercase(),
+            h.reason
+                .as_deref()
+                .map(|r| format!(" ({r})"))
+                .unwrap_or_default()
+        );
+        let r = &self.validation.repeats;
+        let ratios: Vec<String> = r
+            .coefficients
+            .iter()
+            .map(|c| format!("{} {:.2}", c.coefficient, c.scatter_over_stated))
+            .collect();
+        let _ = writeln!(
+            t,
+            "validation, repeat agreement ({} places): scatter ÷ stated u = {}, pass ≤ {}: {}{}",
+            r.places,
+            if ratios.is_empty() {
+                "-".to_owned()
+            } else {
+                ratios.join(", ")
+            },
+            r.scatter_over_stated_max,
+            r.verdict.as_str().to_uppercase(),
+            r.reason
+                .as_deref()
+                .map(|r| format!(" ({r})"))
+                .unwrap_or_default()
+        );
         t
     }
 }
@@ -490,6 +607,7 @@ pub fn finish_with(
             crate::vertical::evaluate(truth, record.plan, &fitted.set, &all)
         }),
         dynamics,
+        validation: Validation::of(&all, record.plan, &fitted.set, record.standard_images),
         run: record.run.clone(),
         drift,
         notes,

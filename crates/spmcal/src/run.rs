@@ -460,6 +460,45 @@ impl FinishedInstrument {
     }
 }
 
+/// The standard imaged over the region of the measured `nodes` after the run, for the
+/// validation's lattice check (counter-scanned pairs at the plan's
+/// `validation.lattice_places_per_side`² places): on the controller or the stored image
+/// itself, and on a copy of a simulator (so that the image benchmark, which takes its own
+/// images on another copy, sees the instrument as the run left it). `None` when the plan asks
+/// for no places or the nodes span no area.
+pub fn standard_images(
+    instrument: &mut FinishedInstrument,
+    plan: &spm_calibration::PlanConfig,
+    nodes: &[NodeSample],
+) -> Option<Result<Vec<spm_evaluation::images::TestImage>, String>> {
+    use spm_evaluation::images::{CountRegion, take_images_without_truth};
+    if plan.validation.lattice_places_per_side == 0 {
+        return None;
+    }
+    let region = crate::plots::Region::around(nodes, 0.0)
+        .filter(|r| r.x_max_counts > r.x_min_counts && r.y_max_counts > r.y_min_counts)?;
+    let region = CountRegion {
+        x_min_counts: region.x_min_counts,
+        x_max_counts: region.x_max_counts,
+        y_min_counts: region.y_min_counts,
+        y_max_counts: region.y_max_counts,
+    };
+    let config = spm_evaluation::validation::lattice_image_set(plan);
+    let taken = match instrument {
+        FinishedInstrument::Sim(sim) => {
+            let mut copy = (**sim).clone();
+            take_images_without_truth(&mut copy, &region, &config)
+        }
+        FinishedInstrument::Nanonis(nanonis) => {
+            take_images_without_truth(&mut **nanonis, &region, &config)
+        }
+        FinishedInstrument::Virtual(virt) => {
+            take_images_without_truth(&mut **virt, &region, &config)
+        }
+    };
+    Some(taken.map_err(|e| e.to_string()))
+}
+
 /// An opened instrument of one of the [`Backend`]s.
 enum Instrument {
     /// The simulated microscope.

@@ -99,6 +99,40 @@ fn usable(x: f64, y: f64, kx: f64, ky: f64, alpha: f64, kz: Option<f64>) -> bool
         && kz.is_none_or(|kz| kz.is_finite() && kz > 0.0)
 }
 
+/// Whether `cdb check` accepts a record's regression inputs ([`usable`]): the records a fit
+/// uses.
+#[must_use]
+pub fn record_is_usable(r: &spm_cdb::LccRecord) -> bool {
+    usable(
+        r.lcs_x_counts,
+        r.lcs_y_counts,
+        r.kx_nm_per_count,
+        r.ky_nm_per_count,
+        r.alpha_rad,
+        r.kz_nm_per_count,
+    )
+}
+
+/// The surfaces of one Z plane fitted from `records` (all of that plane) by the procedure
+/// that makes the calibration file ([`fit_plane`]): the validation's held-out fit.
+///
+/// # Errors
+/// As [`fit_plane`]; [`SurfaceFitError::TooFewRecords`] below [`MIN_RECORDS_PER_PLANE`].
+pub fn fit_plane_of_records(
+    z_counts: i64,
+    records: &[&spm_cdb::LccRecord],
+    options: &SurfaceFitOptions,
+) -> Result<PlaneSurfaces, SurfaceFitError> {
+    let columns: LccColumns = records.iter().copied().collect();
+    if columns.len() < MIN_RECORDS_PER_PLANE {
+        return Err(SurfaceFitError::TooFewRecords {
+            z_counts,
+            n: columns.len(),
+        });
+    }
+    fit_plane(z_counts, &columns, options).map(|(plane, _)| plane)
+}
+
 /// Keeps the records that `cdb check` accepts ([`usable`]); returns how many were left out.
 fn keep_valid(columns: &mut LccColumns) -> usize {
     let n = columns.len();
@@ -331,14 +365,7 @@ fn records_used(
     let mut hasher = sha2::Sha256::new();
     let mut run_ids: Vec<String> = Vec::new();
     cdb.for_each_record(&filter, &mut |record| {
-        if usable(
-            record.lcs_x_counts,
-            record.lcs_y_counts,
-            record.kx_nm_per_count,
-            record.ky_nm_per_count,
-            record.alpha_rad,
-            record.kz_nm_per_count,
-        ) {
+        if record_is_usable(&record) {
             // Serialising a plain record cannot fail; an empty line would still be hashed.
             let line = serde_json::to_vec(&record).unwrap_or_default();
             hasher.update(&line);

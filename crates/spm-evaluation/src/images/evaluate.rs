@@ -287,6 +287,91 @@ fn position_figures(corrected: &[[f64; 2]], image: &TestImage, nominal: f64) -> 
     (ms.sqrt() * 1e3, max * 1e3, 100.0 * ms.sqrt() / side_nm)
 }
 
+/// The lattice of one counter-scanned pair, corrected by a method.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum PairLattice {
+    /// Not the direct image of a pair that resolves the lattice.
+    NotApplicable,
+    /// The measurement failed (too few atoms matched, a drift that does not explain them).
+    Failed,
+    /// Measured on the corrected direct image.
+    Measured {
+        /// Mean length of the three lattice vectors, nm.
+        a_nm: f64,
+        /// Largest deviation of the angles between them from 60°, degrees.
+        angle_deg: f64,
+    },
+}
+
+/// The lattice of the pair whose direct image is `images[k]` (`map`: its corrected
+/// coordinates by `method`), measured once per pair on its direct image; the raw images'
+/// atoms are detected once per pair (`raw_atoms`, keyed by `k`), whatever the method.
+fn pair_lattice(
+    method: &ImageMethod<'_>,
+    images: &[TestImage],
+    k: usize,
+    map: &CoordinateMap,
+    config: &ImageSetConfig,
+    raw_atoms: &mut BTreeMap<usize, (Vec<Feature>, Vec<Feature>)>,
+) -> Result<PairLattice, ImageBenchmarkError> {
+    let Some(image) = images.get(k) else {
+        return Ok(PairLattice::NotApplicable);
+    };
+    let nominal = config.nominal_nm_per_count;
+    let period_px = config.lattice_constant_nm / nominal / image.size.step_counts.max(1e-9);
+    let Some(counter) = images
+        .get(k + 1)
+        .filter(|c| c.pair == image.pair && c.direction == ScanDirection::Counter)
+    else {
+        return Ok(PairLattice::NotApplicable);
+    };
+    if image.direction != ScanDirection::Direct
+        || period_px < config.min_pixels_per_lattice_constant
+    {
+        return Ok(PairLattice::NotApplicable);
+    }
+    let counter_map = coordinate_map(method, counter, k + 1)?;
+    let raw = raw_atoms
+        .entry(k)
+        .or_insert_with(|| (atoms(&image.map, period_px), atoms(&counter.map, period_px)));
+    Ok(
+        match measure_lattice(
+            map,
+            &counter_map,
+            &image.map,
+            &counter.map,
+            (&raw.0, &raw.1),
+            config.lattice_constant_nm,
+        ) {
+            Some((a_nm, angle_deg)) => PairLattice::Measured { a_nm, angle_deg },
+            None => PairLattice::Failed,
+        },
+    )
+}
+
+/// The lattice of every counter-scanned pair of `images` corrected by `method`, with no
+/// ground truth (the run's validation): `(pair, place, lattice)` per pair.
+///
+/// # Errors
+/// As the correction of an image.
+pub fn lattice_of_pairs(
+    images: &[TestImage],
+    method: &ImageMethod<'_>,
+    config: &ImageSetConfig,
+) -> Result<Vec<(usize, String, PairLattice)>, ImageBenchmarkError> {
+    let mut raw_atoms = BTreeMap::new();
+    let mut out = Vec::new();
+    for (k, image) in images.iter().enumerate() {
+        if image.direction != ScanDirection::Direct {
+            continue;
+        }
+        let map = coordinate_map(method, image, k)?;
+        let lattice = pair_lattice(method, images, k, &map, config, &mut raw_atoms)?;
+        out.push((image.pair, image.place.clone(), lattice));
+    }
+    Ok(out)
+}
+
 /// Corrects every image with every method and summarises.
 ///
 /// # Errors
@@ -297,7 +382,6 @@ pub fn evaluate_images(
     config: &ImageSetConfig,
 ) -> Result<ImageBenchmark, ImageBenchmarkError> {
     let nominal = config.nominal_nm_per_count;
-    let a_true = config.lattice_constant_nm;
     let mut rows: Vec<ImageRow> = images
         .iter()
         .map(|image| ImageRow {
@@ -342,35 +426,16 @@ pub fn evaluate_images(
                 lattice_angle_error_deg: None,
             };
             // The lattice figure once per pair, on its direct image.
-            let period_px = config.lattice_constant_nm / nominal / image.size.step_counts.max(1e-9);
-            if image.direction == ScanDirection::Direct
-                && period_px >= config.min_pixels_per_lattice_constant
-                && let Some(counter) = images
-                    .get(k + 1)
-                    .filter(|c| c.pair == image.pair && c.direction == ScanDirection::Counter)
-            {
-                let counter_map = coordinate_map(method, counter, k + 1)?;
-                let raw = raw_atoms.entry(k).or_insert_with(|| {
-                    (atoms(&image.map, period_px), atoms(&counter.map, period_px))
-                });
-                let measured = measure_lattice(
-                    &map,
-                    &counter_map,
-                    &image.map,
-                    &counter.map,
-                    (&raw.0, &raw.1),
-                    a_true,
-                );
-                match measured {
-                    Some((a_nm, angle)) => {
-                        let e = 100.0 * (a_nm / config.lattice_constant_nm - 1.0);
-                        lattice.push(e.abs());
-                        angle_max = angle_max.max(angle);
-                        figures.lattice_error_pct = Some(e);
-                        figures.lattice_angle_error_deg = Some(angle);
-                    }
-                    None => failures += 1,
+            match pair_lattice(method, images, k, &map, config, &mut raw_atoms)? {
+                PairLattice::Measured { a_nm, angle_deg } => {
+                    let e = 100.0 * (a_nm / config.lattice_constant_nm - 1.0);
+                    lattice.push(e.abs());
+                    angle_max = angle_max.max(angle_deg);
+                    figures.lattice_error_pct = Some(e);
+                    figures.lattice_angle_error_deg = Some(angle_deg);
                 }
+                PairLattice::Failed => failures += 1,
+                PairLattice::NotApplicable => {}
             }
             rows[k].figures.insert(method.name.clone(), figures);
         }

@@ -36,11 +36,13 @@ mod user_file;
 pub use crate::cubic::CubicMap;
 pub use evaluate::{
     DynamicsSummary, ImageBenchmark, ImageCorrection, ImageFigures, ImageMethod,
-    ImageMethodSummary, ImageRow, evaluate_images,
+    ImageMethodSummary, ImageRow, PairLattice, evaluate_images, lattice_of_pairs,
 };
 pub use grating::{GratingConfig, grating_polynomial};
 pub use lattice::{match_features, measure_lattice};
-pub use take::{CountRegion, ImageSetConfig, ImageSize, TestImage, take_test_images};
+pub use take::{
+    CountRegion, ImageSetConfig, ImageSize, TestImage, take_images_without_truth, take_test_images,
+};
 
 /// Why the image benchmark failed.
 #[derive(Debug, thiserror::Error)]

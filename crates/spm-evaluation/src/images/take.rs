@@ -175,6 +175,10 @@ fn places(region: &CountRegion, n: usize, half: f64) -> Vec<(String, [f64; 2])> 
 
 /// Geometry-ordered copy of a forward trace's per-pixel values (acquisition order in).
 fn to_geometry<T: Copy>(values: &[T], nx: usize, ny: usize, direction: ScanDirection) -> Vec<T> {
+    if values.len() != nx * ny {
+        // No truth recorded (or a short recording): nothing to reorder.
+        return Vec::new();
+    }
     match direction {
         ScanDirection::Direct => values.to_vec(),
         ScanDirection::Counter => {
@@ -201,98 +205,131 @@ pub fn take_test_images<S: SimulatedInstrument>(
     region: &CountRegion,
     config: &ImageSetConfig,
 ) -> Result<Vec<TestImage>, ImageBenchmarkError> {
+    instrument.inner_mut().record_tip_positions(true);
+    let result = take_images(instrument, region, config, |sim, n| {
+        let truth: Vec<[f64; 2]> = sim
+            .inner_mut()
+            .last_scan_tip_positions()
+            .iter()
+            .map(|p| [p.x.value(), p.y.value()])
+            .collect();
+        let effective: Vec<[f64; 2]> = sim
+            .inner_mut()
+            .last_scan_effective_inputs()
+            .iter()
+            .map(|p| [p.x.value(), p.y.value()])
+            .collect();
+        if truth.len() != n {
+            return Err(ImageBenchmarkError::Config(format!(
+                "truth recording holds {} of {n} pixels",
+                truth.len(),
+            )));
+        }
+        Ok((truth, effective))
+    });
+    instrument.inner_mut().record_tip_positions(false);
+    result
+}
+
+/// Takes the image set on any instrument, with no ground truth: the images' `truth_nm` and
+/// `true_effective_acquisition` are empty (the run's validation on a real controller or a
+/// stored image).
+///
+/// # Errors
+/// [`ImageBenchmarkError::Instrument`] when an image fails [`ATTEMPTS`] times.
+pub fn take_images_without_truth<M: Microscope>(
+    instrument: &mut M,
+    region: &CountRegion,
+    config: &ImageSetConfig,
+) -> Result<Vec<TestImage>, ImageBenchmarkError> {
+    take_images(instrument, region, config, |_, _| {
+        Ok((Vec::new(), Vec::new()))
+    })
+}
+
+/// The image set: at each size, dwell and place, a move, the pause, a direct raster and at
+/// once its counter raster. `truth(instrument, pixels)` gives the true tip positions and
+/// effective inputs of the scan just taken (acquisition order), when there are any.
+fn take_images<M: Microscope>(
+    sim: &mut M,
+    region: &CountRegion,
+    config: &ImageSetConfig,
+    mut truth: impl FnMut(&mut M, usize) -> TruthOfScan,
+) -> Result<Vec<TestImage>, ImageBenchmarkError> {
     if config.sizes.is_empty() || config.dwells_s.is_empty() || config.places_per_side == 0 {
         return Err(ImageBenchmarkError::Config(
             "no sizes, dwells or places".to_owned(),
         ));
     }
-    instrument.inner_mut().record_tip_positions(true);
-    let sim = &mut *instrument;
     let mut images = Vec::new();
     let mut pair = 0;
-    let result = (|| {
-        for size in &config.sizes {
-            let half = 0.5 * size.side_counts();
-            let spots = places(region, config.places_per_side, half);
-            for &dwell in &config.dwells_s {
-                for (name, centre) in &spots {
-                    let from = sim
-                        .position()
-                        .map_err(|e| ImageBenchmarkError::Instrument {
-                            index: images.len(),
-                            what: "position",
-                            attempts: 1,
-                            message: e.to_string(),
-                        })?;
-                    let distance = (centre[0] - from.x.value()).hypot(centre[1] - from.y.value());
-                    let centre_point = CountPoint::from_counts(centre[0], centre[1]);
-                    retry(images.len(), "move", || {
-                        sim.move_to(MoveRequest {
-                            target: centre_point,
-                            speed: spm_hal::CountsPerSecond(config.move_speed_counts_per_s),
-                            settle: Seconds(config.settle_s),
-                        })
+    for size in &config.sizes {
+        let half = 0.5 * size.side_counts();
+        let spots = places(region, config.places_per_side, half);
+        for &dwell in &config.dwells_s {
+            for (name, centre) in &spots {
+                let from = sim
+                    .position()
+                    .map_err(|e| ImageBenchmarkError::Instrument {
+                        index: images.len(),
+                        what: "position",
+                        attempts: 1,
+                        message: e.to_string(),
                     })?;
-                    let pause = config.pause.pause(Counts(distance), 0);
-                    retry(images.len(), "pause", || sim.wait(pause))?;
-                    let request = ScanRequest::centred_square(
-                        centre_point,
-                        Counts(size.step_counts),
-                        size.pixels,
-                        Seconds(dwell),
-                    );
-                    for direction in [ScanDirection::Direct, ScanDirection::Counter] {
-                        let request = request.clone().with_direction(direction);
-                        let frame = retry(images.len(), "scan", || sim.scan(&request))?;
-                        let truth = sim.inner_mut().last_scan_tip_positions();
-                        let effective: Vec<[f64; 2]> = sim
-                            .inner_mut()
-                            .last_scan_effective_inputs()
-                            .iter()
-                            .map(|p| [p.x.value(), p.y.value()])
-                            .collect();
-                        let map = frame
-                            .height_map(TraceHalf::Forward)
-                            .map_err(|e| ImageBenchmarkError::Config(format!("height map: {e}")))?;
-                        let n = size.pixels as usize;
-                        let truth: Vec<[f64; 2]> =
-                            truth.iter().map(|p| [p.x.value(), p.y.value()]).collect();
-                        if truth.len() != n * n {
-                            return Err(ImageBenchmarkError::Config(format!(
-                                "truth recording holds {} of {} pixels",
-                                truth.len(),
-                                n * n
-                            )));
+                let distance = (centre[0] - from.x.value()).hypot(centre[1] - from.y.value());
+                let centre_point = CountPoint::from_counts(centre[0], centre[1]);
+                retry(images.len(), "move", || {
+                    sim.move_to(MoveRequest {
+                        target: centre_point,
+                        speed: spm_hal::CountsPerSecond(config.move_speed_counts_per_s),
+                        settle: Seconds(config.settle_s),
+                    })
+                })?;
+                let pause = config.pause.pause(Counts(distance), 0);
+                retry(images.len(), "pause", || sim.wait(pause))?;
+                let request = ScanRequest::centred_square(
+                    centre_point,
+                    Counts(size.step_counts),
+                    size.pixels,
+                    Seconds(dwell),
+                );
+                for direction in [ScanDirection::Direct, ScanDirection::Counter] {
+                    let request = request.clone().with_direction(direction);
+                    let frame = retry(images.len(), "scan", || sim.scan(&request))?;
+                    let n = size.pixels as usize;
+                    let (truth, effective) = truth(sim, n * n)?;
+                    let map = frame
+                        .height_map(TraceHalf::Forward)
+                        .map_err(|e| ImageBenchmarkError::Config(format!("height map: {e}")))?;
+                    let mut commanded = Vec::with_capacity(n * n);
+                    for line in 0..n {
+                        for pixel in 0..n {
+                            let u = request.commanded_position(TraceHalf::Forward, line, pixel);
+                            commanded.push([u.x.value(), u.y.value()]);
                         }
-                        let mut commanded = Vec::with_capacity(n * n);
-                        for line in 0..n {
-                            for pixel in 0..n {
-                                let u = request.commanded_position(TraceHalf::Forward, line, pixel);
-                                commanded.push([u.x.value(), u.y.value()]);
-                            }
-                        }
-                        images.push(TestImage {
-                            pair,
-                            place: name.clone(),
-                            size: *size,
-                            dwell_s: dwell,
-                            direction,
-                            map,
-                            truth_nm: to_geometry(&truth, n, n, direction),
-                            commanded_acquisition: commanded,
-                            time_acquisition_s: frame.forward.time_s.clone(),
-                            true_effective_acquisition: effective,
-                        });
                     }
-                    pair += 1;
+                    images.push(TestImage {
+                        pair,
+                        place: name.clone(),
+                        size: *size,
+                        dwell_s: dwell,
+                        direction,
+                        map,
+                        truth_nm: to_geometry(&truth, n, n, direction),
+                        commanded_acquisition: commanded,
+                        time_acquisition_s: frame.forward.time_s.clone(),
+                        true_effective_acquisition: effective,
+                    });
                 }
+                pair += 1;
             }
         }
-        Ok(())
-    })();
-    instrument.inner_mut().record_tip_positions(false);
-    result.map(|()| images)
+    }
+    Ok(images)
 }
+
+/// The true tip positions (nm) and effective inputs (counts) of a scan, acquisition order.
+type TruthOfScan = Result<(Vec<[f64; 2]>, Vec<[f64; 2]>), ImageBenchmarkError>;
 
 fn retry<T, E: std::fmt::Display>(
     index: usize,

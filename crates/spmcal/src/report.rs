@@ -465,6 +465,31 @@ impl CalibrationReport {
                 .map(|r| format!(" ({r})"))
                 .unwrap_or_default()
         );
+        match (&self.validation.lattice, &self.validation.lattice_failure) {
+            (Some(l), _) => {
+                let _ = writeln!(
+                    t,
+                    "validation, corrected standard ({} of {} places measured): lattice constant RMS {:.2} % (uncorrected {:.2} %), max {:.2} %, angles max {:.2}°, pass ≤ {} % and ≤ {}°: {}{}",
+                    l.corrected_measured,
+                    l.places.len(),
+                    l.corrected_rms_error_pct,
+                    l.uncorrected_rms_error_pct,
+                    l.corrected_max_error_pct,
+                    l.corrected_max_angle_error_deg,
+                    l.thresholds[0],
+                    l.thresholds[1],
+                    l.verdict.as_str().to_uppercase(),
+                    l.reason
+                        .as_deref()
+                        .map(|r| format!(" ({r})"))
+                        .unwrap_or_default()
+                );
+            }
+            (None, Some(why)) => {
+                let _ = writeln!(t, "validation, corrected standard: NOT MEASURED ({why})");
+            }
+            (None, None) => {}
+        }
         t
     }
 }

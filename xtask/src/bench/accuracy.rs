@@ -61,6 +61,9 @@ pub struct ConfigAccuracy {
     pub notes: Vec<String>,
     /// The image benchmark: per method, the errors on test images taken as a user does.
     pub images: Option<spm_evaluation::images::ImageBenchmark>,
+    /// The run's validation without an oracle (held-out nodes, repeat agreement, the
+    /// corrected standard's lattice), as every run reports it.
+    pub validation: spmcal::report::Validation,
 }
 
 /// The accuracy section.
@@ -143,6 +146,7 @@ pub fn run(ctx: &Context) -> Result<AccuracyResults, XtaskError> {
                 .polynomial
                 .map(|p| table.distributed.rms_pm / p.rms_pm),
             methods,
+            validation: report.validation,
             notes: report.notes,
             images: report.images.map(|mut i| {
                 i.images.clear(); // per-image rows stay in the scratch report.json

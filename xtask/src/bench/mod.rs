@@ -272,7 +272,7 @@ pub fn calibrate(
     let mut quiet = NoObserver;
     let mut recorder = RecordingObserver::new(&mut quiet);
     let started = Instant::now();
-    let outcome = run_job(
+    let mut outcome = run_job(
         job,
         &cdb_path,
         RunStart::New {
@@ -285,7 +285,10 @@ pub fn calibrate(
     .map_err(|e| XtaskError::step(format!("calibration in {}", dir.display()), e))?;
     let wall_time_s = started.elapsed().as_secs_f64();
     let samples = recorder.into_samples();
-    let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s);
+    // The validation's corrected standard, imaged as `spmcal calibrate` images it.
+    let standard = spmcal::run::standard_images(&mut outcome.instrument, &job.plan, &samples.nodes);
+    let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s)
+        .with_standard_images(standard.as_ref());
     let report = finish_with(&cdb_path, dir, &record, quick, with_images)
         .map_err(|e| XtaskError::step(format!("report in {}", dir.display()), e))?;
     let node_mean_k_rms_pct = match outcome.instrument.simulator() {

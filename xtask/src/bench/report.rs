@@ -365,6 +365,9 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
         md,
         "## Calibration accuracy against the baselines (DESIGN §11)\n"
     );
+    if let Section::Measured(a) = &results.accuracy {
+        validation_markdown(&mut md, &a.configs);
+    }
     match &results.accuracy {
         Section::Measured(a) => {
             if let Some(c) = a.configs.first() {
@@ -1059,4 +1062,62 @@ pub fn write(ctx: &Context, results: &Results) -> Result<(), XtaskError> {
         results_md.display()
     );
     Ok(())
+}
+
+/// The validation every run reports without an oracle (issue 24 item 6), per accuracy run:
+/// the held-out prediction, the repeat agreement and the corrected standard's lattice.
+fn validation_markdown(md: &mut String, configs: &[super::accuracy::ConfigAccuracy]) {
+    use std::fmt::Write as _;
+    let _ = writeln!(
+        md,
+        "### Validation without an oracle (every run, every backend)\n\n\
+         Held out: RMS of (measured − predicted)/(σ·√(1 + h)) over the records of the nodes left \
+         out of a second fit (target 0.8–1.5). Repeats: pooled repeat scatter ÷ the records' \
+         stated uncertainty (K̄x, K̄y, α). Lattice: the standard imaged after the run at 3 × 3 \
+         places and corrected as `spmcal correct` does; RMS lattice-constant error over the \
+         places measured (uncorrected in brackets), largest angle error.\n\n\
+         | scanner | held out (records) | verdict | repeats: scatter ÷ stated | verdict | lattice: RMS % (uncorrected) | max angle ° | places measured | verdict |\n\
+         |---|---|---|---|---|---|---|---|---|"
+    );
+    for c in configs {
+        let v = &c.validation;
+        let h = &v.held_out;
+        let ratios: Vec<String> = v
+            .repeats
+            .coefficients
+            .iter()
+            .map(|r| format!("{:.2}", r.scatter_over_stated))
+            .collect();
+        let (lattice, angle, places, verdict) = match &v.lattice {
+            Some(l) => (
+                format!(
+                    "{:.2} ({:.2})",
+                    l.corrected_rms_error_pct, l.uncorrected_rms_error_pct
+                ),
+                format!("{:.2}", l.corrected_max_angle_error_deg),
+                format!("{}/{}", l.corrected_measured, l.places.len()),
+                l.verdict.as_str().to_owned(),
+            ),
+            None => (
+                "-".to_owned(),
+                "-".to_owned(),
+                "-".to_owned(),
+                v.lattice_failure
+                    .clone()
+                    .unwrap_or_else(|| "not taken".to_owned()),
+            ),
+        };
+        let _ = writeln!(
+            md,
+            "| {} ({}) | {:.2} ({}) | {} | {} | {} | {lattice} | {angle} | {places} | {verdict} |",
+            c.config,
+            c.plan,
+            h.rms_z,
+            h.records_held_out,
+            h.verdict.as_str(),
+            ratios.join(" / "),
+            v.repeats.verdict.as_str(),
+        );
+    }
+    let _ = writeln!(md);
 }

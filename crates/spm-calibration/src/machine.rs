@@ -788,7 +788,7 @@ impl NodeMachine {
         match failure {
             Failure::Transient { kind, message } => {
                 self.transient += 1;
-                tracing::warn!(?kind, %message, count = self.transient, "transient failure");
+                tracing::warn!(?kind, error = %message, count = self.transient, "transient failure");
                 if self.transient > self.params.transient_retries {
                     self.stage = Stage::Over;
                     let reason = GiveUpReason::TransientErrors {

@@ -22,7 +22,7 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 pub const DEFAULT_OUT: &str = "spmcal-calibrate";
 
 /// The files a run writes into its report folder.
-pub const OUTPUT_FILES: [&str; 8] = [
+pub const OUTPUT_FILES: [&str; 9] = [
     "report.json",
     "report.html",
     "surfaces.json",
@@ -31,7 +31,12 @@ pub const OUTPUT_FILES: [&str; 8] = [
     "lcc-alpha.png",
     "trajectory.png",
     "drift.png",
+    LOG_FILE,
 ];
+
+/// The run's log in its report folder (every event at `info` and above; `--log` names
+/// another file instead).
+pub const LOG_FILE: &str = "calibrate.log";
 
 /// The termination signals that stop a run at the next safe point.
 #[cfg(unix)]
@@ -231,6 +236,10 @@ pub fn run(
             stop.name()
         )));
     }
+    // The log goes into the report folder from here on (with what was logged before).
+    if let Err(e) = crate::console::attach_log(&out.join(LOG_FILE)) {
+        tracing::error!("cannot write the log {}: {e}", out.join(LOG_FILE).display());
+    }
     let start_unix_s = now_unix_s();
     let start = if resume {
         RunStart::Resume
@@ -299,5 +308,20 @@ pub fn run(
     for line in report.summary_text().lines() {
         crate::outln!("{line}");
     }
+    let warnings = crate::console::warning_counts();
+    if !warnings.is_empty() {
+        let kinds: Vec<String> = warnings
+            .iter()
+            .map(|(message, n)| format!("{n} × {message}"))
+            .collect();
+        crate::outln!(
+            "recovered or noted during the run (details in {}): {}",
+            crate::files::log_path()
+                .unwrap_or_else(|| out.join(LOG_FILE))
+                .display(),
+            kinds.join("; ")
+        );
+    }
+    crate::outln!("report: {}", out.join("report.html").display());
     Ok(())
 }

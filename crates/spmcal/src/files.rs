@@ -22,6 +22,11 @@ pub fn set_log(path: &Path) {
     let _ = LOG.set(path.to_path_buf());
 }
 
+/// The `--log` file, when one was given.
+pub fn log_path() -> Option<PathBuf> {
+    LOG.get().cloned()
+}
+
 /// A file's identity: device and inode (following symbolic links).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FileId {

@@ -6,6 +6,7 @@
 
 mod calibrate_cmd;
 mod cdb_cmd;
+mod console;
 mod correct_cmd;
 mod dates;
 mod diagnose_cmd;
@@ -392,7 +393,7 @@ fn main() {
         }
         files::set_log(log);
     }
-    let _guard = install_subscriber(cli.log.as_deref());
+    let _guard = install_subscriber(cli.log.as_deref(), &cli.command);
     let code = match run(cli.command) {
         Ok(()) => EXIT_SUCCESS,
         Err(error) => {
@@ -493,46 +494,15 @@ fn check_log(log: &std::path::Path, command: &Command) -> Result<(), error::CliE
     files::check_output(log, "--log", &refs)
 }
 
-/// Logs go to a file when asked, otherwise warnings and errors go to stderr.
-fn install_subscriber(log: Option<&std::path::Path>) -> Option<()> {
-    use std::io::IsTerminal as _;
-    use tracing_subscriber::EnvFilter;
-    // Colour codes only for a person's terminal, never into a file or a pipe.
-    let stderr_is_terminal = std::io::stderr().is_terminal();
-    let filter = EnvFilter::try_from_env("SPMCAL_LOG").unwrap_or_else(|_| EnvFilter::new("info"));
-    let append = |path: &std::path::Path| {
-        std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)
+/// Logs go to a file when asked (or, for `calibrate`, to `OUT/calibrate.log`), otherwise
+/// warnings and errors go to stderr ([`console`]).
+fn install_subscriber(log: Option<&std::path::Path>, command: &Command) -> Option<()> {
+    let to = match (log, command) {
+        (Some(path), _) => console::LogTo::File(path),
+        (None, Command::Calibrate { .. }) => console::LogTo::Deferred,
+        (None, _) => console::LogTo::Console,
     };
-    match log.map(append) {
-        Some(Ok(file)) => {
-            let _ = tracing_subscriber::fmt()
-                .with_env_filter(filter)
-                .with_ansi(false)
-                .with_writer(std::sync::Mutex::new(file))
-                .try_init();
-        }
-        Some(Err(error)) => {
-            let _ = writeln!(
-                std::io::stderr(),
-                "spmcal: warning: cannot open the log file: {error}; logging to stderr"
-            );
-            let _ = tracing_subscriber::fmt()
-                .with_env_filter(EnvFilter::new("warn"))
-                .with_ansi(stderr_is_terminal)
-                .with_writer(std::io::stderr)
-                .try_init();
-        }
-        None => {
-            let _ = tracing_subscriber::fmt()
-                .with_env_filter(EnvFilter::new("warn"))
-                .with_ansi(stderr_is_terminal)
-                .with_writer(std::io::stderr)
-                .try_init();
-        }
-    }
+    console::install(to);
     Some(())
 }
 

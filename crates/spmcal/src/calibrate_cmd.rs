@@ -285,8 +285,25 @@ pub fn run(
     }
     // The standard imaged over the calibrated region, for the validation's lattice check.
     let standard = spmcal::run::standard_images(&mut outcome.instrument, &job.plan, &samples.nodes);
+    let provenance = spmcal::report::RunProvenance {
+        started_utc: spm_cdb::rfc3339_utc(start_unix_s),
+        finished_utc: spm_cdb::rfc3339_utc(start_unix_s + wall_time_s),
+        spmcal_version: env!("CARGO_PKG_VERSION").to_owned(),
+        spmcal_commit: option_env!("SPMCAL_GIT_COMMIT").map(str::to_owned),
+        host: host_name(),
+        backend: outcome.instrument.identity(&job.backend),
+        seed: match &job.backend {
+            spmcal::job::Backend::Sim(config) => Some(config.seed),
+            _ => None,
+        },
+        inputs: inputs
+            .iter()
+            .map(|p| spmcal::report::InputFile::of(p))
+            .collect(),
+    };
     let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s)
-        .with_standard_images(standard.as_ref());
+        .with_standard_images(standard.as_ref())
+        .with_provenance(&provenance);
     let report = finish_with(
         &cdb_path,
         &out,
@@ -324,4 +341,13 @@ pub fn run(
     }
     crate::outln!("report: {}", out.join("report.html").display());
     Ok(())
+}
+
+/// The machine's host name (Linux: the kernel's; else `HOSTNAME`), for the provenance.
+fn host_name() -> Option<String> {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .map(|h| h.trim().to_owned())
+        .filter(|h| !h.is_empty())
 }

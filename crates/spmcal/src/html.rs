@@ -784,6 +784,41 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
         ),
     ];
     page.table("metadata-table", &["quantity", "value"], &rows);
+    match &report.provenance {
+        Some(p) => {
+            let mut rows = vec![
+                text_row("started_utc", "started (UTC)", &p.started_utc),
+                text_row("finished_utc", "run finished (UTC)", &p.finished_utc),
+                text_row("spmcal_version", "spmcal version", &p.spmcal_version),
+                text_row(
+                    "spmcal_commit",
+                    "spmcal commit",
+                    p.spmcal_commit.as_deref().unwrap_or("unknown"),
+                ),
+                text_row("host", "host", p.host.as_deref().unwrap_or("unknown")),
+                text_row("backend", "backend", &p.backend),
+            ];
+            if let Some(seed) = p.seed {
+                rows.push(num_row(
+                    "seed",
+                    "simulator seed",
+                    Cell::count(seed as usize),
+                ));
+            }
+            for (k, f) in p.inputs.iter().enumerate() {
+                rows.push(text_row(
+                    &format!("input-{k}"),
+                    &format!("input: {}", f.path),
+                    f.sha256
+                        .as_deref()
+                        .map_or("unreadable".to_owned(), |d| format!("SHA-256 {d}"))
+                        .as_str(),
+                ));
+            }
+            page.table("provenance-table", &["provenance", "value"], &rows);
+        }
+        None => page.paragraph("Provenance: not recorded by the caller."),
+    }
 
     validation_section(&mut page, &report.validation);
 

@@ -191,12 +191,63 @@ pub struct CalibrationReport {
     /// agreement and the corrected standard's lattice, with pass/warn verdicts against the
     /// plan's `[validation]` thresholds. Every backend.
     pub validation: Validation,
+    /// When, by which program, where, on which backend and from which inputs (absent when the
+    /// caller gave none, e.g. tests that build a report directly).
+    pub provenance: Option<RunProvenance>,
     /// The calibrator's own report (cycles, given-up nodes with reasons, …).
     pub run: RunReport,
     /// The drift estimates of the run.
     pub drift: DriftHistory,
     /// How the figures were measured, and what is not.
     pub notes: Vec<String>,
+}
+
+/// One input file of a run, with its SHA-256 digest.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct InputFile {
+    /// The path as given.
+    pub path: String,
+    /// SHA-256 of its contents, hex (None: it could not be read).
+    pub sha256: Option<String>,
+}
+
+impl InputFile {
+    /// The file at `path` and its digest.
+    #[must_use]
+    pub fn of(path: &Path) -> Self {
+        use sha2::Digest as _;
+        Self {
+            path: path.display().to_string(),
+            sha256: std::fs::read(path).ok().map(|bytes| {
+                sha2::Sha256::digest(&bytes)
+                    .iter()
+                    .map(|b| format!("{b:02x}"))
+                    .collect()
+            }),
+        }
+    }
+}
+
+/// Where a report comes from (issue 27): when, which program, which host, which backend, which
+/// inputs. The caller supplies it (the library reads no clock).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RunProvenance {
+    /// Start of the invocation, UTC (RFC 3339).
+    pub started_utc: String,
+    /// End of the run, before the report, UTC (RFC 3339).
+    pub finished_utc: String,
+    /// spmcal's version.
+    pub spmcal_version: String,
+    /// The git commit spmcal was built from, when known.
+    pub spmcal_commit: Option<String>,
+    /// The host the run ran on, when known.
+    pub host: Option<String>,
+    /// The backend and its identity (simulator seed, controller address and state, image).
+    pub backend: String,
+    /// The simulator's seed (simulated backends).
+    pub seed: Option<u64>,
+    /// The job's files (config, plan, referenced files, images) with their digests.
+    pub inputs: Vec<InputFile>,
 }
 
 /// Validation without an oracle (report.json's `validation`).
@@ -283,6 +334,8 @@ pub struct RunRecord<'a> {
     /// The standard imaged over the calibrated region after the run, for the validation's
     /// lattice check ([`crate::run::standard_images`]); `None` when not taken.
     pub standard_images: Option<&'a Result<Vec<spm_evaluation::images::TestImage>, String>>,
+    /// The run's provenance, for the report.
+    pub provenance: Option<&'a RunProvenance>,
 }
 
 /// What a report judges a calibration against: a ground truth that can also take the image
@@ -339,6 +392,16 @@ impl<'a> RunRecord<'a> {
                 .map(crate::dynamics::TrueDynamics::of),
             wall_time_s,
             standard_images: None,
+            provenance: None,
+        }
+    }
+
+    /// The record with the run's provenance.
+    #[must_use]
+    pub fn with_provenance(self, provenance: &'a RunProvenance) -> Self {
+        Self {
+            provenance: Some(provenance),
+            ..self
         }
     }
 
@@ -549,6 +612,9 @@ pub fn finish_with(
     if let Some(model) = identified {
         fitted.set.dynamics = Some(model.clone());
     }
+    if let Some(p) = record.provenance {
+        fitted.set.provenance.written_utc = Some(p.finished_utc.clone());
+    }
     let surfaces_json = fitted.set.to_json_string()?;
     write(&out.join("surfaces.json"), surfaces_json.as_bytes())?;
     let records = snapshot.count_records(&RecordFilter::default().with_run(&record.run.run_id))?;
@@ -633,6 +699,7 @@ pub fn finish_with(
         }),
         dynamics,
         validation: Validation::of(&all, record.plan, &fitted.set, record.standard_images),
+        provenance: record.provenance.cloned(),
         run: record.run.clone(),
         drift,
         notes,

@@ -499,6 +499,25 @@ pub fn standard_images(
     Some(taken.map_err(|e| e.to_string()))
 }
 
+impl FinishedInstrument {
+    /// The backend and its identity, for the provenance: the simulator's seed, the
+    /// controller's address and the state it was found in, the stored image.
+    #[must_use]
+    pub fn identity(&self, backend: &Backend) -> String {
+        match (self, backend) {
+            (Self::Nanonis(nanonis), Backend::Nanonis(config)) => format!(
+                "nanonis {}:{}; controller {}",
+                config.host,
+                config.port,
+                serde_json::to_string(nanonis.controller_state()).unwrap_or_default()
+            ),
+            (Self::Sim(_), Backend::Sim(config)) => format!("sim (seed {})", config.seed),
+            (Self::Virtual(_), Backend::Virtual(v)) => format!("virtual ({})", v.image.display()),
+            _ => "unknown".to_owned(),
+        }
+    }
+}
+
 /// An opened instrument of one of the [`Backend`]s.
 enum Instrument {
     /// The simulated microscope.

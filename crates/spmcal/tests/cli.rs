@@ -620,3 +620,67 @@ fn dynamics_calibration(dir: &Path) -> std::path::PathBuf {
     std::fs::write(&calibration, set.to_json_string().unwrap()).unwrap();
     calibration
 }
+
+/// Issue 27: a successful run keeps the console quiet (no warnings, no colour codes: the
+/// details go to `OUT/calibrate.log`), names `report.html`, and records its provenance — the
+/// job's files with their SHA-256, checked here against an independent digest, and the
+/// simulator's seed as the config states it.
+#[test]
+fn a_run_logs_to_its_folder_keeps_the_console_quiet_and_records_its_provenance() {
+    use sha2::Digest as _;
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let dir = std::env::temp_dir().join(format!("spmcal-provenance-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let config = root.join("configs/calibrate-hopg-quick.toml");
+    let (code, stdout, stderr) = spmcal(&[
+        "calibrate",
+        "--config",
+        config.to_str().unwrap(),
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    assert!(
+        !stderr.contains("WARN"),
+        "warnings on the console: {stderr}"
+    );
+    assert!(
+        !stderr.contains('\u{1b}'),
+        "colour codes into a pipe: {stderr:?}"
+    );
+    assert!(
+        stdout.contains(&format!("report: {}", dir.join("report.html").display())),
+        "{stdout}"
+    );
+    let log = std::fs::read_to_string(dir.join("calibrate.log")).expect("calibrate.log");
+    assert!(log.contains("calibration run starts"), "{log}");
+    assert!(!log.contains('\u{1b}'));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
+    let p = &report["provenance"];
+    let digest: String = sha2::Sha256::digest(std::fs::read(&config).unwrap())
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect();
+    assert_eq!(p["inputs"][0]["path"], config.to_str().unwrap());
+    assert_eq!(p["inputs"][0]["sha256"], digest.as_str());
+    let sim: toml::Value =
+        toml::from_str(&std::fs::read_to_string(root.join("configs/sim-hopg.toml")).unwrap())
+            .unwrap();
+    assert_eq!(
+        p["seed"].as_i64(),
+        sim["seed"].as_integer(),
+        "the seed of configs/sim-hopg.toml"
+    );
+    let (started, finished) = (
+        p["started_utc"].as_str().unwrap(),
+        p["finished_utc"].as_str().unwrap(),
+    );
+    assert!(
+        started.ends_with('Z') && started <= finished,
+        "{started} {finished}"
+    );
+    assert_eq!(p["spmcal_version"], env!("CARGO_PKG_VERSION"));
+    assert!(report["validation"]["held_out"]["nodes"].as_u64() > Some(0));
+    let _ = std::fs::remove_dir_all(&dir);
+}

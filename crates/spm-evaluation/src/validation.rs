@@ -488,6 +488,11 @@ pub struct LatticePlace {
     pub corrected_error_pct: Option<f64>,
     /// Largest angle error after it, degrees.
     pub corrected_angle_error_deg: Option<f64>,
+    /// Lattice-constant error with the static surfaces alone (the file's dynamics not
+    /// applied: `spmcal correct --static`), %.
+    pub static_error_pct: Option<f64>,
+    /// Largest angle error with the static surfaces alone, degrees.
+    pub static_angle_error_deg: Option<f64>,
 }
 
 /// The lattice of the standard, imaged after the run over the calibrated region and
@@ -512,6 +517,13 @@ pub struct LatticeCheck {
     pub corrected_max_angle_error_deg: f64,
     /// RMS lattice-constant error of the uncorrected pairs, %.
     pub uncorrected_rms_error_pct: f64,
+    /// Places measured with the static surfaces alone.
+    pub static_measured: usize,
+    /// RMS lattice-constant error with the static surfaces alone, %.
+    pub static_rms_error_pct: f64,
+    /// Whether the calibration file holds dynamics (then `spmcal correct` applies them, and
+    /// the static column shows what the surfaces alone give).
+    pub dynamics_applied: bool,
     /// The plan's thresholds: |error| %, angle degrees.
     pub thresholds: [f64; 2],
     /// Pass, warn or not measured.
@@ -544,8 +556,9 @@ pub fn lattice_image_set(plan: &spm_calibration::PlanConfig) -> crate::images::I
 }
 
 /// The lattice check on `images` (counter-scanned pairs taken with [`lattice_image_set`]):
-/// each pair's lattice uncorrected (the nominal sensitivity) and corrected with `set` as
-/// `spmcal correct` does.
+/// each pair's lattice uncorrected (the nominal sensitivity), corrected with `set` as
+/// `spmcal correct` does (the verdict's figure), and with the static surfaces alone
+/// (`--static`, for comparison when the file holds dynamics).
 ///
 /// # Errors
 /// As the correction of an image.
@@ -582,6 +595,16 @@ pub fn lattice_check(
         },
         config,
     )?;
+    let mut surfaces_only = set.clone();
+    surfaces_only.dynamics = None;
+    let static_only = lattice_of_pairs(
+        images,
+        &ImageMethod {
+            name: "user_file_static".to_owned(),
+            correction: ImageCorrection::UserFile(Box::new(surfaces_only)),
+        },
+        config,
+    )?;
     let figures = |l: &PairLattice| match *l {
         PairLattice::Measured { a_nm, angle_deg } => {
             (Some(100.0 * (a_nm / a - 1.0)), Some(angle_deg))
@@ -591,15 +614,19 @@ pub fn lattice_check(
     let places: Vec<LatticePlace> = uncorrected
         .iter()
         .zip(&corrected)
-        .map(|((_, place, u), (_, _, c))| {
+        .zip(&static_only)
+        .map(|(((_, place, u), (_, _, c)), (_, _, st))| {
             let (ue, ua) = figures(u);
             let (ce, ca) = figures(c);
+            let (se, sa) = figures(st);
             LatticePlace {
                 place: place.clone(),
                 uncorrected_error_pct: ue,
                 uncorrected_angle_error_deg: ua,
                 corrected_error_pct: ce,
                 corrected_angle_error_deg: ca,
+                static_error_pct: se,
+                static_angle_error_deg: sa,
             }
         })
         .collect();
@@ -622,6 +649,7 @@ pub fn lattice_check(
         .iter()
         .filter_map(|p| p.uncorrected_error_pct)
         .collect();
+    let se: Vec<f64> = places.iter().filter_map(|p| p.static_error_pct).collect();
     let max_abs = |v: &[f64]| {
         if v.is_empty() {
             f64::NAN
@@ -642,6 +670,9 @@ pub fn lattice_check(
         corrected_rms_error_pct: rms(&ce),
         corrected_max_angle_error_deg: max_abs(&ca),
         uncorrected_rms_error_pct: rms(&ue),
+        static_measured: se.len(),
+        static_rms_error_pct: rms(&se),
+        dynamics_applied: set.dynamics.is_some(),
         places,
         thresholds: [e_max, a_max],
         verdict: Verdict::NotMeasured,

@@ -386,7 +386,7 @@ fn validation_section(page: &mut Page, v: &crate::report::Validation) {
                      corrected as spmcal correct does (the drift removed by each pair). Lattice \
                      constant measured at {} places: RMS error {:.2} % (uncorrected {:.2} %), \
                      max {:.2} %; angles max {:.2}°. Pass: ≤ {} % and ≤ {}° everywhere. \
-                     Verdict: {}.",
+                     Verdict: {}. {}",
                     l.pixels,
                     l.pixels,
                     l.step_counts,
@@ -398,7 +398,17 @@ fn validation_section(page: &mut Page, v: &crate::report::Validation) {
                     l.corrected_max_angle_error_deg,
                     l.thresholds[0],
                     l.thresholds[1],
-                    verdict(l.verdict, &l.reason)
+                    verdict(l.verdict, &l.reason),
+                    if l.dynamics_applied {
+                        format!(
+                            "The calibration file holds scanner dynamics, which spmcal correct \
+                             applies; with the static surfaces alone (--static) the lattice is \
+                             measured at {} places, RMS error {:.2} %.",
+                            l.static_measured, l.static_rms_error_pct
+                        )
+                    } else {
+                        String::new()
+                    }
                 ),
             );
             let opt = |v: Option<f64>, digits: usize| match v {
@@ -417,6 +427,8 @@ fn validation_section(page: &mut Page, v: &crate::report::Validation) {
                             opt(p.uncorrected_angle_error_deg, 2),
                             opt(p.corrected_error_pct, 2),
                             opt(p.corrected_angle_error_deg, 2),
+                            opt(p.static_error_pct, 2),
+                            opt(p.static_angle_error_deg, 2),
                         ],
                     )
                 })
@@ -429,6 +441,8 @@ fn validation_section(page: &mut Page, v: &crate::report::Validation) {
                     "uncorrected: largest angle error, °",
                     "corrected: lattice constant error, %",
                     "corrected: largest angle error, °",
+                    "static surfaces only: lattice constant error, %",
+                    "static surfaces only: largest angle error, °",
                 ],
                 &rows,
             );

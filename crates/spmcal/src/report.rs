@@ -532,11 +532,19 @@ impl CalibrationReport {
             (Some(l), _) => {
                 let _ = writeln!(
                     t,
-                    "validation, corrected standard ({} of {} places measured): lattice constant RMS {:.2} % (uncorrected {:.2} %), max {:.2} %, angles max {:.2}°, pass ≤ {} % and ≤ {}°: {}{}",
+                    "validation, corrected standard ({} of {} places measured): lattice constant RMS {:.2} % (uncorrected {:.2} %{}), max {:.2} %, angles max {:.2}°, pass ≤ {} % and ≤ {}°: {}{}",
                     l.corrected_measured,
                     l.places.len(),
                     l.corrected_rms_error_pct,
                     l.uncorrected_rms_error_pct,
+                    if l.dynamics_applied {
+                        format!(
+                            "; static surfaces alone {:.2} % at {} places",
+                            l.static_rms_error_pct, l.static_measured
+                        )
+                    } else {
+                        String::new()
+                    },
                     l.corrected_max_error_pct,
                     l.corrected_max_angle_error_deg,
                     l.thresholds[0],

@@ -13,6 +13,7 @@ use spmcal::job::Job;
 use spmcal::progress::ProgressBarObserver;
 use spmcal::report::{RunRecord, finish_with};
 use spmcal::run::{RecordingObserver, RunStart, mark_aborted, run_job};
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -80,9 +81,41 @@ impl StopRequest {
         self.requested.load(Ordering::SeqCst)
     }
 
+    /// From now on a stop request ends the program at once, with `message` (after the signal's
+    /// name) and exit code 1: for the phase after the run, whose records are committed and
+    /// whose files are written whole or not at all, so nothing is left to keep consistent
+    /// (issue 25 item 12: a signal during the report was swallowed and the program exited 0).
+    fn exit_on_request(&self, message: String) {
+        let requested = Arc::clone(&self.requested);
+        let signal = Arc::clone(&self.signal);
+        let watcher = move || {
+            loop {
+                if requested.load(Ordering::SeqCst) {
+                    let name = Self::name_of(signal.load(Ordering::SeqCst));
+                    let _ = writeln!(
+                        std::io::stderr(),
+                        "spmcal: error: interrupted by {name} {message}"
+                    );
+                    std::process::exit(crate::error::EXIT_RUN_FAILED);
+                }
+                std::thread::sleep(std::time::Duration::from_millis(20));
+            }
+        };
+        if let Err(e) = std::thread::Builder::new()
+            .name("stop-watcher".to_owned())
+            .spawn(watcher)
+        {
+            tracing::error!("cannot watch for stop signals during the report: {e}");
+        }
+    }
+
     /// The name of the signal received.
     fn name(&self) -> &'static str {
-        let number = self.signal.load(Ordering::SeqCst);
+        Self::name_of(self.signal.load(Ordering::SeqCst))
+    }
+
+    /// The name of signal `number`.
+    fn name_of(number: usize) -> &'static str {
         #[cfg(unix)]
         for (n, name) in STOP_SIGNALS {
             if n as usize == number {
@@ -283,6 +316,13 @@ pub fn run(
             ),
         }));
     }
+    stop.exit_on_request(format!(
+        "after the run: run {run_id}'s {} visits are stored in the CDB {} and it is marked \
+         finished; the report in {} is incomplete",
+        outcome.report.nodes_done,
+        spmcal::cdb_handle::shown(&cdb_path),
+        out.display()
+    ));
     // The standard imaged over the calibrated region, for the validation's lattice check.
     let standard = spmcal::run::standard_images(&mut outcome.instrument, &job.plan, &samples.nodes);
     let provenance = spmcal::report::RunProvenance {

@@ -834,6 +834,10 @@ fn interrupt_and_check(dir: &Scratch, signal: &str) {
     let status = runs(&cdb);
     assert_eq!(status.len(), 1, "{signal}: {status:?}");
     match code(&out) {
+        // The signal came after the last visit: the run is finished, the report cut short.
+        Some(1) if status[0].1 == "finished" => {
+            assert!(err.contains("after the run"), "{signal}: {err}");
+        }
         // Stopped at the next visit: marked aborted, with a message.
         Some(1) => {
             assert_eq!(status[0].1, "aborted", "{signal}: {err}");
@@ -842,8 +846,6 @@ fn interrupt_and_check(dir: &Scratch, signal: &str) {
                 "{signal}: {err}"
             );
         }
-        // The signal came after the last visit.
-        Some(0) => assert_eq!(status[0].1, "finished"),
         other => panic!("{signal}: exit {other:?} ({:?}), {err}", out.status),
     }
     assert!(!err.contains("panicked"), "{err}");
@@ -877,6 +879,64 @@ fn item_13_a_signal_stops_the_run_at_a_safe_point_and_marks_it_aborted() {
     for signal in ["INT", "TERM", "HUP"] {
         interrupt_and_check(&dir, signal);
     }
+}
+
+/// Issue 25 item 12: a signal after the run (during the dynamics identification, the fit,
+/// the validation images and the image benchmark, which take minutes on a full plan) ends
+/// the program at once with exit 1 and a message naming the stored run, instead of being
+/// swallowed until an exit 0; the CDB holds the finished run, intact.
+#[test]
+fn issue25_item_12_a_signal_during_the_report_ends_the_program_at_once() {
+    let dir = Scratch::new("i25-12-signal");
+    let out_dir = dir.path("o");
+    let cdb = dir.s("c.sqlite");
+    let child = Command::new(bin())
+        .current_dir(scratch_cwd())
+        .args([
+            "calibrate",
+            "--config",
+            root()
+                .join("configs/calibrate-hopg-quick.toml")
+                .to_str()
+                .unwrap(),
+            "--cdb",
+            &cdb,
+            "--out",
+            out_dir.to_str().unwrap(),
+            "--quick",
+            "--image-benchmark",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The run's end, as its log states it.
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while !std::fs::read_to_string(out_dir.join("calibrate.log"))
+        .unwrap_or_default()
+        .contains("calibration run ends")
+    {
+        assert!(Instant::now() < deadline, "the run did not end in 120 s");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    let _ = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status();
+    let sent = Instant::now();
+    let out = wait_bounded(child, &["TERM after the run"]);
+    let waited = sent.elapsed();
+    let err = stderr(&out);
+    assert_eq!(code(&out), Some(1), "{err}");
+    assert!(
+        err.contains("SIGTERM") && err.contains("after the run") && err.contains("finished"),
+        "{err}"
+    );
+    // The image benchmark alone takes tens of seconds on this job.
+    assert!(waited < Duration::from_secs(5), "took {waited:?} to stop");
+    assert_eq!(runs(&cdb)[0].1, "finished");
+    assert_consistent(&cdb);
+    check_passes(&cdb);
 }
 
 #[test]

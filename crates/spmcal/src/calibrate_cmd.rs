@@ -189,7 +189,7 @@ fn check_cdb_is_no_report_file(cdb: &Path, out: &Path) -> Result<(), CliError> {
         .collect();
     for name in OUTPUT_FILES {
         let target = out.join(name);
-        for written in [target.clone(), target.with_extension("partial")] {
+        for written in [target.clone(), spmcal::report::partial_path(&target)] {
             if cdb_files.contains(&files::location(&written)) {
                 return Err(CliError::BadInput(format!(
                     "--cdb {}: is where the run writes its report file {} (--out {}); \

@@ -1153,12 +1153,28 @@ fn store_dynamics_once(
     Ok(())
 }
 
+/// The hidden temporary name a report file is written under before it is renamed into place:
+/// `.NAME.partial` beside it.
+#[must_use]
+pub fn partial_path(path: &Path) -> std::path::PathBuf {
+    let name = path
+        .file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    path.with_file_name(format!(".{name}.partial"))
+}
+
+/// Writes a report file whole or not at all: into [`partial_path`], then renamed; the
+/// temporary file is removed when either step fails (issue 25 item 13: a visible
+/// `report.partial` was left behind).
 fn write(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
-    let partial = path.with_extension("partial");
+    let partial = partial_path(path);
     std::fs::write(&partial, bytes)
         .and_then(|()| std::fs::rename(&partial, path))
-        .map_err(|e| ReportError::Write {
-            path: path.display().to_string(),
-            message: e.to_string(),
+        .map_err(|e| {
+            let _ = std::fs::remove_file(&partial);
+            ReportError::Write {
+                path: path.display().to_string(),
+                message: e.to_string(),
+            }
         })
 }

@@ -1339,7 +1339,7 @@ fn issue25_01_a_new_cdb_where_a_report_file_goes_is_refused() {
         ("surfaces.json", dir.path("out")),
         ("report.html", other_spelling.clone()),
         ("drift.png", other_spelling.clone()),
-        ("report.partial", dir.path("out")),
+        (".report.json.partial", dir.path("out")),
     ] {
         let cdb = folder.join(name).display().to_string();
         let out = run(&[

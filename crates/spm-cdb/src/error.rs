@@ -171,6 +171,17 @@ pub enum CdbError {
         /// Underlying client error.
         source: postgres::Error,
     },
+    /// See [`ErrorKind::Postgres`]: the server accepted the connection but did not complete
+    /// it within the connect timeout (a server that never answers, a stopped backend).
+    #[error("{}: the PostgreSQL server did not answer within {timeout_s} s ({what})", path.display())]
+    Unanswered {
+        /// The database URL (without its password).
+        path: PathBuf,
+        /// What was waited for.
+        what: &'static str,
+        /// The timeout, s.
+        timeout_s: f64,
+    },
 }
 
 impl CdbError {
@@ -193,6 +204,7 @@ impl CdbError {
             Self::IdentityMismatch { .. } => ErrorKind::IdentityMismatch,
             #[cfg(feature = "postgres")]
             Self::Postgres { .. } => ErrorKind::Postgres,
+            Self::Unanswered { .. } => ErrorKind::Postgres,
         }
     }
 
@@ -212,7 +224,8 @@ impl CdbError {
             | Self::Io { path, .. }
             | Self::Sqlite { path, .. }
             | Self::AccessDenied { path, .. }
-            | Self::IdentityMismatch { path, .. } => path,
+            | Self::IdentityMismatch { path, .. }
+            | Self::Unanswered { path, .. } => path,
             #[cfg(feature = "postgres")]
             Self::Postgres { path, .. } => path,
         }

@@ -612,6 +612,20 @@ impl Drop for PgSnapshot<'_> {
     }
 }
 
+/// How long a connection may take, TCP connect and start-up together, when the URL gives no
+/// `connect_timeout` (libpq's parameter, seconds).
+pub const DEFAULT_CONNECT_TIMEOUT_S: u64 = 10;
+/// `lock_timeout` of every session, ms: a table lock held by another session fails the
+/// statement after this, instead of waiting without end. A URL's `options=-c lock_timeout=…`
+/// overrides it.
+pub const DEFAULT_LOCK_TIMEOUT_MS: u64 = 30_000;
+/// `statement_timeout` of every session, ms (the longest statement spmcal sends, an export
+/// of a large CDB, takes seconds). A URL's `options=-c statement_timeout=…` overrides it.
+pub const DEFAULT_STATEMENT_TIMEOUT_MS: u64 = 600_000;
+/// TCP keepalive: first probe after this idle time, s (a host that went away is noticed
+/// within about a minute instead of the kernel's two hours).
+const KEEPALIVE_IDLE_S: u64 = 30;
+
 fn connect(url: &str, path: &Path, read_only: bool) -> Result<Client> {
     let mut config =
         postgres::Config::from_str(url.trim()).map_err(|e| CdbError::InvalidInput {
@@ -624,12 +638,48 @@ fn connect(url: &str, path: &Path, read_only: bool) -> Result<Client> {
     check_config(path, &config)?;
     crate::pgpass::fill_in(&mut config);
     config.application_name("spmcal");
-    if read_only {
-        config.options("-c default_transaction_read_only=on");
+    // Session timeouts first, so that the URL's own `options` (later) override them.
+    let mut options = format!(
+        "-c lock_timeout={DEFAULT_LOCK_TIMEOUT_MS} -c statement_timeout={DEFAULT_STATEMENT_TIMEOUT_MS}"
+    );
+    if let Some(own) = config.get_options() {
+        options.push(' ');
+        options.push_str(own);
     }
-    let mut client = config
-        .connect(NoTls)
-        .map_err(|e| CdbError::postgres(path, e))?;
+    if read_only {
+        options.push_str(" -c default_transaction_read_only=on");
+    }
+    config.options(&options);
+    let timeout = config
+        .get_connect_timeout()
+        .copied()
+        .unwrap_or(std::time::Duration::from_secs(DEFAULT_CONNECT_TIMEOUT_S));
+    config.connect_timeout(timeout);
+    config.keepalives(true);
+    config.keepalives_idle(std::time::Duration::from_secs(KEEPALIVE_IDLE_S));
+    // The client's connect timeout covers the TCP connect only: a server that accepts and
+    // never answers would hold the start-up for ever. The whole connect runs on a thread
+    // that is given up after the timeout (it ends with the process or when the socket does).
+    let (sender, receiver) = std::sync::mpsc::channel();
+    std::thread::Builder::new()
+        .name("postgres-connect".to_owned())
+        .spawn(move || {
+            let _ = sender.send(config.connect(NoTls));
+        })
+        .map_err(|e| CdbError::Io {
+            path: path.to_path_buf(),
+            context: "starting the connection thread".to_owned(),
+            source: e,
+        })?;
+    let unanswered = || CdbError::Unanswered {
+        path: path.to_path_buf(),
+        what: "connecting",
+        timeout_s: timeout.as_secs_f64(),
+    };
+    let mut client = match receiver.recv_timeout(timeout + std::time::Duration::from_millis(500)) {
+        Ok(connected) => connected.map_err(|e| CdbError::postgres(path, e))?,
+        Err(_) => return Err(unanswered()),
+    };
     pin_schema(&mut client, path)?;
     Ok(client)
 }

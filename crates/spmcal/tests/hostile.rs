@@ -1794,3 +1794,27 @@ fn issue25_14_stale_partials_of_dead_writers_are_swept() {
     };
     assert_eq!(fitted(&dir.s("s.json")), fitted(&reference_fit));
 }
+
+/// Issue 25 item 4: a PostgreSQL server that accepts the connection and never answers held
+/// `cdb check` (and `calibrate`) for ever: the client's connect timeout covers the TCP
+/// connect only. The whole connect now has the URL's `connect_timeout` (default 10 s).
+#[test]
+fn issue25_04_a_postgres_server_that_never_answers_times_out() {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    // Accept and hold every connection, answering nothing.
+    std::thread::spawn(move || {
+        let mut held = Vec::new();
+        for stream in listener.incoming().flatten() {
+            held.push(stream);
+        }
+    });
+    let url = format!("postgres://u@127.0.0.1:{port}/cdb?connect_timeout=1");
+    let started = Instant::now();
+    let out = run(&["cdb", "check", &url]);
+    let waited = started.elapsed();
+    let err = stderr(&out);
+    assert_eq!(code(&out), Some(1), "{err}");
+    assert!(err.contains("did not answer within 1 s"), "{err}");
+    assert!(waited < Duration::from_secs(10), "took {waited:?}");
+}

@@ -281,3 +281,45 @@ fn a_url_without_password_takes_it_from_pgpassword_or_the_password_file() {
     assert!(!err.contains("ss\\word") && !err.contains("pa:ss"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Issue 25 item 4: a table lock held by another session blocked `cdb check` for ever. Every
+/// session now has a `lock_timeout` (30 s; the URL's `options` override it, here 1 s) and a
+/// `statement_timeout`: the check ends, naming the lock timeout, and the lock's holder is
+/// unharmed.
+#[test]
+fn a_lock_held_by_another_session_ends_the_check_at_the_lock_timeout() {
+    let server = spm_cdb::pg_server::TestServer::start()
+        .unwrap_or_else(|e| panic!("cannot start the private PostgreSQL server: {e}"));
+    let url = server.create_database("locks").unwrap();
+    drop(PgCdb::open(&url).unwrap());
+    let mut holder = postgres::Client::connect(&url, postgres::NoTls).unwrap();
+    let mut tx = holder.transaction().unwrap();
+    tx.batch_execute("LOCK TABLE records IN ACCESS EXCLUSIVE MODE")
+        .unwrap();
+    let with_timeout = format!("{url}?options=-c%20lock_timeout%3D1000");
+    let started = std::time::Instant::now();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_spmcal"))
+        .args(["cdb", "check", &with_timeout])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // A hang is a failure, not a wait.
+    while child.try_wait().unwrap().is_none() {
+        if started.elapsed() > std::time::Duration::from_secs(60) {
+            let _ = child.kill();
+            panic!("cdb check waits on the lock (killed after 60 s)");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let out = child.wait_with_output().unwrap();
+    let waited = started.elapsed();
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert_ne!(out.status.code(), Some(0), "{err}");
+    assert!(err.contains("lock timeout"), "{err}");
+    assert!(
+        waited < std::time::Duration::from_secs(20),
+        "took {waited:?}"
+    );
+    tx.rollback().unwrap();
+}

@@ -323,6 +323,9 @@ pub fn run(
         spmcal::cdb_handle::shown(&cdb_path),
         out.display()
     ));
+    let spinner = ProgressBarObserver::phases();
+    let phase = |name: &str| spinner.phase(name);
+    phase("imaging the standard over the calibrated region (validation)");
     // The standard imaged over the calibrated region, for the validation's lattice check.
     let standard = spmcal::run::standard_images(&mut outcome.instrument, &job.plan, &samples.nodes);
     let provenance = spmcal::report::RunProvenance {
@@ -343,7 +346,8 @@ pub fn run(
     };
     let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s)
         .with_standard_images(standard.as_ref())
-        .with_provenance(&provenance);
+        .with_provenance(&provenance)
+        .with_phase(&phase);
     let report = finish_with(
         &cdb_path,
         &out,
@@ -352,6 +356,7 @@ pub fn run(
         report_options.image_benchmark,
     )
     .map_err(|e| CliError::RunFailed(e.to_string()))?;
+    spinner.finish();
     crate::outln!(
         "run {}: {} visits measured now ({} before), {} given up, {} records; CDB {}; report {}",
         run_id,

@@ -12,9 +12,9 @@ impl ProgressBarObserver {
     /// A bar on stderr (hidden when stderr is not a terminal).
     pub fn new() -> Self {
         let bar = ProgressBar::new(0);
-        if let Ok(style) =
-            ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} nodes {msg}")
-        {
+        if let Ok(style) = ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:40}] {pos}/{len} visits, ETA {eta} {msg}",
+        ) {
             bar.set_style(style);
         }
         Self { bar }
@@ -23,6 +23,34 @@ impl ProgressBarObserver {
     /// Leaves the bar at its final state.
     pub fn finish(&self) {
         self.bar.finish();
+    }
+
+    /// A spinner for the phases after the run (hidden when stderr is not a terminal): each
+    /// [`PhaseSpinner::phase`] replaces its message.
+    pub fn phases() -> PhaseSpinner {
+        let spinner = ProgressBar::new_spinner();
+        if let Ok(style) = ProgressStyle::with_template("{elapsed_precise} {spinner} {msg}") {
+            spinner.set_style(style);
+        }
+        spinner.enable_steady_tick(std::time::Duration::from_millis(200));
+        PhaseSpinner { spinner }
+    }
+}
+
+/// The phases after the run, on one spinner line.
+pub struct PhaseSpinner {
+    spinner: ProgressBar,
+}
+
+impl PhaseSpinner {
+    /// Shows the phase that starts.
+    pub fn phase(&self, name: &str) {
+        self.spinner.set_message(name.to_owned());
+    }
+
+    /// Removes the spinner line.
+    pub fn finish(&self) {
+        self.spinner.finish_and_clear();
     }
 }
 
@@ -49,7 +77,7 @@ impl Observer for ProgressBarObserver {
     fn node_given_up(&mut self, visit: &PlanVisit, reason: &GiveUpReason) {
         self.bar.inc(1);
         self.bar.println(format!(
-            "node {} (repeat {}) given up: {reason:?}",
+            "node {} (repeat {}) given up: {reason}",
             visit.node_index, visit.repeat_index
         ));
     }

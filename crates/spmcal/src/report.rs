@@ -336,6 +336,8 @@ pub struct RunRecord<'a> {
     pub standard_images: Option<&'a Result<Vec<spm_evaluation::images::TestImage>, String>>,
     /// The run's provenance, for the report.
     pub provenance: Option<&'a RunProvenance>,
+    /// Told the name of each phase of the report as it starts (a progress display).
+    pub phase: Option<&'a dyn Fn(&str)>,
 }
 
 /// What a report judges a calibration against: a ground truth that can also take the image
@@ -393,6 +395,22 @@ impl<'a> RunRecord<'a> {
             wall_time_s,
             standard_images: None,
             provenance: None,
+            phase: None,
+        }
+    }
+
+    /// The record with a progress display told each phase of the report.
+    #[must_use]
+    pub fn with_phase(self, phase: &'a dyn Fn(&str)) -> Self {
+        Self {
+            phase: Some(phase),
+            ..self
+        }
+    }
+
+    fn phase(&self, name: &str) {
+        if let Some(phase) = self.phase {
+            phase(name);
         }
     }
 
@@ -593,6 +611,9 @@ pub fn finish_with(
     // the stage off, leaves the scanner's earlier dynamics the newest).
     // Without the stage's frames (stage off, or the run stopped before it) nothing is
     // identified.
+    if !record.ladder.is_empty() {
+        record.phase("identifying the scanner dynamics");
+    }
     let dynamics = (!record.ladder.is_empty()).then(|| {
         crate::dynamics::identify(
             record.commands,
@@ -610,6 +631,7 @@ pub fn finish_with(
     }
     let cdb = crate::cdb_handle::CdbHandle::open_read_only(cdb_path)?;
     let snapshot = cdb.snapshot()?;
+    record.phase("fitting the regression surfaces");
     let mut fitted = fit_from_cdb(
         &*snapshot,
         Some(&record.plan.scanner_id),
@@ -650,6 +672,11 @@ pub fn finish_with(
         .filter(|r| r.x_max_counts > r.x_min_counts && r.y_max_counts > r.y_min_counts);
     let (accuracy, images) = match (record.truth, region, fitted.set.planes.first()) {
         (Some(truth), Some(region), Some(plane)) => {
+            record.phase(if with_images {
+                "accuracy against the oracle, and the image benchmark (minutes)"
+            } else {
+                "accuracy against the oracle"
+            });
             let (accuracy, images) = accuracy_section(
                 truth,
                 record,
@@ -675,11 +702,14 @@ pub fn finish_with(
     if drift.estimates == 0 {
         notes.push("drift: no drift estimate was made in this invocation (no figure)".to_owned());
     }
+    record.phase("drawing the figures");
     let figures = figures(record, &fitted, drift.estimates > 0)?;
     for figure in &figures {
         write(&out.join(&figure.file), &figure.png)?;
     }
 
+    record.phase("validating (held-out nodes, repeats, the corrected standard)");
+    let validation = Validation::of(&all, record.plan, &fitted.set, record.standard_images);
     let node_lcc_error = record.truth.and_then(|truth| node_lcc_error(truth, &all));
     let measured = record.run.nodes_done.max(1) as f64;
     let report = CalibrationReport {
@@ -706,7 +736,7 @@ pub fn finish_with(
             crate::vertical::evaluate(truth, record.plan, &fitted.set, &all)
         }),
         dynamics,
-        validation: Validation::of(&all, record.plan, &fitted.set, record.standard_images),
+        validation,
         provenance: record.provenance.cloned(),
         run: record.run.clone(),
         drift,

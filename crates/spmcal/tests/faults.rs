@@ -249,6 +249,7 @@ fn calibrate(name: &str, faults: Option<FaultConfig>, p_feature_lost: f64) -> Ou
         wall_time_s: 0.0,
         standard_images: None,
         provenance: None,
+        phase: None,
     };
     let report = finish_with(&cdb_path, &out, &record, true, false).expect("surfaces and accuracy");
     drop(recorder);

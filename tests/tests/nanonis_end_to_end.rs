@@ -33,6 +33,7 @@
 
 use spm_calibration::NoObserver;
 use spm_cdb::{Cdb, CdbRead, NodeState, RecordFilter};
+use spm_nanonis::commands::{Reply, Request};
 use spm_nanonis::{ClockSource, NanonisConfig};
 use spm_nanonis_sim::{Server, ServerConfig, ServerHandle, SocketFaults};
 use spm_sim::SimConfig;
@@ -512,6 +513,17 @@ fn a_run_over_tcp_reports_its_validation_without_an_oracle() {
     let dir = scratch("validation");
     let cdb = dir.join("tcp.sqlite");
     let server = serve("127.0.0.1:0", SocketFaults::none());
+    // The controller's own compensation is on, as a user leaves it.
+    let mut user =
+        spm_nanonis::Client::connect(nanonis_config(server.addr().port(), 5.0).client_config())
+            .unwrap();
+    user.call(&Request::PiezoHystOnOffSet(1)).unwrap();
+    user.call(&Request::PiezoTiltSet {
+        x_deg: 1.5,
+        y_deg: -0.5,
+    })
+    .unwrap();
+    user.disconnect();
     let mut job = job(Backend::Nanonis(Box::new(nanonis_config(
         server.addr().port(),
         5.0,
@@ -538,6 +550,20 @@ fn a_run_over_tcp_reports_its_validation_without_an_oracle() {
         "a controller has no oracle"
     );
     let images = spmcal::run::standard_images(&mut outcome.instrument, &job.plan, &samples.nodes);
+    // Issue 27: the compensation switched off for the run is switched back on as found.
+    outcome.instrument.release().unwrap();
+    let mut user =
+        spm_nanonis::Client::connect(nanonis_config(server.addr().port(), 5.0).client_config())
+            .unwrap();
+    assert!(matches!(
+        user.call(&Request::PiezoHystOnOffGet).unwrap(),
+        Reply::U32(1)
+    ));
+    match user.call(&Request::PiezoTiltGet).unwrap() {
+        Reply::F32x2(t) => assert_eq!(t, [1.5, -0.5]),
+        other => panic!("Piezo.TiltGet: {other:?}"),
+    }
+    user.disconnect();
     assert!(
         matches!(&images, Some(Ok(i)) if i.len() == 8),
         "2 × 2 pairs"

@@ -227,6 +227,12 @@ impl Client {
         ))
     }
 
+    /// Whether the main connection is open (a lost one is reopened by the next request).
+    #[must_use]
+    pub fn is_connected(&self) -> bool {
+        self.stream.is_some()
+    }
+
     /// Sends a request with the ordinary command timeout and returns its reply.
     pub fn call(&mut self, request: &Request) -> Result<Reply, NanonisError> {
         self.call_with_timeout(request, self.config.command_timeout_s)

@@ -292,6 +292,17 @@ pub struct NanonisMicroscope {
     sent: SentSettings,
     /// What the whole-millisecond controller waits owe the requested ones, s.
     wait_carry_s: f64,
+    /// The compensation as found when connecting, put back by
+    /// [`NanonisMicroscope::restore_compensation`] (or on drop); `None` once restored.
+    found_compensation: Option<FoundCompensation>,
+}
+
+/// The controller's own compensation as the backend found it.
+#[derive(Debug, Clone, Copy)]
+struct FoundCompensation {
+    drift: DriftComp,
+    tilt_deg: [f32; 2],
+    hysteresis: u32,
 }
 
 fn f32_of(x: f64) -> f32 {
@@ -299,6 +310,40 @@ fn f32_of(x: f64) -> f32 {
 }
 
 impl NanonisMicroscope {
+    /// Puts the controller's own drift, tilt and hysteresis compensation back as they were
+    /// found when connecting (they are switched off for the calibration, which must see
+    /// uncorrected coordinates). Called when the run and its validation images are done;
+    /// dropping the backend does it too, as a fallback. Scan properties (continuous and
+    /// bouncy scanning, autosave) are not restored: the controller does not report them
+    /// through the commands the backend uses.
+    ///
+    /// # Errors
+    /// The controller's error; the compensation then stays off, which the error says.
+    pub fn restore_compensation(&mut self) -> Result<(), NanonisError> {
+        let Some(found) = self.found_compensation else {
+            return Ok(());
+        };
+        self.client.call(&Request::PiezoDriftCompSet {
+            on_off: if found.drift.status == 1 { 1 } else { 2 },
+            v_m_per_s: found.drift.v_m_per_s,
+            saturation_limit_percent: found.drift.saturation_limit_percent,
+        })?;
+        self.client.call(&Request::PiezoTiltSet {
+            x_deg: found.tilt_deg[0],
+            y_deg: found.tilt_deg[1],
+        })?;
+        self.client
+            .call(&Request::PiezoHystOnOffSet(found.hysteresis))?;
+        self.found_compensation = None;
+        tracing::info!(
+            drift = found.drift.status,
+            tilt_deg = ?found.tilt_deg,
+            hysteresis = found.hysteresis,
+            "nanonis: the controller's compensation restored as found"
+        );
+        Ok(())
+    }
+
     /// Connects, reads the calibration, puts the controller into a known state (drift,
     /// tilt and hysteresis compensation off; continuous and bouncy scanning, autosave and
     /// autopaste off), checks the Z feedback and queries the coarse motor.
@@ -438,6 +483,11 @@ impl NanonisMicroscope {
             epoch: Instant::now(),
             coarse_steps: 0,
             wait_carry_s: 0.0,
+            found_compensation: Some(FoundCompensation {
+                drift: found_drift,
+                tilt_deg: found_tilt,
+                hysteresis: found_hyst,
+            }),
             sent: SentSettings {
                 reconnects,
                 ..SentSettings::default()
@@ -1046,5 +1096,28 @@ impl CoarseZStage for NanonisMicroscope {
 
     fn position_steps(&mut self) -> Result<i64, NanonisError> {
         Ok(self.coarse_steps)
+    }
+}
+
+impl Drop for NanonisMicroscope {
+    /// Puts the controller's compensation back if the run did not (an error or an early
+    /// stop): best effort on an open connection (a lost one is not reopened here, so that
+    /// dropping never waits out the reconnect attempts), a failure is logged.
+    fn drop(&mut self) {
+        if self.found_compensation.is_none() {
+            return;
+        }
+        if !self.client.is_connected() {
+            tracing::error!(
+                "nanonis: the connection is lost; the controller's compensation stays off"
+            );
+            return;
+        }
+        if let Err(e) = self.restore_compensation() {
+            tracing::error!(
+                error = %e,
+                "nanonis: the controller's compensation could not be restored; it stays off"
+            );
+        }
     }
 }

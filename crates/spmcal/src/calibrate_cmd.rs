@@ -328,6 +328,9 @@ pub fn run(
     phase("imaging the standard over the calibrated region (validation)");
     // The standard imaged over the calibrated region, for the validation's lattice check.
     let standard = spmcal::run::standard_images(&mut outcome.instrument, &job.plan, &samples.nodes);
+    if let Err(e) = outcome.instrument.release() {
+        tracing::error!("the controller's own compensation could not be switched back on: {e}");
+    }
     let provenance = spmcal::report::RunProvenance {
         started_utc: spm_cdb::rfc3339_utc(start_unix_s),
         finished_utc: spm_cdb::rfc3339_utc(start_unix_s + wall_time_s),

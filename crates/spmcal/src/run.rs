@@ -500,6 +500,19 @@ pub fn standard_images(
 }
 
 impl FinishedInstrument {
+    /// Gives the instrument back as it was found: a Nanonis controller's own compensation,
+    /// switched off for the calibration, is switched back on as found (dropping the backend
+    /// does it too, as a fallback).
+    ///
+    /// # Errors
+    /// The controller's message; the compensation then stays off.
+    pub fn release(&mut self) -> Result<(), String> {
+        match self {
+            Self::Nanonis(nanonis) => nanonis.restore_compensation().map_err(|e| e.to_string()),
+            Self::Sim(_) | Self::Virtual(_) => Ok(()),
+        }
+    }
+
     /// The backend and its identity, for the provenance: the simulator's seed, the
     /// controller's address and the state it was found in, the stored image.
     #[must_use]

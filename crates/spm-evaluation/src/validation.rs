@@ -657,10 +657,6 @@ pub fn lattice_check(
             v.iter().fold(0.0_f64, |m, t| m.max(t.abs()))
         }
     };
-    let (e_max, a_max) = (
-        thresholds.lattice_constant_error_pct_max,
-        thresholds.lattice_angle_error_deg_max,
-    );
     let mut check = LatticeCheck {
         lattice_constant_nm: a,
         pixels: config.sizes.first().map_or(0, |s| s.pixels),
@@ -674,17 +670,27 @@ pub fn lattice_check(
         static_rms_error_pct: rms(&se),
         dynamics_applied: set.dynamics.is_some(),
         places,
-        thresholds: [e_max, a_max],
+        thresholds: [
+            thresholds.lattice_constant_error_pct_max,
+            thresholds.lattice_angle_error_deg_max,
+        ],
         verdict: Verdict::NotMeasured,
         reason: None,
     };
+    judge_lattice(&mut check);
+    Ok(check)
+}
+
+/// The lattice check's verdict against its thresholds, with the reasons.
+fn judge_lattice(check: &mut LatticeCheck) {
+    let [e_max, a_max] = check.thresholds;
     let failed = check.places.len() - check.corrected_measured;
     if check.corrected_measured == 0 {
         check.reason = Some(format!(
             "the lattice was measured at none of {} places after correction",
             check.places.len()
         ));
-        return Ok(check);
+        return;
     }
     let mut problems = Vec::new();
     if check.corrected_max_error_pct > e_max {
@@ -711,7 +717,6 @@ pub fn lattice_check(
         Verdict::Warn
     };
     check.reason = (!problems.is_empty()).then(|| problems.join("; "));
-    Ok(check)
 }
 
 #[cfg(test)]

@@ -228,40 +228,7 @@ pub fn run(
     .map_err(|e| CliError::BadInput(e.to_string()))?;
     let out: PathBuf = out.map_or_else(|| PathBuf::from(DEFAULT_OUT), Path::to_path_buf);
     let cdb_path = cdb.map_or_else(|| out.join("cdb.sqlite"), Path::to_path_buf);
-    // Every file the run reads must stay as it is: the CDB is none of the configs, and no
-    // report file is a config or the CDB.
-    let mut inputs: Vec<PathBuf> = Vec::new();
-    match source {
-        JobSource::Config(config) => {
-            inputs.push(config.clone());
-            inputs.extend(Job::referenced_files(config));
-        }
-        JobSource::Virtual(image, options) => {
-            inputs.push(image.clone());
-            inputs.extend(options.counter_image.iter().cloned());
-        }
-    }
-    let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
-    // A PostgreSQL URL names no file: the file guards apply to a CDB file only.
-    let cdb_is_file = !spmcal::cdb_handle::is_postgres(&cdb_path);
-    if cdb_is_file && cdb_path.exists() {
-        files::check_input(&cdb_path, "calibration database")?;
-    }
-    if cdb_is_file {
-        check_cdb_is_no_report_file(&cdb_path, &out)?;
-        files::check_output(&cdb_path, "--cdb", &input_refs)?;
-    }
-    let mut protected = input_refs.clone();
-    protected.push(&cdb_path);
-    for name in OUTPUT_FILES {
-        files::check_output(&out.join(name), "--out", &protected)?;
-    }
-    if out.exists() && !out.is_dir() {
-        return Err(CliError::BadInput(format!(
-            "--out {}: not a directory",
-            out.display()
-        )));
-    }
+    let inputs = guard_files(source, &cdb_path, &out)?;
     std::fs::create_dir_all(&out).map_err(|e| CliError::io(&out, e))?;
     if stop.requested() {
         return Err(CliError::RunFailed(format!(
@@ -389,6 +356,47 @@ pub fn run(
     }
     crate::outln!("report: {}", out.join("report.html").display());
     Ok(())
+}
+
+/// The job's input files, after checking that the run replaces none of them: the CDB is none
+/// of the inputs, and no report file is an input or the CDB (bad input otherwise, nothing
+/// written).
+fn guard_files(source: &JobSource, cdb_path: &Path, out: &Path) -> Result<Vec<PathBuf>, CliError> {
+    // Every file the run reads must stay as it is: the CDB is none of the configs, and no
+    // report file is a config or the CDB.
+    let mut inputs: Vec<PathBuf> = Vec::new();
+    match source {
+        JobSource::Config(config) => {
+            inputs.push(config.clone());
+            inputs.extend(Job::referenced_files(config));
+        }
+        JobSource::Virtual(image, options) => {
+            inputs.push(image.clone());
+            inputs.extend(options.counter_image.iter().cloned());
+        }
+    }
+    let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
+    // A PostgreSQL URL names no file: the file guards apply to a CDB file only.
+    let cdb_is_file = !spmcal::cdb_handle::is_postgres(cdb_path);
+    if cdb_is_file && cdb_path.exists() {
+        files::check_input(cdb_path, "calibration database")?;
+    }
+    if cdb_is_file {
+        check_cdb_is_no_report_file(cdb_path, out)?;
+        files::check_output(cdb_path, "--cdb", &input_refs)?;
+    }
+    let mut protected = input_refs.clone();
+    protected.push(cdb_path);
+    for name in OUTPUT_FILES {
+        files::check_output(&out.join(name), "--out", &protected)?;
+    }
+    if out.exists() && !out.is_dir() {
+        return Err(CliError::BadInput(format!(
+            "--out {}: not a directory",
+            out.display()
+        )));
+    }
+    Ok(inputs)
 }
 
 /// The machine's host name (Linux: the kernel's; else `HOSTNAME`), for the provenance.

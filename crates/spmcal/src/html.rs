@@ -376,6 +376,16 @@ fn validation_section(page: &mut Page, v: &crate::report::Validation) {
             &rows,
         );
     }
+    validation_lattice(page, v, &verdict);
+}
+
+/// The validation's corrected-standard part: the paragraph with its verdict and the table of
+/// places.
+fn validation_lattice(
+    page: &mut Page,
+    v: &crate::report::Validation,
+    verdict: &dyn Fn(spm_evaluation::validation::Verdict, &Option<String>) -> String,
+) {
     match (&v.lattice, &v.lattice_failure) {
         (Some(l), _) => {
             page.paragraph_with_id(

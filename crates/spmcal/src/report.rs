@@ -650,22 +650,7 @@ pub fn finish_with(
     let records = snapshot.count_records(&RecordFilter::default().with_run(&record.run.run_id))?;
     let all = snapshot.records(&RecordFilter::scanner(&record.plan.scanner_id))?;
 
-    let mut notes = vec![
-        "accuracy: residual distortion = corrected raster (eq. 9) with the method's surfaces minus \
-         the same raster corrected with the oracle's true LCC field, best rigid motion removed; \
-         lattice error = apparent change of the lattice constant on an aperture-sized corrected \
-         image at each of a grid of places, from the exact local maps (no detection noise)"
-            .to_owned(),
-        format!(
-            "polynomial (per-image 3rd-order) baseline: one {POLYNOMIAL_LINES}-line image of the whole \
-             region (trace + retrace at the plan's pixel dwell) over a reference grid of \
-             {POLYNOMIAL_CONTROL}×{POLYNOMIAL_CONTROL} features with exact positions; a total-degree-3 \
-             polynomial per coordinate fitted by least squares; the drift (oracle velocity at the end \
-             of the run) moves the features during the image. A best case for the baseline: it \
-             assumes a standard resolvable over the whole field in one image (a grating, not an \
-             atomic lattice) and no detection noise"
-        ),
-    ];
+    let mut notes = method_notes();
     // A region of no area (the nodes of one row or column, e.g. a resume that measured only
     // those) has no raster to judge: no accuracy, said in the notes.
     let region = Region::around(record.nodes, 0.0)
@@ -752,6 +737,26 @@ pub fn finish_with(
         crate::html::calibration_page(&report, &figures).as_bytes(),
     )?;
     Ok(report)
+}
+
+/// How the accuracy figures are measured (report.json's first notes).
+fn method_notes() -> Vec<String> {
+    vec![
+        "accuracy: residual distortion = corrected raster (eq. 9) with the method's surfaces minus \
+         the same raster corrected with the oracle's true LCC field, best rigid motion removed; \
+         lattice error = apparent change of the lattice constant on an aperture-sized corrected \
+         image at each of a grid of places, from the exact local maps (no detection noise)"
+            .to_owned(),
+        format!(
+            "polynomial (per-image 3rd-order) baseline: one {POLYNOMIAL_LINES}-line image of the whole \
+             region (trace + retrace at the plan's pixel dwell) over a reference grid of \
+             {POLYNOMIAL_CONTROL}×{POLYNOMIAL_CONTROL} features with exact positions; a total-degree-3 \
+             polynomial per coordinate fitted by least squares; the drift (oracle velocity at the end \
+             of the run) moves the features during the image. A best case for the baseline: it \
+             assumes a standard resolvable over the whole field in one image (a grating, not an \
+             atomic lattice) and no detection noise"
+        ),
+    ]
 }
 
 /// The accuracy table against the ground truth over the nodes' region, and the image

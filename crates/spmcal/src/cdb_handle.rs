@@ -281,14 +281,7 @@ impl CdbRead for Plausible<'_> {
         }
         let mut c = LccColumns::default();
         self.for_each_record(filter, &mut |r| {
-            c.lcs_x_counts.push(r.lcs_x_counts);
-            c.lcs_y_counts.push(r.lcs_y_counts);
-            c.node_z_counts.push(r.node_z_counts);
-            c.acquired_unix_s.push(r.acquired_unix_s);
-            c.kx_nm_per_count.push(r.kx_nm_per_count);
-            c.ky_nm_per_count.push(r.ky_nm_per_count);
-            c.alpha_rad.push(r.alpha_rad);
-            c.kz_nm_per_count.push(r.kz_nm_per_count);
+            c.push(&r);
             Ok(())
         })?;
         Ok(c)

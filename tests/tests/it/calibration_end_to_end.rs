@@ -10,7 +10,7 @@
 //! calibration must find and correct are the scanner's nonlinearity,
 //! nonorthogonality, crosstalk and Z couplings, under drift and noise.
 
-mod common;
+use crate::common;
 
 use common::calibrate_small_net;
 

@@ -21,7 +21,7 @@
 //! (≈ 3.3 s) the room-temperature drift (≈ 0.014 nm/s) moves the sample ≈ 0.05 nm, ≈ 2 % of
 //! the image, far above the 0.4 % target. The counter-scanned pair is the paper's remedy.
 
-mod common;
+use crate::common;
 
 use spm_correction::{
     CorrectionField, FeatureMatch, FnField, FormCoefficients, Integration, Interpolation,

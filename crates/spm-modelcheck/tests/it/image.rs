@@ -4,7 +4,7 @@
 //! timing and the direction conventions are part of what is tested.
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use common::image::{Hidden, Program, write_frames, write_no_lattice};
 use spm_modelcheck::{

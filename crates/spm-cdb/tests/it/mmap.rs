@@ -99,7 +99,8 @@ fn a_file_truncated_under_a_reader_is_an_error_not_a_bus_error() {
     let out = std::process::Command::new(std::env::current_exe().unwrap())
         .args([
             "--exact",
-            "truncated_under_a_reader_child",
+            // Its name in the one test binary of spm-cdb (tests/it/main.rs): module, then fn.
+            "mmap::truncated_under_a_reader_child",
             "--ignored",
             "--nocapture",
         ])

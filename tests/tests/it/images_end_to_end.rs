@@ -17,7 +17,7 @@
 //! `bound_distributed_true_dynamics` (the calibrated surfaces along the simulator's true
 //! effective inputs).
 
-mod common;
+use crate::common;
 
 use spm_hal::Seconds;
 

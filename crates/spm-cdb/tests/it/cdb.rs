@@ -6,7 +6,7 @@
 //! test binary. Tests of one back end's file or schema mechanics are named for it.
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use common::{Backend, T0, db_path, plan, record, run};
 use rusqlite::Connection;

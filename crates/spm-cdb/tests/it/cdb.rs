@@ -7,6 +7,7 @@
 #![allow(clippy::unwrap_used)]
 
 use crate::common;
+use crate::on_both_backends; // #[macro_export]ed by common: at the crate root
 
 use common::{Backend, T0, db_path, plan, record, run};
 use rusqlite::Connection;

@@ -644,7 +644,9 @@ fn integration_test_targets(package: &serde_json::Value) -> Vec<PathBuf> {
         })
         .map(|t| {
             let path = PathBuf::from(str_of(t, "src_path"));
-            path.strip_prefix(&dir).map(Path::to_path_buf).unwrap_or(path)
+            path.strip_prefix(&dir)
+                .map(Path::to_path_buf)
+                .unwrap_or(path)
         })
         .collect()
 }

@@ -57,7 +57,11 @@ pub fn small_net(
     MEMO[slot].get_or_init(|| {
         let name = format!(
             "small-net-{}{}",
-            if with_hysteresis_and_creep { "full" } else { "static" },
+            if with_hysteresis_and_creep {
+                "full"
+            } else {
+                "static"
+            },
             if with_image_benchmark { "-images" } else { "" }
         );
         calibrate_small_net(&name, with_hysteresis_and_creep, with_image_benchmark)

@@ -2,7 +2,7 @@
 //! HOPG at SNR 10 (targets ≤ 20 µs and ≤ 300 µs, one core, release).
 #![allow(clippy::unwrap_used)]
 
-#[path = "../tests/common/mod.rs"]
+#[path = "../tests/it/common/mod.rs"]
 mod common;
 
 use common::{Hopg, segment_map};

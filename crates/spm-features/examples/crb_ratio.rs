@@ -4,7 +4,7 @@
 //! `cargo run --release -p spm-features --example crb_ratio [trials]`
 #![allow(clippy::unwrap_used)]
 
-#[path = "../tests/common/mod.rs"]
+#[path = "../tests/it/common/mod.rs"]
 mod common;
 
 use common::{Hopg, segment_map};

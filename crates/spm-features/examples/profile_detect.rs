@@ -3,7 +3,7 @@
 //! apertures with fitting disabled, `segment` = 40 000 segments 16×16.
 #![allow(clippy::unwrap_used)]
 
-#[path = "../tests/common/mod.rs"]
+#[path = "../tests/it/common/mod.rs"]
 mod common;
 
 use common::{Hopg, segment_map};

@@ -802,7 +802,7 @@ fn demean_lines(v: &mut [f64], line: &[usize], w: &[f64], lines: usize) {
 /// (projected out): the line levelling's leakage of partial periods into each line's
 /// offset and tilt, and the feedback's line-to-line offsets, are stripes that would
 /// otherwise pull the cell along the slow axis (by up to 60 pm at the frame's sides on
-/// the synthetic cells of tests/cells.rs).
+/// the synthetic cells of tests/it/cells.rs).
 // long-function: the window, the coarse search and the Gauss–Newton fit share the window's pixels
 fn locate_one(img: &Image<'_>, t: &Template, geo: &Geometry, site: [i64; 2]) -> Result<Cell, Miss> {
     let fs = [

@@ -191,7 +191,7 @@ fn level(channel: &Channel) -> (Vec<f64>, Vec<bool>) {
     let mut out = vec![0.0; nx * ny];
     let mut nan = vec![false; nx * ny];
     // 15 % of each end tapered: enough to suppress the partial-period
-    // leakage (tests/image.rs, clean cases), while the flat middle keeps the
+    // leakage (tests/it/image.rs, clean cases), while the flat middle keeps the
     // tilt estimate efficient on real lines with strong feedback noise.
     let alpha = 0.3;
     let taper = |c: usize| {

@@ -397,7 +397,7 @@ fn check_lattice(
 /// Fraction of features whose nearest neighbour is a lattice vector (within
 /// 0.2 in basis units) for random points (noise peaks, adsorbates) with the
 /// detector's minimum separation: measured 0.18–0.28 on white-noise and blob
-/// images (tests/image.rs); a lattice gives 0.8–1, a lattice with many
+/// images (tests/it/image.rs); a lattice gives 0.8–1, a lattice with many
 /// spurious detections (Si 7×7 with defects) 0.3–0.5.
 const RANDOM_NN_FRACTION: f64 = 0.25;
 /// Pooled over all frames and directions, at least this fraction is needed.

@@ -10,7 +10,7 @@
 //! ```
 //!
 //! With `CAPTURE`, the script also writes the frames the vendor client exchanged (the
-//! fixture `tests/data/vendor_session.txt` of `tests/vendor_frames.rs` was made so).
+//! fixture `tests/data/vendor_session.txt` of `tests/it/vendor_frames.rs` was made so).
 //!
 //! `PYTHON` must have `nanonis-spm` and `numpy` (`.ci/run` makes a venv in
 //! `target/venv`). Exit status: 0 when every command interoperates.

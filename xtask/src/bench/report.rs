@@ -893,7 +893,7 @@ fn postgres_section(md: &mut String, section: &Section<super::postgres::Postgres
             let _ = writeln!(
                 md,
                 "\nThe SIGKILL-and-resume test runs on both back ends \
-                 (`cargo test -p spmcal --test crash -- --nocapture` prints the kills survived).\n"
+                 (`cargo test -p spmcal --test it crash:: -- --nocapture` prints the kills survived).\n"
             );
         }
         Section::Missing { missing } => {

@@ -10,16 +10,19 @@
 //! calibration must find and correct are the scanner's nonlinearity,
 //! nonorthogonality, crosstalk and Z couplings, under drift and noise.
 
-mod common;
+use crate::common;
 
-use common::calibrate_small_net;
+use common::small_net;
 
 #[test]
 fn a_small_net_corrects_nonlinearity_and_couplings_to_the_scaled_targets() {
-    let report = calibrate_small_net("static", false, false).report;
+    let report = &small_net(false, false).report;
     assert_eq!(report.nodes, 36);
     assert!(report.records >= 34, "records: {}", report.records);
-    let a = report.accuracy.expect("the simulator gives an oracle");
+    let a = report
+        .accuracy
+        .as_ref()
+        .expect("the simulator gives an oracle");
     eprintln!("{a:#?}");
     // The uncorrected scanner is far off; the distributed calibration corrects it.
     assert!(a.uncorrected.mean_lattice_error_pct > 3.0);
@@ -46,11 +49,13 @@ fn creep_and_hysteresis_are_what_limit_the_full_scanner() {
     // Same net on the full room-temperature scanner: still far better than the
     // lumped calibration, but the creep excited by the skipping moves biases
     // the LCCs (docs/results/calibration.md), so the lattice error grows.
-    let full = calibrate_small_net("full", true, false).report;
-    let a = full.accuracy.expect("oracle");
-    let static_only = calibrate_small_net("static-reference", false, false)
+    let full = &small_net(true, false).report;
+    let a = full.accuracy.as_ref().expect("oracle");
+    // The same static calibration as the test above (shared: `common::small_net`).
+    let static_only = small_net(false, false)
         .report
         .accuracy
+        .as_ref()
         .expect("oracle");
     eprintln!("{a:#?}");
     assert!(a.distributed.rms_pm < 0.5 * a.lumped.rms_pm, "{a:?}");

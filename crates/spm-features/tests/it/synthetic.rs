@@ -1,7 +1,7 @@
 //! Recognition on synthetic HOPG height maps with known atom positions.
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use common::{Hopg, segment_map};
 use rand::SeedableRng;

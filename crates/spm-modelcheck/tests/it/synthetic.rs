@@ -2,7 +2,7 @@
 //! the library at five seeds each, whatever spm-sim can produce).
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use common::{Extra, Scan, generate, none};
 use spm_modelcheck::{Diagnosis, EffectKind, LatticeSpec, Options, diagnose_features};

@@ -2,6 +2,11 @@
 //! on the room-temperature tube scanner (optionally without hysteresis and creep). Returns the
 //! report, the simulator after the run (for the oracle and for further scans) and the surfaces
 //! read back from the `surfaces.json` the run wrote.
+//!
+//! The tests share one binary (`tests/it/main.rs`), so [`small_net`] runs each distinct
+//! calibration once and hands every test the same result: the run is deterministic (the
+//! simulator's randomness is seeded by its config, the run name is only the CDB's label), so
+//! tests that asked for the same settings got bit-identical calibrations anyway.
 
 #![allow(dead_code)] // each test file uses part of it
 
@@ -12,6 +17,7 @@ use spmcal::job::{Backend, Job};
 use spmcal::report::{CalibrationReport, RunRecord, finish_with};
 use spmcal::run::{RecordingObserver, RunStart, run_job};
 use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
 
 /// What a small-net calibration leaves behind.
 pub struct SmallNetCalibration {
@@ -37,6 +43,29 @@ fn scratch(name: &str) -> PathBuf {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).expect("scratch folder");
     dir
+}
+
+/// The small-net calibration with these settings, run once per test binary and shared (the
+/// first test to ask runs it, the others wait for it). A test that goes on scanning clones
+/// [`SmallNetCalibration::simulator`].
+pub fn small_net(
+    with_hysteresis_and_creep: bool,
+    with_image_benchmark: bool,
+) -> &'static SmallNetCalibration {
+    static MEMO: [OnceLock<SmallNetCalibration>; 4] = [const { OnceLock::new() }; 4];
+    let slot = usize::from(with_hysteresis_and_creep) * 2 + usize::from(with_image_benchmark);
+    MEMO[slot].get_or_init(|| {
+        let name = format!(
+            "small-net-{}{}",
+            if with_hysteresis_and_creep {
+                "full"
+            } else {
+                "static"
+            },
+            if with_image_benchmark { "-images" } else { "" }
+        );
+        calibrate_small_net(&name, with_hysteresis_and_creep, with_image_benchmark)
+    })
 }
 
 /// Runs the default HOPG plan reduced to a 6 × 6 net and one pass, fits surfaces and judges

@@ -104,7 +104,7 @@ fn bad_images_are_refused_with_exit_2_naming_the_file_and_the_reason() {
 /// 2° obliquity, strong nonlinearity (the LCCs vary by a few % across the image), no drift,
 /// creep or hysteresis (a virtual image freezes them in; here the truth is the static map).
 fn distorted_simulator() -> Simulator {
-    let text = include_str!("../../../configs/sim-ideal.toml")
+    let text = include_str!("../../../../configs/sim-ideal.toml")
         .replace(
             "sensitivity_y_nm_per_count = 0.02",
             "sensitivity_y_nm_per_count = 0.0215",

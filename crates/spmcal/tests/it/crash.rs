@@ -88,6 +88,11 @@ fn run_and_kill(job: &Path, dir: &Path, cdb: &dyn Db, resume: bool, after: Durat
         }
         std::thread::sleep(Duration::from_millis(5));
     }
+    // Once more right before the kill: a run that ended during the last sleep was not killed
+    // (on a loaded machine that sleep can last far longer than 5 ms).
+    if child.try_wait().unwrap().is_some() {
+        return false;
+    }
     child.kill().unwrap();
     let status = child.wait().unwrap();
     assert_eq!(status.code(), None, "killed by a signal");

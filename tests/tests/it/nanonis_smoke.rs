@@ -5,7 +5,7 @@
 //! speed): it moves nothing, scans nothing and changes no setting.
 //!
 //! ```sh
-//! SPMCAL_NANONIS_ADDR=192.168.1.10:6501 cargo test -p spmcal-tests --test nanonis_smoke -- --ignored --nocapture
+//! SPMCAL_NANONIS_ADDR=192.168.1.10:6501 cargo test -p spmcal-tests --test it nanonis_smoke:: -- --ignored --nocapture
 //! ```
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 

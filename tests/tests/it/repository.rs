@@ -626,6 +626,76 @@ fn every_publishable_crate_packages() {
     }
 }
 
+/// Test targets of a workspace member as cargo sees them (`cargo metadata`: the files it
+/// discovers in `tests/` and the manifest's `[[test]]` entries), paths relative to the package.
+fn integration_test_targets(package: &serde_json::Value) -> Vec<PathBuf> {
+    let dir = Path::new(str_of(package, "manifest_path"))
+        .parent()
+        .expect("a manifest lives in its package's folder")
+        .to_path_buf();
+    package["targets"]
+        .as_array()
+        .map_or(&[][..], Vec::as_slice)
+        .iter()
+        .filter(|t| {
+            t["kind"]
+                .as_array()
+                .is_some_and(|kinds| kinds.iter().any(|k| k == "test"))
+        })
+        .map(|t| {
+            let path = PathBuf::from(str_of(t, "src_path"));
+            path.strip_prefix(&dir)
+                .map(Path::to_path_buf)
+                .unwrap_or(path)
+        })
+        .collect()
+}
+
+/// Issue 28 item 7: every package's integration tests are one binary, `tests/it/main.rs`, with a
+/// module per topic (docs/ARCHITECTURE.md, "Tests"). Each further file directly in `tests/`
+/// (or `[[test]]` entry) would be a binary of its own that links the workspace once more.
+#[test]
+fn every_package_has_at_most_one_integration_test_binary_tests_it_main_rs() {
+    let metadata = workspace_metadata();
+    let members = member_names(&metadata);
+    let one_binary = Path::new("tests").join("it").join("main.rs");
+    let mut problems = Vec::new();
+    for name in &members {
+        let targets = integration_test_targets(package_named(&metadata, name));
+        if targets.len() > 1 || targets.iter().any(|t| *t != one_binary) {
+            problems.push(format!("{name}: test binaries {targets:?}"));
+        }
+    }
+    assert_eq!(
+        members.len(),
+        crate_names().len() + 2,
+        "members: crates/*, xtask and tests"
+    );
+    // The files themselves, so that a file cargo would not pick up (`autotests = false`) cannot
+    // hide either: no Rust file directly in a package's `tests/`.
+    let mut packages: Vec<PathBuf> = crate_names()
+        .iter()
+        .map(|n| workspace_root().join("crates").join(n))
+        .collect();
+    packages.extend(["tests", "xtask"].map(|d| workspace_root().join(d)));
+    for package in packages {
+        let Ok(entries) = std::fs::read_dir(package.join("tests")) else {
+            continue;
+        };
+        for path in entries.filter_map(Result::ok).map(|e| e.path()) {
+            if path.extension().is_some_and(|e| e == "rs") {
+                problems.push(format!("{}: move it to tests/it/", path.display()));
+            }
+        }
+    }
+    assert!(
+        problems.is_empty(),
+        "one integration-test binary per package, tests/it/main.rs with a `mod` per former \
+         test file:\n  {}",
+        problems.join("\n  ")
+    );
+}
+
 // ---------------------------------------------------------------------------------------------
 // Functions of library code, parsed with syn: lengths and the equation index.
 // ---------------------------------------------------------------------------------------------

@@ -4,7 +4,7 @@
 //! faults, a nonlinear Z manipulator, the bowl, Z⇒X/Y couplings) measures Kz from monatomic
 //! steps near the nodes, the bowl from the LCS levels, and the LCCs at three Z planes.
 
-mod common;
+use crate::common;
 
 use common::workspace_root;
 use spm_calibration::NoObserver;

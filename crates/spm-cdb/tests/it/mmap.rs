@@ -99,7 +99,8 @@ fn a_file_truncated_under_a_reader_is_an_error_not_a_bus_error() {
     let out = std::process::Command::new(std::env::current_exe().unwrap())
         .args([
             "--exact",
-            "truncated_under_a_reader_child",
+            // Its name in the one test binary of spm-cdb (tests/it/main.rs): module, then fn.
+            "mmap::truncated_under_a_reader_child",
             "--ignored",
             "--nocapture",
         ])
@@ -118,7 +119,7 @@ fn a_file_truncated_under_a_reader_is_an_error_not_a_bus_error() {
 
 /// The read path's cost of no mmap: `columns` of 10⁶ records (one plane, the regression's
 /// query) with the connection's `mmap_size` 0 and 1 GiB (what it was), best of 3 each.
-/// `cargo test -p spm-cdb --test mmap -- --ignored --nocapture read_path_cost`
+/// `cargo test -p spm-cdb --test it -- --ignored --nocapture mmap::read_path_cost`
 #[test]
 #[ignore = "timing, 10^6 records"]
 fn read_path_cost_of_no_mmap() {

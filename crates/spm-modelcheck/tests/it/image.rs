@@ -1,10 +1,10 @@
 //! Hidden effects in pixel-sampled images written as Nanonis `.sxm` files and
-//! read back (tests/common/image.rs): a generator independent of spm-sim and
+//! read back (tests/it/common/image.rs): a generator independent of spm-sim and
 //! of the feature-level one, so the localiser's pixel locking, the file
 //! timing and the direction conventions are part of what is tested.
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use common::image::{Hidden, Program, write_frames, write_no_lattice};
 use spm_modelcheck::{
@@ -903,7 +903,7 @@ fn degenerate_inputs_give_errors_not_panics() {
 }
 
 /// A fast-SPM-like movie: many short frames, fast axis driven sinusoidally.
-/// `FRAMES=40 cargo test -p spm-modelcheck --test image explore_movie -- --ignored --nocapture`
+/// `FRAMES=40 cargo test -p spm-modelcheck --test it image::explore_movie -- --ignored --nocapture`
 #[test]
 #[ignore = "exploration: a long movie"]
 fn explore_movie() {
@@ -930,7 +930,7 @@ fn explore_movie() {
 
 /// Clean sets over a sweep of scan programs (pixels, size, noise,
 /// corrugation, rotation, line time): any finding is printed.
-/// `cargo test -p spm-modelcheck --test image explore_clean_sweep -- --ignored --nocapture`
+/// `cargo test -p spm-modelcheck --test it image::explore_clean_sweep -- --ignored --nocapture`
 #[test]
 #[ignore = "exploration: clean sets over many scan programs"]
 fn explore_clean_sweep() {

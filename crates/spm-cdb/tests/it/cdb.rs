@@ -6,7 +6,8 @@
 //! test binary. Tests of one back end's file or schema mechanics are named for it.
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
+use crate::on_both_backends; // #[macro_export]ed by common: at the crate root
 
 use common::{Backend, T0, db_path, plan, record, run};
 use rusqlite::Connection;

@@ -1,5 +1,5 @@
 //! Synthetic HOPG surfaces for tests: three-cosine model with known atoms.
-#![allow(dead_code)]
+#![allow(dead_code, clippy::unwrap_used)] // as in the test files that included it
 
 use rand::Rng;
 use rand_distr::{Distribution, Normal};

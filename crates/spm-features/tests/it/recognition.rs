@@ -1,7 +1,7 @@
 //! Detection, rejection, lattice vectors and LCS on synthetic HOPG maps.
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use common::{Hopg, segment_map};
 use rand::SeedableRng;

@@ -17,13 +17,13 @@
 //! `bound_distributed_true_dynamics` (the calibrated surfaces along the simulator's true
 //! effective inputs).
 
-mod common;
+use crate::common;
 
 use spm_hal::Seconds;
 
 #[test]
 fn with_every_effect_on_the_identified_creep_law_corrects_what_no_static_field_can() {
-    let calibration = common::calibrate_small_net("images-e2e", true, true);
+    let calibration = common::small_net(true, true);
     let report = &calibration.report;
     let images = report.images.as_ref().expect("the image benchmark ran");
     assert!(images.count >= 24, "{} test images", images.count);

@@ -3,7 +3,7 @@
 
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use spm_formats::{Direction, Format, ScanDir, SpmFile, read_any};
 use spmcal_tests::measured_file;

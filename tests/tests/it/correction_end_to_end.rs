@@ -21,7 +21,7 @@
 //! (≈ 3.3 s) the room-temperature drift (≈ 0.014 nm/s) moves the sample ≈ 0.05 nm, ≈ 2 % of
 //! the image, far above the 0.4 % target. The counter-scanned pair is the paper's remedy.
 
-mod common;
+use crate::common;
 
 use spm_correction::{
     CorrectionField, FeatureMatch, FnField, FormCoefficients, Integration, Interpolation,
@@ -198,9 +198,11 @@ fn measure(field: &(impl CorrectionField + ?Sized), pair: &Pair, period_px: f64)
 
 #[test]
 fn images_anywhere_in_the_field_show_the_lattice_constant_after_correction() {
-    let calibration = common::calibrate_small_net("correction-e2e", false, false);
-    let mut sim = calibration.simulator;
-    let plan = calibration.plan;
+    // The static calibration of calibration_end_to_end.rs, shared (`common::small_net`); this
+    // test scans on with its own copy of the simulator after the run.
+    let calibration = common::small_net(false, false);
+    let mut sim = calibration.simulator.clone();
+    let plan = &calibration.plan;
     let nominal = plan.standard.nominal_nm_per_count;
     let z = sim.oracle().z_now().value();
     let plane = calibration

@@ -1,0 +1,4 @@
+//! The integration tests of `spm-apply`, one binary (docs/ARCHITECTURE.md, "Tests"): a
+//! module per topic, run as `cargo test -p spm-apply --test it <module>::`.
+
+mod real_files;

@@ -1,0 +1,7 @@
+//! The integration tests of `spm-nanonis-sim`, one binary (docs/ARCHITECTURE.md, "Tests"): a
+//! module per topic, run as `cargo test -p spm-nanonis-sim --test it <module>::`.
+
+mod backend_angles;
+mod issue26;
+mod over_tcp;
+mod vendor_frames;

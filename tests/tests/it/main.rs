@@ -1,0 +1,12 @@
+//! The integration tests of `spmcal-tests`, one binary (docs/ARCHITECTURE.md, "Tests"): a
+//! module per topic, run as `cargo test -p spmcal-tests --test it <module>::`.
+
+mod common;
+
+mod calibration_end_to_end;
+mod correction_end_to_end;
+mod images_end_to_end;
+mod nanonis_end_to_end;
+mod nanonis_smoke;
+mod repository;
+mod vertical_end_to_end;

@@ -62,6 +62,23 @@ pub struct Region {
 }
 
 impl Region {
+    /// The bounding box of the measured nodes when it has an area (a run that measured one
+    /// row or column of the net spans none, and has no raster to judge or image).
+    pub fn spanned(nodes: &[NodeSample]) -> Option<Self> {
+        Self::around(nodes, 0.0)
+            .filter(|r| r.x_max_counts > r.x_min_counts && r.y_max_counts > r.y_min_counts)
+    }
+
+    /// The same rectangle as the image benchmark's and the validation's region type.
+    pub fn counts(&self) -> spm_evaluation::images::CountRegion {
+        spm_evaluation::images::CountRegion {
+            x_min_counts: self.x_min_counts,
+            x_max_counts: self.x_max_counts,
+            y_min_counts: self.y_min_counts,
+            y_max_counts: self.y_max_counts,
+        }
+    }
+
     /// The bounding box of the nodes, with a margin of `margin` of its size.
     pub fn around(nodes: &[NodeSample], margin: f64) -> Option<Self> {
         let first = nodes.first()?;

@@ -653,8 +653,7 @@ pub fn finish_with(
     let mut notes = method_notes();
     // A region of no area (the nodes of one row or column, e.g. a resume that measured only
     // those) has no raster to judge: no accuracy, said in the notes.
-    let region = Region::around(record.nodes, 0.0)
-        .filter(|r| r.x_max_counts > r.x_min_counts && r.y_max_counts > r.y_min_counts);
+    let region = Region::spanned(record.nodes);
     let (accuracy, images) = match (record.truth, region, fitted.set.planes.first()) {
         (Some(truth), Some(region), Some(plane)) => {
             record.phase(if with_images {
@@ -957,16 +956,11 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
 ) -> Result<spm_evaluation::images::ImageBenchmark, ReportError> {
     use spm_correction::dynamics::{CommandHistory, CreepLaw, creep_offsets, fit_creep_law};
     use spm_evaluation::images::{
-        CountRegion, DynamicsSummary, GratingConfig, ImageCorrection, ImageMethod, ImageSetConfig,
+        DynamicsSummary, GratingConfig, ImageCorrection, ImageMethod, ImageSetConfig,
         evaluate_images, grating_polynomial, take_test_images,
     };
     let plan = record.plan;
-    let region = CountRegion {
-        x_min_counts: region.x_min_counts,
-        x_max_counts: region.x_max_counts,
-        y_min_counts: region.y_min_counts,
-        y_max_counts: region.y_max_counts,
-    };
+    let region = region.counts();
     let config = ImageSetConfig::standard(plan, quick);
     let grating = grating_polynomial(
         sim,

@@ -471,18 +471,11 @@ pub fn standard_images(
     plan: &spm_calibration::PlanConfig,
     nodes: &[NodeSample],
 ) -> Option<Result<Vec<spm_evaluation::images::TestImage>, String>> {
-    use spm_evaluation::images::{CountRegion, take_images_without_truth};
+    use spm_evaluation::images::take_images_without_truth;
     if plan.validation.lattice_places_per_side == 0 {
         return None;
     }
-    let region = crate::plots::Region::around(nodes, 0.0)
-        .filter(|r| r.x_max_counts > r.x_min_counts && r.y_max_counts > r.y_min_counts)?;
-    let region = CountRegion {
-        x_min_counts: region.x_min_counts,
-        x_max_counts: region.x_max_counts,
-        y_min_counts: region.y_min_counts,
-        y_max_counts: region.y_max_counts,
-    };
+    let region = crate::plots::Region::spanned(nodes)?.counts();
     let config = spm_evaluation::validation::lattice_image_set(plan);
     let taken = match instrument {
         FinishedInstrument::Sim(sim) => {

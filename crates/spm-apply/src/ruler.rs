@@ -12,9 +12,11 @@
 //! to the frame's first pixel; `A` the move's creep amplitude, nm; `v` the drift, nm/s). Every
 //! atom of the image is seen at its own time, so the atoms of a known lattice (HOPG: hexagonal,
 //! a = 0.246 nm) sit at `O + R(θ)·B·n + e(t)`, n the atom's lattice index. The image's
-//! atoms are indexed by growing from the atom seen at the median time, neighbour by neighbour
-//! (a step between neighbours is never ambiguous, however far the frame is sheared; a frame the
-//! index does not span is first straightened by the drift of the indexed patch), and
+//! atoms are indexed by growing from the atom seen at the median time, neighbour by neighbour,
+//! with the apparent basis of the atoms seen around that time (a step between neighbours is
+//! never ambiguous, however far the frame is sheared; a frame the index does not span is
+//! straightened by the drift of the indexed patch and indexed again, as long as the index
+//! grows), and
 //! `O`, the rotation `δθ` about the apparent one, `A` and `v` follow by linear least squares
 //! for each `t_m` of a log-spaced ladder; the `t_m` of the least residual is kept. Any `(A, t_m,
 //! v)` that fits the atoms gives the same `e` over the frame, so that `A` and `v` trade off for
@@ -23,7 +25,9 @@
 //! A static error of the calibration along the slow axis (K̄y, α) is a constant rate of `e`
 //! along y, so the ruler removes it too; along the fast axis it cannot (a line takes no time).
 //! Images whose lattice is not resolved (fewer than `min_pixels_per_constant` pixels per
-//! lattice constant) are refused, not guessed.
+//! lattice constant), whose index spans less than 70 % of the atoms, or whose atoms stay more
+//! than a quarter lattice constant RMS off the fitted lattice (a wrong index: a correct one
+//! leaves 0.01–0.04 nm on the benchmark's images) are refused, not guessed.
 
 use spm_correction::dynamics::CreepLaw;
 use spm_correction::{CoordinateMap, CorrectionError, YCoordinates};
@@ -32,15 +36,20 @@ use spm_hal::{CountPoint, Counts, HeightMap};
 
 /// Fewest atoms indexed, as a fraction of those located, for a fit that spans the frame.
 const MIN_INDEXED_FRACTION: f64 = 0.7;
+/// Atoms indexed, as a fraction of those located, beyond which the index is not straightened
+/// further.
+const COMPLETE_FRACTION: f64 = 0.95;
+/// Most straightening passes (drift fit, straighten, index again) of a strained frame.
+const MAX_STRAIGHTENING_PASSES: usize = 8;
 /// Largest RMS distance of the atoms from the fitted lattice, in lattice constants.
-const MAX_RESIDUAL_FRACTION: f64 = 1.0;
+const MAX_RESIDUAL_FRACTION: f64 = 0.25;
 
 /// The lattice a ruler measures against.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LatticeRuler {
     /// Nearest-neighbour distance of the hexagonal lattice, nm (HOPG 0.246).
     pub constant_nm: f64,
-    /// Fewest pixels per lattice constant for the atoms to be located (default 5).
+    /// Fewest pixels per lattice constant for the atoms to be located (default 4).
     pub min_pixels_per_constant: f64,
 }
 
@@ -50,7 +59,7 @@ impl LatticeRuler {
     pub fn hopg() -> Self {
         Self {
             constant_nm: 0.246,
-            min_pixels_per_constant: 5.0,
+            min_pixels_per_constant: 4.0,
         }
     }
 }
@@ -189,24 +198,56 @@ fn atoms(
 /// Per atom its lattice index (when reached), and the apparent basis, nm.
 type Indexing = (Vec<Option<[i64; 2]>>, [[f64; 2]; 2]);
 
+/// The apparent basis and nearest-neighbour distance of the atoms seen around the median
+/// time: creep and drift strain a frame differently at each time, so the atoms of a short
+/// time window (the third of them nearest the median time, then two thirds, then all) show one
+/// lattice where the whole frame may show none.
+fn apparent_basis(atoms: &[Atom]) -> Result<([[f64; 2]; 2], f64), CorrectionError> {
+    let mut by_time: Vec<&Atom> = atoms.iter().collect();
+    by_time.sort_by(|a, b| a.t.total_cmp(&b.t));
+    let mut last = CorrectionError::InvalidArgument("lattice ruler: no atoms".into());
+    for fraction in [1.0 / 3.0, 2.0 / 3.0, 1.0] {
+        let take = ((by_time.len() as f64 * fraction).ceil() as usize).min(by_time.len());
+        if take < 12 && fraction < 1.0 {
+            continue;
+        }
+        let from = (by_time.len() - take) / 2;
+        let window: Vec<Feature> = by_time[from..from + take]
+            .iter()
+            .map(|a| a.feature)
+            .collect();
+        let lattice = match lattice_vectors(&window, &LatticeConfig::default()) {
+            Ok(l) => l,
+            Err(e) => {
+                last = CorrectionError::InvalidArgument(format!("lattice ruler: {e}"));
+                continue;
+            }
+        };
+        let Some((b1, b2)) = lattice.basis() else {
+            last = CorrectionError::InvalidArgument(
+                "lattice ruler: fewer than two lattice directions".into(),
+            );
+            continue;
+        };
+        return Ok((
+            [
+                [b1.vector.x.value(), b1.vector.y.value()],
+                [b2.vector.x.value(), b2.vector.y.value()],
+            ],
+            lattice.nearest_neighbour.value(),
+        ));
+    }
+    Err(last)
+}
+
 fn index(atoms: &[Atom]) -> Result<Indexing, CorrectionError> {
-    let as_features: Vec<Feature> = atoms.iter().map(|a| a.feature).collect();
-    let lattice = lattice_vectors(&as_features, &LatticeConfig::default())
-        .map_err(|e| CorrectionError::InvalidArgument(format!("lattice ruler: {e}")))?;
-    let (b1, b2) = lattice.basis().ok_or_else(|| {
-        CorrectionError::InvalidArgument("lattice ruler: fewer than two lattice directions".into())
-    })?;
-    let basis = [
-        [b1.vector.x.value(), b1.vector.y.value()],
-        [b2.vector.x.value(), b2.vector.y.value()],
-    ];
+    let (basis, nn) = apparent_basis(atoms)?;
     let det = basis[0][0] * basis[1][1] - basis[1][0] * basis[0][1];
     if det == 0.0 || !det.is_finite() {
         return Err(CorrectionError::InvalidArgument(
             "lattice ruler: collinear lattice directions".into(),
         ));
     }
-    let nn = lattice.nearest_neighbour.value();
     let reach = 1.3 * nn;
     // The lattice step (k₁, k₂) that displacement `d` is in the basis `b`, when it is one to
     // 0.3 nearest-neighbour distances, and how far off it is.
@@ -356,7 +397,7 @@ fn design(
 ///
 /// # Errors
 /// [`CorrectionError::InvalidArgument`] for an image whose lattice is not resolved or not
-/// found, indexed on less than 70 % of its atoms, or left more than a lattice constant off by
+/// found, indexed on less than 70 % of its atoms, or left more than a quarter lattice constant off (RMS) by
 /// the fit; [`CorrectionError::Empty`] with fewer than 12 indexed atoms.
 pub fn estimate_from_lattice(
     heights: &[f64],
@@ -375,25 +416,47 @@ pub fn estimate_from_lattice(
             });
         }
     }
-    let mut atoms = atoms(heights, map, times_s, ruler)?;
+    let located = atoms(heights, map, times_s, ruler)?;
+    let mut atoms = located.clone();
     let (mut n, mut apparent) = index(&atoms)?;
-    // A frame sheared too much for the index to span it: the drift fitted on the indexed patch
+    // A frame strained too much for the index to span it: the drift fitted on the indexed patch
     // (a linear function of time extrapolates mildly) straightens the atoms, and the index is
-    // grown again from them.
+    // grown again from them, as long as it grows. Each fit is on the located positions, with
+    // the indices the last straightening found, so its drift is the whole one.
     let mut pre_drift = [0.0; 2];
-    let reached = n.iter().flatten().count();
-    if reached >= 12 && (reached as f64) < MIN_INDEXED_FRACTION * atoms.len() as f64 {
-        let patch = indexed(&atoms, &n);
+    for _ in 0..MAX_STRAIGHTENING_PASSES {
+        let reached = n.iter().flatten().count();
+        if reached < 12 || reached as f64 >= COMPLETE_FRACTION * located.len() as f64 {
+            break;
+        }
+        let patch = indexed(&located, &n);
         let b = true_basis(&apparent, ruler.constant_nm);
         let (rows, rhs) = design(&patch, &b, law, None);
-        if let Ok(fit) = spm_regression::least_squares(&rows, &rhs, &[false; 5]) {
-            pre_drift = [fit.coefficients[3], fit.coefficients[4]];
-            for a in &mut atoms {
-                a.p = [a.p[0] - pre_drift[0] * a.t, a.p[1] - pre_drift[1] * a.t];
-                a.feature.position = CountPoint::from_counts(a.p[0], a.p[1]);
-            }
-            (n, apparent) = index(&atoms)?;
+        let Ok(fit) = spm_regression::least_squares(&rows, &rhs, &[false; 5]) else {
+            break;
+        };
+        let drift = [fit.coefficients[3], fit.coefficients[4]];
+        let straightened: Vec<Atom> = located
+            .iter()
+            .map(|a| {
+                let p = [a.p[0] - drift[0] * a.t, a.p[1] - drift[1] * a.t];
+                Atom {
+                    p,
+                    feature: Feature {
+                        position: CountPoint::from_counts(p[0], p[1]),
+                        ..a.feature
+                    },
+                    ..*a
+                }
+            })
+            .collect();
+        let Ok((grown, basis)) = index(&straightened) else {
+            break;
+        };
+        if grown.iter().flatten().count() <= reached {
+            break;
         }
+        (atoms, n, apparent, pre_drift) = (straightened, grown, basis, drift);
     }
     let used = indexed(&atoms, &n);
     if used.len() < 12 {
@@ -478,6 +541,91 @@ mod tests {
         z
     }
 
+    fn hidden_error(
+        law: &CreepLaw,
+        amplitude_nm: [f64; 2],
+        since_move_s: f64,
+        drift_nm_per_s: [f64; 2],
+    ) -> RulerEstimate {
+        RulerEstimate {
+            amplitude_nm,
+            since_move_s,
+            drift_nm_per_s,
+            atoms: 0,
+            indexed: 0,
+            before_rms_nm: 0.0,
+            residual_rms_nm: 0.0,
+            law: law.clone(),
+        }
+    }
+
+    /// RMS over the frame's pixel times of `f(t)`, its mean (a rigid offset) removed, nm.
+    fn spread(times: &[f64], f: &dyn Fn(f64) -> [f64; 2]) -> f64 {
+        let v: Vec<[f64; 2]> = times.iter().map(|&t| f(t)).collect();
+        let m = [
+            v.iter().map(|p| p[0]).sum::<f64>() / v.len() as f64,
+            v.iter().map(|p| p[1]).sum::<f64>() / v.len() as f64,
+        ];
+        (v.iter()
+            .map(|p| (p[0] - m[0]).powi(2) + (p[1] - m[1]).powi(2))
+            .sum::<f64>()
+            / v.len() as f64)
+            .sqrt()
+    }
+
+    /// A 129² frame of a hexagonal lattice at 0.02 nm per pixel, lines of `line_s` trace and
+    /// retrace, every pixel seen displaced by `hidden`'s e(t): heights, the file-alone map (the
+    /// commanded grid) and the pixel times.
+    fn strained_frame(hidden: &RulerEstimate, line_s: f64) -> (Vec<f64>, CoordinateMap, Vec<f64>) {
+        let (n, step) = (129, 0.02);
+        let dwell = line_s / n as f64;
+        let mut times = vec![0.0; n * n];
+        let mut heights = vec![0.0; n * n];
+        let mut x = vec![0.0; n * n];
+        let mut y = vec![0.0; n * n];
+        for row in 0..n {
+            for col in 0..n {
+                let i = row * n + col;
+                let t = 2.0 * line_s * row as f64 + (col as f64 + 0.5) * dwell;
+                let p = [col as f64 * step, row as f64 * step];
+                let e = hidden.error_nm(t);
+                times[i] = t;
+                x[i] = p[0];
+                y[i] = p[1];
+                heights[i] = surface(p[0] - e[0], p[1] - e[1], 0.3);
+            }
+        }
+        let map = CoordinateMap::new(n, n, x, YCoordinates::PerPixel(y)).unwrap();
+        (heights, map, times)
+    }
+
+    /// A strongly strained frame: the approach creep of a long move seen from 0.3 s after it,
+    /// most of it in the first lines, and a drift of 0.02–0.03 nm/s move the atoms by more than
+    /// a tenth of the side. The index must span 90 % of the atoms, and the ruler take out 90 %
+    /// of e.
+    #[test]
+    fn a_strongly_strained_frame_is_indexed_by_straightening_and_growing_again() {
+        let law = CreepLaw::log_spaced(0.0055, 0.01, 1e4, 3).unwrap();
+        let hidden = hidden_error(&law, [-25.0, 40.0], 0.3, [0.02, -0.03]);
+        let (heights, map, times) = strained_frame(&hidden, 0.1);
+        let before = spread(&times, &|t| hidden.error_nm(t));
+        assert!(before > 0.25, "the hidden e is {before} nm RMS");
+        let estimate =
+            estimate_from_lattice(&heights, &map, &times, &law, &LatticeRuler::hopg()).unwrap();
+        let after = spread(&times, &|t| {
+            let (e, f) = (hidden.error_nm(t), estimate.error_nm(t));
+            [e[0] - f[0], e[1] - f[1]]
+        });
+        assert!(
+            after < 0.1 * before,
+            "left of e: {before} nm → {after} nm; {estimate:?}"
+        );
+        assert!(
+            estimate.indexed as f64 >= 0.9 * estimate.atoms as f64,
+            "{estimate:?}"
+        );
+    }
+
     /// A 129² frame of a hexagonal lattice, corrected as a file alone is: every pixel seen
     /// displaced by a hidden e(t) (approach creep and drift, ≈ 8 % of the side over the
     /// frame), with a defect off the lattice where the frame's median time is. The ruler must
@@ -488,16 +636,7 @@ mod tests {
         let step = 0.02;
         let line_s = 0.1;
         let law = CreepLaw::log_spaced(0.0055, 0.01, 1e4, 3).unwrap();
-        let hidden = RulerEstimate {
-            amplitude_nm: [-8.0, 5.0],
-            since_move_s: 2.0,
-            drift_nm_per_s: [0.003, -0.002],
-            atoms: 0,
-            indexed: 0,
-            before_rms_nm: 0.0,
-            residual_rms_nm: 0.0,
-            law: law.clone(),
-        };
+        let hidden = hidden_error(&law, [-8.0, 5.0], 2.0, [0.003, -0.002]);
         let dwell = line_s / n as f64;
         let mut times = vec![0.0; n * n];
         let mut heights = vec![0.0; n * n];
@@ -528,20 +667,8 @@ mod tests {
         let estimate =
             estimate_from_lattice(&heights, &map, &times, &law, &LatticeRuler::hopg()).unwrap();
         // What is left of e over the frame, its mean (a rigid offset) removed.
-        let spread = |f: &dyn Fn(f64) -> [f64; 2]| {
-            let v: Vec<[f64; 2]> = times.iter().map(|&t| f(t)).collect();
-            let m = [
-                v.iter().map(|p| p[0]).sum::<f64>() / v.len() as f64,
-                v.iter().map(|p| p[1]).sum::<f64>() / v.len() as f64,
-            ];
-            (v.iter()
-                .map(|p| (p[0] - m[0]).powi(2) + (p[1] - m[1]).powi(2))
-                .sum::<f64>()
-                / v.len() as f64)
-                .sqrt()
-        };
-        let before = spread(&|t| hidden.error_nm(t));
-        let after = spread(&|t| {
+        let before = spread(&times, &|t| hidden.error_nm(t));
+        let after = spread(&times, &|t| {
             let (e, f) = (hidden.error_nm(t), estimate.error_nm(t));
             [e[0] - f[0], e[1] - f[1]]
         });

@@ -212,7 +212,7 @@ enum Command {
         #[arg(long = "static")]
         static_only: bool,
         /// Measure the approach move's creep and the drift against the standard's lattice in
-        /// each image (atomic resolution, ≥ 5 pixels per lattice constant) and remove them too
+        /// each image (atomic resolution, ≥ 4 pixels per lattice constant) and remove them too
         /// — for files corrected along their own raster, without a recorded history. `hopg`:
         /// hexagonal, a = 0.246 nm.
         #[arg(long, value_name = "STANDARD")]

@@ -43,6 +43,7 @@ pub use lattice::{match_features, measure_lattice};
 pub use take::{
     CountRegion, ImageSetConfig, ImageSize, TestImage, take_images_without_truth, take_test_images,
 };
+pub use user_file::ruler_outcome;
 
 /// Why the image benchmark failed.
 #[derive(Debug, thiserror::Error)]

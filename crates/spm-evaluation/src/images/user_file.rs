@@ -21,6 +21,27 @@ pub(super) fn user_file_map(
     recorded: Option<&spm_correction::dynamics::CommandHistory>,
     ruler: Option<&spm_apply::ruler::LatticeRuler>,
 ) -> Result<CoordinateMap, ImageBenchmarkError> {
+    let (map, raster) = file_map(set, image, recorded)?;
+    if let (Some(ruler), Some(d), None) = (ruler, &set.dynamics, recorded) {
+        let law = d.creep.law()?;
+        let times = spm_apply::dynamic::pixel_times(&raster, spm_apply::dynamic::Half::Trace)?;
+        // The heights in the map's order (scanner geometry, bottom row first).
+        if let Ok(found) =
+            spm_apply::ruler::estimate_from_lattice(&image.map.z_counts, &map, &times, &law, ruler)
+        {
+            return Ok(found.corrected(&map, &times)?);
+        }
+    }
+    Ok(map)
+}
+
+/// The image written as a file, read back and mapped (file alone, or with `recorded`), and
+/// the raster read from the file.
+fn file_map(
+    set: &spm_correction::SurfaceSet,
+    image: &TestImage,
+    recorded: Option<&spm_correction::dynamics::CommandHistory>,
+) -> Result<(CoordinateMap, spm_apply::FileRaster), ImageBenchmarkError> {
     use spm_apply::{
         ApplyOptions, FileRaster, KEY_CONVENTION, KEY_LINE_TIME, KEY_ORIGIN_X, KEY_ORIGIN_Y,
         KEY_SCAN_PATH, KEY_SCANNER, KEY_STEP,
@@ -95,15 +116,28 @@ pub(super) fn user_file_map(
         (Some(d), None) => spm_apply::dynamic::dynamic_map(&field, &raster, d, half)?,
         (None, _) => spm_apply::coordinate_map(&field, &raster)?,
     };
-    if let (Some(ruler), Some(d), None) = (ruler, &set.dynamics, recorded) {
-        let law = d.creep.law()?;
-        let times = spm_apply::dynamic::pixel_times(&raster, half)?;
-        // The heights in the map's order (scanner geometry, bottom row first).
-        if let Ok(found) =
-            spm_apply::ruler::estimate_from_lattice(&m.z_counts, &map, &times, &law, ruler)
-        {
-            return Ok(found.corrected(&map, &times)?);
-        }
-    }
-    Ok(map)
+    Ok((map, raster))
+}
+
+/// What `spmcal correct --ruler` finds on one test image (the file-alone map of
+/// [`user_file_map`], then [`spm_apply::ruler::estimate_from_lattice`]): the estimate, or why
+/// the ruler refused the image. For developer probes of the ruler on the benchmark's images.
+///
+/// # Errors
+/// As [`user_file_map`]; [`ImageBenchmarkError::Config`] when the calibration has no dynamics.
+pub fn ruler_outcome(
+    set: &spm_correction::SurfaceSet,
+    image: &TestImage,
+    ruler: &spm_apply::ruler::LatticeRuler,
+) -> Result<Result<spm_apply::ruler::RulerEstimate, String>, ImageBenchmarkError> {
+    let d = set.dynamics.as_ref().ok_or_else(|| {
+        ImageBenchmarkError::Config("ruler: the calibration file has no dynamics".to_owned())
+    })?;
+    let (map, raster) = file_map(set, image, None)?;
+    let law = d.creep.law()?;
+    let times = spm_apply::dynamic::pixel_times(&raster, spm_apply::dynamic::Half::Trace)?;
+    Ok(
+        spm_apply::ruler::estimate_from_lattice(&image.map.z_counts, &map, &times, &law, ruler)
+            .map_err(|e| e.to_string()),
+    )
 }

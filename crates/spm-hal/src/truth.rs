@@ -93,6 +93,9 @@ pub trait SimulatedInstrument: Microscope + GroundTruth + Clone {
     /// The true effective input of every pixel of the last scan, counts, in acquisition
     /// order (empty when recording is off).
     fn last_scan_effective_inputs(&self) -> Vec<CountPoint>;
+    /// The sample's drift displacement at `t` (a past time: exact), nm: the sample point under
+    /// the tip is the tip position plus it.
+    fn drift_displacement(&self, t: Seconds) -> NmPoint;
     /// The same instrument physics over `grating` instead of the sample, in a session of its
     /// own (its own random stream; random faults off).
     ///

@@ -78,6 +78,9 @@ impl SimulatedInstrument for Simulator {
     fn last_scan_effective_inputs(&self) -> Vec<CountPoint> {
         self.oracle().last_scan_effective_inputs()
     }
+    fn drift_displacement(&self, t: Seconds) -> NmPoint {
+        self.oracle().drift_displacement(t)
+    }
     fn grating_twin(&self, grating: &GratingSample) -> Result<Self, SimError> {
         let mut config = self.config().clone().without_random_faults();
         config.seed ^= GRATING_SEED_SALT;

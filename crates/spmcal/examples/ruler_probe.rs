@@ -72,18 +72,23 @@ fn main() {
             Err(e) => format!("REFUSED: {e}"),
         };
         println!(
-            "{:>5} {:>7} {:<18} file {:7.3} % ruler {:7.3} %  {said}",
+            "{:>5} {:>7} {:<18} file {:7.3} % ruler {:7.3} % (sample {:6.3} / {:6.3})  {said}",
             image.size.side_counts(),
             format!("{:?}", image.direction),
             image.place,
             row.figures["file"].position_rms_pct_of_side,
             row.figures["ruler"].position_rms_pct_of_side,
+            row.figures["file"].sample_position_rms_pct_of_side,
+            row.figures["ruler"].sample_position_rms_pct_of_side,
         );
     }
     for (name, s) in &bench.methods {
         println!(
-            "{name}: RMS {:.3} % of side, lattice pairs {} failures {}",
-            s.position_rms_pct_of_side, s.lattice_pairs, s.lattice_failures
+            "{name}: RMS {:.3} % of side (on the sample {:.3} %), lattice pairs {} failures {}",
+            s.position_rms_pct_of_side,
+            s.sample_position_rms_pct_of_side,
+            s.lattice_pairs,
+            s.lattice_failures
         );
     }
 }

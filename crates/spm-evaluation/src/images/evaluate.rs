@@ -79,6 +79,9 @@ pub struct ImageFigures {
     pub position_max_pm: f64,
     /// RMS position error, % of the image side.
     pub position_rms_pct_of_side: f64,
+    /// RMS error against the sample points (tip plus drift), after the best rigid motion, %
+    /// of the image side (see [`ImageMethodSummary::sample_position_rms_pct_of_side`]).
+    pub sample_position_rms_pct_of_side: f64,
     /// Lattice-constant error on the corrected pair, % (None where not resolved or not found).
     pub lattice_error_pct: Option<f64>,
     /// Largest deviation of the lattice angles from 60°, degrees.
@@ -106,6 +109,11 @@ pub struct ImageMethodSummary {
     pub position_rms_pct_of_side: f64,
     /// Position RMS per image size (key: side in counts), pm.
     pub position_rms_pm_by_size: BTreeMap<String, f64>,
+    /// Mean over images of the per-image RMS error against the sample points (the tip position
+    /// plus the sample's drift: where on the sample each pixel was), % of the image side. A
+    /// method that removes the drift is judged by this; `position_rms_pct_of_side` counts
+    /// the drift it removed as an error.
+    pub sample_position_rms_pct_of_side: f64,
 }
 
 /// The benchmark's result (report.json `images`).
@@ -278,9 +286,18 @@ fn coordinate_map(
         }
     })
 }
-fn position_figures(corrected: &[[f64; 2]], image: &TestImage, nominal: f64) -> (f64, f64, f64) {
-    let r = rigid_residuals(corrected, &image.truth_nm);
-    let n = r.len().max(1) as f64;
+fn position_figures(
+    corrected: &[[f64; 2]],
+    truth_nm: &[[f64; 2]],
+    image: &TestImage,
+    nominal: f64,
+) -> (f64, f64, f64) {
+    let r = rigid_residuals(corrected, truth_nm);
+    if r.is_empty() {
+        // No truth recorded: no figure, not a zero.
+        return (f64::NAN, f64::NAN, f64::NAN);
+    }
+    let n = r.len() as f64;
     let ms = r.iter().map(|v| v * v).sum::<f64>() / n;
     let max = r.iter().copied().fold(0.0_f64, f64::max);
     let side_nm = image.size.side_counts() * nominal;
@@ -403,6 +420,7 @@ pub fn evaluate_images(
         let mut ms_sum = 0.0;
         let mut max_pm: f64 = 0.0;
         let mut pct_sum = 0.0;
+        let mut sample_pct_sum = 0.0;
         let mut by_size: BTreeMap<String, (f64, usize)> = BTreeMap::new();
         let mut lattice: Vec<f64> = Vec::new();
         let mut angle_max: f64 = 0.0;
@@ -410,7 +428,10 @@ pub fn evaluate_images(
         for (k, image) in images.iter().enumerate() {
             let map = coordinate_map(method, image, k)?;
             let corrected = flatten(&map)?;
-            let (rms, max, pct) = position_figures(&corrected, image, nominal);
+            let (rms, max, pct) = position_figures(&corrected, &image.truth_nm, image, nominal);
+            let (_, _, sample_pct) =
+                position_figures(&corrected, &image.sample_truth_nm, image, nominal);
+            sample_pct_sum += sample_pct;
             ms_sum += rms * rms;
             max_pm = max_pm.max(max);
             pct_sum += pct;
@@ -422,6 +443,7 @@ pub fn evaluate_images(
                 position_rms_pm: rms,
                 position_max_pm: max,
                 position_rms_pct_of_side: pct,
+                sample_position_rms_pct_of_side: sample_pct,
                 lattice_error_pct: None,
                 lattice_angle_error_deg: None,
             };
@@ -456,6 +478,7 @@ pub fn evaluate_images(
                     .into_iter()
                     .map(|(k, (s, c))| (k, (s / c.max(1) as f64).sqrt()))
                     .collect(),
+                sample_position_rms_pct_of_side: sample_pct_sum / n,
             },
         );
     }

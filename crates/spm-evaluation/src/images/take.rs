@@ -123,6 +123,10 @@ pub struct TestImage {
     pub map: HeightMap,
     /// True tip position of every pixel, scanner frame, nm, in the same geometry.
     pub truth_nm: Vec<[f64; 2]>,
+    /// The sample point under the tip at every pixel (the tip position plus the sample's drift
+    /// displacement at the pixel's time), nm, in the same geometry: where on the sample each
+    /// pixel was, which a corrected image should show.
+    pub sample_truth_nm: Vec<[f64; 2]>,
     /// Commanded counts of every pixel in acquisition order.
     pub commanded_acquisition: Vec<[f64; 2]>,
     /// Time of every pixel in acquisition order, s.
@@ -228,7 +232,27 @@ pub fn take_test_images<S: SimulatedInstrument>(
         Ok((truth, effective))
     });
     instrument.inner_mut().record_tip_positions(false);
-    result
+    let mut images = result?;
+    // The sample points: the drift at each pixel's (past) time is exact now.
+    for image in &mut images {
+        let n = image.map.columns;
+        let times = to_geometry(
+            &image.time_acquisition_s,
+            n,
+            image.map.rows,
+            image.direction,
+        );
+        image.sample_truth_nm = image
+            .truth_nm
+            .iter()
+            .zip(&times)
+            .map(|(p, &t)| {
+                let d = instrument.inner_mut().drift_displacement(Seconds(t));
+                [p[0] + d.x.value(), p[1] + d.y.value()]
+            })
+            .collect();
+    }
+    Ok(images)
 }
 
 /// Takes the image set on any instrument, with no ground truth: the images' `truth_nm` and
@@ -316,6 +340,7 @@ fn take_images<M: Microscope>(
                         direction,
                         map,
                         truth_nm: to_geometry(&truth, n, n, direction),
+                        sample_truth_nm: Vec::new(),
                         commanded_acquisition: commanded,
                         time_acquisition_s: frame.forward.time_s.clone(),
                         true_effective_acquisition: effective,

@@ -171,7 +171,7 @@ fn atoms(
         time_s: times_s.to_vec(),
     };
     let config = DetectionConfig {
-        min_separation_px: 0.5 * per_constant,
+        min_separation_px: 0.35 * per_constant,
         ..DetectionConfig::default()
     };
     let found = detect(&height_map, &config)

@@ -123,3 +123,77 @@ fn with_every_effect_on_the_identified_creep_law_corrects_what_no_static_field_c
         bound.mean_lattice_error_pct
     );
 }
+
+/// The benchmark's sample points (`TestImage::sample_truth_nm`: where on the sample each pixel
+/// was) against a closed form. On an ideal scanner with a constant drift along y alone, the
+/// exact per-image map of the tip positions (`PerImageBound`) leaves no error in the scanner
+/// frame, and on the sample exactly the drift over the frame: each pixel `v·(t − t̄)` off
+/// along y, so the RMS is `|v|·RMS(t)` of the pixel times (the best rigid motion removes the
+/// mean; the tilt it could take out is 1/(2N) of it).
+#[test]
+fn the_sample_points_carry_the_drift_the_tip_positions_do_not() {
+    use spm_evaluation::images::{
+        CountRegion, ImageCorrection, ImageMethod, ImageSetConfig, ImageSize, evaluate_images,
+        take_test_images,
+    };
+    let v_nm_per_s = 0.02;
+    let mut config = spm_sim::SimConfig::ideal();
+    config.drift.velocity_y_nm_per_s = v_nm_per_s;
+    let sim = spm_sim::Simulator::new(config).expect("simulator");
+    let mut instrument = spm_hal::recording::CommandRecorder::new(sim, 100_000);
+    let set = ImageSetConfig {
+        places_per_side: 1,
+        sizes: vec![ImageSize {
+            pixels: 65,
+            step_counts: 2.0,
+        }],
+        dwells_s: vec![2e-3],
+        pause: spm_calibration::PauseLaw {
+            base_s: 0.0,
+            per_count_s: 0.0,
+            per_coarse_step_s: 0.0,
+            max_s: 0.0,
+        },
+        move_speed_counts_per_s: 20_000.0,
+        settle_s: 0.0,
+        lattice_constant_nm: 0.2461,
+        nominal_nm_per_count: 0.02,
+        min_pixels_per_lattice_constant: 5.0,
+    };
+    let region = CountRegion {
+        x_min_counts: -100.0,
+        x_max_counts: 100.0,
+        y_min_counts: -100.0,
+        y_max_counts: 100.0,
+    };
+    let images = take_test_images(&mut instrument, &region, &set).expect("images");
+    let bench = evaluate_images(
+        &images,
+        &[ImageMethod {
+            name: "exact".into(),
+            correction: ImageCorrection::PerImageBound,
+        }],
+        &set,
+    )
+    .expect("benchmark");
+    for (image, row) in images.iter().zip(&bench.images) {
+        let f = row.figures["exact"];
+        let t = &image.time_acquisition_s;
+        let mean = t.iter().sum::<f64>() / t.len() as f64;
+        let rms_t = (t.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / t.len() as f64).sqrt();
+        let side_nm = image.size.side_counts() * 0.02;
+        let expected = 100.0 * v_nm_per_s * rms_t / side_nm;
+        assert!(
+            f.position_rms_pct_of_side < 0.02 * expected,
+            "{:?}: the tip positions, exactly mapped, are {} % off",
+            image.direction,
+            f.position_rms_pct_of_side
+        );
+        assert!(
+            (f.sample_position_rms_pct_of_side / expected - 1.0).abs() < 0.03,
+            "{:?}: on the sample {} % against the drift's {expected} %",
+            image.direction,
+            f.sample_position_rms_pct_of_side
+        );
+    }
+}

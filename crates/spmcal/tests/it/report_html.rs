@@ -168,6 +168,7 @@ fn check_page(html: &str, json: &Value, figures: &[Figure]) {
             "position_rms_pm",
             "position_max_pm",
             "position_rms_pct_of_side",
+            "sample_position_rms_pct_of_side",
             "mean_lattice_error_pct",
             "max_lattice_error_pct",
             "max_lattice_angle_error_deg",

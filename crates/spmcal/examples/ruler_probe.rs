@@ -57,6 +57,26 @@ fn main() {
         },
     ];
     let bench = evaluate_images(&images, &methods, &config).unwrap();
+    // DUMP=k writes image k's heights as a PGM (`/tmp/ruler_probe_k.pgm`, top row first).
+    if let Some(k) = std::env::var("DUMP")
+        .ok()
+        .and_then(|v| v.parse::<usize>().ok())
+    {
+        let m = &images[k].map;
+        let (lo, hi) = m
+            .z_counts
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(a, b), &v| (a.min(v), b.max(v)));
+        let mut out = format!("P2\n{} {}\n255\n", m.columns, m.rows).into_bytes();
+        for row in (0..m.rows).rev() {
+            for c in 0..m.columns {
+                let v = (255.0 * (m.z_counts[row * m.columns + c] - lo) / (hi - lo)) as u8;
+                out.extend(format!("{v} ").bytes());
+            }
+            out.push(b'\n');
+        }
+        std::fs::write(format!("/tmp/ruler_probe_{k}.pgm"), out).unwrap();
+    }
     for (image, row) in images.iter().zip(&bench.images) {
         let outcome = ruler_outcome(&set, image, &ruler).unwrap();
         let said = match &outcome {

@@ -712,8 +712,10 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(refused.contains("pixels per lattice constant"), "{refused}");
-        // Two grains (the upper half's lattice turned by 20°): no index spans the frame, so
-        // no fit may extrapolate from one grain across the other.
+        // Two grains (the upper half's lattice turned by 20°): no single lattice fits the
+        // frame, so it is refused — either no index spans it, or the index the straightening
+        // grew across the boundary leaves the atoms far off — and no fit extrapolates from one
+        // grain across the other.
         let grains: Vec<f64> = (0..n * n)
             .map(|i| {
                 let (px, py) = ((i % n) as f64 * step, (i / n) as f64 * step);
@@ -723,6 +725,9 @@ mod tests {
         let refused = estimate_from_lattice(&grains, &map, &times, &law, &LatticeRuler::hopg())
             .unwrap_err()
             .to_string();
-        assert!(refused.contains("could be indexed"), "{refused}");
+        assert!(
+            refused.contains("could be indexed") || refused.contains("off the lattice"),
+            "{refused}"
+        );
     }
 }

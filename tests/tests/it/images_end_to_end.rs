@@ -35,15 +35,29 @@ fn with_every_effect_on_the_identified_creep_law_corrects_what_no_static_field_c
     };
     for (name, m) in &images.methods {
         eprintln!(
-            "{name:<34} position {:8.1} pm RMS {:7.3} % of side; lattice {:.3} / {:.3} % ({} pairs, {} failed)",
+            "{name:<34} position {:8.1} pm RMS {:7.3} % of side (on the sample {:7.3} %); lattice {:.3} / {:.3} % ({} pairs, {} failed)",
             m.position_rms_pm,
             m.position_rms_pct_of_side,
+            m.sample_position_rms_pct_of_side,
             m.mean_lattice_error_pct,
             m.max_lattice_error_pct,
             m.lattice_pairs,
             m.lattice_failures
         );
     }
+
+    // The lattice as the ruler of each image (`spmcal correct --ruler`): the creep of the move
+    // that brought the probe there and the drift, which no file records, are hidden in every
+    // image; measured against the lattice, they must go. Judged on the sample (where each
+    // pixel was on it), which is what the ruler recovers: the file alone leaves them whole.
+    let ruler = get("user_file_ruler");
+    let file_alone = get("user_file_dynamics");
+    assert!(
+        ruler.sample_position_rms_pct_of_side <= 0.35 * file_alone.sample_position_rms_pct_of_side,
+        "the ruler leaves {} % on the sample, the file alone {} %",
+        ruler.sample_position_rms_pct_of_side,
+        file_alone.sample_position_rms_pct_of_side
+    );
 
     // Found and measured: the creep law against the simulator's own.
     let dynamics = images.dynamics.as_ref().expect("dynamics summary");

@@ -16,6 +16,7 @@ mod fit_cmd;
 mod info;
 mod lattice_cmd;
 mod nanonis_sim_cmd;
+mod report_cmd;
 mod scan_cmd;
 mod simulate_cmd;
 
@@ -158,6 +159,21 @@ enum Command {
         until: Option<String>,
         /// Where to write the surfaces (JSON).
         #[arg(long, value_name = "FILE")]
+        out: PathBuf,
+    },
+    /// Regenerate the report (report.json, report.html, surfaces.json, figures) of a
+    /// finished run from the CDB alone, e.g. after the report failed; what only the running
+    /// instrument had (the oracle's accuracy, the image benchmark, drift) is not regenerated,
+    /// and the report says so. An unfinished run is continued with `calibrate --resume`.
+    Report {
+        /// The calibration database: a file or postgres://USER@HOST:PORT/DB.
+        #[arg(long, value_name = "PATH|URL")]
+        cdb: PathBuf,
+        /// The run's id (as `calibrate` printed it; `spmcal cdb export` lists them).
+        #[arg(long, value_name = "ID")]
+        run: String,
+        /// Folder of the report (created when missing; its report files are replaced).
+        #[arg(long, value_name = "DIR")]
         out: PathBuf,
     },
     /// Correct image files with a calibration file (`spmcal fit`): the file's own raster
@@ -311,6 +327,18 @@ enum Command {
         /// Delay of a stalled reply, s.
         #[arg(long, default_value_t = 5.0)]
         fault_stall_s: f64,
+        /// Connections served at once; one more is accepted and closed at once.
+        #[arg(long, default_value_t = spm_nanonis_sim::ConnectionLimits::default().max_connections)]
+        max_connections: usize,
+        /// A request must arrive whole within this time of its first byte, s.
+        #[arg(long, default_value_t = spm_nanonis_sim::ConnectionLimits::default().message_timeout_s)]
+        message_timeout_s: f64,
+        /// A connection idle this long between requests is closed, s.
+        #[arg(long, default_value_t = spm_nanonis_sim::ConnectionLimits::default().idle_timeout_s)]
+        idle_timeout_s: f64,
+        /// The largest request body accepted, bytes (a larger one closes the connection).
+        #[arg(long, default_value_t = spm_nanonis_sim::ConnectionLimits::default().max_request_body_bytes)]
+        max_request_bytes: usize,
     },
     /// Calibration-database maintenance.
     Cdb {
@@ -435,6 +463,12 @@ impl Command {
                 }
             }
             Self::Fit { cdb, out, .. } => paths.extend([cdb.clone(), out.clone()]),
+            Self::Report { cdb, out, .. } => {
+                paths.push(cdb.clone());
+                for name in calibrate_cmd::OUTPUT_FILES {
+                    paths.push(out.join(name));
+                }
+            }
             Self::Scan(args) => {
                 paths.push(args.config.clone());
                 paths.extend(spmcal::job::Job::referenced_files(&args.config));
@@ -530,6 +564,7 @@ fn run(command: Command) -> Result<(), CliError> {
             until.as_deref(),
             &out,
         ),
+        Command::Report { cdb, run, out } => report_cmd::run(&cdb, &run, &out),
         Command::Cdb { command } => match command {
             CdbCommand::Check { path } => cdb_cmd::check(&path),
             CdbCommand::Export { path, csv } => cdb_cmd::export(&path, &csv),
@@ -639,6 +674,10 @@ fn run(command: Command) -> Result<(), CliError> {
             fault_seed,
             fault_delay_s,
             fault_stall_s,
+            max_connections,
+            message_timeout_s,
+            idle_timeout_s,
+            max_request_bytes,
         } => nanonis_sim_cmd::run(
             &host,
             port,
@@ -649,6 +688,12 @@ fn run(command: Command) -> Result<(), CliError> {
                 seed: fault_seed,
                 delay_s: fault_delay_s,
                 stall_s: fault_stall_s,
+            },
+            spm_nanonis_sim::ConnectionLimits {
+                max_connections,
+                message_timeout_s,
+                idle_timeout_s,
+                max_request_body_bytes: max_request_bytes,
             },
         ),
     }

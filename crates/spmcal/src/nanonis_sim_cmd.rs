@@ -25,6 +25,7 @@ pub fn run(
     config: &Path,
     release: Option<u32>,
     faults: &FaultOptions,
+    limits: spm_nanonis_sim::ConnectionLimits,
 ) -> Result<(), CliError> {
     crate::files::check_input(config, "--config")?;
     let sim = SimConfig::from_file(config).map_err(|e| CliError::BadInput(e.to_string()))?;
@@ -43,6 +44,7 @@ pub fn run(
     if let Some(release) = release {
         server_config.host_release = release;
     }
+    server_config.limits = limits;
     let server = Server::bind(&format!("{host}:{port}"), sim, server_config)
         .map_err(|e| CliError::BadInput(e.to_string()))?;
     let address = server

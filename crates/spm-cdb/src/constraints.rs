@@ -67,7 +67,12 @@ pub(crate) struct Expected {
     pub postgres_only: bool,
 }
 
-const fn item(kind: Kind, table: &'static str, name: &'static str, columns: &'static [&'static str]) -> Expected {
+const fn item(
+    kind: Kind,
+    table: &'static str,
+    name: &'static str,
+    columns: &'static [&'static str],
+) -> Expected {
     Expected {
         kind,
         table,
@@ -95,14 +100,24 @@ pub(crate) const NODE_STATES: &[&str] = &["pending", "done", "given_up"];
 pub(crate) const EXPECTED: &[Expected] = &[
     Expected {
         postgres_only: true,
-        ..item(Kind::PrimaryKey, "schema_version", "schema_version_pkey", &["version"])
+        ..item(
+            Kind::PrimaryKey,
+            "schema_version",
+            "schema_version_pkey",
+            &["version"],
+        )
     },
     item(Kind::PrimaryKey, "runs", "runs_pkey", &["run_id"]),
     Expected {
         values: Some(RUN_STATUSES),
         ..item(Kind::Check, "runs", "runs_status_check", &["status"])
     },
-    item(Kind::Index, "runs", "runs_scanner", &["scanner_id", "started_unix_s"]),
+    item(
+        Kind::Index,
+        "runs",
+        "runs_scanner",
+        &["scanner_id", "started_unix_s"],
+    ),
     item(
         Kind::PrimaryKey,
         "progress",
@@ -130,11 +145,36 @@ pub(crate) const EXPECTED: &[Expected] = &[
     ),
     item(Kind::PrimaryKey, "dynamics", "dynamics_pkey", &["id"]),
     foreign("dynamics", "dynamics_run_id_fkey"),
-    item(Kind::Check, "dynamics", "dynamics_scanner_id_text", &["scanner_id"]),
-    item(Kind::Check, "dynamics", "dynamics_time_finite", &["identified_unix_s"]),
-    item(Kind::Check, "dynamics", "dynamics_model_format_text", &["model_format"]),
-    item(Kind::Check, "dynamics", "dynamics_model_version_range", &["model_version"]),
-    item(Kind::Check, "dynamics", "dynamics_model_json_object", &["model_json"]),
+    item(
+        Kind::Check,
+        "dynamics",
+        "dynamics_scanner_id_text",
+        &["scanner_id"],
+    ),
+    item(
+        Kind::Check,
+        "dynamics",
+        "dynamics_time_finite",
+        &["identified_unix_s"],
+    ),
+    item(
+        Kind::Check,
+        "dynamics",
+        "dynamics_model_format_text",
+        &["model_format"],
+    ),
+    item(
+        Kind::Check,
+        "dynamics",
+        "dynamics_model_version_range",
+        &["model_version"],
+    ),
+    item(
+        Kind::Check,
+        "dynamics",
+        "dynamics_model_json_object",
+        &["model_json"],
+    ),
     item(
         Kind::Index,
         "dynamics",
@@ -238,11 +278,17 @@ fn provides(e: &Expected, f: &Found) -> bool {
     if f.table != e.table || !f.valid {
         return false;
     }
-    let same = |cols: &[String]| cols.iter().map(String::as_str).eq(e.columns.iter().copied());
+    let same = |cols: &[String]| {
+        cols.iter()
+            .map(String::as_str)
+            .eq(e.columns.iter().copied())
+    };
     match e.kind {
         Kind::PrimaryKey => f.kind == Kind::PrimaryKey && same(&f.columns),
         Kind::ForeignKey => {
-            f.kind == Kind::ForeignKey && same(&f.columns) && f.references.as_deref() == e.references
+            f.kind == Kind::ForeignKey
+                && same(&f.columns)
+                && f.references.as_deref() == e.references
         }
         Kind::UniqueIndex => {
             matches!(f.kind, Kind::UniqueIndex | Kind::PrimaryKey) && same(&f.columns)
@@ -290,7 +336,11 @@ fn describe(e: &Expected) -> String {
 /// One finding (kind `missing_constraint` or `missing_index`) per item of [`EXPECTED`] that no
 /// found item provides; `postgres` selects the PostgreSQL-only items too. A table that does
 /// not exist is left to the column check.
-pub(crate) fn compare(found: &[Found], postgres: bool, tables_present: &[String]) -> Vec<IntegrityProblem> {
+pub(crate) fn compare(
+    found: &[Found],
+    postgres: bool,
+    tables_present: &[String],
+) -> Vec<IntegrityProblem> {
     let mut problems = Vec::new();
     for e in EXPECTED
         .iter()

@@ -164,10 +164,12 @@ fn schema_checks(c: &mut Checker<'_>) -> Result<()> {
                      FROM pragma_table_info(?1) ORDER BY cid",
                 )
                 .map_err(err)?;
-            stmt.query_map([table], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)))
-                .map_err(err)?
-                .collect::<rusqlite::Result<_>>()
-                .map_err(err)?
+            stmt.query_map([table], |r| {
+                Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?))
+            })
+            .map_err(err)?
+            .collect::<rusqlite::Result<_>>()
+            .map_err(err)?
         };
         let mut key: Vec<&(String, bool, bool, i64)> = columns.iter().filter(|c| c.3 > 0).collect();
         key.sort_by_key(|c| c.3);
@@ -227,11 +229,17 @@ fn schema_checks(c: &mut Checker<'_>) -> Result<()> {
             .collect::<rusqlite::Result<_>>()
             .map_err(err)?;
         for (name, unique, partial) in indexes {
-            let index_columns =
-                strings("SELECT name FROM pragma_index_info(?1) ORDER BY seqno", &name)?;
+            let index_columns = strings(
+                "SELECT name FROM pragma_index_info(?1) ORDER BY seqno",
+                &name,
+            )?;
             let expression = index_columns.iter().any(Option::is_none);
             found.push(Found {
-                kind: if unique { Kind::UniqueIndex } else { Kind::Index },
+                kind: if unique {
+                    Kind::UniqueIndex
+                } else {
+                    Kind::Index
+                },
                 table: table.clone(),
                 columns: index_columns.into_iter().flatten().collect(),
                 references: None,

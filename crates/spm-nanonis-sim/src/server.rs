@@ -1526,7 +1526,10 @@ fn accept_loop(
         let stream = match accepted {
             Ok((stream, _)) => stream,
             Err(e) => {
-                context.counters.accept_errors.fetch_add(1, Ordering::SeqCst);
+                context
+                    .counters
+                    .accept_errors
+                    .fetch_add(1, Ordering::SeqCst);
                 failures = failures.saturating_add(1);
                 if failures == 1 {
                     tracing::warn!(error = %e, "nanonis-sim: accept failed; retrying with a growing pause (up to 1 s) until it works again");
@@ -1686,7 +1689,10 @@ fn read_request(
     }
     let deadline = Instant::now() + Duration::from_secs_f64(limits.message_timeout_s);
     if let Err(end) = read_by(stream, &mut header[1..], deadline) {
-        timed_out(end, "a request's header not whole within the message timeout");
+        timed_out(
+            end,
+            "a request's header not whole within the message timeout",
+        );
         return None;
     }
     let header = match codec::decode_request_header(&header) {

@@ -180,7 +180,11 @@ fn run_summary(
 /// # Errors
 /// [`RegenerateError`]: an unknown or unfinished run, a stored plan or model that cannot be
 /// read, and the report's own errors.
-pub fn regenerate(cdb_path: &Path, run_id: &str, out: &Path) -> Result<Regenerated, RegenerateError> {
+pub fn regenerate(
+    cdb_path: &Path,
+    run_id: &str,
+    out: &Path,
+) -> Result<Regenerated, RegenerateError> {
     let shown = crate::cdb_handle::shown(cdb_path);
     let cdb = CdbHandle::open_read_only(cdb_path)?;
     let read = cdb.read();

@@ -1878,12 +1878,7 @@ fn names_finding(report: &spm_cdb::IntegrityReport, kind: &str, name: &str) -> b
 fn postgres_check_finds_tampered_keys_checks_and_indexes() {
     let pg = common::postgres();
     let cases = [
-        (
-            "pg_tamper_none",
-            "SELECT 1",
-            "",
-            "",
-        ),
+        ("pg_tamper_none", "SELECT 1", "", ""),
         (
             "pg_tamper_pkey",
             "ALTER TABLE progress DROP CONSTRAINT progress_pkey",
@@ -1949,7 +1944,10 @@ fn postgres_check_finds_tampered_keys_checks_and_indexes() {
          UPDATE runs SET status = 'finishe'",
     );
     let report = cdb.check().unwrap();
-    assert!(names_finding(&report, "invalid_status", "finishe"), "{report:?}");
+    assert!(
+        names_finding(&report, "invalid_status", "finishe"),
+        "{report:?}"
+    );
 }
 
 /// Issue 25 item 16 on SQLite: the same comparison of keys, CHECKs (from the stored DDL) and

@@ -84,7 +84,10 @@ fn a_connection_beyond_the_cap_is_closed_and_the_first_ones_still_served() {
     }
     let mut extra = connect(&server);
     closed_after(&mut extra);
-    assert!(!served(&mut extra), "the connection beyond the cap was served");
+    assert!(
+        !served(&mut extra),
+        "the connection beyond the cap was served"
+    );
     for s in &mut first {
         assert!(served(s), "a connection within the cap is no longer served");
     }
@@ -121,7 +124,10 @@ fn a_stalled_half_header_or_an_idle_client_is_dropped_at_its_timeout() {
         waited <= message_timeout + Duration::from_secs(2),
         "the stalled client was dropped after {waited:?}"
     );
-    assert!(served(&mut other), "another client is served after the drop");
+    assert!(
+        served(&mut other),
+        "another client is served after the drop"
+    );
     closed_after(&mut idle);
     let idle_for = idle_since.elapsed();
     assert!(
@@ -164,7 +170,9 @@ fn a_claimed_huge_body_that_never_arrives_allocates_one_chunk() {
         "{CLIENTS} claims of {claimed} bytes hold {held} bytes"
     );
     drop(clients);
-    wait_for("the buffers released", || server.request_buffer_bytes() == 0);
+    wait_for("the buffers released", || {
+        server.request_buffer_bytes() == 0
+    });
     assert_eq!(
         server.stats().request_buffer_bytes_peak,
         (CLIENTS * BODY_CHUNK_BYTES) as u64

@@ -1842,9 +1842,21 @@ fn issue25_13_the_report_of_a_finished_run_is_regenerated_from_the_cdb() {
     }
     let run_id = runs(&cdb)[0].0.clone();
     let before = bytes(&cdb);
-    let done = run(&["report", "--cdb", &cdb, "--run", &run_id, "--out", out.to_str().unwrap()]);
+    let done = run(&[
+        "report",
+        "--cdb",
+        &cdb,
+        "--run",
+        &run_id,
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert_eq!(code(&done), Some(0), "{}{}", stdout(&done), stderr(&done));
-    assert!(stdout(&done).contains("not regenerated"), "{}", stdout(&done));
+    assert!(
+        stdout(&done).contains("not regenerated"),
+        "{}",
+        stdout(&done)
+    );
     let regenerated = read("report.json");
     for section in ["records", "regression", "scanner_id", "nodes", "repeats"] {
         assert_eq!(
@@ -1859,21 +1871,48 @@ fn issue25_13_the_report_of_a_finished_run_is_regenerated_from_the_cdb() {
     );
     let notes = regenerated["notes"].to_string();
     assert!(notes.contains("regenerated from the CDB"), "{notes}");
-    for file in ["report.html", "lcc-kx.png", "lcc-ky.png", "lcc-alpha.png", "trajectory.png"] {
+    for file in [
+        "report.html",
+        "lcc-kx.png",
+        "lcc-ky.png",
+        "lcc-alpha.png",
+        "trajectory.png",
+    ] {
         assert!(out.join(file).is_file(), "{file} not regenerated");
     }
     assert!(
-        std::fs::read_dir(&out)
+        std::fs::read_dir(&out).unwrap().all(|e| !e
             .unwrap()
-            .all(|e| !e.unwrap().file_name().to_string_lossy().contains("partial")),
+            .file_name()
+            .to_string_lossy()
+            .contains("partial")),
         "a partial file is left"
     );
     assert_eq!(bytes(&cdb), before, "the CDB was modified");
     // An unknown run, and an unfinished one (continued with --resume, not here).
-    let unknown = run(&["report", "--cdb", &cdb, "--run", "nope", "--out", out.to_str().unwrap()]);
+    let unknown = run(&[
+        "report",
+        "--cdb",
+        &cdb,
+        "--run",
+        "nope",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert_bad_input(&unknown, "unknown run", &["nope", &run_id]);
-    sql(&cdb, "UPDATE runs SET status = 'aborted', finished_unix_s = NULL");
-    let unfinished = run(&["report", "--cdb", &cdb, "--run", &run_id, "--out", out.to_str().unwrap()]);
+    sql(
+        &cdb,
+        "UPDATE runs SET status = 'aborted', finished_unix_s = NULL",
+    );
+    let unfinished = run(&[
+        "report",
+        "--cdb",
+        &cdb,
+        "--run",
+        &run_id,
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert_bad_input(&unfinished, "unfinished run", &["aborted", "--resume"]);
 }
 
@@ -1914,7 +1953,12 @@ fn nanonis_sim_under(ulimit: &str, args: &[&str], log: &Path) -> (Child, String)
         "{line:?} {}",
         std::fs::read_to_string(log).unwrap_or_default()
     );
-    let address = line.trim().rsplit(' ').next().unwrap_or_default().to_owned();
+    let address = line
+        .trim()
+        .rsplit(' ')
+        .next()
+        .unwrap_or_default()
+        .to_owned();
     (child, address)
 }
 
@@ -1931,7 +1975,11 @@ fn issue25_11_accept_errors_back_off_instead_of_spinning() {
     let clients: Vec<std::net::TcpStream> = (0..24)
         .filter_map(|_| std::net::TcpStream::connect(&address).ok())
         .collect();
-    assert!(clients.len() >= 16, "only {} clients connected", clients.len());
+    assert!(
+        clients.len() >= 16,
+        "only {} clients connected",
+        clients.len()
+    );
     std::thread::sleep(Duration::from_millis(300));
     let before = cpu_ticks(child.id());
     std::thread::sleep(Duration::from_secs(2));
@@ -2023,5 +2071,8 @@ fn issue25_11_claimed_huge_bodies_do_not_reserve_memory() {
     let text = std::fs::read_to_string(&log).unwrap_or_default();
     assert!(alive, "the server died: {text}");
     assert!(answers, "the server no longer answers: {text}");
-    assert!(grown_kib < 256 << 10, "virtual memory grew by {grown_kib} KiB");
+    assert!(
+        grown_kib < 256 << 10,
+        "virtual memory grew by {grown_kib} KiB"
+    );
 }

@@ -301,45 +301,7 @@ enum Command {
     },
     /// Serve the Nanonis TCP protocol over the simulated microscope (for `[backend] kind =
     /// "nanonis"` without hardware); runs until killed.
-    NanonisSim {
-        /// TCP port (0: any free port, printed).
-        #[arg(long, default_value_t = 6501)]
-        port: u16,
-        /// Address to listen on.
-        #[arg(long, default_value = "127.0.0.1")]
-        host: String,
-        /// The simulated microscope (spm-sim TOML).
-        #[arg(long, value_name = "SIM.toml")]
-        config: PathBuf,
-        /// Host-application release to answer (decides the schema of Scan.PropsSet).
-        #[arg(long)]
-        release: Option<u32>,
-        /// Probability per command of a socket fault (error reply, 1-byte writes, delay,
-        /// stall, dropped connection, a scan left running).
-        #[arg(long, default_value_t = 0.0)]
-        fault_rate: f64,
-        /// Seed of the fault generator.
-        #[arg(long, default_value_t = 1)]
-        fault_seed: u64,
-        /// Delay of a delayed reply, s.
-        #[arg(long, default_value_t = 0.05)]
-        fault_delay_s: f64,
-        /// Delay of a stalled reply, s.
-        #[arg(long, default_value_t = 5.0)]
-        fault_stall_s: f64,
-        /// Connections served at once; one more is accepted and closed at once.
-        #[arg(long, default_value_t = spm_nanonis_sim::ConnectionLimits::default().max_connections)]
-        max_connections: usize,
-        /// A request must arrive whole within this time of its first byte, s.
-        #[arg(long, default_value_t = spm_nanonis_sim::ConnectionLimits::default().message_timeout_s)]
-        message_timeout_s: f64,
-        /// A connection idle this long between requests is closed, s.
-        #[arg(long, default_value_t = spm_nanonis_sim::ConnectionLimits::default().idle_timeout_s)]
-        idle_timeout_s: f64,
-        /// The largest request body accepted, bytes (a larger one closes the connection).
-        #[arg(long, default_value_t = spm_nanonis_sim::ConnectionLimits::default().max_request_body_bytes)]
-        max_request_bytes: usize,
-    },
+    NanonisSim(nanonis_sim_cmd::NanonisSimArgs),
     /// Calibration-database maintenance.
     Cdb {
         #[command(subcommand)]
@@ -502,7 +464,7 @@ impl Command {
             } => {
                 paths.extend([like.clone(), config.clone(), out.clone()]);
             }
-            Self::NanonisSim { config, .. } => paths.push(config.clone()),
+            Self::NanonisSim(args) => paths.push(args.config.clone()),
             Self::Cdb { command } => match command {
                 CdbCommand::Check { path } | CdbCommand::Trend { path } => {
                     paths.push(path.clone());
@@ -665,37 +627,7 @@ fn run(command: Command) -> Result<(), CliError> {
             out,
             nominal_nm_per_count,
         } => simulate_cmd::run(&like, &config, &out, nominal_nm_per_count),
-        Command::NanonisSim {
-            port,
-            host,
-            config,
-            release,
-            fault_rate,
-            fault_seed,
-            fault_delay_s,
-            fault_stall_s,
-            max_connections,
-            message_timeout_s,
-            idle_timeout_s,
-            max_request_bytes,
-        } => nanonis_sim_cmd::run(
-            &host,
-            port,
-            &config,
-            release,
-            &nanonis_sim_cmd::FaultOptions {
-                rate: fault_rate,
-                seed: fault_seed,
-                delay_s: fault_delay_s,
-                stall_s: fault_stall_s,
-            },
-            spm_nanonis_sim::ConnectionLimits {
-                max_connections,
-                message_timeout_s,
-                idle_timeout_s,
-                max_request_body_bytes: max_request_bytes,
-            },
-        ),
+        Command::NanonisSim(args) => nanonis_sim_cmd::run(&args),
     }
 }
 

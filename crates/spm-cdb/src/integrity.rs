@@ -85,6 +85,7 @@ const ROW_NAMES: [(&str, &str); 4] = [
 /// status or a NULL where the schema forbids one would otherwise pass. (`typeof(c) =
 /// 'null'`, not `c IS NULL`: SQLite folds the latter to false on a NOT NULL column.)
 fn constraint_checks(c: &mut Checker<'_>) -> Result<()> {
+    schema_checks(c)?;
     c.rows(
         "invalid_status",
         "SELECT 'run ' || quote(run_id) || ': status ' || quote(status) || ' (bytes ' || \
@@ -122,6 +123,140 @@ fn constraint_checks(c: &mut Checker<'_>) -> Result<()> {
             )?;
         }
     }
+    Ok(())
+}
+
+/// The keys, CHECKs and indexes of the stored schema against the program's
+/// ([`crate::constraints`]): the primary keys and NOT NULL flags from `pragma_table_info`,
+/// foreign keys from `pragma_foreign_key_list`, indexes from `pragma_index_list` and
+/// `pragma_index_info`, CHECKs from the stored `CREATE TABLE` text; and columns outside the
+/// schema that are NOT NULL without a default.
+fn schema_checks(c: &mut Checker<'_>) -> Result<()> {
+    use crate::constraints::{Found, Kind};
+    let err = |e| CdbError::sqlite(c.path, e);
+    let conn = c.conn;
+    let tables: Vec<(String, String)> = {
+        let mut stmt = conn
+            .prepare(
+                "SELECT name, coalesce(sql, '') FROM sqlite_master WHERE type = 'table' AND \
+                 name IN ('runs', 'progress', 'records', 'cdb_identity', 'dynamics')",
+            )
+            .map_err(err)?;
+        stmt.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
+            .map_err(err)?
+            .collect::<rusqlite::Result<_>>()
+            .map_err(err)?
+    };
+    let strings = |sql: &str, arg: &str| -> Result<Vec<Option<String>>> {
+        let mut stmt = conn.prepare(sql).map_err(err)?;
+        stmt.query_map([arg], |r| r.get(0))
+            .map_err(err)?
+            .collect::<rusqlite::Result<_>>()
+            .map_err(err)
+    };
+    let mut found = Vec::new();
+    let mut required = Vec::new();
+    for (table, ddl) in &tables {
+        let columns: Vec<(String, bool, bool, i64)> = {
+            let mut stmt = conn
+                .prepare(
+                    "SELECT name, \"notnull\", dflt_value IS NOT NULL, pk \
+                     FROM pragma_table_info(?1) ORDER BY cid",
+                )
+                .map_err(err)?;
+            stmt.query_map([table], |r| {
+                Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?))
+            })
+            .map_err(err)?
+            .collect::<rusqlite::Result<_>>()
+            .map_err(err)?
+        };
+        let mut key: Vec<&(String, bool, bool, i64)> = columns.iter().filter(|c| c.3 > 0).collect();
+        key.sort_by_key(|c| c.3);
+        found.push(Found {
+            kind: Kind::PrimaryKey,
+            table: table.clone(),
+            columns: key.iter().map(|c| c.0.clone()).collect(),
+            references: None,
+            definition: String::new(),
+            valid: !key.is_empty(),
+        });
+        required.extend(
+            columns
+                .iter()
+                .filter(|c| c.1 && !c.2 && c.3 == 0)
+                .map(|c| (table.clone(), c.0.clone())),
+        );
+        let mut stmt = conn
+            .prepare(
+                "SELECT \"table\", \"from\", \"to\" FROM pragma_foreign_key_list(?1) \
+                 ORDER BY id, seq",
+            )
+            .map_err(err)?;
+        let keys: Vec<(String, String, Option<String>)> = stmt
+            .query_map([table], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))
+            .map_err(err)?
+            .collect::<rusqlite::Result<_>>()
+            .map_err(err)?;
+        for (to_table, from, to) in keys {
+            // A foreign key without its column names the referenced table's primary key.
+            let to = match to {
+                Some(to) => to,
+                None => strings(
+                    "SELECT name FROM pragma_table_info(?1) WHERE pk > 0 ORDER BY pk",
+                    &to_table,
+                )?
+                .into_iter()
+                .flatten()
+                .collect::<Vec<_>>()
+                .join(", "),
+            };
+            found.push(Found {
+                kind: Kind::ForeignKey,
+                table: table.clone(),
+                columns: vec![from],
+                references: Some(format!("{to_table}({to})")),
+                definition: String::new(),
+                valid: true,
+            });
+        }
+        let mut stmt = conn
+            .prepare("SELECT name, \"unique\", partial FROM pragma_index_list(?1)")
+            .map_err(err)?;
+        let indexes: Vec<(String, bool, bool)> = stmt
+            .query_map([table], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))
+            .map_err(err)?
+            .collect::<rusqlite::Result<_>>()
+            .map_err(err)?;
+        for (name, unique, partial) in indexes {
+            let index_columns = strings(
+                "SELECT name FROM pragma_index_info(?1) ORDER BY seqno",
+                &name,
+            )?;
+            let expression = index_columns.iter().any(Option::is_none);
+            found.push(Found {
+                kind: if unique {
+                    Kind::UniqueIndex
+                } else {
+                    Kind::Index
+                },
+                table: table.clone(),
+                columns: index_columns.into_iter().flatten().collect(),
+                references: None,
+                definition: String::new(),
+                valid: !partial && !expression,
+            });
+        }
+        let names: Vec<String> = columns.iter().map(|c| c.0.clone()).collect();
+        found.extend(crate::constraints::sqlite_checks(table, ddl, &names));
+    }
+    let present: Vec<String> = tables.into_iter().map(|(t, _)| t).collect();
+    c.report
+        .problems
+        .extend(crate::constraints::compare(&found, false, &present));
+    c.report
+        .problems
+        .extend(crate::constraints::extra_not_null(&required));
     Ok(())
 }
 

@@ -48,6 +48,7 @@
 mod backup;
 pub mod bench_support;
 mod columns;
+mod constraints;
 mod dynamics;
 mod error;
 mod export;

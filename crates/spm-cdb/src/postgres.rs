@@ -36,6 +36,7 @@ use std::sync::LazyLock;
 use postgres::types::{ToSql, Type};
 use postgres::{Client, NoTls, Row, Statement};
 
+use crate::constraints::{Found, Kind};
 use crate::dynamics::DYNAMICS_COLUMNS;
 use crate::error::{CdbError, Result};
 use crate::schema::{APPLICATION_ID, SCHEMA_VERSION};
@@ -1717,6 +1718,141 @@ fn stored_columns(db: &PgCdb) -> Result<HashMap<(String, String), (String, bool)
     .map_err(db.err())
 }
 
+/// The keys, CHECKs and indexes of the CDB's tables in the resolved schema, as
+/// [`crate::constraints::Found`] items, and the tables present.
+fn stored_constraints(db: &PgCdb) -> Result<(Vec<Found>, Vec<String>)> {
+    let tables = "('schema_version', 'runs', 'progress', 'records', 'cdb_identity', 'dynamics')";
+    let names = |array: &str, of: &str| {
+        format!(
+            "ARRAY(SELECT a.attname::TEXT FROM unnest({array}) WITH ORDINALITY AS k(n, o) \
+             JOIN pg_catalog.pg_attribute a ON a.attrelid = {of} AND a.attnum = k.n \
+             ORDER BY k.o)"
+        )
+    };
+    let constraints = db.query_rows(
+        &format!(
+            "SELECT t.relname::TEXT, c.contype::TEXT, {}, \
+             CASE WHEN c.contype = 'f' THEN r.relname::TEXT || '(' || \
+             array_to_string({}, ', ') || ')' END, pg_catalog.pg_get_constraintdef(c.oid), \
+             c.convalidated FROM pg_catalog.pg_constraint c \
+             JOIN pg_catalog.pg_class t ON t.oid = c.conrelid \
+             JOIN pg_catalog.pg_namespace n ON n.oid = t.relnamespace \
+             LEFT JOIN pg_catalog.pg_class r ON r.oid = c.confrelid \
+             WHERE n.nspname = current_schema() AND t.relname IN {tables} \
+             AND c.contype IN ('p', 'f', 'c')",
+            names("c.conkey", "c.conrelid"),
+            names("c.confkey", "c.confrelid"),
+        ),
+        &[],
+    )?;
+    let indexes = db.query_rows(
+        &format!(
+            "SELECT t.relname::TEXT, x.indisunique, {}, \
+             x.indisvalid AND x.indpred IS NULL AND x.indexprs IS NULL \
+             FROM pg_catalog.pg_index x JOIN pg_catalog.pg_class t ON t.oid = x.indrelid \
+             JOIN pg_catalog.pg_namespace n ON n.oid = t.relnamespace \
+             WHERE n.nspname = current_schema() AND t.relname IN {tables}",
+            names("x.indkey::int2[]", "x.indrelid"),
+        ),
+        &[],
+    )?;
+    let present = db.query_rows(
+        &format!(
+            "SELECT t.relname::TEXT FROM pg_catalog.pg_class t \
+             JOIN pg_catalog.pg_namespace n ON n.oid = t.relnamespace \
+             WHERE n.nspname = current_schema() AND t.relkind IN ('r', 'p') \
+             AND t.relname IN {tables}"
+        ),
+        &[],
+    )?;
+    let read = || -> std::result::Result<_, postgres::Error> {
+        let mut found = Vec::new();
+        for r in &constraints {
+            let kind = match r.try_get::<_, String>(1)?.as_str() {
+                "p" => Kind::PrimaryKey,
+                "f" => Kind::ForeignKey,
+                _ => Kind::Check,
+            };
+            found.push(Found {
+                kind,
+                table: r.try_get(0)?,
+                columns: r.try_get(2)?,
+                references: r.try_get(3)?,
+                definition: r.try_get(4)?,
+                valid: r.try_get(5)?,
+            });
+        }
+        for r in &indexes {
+            found.push(Found {
+                kind: if r.try_get(1)? {
+                    Kind::UniqueIndex
+                } else {
+                    Kind::Index
+                },
+                table: r.try_get(0)?,
+                columns: r.try_get(2)?,
+                references: None,
+                definition: String::new(),
+                valid: r.try_get(3)?,
+            });
+        }
+        let present = present
+            .iter()
+            .map(|r| r.try_get(0))
+            .collect::<std::result::Result<Vec<String>, _>>()?;
+        Ok((found, present))
+    };
+    read().map_err(db.err())
+}
+
+/// Columns of the CDB's tables that are NOT NULL without a default (nor an identity or a
+/// generated value): `(table, column)`.
+fn stored_required_columns(db: &PgCdb) -> Result<Vec<(String, String)>> {
+    db.query_rows(
+        "SELECT table_name::TEXT, column_name::TEXT FROM information_schema.columns \
+         WHERE table_schema = current_schema() AND table_name IN ('schema_version', 'runs', \
+         'progress', 'records', 'cdb_identity', 'dynamics') AND is_nullable = 'NO' \
+         AND column_default IS NULL AND is_identity = 'NO' AND is_generated = 'NEVER'",
+        &[],
+    )?
+    .iter()
+    .map(|r| Ok((r.try_get(0)?, r.try_get(1)?)))
+    .collect::<std::result::Result<_, postgres::Error>>()
+    .map_err(db.err())
+}
+
+/// The schema's keys, CHECKs and indexes (issue 25 item 16, [`crate::constraints`]) and
+/// extra NOT NULL columns.
+fn constraint_check(c: &mut Checker<'_>) -> Result<()> {
+    let (found, present) = stored_constraints(c.db)?;
+    c.report
+        .problems
+        .extend(crate::constraints::compare(&found, true, &present));
+    let required = stored_required_columns(c.db)?;
+    c.report
+        .problems
+        .extend(crate::constraints::extra_not_null(&required));
+    Ok(())
+}
+
+/// The statuses and states the schema's CHECKs admit, queried: rows stored while a CHECK
+/// was missing (the columns are known to exist).
+fn status_check(c: &mut Checker<'_>) -> Result<()> {
+    c.rows(
+        "invalid_status",
+        "SELECT 'run ' || quote_literal(run_id) || ': status ' || quote_literal(status) || \
+         ' is not running, finished, failed or aborted' FROM runs WHERE status NOT IN \
+         ('running', 'finished', 'failed', 'aborted') ORDER BY run_id",
+    )?;
+    c.rows(
+        "invalid_state",
+        "SELECT 'run ' || quote_literal(run_id) || ', repeat ' || repeat_index || \
+         ', node ' || node_index || ': state ' || quote_literal(state) || \
+         ' is not pending, done or given_up' FROM progress WHERE state NOT IN \
+         ('pending', 'done', 'given_up') ORDER BY run_id, repeat_index, node_index",
+    )
+}
+
 /// The records table's columns as stored (`column → (data type, nullable)`), for tests that
 /// compare the schema with [`LCC_RECORD_COLUMNS`].
 ///
@@ -1807,9 +1943,10 @@ fn integrity_check(db: &PgCdb) -> Result<IntegrityReport> {
         db,
         report: IntegrityReport::default(),
     };
-    // Structure: every column of the current schema with its type and nullability. (The
-    // server enforces the keys, foreign keys and CHECK constraints itself.)
+    // Structure: every column of the current schema with its type and nullability, and
+    // every key, CHECK and index (the server enforces them only while they exist).
     let stored = stored_columns(db)?;
+    constraint_check(&mut c)?;
     for (table, column, ty, nullable) in expected_columns() {
         match stored.get(&(table.to_owned(), column.to_owned())) {
             None => c
@@ -1827,6 +1964,7 @@ fn integrity_check(db: &PgCdb) -> Result<IntegrityReport> {
     if !c.report.sqlite.is_empty() {
         return Ok(c.report);
     }
+    status_check(&mut c)?;
     for col in LCC_RECORD_COLUMNS
         .iter()
         .filter(|c| matches!(c.kind, ColumnKind::Real | ColumnKind::OptionalReal))

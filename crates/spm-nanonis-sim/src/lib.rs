@@ -81,8 +81,20 @@
 //! - **Socket-level fault injection** ([`SocketFaults`], seeded): error replies, replies
 //!   written one byte at a time, delays, stalls longer than the client's timeout,
 //!   connections dropped before or after executing a command, and a scan left running.
+//! - **Bounded by the server, not by its clients** ([`ConnectionLimits`], issue 25 item 11):
+//!   at most `max_connections` (default 8) are served, one more is accepted and closed at
+//!   once; a request must arrive whole within `message_timeout_s` (10 s) of its first byte,
+//!   and a connection idle for `idle_timeout_s` (600 s) is closed; a request body above
+//!   `max_request_body_bytes` (1 MiB) closes the connection, and a body is read in chunks
+//!   of [`BODY_CHUNK_BYTES`] (64 KiB), so a claimed 80 MiB body that never arrives costs
+//!   one chunk, not 80 MiB. A failing `accept()` (out of file descriptors) is retried after
+//!   a pause growing from 10 ms to 1 s ([`accept_pause`]), the first failure of a burst
+//!   logged and the burst's size when accepting works again.
 
 mod neutral;
 pub mod server;
 
-pub use server::{Server, ServerConfig, ServerError, ServerHandle, ServerStats, SocketFaults};
+pub use server::{
+    BODY_CHUNK_BYTES, ConnectionLimits, Server, ServerConfig, ServerError, ServerHandle,
+    ServerStats, SocketFaults, accept_pause,
+};

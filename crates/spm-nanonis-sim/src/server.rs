@@ -16,10 +16,10 @@ use spm_nanonis::{PIXEL_PACKET, metres_per_count};
 use spm_sim::{RasterTurn, SimConfig, Simulator};
 use std::io::{Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// Why the server cannot start or run.
 #[derive(Debug, thiserror::Error)]
@@ -154,6 +154,77 @@ pub struct ServerConfig {
     pub z_nm_per_count: f64,
     /// Socket faults.
     pub faults: SocketFaults,
+    /// Limits of the connections: a cap, timeouts, the largest request (issue 25 item 11);
+    /// defaults [`ConnectionLimits::default`].
+    #[serde(default)]
+    pub limits: ConnectionLimits,
+}
+
+/// How many connections the server keeps and how long and how much it waits for a client
+/// (issue 25 item 11: 20 clients each claiming an 80 MiB body took 1.6 GB, and a client
+/// could hold a connection for ever). Defaults in [`ConnectionLimits::default`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ConnectionLimits {
+    /// Connections served at once; one more is accepted and closed at once (default 8; a
+    /// controller serves a handful of clients).
+    pub max_connections: usize,
+    /// Once a request's first byte has arrived, the whole request (header and body) must
+    /// arrive within this time, s, or the connection is closed (default 10 s).
+    pub message_timeout_s: f64,
+    /// A connection that sends nothing for this long between requests is closed, s
+    /// (default 600 s: longer than any pause of a calibration client between commands).
+    pub idle_timeout_s: f64,
+    /// The largest request body accepted, bytes (default 1 MiB; the protocol's own limit,
+    /// [`codec::MAX_BODY_LEN`] = 80 MiB, is for replies carrying frames; no request the
+    /// server implements needs more than a few KiB). A larger claim closes the connection.
+    /// Bodies are read in chunks of at most [`BODY_CHUNK_BYTES`], the buffer growing only
+    /// as data arrive.
+    pub max_request_body_bytes: usize,
+}
+
+/// The piece a request body is read in: the most the server allocates ahead of the data.
+pub const BODY_CHUNK_BYTES: usize = 64 << 10;
+
+impl Default for ConnectionLimits {
+    fn default() -> Self {
+        Self {
+            max_connections: 8,
+            message_timeout_s: 10.0,
+            idle_timeout_s: 600.0,
+            max_request_body_bytes: 1 << 20,
+        }
+    }
+}
+
+impl ConnectionLimits {
+    fn validate(&self) -> Result<(), ServerError> {
+        let timeout_ok = |t: f64| t.is_finite() && (1e-3..=86_400.0).contains(&t);
+        if !(1..=10_000).contains(&self.max_connections) {
+            return Err(ServerError::Config(format!(
+                "limits.max_connections = {} must lie in [1, 10000]",
+                self.max_connections
+            )));
+        }
+        for (name, t) in [
+            ("message_timeout_s", self.message_timeout_s),
+            ("idle_timeout_s", self.idle_timeout_s),
+        ] {
+            if !timeout_ok(t) {
+                return Err(ServerError::Config(format!(
+                    "limits.{name} = {t} must lie in [0.001, 86400] s"
+                )));
+            }
+        }
+        if !(HEADER_LEN..=codec::MAX_BODY_LEN).contains(&self.max_request_body_bytes) {
+            return Err(ServerError::Config(format!(
+                "limits.max_request_body_bytes = {} must lie in [{HEADER_LEN}, {}]",
+                self.max_request_body_bytes,
+                codec::MAX_BODY_LEN
+            )));
+        }
+        Ok(())
+    }
 }
 
 /// Host-application release the server answers by default (the manual's R5.1.14718).
@@ -172,6 +243,7 @@ impl ServerConfig {
             lateral_nm_per_count: 0.02,
             z_nm_per_count: 0.01,
             faults,
+            limits: ConnectionLimits::default(),
         }
     }
 }
@@ -210,6 +282,20 @@ pub struct ServerStats {
     pub connections: u64,
     /// Requests refused as malformed (bad header closes, bad body gets an error reply).
     pub malformed: u64,
+    /// Connections closed at once because [`ConnectionLimits::max_connections`] were open.
+    pub refused_connections: u64,
+    /// Connections closed by a timeout (a request not whole within
+    /// [`ConnectionLimits::message_timeout_s`], or idle beyond
+    /// [`ConnectionLimits::idle_timeout_s`]).
+    pub timed_out_connections: u64,
+    /// Connections closed for a request body above
+    /// [`ConnectionLimits::max_request_body_bytes`].
+    pub oversized_requests: u64,
+    /// Failed `accept()` calls (each followed by a pause, [`accept_pause`]).
+    pub accept_errors: u64,
+    /// The most bytes of request bodies held at once, over all connections (the buffers'
+    /// capacity: what was allocated, not what was claimed).
+    pub request_buffer_bytes_peak: u64,
 }
 
 impl ServerStats {
@@ -416,6 +502,7 @@ fn describe(e: &spm_sim::SimError) -> String {
 impl State {
     fn new(sim: Simulator, config: ServerConfig) -> Result<Self, ServerError> {
         config.faults.validate()?;
+        config.limits.validate()?;
         let i = &sim.config().instrument;
         let bits = bits_of(
             i.lateral_half_range_counts,
@@ -1224,6 +1311,40 @@ fn lock(shared: &Shared) -> MutexGuard<'_, State> {
     }
 }
 
+/// Counters the connection threads keep outside the instrument's lock (a thread reading a
+/// request must not wait for a scan another connection is running).
+#[derive(Debug, Default)]
+struct Counters {
+    /// Connections being served.
+    active: AtomicUsize,
+    /// Bytes of request-body buffers held now, and the most held at once.
+    buffered: AtomicUsize,
+    buffered_peak: AtomicUsize,
+    refused: AtomicU64,
+    timed_out: AtomicU64,
+    oversized: AtomicU64,
+    accept_errors: AtomicU64,
+}
+
+impl Counters {
+    fn add_to(&self, stats: &mut ServerStats) {
+        stats.refused_connections = self.refused.load(Ordering::SeqCst);
+        stats.timed_out_connections = self.timed_out.load(Ordering::SeqCst);
+        stats.oversized_requests = self.oversized.load(Ordering::SeqCst);
+        stats.accept_errors = self.accept_errors.load(Ordering::SeqCst);
+        stats.request_buffer_bytes_peak = self.buffered_peak.load(Ordering::SeqCst) as u64;
+    }
+}
+
+/// What every connection thread shares.
+#[derive(Clone)]
+struct Context {
+    shared: Shared,
+    counters: Arc<Counters>,
+    stop: Arc<AtomicBool>,
+    limits: ConnectionLimits,
+}
+
 /// A bound server, not yet serving.
 pub struct Server {
     listener: TcpListener,
@@ -1236,6 +1357,7 @@ pub struct ServerHandle {
     stop: Arc<AtomicBool>,
     connections: Arc<Mutex<Vec<TcpStream>>>,
     shared: Shared,
+    counters: Arc<Counters>,
     thread: Option<JoinHandle<()>>,
 }
 
@@ -1260,33 +1382,46 @@ impl Server {
         Ok(self.listener.local_addr()?)
     }
 
+    fn context(&self) -> Context {
+        let limits = lock(&self.shared).config.limits.clone();
+        Context {
+            shared: Arc::clone(&self.shared),
+            counters: Arc::new(Counters::default()),
+            stop: Arc::new(AtomicBool::new(false)),
+            limits,
+        }
+    }
+
     /// Serves until the process ends.
     pub fn serve(self) -> Result<(), ServerError> {
-        let stop = Arc::new(AtomicBool::new(false));
+        let context = self.context();
         let connections = Arc::new(Mutex::new(Vec::new()));
-        accept_loop(&self.listener, &self.shared, &stop, &connections);
+        accept_loop(&self.listener, &context, &connections);
         Ok(())
     }
 
     /// Serves on a background thread.
     pub fn spawn(self) -> Result<ServerHandle, ServerError> {
         let addr = self.listener.local_addr()?;
-        let stop = Arc::new(AtomicBool::new(false));
+        let context = self.context();
         let connections = Arc::new(Mutex::new(Vec::new()));
-        let (listener, shared) = (self.listener, self.shared);
-        let thread_shared = Arc::clone(&shared);
-        let thread_stop = Arc::clone(&stop);
-        let thread_connections = Arc::clone(&connections);
+        let handle_parts = (
+            Arc::clone(&context.stop),
+            Arc::clone(&connections),
+            Arc::clone(&context.shared),
+            Arc::clone(&context.counters),
+        );
+        let listener = self.listener;
         let thread = std::thread::Builder::new()
             .name("nanonis-sim-accept".into())
-            .spawn(move || {
-                accept_loop(&listener, &thread_shared, &thread_stop, &thread_connections)
-            })?;
+            .spawn(move || accept_loop(&listener, &context, &connections))?;
+        let (stop, connections, shared, counters) = handle_parts;
         Ok(ServerHandle {
             addr,
             stop,
             connections,
             shared,
+            counters,
             thread: Some(thread),
         })
     }
@@ -1300,7 +1435,20 @@ impl ServerHandle {
 
     /// What the server did so far.
     pub fn stats(&self) -> ServerStats {
-        lock(&self.shared).stats.clone()
+        let mut stats = lock(&self.shared).stats.clone();
+        self.counters.add_to(&mut stats);
+        stats
+    }
+
+    /// Connections being served now.
+    pub fn active_connections(&self) -> usize {
+        self.counters.active.load(Ordering::SeqCst)
+    }
+
+    /// Bytes of request-body buffers the server holds now, over all connections (their
+    /// capacity: what is allocated).
+    pub fn request_buffer_bytes(&self) -> usize {
+        self.counters.buffered.load(Ordering::SeqCst)
     }
 
     /// Runs `f` on the simulator (tests: the oracle).
@@ -1342,34 +1490,87 @@ impl Drop for ServerHandle {
     }
 }
 
+/// The pause after the `failures`-th consecutive failed `accept()`: 10 ms, doubling, at most
+/// 1 s. Out of file descriptors (EMFILE), `accept` fails at once for as long as the
+/// condition lasts, and a loop retrying at once spun at 100 % CPU (issue 25 item 11).
+#[must_use]
+pub fn accept_pause(failures: u32) -> Duration {
+    let ms = 10u64.saturating_mul(1 << failures.saturating_sub(1).min(7));
+    Duration::from_millis(ms.min(1000))
+}
+
+/// Decrements the active-connection count when a connection ends (or its thread never
+/// starts).
+struct Active(Arc<Counters>);
+
+impl Drop for Active {
+    fn drop(&mut self) {
+        self.0.active.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
 fn accept_loop(
     listener: &TcpListener,
-    shared: &Shared,
-    stop: &Arc<AtomicBool>,
+    context: &Context,
     connections: &Arc<Mutex<Vec<TcpStream>>>,
 ) {
-    for stream in listener.incoming() {
-        if stop.load(Ordering::SeqCst) {
+    // Consecutive failures: the first of a burst is logged, the rest counted, and the
+    // burst's size logged when accept works again.
+    let mut failures = 0u32;
+    let mut refused_in_a_row = 0u64;
+    loop {
+        let accepted = listener.accept();
+        if context.stop.load(Ordering::SeqCst) {
             break;
         }
-        let stream = match stream {
-            Ok(s) => s,
+        let stream = match accepted {
+            Ok((stream, _)) => stream,
             Err(e) => {
-                tracing::warn!(error = %e, "nanonis-sim: accept failed");
+                context
+                    .counters
+                    .accept_errors
+                    .fetch_add(1, Ordering::SeqCst);
+                failures = failures.saturating_add(1);
+                if failures == 1 {
+                    tracing::warn!(error = %e, "nanonis-sim: accept failed; retrying with a growing pause (up to 1 s) until it works again");
+                }
+                std::thread::sleep(accept_pause(failures));
                 continue;
             }
         };
+        if failures > 0 {
+            tracing::warn!(failures, "nanonis-sim: accept works again");
+            failures = 0;
+        }
+        let counters = &context.counters;
+        if counters.active.load(Ordering::SeqCst) >= context.limits.max_connections {
+            counters.refused.fetch_add(1, Ordering::SeqCst);
+            refused_in_a_row += 1;
+            if refused_in_a_row == 1 {
+                tracing::warn!(
+                    max_connections = context.limits.max_connections,
+                    "nanonis-sim: connection refused: the cap of connections is reached"
+                );
+            }
+            let _ = stream.shutdown(Shutdown::Both);
+            continue;
+        }
+        refused_in_a_row = 0;
         let _ = stream.set_nodelay(true);
         if let (Ok(clone), Ok(mut list)) = (stream.try_clone(), connections.lock()) {
             list.retain(|s| s.peer_addr().is_ok());
             list.push(clone);
         }
-        lock(shared).stats.connections += 1;
-        let shared = Arc::clone(shared);
-        let stop = Arc::clone(stop);
+        lock(&context.shared).stats.connections += 1;
+        counters.active.fetch_add(1, Ordering::SeqCst);
+        let active = Active(Arc::clone(counters));
+        let context = context.clone();
         let spawned = std::thread::Builder::new()
             .name("nanonis-sim-connection".into())
-            .spawn(move || serve_connection(stream, &shared, &stop));
+            .spawn(move || {
+                let _active = active;
+                serve_connection(stream, &context);
+            });
         if let Err(e) = spawned {
             tracing::warn!(error = %e, "nanonis-sim: cannot start a connection thread");
         }
@@ -1395,34 +1596,150 @@ fn encode_raw_reply(command: &str, zeros: usize, error: &ErrorSection) -> Option
     Some(bytes)
 }
 
-fn serve_connection(mut stream: TcpStream, shared: &Shared, stop: &AtomicBool) {
-    serve_commands(&mut stream, shared, stop);
+fn serve_connection(mut stream: TcpStream, context: &Context) {
+    serve_commands(&mut stream, context);
     // Shut the socket down whatever the reason (the accept loop keeps a clone for `kill`,
     // which would otherwise keep it open and leave the client waiting for its timeout).
     let _ = stream.shutdown(Shutdown::Both);
 }
 
-fn serve_commands(stream: &mut TcpStream, shared: &Shared, stop: &AtomicBool) {
+/// Why a read ended without its bytes.
+enum ReadEnd {
+    /// The peer closed the connection, or the socket failed.
+    Closed,
+    /// The deadline passed.
+    TimedOut,
+}
+
+/// Reads exactly `buf.len()` bytes, all by `deadline`.
+fn read_by(stream: &mut TcpStream, buf: &mut [u8], deadline: Instant) -> Result<(), ReadEnd> {
+    let mut at = 0;
+    while at < buf.len() {
+        let left = deadline.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Err(ReadEnd::TimedOut);
+        }
+        if stream.set_read_timeout(Some(left)).is_err() {
+            return Err(ReadEnd::Closed);
+        }
+        match stream.read(&mut buf[at..]) {
+            Ok(0) => return Err(ReadEnd::Closed),
+            Ok(n) => at += n,
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock
+                        | std::io::ErrorKind::TimedOut
+                        | std::io::ErrorKind::Interrupted
+                ) => {}
+            Err(_) => return Err(ReadEnd::Closed),
+        }
+    }
+    Ok(())
+}
+
+/// A request body's buffer, counted in [`Counters::buffered`] while it lives.
+struct BodyBuffer<'a> {
+    bytes: Vec<u8>,
+    counted: usize,
+    counters: &'a Counters,
+}
+
+impl BodyBuffer<'_> {
+    /// Makes room for `n` more bytes (exactly: the buffer never holds more than what arrived
+    /// plus one chunk) and counts the allocation.
+    fn grow(&mut self, n: usize) {
+        self.bytes.reserve_exact(n);
+        let capacity = self.bytes.capacity();
+        let added = capacity.saturating_sub(self.counted);
+        self.counted = capacity;
+        let now = self.counters.buffered.fetch_add(added, Ordering::SeqCst) + added;
+        self.counters.buffered_peak.fetch_max(now, Ordering::SeqCst);
+    }
+}
+
+impl Drop for BodyBuffer<'_> {
+    fn drop(&mut self) {
+        self.counters
+            .buffered
+            .fetch_sub(self.counted, Ordering::SeqCst);
+    }
+}
+
+/// Reads one request: the first byte within the idle timeout, the rest of the header and
+/// the body within the message timeout, the body in chunks as it arrives. `None` ends the
+/// connection (closed, timed out, malformed or oversized; counted).
+fn read_request(
+    stream: &mut TcpStream,
+    context: &Context,
+) -> Option<(codec::RequestHeader, Vec<u8>)> {
+    let limits = &context.limits;
+    let counters = &context.counters;
+    let timed_out = |end: ReadEnd, what: &str| {
+        if matches!(end, ReadEnd::TimedOut) {
+            counters.timed_out.fetch_add(1, Ordering::SeqCst);
+            tracing::debug!("nanonis-sim: {what}; closing the connection");
+        }
+    };
+    let mut header = [0u8; HEADER_LEN];
+    let idle_deadline = Instant::now() + Duration::from_secs_f64(limits.idle_timeout_s);
+    if let Err(end) = read_by(stream, &mut header[..1], idle_deadline) {
+        timed_out(end, "idle beyond the idle timeout");
+        return None;
+    }
+    let deadline = Instant::now() + Duration::from_secs_f64(limits.message_timeout_s);
+    if let Err(end) = read_by(stream, &mut header[1..], deadline) {
+        timed_out(
+            end,
+            "a request's header not whole within the message timeout",
+        );
+        return None;
+    }
+    let header = match codec::decode_request_header(&header) {
+        Ok(h) => h,
+        Err(e) => {
+            tracing::warn!(error = %e, "nanonis-sim: malformed header; closing the connection");
+            lock(&context.shared).stats.malformed += 1;
+            return None;
+        }
+    };
+    if header.body_len > limits.max_request_body_bytes {
+        counters.oversized.fetch_add(1, Ordering::SeqCst);
+        tracing::warn!(
+            command = %header.command,
+            body_bytes = header.body_len,
+            max = limits.max_request_body_bytes,
+            "nanonis-sim: request body larger than the limit; closing the connection"
+        );
+        return None;
+    }
+    let mut body = BodyBuffer {
+        bytes: Vec::new(),
+        counted: 0,
+        counters,
+    };
+    while body.bytes.len() < header.body_len {
+        let at = body.bytes.len();
+        let n = BODY_CHUNK_BYTES.min(header.body_len - at);
+        body.grow(n);
+        body.bytes.resize(at + n, 0);
+        if let Err(end) = read_by(stream, &mut body.bytes[at..], deadline) {
+            timed_out(end, "a request's body not whole within the message timeout");
+            return None;
+        }
+    }
+    Some((header, std::mem::take(&mut body.bytes)))
+}
+
+fn serve_commands(stream: &mut TcpStream, context: &Context) {
+    let (shared, stop) = (&context.shared, &context.stop);
     loop {
         if stop.load(Ordering::SeqCst) {
             return;
         }
-        let mut header = [0u8; HEADER_LEN];
-        if stream.read_exact(&mut header).is_err() {
+        let Some((header, body)) = read_request(stream, context) else {
             return;
-        }
-        let header = match codec::decode_request_header(&header) {
-            Ok(h) => h,
-            Err(e) => {
-                tracing::warn!(error = %e, "nanonis-sim: malformed header; closing the connection");
-                lock(shared).stats.malformed += 1;
-                return;
-            }
         };
-        let mut body = vec![0u8; header.body_len];
-        if stream.read_exact(&mut body).is_err() {
-            return;
-        }
         let (fault, bytes) = {
             let mut state = lock(shared);
             if stop.load(Ordering::SeqCst) {

@@ -8,6 +8,7 @@
 //! - [`progress`]: the terminal progress bar of a run.
 //! - [`plots`]: PNG figures of a run (drawn with `spm-plot`).
 //! - [`report`]: after a run: surfaces.json, accuracy, report.json, figures, report.html.
+//! - [`regenerate`]: the report of a finished run, regenerated from the CDB (`spmcal report`).
 //! - [`html`]: the self-contained `report.html` (also used by `cargo xtask bench`).
 //! - [`simulate`]: a measured file's scan program on the simulated microscope (`spmcal simulate`).
 //!
@@ -22,6 +23,7 @@ pub mod html;
 pub mod job;
 pub mod plots;
 pub mod progress;
+pub mod regenerate;
 pub mod report;
 pub mod run;
 pub mod simulate;

@@ -16,6 +16,7 @@ mod fit_cmd;
 mod info;
 mod lattice_cmd;
 mod nanonis_sim_cmd;
+mod report_cmd;
 mod scan_cmd;
 mod simulate_cmd;
 
@@ -160,6 +161,21 @@ enum Command {
         #[arg(long, value_name = "FILE")]
         out: PathBuf,
     },
+    /// Regenerate the report (report.json, report.html, surfaces.json, figures) of a
+    /// finished run from the CDB alone, e.g. after the report failed; what only the running
+    /// instrument had (the oracle's accuracy, the image benchmark, drift) is not regenerated,
+    /// and the report says so. An unfinished run is continued with `calibrate --resume`.
+    Report {
+        /// The calibration database: a file or postgres://USER@HOST:PORT/DB.
+        #[arg(long, value_name = "PATH|URL")]
+        cdb: PathBuf,
+        /// The run's id (as `calibrate` printed it; `spmcal cdb export` lists them).
+        #[arg(long, value_name = "ID")]
+        run: String,
+        /// Folder of the report (created when missing; its report files are replaced).
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
+    },
     /// Correct image files with a calibration file (`spmcal fit`): the file's own raster
     /// (size, offset, angle, slow direction, both halves), every channel by one map, NaN
     /// where no data lies, the source header and the calibration's provenance kept.
@@ -285,33 +301,7 @@ enum Command {
     },
     /// Serve the Nanonis TCP protocol over the simulated microscope (for `[backend] kind =
     /// "nanonis"` without hardware); runs until killed.
-    NanonisSim {
-        /// TCP port (0: any free port, printed).
-        #[arg(long, default_value_t = 6501)]
-        port: u16,
-        /// Address to listen on.
-        #[arg(long, default_value = "127.0.0.1")]
-        host: String,
-        /// The simulated microscope (spm-sim TOML).
-        #[arg(long, value_name = "SIM.toml")]
-        config: PathBuf,
-        /// Host-application release to answer (decides the schema of Scan.PropsSet).
-        #[arg(long)]
-        release: Option<u32>,
-        /// Probability per command of a socket fault (error reply, 1-byte writes, delay,
-        /// stall, dropped connection, a scan left running).
-        #[arg(long, default_value_t = 0.0)]
-        fault_rate: f64,
-        /// Seed of the fault generator.
-        #[arg(long, default_value_t = 1)]
-        fault_seed: u64,
-        /// Delay of a delayed reply, s.
-        #[arg(long, default_value_t = 0.05)]
-        fault_delay_s: f64,
-        /// Delay of a stalled reply, s.
-        #[arg(long, default_value_t = 5.0)]
-        fault_stall_s: f64,
-    },
+    NanonisSim(nanonis_sim_cmd::NanonisSimArgs),
     /// Calibration-database maintenance.
     Cdb {
         #[command(subcommand)]
@@ -435,6 +425,12 @@ impl Command {
                 }
             }
             Self::Fit { cdb, out, .. } => paths.extend([cdb.clone(), out.clone()]),
+            Self::Report { cdb, out, .. } => {
+                paths.push(cdb.clone());
+                for name in calibrate_cmd::OUTPUT_FILES {
+                    paths.push(out.join(name));
+                }
+            }
             Self::Scan(args) => {
                 paths.push(args.config.clone());
                 paths.extend(spmcal::job::Job::referenced_files(&args.config));
@@ -468,7 +464,7 @@ impl Command {
             } => {
                 paths.extend([like.clone(), config.clone(), out.clone()]);
             }
-            Self::NanonisSim { config, .. } => paths.push(config.clone()),
+            Self::NanonisSim(args) => paths.push(args.config.clone()),
             Self::Cdb { command } => match command {
                 CdbCommand::Check { path } | CdbCommand::Trend { path } => {
                     paths.push(path.clone());
@@ -530,6 +526,7 @@ fn run(command: Command) -> Result<(), CliError> {
             until.as_deref(),
             &out,
         ),
+        Command::Report { cdb, run, out } => report_cmd::run(&cdb, &run, &out),
         Command::Cdb { command } => match command {
             CdbCommand::Check { path } => cdb_cmd::check(&path),
             CdbCommand::Export { path, csv } => cdb_cmd::export(&path, &csv),
@@ -630,27 +627,7 @@ fn run(command: Command) -> Result<(), CliError> {
             out,
             nominal_nm_per_count,
         } => simulate_cmd::run(&like, &config, &out, nominal_nm_per_count),
-        Command::NanonisSim {
-            port,
-            host,
-            config,
-            release,
-            fault_rate,
-            fault_seed,
-            fault_delay_s,
-            fault_stall_s,
-        } => nanonis_sim_cmd::run(
-            &host,
-            port,
-            &config,
-            release,
-            &nanonis_sim_cmd::FaultOptions {
-                rate: fault_rate,
-                seed: fault_seed,
-                delay_s: fault_delay_s,
-                stall_s: fault_stall_s,
-            },
-        ),
+        Command::NanonisSim(args) => nanonis_sim_cmd::run(&args),
     }
 }
 

@@ -338,6 +338,11 @@ pub struct RunRecord<'a> {
     pub provenance: Option<&'a RunProvenance>,
     /// Told the name of each phase of the report as it starts (a progress display).
     pub phase: Option<&'a dyn Fn(&str)>,
+    /// A dynamics model stored with the run, used when the run's own frames identify none
+    /// (a report regenerated from the CDB, [`crate::regenerate`]).
+    pub stored_dynamics: Option<&'a ScannerDynamics>,
+    /// Notes added to report.json's (what a regenerated report lacks).
+    pub extra_notes: Vec<String>,
 }
 
 /// What a report judges a calibration against: a ground truth that can also take the image
@@ -396,6 +401,36 @@ impl<'a> RunRecord<'a> {
             standard_images: None,
             provenance: None,
             phase: None,
+            stored_dynamics: None,
+            extra_notes: Vec::new(),
+        }
+    }
+
+    /// The record of a finished run as the CDB holds it (no instrument, drift, commands or
+    /// frames): what [`crate::regenerate`] feeds the report with.
+    #[must_use]
+    pub fn of_stored(
+        plan: &'a PlanConfig,
+        run: &'a RunReport,
+        nodes: &'a [NodeSample],
+        provenance: &'a RunProvenance,
+    ) -> Self {
+        Self {
+            plan,
+            run,
+            truth: None,
+            drift: &[],
+            nodes,
+            attach_tracks: &[],
+            commands: &[],
+            ladder: &[],
+            true_dynamics: None,
+            wall_time_s: 0.0,
+            standard_images: None,
+            provenance: Some(provenance),
+            phase: None,
+            stored_dynamics: None,
+            extra_notes: Vec::new(),
         }
     }
 
@@ -629,6 +664,7 @@ pub fn finish_with(
     if let Some(model) = identified {
         store_dynamics_once(cdb_path, record, model)?;
     }
+    let identified = identified.or(record.stored_dynamics);
     let cdb = crate::cdb_handle::CdbHandle::open_read_only(cdb_path)?;
     let snapshot = cdb.snapshot()?;
     record.phase("fitting the regression surfaces");
@@ -651,6 +687,7 @@ pub fn finish_with(
     let all = snapshot.records(&RecordFilter::scanner(&record.plan.scanner_id))?;
 
     let mut notes = method_notes();
+    notes.extend(record.extra_notes.iter().cloned());
     // A region of no area (the nodes of one row or column, e.g. a resume that measured only
     // those) has no raster to judge: no accuracy, said in the notes.
     let region = Region::spanned(record.nodes);

@@ -1554,7 +1554,21 @@ fn integrity_check_finds_bad_dynamics(b: &'static dyn Backend) {
             .all(|p| !p.detail.contains("dynamics id 1:")),
         "{report:?}"
     );
-    assert_eq!(report.problems.len(), 5, "{report:?}");
+    // On PostgreSQL the constraints dropped to let the rows in are findings too (item 16),
+    // each by name; SQLite's were only switched off for the session.
+    let lifted = found("missing_constraint");
+    for name in [
+        "dynamics_run_id_fkey",
+        "dynamics_time_finite",
+        "dynamics_model_json_object",
+    ] {
+        assert_eq!(
+            lifted.iter().any(|d| d.contains(name)),
+            b.lift_dynamics_constraints().contains(name),
+            "{name}: {report:?}"
+        );
+    }
+    assert_eq!(report.problems.len(), 5 + lifted.len(), "{report:?}");
 }
 
 /// Schema v4 as shipped (issue 25), with a fixed identity and rows of every table.
@@ -1837,4 +1851,203 @@ fn sqlite_a_v4_file_with_a_foreign_log_is_still_an_identity_mismatch() {
     assert_eq!(std::fs::read(&a).unwrap(), before);
     assert_eq!(std::fs::read(with_suffix(&a, "-wal")).unwrap(), log_of_b);
     drop(raw_b);
+}
+
+/// A CDB with one run, its plan and one stored node (both back ends share the body).
+fn one_stored_node(cdb: &mut dyn common::Store) {
+    let r = run("run-1", "S", T0);
+    let nodes = plan(2);
+    cdb.create_run(&r).unwrap();
+    cdb.register_plan(&r.run_id, &nodes).unwrap();
+    cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &nodes[0], 0, T0)])
+        .unwrap();
+}
+
+/// How many findings of `report` are about the schema's keys, CHECKs, indexes and columns.
+fn schema_findings(report: &spm_cdb::IntegrityReport) -> usize {
+    report
+        .problems
+        .iter()
+        .filter(|p| {
+            ["missing_constraint", "missing_index", "extra_column"].contains(&p.kind.as_str())
+        })
+        .count()
+}
+
+/// What is wrong with `report` of the case `case` (tampered to give one finding of `kind`
+/// naming `named`, or untampered when `kind` is empty): `None` when it is right.
+fn tampering_missed(
+    case: &str,
+    report: &spm_cdb::IntegrityReport,
+    kind: &str,
+    named: &str,
+) -> Option<String> {
+    if kind.is_empty() {
+        return (!report.is_ok()).then(|| format!("{case}: untampered, but {report:?}"));
+    }
+    if report.is_ok() {
+        return Some(format!("{case}: the tampering passes the check"));
+    }
+    if !names_finding(report, kind, named) || schema_findings(report) != 1 {
+        return Some(format!("{case}: not one {kind} naming {named}: {report:?}"));
+    }
+    None
+}
+
+/// The findings of `report` of `kind` whose detail names `name`.
+fn names_finding(report: &spm_cdb::IntegrityReport, kind: &str, name: &str) -> bool {
+    report
+        .problems
+        .iter()
+        .any(|p| p.kind == kind && p.detail.contains(name))
+}
+
+/// Issue 25 item 16: four tampered PostgreSQL schemas passed `cdb check` — a dropped
+/// `progress` primary key (`register_plan` then fails on its `ON CONFLICT`), a dropped status
+/// CHECK, a dropped `records_node` unique index (duplicate records accepted) and an extra
+/// NOT NULL column (every insert fails). Each is now a finding naming the constraint, index
+/// or column, as is a status CHECK loosened to admit another value; the untampered CDB
+/// passes.
+#[test]
+fn postgres_check_finds_tampered_keys_checks_and_indexes() {
+    let pg = common::postgres();
+    let cases = [
+        ("pg_tamper_none", "SELECT 1", "", ""),
+        (
+            "pg_tamper_pkey",
+            "ALTER TABLE progress DROP CONSTRAINT progress_pkey",
+            "missing_constraint",
+            "progress_pkey",
+        ),
+        (
+            "pg_tamper_status",
+            "ALTER TABLE runs DROP CONSTRAINT runs_status_check",
+            "missing_constraint",
+            "runs_status_check",
+        ),
+        (
+            "pg_tamper_loose_status",
+            "ALTER TABLE runs DROP CONSTRAINT runs_status_check;
+             ALTER TABLE runs ADD CONSTRAINT runs_status_check CHECK
+                 (status IN ('running', 'finished', 'failed', 'aborted', 'x'))",
+            "missing_constraint",
+            "runs_status_check",
+        ),
+        (
+            "pg_tamper_unique",
+            "DROP INDEX records_node",
+            "missing_index",
+            "records_node",
+        ),
+        (
+            "pg_tamper_column",
+            "ALTER TABLE records ADD COLUMN operator TEXT NOT NULL DEFAULT 'x';
+             ALTER TABLE records ALTER COLUMN operator DROP DEFAULT",
+            "extra_column",
+            "operator",
+        ),
+    ];
+    let mut missed = Vec::new();
+    for (name, tamper, kind, named) in cases {
+        let url = pg.fresh(name);
+        {
+            let mut cdb = common::Backend::open(pg, &url);
+            one_stored_node(cdb.as_mut());
+            let before = cdb.check().unwrap();
+            assert!(before.is_ok(), "{name}: untampered CDB: {before:?}");
+        }
+        pg.raw_sql(&url, tamper);
+        let report = PgCdb::open_read_only(&url).unwrap().check().unwrap();
+        missed.extend(tampering_missed(name, &report, kind, named));
+    }
+    assert!(missed.is_empty(), "{missed:#?}");
+    // A row stored while the status CHECK was gone is found too.
+    let url = pg.fresh("pg_tamper_status_row");
+    let mut cdb = common::Backend::open(pg, &url);
+    one_stored_node(cdb.as_mut());
+    pg.raw_sql(
+        &url,
+        "ALTER TABLE runs DROP CONSTRAINT runs_status_check;
+         UPDATE runs SET status = 'finishe'",
+    );
+    let report = cdb.check().unwrap();
+    assert!(
+        names_finding(&report, "invalid_status", "finishe"),
+        "{report:?}"
+    );
+}
+
+/// Issue 25 item 16 on SQLite: the same comparison of keys, CHECKs (from the stored DDL) and
+/// indexes. A dropped unique index, a status CHECK edited out of the stored schema, a
+/// `progress` table rebuilt without its primary key and an extra NOT NULL column without a
+/// default are each found by name; the untampered file passes.
+#[test]
+fn sqlite_check_finds_tampered_keys_checks_and_indexes() {
+    let cases = [
+        ("sq_tamper_none", "SELECT 1", "", ""),
+        (
+            "sq_tamper_unique",
+            "DROP INDEX records_node",
+            "missing_index",
+            "records_node",
+        ),
+        (
+            "sq_tamper_status",
+            "PRAGMA writable_schema = ON;
+             UPDATE sqlite_master SET sql = replace(sql,
+                 'CHECK (status IN (''running'', ''finished'', ''failed'', ''aborted''))', '')
+                 WHERE name = 'runs';",
+            "missing_constraint",
+            "runs_status_check",
+        ),
+        (
+            "sq_tamper_loose_status",
+            "PRAGMA writable_schema = ON;
+             UPDATE sqlite_master SET sql = replace(sql, '''aborted''', '''aborted'', ''x''')
+                 WHERE name = 'runs';",
+            "missing_constraint",
+            "runs_status_check",
+        ),
+        (
+            "sq_tamper_pkey",
+            "PRAGMA foreign_keys = OFF;
+             CREATE TABLE progress_copy (run_id TEXT NOT NULL REFERENCES runs (run_id),
+                 repeat_index INTEGER NOT NULL, node_index INTEGER NOT NULL,
+                 node_x_counts INTEGER NOT NULL, node_y_counts INTEGER NOT NULL,
+                 node_z_counts INTEGER NOT NULL,
+                 state TEXT NOT NULL CHECK (state IN ('pending', 'done', 'given_up')),
+                 reason TEXT, attempts INTEGER NOT NULL DEFAULT 0, updated_unix_s REAL);
+             INSERT INTO progress_copy SELECT * FROM progress;
+             DROP TABLE progress;
+             ALTER TABLE progress_copy RENAME TO progress;",
+            "missing_constraint",
+            "progress_pkey",
+        ),
+        (
+            "sq_tamper_column",
+            "ALTER TABLE records ADD COLUMN operator TEXT NOT NULL DEFAULT 'x';
+             PRAGMA writable_schema = ON;
+             UPDATE sqlite_master SET sql = replace(sql, 'operator TEXT NOT NULL DEFAULT ''x''',
+                 'operator TEXT NOT NULL') WHERE name = 'records';",
+            "extra_column",
+            "operator",
+        ),
+    ];
+    let mut missed = Vec::new();
+    for (name, tamper, kind, named) in cases {
+        let path = db_path(name);
+        {
+            let mut cdb = Cdb::open(&path).unwrap();
+            one_stored_node(&mut cdb);
+            let before = cdb.check().unwrap();
+            assert!(before.is_ok(), "{name}: untampered CDB: {before:?}");
+        }
+        Connection::open(&path)
+            .unwrap()
+            .execute_batch(tamper)
+            .unwrap();
+        let report = Cdb::open_read_only(&path).unwrap().check().unwrap();
+        missed.extend(tampering_missed(name, &report, kind, named));
+    }
+    assert!(missed.is_empty(), "{missed:#?}");
 }

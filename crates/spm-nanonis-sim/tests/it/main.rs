@@ -3,5 +3,6 @@
 
 mod backend_angles;
 mod issue26;
+mod limits;
 mod over_tcp;
 mod vendor_frames;

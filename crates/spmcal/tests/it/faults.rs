@@ -250,6 +250,8 @@ fn calibrate(name: &str, faults: Option<FaultConfig>, p_feature_lost: f64) -> Ou
         standard_images: None,
         provenance: None,
         phase: None,
+        stored_dynamics: None,
+        extra_notes: Vec::new(),
     };
     let report = finish_with(&cdb_path, &out, &record, true, false).expect("surfaces and accuracy");
     drop(recorder);

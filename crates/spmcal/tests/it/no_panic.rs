@@ -217,6 +217,10 @@ fn every_subcommand_fails_cleanly_on_bad_files_and_arguments() {
         run(v(&["cdb", "check", b]), &what);
         run(v(&["cdb", "export", b, "--csv", &out("x.csv")]), &what);
         run(v(&["cdb", "trend", b]), &what);
+        run(
+            v(&["report", "--cdb", b, "--run", "r", "--out", &out("rep")]),
+            &what,
+        );
         // Config slot.
         run(
             v(&["calibrate", "--config", b, "--out", &out("cal")]),

@@ -85,4 +85,6 @@
 mod neutral;
 pub mod server;
 
-pub use server::{Server, ServerConfig, ServerError, ServerHandle, ServerStats, SocketFaults};
+pub use server::{
+    FrameTruth, Server, ServerConfig, ServerError, ServerHandle, ServerStats, SocketFaults,
+};

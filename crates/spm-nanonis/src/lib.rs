@@ -125,6 +125,6 @@ pub mod microscope;
 pub use client::{Client, ClientConfig};
 pub use error::{NanonisError, NanonisErrorKind};
 pub use microscope::{
-    ClockSource, CoarseZConfig, ControllerState, INTERRUPT_POLL_S, LOW_VOLTAGE_SPAN_V, NanonisConfig,
-    NanonisMicroscope, PIXEL_PACKET, SlowDirection, metres_per_count,
+    ClockSource, CoarseZConfig, ControllerState, INTERRUPT_POLL_S, LOW_VOLTAGE_SPAN_V,
+    NanonisConfig, NanonisMicroscope, PIXEL_PACKET, SlowDirection, metres_per_count,
 };

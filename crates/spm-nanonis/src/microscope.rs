@@ -458,24 +458,7 @@ impl NanonisMicroscope {
                 ),
             ));
         }
-        let autopaste = client.schema().props_set_autopaste.then_some(3);
-        client.call(&Request::ScanPropsSet(ScanProps {
-            continuous: 2,
-            bouncy: 2,
-            autosave: 3,
-            series_name: String::new(),
-            comment: String::new(),
-            modules: Vec::new(),
-            autopaste,
-        }))?;
-        let z_on = u32_reply(&mut client, &Request::ZCtrlOnOffGet)? == 1;
-        if !z_on {
-            return Err(NanonisError::new(
-                NanonisErrorKind::FeedbackOff,
-                "the Z controller is off: approach the tip and switch the feedback on first",
-            )
-            .in_command("ZCtrl.OnOffGet"));
-        }
+        let z_on = one_frame_at_a_time_with_feedback(&mut client)?;
         let coarse_motor_present = match &config.coarse_z {
             Some(_) => match client.call(&Request::MotorFreqAmpGet(3)) {
                 Ok(_) => true,
@@ -1074,6 +1057,29 @@ impl NanonisMicroscope {
             }
         }
     }
+}
+
+/// Continuous and bouncy scanning, autosave and autopaste off (`Scan.PropsSet`), then the Z
+/// feedback checked: on (`true`), or an error.
+fn one_frame_at_a_time_with_feedback(client: &mut Client) -> Result<bool, NanonisError> {
+    let autopaste = client.schema().props_set_autopaste.then_some(3);
+    client.call(&Request::ScanPropsSet(ScanProps {
+        continuous: 2,
+        bouncy: 2,
+        autosave: 3,
+        series_name: String::new(),
+        comment: String::new(),
+        modules: Vec::new(),
+        autopaste,
+    }))?;
+    if u32_reply(client, &Request::ZCtrlOnOffGet)? != 1 {
+        return Err(NanonisError::new(
+            NanonisErrorKind::FeedbackOff,
+            "the Z controller is off: approach the tip and switch the feedback on first",
+        )
+        .in_command("ZCtrl.OnOffGet"));
+    }
+    Ok(true)
 }
 
 fn unexpected(command: &str, reply: &Reply) -> NanonisError {

@@ -204,6 +204,21 @@ fn check_cdb_is_no_report_file(cdb: &Path, out: &Path) -> Result<(), CliError> {
     Ok(())
 }
 
+/// The CLI error of a run that did not end: bad input, or a failure (one the stop request
+/// caused, as a paused Nanonis scan, says so).
+fn run_error(e: &spmcal::run::JobRunError, stop: &StopRequest) -> CliError {
+    if e.is_bad_input() {
+        CliError::BadInput(e.to_string())
+    } else if stop.requested() {
+        CliError::RunFailed(format!(
+            "interrupted by {}: {e}; continue the run with --resume",
+            stop.name()
+        ))
+    } else {
+        CliError::RunFailed(e.to_string())
+    }
+}
+
 /// Where the job comes from.
 #[derive(Debug, Clone)]
 pub enum JobSource {
@@ -265,18 +280,7 @@ pub fn run(
         &mut recorder,
         interrupt,
     )
-    .map_err(|e| {
-        if e.is_bad_input() {
-            CliError::BadInput(e.to_string())
-        } else if stop.requested() {
-            CliError::RunFailed(format!(
-                "interrupted by {}: {e}; continue the run with --resume",
-                stop.name()
-            ))
-        } else {
-            CliError::RunFailed(e.to_string())
-        }
-    })?;
+    .map_err(|e| run_error(&e, &stop))?;
     let wall_time_s = started.elapsed().as_secs_f64();
     let samples = recorder.into_samples();
     progress.finish();

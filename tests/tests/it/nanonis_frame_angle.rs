@@ -162,7 +162,8 @@ fn calibrate(frame_angle_deg: f64, slow: SlowDirection) -> Vec<([f64; 3], [f64; 
         };
         let mut store = MemoryStore::default();
         let mut observer = NoObserver;
-        let mut calibrator = Calibrator::new(&mut around, &mut store, &mut observer, plan()).unwrap();
+        let mut calibrator =
+            Calibrator::new(&mut around, &mut store, &mut observer, plan()).unwrap();
         assert_eq!(calibrator.plan().nodes.len(), 1);
         let node_there = calibrator.plan().nodes[0].position();
         assert_eq!(node_there, node, "the net's one node is the place");
@@ -173,7 +174,10 @@ fn calibrate(frame_angle_deg: f64, slow: SlowDirection) -> Vec<([f64; 3], [f64; 
                 config_text: String::new(),
             })
             .unwrap();
-        assert_eq!(report.nodes_done, 1, "{frame_angle_deg}° place {k}: {report:?}");
+        assert_eq!(
+            report.nodes_done, 1,
+            "{frame_angle_deg}° place {k}: {report:?}"
+        );
         let r = store
             .records
             .iter()

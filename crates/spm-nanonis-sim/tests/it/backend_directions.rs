@@ -145,10 +145,7 @@ fn fast_and_slow(truth: &FrameTruth) -> (CountPoint, CountPoint) {
         let l = dx.hypot(dy);
         CountPoint::from_counts(dx / l, dy / l)
     };
-    (
-        unit(p[0], p[1]),
-        unit(p[0], p[PIXELS as usize]),
-    )
+    (unit(p[0], p[1]), unit(p[0], p[PIXELS as usize]))
 }
 
 fn opposite(a: CountPoint, b: CountPoint) -> bool {

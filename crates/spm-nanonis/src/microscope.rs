@@ -75,7 +75,7 @@ pub struct CoarseZConfig {
 /// counter frame (the frame turned by 180°) scanned down steps +y in counts instead of −y.
 /// Direct and counter frames stay a counter pair: both the fast and the slow direction of
 /// one are reversed in the other.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum SlowDirection {
     /// From the frame's bottom line to its top (`Scan.Action` direction 1), the default.
@@ -83,6 +83,21 @@ pub enum SlowDirection {
     Up,
     /// From the frame's top line to its bottom (`Scan.Action` direction 0).
     Down,
+}
+
+impl<'de> Deserialize<'de> for SlowDirection {
+    /// `"up"` or `"down"`; anything else is refused naming the field (a job's `[backend]` is
+    /// read through an internally tagged enum, whose errors lose the field's path).
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        let text = String::deserialize(deserializer)?;
+        match text.as_str() {
+            "up" => Ok(Self::Up),
+            "down" => Ok(Self::Down),
+            other => Err(serde::de::Error::custom(format!(
+                "slow_direction {other:?} is neither \"up\" nor \"down\""
+            ))),
+        }
+    }
 }
 
 impl SlowDirection {

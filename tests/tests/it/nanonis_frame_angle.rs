@@ -273,3 +273,48 @@ fn a_30_degree_frame_scanned_down_gives_the_unrotated_lccs_within_2_sigma() {
         "the 30° frame changed no LCC beyond 2 σ: the comparison cannot tell the frames apart"
     );
 }
+
+/// The example job states both frame fields; `slow_direction` takes "up" and "down" and a job
+/// with anything else is refused naming the field.
+#[test]
+fn the_example_job_states_the_frame_angle_and_the_slow_direction() {
+    use spmcal::job::{Backend, Job};
+    let example = root().join("configs/calibrate-nanonis-sim.toml");
+    let Backend::Nanonis(config) = Job::from_file(&example).unwrap().backend else {
+        panic!("the example job is not a nanonis job");
+    };
+    assert_eq!(
+        (config.frame_angle_deg, config.slow_direction),
+        (0.0, SlowDirection::Up)
+    );
+    let text = std::fs::read_to_string(&example).unwrap();
+    assert!(text.contains("slow_direction = \"up\""));
+    let dir = std::env::temp_dir().join(format!("spmcal-slow-direction-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::copy(
+        root().join("configs/plan-hopg-small.toml"),
+        dir.join("plan-hopg-small.toml"),
+    )
+    .unwrap();
+    let job = dir.join("job.toml");
+    std::fs::write(
+        &job,
+        text.replace("slow_direction = \"up\"", "slow_direction = \"down\""),
+    )
+    .unwrap();
+    let Backend::Nanonis(config) = Job::from_file(&job).unwrap().backend else {
+        panic!("not a nanonis job");
+    };
+    assert_eq!(config.slow_direction, SlowDirection::Down);
+    std::fs::write(
+        &job,
+        text.replace("slow_direction = \"up\"", "slow_direction = \"left\""),
+    )
+    .unwrap();
+    let error = Job::from_file(&job)
+        .err()
+        .expect("\"left\" is refused")
+        .to_string();
+    assert!(error.contains("slow_direction"), "{error}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

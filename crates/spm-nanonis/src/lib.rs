@@ -85,10 +85,14 @@
 //! - **`Scan.PropsSet`'s module list** is sent as the vendor's client sends it (the string
 //!   array's size field `4 × count`; see [`codec`] for the choice).
 //! - **Frame data** (`Scan.FrameDataGrab`) come top line first whatever the slow direction
-//!   (for an upward scan the last line acquired, for a downward one the first; the manual's
-//!   row order, which nanonis-sim follows, its reply's direction flag saying which way the
-//!   frame was scanned) and left to right in the frame for both trace directions; pixels not
-//!   acquired are NaN, which is an error, never data.
+//!   (for an upward scan the last line acquired, for a downward one the first) and left to
+//!   right in the frame for both trace directions; pixels not acquired are NaN, which is an
+//!   error, never data. The row order of a *downward* frame is nanonis-sim's convention (the
+//!   frame as displayed; the reply's direction flag says which way it was scanned): the
+//!   vendor's client documents the flag, not the order, and it has not been checked on a
+//!   controller. Were the rows in acquisition order there, every downward frame would come
+//!   out mirrored in y — the calibration then finds no lattice (checked by mutation against
+//!   nanonis-sim), so such a controller fails loudly, never silently.
 //! - **An interrupted run pauses the scan** ([`NanonisMicroscope::set_interrupt`]; spmcal
 //!   sets the flag on SIGINT, SIGTERM and SIGHUP). A calibration otherwise stops between
 //!   nodes, and a node takes minutes on hardware. With the flag set, the backend waits for

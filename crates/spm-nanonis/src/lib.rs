@@ -91,8 +91,8 @@
 //!   frame as displayed; the reply's direction flag says which way it was scanned): the
 //!   vendor's client documents the flag, not the order, and it has not been checked on a
 //!   controller. Were the rows in acquisition order there, every downward frame would come
-//!   out mirrored in y — the calibration then finds no lattice (checked by mutation against
-//!   nanonis-sim), so such a controller fails loudly, never silently.
+//!   out mirrored in y; against nanonis-sim so mirrored, the calibration at 30° gave up its
+//!   first node (no feature found; a mutation of this backend, not a test in the tree).
 //! - **An interrupted run pauses the scan** ([`NanonisMicroscope::set_interrupt`]; spmcal
 //!   sets the flag on SIGINT, SIGTERM and SIGHUP). A calibration otherwise stops between
 //!   nodes, and a node takes minutes on hardware. With the flag set, the backend waits for

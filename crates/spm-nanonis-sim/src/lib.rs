@@ -78,6 +78,10 @@
 //!   - *Commands it does not implement* get zeros for their documented return arguments
 //!     (every count 0) followed by the error "nanonis-sim does not implement …", so that
 //!     a client decoding the command's reply reads the error, not garbage.
+//! - **Ground truth for clients' tests**: [`ServerHandle::last_frame_truth`] gives the last
+//!   frame's forward pixels as the simulator scanned them, in acquisition order — their times
+//!   and, while the simulator records them, their effective inputs (a downward frame's lines
+//!   joined) — against which a client's pixel positions and time stamps are checked.
 //! - **Socket-level fault injection** ([`SocketFaults`], seeded): error replies, replies
 //!   written one byte at a time, delays, stalls longer than the client's timeout,
 //!   connections dropped before or after executing a command, and a scan left running.
@@ -95,6 +99,6 @@ mod neutral;
 pub mod server;
 
 pub use server::{
-    BODY_CHUNK_BYTES, ConnectionLimits, Server, ServerConfig, ServerError, ServerHandle,
-    ServerStats, SocketFaults, accept_pause,
+    BODY_CHUNK_BYTES, ConnectionLimits, FrameTruth, Server, ServerConfig, ServerError,
+    ServerHandle, ServerStats, SocketFaults, accept_pause,
 };

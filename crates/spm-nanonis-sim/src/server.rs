@@ -358,9 +358,25 @@ enum Pending {
     Scan(Box<PendingScan>),
 }
 
+/// Ground truth of the last frame's forward half as the simulator ran it, in acquisition
+/// order (before the float32 wire and the row order of `Scan.FrameDataGrab`): for tests of a
+/// client's pixel positions and times ([`ServerHandle::last_frame_truth`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameTruth {
+    /// The simulator's time of every forward pixel (its dwell's middle), s.
+    pub time_s: Vec<f64>,
+    /// The effective input `u + h + c` of every forward pixel, the simulator's counts
+    /// (spm-sim's oracle); empty unless the simulator records them
+    /// (`Simulator::record_tip_positions`). A downward frame is simulated line by line;
+    /// these are the lines' records joined.
+    pub effective_inputs: Vec<CountPoint>,
+}
+
 #[derive(Debug)]
 struct LastScan {
     frame: Result<Frame, String>,
+    /// The forward pixels' effective inputs as simulated (see [`FrameTruth`]).
+    effective_inputs: Vec<CountPoint>,
     request: ScanRequest,
     plan: ScanPlan,
     /// The instrument as it was when the scan began, kept while the backward trace has
@@ -369,22 +385,26 @@ struct LastScan {
 }
 
 /// Runs a frame on `sim`: one simulator scan for an upward frame; a downward frame line by
-/// line from the frame's top (spm-sim's rasters step their lines upwards).
+/// line from the frame's top (spm-sim's rasters step their lines upwards). With the frame,
+/// the effective inputs of its forward pixels as the simulator recorded them, in
+/// acquisition order (empty unless it records them).
 fn run_scan(
     sim: &mut Simulator,
     request: &ScanRequest,
     plan: &ScanPlan,
     backward: bool,
-) -> Result<Frame, String> {
+) -> Result<(Frame, Vec<CountPoint>), String> {
     let mut request = request.clone();
     request.record_backward = backward;
-    let mut scan = |r: &ScanRequest| match plan.turn {
+    let scan = |sim: &mut Simulator, r: &ScanRequest| match plan.turn {
         None => sim.scan(r),
         Some(turn) => sim.scan_turned(r, turn),
     };
     if plan.direction_up == 1 {
-        return scan(&request).map_err(|e| describe(&e));
+        let frame = scan(sim, &request).map_err(|e| describe(&e))?;
+        return Ok((frame, sim.oracle().last_scan_effective_inputs()));
     }
+    let mut effective_inputs = Vec::new();
     let lines = request.lines;
     let mut frame = Frame {
         request: request.clone(),
@@ -412,7 +432,8 @@ fn run_scan(
             lines: 1,
             ..request.clone()
         };
-        let part = scan(&one).map_err(|e| describe(&e))?;
+        let part = scan(sim, &one).map_err(|e| describe(&e))?;
+        effective_inputs.extend(sim.oracle().last_scan_effective_inputs());
         frame.forward.z_counts.extend(part.forward.z_counts);
         frame.forward.time_s.extend(part.forward.time_s);
         if let (Some(all), Some(half)) = (frame.backward.as_mut(), part.backward) {
@@ -420,7 +441,7 @@ fn run_scan(
             all.time_s.extend(half.time_s);
         }
     }
-    Ok(frame)
+    Ok((frame, effective_inputs))
 }
 
 /// Line `values` (the simulator's `sim_columns` pixels, left to right in the frame)
@@ -689,9 +710,14 @@ impl State {
                 let PendingScan { request, plan, .. } = *scan;
                 // The instrument before the scan, for a backward trace asked later.
                 let snapshot = (!backward).then(|| Box::new(self.sim.clone()));
-                let frame = run_scan(&mut self.sim, &request, &plan, backward);
+                let (frame, effective_inputs) =
+                    match run_scan(&mut self.sim, &request, &plan, backward) {
+                        Ok((frame, inputs)) => (Ok(frame), inputs),
+                        Err(e) => (Err(e), Vec::new()),
+                    };
                 self.last_scan = Some(LastScan {
                     frame,
+                    effective_inputs,
                     request,
                     plan,
                     snapshot,
@@ -853,7 +879,7 @@ impl State {
         let Some(mut shadow) = last.snapshot.take() else {
             return Err("backward data were not recorded".into());
         };
-        let again = run_scan(&mut shadow, &last.request, &last.plan, true)?;
+        let (again, _) = run_scan(&mut shadow, &last.request, &last.plan, true)?;
         frame.backward = again.backward;
         Ok(())
     }
@@ -1454,6 +1480,19 @@ impl ServerHandle {
     /// Runs `f` on the simulator (tests: the oracle).
     pub fn with_simulator<T>(&self, f: impl FnOnce(&Simulator) -> T) -> T {
         f(&lock(&self.shared).sim)
+    }
+
+    /// The last frame's forward half as the simulator ran it ([`FrameTruth`]), once it has
+    /// been simulated (its data grabbed or the instrument observed); `None` before, and for
+    /// a frame that failed.
+    pub fn last_frame_truth(&self) -> Option<FrameTruth> {
+        let state = lock(&self.shared);
+        let last = state.last_scan.as_ref()?;
+        let frame = last.frame.as_ref().ok()?;
+        Some(FrameTruth {
+            time_s: frame.forward.time_s.clone(),
+            effective_inputs: last.effective_inputs.clone(),
+        })
     }
 
     /// Runs `f` on the simulator, mutably (tests: switch the oracle's recording on).

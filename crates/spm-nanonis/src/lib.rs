@@ -56,8 +56,9 @@
 //!   back when the backend opens, and what was found is kept in [`ControllerState`]
 //!   (logged, and stored with the run by `spmcal calibrate`). Left on, the calibration is
 //!   done on already-corrected coordinates: it measures the correction, not the scanner.
-//! - **A scan already running** (started by a user or left by a lost connection) is
-//!   stopped on the second connection before a new one starts (`Scan.StatusGet`).
+//! - **A scan already running** (started by a user or left by a lost connection) or paused
+//!   (left by an interrupted run) is stopped on the second connection when the backend opens
+//!   and before a new one starts (`Scan.StatusGet`).
 //! - **Scan speed** is set with the time per line kept constant and read back
 //!   (`Scan.SpeedGet`): the pixel times are reconstructed from the line times the
 //!   controller actually uses: pixel `k` of line `l` at
@@ -70,14 +71,41 @@
 //!   and turned by the angle, so moves, positions and every scan frame (counter scans at
 //!   the angle + 180°) are on the turned axes, and the field is the largest square of the
 //!   turned axes inside the controller's range.
-//! - **Frames scanned downwards** (`Scan.FrameDataGrab`'s direction 0: a bouncy scan left
-//!   on, a start by someone else) acquired their lines in the other order in time: not the
-//!   scan requested, an error.
+//! - **The slow direction** ([`NanonisConfig::slow_direction`], [`SlowDirection`]): every
+//!   frame is started up (`Scan.Action` direction 1, the default) or down (0). spm-hal's
+//!   frame contract holds either way, so nothing above the backend knows: the pixel of line
+//!   `l`, pixel `k` lies at `ScanRequest::commanded_position`, and its time stamp is when it
+//!   was acquired — scanned down, line `l` of `n` is the `(n − 1 − l)`-th in time, so a
+//!   direct frame's time stamps decrease with `l` (its lines step −y in time) and a counter
+//!   frame's increase (+y). A counter frame scanned down is still the direct one's counter
+//!   scan: both its fast and its slow direction are reversed. A frame whose
+//!   `Scan.FrameDataGrab` direction is not the one started (a bouncy scan left on, a start by
+//!   someone else) acquired its lines in the other order in time: not the scan requested,
+//!   an error.
 //! - **`Scan.PropsSet`'s module list** is sent as the vendor's client sends it (the string
 //!   array's size field `4 × count`; see [`codec`] for the choice).
-//! - **Frame data** (`Scan.FrameDataGrab`) come top line first (for an upward scan the
-//!   last line acquired) and left to right in the frame for both directions; pixels not
-//!   acquired are NaN, which is an error, never data.
+//! - **Frame data** (`Scan.FrameDataGrab`) come top line first whatever the slow direction
+//!   (for an upward scan the last line acquired, for a downward one the first) and left to
+//!   right in the frame for both trace directions; pixels not acquired are NaN, which is an
+//!   error, never data. The row order of a *downward* frame is nanonis-sim's convention (the
+//!   frame as displayed; the reply's direction flag says which way it was scanned): the
+//!   vendor's client documents the flag, not the order, and it has not been checked on a
+//!   controller. Were the rows in acquisition order there, every downward frame would come
+//!   out mirrored in y; against nanonis-sim so mirrored, the calibration at 30° gave up its
+//!   first node (no feature found; a mutation of this backend, not a test in the tree).
+//! - **An interrupted run pauses the scan** ([`NanonisMicroscope::set_interrupt`]; spmcal
+//!   sets the flag on SIGINT, SIGTERM and SIGHUP). A calibration otherwise stops between
+//!   nodes, and a node takes minutes on hardware. With the flag set, the backend waits for
+//!   the end of a scan in slices of [`INTERRUPT_POLL_S`] (after a slice that timed out,
+//!   `Scan.StatusGet` tells an end between two slices from a scan still running) and, once
+//!   the flag is up, sends `Scan.Action` *pause* and answers [`spm_hal::ErrorKind::Aborted`]:
+//!   the run stops at once, marked aborted and resumable. Paused, not stopped: the tip stays
+//!   engaged where it was, the feedback on, and the partial frame stays on the controller,
+//!   where the user may look at it or resume it by hand. The frame is not resumed by the
+//!   backend: its pixel times would straddle an unknown gap and the node's drift model would
+//!   not hold across it. A backend opened on the controller — `spmcal calibrate --resume` —
+//!   stops a paused (or running) frame before anything moves the tip, and the node is
+//!   measured again. A wait on the host clock is cut short the same way.
 //! - **The frame geometry is `float32` metres** on the wire (`Scan.FrameSet`), the move
 //!   targets `float64`: a scan's pixel positions are realised to `float32` precision
 //!   (relative 6·10⁻⁸, ≈ 0.002 counts at the edge of a 16-bit field).
@@ -101,6 +129,6 @@ pub mod microscope;
 pub use client::{Client, ClientConfig};
 pub use error::{NanonisError, NanonisErrorKind};
 pub use microscope::{
-    ClockSource, CoarseZConfig, ControllerState, LOW_VOLTAGE_SPAN_V, NanonisConfig,
-    NanonisMicroscope, PIXEL_PACKET, metres_per_count,
+    ClockSource, CoarseZConfig, ControllerState, INTERRUPT_POLL_S, LOW_VOLTAGE_SPAN_V,
+    NanonisConfig, NanonisMicroscope, PIXEL_PACKET, SlowDirection, metres_per_count,
 };

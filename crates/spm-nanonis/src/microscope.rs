@@ -13,11 +13,18 @@ use spm_hal::{
     Capabilities, CoarseZCapability, CoarseZStage, CountPoint, Counts, Frame, Microscope,
     MoveRequest, ScanDirection, ScanRequest, Seconds, TraceImage,
 };
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 /// The full span of the controller's low-voltage outputs, V (±10 V): `Piezo.CalibrGet`
 /// gives metres per volt of these signals.
 pub const LOW_VOLTAGE_SPAN_V: f64 = 20.0;
+
+/// With an interrupt flag ([`NanonisMicroscope::set_interrupt`]), the longest the backend
+/// waits on the controller (for the end of a scan) or sleeps (a wait on the host clock)
+/// before it looks at the flag again, s.
+pub const INTERRUPT_POLL_S: f64 = 0.2;
 
 /// Pixels per line travel from the real-time engine to the host in packets of this many:
 /// the scan module coerces pixels per line to a multiple of it.
@@ -57,6 +64,50 @@ pub struct CoarseZConfig {
     pub group: u32,
     /// Upper bound of one step's duration, s (sets the command timeout).
     pub step_time_s: f64,
+}
+
+/// The slow-scan direction every frame is started in (`Scan.Action`'s direction).
+///
+/// Whichever it is, a [`Frame`] keeps spm-hal's geometry: the pixel of line `l`, pixel `k`
+/// lies at [`ScanRequest::commanded_position`], and its time stamp is when the controller
+/// acquired it. Scanned down, the lines of a direct frame are acquired from its last row
+/// (the largest y in counts) to its first, so their time stamps decrease with `l`; a
+/// counter frame (the frame turned by 180°) scanned down steps +y in counts instead of −y.
+/// Direct and counter frames stay a counter pair: both the fast and the slow direction of
+/// one are reversed in the other.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SlowDirection {
+    /// From the frame's bottom line to its top (`Scan.Action` direction 1), the default.
+    #[default]
+    Up,
+    /// From the frame's top line to its bottom (`Scan.Action` direction 0).
+    Down,
+}
+
+impl<'de> Deserialize<'de> for SlowDirection {
+    /// `"up"` or `"down"`; anything else is refused naming the field (a job's `[backend]` is
+    /// read through an internally tagged enum, whose errors lose the field's path).
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        let text = String::deserialize(deserializer)?;
+        match text.as_str() {
+            "up" => Ok(Self::Up),
+            "down" => Ok(Self::Down),
+            other => Err(serde::de::Error::custom(format!(
+                "slow_direction {other:?} is neither \"up\" nor \"down\""
+            ))),
+        }
+    }
+}
+
+impl SlowDirection {
+    /// `Scan.Action`'s and `Scan.FrameDataGrab`'s direction flag: 1 = up, 0 = down.
+    pub fn direction_up(self) -> u32 {
+        match self {
+            Self::Up => 1,
+            Self::Down => 0,
+        }
+    }
 }
 
 /// Everything the backend needs to know about the controller and the job.
@@ -100,6 +151,10 @@ pub struct NanonisConfig {
     /// largest square of the turned axes inside the controller's range. 0 by default.
     #[serde(default)]
     pub frame_angle_deg: f64,
+    /// The slow-scan direction of every frame, `"up"` (the default) or `"down"`
+    /// ([`SlowDirection`]): the order in time of the lines, never where the pixels lie.
+    #[serde(default)]
+    pub slow_direction: SlowDirection,
 }
 
 impl NanonisConfig {
@@ -295,6 +350,8 @@ pub struct NanonisMicroscope {
     /// The compensation as found when connecting, put back by
     /// [`NanonisMicroscope::restore_compensation`] (or on drop); `None` once restored.
     found_compensation: Option<FoundCompensation>,
+    /// Set by whoever interrupts the run ([`NanonisMicroscope::set_interrupt`]).
+    interrupt: Option<Arc<AtomicBool>>,
 }
 
 /// The controller's own compensation as the backend found it.
@@ -416,24 +473,7 @@ impl NanonisMicroscope {
                 ),
             ));
         }
-        let autopaste = client.schema().props_set_autopaste.then_some(3);
-        client.call(&Request::ScanPropsSet(ScanProps {
-            continuous: 2,
-            bouncy: 2,
-            autosave: 3,
-            series_name: String::new(),
-            comment: String::new(),
-            modules: Vec::new(),
-            autopaste,
-        }))?;
-        let z_on = u32_reply(&mut client, &Request::ZCtrlOnOffGet)? == 1;
-        if !z_on {
-            return Err(NanonisError::new(
-                NanonisErrorKind::FeedbackOff,
-                "the Z controller is off: approach the tip and switch the feedback on first",
-            )
-            .in_command("ZCtrl.OnOffGet"));
-        }
+        let z_on = one_frame_at_a_time_with_feedback(&mut client)?;
         let coarse_motor_present = match &config.coarse_z {
             Some(_) => match client.call(&Request::MotorFreqAmpGet(3)) {
                 Ok(_) => true,
@@ -474,7 +514,7 @@ impl NanonisMicroscope {
         };
         tracing::info!(?state, "nanonis: controller state recorded");
         let reconnects = client.reconnects();
-        Ok(Self {
+        let mut opened = Self {
             client,
             capabilities,
             lateral_m_per_count: lateral,
@@ -493,7 +533,98 @@ impl NanonisMicroscope {
                 ..SentSettings::default()
             },
             config,
-        })
+            interrupt: None,
+        };
+        // A scan left paused by an interrupted run (or running, by a user) is stopped before
+        // anything moves the tip: its frame is not resumed (see the crate docs).
+        opened.stop_running_scan()?;
+        Ok(opened)
+    }
+
+    /// Makes a run interruptible while the controller works: once `flag` is set (spmcal sets
+    /// it on a termination signal), a running scan is paused on the controller
+    /// (`Scan.Action` pause) and the scan, or a wait on the host clock, returns
+    /// [`NanonisErrorKind::Aborted`] within [`INTERRUPT_POLL_S`], so the calibration stops at
+    /// once (resumable) instead of at the end of the node. The paused frame is left on the
+    /// controller for the user to look at or resume by hand; the next backend opened on the
+    /// controller (`spmcal calibrate --resume`) stops it and the node is measured again.
+    pub fn set_interrupt(&mut self, flag: Arc<AtomicBool>) {
+        self.interrupt = Some(flag);
+    }
+
+    fn interrupted(&self) -> bool {
+        self.interrupt
+            .as_ref()
+            .is_some_and(|flag| flag.load(Ordering::SeqCst))
+    }
+
+    /// Pauses the scan running after an interrupt and says so as an `Aborted` error.
+    fn pause_interrupted_scan(&mut self) -> NanonisError {
+        let direction_up = self.config.slow_direction.direction_up();
+        let paused = self.client.call(&Request::ScanAction {
+            action: scan_action::PAUSE,
+            direction_up,
+        });
+        let message = match paused {
+            Ok(_) => {
+                tracing::warn!("nanonis: interrupted; the scan is paused on the controller");
+                "interrupted: the scan is paused on the controller (a resumed run stops it \
+                 and measures the node again)"
+                    .to_owned()
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "nanonis: interrupted; the scan could not be paused");
+                format!("interrupted: the scan could not be paused ({e})")
+            }
+        };
+        NanonisError::new(NanonisErrorKind::Aborted, message).in_command("Scan.Action")
+    }
+
+    /// Waits for the end of the scan just started, which takes `expected_s`: one
+    /// `Scan.WaitEndOfScan` with the margin; with an interrupt flag, slices of at most
+    /// [`INTERRUPT_POLL_S`] with the flag looked at between them (and `Scan.StatusGet`
+    /// after a slice that timed out: an end of scan between two slices is not waited for
+    /// again). Returns whether the scan ended within the margin.
+    fn wait_end_of_scan(&mut self, expected_s: f64) -> Result<bool, NanonisError> {
+        let total_ms = ((expected_s + self.config.wait_margin_s) * 1e3)
+            .ceil()
+            .min(f64::from(i32::MAX)) as i32;
+        if self.interrupt.is_none() {
+            let request = Request::ScanWaitEndOfScan {
+                timeout_ms: total_ms,
+            };
+            return match self.client.call_waiting(&request, expected_s)? {
+                Reply::WaitEndOfScan { timed_out, .. } => Ok(timed_out != 1),
+                other => Err(unexpected("Scan.WaitEndOfScan", &other)),
+            };
+        }
+        let slice_ms = (INTERRUPT_POLL_S * 1e3) as i32;
+        let mut waited_ms = 0i32;
+        loop {
+            if self.interrupted() {
+                return Err(self.pause_interrupted_scan());
+            }
+            if waited_ms >= total_ms {
+                return Ok(false);
+            }
+            let timeout_ms = slice_ms.min(total_ms - waited_ms);
+            let request = Request::ScanWaitEndOfScan { timeout_ms };
+            match self
+                .client
+                .call_waiting(&request, f64::from(timeout_ms) * 1e-3)?
+            {
+                Reply::WaitEndOfScan { timed_out, .. } if timed_out != 1 => return Ok(true),
+                Reply::WaitEndOfScan { .. } => {}
+                other => return Err(unexpected("Scan.WaitEndOfScan", &other)),
+            }
+            waited_ms = waited_ms.saturating_add(timeout_ms);
+            if self.interrupted() {
+                return Err(self.pause_interrupted_scan());
+            }
+            if u32_reply(&mut self.client, &Request::ScanStatusGet)? == 0 {
+                return Ok(true);
+            }
+        }
     }
 
     /// The controller's state found and set when the backend was opened.
@@ -561,8 +692,22 @@ impl NanonisMicroscope {
     fn pause(&mut self, duration_s: f64) -> Result<(), NanonisError> {
         match self.config.clock {
             ClockSource::Host => {
-                if duration_s > 0.0 {
-                    std::thread::sleep(std::time::Duration::from_secs_f64(duration_s));
+                // In slices when interruptible, so that an interrupt ends a long pause.
+                let mut left_s = duration_s;
+                while left_s > 0.0 {
+                    if self.interrupted() {
+                        return Err(NanonisError::new(
+                            NanonisErrorKind::Aborted,
+                            "interrupted during a wait",
+                        ));
+                    }
+                    let slice_s = if self.interrupt.is_some() {
+                        left_s.min(INTERRUPT_POLL_S)
+                    } else {
+                        left_s
+                    };
+                    std::thread::sleep(std::time::Duration::from_secs_f64(slice_s));
+                    left_s -= slice_s;
                 }
                 Ok(())
             }
@@ -771,20 +916,16 @@ impl NanonisMicroscope {
             self.sent.line_times_s = Some((tf, tb));
         }
         let (tf, tb) = self.sent.line_times_s.unwrap_or((line_s, line_s));
+        let direction_up = self.config.slow_direction.direction_up();
         self.client.call(&Request::ScanAction {
             action: scan_action::START,
-            direction_up: 1,
+            direction_up,
         })?;
         let expected_s = f64::from(lines) * (tf + tb);
-        let timeout_ms = ((expected_s + self.config.wait_margin_s) * 1e3)
-            .ceil()
-            .min(f64::from(i32::MAX)) as i32;
-        let waited = self
-            .client
-            .call_waiting(&Request::ScanWaitEndOfScan { timeout_ms }, expected_s);
-        let timed_out = match waited {
-            Ok(Reply::WaitEndOfScan { timed_out, .. }) => timed_out == 1,
-            Ok(other) => return Err(unexpected("Scan.WaitEndOfScan", &other)),
+        let ended = match self.wait_end_of_scan(expected_s) {
+            Ok(ended) => ended,
+            // Interrupted: the scan is paused, not stopped.
+            Err(e) if e.kind == NanonisErrorKind::Aborted => return Err(e),
             Err(e) => {
                 if let Err(stop) = self.abort() {
                     tracing::warn!(error = %stop, "nanonis: could not stop the scan");
@@ -792,13 +933,16 @@ impl NanonisMicroscope {
                 return Err(e);
             }
         };
-        if timed_out {
+        if !ended {
             if let Err(stop) = self.abort() {
                 tracing::warn!(error = %stop, "nanonis: could not stop the scan");
             }
             return Err(NanonisError::new(
                 NanonisErrorKind::Timeout,
-                format!("no end of scan within {timeout_ms} ms"),
+                format!(
+                    "no end of scan within {:.0} ms",
+                    (expected_s + self.config.wait_margin_s) * 1e3
+                ),
             )
             .in_command("Scan.WaitEndOfScan"));
         }
@@ -823,22 +967,35 @@ impl NanonisMicroscope {
             z_counts: Vec::with_capacity(n * ny),
             time_s: Vec::with_capacity(n * ny),
         });
-        // Started upwards; a frame the controller scanned downwards (a bouncy scan left on,
-        // a start by someone else) has its lines in the other order in time: not the
+        // A frame the controller scanned in the other slow direction (a bouncy scan left
+        // on, a start by someone else) has its lines in the other order in time: not the
         // scan requested.
         for data in std::iter::once(&forward).chain(backward.as_ref()) {
-            if data.direction_up != 1 {
+            if data.direction_up != direction_up {
+                let (found, started) = match direction_up {
+                    1 => ("downwards", "upwards"),
+                    _ => ("upwards", "downwards"),
+                };
                 return Err(NanonisError::new(
                     NanonisErrorKind::Controller,
-                    "the controller scanned the frame downwards; it was started upwards",
+                    format!("the controller scanned the frame {found}; it was started {started}"),
                 )
                 .in_command("Scan.FrameDataGrab"));
             }
         }
         for line in 0..ny {
-            // Rows come top line first: for an upward scan the last line acquired.
+            // Rows come top line first whatever the slow direction (for an upward scan the
+            // last line acquired, for a downward one the first): the frame's top is line
+            // ny − 1 of spm-hal's geometry, for direct and counter (the frame turned by
+            // 180°) requests alike.
             let row = ny - 1 - line;
-            let line_start = start + line as f64 * (tf + tb);
+            // Its place in time: upwards line `line` is acquired `line`-th, downwards
+            // `(ny − 1 − line)`-th.
+            let acquired = match self.config.slow_direction {
+                SlowDirection::Up => line,
+                SlowDirection::Down => ny - 1 - line,
+            };
+            let line_start = start + acquired as f64 * (tf + tb);
             for pixel in 0..n {
                 let value = forward.data[row * n16u + pixel];
                 fwd.z_counts.push(self.z_counts(value)?);
@@ -915,6 +1072,29 @@ impl NanonisMicroscope {
             }
         }
     }
+}
+
+/// Continuous and bouncy scanning, autosave and autopaste off (`Scan.PropsSet`), then the Z
+/// feedback checked: on (`true`), or an error.
+fn one_frame_at_a_time_with_feedback(client: &mut Client) -> Result<bool, NanonisError> {
+    let autopaste = client.schema().props_set_autopaste.then_some(3);
+    client.call(&Request::ScanPropsSet(ScanProps {
+        continuous: 2,
+        bouncy: 2,
+        autosave: 3,
+        series_name: String::new(),
+        comment: String::new(),
+        modules: Vec::new(),
+        autopaste,
+    }))?;
+    if u32_reply(client, &Request::ZCtrlOnOffGet)? != 1 {
+        return Err(NanonisError::new(
+            NanonisErrorKind::FeedbackOff,
+            "the Z controller is off: approach the tip and switch the feedback on first",
+        )
+        .in_command("ZCtrl.OnOffGet"));
+    }
+    Ok(true)
 }
 
 fn unexpected(command: &str, reply: &Reply) -> NanonisError {

@@ -12,7 +12,7 @@ use spm_hal::{CountVelocity, Seconds};
 use spmcal::job::Job;
 use spmcal::progress::ProgressBarObserver;
 use spmcal::report::{RunRecord, finish_with};
-use spmcal::run::{RecordingObserver, RunStart, mark_aborted, run_job};
+use spmcal::run::{RecordingObserver, RunStart, mark_aborted, run_job_interruptible};
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -204,6 +204,21 @@ fn check_cdb_is_no_report_file(cdb: &Path, out: &Path) -> Result<(), CliError> {
     Ok(())
 }
 
+/// The CLI error of a run that did not end: bad input, or a failure (one the stop request
+/// caused, as a paused Nanonis scan, says so).
+fn run_error(e: &spmcal::run::JobRunError, stop: &StopRequest) -> CliError {
+    if e.is_bad_input() {
+        CliError::BadInput(e.to_string())
+    } else if stop.requested() {
+        CliError::RunFailed(format!(
+            "interrupted by {}: {e}; continue the run with --resume",
+            stop.name()
+        ))
+    } else {
+        CliError::RunFailed(e.to_string())
+    }
+}
+
 /// Where the job comes from.
 #[derive(Debug, Clone)]
 pub enum JobSource {
@@ -255,14 +270,17 @@ pub fn run(
     };
     let mut recorder = RecordingObserver::new(&mut stoppable);
     let started = Instant::now();
-    let mut outcome =
-        run_job(&job, &cdb_path, start, start_unix_s, &mut recorder).map_err(|e| {
-            if e.is_bad_input() {
-                CliError::BadInput(e.to_string())
-            } else {
-                CliError::RunFailed(e.to_string())
-            }
-        })?;
+    // A Nanonis controller's running scan is paused at a signal (not finished first).
+    let interrupt = Some(Arc::clone(&stop.requested));
+    let mut outcome = run_job_interruptible(
+        &job,
+        &cdb_path,
+        start,
+        start_unix_s,
+        &mut recorder,
+        interrupt,
+    )
+    .map_err(|e| run_error(&e, &stop))?;
     let wall_time_s = started.elapsed().as_secs_f64();
     let samples = recorder.into_samples();
     progress.finish();

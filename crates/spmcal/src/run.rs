@@ -330,10 +330,28 @@ pub fn run_job<O: Observer>(
     start_unix_s: f64,
     observer: &mut O,
 ) -> Result<JobOutcome, JobRunError> {
+    run_job_interruptible(job, cdb_path, start, start_unix_s, observer, None)
+}
+
+/// [`run_job`], interruptible while the instrument works: once `interrupt` is set, a Nanonis
+/// controller's running scan is paused and the run stops at once as aborted (resumable;
+/// `NanonisMicroscope::set_interrupt`). The other backends answer at once anyway and stop
+/// between visits (the observer's `keep_going`).
+pub fn run_job_interruptible<O: Observer>(
+    job: &Job,
+    cdb_path: &Path,
+    start: RunStart,
+    start_unix_s: f64,
+    observer: &mut O,
+    interrupt: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
+) -> Result<JobOutcome, JobRunError> {
     verify_existing_cdb(cdb_path)?;
     // The instrument is opened before the CDB is touched: a backend that cannot be built
     // leaves no run behind.
-    let instrument = open_backend(&job.backend)?;
+    let mut instrument = open_backend(&job.backend)?;
+    if let (Instrument::Nanonis(nanonis), Some(flag)) = (&mut instrument, interrupt) {
+        nanonis.set_interrupt(flag);
+    }
     // A controller's state as found when it was opened (its own compensation, switched
     // off) is part of the run's provenance (ignored when comparing jobs for --resume).
     let provenance = match &instrument {

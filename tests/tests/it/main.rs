@@ -7,6 +7,7 @@ mod calibration_end_to_end;
 mod correction_end_to_end;
 mod images_end_to_end;
 mod nanonis_end_to_end;
+mod nanonis_frame_angle;
 mod nanonis_smoke;
 mod repository;
 mod vertical_end_to_end;

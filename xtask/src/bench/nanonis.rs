@@ -55,6 +55,7 @@ fn nanonis_config(port: u16) -> NanonisConfig {
         min_pixel_dwell_s: 1e-6,
         coarse_z: None,
         frame_angle_deg: 0.0,
+        slow_direction: spm_nanonis::SlowDirection::Up,
     }
 }
 

@@ -30,6 +30,7 @@ fn config(port: u16, frame_angle_deg: f64) -> NanonisConfig {
         min_pixel_dwell_s: 1e-6,
         coarse_z: None,
         frame_angle_deg,
+        slow_direction: spm_nanonis::SlowDirection::Up,
     }
 }
 

@@ -66,6 +66,7 @@ fn backend(server: &ServerHandle) -> NanonisMicroscope {
         min_pixel_dwell_s: 1e-6,
         coarse_z: None,
         frame_angle_deg: 0.0,
+        slow_direction: spm_nanonis::SlowDirection::Up,
     })
     .unwrap()
 }

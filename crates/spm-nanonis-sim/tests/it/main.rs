@@ -2,6 +2,8 @@
 //! module per topic, run as `cargo test -p spm-nanonis-sim --test it <module>::`.
 
 mod backend_angles;
+mod backend_directions;
+mod backend_interrupt;
 mod issue26;
 mod limits;
 mod over_tcp;

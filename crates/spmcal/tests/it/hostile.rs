@@ -881,6 +881,108 @@ fn item_13_a_signal_stops_the_run_at_a_safe_point_and_marks_it_aborted() {
     }
 }
 
+/// Issue 26: on a Nanonis controller a signal reaches the scan. Over nanonis-sim (in this
+/// process), SIGINT once a visit is stored: the program exits 1 naming the signal and the
+/// run, marked aborted; when the signal met a scan (the usual case: nearly every command of a
+/// visit belongs to one), the message says it is paused and the controller holds it paused
+/// (running, poll after poll); `--resume` stops it and completes the run. Every safe outcome
+/// is accepted (the signal may also land between visits or after the last), the invariants
+/// asserted.
+#[test]
+fn issue26_a_signal_pauses_the_nanonis_scan_and_resume_completes_the_run() {
+    use spm_nanonis::commands::{Reply, Request};
+    let dir = Scratch::new("i26-pause");
+    let server = spm_nanonis_sim::Server::bind(
+        "127.0.0.1:0",
+        spm_sim::SimConfig::ideal(),
+        spm_nanonis_sim::ServerConfig::new(spm_nanonis_sim::SocketFaults::none()),
+    )
+    .unwrap()
+    .spawn()
+    .unwrap();
+    let port = server.addr().port();
+    let example =
+        std::fs::read_to_string(root().join("configs/calibrate-nanonis-sim.toml")).unwrap();
+    assert!(example.contains("port = 6501"));
+    std::fs::write(
+        dir.path("job.toml"),
+        example.replace("port = 6501", &format!("port = {port}")),
+    )
+    .unwrap();
+    std::fs::copy(
+        root().join("configs/plan-hopg-small.toml"),
+        dir.path("plan-hopg-small.toml"),
+    )
+    .unwrap();
+    let (job, cdb, out_dir) = (dir.s("job.toml"), dir.s("c.sqlite"), dir.s("o"));
+    let args = [
+        "calibrate",
+        "--config",
+        &job,
+        "--cdb",
+        &cdb,
+        "--out",
+        &out_dir,
+    ];
+    let child = Command::new(bin())
+        .current_dir(scratch_cwd())
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        let stored = Cdb::open_read_only(&cdb)
+            .ok()
+            .and_then(|db| db.count_records(&spm_cdb::RecordFilter::default()).ok())
+            .unwrap_or(0);
+        if stored > 0 || Instant::now() > deadline {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let _ = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status();
+    let out = wait_bounded(child, &["INT"]);
+    let err = stderr(&out);
+    eprintln!("{err}");
+    assert_eq!(code(&out), Some(1), "{err}");
+    assert!(err.contains("SIGINT") && !err.contains("panicked"), "{err}");
+    let status = runs(&cdb);
+    assert_eq!(status.len(), 1, "{status:?}");
+    assert_consistent(&cdb);
+    if status[0].1 == "finished" {
+        return;
+    }
+    assert_eq!(status[0].1, "aborted", "{err}");
+    let mut user = spm_nanonis::Client::connect(spm_nanonis::ClientConfig {
+        host: "127.0.0.1".into(),
+        port,
+        connect_timeout_s: 1.0,
+        command_timeout_s: 5.0,
+        wait_margin_s: 1.0,
+        reconnect_attempts: 1,
+        reconnect_backoff_s: 0.02,
+    })
+    .unwrap();
+    let mut status_now = || match user.call(&Request::ScanStatusGet).unwrap() {
+        Reply::U32(s) => s,
+        other => panic!("Scan.StatusGet: {other:?}"),
+    };
+    if err.contains("paused") {
+        for _ in 0..3 {
+            assert_eq!(status_now(), 1, "the paused scan runs on: {err}");
+        }
+    }
+    let resumed = run(&[args.as_slice(), &["--resume"]].concat());
+    assert_eq!(code(&resumed), Some(0), "resume: {}", stderr(&resumed));
+    assert_eq!(runs(&cdb)[0].1, "finished");
+    assert_eq!(status_now(), 0);
+    check_passes(&cdb);
+}
+
 /// Issue 25 item 12: a signal after the run (during the dynamics identification, the fit,
 /// the validation images and the image benchmark, which take minutes on a full plan) ends
 /// the program at once with exit 1 and a message naming the stored run, instead of being

@@ -7,7 +7,8 @@
 //!
 //! (`CALIBRATION.json` a calibration file with dynamics, e.g. the default job's
 //! `surfaces.json`; only the images of the plan's dwell × `DWELL_FACTOR` are taken, default 4,
-//! the slow class; the region is the calibration's own.)
+//! the slow class; the region is the calibration's own; `SIZES=1,2` keeps the sizes of those
+//! pixel steps; `RUN=1` takes them after the job's own run, as the benchmark does.)
 #![allow(clippy::unwrap_used, clippy::print_stdout, clippy::expect_used)]
 use spm_evaluation::images::{
     CountRegion, ImageSetConfig, evaluate_images, ruler_outcome, take_test_images,
@@ -20,12 +21,38 @@ fn main() {
     let text = std::fs::read_to_string(&args[1]).unwrap();
     let set = spm_correction::SurfaceSet::from_json_str(&text).unwrap();
     let factor: f64 = args.get(2).map_or(4.0, |v| v.parse().unwrap());
-    let spmcal::job::Backend::Sim(sim_config) = job.backend else {
-        panic!("a simulated backend");
+    // RUN=1: the images are taken after the job's calibration run, on its simulator, as the
+    // benchmark takes them; otherwise on a freshly started one.
+    let sim = if std::env::var("RUN").is_ok() {
+        let cdb = std::env::temp_dir().join(format!("ruler_probe_{}.sqlite", std::process::id()));
+        let mut quiet = spm_calibration::NoObserver;
+        let outcome = spmcal::run::run_job(
+            &job,
+            &cdb,
+            spmcal::run::RunStart::New {
+                run_id: "probe".to_owned(),
+            },
+            1_800_000_000.0,
+            &mut quiet,
+        )
+        .unwrap();
+        let _ = std::fs::remove_file(&cdb);
+        outcome.instrument.simulator().unwrap().clone()
+    } else {
+        let spmcal::job::Backend::Sim(sim_config) = job.backend.clone() else {
+            panic!("a simulated backend");
+        };
+        spm_sim::Simulator::new(*sim_config).unwrap()
     };
-    let sim = spm_sim::Simulator::new(*sim_config).unwrap();
     let mut config = ImageSetConfig::standard(&job.plan, false);
     config.dwells_s = vec![job.plan.motion.pixel_dwell_s * factor];
+    // BOTH=1: the plan's dwell and 4× it, as the benchmark takes them.
+    if std::env::var("BOTH").is_ok() {
+        config.dwells_s = vec![
+            job.plan.motion.pixel_dwell_s,
+            4.0 * job.plan.motion.pixel_dwell_s,
+        ];
+    }
     if let Ok(sizes) = std::env::var("SIZES") {
         let keep: Vec<u32> = sizes.split(',').map(|s| s.parse().unwrap()).collect();
         config

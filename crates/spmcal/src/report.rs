@@ -1115,7 +1115,7 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
                     set: Box::new(with.clone()),
                     ruler: spm_apply::ruler::LatticeRuler {
                         constant_nm: plan.standard.lattice_constant_nm,
-                        min_pixels_per_constant: 5.0,
+                        ..spm_apply::ruler::LatticeRuler::hopg()
                     },
                 },
             });

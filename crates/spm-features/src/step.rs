@@ -166,17 +166,9 @@ impl StepRejection {
     }
 }
 
+/// The workspace's median ([`spm_regression::median`]); NaN when empty.
 fn median(v: &mut [f64]) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
+    spm_regression::median(v).unwrap_or(f64::NAN)
 }
 
 /// Position and signed size of the largest box-average jump of a line.

@@ -159,3 +159,36 @@ pub fn product_values(
     }
     Ok((sin_part, cos_part))
 }
+
+/// The median of `values` (sorted in place): the middle value, or the mean of the two middle
+/// values for an even count; `None` when empty. The workspace's one median.
+pub fn median(values: &mut [f64]) -> Option<f64> {
+    if values.is_empty() {
+        return None;
+    }
+    values.sort_by(f64::total_cmp);
+    let n = values.len();
+    Some(if n % 2 == 1 {
+        values[n / 2]
+    } else {
+        0.5 * (values[n / 2 - 1] + values[n / 2])
+    })
+}
+
+#[cfg(test)]
+mod median_tests {
+    use super::median;
+
+    #[test]
+    fn check_median() {
+        let check = |input: &[f64], expected: Option<f64>| {
+            let mut v = input.to_vec();
+            assert_eq!(median(&mut v), expected, "{input:?}");
+        };
+        check(&[], None);
+        check(&[3.0], Some(3.0));
+        check(&[5.0, 1.0], Some(3.0));
+        check(&[2.0, 9.0, -1.0], Some(2.0));
+        check(&[4.0, 1.0, 3.0, 2.0], Some(2.5));
+    }
+}

@@ -5,11 +5,48 @@
 
 use spm_correction::{
     CoordinateMap, FeatureMatch, FeatureSighting, Interpolation, OutputGrid, Parallelism,
-    SightingPair, drift_corrected_map, estimate_drift, resample,
+    SightingPair, drift_corrected_map, resample,
 };
 use spm_features::{DetectionConfig, Feature, LatticeConfig, detect, lattice_vectors};
-use spm_hal::{CountPoint, Counts, HeightMap, NmPoint, Seconds};
-use spm_regression::least_squares;
+use spm_hal::{CountPoint, Counts, HeightMap, NmPoint, NmVelocity, Seconds};
+use spm_regression::{least_squares, median};
+
+/// The drift velocity between the sightings of a pair, and the RMS residual (nm): counter −
+/// direct position = a + v·(t_counter − t_direct) per axis, least squares with the offset `a`.
+fn drift_with_offset(pairs: &[SightingPair]) -> Option<(NmVelocity, f64)> {
+    if pairs.len() < 3 {
+        return None;
+    }
+    let rows: Vec<Vec<f64>> = pairs
+        .iter()
+        .map(|p| vec![1.0, p.counter.time.value() - p.direct.time.value()])
+        .collect();
+    let mut velocity = [0.0; 2];
+    let mut ss = 0.0;
+    for (k, v) in velocity.iter_mut().enumerate() {
+        let rhs: Vec<f64> = pairs
+            .iter()
+            .map(|p| {
+                let (c, d) = (p.counter.position, p.direct.position);
+                if k == 0 {
+                    c.x.value() - d.x.value()
+                } else {
+                    c.y.value() - d.y.value()
+                }
+            })
+            .collect();
+        let fit = least_squares(&rows, &rhs, &[false, false]).ok()?;
+        *v = fit.coefficients[1];
+        ss += fit.residual_rms * fit.residual_rms;
+    }
+    Some((
+        NmVelocity {
+            x_nm_per_s: velocity[0],
+            y_nm_per_s: velocity[1],
+        },
+        ss.sqrt(),
+    ))
+}
 
 /// Atoms detected on a height map whose lattice period is `period_px` pixels (none when the
 /// detection fails).
@@ -153,7 +190,32 @@ pub fn match_features(
         let ([ax, vx], [ay, vy]) = (axis(0), axis(1));
         Some([[ax, ay], [vx, vy]])
     };
+    // The apparent offset to start from: the median displacement from each of the atoms seen
+    // closest in time to its nearest counter atom. Two corrections that each took out the
+    // drift from their own image's start (the lattice ruler) leave the pair apart by the
+    // drift over the direct image, several lattice constants; a periodic lattice shows that
+    // offset only modulo a lattice vector, which is all the lattice measurement needs (a
+    // constant offset moves no atom against another).
     let mut model = [[0.0_f64; 2]; 2];
+    {
+        let take = (order.len() / 25).max(6).min(order.len());
+        let mut dx = Vec::with_capacity(take);
+        let mut dy = Vec::with_capacity(take);
+        for &i in &order[..take] {
+            let nearest = pc.iter().min_by(|a, b| {
+                let da = (a[0] - pd[i][0]).hypot(a[1] - pd[i][1]);
+                let db = (b[0] - pd[i][0]).hypot(b[1] - pd[i][1]);
+                da.total_cmp(&db)
+            });
+            if let Some(c) = nearest {
+                dx.push(c[0] - pd[i][0]);
+                dy.push(c[1] - pd[i][1]);
+            }
+        }
+        if let (Some(mx), Some(my)) = (median(&mut dx), median(&mut dy)) {
+            model[0] = [mx, my];
+        }
+    }
     let mut pairs = Vec::new();
     // Stages of 4 %, 6 %, 9 %, … of the atoms (at least 6), then all of them, twice: each
     // stage's prediction errs by the velocity error times its longer time apart.
@@ -231,15 +293,18 @@ pub fn measure_lattice(
             },
         });
     }
-    let drift = estimate_drift(&pairs).ok()?;
+    // The drift between the sightings, with a constant offset between the two images: two
+    // corrections that each took out the drift from their own image's start (the lattice
+    // ruler) are apart by the drift over the direct image; a constant offset moves no atom
+    // against another, so it does not enter the lattice (the velocity alone moves the map).
+    let (velocity, residual_rms_nm) = drift_with_offset(&pairs)?;
     // Matched atoms that a constant drift cannot explain to a fifth of a lattice constant are
     // a failed match (or an image too distorted to match), not a lattice measurement.
-    if drift.residual_rms_nm.is_nan() || drift.residual_rms_nm > 0.2 * lattice_constant_nm {
+    if residual_rms_nm.is_nan() || residual_rms_nm > 0.2 * lattice_constant_nm {
         return None;
     }
     let t_ref = Seconds(direct.time_s[direct.time_s.len() / 2]);
-    let moved =
-        drift_corrected_map(direct_coordinates, &direct.time_s, drift.velocity, t_ref).ok()?;
+    let moved = drift_corrected_map(direct_coordinates, &direct.time_s, velocity, t_ref).ok()?;
     // The largest axis-aligned rectangle inside the corrected (sheared, drift-moved) image:
     // inside its left and right columns and its first and last rows.
     let m = &moved;

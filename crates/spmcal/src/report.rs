@@ -924,9 +924,13 @@ fn figures(
                 summary,
                 record.nodes,
                 &region,
+                record.plan.standard.nominal_nm_per_count,
             )?);
         }
-        figures.push(plots::trajectory_plot(record.nodes)?);
+        figures.push(plots::trajectory_plot(
+            record.nodes,
+            record.plan.standard.nominal_nm_per_count,
+        )?);
     }
     if with_drift {
         figures.push(plots::drift_plot(

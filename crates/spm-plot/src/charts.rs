@@ -11,8 +11,8 @@ use plotters::style::text_anchor::{HPos, Pos, VPos};
 type Area<'a> = DrawingArea<BitMapBackend<'a>, Shift>;
 
 const TITLE_PX: u32 = 22;
-const LABEL_PX: u32 = 17;
-const TICK_PX: u32 = 15;
+const LABEL_PX: u32 = 18;
+const TICK_PX: u32 = 16;
 
 /// Draws with `draw` on a white `width`×`height` canvas and returns the PNG.
 fn figure(
@@ -238,14 +238,22 @@ pub struct MapFigure<'a> {
 type MapChart<'a, 'b> =
     ChartContext<'a, BitMapBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
 
+/// A field panel's axes: labels and ranges.
+struct FieldAxes<'a> {
+    x_label: &'a str,
+    y_label: &'a str,
+    x_range: (f64, f64),
+    y_range: (f64, f64),
+}
+
 fn map_panel<'a, 'b: 'a>(
     area: &'a Area<'b>,
     caption: &str,
-    f: &MapFigure<'_>,
+    axes: &FieldAxes<'_>,
     title: &str,
 ) -> Result<MapChart<'a, 'b>, PlotError> {
-    let (x0, x1) = f.x_range;
-    let (y0, y1) = f.y_range;
+    let (x0, x1) = axes.x_range;
+    let (y0, y1) = axes.y_range;
     let mut chart = ChartBuilder::on(area)
         .caption(caption, (FONT_FAMILY, LABEL_PX))
         .margin(8)
@@ -260,8 +268,8 @@ fn map_panel<'a, 'b: 'a>(
         .y_labels(6)
         .x_label_formatter(&|v| tick_label(*v, sx))
         .y_label_formatter(&|v| tick_label(*v, sy))
-        .x_desc(f.x_label)
-        .y_desc(f.y_label)
+        .x_desc(axes.x_label)
+        .y_desc(axes.y_label)
         .label_style((FONT_FAMILY, TICK_PX))
         .axis_desc_style((FONT_FAMILY, LABEL_PX))
         .light_line_style(WHITE.mix(0.0))
@@ -336,7 +344,13 @@ pub fn surface_map(f: &MapFigure<'_>) -> Result<Vec<u8>, PlotError> {
         let (map_area, bar_area) = top.split_horizontally(bar_at);
         let (res_area, res_bar_area) = bottom.split_horizontally(bar_at);
 
-        let panel = |area, caption| map_panel(area, caption, f, title);
+        let axes = FieldAxes {
+            x_label: f.x_label,
+            y_label: f.y_label,
+            x_range: f.x_range,
+            y_range: f.y_range,
+        };
+        let panel = |area, caption| map_panel(area, caption, &axes, title);
 
         // Top: the surface with the measured nodes on the same scale.
         let mut chart = panel(
@@ -397,6 +411,121 @@ fn draw_discs<'a, 'b: 'a>(
         }))
         .map_err(|e| draw_error(title, e))?;
     Ok(())
+}
+
+/// The centres of `cells`×`cells` equal cells over a rectangle, row by row from the
+/// smallest y, each row from the smallest x: where a [`FieldPanel`]'s values belong.
+pub fn cell_centres(x_range: (f64, f64), y_range: (f64, f64), cells: usize) -> Vec<(f64, f64)> {
+    let at = |i: usize, (lo, hi): (f64, f64)| lo + (hi - lo) * (i as f64 + 0.5) / cells as f64;
+    (0..cells)
+        .flat_map(|j| (0..cells).map(move |i| (at(i, x_range), at(j, y_range))))
+        .collect()
+}
+
+/// One panel of a [`FieldFigure`]: a quantity over the field.
+pub struct FieldPanel<'a> {
+    /// The panel's caption.
+    pub caption: &'a str,
+    /// The value at each of the figure's [`cell_centres`], in order, the value unit.
+    pub values: &'a [f64],
+    /// The value: quantity, unit (the colour bar's label).
+    pub value_label: &'a str,
+}
+
+/// Maps of quantities over one rectangle, stacked, each with its colour bar, and the
+/// points the quantities were derived from as small dots (e.g. the records a surface was
+/// fitted from).
+pub struct FieldFigure<'a> {
+    /// Title.
+    pub title: &'a str,
+    /// x axis: quantity, unit.
+    pub x_label: &'a str,
+    /// y axis: quantity, unit.
+    pub y_label: &'a str,
+    /// x range drawn.
+    pub x_range: (f64, f64),
+    /// y range drawn.
+    pub y_range: (f64, f64),
+    /// Cells per side of every panel's values.
+    pub cells: usize,
+    /// The panels, top to bottom.
+    pub panels: &'a [FieldPanel<'a>],
+    /// Points drawn as dots on every panel.
+    pub points: &'a [(f64, f64)],
+    /// Colour map.
+    pub map: ColorMap,
+}
+
+/// Height of one panel of a [`field_maps`] figure, pixels.
+const FIELD_PANEL_PX: u32 = 420;
+
+/// Draws a [`FieldFigure`], [`MAP_WIDTH_PX`] wide, [`FIELD_PANEL_PX`] per panel.
+///
+/// # Errors
+/// [`PlotError::Empty`] when there is no panel, a panel has no finite value or not one value
+/// per cell, or the rectangle has no area.
+pub fn field_maps(f: &FieldFigure<'_>) -> Result<Vec<u8>, PlotError> {
+    let title = f.title;
+    let empty = || PlotError::Empty {
+        figure: title.to_owned(),
+    };
+    let (x0, x1) = f.x_range;
+    let (y0, y1) = f.y_range;
+    if f.panels.is_empty() || f.cells == 0 || !(x1 > x0 && y1 > y0) {
+        return Err(empty());
+    }
+    let ranges = f
+        .panels
+        .iter()
+        .map(|p| {
+            if p.values.len() != f.cells * f.cells {
+                return None;
+            }
+            finite_range(p.values.iter().copied())
+        })
+        .collect::<Option<Vec<_>>>()
+        .ok_or_else(empty)?;
+    let height = 40 + FIELD_PANEL_PX * f.panels.len() as u32;
+    figure(title, MAP_WIDTH_PX, height, |root| {
+        let body = root
+            .titled(
+                title,
+                (FONT_FAMILY, TITLE_PX).into_font().style(FontStyle::Bold),
+            )
+            .map_err(|e| draw_error(title, e))?;
+        let rows = body.split_evenly((f.panels.len(), 1));
+        let axes = FieldAxes {
+            x_label: f.x_label,
+            y_label: f.y_label,
+            x_range: f.x_range,
+            y_range: f.y_range,
+        };
+        let (dx, dy) = ((x1 - x0) / f.cells as f64, (y1 - y0) / f.cells as f64);
+        for ((panel, range), row) in f.panels.iter().zip(&ranges).zip(&rows) {
+            let (map_area, bar_area) = row.split_horizontally((MAP_WIDTH_PX - BAR_PX) as i32);
+            let mut chart = map_panel(&map_area, panel.caption, &axes, title)?;
+            let t = |v: f64| (v - range.0) / (range.1 - range.0);
+            chart
+                .draw_series(panel.values.iter().enumerate().filter(|(_, v)| v.is_finite()).map(
+                    |(k, &v)| {
+                        let (i, j) = (k % f.cells, k / f.cells);
+                        let (x, y) = (x0 + dx * i as f64, y0 + dy * j as f64);
+                        Rectangle::new([(x, y), (x + dx, y + dy)], f.map.colour(t(v)).filled())
+                    },
+                ))
+                .map_err(|e| draw_error(title, e))?;
+            chart
+                .draw_series(
+                    f.points
+                        .iter()
+                        .filter(|p| p.0.is_finite() && p.1.is_finite())
+                        .map(|&p| Circle::new(p, 2, RGBColor(30, 30, 30).filled())),
+                )
+                .map_err(|e| draw_error(title, e))?;
+            colour_bar(&bar_area, title, f.map, *range, panel.value_label)?;
+        }
+        Ok(())
+    })
 }
 
 /// How a series is drawn.

@@ -8,6 +8,7 @@
 //!   [`surface_map`] (a fitted surface with the measured node values on it and their
 //!   residuals below it), [`xy_chart`] (lines and markers, linear or logarithmic y),
 //!   [`category_chart`] (one marker per series and category on a categorical axis) and
+//!   [`field_maps`] (quantities over a field, stacked, e.g. a surface's uncertainty),
 //!   [`order_map`] (small multiples of points joined in order, coloured by their index),
 //!   and [`running_quantiles`] (a running median and spread of a cloud too dense to draw).
 //! - [`render_png`] / [`write_png`]: an SPM [`spm_formats::Channel`] as a height image with
@@ -24,9 +25,10 @@ mod font;
 
 pub use channel::{PngOptions, render_png, write_png};
 pub use charts::{
-    CategoryFigure, CategorySeries, MAP_HEIGHT_PX, MAP_WIDTH_PX, MapFigure, MapNode, ORDER_COLUMNS,
-    OrderFigure, OrderPanel, Series, SeriesStyle, XyFigure, category_chart, order_map,
-    running_quantiles, surface_map, xy_chart,
+    CategoryFigure, CategorySeries, FieldFigure, FieldPanel, MAP_HEIGHT_PX, MAP_WIDTH_PX,
+    MapFigure, MapNode, ORDER_COLUMNS, OrderFigure, OrderPanel, Series, SeriesStyle, XyFigure,
+    category_chart, cell_centres, field_maps, order_map, running_quantiles, surface_map,
+    xy_chart,
 };
 pub use colour::{ColorMap, category_colour};
 pub use font::{FONT_FAMILY, register_fonts};

@@ -10,6 +10,9 @@
 //!   sensitivity) against instrument time (s) with its 16–84 % band, the spoiled skipping
 //!   cycles marked with crosses.
 //! - `trajectory.png`: the node centres joined in visiting order, one panel per pass.
+//! - `lcc-uncertainty.png`: the standard uncertainty of each fitted surface over the region,
+//!   σ·√h from the fit's design ([`spm_regression::standard_errors`]), with the records it
+//!   was fitted from as dots.
 //!
 //! Positions are drawn in µm of field through the plan's nominal sensitivity (a unit a
 //! person can picture); the captions give the factor back to counts.
@@ -17,8 +20,9 @@
 use crate::run::{DriftSample, NodeSample};
 use crate::surfaces::SurfaceSummary;
 use spm_plot::{
-    ColorMap, MapFigure, MapNode, OrderFigure, OrderPanel, Series, SeriesStyle, XyFigure,
-    order_map, running_quantiles, surface_map, xy_chart,
+    ColorMap, FieldFigure, FieldPanel, MapFigure, MapNode, OrderFigure, OrderPanel, Series,
+    SeriesStyle, XyFigure, cell_centres, field_maps, order_map, running_quantiles, surface_map,
+    xy_chart,
 };
 use spm_regression::Polynomial2;
 
@@ -232,8 +236,96 @@ pub fn lcc_map(
     })
 }
 
+/// Cells per side of the uncertainty maps.
+const UNCERTAINTY_CELLS: usize = 60;
+
+/// The file of the surfaces' uncertainty map.
+pub const UNCERTAINTY_FILE: &str = "lcc-uncertainty.png";
+
+/// The standard uncertainty of the plane's Kx, Ky and α surfaces over `region`, σ·√h with h
+/// the leverage of the fit's design over the records at `records_counts` (the LCS centres
+/// the plane was fitted from, counts), σ each surface's eq. (14) σ; positions in µm through
+/// `nominal_nm_per_count`.
+///
+/// # Errors
+/// [`PlotError`] when the design cannot be evaluated or nothing finite can be drawn.
+pub fn uncertainty_map(
+    plane: &spm_correction::PlaneSurfaces,
+    summary: &crate::surfaces::RegressionSummary,
+    records_counts: &[(f64, f64)],
+    region: &Region,
+    nominal_nm_per_count: f64,
+) -> Result<Figure, PlotError> {
+    let file = UNCERTAINTY_FILE;
+    let k = nominal_nm_per_count;
+    let grid = cell_centres(
+        (region.x_min_counts, region.x_max_counts),
+        (region.y_min_counts, region.y_max_counts),
+        UNCERTAINTY_CELLS,
+    );
+    let xs: Vec<f64> = records_counts.iter().map(|p| p.0).collect();
+    let ys: Vec<f64> = records_counts.iter().map(|p| p.1).collect();
+    let zeros = vec![0.0; xs.len()];
+    let obs = spm_regression::Observations::new(&xs, &ys, &zeros);
+    let mut values = Vec::new();
+    for (coefficient, surface, sigma) in [
+        (Coefficient::Kx, &plane.kx_nm_per_count.surface, summary.kx.sigma),
+        (Coefficient::Ky, &plane.ky_nm_per_count.surface, summary.ky.sigma),
+        (Coefficient::Alpha, &plane.alpha_rad.surface, summary.alpha.sigma),
+    ] {
+        let (name, what, unit, scale) = coefficient.describe();
+        let u = spm_regression::standard_errors(&obs, surface, sigma * scale, &grid).map_err(
+            |e| PlotError {
+                path: file.to_owned(),
+                message: format!("{name} surface's leverages: {e}"),
+            },
+        )?;
+        values.push((
+            format!("{name} ({what}), degree {}", surface.degree()),
+            u,
+            format!("u({name}), {unit}"),
+        ));
+    }
+    let panels: Vec<FieldPanel<'_>> = values
+        .iter()
+        .map(|(caption, u, label)| FieldPanel {
+            caption,
+            values: u,
+            value_label: label,
+        })
+        .collect();
+    let points: Vec<(f64, f64)> = records_counts
+        .iter()
+        .map(|p| (um(p.0, k), um(p.1, k)))
+        .collect();
+    let png = field_maps(&FieldFigure {
+        title: "Standard uncertainty of the fitted surfaces over the field",
+        x_label: X_FIELD,
+        y_label: Y_FIELD,
+        x_range: (um(region.x_min_counts, k), um(region.x_max_counts, k)),
+        y_range: (um(region.y_min_counts, k), um(region.y_max_counts, k)),
+        cells: UNCERTAINTY_CELLS,
+        panels: &panels,
+        points: &points,
+        map: ColorMap::Cividis,
+    })
+    .map_err(PlotError::of(file))?;
+    Ok(Figure {
+        file: file.to_owned(),
+        caption: format!(
+            "how far each fitted surface may be off, one standard uncertainty σ·√h: σ the \
+             scatter of one record about the surface, h the leverage of the fit's design at \
+             that place (small inside the {} records, the dots; large at the edges and \
+             corners, where the surface extrapolates). {}",
+            records_counts.len(),
+            counts_note(k)
+        ),
+        png,
+    })
+}
+
 /// Bins of the drift figure's running median.
-const DRIFT_BINS: usize = 120;
+const DRIFT_BINS: usize = 60;
 /// Fewest estimates in a bin of the running median.
 const DRIFT_MIN_PER_BIN: usize = 5;
 
@@ -284,11 +376,7 @@ pub fn drift_plot(drift: &[DriftSample], nominal_nm_per_count: f64) -> Result<Fi
                 points: median,
                 style: SeriesStyle::Line,
             },
-            Series {
-                name: "spoiled cycle (discarded)".to_owned(),
-                points: spoiled,
-                style: SeriesStyle::Crosses,
-            },
+            spoiled_series(&spoiled),
         ],
         log_y: false,
         y_from_zero: true,
@@ -300,12 +388,34 @@ pub fn drift_plot(drift: &[DriftSample], nominal_nm_per_count: f64) -> Result<Fi
         caption: format!(
             "drift speed against instrument time: the running median of the kept estimates \
              over {DRIFT_BINS} equal time bins, the band holding their middle 68 % \
-             (16th to 84th percentile); crosses: skipping cycles the monitor spoiled and \
-             discarded. Speeds through the nominal {} nm/count.",
+             (16th to 84th percentile); the skipping cycles the monitor spoiled and \
+             discarded are marked apart (a cross each when at most {MAX_SPOILED_CROSSES}, \
+             else their running median). Speeds through the nominal {} nm/count.",
             significant(nominal_nm_per_count)
         ),
         png,
     })
+}
+
+/// More spoiled estimates than this are drawn as their running median, not one cross each.
+const MAX_SPOILED_CROSSES: usize = 100;
+
+/// The spoiled cycles' estimates: a cross each when few, their running median (over a third
+/// of the kept estimates' bins) when many.
+fn spoiled_series(spoiled: &[(f64, f64)]) -> Series {
+    if spoiled.len() <= MAX_SPOILED_CROSSES {
+        return Series {
+            name: "spoiled cycle (discarded)".to_owned(),
+            points: spoiled.to_vec(),
+            style: SeriesStyle::Crosses,
+        };
+    }
+    let running = running_quantiles(spoiled, DRIFT_BINS / 3, DRIFT_MIN_PER_BIN, &[0.5]);
+    Series {
+        name: "running median of the spoiled cycles (discarded)".to_owned(),
+        points: running.iter().map(|(t, q)| (*t, q[0])).collect(),
+        style: SeriesStyle::LineAndMarkers,
+    }
 }
 
 /// The node centres joined in visiting order, one panel per pass (repeat), positions in µm

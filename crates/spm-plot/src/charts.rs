@@ -406,9 +406,11 @@ fn draw_discs<'a, 'b: 'a>(
         )
         .map_err(|e| draw_error(title, e))?;
     chart
-        .draw_series(discs.map(|(x, y, _)| {
-            Circle::new((x, y), DISC_PX, RGBColor(40, 40, 40).stroke_width(1))
-        }))
+        .draw_series(
+            discs.map(|(x, y, _)| {
+                Circle::new((x, y), DISC_PX, RGBColor(40, 40, 40).stroke_width(1))
+            }),
+        )
         .map_err(|e| draw_error(title, e))?;
     Ok(())
 }
@@ -506,13 +508,18 @@ pub fn field_maps(f: &FieldFigure<'_>) -> Result<Vec<u8>, PlotError> {
             let mut chart = map_panel(&map_area, panel.caption, &axes, title)?;
             let t = |v: f64| (v - range.0) / (range.1 - range.0);
             chart
-                .draw_series(panel.values.iter().enumerate().filter(|(_, v)| v.is_finite()).map(
-                    |(k, &v)| {
-                        let (i, j) = (k % f.cells, k / f.cells);
-                        let (x, y) = (x0 + dx * i as f64, y0 + dy * j as f64);
-                        Rectangle::new([(x, y), (x + dx, y + dy)], f.map.colour(t(v)).filled())
-                    },
-                ))
+                .draw_series(
+                    panel
+                        .values
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, v)| v.is_finite())
+                        .map(|(k, &v)| {
+                            let (i, j) = (k % f.cells, k / f.cells);
+                            let (x, y) = (x0 + dx * i as f64, y0 + dy * j as f64);
+                            Rectangle::new([(x, y), (x + dx, y + dy)], f.map.colour(t(v)).filled())
+                        }),
+                )
                 .map_err(|e| draw_error(title, e))?;
             chart
                 .draw_series(
@@ -663,7 +670,11 @@ where
     Y: Ranged<ValueType = f64>,
 {
     for (k, (s, points)) in series.iter().enumerate() {
-        let colour = category_colour(if s.style == SeriesStyle::Band { k + 1 } else { k });
+        let colour = category_colour(if s.style == SeriesStyle::Band {
+            k + 1
+        } else {
+            k
+        });
         let style = s.style;
         let mut legend_drawn = false;
         if matches!(style, SeriesStyle::Line | SeriesStyle::LineAndMarkers) {
@@ -679,10 +690,15 @@ where
         if style == SeriesStyle::Band {
             let shade = colour.mix(0.25);
             chart
-                .draw_series(std::iter::once(Polygon::new(points.clone(), shade.filled())))
+                .draw_series(std::iter::once(Polygon::new(
+                    points.clone(),
+                    shade.filled(),
+                )))
                 .map_err(|e| draw_error(title, e))?
                 .label(s.name.as_str())
-                .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 20, y + 5)], shade.filled()));
+                .legend(move |(x, y)| {
+                    Rectangle::new([(x, y - 5), (x + 20, y + 5)], shade.filled())
+                });
         } else if style == SeriesStyle::Crosses {
             let drawn = chart
                 .draw_series(
@@ -941,7 +957,9 @@ pub fn order_map(f: &OrderFigure) -> Result<Vec<u8>, PlotError> {
         let (grid, bar) = body.split_horizontally((width - BAR_PX) as i32);
         let cells = grid.split_evenly((rows, columns));
         for (panel, area) in f.panels.iter().zip(&cells) {
-            order_panel(area, title, f, panel, (xr, yr), |k| map.colour(k as f64 / last))?;
+            order_panel(area, title, f, panel, (xr, yr), |k| {
+                map.colour(k as f64 / last)
+            })?;
         }
         colour_bar(&bar, title, map, order_range, f.order_label.as_str())
     })
@@ -994,7 +1012,11 @@ fn order_panel(
         )
         .map_err(|e| draw_error(title, e))?;
     chart
-        .draw_series(points.iter().map(|&p| Circle::new(p, 5, BLACK.stroke_width(1))))
+        .draw_series(
+            points
+                .iter()
+                .map(|&p| Circle::new(p, 5, BLACK.stroke_width(1))),
+        )
         .map_err(|e| draw_error(title, e))?;
     Ok(())
 }

@@ -27,8 +27,7 @@ pub use channel::{PngOptions, render_png, write_png};
 pub use charts::{
     CategoryFigure, CategorySeries, FieldFigure, FieldPanel, MAP_HEIGHT_PX, MAP_WIDTH_PX,
     MapFigure, MapNode, ORDER_COLUMNS, OrderFigure, OrderPanel, Series, SeriesStyle, XyFigure,
-    category_chart, cell_centres, field_maps, order_map, running_quantiles, surface_map,
-    xy_chart,
+    category_chart, cell_centres, field_maps, order_map, running_quantiles, surface_map, xy_chart,
 };
 pub use colour::{ColorMap, category_colour};
 pub use font::{FONT_FAMILY, register_fonts};

@@ -269,17 +269,30 @@ pub fn uncertainty_map(
     let obs = spm_regression::Observations::new(&xs, &ys, &zeros);
     let mut values = Vec::new();
     for (coefficient, surface, sigma) in [
-        (Coefficient::Kx, &plane.kx_nm_per_count.surface, summary.kx.sigma),
-        (Coefficient::Ky, &plane.ky_nm_per_count.surface, summary.ky.sigma),
-        (Coefficient::Alpha, &plane.alpha_rad.surface, summary.alpha.sigma),
+        (
+            Coefficient::Kx,
+            &plane.kx_nm_per_count.surface,
+            summary.kx.sigma,
+        ),
+        (
+            Coefficient::Ky,
+            &plane.ky_nm_per_count.surface,
+            summary.ky.sigma,
+        ),
+        (
+            Coefficient::Alpha,
+            &plane.alpha_rad.surface,
+            summary.alpha.sigma,
+        ),
     ] {
         let (name, what, unit, scale) = coefficient.describe();
-        let u = spm_regression::standard_errors(&obs, surface, sigma * scale, &grid).map_err(
-            |e| PlotError {
-                path: file.to_owned(),
-                message: format!("{name} surface's leverages: {e}"),
-            },
-        )?;
+        let u =
+            spm_regression::standard_errors(&obs, surface, sigma * scale, &grid).map_err(|e| {
+                PlotError {
+                    path: file.to_owned(),
+                    message: format!("{name} surface's leverages: {e}"),
+                }
+            })?;
         values.push((
             format!("{name} ({what}), degree {}", surface.degree()),
             u,

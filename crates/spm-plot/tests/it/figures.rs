@@ -273,7 +273,10 @@ fn map_nodes_are_discs_filled_with_their_value() {
     );
     // The value range is the nodes' extremes: both ends of the map fill a node.
     let lo = nodes.iter().map(|n| n.value).fold(f64::INFINITY, f64::min);
-    let hi = nodes.iter().map(|n| n.value).fold(f64::NEG_INFINITY, f64::max);
+    let hi = nodes
+        .iter()
+        .map(|n| n.value)
+        .fold(f64::NEG_INFINITY, f64::max);
     for n in &nodes {
         let t = (n.value - lo) / (hi - lo);
         assert!(

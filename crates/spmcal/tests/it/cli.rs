@@ -142,12 +142,7 @@ fn info_prints_one_line_per_real_file_with_the_header_values() {
     ];
     let paths: Vec<String> = files
         .iter()
-        .map(|f| {
-            spmcal_tests::measured_file(f)
-                .to_str()
-                .unwrap()
-                .to_owned()
-        })
+        .map(|f| spmcal_tests::measured_file(f).to_str().unwrap().to_owned())
         .collect();
     let mut args = vec!["info"];
     args.extend(paths.iter().map(String::as_str));

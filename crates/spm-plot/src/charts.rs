@@ -206,6 +206,9 @@ pub struct MapNode {
     pub y: f64,
     /// The measured value, the figure's value unit.
     pub value: f64,
+    /// Which visit of its place this is, 0-based (e.g. the pass over the net): visits of one
+    /// place are drawn as concentric discs, the first outermost, so that none hides another.
+    pub visit: u32,
 }
 
 /// A fitted surface over a rectangle with the measured node values on it (top panel:
@@ -315,10 +318,10 @@ pub fn surface_map(f: &MapFigure<'_>) -> Result<Vec<u8>, PlotError> {
     .ok_or_else(|| PlotError::Empty {
         figure: f.title.to_owned(),
     })?;
-    let residuals: Vec<(f64, f64, f64)> = f
+    let residuals: Vec<(f64, f64, f64, u32)> = f
         .nodes
         .iter()
-        .map(|n| (n.x, n.y, n.value - (f.surface)(n.x, n.y)))
+        .map(|n| (n.x, n.y, n.value - (f.surface)(n.x, n.y), n.visit))
         .filter(|r| r.0.is_finite() && r.1.is_finite() && r.2.is_finite())
         .collect();
     let r_max = residuals
@@ -368,7 +371,7 @@ pub fn surface_map(f: &MapFigure<'_>) -> Result<Vec<u8>, PlotError> {
             .nodes
             .iter()
             .filter(|n| n.x.is_finite() && n.y.is_finite() && n.value.is_finite())
-            .map(|n| (n.x, n.y, f.map.colour(t(n.value))));
+            .map(|n| (n.x, n.y, f.map.colour(t(n.value)), n.visit));
         draw_discs(&mut chart, title, nodes)?;
         colour_bar(&bar_area, title, f.map, range, f.value_label)?;
 
@@ -376,7 +379,7 @@ pub fn surface_map(f: &MapFigure<'_>) -> Result<Vec<u8>, PlotError> {
         let mut chart = panel(&res_area, "residual of each measured node")?;
         let discs = residuals
             .iter()
-            .map(|r| (r.0, r.1, ColorMap::Diverging.colour(tr(r.2))));
+            .map(|r| (r.0, r.1, ColorMap::Diverging.colour(tr(r.2)), r.3));
         draw_discs(&mut chart, title, discs)?;
         colour_bar(
             &res_bar_area,
@@ -388,30 +391,41 @@ pub fn surface_map(f: &MapFigure<'_>) -> Result<Vec<u8>, PlotError> {
     })
 }
 
-/// Radius of a node's disc, pixels.
-const DISC_PX: i32 = 8;
+/// Radius of a place's first visit's disc, pixels; each later visit's is
+/// [`DISC_STEP_PX`] smaller, down to [`DISC_MIN_PX`].
+const DISC_PX: i32 = 11;
+/// Radius step between the concentric discs of successive visits, pixels.
+const DISC_STEP_PX: i32 = 3;
+/// Smallest disc radius, pixels.
+const DISC_MIN_PX: i32 = 3;
 
 /// Discs filled with their colour, with a thin dark outline (no white ring: the fill is
-/// the value).
+/// the value); visit k of a place is drawn k·[`DISC_STEP_PX`] smaller, on top of the
+/// earlier ones, so repeated visits show as concentric rings.
 fn draw_discs<'a, 'b: 'a>(
     chart: &mut MapChart<'a, 'b>,
     title: &str,
-    discs: impl Iterator<Item = (f64, f64, RGBColor)> + Clone,
+    discs: impl Iterator<Item = (f64, f64, RGBColor, u32)> + Clone,
 ) -> Result<(), PlotError> {
-    chart
-        .draw_series(
-            discs
-                .clone()
-                .map(|(x, y, c)| Circle::new((x, y), DISC_PX, c.filled())),
-        )
-        .map_err(|e| draw_error(title, e))?;
-    chart
-        .draw_series(
-            discs.map(|(x, y, _)| {
-                Circle::new((x, y), DISC_PX, RGBColor(40, 40, 40).stroke_width(1))
-            }),
-        )
-        .map_err(|e| draw_error(title, e))?;
+    let mut visits: Vec<u32> = discs.clone().map(|d| d.3).collect();
+    visits.sort_unstable();
+    visits.dedup();
+    for visit in visits {
+        let radius = (DISC_PX - DISC_STEP_PX * visit.min(16) as i32).max(DISC_MIN_PX);
+        let these = discs.clone().filter(move |d| d.3 == visit);
+        chart
+            .draw_series(
+                these
+                    .clone()
+                    .map(move |(x, y, c, _)| Circle::new((x, y), radius, c.filled())),
+            )
+            .map_err(|e| draw_error(title, e))?;
+        chart
+            .draw_series(these.map(move |(x, y, _, _)| {
+                Circle::new((x, y), radius, RGBColor(40, 40, 40).stroke_width(1))
+            }))
+            .map_err(|e| draw_error(title, e))?;
+    }
     Ok(())
 }
 

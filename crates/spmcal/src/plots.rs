@@ -4,7 +4,8 @@
 //!
 //! - `lcc-kx.png`, `lcc-ky.png`, `lcc-alpha.png`: the regression surface over the
 //!   calibrated region (viridis) with every measured node as a disc filled with its
-//!   measured value on the same scale; below it each node's residual, measured − surface,
+//!   measured value on the same scale (the passes over a node concentric, the first
+//!   outermost); below it each node's residual, measured − surface,
 //!   on a diverging scale. The title gives the degree, σ and Δmax of the fit.
 //! - `drift.png`: the running median of the drift speed (nm/s through the nominal
 //!   sensitivity) against instrument time (s) with its 16–84 % band, the spoiled skipping
@@ -207,6 +208,7 @@ pub fn lcc_map(
             x: um(n.x_counts, k),
             y: um(n.y_counts, k),
             value: coefficient.of(n) * scale,
+            visit: n.repeat_index,
         })
         .collect();
     let value_label = format!("{name}, {unit}");
@@ -228,7 +230,8 @@ pub fn lcc_map(
         file: coefficient.file().to_owned(),
         caption: format!(
             "{name} ({what}): fitted surface with the {} measured node values on the same \
-             colour scale (top) and each node's residual, measured − surface (bottom). {}",
+             colour scale (top) and each node's residual, measured − surface (bottom); the \
+             passes over a node are concentric discs, the first outermost. {}",
             nodes.len(),
             counts_note(k)
         ),

@@ -69,6 +69,7 @@ fn surface_map_has_title_colour_bars_and_nodes() {
                 x,
                 y,
                 value: surface(x, y) + 0.05 * f64::from(i - j),
+                visit: 0,
             });
         }
     }
@@ -258,6 +259,7 @@ fn map_nodes_are_discs_filled_with_their_value() {
                 x,
                 y,
                 value: surface(x, y) + 0.2 * f64::from(i - j),
+                visit: 0,
             });
         }
     }
@@ -285,6 +287,39 @@ fn map_nodes_are_discs_filled_with_their_value() {
             n.x,
             n.y,
             n.value
+        );
+    }
+}
+
+/// Two visits of one place are concentric discs: both values show (drawn at one radius, the
+/// second visit hid the first).
+#[test]
+fn repeated_visits_of_a_place_are_concentric_and_both_show() {
+    let surface = |_: f64, _: f64| 0.0;
+    let nodes = [
+        MapNode {
+            x: 0.0,
+            y: 0.0,
+            value: -1.0,
+            visit: 0,
+        },
+        MapNode {
+            x: 0.0,
+            y: 0.0,
+            value: 1.0,
+            visit: 1,
+        },
+    ];
+    let img = map_of(&surface, &nodes);
+    // Residuals ±1 are the diverging map's ends; the colour bar shows them too, so count
+    // pixels against the bar alone (a figure without nodes has none of either end).
+    let bare = map_of(&surface, &[]);
+    for t in [0.0, 1.0] {
+        let c = ColorMap::Diverging.rgb(t);
+        assert!(
+            count_colour(&img, c) > count_colour(&bare, c) + 20,
+            "visit with residual {} hidden",
+            2.0 * t - 1.0
         );
     }
 }

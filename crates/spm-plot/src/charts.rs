@@ -393,15 +393,15 @@ pub fn surface_map(f: &MapFigure<'_>) -> Result<Vec<u8>, PlotError> {
 
 /// Radius of a place's first visit's disc, pixels; each later visit's is
 /// [`DISC_STEP_PX`] smaller, down to [`DISC_MIN_PX`].
-const DISC_PX: i32 = 11;
+const DISC_PX: i32 = 12;
 /// Radius step between the concentric discs of successive visits, pixels.
-const DISC_STEP_PX: i32 = 3;
+const DISC_STEP_PX: i32 = 4;
 /// Smallest disc radius, pixels.
 const DISC_MIN_PX: i32 = 3;
 
-/// Discs filled with their colour, with a thin dark outline (no white ring: the fill is
-/// the value); visit k of a place is drawn k·[`DISC_STEP_PX`] smaller, on top of the
-/// earlier ones, so repeated visits show as concentric rings.
+/// Discs filled with their colour, the outermost with a thin dark outline (no white ring:
+/// the fill is the value); visit k of a place is drawn k·[`DISC_STEP_PX`] smaller, on top
+/// of the earlier ones, so repeated visits show as concentric rings.
 fn draw_discs<'a, 'b: 'a>(
     chart: &mut MapChart<'a, 'b>,
     title: &str,
@@ -410,6 +410,7 @@ fn draw_discs<'a, 'b: 'a>(
     let mut visits: Vec<u32> = discs.clone().map(|d| d.3).collect();
     visits.sort_unstable();
     visits.dedup();
+    let first = visits.first().copied();
     for visit in visits {
         let radius = (DISC_PX - DISC_STEP_PX * visit.min(16) as i32).max(DISC_MIN_PX);
         let these = discs.clone().filter(move |d| d.3 == visit);
@@ -420,6 +421,9 @@ fn draw_discs<'a, 'b: 'a>(
                     .map(move |(x, y, c, _)| Circle::new((x, y), radius, c.filled())),
             )
             .map_err(|e| draw_error(title, e))?;
+        if Some(visit) != first {
+            continue;
+        }
         chart
             .draw_series(these.map(move |(x, y, _, _)| {
                 Circle::new((x, y), radius, RGBColor(40, 40, 40).stroke_width(1))

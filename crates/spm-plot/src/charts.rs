@@ -11,8 +11,8 @@ use plotters::style::text_anchor::{HPos, Pos, VPos};
 type Area<'a> = DrawingArea<BitMapBackend<'a>, Shift>;
 
 const TITLE_PX: u32 = 22;
-const LABEL_PX: u32 = 17;
-const TICK_PX: u32 = 14;
+const LABEL_PX: u32 = 18;
+const TICK_PX: u32 = 16;
 
 /// Draws with `draw` on a white `width`×`height` canvas and returns the PNG.
 fn figure(
@@ -130,7 +130,12 @@ fn step_of((lo, hi): (f64, f64), n: usize) -> f64 {
     f * p
 }
 
-/// A vertical colour bar of `map` over `range`, labelled `label`, in `area`.
+/// Width of a colour bar's strip (bar, tick labels, rotated label), pixels.
+const BAR_PX: u32 = 130;
+
+/// A vertical colour bar of `map` over `range` in `area`, its `label` drawn rotated at the
+/// area's right edge, inside the area (plotters' `y_desc` of a right-hand axis lands outside
+/// it, beside the next panel).
 fn colour_bar(
     area: &Area<'_>,
     figure: &str,
@@ -139,12 +144,26 @@ fn colour_bar(
     label: &str,
 ) -> Result<(), PlotError> {
     let step = step_of(range, 8);
-    let mut chart = ChartBuilder::on(area)
+    let (w, h) = area.dim_in_pixel();
+    let label_px = LABEL_PX + 6;
+    let (bar_area, label_area) = area.split_horizontally(w.saturating_sub(label_px) as i32);
+    label_area
+        .draw(&Text::new(
+            label.to_owned(),
+            ((label_px / 2) as i32, (h / 2) as i32),
+            (FONT_FAMILY, LABEL_PX)
+                .into_font()
+                .transform(FontTransform::Rotate270)
+                .into_text_style(&label_area)
+                .pos(Pos::new(HPos::Center, VPos::Center)),
+        ))
+        .map_err(|e| draw_error(figure, e))?;
+    let mut chart = ChartBuilder::on(&bar_area)
         .margin_top(30)
         .margin_bottom(55)
         .margin_left(4)
-        .margin_right(6)
-        .right_y_label_area_size(88)
+        .margin_right(2)
+        .right_y_label_area_size(62)
         .build_cartesian_2d(0.0..1.0, range.0..range.1)
         .map_err(|e| draw_error(figure, e))?;
     chart
@@ -154,9 +173,7 @@ fn colour_bar(
         .disable_x_axis()
         .y_labels(8)
         .y_label_formatter(&|v| tick_label(*v, step))
-        .y_desc(label)
         .label_style((FONT_FAMILY, TICK_PX))
-        .axis_desc_style((FONT_FAMILY, LABEL_PX))
         .draw()
         .map_err(|e| draw_error(figure, e))?;
     const STEPS: usize = 200;
@@ -189,11 +206,14 @@ pub struct MapNode {
     pub y: f64,
     /// The measured value, the figure's value unit.
     pub value: f64,
+    /// Which visit of its place this is, 0-based (e.g. the pass over the net): visits of one
+    /// place are drawn as concentric discs, the first outermost, so that none hides another.
+    pub visit: u32,
 }
 
-/// A fitted surface over a rectangle with the measured node values on it (left panel:
-/// surface as a colour map, nodes as markers coloured by their measured value on the same
-/// scale), and the residual of each node, measured − surface, on a diverging scale (right
+/// A fitted surface over a rectangle with the measured node values on it (top panel:
+/// surface as a colour map, nodes as discs filled with their measured value on the same
+/// scale), and the residual of each node, measured − surface, on a diverging scale (bottom
 /// panel).
 pub struct MapFigure<'a> {
     /// Title (quantity, fit summary).
@@ -221,14 +241,22 @@ pub struct MapFigure<'a> {
 type MapChart<'a, 'b> =
     ChartContext<'a, BitMapBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
 
+/// A field panel's axes: labels and ranges.
+struct FieldAxes<'a> {
+    x_label: &'a str,
+    y_label: &'a str,
+    x_range: (f64, f64),
+    y_range: (f64, f64),
+}
+
 fn map_panel<'a, 'b: 'a>(
     area: &'a Area<'b>,
     caption: &str,
-    f: &MapFigure<'_>,
+    axes: &FieldAxes<'_>,
     title: &str,
 ) -> Result<MapChart<'a, 'b>, PlotError> {
-    let (x0, x1) = f.x_range;
-    let (y0, y1) = f.y_range;
+    let (x0, x1) = axes.x_range;
+    let (y0, y1) = axes.y_range;
     let mut chart = ChartBuilder::on(area)
         .caption(caption, (FONT_FAMILY, LABEL_PX))
         .margin(8)
@@ -243,8 +271,8 @@ fn map_panel<'a, 'b: 'a>(
         .y_labels(6)
         .x_label_formatter(&|v| tick_label(*v, sx))
         .y_label_formatter(&|v| tick_label(*v, sy))
-        .x_desc(f.x_label)
-        .y_desc(f.y_label)
+        .x_desc(axes.x_label)
+        .y_desc(axes.y_label)
         .label_style((FONT_FAMILY, TICK_PX))
         .axis_desc_style((FONT_FAMILY, LABEL_PX))
         .light_line_style(WHITE.mix(0.0))
@@ -256,7 +284,13 @@ fn map_panel<'a, 'b: 'a>(
 /// Cells per side of the surface raster.
 const MAP_CELLS: usize = 120;
 
-/// Draws a [`MapFigure`], 1440×600.
+/// Size of a [`surface_map`], pixels: two panels stacked, each the full width.
+pub const MAP_WIDTH_PX: u32 = 960;
+/// Height of a [`surface_map`], pixels.
+pub const MAP_HEIGHT_PX: u32 = 1100;
+
+/// Draws a [`MapFigure`], [`MAP_WIDTH_PX`]×[`MAP_HEIGHT_PX`]: the surface with the nodes on
+/// top, the residuals below.
 ///
 /// # Errors
 /// [`PlotError::Empty`] when the surface has no finite value over the range.
@@ -284,10 +318,10 @@ pub fn surface_map(f: &MapFigure<'_>) -> Result<Vec<u8>, PlotError> {
     .ok_or_else(|| PlotError::Empty {
         figure: f.title.to_owned(),
     })?;
-    let residuals: Vec<(f64, f64, f64)> = f
+    let residuals: Vec<(f64, f64, f64, u32)> = f
         .nodes
         .iter()
-        .map(|n| (n.x, n.y, n.value - (f.surface)(n.x, n.y)))
+        .map(|n| (n.x, n.y, n.value - (f.surface)(n.x, n.y), n.visit))
         .filter(|r| r.0.is_finite() && r.1.is_finite() && r.2.is_finite())
         .collect();
     let r_max = residuals
@@ -298,21 +332,34 @@ pub fn surface_map(f: &MapFigure<'_>) -> Result<Vec<u8>, PlotError> {
     let t = |v: f64| (v - range.0) / (range.1 - range.0);
     let tr = |v: f64| (v - r_range.0) / (r_range.1 - r_range.0);
     let title = f.title;
-    figure(title, 1440, 600, |root| {
+    figure(title, MAP_WIDTH_PX, MAP_HEIGHT_PX, |root| {
         let body = root
             .titled(
                 title,
                 (FONT_FAMILY, TITLE_PX).into_font().style(FontStyle::Bold),
             )
             .map_err(|e| draw_error(title, e))?;
-        let (left, right) = body.split_horizontally(720);
-        let (map_area, bar_area) = left.split_horizontally(565);
-        let (res_area, res_bar_area) = right.split_horizontally(565);
+        let (_, body_h) = body.dim_in_pixel();
+        // Stacked, not side by side: each panel gets the figure's full width, so its text
+        // stays readable when the page shrinks the figure.
+        let (top, bottom) = body.split_vertically((body_h / 2) as i32);
+        let bar_at = (MAP_WIDTH_PX - BAR_PX) as i32;
+        let (map_area, bar_area) = top.split_horizontally(bar_at);
+        let (res_area, res_bar_area) = bottom.split_horizontally(bar_at);
 
-        let panel = |area, caption| map_panel(area, caption, f, title);
+        let axes = FieldAxes {
+            x_label: f.x_label,
+            y_label: f.y_label,
+            x_range: f.x_range,
+            y_range: f.y_range,
+        };
+        let panel = |area, caption| map_panel(area, caption, &axes, title);
 
-        // Left: the surface with the measured nodes on the same scale.
-        let mut chart = panel(&map_area, "fitted surface; markers: measured nodes")?;
+        // Top: the surface with the measured nodes on the same scale.
+        let mut chart = panel(
+            &map_area,
+            "fitted surface; discs: measured node values, same scale",
+        )?;
         let (dx, dy) = ((x1 - x0) / MAP_CELLS as f64, (y1 - y0) / MAP_CELLS as f64);
         chart
             .draw_series(grid.iter().filter(|g| g.2.is_finite()).map(|&(i, j, v)| {
@@ -323,35 +370,17 @@ pub fn surface_map(f: &MapFigure<'_>) -> Result<Vec<u8>, PlotError> {
         let nodes = f
             .nodes
             .iter()
-            .filter(|n| n.x.is_finite() && n.y.is_finite() && n.value.is_finite());
-        chart
-            .draw_series(
-                nodes
-                    .clone()
-                    .map(|n| Circle::new((n.x, n.y), 6, f.map.colour(t(n.value)).filled())),
-            )
-            .map_err(|e| draw_error(title, e))?;
-        chart
-            .draw_series(nodes.map(|n| Circle::new((n.x, n.y), 7, WHITE.stroke_width(2))))
-            .map_err(|e| draw_error(title, e))?;
+            .filter(|n| n.x.is_finite() && n.y.is_finite() && n.value.is_finite())
+            .map(|n| (n.x, n.y, f.map.colour(t(n.value)), n.visit));
+        draw_discs(&mut chart, title, nodes)?;
         colour_bar(&bar_area, title, f.map, range, f.value_label)?;
 
-        // Right: the residuals on a diverging scale.
+        // Bottom: the residuals on a diverging scale.
         let mut chart = panel(&res_area, "residual of each measured node")?;
-        chart
-            .draw_series(
-                residuals.iter().map(|r| {
-                    Circle::new((r.0, r.1), 7, ColorMap::Diverging.colour(tr(r.2)).filled())
-                }),
-            )
-            .map_err(|e| draw_error(title, e))?;
-        chart
-            .draw_series(
-                residuals
-                    .iter()
-                    .map(|r| Circle::new((r.0, r.1), 7, BLACK.stroke_width(1))),
-            )
-            .map_err(|e| draw_error(title, e))?;
+        let discs = residuals
+            .iter()
+            .map(|r| (r.0, r.1, ColorMap::Diverging.colour(tr(r.2)), r.3));
+        draw_discs(&mut chart, title, discs)?;
         colour_bar(
             &res_bar_area,
             title,
@@ -359,6 +388,168 @@ pub fn surface_map(f: &MapFigure<'_>) -> Result<Vec<u8>, PlotError> {
             r_range,
             f.residual_label,
         )
+    })
+}
+
+/// Radius of a place's first visit's disc, pixels; each later visit's is
+/// [`DISC_STEP_PX`] smaller, down to [`DISC_MIN_PX`].
+const DISC_PX: i32 = 12;
+/// Radius step between the concentric discs of successive visits, pixels.
+const DISC_STEP_PX: i32 = 4;
+/// Smallest disc radius, pixels.
+const DISC_MIN_PX: i32 = 3;
+
+/// Discs filled with their colour, the outermost with a thin dark outline (no white ring:
+/// the fill is the value); visit k of a place is drawn k·[`DISC_STEP_PX`] smaller, on top
+/// of the earlier ones, so repeated visits show as concentric rings.
+fn draw_discs<'a, 'b: 'a>(
+    chart: &mut MapChart<'a, 'b>,
+    title: &str,
+    discs: impl Iterator<Item = (f64, f64, RGBColor, u32)> + Clone,
+) -> Result<(), PlotError> {
+    let mut visits: Vec<u32> = discs.clone().map(|d| d.3).collect();
+    visits.sort_unstable();
+    visits.dedup();
+    let first = visits.first().copied();
+    for visit in visits {
+        let radius = (DISC_PX - DISC_STEP_PX * visit.min(16) as i32).max(DISC_MIN_PX);
+        let these = discs.clone().filter(move |d| d.3 == visit);
+        chart
+            .draw_series(
+                these
+                    .clone()
+                    .map(move |(x, y, c, _)| Circle::new((x, y), radius, c.filled())),
+            )
+            .map_err(|e| draw_error(title, e))?;
+        if Some(visit) != first {
+            continue;
+        }
+        chart
+            .draw_series(these.map(move |(x, y, _, _)| {
+                Circle::new((x, y), radius, RGBColor(40, 40, 40).stroke_width(1))
+            }))
+            .map_err(|e| draw_error(title, e))?;
+    }
+    Ok(())
+}
+
+/// The centres of `cells`×`cells` equal cells over a rectangle, row by row from the
+/// smallest y, each row from the smallest x: where a [`FieldPanel`]'s values belong.
+pub fn cell_centres(x_range: (f64, f64), y_range: (f64, f64), cells: usize) -> Vec<(f64, f64)> {
+    let at = |i: usize, (lo, hi): (f64, f64)| lo + (hi - lo) * (i as f64 + 0.5) / cells as f64;
+    (0..cells)
+        .flat_map(|j| (0..cells).map(move |i| (at(i, x_range), at(j, y_range))))
+        .collect()
+}
+
+/// One panel of a [`FieldFigure`]: a quantity over the field.
+pub struct FieldPanel<'a> {
+    /// The panel's caption.
+    pub caption: &'a str,
+    /// The value at each of the figure's [`cell_centres`], in order, the value unit.
+    pub values: &'a [f64],
+    /// The value: quantity, unit (the colour bar's label).
+    pub value_label: &'a str,
+}
+
+/// Maps of quantities over one rectangle, stacked, each with its colour bar, and the
+/// points the quantities were derived from as small dots (e.g. the records a surface was
+/// fitted from).
+pub struct FieldFigure<'a> {
+    /// Title.
+    pub title: &'a str,
+    /// x axis: quantity, unit.
+    pub x_label: &'a str,
+    /// y axis: quantity, unit.
+    pub y_label: &'a str,
+    /// x range drawn.
+    pub x_range: (f64, f64),
+    /// y range drawn.
+    pub y_range: (f64, f64),
+    /// Cells per side of every panel's values.
+    pub cells: usize,
+    /// The panels, top to bottom.
+    pub panels: &'a [FieldPanel<'a>],
+    /// Points drawn as dots on every panel.
+    pub points: &'a [(f64, f64)],
+    /// Colour map.
+    pub map: ColorMap,
+}
+
+/// Height of one panel of a [`field_maps`] figure, pixels.
+const FIELD_PANEL_PX: u32 = 420;
+
+/// Draws a [`FieldFigure`], [`MAP_WIDTH_PX`] wide, [`FIELD_PANEL_PX`] per panel.
+///
+/// # Errors
+/// [`PlotError::Empty`] when there is no panel, a panel has no finite value or not one value
+/// per cell, or the rectangle has no area.
+pub fn field_maps(f: &FieldFigure<'_>) -> Result<Vec<u8>, PlotError> {
+    let title = f.title;
+    let empty = || PlotError::Empty {
+        figure: title.to_owned(),
+    };
+    let (x0, x1) = f.x_range;
+    let (y0, y1) = f.y_range;
+    if f.panels.is_empty() || f.cells == 0 || !(x1 > x0 && y1 > y0) {
+        return Err(empty());
+    }
+    let ranges = f
+        .panels
+        .iter()
+        .map(|p| {
+            if p.values.len() != f.cells * f.cells {
+                return None;
+            }
+            finite_range(p.values.iter().copied())
+        })
+        .collect::<Option<Vec<_>>>()
+        .ok_or_else(empty)?;
+    let height = 40 + FIELD_PANEL_PX * f.panels.len() as u32;
+    figure(title, MAP_WIDTH_PX, height, |root| {
+        let body = root
+            .titled(
+                title,
+                (FONT_FAMILY, TITLE_PX).into_font().style(FontStyle::Bold),
+            )
+            .map_err(|e| draw_error(title, e))?;
+        let rows = body.split_evenly((f.panels.len(), 1));
+        let axes = FieldAxes {
+            x_label: f.x_label,
+            y_label: f.y_label,
+            x_range: f.x_range,
+            y_range: f.y_range,
+        };
+        let (dx, dy) = ((x1 - x0) / f.cells as f64, (y1 - y0) / f.cells as f64);
+        for ((panel, range), row) in f.panels.iter().zip(&ranges).zip(&rows) {
+            let (map_area, bar_area) = row.split_horizontally((MAP_WIDTH_PX - BAR_PX) as i32);
+            let mut chart = map_panel(&map_area, panel.caption, &axes, title)?;
+            let t = |v: f64| (v - range.0) / (range.1 - range.0);
+            chart
+                .draw_series(
+                    panel
+                        .values
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, v)| v.is_finite())
+                        .map(|(k, &v)| {
+                            let (i, j) = (k % f.cells, k / f.cells);
+                            let (x, y) = (x0 + dx * i as f64, y0 + dy * j as f64);
+                            Rectangle::new([(x, y), (x + dx, y + dy)], f.map.colour(t(v)).filled())
+                        }),
+                )
+                .map_err(|e| draw_error(title, e))?;
+            chart
+                .draw_series(
+                    f.points
+                        .iter()
+                        .filter(|p| p.0.is_finite() && p.1.is_finite())
+                        .map(|&p| Circle::new(p, 2, RGBColor(30, 30, 30).filled())),
+                )
+                .map_err(|e| draw_error(title, e))?;
+            colour_bar(&bar_area, title, f.map, *range, panel.value_label)?;
+        }
+        Ok(())
     })
 }
 
@@ -373,6 +564,10 @@ pub enum SeriesStyle {
     Markers,
     /// Crosses only (e.g. rejected or spoiled samples).
     Crosses,
+    /// A shaded band: the points are the band's outline, its lower edge left to right then
+    /// its upper edge right to left (e.g. a 16–84 % spread around a running median); shaded
+    /// in the colour of the series that follows it (the median it surrounds).
+    Band,
 }
 
 /// One series of an [`XyFigure`].
@@ -493,7 +688,11 @@ where
     Y: Ranged<ValueType = f64>,
 {
     for (k, (s, points)) in series.iter().enumerate() {
-        let colour = category_colour(k);
+        let colour = category_colour(if s.style == SeriesStyle::Band {
+            k + 1
+        } else {
+            k
+        });
         let style = s.style;
         let mut legend_drawn = false;
         if matches!(style, SeriesStyle::Line | SeriesStyle::LineAndMarkers) {
@@ -506,7 +705,19 @@ where
                 });
             legend_drawn = true;
         }
-        if style == SeriesStyle::Crosses {
+        if style == SeriesStyle::Band {
+            let shade = colour.mix(0.25);
+            chart
+                .draw_series(std::iter::once(Polygon::new(
+                    points.clone(),
+                    shade.filled(),
+                )))
+                .map_err(|e| draw_error(title, e))?
+                .label(s.name.as_str())
+                .legend(move |(x, y)| {
+                    Rectangle::new([(x, y - 5), (x + 20, y + 5)], shade.filled())
+                });
+        } else if style == SeriesStyle::Crosses {
             let drawn = chart
                 .draw_series(
                     points
@@ -702,7 +913,18 @@ where
         .map_err(|e| draw_error(title, e))
 }
 
-/// Points joined in order and coloured by their index (e.g. the nodes in visiting order).
+/// One panel of an [`OrderFigure`]: points joined in order (e.g. one pass over the net).
+#[derive(Debug, Clone, PartialEq)]
+pub struct OrderPanel {
+    /// The panel's caption (e.g. "pass 2, 25 visits").
+    pub caption: String,
+    /// The points in order, the figure's x and y units.
+    pub points: Vec<(f64, f64)>,
+}
+
+/// Small multiples of points joined in order and coloured by their index within their
+/// panel (e.g. the nodes in visiting order, one panel per pass), on shared axes, so that no
+/// panel hides another.
 #[derive(Debug, Clone, PartialEq)]
 pub struct OrderFigure {
     /// Title.
@@ -711,13 +933,19 @@ pub struct OrderFigure {
     pub x_label: String,
     /// y axis: quantity, unit.
     pub y_label: String,
-    /// The points in order.
-    pub points: Vec<(f64, f64)>,
+    /// The panels, drawn left to right, top to bottom, [`ORDER_COLUMNS`] per row.
+    pub panels: Vec<OrderPanel>,
     /// What the order is (the colour bar's label).
     pub order_label: String,
 }
 
-/// Draws an [`OrderFigure`], 860×700.
+/// Panels per row of an [`order_map`].
+pub const ORDER_COLUMNS: usize = 2;
+/// Size of one panel of an [`order_map`], pixels.
+const ORDER_PANEL_PX: (u32, u32) = (430, 400);
+
+/// Draws an [`OrderFigure`]: [`ORDER_COLUMNS`] panels per row (fewer when there are fewer
+/// panels), each [`ORDER_PANEL_PX`], and one colour bar.
 ///
 /// # Errors
 /// [`PlotError::Empty`] when no point is finite.
@@ -726,69 +954,134 @@ pub fn order_map(f: &OrderFigure) -> Result<Vec<u8>, PlotError> {
     let empty = || PlotError::Empty {
         figure: title.to_owned(),
     };
-    let xr = pad_range(
-        finite_range(f.points.iter().map(|p| p.0)).ok_or_else(empty)?,
-        0.06,
-    );
-    let yr = pad_range(
-        finite_range(f.points.iter().map(|p| p.1)).ok_or_else(empty)?,
-        0.06,
-    );
-    let last = f.points.len().saturating_sub(1).max(1) as f64;
+    let all = || f.panels.iter().flat_map(|p| p.points.iter());
+    let xr = pad_range(finite_range(all().map(|p| p.0)).ok_or_else(empty)?, 0.06);
+    let yr = pad_range(finite_range(all().map(|p| p.1)).ok_or_else(empty)?, 0.06);
+    let longest = f.panels.iter().map(|p| p.points.len()).max().unwrap_or(1);
+    let last = longest.saturating_sub(1).max(1) as f64;
     let order_range = (1.0, last + 1.0);
     let map = ColorMap::Viridis;
-    figure(title, 860, 700, |root| {
+    let columns = f.panels.len().clamp(1, ORDER_COLUMNS);
+    let rows = f.panels.len().div_ceil(columns).max(1);
+    let width = columns as u32 * ORDER_PANEL_PX.0 + BAR_PX;
+    let height = rows as u32 * ORDER_PANEL_PX.1 + 40;
+    figure(title, width, height, |root| {
         let body = root
             .titled(
                 title,
                 (FONT_FAMILY, TITLE_PX).into_font().style(FontStyle::Bold),
             )
             .map_err(|e| draw_error(title, e))?;
-        let (area, bar) = body.split_horizontally(720);
-        let (sx, sy) = (step_of(xr, 6), step_of(yr, 6));
-        let mut chart = ChartBuilder::on(&area)
-            .margin(10)
-            .x_label_area_size(50)
-            .y_label_area_size(78)
-            .build_cartesian_2d(xr.0..xr.1, yr.0..yr.1)
-            .map_err(|e| draw_error(title, e))?;
-        chart
-            .configure_mesh()
-            .x_labels(6)
-            .y_labels(6)
-            .x_label_formatter(&|v| tick_label(*v, sx))
-            .y_label_formatter(&|v| tick_label(*v, sy))
-            .x_desc(f.x_label.as_str())
-            .y_desc(f.y_label.as_str())
-            .label_style((FONT_FAMILY, TICK_PX))
-            .axis_desc_style((FONT_FAMILY, LABEL_PX))
-            .draw()
-            .map_err(|e| draw_error(title, e))?;
-        let t = |k: usize| k as f64 / last;
-        chart
-            .draw_series(
-                f.points.windows(2).enumerate().map(|(k, w)| {
-                    PathElement::new(vec![w[0], w[1]], map.colour(t(k)).stroke_width(2))
-                }),
-            )
-            .map_err(|e| draw_error(title, e))?;
-        chart
-            .draw_series(
-                f.points
-                    .iter()
-                    .enumerate()
-                    .map(|(k, &p)| Circle::new(p, 5, map.colour(t(k)).filled())),
-            )
-            .map_err(|e| draw_error(title, e))?;
-        chart
-            .draw_series(
-                f.points
-                    .iter()
-                    .map(|&p| Circle::new(p, 5, BLACK.stroke_width(1))),
-            )
-            .map_err(|e| draw_error(title, e))?;
+        let (grid, bar) = body.split_horizontally((width - BAR_PX) as i32);
+        let cells = grid.split_evenly((rows, columns));
+        for (panel, area) in f.panels.iter().zip(&cells) {
+            order_panel(area, title, f, panel, (xr, yr), |k| {
+                map.colour(k as f64 / last)
+            })?;
+        }
         colour_bar(&bar, title, map, order_range, f.order_label.as_str())
     })
+}
+
+/// One panel of an [`order_map`]: the points joined in order, coloured by `colour(index)`.
+fn order_panel(
+    area: &Area<'_>,
+    title: &str,
+    f: &OrderFigure,
+    panel: &OrderPanel,
+    (xr, yr): ((f64, f64), (f64, f64)),
+    colour: impl Fn(usize) -> RGBColor,
+) -> Result<(), PlotError> {
+    let (sx, sy) = (step_of(xr, 5), step_of(yr, 5));
+    let mut chart = ChartBuilder::on(area)
+        .caption(panel.caption.as_str(), (FONT_FAMILY, LABEL_PX))
+        .margin(8)
+        .x_label_area_size(48)
+        .y_label_area_size(70)
+        .build_cartesian_2d(xr.0..xr.1, yr.0..yr.1)
+        .map_err(|e| draw_error(title, e))?;
+    chart
+        .configure_mesh()
+        .x_labels(5)
+        .y_labels(5)
+        .x_label_formatter(&|v| tick_label(*v, sx))
+        .y_label_formatter(&|v| tick_label(*v, sy))
+        .x_desc(f.x_label.as_str())
+        .y_desc(f.y_label.as_str())
+        .label_style((FONT_FAMILY, TICK_PX))
+        .axis_desc_style((FONT_FAMILY, LABEL_PX))
+        .draw()
+        .map_err(|e| draw_error(title, e))?;
+    let points = &panel.points;
+    chart
+        .draw_series(
+            points
+                .windows(2)
+                .enumerate()
+                .map(|(k, w)| PathElement::new(vec![w[0], w[1]], colour(k).stroke_width(2))),
+        )
+        .map_err(|e| draw_error(title, e))?;
+    chart
+        .draw_series(
+            points
+                .iter()
+                .enumerate()
+                .map(|(k, &p)| Circle::new(p, 5, colour(k).filled())),
+        )
+        .map_err(|e| draw_error(title, e))?;
+    chart
+        .draw_series(
+            points
+                .iter()
+                .map(|&p| Circle::new(p, 5, BLACK.stroke_width(1))),
+        )
+        .map_err(|e| draw_error(title, e))?;
+    Ok(())
+}
+
+/// The running quantiles of `points` (x, y): the x range split into `bins` equal bins, and
+/// for each bin holding at least `min_count` finite points, (the bin's centre, the
+/// `quantiles` of its y values), linearly interpolated between order statistics (the
+/// "type 7" definition of R and NumPy). A summary of a cloud too dense to draw point by
+/// point (e.g. a run's ~30 000 drift estimates).
+pub fn running_quantiles(
+    points: &[(f64, f64)],
+    bins: usize,
+    min_count: usize,
+    quantiles: &[f64],
+) -> Vec<(f64, Vec<f64>)> {
+    let finite: Vec<(f64, f64)> = points
+        .iter()
+        .copied()
+        .filter(|p| p.0.is_finite() && p.1.is_finite())
+        .collect();
+    let Some((x0, x1)) = finite_range(finite.iter().map(|p| p.0)) else {
+        return Vec::new();
+    };
+    let bins = bins.max(1);
+    let width = (x1 - x0) / bins as f64;
+    let mut per_bin: Vec<Vec<f64>> = vec![Vec::new(); bins];
+    for &(x, y) in &finite {
+        let k = (((x - x0) / width) as usize).min(bins - 1);
+        per_bin[k].push(y);
+    }
+    per_bin
+        .into_iter()
+        .enumerate()
+        .filter(|(_, ys)| ys.len() >= min_count.max(1))
+        .map(|(k, mut ys)| {
+            ys.sort_by(f64::total_cmp);
+            let q = quantiles.iter().map(|&q| quantile_sorted(&ys, q)).collect();
+            (x0 + width * (k as f64 + 0.5), q)
+        })
+        .collect()
+}
+
+/// The `q` quantile of sorted, non-empty `ys` (type 7).
+fn quantile_sorted(ys: &[f64], q: f64) -> f64 {
+    let h = (ys.len() - 1) as f64 * q.clamp(0.0, 1.0);
+    let (lo, hi) = (h.floor() as usize, h.ceil() as usize);
+    ys[lo] + (h - lo as f64) * (ys[hi] - ys[lo])
 }
 
 #[cfg(test)]

@@ -6,9 +6,11 @@
 //!   matplotlib schemes), plus the categorical palette [`category_colour`].
 //! - Figures with a title, axes naming quantity and unit, tick labels and colour bars:
 //!   [`surface_map`] (a fitted surface with the measured node values on it and their
-//!   residuals beside it), [`xy_chart`] (lines and markers, linear or logarithmic y),
+//!   residuals below it), [`xy_chart`] (lines and markers, linear or logarithmic y),
 //!   [`category_chart`] (one marker per series and category on a categorical axis) and
-//!   [`order_map`] (points joined in order, coloured by their index).
+//!   [`field_maps`] (quantities over a field, stacked, e.g. a surface's uncertainty),
+//!   [`order_map`] (small multiples of points joined in order, coloured by their index),
+//!   and [`running_quantiles`] (a running median and spread of a cloud too dense to draw).
 //! - [`render_png`] / [`write_png`]: an SPM [`spm_formats::Channel`] as a height image with
 //!   a colour map and a labelled scale bar.
 //!
@@ -23,8 +25,9 @@ mod font;
 
 pub use channel::{PngOptions, render_png, write_png};
 pub use charts::{
-    CategoryFigure, CategorySeries, MapFigure, MapNode, OrderFigure, Series, SeriesStyle, XyFigure,
-    category_chart, order_map, surface_map, xy_chart,
+    CategoryFigure, CategorySeries, FieldFigure, FieldPanel, MAP_HEIGHT_PX, MAP_WIDTH_PX,
+    MapFigure, MapNode, ORDER_COLUMNS, OrderFigure, OrderPanel, Series, SeriesStyle, XyFigure,
+    category_chart, cell_centres, field_maps, order_map, running_quantiles, surface_map, xy_chart,
 };
 pub use colour::{ColorMap, category_colour};
 pub use font::{FONT_FAMILY, register_fonts};

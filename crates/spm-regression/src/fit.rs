@@ -387,6 +387,24 @@ pub fn leverages(
         .collect()
 }
 
+/// The standard uncertainty of the fitted surface at each point of `at`, σ·√h₀ ([`leverages`]),
+/// with `sigma` the scatter of one observation of unit weight (eq. 14's σ), in the surface's
+/// unit: how far the surface itself may be off there, given the records it was fitted from.
+///
+/// # Errors
+/// As [`leverages`].
+pub fn standard_errors(
+    obs: &Observations<'_>,
+    surface: &Polynomial2,
+    sigma: f64,
+    at: &[(f64, f64)],
+) -> Result<Vec<f64>, RegressionError> {
+    Ok(leverages(obs, surface, at)?
+        .into_iter()
+        .map(|h| sigma * h.sqrt())
+        .collect())
+}
+
 #[cfg(test)]
 mod leverage_tests {
     use super::*;
@@ -443,6 +461,19 @@ mod leverage_tests {
                 "degree {degree}: trace of the hat matrix {trace}"
             );
             assert!(h.iter().all(|h| *h > 0.0 && *h <= 1.0 + 1e-12));
+        }
+    }
+
+    /// A constant fitted to n points is their mean, whose standard error is σ/√n everywhere.
+    #[test]
+    fn the_standard_error_of_a_constant_is_sigma_over_root_n() {
+        let (x, y, z) = points(25);
+        let obs = Observations::new(&x, &y, &z);
+        let surface = fit(&obs, 0, &FitOptions::default()).expect("fit");
+        let at = [(0.0, 0.0), (1e4, -1e4)];
+        let u = standard_errors(&obs, &surface.surface, 0.3, &at).expect("standard errors");
+        for u in u {
+            assert!((u - 0.3 / 5.0).abs() < 1e-12, "{u}");
         }
     }
 

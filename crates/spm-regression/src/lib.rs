@@ -20,7 +20,7 @@ mod select;
 mod stats;
 
 pub use error::RegressionError;
-pub use fit::{FitOptions, Observations, PolyFit, fit, leverages};
+pub use fit::{FitOptions, Observations, PolyFit, fit, leverages, standard_errors};
 pub use lsq::{LinearFit, least_squares};
 pub use polynomial::{MAX_DEGREE, Polynomial2, n_terms, term_index, term_powers};
 pub use select::{Criterion, DegreeScore, Selection, SelectionOptions, select_degree};

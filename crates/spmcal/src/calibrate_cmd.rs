@@ -23,13 +23,14 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 pub const DEFAULT_OUT: &str = "spmcal-calibrate";
 
 /// The files a run writes into its report folder.
-pub const OUTPUT_FILES: [&str; 9] = [
+pub const OUTPUT_FILES: [&str; 10] = [
     "report.json",
     "report.html",
     "surfaces.json",
     "lcc-kx.png",
     "lcc-ky.png",
     "lcc-alpha.png",
+    spmcal::plots::UNCERTAINTY_FILE,
     "trajectory.png",
     "drift.png",
     LOG_FILE,

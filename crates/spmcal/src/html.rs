@@ -957,6 +957,12 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
     for file in ["lcc-kx.png", "lcc-ky.png", "lcc-alpha.png"] {
         figure(&mut page, file);
     }
+    page.paragraph(
+        "The next figure shows how far each fitted surface itself may be off over the field \
+         (one standard uncertainty, from the fit's design and σ): small where the records are \
+         dense, growing towards the corners, where the surface extrapolates.",
+    );
+    figure(&mut page, crate::plots::UNCERTAINTY_FILE);
 
     dynamics_section(&mut page, report);
     page.section("given-up", "Given-up nodes");

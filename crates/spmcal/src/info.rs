@@ -127,7 +127,7 @@ fn table(files: &[PathBuf], spms: &[spm_formats::SpmFile]) -> Result<(), CliErro
             info.format.to_string(),
             info.pixels.map_or_else(dash, |[x, y]| format!("{x}×{y}")),
             info.size_nm
-                .map_or_else(dash, |[x, y]| format!("{}×{}", human(x, 5), human(y, 5))),
+                .map_or_else(dash, |[x, y]| format!("{}×{}", human(x, 6), human(y, 6))),
             offset.map_or_else(dash, |[x, y]| format!("{}, {}", human(x, 4), human(y, 4))),
             angle.map_or_else(dash, |a| human(a, 4)),
             info.scan_dir.clone().unwrap_or_else(dash),

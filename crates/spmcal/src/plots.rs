@@ -3,18 +3,27 @@
 //! unit, tick labels and, where colour carries a value, a colour bar with its unit.
 //!
 //! - `lcc-kx.png`, `lcc-ky.png`, `lcc-alpha.png`: the regression surface over the
-//!   calibrated region (viridis) with every measured node as a marker coloured by its
-//!   measured value on the same scale; beside it each node's residual, measured − surface,
+//!   calibrated region (viridis) with every measured node as a disc filled with its
+//!   measured value on the same scale (the passes over a node concentric, the first
+//!   outermost); below it each node's residual, measured − surface,
 //!   on a diverging scale. The title gives the degree, σ and Δmax of the fit.
-//! - `drift.png`: the drift speed (nm/s through the nominal sensitivity) against
-//!   instrument time (s), the spoiled skipping cycles marked with crosses.
-//! - `trajectory.png`: the node centres joined in visiting order, coloured by visit number.
+//! - `drift.png`: the running median of the drift speed (nm/s through the nominal
+//!   sensitivity) against instrument time (s) with its 16–84 % band, the spoiled skipping
+//!   cycles marked with crosses.
+//! - `trajectory.png`: the node centres joined in visiting order, one panel per pass.
+//! - `lcc-uncertainty.png`: the standard uncertainty of each fitted surface over the region,
+//!   σ·√h from the fit's design ([`spm_regression::standard_errors`]), with the records it
+//!   was fitted from as dots.
+//!
+//! Positions are drawn in µm of field through the plan's nominal sensitivity (a unit a
+//! person can picture); the captions give the factor back to counts.
 
 use crate::run::{DriftSample, NodeSample};
 use crate::surfaces::SurfaceSummary;
 use spm_plot::{
-    ColorMap, MapFigure, MapNode, OrderFigure, Series, SeriesStyle, XyFigure, order_map,
-    surface_map, xy_chart,
+    ColorMap, FieldFigure, FieldPanel, MapFigure, MapNode, OrderFigure, OrderPanel, Series,
+    SeriesStyle, XyFigure, cell_centres, field_maps, order_map, running_quantiles, surface_map,
+    xy_chart,
 };
 use spm_regression::Polynomial2;
 
@@ -111,6 +120,25 @@ fn significant(v: f64) -> String {
     }
 }
 
+/// Counts to µm of field through the nominal sensitivity `nm_per_count`.
+fn um(counts: f64, nm_per_count: f64) -> f64 {
+    counts * nm_per_count * 1e-3
+}
+
+/// The caption's sentence that takes the µm axes back to counts.
+fn counts_note(nm_per_count: f64) -> String {
+    format!(
+        "Axes in µm of field at the plan's nominal {} nm/count (1 µm = {} counts).",
+        significant(nm_per_count),
+        significant(1e3 / nm_per_count)
+    )
+}
+
+/// Axis labels of the field, µm.
+const X_FIELD: &str = "x on the field, µm";
+/// Axis labels of the field, µm.
+const Y_FIELD: &str = "y on the field, µm";
+
 /// Which lateral calibration coefficient a map shows.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Coefficient {
@@ -152,7 +180,8 @@ impl Coefficient {
 }
 
 /// The regression surface of `coefficient` over `region` with the measured node values on it
-/// and their residuals beside it; the title carries the fit's degree, σ and Δmax.
+/// and their residuals below it, positions in µm through `nominal_nm_per_count`; the title
+/// carries the fit's degree, σ and Δmax.
 ///
 /// # Errors
 /// [`PlotError`] when nothing finite can be drawn.
@@ -162,31 +191,34 @@ pub fn lcc_map(
     summary: &SurfaceSummary,
     nodes: &[NodeSample],
     region: &Region,
+    nominal_nm_per_count: f64,
 ) -> Result<Figure, PlotError> {
     let (name, what, unit, scale) = coefficient.describe();
     let title = format!(
-        "{name} ({what}) regression surface: degree {}, σ = {} {unit}, Δmax = {} {unit}",
+        "{name} ({what}): degree {} surface, σ = {} {unit}, Δmax = {} {unit}",
         summary.degree,
         significant(summary.sigma * scale),
         significant(summary.delta_max * scale)
     );
-    let value = |x: f64, y: f64| surface.evaluate(x, y) * scale;
+    let k = nominal_nm_per_count;
+    let value = |x_um: f64, y_um: f64| surface.evaluate(x_um * 1e3 / k, y_um * 1e3 / k) * scale;
     let nodes: Vec<MapNode> = nodes
         .iter()
         .map(|n| MapNode {
-            x: n.x_counts,
-            y: n.y_counts,
+            x: um(n.x_counts, k),
+            y: um(n.y_counts, k),
             value: coefficient.of(n) * scale,
+            visit: n.repeat_index,
         })
         .collect();
     let value_label = format!("{name}, {unit}");
     let residual_label = format!("measured − surface, {unit}");
     let png = surface_map(&MapFigure {
         title: &title,
-        x_label: "x (LCS centre), counts",
-        y_label: "y (LCS centre), counts",
-        x_range: (region.x_min_counts, region.x_max_counts),
-        y_range: (region.y_min_counts, region.y_max_counts),
+        x_label: X_FIELD,
+        y_label: Y_FIELD,
+        x_range: (um(region.x_min_counts, k), um(region.x_max_counts, k)),
+        y_range: (um(region.y_min_counts, k), um(region.y_max_counts, k)),
         surface: &value,
         nodes: &nodes,
         value_label: &value_label,
@@ -198,15 +230,124 @@ pub fn lcc_map(
         file: coefficient.file().to_owned(),
         caption: format!(
             "{name} ({what}): fitted surface with the {} measured node values on the same \
-             colour scale (left) and each node's residual, measured − surface (right)",
-            nodes.len()
+             colour scale (top) and each node's residual, measured − surface (bottom); the \
+             passes over a node are concentric discs, the first outermost. {}",
+            nodes.len(),
+            counts_note(k)
         ),
         png,
     })
 }
 
-/// Drift speed (nm/s through `nominal_nm_per_count`) against instrument time, the spoiled
-/// skipping cycles marked.
+/// Cells per side of the uncertainty maps.
+const UNCERTAINTY_CELLS: usize = 60;
+
+/// The file of the surfaces' uncertainty map.
+pub const UNCERTAINTY_FILE: &str = "lcc-uncertainty.png";
+
+/// The standard uncertainty of the plane's Kx, Ky and α surfaces over `region`, σ·√h with h
+/// the leverage of the fit's design over the records at `records_counts` (the LCS centres
+/// the plane was fitted from, counts), σ each surface's eq. (14) σ; positions in µm through
+/// `nominal_nm_per_count`.
+///
+/// # Errors
+/// [`PlotError`] when the design cannot be evaluated or nothing finite can be drawn.
+pub fn uncertainty_map(
+    plane: &spm_correction::PlaneSurfaces,
+    summary: &crate::surfaces::RegressionSummary,
+    records_counts: &[(f64, f64)],
+    region: &Region,
+    nominal_nm_per_count: f64,
+) -> Result<Figure, PlotError> {
+    let file = UNCERTAINTY_FILE;
+    let k = nominal_nm_per_count;
+    let grid = cell_centres(
+        (region.x_min_counts, region.x_max_counts),
+        (region.y_min_counts, region.y_max_counts),
+        UNCERTAINTY_CELLS,
+    );
+    let xs: Vec<f64> = records_counts.iter().map(|p| p.0).collect();
+    let ys: Vec<f64> = records_counts.iter().map(|p| p.1).collect();
+    let zeros = vec![0.0; xs.len()];
+    let obs = spm_regression::Observations::new(&xs, &ys, &zeros);
+    let mut values = Vec::new();
+    for (coefficient, surface, sigma) in [
+        (
+            Coefficient::Kx,
+            &plane.kx_nm_per_count.surface,
+            summary.kx.sigma,
+        ),
+        (
+            Coefficient::Ky,
+            &plane.ky_nm_per_count.surface,
+            summary.ky.sigma,
+        ),
+        (
+            Coefficient::Alpha,
+            &plane.alpha_rad.surface,
+            summary.alpha.sigma,
+        ),
+    ] {
+        let (name, what, unit, scale) = coefficient.describe();
+        let u =
+            spm_regression::standard_errors(&obs, surface, sigma * scale, &grid).map_err(|e| {
+                PlotError {
+                    path: file.to_owned(),
+                    message: format!("{name} surface's leverages: {e}"),
+                }
+            })?;
+        values.push((
+            format!("{name} ({what}), degree {}", surface.degree()),
+            u,
+            format!("u({name}), {unit}"),
+        ));
+    }
+    let panels: Vec<FieldPanel<'_>> = values
+        .iter()
+        .map(|(caption, u, label)| FieldPanel {
+            caption,
+            values: u,
+            value_label: label,
+        })
+        .collect();
+    let points: Vec<(f64, f64)> = records_counts
+        .iter()
+        .map(|p| (um(p.0, k), um(p.1, k)))
+        .collect();
+    let png = field_maps(&FieldFigure {
+        title: "Standard uncertainty of the fitted surfaces over the field",
+        x_label: X_FIELD,
+        y_label: Y_FIELD,
+        x_range: (um(region.x_min_counts, k), um(region.x_max_counts, k)),
+        y_range: (um(region.y_min_counts, k), um(region.y_max_counts, k)),
+        cells: UNCERTAINTY_CELLS,
+        panels: &panels,
+        points: &points,
+        map: ColorMap::Cividis,
+    })
+    .map_err(PlotError::of(file))?;
+    Ok(Figure {
+        file: file.to_owned(),
+        caption: format!(
+            "how far each fitted surface may be off, one standard uncertainty σ·√h: σ the \
+             scatter of one record about the surface, h the leverage of the fit's design at \
+             that place (small inside the {} records, the dots; large at the edges and \
+             corners, where the surface extrapolates). {}",
+            records_counts.len(),
+            counts_note(k)
+        ),
+        png,
+    })
+}
+
+/// Bins of the drift figure's running median.
+const DRIFT_BINS: usize = 60;
+/// Fewest estimates in a bin of the running median.
+const DRIFT_MIN_PER_BIN: usize = 5;
+
+/// Drift speed (nm/s through `nominal_nm_per_count`) against instrument time: the running
+/// median of the kept estimates with their 16–84 % band, the spoiled skipping cycles
+/// marked.
 ///
 /// # Errors
 /// [`PlotError`] when no estimate is finite.
@@ -219,6 +360,18 @@ pub fn drift_plot(drift: &[DriftSample], nominal_nm_per_count: f64) -> Result<Fi
     };
     let kept: Vec<(f64, f64)> = drift.iter().filter(|d| !d.spoiled).map(speed).collect();
     let spoiled: Vec<(f64, f64)> = drift.iter().filter(|d| d.spoiled).map(speed).collect();
+    let running = running_quantiles(&kept, DRIFT_BINS, DRIFT_MIN_PER_BIN, &[0.16, 0.5, 0.84]);
+    // Too few estimates for bins: the points themselves.
+    let (band, median) = if running.is_empty() {
+        (Vec::new(), kept.clone())
+    } else {
+        let lower = running.iter().map(|(t, q)| (*t, q[0]));
+        let upper = running.iter().rev().map(|(t, q)| (*t, q[2]));
+        (
+            lower.chain(upper).collect(),
+            running.iter().map(|(t, q)| (*t, q[1])).collect(),
+        )
+    };
     let file = "drift.png";
     let png = xy_chart(&XyFigure {
         title: format!(
@@ -227,50 +380,107 @@ pub fn drift_plot(drift: &[DriftSample], nominal_nm_per_count: f64) -> Result<Fi
             spoiled.len()
         ),
         x_label: "instrument time, s".to_owned(),
-        y_label: format!("drift speed, nm/s (nominal {nominal_nm_per_count} nm/count)"),
+        y_label: "drift speed, nm/s".to_owned(),
         series: vec![
             Series {
-                name: "drift estimate".to_owned(),
-                points: kept,
-                style: SeriesStyle::Markers,
+                name: "16–84 % of the estimates".to_owned(),
+                points: band,
+                style: SeriesStyle::Band,
             },
             Series {
-                name: "spoiled cycle (discarded)".to_owned(),
-                points: spoiled,
-                style: SeriesStyle::Crosses,
+                name: "running median".to_owned(),
+                points: median,
+                style: SeriesStyle::Line,
             },
+            spoiled_series(&spoiled),
         ],
         log_y: false,
         y_from_zero: true,
-        size: (1000, 500),
+        size: (960, 500),
     })
     .map_err(PlotError::of(file))?;
     Ok(Figure {
         file: file.to_owned(),
-        caption: "drift speed against instrument time; crosses: skipping cycles the monitor \
-                  spoiled and discarded"
-            .to_owned(),
+        caption: format!(
+            "drift speed against instrument time: the running median of the kept estimates \
+             over {DRIFT_BINS} equal time bins, the band holding their middle 68 % \
+             (16th to 84th percentile); the skipping cycles the monitor spoiled and \
+             discarded are marked apart (a cross each when at most {MAX_SPOILED_CROSSES}, \
+             else their running median). Speeds through the nominal {} nm/count.",
+            significant(nominal_nm_per_count)
+        ),
         png,
     })
 }
 
-/// The node centres joined in visiting order, coloured by visit number.
+/// More spoiled estimates than this are drawn as their running median, not one cross each.
+const MAX_SPOILED_CROSSES: usize = 100;
+
+/// The spoiled cycles' estimates: a cross each when few, their running median (over a third
+/// of the kept estimates' bins) when many.
+fn spoiled_series(spoiled: &[(f64, f64)]) -> Series {
+    if spoiled.len() <= MAX_SPOILED_CROSSES {
+        return Series {
+            name: "spoiled cycle (discarded)".to_owned(),
+            points: spoiled.to_vec(),
+            style: SeriesStyle::Crosses,
+        };
+    }
+    let running = running_quantiles(spoiled, DRIFT_BINS / 3, DRIFT_MIN_PER_BIN, &[0.5]);
+    Series {
+        name: "running median of the spoiled cycles (discarded)".to_owned(),
+        points: running.iter().map(|(t, q)| (*t, q[0])).collect(),
+        style: SeriesStyle::LineAndMarkers,
+    }
+}
+
+/// The node centres joined in visiting order, one panel per pass (repeat), positions in µm
+/// through `nominal_nm_per_count`.
 ///
 /// # Errors
 /// [`PlotError`] when no node is finite.
-pub fn trajectory_plot(nodes: &[NodeSample]) -> Result<Figure, PlotError> {
+pub fn trajectory_plot(
+    nodes: &[NodeSample],
+    nominal_nm_per_count: f64,
+) -> Result<Figure, PlotError> {
     let file = "trajectory.png";
+    let k = nominal_nm_per_count;
+    let mut passes: Vec<u32> = nodes.iter().map(|n| n.repeat_index).collect();
+    passes.sort_unstable();
+    passes.dedup();
+    let panels: Vec<OrderPanel> = passes
+        .iter()
+        .map(|&pass| {
+            let points: Vec<(f64, f64)> = nodes
+                .iter()
+                .filter(|n| n.repeat_index == pass)
+                .map(|n| (um(n.x_counts, k), um(n.y_counts, k)))
+                .collect();
+            OrderPanel {
+                caption: format!("pass {}: {} visits", pass + 1, points.len()),
+                points,
+            }
+        })
+        .collect();
     let png = order_map(&OrderFigure {
-        title: format!("Measured nodes in visiting order ({} visits)", nodes.len()),
-        x_label: "x (LCS centre), counts".to_owned(),
-        y_label: "y (LCS centre), counts".to_owned(),
-        points: nodes.iter().map(|n| (n.x_counts, n.y_counts)).collect(),
-        order_label: "visit number".to_owned(),
+        title: format!(
+            "Measured nodes in visiting order ({} visits, {} passes)",
+            nodes.len(),
+            panels.len()
+        ),
+        x_label: X_FIELD.to_owned(),
+        y_label: Y_FIELD.to_owned(),
+        panels,
+        order_label: "visit number within the pass".to_owned(),
     })
     .map_err(PlotError::of(file))?;
     Ok(Figure {
         file: file.to_owned(),
-        caption: "the measured nodes joined in the order they were visited".to_owned(),
+        caption: format!(
+            "the measured nodes joined in the order they were visited, one panel per pass \
+             over the net. {}",
+            counts_note(k)
+        ),
         png,
     })
 }

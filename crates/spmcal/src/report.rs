@@ -724,7 +724,7 @@ pub fn finish_with(
         notes.push("drift: no drift estimate was made in this invocation (no figure)".to_owned());
     }
     record.phase("drawing the figures");
-    let figures = figures(record, &fitted, drift.estimates > 0)?;
+    let figures = figures(record, &fitted, &all, drift.estimates > 0)?;
     for figure in &figures {
         write(&out.join(&figure.file), &figure.png)?;
     }
@@ -900,11 +900,13 @@ fn accuracy_section(
     Ok((accuracy, images))
 }
 
-/// The report's figures: the LCC surfaces with the measured nodes, the trajectory and (when
-/// there are drift estimates) the drift history.
+/// The report's figures: the LCC surfaces with the measured nodes, the trajectory, the
+/// surfaces' uncertainty over the scanner's records `all` and (when there are drift
+/// estimates) the drift history.
 fn figures(
     record: &RunRecord<'_>,
     fitted: &crate::surfaces::FittedSurfaces,
+    all: &[spm_cdb::LccRecord],
     with_drift: bool,
 ) -> Result<Vec<plots::Figure>, ReportError> {
     let mut figures = Vec::new();
@@ -924,9 +926,27 @@ fn figures(
                 summary,
                 record.nodes,
                 &region,
+                record.plan.standard.nominal_nm_per_count,
             )?);
         }
-        figures.push(plots::trajectory_plot(record.nodes)?);
+        figures.push(plots::trajectory_plot(
+            record.nodes,
+            record.plan.standard.nominal_nm_per_count,
+        )?);
+        let records: Vec<(f64, f64)> = all
+            .iter()
+            .filter(|r| {
+                crate::surfaces::record_is_usable(r) && r.node_z_counts as f64 == plane.z_counts
+            })
+            .map(|r| (r.lcs_x_counts, r.lcs_y_counts))
+            .collect();
+        figures.push(plots::uncertainty_map(
+            plane,
+            summary,
+            &records,
+            &region,
+            record.plan.standard.nominal_nm_per_count,
+        )?);
     }
     if with_drift {
         figures.push(plots::drift_plot(

@@ -5,8 +5,9 @@
 #![allow(clippy::unwrap_used)]
 
 use spm_plot::{
-    CategoryFigure, CategorySeries, ColorMap, MapFigure, MapNode, OrderFigure, Series, SeriesStyle,
-    XyFigure, category_chart, order_map, surface_map, xy_chart,
+    CategoryFigure, CategorySeries, ColorMap, MAP_HEIGHT_PX, MAP_WIDTH_PX, MapFigure, MapNode,
+    OrderFigure, OrderPanel, Series, SeriesStyle, XyFigure, category_chart, order_map,
+    running_quantiles, surface_map, xy_chart,
 };
 
 struct Image {
@@ -68,6 +69,7 @@ fn surface_map_has_title_colour_bars_and_nodes() {
                 x,
                 y,
                 value: surface(x, y) + 0.05 * f64::from(i - j),
+                visit: 0,
             });
         }
     }
@@ -86,7 +88,7 @@ fn surface_map_has_title_colour_bars_and_nodes() {
     .unwrap();
     save("surface.png", &bytes);
     let img = Image::decode(&bytes);
-    assert_eq!((img.w, img.h), (1440, 600));
+    assert_eq!((img.w, img.h), (MAP_WIDTH_PX, MAP_HEIGHT_PX));
     assert!(img.dark_pixels(0..30) > 200, "title drawn");
     // Both ends of both colour maps appear (colour bars).
     for map in [ColorMap::Viridis, ColorMap::Diverging] {
@@ -217,22 +219,178 @@ fn category_chart_puts_categories_on_ticks_and_rejects_empty() {
     assert!(matches!(empty, Err(spm_plot::PlotError::Empty { .. })));
 }
 
+/// Pure-white pixels in rows `rows`.
+fn white_pixels(img: &Image, rows: std::ops::Range<u32>) -> usize {
+    rows.flat_map(|y| (0..img.w).map(move |x| (x, y)))
+        .filter(|&(x, y)| img.px(x, y) == [255, 255, 255])
+        .count()
+}
+
+/// The map figure of `surface` with `nodes` (value unit pm/count, position unit µm).
+fn map_of(surface: &dyn Fn(f64, f64) -> f64, nodes: &[MapNode]) -> Image {
+    let bytes = surface_map(&MapFigure {
+        title: "Kx",
+        x_label: "x on the field, µm",
+        y_label: "y on the field, µm",
+        x_range: (-1.0, 1.0),
+        y_range: (-1.0, 1.0),
+        surface,
+        nodes,
+        value_label: "Kx, pm/count",
+        residual_label: "measured − surface, pm/count",
+        map: ColorMap::Viridis,
+    })
+    .unwrap();
+    save("surface-discs.png", &bytes);
+    Image::decode(&bytes)
+}
+
+/// The nodes on the surface panel are discs filled with their value: drawing them over the
+/// surface adds no white (the old markers were white rings around a small coloured dot,
+/// which hid the value), and every node's fill colour appears.
 #[test]
-fn order_map_colours_by_order() {
+fn map_nodes_are_discs_filled_with_their_value() {
+    let surface = |x: f64, y: f64| 20.0 + x - 0.5 * y;
+    let mut nodes = Vec::new();
+    for i in 0..4 {
+        for j in 0..4 {
+            let (x, y) = (-0.75 + 0.5 * f64::from(i), -0.75 + 0.5 * f64::from(j));
+            nodes.push(MapNode {
+                x,
+                y,
+                value: surface(x, y) + 0.2 * f64::from(i - j),
+                visit: 0,
+            });
+        }
+    }
+    // The surface panel is the top half (title band included).
+    let top = 0..MAP_HEIGHT_PX / 2;
+    let bare = map_of(&surface, &[]);
+    let with_nodes = map_of(&surface, &nodes);
+    assert!(
+        white_pixels(&with_nodes, top.clone()) <= white_pixels(&bare, top.clone()),
+        "the node markers add white to the surface panel: {} > {}",
+        white_pixels(&with_nodes, top.clone()),
+        white_pixels(&bare, top)
+    );
+    // The value range is the nodes' extremes: both ends of the map fill a node.
+    let lo = nodes.iter().map(|n| n.value).fold(f64::INFINITY, f64::min);
+    let hi = nodes
+        .iter()
+        .map(|n| n.value)
+        .fold(f64::NEG_INFINITY, f64::max);
+    for n in &nodes {
+        let t = (n.value - lo) / (hi - lo);
+        assert!(
+            with_nodes.has_colour(ColorMap::Viridis.rgb(t), 2),
+            "node at ({}, {}) value {} not drawn in its colour",
+            n.x,
+            n.y,
+            n.value
+        );
+    }
+}
+
+/// Two visits of one place are concentric discs: both values show (drawn at one radius, the
+/// second visit hid the first).
+#[test]
+fn repeated_visits_of_a_place_are_concentric_and_both_show() {
+    let surface = |_: f64, _: f64| 0.0;
+    let nodes = [
+        MapNode {
+            x: 0.0,
+            y: 0.0,
+            value: -1.0,
+            visit: 0,
+        },
+        MapNode {
+            x: 0.0,
+            y: 0.0,
+            value: 1.0,
+            visit: 1,
+        },
+    ];
+    let img = map_of(&surface, &nodes);
+    // Residuals ±1 are the diverging map's ends; the colour bar shows them too, so count
+    // pixels against the bar alone (a figure without nodes has none of either end).
+    let bare = map_of(&surface, &[]);
+    for t in [0.0, 1.0] {
+        let c = ColorMap::Diverging.rgb(t);
+        assert!(
+            count_colour(&img, c) > count_colour(&bare, c) + 20,
+            "visit with residual {} hidden",
+            2.0 * t - 1.0
+        );
+    }
+}
+
+/// Pixels exactly of `colour`.
+fn count_colour(img: &Image, colour: [u8; 3]) -> usize {
+    img.rgb
+        .chunks_exact(3)
+        .filter(|p| p[0] == colour[0] && p[1] == colour[1] && p[2] == colour[2])
+        .count()
+}
+
+/// One panel per pass: three passes over the same nodes show three times the markers of
+/// one pass (drawn into one panel, the last pass hid the two before it).
+#[test]
+fn order_map_draws_every_pass_in_its_own_panel() {
     let points: Vec<(f64, f64)> = (0..25)
         .map(|k| (f64::from(k % 5) * 100.0, f64::from(k / 5) * 100.0))
         .collect();
-    let bytes = order_map(&OrderFigure {
-        title: "Nodes in visiting order".to_owned(),
-        x_label: "x, counts".to_owned(),
-        y_label: "y, counts".to_owned(),
-        points,
-        order_label: "visit number".to_owned(),
-    })
-    .unwrap();
-    save("order.png", &bytes);
-    let img = Image::decode(&bytes);
-    assert_eq!((img.w, img.h), (860, 700));
-    assert!(img.has_colour(ColorMap::Viridis.rgb(0.003), 6));
-    assert!(img.has_colour(ColorMap::Viridis.rgb(0.997), 6));
+    let draw = |passes: usize| {
+        let panels = (0..passes)
+            .map(|p| OrderPanel {
+                caption: format!("pass {}", p + 1),
+                points: points.clone(),
+            })
+            .collect();
+        let bytes = order_map(&OrderFigure {
+            title: "Nodes in visiting order".to_owned(),
+            x_label: "x, µm".to_owned(),
+            y_label: "y, µm".to_owned(),
+            panels,
+            order_label: "visit number within the pass".to_owned(),
+        })
+        .unwrap();
+        save(&format!("order-{passes}.png"), &bytes);
+        Image::decode(&bytes)
+    };
+    let one = draw(1);
+    let three = draw(3);
+    assert_eq!((three.w, three.h), (2 * 430 + 130, 2 * 400 + 40));
+    assert!(one.has_colour(ColorMap::Viridis.rgb(0.003), 6));
+    assert!(one.has_colour(ColorMap::Viridis.rgb(0.997), 6));
+    // The last visit's colour, exactly (the colour bar's steps are mid-step colours).
+    let last = ColorMap::Viridis.rgb(1.0);
+    let (n1, n3) = (count_colour(&one, last), count_colour(&three, last));
+    assert!(n1 > 0);
+    assert!(
+        n3 >= 3 * n1 - 2 * n1 / 10,
+        "three passes draw {n3} pixels of the last visit's colour, one pass {n1}"
+    );
+}
+
+/// The running quantiles against a closed form: in every bin y runs over 0, 1, …, 99 once,
+/// so (type 7) the median is 49.5 and the 16 % and 84 % quantiles are 0.16·99 and 0.84·99.
+#[test]
+fn running_quantiles_match_the_closed_form() {
+    let points: Vec<(f64, f64)> = (0..1000)
+        .map(|i| (f64::from(i), f64::from((i * 37) % 100)))
+        .collect();
+    let q = running_quantiles(&points, 10, 5, &[0.16, 0.5, 0.84]);
+    assert_eq!(q.len(), 10);
+    for (k, (x, v)) in q.iter().enumerate() {
+        let centre = 999.0 / 10.0 * (k as f64 + 0.5);
+        assert!((x - centre).abs() < 1e-9, "bin {k} centre {x} vs {centre}");
+        for (got, want) in v.iter().zip([0.16 * 99.0, 49.5, 0.84 * 99.0]) {
+            assert!((got - want).abs() < 1e-9, "bin {k}: {got} vs {want}");
+        }
+    }
+    // A bin with fewer than `min_count` points is left out; non-finite points are skipped.
+    let sparse = [(0.0, 1.0), (1.0, f64::NAN), (10.0, 2.0), (10.0, 4.0)];
+    let q = running_quantiles(&sparse, 2, 2, &[0.5]);
+    assert_eq!(q, vec![(7.5, vec![3.0])]);
+    assert!(running_quantiles(&[], 4, 1, &[0.5]).is_empty());
 }

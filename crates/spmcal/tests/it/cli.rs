@@ -121,6 +121,188 @@ fn info_json_has_the_contract_keys() {
     assert!(Path::new(&file).is_file());
 }
 
+/// `spmcal info` over every measured file: one line per file, values as read by hand from
+/// the headers (and ../shared/data/measured/README.md): Nanonis `:SCAN_PIXELS:`,
+/// `:SCAN_RANGE:` (m), `:SCAN_OFFSET:`, `:SCAN_ANGLE:`, `:SCAN_DIR:`, `:SCAN_TIME:` (s per
+/// line), `:REC_DATE:`/`:REC_TIME:`, `:DATA_INFO:` (Z and Current, both directions); the
+/// ISO 28600 file's 512 × 512 points of 1.14807e-08 m, top to bottom; the RHK file's
+/// 256 × 256 points over 1.0 nm at 10°, 3 pages in 2 directions; the raw files' u32 rows
+/// and columns. `--json` gives an array of as many entries.
+#[test]
+fn info_prints_one_line_per_real_file_with_the_header_values() {
+    let files = [
+        "si7x7-nanonis/Si_7x7_012.sxm",
+        "si7x7-nanonis/Si_7x7_028.sxm",
+        "si7x7-nanonis/Si_7x7_032.sxm",
+        "si7x7-nanonis/Si_7x7_051.sxm",
+        "hopg-terrace-iso28600/graphiteterrace.spm",
+        "graphite-rhk-9k/dI-dV_9K_ABC6_2020_07_02_08_50_47_967.sm4",
+        "si7x7-raw/image_with_defects.dat",
+        "si7x7-raw/image_with_step_edge.dat",
+    ];
+    let paths: Vec<String> = files
+        .iter()
+        .map(|f| spmcal_tests::measured_file(f).to_str().unwrap().to_owned())
+        .collect();
+    let mut args = vec!["info"];
+    args.extend(paths.iter().map(String::as_str));
+    let (code, stdout, stderr) = spmcal(&args);
+    assert_eq!(code, 0, "{stderr}");
+    let lines: Vec<&str> = stdout.lines().collect();
+    assert_eq!(lines.len(), 1 + files.len(), "{stdout}");
+    // Columns are separated by at least two spaces; a cell holds at most single spaces.
+    let cells = |line: &str| -> Vec<String> {
+        line.split("  ")
+            .map(str::trim)
+            .filter(|c| !c.is_empty())
+            .map(str::to_owned)
+            .collect()
+    };
+    assert_eq!(
+        cells(lines[0]),
+        [
+            "file",
+            "format",
+            "pixels",
+            "size nm",
+            "offset nm",
+            "angle °",
+            "dir",
+            "line s",
+            "recorded",
+            "channels"
+        ]
+    );
+    let expected: [[&str; 10]; 8] = [
+        [
+            "Si_7x7_012.sxm",
+            "nanonis-sxm",
+            "256×256",
+            "200×200",
+            "0, 0",
+            "0",
+            "down",
+            "0.544",
+            "2016-01-07T11:09:34",
+            "4",
+        ],
+        [
+            "Si_7x7_028.sxm",
+            "nanonis-sxm",
+            "256×256",
+            "50×50",
+            "0, 0",
+            "0",
+            "down",
+            "0.256",
+            "2016-01-07T12:10:04",
+            "4",
+        ],
+        [
+            "Si_7x7_032.sxm",
+            "nanonis-sxm",
+            "256×256",
+            "50×50",
+            "0, 0",
+            "0",
+            "down",
+            "0.256",
+            "2016-01-07T12:18:50",
+            "4",
+        ],
+        [
+            "Si_7x7_051.sxm",
+            "nanonis-sxm",
+            "256×256",
+            "20×20",
+            "0, 0",
+            "0",
+            "down",
+            "0.192",
+            "2016-01-07T12:54:04",
+            "4",
+        ],
+        [
+            "graphiteterrace.spm",
+            "iso28600",
+            "512×512",
+            "11.4807×11.4807",
+            "–",
+            "–",
+            "down",
+            "–",
+            "–",
+            "1",
+        ],
+        [
+            "dI-dV_9K_ABC6_2020_07_02_08_50_47_967.sm4",
+            "rhk-sm4",
+            "256×256",
+            "1×1",
+            "*",
+            "10",
+            "–",
+            "*",
+            "*",
+            "6",
+        ],
+        [
+            "image_with_defects.dat",
+            "raw-f64",
+            "256×256",
+            "–",
+            "–",
+            "–",
+            "–",
+            "–",
+            "–",
+            "1",
+        ],
+        [
+            "image_with_step_edge.dat",
+            "raw-f64",
+            "512×512",
+            "–",
+            "–",
+            "–",
+            "–",
+            "–",
+            "–",
+            "1",
+        ],
+    ];
+    for (line, want) in lines[1..].iter().zip(&expected) {
+        let got = cells(line);
+        assert_eq!(got.len(), 10, "{line}");
+        for (k, (g, w)) in got.iter().zip(want).enumerate() {
+            // `*`: a value not checked here (read from the binary RHK page header).
+            if *w != "*" {
+                assert_eq!(g, w, "column {k} of {line}");
+            }
+        }
+    }
+    // No machine-precision noise anywhere (e.g. 0.9999999717180685).
+    assert!(
+        stdout
+            .split(|c: char| !(c.is_ascii_digit() || c == '.'))
+            .all(|n| n.len() <= 12),
+        "{stdout}"
+    );
+
+    args.push("--json");
+    let (code, stdout, stderr) = spmcal(&args);
+    assert_eq!(code, 0, "{stderr}");
+    let json: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    let entries = json.as_array().expect("an array for many files");
+    assert_eq!(entries.len(), files.len());
+    for (entry, path) in entries.iter().zip(&paths) {
+        assert_eq!(entry["file"].as_str(), Some(path.as_str()));
+    }
+    assert_eq!(entries[4]["pixels"], serde_json::json!([512, 512]));
+    let size = entries[4]["size_nm"][0].as_f64().unwrap();
+    assert!((size - 11.4807).abs() < 1e-9, "{size}");
+}
+
 /// Writes `name` into `dir` and returns its path as a string.
 fn write(dir: &Path, name: &str, text: &str) -> String {
     let path = dir.join(name);

@@ -1978,6 +1978,7 @@ fn issue25_13_the_report_of_a_finished_run_is_regenerated_from_the_cdb() {
         "lcc-kx.png",
         "lcc-ky.png",
         "lcc-alpha.png",
+        "lcc-uncertainty.png",
         "trajectory.png",
     ] {
         assert!(out.join(file).is_file(), "{file} not regenerated");

@@ -327,6 +327,7 @@ fn report_html_matches_report_json() {
         "lcc-kx.png",
         "lcc-ky.png",
         "lcc-alpha.png",
+        "lcc-uncertainty.png",
         "trajectory.png",
         "drift.png",
     ]

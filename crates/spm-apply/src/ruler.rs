@@ -345,34 +345,22 @@ fn indexed(atoms: &[Atom], n: &[Option<[i64; 2]>]) -> Vec<(Atom, [i64; 2])> {
         .collect()
 }
 
-/// The true bases (lattice constant `a`) at the apparent orientation: b₁ along the apparent
-/// first vector, b₂ at 60° or 120° on either side of it. The first is the one the apparent
-/// pair suggests (on the side of the apparent second, at 60° when they make an acute angle).
-fn true_bases(apparent: &[[f64; 2]; 2], a: f64) -> Vec<[[f64; 2]; 2]> {
-    use std::f64::consts::FRAC_PI_3;
+/// The true basis (lattice constant `a`) at the apparent orientation: b₁ along the apparent
+/// first vector, b₂ at 60° or 120° on the side of the apparent second, as the apparent pair is.
+fn true_basis(apparent: &[[f64; 2]; 2], a: f64) -> [[f64; 2]; 2] {
     let theta = apparent[0][1].atan2(apparent[0][0]);
     let side = (apparent[0][0] * apparent[1][1] - apparent[0][1] * apparent[1][0]).signum();
-    let acute = (apparent[0][0] * apparent[1][0] + apparent[0][1] * apparent[1][1]) >= 0.0;
-    let (near, far) = if acute {
-        (FRAC_PI_3, 2.0 * FRAC_PI_3)
-    } else {
-        (2.0 * FRAC_PI_3, FRAC_PI_3)
-    };
-    [(side, near), (side, far), (-side, near), (-side, far)]
-        .into_iter()
-        .map(|(s, angle)| {
-            let angle2 = theta + s * angle;
-            [
-                [a * theta.cos(), a * theta.sin()],
-                [a * angle2.cos(), a * angle2.sin()],
-            ]
-        })
-        .collect()
-}
-
-/// The true basis the apparent pair suggests (the first of [`true_bases`]).
-fn true_basis(apparent: &[[f64; 2]; 2], a: f64) -> [[f64; 2]; 2] {
-    true_bases(apparent, a)[0]
+    let angle2 = theta
+        + side
+            * if (apparent[0][0] * apparent[1][0] + apparent[0][1] * apparent[1][1]) >= 0.0 {
+                std::f64::consts::FRAC_PI_3
+            } else {
+                2.0 * std::f64::consts::FRAC_PI_3
+            };
+    [
+        [a * theta.cos(), a * theta.sin()],
+        [a * angle2.cos(), a * angle2.sin()],
+    ]
 }
 
 /// The least-squares problem of the atoms against the lattice `b`, two rows per atom. Columns:
@@ -483,33 +471,22 @@ pub fn estimate_from_lattice(
             atoms.len()
         )));
     }
-    // Which true lattice directions the apparent pair shows: b₁ along the apparent first, b₂ at
-    // 60° or 120° on either side. A strongly sheared frame can make the apparent angle mislead,
-    // so every assignment is fitted and the one the atoms fit best is kept.
+    let b = true_basis(&apparent, ruler.constant_nm);
+    let design = |tm: f64| design(&used, &b, law, Some(tm));
+    let (rows, rhs) = design(1.0);
+    let rigid: Vec<Vec<f64>> = rows.iter().map(|r| r[..3].to_vec()).collect();
+    let before = spm_regression::least_squares(&rigid, &rhs, &[false; 3])
+        .map_err(|e| CorrectionError::InvalidArgument(format!("lattice ruler: {e}")))?;
     let (from, to, per_decade) = (0.1_f64, 1e4_f64, 8_u32);
     let steps = ((to / from).log10() * f64::from(per_decade)).ceil() as usize;
     let mut best: Option<(f64, Vec<f64>, f64)> = None;
-    let mut before_rms_nm = f64::NAN;
-    for b in true_bases(&apparent, ruler.constant_nm) {
-        let design = |tm: f64| design(&used, &b, law, Some(tm));
-        let mut best_here: Option<(f64, Vec<f64>, f64)> = None;
-        for k in 0..=steps {
-            let tm = from * 10f64.powf(k as f64 / f64::from(per_decade));
-            let (rows, rhs) = design(tm);
-            if let Ok(fit) = spm_regression::least_squares(&rows, &rhs, &[false; 7])
-                && best_here.as_ref().is_none_or(|b| fit.residual_rms < b.2)
-            {
-                best_here = Some((tm, fit.coefficients, fit.residual_rms));
-            }
-        }
-        if let Some(here) = best_here
-            && best.as_ref().is_none_or(|b| here.2 < b.2)
+    for k in 0..=steps {
+        let tm = from * 10f64.powf(k as f64 / f64::from(per_decade));
+        let (rows, rhs) = design(tm);
+        if let Ok(fit) = spm_regression::least_squares(&rows, &rhs, &[false; 7])
+            && best.as_ref().is_none_or(|b| fit.residual_rms < b.2)
         {
-            let (rows, rhs) = design(1.0);
-            let rigid: Vec<Vec<f64>> = rows.iter().map(|r| r[..3].to_vec()).collect();
-            before_rms_nm = spm_regression::least_squares(&rigid, &rhs, &[false; 3])
-                .map_or(f64::NAN, |f| f.residual_rms);
-            best = Some(here);
+            best = Some((tm, fit.coefficients, fit.residual_rms));
         }
     }
     let (since_move_s, c, residual_rms_nm) = best.ok_or_else(|| {
@@ -530,7 +507,7 @@ pub fn estimate_from_lattice(
         drift_nm_per_s: [c[5] + pre_drift[0], c[6] + pre_drift[1]],
         atoms: atoms.len(),
         indexed: used.len(),
-        before_rms_nm,
+        before_rms_nm: before.residual_rms,
         residual_rms_nm,
         law: law.clone(),
     })

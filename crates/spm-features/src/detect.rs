@@ -323,13 +323,9 @@ fn smooth(z: &[f64], nx: usize, ny: usize) -> Vec<f64> {
     out
 }
 
+/// The workspace's median ([`spm_regression::median`]); 0 when empty.
 fn median(values: &mut [f64]) -> f64 {
-    if values.is_empty() {
-        return 0.0;
-    }
-    let mid = values.len() / 2;
-    let (_, m, _) = values.select_nth_unstable_by(mid, f64::total_cmp);
-    *m
+    spm_regression::median(values).unwrap_or(0.0)
 }
 
 /// Robust white-noise estimate from the residual of the raw map minus its

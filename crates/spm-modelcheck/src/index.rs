@@ -34,13 +34,7 @@ pub struct Indexing {
     pub warnings: Vec<String>,
 }
 
-fn median(values: &mut [f64]) -> Option<f64> {
-    if values.is_empty() {
-        return None;
-    }
-    values.sort_by(f64::total_cmp);
-    Some(values[values.len() / 2])
-}
+use spm_regression::median;
 
 /// Nearest-neighbour lattice basis of a point set, or `None`.
 fn measure_basis(points: &[[f64; 2]], a_expected_nm: Option<f64>) -> Option<([f64; 2], [f64; 2])> {

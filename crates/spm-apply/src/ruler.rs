@@ -574,9 +574,13 @@ mod tests {
     }
 
     /// A 129² frame of a hexagonal lattice at 0.02 nm per pixel, lines of `line_s` trace and
-    /// retrace, every pixel seen displaced by `hidden`'s e(t): heights, the file-alone map (the
-    /// commanded grid) and the pixel times.
-    fn strained_frame(hidden: &RulerEstimate, line_s: f64) -> (Vec<f64>, CoordinateMap, Vec<f64>) {
+    /// retrace, every pixel seen displaced by `hidden`'s e(t), with `extra(sample point)` added to
+    /// the heights: heights, the file-alone map (the commanded grid) and the pixel times.
+    fn strained_frame(
+        hidden: &RulerEstimate,
+        line_s: f64,
+        extra: &dyn Fn(f64, f64) -> f64,
+    ) -> (Vec<f64>, CoordinateMap, Vec<f64>) {
         let (n, step) = (129, 0.02);
         let dwell = line_s / n as f64;
         let mut times = vec![0.0; n * n];
@@ -592,7 +596,8 @@ mod tests {
                 times[i] = t;
                 x[i] = p[0];
                 y[i] = p[1];
-                heights[i] = surface(p[0] - e[0], p[1] - e[1], 0.3);
+                let (sx, sy) = (p[0] - e[0], p[1] - e[1]);
+                heights[i] = surface(sx, sy, 0.3) + extra(sx, sy);
             }
         }
         let map = CoordinateMap::new(n, n, x, YCoordinates::PerPixel(y)).unwrap();
@@ -607,7 +612,7 @@ mod tests {
     fn a_strongly_strained_frame_is_indexed_by_straightening_and_growing_again() {
         let law = CreepLaw::log_spaced(0.0055, 0.01, 1e4, 3).unwrap();
         let hidden = hidden_error(&law, [-25.0, 40.0], 0.3, [0.02, -0.03]);
-        let (heights, map, times) = strained_frame(&hidden, 0.1);
+        let (heights, map, times) = strained_frame(&hidden, 0.1, &|_, _| 0.0);
         let before = spread(&times, &|t| hidden.error_nm(t));
         assert!(before > 0.25, "the hidden e is {before} nm RMS");
         let estimate =
@@ -637,33 +642,17 @@ mod tests {
         let line_s = 0.1;
         let law = CreepLaw::log_spaced(0.0055, 0.01, 1e4, 3).unwrap();
         let hidden = hidden_error(&law, [-8.0, 5.0], 2.0, [0.003, -0.002]);
-        let dwell = line_s / n as f64;
-        let mut times = vec![0.0; n * n];
-        let mut heights = vec![0.0; n * n];
-        let mut x = vec![0.0; n * n];
-        let mut y = vec![0.0; n * n];
-        for row in 0..n {
-            for col in 0..n {
-                let i = row * n + col;
-                let t = 2.0 * line_s * row as f64 + (col as f64 + 0.5) * dwell;
-                let p = [col as f64 * step, row as f64 * step];
-                let e = hidden.error_nm(t);
-                times[i] = t;
-                x[i] = p[0];
-                y[i] = p[1];
-                // Defects off the lattice along the rows seen at the median time: growing the
-                // index from one of them alone would reach no other atom.
-                let (sx, sy) = (p[0] - e[0], p[1] - e[1]);
-                let defects: f64 = (0..9)
-                    .map(|k| {
-                        let (dx, dy) = (sx - 0.15 - 0.27 * f64::from(k), sy - 1.29);
-                        2.0 * (-(dx * dx + dy * dy) / (2.0 * 0.04f64.powi(2))).exp()
-                    })
-                    .sum();
-                heights[i] = surface(sx, sy, 0.3) + defects;
-            }
-        }
-        let map = CoordinateMap::new(n, n, x, YCoordinates::PerPixel(y)).unwrap();
+        // Defects off the lattice along the rows seen at the median time: growing the index
+        // from one of them alone would reach no other atom.
+        let defects = |sx: f64, sy: f64| -> f64 {
+            (0..9)
+                .map(|k| {
+                    let (dx, dy) = (sx - 0.15 - 0.27 * f64::from(k), sy - 1.29);
+                    2.0 * (-(dx * dx + dy * dy) / (2.0 * 0.04f64.powi(2))).exp()
+                })
+                .sum()
+        };
+        let (heights, map, times) = strained_frame(&hidden, line_s, &defects);
         let estimate =
             estimate_from_lattice(&heights, &map, &times, &law, &LatticeRuler::hopg()).unwrap();
         // What is left of e over the frame, its mean (a rigid offset) removed.

@@ -16,23 +16,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 fn config(port: u16, clock: ClockSource) -> NanonisConfig {
     NanonisConfig {
-        host: "127.0.0.1".into(),
-        port,
-        connect_timeout_s: 1.0,
-        command_timeout_s: 5.0,
-        wait_margin_s: 2.0,
-        reconnect_attempts: 2,
-        reconnect_backoff_s: 0.02,
-        lateral_dac_bits: 16,
-        z_dac_bits: 16,
-        z_channel: 30,
         clock,
-        max_pixels_per_line: 4096,
-        max_lines: 4096,
-        min_pixel_dwell_s: 1e-6,
-        coarse_z: None,
         frame_angle_deg: 30.0,
         slow_direction: SlowDirection::Down,
+        ..crate::common::loopback_config(port)
     }
 }
 

@@ -7,7 +7,7 @@ use spm_hal::{CountPoint, Counts, Microscope, ScanDirection, ScanRequest, Second
 use spm_nanonis::commands::{
     FrameData, Reply, Request, ScanBuffer, ScanFrame, ScanSpeed, motor_direction, scan_action,
 };
-use spm_nanonis::{Client, ClientConfig, ClockSource, NanonisConfig, NanonisMicroscope};
+use spm_nanonis::{Client, ClientConfig, NanonisConfig, NanonisMicroscope};
 use spm_nanonis_sim::server::ServerHandle;
 use spm_nanonis_sim::{Server, ServerConfig, SocketFaults};
 use spm_sim::{SimConfig, Simulator};
@@ -47,26 +47,8 @@ fn client(server: &ServerHandle) -> Client {
 
 fn backend(server: &ServerHandle) -> NanonisMicroscope {
     NanonisMicroscope::connect(NanonisConfig {
-        host: "127.0.0.1".into(),
-        port: server.addr().port(),
-        connect_timeout_s: 1.0,
         command_timeout_s: 10.0,
-        wait_margin_s: 2.0,
-        reconnect_attempts: 2,
-        reconnect_backoff_s: 0.02,
-        lateral_dac_bits: 16,
-        z_dac_bits: 16,
-        z_channel: 30,
-        clock: ClockSource::ControllerSignals {
-            whole_s_signal: 126,
-            fraction_s_signal: 127,
-        },
-        max_pixels_per_line: 4096,
-        max_lines: 4096,
-        min_pixel_dwell_s: 1e-6,
-        coarse_z: None,
-        frame_angle_deg: 0.0,
-        slow_direction: spm_nanonis::SlowDirection::Up,
+        ..crate::common::loopback_config(server.addr().port())
     })
     .unwrap()
 }

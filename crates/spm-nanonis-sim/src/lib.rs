@@ -102,3 +102,34 @@ pub use server::{
     BODY_CHUNK_BYTES, ConnectionLimits, FrameTruth, Server, ServerConfig, ServerError,
     ServerHandle, ServerStats, SocketFaults, accept_pause,
 };
+
+/// The backend configuration for talking to a `nanonis-sim` server on loopback `port` with the
+/// server's own conventions: 16-bit X/Y and Z DACs, Z in signal 30, the controller's clock in
+/// signals 126 (whole seconds) and 127 (fraction), 4096 × 4096 pixels at ≥ 1 µs, an upright
+/// frame scanned up, 1 s to connect, 5 s per command (2 s wait margin), 2 reconnects 20 ms
+/// apart. Tests, benches and examples change what they are about with struct-update syntax.
+#[must_use]
+pub fn loopback_config(port: u16) -> spm_nanonis::NanonisConfig {
+    spm_nanonis::NanonisConfig {
+        host: "127.0.0.1".into(),
+        port,
+        connect_timeout_s: 1.0,
+        command_timeout_s: 5.0,
+        wait_margin_s: 2.0,
+        reconnect_attempts: 2,
+        reconnect_backoff_s: 0.02,
+        lateral_dac_bits: 16,
+        z_dac_bits: 16,
+        z_channel: 30,
+        clock: spm_nanonis::ClockSource::ControllerSignals {
+            whole_s_signal: 126,
+            fraction_s_signal: 127,
+        },
+        max_pixels_per_line: 4096,
+        max_lines: 4096,
+        min_pixel_dwell_s: 1e-6,
+        coarse_z: None,
+        frame_angle_deg: 0.0,
+        slow_direction: spm_nanonis::SlowDirection::Up,
+    }
+}

@@ -33,8 +33,8 @@
 
 use spm_calibration::NoObserver;
 use spm_cdb::{Cdb, CdbRead, NodeState, RecordFilter};
+use spm_nanonis::NanonisConfig;
 use spm_nanonis::commands::{Reply, Request};
-use spm_nanonis::{ClockSource, NanonisConfig};
 use spm_nanonis_sim::{Server, ServerConfig, ServerHandle, SocketFaults};
 use spm_sim::SimConfig;
 use spmcal::job::{Backend, Job};
@@ -94,26 +94,9 @@ fn plan() -> (spm_calibration::PlanConfig, String) {
 
 fn nanonis_config(port: u16, command_timeout_s: f64) -> NanonisConfig {
     NanonisConfig {
-        host: "127.0.0.1".into(),
-        port,
-        connect_timeout_s: 1.0,
         command_timeout_s,
-        wait_margin_s: 2.0,
         reconnect_attempts: 3,
-        reconnect_backoff_s: 0.02,
-        lateral_dac_bits: 16,
-        z_dac_bits: 16,
-        z_channel: 30,
-        clock: ClockSource::ControllerSignals {
-            whole_s_signal: 126,
-            fraction_s_signal: 127,
-        },
-        max_pixels_per_line: 4096,
-        max_lines: 4096,
-        min_pixel_dwell_s: 1e-6,
-        coarse_z: None,
-        frame_angle_deg: 0.0,
-        slow_direction: spm_nanonis::SlowDirection::Up,
+        ..spm_nanonis_sim::loopback_config(port)
     }
 }
 

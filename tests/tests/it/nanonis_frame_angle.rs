@@ -28,7 +28,7 @@ use spm_hal::{
     Capabilities, CoarseZStage, CountPoint, CountVector, Counts, Frame, Microscope, MoveRequest,
     NmPerCount, NmPerCountMatrix, Radians, ScanRequest, Seconds,
 };
-use spm_nanonis::{ClockSource, NanonisConfig, NanonisMicroscope, SlowDirection};
+use spm_nanonis::{NanonisConfig, NanonisMicroscope, SlowDirection};
 use spm_nanonis_sim::{Server, ServerConfig, ServerHandle, SocketFaults};
 use spm_sim::SimConfig;
 use std::path::Path;
@@ -121,26 +121,10 @@ fn plan() -> PlanConfig {
 
 fn config(port: u16, frame_angle_deg: f64, slow_direction: SlowDirection) -> NanonisConfig {
     NanonisConfig {
-        host: "127.0.0.1".into(),
-        port,
-        connect_timeout_s: 1.0,
-        command_timeout_s: 5.0,
-        wait_margin_s: 2.0,
         reconnect_attempts: 3,
-        reconnect_backoff_s: 0.02,
-        lateral_dac_bits: 16,
-        z_dac_bits: 16,
-        z_channel: 30,
-        clock: ClockSource::ControllerSignals {
-            whole_s_signal: 126,
-            fraction_s_signal: 127,
-        },
-        max_pixels_per_line: 4096,
-        max_lines: 4096,
-        min_pixel_dwell_s: 1e-6,
-        coarse_z: None,
         frame_angle_deg,
         slow_direction,
+        ..spm_nanonis_sim::loopback_config(port)
     }
 }
 

@@ -7,7 +7,7 @@ use super::Context;
 use crate::XtaskError;
 use serde::Serialize;
 use spm_calibration::NoObserver;
-use spm_nanonis::{ClockSource, NanonisConfig};
+use spm_nanonis::NanonisConfig;
 use spm_nanonis_sim::{Server, ServerConfig, SocketFaults};
 use spm_sim::SimConfig;
 use spmcal::job::{Backend, Job};
@@ -36,26 +36,12 @@ pub struct NanonisResults {
 
 fn nanonis_config(port: u16) -> NanonisConfig {
     NanonisConfig {
-        host: "127.0.0.1".into(),
-        port,
         connect_timeout_s: 2.0,
         command_timeout_s: 10.0,
         wait_margin_s: 10.0,
         reconnect_attempts: 3,
         reconnect_backoff_s: 0.05,
-        lateral_dac_bits: 16,
-        z_dac_bits: 16,
-        z_channel: 30,
-        clock: ClockSource::ControllerSignals {
-            whole_s_signal: 126,
-            fraction_s_signal: 127,
-        },
-        max_pixels_per_line: 4096,
-        max_lines: 4096,
-        min_pixel_dwell_s: 1e-6,
-        coarse_z: None,
-        frame_angle_deg: 0.0,
-        slow_direction: spm_nanonis::SlowDirection::Up,
+        ..spm_nanonis_sim::loopback_config(port)
     }
 }
 

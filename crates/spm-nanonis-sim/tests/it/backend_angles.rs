@@ -12,7 +12,7 @@ use spm_sim::SimConfig;
 fn config(port: u16, frame_angle_deg: f64) -> NanonisConfig {
     NanonisConfig {
         frame_angle_deg,
-        ..crate::common::loopback_config(port)
+        ..spm_nanonis_sim::loopback_config(port)
     }
 }
 

@@ -24,7 +24,7 @@ fn config(port: u16, frame_angle_deg: f64, slow_direction: SlowDirection) -> Nan
     NanonisConfig {
         frame_angle_deg,
         slow_direction,
-        ..crate::common::loopback_config(port)
+        ..spm_nanonis_sim::loopback_config(port)
     }
 }
 

@@ -19,7 +19,7 @@ fn config(port: u16, clock: ClockSource) -> NanonisConfig {
         clock,
         frame_angle_deg: 30.0,
         slow_direction: SlowDirection::Down,
-        ..crate::common::loopback_config(port)
+        ..spm_nanonis_sim::loopback_config(port)
     }
 }
 

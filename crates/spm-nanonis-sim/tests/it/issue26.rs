@@ -48,7 +48,7 @@ fn client(server: &ServerHandle) -> Client {
 fn backend(server: &ServerHandle) -> NanonisMicroscope {
     NanonisMicroscope::connect(NanonisConfig {
         command_timeout_s: 10.0,
-        ..crate::common::loopback_config(server.addr().port())
+        ..spm_nanonis_sim::loopback_config(server.addr().port())
     })
     .unwrap()
 }

@@ -26,7 +26,7 @@ fn client_config(port: u16) -> NanonisConfig {
     NanonisConfig {
         command_timeout_s: 2.0,
         reconnect_attempts: 4,
-        ..crate::common::loopback_config(port)
+        ..spm_nanonis_sim::loopback_config(port)
     }
 }
 

@@ -264,6 +264,8 @@ fn bits_of(half_range_counts: f64, what: &str) -> Result<u32, ServerError> {
 pub struct ServerStats {
     /// Requests received (complete headers and bodies).
     pub commands: u64,
+    /// Requests received per command name (`Scan.Action`, …): where a client's round trips go.
+    pub commands_by_name: std::collections::BTreeMap<String, u64>,
     /// Error replies of the fault injector.
     pub injected_error_replies: u64,
     /// Connections dropped before executing.
@@ -1785,6 +1787,11 @@ fn serve_commands(stream: &mut TcpStream, context: &Context) {
                 return;
             }
             state.stats.commands += 1;
+            *state
+                .stats
+                .commands_by_name
+                .entry(header.command.clone())
+                .or_insert(0) += 1;
             let fault = state.draw_fault(&header.command);
             let request = Request::decode(&header.command, &body, state.schema);
             let bytes = match (fault, request) {

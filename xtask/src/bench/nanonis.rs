@@ -30,6 +30,8 @@ pub struct NanonisResults {
     pub ratio: f64,
     /// Protocol commands per node over TCP.
     pub commands_per_node: f64,
+    /// Protocol commands per node over TCP, per command name (where the round trips go).
+    pub commands_per_node_by_name: std::collections::BTreeMap<String, f64>,
     /// Simulated instrument time per node, s (the same on both sides).
     pub instrument_s_per_node: f64,
 }
@@ -85,7 +87,8 @@ pub fn run(ctx: &Context) -> Result<NanonisResults, XtaskError> {
     };
     let mut best_local = f64::INFINITY;
     let mut best_tcp = f64::INFINITY;
-    let (mut nodes, mut instrument_s, mut commands) = (0, 0.0, 0u64);
+    let (mut nodes, mut instrument_s) = (0, 0.0);
+    let mut stats = spm_nanonis_sim::ServerStats::default();
     for k in 0..repeats {
         let (wall, n, t) = timed_run(&local, &dir, &format!("local-{k}"))?;
         best_local = best_local.min(wall);
@@ -104,7 +107,7 @@ pub fn run(ctx: &Context) -> Result<NanonisResults, XtaskError> {
         };
         let (wall, _, _) = timed_run(&tcp, &dir, &format!("tcp-{k}"))?;
         best_tcp = best_tcp.min(wall);
-        commands = server.stats().commands;
+        stats = server.stats();
         server.kill();
     }
     let per_node = |s: f64| 1e3 * s / nodes.max(1) as f64;
@@ -114,7 +117,12 @@ pub fn run(ctx: &Context) -> Result<NanonisResults, XtaskError> {
         in_process_ms_per_node: per_node(best_local),
         tcp_ms_per_node: per_node(best_tcp),
         ratio: best_tcp / best_local,
-        commands_per_node: commands as f64 / nodes.max(1) as f64,
+        commands_per_node: stats.commands as f64 / nodes.max(1) as f64,
+        commands_per_node_by_name: stats
+            .commands_by_name
+            .iter()
+            .map(|(name, n)| (name.clone(), *n as f64 / nodes.max(1) as f64))
+            .collect(),
         instrument_s_per_node: instrument_s / nodes.max(1) as f64,
     })
 }

@@ -36,6 +36,7 @@
 
 use std::path::{Path, PathBuf};
 
+pub mod crop;
 pub mod dynamic;
 pub mod history;
 pub mod ruler;
@@ -1446,7 +1447,7 @@ fn metadata(
             format!("{} {}", raster.step_x_counts, raster.step_y_counts),
         ),
         (
-            "spmcal_scan_angle_ccw_deg".into(),
+            spm_formats::KEY_SCAN_ANGLE_CCW_DEG.into(),
             raster.angle_ccw_rad.to_degrees().to_string(),
         ),
         (
@@ -1488,6 +1489,14 @@ fn metadata(
             },
         ),
     ]);
+    m.extend(source_header(file));
+    m
+}
+
+/// The source's date and header as output fields (keys prefixed `source_`, made identifiers):
+/// kept, but no longer read as the output's own.
+pub(crate) fn source_header(file: &SpmFile) -> Vec<(String, String)> {
+    let mut m = Vec::with_capacity(file.header.len() + 1);
     if let Some(date) = file.recorded {
         m.push(("spmcal_source_recorded".into(), date.to_string()));
     }

@@ -18,6 +18,11 @@ use crate::text::{length_unit_to_nm, parse_f64, parse_u64, utf8};
 /// The magic line, newline included.
 pub(crate) const MAGIC: &[u8] = b"Gwyddion Simple Field 1.0\n";
 
+/// Free-form header key (spmcal's, ignored by Gwyddion): the scan angle of the raster the
+/// field was taken on, degrees counter-clockwise. GSF has no field for it; spmcal writes it
+/// (`spmcal correct`, `spmcal crop`) and reads it back as the channel's angle.
+pub const KEY_SCAN_ANGLE_CCW_DEG: &str = "spmcal_scan_angle_ccw_deg";
+
 /// Suffix of the `Title` of a backward (retrace) channel.
 const BACKWARD_SUFFIX: &str = " (backward)";
 
@@ -133,6 +138,9 @@ pub(crate) fn parse(bytes: &[u8], path: &Path) -> Result<SpmFile> {
         ch = ch
             .with_size_nm(x_real * f, y_real * f)
             .with_center_nm((x_off + x_real / 2.0) * f, (y_off + y_real / 2.0) * f);
+    }
+    if let Some(angle) = real(KEY_SCAN_ANGLE_CCW_DEG)? {
+        ch = ch.with_angle_deg(angle);
     }
     Ok(SpmFile {
         source: path.to_path_buf(),

@@ -36,7 +36,7 @@ pub use error::{
     ErrorKind, FormatError, MAX_HEADER_BYTES, MAX_HEADER_ENTRIES, MAX_PIXELS, MAX_SIDE_PIXELS,
     Result,
 };
-pub use gsf::{encode_gsf, read_gsf, write_gsf};
+pub use gsf::{KEY_SCAN_ANGLE_CCW_DEG, encode_gsf, read_gsf, write_gsf};
 pub use gwy::{encode_gwy, write_gwy};
 pub use iso28600::read_iso28600;
 pub use model::{

@@ -115,6 +115,7 @@ pub struct StoredImage {
     pixel_x_nm: f64,
     pixel_y_nm: f64,
     timing: ImageTiming,
+    centre_nm: [f64; 2],
 }
 
 impl StoredImage {
@@ -170,7 +171,30 @@ impl StoredImage {
             pixel_x_nm,
             pixel_y_nm,
             timing,
+            centre_nm: [0.0, 0.0],
         })
+    }
+
+    /// The same image with its frame centred at `centre_nm` in the instrument's
+    /// coordinates (the file's scan offset; [`StoredImage::new`] puts it at 0).
+    ///
+    /// # Errors
+    /// [`ImageError::Invalid`] for a centre that is not finite.
+    pub fn with_centre_nm(mut self, centre_nm: [f64; 2]) -> Result<Self, ImageError> {
+        if !centre_nm.iter().all(|v| v.is_finite()) {
+            return Err(ImageError::Invalid {
+                field: "centre_nm",
+                reason: format!("must be finite, got {centre_nm:?}"),
+            });
+        }
+        self.centre_nm = centre_nm;
+        Ok(self)
+    }
+
+    /// The frame's centre in the instrument's coordinates, nm (the file's scan offset).
+    #[must_use]
+    pub fn centre_nm(&self) -> [f64; 2] {
+        self.centre_nm
     }
 
     /// One channel of a file read by spm-formats: its display-oriented heights turned into
@@ -222,7 +246,11 @@ impl StoredImage {
             pixel_x_nm,
             pixel_y_nm,
             ImageTiming { line_time_s },
-        )
+        )?
+        .with_centre_nm([
+            channel.center_x_nm().unwrap_or(0.0),
+            channel.center_y_nm().unwrap_or(0.0),
+        ])
     }
 
     /// Heights, nm, `[row * columns + column]` in scanner geometry.
@@ -409,10 +437,19 @@ impl StoredImage {
             let start = row * self.columns + column0;
             heights_nm.extend_from_slice(self.heights_nm.get(start..start + columns)?);
         }
+        // The part's centre from the whole's (row 0 at the smallest y).
+        let centre_nm = [
+            self.centre_nm[0]
+                + (column0 as f64 + 0.5 * columns as f64 - 0.5 * self.columns as f64)
+                    * self.pixel_x_nm,
+            self.centre_nm[1]
+                + (row0 as f64 + 0.5 * rows as f64 - 0.5 * self.rows as f64) * self.pixel_y_nm,
+        ];
         Some(Self {
             heights_nm,
             columns,
             rows,
+            centre_nm,
             ..*self
         })
     }

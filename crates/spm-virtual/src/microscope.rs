@@ -16,8 +16,10 @@ pub const MAX_SCAN_PIXELS: u32 = 4096;
 pub struct VirtualParams {
     /// Nominal lateral sensitivity, nm per count (> 0; no default: it is the statement the
     /// calibration measures against). A count is `nominal_nm_per_count / pixel_nm` image
-    /// pixels along either axis; count 0 is the image's centre (the frame's offset, as a
-    /// controller records it).
+    /// pixels along either axis; the image's centre pixel is at the frame's offset (as a
+    /// controller records it) over the sensitivity, so count 0 is the instrument's origin and
+    /// a part of an image keeps the whole image's counts. The scan angle is not applied: the
+    /// image's axes are the scanner's.
     pub nominal_nm_per_count: f64,
     /// Z sensitivity, nm per Z count (> 0). Default 0.001 (1 pm per count).
     #[serde(default = "VirtualParams::default_z_nm_per_count")]
@@ -197,7 +199,7 @@ impl VirtualMicroscope {
         )
     }
 
-    /// The image's centre pixel `(column, row)`: count 0.
+    /// The image's centre pixel `(column, row)`: the frame's offset.
     fn centre_pixel(&self) -> (f64, f64) {
         let image = &self.surface.forward;
         (
@@ -206,12 +208,23 @@ impl VirtualMicroscope {
         )
     }
 
+    /// The counts of the image's centre: the frame's offset over the sensitivity.
+    fn centre_counts(&self) -> (f64, f64) {
+        let [x, y] = self.surface.forward.centre_nm();
+        let k = self.params.nominal_nm_per_count;
+        (x / k, y / k)
+    }
+
     /// The fractional image pixel `(column, row)` of a commanded position.
     #[must_use]
     pub fn pixel_of(&self, point: CountPoint) -> (f64, f64) {
         let (cx, cy) = self.counts_per_pixel();
         let (c0, r0) = self.centre_pixel();
-        (point.x.value() / cx + c0, point.y.value() / cy + r0)
+        let (x0, y0) = self.centre_counts();
+        (
+            (point.x.value() - x0) / cx + c0,
+            (point.y.value() - y0) / cy + r0,
+        )
     }
 
     /// The commanded position of a fractional image pixel.
@@ -219,7 +232,8 @@ impl VirtualMicroscope {
     pub fn counts_of(&self, column: f64, row: f64) -> CountPoint {
         let (cx, cy) = self.counts_per_pixel();
         let (c0, r0) = self.centre_pixel();
-        CountPoint::from_counts((column - c0) * cx, (row - r0) * cy)
+        let (x0, y0) = self.centre_counts();
+        CountPoint::from_counts(x0 + (column - c0) * cx, y0 + (row - r0) * cy)
     }
 
     fn inside(&self, point: CountPoint) -> bool {

@@ -184,13 +184,24 @@ fn write(
             calibration.display().to_string(),
         ),
     );
+    write_channels(&corrected.channels, &metadata, out, kind, inputs)
+}
+
+/// Writes channels with their header: one `.gwy`, or one `.gsf` per channel (OUT.gsf for
+/// one, OUT.CHANNEL.DIRECTION.gsf for several); returns the files written.
+pub(crate) fn write_channels(
+    channels: &[spm_formats::Channel],
+    metadata: &[(String, String)],
+    out: &Path,
+    kind: OutputKind,
+    inputs: &[&Path],
+) -> Result<Vec<PathBuf>, CliError> {
     let targets: Vec<(PathBuf, Vec<&spm_formats::Channel>)> = match kind {
-        OutputKind::Gwy => vec![(out.to_path_buf(), corrected.channels.iter().collect())],
-        OutputKind::Gsf if corrected.channels.len() == 1 => {
-            vec![(out.to_path_buf(), corrected.channels.iter().collect())]
+        OutputKind::Gwy => vec![(out.to_path_buf(), channels.iter().collect())],
+        OutputKind::Gsf if channels.len() == 1 => {
+            vec![(out.to_path_buf(), channels.iter().collect())]
         }
-        OutputKind::Gsf => corrected
-            .channels
+        OutputKind::Gsf => channels
             .iter()
             .map(|c| (gsf_name(out, c), vec![c]))
             .collect(),
@@ -203,7 +214,7 @@ fn write(
         let bytes = match kind {
             OutputKind::Gwy => {
                 let owned: Vec<spm_formats::Channel> = channels.into_iter().cloned().collect();
-                spm_formats::encode_gwy(&owned, &metadata)
+                spm_formats::encode_gwy(&owned, metadata)
             }
             OutputKind::Gsf => {
                 let extra: Vec<(&str, &str)> = metadata

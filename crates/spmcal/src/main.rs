@@ -8,6 +8,7 @@ mod calibrate_cmd;
 mod cdb_cmd;
 mod console;
 mod correct_cmd;
+mod crop_cmd;
 mod dates;
 mod diagnose_cmd;
 mod error;
@@ -248,6 +249,23 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Cut a part of an image file (every channel) and write it as .gwy or .gsf, its raster
+    /// carried over: the centre moved along the scan angle, size, line time, slow direction
+    /// and the source header. For a held-out part (calibrate in virtual mode on one half,
+    /// correct the other), or to leave out a step or a defect.
+    Crop {
+        /// The image file.
+        image: PathBuf,
+        /// Display columns A..B (0 = left, B excluded; default all).
+        #[arg(long, value_name = "A..B", value_parser = crop_cmd::parse_range)]
+        columns: Option<std::ops::Range<usize>>,
+        /// Display rows A..B (0 = top, B excluded; default all).
+        #[arg(long, value_name = "A..B", value_parser = crop_cmd::parse_range)]
+        rows: Option<std::ops::Range<usize>>,
+        /// The output: OUT.gwy (every channel) or OUT.gsf (one file per channel).
+        #[arg(long, value_name = "FILE")]
+        out: PathBuf,
+    },
     /// Measure the lattice of a standard on image files (before or after `spmcal correct`):
     /// lattice constant and angle over the whole image and in a grid of cells.
     Lattice {
@@ -449,6 +467,7 @@ impl Command {
                 paths.extend(out.iter().cloned());
                 paths.extend(out_dir.iter().cloned());
             }
+            Self::Crop { image, out, .. } => paths.extend([image.clone(), out.clone()]),
             Self::Info { files, .. } | Self::Lattice { files, .. } => {
                 paths.extend(files.iter().cloned());
             }
@@ -505,6 +524,12 @@ fn install_subscriber(log: Option<&std::path::Path>, command: &Command) -> Optio
 fn run(command: Command) -> Result<(), CliError> {
     match command {
         Command::Info { files, json } => info::run(&files, json),
+        Command::Crop {
+            image,
+            columns,
+            rows,
+            out,
+        } => crop_cmd::run(&image, columns, rows, &out),
         Command::Scan(args) => scan_cmd::run(&args),
         Command::Lattice {
             files,

@@ -64,7 +64,7 @@ fn the_sxm_raster_is_read_from_its_header() {
 }
 
 /// Rewrites a header value of an `.sxm` in place (same length), e.g. the offset or the angle.
-fn patched_sxm(tag: &str, old: &str, new: &str) -> SpmFile {
+pub(crate) fn patched_sxm(tag: &str, old: &str, new: &str) -> SpmFile {
     assert_eq!(old.len(), new.len());
     let path = measured_file("si7x7-nanonis/Si_7x7_051.sxm");
     let mut bytes = std::fs::read(&path).unwrap();

@@ -316,3 +316,40 @@ fn smoothing_attenuates_a_sinusoid_by_the_gaussians_transform() {
         }
     }
 }
+
+/// The frame's offset places the image in the instrument's counts: a part of an image (its
+/// centre moved with it) serves the same heights at the same counts as the whole, so a
+/// calibration on one part is in the counts `spmcal correct` gives the other.
+#[test]
+fn an_offset_frame_and_its_parts_share_the_instruments_counts() {
+    let params = VirtualParams::new(0.05);
+    // The whole frame centred at (3, −2) nm: its centre pixel (19.5, 14.5) at (60, −40) counts.
+    let whole = plane(0.0, 0.01, 0.1).with_centre_nm([3.0, -2.0]).unwrap();
+    let m_whole = VirtualMicroscope::new(VirtualSurface::single(whole.clone()), params).unwrap();
+    assert_eq!(
+        m_whole.pixel_of(CountPoint::from_counts(60.0, -40.0)),
+        (19.5, 14.5)
+    );
+    // Columns 20..40, rows 5..25: the centre moves by +10 columns (2 nm) and 0 rows.
+    let part = whole.crop(20, 5, 20, 20).unwrap();
+    let [cx, cy] = part.centre_nm();
+    assert!((cx - (3.0 + 10.0 * 0.2)).abs() < 1e-12, "{cx}");
+    assert!((cy - (-2.0 + 0.0 * 0.25)).abs() < 1e-12, "{cy}");
+    let mut m_part = VirtualMicroscope::new(VirtualSurface::single(part), params).unwrap();
+    let mut m_whole = m_whole;
+    let caps = m_part.capabilities();
+    assert!(caps.field_min.x.value() > 0.0, "the right half lies at +x");
+    for (x, y) in [(100.0, -50.0), (120.0, -10.0)] {
+        let request = ScanRequest::centred_square(
+            CountPoint::from_counts(x, y),
+            Counts(2.0),
+            5,
+            Seconds(1e-3),
+        );
+        let a = m_part.scan(&request).unwrap();
+        let b = m_whole.scan(&request).unwrap();
+        for (p, q) in a.forward.z_counts.iter().zip(&b.forward.z_counts) {
+            assert!((p - q).abs() < 1e-9, "at ({x}, {y}): {p} vs {q}");
+        }
+    }
+}

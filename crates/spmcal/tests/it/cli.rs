@@ -866,3 +866,55 @@ fn a_run_logs_to_its_folder_keeps_the_console_quiet_and_records_its_provenance()
     assert!(report["validation"]["held_out"]["nodes"].as_u64() > Some(0));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `spmcal crop`: the two halves of a real `.sxm` (both halves of Z and Current: 4 channels)
+/// come out as `.gsf` per channel and as one `.gwy`; the `.gsf` halves tile the frame (their
+/// offsets ∓ a quarter of the 20 nm side); a part leaving the image, a bad range or an
+/// output it cannot write is exit 2 naming the option, and writes nothing.
+#[test]
+fn crop_writes_the_halves_of_a_real_file_and_refuses_bad_parts() {
+    let scratch = std::env::temp_dir().join(format!("spmcal-crop-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&scratch);
+    std::fs::create_dir_all(&scratch).unwrap();
+    let sxm = spmcal_tests::measured_file("si7x7-nanonis/Si_7x7_051.sxm");
+    let sxm = sxm.to_str().unwrap();
+    for (columns, centre_nm) in [("0..128", -5.0), ("128..256", 5.0)] {
+        let out = scratch.join(format!("half-{columns}.gsf"));
+        let (code, stdout, stderr) =
+            spmcal(&["crop", sxm, "--columns", columns, "--out", out.to_str().unwrap()]);
+        assert_eq!(code, 0, "{stderr}");
+        assert_eq!(stdout.lines().count(), 4, "{stdout}");
+        let z = stdout.lines().find(|l| l.contains(".Z.forward.")).unwrap();
+        let part = spm_formats::read_any(z).unwrap();
+        assert_eq!(part.pixels(), Some([128, 256]));
+        let c = &part.channels[0];
+        assert!((c.center_x_nm().unwrap() - centre_nm).abs() < 1e-9);
+        assert!(c.center_y_nm().unwrap().abs() < 1e-9);
+        assert!((c.size_x_nm().unwrap() - 10.0).abs() < 1e-9);
+    }
+    let gwy = scratch.join("half.gwy");
+    let (code, _, stderr) = spmcal(&[
+        "crop", sxm, "--rows", "0..100", "--out", gwy.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    assert!(std::fs::metadata(&gwy).unwrap().len() > 4 * 256 * 100 * 4);
+    let bad = scratch.join("bad.gsf");
+    for (args, named) in [
+        (vec!["--columns", "0..300"], "--columns"),
+        (vec!["--rows", "10..10"], "--rows"),
+        (vec!["--columns", "left"], "--columns"),
+    ] {
+        let mut all = vec!["crop", sxm, "--out", bad.to_str().unwrap()];
+        all.extend(args);
+        let (code, _, stderr) = spmcal(&all);
+        assert_eq!(code, 2, "{stderr}");
+        assert!(stderr.contains(named), "{stderr}");
+        assert!(!bad.exists());
+    }
+    let png = scratch.join("half.png");
+    let (code, _, stderr) = spmcal(&["crop", sxm, "--out", png.to_str().unwrap()]);
+    assert_eq!(code, 2, "{stderr}");
+    assert!(stderr.contains(".png"), "{stderr}");
+    assert!(!png.exists());
+    let _ = std::fs::remove_dir_all(&scratch);
+}

@@ -122,8 +122,16 @@ impl CommandHistory {
 
     /// Appends a raster as the HAL defines it: travel from `from` to the first pixel at the
     /// scan speed, then per line a trace and a retrace of `pixels · dwell` each; the raster
-    /// ends at `end_s`.
-    fn push_scan(&mut self, start_s: f64, end_s: f64, from: [f64; 2], request: &ScanRequest) {
+    /// ends at `end_s`. With `lines_descending` the lines were acquired last line first (a
+    /// controller scanning its slow axis down).
+    fn push_scan(
+        &mut self,
+        start_s: f64,
+        end_s: f64,
+        from: [f64; 2],
+        request: &ScanRequest,
+        lines_descending: bool,
+    ) {
         if self.segments.is_empty() {
             self.ramp_to(start_s, from);
         }
@@ -133,9 +141,13 @@ impl CommandHistory {
         let step = request.pixel_step.value();
         let (x0, y0) = (request.origin.x.value(), request.origin.y.value());
         let x1 = x0 + step * (nx - 1.0);
-        let y_of = |line: u32| match request.direction {
-            ScanDirection::Direct => y0 + step * f64::from(line),
-            ScanDirection::Counter => y0 + step * f64::from(ny - 1 - line),
+        // The y of the `k`-th line acquired.
+        let y_of = |k: u32| {
+            let line = if lines_descending { ny - 1 - k } else { k };
+            match request.direction {
+                ScanDirection::Direct => y0 + step * f64::from(line),
+                ScanDirection::Counter => y0 + step * f64::from(ny - 1 - line),
+            }
         };
         let (xa, xb) = match request.direction {
             ScanDirection::Direct => (x0, x1),
@@ -185,7 +197,14 @@ impl CommandHistory {
                     end_s,
                     from,
                     request,
-                } => self.push_scan(*start_s, *end_s, [from.x.value(), from.y.value()], request),
+                    lines_descending,
+                } => self.push_scan(
+                    *start_s,
+                    *end_s,
+                    [from.x.value(), from.y.value()],
+                    request,
+                    *lines_descending,
+                ),
                 _ => {}
             }
         }

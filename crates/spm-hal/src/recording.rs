@@ -41,7 +41,26 @@ pub enum CommandEvent {
         from: CountPoint,
         /// The request.
         request: ScanRequest,
+        /// The lines were acquired last line first (the frame's times say so): a controller
+        /// scanning its slow axis down delivers a direct request's lines in the request's
+        /// order with their real times (spm-nanonis with `slow_direction = "down"`). False in
+        /// histories written before this field.
+        #[serde(default)]
+        lines_descending: bool,
     },
+}
+
+/// Whether a frame's lines were acquired last line first: the forward trace's first pixel of
+/// line 0 was taken after that of the last line (by the frame's own times).
+#[must_use]
+pub fn lines_descending(frame: &Frame) -> bool {
+    let n = frame.request.pixels_per_line as usize;
+    let lines = frame.request.lines as usize;
+    let times = &frame.forward.time_s;
+    match (times.first(), times.get((lines.max(1) - 1) * n)) {
+        (Some(first), Some(last)) if lines > 1 => first > last,
+        _ => false,
+    }
 }
 
 /// Wraps a backend and records its lateral commands ([`CommandEvent`]). Failed commands are
@@ -132,7 +151,7 @@ impl<M: Microscope> Microscope for CommandRecorder<M> {
         let start = self.inner.now().ok();
         let from = self.inner.position().ok();
         let result = self.inner.scan(request);
-        if result.is_ok()
+        if let Ok(frame) = &result
             && let (Some(start), Some(from), Ok(end)) = (start, from, self.inner.now())
         {
             self.push(CommandEvent::Scan {
@@ -140,6 +159,7 @@ impl<M: Microscope> Microscope for CommandRecorder<M> {
                 end_s: end.value(),
                 from,
                 request: request.clone(),
+                lines_descending: lines_descending(frame),
             });
         }
         result

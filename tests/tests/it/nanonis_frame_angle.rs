@@ -302,3 +302,60 @@ fn the_example_job_states_the_frame_angle_and_the_slow_direction() {
     assert!(error.contains("slow_direction"), "{error}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The command history of a scan taken downwards replays the lines in the order they were
+/// taken. A direct request scanned down by the controller comes back in the request's line
+/// order with each pixel's real time (line 0 last); the recorder notes the order from those
+/// times, and the replay puts the commanded position of every pixel at that pixel's time. The
+/// truth is the frame's own geometry (`ScanRequest::commanded_position`) and times; up and
+/// down alike.
+#[test]
+fn a_recorded_downward_scan_replays_its_lines_in_the_order_they_were_taken() {
+    use spm_correction::dynamics::CommandHistory;
+    use spm_hal::TraceHalf;
+    use spm_hal::recording::{CommandEvent, CommandRecorder};
+    for slow in [SlowDirection::Up, SlowDirection::Down] {
+        let server = serve();
+        let tcp = NanonisMicroscope::connect(config(server.addr().port(), 0.0, slow)).unwrap();
+        let mut recorder = CommandRecorder::new(tcp, 64);
+        let request = ScanRequest::centred_square(
+            CountPoint::from_counts(1000.0, -500.0),
+            Counts(4.0),
+            16,
+            Seconds(2e-3),
+        );
+        let frame = recorder.scan(&request).unwrap();
+        let (_, events) = recorder.into_parts();
+        let descending = events.iter().any(|e| {
+            matches!(
+                e,
+                CommandEvent::Scan {
+                    lines_descending: true,
+                    ..
+                }
+            )
+        });
+        assert_eq!(descending, slow == SlowDirection::Down, "{slow:?}");
+        let history = CommandHistory::from_events(&events);
+        let n = request.pixels_per_line as usize;
+        for (k, &t) in frame.forward.time_s.iter().enumerate() {
+            let (line, pixel) = (k / n, k % n);
+            let want = request.commanded_position(TraceHalf::Forward, line, pixel);
+            let segment = history
+                .segments()
+                .iter()
+                .find(|s| s.start_s <= t && t <= s.end_s)
+                .unwrap();
+            let [x, y] = segment.at(t);
+            let off = (x - want.x.value()).hypot(y - want.y.value());
+            assert!(
+                off < 0.5 * request.pixel_step.value(),
+                "{slow:?}: line {line} pixel {pixel} at {t} s is replayed at ({x}, {y}), \
+                 commanded ({}, {})",
+                want.x.value(),
+                want.y.value()
+            );
+        }
+        server.kill();
+    }
+}

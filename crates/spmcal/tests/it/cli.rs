@@ -880,8 +880,14 @@ fn crop_writes_the_halves_of_a_real_file_and_refuses_bad_parts() {
     let sxm = sxm.to_str().unwrap();
     for (columns, centre_nm) in [("0..128", -5.0), ("128..256", 5.0)] {
         let out = scratch.join(format!("half-{columns}.gsf"));
-        let (code, stdout, stderr) =
-            spmcal(&["crop", sxm, "--columns", columns, "--out", out.to_str().unwrap()]);
+        let (code, stdout, stderr) = spmcal(&[
+            "crop",
+            sxm,
+            "--columns",
+            columns,
+            "--out",
+            out.to_str().unwrap(),
+        ]);
         assert_eq!(code, 0, "{stderr}");
         assert_eq!(stdout.lines().count(), 4, "{stdout}");
         let z = stdout.lines().find(|l| l.contains(".Z.forward.")).unwrap();
@@ -894,7 +900,12 @@ fn crop_writes_the_halves_of_a_real_file_and_refuses_bad_parts() {
     }
     let gwy = scratch.join("half.gwy");
     let (code, _, stderr) = spmcal(&[
-        "crop", sxm, "--rows", "0..100", "--out", gwy.to_str().unwrap(),
+        "crop",
+        sxm,
+        "--rows",
+        "0..100",
+        "--out",
+        gwy.to_str().unwrap(),
     ]);
     assert_eq!(code, 0, "{stderr}");
     assert!(std::fs::metadata(&gwy).unwrap().len() > 4 * 256 * 100 * 4);

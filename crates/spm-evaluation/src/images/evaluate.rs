@@ -48,6 +48,15 @@ pub enum ImageCorrection<'a> {
         /// The recorded commands: the run's and the images'.
         history: spm_correction::dynamics::CommandHistory,
     },
+    /// A competitor fitted on each image's own trace and retrace (no calibration); an image
+    /// it refuses keeps the nominal map (commanded counts × nominal sensitivity), as its user
+    /// would.
+    PerImageCompetitor {
+        /// Which.
+        method: Competitor,
+        /// The standard and the nominal sensitivity.
+        config: crate::competitors::CompetitorConfig,
+    },
     /// A correction field integrated along each image's *effective* trajectory
     /// (`spm_correction::dynamics`): `offsets[image]` = uₑ − u per pixel in acquisition order,
     /// the field evaluated at uₑ / `gain`.
@@ -59,6 +68,15 @@ pub enum ImageCorrection<'a> {
         /// Large-signal gain per axis of the dynamics model.
         gain: [f64; 2],
     },
+}
+
+/// A per-image trace/retrace competitor ([`crate::competitors`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Competitor {
+    /// The DHCT after Yothers, Browder & Bumm (2017).
+    Yothers,
+    /// The sinusoid-plus-linear map after Zhang et al. (2019).
+    Zhang,
 }
 
 /// One correction method of the benchmark.
@@ -260,6 +278,9 @@ fn coordinate_map(
         ImageCorrection::UserFileRecorded { set, history } => {
             user_file_map(set, image, Some(history), None)?
         }
+        ImageCorrection::PerImageCompetitor { method, config } => {
+            competitor_map(*method, config, image)?
+        }
         ImageCorrection::EffectivePath {
             field,
             offsets,
@@ -286,6 +307,30 @@ fn coordinate_map(
         }
     })
 }
+/// A competitor's map of one image, or the nominal map where it refuses the image.
+fn competitor_map(
+    method: Competitor,
+    config: &crate::competitors::CompetitorConfig,
+    image: &TestImage,
+) -> Result<CoordinateMap, ImageBenchmarkError> {
+    use crate::competitors::{CompetitorError, nominal_map, yothers, zhang};
+    let found = match method {
+        Competitor::Yothers => {
+            yothers::correct_image(&image.map, image.backward.as_ref(), config).map(|f| f.1)
+        }
+        Competitor::Zhang => {
+            zhang::correct_image(&image.map, image.backward.as_ref(), config).map(|f| f.1)
+        }
+    };
+    match found {
+        Ok(map) => Ok(map),
+        Err(CompetitorError::Refused { .. }) => {
+            Ok(nominal_map(&image.map, config.nominal_nm_per_count)?)
+        }
+        Err(CompetitorError::Correction(e)) => Err(e.into()),
+    }
+}
+
 fn position_figures(
     corrected: &[[f64; 2]],
     truth_nm: &[[f64; 2]],

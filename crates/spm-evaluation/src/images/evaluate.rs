@@ -132,6 +132,10 @@ pub struct ImageMethodSummary {
     /// method that removes the drift is judged by this; `position_rms_pct_of_side` counts
     /// the drift it removed as an error.
     pub sample_position_rms_pct_of_side: f64,
+    /// Images a per-image competitor refused (no retrace, lattice not resolved, too few atoms
+    /// indexed or matched), which keep the nominal map in its figures; only for competitors.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub refused_images: Option<usize>,
 }
 
 /// The benchmark's result (report.json `images`).
@@ -247,8 +251,21 @@ fn coordinate_map(
     image: &TestImage,
     index: usize,
 ) -> Result<CoordinateMap, ImageBenchmarkError> {
+    Ok(coordinate_map_or_refusal(method, image, index)?.0)
+}
+
+/// [`coordinate_map`], and whether a per-image competitor refused the image (the map is then
+/// the nominal one).
+fn coordinate_map_or_refusal(
+    method: &ImageMethod<'_>,
+    image: &TestImage,
+    index: usize,
+) -> Result<(CoordinateMap, bool), ImageBenchmarkError> {
     let (nx, ny) = (image.map.columns, image.map.rows);
-    Ok(match &method.correction {
+    if let ImageCorrection::PerImageCompetitor { method, config } = &method.correction {
+        return competitor_map(*method, config, image);
+    }
+    Ok((match &method.correction {
         ImageCorrection::Field(field) => correct_raster(
             field.as_ref(),
             &geometry_of(image)?,
@@ -279,7 +296,7 @@ fn coordinate_map(
             user_file_map(set, image, Some(history), None)?
         }
         ImageCorrection::PerImageCompetitor { method, config } => {
-            competitor_map(*method, config, image)?
+            competitor_map(*method, config, image)?.0
         }
         ImageCorrection::EffectivePath {
             field,
@@ -305,14 +322,14 @@ fn coordinate_map(
             )?;
             spm_correction::dynamics::to_geometry_map(&acquisition, nx, ny, image.direction)?
         }
-    })
+    }, false))
 }
-/// A competitor's map of one image, or the nominal map where it refuses the image.
+/// A competitor's map of one image, or the nominal map where it refuses the image (`true`).
 fn competitor_map(
     method: Competitor,
     config: &crate::competitors::CompetitorConfig,
     image: &TestImage,
-) -> Result<CoordinateMap, ImageBenchmarkError> {
+) -> Result<(CoordinateMap, bool), ImageBenchmarkError> {
     use crate::competitors::{CompetitorError, nominal_map, yothers, zhang};
     let found = match method {
         Competitor::Yothers => {
@@ -323,10 +340,11 @@ fn competitor_map(
         }
     };
     match found {
-        Ok(map) => Ok(map),
-        Err(CompetitorError::Refused { .. }) => {
-            Ok(nominal_map(&image.map, config.nominal_nm_per_count)?)
-        }
+        Ok(map) => Ok((map, false)),
+        Err(CompetitorError::Refused { .. }) => Ok((
+            nominal_map(&image.map, config.nominal_nm_per_count)?,
+            true,
+        )),
         Err(CompetitorError::Correction(e)) => Err(e.into()),
     }
 }
@@ -470,8 +488,10 @@ pub fn evaluate_images(
         let mut lattice: Vec<f64> = Vec::new();
         let mut angle_max: f64 = 0.0;
         let mut failures = 0;
+        let mut refused = 0;
         for (k, image) in images.iter().enumerate() {
-            let map = coordinate_map(method, image, k)?;
+            let (map, was_refused) = coordinate_map_or_refusal(method, image, k)?;
+            refused += usize::from(was_refused);
             let corrected = flatten(&map)?;
             let (rms, max, pct) = position_figures(&corrected, &image.truth_nm, image, nominal);
             let (_, _, sample_pct) =
@@ -524,6 +544,11 @@ pub fn evaluate_images(
                     .map(|(k, (s, c))| (k, (s / c.max(1) as f64).sqrt()))
                     .collect(),
                 sample_position_rms_pct_of_side: sample_pct_sum / n,
+                refused_images: matches!(
+                    method.correction,
+                    ImageCorrection::PerImageCompetitor { .. }
+                )
+                .then_some(refused),
             },
         );
     }

@@ -194,9 +194,9 @@ fn atoms(
 }
 
 /// The lattice index of every atom reachable from the median-time atom by neighbour steps,
-/// and the apparent basis used.
-/// Per atom its lattice index (when reached), and the apparent basis, nm.
-type Indexing = (Vec<Option<[i64; 2]>>, [[f64; 2]; 2]);
+/// and the apparent basis used: per atom its lattice index (when reached), and the apparent
+/// basis, nm.
+pub type Indexing = (Vec<Option<[i64; 2]>>, [[f64; 2]; 2]);
 
 /// The apparent basis and nearest-neighbour distance of the atoms seen around the median
 /// time: creep and drift strain a frame differently at each time, so the atoms of a short
@@ -344,9 +344,7 @@ fn index(atoms: &[Atom]) -> Result<Indexing, CorrectionError> {
 ///
 /// # Errors
 /// [`CorrectionError::InvalidArgument`] when no lattice is found among the atoms.
-pub fn index_lattice(
-    features: &[Feature],
-) -> Result<(Vec<Option<[i64; 2]>>, [[f64; 2]; 2]), CorrectionError> {
+pub fn index_lattice(features: &[Feature]) -> Result<Indexing, CorrectionError> {
     let atoms: Vec<Atom> = features
         .iter()
         .map(|f| Atom {

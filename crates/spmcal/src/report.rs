@@ -1161,8 +1161,14 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
         min_pixels_per_lattice_constant: config.min_pixels_per_lattice_constant,
     };
     for (name, method) in [
-        ("competitor_yothers_2017", spm_evaluation::images::Competitor::Yothers),
-        ("competitor_zhang_2019", spm_evaluation::images::Competitor::Zhang),
+        (
+            "competitor_yothers_2017",
+            spm_evaluation::images::Competitor::Yothers,
+        ),
+        (
+            "competitor_zhang_2019",
+            spm_evaluation::images::Competitor::Zhang,
+        ),
     ] {
         methods.push(ImageMethod {
             name: name.to_owned(),

@@ -76,7 +76,9 @@ impl HalfRaster {
             reason: reason.to_owned(),
         };
         if map.columns < 2 || map.time_s.len() != map.columns * map.rows {
-            return Err(refused("the map has no pixel times or fewer than 2 columns"));
+            return Err(refused(
+                "the map has no pixel times or fewer than 2 columns",
+            ));
         }
         let dt = map.time_s[1] - map.time_s[0];
         if !(dt.is_finite() && dt != 0.0) {
@@ -177,7 +179,10 @@ pub(crate) fn pixel_sightings(
         for column in 0..map.columns {
             let c = column as f64;
             out.push(Sighting {
-                position_nm: [(x0 + s * c) * nm_per_count, (y0 + s * row as f64) * nm_per_count],
+                position_nm: [
+                    (x0 + s * c) * nm_per_count,
+                    (y0 + s * row as f64) * nm_per_count,
+                ],
                 time_s: map.time_s[row * map.columns + column] - start_s,
                 since_reversal_s: half.since_reversal_s(c),
                 progress: half.progress(c),
@@ -245,7 +250,7 @@ pub(crate) fn detect_halves(
     let retrace = retrace.ok_or_else(|| refused("the image has no retrace".to_owned()))?;
     let step = trace.pixel_step.value() * config.nominal_nm_per_count;
     let period_px = config.lattice_constant_nm / step;
-    if !(period_px >= config.min_pixels_per_lattice_constant) {
+    if period_px.is_nan() || period_px < config.min_pixels_per_lattice_constant {
         return Err(refused(format!(
             "{period_px:.2} pixels per lattice constant (needs ≥ {})",
             config.min_pixels_per_lattice_constant
@@ -268,8 +273,7 @@ pub(crate) fn detect_halves(
     );
     // match_features names features by their pixel coordinates: back to indices.
     let index_of = |set: &[Feature], column: f64, row: f64| {
-        set.iter()
-            .position(|f| f.column == column && f.row == row)
+        set.iter().position(|f| f.column == column && f.row == row)
     };
     let matches: Vec<(usize, usize)> = found
         .iter()

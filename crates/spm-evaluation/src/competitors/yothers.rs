@@ -95,7 +95,12 @@ pub struct LatticeSighting {
 
 /// The linear fit for fixed `(b, t₀)`: coefficients `[Oₓ, Oᵧ, δθ, k, h, A, c₁ₓ, c₁ᵧ, c₂ₓ,
 /// c₂ᵧ]` and the RMS residual.
-fn linear_fit(atoms: &[LatticeSighting], centre_x: f64, b: f64, t0: f64) -> Option<(Vec<f64>, f64)> {
+fn linear_fit(
+    atoms: &[LatticeSighting],
+    centre_x: f64,
+    b: f64,
+    t0: f64,
+) -> Option<(Vec<f64>, f64)> {
     let mut rows = Vec::with_capacity(2 * atoms.len());
     let mut rhs = Vec::with_capacity(2 * atoms.len());
     for a in atoms {
@@ -149,14 +154,19 @@ fn model_at(atoms: &[LatticeSighting], centre_x: f64, b: f64, t0: f64) -> Option
 fn search(atoms: &[LatticeSighting], centre_x: f64, from: Option<(f64, f64)>) -> (f64, f64) {
     let cost = |b: f64, t0: f64| linear_fit(atoms, centre_x, b, t0).map_or(f64::INFINITY, |f| f.1);
     let ladder = |lo: f64, hi: f64, n: usize| -> Vec<f64> {
-        (0..=n).map(|k| lo + (hi - lo) * k as f64 / n as f64).collect()
+        (0..=n)
+            .map(|k| lo + (hi - lo) * k as f64 / n as f64)
+            .collect()
     };
     let (mut b, mut t0) = from.unwrap_or((0.5, 1.0));
     let best = |values: &[f64], f: &mut dyn FnMut(f64) -> f64| -> f64 {
         values
             .iter()
             .map(|&v| (v, f(v)))
-            .fold((values[0], f64::INFINITY), |a, x| if x.1 < a.1 { x } else { a })
+            .fold(
+                (values[0], f64::INFINITY),
+                |a, x| if x.1 < a.1 { x } else { a },
+            )
             .0
     };
     // The ladders: b in steps of 0.1; log₁₀ t₀ in quarter decades.
@@ -180,12 +190,9 @@ fn search(atoms: &[LatticeSighting], centre_x: f64, from: Option<(f64, f64)>) ->
             &mut |v| cost(v, t0),
         );
         let l = t0.log10();
-        t0 = 10f64.powf(golden(
-            (l - 0.3).max(l0),
-            (l + 0.3).min(l1),
-            24,
-            &mut |v| cost(b, 10f64.powf(v)),
-        ));
+        t0 = 10f64.powf(golden((l - 0.3).max(l0), (l + 0.3).min(l1), 24, &mut |v| {
+            cost(b, 10f64.powf(v))
+        }));
     }
     (b, t0)
 }
@@ -201,7 +208,8 @@ pub fn fit(atoms: &[LatticeSighting]) -> Result<YothersModel, CompetitorError> {
             reason: format!("{} atoms indexed (needs ≥ 12)", atoms.len()),
         });
     }
-    let centre_x = atoms.iter().map(|a| a.sighting.position_nm[0]).sum::<f64>() / atoms.len() as f64;
+    let centre_x =
+        atoms.iter().map(|a| a.sighting.position_nm[0]).sum::<f64>() / atoms.len() as f64;
     let (b, t0) = search(atoms, centre_x, None);
     let first = model_at(atoms, centre_x, b, t0);
     // The sites turned by the fitted δθ (the linearised rotation's error is second order), and
@@ -246,12 +254,11 @@ fn lattice_sightings(
             ..*f
         })
         .collect();
-    let (index, apparent) = spm_apply::ruler::index_lattice(&in_nm).map_err(|e| {
-        CompetitorError::Refused {
+    let (index, apparent) =
+        spm_apply::ruler::index_lattice(&in_nm).map_err(|e| CompetitorError::Refused {
             method: METHOD,
             reason: e.to_string(),
-        }
-    })?;
+        })?;
     let reached = index.iter().flatten().count();
     if (reached as f64) < 0.7 * halves.trace.len() as f64 {
         return Err(CompetitorError::Refused {

@@ -67,13 +67,19 @@ impl ZhangModel {
 ///
 /// # Errors
 /// [`CompetitorError::Refused`] with fewer than 12 pairs or an undetermined fit.
-pub fn fit(pairs: &[(Sighting, Sighting)], line_width_nm: f64) -> Result<ZhangModel, CompetitorError> {
+pub fn fit(
+    pairs: &[(Sighting, Sighting)],
+    line_width_nm: f64,
+) -> Result<ZhangModel, CompetitorError> {
     let refused = |reason: String| CompetitorError::Refused {
         method: METHOD,
         reason,
     };
     if pairs.len() < 12 {
-        return Err(refused(format!("{} pairs matched (needs ≥ 12)", pairs.len())));
+        return Err(refused(format!(
+            "{} pairs matched (needs ≥ 12)",
+            pairs.len()
+        )));
     }
     let pi = std::f64::consts::PI;
     let mut rows_x = Vec::with_capacity(pairs.len());
@@ -125,7 +131,12 @@ pub fn correct_image(
         .iter()
         .filter_map(|&(i, j)| {
             Some((
-                feature_sighting(halves.trace.get(i)?, &halves.trace_raster, k, halves.start_s),
+                feature_sighting(
+                    halves.trace.get(i)?,
+                    &halves.trace_raster,
+                    k,
+                    halves.start_s,
+                ),
                 feature_sighting(
                     halves.retrace.get(j)?,
                     &halves.retrace_raster,

@@ -265,64 +265,69 @@ fn coordinate_map_or_refusal(
     if let ImageCorrection::PerImageCompetitor { method, config } = &method.correction {
         return competitor_map(*method, config, image);
     }
-    Ok((match &method.correction {
-        ImageCorrection::Field(field) => correct_raster(
-            field.as_ref(),
-            &geometry_of(image)?,
-            image.direction,
-            &Integration::default(),
-            Parallelism::Sequential,
-        )?,
-        ImageCorrection::Map(map) => {
-            let points: Vec<[f64; 2]> = commanded(image)
-                .iter()
-                .map(|u| map.eval(u[0], u[1]))
-                .collect();
-            map_from_points(&points, nx, ny)?
-        }
-        ImageCorrection::PerImageBound => {
-            let u = commanded(image);
-            let fit = CubicMap::fit(&u, &image.truth_nm).map_err(|e| {
-                ImageBenchmarkError::Grating(format!("per-image bound: polynomial fit: {e}"))
-            })?;
-            let points: Vec<[f64; 2]> = u.iter().map(|p| fit.eval(p[0], p[1])).collect();
-            map_from_points(&points, nx, ny)?
-        }
-        ImageCorrection::UserFile(set) => user_file_map(set, image, None, None)?,
-        ImageCorrection::UserFileRuler { set, ruler } => {
-            user_file_map(set, image, None, Some(ruler))?
-        }
-        ImageCorrection::UserFileRecorded { set, history } => {
-            user_file_map(set, image, Some(history), None)?
-        }
-        ImageCorrection::PerImageCompetitor { method, config } => {
-            competitor_map(*method, config, image)?.0
-        }
-        ImageCorrection::EffectivePath {
-            field,
-            offsets,
-            gain,
-        } => {
-            let offsets = offsets.get(index).ok_or_else(|| {
-                ImageBenchmarkError::Config(format!("no effective-input offsets for image {index}"))
-            })?;
-            let n = image.commanded_acquisition.len().max(1) as f64;
-            let centre = image
-                .commanded_acquisition
-                .iter()
-                .fold([0.0, 0.0], |s, u| [s[0] + u[0] / n, s[1] + u[1] / n]);
-            let acquisition = correct_effective_raster(
+    Ok((
+        match &method.correction {
+            ImageCorrection::Field(field) => correct_raster(
                 field.as_ref(),
-                nx,
-                ny,
-                &image.commanded_acquisition,
+                &geometry_of(image)?,
+                image.direction,
+                &Integration::default(),
+                Parallelism::Sequential,
+            )?,
+            ImageCorrection::Map(map) => {
+                let points: Vec<[f64; 2]> = commanded(image)
+                    .iter()
+                    .map(|u| map.eval(u[0], u[1]))
+                    .collect();
+                map_from_points(&points, nx, ny)?
+            }
+            ImageCorrection::PerImageBound => {
+                let u = commanded(image);
+                let fit = CubicMap::fit(&u, &image.truth_nm).map_err(|e| {
+                    ImageBenchmarkError::Grating(format!("per-image bound: polynomial fit: {e}"))
+                })?;
+                let points: Vec<[f64; 2]> = u.iter().map(|p| fit.eval(p[0], p[1])).collect();
+                map_from_points(&points, nx, ny)?
+            }
+            ImageCorrection::UserFile(set) => user_file_map(set, image, None, None)?,
+            ImageCorrection::UserFileRuler { set, ruler } => {
+                user_file_map(set, image, None, Some(ruler))?
+            }
+            ImageCorrection::UserFileRecorded { set, history } => {
+                user_file_map(set, image, Some(history), None)?
+            }
+            ImageCorrection::PerImageCompetitor { method, config } => {
+                competitor_map(*method, config, image)?.0
+            }
+            ImageCorrection::EffectivePath {
+                field,
                 offsets,
-                *gain,
-                centre,
-            )?;
-            spm_correction::dynamics::to_geometry_map(&acquisition, nx, ny, image.direction)?
-        }
-    }, false))
+                gain,
+            } => {
+                let offsets = offsets.get(index).ok_or_else(|| {
+                    ImageBenchmarkError::Config(format!(
+                        "no effective-input offsets for image {index}"
+                    ))
+                })?;
+                let n = image.commanded_acquisition.len().max(1) as f64;
+                let centre = image
+                    .commanded_acquisition
+                    .iter()
+                    .fold([0.0, 0.0], |s, u| [s[0] + u[0] / n, s[1] + u[1] / n]);
+                let acquisition = correct_effective_raster(
+                    field.as_ref(),
+                    nx,
+                    ny,
+                    &image.commanded_acquisition,
+                    offsets,
+                    *gain,
+                    centre,
+                )?;
+                spm_correction::dynamics::to_geometry_map(&acquisition, nx, ny, image.direction)?
+            }
+        },
+        false,
+    ))
 }
 /// A competitor's map of one image, or the nominal map where it refuses the image (`true`).
 fn competitor_map(
@@ -341,10 +346,9 @@ fn competitor_map(
     };
     match found {
         Ok(map) => Ok((map, false)),
-        Err(CompetitorError::Refused { .. }) => Ok((
-            nominal_map(&image.map, config.nominal_nm_per_count)?,
-            true,
-        )),
+        Err(CompetitorError::Refused { .. }) => {
+            Ok((nominal_map(&image.map, config.nominal_nm_per_count)?, true))
+        }
         Err(CompetitorError::Correction(e)) => Err(e.into()),
     }
 }

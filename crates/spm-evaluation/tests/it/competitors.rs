@@ -145,7 +145,10 @@ fn yothers_recovers_a_hidden_hysteresis_drift_and_creep() {
     }
     let seen_positions: Vec<[f64; 2]> = atoms.iter().map(|a| a.sighting.position_nm).collect();
     let before = rms_offset_removed(&seen_positions, &true_positions);
-    assert!(before > 0.1, "the hidden distortion moves the atoms by only {before} nm");
+    assert!(
+        before > 0.1,
+        "the hidden distortion moves the atoms by only {before} nm"
+    );
     let found = yothers::fit(&atoms).unwrap();
     within(found.hysteresis_exponent, 0.6, 0.05, "b");
     within(found.hysteresis_nm, 0.8, 0.05, "A");
@@ -160,7 +163,10 @@ fn yothers_recovers_a_hidden_hysteresis_drift_and_creep() {
         .map(|a| found.corrected_nm(&a.sighting))
         .collect();
     let after = rms_offset_removed(&corrected, &true_positions);
-    assert!(after < 0.005, "left {after} nm RMS (before {before} nm); {found:?}");
+    assert!(
+        after < 0.005,
+        "left {after} nm RMS (before {before} nm); {found:?}"
+    );
 }
 
 /// A hidden sinusoid-plus-linear map (lag 0.03 nm, sinusoid 2 % of the line, drift (0.02,
@@ -192,7 +198,10 @@ fn zhang_recovers_a_hidden_sinusoid_lag_and_drift() {
     }
     let seen_positions: Vec<[f64; 2]> = pairs.iter().map(|p| p.0.position_nm).collect();
     let before = rms_offset_removed(&seen_positions, &truth);
-    assert!(before > 0.05, "the hidden distortion moves the atoms by only {before} nm");
+    assert!(
+        before > 0.05,
+        "the hidden distortion moves the atoms by only {before} nm"
+    );
     let found = zhang::fit(&pairs, width).unwrap();
     within(found.lag_nm, 0.03, 0.03, "lag");
     within(found.sinusoid, 0.02, 0.03, "sinusoid");
@@ -200,5 +209,8 @@ fn zhang_recovers_a_hidden_sinusoid_lag_and_drift() {
     within(found.drift_nm_per_s[1], -0.04, 0.1, "vᵧ");
     let corrected: Vec<[f64; 2]> = pairs.iter().map(|p| found.corrected_nm(&p.0)).collect();
     let after = rms_offset_removed(&corrected, &truth);
-    assert!(after < 0.02, "left {after} nm RMS (before {before} nm); {found:?}");
+    assert!(
+        after < 0.02,
+        "left {after} nm RMS (before {before} nm); {found:?}"
+    );
 }

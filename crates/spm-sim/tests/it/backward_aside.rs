@@ -41,13 +41,19 @@ fn the_backward_half_aside_changes_nothing_the_forward_half_measures() {
             assert!(*r > *t && *r - *t < line_s, "trace {t} s, retrace {r} s");
         }
         let corr = correlation(&trace.z_counts, &retrace.z_counts);
-        assert!(corr > 0.5, "{direction:?}: trace/retrace correlation {corr}");
+        assert!(
+            corr > 0.5,
+            "{direction:?}: trace/retrace correlation {corr}"
+        );
     }
     aside.record_backward_aside(false);
     let later = request.clone();
     let a = plain.scan(&later).unwrap();
     let b = aside.scan(&later).unwrap();
-    assert_eq!(a, b, "a later frame differs: the state or a random stream moved");
+    assert_eq!(
+        a, b,
+        "a later frame differs: the state or a random stream moved"
+    );
 }
 
 fn correlation(a: &[f64], b: &[f64]) -> f64 {

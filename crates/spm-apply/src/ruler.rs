@@ -194,9 +194,9 @@ fn atoms(
 }
 
 /// The lattice index of every atom reachable from the median-time atom by neighbour steps,
-/// and the apparent basis used.
-/// Per atom its lattice index (when reached), and the apparent basis, nm.
-type Indexing = (Vec<Option<[i64; 2]>>, [[f64; 2]; 2]);
+/// and the apparent basis used: per atom its lattice index (when reached), and the apparent
+/// basis, nm.
+pub type Indexing = (Vec<Option<[i64; 2]>>, [[f64; 2]; 2]);
 
 /// The apparent basis and nearest-neighbour distance of the atoms seen around the median
 /// time: creep and drift strain a frame differently at each time, so the atoms of a short
@@ -334,6 +334,39 @@ fn index(atoms: &[Atom]) -> Result<Indexing, CorrectionError> {
         }
     }
     Ok((n, basis))
+}
+
+/// The lattice index of atoms whose `position` is in nm (and `time` their sighting), grown
+/// neighbour by neighbour from the atom seen at the median time as the ruler does (see the
+/// module doc): per atom its index `[n₁, n₂]` when reached, and the apparent basis (nm) used.
+/// For per-image methods that measure against a known lattice (the image benchmark's
+/// competitors) without repeating the ruler's indexing.
+///
+/// # Errors
+/// [`CorrectionError::InvalidArgument`] when no lattice is found among the atoms.
+pub fn index_lattice(features: &[Feature]) -> Result<Indexing, CorrectionError> {
+    let atoms: Vec<Atom> = features
+        .iter()
+        .map(|f| Atom {
+            p: [f.position.x.value(), f.position.y.value()],
+            t: f.time.value(),
+            feature: *f,
+        })
+        .collect();
+    if atoms.is_empty() {
+        return Err(CorrectionError::InvalidArgument(
+            "lattice index: no atoms".into(),
+        ));
+    }
+    index(&atoms)
+}
+
+/// The true hexagonal basis of lattice constant `constant_nm` at the orientation of an
+/// `apparent` basis ([`index_lattice`]): b₁ along the apparent first vector, b₂ at 60° or 120°
+/// on the side of the apparent second, as the apparent pair is.
+#[must_use]
+pub fn hexagonal_basis(apparent: &[[f64; 2]; 2], constant_nm: f64) -> [[f64; 2]; 2] {
+    true_basis(apparent, constant_nm)
 }
 
 /// The atoms that were indexed, with their indices.

@@ -6,6 +6,8 @@
 //! - [`images`]: the image benchmark (issue 12): test images taken as a user takes them, every
 //!   method's position and lattice error on them, the realistic grating polynomial.
 //! - [`cubic`]: the total-degree-3 polynomial map of the conventional corrections.
+//! - [`competitors`]: the per-image trace/retrace corrections the benchmark compares with
+//!   (after Yothers, Browder & Bumm 2017 and Zhang et al. 2019).
 //! - [`rigid`]: residuals after the best rigid motion.
 //! - [`validation`]: what a run says of itself without an oracle (held-out nodes, repeat
 //!   agreement), on any backend.
@@ -17,6 +19,7 @@
 #![doc = include_str!("../README.md")]
 
 pub mod accuracy;
+pub mod competitors;
 pub mod cubic;
 pub mod images;
 pub mod rigid;

@@ -86,6 +86,12 @@ pub struct GratingSample {
 pub trait SimulatedInstrument: Microscope + GroundTruth + Clone {
     /// Switches the per-pixel truth recording of scans on or off.
     fn record_tip_positions(&mut self, on: bool);
+    /// Switches on or off the backward halves recorded *aside*: while on, every scan returns
+    /// its backward half (retrace) even when the request does not record it, and the forward
+    /// data, the instrument's state and its random streams go on exactly as without it (the
+    /// image benchmark's per-image trace/retrace methods read the retrace, the other methods'
+    /// figures stay bit-identical).
+    fn record_backward_aside(&mut self, on: bool);
     /// The true tip position (scanner frame, hysteresis and creep as they acted, no drift or
     /// jitter) of every pixel of the last scan, in acquisition order (empty when recording is
     /// off).

@@ -19,6 +19,8 @@ use spm_hal::{
 /// Stream numbers of the independent random processes derived from the seed.
 const STREAM_NOISE: u64 = 1;
 const STREAM_FAULTS: u64 = 2;
+/// The stream of the backward halves simulated aside ([`Simulator::record_backward_aside`]).
+const STREAM_BACKWARD_ASIDE: u64 = 3;
 const DRIFT_SEED_SALT: u64 = 0xD21F_7000_0000_0001;
 
 /// Rounds to the nearest DAC/ADC code, ties towards +∞ (`floor(x + ½)`), so
@@ -131,6 +133,8 @@ pub struct Simulator {
     last_tip_nm: [f64; 2],
     /// Effective input (counts) of the last simulated pixel.
     last_effective: [f64; 2],
+    /// While on: the random stream of the backward halves simulated aside.
+    backward_aside: Option<ChaCha8Rng>,
 }
 
 /// Precomputed per-dwell factors of the pixel loop.
@@ -141,6 +145,18 @@ struct PixelFactors {
     /// 1/f processes slow on the pixel scale: one exact AR step per 8 pixels.
     medium_flicker: Vec<(usize, (f64, f64))>,
     slow_flicker: Vec<(usize, (f64, f64))>,
+}
+
+/// The geometry of one retrace simulated aside.
+struct AsideLine {
+    pixels: usize,
+    runs_plus_x: bool,
+    origin_x: f64,
+    step: f64,
+    y: f64,
+    base_s: f64,
+    dwell_s: f64,
+    turn: Option<RasterTurn>,
 }
 
 /// Pixels per update of the medium 1/f processes.
@@ -204,6 +220,7 @@ impl Simulator {
             effective_trace: None,
             last_tip_nm: [0.0; 2],
             last_effective: [0.0; 2],
+            backward_aside: None,
             config,
         };
         sim.z_nm = sim.z_reference_nm();
@@ -222,6 +239,22 @@ impl Simulator {
     pub fn record_tip_positions(&mut self, on: bool) {
         self.tip_trace = on.then(Vec::new);
         self.effective_trace = on.then(Vec::new);
+    }
+
+    /// Turns the backward halves simulated aside on or off. While on, a scan whose request
+    /// does not record the backward half still returns it: each retrace is simulated pixel by
+    /// pixel from a copy of the instrument's state (its own random stream, no fault events),
+    /// and the instrument then runs that retrace exactly as it would unrecorded. So the forward
+    /// data, the state and every random stream go on bit for bit as without it (the image
+    /// benchmark's per-image trace/retrace methods read the retrace; the other methods'
+    /// figures do not move). Requests that record the backward half are simulated in line as
+    /// always.
+    pub fn record_backward_aside(&mut self, on: bool) {
+        self.backward_aside = on.then(|| {
+            let mut rng = ChaCha8Rng::seed_from_u64(self.config.seed);
+            rng.set_stream(STREAM_BACKWARD_ASIDE);
+            rng
+        });
     }
 
     /// The configuration this simulator runs.
@@ -760,6 +793,60 @@ impl Simulator {
         }
     }
 
+    /// One retrace simulated aside (see [`Simulator::record_backward_aside`]): pixel by pixel
+    /// from a copy of the state, with the aside random stream and no fault events; the state
+    /// and the instrument's own streams are put back as they were. Appends to `out`.
+    fn retrace_aside(&mut self, line: &AsideLine, f: &PixelFactors, out: &mut TraceImage) {
+        let Some(mut rng) = self.backward_aside.take() else {
+            return;
+        };
+        let saved = (
+            self.scanner.clone(),
+            self.zmap.clone(),
+            self.flicker.clone(),
+            self.z_nm,
+            self.time_s,
+            self.command,
+            self.last_tip_nm,
+            self.last_effective,
+        );
+        std::mem::swap(&mut self.noise_rng, &mut rng);
+        for pixel in 0..line.pixels {
+            let t_mid = line.base_s + (pixel as f64 + 0.5) * line.dwell_s;
+            if pixel % MEDIUM_FLICKER_PIXELS == 0 {
+                for &(k, c) in &f.medium_flicker {
+                    self.flicker.step(k, c, &mut self.noise_rng);
+                }
+            }
+            let column = if line.runs_plus_x {
+                pixel
+            } else {
+                line.pixels - 1 - pixel
+            };
+            let x = line.origin_x + line.step * column as f64;
+            let p = match line.turn {
+                None => [x, line.y],
+                Some(t) => t.apply(x, line.y),
+            };
+            self.command = p;
+            let z = self.pixel(p, t_mid, f, true);
+            out.z_counts.push(z);
+            out.time_s.push(t_mid);
+        }
+        std::mem::swap(&mut self.noise_rng, &mut rng);
+        self.backward_aside = Some(rng);
+        (
+            self.scanner,
+            self.zmap,
+            self.flicker,
+            self.z_nm,
+            self.time_s,
+            self.command,
+            self.last_tip_nm,
+            self.last_effective,
+        ) = saved;
+    }
+
     // long-function: the raster's physics in acquisition order (commanded path, hysteresis, creep, drift, Z reading, noise per pixel) shares one mutable state per pixel; a split would pass that state through every piece
     fn scan_impl(
         &mut self,
@@ -840,6 +927,10 @@ impl Simulator {
             time_s: Vec::with_capacity(nx * ny),
         };
         let mut backward = record_backward.then(|| TraceImage {
+            z_counts: Vec::with_capacity(nx * ny),
+            time_s: Vec::with_capacity(nx * ny),
+        });
+        let mut aside = (!record_backward && self.backward_aside.is_some()).then(|| TraceImage {
             z_counts: Vec::with_capacity(nx * ny),
             time_s: Vec::with_capacity(nx * ny),
         });
@@ -924,6 +1015,21 @@ impl Simulator {
                     y
                 };
                 let base = start + ((2 * line + half_index) * nx) as f64 * dwell;
+                if half == TraceHalf::Backward
+                    && let Some(out) = aside.as_mut()
+                {
+                    let line = AsideLine {
+                        pixels: nx,
+                        runs_plus_x,
+                        origin_x: ox,
+                        step,
+                        y,
+                        base_s: base,
+                        dwell_s: dwell,
+                        turn,
+                    };
+                    self.retrace_aside(&line, &factors, out);
+                }
                 let mut first_pixel = 0;
                 if let Some((creep, flicker)) = lumped.as_ref()
                     && half == TraceHalf::Backward
@@ -1001,7 +1107,7 @@ impl Simulator {
         Ok(Frame {
             request: request.clone(),
             forward,
-            backward,
+            backward: backward.or(aside),
         })
     }
 }

@@ -72,6 +72,9 @@ impl SimulatedInstrument for Simulator {
     fn record_tip_positions(&mut self, on: bool) {
         Simulator::record_tip_positions(self, on);
     }
+    fn record_backward_aside(&mut self, on: bool) {
+        Simulator::record_backward_aside(self, on);
+    }
     fn last_scan_tip_positions(&self) -> Vec<NmPoint> {
         self.oracle().last_scan_tip_positions()
     }

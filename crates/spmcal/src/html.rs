@@ -513,6 +513,34 @@ const IMAGES_HEADER: [&str; 10] = [
     "lattice failures",
 ];
 
+/// The competitors (per-image trace/retrace methods from their papers) keep the nominal map on
+/// the images they refuse: a paragraph says how many (none when no competitor ran).
+fn competitor_refusals(
+    page: &mut Page,
+    prefix: &str,
+    images: &spm_evaluation::images::ImageBenchmark,
+) {
+    let refusals: Vec<String> = images
+        .methods
+        .iter()
+        .filter_map(|(name, m)| {
+            m.refused_images
+                .map(|r| format!("{name}: {r} of {}", images.count))
+        })
+        .collect();
+    if !refusals.is_empty() {
+        page.paragraph_with_id(
+            &format!("{prefix}images-competitors"),
+            &format!(
+                "competitors (corrections from each image's own trace and retrace, after their \
+                 papers; shown with the real methods, an image a competitor refuses keeps the \
+                 nominal map) — images refused: {}",
+                refusals.join("; ")
+            ),
+        );
+    }
+}
+
 /// The image benchmark: the summary line, per-method table and the identified dynamics;
 /// `prefix` makes the ids unique when a page holds several.
 pub fn images_tables(
@@ -562,6 +590,7 @@ pub fn images_tables(
         })
         .collect();
     page.table(&format!("{prefix}images-methods"), &IMAGES_HEADER, &rows);
+    competitor_refusals(page, prefix, images);
     if !images.images.is_empty() {
         // Per image: every method's position RMS (report.json `images.images`).
         let methods: Vec<&String> = images.methods.keys().collect();

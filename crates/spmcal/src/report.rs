@@ -1153,6 +1153,31 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
         name: "polynomial".to_owned(),
         correction: ImageCorrection::Map(grating),
     });
+    // The competitors (issue 23 item 5): per-image trace/retrace corrections from their
+    // papers, with no calibration; shown with the real methods.
+    let competitor = spm_evaluation::competitors::CompetitorConfig {
+        nominal_nm_per_count: plan.standard.nominal_nm_per_count,
+        lattice_constant_nm: plan.standard.lattice_constant_nm,
+        min_pixels_per_lattice_constant: config.min_pixels_per_lattice_constant,
+    };
+    for (name, method) in [
+        (
+            "competitor_yothers_2017",
+            spm_evaluation::images::Competitor::Yothers,
+        ),
+        (
+            "competitor_zhang_2019",
+            spm_evaluation::images::Competitor::Zhang,
+        ),
+    ] {
+        methods.push(ImageMethod {
+            name: name.to_owned(),
+            correction: ImageCorrection::PerImageCompetitor {
+                method,
+                config: competitor,
+            },
+        });
+    }
     // References (labelled bounds, not competitors): the oracle's true static LCC field, the
     // distributed surfaces along the oracle's true effective trajectory, and a per-image cubic
     // on exact positions.

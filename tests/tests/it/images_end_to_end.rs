@@ -211,3 +211,99 @@ fn the_sample_points_carry_the_drift_the_tip_positions_do_not() {
         );
     }
 }
+
+/// The DHCT competitor (after Yothers et al. 2017) end to end on the simulator's images: on an
+/// ideal scanner with a constant drift along y (a closed form: each pixel `v·t` off on the
+/// sample), the images taken with their retraces aside are corrected from their own trace and
+/// retrace with the lattice as the ruler; the corrected pixels land on the sample points the
+/// simulator recorded to a fifth of the drift's error on every image, and the DHCT's drift
+/// plus creep over the frame matches the drift's: e(t_start) − e(t_end) within 10 % of v·T
+/// (an atom is seen v·t short of where it is).
+#[test]
+fn the_dhct_competitor_takes_out_a_constant_drift_from_trace_and_retrace() {
+    use spm_evaluation::competitors::{CompetitorConfig, nominal_map, yothers};
+    use spm_evaluation::images::{
+        CountRegion, ImageSetConfig, ImageSize, TestImage, take_test_images,
+    };
+    let v_nm_per_s = 0.02;
+    let mut config = spm_sim::SimConfig::ideal();
+    config.drift.velocity_y_nm_per_s = v_nm_per_s;
+    let sim = spm_sim::Simulator::new(config).expect("simulator");
+    let mut instrument = spm_hal::recording::CommandRecorder::new(sim, 100_000);
+    let set = ImageSetConfig {
+        places_per_side: 1,
+        sizes: vec![ImageSize {
+            pixels: 65,
+            step_counts: 2.0,
+        }],
+        dwells_s: vec![2e-3],
+        pause: spm_calibration::PauseLaw {
+            base_s: 0.0,
+            per_count_s: 0.0,
+            per_coarse_step_s: 0.0,
+            max_s: 0.0,
+        },
+        move_speed_counts_per_s: 20_000.0,
+        settle_s: 0.0,
+        lattice_constant_nm: 0.2461,
+        nominal_nm_per_count: 0.02,
+        min_pixels_per_lattice_constant: 5.0,
+    };
+    let region = CountRegion {
+        x_min_counts: -100.0,
+        x_max_counts: 100.0,
+        y_min_counts: -100.0,
+        y_max_counts: 100.0,
+    };
+    let images = take_test_images(&mut instrument, &region, &set).expect("images");
+    let competitor = CompetitorConfig {
+        nominal_nm_per_count: 0.02,
+        lattice_constant_nm: 0.2461,
+        min_pixels_per_lattice_constant: 5.0,
+    };
+    let rms_on_sample = |image: &TestImage, map: &spm_correction::CoordinateMap| -> f64 {
+        let mut points = Vec::new();
+        for row in 0..map.rows() {
+            for column in 0..map.columns() {
+                let p = map.point(column, row).expect("pixel");
+                points.push([p.x.value(), p.y.value()]);
+            }
+        }
+        let r = spm_evaluation::rigid_residuals(&points, &image.sample_truth_nm);
+        (r.iter().map(|v| v * v).sum::<f64>() / r.len() as f64).sqrt()
+    };
+    for image in &images {
+        assert!(image.backward.is_some(), "no retrace aside");
+        let nominal = nominal_map(&image.map, 0.02).expect("nominal map");
+        let (model, map) = yothers::correct_image(&image.map, image.backward.as_ref(), &competitor)
+            .expect("the DHCT corrects the image");
+        let (before, after) = (rms_on_sample(image, &nominal), rms_on_sample(image, &map));
+        assert!(
+            after < 0.2 * before,
+            "{:?}: on the sample {after} nm RMS, nominal {before} nm; {model:?}",
+            image.direction
+        );
+        let times = &image.map.time_s;
+        let (t0, t1) = (
+            times.iter().copied().fold(f64::INFINITY, f64::min),
+            times.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+        );
+        let e = |t: f64| {
+            model.error_nm(&spm_evaluation::competitors::Sighting {
+                position_nm: [model.centre_x_nm, 0.0],
+                time_s: t - t0,
+                since_reversal_s: 0.0,
+                progress: 0.0,
+                sign: 1.0,
+            })[1]
+        };
+        let expected = v_nm_per_s * (t1 - t0);
+        // The sample moves by +v·t: an atom is seen where the tip is, v·t short of it.
+        let found = e(t0) - e(t1);
+        assert!(
+            (found / expected - 1.0).abs() < 0.1,
+            "{:?}: the DHCT moves y by {found} nm over the frame, the drift {expected} nm; {model:?}",
+            image.direction
+        );
+    }
+}

@@ -48,6 +48,15 @@ pub enum ImageCorrection<'a> {
         /// The recorded commands: the run's and the images'.
         history: spm_correction::dynamics::CommandHistory,
     },
+    /// A competitor fitted on each image's own trace and retrace (no calibration); an image
+    /// it refuses keeps the nominal map (commanded counts × nominal sensitivity), as its user
+    /// would.
+    PerImageCompetitor {
+        /// Which.
+        method: Competitor,
+        /// The standard and the nominal sensitivity.
+        config: crate::competitors::CompetitorConfig,
+    },
     /// A correction field integrated along each image's *effective* trajectory
     /// (`spm_correction::dynamics`): `offsets[image]` = uₑ − u per pixel in acquisition order,
     /// the field evaluated at uₑ / `gain`.
@@ -59,6 +68,15 @@ pub enum ImageCorrection<'a> {
         /// Large-signal gain per axis of the dynamics model.
         gain: [f64; 2],
     },
+}
+
+/// A per-image trace/retrace competitor ([`crate::competitors`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Competitor {
+    /// The DHCT after Yothers, Browder & Bumm (2017).
+    Yothers,
+    /// The sinusoid-plus-linear map after Zhang et al. (2019).
+    Zhang,
 }
 
 /// One correction method of the benchmark.
@@ -114,6 +132,10 @@ pub struct ImageMethodSummary {
     /// method that removes the drift is judged by this; `position_rms_pct_of_side` counts
     /// the drift it removed as an error.
     pub sample_position_rms_pct_of_side: f64,
+    /// Images a per-image competitor refused (no retrace, lattice not resolved, too few atoms
+    /// indexed or matched), which keep the nominal map in its figures; only for competitors.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub refused_images: Option<usize>,
 }
 
 /// The benchmark's result (report.json `images`).
@@ -229,63 +251,108 @@ fn coordinate_map(
     image: &TestImage,
     index: usize,
 ) -> Result<CoordinateMap, ImageBenchmarkError> {
-    let (nx, ny) = (image.map.columns, image.map.rows);
-    Ok(match &method.correction {
-        ImageCorrection::Field(field) => correct_raster(
-            field.as_ref(),
-            &geometry_of(image)?,
-            image.direction,
-            &Integration::default(),
-            Parallelism::Sequential,
-        )?,
-        ImageCorrection::Map(map) => {
-            let points: Vec<[f64; 2]> = commanded(image)
-                .iter()
-                .map(|u| map.eval(u[0], u[1]))
-                .collect();
-            map_from_points(&points, nx, ny)?
-        }
-        ImageCorrection::PerImageBound => {
-            let u = commanded(image);
-            let fit = CubicMap::fit(&u, &image.truth_nm).map_err(|e| {
-                ImageBenchmarkError::Grating(format!("per-image bound: polynomial fit: {e}"))
-            })?;
-            let points: Vec<[f64; 2]> = u.iter().map(|p| fit.eval(p[0], p[1])).collect();
-            map_from_points(&points, nx, ny)?
-        }
-        ImageCorrection::UserFile(set) => user_file_map(set, image, None, None)?,
-        ImageCorrection::UserFileRuler { set, ruler } => {
-            user_file_map(set, image, None, Some(ruler))?
-        }
-        ImageCorrection::UserFileRecorded { set, history } => {
-            user_file_map(set, image, Some(history), None)?
-        }
-        ImageCorrection::EffectivePath {
-            field,
-            offsets,
-            gain,
-        } => {
-            let offsets = offsets.get(index).ok_or_else(|| {
-                ImageBenchmarkError::Config(format!("no effective-input offsets for image {index}"))
-            })?;
-            let n = image.commanded_acquisition.len().max(1) as f64;
-            let centre = image
-                .commanded_acquisition
-                .iter()
-                .fold([0.0, 0.0], |s, u| [s[0] + u[0] / n, s[1] + u[1] / n]);
-            let acquisition = correct_effective_raster(
-                field.as_ref(),
-                nx,
-                ny,
-                &image.commanded_acquisition,
-                offsets,
-                *gain,
-                centre,
-            )?;
-            spm_correction::dynamics::to_geometry_map(&acquisition, nx, ny, image.direction)?
-        }
-    })
+    Ok(coordinate_map_or_refusal(method, image, index)?.0)
 }
+
+/// [`coordinate_map`], and whether a per-image competitor refused the image (the map is then
+/// the nominal one).
+fn coordinate_map_or_refusal(
+    method: &ImageMethod<'_>,
+    image: &TestImage,
+    index: usize,
+) -> Result<(CoordinateMap, bool), ImageBenchmarkError> {
+    let (nx, ny) = (image.map.columns, image.map.rows);
+    if let ImageCorrection::PerImageCompetitor { method, config } = &method.correction {
+        return competitor_map(*method, config, image);
+    }
+    Ok((
+        match &method.correction {
+            ImageCorrection::Field(field) => correct_raster(
+                field.as_ref(),
+                &geometry_of(image)?,
+                image.direction,
+                &Integration::default(),
+                Parallelism::Sequential,
+            )?,
+            ImageCorrection::Map(map) => {
+                let points: Vec<[f64; 2]> = commanded(image)
+                    .iter()
+                    .map(|u| map.eval(u[0], u[1]))
+                    .collect();
+                map_from_points(&points, nx, ny)?
+            }
+            ImageCorrection::PerImageBound => {
+                let u = commanded(image);
+                let fit = CubicMap::fit(&u, &image.truth_nm).map_err(|e| {
+                    ImageBenchmarkError::Grating(format!("per-image bound: polynomial fit: {e}"))
+                })?;
+                let points: Vec<[f64; 2]> = u.iter().map(|p| fit.eval(p[0], p[1])).collect();
+                map_from_points(&points, nx, ny)?
+            }
+            ImageCorrection::UserFile(set) => user_file_map(set, image, None, None)?,
+            ImageCorrection::UserFileRuler { set, ruler } => {
+                user_file_map(set, image, None, Some(ruler))?
+            }
+            ImageCorrection::UserFileRecorded { set, history } => {
+                user_file_map(set, image, Some(history), None)?
+            }
+            ImageCorrection::PerImageCompetitor { method, config } => {
+                competitor_map(*method, config, image)?.0
+            }
+            ImageCorrection::EffectivePath {
+                field,
+                offsets,
+                gain,
+            } => {
+                let offsets = offsets.get(index).ok_or_else(|| {
+                    ImageBenchmarkError::Config(format!(
+                        "no effective-input offsets for image {index}"
+                    ))
+                })?;
+                let n = image.commanded_acquisition.len().max(1) as f64;
+                let centre = image
+                    .commanded_acquisition
+                    .iter()
+                    .fold([0.0, 0.0], |s, u| [s[0] + u[0] / n, s[1] + u[1] / n]);
+                let acquisition = correct_effective_raster(
+                    field.as_ref(),
+                    nx,
+                    ny,
+                    &image.commanded_acquisition,
+                    offsets,
+                    *gain,
+                    centre,
+                )?;
+                spm_correction::dynamics::to_geometry_map(&acquisition, nx, ny, image.direction)?
+            }
+        },
+        false,
+    ))
+}
+/// A competitor's map of one image, or the nominal map where it refuses the image (`true`).
+fn competitor_map(
+    method: Competitor,
+    config: &crate::competitors::CompetitorConfig,
+    image: &TestImage,
+) -> Result<(CoordinateMap, bool), ImageBenchmarkError> {
+    use crate::competitors::{CompetitorError, nominal_map, yothers, zhang};
+    let found = match method {
+        Competitor::Yothers => {
+            yothers::correct_image(&image.map, image.backward.as_ref(), config).map(|f| f.1)
+        }
+        Competitor::Zhang => {
+            zhang::correct_image(&image.map, image.backward.as_ref(), config).map(|f| f.1)
+        }
+    };
+    match found {
+        Ok(map) => Ok((map, false)),
+        Err(CompetitorError::Refused { .. }) => {
+            Ok((nominal_map(&image.map, config.nominal_nm_per_count)?, true))
+        }
+        Err(CompetitorError::Correction(e)) => Err(e.into()),
+    }
+}
+
 fn position_figures(
     corrected: &[[f64; 2]],
     truth_nm: &[[f64; 2]],
@@ -425,8 +492,10 @@ pub fn evaluate_images(
         let mut lattice: Vec<f64> = Vec::new();
         let mut angle_max: f64 = 0.0;
         let mut failures = 0;
+        let mut refused = 0;
         for (k, image) in images.iter().enumerate() {
-            let map = coordinate_map(method, image, k)?;
+            let (map, was_refused) = coordinate_map_or_refusal(method, image, k)?;
+            refused += usize::from(was_refused);
             let corrected = flatten(&map)?;
             let (rms, max, pct) = position_figures(&corrected, &image.truth_nm, image, nominal);
             let (_, _, sample_pct) =
@@ -479,6 +548,11 @@ pub fn evaluate_images(
                     .map(|(k, (s, c))| (k, (s / c.max(1) as f64).sqrt()))
                     .collect(),
                 sample_position_rms_pct_of_side: sample_pct_sum / n,
+                refused_images: matches!(
+                    method.correction,
+                    ImageCorrection::PerImageCompetitor { .. }
+                )
+                .then_some(refused),
             },
         );
     }

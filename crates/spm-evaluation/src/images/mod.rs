@@ -35,7 +35,7 @@ mod user_file;
 
 pub use crate::cubic::CubicMap;
 pub use evaluate::{
-    DynamicsSummary, ImageBenchmark, ImageCorrection, ImageFigures, ImageMethod,
+    Competitor, DynamicsSummary, ImageBenchmark, ImageCorrection, ImageFigures, ImageMethod,
     ImageMethodSummary, ImageRow, PairLattice, evaluate_images, lattice_of_pairs,
 };
 pub use grating::{GratingConfig, grating_polynomial};

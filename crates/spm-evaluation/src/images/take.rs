@@ -121,6 +121,9 @@ pub struct TestImage {
     pub direction: ScanDirection,
     /// The forward trace in scanner geometry (row with y, column with x).
     pub map: HeightMap,
+    /// The backward trace (retrace) in the same geometry, with its own pixel times, when the
+    /// instrument recorded it (the per-image trace/retrace methods, `crate::competitors`).
+    pub backward: Option<HeightMap>,
     /// True tip position of every pixel, scanner frame, nm, in the same geometry.
     pub truth_nm: Vec<[f64; 2]>,
     /// The sample point under the tip at every pixel (the tip position plus the sample's drift
@@ -210,6 +213,8 @@ pub fn take_test_images<S: SimulatedInstrument>(
     config: &ImageSetConfig,
 ) -> Result<Vec<TestImage>, ImageBenchmarkError> {
     instrument.inner_mut().record_tip_positions(true);
+    // The retraces aside: the forward data and the random streams go on as without them.
+    instrument.inner_mut().record_backward_aside(true);
     let result = take_images(instrument, region, config, |sim, n| {
         let truth: Vec<[f64; 2]> = sim
             .inner_mut()
@@ -232,6 +237,7 @@ pub fn take_test_images<S: SimulatedInstrument>(
         Ok((truth, effective))
     });
     instrument.inner_mut().record_tip_positions(false);
+    instrument.inner_mut().record_backward_aside(false);
     let mut images = result?;
     // The sample points: the drift at each pixel's (past) time is exact now.
     for image in &mut images {
@@ -325,6 +331,11 @@ fn take_images<M: Microscope>(
                     let map = frame
                         .height_map(TraceHalf::Forward)
                         .map_err(|e| ImageBenchmarkError::Config(format!("height map: {e}")))?;
+                    let backward = frame.backward.is_some().then(|| {
+                        frame.height_map(TraceHalf::Backward).map_err(|e| {
+                            ImageBenchmarkError::Config(format!("backward height map: {e}"))
+                        })
+                    });
                     let mut commanded = Vec::with_capacity(n * n);
                     for line in 0..n {
                         for pixel in 0..n {
@@ -339,6 +350,7 @@ fn take_images<M: Microscope>(
                         dwell_s: dwell,
                         direction,
                         map,
+                        backward: backward.transpose()?,
                         truth_nm: to_geometry(&truth, n, n, direction),
                         sample_truth_nm: Vec::new(),
                         commanded_acquisition: commanded,

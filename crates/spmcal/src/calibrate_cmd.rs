@@ -379,6 +379,17 @@ pub fn run(
         );
     }
     crate::outln!("report: {}", out.join("report.html").display());
+    targets_verdict(&report, source, &run_id, report_options.enforce_targets)
+}
+
+/// Exit code 3 ([`CliError::TargetMissed`]) when the report missed a target of its plan,
+/// unless `enforce` is off (`--no-targets`: a line says so).
+fn targets_verdict(
+    report: &spmcal::report::CalibrationReport,
+    source: &JobSource,
+    run_id: &str,
+    enforce: bool,
+) -> Result<(), CliError> {
     let missed: Vec<&str> = report
         .targets
         .iter()
@@ -388,7 +399,7 @@ pub fn run(
     if missed.is_empty() {
         return Ok(());
     }
-    if !report_options.enforce_targets {
+    if !enforce {
         crate::outln!(
             "missed {} of the plan's targets; not failing the run (--no-targets)",
             missed.len()

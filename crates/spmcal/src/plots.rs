@@ -572,14 +572,17 @@ pub fn before_after_figure(
     }
     let file = BEFORE_AFTER_FILE;
     let png = image_pair(&ImagePairFigure {
-        title: &format!("The standard at the {} place, before and after", pair.place),
+        title: &format!(
+            "The standard at the {} place, before and after correction",
+            pair.place
+        ),
         x_label: "x, nm",
         y_label: "y, nm",
         panels: [
             panel("raw (nominal sensitivity)", &pair.before),
             panel("corrected (as spmcal correct)", &pair.after),
         ],
-        value_label: "height, Z counts",
+        value_label: "height − median, Z counts",
         map: ColorMap::AfmHot,
     })
     .map_err(PlotError::of(file))?;
@@ -608,6 +611,29 @@ pub struct TrendSeries<'a> {
     pub points: &'a [spm_cdb::TrendPoint],
 }
 
+/// The points of one series of [`cdb_trend_figure`]: per run with a value, [hours since
+/// `start_unix_s`, % change of the mean from the first run's, the same at mean − u and at
+/// mean + u].
+#[must_use]
+pub fn trend_change(points: &[spm_cdb::TrendPoint], start_unix_s: f64) -> Vec<[f64; 4]> {
+    let values: Vec<(f64, f64, f64)> = points
+        .iter()
+        .filter_map(|p| {
+            p.stat
+                .map(|st| (p.mean_unix_s, st.mean, st.std_uncertainty))
+        })
+        .filter(|(t, m, _)| t.is_finite() && m.is_finite() && *m != 0.0)
+        .collect();
+    let Some(&(_, first, _)) = values.first() else {
+        return Vec::new();
+    };
+    let pct = |m: f64| (m / first - 1.0) * 100.0;
+    values
+        .iter()
+        .map(|&(t, m, u)| [(t - start_unix_s) / 3600.0, pct(m), pct(m - u), pct(m + u)])
+        .collect()
+}
+
 /// `spmcal cdb trend --png`: K̄x and K̄y of every scanner per run, as % change from the
 /// scanner's first run, against hours since the CDB's first run, each mean with a band of ±
 /// its standard uncertainty.
@@ -623,23 +649,12 @@ pub fn cdb_trend_figure(series: &[TrendSeries<'_>]) -> Result<Vec<u8>, PlotError
         .fold(f64::INFINITY, f64::min);
     let mut out = Vec::new();
     for s in series {
-        let values: Vec<(f64, f64, f64)> = s
-            .points
-            .iter()
-            .filter_map(|p| {
-                p.stat
-                    .map(|st| (p.mean_unix_s, st.mean, st.std_uncertainty))
-            })
-            .filter(|(t, m, _)| t.is_finite() && m.is_finite() && *m != 0.0)
-            .collect();
-        let Some(&(_, first, _)) = values.first() else {
+        let values = trend_change(s.points, start);
+        if values.is_empty() {
             continue;
-        };
-        let at = |(t, m, u): (f64, f64, f64), sign: f64| {
-            ((t - start) / 3600.0, (m + sign * u) / first * 100.0 - 100.0)
-        };
-        let mut band: Vec<(f64, f64)> = values.iter().map(|v| at(*v, -1.0)).collect();
-        band.extend(values.iter().rev().map(|v| at(*v, 1.0)));
+        }
+        let mut band: Vec<(f64, f64)> = values.iter().map(|v| (v[0], v[2])).collect();
+        band.extend(values.iter().rev().map(|v| (v[0], v[3])));
         let name = format!("{} {}", s.scanner, s.coefficient);
         out.push(Series {
             name: format!("{name} ± u"),
@@ -648,7 +663,7 @@ pub fn cdb_trend_figure(series: &[TrendSeries<'_>]) -> Result<Vec<u8>, PlotError
         });
         out.push(Series {
             name,
-            points: values.iter().map(|v| at(*v, 0.0)).collect(),
+            points: values.iter().map(|v| (v[0], v[1])).collect(),
             style: SeriesStyle::LineAndMarkers,
         });
     }
@@ -667,4 +682,53 @@ pub fn cdb_trend_figure(series: &[TrendSeries<'_>]) -> Result<Vec<u8>, PlotError
         size: (960, 540),
     })
     .map_err(PlotError::of(file))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn point(t: f64, mean: f64, u: f64) -> spm_cdb::TrendPoint {
+        spm_cdb::TrendPoint {
+            key: format!("run-{t}"),
+            mean_unix_s: t,
+            first_unix_s: t,
+            last_unix_s: t,
+            stat: Some(spm_cdb::CoefficientStat {
+                n: 4,
+                mean,
+                std_dev: 2.0 * u,
+                std_uncertainty: u,
+            }),
+        }
+    }
+
+    /// Issue 27's history figure: a sensitivity 0.0200 then 0.0202 nm/count a day later is a
+    /// change of +1 % at 24 h, its ± 0.0001 band ±0.5 %; a run without a value is left out.
+    #[test]
+    fn the_trend_is_the_change_from_the_first_run_in_percent_against_hours() {
+        let mut points = vec![
+            point(1000.0, 0.02, 1e-4),
+            point(1000.0 + 86_400.0, 0.0202, 1e-4),
+        ];
+        points.push(spm_cdb::TrendPoint {
+            stat: None,
+            ..point(1000.0 + 2.0 * 86_400.0, 0.0, 0.0)
+        });
+        let v = trend_change(&points, 1000.0);
+        assert_eq!(v.len(), 2);
+        let expected = [[0.0, 0.0, -0.5, 0.5], [24.0, 1.0, 0.5, 1.5]];
+        for (got, want) in v.iter().zip(expected) {
+            for (g, w) in got.iter().zip(want) {
+                assert!((g - w).abs() < 1e-9, "{got:?} vs {want:?}");
+            }
+        }
+        let png = cdb_trend_figure(&[TrendSeries {
+            scanner: "s",
+            coefficient: "K̄x",
+            points: &points,
+        }])
+        .unwrap();
+        assert!(png.starts_with(&[0x89, b'P', b'N', b'G']));
+    }
 }

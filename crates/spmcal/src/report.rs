@@ -447,6 +447,12 @@ impl<'a> RunRecord<'a> {
         }
     }
 
+    /// True when the run's backend has a ground truth: the instrument is a simulator, or (a
+    /// report regenerated from the CDB) its provenance names a simulator's seed.
+    fn simulated(&self) -> bool {
+        self.truth.is_some() || self.provenance.is_some_and(|p| p.seed.is_some())
+    }
+
     fn phase(&self, name: &str) {
         if let Some(phase) = self.phase {
             phase(name);
@@ -735,19 +741,12 @@ pub fn finish_with(
     }
     record.phase("drawing the figures");
     let mut figures = figures(record, &fitted, &all, drift.estimates > 0)?;
-    if let (Some(field), Some(a)) = (&residual, &accuracy) {
-        figures.push(plots::residual_map(
-            field,
-            record.nodes,
-            record.plan.standard.nominal_nm_per_count,
-            (a.distributed.rms_pm, a.distributed.max_pm),
-        )?);
-    }
-    match before_after(record, &fitted.set) {
-        Ok(Some(figure)) => figures.push(figure),
-        Ok(None) => {}
-        Err(why) => notes.push(format!("before/after figure: not drawn ({why})")),
-    }
+    figures.extend(verdict_figures(
+        record,
+        &fitted.set,
+        residual.as_ref().zip(accuracy.as_ref()),
+        &mut notes,
+    )?);
     for figure in &figures {
         write(&out.join(&figure.file), &figure.png)?;
     }
@@ -756,7 +755,7 @@ pub fn finish_with(
     let validation = Validation::of(&all, record.plan, &fitted.set, record.standard_images);
     let node_lcc_error = record.truth.and_then(|truth| node_lcc_error(truth, &all));
     let measured = record.run.nodes_done.max(1) as f64;
-    let report = CalibrationReport {
+    let mut report = CalibrationReport {
         scanner_id: record.plan.scanner_id.clone(),
         nodes: record.run.nodes,
         repeats: record.run.repeats,
@@ -787,11 +786,7 @@ pub fn finish_with(
         drift,
         notes,
     };
-    let simulated = record.truth.is_some() || record.provenance.is_some_and(|p| p.seed.is_some());
-    let report = CalibrationReport {
-        targets: crate::targets::judge(&report, &record.plan.targets, simulated),
-        ..report
-    };
+    report.targets = crate::targets::judge(&report, &record.plan.targets, record.simulated());
     let json = serde_json::to_string_pretty(&report).map_err(|e| ReportError::Write {
         path: "report.json".to_owned(),
         message: e.to_string(),
@@ -930,6 +925,32 @@ fn accuracy_section(
     let residual =
         spm_evaluation::residual_field(oracle, &plane.field(spm_correction::Route::Exact), &grid)?;
     Ok((accuracy, images, residual))
+}
+
+/// The figures that show what the calibration achieves: the residual-distortion map (with a
+/// ground truth) and the before/after image of the standard (when it was imaged; a failure
+/// to draw it is a note, not an error).
+fn verdict_figures(
+    record: &RunRecord<'_>,
+    set: &spm_correction::SurfaceSet,
+    residual: Option<(&spm_evaluation::ResidualField, &AccuracyTable)>,
+    notes: &mut Vec<String>,
+) -> Result<Vec<plots::Figure>, ReportError> {
+    let mut figures = Vec::new();
+    if let Some((field, a)) = residual {
+        figures.push(plots::residual_map(
+            field,
+            record.nodes,
+            record.plan.standard.nominal_nm_per_count,
+            (a.distributed.rms_pm, a.distributed.max_pm),
+        )?);
+    }
+    match before_after(record, set) {
+        Ok(Some(figure)) => figures.push(figure),
+        Ok(None) => {}
+        Err(why) => notes.push(format!("before/after figure: not drawn ({why})")),
+    }
+    Ok(figures)
 }
 
 /// The before/after figure of the standard: the first direct image of the validation's

@@ -20,8 +20,8 @@ pub struct HeightsOnGrid {
     pub origin_nm: [f64; 2],
     /// Spacing along both axes, nm.
     pub step_nm: f64,
-    /// Heights, Z counts, `[row * columns + column]` (NaN where the corrected image has no
-    /// data).
+    /// Heights, Z counts, relative to the raw image's median height (one reference for
+    /// both images), `[row * columns + column]` (NaN where the corrected image has no data).
     pub z_counts: Vec<f64>,
 }
 
@@ -51,6 +51,14 @@ pub fn before_after(
 ) -> Result<BeforeAfter, ImageBenchmarkError> {
     let m = &image.map;
     let step_nm = m.pixel_step.value() * nominal_nm_per_count;
+    let mut finite: Vec<f64> = m
+        .z_counts
+        .iter()
+        .copied()
+        .filter(|z| z.is_finite())
+        .collect();
+    let reference = spm_regression::median(&mut finite).unwrap_or(0.0);
+    let relative = |z: &[f64]| -> Vec<f64> { z.iter().map(|v| v - reference).collect() };
     let before = HeightsOnGrid {
         columns: m.columns,
         rows: m.rows,
@@ -59,7 +67,7 @@ pub fn before_after(
             m.origin.y.value() * nominal_nm_per_count,
         ],
         step_nm,
-        z_counts: m.z_counts.clone(),
+        z_counts: relative(&m.z_counts),
     };
     let map = user_file_map(set, image, None, None)?;
     let grid = OutputGrid::covering(&map, Some(Nanometres(step_nm)))?;
@@ -75,7 +83,7 @@ pub fn before_after(
         rows: grid.rows,
         origin_nm: [grid.origin_nm.x.value(), grid.origin_nm.y.value()],
         step_nm: grid.step_nm.value(),
-        z_counts: z,
+        z_counts: relative(&z),
     };
     Ok(BeforeAfter {
         place: image.place.clone(),

@@ -872,7 +872,8 @@ fn a_run_logs_to_its_folder_keeps_the_console_quiet_and_records_its_provenance()
 /// target passes. The plan: the quick 3 × 3 job with `distributed_over_lumped_rms_max` first
 /// at 0.1 (a 3 × 3 net cannot reach it), then at 10. The verdict is checked against the
 /// figures report.json holds (the ratio of the two RMS residuals of its accuracy table,
-/// measured against the simulator's oracle), not against the program's own verdict.
+/// measured against the simulator's oracle), not against the program's own verdict. The
+/// last run's CDB then gives `cdb trend --png` its history figure.
 #[test]
 fn a_missed_target_exits_3_with_its_verdict_and_no_targets_exits_0() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
@@ -953,5 +954,33 @@ fn a_missed_target_exits_3_with_its_verdict_and_no_targets_exits_0() {
     assert!(ratio <= 10.0, "{ratio}");
     assert_eq!((code, outcome.as_str()), (0, "pass"), "{stdout}\n{stderr}");
     assert!(stdout.contains("→ PASS"), "{stdout}");
+    // The CDB's history as a figure (`cdb trend --png`); never written over the CDB.
+    let db = out.join("cdb.sqlite");
+    let png = dir.join("trend.png");
+    let args = [
+        "cdb",
+        "trend",
+        db.to_str().unwrap(),
+        "--png",
+        png.to_str().unwrap(),
+    ];
+    let (code, stdout, stderr) = spmcal(&args);
+    assert_eq!(code, 0, "{stderr}");
+    assert!(
+        stdout.contains("K̄x") && stdout.contains("figure: "),
+        "{stdout}"
+    );
+    let bytes = std::fs::read(&png).unwrap();
+    assert!(bytes.starts_with(&[0x89, b'P', b'N', b'G']));
+    let before = std::fs::read(&db).unwrap();
+    let (code, _, stderr) = spmcal(&[
+        "cdb",
+        "trend",
+        db.to_str().unwrap(),
+        "--png",
+        db.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 2, "the CDB is not replaced by its figure: {stderr}");
+    assert_eq!(std::fs::read(&db).unwrap(), before);
     let _ = std::fs::remove_dir_all(&dir);
 }

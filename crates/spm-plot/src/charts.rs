@@ -604,7 +604,11 @@ pub fn image_pair(f: &ImagePairFigure<'_>) -> Result<Vec<u8>, PlotError> {
     };
     let mut all: Vec<f64> = Vec::new();
     for p in &f.panels {
-        if p.columns == 0 || p.rows == 0 || p.values.len() != p.columns * p.rows || !(p.step > 0.0)
+        if p.columns == 0
+            || p.rows == 0
+            || p.values.len() != p.columns * p.rows
+            || p.step.is_nan()
+            || p.step <= 0.0
         {
             return Err(empty());
         }

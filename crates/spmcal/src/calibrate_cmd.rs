@@ -23,7 +23,7 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 pub const DEFAULT_OUT: &str = "spmcal-calibrate";
 
 /// The files a run writes into its report folder.
-pub const OUTPUT_FILES: [&str; 12] = [
+pub const OUTPUT_FILES: [&str; 13] = [
     "report.json",
     "report.html",
     "surfaces.json",
@@ -33,6 +33,7 @@ pub const OUTPUT_FILES: [&str; 12] = [
     spmcal::plots::UNCERTAINTY_FILE,
     spmcal::plots::RESIDUAL_FILE,
     spmcal::plots::BEFORE_AFTER_FILE,
+    spmcal::plots::HISTORY_FILE,
     "trajectory.png",
     "drift.png",
     LOG_FILE,

@@ -1125,6 +1125,16 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
     page.table("drift-table", &["quantity", "value"], &rows);
     figure(&mut page, "drift.png");
 
+    if figures.iter().any(|f| f.file == crate::plots::HISTORY_FILE) {
+        page.section("history", "Calibration history of the scanner (the CDB)");
+        page.paragraph(
+            "Every run of this scanner in the calibration database: read the line against its \
+             band; a step larger than the bands between two runs means the scanner changed \
+             (or was handled) between them, and the newest calibration is the one to use.",
+        );
+        figure(&mut page, crate::plots::HISTORY_FILE);
+    }
+
     page.section("trajectory", "Nodes in visiting order");
     figure(&mut page, "trajectory.png");
 

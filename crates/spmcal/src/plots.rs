@@ -600,6 +600,9 @@ pub fn before_after_figure(
     })
 }
 
+/// The file of the report's calibration-history figure.
+pub const HISTORY_FILE: &str = "cdb-history.png";
+
 /// One coefficient's history of one scanner in the CDB: per run, the mean acquisition time
 /// (UTC s), the mean and its standard uncertainty, stored unit.
 pub struct TrendSeries<'a> {
@@ -611,7 +614,7 @@ pub struct TrendSeries<'a> {
     pub points: &'a [spm_cdb::TrendPoint],
 }
 
-/// The points of one series of [`cdb_trend_figure`]: per run with a value, [hours since
+/// The points of one series of [`cdb_trend_figure`]: per run with a value, [seconds since
 /// `start_unix_s`, % change of the mean from the first run's, the same at mean − u and at
 /// mean + u].
 #[must_use]
@@ -630,12 +633,13 @@ pub fn trend_change(points: &[spm_cdb::TrendPoint], start_unix_s: f64) -> Vec<[f
     let pct = |m: f64| (m / first - 1.0) * 100.0;
     values
         .iter()
-        .map(|&(t, m, u)| [(t - start_unix_s) / 3600.0, pct(m), pct(m - u), pct(m + u)])
+        .map(|&(t, m, u)| [t - start_unix_s, pct(m), pct(m - u), pct(m + u)])
         .collect()
 }
 
 /// `spmcal cdb trend --png`: K̄x and K̄y of every scanner per run, as % change from the
-/// scanner's first run, against hours since the CDB's first run, each mean with a band of ±
+/// scanner's first run, against the time since the CDB's first run (seconds, minutes, hours
+/// or days, whichever suits the span), each mean with a band of ±
 /// its standard uncertainty.
 ///
 /// # Errors
@@ -647,9 +651,22 @@ pub fn cdb_trend_figure(series: &[TrendSeries<'_>]) -> Result<Vec<u8>, PlotError
         .flat_map(|s| s.points.iter().map(|p| p.mean_unix_s))
         .filter(|t| t.is_finite())
         .fold(f64::INFINITY, f64::min);
+    let all: Vec<Vec<[f64; 4]>> = series
+        .iter()
+        .map(|s| trend_change(s.points, start))
+        .collect();
+    // The time unit that suits the span: seconds, minutes, hours or days.
+    let span_s = all.iter().flatten().map(|v| v[0]).fold(0.0_f64, f64::max);
+    let (unit_s, unit) = [(86_400.0, "days"), (3600.0, "hours"), (60.0, "minutes")]
+        .into_iter()
+        .find(|(u, _)| span_s >= 3.0 * u)
+        .unwrap_or((1.0, "seconds"));
     let mut out = Vec::new();
-    for s in series {
-        let values = trend_change(s.points, start);
+    for (s, values) in series.iter().zip(all) {
+        let values: Vec<[f64; 4]> = values
+            .into_iter()
+            .map(|[t, m, lo, hi]| [t / unit_s, m, lo, hi])
+            .collect();
         if values.is_empty() {
             continue;
         }
@@ -668,13 +685,14 @@ pub fn cdb_trend_figure(series: &[TrendSeries<'_>]) -> Result<Vec<u8>, PlotError
         });
     }
     let first_utc = if start.is_finite() {
-        spm_cdb::rfc3339_utc(start)
+        // Whole seconds: the text carries no fraction.
+        spm_cdb::rfc3339_utc(start.floor())
     } else {
         "–".to_owned()
     };
     xy_chart(&XyFigure {
         title: "Calibration history: K̄x and K̄y per run".to_owned(),
-        x_label: format!("hours since the first run ({first_utc})"),
+        x_label: format!("{unit} since the first run ({first_utc})"),
         y_label: "change from the scanner's first run, %".to_owned(),
         series: out,
         log_y: false,
@@ -704,9 +722,10 @@ mod tests {
     }
 
     /// Issue 27's history figure: a sensitivity 0.0200 then 0.0202 nm/count a day later is a
-    /// change of +1 % at 24 h, its ± 0.0001 band ±0.5 %; a run without a value is left out.
+    /// change of +1 % at 86 400 s, its ± 0.0001 band ±0.5 %; a run without a value is left
+    /// out.
     #[test]
-    fn the_trend_is_the_change_from_the_first_run_in_percent_against_hours() {
+    fn the_trend_is_the_change_from_the_first_run_in_percent_against_time() {
         let mut points = vec![
             point(1000.0, 0.02, 1e-4),
             point(1000.0 + 86_400.0, 0.0202, 1e-4),
@@ -717,7 +736,7 @@ mod tests {
         });
         let v = trend_change(&points, 1000.0);
         assert_eq!(v.len(), 2);
-        let expected = [[0.0, 0.0, -0.5, 0.5], [24.0, 1.0, 0.5, 1.5]];
+        let expected = [[0.0, 0.0, -0.5, 0.5], [86_400.0, 1.0, 0.5, 1.5]];
         for (got, want) in v.iter().zip(expected) {
             for (g, w) in got.iter().zip(want) {
                 assert!((g - w).abs() < 1e-9, "{got:?} vs {want:?}");

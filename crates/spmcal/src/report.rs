@@ -747,6 +747,7 @@ pub fn finish_with(
         residual.as_ref().zip(accuracy.as_ref()),
         &mut notes,
     )?);
+    figures.extend(history_figure(&*snapshot, &record.plan.scanner_id)?);
     for figure in &figures {
         write(&out.join(&figure.file), &figure.png)?;
     }
@@ -951,6 +952,50 @@ fn verdict_figures(
         Err(why) => notes.push(format!("before/after figure: not drawn ({why})")),
     }
     Ok(figures)
+}
+
+/// The scanner's calibration history in the CDB (every run's mean K̄x and K̄y,
+/// [`plots::cdb_trend_figure`]), as `spmcal cdb trend --png` draws it for every scanner.
+fn history_figure(
+    cdb: &dyn spm_cdb::CdbRead,
+    scanner: &str,
+) -> Result<Option<plots::Figure>, ReportError> {
+    let filter = RecordFilter::scanner(scanner);
+    let kx = cdb.age_dynamics(
+        &filter,
+        spm_cdb::Coefficient::KxNmPerCount,
+        spm_cdb::TrendGrouping::PerRun,
+    )?;
+    let ky = cdb.age_dynamics(
+        &filter,
+        spm_cdb::Coefficient::KyNmPerCount,
+        spm_cdb::TrendGrouping::PerRun,
+    )?;
+    let series = [
+        plots::TrendSeries {
+            scanner,
+            coefficient: "K̄x",
+            points: &kx,
+        },
+        plots::TrendSeries {
+            scanner,
+            coefficient: "K̄y",
+            points: &ky,
+        },
+    ];
+    let Ok(png) = plots::cdb_trend_figure(&series) else {
+        return Ok(None);
+    };
+    Ok(Some(plots::Figure {
+        file: plots::HISTORY_FILE.to_owned(),
+        caption: format!(
+            "the {} runs of scanner {scanner} in this CDB: each run's mean K̄x and K̄y as the \
+             change from the first run, with ± its standard uncertainty (the band); a change \
+             beyond the bands means the scanner moved between calibrations.",
+            kx.len()
+        ),
+        png,
+    }))
 }
 
 /// The before/after figure of the standard: the first direct image of the validation's

@@ -349,6 +349,7 @@ fn report_html_matches_report_json() {
         "trajectory.png",
         "drift.png",
         "residual-distortion.png",
+        "cdb-history.png",
     ]
     .iter()
     .map(|file| Figure {

@@ -989,10 +989,14 @@ fn history_figure(
     Ok(Some(plots::Figure {
         file: plots::HISTORY_FILE.to_owned(),
         caption: format!(
-            "the {} runs of scanner {scanner} in this CDB: each run's mean K̄x and K̄y as the \
+            "the {} of scanner {scanner} in this CDB: each run's mean K̄x and K̄y as the \
              change from the first run, with ± its standard uncertainty (the band); a change \
              beyond the bands means the scanner moved between calibrations.",
-            kx.len()
+            if kx.len() == 1 {
+                "one run".to_owned()
+            } else {
+                format!("{} runs", kx.len())
+            }
         ),
         png,
     }))

@@ -78,6 +78,13 @@ pub struct PlanConfig {
     /// defaults (10 % of the nodes held out, the verdicts' thresholds).
     #[serde(default)]
     pub validation: crate::run_validation::RunValidationConfig,
+    /// What the run promises (`[targets]`, issue 27): absent = nothing declared, the exit
+    /// code of `spmcal calibrate` does not depend on the figures.
+    #[serde(
+        default,
+        skip_serializing_if = "crate::run_validation::RunTargets::is_empty"
+    )]
+    pub targets: crate::run_validation::RunTargets,
 }
 
 /// The controller's tuning constants: how features are told apart, paired and captured, and
@@ -623,6 +630,12 @@ impl PlanConfig {
                 field: format!("plan.{field}"),
                 reason,
             })?;
+        self.targets
+            .validate()
+            .map_err(|(field, reason)| ValidationError {
+                field: format!("plan.{field}"),
+                reason,
+            })?;
         let bad = |field: &str, reason: String| {
             Err(ValidationError {
                 field: format!("plan.{field}"),
@@ -1015,5 +1028,35 @@ mod tests {
             .replace("repeats = 1", "repeats = \"two\"");
         let e = PlanConfig::from_toml_str(&wrong_type, "p.toml").unwrap_err();
         assert_eq!(e.field(), Some("plan.repeats"), "{e}");
+    }
+
+    /// Issue 27: `[plan.targets]` is read, round-trips through the written plan, names a bad
+    /// value's field and line, and refuses unknown fields; absent, nothing is declared.
+    #[test]
+    fn targets_are_declared_checked_and_written_back() {
+        let plain = PlanConfig::hopg_small_net();
+        assert!(plain.targets.is_empty());
+        assert!(!plain.to_toml_string().unwrap().contains("targets"));
+        let text = format!(
+            "{}\n[plan.targets]\ndistributed_over_lumped_rms_max = 0.1\nvalidation_pass = true\n",
+            plain.to_toml_string().unwrap()
+        );
+        let plan = PlanConfig::from_toml_str(&text, "p.toml").unwrap();
+        assert_eq!(plan.targets.distributed_over_lumped_rms_max, Some(0.1));
+        assert!(plan.targets.validation_pass);
+        let again = PlanConfig::from_toml_str(&plan.to_toml_string().unwrap(), "q.toml").unwrap();
+        assert_eq!(again, plan);
+        let bad = text.replace("rms_max = 0.1", "rms_max = -1.0");
+        let e = PlanConfig::from_toml_str(&bad, "p.toml").unwrap_err();
+        assert_eq!(
+            e.field(),
+            Some("plan.targets.distributed_over_lumped_rms_max"),
+            "{e}"
+        );
+        let line = bad.lines().position(|l| l.ends_with("= -1.0")).unwrap() + 1;
+        assert_eq!(e.line(), Some(line), "{e}");
+        let unknown = text.replace("validation_pass", "validation_passes");
+        let e = PlanConfig::from_toml_str(&unknown, "p.toml").unwrap_err();
+        assert_eq!(e.field(), Some("plan.targets.validation_passes"), "{e}");
     }
 }

@@ -96,3 +96,50 @@ impl RunValidationConfig {
         Ok(())
     }
 }
+
+/// The `[plan.targets]` table (issue 27): what a run promises. `spmcal calibrate` prints a
+/// PASS or FAIL verdict for each declared target and exits with its own code (3) when one is
+/// missed (`--no-targets` skips the check). Absent = nothing declared: the figures are
+/// reported and the exit code does not depend on them.
+///
+/// Which targets a run is judged on depends on what can judge it: a backend with a ground
+/// truth (the simulator) is judged against the truth (`distributed_over_lumped_rms_max`);
+/// a backend without one (a controller, a stored image) by the oracle-free validation
+/// (`validation_pass`). A target the backend cannot judge is reported as not judged.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RunTargets {
+    /// Largest distributed ÷ lumped RMS residual distortion over the calibrated region,
+    /// dimensionless, judged against the ground truth (simulated backends). Absent = not
+    /// declared. In (0, 10].
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub distributed_over_lumped_rms_max: Option<f64>,
+    /// Backends without a ground truth: every check of `[plan.validation]` that reaches a
+    /// verdict (held-out nodes, repeat agreement, the corrected standard) must pass; a
+    /// `warn` is a missed target, a check without a verdict is not judged. Default false.
+    pub validation_pass: bool,
+}
+
+impl RunTargets {
+    /// True when the plan declares no target.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.distributed_over_lumped_rms_max.is_none() && !self.validation_pass
+    }
+
+    /// Checks the values; the error names the field.
+    ///
+    /// # Errors
+    /// `(field, reason)`.
+    pub fn validate(&self) -> Result<(), (&'static str, String)> {
+        if let Some(v) = self.distributed_over_lumped_rms_max
+            && !(v.is_finite() && v > 0.0 && v <= 10.0)
+        {
+            return Err((
+                "targets.distributed_over_lumped_rms_max",
+                format!("must be in (0, 10], got {v}"),
+            ));
+        }
+        Ok(())
+    }
+}

@@ -161,15 +161,33 @@ pub fn polynomial_baseline<T: GroundTruth + Sync + ?Sized>(
     evaluate_field(oracle, &field, grid)
 }
 
-/// Evaluates any correction field against the oracle (see the module doc).
-pub fn evaluate_field<T: GroundTruth + Sync + ?Sized>(
+/// The residual distortion at every pixel of the field-wide raster of the evaluation (the
+/// figure [`Accuracy::rms_pm`] and [`Accuracy::max_pm`] summarise), for the report's map.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ResidualField {
+    /// Pixels per side of the raster.
+    pub pixels: usize,
+    /// Commanded position of pixel (0, 0), counts.
+    pub origin_counts: [f64; 2],
+    /// Spacing of the raster's pixels along both axes, counts.
+    pub step_counts: f64,
+    /// |method − truth| after the best rigid motion, nm, row by row from the smallest y
+    /// (NaN where a pixel has no corrected position).
+    pub residual_nm: Vec<f64>,
+}
+
+/// The residual distortion of `method` against the oracle at every pixel of the evaluation's
+/// field-wide raster (see the module doc): the raster corrected with the method and with the
+/// true LCC field, the best rigid motion removed.
+///
+/// # Errors
+/// As the correction of a raster.
+pub fn residual_field<T: GroundTruth + Sync + ?Sized>(
     oracle: &T,
     method: &(impl CorrectionField + ?Sized),
     grid: &EvaluationGrid,
-) -> Result<Accuracy, CorrectionError> {
+) -> Result<ResidualField, CorrectionError> {
     let truth = true_field(oracle, grid.z_counts);
-
-    // Field-wide residual distortion.
     let n = grid.field_pixels.max(2);
     let step = ((grid.x_max_counts - grid.x_min_counts).max(grid.y_max_counts - grid.y_min_counts))
         / (n - 1) as f64;
@@ -183,15 +201,43 @@ pub fn evaluate_field<T: GroundTruth + Sync + ?Sized>(
     let expected = raster(&truth, &geometry)?;
     let mut a = Vec::with_capacity(n * n);
     let mut b = Vec::with_capacity(n * n);
+    let mut at = Vec::with_capacity(n * n);
     for row in 0..n {
         for column in 0..n {
             if let (Some(p), Some(q)) = (measured.point(column, row), expected.point(column, row)) {
                 a.push([p.x.value(), p.y.value()]);
                 b.push([q.x.value(), q.y.value()]);
+                at.push(row * n + column);
             }
         }
     }
     let residuals = rigid_residuals(&a, &b);
+    let mut residual_nm = vec![f64::NAN; n * n];
+    for (k, r) in at.into_iter().zip(residuals) {
+        residual_nm[k] = r;
+    }
+    Ok(ResidualField {
+        pixels: n,
+        origin_counts: [grid.x_min_counts, grid.y_min_counts],
+        step_counts: step,
+        residual_nm,
+    })
+}
+
+/// Evaluates any correction field against the oracle (see the module doc).
+pub fn evaluate_field<T: GroundTruth + Sync + ?Sized>(
+    oracle: &T,
+    method: &(impl CorrectionField + ?Sized),
+    grid: &EvaluationGrid,
+) -> Result<Accuracy, CorrectionError> {
+    let truth = true_field(oracle, grid.z_counts);
+
+    // Field-wide residual distortion.
+    let residuals: Vec<f64> = residual_field(oracle, method, grid)?
+        .residual_nm
+        .into_iter()
+        .filter(|r| !r.is_nan())
+        .collect();
     let count = residuals.len().max(1) as f64;
     let rms_nm = (residuals.iter().map(|r| r * r).sum::<f64>() / count).sqrt();
     let max_nm = residuals.iter().fold(0.0_f64, |m, r| m.max(*r));
@@ -360,6 +406,72 @@ mod tests {
         // Solver round-off only: far below a picometre and 1e-9 % of the lattice constant.
         assert!(accuracy.max_pm < 1e-6, "{accuracy:?}");
         assert!(accuracy.max_lattice_error_pct < 1e-9, "{accuracy:?}");
+        Ok(())
+    }
+
+    /// A scanner of one constant sensitivity everywhere, orthogonal.
+    struct ConstantLcc;
+
+    impl GroundTruth for ConstantLcc {
+        fn true_lcc(&self, _commanded: CountPoint, _z: Counts) -> TrueLcc {
+            TrueLcc {
+                kx_nm_per_count: 0.02,
+                ky_nm_per_count: 0.02,
+                alpha_rad: 0.0,
+            }
+        }
+        fn z_now(&self) -> Counts {
+            Counts(0.0)
+        }
+        fn now(&self) -> Seconds {
+            Seconds(0.0)
+        }
+        fn drift_velocity(&self, _t: Seconds) -> NmVelocity {
+            NmVelocity::default()
+        }
+        fn reference_gain(&self) -> [f64; 2] {
+            [1.0, 1.0]
+        }
+    }
+
+    /// Issue 27's residual map: a method 1 % too sensitive everywhere maps every pixel 1 %
+    /// too far from the others; after the best rigid motion (the centroids matched, no
+    /// rotation by symmetry) each pixel is off by 1 % of its true distance from the raster's
+    /// centre — a closed form per pixel. The summary figures are the map's RMS and max.
+    #[test]
+    fn the_residual_map_of_a_scale_error_grows_with_the_distance_from_the_centre()
+    -> Result<(), CorrectionError> {
+        let grid = EvaluationGrid {
+            x_min_counts: -1000.0,
+            x_max_counts: 1000.0,
+            y_min_counts: -1000.0,
+            y_max_counts: 1000.0,
+            z_counts: 0.0,
+            field_pixels: 11,
+            image_places: 1,
+            image_side_counts: 100.0,
+            lattice_constant_nm: 0.246,
+        };
+        let method = PlaneSurfaces::constant(0.0, 0.0202, 0.0202, 0.0)?;
+        let field = residual_field(&ConstantLcc, &method.field(Route::Exact), &grid)?;
+        assert_eq!((field.pixels, field.residual_nm.len()), (11, 121));
+        assert_eq!(field.step_counts, 200.0);
+        let mut squares = 0.0;
+        for row in 0..11 {
+            for column in 0..11 {
+                let (dx, dy) = (column as f64 - 5.0, row as f64 - 5.0);
+                let expected = 0.01 * 0.02 * 200.0 * dx.hypot(dy);
+                let got = field.residual_nm[row * 11 + column];
+                assert!(
+                    (got - expected).abs() < 1e-9,
+                    "({column}, {row}): {got} vs {expected}"
+                );
+                squares += expected * expected;
+            }
+        }
+        let accuracy = evaluate(&ConstantLcc, &method, &grid)?;
+        assert!((accuracy.rms_pm - 1e3 * (squares / 121.0).sqrt()).abs() < 1e-6);
+        assert!((accuracy.max_pm - 1e3 * 0.01 * 0.02 * 200.0 * 50f64.sqrt()).abs() < 1e-6);
         Ok(())
     }
 }

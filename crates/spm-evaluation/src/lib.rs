@@ -26,7 +26,8 @@ pub mod rigid;
 pub mod validation;
 
 pub use accuracy::{
-    Accuracy, EvaluationGrid, PolynomialImage, evaluate, evaluate_field, polynomial_baseline,
+    Accuracy, EvaluationGrid, PolynomialImage, ResidualField, evaluate, evaluate_field,
+    polynomial_baseline, residual_field,
 };
 pub use cubic::CubicMap;
 pub use images::ImageBenchmarkError;

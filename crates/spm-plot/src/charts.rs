@@ -13,6 +13,9 @@ type Area<'a> = DrawingArea<BitMapBackend<'a>, Shift>;
 const TITLE_PX: u32 = 22;
 const LABEL_PX: u32 = 18;
 const TICK_PX: u32 = 16;
+/// The smallest text any chart of this crate draws, pixels of the PNG (the tick labels): at
+/// a display width w of a figure W pixels wide it reads at `MIN_FONT_PX × w / W` px.
+pub const MIN_FONT_PX: u32 = TICK_PX;
 
 /// Draws with `draw` on a white `width`×`height` canvas and returns the PNG.
 fn figure(
@@ -550,6 +553,118 @@ pub fn field_maps(f: &FieldFigure<'_>) -> Result<Vec<u8>, PlotError> {
             colour_bar(&bar_area, title, f.map, *range, panel.value_label)?;
         }
         Ok(())
+    })
+}
+
+/// One image of an [`ImagePairFigure`]: values on a uniform grid.
+pub struct ImagePanel<'a> {
+    /// The panel's caption.
+    pub caption: &'a str,
+    /// Columns (x).
+    pub columns: usize,
+    /// Rows (y), row 0 at the smallest y.
+    pub rows: usize,
+    /// Position of column 0, row 0 (the pixel's centre), axis unit.
+    pub origin: (f64, f64),
+    /// Pixel spacing along both axes, axis unit.
+    pub step: f64,
+    /// Values, `[row * columns + column]`; NaN pixels are left white.
+    pub values: &'a [f64],
+}
+
+/// Two images side by side on one colour scale with one colour bar (e.g. an image before
+/// and after a correction), each panel square in its axis unit.
+pub struct ImagePairFigure<'a> {
+    /// Title.
+    pub title: &'a str,
+    /// x axis: quantity, unit.
+    pub x_label: &'a str,
+    /// y axis: quantity, unit.
+    pub y_label: &'a str,
+    /// The two images, left then right.
+    pub panels: [ImagePanel<'a>; 2],
+    /// The value: quantity, unit (the colour bar's label).
+    pub value_label: &'a str,
+    /// Colour map.
+    pub map: ColorMap,
+}
+
+/// Size of an [`image_pair`], pixels.
+pub const IMAGE_PAIR_PX: (u32, u32) = (960, 460);
+
+/// Draws an [`ImagePairFigure`], [`IMAGE_PAIR_PX`]: the colour range is the 0.5–99.5 %
+/// range of both images' finite values together, so the two read on one scale.
+///
+/// # Errors
+/// [`PlotError::Empty`] when an image has no finite value or not one value per pixel.
+pub fn image_pair(f: &ImagePairFigure<'_>) -> Result<Vec<u8>, PlotError> {
+    let title = f.title;
+    let empty = || PlotError::Empty {
+        figure: title.to_owned(),
+    };
+    let mut all: Vec<f64> = Vec::new();
+    for p in &f.panels {
+        if p.columns == 0
+            || p.rows == 0
+            || p.values.len() != p.columns * p.rows
+            || p.step.is_nan()
+            || p.step <= 0.0
+        {
+            return Err(empty());
+        }
+        all.extend(p.values.iter().copied().filter(|v| v.is_finite()));
+    }
+    if all.is_empty() {
+        return Err(empty());
+    }
+    all.sort_by(f64::total_cmp);
+    let at = |q: f64| all[((all.len() - 1) as f64 * q).round() as usize];
+    let range = finite_range([at(0.005), at(0.995)].into_iter()).ok_or_else(empty)?;
+    let (width, height) = IMAGE_PAIR_PX;
+    figure(title, width, height, |root| {
+        let body = root
+            .titled(
+                title,
+                (FONT_FAMILY, TITLE_PX).into_font().style(FontStyle::Bold),
+            )
+            .map_err(|e| draw_error(title, e))?;
+        let (images, bar_area) = body.split_horizontally((width - BAR_PX) as i32);
+        let halves = images.split_evenly((1, 2));
+        for (panel, area) in f.panels.iter().zip(&halves) {
+            // A square extent around the image, so that angles read true.
+            let half_side = 0.5 * panel.step * panel.columns.max(panel.rows) as f64;
+            let centre = (
+                panel.origin.0 + 0.5 * panel.step * (panel.columns as f64 - 1.0),
+                panel.origin.1 + 0.5 * panel.step * (panel.rows as f64 - 1.0),
+            );
+            let axes = FieldAxes {
+                x_label: f.x_label,
+                y_label: f.y_label,
+                x_range: (centre.0 - half_side, centre.0 + half_side),
+                y_range: (centre.1 - half_side, centre.1 + half_side),
+            };
+            let mut chart = map_panel(area, panel.caption, &axes, title)?;
+            let t = |v: f64| ((v - range.0) / (range.1 - range.0)).clamp(0.0, 1.0);
+            let (h, (x0, y0)) = (0.5 * panel.step, panel.origin);
+            chart
+                .draw_series(
+                    panel
+                        .values
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, v)| v.is_finite())
+                        .map(|(k, &v)| {
+                            let (i, j) = (k % panel.columns, k / panel.columns);
+                            let (x, y) = (x0 + panel.step * i as f64, y0 + panel.step * j as f64);
+                            Rectangle::new(
+                                [(x - h, y - h), (x + h, y + h)],
+                                f.map.colour(t(v)).filled(),
+                            )
+                        }),
+                )
+                .map_err(|e| draw_error(title, e))?;
+        }
+        colour_bar(&bar_area, title, f.map, range, f.value_label)
     })
 }
 

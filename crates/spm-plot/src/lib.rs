@@ -25,9 +25,10 @@ mod font;
 
 pub use channel::{PngOptions, render_png, write_png};
 pub use charts::{
-    CategoryFigure, CategorySeries, FieldFigure, FieldPanel, MAP_HEIGHT_PX, MAP_WIDTH_PX,
-    MapFigure, MapNode, ORDER_COLUMNS, OrderFigure, OrderPanel, Series, SeriesStyle, XyFigure,
-    category_chart, cell_centres, field_maps, order_map, running_quantiles, surface_map, xy_chart,
+    CategoryFigure, CategorySeries, FieldFigure, FieldPanel, IMAGE_PAIR_PX, ImagePairFigure,
+    ImagePanel, MAP_HEIGHT_PX, MAP_WIDTH_PX, MIN_FONT_PX, MapFigure, MapNode, ORDER_COLUMNS,
+    OrderFigure, OrderPanel, Series, SeriesStyle, XyFigure, category_chart, cell_centres,
+    field_maps, image_pair, order_map, running_quantiles, surface_map, xy_chart,
 };
 pub use colour::{ColorMap, category_colour};
 pub use font::{FONT_FAMILY, register_fonts};

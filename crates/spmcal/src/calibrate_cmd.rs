@@ -23,7 +23,7 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 pub const DEFAULT_OUT: &str = "spmcal-calibrate";
 
 /// The files a run writes into its report folder.
-pub const OUTPUT_FILES: [&str; 10] = [
+pub const OUTPUT_FILES: [&str; 13] = [
     "report.json",
     "report.html",
     "surfaces.json",
@@ -31,6 +31,9 @@ pub const OUTPUT_FILES: [&str; 10] = [
     "lcc-ky.png",
     "lcc-alpha.png",
     spmcal::plots::UNCERTAINTY_FILE,
+    spmcal::plots::RESIDUAL_FILE,
+    spmcal::plots::BEFORE_AFTER_FILE,
+    spmcal::plots::HISTORY_FILE,
     "trajectory.png",
     "drift.png",
     LOG_FILE,
@@ -173,6 +176,9 @@ pub struct ReportOptions {
     pub image_benchmark: bool,
     /// A reduced report (smoke runs).
     pub quick: bool,
+    /// Exit with [`crate::error::EXIT_TARGET_MISSED`] when a target of the plan is missed
+    /// (false: `--no-targets`).
+    pub enforce_targets: bool,
 }
 
 /// Refuses a CDB file (or one of its `-wal`/`-shm`/`-journal`/`-identity` companions) that is where
@@ -374,7 +380,43 @@ pub fn run(
         );
     }
     crate::outln!("report: {}", out.join("report.html").display());
-    Ok(())
+    targets_verdict(&report, source, &run_id, report_options.enforce_targets)
+}
+
+/// Exit code 3 ([`CliError::TargetMissed`]) when the report missed a target of its plan,
+/// unless `enforce` is off (`--no-targets`: a line says so).
+fn targets_verdict(
+    report: &spmcal::report::CalibrationReport,
+    source: &JobSource,
+    run_id: &str,
+    enforce: bool,
+) -> Result<(), CliError> {
+    let missed: Vec<&str> = report
+        .targets
+        .iter()
+        .filter(|t| t.outcome == spmcal::targets::TargetOutcome::Fail)
+        .map(|t| t.target.as_str())
+        .collect();
+    if missed.is_empty() {
+        return Ok(());
+    }
+    if !enforce {
+        crate::outln!(
+            "missed {} of the plan's targets; not failing the run (--no-targets)",
+            missed.len()
+        );
+        return Ok(());
+    }
+    Err(CliError::TargetMissed(format!(
+        "run {run_id} missed {} of the targets its plan declares ([plan.targets] of the job {}): {}; the records \
+         and the report are complete (exit 3; --no-targets exits 0)",
+        missed.len(),
+        match source {
+            JobSource::Config(config) => config.display().to_string(),
+            JobSource::Virtual(image, _) => format!("the plan built for {}", image.display()),
+        },
+        missed.join("; ")
+    )))
 }
 
 /// The job's input files, after checking that the run replaces none of them: the CDB is none

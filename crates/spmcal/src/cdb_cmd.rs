@@ -182,9 +182,15 @@ pub fn backup(src: &Path, dest: &Path) -> Result<(), CliError> {
     Ok(())
 }
 
-pub fn trend(path: &Path) -> Result<(), CliError> {
+/// `spmcal cdb trend PATH [--png OUT.png]`: the per-run means as text, and with `--png` the
+/// K̄x and K̄y history as a figure ([`spmcal::plots::cdb_trend_figure`]).
+pub fn trend(path: &Path, png: Option<&Path>) -> Result<(), CliError> {
+    if let Some(png) = png {
+        crate::files::check_output(png, "--png", &[path])?;
+    }
     let cdb = open_read_only(path)?;
     let snapshot = cdb.snapshot_unfiltered().map_err(cdb_error)?;
+    let mut history: Vec<(String, &str, Vec<spm_cdb::TrendPoint>)> = Vec::new();
     for scanner in snapshot.scanners().map_err(cdb_error)? {
         crate::outln!("scanner {scanner}");
         for (coefficient, label, scale, unit) in [
@@ -206,6 +212,12 @@ pub fn trend(path: &Path) -> Result<(), CliError> {
                 )
                 .map_err(cdb_error)?;
             crate::outln!("  {label} ({unit}) per run:");
+            if matches!(
+                coefficient,
+                Coefficient::KxNmPerCount | Coefficient::KyNmPerCount
+            ) {
+                history.push((scanner.clone(), label, points.clone()));
+            }
             for point in points {
                 match point.stat {
                     Some(stat) => crate::outln!(
@@ -225,6 +237,27 @@ pub fn trend(path: &Path) -> Result<(), CliError> {
                 }
             }
         }
+    }
+    if let Some(png) = png {
+        let series: Vec<spmcal::plots::TrendSeries<'_>> = history
+            .iter()
+            .map(
+                |(scanner, coefficient, points)| spmcal::plots::TrendSeries {
+                    scanner,
+                    coefficient,
+                    points,
+                },
+            )
+            .collect();
+        let bytes = spmcal::plots::cdb_trend_figure(&series).map_err(|e| {
+            CliError::BadInput(format!(
+                "--png {}: {} has no run with a value to draw ({e})",
+                png.display(),
+                path.display()
+            ))
+        })?;
+        crate::files::write_atomically(png, &bytes)?;
+        crate::outln!("figure: {}", png.display());
     }
     Ok(())
 }

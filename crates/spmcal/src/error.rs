@@ -8,6 +8,9 @@ pub const EXIT_SUCCESS: i32 = 0;
 pub const EXIT_RUN_FAILED: i32 = 1;
 /// Exit code: bad usage or bad input.
 pub const EXIT_BAD_INPUT: i32 = 2;
+/// Exit code: `calibrate` ran and wrote its report, but missed a target its plan declares
+/// (`[plan.targets]`, issue 27; not 1, which says the run itself failed, nor 2, bad input).
+pub const EXIT_TARGET_MISSED: i32 = 3;
 
 /// Everything a subcommand can fail with.
 #[derive(Debug, thiserror::Error)]
@@ -18,6 +21,9 @@ pub enum CliError {
     /// The run itself failed (instrument fault, numerical failure).
     #[error("{0}")]
     RunFailed(String),
+    /// The run finished and its report is written, but it missed a declared target.
+    #[error("{0}")]
+    TargetMissed(String),
     /// Standard output is closed or full (exit 1, no message when the reader went away).
     #[error("cannot write to standard output: {0}")]
     Stdout(std::io::Error),
@@ -36,6 +42,7 @@ impl CliError {
     pub fn exit_code(&self) -> i32 {
         match self {
             Self::BadInput(_) => EXIT_BAD_INPUT,
+            Self::TargetMissed(_) => EXIT_TARGET_MISSED,
             Self::RunFailed(_) | Self::Stdout(_) => EXIT_RUN_FAILED,
             Self::Io { source, .. } => match source.kind() {
                 std::io::ErrorKind::NotFound

@@ -133,7 +133,9 @@ table{border-collapse:collapse;margin:.6em 0;font-size:.92em}\
 th,td{border:1px solid #c9ced6;padding:.25em .6em;text-align:right}\
 th:first-child,td.text{text-align:left}thead th{background:#eef2f7}\
 tbody tr:nth-child(even){background:#f8f9fb}\
-figure{margin:1em 0}figure img{max-width:100%;height:auto;border:1px solid #dde}\
+div.table-box{overflow-x:auto;max-width:100%}div.table-box>table{margin:.3em 0}\
+figure{margin:1em 0;max-width:100%}figure img{display:block;max-width:100%;height:auto;\
+box-sizing:border-box;border:1px solid #dde}\
 figcaption{font-size:.9em;color:#444}p.note{font-size:.9em;color:#444}\
 details{margin:.5em 0}section{margin-bottom:1.5em}";
 
@@ -188,7 +190,13 @@ impl Page {
 
     /// A table with a stable id, column headers and rows.
     pub fn table(&mut self, id: &str, header: &[&str], rows: &[Row]) {
-        let _ = writeln!(self.body, "<table id=\"{}\">\n<thead><tr>", escape(id));
+        // Each table scrolls sideways inside its own box on a narrow window (800 px), so
+        // the page itself never does.
+        let _ = writeln!(
+            self.body,
+            "<div class=\"table-box\">\n<table id=\"{}\">\n<thead><tr>",
+            escape(id)
+        );
         for h in header {
             let _ = write!(self.body, "<th>{}</th>", escape(h));
         }
@@ -213,7 +221,7 @@ impl Page {
             }
             self.body.push_str("</tr>\n");
         }
-        self.body.push_str("</tbody>\n</table>\n");
+        self.body.push_str("</tbody>\n</table>\n</div>\n");
     }
 
     /// A bulleted list with a stable id.
@@ -226,15 +234,18 @@ impl Page {
     }
 
     /// A PNG figure embedded as a data URI, with a caption; `file` is its name in the
-    /// report folder (the figure's `id` and `data-file`).
+    /// report folder (the figure's `id` and `data-file`). Every figure is drawn by spm-plot,
+    /// whose smallest text is declared in `data-min-font-px` (image pixels), for
+    /// `cargo xtask check-report`'s legibility check at 800 px.
     pub fn figure(&mut self, file: &str, png: &[u8], caption: &str) {
         let id = format!("figure-{}", file.trim_end_matches(".png"));
         let _ = writeln!(
             self.body,
-            "<figure id=\"{}\" data-file=\"{}\"><img alt=\"{}\" src=\"data:image/png;base64,{}\">\
-             <figcaption>{}</figcaption></figure>",
+            "<figure id=\"{}\" data-file=\"{}\" data-min-font-px=\"{}\"><img alt=\"{}\" \
+             src=\"data:image/png;base64,{}\"><figcaption>{}</figcaption></figure>",
             escape(&id),
             escape(file),
+            spm_plot::MIN_FONT_PX,
             escape(caption),
             base64::engine::general_purpose::STANDARD.encode(png),
             escape(caption)
@@ -262,6 +273,44 @@ impl Page {
             self.body
         )
     }
+}
+
+/// The plan's targets with their verdicts (issue 27), or a sentence that it declares none.
+fn targets_section(page: &mut Page, targets: &[crate::targets::TargetVerdict]) {
+    page.section("targets", "Targets the plan declares");
+    if targets.is_empty() {
+        page.paragraph(
+            "None: the plan has no [plan.targets] table, so the figures below are reported \
+             without a verdict and the exit code does not depend on them.",
+        );
+        return;
+    }
+    page.paragraph(
+        "Each target the plan declares, the figure measured and the verdict. A simulated run \
+         is judged against the simulator's ground truth, a run on an instrument or a stored \
+         image by the validation without an oracle; `spmcal calibrate` exits with code 3 when \
+         a verdict is FAIL (unless --no-targets).",
+    );
+    let rows: Vec<Row> = targets
+        .iter()
+        .enumerate()
+        .map(|(k, t)| {
+            Row::new(
+                k.to_string(),
+                vec![
+                    Cell::text(&t.target),
+                    Cell::text(t.measured.as_deref().unwrap_or("–")),
+                    Cell::text(t.outcome.as_str()),
+                    Cell::text(t.note.as_deref().unwrap_or("")),
+                ],
+            )
+        })
+        .collect();
+    page.table(
+        "targets-table",
+        &["target", "measured", "verdict", "note"],
+        &rows,
+    );
 }
 
 /// The validation without an oracle (every backend): held-out nodes and repeat agreement,
@@ -875,7 +924,19 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
         None => page.paragraph("Provenance: not recorded by the caller."),
     }
 
+    targets_section(&mut page, &report.targets);
     validation_section(&mut page, &report.validation);
+    if figures
+        .iter()
+        .any(|f| f.file == crate::plots::BEFORE_AFTER_FILE)
+    {
+        page.paragraph(
+            "The next figure shows one of these images of the standard before and after the \
+             correction on one colour scale: compare the spacing of the atoms across the image \
+             and in each direction; after a good correction it is the same everywhere.",
+        );
+        figure(&mut page, crate::plots::BEFORE_AFTER_FILE);
+    }
 
     page.section("accuracy", "Accuracy against the simulator's ground truth");
     match &report.accuracy {
@@ -893,12 +954,24 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
             page.paragraph_with_id(
                 "accuracy-ratio",
                 &format!(
-                    "distributed RMS ÷ lumped RMS = {:.3} (target ≤ 0.1)",
+                    "distributed RMS ÷ lumped RMS = {:.3} (the plan's target, if it declares \
+                     one, is judged in the Targets section)",
                     a.distributed_over_lumped_rms
                 ),
             );
         }
         None => page.paragraph("Not measured: needs a simulated backend (the oracle)."),
+    }
+    if figures
+        .iter()
+        .any(|f| f.file == crate::plots::RESIDUAL_FILE)
+    {
+        page.paragraph(
+            "The next figure maps the distributed row of this table over the field: at each \
+             point, how many nm a corrected position still lies from the truth. Read it for \
+             where the calibration is weakest (bright), not only how good it is on average.",
+        );
+        figure(&mut page, crate::plots::RESIDUAL_FILE);
     }
     if let Some(e) = &report.node_lcc_error {
         page.paragraph(&format!(
@@ -1080,6 +1153,16 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
     }
     page.table("drift-table", &["quantity", "value"], &rows);
     figure(&mut page, "drift.png");
+
+    if figures.iter().any(|f| f.file == crate::plots::HISTORY_FILE) {
+        page.section("history", "Calibration history of the scanner (the CDB)");
+        page.paragraph(
+            "Every run of this scanner in the calibration database: read the line against its \
+             band; a step larger than the bands between two runs means the scanner changed \
+             (or was handled) between them, and the newest calibration is the one to use.",
+        );
+        figure(&mut page, crate::plots::HISTORY_FILE);
+    }
 
     page.section("trajectory", "Nodes in visiting order");
     figure(&mut page, "trajectory.png");

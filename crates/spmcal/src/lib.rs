@@ -28,5 +28,6 @@ pub mod report;
 pub mod run;
 pub mod simulate;
 pub mod surfaces;
+pub mod targets;
 pub mod vertical;
 pub mod virtual_mode;

@@ -1,8 +1,9 @@
 //! `spmcal`: the command-line program of the spmcal workspace (DESIGN §13).
 //!
 //! Exit codes: 0 success; 1 a run failed (instrument, numerical); 2 bad usage or
-//! bad input, with a message on stderr naming the file, line or field. A panic
-//! (101) is always a bug.
+//! bad input, with a message on stderr naming the file, line or field; 3 `calibrate`
+//! finished and wrote its report, but missed a target its plan declares
+//! (`[plan.targets]`; `--no-targets` exits 0 instead). A panic (101) is always a bug.
 
 mod calibrate_cmd;
 mod cdb_cmd;
@@ -143,6 +144,10 @@ enum Command {
         /// dwell instead of 3 and 2): seconds instead of minutes, for smoke runs.
         #[arg(long)]
         quick: bool,
+        /// Do not fail the run on a missed target: print the verdicts of the plan's
+        /// `[plan.targets]` and exit 0 (without it, a FAIL exits with code 3).
+        #[arg(long)]
+        no_targets: bool,
     },
     /// Fit regression surfaces through the CDB's coefficients.
     Fit {
@@ -359,6 +364,10 @@ enum CdbCommand {
         /// The database: a file or postgres://USER@HOST:PORT/DB.
         #[arg(value_name = "PATH|URL")]
         path: PathBuf,
+        /// Also draw the history as a PNG: K̄x and K̄y of every scanner per run, % change
+        /// from its first run with ± the standard uncertainty, against time (a new file).
+        #[arg(long, value_name = "OUT.png")]
+        png: Option<PathBuf>,
     },
 }
 
@@ -485,8 +494,10 @@ impl Command {
             }
             Self::NanonisSim(args) => paths.push(args.config.clone()),
             Self::Cdb { command } => match command {
-                CdbCommand::Check { path } | CdbCommand::Trend { path } => {
+                CdbCommand::Check { path } => paths.push(path.clone()),
+                CdbCommand::Trend { path, png } => {
                     paths.push(path.clone());
+                    paths.extend(png.iter().cloned());
                 }
                 CdbCommand::Export { path, csv } => paths.extend([path.clone(), csv.clone()]),
                 CdbCommand::Backup { src, dest } => paths.extend([src.clone(), dest.clone()]),
@@ -555,7 +566,7 @@ fn run(command: Command) -> Result<(), CliError> {
         Command::Cdb { command } => match command {
             CdbCommand::Check { path } => cdb_cmd::check(&path),
             CdbCommand::Export { path, csv } => cdb_cmd::export(&path, &csv),
-            CdbCommand::Trend { path } => cdb_cmd::trend(&path),
+            CdbCommand::Trend { path, png } => cdb_cmd::trend(&path, png.as_deref()),
             CdbCommand::Backup { src, dest } => cdb_cmd::backup(&src, &dest),
         },
         Command::Calibrate {
@@ -576,6 +587,7 @@ fn run(command: Command) -> Result<(), CliError> {
             out,
             image_benchmark,
             quick,
+            no_targets,
         } => calibrate_cmd::run(
             &match (config, virtual_image, standard) {
                 (_, Some(image), Some(standard)) => calibrate_cmd::JobSource::Virtual(
@@ -607,6 +619,7 @@ fn run(command: Command) -> Result<(), CliError> {
             calibrate_cmd::ReportOptions {
                 image_benchmark,
                 quick,
+                enforce_targets: !no_targets,
             },
         ),
         Command::Correct {

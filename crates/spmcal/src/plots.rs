@@ -21,9 +21,9 @@
 use crate::run::{DriftSample, NodeSample};
 use crate::surfaces::SurfaceSummary;
 use spm_plot::{
-    ColorMap, FieldFigure, FieldPanel, MapFigure, MapNode, OrderFigure, OrderPanel, Series,
-    SeriesStyle, XyFigure, cell_centres, field_maps, order_map, running_quantiles, surface_map,
-    xy_chart,
+    ColorMap, FieldFigure, FieldPanel, ImagePairFigure, ImagePanel, MapFigure, MapNode,
+    OrderFigure, OrderPanel, Series, SeriesStyle, XyFigure, cell_centres, field_maps, image_pair,
+    order_map, running_quantiles, surface_map, xy_chart,
 };
 use spm_regression::Polynomial2;
 
@@ -483,4 +483,271 @@ pub fn trajectory_plot(
         ),
         png,
     })
+}
+
+/// The file of the residual-distortion map.
+pub const RESIDUAL_FILE: &str = "residual-distortion.png";
+
+/// The residual distortion the distributed correction leaves over the field, nm, against the
+/// simulator's ground truth (`spm_evaluation::accuracy::residual_field`: the field-wide
+/// raster corrected with the surfaces and with the true LCC field, the best rigid motion
+/// removed; `rms_pm` and `max_pm` are the accuracy table's figures of the same raster);
+/// positions in µm through `nominal_nm_per_count`, the measured nodes as dots.
+///
+/// # Errors
+/// [`PlotError`] when no residual is finite.
+pub fn residual_map(
+    field: &spm_evaluation::ResidualField,
+    nodes: &[NodeSample],
+    nominal_nm_per_count: f64,
+    (rms_pm, max_pm): (f64, f64),
+) -> Result<Figure, PlotError> {
+    let file = RESIDUAL_FILE;
+    let k = nominal_nm_per_count;
+    let (n, s) = (field.pixels, field.step_counts);
+    let [x0, y0] = field.origin_counts;
+    let range = |lo: f64| (um(lo - 0.5 * s, k), um(lo + s * (n as f64 - 0.5), k));
+    let points: Vec<(f64, f64)> = nodes
+        .iter()
+        .map(|p| (um(p.x_counts, k), um(p.y_counts, k)))
+        .collect();
+    let caption = format!(
+        "distributed surfaces: RMS {} nm, max {} nm",
+        significant(rms_pm * 1e-3),
+        significant(max_pm * 1e-3)
+    );
+    let panels = [FieldPanel {
+        caption: &caption,
+        values: &field.residual_nm,
+        value_label: "residual distortion, nm",
+    }];
+    let png = field_maps(&FieldFigure {
+        title: "What the correction leaves: residual distortion over the field",
+        x_label: X_FIELD,
+        y_label: Y_FIELD,
+        x_range: range(x0),
+        y_range: range(y0),
+        cells: n,
+        panels: &panels,
+        points: &points,
+        map: ColorMap::Viridis,
+    })
+    .map_err(PlotError::of(file))?;
+    Ok(Figure {
+        file: file.to_owned(),
+        caption: format!(
+            "how far each point of a {n} × {n} raster over the field still lies from where it \
+             truly is after the distributed correction, nm: the raster corrected with the \
+             surfaces minus the same raster corrected with the simulator's true coefficients, \
+             the best rotation and shift removed (a simulated run's ground truth; dots: the \
+             measured nodes). Dark is good; bright areas are where the surfaces miss the \
+             scanner. {}",
+            counts_note(k)
+        ),
+        png,
+    })
+}
+
+/// The file of the before/after image of the standard.
+pub const BEFORE_AFTER_FILE: &str = "before-after.png";
+
+/// One image of the standard before and after correction, on one colour scale
+/// ([`spm_evaluation::images::before_after::before_after`]), nm axes.
+///
+/// # Errors
+/// [`PlotError`] when an image has no finite height.
+pub fn before_after_figure(
+    pair: &spm_evaluation::images::before_after::BeforeAfter,
+) -> Result<Figure, PlotError> {
+    use spm_evaluation::images::before_after::HeightsOnGrid;
+    fn panel<'a>(caption: &'a str, h: &'a HeightsOnGrid) -> ImagePanel<'a> {
+        ImagePanel {
+            caption,
+            columns: h.columns,
+            rows: h.rows,
+            origin: (h.origin_nm[0], h.origin_nm[1]),
+            step: h.step_nm,
+            values: &h.z_counts,
+        }
+    }
+    let file = BEFORE_AFTER_FILE;
+    let png = image_pair(&ImagePairFigure {
+        title: &format!(
+            "The standard at the {} place, before and after correction",
+            pair.place
+        ),
+        x_label: "x, nm",
+        y_label: "y, nm",
+        panels: [
+            panel("raw (nominal sensitivity)", &pair.before),
+            panel("corrected (as spmcal correct)", &pair.after),
+        ],
+        value_label: "height − median, Z counts",
+        map: ColorMap::AfmHot,
+    })
+    .map_err(PlotError::of(file))?;
+    Ok(Figure {
+        file: file.to_owned(),
+        caption: format!(
+            "one image of the standard taken after the run ({}), left as the instrument gives \
+             it (pixels placed through the nominal sensitivity) and right corrected with the \
+             calibration file as spmcal correct does, on one colour scale: on the right the \
+             atoms should sit on a regular lattice of the standard's constant, with equal \
+             spacing in every direction.",
+            pair.place
+        ),
+        png,
+    })
+}
+
+/// The file of the report's calibration-history figure.
+pub const HISTORY_FILE: &str = "cdb-history.png";
+
+/// One coefficient's history of one scanner in the CDB: per run, the mean acquisition time
+/// (UTC s), the mean and its standard uncertainty, stored unit.
+pub struct TrendSeries<'a> {
+    /// The scanner.
+    pub scanner: &'a str,
+    /// `K̄x` or `K̄y`.
+    pub coefficient: &'a str,
+    /// The runs in time order.
+    pub points: &'a [spm_cdb::TrendPoint],
+}
+
+/// The points of one series of [`cdb_trend_figure`]: per run with a value, [seconds since
+/// `start_unix_s`, % change of the mean from the first run's, the same at mean − u and at
+/// mean + u].
+#[must_use]
+pub fn trend_change(points: &[spm_cdb::TrendPoint], start_unix_s: f64) -> Vec<[f64; 4]> {
+    let values: Vec<(f64, f64, f64)> = points
+        .iter()
+        .filter_map(|p| {
+            p.stat
+                .map(|st| (p.mean_unix_s, st.mean, st.std_uncertainty))
+        })
+        .filter(|(t, m, _)| t.is_finite() && m.is_finite() && *m != 0.0)
+        .collect();
+    let Some(&(_, first, _)) = values.first() else {
+        return Vec::new();
+    };
+    let pct = |m: f64| (m / first - 1.0) * 100.0;
+    values
+        .iter()
+        .map(|&(t, m, u)| [t - start_unix_s, pct(m), pct(m - u), pct(m + u)])
+        .collect()
+}
+
+/// `spmcal cdb trend --png`: K̄x and K̄y of every scanner per run, as % change from the
+/// scanner's first run, against the time since the CDB's first run (seconds, minutes, hours
+/// or days, whichever suits the span), each mean with a band of ±
+/// its standard uncertainty.
+///
+/// # Errors
+/// [`PlotError`] when no run has a value.
+pub fn cdb_trend_figure(series: &[TrendSeries<'_>]) -> Result<Vec<u8>, PlotError> {
+    let file = "cdb trend";
+    let start = series
+        .iter()
+        .flat_map(|s| s.points.iter().map(|p| p.mean_unix_s))
+        .filter(|t| t.is_finite())
+        .fold(f64::INFINITY, f64::min);
+    let all: Vec<Vec<[f64; 4]>> = series
+        .iter()
+        .map(|s| trend_change(s.points, start))
+        .collect();
+    // The time unit that suits the span: seconds, minutes, hours or days.
+    let span_s = all.iter().flatten().map(|v| v[0]).fold(0.0_f64, f64::max);
+    let (unit_s, unit) = [(86_400.0, "days"), (3600.0, "hours"), (60.0, "minutes")]
+        .into_iter()
+        .find(|(u, _)| span_s >= 3.0 * u)
+        .unwrap_or((1.0, "seconds"));
+    let mut out = Vec::new();
+    for (s, values) in series.iter().zip(all) {
+        let values: Vec<[f64; 4]> = values
+            .into_iter()
+            .map(|[t, m, lo, hi]| [t / unit_s, m, lo, hi])
+            .collect();
+        if values.is_empty() {
+            continue;
+        }
+        let mut band: Vec<(f64, f64)> = values.iter().map(|v| (v[0], v[2])).collect();
+        band.extend(values.iter().rev().map(|v| (v[0], v[3])));
+        let name = format!("{} {}", s.scanner, s.coefficient);
+        out.push(Series {
+            name: format!("{name} ± u"),
+            points: band,
+            style: SeriesStyle::Band,
+        });
+        out.push(Series {
+            name,
+            points: values.iter().map(|v| (v[0], v[1])).collect(),
+            style: SeriesStyle::LineAndMarkers,
+        });
+    }
+    let first_utc = if start.is_finite() {
+        // Whole seconds: the text carries no fraction.
+        spm_cdb::rfc3339_utc(start.floor())
+    } else {
+        "–".to_owned()
+    };
+    xy_chart(&XyFigure {
+        title: "Calibration history: K̄x and K̄y per run".to_owned(),
+        x_label: format!("{unit} since the first run ({first_utc})"),
+        y_label: "change from the scanner's first run, %".to_owned(),
+        series: out,
+        log_y: false,
+        y_from_zero: false,
+        size: (960, 540),
+    })
+    .map_err(PlotError::of(file))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn point(t: f64, mean: f64, u: f64) -> spm_cdb::TrendPoint {
+        spm_cdb::TrendPoint {
+            key: format!("run-{t}"),
+            mean_unix_s: t,
+            first_unix_s: t,
+            last_unix_s: t,
+            stat: Some(spm_cdb::CoefficientStat {
+                n: 4,
+                mean,
+                std_dev: 2.0 * u,
+                std_uncertainty: u,
+            }),
+        }
+    }
+
+    /// Issue 27's history figure: a sensitivity 0.0200 then 0.0202 nm/count a day later is a
+    /// change of +1 % at 86 400 s, its ± 0.0001 band ±0.5 %; a run without a value is left
+    /// out.
+    #[test]
+    fn the_trend_is_the_change_from_the_first_run_in_percent_against_time() {
+        let mut points = vec![
+            point(1000.0, 0.02, 1e-4),
+            point(1000.0 + 86_400.0, 0.0202, 1e-4),
+        ];
+        points.push(spm_cdb::TrendPoint {
+            stat: None,
+            ..point(1000.0 + 2.0 * 86_400.0, 0.0, 0.0)
+        });
+        let v = trend_change(&points, 1000.0);
+        assert_eq!(v.len(), 2);
+        let expected = [[0.0, 0.0, -0.5, 0.5], [86_400.0, 1.0, 0.5, 1.5]];
+        for (got, want) in v.iter().zip(expected) {
+            for (g, w) in got.iter().zip(want) {
+                assert!((g - w).abs() < 1e-9, "{got:?} vs {want:?}");
+            }
+        }
+        let png = cdb_trend_figure(&[TrendSeries {
+            scanner: "s",
+            coefficient: "K̄x",
+            points: &points,
+        }])
+        .unwrap();
+        assert!(png.starts_with(&[0x89, b'P', b'N', b'G']));
+    }
 }

@@ -67,7 +67,8 @@ pub struct AccuracyTable {
     pub polynomial: Option<Accuracy>,
     /// The distributed calibration: regression surfaces of every node.
     pub distributed: Accuracy,
-    /// distributed RMS ÷ lumped RMS (target ≤ 0.1).
+    /// distributed RMS ÷ lumped RMS (the plan may declare a target for it:
+    /// `[plan.targets] distributed_over_lumped_rms_max`).
     pub distributed_over_lumped_rms: f64,
 }
 
@@ -194,6 +195,9 @@ pub struct CalibrationReport {
     /// When, by which program, where, on which backend and from which inputs (absent when the
     /// caller gave none, e.g. tests that build a report directly).
     pub provenance: Option<RunProvenance>,
+    /// The verdict on every target the plan declares (`[plan.targets]`, issue 27; empty when
+    /// none is declared): see [`crate::targets`].
+    pub targets: Vec<crate::targets::TargetVerdict>,
     /// The calibrator's own report (cycles, given-up nodes with reasons, …).
     pub run: RunReport,
     /// The drift estimates of the run.
@@ -443,6 +447,12 @@ impl<'a> RunRecord<'a> {
         }
     }
 
+    /// True when the run's backend has a ground truth: the instrument is a simulator, or (a
+    /// report regenerated from the CDB) its provenance names a simulator's seed.
+    fn simulated(&self) -> bool {
+        self.truth.is_some() || self.provenance.is_some_and(|p| p.seed.is_some())
+    }
+
     fn phase(&self, name: &str) {
         if let Some(phase) = self.phase {
             phase(name);
@@ -523,7 +533,7 @@ impl CalibrationReport {
             }
             let _ = writeln!(
                 t,
-                "distributed / lumped RMS = {:.3} (target ≤ 0.1)",
+                "distributed / lumped RMS = {:.3}",
                 a.distributed_over_lumped_rms
             );
         }
@@ -614,6 +624,12 @@ impl CalibrationReport {
             }
             (None, None) => {}
         }
+        if self.targets.is_empty() {
+            let _ = writeln!(t, "targets: none declared by the plan ([plan.targets])");
+        }
+        for v in &self.targets {
+            let _ = writeln!(t, "{}", v.line());
+        }
         t
     }
 }
@@ -691,14 +707,14 @@ pub fn finish_with(
     // A region of no area (the nodes of one row or column, e.g. a resume that measured only
     // those) has no raster to judge: no accuracy, said in the notes.
     let region = Region::spanned(record.nodes);
-    let (accuracy, images) = match (record.truth, region, fitted.set.planes.first()) {
+    let (accuracy, images, residual) = match (record.truth, region, fitted.set.planes.first()) {
         (Some(truth), Some(region), Some(plane)) => {
             record.phase(if with_images {
                 "accuracy against the oracle, and the image benchmark (minutes)"
             } else {
                 "accuracy against the oracle"
             });
-            let (accuracy, images) = accuracy_section(
+            let (accuracy, images, residual) = accuracy_section(
                 truth,
                 record,
                 &region,
@@ -708,14 +724,14 @@ pub fn finish_with(
                 quick,
                 with_images,
             )?;
-            (Some(accuracy), images)
+            (Some(accuracy), images, Some(residual))
         }
         _ => {
             notes.push(
                 "accuracy: needs a simulated backend (the oracle) and measured nodes that span an area"
                     .to_owned(),
             );
-            (None, None)
+            (None, None, None)
         }
     };
 
@@ -724,7 +740,14 @@ pub fn finish_with(
         notes.push("drift: no drift estimate was made in this invocation (no figure)".to_owned());
     }
     record.phase("drawing the figures");
-    let figures = figures(record, &fitted, &all, drift.estimates > 0)?;
+    let mut figures = figures(record, &fitted, &all, drift.estimates > 0)?;
+    figures.extend(verdict_figures(
+        record,
+        &fitted.set,
+        residual.as_ref().zip(accuracy.as_ref()),
+        &mut notes,
+    )?);
+    figures.extend(history_figure(&*snapshot, &record.plan.scanner_id)?);
     for figure in &figures {
         write(&out.join(&figure.file), &figure.png)?;
     }
@@ -733,7 +756,7 @@ pub fn finish_with(
     let validation = Validation::of(&all, record.plan, &fitted.set, record.standard_images);
     let node_lcc_error = record.truth.and_then(|truth| node_lcc_error(truth, &all));
     let measured = record.run.nodes_done.max(1) as f64;
-    let report = CalibrationReport {
+    let mut report = CalibrationReport {
         scanner_id: record.plan.scanner_id.clone(),
         nodes: record.run.nodes,
         repeats: record.run.repeats,
@@ -759,10 +782,12 @@ pub fn finish_with(
         dynamics,
         validation,
         provenance: record.provenance.cloned(),
+        targets: Vec::new(),
         run: record.run.clone(),
         drift,
         notes,
     };
+    report.targets = crate::targets::judge(&report, &record.plan.targets, record.simulated());
     let json = serde_json::to_string_pretty(&report).map_err(|e| ReportError::Write {
         path: "report.json".to_owned(),
         message: e.to_string(),
@@ -811,6 +836,7 @@ fn accuracy_section(
     (
         AccuracyTable,
         Option<spm_evaluation::images::ImageBenchmark>,
+        spm_evaluation::ResidualField,
     ),
     ReportError,
 > {
@@ -897,7 +923,115 @@ fn accuracy_section(
         polynomial: Some(polynomial),
         distributed,
     };
-    Ok((accuracy, images))
+    let residual =
+        spm_evaluation::residual_field(oracle, &plane.field(spm_correction::Route::Exact), &grid)?;
+    Ok((accuracy, images, residual))
+}
+
+/// The figures that show what the calibration achieves: the residual-distortion map (with a
+/// ground truth) and the before/after image of the standard (when it was imaged; a failure
+/// to draw it is a note, not an error).
+fn verdict_figures(
+    record: &RunRecord<'_>,
+    set: &spm_correction::SurfaceSet,
+    residual: Option<(&spm_evaluation::ResidualField, &AccuracyTable)>,
+    notes: &mut Vec<String>,
+) -> Result<Vec<plots::Figure>, ReportError> {
+    let mut figures = Vec::new();
+    if let Some((field, a)) = residual {
+        figures.push(plots::residual_map(
+            field,
+            record.nodes,
+            record.plan.standard.nominal_nm_per_count,
+            (a.distributed.rms_pm, a.distributed.max_pm),
+        )?);
+    }
+    match before_after(record, set) {
+        Ok(Some(figure)) => figures.push(figure),
+        Ok(None) => {}
+        Err(why) => notes.push(format!("before/after figure: not drawn ({why})")),
+    }
+    Ok(figures)
+}
+
+/// The scanner's calibration history in the CDB (every run's mean K̄x and K̄y,
+/// [`plots::cdb_trend_figure`]), as `spmcal cdb trend --png` draws it for every scanner.
+fn history_figure(
+    cdb: &dyn spm_cdb::CdbRead,
+    scanner: &str,
+) -> Result<Option<plots::Figure>, ReportError> {
+    let filter = RecordFilter::scanner(scanner);
+    let kx = cdb.age_dynamics(
+        &filter,
+        spm_cdb::Coefficient::KxNmPerCount,
+        spm_cdb::TrendGrouping::PerRun,
+    )?;
+    let ky = cdb.age_dynamics(
+        &filter,
+        spm_cdb::Coefficient::KyNmPerCount,
+        spm_cdb::TrendGrouping::PerRun,
+    )?;
+    let series = [
+        plots::TrendSeries {
+            scanner,
+            coefficient: "K̄x",
+            points: &kx,
+        },
+        plots::TrendSeries {
+            scanner,
+            coefficient: "K̄y",
+            points: &ky,
+        },
+    ];
+    let Ok(png) = plots::cdb_trend_figure(&series) else {
+        return Ok(None);
+    };
+    Ok(Some(plots::Figure {
+        file: plots::HISTORY_FILE.to_owned(),
+        caption: format!(
+            "the {} of scanner {scanner} in this CDB: each run's mean K̄x and K̄y as the \
+             change from the first run, with ± its standard uncertainty (the band); a change \
+             beyond the bands means the scanner moved between calibrations.",
+            if kx.len() == 1 {
+                "one run".to_owned()
+            } else {
+                format!("{} runs", kx.len())
+            }
+        ),
+        png,
+    }))
+}
+
+/// The before/after figure of the standard: the first direct image of the validation's
+/// images at the centre place (else the first direct image), corrected with `set` as
+/// `spmcal correct` does. `Ok(None)` when no image was taken.
+fn before_after(
+    record: &RunRecord<'_>,
+    set: &spm_correction::SurfaceSet,
+) -> Result<Option<plots::Figure>, String> {
+    let Some(Ok(images)) = record.standard_images else {
+        return Ok(None);
+    };
+    let direct = || {
+        images
+            .iter()
+            .filter(|i| i.direction == spm_hal::ScanDirection::Direct)
+    };
+    let Some(image) = direct()
+        .find(|i| i.place == "centre")
+        .or_else(|| direct().next())
+    else {
+        return Ok(None);
+    };
+    let pair = spm_evaluation::images::before_after::before_after(
+        image,
+        set,
+        record.plan.standard.nominal_nm_per_count,
+    )
+    .map_err(|e| e.to_string())?;
+    plots::before_after_figure(&pair)
+        .map(Some)
+        .map_err(|e| e.to_string())
 }
 
 /// The report's figures: the LCC surfaces with the measured nodes, the trajectory, the

@@ -27,6 +27,7 @@
 
 use spm_correction::CorrectionError;
 
+pub mod before_after;
 pub mod evaluate;
 pub mod grating;
 pub mod lattice;

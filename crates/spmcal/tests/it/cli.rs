@@ -929,3 +929,121 @@ fn crop_writes_the_halves_of_a_real_file_and_refuses_bad_parts() {
     assert!(!png.exists());
     let _ = std::fs::remove_dir_all(&scratch);
 }
+
+/// Issue 27 item 2: a run that misses a target its plan declares exits with code 3 after
+/// writing its report, and prints the verdict; `--no-targets` prints it and exits 0; a met
+/// target passes. The plan: the quick 3 × 3 job with `distributed_over_lumped_rms_max` first
+/// at 0.1 (a 3 × 3 net cannot reach it), then at 10. The verdict is checked against the
+/// figures report.json holds (the ratio of the two RMS residuals of its accuracy table,
+/// measured against the simulator's oracle), not against the program's own verdict. The
+/// last run's CDB then gives `cdb trend --png` its history figure.
+#[test]
+fn a_missed_target_exits_3_with_its_verdict_and_no_targets_exits_0() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let dir = std::env::temp_dir().join(format!("spmcal-targets-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let plan_text = std::fs::read_to_string(root.join("configs/plan-hopg-small.toml")).unwrap();
+    let job_with = |name: &str, max: f64| {
+        let plan = write(
+            &dir,
+            &format!("plan-{name}.toml"),
+            &format!("{plan_text}\n[plan.targets]\ndistributed_over_lumped_rms_max = {max}\n"),
+        );
+        write(
+            &dir,
+            &format!("job-{name}.toml"),
+            &format!(
+                "plan_file = {plan:?}\n[backend]\nkind = \"sim\"\nsim_config = {:?}\n",
+                root.join("configs/sim-hopg.toml").display().to_string()
+            ),
+        )
+    };
+    let ratio_of = |out: &Path| {
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap())
+                .unwrap();
+        let a = &report["accuracy"];
+        (
+            a["distributed"]["rms_pm"].as_f64().unwrap() / a["lumped"]["rms_pm"].as_f64().unwrap(),
+            report["targets"][0]["outcome"].as_str().unwrap().to_owned(),
+        )
+    };
+    let missed = job_with("missed", 0.1);
+    for (flag, expected_code) in [(None, 3), (Some("--no-targets"), 0)] {
+        let out = dir.join(format!("out-{expected_code}"));
+        let mut args = vec![
+            "calibrate",
+            "--config",
+            &missed,
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend(flag);
+        let (code, stdout, stderr) = spmcal(&args);
+        let (ratio, outcome) = ratio_of(&out);
+        assert!(
+            ratio > 0.1,
+            "the 3 × 3 net reaches {ratio}: pick another target"
+        );
+        assert_eq!(code, expected_code, "{flag:?}: {stdout}\n{stderr}");
+        assert_eq!(outcome, "fail");
+        assert!(
+            stdout.contains(&format!(
+                "target distributed ÷ lumped RMS residual distortion ≤ 0.1: {ratio:.3} → FAIL"
+            )),
+            "{stdout}"
+        );
+        assert!(out.join("report.html").exists(), "the report is written");
+        if expected_code == 3 {
+            assert!(
+                stderr.contains("missed 1 of the targets") && stderr.contains("job-missed.toml"),
+                "{stderr}"
+            );
+        } else {
+            assert!(stdout.contains("--no-targets"), "{stdout}");
+        }
+    }
+    let met = job_with("met", 10.0);
+    let out = dir.join("out-met");
+    let (code, stdout, stderr) = spmcal(&[
+        "calibrate",
+        "--config",
+        &met,
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let (ratio, outcome) = ratio_of(&out);
+    assert!(ratio <= 10.0, "{ratio}");
+    assert_eq!((code, outcome.as_str()), (0, "pass"), "{stdout}\n{stderr}");
+    assert!(stdout.contains("→ PASS"), "{stdout}");
+    // The CDB's history as a figure (`cdb trend --png`); never written over the CDB.
+    let db = out.join("cdb.sqlite");
+    let png = dir.join("trend.png");
+    let args = [
+        "cdb",
+        "trend",
+        db.to_str().unwrap(),
+        "--png",
+        png.to_str().unwrap(),
+    ];
+    let (code, stdout, stderr) = spmcal(&args);
+    assert_eq!(code, 0, "{stderr}");
+    assert!(
+        stdout.contains("K̄x") && stdout.contains("figure: "),
+        "{stdout}"
+    );
+    let bytes = std::fs::read(&png).unwrap();
+    assert!(bytes.starts_with(&[0x89, b'P', b'N', b'G']));
+    let before = std::fs::read(&db).unwrap();
+    let (code, _, stderr) = spmcal(&[
+        "cdb",
+        "trend",
+        db.to_str().unwrap(),
+        "--png",
+        db.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 2, "the CDB is not replaced by its figure: {stderr}");
+    assert_eq!(std::fs::read(&db).unwrap(), before);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -80,6 +80,7 @@ fn check_page(html: &str, json: &Value, figures: &[Figure]) {
     }
     for id in [
         "metadata",
+        "targets",
         "accuracy",
         "images",
         "regression",
@@ -128,6 +129,23 @@ fn check_page(html: &str, json: &Value, figures: &[Figure]) {
         &serde_json::json!(given_up.len()),
         "given_up",
     );
+
+    // The plan's targets, each verdict as report.json has it.
+    let targets = json["targets"].as_array().unwrap();
+    if targets.is_empty() {
+        assert_eq!(doc.select(&sel("table#targets-table")).count(), 0);
+    }
+    for (k, t) in targets.iter().enumerate() {
+        let cells = row(&doc, "targets-table", &k.to_string());
+        assert_eq!(text(&cells[0]), t["target"]);
+        assert_eq!(text(&cells[1]), t["measured"].as_str().unwrap_or("–"));
+        let verdict = text(&cells[2]);
+        assert_eq!(
+            verdict.to_lowercase().replace(' ', "_"),
+            t["outcome"].as_str().unwrap(),
+            "target {k}"
+        );
+    }
 
     // Accuracy per method.
     let accuracy = json["accuracy"].as_object().expect("simulated: accuracy");
@@ -330,6 +348,8 @@ fn report_html_matches_report_json() {
         "lcc-uncertainty.png",
         "trajectory.png",
         "drift.png",
+        "residual-distortion.png",
+        "cdb-history.png",
     ]
     .iter()
     .map(|file| Figure {
@@ -353,6 +373,17 @@ fn report_html_matches_report_json() {
     report
         .notes
         .push("<script>alert('x')</script> & \"quoted\"".to_owned());
+    // Declared targets: a missed ratio and the validation (not judged on a simulator).
+    report.targets = spmcal::targets::judge_figures(
+        Some(2.0),
+        &report.validation,
+        &spm_calibration::run_validation::RunTargets {
+            distributed_over_lumped_rms_max: Some(0.1),
+            validation_pass: true,
+        },
+        true,
+    );
+    assert_eq!(report.targets.len(), 4);
     let html = spmcal::html::calibration_page(&report, &figures);
     let json = serde_json::to_value(&report).unwrap();
     check_page(&html, &json, &figures);

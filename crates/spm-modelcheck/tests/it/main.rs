@@ -6,5 +6,6 @@ mod common;
 mod cells;
 mod image;
 mod measured;
+mod orientation;
 mod sim;
 mod synthetic;

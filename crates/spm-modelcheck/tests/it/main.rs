@@ -7,5 +7,6 @@ mod cells;
 mod image;
 mod measured;
 mod orientation;
+mod rules;
 mod sim;
 mod synthetic;

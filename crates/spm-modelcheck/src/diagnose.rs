@@ -1219,27 +1219,8 @@ pub fn diagnose_indexed(
     let frames = &set.frames;
     let baseline_fit = fit.clone();
     let baseline_heldout = heldout_rms(&obs, frames, &target, &base_cols, None, &mask, &ctx);
-    // A lattice the features are not on: the baseline, after its outlier rejection, leaves
-    // residuals (or predicts held-out lines) beyond a quarter of the period — the indexing
-    // put features on sites by rounding, not by a lattice. A movie without a lattice
-    // claimed as hex:1.5 was reported with a held-out RMS of 49 102 pm (issue 29).
-    let quarter_pm = 250.0 * lattice_a_nm;
-    let baseline_rms_pm = rms_pm(fit.rss, fit.n_eq);
-    if baseline_rms_pm > quarter_pm || baseline_heldout > quarter_pm {
-        return Err(ModelCheckError::NotTheLattice {
-            context: format!(
-                "{} indexed features in {n_frames} frame(s)",
-                mask.iter().filter(|m| **m).count()
-            ),
-            reason: format!(
-                "the claimed lattice's baseline leaves {baseline_rms_pm:.0} pm RMS (held out: \
-                 {baseline_heldout:.0} pm), beyond a quarter of its period ({quarter_pm:.0} pm): \
-                 the features are not on that lattice"
-            ),
-        });
-    }
     let baseline = BaselineReport {
-        rms_pm: baseline_rms_pm,
+        rms_pm: rms_pm(fit.rss, fit.n_eq),
         heldout_rms_pm: baseline_heldout,
         drift_separable,
         parameters: baseline_params,
@@ -1676,14 +1657,27 @@ pub fn diagnose_indexed(
         relevance_nm,
     );
     residual_structure.reasons.extend(unexplained_candidates);
-    // A residual beyond 25 % of the period is not a small distortion of the
-    // lattice model at all (mis-indexing, several domains, or a distortion
-    // far outside the library).
-    if rms_pm(fit.rss, fit.n_eq) > 250.0 * lattice_a_nm {
-        residual_structure.reasons.push(format!(
-            "final RMS {:.0} pm exceeds a quarter of the lattice period",
-            rms_pm(fit.rss, fit.n_eq)
-        ));
+    // A lattice the features are not on: the final model, after its outlier rejection
+    // and every effect the data support, still leaves residuals (or predicts held-out
+    // lines) beyond a quarter of the period — the indexing put the features on sites by
+    // rounding, not by a lattice. That is refused, not reported (issue 29: a movie
+    // without a lattice claimed as hex:1.5 was reported with a held-out RMS of
+    // 49 102 pm). A strong but smooth distortion (large hysteresis) leaves a baseline
+    // beyond it and a final model far below it, so the test is on the final model.
+    let quarter_pm = 250.0 * lattice_a_nm;
+    let final_rms_pm = rms_pm(fit.rss, fit.n_eq);
+    if final_rms_pm > quarter_pm || heldout_now > quarter_pm {
+        return Err(ModelCheckError::NotTheLattice {
+            context: format!(
+                "{} indexed features in {n_frames} frame(s)",
+                mask.iter().filter(|m| **m).count()
+            ),
+            reason: format!(
+                "the claimed lattice's model leaves {final_rms_pm:.0} pm RMS (held out: \
+                 {heldout_now:.0} pm) with every supported effect, beyond a quarter of its \
+                 period ({quarter_pm:.0} pm): the features are not on that lattice"
+            ),
+        });
     }
     let unexplained = !residual_structure.reasons.is_empty();
     let residuals = obs

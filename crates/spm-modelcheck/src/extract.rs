@@ -290,7 +290,10 @@ fn geometric_map(channel: &Channel, search: Option<&LatticeSearch>) -> (HeightMa
     }
     let mut z = raw.clone();
     level_lines(&mut z, &bad, nx, ny, &[]);
-    if let Some(search) = search {
+    // Heights beyond a metre are not a surface (a corrupt or hostile file): no lattice
+    // model is fitted to them, the plain levelling only.
+    let physical = channel.unit() != "m" || raw.iter().all(|v| v.abs() < 1e12);
+    if let Some(search) = search.filter(|_| physical) {
         let img = Image {
             z: &z,
             bad: &bad,
@@ -600,6 +603,7 @@ pub fn extract_features(
         Localiser::Features => Mode::Plain,
         _ => Mode::Undecided,
     };
+    let pattern_cell = (lattice.a_nm() - SI7X7_A_NM).abs() < 1e-6;
     for (frame_index, (file, start)) in files.iter().enumerate() {
         let path = file.source.display().to_string();
         let name = file
@@ -707,7 +711,13 @@ pub fn extract_features(
                 },
                 |t| t.first_line_start_s,
             );
-            let (map, bad) = geometric_map(channel, Some(&lattice_search(lattice, pixel_nm)));
+            // Atomic lattices (one hill per site, the plain localiser's) are levelled
+            // jointly with their harmonics; a cell pattern (Si(111)-7×7) keeps the plain
+            // per-line levelling: its cell localiser removes each line's mean inside its
+            // own fit windows, and its many strong harmonics beyond the second shell are
+            // not in the joint model (with them the 20 nm Si 7×7 frame lost its lattice).
+            let search = (!pattern_cell).then(|| lattice_search(lattice, pixel_nm));
+            let (map, bad) = geometric_map(channel, search.as_ref());
             let scan_up = channel.scan_dir().or(file.scan_dir) == Some(ScanDir::Up);
             let time_and_line = |column: f64, row: f64| {
                 let display_row = (ny as f64 - 1.0) - row;

@@ -1587,7 +1587,8 @@ pub fn diagnose_indexed(
             without.extend(effect_columns(a.kind, a.hyper, &obs, &ctx));
         }
         let before_same = heldout_rms_with(&obs, frames, &target, &without, &mask);
-        let problem = if !(heldout_now < before_same) {
+        let lowered = heldout_now < before_same;
+        let problem = if !lowered {
             Some(format!(
                 "raises the held-out RMS on the features the extended model keeps \
                  ({before_same:.2} → {heldout_now:.2} pm)"

@@ -125,7 +125,7 @@ fn joint_fit(img: &Lines<'_>, k_px: &[[f64; 2]]) -> JointFit {
         for (p, k) in phasor.iter_mut().zip(k_px) {
             *p = (std::f64::consts::TAU * k[1] * r as f64).sin_cos();
         }
-        for c in 0..nx {
+        for (c, &w) in weights.iter().enumerate() {
             if c > 0 {
                 for (p, s) in phasor.iter_mut().zip(&step) {
                     *p = (p.0 * s.1 + p.1 * s.0, p.1 * s.1 - p.0 * s.0);
@@ -135,7 +135,7 @@ fn joint_fit(img: &Lines<'_>, k_px: &[[f64; 2]]) -> JointFit {
             if img.bad[r * nx + c] || !v.is_finite() {
                 continue;
             }
-            let (w, x) = (weights[c], c as f64 - centre);
+            let x = c as f64 - centre;
             g[0][0] += w;
             g[0][1] += w * x;
             g[1][1] += w * x * x;
@@ -160,7 +160,8 @@ fn joint_fit(img: &Lines<'_>, k_px: &[[f64; 2]]) -> JointFit {
         g[0][0] *= 1.0 + LINE_RIDGE;
         g[1][1] *= 1.0 + LINE_RIDGE;
         let det = g[0][0] * g[1][1] - g[0][1] * g[1][0];
-        if !(det > 1e-12 * (g[0][0] * g[1][1]).max(1e-300)) {
+        let invertible = det > 1e-12 * (g[0][0] * g[1][1]).max(1e-300);
+        if !invertible {
             lines.push(None);
             continue;
         }

@@ -49,7 +49,8 @@ fn features_of(paths: &[PathBuf], a_nm: f64) -> FeatureSet {
 /// per group is a frame offset, not a bias that can imitate an effect). Returns the RMS
 /// of the remaining bias per axis, pm, and the number of features.
 fn localisation_bias_pm(program: &Program, seed: u64, set: &FeatureSet) -> ([f64; 2], usize) {
-    let mut groups: Vec<((usize, LineDirection), Vec<[f64; 2]>)> = Vec::new();
+    type Group = ((usize, LineDirection), Vec<[f64; 2]>);
+    let mut groups: Vec<Group> = Vec::new();
     for f in &set.features {
         let truth = true_site_position(program, seed, [f.x_nm, f.y_nm], f.time_s);
         let bias = [f.x_nm - truth[0], f.y_nm - truth[1]];

@@ -123,7 +123,8 @@ fn every_accepted_finding_on_measured_files_lowers_the_heldout_rms() {
                 .collect::<Vec<_>>()
         );
         for f in &d.findings {
-            if !(f.heldout_rms_after_pm < f.heldout_rms_before_pm) {
+            let lowered = f.heldout_rms_after_pm < f.heldout_rms_before_pm;
+            if !lowered {
                 failures.push(format!(
                     "{label}: {} held-out {:.2} → {:.2} pm",
                     f.effect, f.heldout_rms_before_pm, f.heldout_rms_after_pm

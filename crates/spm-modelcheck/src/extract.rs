@@ -2,6 +2,7 @@
 
 use crate::cells::{self, Image, LatticeSearch, Peaks, Template};
 use crate::diagnose::{Diagnosis, diagnose_features};
+use crate::level::{Lines, lattice_harmonics, level_lines, refine_basis};
 use crate::types::{
     FeatureObservation, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError,
     Options, SI7X7_A_NM,
@@ -171,75 +172,6 @@ pub fn features_from_height_map(
         .collect())
 }
 
-/// Levels a display-orientation image line by line and fills NaN with 0;
-/// returns the values in pm and the NaN mask.
-///
-/// Each line's offset and slope come from a least-squares line with Tukey
-/// weights (flat, with sin² tapers over the outer 15 % of each end). A line of a lattice image holds a
-/// non-integer number of periods: with uniform weights the partial period at
-/// the ends leaks into the line's offset and slope, which then change from
-/// line to line with the lattice phase of the row; subtracting them moves
-/// every atom by a periodic function of its row (a fake slow "vibration" of
-/// ~1 pm on graphite, since rows are time along the slow axis). The taper
-/// suppresses that leakage (on the image-level test generator the evidence
-/// for that "vibration" on clean data drops from ΔBIC ≈ 95 to ≤ 5) while
-/// still removing the line-to-line offsets and tilts of the feedback.
-fn level(channel: &Channel) -> (Vec<f64>, Vec<bool>) {
-    let (nx, ny) = (channel.nx(), channel.ny());
-    let scale = if channel.unit() == "m" { 1e12 } else { 1.0 };
-    let data = channel.data();
-    let mut out = vec![0.0; nx * ny];
-    let mut nan = vec![false; nx * ny];
-    // 15 % of each end tapered: enough to suppress the partial-period
-    // leakage (tests/it/image.rs, clean cases), while the flat middle keeps the
-    // tilt estimate efficient on real lines with strong feedback noise.
-    let alpha = 0.3;
-    let taper = |c: usize| {
-        // Tukey window: flat in the middle, cosine tapers over α/2 of each end.
-        let x = (c as f64 + 0.5) / nx as f64;
-        let edge = x.min(1.0 - x);
-        if alpha <= 0.0 || edge >= 0.5 * alpha {
-            1.0
-        } else {
-            (0.5 * std::f64::consts::PI * edge / (0.5 * alpha))
-                .sin()
-                .powi(2)
-        }
-    };
-    for r in 0..ny {
-        let row = &data[r * nx..(r + 1) * nx];
-        let pts: Vec<(f64, f64, f64)> = row
-            .iter()
-            .enumerate()
-            .filter(|(_, v)| v.is_finite())
-            .map(|(c, v)| (c as f64, v * scale, taper(c)))
-            .collect();
-        let w: f64 = pts.iter().map(|p| p.2).sum();
-        let (a, b) = if pts.len() >= 2 && w > 0.0 {
-            let mx = pts.iter().map(|p| p.2 * p.0).sum::<f64>() / w;
-            let my = pts.iter().map(|p| p.2 * p.1).sum::<f64>() / w;
-            let sxx = pts.iter().map(|p| p.2 * (p.0 - mx).powi(2)).sum::<f64>();
-            let sxy = pts
-                .iter()
-                .map(|p| p.2 * (p.0 - mx) * (p.1 - my))
-                .sum::<f64>();
-            let b = if sxx > 0.0 { sxy / sxx } else { 0.0 };
-            (my - b * mx, b)
-        } else {
-            (0.0, 0.0)
-        };
-        for c in 0..nx {
-            let v = row[c];
-            if v.is_finite() {
-                out[r * nx + c] = v * scale - a - b * c as f64;
-            } else {
-                nan[r * nx + c] = true;
-            }
-        }
-    }
-    (out, nan)
-}
-
 /// Scan settings that one scan series shares.
 #[derive(Clone, Debug, PartialEq)]
 struct FrameSettings {
@@ -333,16 +265,58 @@ fn height_channels<'f>(
 }
 
 /// The levelled channel as a height map in scanner geometry (row index grows with y; display
-/// row 0 is the top), one pixel per count, and which pixels were not scanned (NaN).
-fn geometric_map(channel: &Channel) -> (HeightMap, Vec<bool>) {
+/// row 0 is the top), one pixel per count, in pm when the channel is in metres, and which
+/// pixels were not scanned (NaN; their height is 0).
+///
+/// The lines are levelled by [`level_lines`]; with `search`, the lattice's peaks are
+/// looked for in the image so levelled, and, when found, the lines are levelled again
+/// jointly with the lattice's harmonics.
+fn geometric_map(channel: &Channel, search: Option<&LatticeSearch>) -> (HeightMap, Vec<bool>) {
     let (nx, ny) = (channel.nx(), channel.ny());
-    let (values, nan) = level(channel);
-    let mut z = vec![0.0; nx * ny];
+    let scale = if channel.unit() == "m" { 1e12 } else { 1.0 };
+    let data = channel.data();
+    let mut raw = vec![0.0; nx * ny];
     let mut bad = vec![false; nx * ny];
     for r in 0..ny {
         for c in 0..nx {
-            z[(ny - 1 - r) * nx + c] = values[r * nx + c];
-            bad[(ny - 1 - r) * nx + c] = nan[r * nx + c];
+            let v = data[r * nx + c];
+            let k = (ny - 1 - r) * nx + c;
+            if v.is_finite() {
+                raw[k] = v * scale;
+            } else {
+                bad[k] = true;
+            }
+        }
+    }
+    let mut z = raw.clone();
+    level_lines(&mut z, &bad, nx, ny, &[]);
+    // Heights beyond a metre are not a surface (a corrupt or hostile file): no lattice
+    // model is fitted to them, the plain levelling only.
+    let physical = channel.unit() != "m" || raw.iter().all(|v| v.abs() < 1e12);
+    if let Some(search) = search.filter(|_| physical) {
+        let img = Image {
+            z: &z,
+            bad: &bad,
+            nx,
+            ny,
+        };
+        if let Some(peaks) = cells::find_lattice(&img, search) {
+            let lines = Lines {
+                z: &raw,
+                bad: &bad,
+                nx,
+                ny,
+            };
+            let basis = refine_basis(&lines, &peaks);
+            let harmonics = lattice_harmonics(basis);
+            tracing::debug!(
+                spectrum = ?peaks.k,
+                refined = ?basis,
+                harmonics = harmonics.len(),
+                "lines levelled jointly with the lattice's harmonics"
+            );
+            z = raw;
+            level_lines(&mut z, &bad, nx, ny, &harmonics);
         }
     }
     let map = HeightMap {
@@ -447,7 +421,7 @@ fn unresolved(peaks: &Peaks) -> Option<String> {
 /// Pixel pitch of a file without a physical size, from the lattice's fundamental in
 /// its image and the claimed lattice constant; `None` when no lattice is seen.
 fn self_calibrate(channel: &Channel, lattice: &LatticeSpec) -> Option<(f64, Peaks)> {
-    let (map, bad) = geometric_map(channel);
+    let (map, bad) = geometric_map(channel, None);
     let img = Image {
         z: &map.z_counts,
         bad: &bad,
@@ -629,6 +603,7 @@ pub fn extract_features(
         Localiser::Features => Mode::Plain,
         _ => Mode::Undecided,
     };
+    let pattern_cell = (lattice.a_nm() - SI7X7_A_NM).abs() < 1e-6;
     for (frame_index, (file, start)) in files.iter().enumerate() {
         let path = file.source.display().to_string();
         let name = file
@@ -736,7 +711,13 @@ pub fn extract_features(
                 },
                 |t| t.first_line_start_s,
             );
-            let (map, bad) = geometric_map(channel);
+            // Atomic lattices (one hill per site, the plain localiser's) are levelled
+            // jointly with their harmonics; a cell pattern (Si(111)-7×7) keeps the plain
+            // per-line levelling: its cell localiser removes each line's mean inside its
+            // own fit windows, and its many strong harmonics beyond the second shell are
+            // not in the joint model (with them the 20 nm Si 7×7 frame lost its lattice).
+            let search = (!pattern_cell).then(|| lattice_search(lattice, pixel_nm));
+            let (map, bad) = geometric_map(channel, search.as_ref());
             let scan_up = channel.scan_dir().or(file.scan_dir) == Some(ScanDir::Up);
             let time_and_line = |column: f64, row: f64| {
                 let display_row = (ny as f64 - 1.0) - row;

@@ -45,6 +45,7 @@ mod cells;
 mod diagnose;
 mod extract;
 mod index;
+mod level;
 mod model;
 mod plot;
 mod simmap;

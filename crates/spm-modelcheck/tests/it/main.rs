@@ -6,5 +6,7 @@ mod common;
 mod cells;
 mod image;
 mod measured;
+mod orientation;
+mod rules;
 mod sim;
 mod synthetic;

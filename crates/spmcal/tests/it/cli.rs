@@ -71,6 +71,23 @@ fn bad_usage_and_bad_input_exit_with_2_and_name_the_culprit() {
     );
     let sxm = spmcal_tests::measured_file("si7x7-nanonis/Si_7x7_051.sxm");
     let sxm = sxm.to_str().unwrap();
+    // A lattice the image does not resolve (the 200 nm Si 7×7 frame: 4 px per cell) is
+    // refused with exit 2 and nothing written, not diagnosed (issue 29 item 4).
+    let coarse = spmcal_tests::measured_file("si7x7-nanonis/Si_7x7_012.sxm");
+    let diagnosis = scratch.join("d.json");
+    check(
+        &[
+            "diagnose",
+            coarse.to_str().unwrap(),
+            "--lattice",
+            "si7x7",
+            "--json",
+            diagnosis.to_str().unwrap(),
+        ],
+        2,
+        "cannot be localised",
+    );
+    assert!(!diagnosis.exists());
     let out = scratch.join("out.gsf");
     let out = out.to_str().unwrap();
     check(

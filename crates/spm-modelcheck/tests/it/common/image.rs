@@ -142,6 +142,72 @@ fn date_plus(seconds: u64) -> DateTime {
     .unwrap()
 }
 
+/// The instrument's linear map J = R(θ)·M from the commanded position (nominal nm)
+/// to the lattice frame (nm), M = [[k_x, k_y sin α], [0, k_y cos α]].
+pub fn instrument_map(program: &Program) -> [[f64; 2]; 2] {
+    let (so, co) = program.obliquity_rad.sin_cos();
+    let (sr, cr) = program.rotation_rad.sin_cos();
+    let m = [
+        [program.scale[0], program.scale[1] * so],
+        [0.0, program.scale[1] * co],
+    ];
+    [
+        [cr * m[0][0] - sr * m[1][0], cr * m[0][1] - sr * m[1][1]],
+        [sr * m[0][0] + cr * m[1][0], sr * m[0][1] + cr * m[1][1]],
+    ]
+}
+
+/// Where the lattice's sites sit in the lattice frame (the hills' offset), nm.
+fn site_offset(program: &Program, seed: u64) -> [f64; 2] {
+    [
+        0.031 * seed as f64 % program.a_nm,
+        0.017 * seed as f64 % program.a_nm,
+    ]
+}
+
+/// The rotation θ that puts the lattice's rows (its a₁ direction) at `angle_rad` from
+/// the fast axis in the image, through the program's scales and obliquity: J·(cos, sin)
+/// of that angle lies along the lattice frame's x.
+pub fn rotation_for_row_angle(program: &Program, angle_rad: f64) -> f64 {
+    let (so, co) = program.obliquity_rad.sin_cos();
+    let (s, c) = angle_rad.sin_cos();
+    let m = [
+        program.scale[0] * c + program.scale[1] * so * s,
+        program.scale[1] * co * s,
+    ];
+    -m[1].atan2(m[0])
+}
+
+/// The generator's truth for a clean program (`Hidden::None`): the commanded position
+/// (nominal nm, centred, y up) at which the tip met the lattice site nearest to a
+/// feature reported at `u_nm` and time `t_s` (the time axis of the first frame's start).
+pub fn true_site_position(program: &Program, seed: u64, u_nm: [f64; 2], t_s: f64) -> [f64; 2] {
+    let j = instrument_map(program);
+    let offset = site_offset(program, seed);
+    let d = [
+        program.drift_nm_per_s[0] * t_s,
+        program.drift_nm_per_s[1] * t_s,
+    ];
+    let q = [
+        j[0][0] * u_nm[0] + j[0][1] * u_nm[1] + d[0] - offset[0],
+        j[1][0] * u_nm[0] + j[1][1] * u_nm[1] + d[1] - offset[1],
+    ];
+    // Lattice basis a₁ = (a, 0), a₂ = (a/2, a√3/2): fractional coordinates, rounded.
+    let a = program.a_nm;
+    let h = 0.75f64.sqrt() * a;
+    let fj = (q[1] / h).round();
+    let fi = ((q[0] - 0.5 * a * fj) / a).round();
+    let site = [
+        fi * a + 0.5 * a * fj + offset[0] - d[0],
+        fj * h + offset[1] - d[1],
+    ];
+    let det = j[0][0] * j[1][1] - j[0][1] * j[1][0];
+    [
+        (j[1][1] * site[0] - j[0][1] * site[1]) / det,
+        (-j[1][0] * site[0] + j[0][0] * site[1]) / det,
+    ]
+}
+
 /// Writes the frames as `.sxm` files in a fresh directory; returns their paths.
 pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> Vec<PathBuf> {
     let dir = std::env::temp_dir().join(format!(
@@ -154,16 +220,7 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
     let n = program.pixels;
     let p = program.size_nm / n as f64;
     let half = 0.5 * program.size_nm;
-    let (so, co) = program.obliquity_rad.sin_cos();
-    let (sr, cr) = program.rotation_rad.sin_cos();
-    let m = [
-        [program.scale[0], program.scale[1] * so],
-        [0.0, program.scale[1] * co],
-    ];
-    let j = [
-        [cr * m[0][0] - sr * m[1][0], cr * m[0][1] - sr * m[1][1]],
-        [sr * m[0][0] + cr * m[1][0], sr * m[0][1] + cr * m[1][1]],
-    ];
+    let j = instrument_map(program);
     // Reciprocal vectors of the triangular lattice (hills on the sites).
     let g = 4.0 * PI / (3f64.sqrt() * program.a_nm);
     let gs: Vec<[f64; 2]> = (0..3)
@@ -172,10 +229,7 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
             [g * phi.cos(), g * phi.sin()]
         })
         .collect();
-    let offset = [
-        0.031 * seed as f64 % program.a_nm,
-        0.017 * seed as f64 % program.a_nm,
-    ];
+    let offset = site_offset(program, seed);
     let height = |r: [f64; 2]| {
         program.corrugation_nm / 3.0
             * gs.iter()

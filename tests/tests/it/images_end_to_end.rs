@@ -146,41 +146,9 @@ fn with_every_effect_on_the_identified_creep_law_corrects_what_no_static_field_c
 /// mean; the tilt it could take out is 1/(2N) of it).
 #[test]
 fn the_sample_points_carry_the_drift_the_tip_positions_do_not() {
-    use spm_evaluation::images::{
-        CountRegion, ImageCorrection, ImageMethod, ImageSetConfig, ImageSize, evaluate_images,
-        take_test_images,
-    };
-    let v_nm_per_s = 0.02;
-    let mut config = spm_sim::SimConfig::ideal();
-    config.drift.velocity_y_nm_per_s = v_nm_per_s;
-    let sim = spm_sim::Simulator::new(config).expect("simulator");
-    let mut instrument = spm_hal::recording::CommandRecorder::new(sim, 100_000);
-    let set = ImageSetConfig {
-        places_per_side: 1,
-        sizes: vec![ImageSize {
-            pixels: 65,
-            step_counts: 2.0,
-        }],
-        dwells_s: vec![2e-3],
-        pause: spm_calibration::PauseLaw {
-            base_s: 0.0,
-            per_count_s: 0.0,
-            per_coarse_step_s: 0.0,
-            max_s: 0.0,
-        },
-        move_speed_counts_per_s: 20_000.0,
-        settle_s: 0.0,
-        lattice_constant_nm: 0.2461,
-        nominal_nm_per_count: 0.02,
-        min_pixels_per_lattice_constant: 5.0,
-    };
-    let region = CountRegion {
-        x_min_counts: -100.0,
-        x_max_counts: 100.0,
-        y_min_counts: -100.0,
-        y_max_counts: 100.0,
-    };
-    let images = take_test_images(&mut instrument, &region, &set).expect("images");
+    use spm_evaluation::images::{ImageCorrection, ImageMethod, evaluate_images};
+    let v_nm_per_s = DRIFT_Y_NM_PER_S;
+    let (set, images) = ideal_drifting_images();
     let bench = evaluate_images(
         &images,
         &[ImageMethod {
@@ -222,40 +190,9 @@ fn the_sample_points_carry_the_drift_the_tip_positions_do_not() {
 #[test]
 fn the_dhct_competitor_takes_out_a_constant_drift_from_trace_and_retrace() {
     use spm_evaluation::competitors::{CompetitorConfig, nominal_map, yothers};
-    use spm_evaluation::images::{
-        CountRegion, ImageSetConfig, ImageSize, TestImage, take_test_images,
-    };
-    let v_nm_per_s = 0.02;
-    let mut config = spm_sim::SimConfig::ideal();
-    config.drift.velocity_y_nm_per_s = v_nm_per_s;
-    let sim = spm_sim::Simulator::new(config).expect("simulator");
-    let mut instrument = spm_hal::recording::CommandRecorder::new(sim, 100_000);
-    let set = ImageSetConfig {
-        places_per_side: 1,
-        sizes: vec![ImageSize {
-            pixels: 65,
-            step_counts: 2.0,
-        }],
-        dwells_s: vec![2e-3],
-        pause: spm_calibration::PauseLaw {
-            base_s: 0.0,
-            per_count_s: 0.0,
-            per_coarse_step_s: 0.0,
-            max_s: 0.0,
-        },
-        move_speed_counts_per_s: 20_000.0,
-        settle_s: 0.0,
-        lattice_constant_nm: 0.2461,
-        nominal_nm_per_count: 0.02,
-        min_pixels_per_lattice_constant: 5.0,
-    };
-    let region = CountRegion {
-        x_min_counts: -100.0,
-        x_max_counts: 100.0,
-        y_min_counts: -100.0,
-        y_max_counts: 100.0,
-    };
-    let images = take_test_images(&mut instrument, &region, &set).expect("images");
+    use spm_evaluation::images::TestImage;
+    let v_nm_per_s = DRIFT_Y_NM_PER_S;
+    let (_, images) = ideal_drifting_images();
     let competitor = CompetitorConfig {
         nominal_nm_per_count: 0.02,
         lattice_constant_nm: 0.2461,
@@ -306,4 +243,48 @@ fn the_dhct_competitor_takes_out_a_constant_drift_from_trace_and_retrace() {
             image.direction
         );
     }
+}
+
+/// The drift of [`ideal_drifting_images`], nm/s along y.
+const DRIFT_Y_NM_PER_S: f64 = 0.02;
+
+/// One 65-pixel image pair (direct and counter) at the centre of an ideal simulated scanner
+/// whose sample drifts at [`DRIFT_Y_NM_PER_S`] along y, taken through the command recorder,
+/// with the set's configuration.
+fn ideal_drifting_images() -> (
+    spm_evaluation::images::ImageSetConfig,
+    Vec<spm_evaluation::images::TestImage>,
+) {
+    use spm_evaluation::images::{CountRegion, ImageSetConfig, ImageSize, take_test_images};
+    let mut config = spm_sim::SimConfig::ideal();
+    config.drift.velocity_y_nm_per_s = DRIFT_Y_NM_PER_S;
+    let sim = spm_sim::Simulator::new(config).expect("simulator");
+    let mut instrument = spm_hal::recording::CommandRecorder::new(sim, 100_000);
+    let set = ImageSetConfig {
+        places_per_side: 1,
+        sizes: vec![ImageSize {
+            pixels: 65,
+            step_counts: 2.0,
+        }],
+        dwells_s: vec![2e-3],
+        pause: spm_calibration::PauseLaw {
+            base_s: 0.0,
+            per_count_s: 0.0,
+            per_coarse_step_s: 0.0,
+            max_s: 0.0,
+        },
+        move_speed_counts_per_s: 20_000.0,
+        settle_s: 0.0,
+        lattice_constant_nm: 0.2461,
+        nominal_nm_per_count: 0.02,
+        min_pixels_per_lattice_constant: 5.0,
+    };
+    let region = CountRegion {
+        x_min_counts: -100.0,
+        x_max_counts: 100.0,
+        y_min_counts: -100.0,
+        y_max_counts: 100.0,
+    };
+    let images = take_test_images(&mut instrument, &region, &set).expect("images");
+    (set, images)
 }

@@ -358,15 +358,35 @@ mod tests {
         assert_eq!(lattice_error(truth, truth), Some(0.0));
     }
 
-    /// An oracle whose true LCCs are linear in x (K̄x) and y (K̄y), α = 0: the true map is a
-    /// quadratic, inside the polynomial baseline's cubic basis.
-    struct LinearLcc;
+    /// An oracle whose true LCCs are linear in x (K̄x = 0.02·(1 + gx·x)) and y
+    /// (K̄y = 0.021·(1 + gy·y)), α = 0: the true map is a quadratic, inside the polynomial
+    /// baseline's cubic basis (a constant one with both slopes 0).
+    struct LinearLcc {
+        gx_per_count: f64,
+        gy_per_count: f64,
+        ky_nm_per_count: f64,
+    }
+
+    /// K̄x linear in x, K̄y linear in y.
+    const SLOPED: LinearLcc = LinearLcc {
+        gx_per_count: 1e-5,
+        gy_per_count: -2e-5,
+        ky_nm_per_count: 0.021,
+    };
+
+    /// A scanner of one constant sensitivity everywhere, orthogonal.
+    const CONSTANT: LinearLcc = LinearLcc {
+        gx_per_count: 0.0,
+        gy_per_count: 0.0,
+        ky_nm_per_count: 0.02,
+    };
 
     impl GroundTruth for LinearLcc {
         fn true_lcc(&self, commanded: CountPoint, _z: Counts) -> TrueLcc {
             TrueLcc {
-                kx_nm_per_count: 0.02 * (1.0 + 1e-5 * commanded.x.value()),
-                ky_nm_per_count: 0.021 * (1.0 - 2e-5 * commanded.y.value()),
+                kx_nm_per_count: 0.02 * (1.0 + self.gx_per_count * commanded.x.value()),
+                ky_nm_per_count: self.ky_nm_per_count
+                    * (1.0 + self.gy_per_count * commanded.y.value()),
                 alpha_rad: 0.0,
             }
         }
@@ -402,36 +422,11 @@ mod tests {
             image_time_s: 100.0,
             drift_nm_per_s: (0.0, 0.0),
         };
-        let accuracy = polynomial_baseline(&LinearLcc, &grid, &image)?;
+        let accuracy = polynomial_baseline(&SLOPED, &grid, &image)?;
         // Solver round-off only: far below a picometre and 1e-9 % of the lattice constant.
         assert!(accuracy.max_pm < 1e-6, "{accuracy:?}");
         assert!(accuracy.max_lattice_error_pct < 1e-9, "{accuracy:?}");
         Ok(())
-    }
-
-    /// A scanner of one constant sensitivity everywhere, orthogonal.
-    struct ConstantLcc;
-
-    impl GroundTruth for ConstantLcc {
-        fn true_lcc(&self, _commanded: CountPoint, _z: Counts) -> TrueLcc {
-            TrueLcc {
-                kx_nm_per_count: 0.02,
-                ky_nm_per_count: 0.02,
-                alpha_rad: 0.0,
-            }
-        }
-        fn z_now(&self) -> Counts {
-            Counts(0.0)
-        }
-        fn now(&self) -> Seconds {
-            Seconds(0.0)
-        }
-        fn drift_velocity(&self, _t: Seconds) -> NmVelocity {
-            NmVelocity::default()
-        }
-        fn reference_gain(&self) -> [f64; 2] {
-            [1.0, 1.0]
-        }
     }
 
     /// Issue 27's residual map: a method 1 % too sensitive everywhere maps every pixel 1 %
@@ -453,7 +448,7 @@ mod tests {
             lattice_constant_nm: 0.246,
         };
         let method = PlaneSurfaces::constant(0.0, 0.0202, 0.0202, 0.0)?;
-        let field = residual_field(&ConstantLcc, &method.field(Route::Exact), &grid)?;
+        let field = residual_field(&CONSTANT, &method.field(Route::Exact), &grid)?;
         assert_eq!((field.pixels, field.residual_nm.len()), (11, 121));
         assert_eq!(field.step_counts, 200.0);
         let mut squares = 0.0;
@@ -469,7 +464,7 @@ mod tests {
                 squares += expected * expected;
             }
         }
-        let accuracy = evaluate(&ConstantLcc, &method, &grid)?;
+        let accuracy = evaluate(&CONSTANT, &method, &grid)?;
         assert!((accuracy.rms_pm - 1e3 * (squares / 121.0).sqrt()).abs() < 1e-6);
         assert!((accuracy.max_pm - 1e3 * 0.01 * 0.02 * 200.0 * 50f64.sqrt()).abs() < 1e-6);
         Ok(())

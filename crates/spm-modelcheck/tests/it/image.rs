@@ -8,8 +8,7 @@ use crate::common;
 
 use common::image::{Hidden, Program, write_frames, write_no_lattice};
 use spm_modelcheck::{
-    Diagnosis, EffectKind, ExtractOptions, ImageInput, LatticeSpec, ModelCheckError, Options,
-    diagnose,
+    Diagnosis, EffectKind, ExtractOptions, LatticeSpec, ModelCheckError, Options, diagnose,
 };
 use std::path::PathBuf;
 
@@ -22,13 +21,7 @@ fn run_paths_with(
     a_nm: f64,
     options: &Options,
 ) -> Result<Diagnosis, ModelCheckError> {
-    let inputs: Vec<ImageInput> = paths
-        .iter()
-        .map(|p| ImageInput {
-            path: p.clone(),
-            start_time_s: None,
-        })
-        .collect();
+    let inputs = common::image::inputs(paths);
     diagnose(
         &inputs,
         &LatticeSpec::Hex { a_nm },

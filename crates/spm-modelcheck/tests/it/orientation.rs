@@ -7,8 +7,7 @@ use crate::common;
 
 use common::image::{Hidden, Program, rotation_for_row_angle, true_site_position, write_frames};
 use spm_modelcheck::{
-    ExtractOptions, FeatureSet, ImageInput, LatticeSpec, LineDirection, Options, diagnose,
-    extract_features,
+    ExtractOptions, FeatureSet, LatticeSpec, LineDirection, Options, diagnose, extract_features,
 };
 use std::path::PathBuf;
 
@@ -154,13 +153,7 @@ fn clean_pairs_at_any_row_angle_give_no_finding() {
             for seed in [1u64, 2] {
                 let program = program_at(angle, pixels);
                 let paths = write_frames(&program, Hidden::None, 700 + seed, "orientation");
-                let inputs: Vec<ImageInput> = paths
-                    .iter()
-                    .map(|p| ImageInput {
-                        path: p.clone(),
-                        start_time_s: None,
-                    })
-                    .collect();
+                let inputs = common::image::inputs(&paths);
                 let d = diagnose(
                     &inputs,
                     &LatticeSpec::Hex { a_nm: program.a_nm },

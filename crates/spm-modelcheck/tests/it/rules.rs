@@ -6,19 +6,11 @@
 use crate::common;
 
 use common::image::{Program, write_no_lattice};
-use spm_modelcheck::{
-    Diagnosis, ExtractOptions, ImageInput, LatticeSpec, ModelCheckError, Options, diagnose,
-};
+use spm_modelcheck::{Diagnosis, ExtractOptions, LatticeSpec, ModelCheckError, Options, diagnose};
 use std::path::PathBuf;
 
 fn run(paths: &[PathBuf], lattice: &LatticeSpec) -> Result<Diagnosis, ModelCheckError> {
-    let inputs: Vec<ImageInput> = paths
-        .iter()
-        .map(|p| ImageInput {
-            path: p.clone(),
-            start_time_s: None,
-        })
-        .collect();
+    let inputs = common::image::inputs(paths);
     diagnose(
         &inputs,
         lattice,

@@ -438,3 +438,14 @@ pub fn write_no_lattice(program: &Program, blobs: bool, seed: u64, tag: &str) ->
     std::fs::write(&path, encode_sxm(&scan, &path).unwrap()).unwrap();
     path
 }
+
+/// The written frames as diagnose's inputs (times from the files).
+pub fn inputs(paths: &[std::path::PathBuf]) -> Vec<spm_modelcheck::ImageInput> {
+    paths
+        .iter()
+        .map(|p| spm_modelcheck::ImageInput {
+            path: p.clone(),
+            start_time_s: None,
+        })
+        .collect()
+}

@@ -134,7 +134,7 @@ fn check_range(
     n: usize,
     file: &SpmFile,
 ) -> Result<(), ApplyError> {
-    if range.start >= range.end || range.end > n || range.len() < 2 {
+    if range.end > n || range.len() < 2 {
         return Err(ApplyError::Option {
             option,
             reason: format!(

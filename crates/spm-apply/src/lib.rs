@@ -1115,28 +1115,44 @@ fn maps_for<F: CorrectionField + Sync>(
         } else {
             None
         };
-    // The lattice ruler: the approach creep and drift from the first channel's atoms, removed
-    // from both halves along their own times.
+    // The lattice ruler: the approach creep, drift and fast-axis terms from the first channel's
+    // atoms; the other half, whose lines run the other way (its hysteresis mirrored), from the
+    // atoms of its own first channel. Each removed along its own pixel times and places.
     let mut estimate = None;
     let mut dynamics_used = dynamics_used;
     if let (Some(ruler), Some(d), DynamicsUsed::Raster) =
         (options.ruler.as_ref(), with_dynamics, dynamics_used)
     {
         let law = d.creep.law().map_err(correction)?;
+        let measure = |channel: &Channel, map: &CoordinateMap, times: &[f64]| {
+            let heights = geometry_heights(file, channel)?;
+            ruler::estimate_from_lattice(&heights, map, times, &law, ruler).map_err(|source| {
+                ApplyError::Option {
+                    option: "--ruler",
+                    reason: format!(
+                        "{} (channel {}): {source}",
+                        file.source.display(),
+                        channel.name()
+                    ),
+                }
+            })
+        };
         let times =
             dynamic::pixel_times(raster, half_of(first, raster.path)).map_err(correction)?;
-        let heights = geometry_heights(file, first)?;
-        let found = ruler::estimate_from_lattice(&heights, &map, &times, &law, ruler).map_err(
-            |source| ApplyError::Option {
-                option: "--ruler",
-                reason: format!("{}: {source}", file.source.display()),
-            },
-        )?;
+        let found = measure(first, &map, &times)?;
         map = found.corrected(&map, &times).map_err(correction)?;
         if let Some((other_map, other_first)) = other_half.take() {
             let times = dynamic::pixel_times(raster, other).map_err(correction)?;
+            let channel = channels
+                .iter()
+                .find(|c| half_of(c, raster.path) == other)
+                .ok_or_else(|| ApplyError::Channel {
+                    file: file.source.clone(),
+                    reason: "no channel of the other half".to_owned(),
+                })?;
+            let own = measure(channel, &other_map, &times)?;
             other_half = Some((
-                found.corrected(&other_map, &times).map_err(correction)?,
+                own.corrected(&other_map, &times).map_err(correction)?,
                 other_first,
             ));
         }
@@ -1507,7 +1523,7 @@ pub(crate) fn source_header(file: &SpmFile) -> Vec<(String, String)> {
 }
 
 /// The lattice ruler's estimate as output metadata.
-fn ruler_fields(r: &ruler::RulerEstimate) -> [(String, String); 5] {
+fn ruler_fields(r: &ruler::RulerEstimate) -> [(String, String); 6] {
     [
         (
             "spmcal_ruler_approach_amplitude_nm".to_owned(),
@@ -1520,6 +1536,17 @@ fn ruler_fields(r: &ruler::RulerEstimate) -> [(String, String); 5] {
         (
             "spmcal_ruler_drift_nm_per_s".to_owned(),
             format!("{:.6e} {:.6e}", r.drift_nm_per_s[0], r.drift_nm_per_s[1]),
+        ),
+        (
+            "spmcal_ruler_fast_axis_nm".to_owned(),
+            format!(
+                "x·u {:.6} x·u² {:.6} x·u³ {:.6} y·u² {:.6} y·u³ {:.6} (u along the line, -1/2..1/2)",
+                r.fast_axis_nm[0],
+                r.fast_axis_nm[1],
+                r.fast_axis_nm[2],
+                r.fast_axis_nm[3],
+                r.fast_axis_nm[4]
+            ),
         ),
         (
             "spmcal_ruler_atoms".to_owned(),

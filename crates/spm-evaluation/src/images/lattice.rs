@@ -190,30 +190,50 @@ pub fn match_features(
         let ([ax, vx], [ay, vy]) = (axis(0), axis(1));
         Some([[ax, ay], [vx, vy]])
     };
-    // The apparent offset to start from: the median displacement from each of the atoms seen
-    // closest in time to its nearest counter atom. Two corrections that each took out the
-    // drift from their own image's start (the lattice ruler) leave the pair apart by the
-    // drift over the direct image, several lattice constants; a periodic lattice shows that
-    // offset only modulo a lattice vector, which is all the lattice measurement needs (a
-    // constant offset moves no atom against another).
+    // The apparent offset to start from, by a vote: the displacement from each of the atoms
+    // seen closest in time to its nearest counter atom is a candidate, and the shortest of
+    // those that match nearly the most of these atoms wins (then the median of what it
+    // matched). Two
+    // corrections that each took out the drift from their own image's start (the lattice
+    // ruler) leave the pair apart by up to several lattice constants; a periodic lattice shows
+    // that offset only modulo a lattice vector, which is all the lattice measurement needs (a
+    // constant offset moves no atom against another). The median of each atom's nearest
+    // displacement alone fails when the offset lies near half a lattice vector: the nearest
+    // atom is then one of two, and the medians of x and y mix them.
     let mut model = [[0.0_f64; 2]; 2];
     {
         let take = (order.len() / 25).max(6).min(order.len());
-        let mut dx = Vec::with_capacity(take);
-        let mut dy = Vec::with_capacity(take);
-        for &i in &order[..take] {
-            let nearest = pc.iter().min_by(|a, b| {
-                let da = (a[0] - pd[i][0]).hypot(a[1] - pd[i][1]);
-                let db = (b[0] - pd[i][0]).hypot(b[1] - pd[i][1]);
-                da.total_cmp(&db)
-            });
-            if let Some(c) = nearest {
-                dx.push(c[0] - pd[i][0]);
-                dy.push(c[1] - pd[i][1]);
+        let early = &order[..take];
+        let candidates: Vec<[f64; 2]> = early
+            .iter()
+            .filter_map(|&i| {
+                pc.iter()
+                    .map(|c| [c[0] - pd[i][0], c[1] - pd[i][1]])
+                    .min_by(|a, b| a[0].hypot(a[1]).total_cmp(&b[0].hypot(b[1])))
+            })
+            .collect();
+        let voted: Vec<(f64, Vec<(usize, usize)>)> = candidates
+            .iter()
+            .map(|c| {
+                (
+                    c[0].hypot(c[1]),
+                    mutual_matches(&pd, &pc, early, max, |_| *c),
+                )
+            })
+            .collect();
+        // Offsets a lattice vector apart match alike but for the atoms they push out of the
+        // frame: of those matching at least 80 % as many as the best, the shortest.
+        let most = voted.iter().map(|v| v.1.len()).max().unwrap_or(0);
+        let best = voted
+            .into_iter()
+            .filter(|v| 5 * v.1.len() >= 4 * most)
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        if let Some((_, matched)) = best {
+            let mut dx: Vec<f64> = matched.iter().map(|&(i, j)| pc[j][0] - pd[i][0]).collect();
+            let mut dy: Vec<f64> = matched.iter().map(|&(i, j)| pc[j][1] - pd[i][1]).collect();
+            if let (Some(mx), Some(my)) = (median(&mut dx), median(&mut dy)) {
+                model[0] = [mx, my];
             }
-        }
-        if let (Some(mx), Some(my)) = (median(&mut dx), median(&mut dy)) {
-            model[0] = [mx, my];
         }
     }
     let mut pairs = Vec::new();

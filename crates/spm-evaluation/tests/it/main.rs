@@ -2,3 +2,4 @@
 //! module per topic, run as `cargo test --workspace --test it <module>::`.
 
 mod competitors;
+mod pair_match;

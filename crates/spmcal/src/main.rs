@@ -233,10 +233,11 @@ enum Command {
         /// dynamics (the raster's hysteresis and creep are then not corrected).
         #[arg(long = "static")]
         static_only: bool,
-        /// Measure the approach move's creep and the drift against the standard's lattice in
-        /// each image (atomic resolution, ≥ 4 pixels per lattice constant) and remove them too
-        /// — for files corrected along their own raster, without a recorded history. `hopg`:
-        /// hexagonal, a = 0.246 nm.
+        /// Measure the approach move's creep, the drift and what the calibration left along the
+        /// lines against the standard's lattice in each image (atomic resolution, ≥ 4 pixels
+        /// per lattice constant; each half on its own atoms) and remove them too — for files
+        /// corrected along their own raster, without a recorded history. `hopg`: hexagonal,
+        /// a = 0.246 nm.
         #[arg(long, value_name = "STANDARD")]
         ruler: Option<RulerStandard>,
     },

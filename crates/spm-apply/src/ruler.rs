@@ -645,13 +645,13 @@ pub fn estimate_from_lattice(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
 
     /// A HOPG-like surface: Gaussian atoms on a hexagonal lattice (a = 0.246 nm) rotated by
     /// `angle`.
-    fn surface(x: f64, y: f64, angle: f64) -> f64 {
+    pub(crate) fn surface(x: f64, y: f64, angle: f64) -> f64 {
         let a = 0.246;
         let (s, c) = angle.sin_cos();
         let b1 = [a * c, a * s];

@@ -438,3 +438,110 @@ fn one_play_operator_shifts_the_trace_by_its_closed_form() {
         "{kink} vs {flat} + {part}"
     );
 }
+
+/// `correct --ruler` on a file with both halves: each half's lines are bent along the line by
+/// its own hysteresis, mirrored in the other half (`e = ±(0.06, 0.03)·u²` nm, u the place
+/// along the line). Each half must come out on its own sample points (to a fifth of the bend,
+/// a constant offset aside); the trace's estimate applied to the retrace would leave twice the
+/// bend there.
+#[test]
+fn the_ruler_fits_each_half_on_its_own_atoms() {
+    let (n, k) = (129, 0.002); // 10 counts per pixel: 0.02 nm, 12 pixels per lattice constant
+    let mut set = uniform(k, k, 0.0);
+    set.provenance.nominal_nm_per_count = Some(k);
+    let dynamics = dynamics_of(spm_correction::hysteresis::PlayHysteresis::none(), 0.005);
+    set.dynamics = Some(dynamics.clone());
+    let field = set.planes[0].field(Route::Products);
+    let mut r = raster(n, n, 0.0, RasterPath::Trace(ScanDir::Up));
+    r.line_time_s = Some(0.1);
+    let bend = |half: dynamic::Half, column: usize| -> [f64; 2] {
+        let u = (column as f64 - 64.0) / 128.0;
+        let sign = if half == dynamic::Half::Trace {
+            1.0
+        } else {
+            -1.0
+        };
+        [sign * 0.06 * u * u, sign * 0.03 * u * u]
+    };
+    // Per half: the sample point of every pixel (map order) and the channel in display order.
+    let mut truth = Vec::new();
+    let mut channels = Vec::new();
+    for (half, direction) in [
+        (dynamic::Half::Trace, Direction::Forward),
+        (dynamic::Half::Retrace, Direction::Backward),
+    ] {
+        let (map, _) = dynamic::dynamic_map(&field, &r, &dynamics, half).unwrap();
+        let mut points = Vec::with_capacity(n * n);
+        let mut display = vec![0.0; n * n];
+        for row in 0..n {
+            for column in 0..n {
+                let p = map_point(&map, column, row);
+                let e = bend(half, column);
+                let q = [p[0] - e[0], p[1] - e[1]];
+                display[(n - 1 - row) * n + column] = crate::ruler::tests::surface(q[0], q[1], 0.3);
+                points.push(q);
+            }
+        }
+        truth.push(points);
+        channels.push(Channel::new("Z", direction, "m", n, n, display).unwrap());
+    }
+    let file = SpmFile {
+        source: PathBuf::from("halves.gsf"),
+        format: Format::Gsf,
+        channels,
+        header: Vec::new(),
+        scan_dir: None,
+        line_time_s: Some(0.1),
+        recorded: None,
+    };
+    let options = ApplyOptions {
+        ruler: Some(crate::ruler::LatticeRuler::hopg()),
+        ..nominal(k)
+    };
+    let selected: Vec<&Channel> = file.channels.iter().collect();
+    let maps = maps_for(&file, &set, &options, &field, &r, &selected).unwrap();
+    let other = maps.other_half.as_ref().map(|o| &o.0).unwrap();
+    // What is left of the bend, a constant offset removed, against the bend itself.
+    let left = |map: &CoordinateMap, points: &[[f64; 2]]| -> f64 {
+        let d: Vec<[f64; 2]> = points
+            .iter()
+            .enumerate()
+            .map(|(i, q)| {
+                let p = map_point(map, i % n, i / n);
+                [p[0] - q[0], p[1] - q[1]]
+            })
+            .collect();
+        let m = [
+            d.iter().map(|v| v[0]).sum::<f64>() / d.len() as f64,
+            d.iter().map(|v| v[1]).sum::<f64>() / d.len() as f64,
+        ];
+        (d.iter()
+            .map(|v| (v[0] - m[0]).powi(2) + (v[1] - m[1]).powi(2))
+            .sum::<f64>()
+            / d.len() as f64)
+            .sqrt()
+    };
+    let bent: Vec<[f64; 2]> = (0..n * n)
+        .map(|i| bend(dynamic::Half::Trace, i % n))
+        .collect();
+    let bend_rms = left(
+        &CoordinateMap::new(
+            n,
+            n,
+            bent.iter().map(|b| b[0]).collect(),
+            YCoordinates::PerPixel(bent.iter().map(|b| b[1]).collect()),
+        )
+        .unwrap(),
+        &vec![[0.0, 0.0]; n * n],
+    );
+    for (name, map, points) in [
+        ("trace", &maps.map, &truth[0]),
+        ("retrace", other, &truth[1]),
+    ] {
+        let rms = left(map, points);
+        assert!(
+            rms < 0.2 * bend_rms,
+            "{name}: {rms} nm RMS left, the bend is {bend_rms} nm RMS"
+        );
+    }
+}

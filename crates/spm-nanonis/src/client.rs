@@ -365,7 +365,12 @@ impl Client {
                 continue;
             };
             self.sequence += 1;
-            match transact(connection, request, self.schema, self.config.command_timeout_s) {
+            match transact(
+                connection,
+                request,
+                self.schema,
+                self.config.command_timeout_s,
+            ) {
                 Ok((_, error)) if error.status != 0 => {
                     return Err(NanonisError::from_error_reply(
                         request.name(),

@@ -48,10 +48,9 @@ fn round_trip_us(sim: &SimConfig) -> Result<f64, XtaskError> {
     )
     .and_then(Server::spawn)
     .map_err(|e| XtaskError::step("starting nanonis-sim", e))?;
-    let mut client = spm_nanonis::Client::connect(
-        nanonis_config(server.addr().port()).client_config(),
-    )
-    .map_err(|e| XtaskError::step("connecting to nanonis-sim", e))?;
+    let mut client =
+        spm_nanonis::Client::connect(nanonis_config(server.addr().port()).client_config())
+            .map_err(|e| XtaskError::step("connecting to nanonis-sim", e))?;
     let mut times_us = Vec::with_capacity(2000);
     for k in 0..2200 {
         let started = Instant::now();

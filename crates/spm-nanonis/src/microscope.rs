@@ -1267,6 +1267,9 @@ impl Microscope for NanonisMicroscope {
                 format!("settle time {} must be finite and ≥ 0", request.settle),
             ));
         }
+        // Where the move starts (for its timeout), before any setting is sent: a kept
+        // position stays valid only until the controller receives something else.
+        let here = self.position_counts()?;
         self.invalidate_on_reconnect();
         // Speed in m/s along the path: counts/s × the geometric mean of the X and Y
         // metres per count (exact when they are equal, as in the counts convention of a
@@ -1281,7 +1284,6 @@ impl Microscope for NanonisMicroscope {
             self.sent.folme_speed = Some(speed_m.to_bits());
         }
         let (x_m, y_m) = self.to_metres(request.target);
-        let here = self.position_counts()?;
         let expected_s = here.distance(request.target).value() / speed;
         self.client.call_waiting(
             &Request::FolMeXYPosSet {

@@ -124,6 +124,7 @@ pub fn loopback_config(port: u16) -> spm_nanonis::NanonisConfig {
         clock: spm_nanonis::ClockSource::ControllerSignals {
             whole_s_signal: 126,
             fraction_s_signal: 127,
+            virtual_time: true,
         },
         max_pixels_per_line: 4096,
         max_lines: 4096,

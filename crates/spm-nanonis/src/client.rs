@@ -10,6 +10,7 @@
 //!   [`ClientConfig::command_timeout_s`]; wait-style commands (`Scan.WaitEndOfScan`, waited
 //!   `FolMe.XYPosSet` and `Motor.StartMove`) get their expected duration plus
 //!   [`ClientConfig::wait_margin_s`] ([`Client::call_waiting`]).
+//!   The timeout is set on the socket only when it differs from the one last set there.
 //! - **Reconnect with backoff.** A dropped connection is re-opened on the next command, up
 //!   to [`ClientConfig::reconnect_attempts`] times with exponential backoff from
 //!   [`ClientConfig::reconnect_backoff_s`]; when every attempt fails the error is
@@ -100,14 +101,48 @@ fn seconds(s: f64) -> Duration {
 #[derive(Debug)]
 pub struct Client {
     config: ClientConfig,
-    stream: Option<TcpStream>,
-    stop_stream: Option<TcpStream>,
+    stream: Option<Connection>,
+    stop_stream: Option<Connection>,
     version: Option<Version>,
     schema: Schema,
     /// Commands sent (including re-sent ones), for statistics.
     commands_sent: u64,
     /// Connections opened after the first one.
     reconnects: u64,
+    /// Grows with every command sent on either connection and every connection opened
+    /// ([`Client::sequence`]).
+    sequence: u64,
+}
+
+/// An open connection and the read/write timeout last set on it (set again only when a
+/// command needs another: two system calls fewer per round trip).
+#[derive(Debug)]
+struct Connection {
+    stream: TcpStream,
+    timeout: Option<Duration>,
+}
+
+impl Connection {
+    fn new(stream: TcpStream) -> Self {
+        Self {
+            stream,
+            timeout: None,
+        }
+    }
+
+    fn set_timeout(&mut self, timeout: Duration) -> Result<(), NanonisError> {
+        if self.timeout == Some(timeout) {
+            return Ok(());
+        }
+        // Forgotten first: a failure half-way leaves it unknown.
+        self.timeout = None;
+        self.stream
+            .set_write_timeout(Some(timeout))
+            .and_then(|()| self.stream.set_read_timeout(Some(timeout)))
+            .map_err(|e| io_error("set timeout", &e))?;
+        self.timeout = Some(timeout);
+        Ok(())
+    }
 }
 
 impl Client {
@@ -122,6 +157,7 @@ impl Client {
             schema: Schema::for_release(0),
             commands_sent: 0,
             reconnects: 0,
+            sequence: 0,
         };
         client.ensure_connected()?;
         client.reconnects = 0;
@@ -153,6 +189,17 @@ impl Client {
         self.reconnects
     }
 
+    /// A number that grows with every command sent on either connection (stops included,
+    /// whether or not they were answered) and with every connection opened. Two equal
+    /// values bracket a span in which this client sent the controller nothing: what the
+    /// client read of the controller before it is still what the controller would answer,
+    /// as long as the client is the controller's only one. `NanonisMicroscope` keeps its
+    /// clock and position readings on that ground.
+    #[must_use]
+    pub fn sequence(&self) -> u64 {
+        self.sequence
+    }
+
     fn open(&self) -> Result<TcpStream, NanonisError> {
         let address = self.config.address()?;
         let stream = TcpStream::connect_timeout(&address, seconds(self.config.connect_timeout_s))
@@ -182,8 +229,9 @@ impl Client {
             }
             match self.open() {
                 Ok(stream) => {
-                    self.stream = Some(stream);
+                    self.stream = Some(Connection::new(stream));
                     self.reconnects += 1;
+                    self.sequence += 1;
                     match self.exchange(&Request::UtilVersionGet, self.config.command_timeout_s) {
                         Ok(Reply::Version(version)) => {
                             self.schema = Schema::for_release(version.host_release);
@@ -284,11 +332,12 @@ impl Client {
     /// stream at an unknown position drops the connection.
     fn exchange(&mut self, request: &Request, timeout_s: f64) -> Result<Reply, NanonisError> {
         let name = request.name();
-        let Some(stream) = self.stream.as_mut() else {
+        let Some(connection) = self.stream.as_mut() else {
             return Err(NanonisError::new(NanonisErrorKind::Io, "not connected").in_command(name));
         };
         self.commands_sent += 1;
-        let result = transact(stream, request, self.schema, timeout_s);
+        self.sequence += 1;
+        let result = transact(connection, request, self.schema, timeout_s);
         match result {
             Ok((reply, error)) => {
                 if error.status != 0 {
@@ -310,12 +359,18 @@ impl Client {
         let mut last = None;
         for _ in 0..2 {
             if self.stop_stream.is_none() {
-                self.stop_stream = Some(self.open()?);
+                self.stop_stream = Some(Connection::new(self.open()?));
             }
-            let Some(stream) = self.stop_stream.as_mut() else {
+            let Some(connection) = self.stop_stream.as_mut() else {
                 continue;
             };
-            match transact(stream, request, self.schema, self.config.command_timeout_s) {
+            self.sequence += 1;
+            match transact(
+                connection,
+                request,
+                self.schema,
+                self.config.command_timeout_s,
+            ) {
                 Ok((_, error)) if error.status != 0 => {
                     return Err(NanonisError::from_error_reply(
                         request.name(),
@@ -347,9 +402,9 @@ fn io_error(what: &str, e: &std::io::Error) -> NanonisError {
     NanonisError::new(kind, format!("{what}: {e}"))
 }
 
-/// Writes one request and reads its reply on `stream`.
+/// Writes one request and reads its reply on `connection`.
 fn transact(
-    stream: &mut TcpStream,
+    connection: &mut Connection,
     request: &Request,
     schema: Schema,
     timeout_s: f64,
@@ -360,11 +415,8 @@ fn transact(
         .map_err(|e| NanonisError::new(NanonisErrorKind::InvalidRequest, e.to_string()))?;
     let header = codec::encode_request_header(name, body.len(), true)
         .map_err(|e| NanonisError::new(NanonisErrorKind::InvalidRequest, e.to_string()))?;
-    let timeout = seconds(timeout_s);
-    stream
-        .set_write_timeout(Some(timeout))
-        .and_then(|()| stream.set_read_timeout(Some(timeout)))
-        .map_err(|e| io_error("set timeout", &e))?;
+    connection.set_timeout(seconds(timeout_s))?;
+    let stream = &mut connection.stream;
     let mut message = Vec::with_capacity(HEADER_LEN + body.len());
     message.extend_from_slice(&header);
     message.extend_from_slice(&body);

@@ -33,6 +33,43 @@
 //! waits asked). A move's settle is always sent as such a wait, even of 0 ms, so that the
 //! controller sees a move and its settle as one operation.
 //!
+//! ## Round trips
+//! Every command is a round trip (about 50 µs to `nanonis-sim` on loopback), and a
+//! calibration asks the clock and the position far more often than it changes them: spm-hal's command recorder reads both around every move, wait and scan,
+//! and the feature tracking reads them again before each move. The backend answers these
+//! without asking where the answer is known exactly, and nowhere else:
+//! - **The position.** spm-hal's [`spm_hal::Microscope::position`] is the *commanded*
+//!   position, not a measurement. After `FolMe.XYPosSet` with *wait end of move* (and its
+//!   settle) it is the move's target, which the backend keeps, as it keeps it through a wait
+//!   and a Z read (neither moves the tip); after anything else (a scan
+//!   leaves the tip where the controller's scan module put it, a stop where it stopped, a
+//!   failed move somewhere on its way) it is read with `FolMe.XYPosGet` (float64 metres),
+//!   and that reading is kept. The target is the reading up to float64 rounding of the
+//!   metres conversion (the controller's own DAC quantisation is not in either).
+//! - **The clock**, with [`ClockSource::ControllerSignals`] and `virtual_time` (a simulated
+//!   controller, `nanonis-sim`): a virtual clock advances only while the controller executes
+//!   a command, and reading the clock or the position takes none of it (spm-sim's `now` and
+//!   `position` cost no call overhead; its Z read does, so `ZCtrl.ZPosGet` ends a reading
+//!   like any other command). The elapsed time since a reading is then known exactly — zero
+//!   — until the backend sends anything else, and the reading is the answer. A controller
+//!   clock that runs in real time (`virtual_time = false`) is read at every
+//!   [`spm_hal::Microscope::now`]; [`ClockSource::Host`] costs no round trip at all.
+//! - **What "anything else" is**: a kept reading holds while [`Client::sequence`] stands —
+//!   it grows with every command sent on either connection (stops included) and every
+//!   connection opened; a read of the clock or the position extends the readings when it
+//!   was the only command sent since them. Like the scan settings left unsent when
+//!   unchanged, this assumes that the backend is the controller's only client during a run.
+//! - **Not done**, each for a reason:
+//!   the clock after a move or a wait is not derived from the time asked (the controller
+//!   adds its own overhead: nanonis-sim its simulator's call overhead), so it is read once
+//!   after them; the end of a scan's position is not derived
+//!   from the frame (where the controller leaves the tip after a frame is its scan module's
+//!   choice, and the frame is realised in float32), so it is read once;
+//!   the X and Y signals are not read in the clock's `Signals.ValsGet` (one round trip for
+//!   both), because that command answers float32, 2·10⁻³ counts at the edge of a 16-bit
+//!   field where `FolMe.XYPosGet` is exact; and `Scan.StatusGet` before every scan stays (a
+//!   scan started by someone else between two of the backend's is a pitfall handled).
+//!
 //! ## Failures
 //! A reply "busy" (not executed) is sent again; a command whose connection was lost is sent
 //! again when that is safe (everything but the relative `Motor.StartMove` steps), up to

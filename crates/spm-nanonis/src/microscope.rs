@@ -47,6 +47,14 @@ pub enum ClockSource {
         whole_s_signal: i32,
         /// Signal index of the fraction of a second.
         fraction_s_signal: i32,
+        /// The controller's time is virtual (a simulated controller such as `nanonis-sim`):
+        /// it advances only while the controller executes a command, and reading the clock
+        /// or the position (`FolMe.XYPosGet`) takes none of it. A reading of the clock then
+        /// stays exact until the backend sends the controller anything else, and
+        /// [`Microscope::now`] is answered from it (see the crate docs, "Round trips").
+        /// `false` (the default): a clock that runs in real time, read at every `now`.
+        #[serde(default)]
+        virtual_time: bool,
     },
 }
 
@@ -197,6 +205,7 @@ impl NanonisConfig {
         if let ClockSource::ControllerSignals {
             whole_s_signal,
             fraction_s_signal,
+            ..
         } = self.clock
         {
             for s in [whole_s_signal, fraction_s_signal] {
@@ -352,6 +361,35 @@ pub struct NanonisMicroscope {
     found_compensation: Option<FoundCompensation>,
     /// Set by whoever interrupts the run ([`NanonisMicroscope::set_interrupt`]).
     interrupt: Option<Arc<AtomicBool>>,
+    /// The clock and position as last read or commanded, while the controller has received
+    /// nothing else since.
+    readings: Readings,
+}
+
+/// What the backend knows of the controller without asking, valid while the client's
+/// [`Client::sequence`] is the one recorded (the controller received nothing from the
+/// backend since): see the crate docs, "Round trips".
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct Readings {
+    /// [`Client::sequence`] when they were taken or set.
+    sequence: u64,
+    /// The controller's virtual clock, s (kept only for [`ClockSource::ControllerSignals`]
+    /// with `virtual_time`).
+    clock_s: Option<f64>,
+    /// The commanded position, counts: read (`FolMe.XYPosGet`) or the target of the move
+    /// that put it there.
+    position: Option<CountPoint>,
+}
+
+impl Readings {
+    /// Nothing known, as of `sequence`.
+    fn none(sequence: u64) -> Self {
+        Self {
+            sequence,
+            clock_s: None,
+            position: None,
+        }
+    }
 }
 
 /// The controller's own compensation as the backend found it.
@@ -534,6 +572,7 @@ impl NanonisMicroscope {
             },
             config,
             interrupt: None,
+            readings: Readings::default(),
         };
         // A scan left paused by an interrupted run (or running, by a user) is stopped before
         // anything moves the tip: its frame is not resumed (see the crate docs).
@@ -1055,22 +1094,89 @@ impl NanonisMicroscope {
     }
 
     fn now_s(&mut self) -> Result<f64, NanonisError> {
-        match self.config.clock {
-            ClockSource::Host => Ok(self.epoch.elapsed().as_secs_f64()),
-            ClockSource::ControllerSignals {
-                whole_s_signal,
-                fraction_s_signal,
-            } => {
-                let request = Request::SignalsValsGet {
-                    indexes: vec![whole_s_signal, fraction_s_signal],
-                    wait_newest: 0,
-                };
-                match self.client.call(&request)? {
-                    Reply::Values(v) if v.len() == 2 => Ok(f64::from(v[0]) + f64::from(v[1])),
-                    other => Err(unexpected("Signals.ValsGet", &other)),
-                }
-            }
+        let ClockSource::ControllerSignals {
+            whole_s_signal,
+            fraction_s_signal,
+            virtual_time,
+        } = self.config.clock
+        else {
+            return Ok(self.epoch.elapsed().as_secs_f64());
+        };
+        let before = self.client.sequence();
+        if virtual_time
+            && self.readings.sequence == before
+            && let Some(t) = self.readings.clock_s
+        {
+            return Ok(t);
         }
+        let request = Request::SignalsValsGet {
+            indexes: vec![whole_s_signal, fraction_s_signal],
+            wait_newest: 0,
+        };
+        let t = match self.client.call(&request)? {
+            Reply::Values(v) if v.len() == 2 => f64::from(v[0]) + f64::from(v[1]),
+            other => return Err(unexpected("Signals.ValsGet", &other)),
+        };
+        let readings = self.after_read(before);
+        if virtual_time {
+            readings.clock_s = Some(t);
+        }
+        Ok(t)
+    }
+
+    /// The commanded position: kept from the last reading or move while the controller has
+    /// received nothing else, else read (`FolMe.XYPosGet`).
+    fn position_counts(&mut self) -> Result<CountPoint, NanonisError> {
+        let before = self.client.sequence();
+        if self.readings.sequence == before
+            && let Some(p) = self.readings.position
+        {
+            return Ok(p);
+        }
+        let p = match self
+            .client
+            .call(&Request::FolMeXYPosGet { wait_newest: 0 })?
+        {
+            Reply::XY { x_m, y_m } => self.counts_of_metres(x_m, y_m),
+            other => return Err(unexpected("FolMe.XYPosGet", &other)),
+        };
+        self.after_read(before).position = Some(p);
+        Ok(p)
+    }
+
+    /// Runs one command that does not move the tip (a wait, a Z read) and keeps the
+    /// position known before it: what it takes is controller time, so the clock is read
+    /// again after it.
+    fn keeping_position<T>(
+        &mut self,
+        command: impl FnOnce(&mut Self) -> Result<T, NanonisError>,
+    ) -> Result<T, NanonisError> {
+        let before = self.client.sequence();
+        let position = (self.readings.sequence == before)
+            .then_some(self.readings.position)
+            .flatten();
+        let result = command(self)?;
+        let after = self.client.sequence();
+        if after == before + 1 {
+            self.readings = Readings {
+                position,
+                ..Readings::none(after)
+            };
+        }
+        Ok(result)
+    }
+
+    /// The readings after a read of the clock or the position begun at `before`: a read
+    /// moves nothing and takes no virtual time, so what held before it still holds when it
+    /// was the only command sent since (a re-sent read or a reconnection forgets the rest).
+    fn after_read(&mut self, before: u64) -> &mut Readings {
+        let after = self.client.sequence();
+        if self.readings.sequence == before && after == before + 1 {
+            self.readings.sequence = after;
+        } else {
+            self.readings = Readings::none(after);
+        }
+        &mut self.readings
     }
 }
 
@@ -1138,17 +1244,11 @@ impl Microscope for NanonisMicroscope {
                 format!("wait duration {duration} must be finite and ≥ 0"),
             ));
         }
-        self.pause(d)
+        self.keeping_position(|m| m.pause(d))
     }
 
     fn position(&mut self) -> Result<CountPoint, NanonisError> {
-        match self
-            .client
-            .call(&Request::FolMeXYPosGet { wait_newest: 0 })?
-        {
-            Reply::XY { x_m, y_m } => Ok(self.counts_of_metres(x_m, y_m)),
-            other => Err(unexpected("FolMe.XYPosGet", &other)),
-        }
+        self.position_counts()
     }
 
     fn move_to(&mut self, request: MoveRequest) -> Result<(), NanonisError> {
@@ -1167,6 +1267,9 @@ impl Microscope for NanonisMicroscope {
                 format!("settle time {} must be finite and ≥ 0", request.settle),
             ));
         }
+        // Where the move starts (for its timeout), before any setting is sent: a kept
+        // position stays valid only until the controller receives something else.
+        let here = self.position_counts()?;
         self.invalidate_on_reconnect();
         // Speed in m/s along the path: counts/s × the geometric mean of the X and Y
         // metres per count (exact when they are equal, as in the counts convention of a
@@ -1181,7 +1284,6 @@ impl Microscope for NanonisMicroscope {
             self.sent.folme_speed = Some(speed_m.to_bits());
         }
         let (x_m, y_m) = self.to_metres(request.target);
-        let here = self.position()?;
         let expected_s = here.distance(request.target).value() / speed;
         self.client.call_waiting(
             &Request::FolMeXYPosSet {
@@ -1193,7 +1295,14 @@ impl Microscope for NanonisMicroscope {
         )?;
         // The settle always goes to the controller (even 0 s) so that a controller-side
         // clock sees move and settle as one operation.
-        self.pause(settle)
+        self.pause(settle)?;
+        // The move waited for its end: the commanded position is its target (spm-hal's
+        // `position` is the commanded one), known without asking until the next command.
+        self.readings = Readings {
+            position: Some(request.target),
+            ..Readings::none(self.client.sequence())
+        };
+        Ok(())
     }
 
     fn scan(&mut self, request: &ScanRequest) -> Result<Frame, NanonisError> {
@@ -1205,10 +1314,10 @@ impl Microscope for NanonisMicroscope {
     }
 
     fn z_position(&mut self) -> Result<Counts, NanonisError> {
-        match self.client.call(&Request::ZCtrlZPosGet)? {
-            Reply::F32(z) if z.is_finite() => Ok(Counts(f64::from(z) / self.z_m_per_count)),
+        self.keeping_position(|m| match m.client.call(&Request::ZCtrlZPosGet)? {
+            Reply::F32(z) if z.is_finite() => Ok(Counts(f64::from(z) / m.z_m_per_count)),
             other => Err(unexpected("ZCtrl.ZPosGet", &other)),
-        }
+        })
     }
 
     fn coarse_z(&mut self) -> Option<&mut dyn CoarseZStage<Error = NanonisError>> {

@@ -603,3 +603,133 @@ fn a_run_over_tcp_reports_its_validation_without_an_oracle() {
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     assert!(json["validation"]["held_out"]["rms_z"].is_number());
 }
+
+/// The trait calls a calibration makes on its backend, by kind (failed ones included).
+#[derive(Debug, Default)]
+struct TraitCalls {
+    now: u64,
+    position: u64,
+    moves: u64,
+    waits: u64,
+    scans: u64,
+    z_reads: u64,
+    failed: u64,
+}
+
+/// A backend that counts the trait calls made on it.
+struct Counting<M> {
+    inner: M,
+    calls: TraitCalls,
+}
+
+impl<M: spm_hal::Microscope> Counting<M> {
+    fn count<T>(&mut self, result: Result<T, M::Error>) -> Result<T, M::Error> {
+        self.calls.failed += u64::from(result.is_err());
+        result
+    }
+}
+
+impl<M: spm_hal::Microscope> spm_hal::Microscope for Counting<M> {
+    type Error = M::Error;
+    fn capabilities(&self) -> spm_hal::Capabilities {
+        self.inner.capabilities()
+    }
+    fn now(&mut self) -> Result<spm_hal::Seconds, M::Error> {
+        self.calls.now += 1;
+        let r = self.inner.now();
+        self.count(r)
+    }
+    fn wait(&mut self, duration: spm_hal::Seconds) -> Result<(), M::Error> {
+        self.calls.waits += 1;
+        let r = self.inner.wait(duration);
+        self.count(r)
+    }
+    fn position(&mut self) -> Result<spm_hal::CountPoint, M::Error> {
+        self.calls.position += 1;
+        let r = self.inner.position();
+        self.count(r)
+    }
+    fn move_to(&mut self, request: spm_hal::MoveRequest) -> Result<(), M::Error> {
+        self.calls.moves += 1;
+        let r = self.inner.move_to(request);
+        self.count(r)
+    }
+    fn scan(&mut self, request: &spm_hal::ScanRequest) -> Result<spm_hal::Frame, M::Error> {
+        self.calls.scans += 1;
+        let r = self.inner.scan(request);
+        self.count(r)
+    }
+    fn z_position(&mut self) -> Result<spm_hal::Counts, M::Error> {
+        self.calls.z_reads += 1;
+        let r = self.inner.z_position();
+        self.count(r)
+    }
+    fn coarse_z(&mut self) -> Option<&mut dyn spm_hal::CoarseZStage<Error = M::Error>> {
+        self.inner.coarse_z()
+    }
+}
+
+/// The round trips of a calibration over TCP, bounded by the trait calls it makes (issue 26,
+/// the overhead target): the backend sends a clock read (`Signals.ValsGet`) at most once per
+/// call that sends the controller something else — a move, a wait, a scan, a Z read — however
+/// often the calibration and its command recorder ask the time in between (nanonis-sim's
+/// clock is virtual: it stands between commands); and a position read (`FolMe.XYPosGet`) at
+/// most once per scan or failed call — after a move the commanded position is the move's
+/// target (spm-hal's `position` is the commanded one), kept through waits and Z reads.
+/// Before, every `now` and every `position` was a round trip: on this plan 255 clock and 150
+/// position reads per node of 694 commands (2302 clock reads for a bound of 712); now 79 and
+/// 37 of 404.
+#[test]
+fn over_tcp_the_clock_and_position_are_read_once_per_command_that_changes_them() {
+    use spm_calibration::{Calibrator, MemoryStore, RunOptions};
+    let server = serve("127.0.0.1:0", SocketFaults::none());
+    let nanonis =
+        spm_nanonis::NanonisMicroscope::connect(nanonis_config(server.addr().port(), 5.0)).unwrap();
+    let mut counting = Counting {
+        inner: nanonis,
+        calls: TraitCalls::default(),
+    };
+    let (plan, text) = plan();
+    let opened = server.stats();
+    let report = {
+        let mut recorder = spm_hal::recording::CommandRecorder::new(&mut counting, 1 << 20);
+        let mut store = MemoryStore::default();
+        Calibrator::new(&mut recorder, &mut store, &mut NoObserver, plan)
+            .unwrap()
+            .run(&RunOptions {
+                run_id: "round-trips".into(),
+                start_unix_s: 1.8e9,
+                config_text: text,
+            })
+            .unwrap()
+    };
+    let stats = server.stats();
+    let sent = |name: &str| {
+        stats.commands_by_name.get(name).copied().unwrap_or(0)
+            - opened.commands_by_name.get(name).copied().unwrap_or(0)
+    };
+    let c = &counting.calls;
+    let nodes = report.visits_planned.max(1) as u64;
+    eprintln!(
+        "{c:?}; per node: {} commands, {} clock reads, {} position reads, {} nodes done",
+        (stats.commands - opened.commands) / nodes,
+        sent("Signals.ValsGet") / nodes,
+        sent("FolMe.XYPosGet") / nodes,
+        report.nodes_done
+    );
+    assert!(report.nodes_done >= 7, "{report:?}");
+    // The calibration asks the clock and the position far more often than it changes them.
+    assert!(c.now > 2 * (c.moves + c.waits + c.scans), "{c:?}");
+    let clock_bound = c.moves + c.waits + c.scans + c.z_reads + 1;
+    assert!(
+        sent("Signals.ValsGet") <= clock_bound,
+        "{} clock reads for {c:?} (at most {clock_bound})",
+        sent("Signals.ValsGet")
+    );
+    let position_bound = c.scans + c.failed + 1;
+    assert!(
+        sent("FolMe.XYPosGet") <= position_bound,
+        "{} position reads for {c:?} (at most {position_bound})",
+        sent("FolMe.XYPosGet")
+    );
+}

@@ -34,6 +34,36 @@ pub struct NanonisResults {
     pub commands_per_node_by_name: std::collections::BTreeMap<String, f64>,
     /// Simulated instrument time per node, s (the same on both sides).
     pub instrument_s_per_node: f64,
+    /// One protocol round trip alone: the median wall time of a `Scan.StatusGet` (a query
+    /// that executes nothing) to an otherwise idle nanonis-sim, µs.
+    pub round_trip_us: f64,
+}
+
+/// The median wall time of one `Scan.StatusGet` round trip, µs (2000 after 200 to warm up).
+fn round_trip_us(sim: &SimConfig) -> Result<f64, XtaskError> {
+    let server = Server::bind(
+        "127.0.0.1:0",
+        sim.clone(),
+        ServerConfig::new(SocketFaults::none()),
+    )
+    .and_then(Server::spawn)
+    .map_err(|e| XtaskError::step("starting nanonis-sim", e))?;
+    let mut client =
+        spm_nanonis::Client::connect(nanonis_config(server.addr().port()).client_config())
+            .map_err(|e| XtaskError::step("connecting to nanonis-sim", e))?;
+    let mut times_us = Vec::with_capacity(2000);
+    for k in 0..2200 {
+        let started = Instant::now();
+        client
+            .call(&spm_nanonis::commands::Request::ScanStatusGet)
+            .map_err(|e| XtaskError::step("Scan.StatusGet", e))?;
+        if k >= 200 {
+            times_us.push(started.elapsed().as_secs_f64() * 1e6);
+        }
+    }
+    server.kill();
+    times_us.sort_by(f64::total_cmp);
+    Ok(times_us[times_us.len() / 2])
 }
 
 fn nanonis_config(port: u16) -> NanonisConfig {
@@ -111,6 +141,7 @@ pub fn run(ctx: &Context) -> Result<NanonisResults, XtaskError> {
         server.kill();
     }
     let per_node = |s: f64| 1e3 * s / nodes.max(1) as f64;
+    let round_trip_us = round_trip_us(&sim)?;
     Ok(NanonisResults {
         nodes,
         repeats,
@@ -124,6 +155,7 @@ pub fn run(ctx: &Context) -> Result<NanonisResults, XtaskError> {
             .map(|(name, n)| (name.clone(), *n as f64 / nodes.max(1) as f64))
             .collect(),
         instrument_s_per_node: instrument_s / nodes.max(1) as f64,
+        round_trip_us,
     })
 }
 

@@ -817,9 +817,9 @@ fn nanonis_section(md: &mut String, section: &Section<super::nanonis::NanonisRes
                  and through `spmcal nanonis-sim` over loopback TCP (`[backend] kind = \"nanonis\"`). \
                  Wall time only: the simulated instrument time per node is the same on both sides \
                  ({:.1} s).\n\n\
-                 | in process, ms per node | over TCP, ms per node | TCP ÷ in process | protocol commands per node |\n\
-                 |---|---|---|---|\n\
-                 | {:.2} | {:.2} | {:.2} | {:.0} |\n\n\
+                 | in process, ms per node | over TCP, ms per node | TCP ÷ in process | protocol commands per node | one round trip, µs (median) |\n\
+                 |---|---|---|---|---|\n\
+                 | {:.2} | {:.2} | {:.2} | {:.0} | {:.0} |\n\n\
                  Target ≤ 1.5×. Every protocol command is a round trip on loopback; the ratio \
                  grows with machine load (other builds on these 2 cores).\n",
                 r.nodes,
@@ -828,7 +828,8 @@ fn nanonis_section(md: &mut String, section: &Section<super::nanonis::NanonisRes
                 r.in_process_ms_per_node,
                 r.tcp_ms_per_node,
                 r.ratio,
-                r.commands_per_node
+                r.commands_per_node,
+                r.round_trip_us
             );
         }
         Section::Missing { missing } => {

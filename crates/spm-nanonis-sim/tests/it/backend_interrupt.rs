@@ -27,6 +27,7 @@ fn controller_clock() -> ClockSource {
     ClockSource::ControllerSignals {
         whole_s_signal: 126,
         fraction_s_signal: 127,
+        virtual_time: true,
     }
 }
 

@@ -705,6 +705,19 @@ pub(crate) mod tests {
             .enumerate()
             .map(|(i, &t)| f(t, along(i)))
             .collect();
+        spread_of(&v)
+    }
+
+    /// What `estimate` leaves of `hidden`'s e over the frame's pixels, its mean removed, nm.
+    fn left_of(times: &[f64], hidden: &RulerEstimate, estimate: &RulerEstimate) -> f64 {
+        spread(times, &|t, u| {
+            let (e, f) = (hidden.error_at_nm(t, u), estimate.error_at_nm(t, u));
+            [e[0] - f[0], e[1] - f[1]]
+        })
+    }
+
+    /// RMS length of displacements `v` about their mean (a rigid offset removed), nm.
+    pub(crate) fn spread_of(v: &[[f64; 2]]) -> f64 {
         let m = [
             v.iter().map(|p| p[0]).sum::<f64>() / v.len() as f64,
             v.iter().map(|p| p[1]).sum::<f64>() / v.len() as f64,
@@ -760,10 +773,7 @@ pub(crate) mod tests {
         assert!(before > 0.25, "the hidden e is {before} nm RMS");
         let estimate =
             estimate_from_lattice(&heights, &map, &times, &law, &LatticeRuler::hopg()).unwrap();
-        let after = spread(&times, &|t, u| {
-            let (e, f) = (hidden.error_at_nm(t, u), estimate.error_at_nm(t, u));
-            [e[0] - f[0], e[1] - f[1]]
-        });
+        let after = left_of(&times, &hidden, &estimate);
         assert!(
             after < 0.1 * before,
             "left of e: {before} nm → {after} nm; {estimate:?}"
@@ -789,10 +799,7 @@ pub(crate) mod tests {
         let before = spread(&times, &|t, u| hidden.error_at_nm(t, u));
         let estimate =
             estimate_from_lattice(&heights, &map, &times, &law, &LatticeRuler::hopg()).unwrap();
-        let after = spread(&times, &|t, u| {
-            let (e, f) = (hidden.error_at_nm(t, u), estimate.error_at_nm(t, u));
-            [e[0] - f[0], e[1] - f[1]]
-        });
+        let after = left_of(&times, &hidden, &estimate);
         assert!(
             after < 0.1 * before && after < 0.2 * fast,
             "left of e: {before} nm → {after} nm (fast-axis part {fast} nm); {estimate:?}"
@@ -830,10 +837,7 @@ pub(crate) mod tests {
             estimate_from_lattice(&heights, &map, &times, &law, &LatticeRuler::hopg()).unwrap();
         // What is left of e over the frame, its mean (a rigid offset) removed.
         let before = spread(&times, &|t, u| hidden.error_at_nm(t, u));
-        let after = spread(&times, &|t, u| {
-            let (e, f) = (hidden.error_at_nm(t, u), estimate.error_at_nm(t, u));
-            [e[0] - f[0], e[1] - f[1]]
-        });
+        let after = left_of(&times, &hidden, &estimate);
         assert!(
             after < 0.1 * before,
             "left of e: {before} nm → {after} nm; {estimate:?}"

@@ -511,29 +511,12 @@ fn the_ruler_fits_each_half_on_its_own_atoms() {
                 [p[0] - q[0], p[1] - q[1]]
             })
             .collect();
-        let m = [
-            d.iter().map(|v| v[0]).sum::<f64>() / d.len() as f64,
-            d.iter().map(|v| v[1]).sum::<f64>() / d.len() as f64,
-        ];
-        (d.iter()
-            .map(|v| (v[0] - m[0]).powi(2) + (v[1] - m[1]).powi(2))
-            .sum::<f64>()
-            / d.len() as f64)
-            .sqrt()
+        crate::ruler::tests::spread_of(&d)
     };
     let bent: Vec<[f64; 2]> = (0..n * n)
         .map(|i| bend(dynamic::Half::Trace, i % n))
         .collect();
-    let bend_rms = left(
-        &CoordinateMap::new(
-            n,
-            n,
-            bent.iter().map(|b| b[0]).collect(),
-            YCoordinates::PerPixel(bent.iter().map(|b| b[1]).collect()),
-        )
-        .unwrap(),
-        &vec![[0.0, 0.0]; n * n],
-    );
+    let bend_rms = crate::ruler::tests::spread_of(&bent);
     for (name, map, points) in [
         ("trace", &maps.map, &truth[0]),
         ("retrace", other, &truth[1]),

@@ -504,6 +504,23 @@ impl CalibrationReport {
             "instrument time {:.0} s; wall time {:.1} s ({:.2} ms per node)",
             self.instrument_time_s, self.wall_time_s, self.wall_time_per_node_ms
         );
+        if let Some(survey) = &self.run.survey {
+            let g = &survey.gate;
+            let _ = writeln!(
+                t,
+                "LCS gate (lattice surveyed at {} of {} places): {} of {} apertures' first choice \
+                 refused (misrecognition rate {}); candidates accepted {}, refused {}",
+                survey.places.iter().filter(|p| p.lcc.is_some()).count(),
+                survey.places.len(),
+                g.misrecognitions,
+                g.apertures_with_candidates,
+                survey
+                    .misrecognition_rate
+                    .map_or_else(|| "-".to_owned(), |r| format!("{:.1} %", 100.0 * r)),
+                g.candidates_accepted,
+                g.candidates_refused
+            );
+        }
         let r = &self.regression;
         let _ = writeln!(
             t,

@@ -500,10 +500,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
                 clock0,
                 start_unix_s: options.start_unix_s,
             };
-            self.fos.aperture.lcs.gate = self
-                .survey
-                .as_ref()
-                .and_then(|s| s.gate_at(visit.grid.position()));
+            self.fos.aperture.lcs.gate = self.survey.as_ref().and_then(|s| s.gate());
             self.run_visit(
                 visit,
                 &params,
@@ -589,6 +586,22 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             }
             report.places.push(place);
         }
+        crate::survey::refuse_outliers(
+            &mut report.places,
+            self.fos.aperture.lcs.length_tolerance,
+            self.fos.aperture.lcs.angle_tolerance_rad,
+        );
+        for p in report.places.iter().filter(|p| p.lcc.is_none()) {
+            if let Some(reason) = p.refusal.as_deref().filter(|r| r.starts_with("an outlier")) {
+                tracing::warn!(
+                    x = p.centre_counts[0],
+                    y = p.centre_counts[1],
+                    reason,
+                    "survey place refused; it gates nothing"
+                );
+            }
+        }
+        report.field = report.field_lcc();
         if report.places.iter().all(|p| p.lcc.is_none()) {
             tracing::warn!("the survey found no lattice anywhere: LCS recognition runs ungated");
         }

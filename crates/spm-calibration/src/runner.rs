@@ -542,10 +542,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
         let aperture = self.fos.aperture.raster;
         let side = self.config.survey.size_lattice * a_counts;
         let pixels = ((side / aperture.pixel_step_counts).ceil() as u32 + 1).clamp(16, 1024);
-        let raster = Raster {
-            pixels,
-            ..aperture
-        };
+        let raster = Raster { pixels, ..aperture };
         let caps = self.microscope.capabilities();
         let places = crate::survey::places(
             &self.plan,

@@ -260,8 +260,8 @@ pub fn apparent_lcc(
     let mut observations = Vec::with_capacity(directions.len());
     for d in &directions {
         let v = d.vector;
-        let angle = (f.x.value() * v.y.value() - f.y.value() * v.x.value())
-            .atan2(f.dot_counts_squared(v));
+        let angle =
+            (f.x.value() * v.y.value() - f.y.value() * v.x.value()).atan2(f.dot_counts_squared(v));
         let k = (angle / step).round() as i64;
         if multiples.contains(&k) {
             return Err(format!(
@@ -329,7 +329,11 @@ pub fn places(
     };
     let clamp = |v: f64, lo: f64, hi: f64| {
         let (lo, hi) = (lo + half_side + 1.0, hi - half_side - 1.0);
-        if lo <= hi { v.clamp(lo, hi) } else { 0.5 * (lo + hi) }
+        if lo <= hi {
+            v.clamp(lo, hi)
+        } else {
+            0.5 * (lo + hi)
+        }
     };
     let (min, max) = field;
     let mut out = Vec::with_capacity((n * n) as usize);
@@ -548,9 +552,16 @@ pub fn neighbour_directions(
 /// off; a gate through it refuses the true LCS at every node nearest it (the HOPG
 /// terrace's right half: one place at K̄x/K 1.48 and α 31° beside others at 1.0 ± 0.1
 /// and 3°–9°). With fewer than three places there is no median to judge by.
-pub fn refuse_outliers(places: &mut [SurveyPlace], length_tolerance: f64, angle_tolerance_rad: f64) {
+pub fn refuse_outliers(
+    places: &mut [SurveyPlace],
+    length_tolerance: f64,
+    angle_tolerance_rad: f64,
+) {
     let median = |f: fn(&SurveyLcc) -> f64| {
-        let mut v: Vec<f64> = places.iter().filter_map(|p| p.lcc.as_ref().map(f)).collect();
+        let mut v: Vec<f64> = places
+            .iter()
+            .filter_map(|p| p.lcc.as_ref().map(f))
+            .collect();
         v.sort_by(f64::total_cmp);
         match v.len() {
             0 => f64::NAN,
@@ -568,7 +579,10 @@ pub fn refuse_outliers(places: &mut [SurveyPlace], length_tolerance: f64, angle_
         let Some(l) = place.lcc else { continue };
         let (dx, dy) = (l.kx_nm_per_count / kx - 1.0, l.ky_nm_per_count / ky - 1.0);
         let da = l.alpha_rad - alpha;
-        if dx.abs() > length_tolerance || dy.abs() > length_tolerance || da.abs() > angle_tolerance_rad {
+        if dx.abs() > length_tolerance
+            || dy.abs() > length_tolerance
+            || da.abs() > angle_tolerance_rad
+        {
             place.refusal = Some(format!(
                 "an outlier: K̄x {:+.1} %, K̄y {:+.1} %, α {:+.1}° from the median of the places \
                  (tolerances {:.0} %, {:.1}°)",

@@ -95,8 +95,7 @@ impl LcsConfig {
         for (field, map) in [("prior", self.prior), ("gate", self.gate)] {
             if let Some(NmPerCountMatrix(m)) = map {
                 let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
-                if !(m.iter().flatten().all(|v| v.is_finite()) && det.is_finite() && det != 0.0)
-                {
+                if !(m.iter().flatten().all(|v| v.is_finite()) && det.is_finite() && det != 0.0) {
                     return Err(FeatureError::InvalidConfig {
                         field,
                         reason: "must be a finite, invertible 2×2 map",
@@ -221,9 +220,9 @@ fn triangle(
     if !within_tolerances(admission, config) {
         return None;
     }
-    let gate_passed = config.gate.is_none_or(|m| {
-        within_tolerances(deviations_through(m, ab, ac, &config.standard), config)
-    });
+    let gate_passed = config
+        .gate
+        .is_none_or(|m| within_tolerances(deviations_through(m, ab, ac, &config.standard), config));
     let mismatch = (nominal.0 / config.length_tolerance).powi(2)
         + (nominal.1 / config.length_tolerance).powi(2)
         + (nominal.2 / config.angle_tolerance_rad).powi(2);
@@ -302,7 +301,8 @@ pub fn lcs_candidates(
             }
         }
     }
-    out.accepted.sort_by(|x, y| x.mismatch.total_cmp(&y.mismatch));
+    out.accepted
+        .sort_by(|x, y| x.mismatch.total_cmp(&y.mismatch));
     out.refused_by_gate
         .sort_by(|x, y| x.mismatch.total_cmp(&y.mismatch));
     Ok(out)

@@ -9,7 +9,9 @@ use spm_calibration::survey::{apparent_lcc, neighbour_directions, survey_place};
 use spm_calibration::{FosParams, PlanConfig};
 use spm_features::{Feature, lcs_candidates};
 use spm_fos::Raster;
-use spm_hal::{CountPoint, CountVector, Microscope, NmPerCount, NmPerCountMatrix, Radians, Seconds};
+use spm_hal::{
+    CountPoint, CountVector, Microscope, NmPerCount, NmPerCountMatrix, Radians, Seconds,
+};
 use spm_sim::{SimConfig, Simulator};
 
 fn map(m: NmPerCountMatrix, v: CountVector) -> (f64, f64) {

@@ -253,3 +253,27 @@ fn the_survey_solves_a_known_oblique_lattice_as_its_local_calibration() {
     assert!((lcc.ky.value() / ky - 1.0).abs() < 0.01, "{lcc:?}");
     assert!((lcc.alpha.value() - alpha).abs() < 0.01, "{lcc:?}");
 }
+
+#[test]
+fn old_plans_survey_by_default_and_the_survey_table_is_checked() {
+    // A plan without `[plan.survey]` (the shipped small plan) gets the defaults.
+    let text = include_str!("../../scenarios/plan-hopg-small.toml");
+    assert!(!text.contains("survey"));
+    let plan = PlanConfig::from_toml_str(text, "plan-hopg-small.toml").unwrap();
+    assert!(plan.survey.enabled);
+    assert_eq!(plan.survey.places_per_side, 3);
+    let off = format!("{text}\n[plan.survey]\nenabled = false\n");
+    assert!(
+        !PlanConfig::from_toml_str(&off, "off.toml")
+            .unwrap()
+            .survey
+            .enabled
+    );
+    // Unknown fields and out-of-range values are refused naming the field.
+    let typo = format!("{text}\n[plan.survey]\nplaces = 3\n");
+    let e = PlanConfig::from_toml_str(&typo, "typo.toml").unwrap_err();
+    assert!(e.to_string().contains("places"), "{e}");
+    let zero = format!("{text}\n[plan.survey]\nplaces_per_side = 0\n");
+    let e = PlanConfig::from_toml_str(&zero, "zero.toml").unwrap_err();
+    assert!(e.to_string().contains("survey.places_per_side"), "{e}");
+}

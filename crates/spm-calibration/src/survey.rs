@@ -1,10 +1,10 @@
 //! The lattice survey (issue 24): before the first node, frames of the standard are scanned
 //! at a few places over the net (through the [`Microscope`] trait, like every other
-//! operation), and the apparent lattice of each — its nearest-neighbour vectors by neighbour
-//! statistics over the whole frame, solved as an LCS — becomes the *gate* of LCS recognition
-//! at the nodes nearest it ([`spm_features::LcsConfig::gate`]): a candidate triangle is
-//! accepted only when it is that lattice's nearest-neighbour triangle within the plan's LCS
-//! tolerances.
+//! operation), the apparent lattice of each is found (its nearest-neighbour vectors by
+//! neighbour statistics over the whole frame, solved as an LCS), and their median becomes
+//! the *gate* of LCS recognition at every node ([`spm_features::LcsConfig::gate`]): a
+//! candidate triangle is accepted only when it is that lattice's nearest-neighbour triangle
+//! within the plan's LCS tolerances.
 //!
 //! # Why
 //! LCS recognition on its own admits a triangle through the last measured node's
@@ -43,8 +43,9 @@ use spm_hal::{
 pub struct SurveyConfig {
     /// Survey the lattice and gate LCS recognition through it. Default true: a wrong LCS
     /// gives a wrong record that nothing downstream can tell from a right one, and the
-    /// survey costs a few frames (on the simulator's quick job it leaves the accuracy
-    /// figures as they were; `docs/results/virtual.md`).
+    /// survey costs a few frames (on the simulator's quick job the gate refuses no
+    /// candidate; the figures move only with the 102 s of instrument time the survey adds
+    /// to the run's drift and creep history; `docs/results/virtual.md`).
     pub enabled: bool,
     /// Places per side of the survey grid over the net (1 = its centre only). Default 3.
     pub places_per_side: u32,
@@ -549,9 +550,8 @@ pub fn neighbour_directions(
 /// the places with a lattice by more than `length_tolerance` (relative), or α by more than
 /// `angle_tolerance_rad`. A survey frame that mis-indexed its lattice (a direction lost
 /// between clusters, features missed on one side of a step) gives a map tens of per cent
-/// off; a gate through it refuses the true LCS at every node nearest it (the HOPG
-/// terrace's right half: one place at K̄x/K 1.48 and α 31° beside others at 1.0 ± 0.1
-/// and 3°–9°). With fewer than three places there is no median to judge by.
+/// off and would drag the median (the HOPG terrace's right half: one place at K̄x/K 1.48
+/// and α 31° beside others at 1.0 ± 0.1 and 3°–9°). With fewer than three places there is no median to judge by.
 pub fn refuse_outliers(
     places: &mut [SurveyPlace],
     length_tolerance: f64,

@@ -296,6 +296,50 @@ fn spm_calibration_links_no_sqlite() {
     }
 }
 
+/// What `cargo test --workspace` compiles is the workspace's resolve with default features
+/// (`cargo metadata` without `--all-features`): faer is not in it. The library's least squares
+/// run on nalgebra; faer is compiled only for the `linalg` comparison (spm-regression's and
+/// xtask's `faer` features, turned on by the `cargo xtask` alias), and in the test build it
+/// cost minutes of CPU for nothing a test runs (issue 28, item 7).
+#[test]
+fn the_test_build_leaves_faer_out() {
+    let output = cargo()
+        .args(["metadata", "--format-version", "1", "--offline"])
+        .args(["--filter-platform", &host_triple()])
+        .arg("--manifest-path")
+        .arg(workspace_root().join("Cargo.toml"))
+        .output()
+        .expect("cargo runs");
+    assert!(
+        output.status.success(),
+        "cargo metadata failed:\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let metadata: serde_json::Value =
+        serde_json::from_slice(&output.stdout).expect("cargo metadata prints JSON");
+    let name_of: BTreeMap<&str, &str> = packages(&metadata)
+        .iter()
+        .map(|p| (str_of(p, "id"), str_of(p, "name")))
+        .collect();
+    for node in metadata["resolve"]["nodes"]
+        .as_array()
+        .expect("cargo metadata has a resolve graph")
+    {
+        let name = name_of.get(str_of(node, "id")).copied().unwrap_or_default();
+        assert_ne!(
+            name, "faer",
+            "faer is in the workspace's default-feature resolve, so `cargo test --workspace` \
+             compiles it: keep spm-regression's `faer` feature off in every member's manifest \
+             (xtask's own `faer` feature, which the `cargo xtask` alias turns on, turns it on)"
+        );
+        let features = node["features"].as_array().map_or(&[][..], Vec::as_slice);
+        assert!(
+            !features.iter().any(|f| f.as_str() == Some("faer")),
+            "{name} has its `faer` feature on in the workspace's default-feature resolve"
+        );
+    }
+}
+
 /// A scratch crate outside the workspace that depends on `spm-correction` alone, by path, as a
 /// user's program would: its resolved dependency tree holds neither the simulator nor SQLite.
 #[test]

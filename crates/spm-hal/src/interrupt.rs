@@ -28,7 +28,9 @@ pub enum Interrupted<E> {
     #[error(transparent)]
     Backend(E),
     /// A stop was requested: the operation was not started.
-    #[error("interrupted: a stop was requested, so the instrument operation `{operation}` was not started")]
+    #[error(
+        "interrupted: a stop was requested, so the instrument operation `{operation}` was not started"
+    )]
     Stopped {
         /// The operation refused (`wait`, `move_to`, `scan`, `coarse_step`).
         operation: &'static str,
@@ -154,7 +156,8 @@ mod tests {
         let mut mock = ScriptedMicroscope::new(ScriptedMicroscope::default_capabilities())
             .lenient_moves_and_waits(true);
         let mut m = Interruptible::new(&mut mock, Arc::clone(&stop));
-        m.wait(Seconds(1.0)).expect("before the stop the backend waits");
+        m.wait(Seconds(1.0))
+            .expect("before the stop the backend waits");
         stop.store(true, Ordering::SeqCst);
         let err = m.wait(Seconds(1.0)).expect_err("a wait after the stop");
         assert_eq!(err.kind(), ErrorKind::Aborted);

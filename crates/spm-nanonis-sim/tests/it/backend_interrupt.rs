@@ -189,7 +189,10 @@ fn a_client_whose_server_is_gone_stops_reconnecting_at_a_stop_request() {
     let waited = started.elapsed();
     setter.join().unwrap();
     assert_eq!(e.kind, spm_nanonis::NanonisErrorKind::Aborted, "{e}");
-    assert!(e.to_string().contains("interrupted while reconnecting"), "{e}");
+    assert!(
+        e.to_string().contains("interrupted while reconnecting"),
+        "{e}"
+    );
     // One pause slice after the flag (0.1 s) and a refused connection at most; without the
     // flag the loop would pause 2 s at a time for over 3 minutes.
     assert!(

@@ -2224,7 +2224,8 @@ fn issue25_item_12_a_stop_inside_a_long_visit_ends_it_before_the_next_operation(
             if let Some(t) = self.stopped_at_s
                 && at.value() > t
             {
-                self.after.push(format!("a drift estimate at {} s", at.value()));
+                self.after
+                    .push(format!("a drift estimate at {} s", at.value()));
             }
         }
         fn cycle_spoiled(&mut self, _visit: &PlanVisit, _reason: &spm_fos::SpoilReason) {
@@ -2274,8 +2275,9 @@ fn issue25_item_12_a_stop_inside_a_long_visit_ends_it_before_the_next_operation(
         .expect("the first visit attached (the stop was requested)");
     assert!(
         observer.after.is_empty(),
-        "instrument work after the stop request: {:?}",
-        observer.after
+        "instrument work after the stop request: {} events, the first {:?}",
+        observer.after.len(),
+        &observer.after[..observer.after.len().min(5)]
     );
     match result {
         Err(JobRunError::Run(spm_calibration::RunError::Instrument { kind, message })) => {
@@ -2289,7 +2291,10 @@ fn issue25_item_12_a_stop_inside_a_long_visit_ends_it_before_the_next_operation(
         ),
     }
     let cdb_s = cdb.display().to_string();
-    assert_eq!(runs(&cdb_s), vec![("long-visit".to_owned(), "aborted".to_owned())]);
+    assert_eq!(
+        runs(&cdb_s),
+        vec![("long-visit".to_owned(), "aborted".to_owned())]
+    );
     assert_eq!(count_records(&cdb_s), 0, "nothing half-measured is stored");
     let run = Cdb::open_read_only(&cdb_s)
         .unwrap()

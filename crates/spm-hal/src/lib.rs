@@ -14,6 +14,7 @@
 #![doc = include_str!("../README.md")]
 #![warn(missing_docs)]
 
+pub mod interrupt;
 pub mod microscope;
 pub mod mock;
 pub mod recording;

@@ -12,9 +12,14 @@
 //!   [`ClientConfig::wait_margin_s`] ([`Client::call_waiting`]).
 //!   The timeout is set on the socket only when it differs from the one last set there.
 //! - **Reconnect with backoff.** A dropped connection is re-opened on the next command, up
-//!   to [`ClientConfig::reconnect_attempts`] times with exponential backoff from
-//!   [`ClientConfig::reconnect_backoff_s`]; when every attempt fails the error is
-//!   [`NanonisErrorKind::Unreachable`]. A request refused as busy is sent again, and so is
+//!   to [`ClientConfig::reconnect_attempts`] times (at most [`MAX_RECONNECT_ATTEMPTS`]) with
+//!   exponential backoff from [`ClientConfig::reconnect_backoff_s`] (at most
+//!   [`MAX_RECONNECT_BACKOFF_S`] per pause, so at most [`MAX_RECONNECT_BACKOFF_TOTAL_S`] of
+//!   pauses in all); when every attempt fails the error is
+//!   [`NanonisErrorKind::Unreachable`]. With a stop flag ([`Client::set_interrupt`]) the
+//!   loop ends at the next attempt or within [`RECONNECT_POLL_S`] of a pause, as
+//!   [`NanonisErrorKind::Aborted`] (issue 25 item 12: `reconnect_attempts = 4294967295` was
+//!   accepted and still retrying 618 s after a SIGTERM). A request refused as busy is sent again, and so is
 //!   one whose connection was lost when that is safe ([`Request::is_retry_safe`]: not the
 //!   relative motor steps), up to [`RETRIES`] times; other failures are reported and the
 //!   caller decides.
@@ -30,6 +35,8 @@ use crate::error::{NanonisError, NanonisErrorKind};
 use serde::{Deserialize, Serialize};
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 /// Connection settings.
@@ -46,15 +53,55 @@ pub struct ClientConfig {
     pub command_timeout_s: f64,
     /// Added to the expected duration of wait-style commands, s.
     pub wait_margin_s: f64,
-    /// Reconnect attempts after a dropped connection before giving up.
+    /// Reconnect attempts after a dropped connection before giving up (at most
+    /// [`MAX_RECONNECT_ATTEMPTS`]).
     pub reconnect_attempts: u32,
-    /// First backoff between reconnect attempts, s (doubled each attempt, at most 2 s).
+    /// First backoff between reconnect attempts, s (doubled each attempt, at most
+    /// [`MAX_RECONNECT_BACKOFF_S`]).
     pub reconnect_backoff_s: f64,
 }
 
+/// Most reconnect attempts a configuration may ask for: with pauses of at most
+/// [`MAX_RECONNECT_BACKOFF_S`], a controller gone for good is declared unreachable within
+/// [`MAX_RECONNECT_BACKOFF_TOTAL_S`] of pauses (plus the connection attempts' own timeouts).
+pub const MAX_RECONNECT_ATTEMPTS: u32 = 100;
+
+/// Longest pause between two reconnect attempts, s (also the largest first backoff).
+pub const MAX_RECONNECT_BACKOFF_S: f64 = 2.0;
+
+/// The pauses of one reconnect loop add up to at most this, s
+/// ([`MAX_RECONNECT_ATTEMPTS`] × [`MAX_RECONNECT_BACKOFF_S`]).
+pub const MAX_RECONNECT_BACKOFF_TOTAL_S: f64 =
+    MAX_RECONNECT_ATTEMPTS as f64 * MAX_RECONNECT_BACKOFF_S;
+
+/// With a stop flag, the longest slice of a reconnect pause before the flag is looked at
+/// again, s.
+pub const RECONNECT_POLL_S: f64 = 0.1;
+
 impl ClientConfig {
-    /// Checks that every duration is finite and positive.
+    /// Checks that every duration is finite and positive and that the reconnect loop is
+    /// bounded ([`MAX_RECONNECT_ATTEMPTS`], [`MAX_RECONNECT_BACKOFF_S`]); the message names
+    /// the field.
     pub fn validate(&self) -> Result<(), NanonisError> {
+        if self.reconnect_attempts > MAX_RECONNECT_ATTEMPTS {
+            return Err(NanonisError::new(
+                NanonisErrorKind::Configuration,
+                format!(
+                    "reconnect_attempts = {} is more than {MAX_RECONNECT_ATTEMPTS} (a controller \
+                     gone for good would be retried for hours)",
+                    self.reconnect_attempts
+                ),
+            ));
+        }
+        if self.reconnect_backoff_s > MAX_RECONNECT_BACKOFF_S {
+            return Err(NanonisError::new(
+                NanonisErrorKind::Configuration,
+                format!(
+                    "reconnect_backoff_s = {} is more than {MAX_RECONNECT_BACKOFF_S} s",
+                    self.reconnect_backoff_s
+                ),
+            ));
+        }
         for (field, value) in [
             ("connect_timeout_s", self.connect_timeout_s),
             ("command_timeout_s", self.command_timeout_s),
@@ -112,6 +159,8 @@ pub struct Client {
     /// Grows with every command sent on either connection and every connection opened
     /// ([`Client::sequence`]).
     sequence: u64,
+    /// Set by whoever stops the run ([`Client::set_interrupt`]).
+    interrupt: Option<Arc<AtomicBool>>,
 }
 
 /// An open connection and the read/write timeout last set on it (set again only when a
@@ -158,10 +207,53 @@ impl Client {
             commands_sent: 0,
             reconnects: 0,
             sequence: 0,
+            interrupt: None,
         };
         client.ensure_connected()?;
         client.reconnects = 0;
         Ok(client)
+    }
+
+    /// Ends the reconnect loop once `flag` is set: no further attempt is made and a pause is
+    /// cut short within [`RECONNECT_POLL_S`]; the command fails as
+    /// [`NanonisErrorKind::Aborted`].
+    pub fn set_interrupt(&mut self, flag: Arc<AtomicBool>) {
+        self.interrupt = Some(flag);
+    }
+
+    fn interrupted(&self) -> bool {
+        self.interrupt
+            .as_ref()
+            .is_some_and(|flag| flag.load(Ordering::SeqCst))
+    }
+
+    /// The reconnect loop's pause, in slices when a stop flag is set; `Err` once it is.
+    fn backoff(&self, pause_s: f64) -> Result<(), NanonisError> {
+        let interrupted = || {
+            NanonisError::new(
+                NanonisErrorKind::Aborted,
+                format!(
+                    "interrupted while reconnecting to the controller at {}:{}",
+                    self.config.host, self.config.port
+                ),
+            )
+        };
+        let mut left_s = pause_s;
+        loop {
+            if self.interrupted() {
+                return Err(interrupted());
+            }
+            if left_s <= 0.0 {
+                return Ok(());
+            }
+            let slice_s = if self.interrupt.is_some() {
+                left_s.min(RECONNECT_POLL_S)
+            } else {
+                left_s
+            };
+            std::thread::sleep(seconds(slice_s));
+            left_s -= slice_s;
+        }
     }
 
     /// The controller's version, from the last (re)connection.
@@ -224,8 +316,8 @@ impl Client {
         let mut last = None;
         for attempt in 0..=self.config.reconnect_attempts {
             if attempt > 0 {
-                std::thread::sleep(seconds(backoff));
-                backoff = (backoff * 2.0).min(2.0);
+                self.backoff(backoff)?;
+                backoff = (backoff * 2.0).min(MAX_RECONNECT_BACKOFF_S);
             }
             match self.open() {
                 Ok(stream) => {

@@ -588,6 +588,8 @@ impl NanonisMicroscope {
     /// controller for the user to look at or resume by hand; the next backend opened on the
     /// controller (`spmcal calibrate --resume`) stops it and the node is measured again.
     pub fn set_interrupt(&mut self, flag: Arc<AtomicBool>) {
+        // The reconnect loop ends at the flag too (issue 25 item 12).
+        self.client.set_interrupt(Arc::clone(&flag));
         self.interrupt = Some(flag);
     }
 

@@ -1,8 +1,8 @@
 //! `spmcal calibrate --config FILE [--cdb PATH] [--resume] [--out DIR]`.
 //!
-//! SIGINT, SIGTERM and SIGHUP stop the run at the next safe point (between two visits,
-//! never inside a CDB transaction): the run is marked 'aborted' with a message and
-//! `--resume` continues it. A second signal of the same kind ends the program at once
+//! SIGINT, SIGTERM and SIGHUP stop the run at the next safe point (before the next instrument
+//! operation, never inside a CDB transaction; a visit cut short stays undone): the run is
+//! marked 'aborted' with a message and `--resume` continues it. A second signal of the same kind ends the program at once
 //! (exit 1; the CDB stays consistent, as after a kill).
 
 use crate::error::CliError;

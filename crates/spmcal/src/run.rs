@@ -9,6 +9,7 @@ use spm_cdb::{ProgressStore, RunInfo, RunStatus};
 use spm_hal::{CountVelocity, Seconds};
 use spm_sim::Simulator;
 use std::path::Path;
+use std::sync::Arc;
 
 /// Why a run could not be carried out.
 #[derive(Debug, thiserror::Error)]
@@ -333,10 +334,12 @@ pub fn run_job<O: Observer>(
     run_job_interruptible(job, cdb_path, start, start_unix_s, observer, None)
 }
 
-/// [`run_job`], interruptible while the instrument works: once `interrupt` is set, a Nanonis
-/// controller's running scan is paused and the run stops at once as aborted (resumable;
-/// `NanonisMicroscope::set_interrupt`). The other backends answer at once anyway and stop
-/// between visits (the observer's `keep_going`).
+/// [`run_job`], interruptible while the instrument works: once `interrupt` is set, no
+/// further instrument operation (move, wait, scan, coarse step) is started on any backend
+/// (`spm_hal::interrupt::Interruptible`), so the run stops inside its visit as aborted, the
+/// visit left undone for `--resume` (issue 25 item 12); a Nanonis controller's running scan
+/// is also paused at once (`NanonisMicroscope::set_interrupt`). Between visits the observer's
+/// `keep_going` stops the run cleanly (`RunReport::interrupted`).
 pub fn run_job_interruptible<O: Observer>(
     job: &Job,
     cdb_path: &Path,
@@ -349,8 +352,12 @@ pub fn run_job_interruptible<O: Observer>(
     // The instrument is opened before the CDB is touched: a backend that cannot be built
     // leaves no run behind.
     let mut instrument = open_backend(&job.backend)?;
-    if let (Instrument::Nanonis(nanonis), Some(flag)) = (&mut instrument, interrupt) {
-        nanonis.set_interrupt(flag);
+    // Every backend stops before its next instrument operation once the flag is set (the
+    // runner then ends the run as aborted, the visit undone); a Nanonis controller also cuts
+    // a running scan or wait short.
+    let stop = interrupt.unwrap_or_default();
+    if let Instrument::Nanonis(nanonis) = &mut instrument {
+        nanonis.set_interrupt(std::sync::Arc::clone(&stop));
     }
     // A controller's state as found when it was opened (its own compensation, switched
     // off) is part of the run's provenance (ignored when comparing jobs for --resume).
@@ -403,7 +410,7 @@ pub fn run_job_interruptible<O: Observer>(
     match instrument {
         Instrument::Sim(mut sim) => {
             let (result, commands, ladder) =
-                calibrate_on(&mut *sim, &mut cdb, observer, job, &options);
+                calibrate_on(&mut *sim, &mut cdb, observer, job, &options, &stop);
             let report = settle(result, &mut cdb, &options, start_unix_s)?;
             Ok(JobOutcome {
                 report,
@@ -414,7 +421,7 @@ pub fn run_job_interruptible<O: Observer>(
         }
         Instrument::Nanonis(mut nanonis) => {
             let (result, commands, ladder) =
-                calibrate_on(&mut *nanonis, &mut cdb, observer, job, &options);
+                calibrate_on(&mut *nanonis, &mut cdb, observer, job, &options, &stop);
             let report = settle(result, &mut cdb, &options, start_unix_s)?;
             Ok(JobOutcome {
                 report,
@@ -425,7 +432,7 @@ pub fn run_job_interruptible<O: Observer>(
         }
         Instrument::Virtual(mut virt) => {
             let (result, commands, ladder) =
-                calibrate_on(&mut *virt, &mut cdb, observer, job, &options);
+                calibrate_on(&mut *virt, &mut cdb, observer, job, &options, &stop);
             let report = settle(result, &mut cdb, &options, start_unix_s)?;
             Ok(JobOutcome {
                 report,
@@ -583,19 +590,24 @@ fn calibrate_on<M: spm_hal::Microscope, O: Observer>(
     observer: &mut O,
     job: &Job,
     options: &RunOptions,
+    stop: &std::sync::Arc<std::sync::atomic::AtomicBool>,
 ) -> (
     Result<RunReport, RunError>,
     Vec<spm_hal::recording::CommandEvent>,
     Vec<spm_calibration::dynamics::LadderFrame>,
 ) {
-    let mut recorder = spm_hal::recording::CommandRecorder::new(microscope, MAX_COMMANDS);
-    let result = Calibrator::new(&mut recorder, &mut *cdb, observer, job.plan.clone())
+    let recorder = spm_hal::recording::CommandRecorder::new(microscope, MAX_COMMANDS);
+    // Outside the recorder: an operation refused after a stop request is not in the log.
+    let mut interruptible = spm_hal::interrupt::Interruptible::new(recorder, Arc::clone(stop));
+    let result = Calibrator::new(&mut interruptible, &mut *cdb, observer, job.plan.clone())
         .and_then(|mut calibrator| calibrator.run(options));
     let ladder = match &result {
-        Ok(_) if job.plan.dynamics.enabled => dynamics_stage(&mut recorder, &job.plan),
+        Ok(report) if job.plan.dynamics.enabled && !report.interrupted => {
+            dynamics_stage(&mut interruptible, &job.plan)
+        }
         _ => Vec::new(),
     };
-    let (_, commands) = recorder.into_parts();
+    let (_, commands) = interruptible.into_inner().into_parts();
     (result, commands, ladder)
 }
 

@@ -110,3 +110,93 @@ fn an_interrupt_pauses_the_scan_and_a_resumed_backend_stops_it() {
     assert_eq!(spm_hal::Error::kind(&error), ErrorKind::Aborted, "{error}");
     assert!(started.elapsed().as_secs_f64() < 5.0 * spm_nanonis::INTERRUPT_POLL_S);
 }
+
+/// Issue 25 item 12: `reconnect_attempts = 4294967295` was accepted, and the client was still
+/// retrying 618 s after a SIGTERM. A configuration beyond `MAX_RECONNECT_ATTEMPTS` (or a first
+/// backoff beyond `MAX_RECONNECT_BACKOFF_S`) is refused naming the field, before any
+/// connection.
+#[test]
+fn absurd_reconnect_settings_are_refused_naming_the_field() {
+    use spm_nanonis::client::{MAX_RECONNECT_ATTEMPTS, MAX_RECONNECT_BACKOFF_S};
+    for (field, config) in [
+        (
+            "reconnect_attempts",
+            NanonisConfig {
+                reconnect_attempts: u32::MAX,
+                ..spm_nanonis_sim::loopback_config(9)
+            },
+        ),
+        (
+            "reconnect_attempts",
+            NanonisConfig {
+                reconnect_attempts: MAX_RECONNECT_ATTEMPTS + 1,
+                ..spm_nanonis_sim::loopback_config(9)
+            },
+        ),
+        (
+            "reconnect_backoff_s",
+            NanonisConfig {
+                reconnect_backoff_s: 2.0 * MAX_RECONNECT_BACKOFF_S,
+                ..spm_nanonis_sim::loopback_config(9)
+            },
+        ),
+    ] {
+        let e = config.validate().expect_err(field);
+        assert_eq!(e.kind, spm_nanonis::NanonisErrorKind::Configuration, "{e}");
+        assert!(e.to_string().contains(field), "{field}: {e}");
+        let e = NanonisMicroscope::connect(config).expect_err(field);
+        assert!(e.to_string().contains(field), "{field}: {e}");
+    }
+    let at_the_bound = NanonisConfig {
+        reconnect_attempts: MAX_RECONNECT_ATTEMPTS,
+        reconnect_backoff_s: MAX_RECONNECT_BACKOFF_S,
+        ..spm_nanonis_sim::loopback_config(9)
+    };
+    at_the_bound.validate().unwrap();
+}
+
+/// Issue 25 item 12: a client whose controller is gone stops reconnecting at a stop request
+/// instead of working through its attempts (here 100 with 2 s pauses: over 3 minutes).
+#[test]
+fn a_client_whose_server_is_gone_stops_reconnecting_at_a_stop_request() {
+    let server = Server::bind(
+        "127.0.0.1:0",
+        SimConfig::ideal(),
+        ServerConfig::new(SocketFaults::none()),
+    )
+    .unwrap()
+    .spawn()
+    .unwrap();
+    let config = NanonisConfig {
+        reconnect_attempts: spm_nanonis::client::MAX_RECONNECT_ATTEMPTS,
+        reconnect_backoff_s: spm_nanonis::client::MAX_RECONNECT_BACKOFF_S,
+        ..spm_nanonis_sim::loopback_config(server.addr().port())
+    };
+    let mut client = Client::connect(config.client_config()).unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    client.set_interrupt(Arc::clone(&stop));
+    server.kill();
+    // From another thread, while the client retries.
+    let setter = {
+        let stop = Arc::clone(&stop);
+        std::thread::spawn(move || {
+            std::thread::sleep(std::time::Duration::from_millis(300));
+            stop.store(true, Ordering::SeqCst);
+        })
+    };
+    let started = std::time::Instant::now();
+    let e = client.call(&Request::ScanStatusGet).unwrap_err();
+    let waited = started.elapsed();
+    setter.join().unwrap();
+    assert_eq!(e.kind, spm_nanonis::NanonisErrorKind::Aborted, "{e}");
+    assert!(
+        e.to_string().contains("interrupted while reconnecting"),
+        "{e}"
+    );
+    // One pause slice after the flag (0.1 s) and a refused connection at most; without the
+    // flag the loop would pause 2 s at a time for over 3 minutes.
+    assert!(
+        waited < std::time::Duration::from_secs(30),
+        "stopped only after {waited:?}"
+    );
+}

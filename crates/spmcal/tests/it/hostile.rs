@@ -2179,3 +2179,160 @@ fn issue25_11_claimed_huge_bodies_do_not_reserve_memory() {
         "virtual memory grew by {grown_kib} KiB"
     );
 }
+
+/// Issue 25 item 12 (rest): a stop request during a long visit (here 40 kept skipping cycles
+/// per vector) ends the run before the next instrument operation, not at the visit's end
+/// (397 s on the real run). The flag is set from another thread as soon as the first visit
+/// has attached; from then on no instrument time may pass: no skipping cycle, no measured or
+/// given-up visit, the run's abort dated at the attachment's last sighting. The run is
+/// marked aborted with nothing stored, and `--resume` measures the whole plan.
+#[test]
+fn issue25_item_12_a_stop_inside_a_long_visit_ends_it_before_the_next_operation() {
+    use spm_calibration::{GiveUpReason, NodeMeasurement, Observer, PlanVisit};
+    use spmcal::job::Job;
+    use spmcal::run::{JobRunError, RecordingObserver, RunStart, run_job_interruptible};
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicBool, Ordering};
+
+    /// Sets the stop flag (from another thread) at the first attachment and counts what
+    /// happens on the instrument afterwards.
+    struct StopAfterAttach {
+        stop: Arc<AtomicBool>,
+        /// Instrument time of the last sighting when the stop was requested, s.
+        stopped_at_s: Option<f64>,
+        /// Events that took instrument time after the stop.
+        after: Vec<String>,
+    }
+    impl Observer for StopAfterAttach {
+        fn attach_sightings(&mut self, _visit: &PlanVisit, sightings: &[spm_fos::Sighting]) {
+            if self.stopped_at_s.is_some() {
+                self.after.push("an attachment".into());
+                return;
+            }
+            let stop = Arc::clone(&self.stop);
+            std::thread::spawn(move || stop.store(true, Ordering::SeqCst))
+                .join()
+                .unwrap();
+            self.stopped_at_s = sightings.last().map(|s| s.time().value());
+        }
+        fn drift_estimate(
+            &mut self,
+            _visit: &PlanVisit,
+            _velocity: spm_hal::CountVelocity,
+            at: spm_hal::Seconds,
+        ) {
+            if let Some(t) = self.stopped_at_s
+                && at.value() > t
+            {
+                self.after
+                    .push(format!("a drift estimate at {} s", at.value()));
+            }
+        }
+        fn cycle_spoiled(&mut self, _visit: &PlanVisit, _reason: &spm_fos::SpoilReason) {
+            if self.stopped_at_s.is_some() {
+                self.after.push("a spoiled cycle".into());
+            }
+        }
+        fn node_finished(&mut self, m: &NodeMeasurement) {
+            if self.stopped_at_s.is_some() {
+                self.after
+                    .push(format!("visit {} measured", m.visit.node_index));
+            }
+        }
+        fn node_given_up(&mut self, visit: &PlanVisit, reason: &GiveUpReason) {
+            if self.stopped_at_s.is_some() {
+                self.after
+                    .push(format!("visit {} given up: {reason}", visit.node_index));
+            }
+        }
+    }
+
+    let dir = Scratch::new("i25-12-long-visit");
+    let job_path = write_job(&dir, &[("cycles = 2 ", "cycles = 40 ")], &[]);
+    let job = Job::from_file(Path::new(&job_path)).unwrap();
+    let cdb = dir.path("c.sqlite");
+    let start_unix_s = 1_795_000_000.0;
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut observer = StopAfterAttach {
+        stop: Arc::clone(&stop),
+        stopped_at_s: None,
+        after: Vec::new(),
+    };
+    let mut recorder = RecordingObserver::new(&mut observer);
+    let result = run_job_interruptible(
+        &job,
+        &cdb,
+        RunStart::New {
+            run_id: "long-visit".into(),
+        },
+        start_unix_s,
+        &mut recorder,
+        Some(Arc::clone(&stop)),
+    );
+    drop(recorder);
+    let stopped_at_s = observer
+        .stopped_at_s
+        .expect("the first visit attached (the stop was requested)");
+    assert!(
+        observer.after.is_empty(),
+        "instrument work after the stop request: {} events, the first {:?}",
+        observer.after.len(),
+        &observer.after[..observer.after.len().min(5)]
+    );
+    match result {
+        Err(JobRunError::Run(spm_calibration::RunError::Instrument { kind, message })) => {
+            assert_eq!(kind, spm_hal::ErrorKind::Aborted, "{message}");
+            assert!(message.contains("interrupted"), "{message}");
+        }
+        Err(e) => panic!("the run failed otherwise: {e}"),
+        Ok(outcome) => panic!(
+            "the run went on after the stop: {} visits measured, interrupted = {}",
+            outcome.report.nodes_done, outcome.report.interrupted
+        ),
+    }
+    let cdb_s = cdb.display().to_string();
+    assert_eq!(
+        runs(&cdb_s),
+        vec![("long-visit".to_owned(), "aborted".to_owned())]
+    );
+    assert_eq!(count_records(&cdb_s), 0, "nothing half-measured is stored");
+    let run = Cdb::open_read_only(&cdb_s)
+        .unwrap()
+        .run("long-visit")
+        .unwrap()
+        .unwrap();
+    // The sighting is dated within the attachment's last segment scan (12 × 12 pixels,
+    // trace and retrace at 0.1 ms): the abort may come at that scan's end, not later. Before
+    // the fix the visit went on through its 80 skipping cycles (seconds of instrument time).
+    let segment_scan_s = 12.0 * 12.0 * 2.0 * 1e-4;
+    let aborted_after_s = run.finished_unix_s.unwrap() - start_unix_s;
+    assert!(
+        aborted_after_s <= stopped_at_s + segment_scan_s,
+        "the run was marked aborted {aborted_after_s} s of instrument time after its start, \
+         the stop came at {stopped_at_s} s"
+    );
+    assert_consistent(&cdb_s);
+    check_passes(&cdb_s);
+    // The visit cut short is measured again by the resumed run, with the rest of the plan.
+    let mut none = spm_calibration::NoObserver;
+    let mut recorder = RecordingObserver::new(&mut none);
+    let resumed = run_job_interruptible(
+        &job,
+        &cdb,
+        RunStart::Resume,
+        start_unix_s + 10.0,
+        &mut recorder,
+        None,
+    )
+    .unwrap();
+    assert_eq!(resumed.report.already_finished, 0);
+    assert_eq!(
+        resumed.report.nodes_done + resumed.report.given_up.len(),
+        9,
+        "{:?}",
+        resumed.report
+    );
+    assert_eq!(runs(&cdb_s)[0].1, "finished");
+    assert_consistent(&cdb_s);
+    check_passes(&cdb_s);
+}

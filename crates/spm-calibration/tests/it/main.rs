@@ -6,5 +6,4 @@ mod lcc;
 mod machine;
 mod mock;
 mod plan;
-mod survey;
 mod vertical;

@@ -218,7 +218,8 @@ fn run_error(e: &spmcal::run::JobRunError, stop: &StopRequest) -> CliError {
         CliError::BadInput(e.to_string())
     } else if stop.requested() {
         CliError::RunFailed(format!(
-            "interrupted by {}: {e}; continue the run with --resume",
+            "interrupted by {}: the run stopped inside a visit ({e}); nothing of that visit is \
+             stored, the run is marked 'aborted' in the CDB; continue it with --resume",
             stop.name()
         ))
     } else {

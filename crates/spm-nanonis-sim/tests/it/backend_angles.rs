@@ -6,8 +6,6 @@
 
 use spm_hal::{CountPoint, Counts, Microscope, MoveRequest, ScanDirection, ScanRequest, Seconds};
 use spm_nanonis::{NanonisConfig, NanonisMicroscope};
-use spm_nanonis_sim::{Server, ServerConfig, SocketFaults};
-use spm_sim::SimConfig;
 
 fn config(port: u16, frame_angle_deg: f64) -> NanonisConfig {
     NanonisConfig {
@@ -27,14 +25,7 @@ fn controller_counts(p: CountPoint, angle_deg: f64) -> (f64, f64) {
 #[test]
 fn moves_and_scans_land_on_the_turned_axes() {
     for angle in [30.0, -115.0, 90.0] {
-        let server = Server::bind(
-            "127.0.0.1:0",
-            SimConfig::ideal(),
-            ServerConfig::new(SocketFaults::none()),
-        )
-        .unwrap()
-        .spawn()
-        .unwrap();
+        let server = crate::common::serve_ideal();
         let mut tcp = NanonisMicroscope::connect(config(server.addr().port(), angle)).unwrap();
         // The field is the largest turned square inside the controller's range.
         let caps = tcp.capabilities();

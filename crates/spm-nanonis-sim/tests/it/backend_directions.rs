@@ -9,8 +9,7 @@
 
 use spm_hal::{CountPoint, Counts, Frame, Microscope, ScanDirection, ScanRequest, Seconds};
 use spm_nanonis::{NanonisConfig, NanonisMicroscope, SlowDirection};
-use spm_nanonis_sim::{FrameTruth, Server, ServerConfig, ServerHandle, SocketFaults};
-use spm_sim::SimConfig;
+use spm_nanonis_sim::{FrameTruth, ServerHandle};
 
 const PIXELS: u32 = 16;
 const LINES: u32 = 6;
@@ -29,14 +28,7 @@ fn config(port: u16, frame_angle_deg: f64, slow_direction: SlowDirection) -> Nan
 }
 
 fn serve() -> ServerHandle {
-    let server = Server::bind(
-        "127.0.0.1:0",
-        SimConfig::ideal(),
-        ServerConfig::new(SocketFaults::none()),
-    )
-    .unwrap()
-    .spawn()
-    .unwrap();
+    let server = crate::common::serve_ideal();
     server.with_simulator_mut(|s| s.record_tip_positions(true));
     server
 }

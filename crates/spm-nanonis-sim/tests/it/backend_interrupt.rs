@@ -9,8 +9,6 @@
 use spm_hal::{CountPoint, Counts, ErrorKind, Microscope, ScanDirection, ScanRequest, Seconds};
 use spm_nanonis::commands::{Reply, Request};
 use spm_nanonis::{Client, ClockSource, NanonisConfig, NanonisMicroscope, SlowDirection};
-use spm_nanonis_sim::{Server, ServerConfig, SocketFaults};
-use spm_sim::SimConfig;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -52,14 +50,7 @@ fn status(user: &mut Client) -> u32 {
 
 #[test]
 fn an_interrupt_pauses_the_scan_and_a_resumed_backend_stops_it() {
-    let server = Server::bind(
-        "127.0.0.1:0",
-        SimConfig::ideal(),
-        ServerConfig::new(SocketFaults::none()),
-    )
-    .unwrap()
-    .spawn()
-    .unwrap();
+    let server = crate::common::serve_ideal();
     let port = server.addr().port();
     let flag = Arc::new(AtomicBool::new(false));
     let mut tcp = NanonisMicroscope::connect(config(port, controller_clock())).unwrap();
@@ -159,14 +150,7 @@ fn absurd_reconnect_settings_are_refused_naming_the_field() {
 /// instead of working through its attempts (here 100 with 2 s pauses: over 3 minutes).
 #[test]
 fn a_client_whose_server_is_gone_stops_reconnecting_at_a_stop_request() {
-    let server = Server::bind(
-        "127.0.0.1:0",
-        SimConfig::ideal(),
-        ServerConfig::new(SocketFaults::none()),
-    )
-    .unwrap()
-    .spawn()
-    .unwrap();
+    let server = crate::common::serve_ideal();
     let config = NanonisConfig {
         reconnect_attempts: spm_nanonis::client::MAX_RECONNECT_ATTEMPTS,
         reconnect_backoff_s: spm_nanonis::client::MAX_RECONNECT_BACKOFF_S,

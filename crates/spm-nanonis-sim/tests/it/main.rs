@@ -4,6 +4,7 @@
 mod backend_angles;
 mod backend_directions;
 mod backend_interrupt;
+mod common;
 mod issue26;
 mod limits;
 mod over_tcp;

@@ -39,15 +39,20 @@ pub struct NanonisResults {
     pub round_trip_us: f64,
 }
 
-/// The median wall time of one `Scan.StatusGet` round trip, µs (2000 after 200 to warm up).
-fn round_trip_us(sim: &SimConfig) -> Result<f64, XtaskError> {
-    let server = Server::bind(
+/// nanonis-sim on `sim`, no socket faults, on a free loopback port.
+fn serve(sim: &SimConfig) -> Result<spm_nanonis_sim::server::ServerHandle, XtaskError> {
+    Server::bind(
         "127.0.0.1:0",
         sim.clone(),
         ServerConfig::new(SocketFaults::none()),
     )
     .and_then(Server::spawn)
-    .map_err(|e| XtaskError::step("starting nanonis-sim", e))?;
+    .map_err(|e| XtaskError::step("starting nanonis-sim", e))
+}
+
+/// The median wall time of one `Scan.StatusGet` round trip, µs (2000 after 200 to warm up).
+fn round_trip_us(sim: &SimConfig) -> Result<f64, XtaskError> {
+    let server = serve(sim)?;
     let mut client =
         spm_nanonis::Client::connect(nanonis_config(server.addr().port()).client_config())
             .map_err(|e| XtaskError::step("connecting to nanonis-sim", e))?;
@@ -123,13 +128,7 @@ pub fn run(ctx: &Context) -> Result<NanonisResults, XtaskError> {
         let (wall, n, t) = timed_run(&local, &dir, &format!("local-{k}"))?;
         best_local = best_local.min(wall);
         (nodes, instrument_s) = (n, t);
-        let server = Server::bind(
-            "127.0.0.1:0",
-            sim.clone(),
-            ServerConfig::new(SocketFaults::none()),
-        )
-        .and_then(Server::spawn)
-        .map_err(|e| XtaskError::step("starting nanonis-sim", e))?;
+        let server = serve(&sim)?;
         let tcp = Job {
             backend: Backend::Nanonis(Box::new(nanonis_config(server.addr().port()))),
             plan: plan.clone(),

@@ -150,9 +150,8 @@ impl RulerEstimate {
         }
         let mut x = Vec::with_capacity(nx * ny);
         let mut y = Vec::with_capacity(nx * ny);
-        let (mid, line) = (0.5 * (nx as f64 - 1.0), (nx.max(2) - 1) as f64);
         for (i, &t) in times_s.iter().enumerate() {
-            let e = self.error_at_nm(t, ((i % nx) as f64 - mid) / line);
+            let e = self.error_at_nm(t, along_line((i % nx) as f64, nx));
             let p = map
                 .point(i % nx, i / nx)
                 .ok_or(CorrectionError::Empty("map pixel"))?;
@@ -210,7 +209,6 @@ fn atoms(
     };
     let found = detect(&height_map, &config)
         .map_err(|e| CorrectionError::InvalidArgument(format!("lattice ruler: {e}")))?;
-    let (mid_column, line_columns) = (0.5 * (nx as f64 - 1.0), (nx.max(2) - 1) as f64);
     Ok(found
         .features
         .iter()
@@ -219,7 +217,7 @@ fn atoms(
             Some(Atom {
                 p: [p.x.value(), p.y.value()],
                 t: f.time.value(),
-                u: (f.column - mid_column) / line_columns,
+                u: along_line(f.column, nx),
                 feature: Feature {
                     position: CountPoint::from_counts(p.x.value(), p.y.value()),
                     ..*f
@@ -445,6 +443,12 @@ fn fast_axis_terms(u: f64) -> [[f64; FAST_TERMS]; 2] {
 
 /// Coefficients of the fast-axis terms ([`fast_axis_terms`]): x·u, x·u², x·u³, y·u², y·u³.
 const FAST_TERMS: usize = 5;
+
+/// The place `u` along a line of `columns` pixels of (fractional) column `column`: its
+/// distance from the line's middle in line lengths (−½ … ½).
+fn along_line(column: f64, columns: usize) -> f64 {
+    (column - 0.5 * (columns as f64 - 1.0)) / (columns.max(2) - 1) as f64
+}
 
 /// The displacement the fast-axis terms of coefficients `c` (nm) make at `u`, nm.
 fn fast_axis_nm(c: &[f64; FAST_TERMS], u: f64) -> [f64; 2] {
@@ -694,7 +698,7 @@ pub(crate) mod tests {
 
     /// The place along the line of pixel `i` of a 129-pixel line (−½ … ½).
     fn along(i: usize) -> f64 {
-        ((i % 129) as f64 - 64.0) / 128.0
+        along_line((i % 129) as f64, 129)
     }
 
     /// RMS over the frame's pixels of `f(t, u)` (pixel time, place along the line), its mean (a

@@ -78,6 +78,10 @@ pub struct PlanConfig {
     /// defaults (10 % of the nodes held out, the verdicts' thresholds).
     #[serde(default)]
     pub validation: crate::run_validation::RunValidationConfig,
+    /// The lattice survey that gates LCS recognition (`[survey]`, issue 24): absent = the
+    /// defaults (on, 3 × 3 places of 8 lattice constants).
+    #[serde(default)]
+    pub survey: crate::survey::SurveyConfig,
     /// What the run promises (`[targets]`, issue 27): absent = nothing declared, the exit
     /// code of `spmcal calibrate` does not depend on the figures.
     #[serde(
@@ -624,12 +628,12 @@ impl PlanConfig {
                 field: format!("plan.{field}"),
                 reason,
             })?;
-        self.validation
-            .validate()
-            .map_err(|(field, reason)| ValidationError {
+        for check in [self.validation.validate(), self.survey.validate()] {
+            check.map_err(|(field, reason)| ValidationError {
                 field: format!("plan.{field}"),
                 reason,
             })?;
+        }
         self.targets
             .validate()
             .map_err(|(field, reason)| ValidationError {

@@ -57,6 +57,7 @@ pub mod measure;
 pub mod plan;
 pub mod run_validation;
 pub mod runner;
+pub mod survey;
 pub mod vertical;
 
 pub use config::{
@@ -78,4 +79,5 @@ pub use runner::{
     Calibrator, FosParams, GivenUpVisit, MemoryStore, MemoryStoreError, NoObserver, Observer,
     ProgressStore, RunError, RunOptions, RunReport,
 };
+pub use survey::{GateTally, SurveyConfig, SurveyLcc, SurveyPlace, SurveyReport};
 pub use vertical::{KzOutcome, KzSearch, StepSearchConfig};

@@ -117,6 +117,10 @@ pub struct RunReport {
     /// Step searches for Kz (plans with `[plan.steps]`).
     #[serde(default)]
     pub kz: crate::vertical::KzTally,
+    /// The lattice survey and how LCS candidates fared at its gate (`None` when the plan's
+    /// `[survey]` is off or every visit was finished before this invocation).
+    #[serde(default)]
+    pub survey: Option<crate::survey::SurveyReport>,
 }
 
 /// Why a run failed as a whole.
@@ -249,6 +253,7 @@ impl FosParams {
             length_tolerance: s.length_tolerance_fraction,
             angle_tolerance_rad: s.angle_tolerance_deg.to_radians(),
             prior: None,
+            gate: None,
         };
         Self {
             attach,
@@ -292,6 +297,7 @@ pub struct Calibrator<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer 
     plan: NetPlan,
     fos: FosParams,
     clock0: Option<Seconds>,
+    survey: Option<crate::survey::SurveyReport>,
 }
 
 fn fos_failure<E: spm_hal::Error>(error: FosError<E>) -> Result<Failure, RunError> {
@@ -366,6 +372,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             plan,
             fos,
             clock0: None,
+            survey: None,
         })
     }
 
@@ -467,6 +474,9 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
         };
         self.observer.run_started(visits.len(), already);
         tracing::info!(visits = visits.len(), already, "calibration run starts");
+        if self.config.survey.enabled && already < visits.len() {
+            self.survey = Some(self.survey_lattice()?);
+        }
         let params = MachineParams::from_plan(&self.config);
         let mut previous: Option<GridNode> = None;
         let mut coarse_now: Option<i64> = None;
@@ -490,6 +500,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
                 clock0,
                 start_unix_s: options.start_unix_s,
             };
+            self.fos.aperture.lcs.gate = self.survey.as_ref().and_then(|s| s.gate());
             self.run_visit(
                 visit,
                 &params,
@@ -501,6 +512,10 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             )?;
             previous = Some(visit.grid);
         }
+        report.survey = self.survey.take().map(|mut s| {
+            s.misrecognition_rate = s.gate.misrecognition_rate();
+            s
+        });
         let end = self.read_retrying(|m| m.now())?;
         report.instrument_time_s = (end - clock0).value();
         if !report.interrupted {
@@ -514,6 +529,79 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             instrument_time_s = report.instrument_time_s,
             "calibration run ends"
         );
+        Ok(report)
+    }
+
+    /// Surveys the lattice at the plan's places (see [`crate::survey`]): frames of
+    /// `survey.size_lattice` lattice constants at the aperture's sampling, recognised with
+    /// the aperture's detection settings.
+    fn survey_lattice(&mut self) -> Result<crate::survey::SurveyReport, RunError> {
+        let _s = tracing::info_span!("survey").entered();
+        let s = &self.config.standard;
+        let a_counts = s.lattice_constant_nm / s.nominal_nm_per_count;
+        let aperture = self.fos.aperture.raster;
+        let side = self.config.survey.size_lattice * a_counts;
+        let pixels = ((side / aperture.pixel_step_counts).ceil() as u32 + 1).clamp(16, 1024);
+        let raster = Raster { pixels, ..aperture };
+        let caps = self.microscope.capabilities();
+        let places = crate::survey::places(
+            &self.plan,
+            self.config.survey.places_per_side,
+            0.5 * raster.side_counts(),
+            (caps.field_min, caps.field_max),
+        );
+        let mut report = crate::survey::SurveyReport::default();
+        for centre in places {
+            let place = crate::survey::survey_place(
+                &mut *self.microscope,
+                centre,
+                &raster,
+                &self.fos.aperture.detection,
+                &self.config,
+            )
+            .map_err(|e| RunError::Instrument {
+                kind: e.kind(),
+                message: e.to_string(),
+            })?;
+            match (&place.lcc, &place.refusal) {
+                (Some(l), _) => tracing::info!(
+                    x = centre.x.value(),
+                    y = centre.y.value(),
+                    features = place.features,
+                    kx = l.kx_nm_per_count,
+                    ky = l.ky_nm_per_count,
+                    alpha = l.alpha_rad,
+                    "lattice surveyed"
+                ),
+                (None, reason) => tracing::warn!(
+                    x = centre.x.value(),
+                    y = centre.y.value(),
+                    features = place.features,
+                    reason = reason.as_deref().unwrap_or(""),
+                    "survey found no lattice; the place gates nothing"
+                ),
+            }
+            report.places.push(place);
+        }
+        crate::survey::refuse_outliers(
+            &mut report.places,
+            self.fos.aperture.lcs.length_tolerance,
+            self.fos.aperture.lcs.angle_tolerance_rad,
+        );
+        for p in report.places.iter().filter(|p| p.lcc.is_none()) {
+            if let Some(reason) = p.refusal.as_deref().filter(|r| r.starts_with("an outlier")) {
+                tracing::warn!(
+                    x = p.centre_counts[0],
+                    y = p.centre_counts[1],
+                    reason,
+                    "survey place refused; it gates nothing"
+                );
+            }
+        }
+        report.field = report.field_lcc();
+        if report.places.iter().all(|p| p.lcc.is_none()) {
+            tracing::warn!("the survey found no lattice anywhere: LCS recognition runs ungated");
+        }
         Ok(report)
     }
 
@@ -847,6 +935,11 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             Ok(r) => r,
             Err(e) => return Ok(Event::Failed(fos_failure(e)?)),
         };
+        if self.fos.aperture.lcs.gate.is_some()
+            && let Some(survey) = self.survey.as_mut()
+        {
+            survey.gate.count(&r);
+        }
         let Some(a) = r.a.and_then(|i| r.feature(i)).copied() else {
             return Ok(Event::ApertureScanned(ApertureResult {
                 a: centre,

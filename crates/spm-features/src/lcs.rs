@@ -58,6 +58,18 @@ pub struct LcsConfig {
     /// sensitivity.
     #[serde(default)]
     pub prior: Option<NmPerCountMatrix>,
+    /// The apparent lattice surveyed near here, as a map counts → nm up to a rotation
+    /// (spm-calibration's survey: the nearest-neighbour vectors of a whole frame of the
+    /// standard solved as an LCS). A candidate admitted above (through the prior or the
+    /// nominal sensitivity) is accepted only when its sides and angle are also within the
+    /// tolerances through this map: a triangle that is not a nearest-neighbour triangle of
+    /// the lattice the image shows (a next-nearest neighbour √3 a away, a 120° pair, a
+    /// triangle a wrong prior made look right) is refused. Without a prior, candidates are
+    /// also admitted through this map instead of the nominal sensitivity (on the HOPG
+    /// terrace, 11 % anisotropy and 5° obliquity put the true LCS outside a 10° tolerance
+    /// around the nominal equilateral triangle). `None` (default): no gate.
+    #[serde(default)]
+    pub gate: Option<NmPerCountMatrix>,
 }
 
 impl LcsConfig {
@@ -69,6 +81,7 @@ impl LcsConfig {
             length_tolerance: 0.35,
             angle_tolerance_rad: 0.35,
             prior: None,
+            gate: None,
         }
     }
 
@@ -79,13 +92,15 @@ impl LcsConfig {
         positive("standard.ab", self.standard.ab.value())?;
         positive("standard.ac", self.standard.ac.value())?;
         positive("standard.angle_bac", self.standard.angle_bac.value())?;
-        if let Some(NmPerCountMatrix(m)) = self.prior {
-            let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
-            if !(m.iter().flatten().all(|v| v.is_finite()) && det.is_finite() && det != 0.0) {
-                return Err(FeatureError::InvalidConfig {
-                    field: "prior",
-                    reason: "must be a finite, invertible 2×2 map",
-                });
+        for (field, map) in [("prior", self.prior), ("gate", self.gate)] {
+            if let Some(NmPerCountMatrix(m)) = map {
+                let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+                if !(m.iter().flatten().all(|v| v.is_finite()) && det.is_finite() && det != 0.0) {
+                    return Err(FeatureError::InvalidConfig {
+                        field,
+                        reason: "must be a finite, invertible 2×2 map",
+                    });
+                }
             }
         }
         Ok(())
@@ -139,7 +154,43 @@ pub struct Lcs {
     pub mismatch: f64,
 }
 
-fn triangle(features: &[Feature], a: usize, b: usize, c: usize, config: &LcsConfig) -> Option<Lcs> {
+/// Relative deviations of the sides and the angle deviation, rad, of the triangle A→B, A→C
+/// from the standard once mapped through `m` (counts → nm).
+fn deviations_through(
+    NmPerCountMatrix(m): NmPerCountMatrix,
+    ab: CountVector,
+    ac: CountVector,
+    standard: &LcsStandard,
+) -> (f64, f64, f64) {
+    let map = |v: CountVector| {
+        let (x, y) = (v.x.value(), v.y.value());
+        (m[0][0] * x + m[0][1] * y, m[1][0] * x + m[1][1] * y)
+    };
+    let (ab_nm, ac_nm) = (map(ab), map(ac));
+    let cross_nm = ab_nm.0 * ac_nm.1 - ab_nm.1 * ac_nm.0;
+    let angle_nm = cross_nm.abs().atan2(ab_nm.0 * ac_nm.0 + ab_nm.1 * ac_nm.1);
+    (
+        ab_nm.0.hypot(ab_nm.1) / standard.ab.value() - 1.0,
+        ac_nm.0.hypot(ac_nm.1) / standard.ac.value() - 1.0,
+        angle_nm - standard.angle_bac.value(),
+    )
+}
+
+fn within_tolerances((dab, dac, dangle): (f64, f64, f64), config: &LcsConfig) -> bool {
+    dab.abs() <= config.length_tolerance
+        && dac.abs() <= config.length_tolerance
+        && dangle.abs() <= config.angle_tolerance_rad
+}
+
+/// The triangle A, B, C when admitted (through the prior or the nominal sensitivity), with
+/// whether it also passes the gate (true without one).
+fn triangle(
+    features: &[Feature],
+    a: usize,
+    b: usize,
+    c: usize,
+    config: &LcsConfig,
+) -> Option<(Lcs, bool)> {
     let (pa, pb, pc) = (
         features.get(a)?.position,
         features.get(b)?.position,
@@ -151,7 +202,7 @@ fn triangle(features: &[Feature], a: usize, b: usize, c: usize, config: &LcsConf
         return None;
     }
     // Against the standard through the nominal sensitivity: the ranking (and, without a
-    // prior, the gate).
+    // prior, the admission).
     let (eab, eac) = config.expected_counts();
     let cross = ab.x.value() * ac.y.value() - ab.y.value() * ac.x.value();
     let angle = cross.abs().atan2(ab.dot_counts_squared(ac));
@@ -160,34 +211,22 @@ fn triangle(features: &[Feature], a: usize, b: usize, c: usize, config: &LcsConf
         lac / eac.value() - 1.0,
         angle - config.standard.angle_bac.value(),
     );
-    // The gate: through the prior when there is one.
-    let (dab, dac, dangle) = match config.prior {
+    // The admission: through the prior when there is one, else through the gate's map (a
+    // survey of the lattice is a better first guess than the nominal sensitivity).
+    let admission = match config.prior.or(config.gate) {
         None => nominal,
-        Some(NmPerCountMatrix(m)) => {
-            let map = |v: CountVector| {
-                let (x, y) = (v.x.value(), v.y.value());
-                (m[0][0] * x + m[0][1] * y, m[1][0] * x + m[1][1] * y)
-            };
-            let (ab_nm, ac_nm) = (map(ab), map(ac));
-            let cross_nm = ab_nm.0 * ac_nm.1 - ab_nm.1 * ac_nm.0;
-            let angle_nm = cross_nm.abs().atan2(ab_nm.0 * ac_nm.0 + ab_nm.1 * ac_nm.1);
-            (
-                ab_nm.0.hypot(ab_nm.1) / config.standard.ab.value() - 1.0,
-                ac_nm.0.hypot(ac_nm.1) / config.standard.ac.value() - 1.0,
-                angle_nm - config.standard.angle_bac.value(),
-            )
-        }
+        Some(m) => deviations_through(m, ab, ac, &config.standard),
     };
-    if dab.abs() > config.length_tolerance
-        || dac.abs() > config.length_tolerance
-        || dangle.abs() > config.angle_tolerance_rad
-    {
+    if !within_tolerances(admission, config) {
         return None;
     }
+    let gate_passed = config
+        .gate
+        .is_none_or(|m| within_tolerances(deviations_through(m, ab, ac, &config.standard), config));
     let mismatch = (nominal.0 / config.length_tolerance).powi(2)
         + (nominal.1 / config.length_tolerance).powi(2)
         + (nominal.2 / config.angle_tolerance_rad).powi(2);
-    Some(Lcs {
+    let lcs = Lcs {
         a,
         b,
         c,
@@ -198,17 +237,39 @@ fn triangle(features: &[Feature], a: usize, b: usize, c: usize, config: &LcsConf
             (pa.y.value() + pb.y.value() + pc.y.value()) / 3.0,
         ),
         mismatch,
-    })
+    };
+    Some((lcs, gate_passed))
 }
 
-/// Every LCS with vertex `a` (B, C among the other features). When both
-/// orderings (B, C) and (C, B) match (equal sides), the one turning
-/// counter-clockwise from A→B to A→C is kept. Sorted by mismatch.
-pub fn lcs_with_vertex(
+/// The LCS candidates with one vertex: those accepted, and those admitted through the
+/// prior or the nominal sensitivity but refused by the gate ([`LcsConfig::gate`]). Each
+/// list is sorted by mismatch.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LcsCandidates {
+    /// Accepted LCSs, best first.
+    pub accepted: Vec<Lcs>,
+    /// Candidates the gate refused, best first (empty without a gate).
+    pub refused_by_gate: Vec<Lcs>,
+}
+
+impl LcsCandidates {
+    /// True when the candidate recognition would have chosen without the gate (the best
+    /// mismatch of both lists) is one the gate refused: a misrecognition prevented.
+    pub fn best_refused_by_gate(&self) -> bool {
+        match (self.accepted.first(), self.refused_by_gate.first()) {
+            (_, None) => false,
+            (None, Some(_)) => true,
+            (Some(a), Some(r)) => r.mismatch < a.mismatch,
+        }
+    }
+}
+
+/// Every LCS candidate with vertex `a`, split by the gate (see [`lcs_with_vertex`]).
+pub fn lcs_candidates(
     features: &[Feature],
     a: usize,
     config: &LcsConfig,
-) -> Result<Vec<Lcs>, FeatureError> {
+) -> Result<LcsCandidates, FeatureError> {
     config.validate()?;
     let Some(pa) = features.get(a).map(|f| f.position) else {
         return Err(FeatureError::IndexOutOfRange {
@@ -220,24 +281,42 @@ pub fn lcs_with_vertex(
     let near: Vec<usize> = (0..features.len())
         .filter(|&j| j != a && features[j].position.distance(pa).value() <= reach)
         .collect();
-    let mut out: Vec<Lcs> = Vec::new();
+    let mut out = LcsCandidates::default();
     for &b in &near {
         for &c in &near {
             if b == c {
                 continue;
             }
-            let Some(t) = triangle(features, a, b, c, config) else {
+            let Some((t, gate_passed)) = triangle(features, a, b, c, config) else {
                 continue;
             };
             let cross = t.ab.x.value() * t.ac.y.value() - t.ab.y.value() * t.ac.x.value();
             if cross < 0.0 && triangle(features, a, c, b, config).is_some() {
                 continue; // the counter-clockwise ordering is kept instead
             }
-            out.push(t);
+            if gate_passed {
+                out.accepted.push(t);
+            } else {
+                out.refused_by_gate.push(t);
+            }
         }
     }
-    out.sort_by(|x, y| x.mismatch.total_cmp(&y.mismatch));
+    out.accepted
+        .sort_by(|x, y| x.mismatch.total_cmp(&y.mismatch));
+    out.refused_by_gate
+        .sort_by(|x, y| x.mismatch.total_cmp(&y.mismatch));
     Ok(out)
+}
+
+/// Every LCS with vertex `a` (B, C among the other features) that passes the admission and
+/// the gate. When both orderings (B, C) and (C, B) match (equal sides), the one turning
+/// counter-clockwise from A→B to A→C is kept. Sorted by mismatch.
+pub fn lcs_with_vertex(
+    features: &[Feature],
+    a: usize,
+    config: &LcsConfig,
+) -> Result<Vec<Lcs>, FeatureError> {
+    Ok(lcs_candidates(features, a, config)?.accepted)
 }
 
 /// Every neighbour of `a` that forms an LCS with it (as B or C), sorted by index.

@@ -3,7 +3,7 @@
 use crate::acquire::{Motion, Raster, Recognised, scan_and_recognise};
 use crate::error::FosError;
 use serde::{Deserialize, Serialize};
-use spm_features::{DetectionConfig, Feature, Lcs, LcsConfig, lcs_neighbours, lcs_with_vertex};
+use spm_features::{DetectionConfig, Feature, Lcs, LcsConfig, lcs_candidates};
 use spm_hal::{CountPoint, Microscope, ScanDirection};
 
 /// Settings of [`aperture`].
@@ -31,6 +31,13 @@ pub struct ApertureReport {
     pub lcs: Option<Lcs>,
     /// Every neighbour of A that forms an LCS with it.
     pub neighbours: Vec<usize>,
+    /// Candidates with vertex A accepted (admitted and through the gate).
+    pub accepted_candidates: usize,
+    /// Candidates with vertex A that the LCS gate ([`LcsConfig::gate`]) refused.
+    pub refused_by_gate: usize,
+    /// True when, without the gate, recognition would have chosen a candidate the gate
+    /// refused (a misrecognition prevented).
+    pub best_refused_by_gate: bool,
 }
 
 impl ApertureReport {
@@ -62,19 +69,23 @@ pub fn aperture<M: Microscope>(
     )?;
     let features = &recognised.detection.features;
     let a = recognised.detection.nearest_index(centre);
-    let (lcs, neighbours) = match a {
-        Some(a) => (
-            lcs_with_vertex(features, a, &params.lcs)?
-                .into_iter()
-                .next(),
-            lcs_neighbours(features, a, &params.lcs)?,
-        ),
-        None => (None, Vec::new()),
+    let candidates = match a {
+        Some(a) => lcs_candidates(features, a, &params.lcs)?,
+        None => spm_features::LcsCandidates::default(),
     };
+    let mut neighbours: Vec<usize> = candidates
+        .accepted
+        .iter()
+        .flat_map(|t| [t.b, t.c])
+        .collect();
+    neighbours.sort_unstable();
+    neighbours.dedup();
+    let lcs = candidates.accepted.first().copied();
     tracing::debug!(
         features = features.len(),
         lcs = lcs.is_some(),
         neighbours = neighbours.len(),
+        refused_by_gate = candidates.refused_by_gate.len(),
         "aperture recognised"
     );
     Ok(ApertureReport {
@@ -82,5 +93,8 @@ pub fn aperture<M: Microscope>(
         a,
         lcs,
         neighbours,
+        accepted_candidates: candidates.accepted.len(),
+        refused_by_gate: candidates.refused_by_gate.len(),
+        best_refused_by_gate: candidates.best_refused_by_gate(),
     })
 }

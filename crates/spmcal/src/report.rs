@@ -482,6 +482,26 @@ impl<'a> RunRecord<'a> {
 }
 
 impl CalibrationReport {
+    /// The lattice survey's line of the summary: places with a lattice and the LCS gate's
+    /// tally (issue 24); `None` when the run had no survey.
+    fn survey_line(&self) -> Option<String> {
+        let survey = self.run.survey.as_ref()?;
+        let g = &survey.gate;
+        Some(format!(
+            "LCS gate (lattice surveyed at {} of {} places): {} of {} apertures' first choice \
+             refused (misrecognition rate {}); candidates accepted {}, refused {}",
+            survey.places.iter().filter(|p| p.lcc.is_some()).count(),
+            survey.places.len(),
+            g.misrecognitions,
+            g.apertures_with_candidates,
+            survey
+                .misrecognition_rate
+                .map_or_else(|| "-".to_owned(), |r| format!("{:.1} %", 100.0 * r)),
+            g.candidates_accepted,
+            g.candidates_refused
+        ))
+    }
+
     /// The report's summary as a person reads it after a run: counts and times, the
     /// surfaces, the accuracy per method, the images section and the node LCCs against the
     /// oracle (the last three when the backend has one).
@@ -504,6 +524,9 @@ impl CalibrationReport {
             "instrument time {:.0} s; wall time {:.1} s ({:.2} ms per node)",
             self.instrument_time_s, self.wall_time_s, self.wall_time_per_node_ms
         );
+        if let Some(line) = self.survey_line() {
+            let _ = writeln!(t, "{line}");
+        }
         let r = &self.regression;
         let _ = writeln!(
             t,

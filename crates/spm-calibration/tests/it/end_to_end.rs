@@ -240,8 +240,13 @@ fn a_node_whose_scans_always_fail_is_given_up_and_the_run_goes_on() {
         "{:?}",
         given_up.reason
     );
-    // Budget: 3 retries + the failing call.
-    assert_eq!(probe.failed_scans, 4);
+    // Budget: 3 retries + the failing call, and the lattice survey's frame at the centre
+    // (tried once: a place that fails gates nothing, the others survey the lattice).
+    assert_eq!(probe.failed_scans, 4 + 1);
+    let survey = report.survey.as_ref().unwrap();
+    assert_eq!(survey.places.len(), 9);
+    assert_eq!(survey.places.iter().filter(|p| p.lcc.is_none()).count(), 1);
+    assert!(survey.field.is_some());
     assert_eq!(report.transient_errors, 4);
     let state = &store.states[&("faulty".to_owned(), 0, given_up.node_index)];
     let NodeState::GivenUp(reason) = state else {

@@ -6,4 +6,5 @@ mod lcc;
 mod machine;
 mod mock;
 mod plan;
+mod survey;
 mod vertical;

@@ -41,8 +41,9 @@ fn options() -> RunOptions {
 fn every_scan_failing_gives_every_node_up_within_its_budget() {
     let mut mock = ScriptedMicroscope::new(ScriptedMicroscope::default_capabilities())
         .lenient_moves_and_waits(true);
-    // 9 nodes × (1 + 3 retries) scans, each a communication failure.
-    for _ in 0..36 {
+    // The lattice survey's 9 frames (one try each), then 9 nodes × (1 + 3 retries) scans,
+    // each a communication failure.
+    for _ in 0..9 + 36 {
         mock.expect(Expectation::fault(
             Operation::Scan,
             ErrorKind::Communication,
@@ -63,6 +64,16 @@ fn every_scan_failing_gives_every_node_up_within_its_budget() {
     assert_eq!(report.nodes_done, 0);
     assert_eq!(report.given_up.len(), 9);
     assert_eq!(report.transient_errors, 36);
+    // Every survey place refused by its failed scan: no gate, recognition ungated.
+    let survey = report.survey.as_ref().unwrap();
+    assert_eq!(survey.places.len(), 9);
+    assert!(
+        survey
+            .places
+            .iter()
+            .all(|p| p.lcc.is_none() && p.refusal.as_deref().is_some_and(|r| r.contains("scan")))
+    );
+    assert!(survey.field.is_none());
     assert_eq!(observer.run_started, Some((9, 0)));
     assert_eq!(observer.started, 36, "one start per (re)try");
     assert!(observer.given_up.iter().all(|r| matches!(

@@ -36,16 +36,20 @@ use spm_hal::{
     Radians, ScanDirection, Seconds,
 };
 
-/// The `[plan.survey]` table. Absent from a plan: the defaults (on), so older plans stay
-/// valid and gain the gate.
+/// The `[plan.survey]` table. Absent from a plan: the defaults (off), so older plans run as
+/// they did; the plans `spmcal calibrate --virtual` builds for measured images turn it on.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SurveyConfig {
-    /// Survey the lattice and gate LCS recognition through it. Default true: a wrong LCS
-    /// gives a wrong record that nothing downstream can tell from a right one, and the
-    /// survey costs a few frames (on the simulator's quick job the gate refuses no
-    /// candidate; the figures move only with the 102 s of instrument time the survey adds
-    /// to the run's drift and creep history; `docs/results/virtual.md`).
+    /// Survey the lattice and gate LCS recognition through it. Default false. On measured
+    /// images a wrong LCS (a triangle of next-nearest neighbours, or one a wrong earlier node
+    /// made look right) gives a wrong record that nothing downstream can tell from a right
+    /// one, and the gate refuses it: virtual-mode plans turn it on, and a run on a real
+    /// controller should (README). On the simulator's lattices the gate refused no candidate
+    /// (quick job, 0 of 54; the 6 × 6 small net, 0 of 222), while the ~100 s of instrument
+    /// time the survey adds change the drift and creep history every node sees, and so every
+    /// simulated figure (`docs/results/virtual.md`): off by default, the simulated runs and
+    /// their figures stay as they were.
     pub enabled: bool,
     /// Places per side of the survey grid over the net (1 = its centre only). Default 3.
     pub places_per_side: u32,
@@ -60,7 +64,7 @@ pub struct SurveyConfig {
 impl Default for SurveyConfig {
     fn default() -> Self {
         Self {
-            enabled: true,
+            enabled: false,
             places_per_side: 3,
             size_lattice: 8.0,
             min_pairs: 4,

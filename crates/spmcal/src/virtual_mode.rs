@@ -596,6 +596,10 @@ pub fn virtual_plan(
     // A stored image has no scanner dynamics of its own to identify (its trace and retrace
     // are fixed): the dynamics stage is off in virtual mode.
     plan.dynamics.enabled = false;
+    // Measured images hold decoys (next-nearest-neighbour triangles, a chain of nodes locked
+    // onto another basis of the lattice): recognition is gated by the image's own lattice,
+    // surveyed first (`spm_calibration::survey`, docs/results/virtual.md).
+    plan.survey.enabled = true;
     plan.attach.first_size_counts = 3.0 * a_counts;
     plan.attach.first_pixels = pixels(3.0 * a_counts);
     // A tracking segment of two lattice constants: on measured images one of a lattice

@@ -215,15 +215,13 @@ fn a_node_whose_scans_always_fail_is_given_up_and_the_run_goes_on() {
     probe.fail_near = Some(CountPoint::from_counts(-1.0, -1.0));
     probe.fail_radius = 1000.0;
     let mut store = MemoryStore::default();
-    let report = Calibrator::new(
-        &mut probe,
-        &mut store,
-        &mut NoObserver,
-        PlanConfig::hopg_small_net(),
-    )
-    .unwrap()
-    .run(&options("faulty"))
-    .unwrap();
+    // With the lattice survey (one of its frames lies on the failing place).
+    let mut plan = PlanConfig::hopg_small_net();
+    plan.survey.enabled = true;
+    let report = Calibrator::new(&mut probe, &mut store, &mut NoObserver, plan)
+        .unwrap()
+        .run(&options("faulty"))
+        .unwrap();
     assert_eq!(report.nodes_done, 8);
     assert_eq!(report.given_up.len(), 1);
     let given_up = &report.given_up[0];

@@ -51,15 +51,12 @@ fn every_scan_failing_gives_every_node_up_within_its_budget() {
     }
     let mut store = MemoryStore::default();
     let mut observer = Counting::default();
-    let report = Calibrator::new(
-        &mut mock,
-        &mut store,
-        &mut observer,
-        PlanConfig::hopg_small_net(),
-    )
-    .unwrap()
-    .run(&options())
-    .unwrap();
+    let mut plan = PlanConfig::hopg_small_net();
+    plan.survey.enabled = true;
+    let report = Calibrator::new(&mut mock, &mut store, &mut observer, plan)
+        .unwrap()
+        .run(&options())
+        .unwrap();
     mock.done().unwrap();
     assert_eq!(report.nodes_done, 0);
     assert_eq!(report.given_up.len(), 9);

@@ -255,16 +255,16 @@ fn the_survey_solves_a_known_oblique_lattice_as_its_local_calibration() {
 }
 
 #[test]
-fn old_plans_survey_by_default_and_the_survey_table_is_checked() {
-    // A plan without `[plan.survey]` (the shipped small plan) gets the defaults.
+fn old_plans_run_without_a_survey_unless_asked_and_the_survey_table_is_checked() {
+    // A plan without `[plan.survey]` (the shipped small plan) gets the defaults: no survey.
     let text = include_str!("../../scenarios/plan-hopg-small.toml");
     assert!(!text.contains("survey"));
     let plan = PlanConfig::from_toml_str(text, "plan-hopg-small.toml").unwrap();
-    assert!(plan.survey.enabled);
+    assert!(!plan.survey.enabled);
     assert_eq!(plan.survey.places_per_side, 3);
-    let off = format!("{text}\n[plan.survey]\nenabled = false\n");
+    let on = format!("{text}\n[plan.survey]\nenabled = true\n");
     assert!(
-        !PlanConfig::from_toml_str(&off, "off.toml")
+        PlanConfig::from_toml_str(&on, "on.toml")
             .unwrap()
             .survey
             .enabled

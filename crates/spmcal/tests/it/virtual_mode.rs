@@ -254,6 +254,8 @@ fn a_job_file_names_the_virtual_backend_and_its_plan_is_checked_against_the_imag
     let image = lattice_file(&dir, "hopg.gsf", 160, 0.02, false);
     let options = VirtualRunOptions::new(StandardName::Hopg);
     let (_, _, plan) = spmcal::virtual_mode::virtual_job(&image, &options).unwrap();
+    // Measured images are surveyed first and recognition gated by their lattice.
+    assert!(plan.survey.enabled);
     let nominal = plan.standard.nominal_nm_per_count;
     let job_text = format!(
         "[backend]\nkind = \"virtual\"\nimage = \"hopg.gsf\"\nnominal_nm_per_count = {nominal}\n\n{}",

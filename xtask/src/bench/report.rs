@@ -316,6 +316,53 @@ fn missing<T>(section: &Section<T>) -> Option<&str> {
 
 fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) -> String {
     let mut md = String::new();
+    header_section(&mut md, results);
+    accuracy_section(&mut md, &results.accuracy);
+    budget_section(&mut md, &results.budget);
+    drift_section(&mut md, &results.drift);
+    productivity_section(&mut md, &results.productivity);
+    crb_section(&mut md, &results.crb);
+    speed_section(&mut md, &results.speed);
+    gwyddion_section(&mut md, &results.gwyddion);
+    super::linalg::markdown(&mut md, &results.linalg);
+    nanonis_section(&mut md, &results.nanonis);
+    postgres_section(&mut md, &results.postgres);
+    vertical_section(&mut md, &results.vertical);
+
+    if !figures.is_empty() {
+        let _ = writeln!(md, "## Figures\n");
+        for (file, caption) in figures {
+            let _ = writeln!(md, "![{caption}](results/bench/{file})\n");
+        }
+    }
+    let absent: Vec<&str> = [
+        missing(&results.accuracy),
+        missing(&results.drift),
+        missing(&results.productivity),
+        missing(&results.crb),
+        missing(&results.speed),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
+    if !absent.is_empty() {
+        let _ = writeln!(
+            md,
+            "Sections that failed in this run: {}\n",
+            absent.join("; ")
+        );
+    }
+    let _ = writeln!(
+        md,
+        "---\n\n# Component benchmarks (hand-written, `docs/results/*.md`)\n\n\
+         Measured by each crate's own benchmarks and tests; each section names its command and date.\n"
+    );
+    md.push_str(fragments);
+    md
+}
+
+/// The page's title, the machine and the source it was measured on.
+fn header_section(md: &mut String, results: &Results) {
     let m = &results.machine;
     let _ = writeln!(md, "# Results\n");
     let _ = writeln!(
@@ -360,15 +407,18 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
              the full figures.\n"
         );
     }
+}
 
+/// Calibration accuracy against the baselines, per scanner.
+fn accuracy_section(md: &mut String, accuracy: &Section<super::accuracy::AccuracyResults>) {
     let _ = writeln!(
         md,
         "## Calibration accuracy against the baselines (DESIGN §11)\n"
     );
-    if let Section::Measured(a) = &results.accuracy {
-        validation_markdown(&mut md, &a.configs);
+    if let Section::Measured(a) = accuracy {
+        validation_markdown(md, &a.configs);
     }
-    match &results.accuracy {
+    match accuracy {
         Section::Measured(a) => {
             if let Some(c) = a.configs.first() {
                 let _ = writeln!(
@@ -428,7 +478,7 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
                 }
                 md.push('\n');
                 if let Some(images) = &c.images {
-                    images_table(&mut md, images);
+                    images_table(md, images);
                 }
             }
             if let Some(c) = a.configs.first() {
@@ -442,10 +492,12 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
             let _ = writeln!(md, "Not measured: {missing}\n");
         }
     }
+}
 
-    budget_section(&mut md, &results.budget);
+/// Drift insensitivity: skipping, counter-scanning and a single scan.
+fn drift_section(md: &mut String, drift: &Section<super::drift::DriftResults>) {
     let _ = writeln!(md, "## Drift insensitivity\n");
-    match &results.drift {
+    match drift {
         Section::Measured(d) => {
             let _ = writeln!(
                 md,
@@ -483,12 +535,18 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
             let _ = writeln!(md, "Not measured: {missing}\n");
         }
     }
+}
 
+/// Productivity: error against repeats, cycles, instrument time and variant.
+fn productivity_section(
+    md: &mut String,
+    productivity: &Section<super::productivity::ProductivityResults>,
+) {
     let _ = writeln!(
         md,
         "## Productivity: error against repeats, cycles, instrument time and variant\n"
     );
-    match &results.productivity {
+    match productivity {
         Section::Measured(p) => {
             let _ = writeln!(
                 md,
@@ -527,9 +585,12 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
             let _ = writeln!(md, "Not measured: {missing}\n");
         }
     }
+}
 
+/// Localisation error against the Cramér–Rao bound.
+fn crb_section(md: &mut String, crb: &Section<super::crb::CrbResults>) {
     let _ = writeln!(md, "## Localisation error ÷ Cramér–Rao bound\n");
-    match &results.crb {
+    match crb {
         Section::Measured(c) => {
             let _ = writeln!(
                 md,
@@ -559,9 +620,12 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
             let _ = writeln!(md, "Not measured: {missing}\n");
         }
     }
+}
 
+/// Speed: calibration, simulator, CDB and correction.
+fn speed_section(md: &mut String, speed: &Section<super::speed::SpeedResults>) {
     let _ = writeln!(md, "## Speed\n");
-    match &results.speed {
+    match speed {
         Section::Measured(s) => {
             let per_node: Vec<String> = s
                 .calibration_ms_per_node
@@ -627,9 +691,12 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
             let _ = writeln!(md, "Not measured: {missing}\n");
         }
     }
+}
 
+/// Gwyddion side by side.
+fn gwyddion_section(md: &mut String, gwyddion: &Section<super::gwyddion::GwyddionResults>) {
     let _ = writeln!(md, "## Gwyddion side by side\n");
-    match &results.gwyddion {
+    match gwyddion {
         Section::Measured(g) => {
             let _ = writeln!(
                 md,
@@ -671,41 +738,6 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
             let _ = writeln!(md, "Peer rows missing: {missing}\n");
         }
     }
-    super::linalg::markdown(&mut md, &results.linalg);
-    nanonis_section(&mut md, &results.nanonis);
-    postgres_section(&mut md, &results.postgres);
-    vertical_section(&mut md, &results.vertical);
-
-    if !figures.is_empty() {
-        let _ = writeln!(md, "## Figures\n");
-        for (file, caption) in figures {
-            let _ = writeln!(md, "![{caption}](results/bench/{file})\n");
-        }
-    }
-    let absent: Vec<&str> = [
-        missing(&results.accuracy),
-        missing(&results.drift),
-        missing(&results.productivity),
-        missing(&results.crb),
-        missing(&results.speed),
-    ]
-    .into_iter()
-    .flatten()
-    .collect();
-    if !absent.is_empty() {
-        let _ = writeln!(
-            md,
-            "Sections that failed in this run: {}\n",
-            absent.join("; ")
-        );
-    }
-    let _ = writeln!(
-        md,
-        "---\n\n# Component benchmarks (hand-written, `docs/results/*.md`)\n\n\
-         Measured by each crate's own benchmarks and tests; each section names its command and date.\n"
-    );
-    md.push_str(fragments);
-    md
 }
 
 fn fragments(root: &Path) -> Result<String, XtaskError> {

@@ -424,9 +424,20 @@ impl SimConfig {
 
     /// Like [`validate`](Self::validate), with every field path prefixed by
     /// `prefix` (e.g. `"backend.sim."`) for configs embedded in bigger ones.
-    // long-function: a flat table of independent range checks, one per config field in the order of the config's documentation
     pub fn validate_with_prefix(&self, prefix: &str) -> Result<(), ValidationError> {
         let v = Checker { prefix };
+        self.validate_instrument(&v)?;
+        self.validate_surface(&v)?;
+        self.validate_scanner_geometry(&v)?;
+        self.validate_scanner_dynamics(&v)?;
+        self.validate_drift(&v)?;
+        self.validate_measurement(&v)?;
+        self.validate_faults(&v)?;
+        Ok(())
+    }
+
+    /// The `[instrument]` table.
+    fn validate_instrument(&self, v: &Checker<'_>) -> Result<(), ValidationError> {
         let i = &self.instrument;
         v.range_positive(
             "instrument.lateral_half_range_counts",
@@ -483,6 +494,11 @@ impl SimConfig {
             v.range_positive("instrument.coarse_z.step_nm", c.step_nm, 1e-3, 1e4)?;
             v.range("instrument.coarse_z.step_time_s", c.step_time_s, 0.0, 60.0)?;
         }
+        Ok(())
+    }
+
+    /// The `[surface]` table (the lattice, the grating or the steps).
+    fn validate_surface(&self, v: &Checker<'_>) -> Result<(), ValidationError> {
         match &self.surface {
             SurfaceConfig::Hopg(h) => {
                 let p = "surface.hopg.";
@@ -574,6 +590,11 @@ impl SimConfig {
                 v.range(&format!("{p}rotation_deg"), l.rotation_deg, -360.0, 360.0)?;
             }
         }
+        Ok(())
+    }
+
+    /// The `[scanner]` table's static field: sensitivities, nonlinearity, couplings.
+    fn validate_scanner_geometry(&self, v: &Checker<'_>) -> Result<(), ValidationError> {
         let s = &self.scanner;
         v.range_positive(
             "scanner.sensitivity_x_nm_per_count",
@@ -652,6 +673,13 @@ impl SimConfig {
         {
             return v.fail(&format!("scanner.z_manipulator.{field}"), &reason);
         }
+        Ok(())
+    }
+
+    /// The `[scanner]` table's hysteresis and creep.
+    fn validate_scanner_dynamics(&self, v: &Checker<'_>) -> Result<(), ValidationError> {
+        let s = &self.scanner;
+        let i = &self.instrument;
         for (name, h) in [
             ("scanner.hysteresis_x", &s.hysteresis_x),
             ("scanner.hysteresis_y", &s.hysteresis_y),
@@ -726,6 +754,11 @@ impl SimConfig {
         if c.elements_per_decade > 20 {
             return v.fail("scanner.creep.elements_per_decade", "must be ≤ 20");
         }
+        Ok(())
+    }
+
+    /// The `[drift]` table.
+    fn validate_drift(&self, v: &Checker<'_>) -> Result<(), ValidationError> {
         let d = &self.drift;
         v.range(
             "drift.velocity_x_nm_per_s",
@@ -808,6 +841,11 @@ impl SimConfig {
             -tau,
             tau,
         )?;
+        Ok(())
+    }
+
+    /// The `[measurement]` table.
+    fn validate_measurement(&self, v: &Checker<'_>) -> Result<(), ValidationError> {
         let m = &self.measurement;
         v.range(
             "measurement.z_white_noise_nm",
@@ -851,6 +889,11 @@ impl SimConfig {
             0.0,
             10.0,
         )?;
+        Ok(())
+    }
+
+    /// The `[faults]` table.
+    fn validate_faults(&self, v: &Checker<'_>) -> Result<(), ValidationError> {
         let f = &self.faults;
         v.range(
             "faults.timeout_probability_per_call",

@@ -619,7 +619,6 @@ impl PlanConfig {
     ///
     /// # Errors
     /// The first invalid field.
-    // long-function: a flat table of independent range checks, one per plan field in the order of the plan's documentation; splitting it would scatter the table
     pub fn validate(&self) -> Result<(), ValidationError> {
         self.tuning.validate()?;
         self.dynamics
@@ -640,54 +639,23 @@ impl PlanConfig {
                 field: format!("plan.{field}"),
                 reason,
             })?;
-        let bad = |field: &str, reason: String| {
-            Err(ValidationError {
-                field: format!("plan.{field}"),
-                reason,
-            })
-        };
-        // Every number has a physical or practical range: a value outside it is a typo
-        // (1e308, 4e9) that would otherwise exhaust memory or time, or end in every node
-        // given up with no word about why.
-        let within = |field: &str, v: f64, min: f64, max: f64| {
-            if v.is_finite() && v > 0.0 && (min..=max).contains(&v) {
-                Ok(())
-            } else {
-                bad(
-                    field,
-                    format!("must be a finite number in [{min}, {max}], got {v}"),
-                )
-            }
-        };
-        let within_or_zero = |field: &str, v: f64, max: f64| {
-            if v.is_finite() && (0.0..=max).contains(&v) {
-                Ok(())
-            } else {
-                bad(
-                    field,
-                    format!("must be a finite number in [0, {max}], got {v}"),
-                )
-            }
-        };
-        let count = |field: &str, v: u32, min: u32, max: u32| {
-            if (min..=max).contains(&v) {
-                Ok(())
-            } else {
-                bad(field, format!("must be in [{min}, {max}], got {v}"))
-            }
-        };
-        let counts_i64 = |field: &str, v: i64, min: i64, max: i64| {
-            if (min..=max).contains(&v) {
-                Ok(())
-            } else {
-                bad(field, format!("must be in [{min}, {max}], got {v}"))
-            }
-        };
+        let v = spm_config::RangeChecker::new("plan.");
+        self.validate_identity_and_standard(&v)?;
+        self.validate_net(&v)?;
+        self.validate_scans(&v)?;
+        Ok(())
+    }
+
+    /// The scanner id, the repeats, the standard and the step search.
+    fn validate_identity_and_standard(
+        &self,
+        v: &spm_config::RangeChecker<'_>,
+    ) -> Result<(), ValidationError> {
         if self.scanner_id.trim().is_empty() {
-            return bad("scanner_id", "must not be empty".into());
+            return v.fail("scanner_id", "must not be empty");
         }
         if self.scanner_id.len() > MAX_SCANNER_ID_BYTES {
-            return bad(
+            return v.fail(
                 "scanner_id",
                 format!(
                     "is {} bytes long; at most {MAX_SCANNER_ID_BYTES}",
@@ -696,23 +664,23 @@ impl PlanConfig {
             );
         }
         if self.scanner_id.chars().any(char::is_control) {
-            return bad("scanner_id", "must not contain control characters".into());
+            return v.fail("scanner_id", "must not contain control characters");
         }
-        count("repeats", self.repeats, 1, MAX_REPEATS)?;
+        v.count("repeats", self.repeats, 1, MAX_REPEATS)?;
         let s = &self.standard;
-        within(
+        v.range_positive(
             "standard.lattice_constant_nm",
             s.lattice_constant_nm,
             0.05,
             1e4,
         )?;
         if !(s.lcs_angle_deg.is_finite() && s.lcs_angle_deg > 0.0 && s.lcs_angle_deg < 180.0) {
-            return bad(
+            return v.fail(
                 "standard.lcs_angle_deg",
                 format!("must be in (0, 180), got {}", s.lcs_angle_deg),
             );
         }
-        within(
+        v.range_positive(
             "standard.nominal_nm_per_count",
             s.nominal_nm_per_count,
             1e-6,
@@ -722,12 +690,12 @@ impl PlanConfig {
             && s.length_tolerance_fraction > 0.0
             && s.length_tolerance_fraction < 1.0)
         {
-            return bad(
+            return v.fail(
                 "standard.length_tolerance_fraction",
                 format!("must be in (0, 1), got {}", s.length_tolerance_fraction),
             );
         }
-        within(
+        v.range_positive(
             "standard.angle_tolerance_deg",
             s.angle_tolerance_deg,
             1e-3,
@@ -736,7 +704,7 @@ impl PlanConfig {
         if let Some(name) = s.name {
             let a = name.lattice_constant_nm();
             if (s.lattice_constant_nm - a).abs() > 1e-3 * a {
-                return bad(
+                return v.fail(
                     "standard.lattice_constant_nm",
                     format!(
                         "is {} nm, but the standard named {:?} has {a} nm",
@@ -746,7 +714,7 @@ impl PlanConfig {
                 );
             }
             if s.feature != name.feature() {
-                return bad(
+                return v.fail(
                     "standard.feature",
                     format!(
                         "the standard named {:?} has {:?} features",
@@ -758,39 +726,44 @@ impl PlanConfig {
         }
         if let Some(steps) = &self.steps {
             if s.step_height_nm.is_none() {
-                return bad(
+                return v.fail(
                     "standard.step_height_nm",
-                    "is required when [plan.steps] searches steps for Kz".into(),
+                    "is required when [plan.steps] searches steps for Kz",
                 );
             }
             if let Err((field, reason)) = steps.check() {
-                return bad(&field, reason);
+                return v.fail(&field, reason);
             }
         }
         if let Some(h) = s.step_height_nm {
-            within("standard.step_height_nm", h, 1e-3, 100.0)?;
+            v.range_positive("standard.step_height_nm", h, 1e-3, 100.0)?;
         }
+        Ok(())
+    }
+
+    /// The net of nodes and the pause law.
+    fn validate_net(&self, v: &spm_config::RangeChecker<'_>) -> Result<(), ValidationError> {
         let n = &self.net;
-        counts_i64("net.step_counts", n.step_counts, 1, MAX_COUNTS)?;
-        counts_i64("net.margin_counts", n.margin_counts, 0, MAX_COUNTS)?;
+        v.count("net.step_counts", n.step_counts, 1, MAX_COUNTS)?;
+        v.count("net.margin_counts", n.margin_counts, 0, MAX_COUNTS)?;
         if n.z_levels.is_empty() {
-            return bad("net.z_levels", "needs at least one level".into());
+            return v.fail("net.z_levels", "needs at least one level");
         }
         if n.z_levels.len() > MAX_LEVELS {
-            return bad(
+            return v.fail(
                 "net.z_levels",
                 format!("has {} levels; at most {MAX_LEVELS}", n.z_levels.len()),
             );
         }
         for level in &n.z_levels {
-            counts_i64(
+            v.count(
                 "net.z_levels.nominal_z_counts",
                 level.nominal_z_counts,
                 -MAX_COUNTS,
                 MAX_COUNTS,
             )?;
             if let Some(steps) = level.coarse_steps {
-                counts_i64(
+                v.count(
                     "net.z_levels.coarse_steps",
                     steps,
                     -MAX_COARSE_STEPS,
@@ -800,76 +773,79 @@ impl PlanConfig {
         }
         match (n.kind, &n.y_planes_counts) {
             (NetKind::VerticalPlanes, None) => {
-                return bad(
-                    "net.y_planes_counts",
-                    "is required for vertical planes".into(),
-                );
+                return v.fail("net.y_planes_counts", "is required for vertical planes");
             }
             (NetKind::VerticalPlanes, Some(ys)) if ys.is_empty() => {
-                return bad("net.y_planes_counts", "needs at least one plane".into());
+                return v.fail("net.y_planes_counts", "needs at least one plane");
             }
             (NetKind::VerticalPlanes, Some(ys)) if ys.len() > MAX_LEVELS => {
-                return bad(
+                return v.fail(
                     "net.y_planes_counts",
                     format!("has {} planes; at most {MAX_LEVELS}", ys.len()),
                 );
             }
             (NetKind::LateralPlanes, Some(_)) => {
-                return bad(
+                return v.fail(
                     "net.y_planes_counts",
-                    "is only for kind = \"vertical_planes\"".into(),
+                    "is only for kind = \"vertical_planes\"",
                 );
             }
             _ => {}
         }
         if let Some(ys) = &n.y_planes_counts {
             for y in ys {
-                counts_i64("net.y_planes_counts", *y, -MAX_COUNTS, MAX_COUNTS)?;
+                v.count("net.y_planes_counts", *y, -MAX_COUNTS, MAX_COUNTS)?;
             }
         }
         if let Err(PlanError::Invalid { field, reason }) = self.pause.validate() {
-            return bad(&format!("pause.{field}"), reason);
+            return v.fail(&format!("pause.{field}"), reason);
         }
+        Ok(())
+    }
+
+    /// Motion, attachment, aperture, skipping, drift limits and the failure budget.
+    fn validate_scans(&self, v: &spm_config::RangeChecker<'_>) -> Result<(), ValidationError> {
+        let s = &self.standard;
         let m = &self.motion;
-        within("motion.pixel_dwell_s", m.pixel_dwell_s, 1e-9, 10.0)?;
-        within(
+        v.range_positive("motion.pixel_dwell_s", m.pixel_dwell_s, 1e-9, 10.0)?;
+        v.range_positive(
             "motion.move_speed_counts_per_s",
             m.move_speed_counts_per_s,
             1e-3,
             1e9,
         )?;
-        within_or_zero("motion.settle_s", m.settle_s, 3600.0)?;
+        v.range("motion.settle_s", m.settle_s, 0.0, 3600.0)?;
         let a = &self.attach;
-        within(
+        v.range_positive(
             "attach.first_size_counts",
             a.first_size_counts,
             1e-3,
             MAX_COUNTS as f64,
         )?;
-        count("attach.first_pixels", a.first_pixels, 4, MAX_SCAN_PIXELS)?;
-        within(
+        v.count("attach.first_pixels", a.first_pixels, 4, MAX_SCAN_PIXELS)?;
+        v.range_positive(
             "attach.segment_size_counts",
             a.segment_size_counts,
             1e-3,
             MAX_COUNTS as f64,
         )?;
-        count(
+        v.count(
             "attach.segment_pixels",
             a.segment_pixels,
             4,
             MAX_SCAN_PIXELS,
         )?;
-        count("attach.max_attachments", a.max_attachments, 1, 100_000)?;
-        within(
+        v.count("attach.max_attachments", a.max_attachments, 1, 100_000)?;
+        v.range_positive(
             "aperture.size_counts",
             self.aperture.size_counts,
             1e-3,
             MAX_COUNTS as f64,
         )?;
-        count("aperture.pixels", self.aperture.pixels, 8, MAX_SCAN_PIXELS)?;
+        v.count("aperture.pixels", self.aperture.pixels, 8, MAX_SCAN_PIXELS)?;
         let nominal_lattice_counts = s.lattice_constant_nm / s.nominal_nm_per_count;
         if self.aperture.size_counts < 2.0 * nominal_lattice_counts {
-            return bad(
+            return v.fail(
                 "aperture.size_counts",
                 format!(
                     "must enclose an LCS: at least 2 lattice constants ({:.0} counts at the nominal sensitivity)",
@@ -877,38 +853,38 @@ impl PlanConfig {
                 ),
             );
         }
-        count("skipping.cycles", self.skipping.cycles, 1, 100_000)?;
-        count(
+        v.count("skipping.cycles", self.skipping.cycles, 1, 100_000)?;
+        v.count(
             "skipping.idle_cycles",
             self.skipping.idle_cycles,
             1,
             100_000,
         )?;
-        count(
+        v.count(
             "skipping.max_restarts",
             self.skipping.max_restarts,
             0,
             10_000,
         )?;
-        within(
+        v.range_positive(
             "drift.max_speed_nm_per_s",
             self.drift.max_speed_nm_per_s,
             1e-9,
             1e3,
         )?;
-        within(
+        v.range_positive(
             "drift.max_change_nm_per_s",
             self.drift.max_change_nm_per_s,
             1e-9,
             1e3,
         )?;
-        count(
+        v.count(
             "failures.max_attempts_per_node",
             self.failures.max_attempts_per_node,
             1,
             1000,
         )?;
-        count(
+        v.count(
             "failures.transient_retries_per_node",
             self.failures.transient_retries_per_node,
             0,

@@ -147,6 +147,137 @@ impl ValidationError {
     }
 }
 
+/// The one range checker of the configs (spm-sim's simulator, spm-calibration's plan): each
+/// check names its field with the checker's prefix (`"plan."`, `"backend.sim."`), and every
+/// number must be finite before its range is looked at (a NaN passes no comparison, so it
+/// would pass a range written as two negated comparisons).
+#[derive(Clone, Copy, Debug)]
+pub struct RangeChecker<'a> {
+    prefix: &'a str,
+}
+
+impl<'a> RangeChecker<'a> {
+    /// A checker naming fields `prefix` + field.
+    pub fn new(prefix: &'a str) -> Self {
+        Self { prefix }
+    }
+
+    /// The failure of `field` with `reason`.
+    ///
+    /// # Errors
+    /// Always: [`ValidationError`] naming the prefixed field.
+    pub fn fail(&self, field: &str, reason: impl Into<String>) -> Result<(), ValidationError> {
+        Err(ValidationError::new(
+            format!("{}{field}", self.prefix),
+            reason,
+        ))
+    }
+
+    /// `value` is a finite number.
+    ///
+    /// # Errors
+    /// [`ValidationError`] naming the field.
+    pub fn finite(&self, field: &str, value: f64) -> Result<(), ValidationError> {
+        if value.is_finite() {
+            Ok(())
+        } else {
+            self.fail(field, format!("must be a finite number, got {value}"))
+        }
+    }
+
+    /// `value` is finite and > 0.
+    ///
+    /// # Errors
+    /// [`ValidationError`] naming the field.
+    pub fn positive(&self, field: &str, value: f64) -> Result<(), ValidationError> {
+        self.finite(field, value)?;
+        if value > 0.0 {
+            Ok(())
+        } else {
+            self.fail(field, format!("must be > 0, got {value}"))
+        }
+    }
+
+    /// `value` is finite and in `[min, max]`.
+    ///
+    /// # Errors
+    /// [`ValidationError`] naming the field.
+    pub fn range(
+        &self,
+        field: &str,
+        value: f64,
+        min: f64,
+        max: f64,
+    ) -> Result<(), ValidationError> {
+        self.finite(field, value)?;
+        if (min..=max).contains(&value) {
+            Ok(())
+        } else {
+            self.fail(
+                field,
+                format!("must be a finite number in [{min}, {max}], got {value}"),
+            )
+        }
+    }
+
+    /// `value` is finite, > 0 and in `[min, max]`.
+    ///
+    /// # Errors
+    /// [`ValidationError`] naming the field.
+    pub fn range_positive(
+        &self,
+        field: &str,
+        value: f64,
+        min: f64,
+        max: f64,
+    ) -> Result<(), ValidationError> {
+        self.positive(field, value)?;
+        self.range(field, value, min, max)
+    }
+
+    /// An integer `value` in `[min, max]`.
+    ///
+    /// # Errors
+    /// [`ValidationError`] naming the field.
+    pub fn count<T: PartialOrd + std::fmt::Display>(
+        &self,
+        field: &str,
+        value: T,
+        min: T,
+        max: T,
+    ) -> Result<(), ValidationError> {
+        if min <= value && value <= max {
+            Ok(())
+        } else {
+            self.fail(field, format!("must be in [{min}, {max}], got {value}"))
+        }
+    }
+
+    /// An integer `value` ≤ `max`.
+    ///
+    /// # Errors
+    /// [`ValidationError`] naming the field.
+    pub fn at_most(&self, field: &str, value: u32, max: u32) -> Result<(), ValidationError> {
+        if value <= max {
+            Ok(())
+        } else {
+            self.fail(field, format!("must be ≤ {max}, got {value}"))
+        }
+    }
+
+    /// An integer `value` ≥ 1.
+    ///
+    /// # Errors
+    /// [`ValidationError`] naming the field.
+    pub fn at_least_one(&self, field: &str, value: u32) -> Result<(), ValidationError> {
+        if value >= 1 {
+            Ok(())
+        } else {
+            self.fail(field, "must be at least 1")
+        }
+    }
+}
+
 /// A configuration that checks its own values after parsing.
 pub trait Validate {
     /// Checks every value.
@@ -393,5 +524,57 @@ widths = [1.0, { w = 2 }]
         // Malformed TOML: a line, no field.
         let err = parse_and_validate::<Doc>("[scanner\n", "f.toml").expect_err("malformed");
         assert_eq!(err.line(), Some(1), "{err}");
+    }
+}
+
+#[cfg(test)]
+mod range_checker_tests {
+    use super::RangeChecker;
+
+    /// `check(result, expected)`: `None` = accepted, `Some((field, reason))` = refused.
+    fn check(result: Result<(), super::ValidationError>, expected: Option<(&str, &str)>) {
+        match (result, expected) {
+            (Ok(()), None) => {}
+            (Err(e), Some((field, reason))) => {
+                assert_eq!((e.field.as_str(), e.reason.as_str()), (field, reason));
+            }
+            (got, want) => panic!("got {got:?}, expected {want:?}"),
+        }
+    }
+
+    #[test]
+    fn each_check_names_the_prefixed_field_and_refuses_what_is_outside() {
+        let v = RangeChecker::new("plan.");
+        check(v.range("a", 1.0, 0.0, 2.0), None);
+        check(v.range("a", 2.0, 0.0, 2.0), None);
+        check(
+            v.range("a", 2.5, 0.0, 2.0),
+            Some(("plan.a", "must be a finite number in [0, 2], got 2.5")),
+        );
+        check(
+            v.range("a", f64::NAN, 0.0, 2.0),
+            Some(("plan.a", "must be a finite number, got NaN")),
+        );
+        check(
+            v.range_positive("b", 0.0, 0.0, 2.0),
+            Some(("plan.b", "must be > 0, got 0")),
+        );
+        check(v.range_positive("b", 1e-3, 1e-4, 2.0), None);
+        check(
+            v.positive("c", f64::INFINITY),
+            Some(("plan.c", "must be a finite number, got inf")),
+        );
+        check(v.count("d", 3u32, 1, 3), None);
+        check(
+            v.count("d", -5i64, -4, 4),
+            Some(("plan.d", "must be in [-4, 4], got -5")),
+        );
+        check(v.at_most("e", 9, 8), Some(("plan.e", "must be ≤ 8, got 9")));
+        check(
+            v.at_least_one("f", 0),
+            Some(("plan.f", "must be at least 1")),
+        );
+        check(v.at_least_one("f", 1), None);
+        check(v.fail("g", "why"), Some(("plan.g", "why")));
     }
 }

@@ -425,7 +425,7 @@ impl SimConfig {
     /// Like [`validate`](Self::validate), with every field path prefixed by
     /// `prefix` (e.g. `"backend.sim."`) for configs embedded in bigger ones.
     pub fn validate_with_prefix(&self, prefix: &str) -> Result<(), ValidationError> {
-        let v = Checker { prefix };
+        let v = spm_config::RangeChecker::new(prefix);
         self.validate_instrument(&v)?;
         self.validate_surface(&v)?;
         self.validate_scanner_geometry(&v)?;
@@ -437,7 +437,7 @@ impl SimConfig {
     }
 
     /// The `[instrument]` table.
-    fn validate_instrument(&self, v: &Checker<'_>) -> Result<(), ValidationError> {
+    fn validate_instrument(&self, v: &spm_config::RangeChecker<'_>) -> Result<(), ValidationError> {
         let i = &self.instrument;
         v.range_positive(
             "instrument.lateral_half_range_counts",
@@ -498,7 +498,7 @@ impl SimConfig {
     }
 
     /// The `[surface]` table (the lattice, the grating or the steps).
-    fn validate_surface(&self, v: &Checker<'_>) -> Result<(), ValidationError> {
+    fn validate_surface(&self, v: &spm_config::RangeChecker<'_>) -> Result<(), ValidationError> {
         match &self.surface {
             SurfaceConfig::Hopg(h) => {
                 let p = "surface.hopg.";
@@ -594,7 +594,10 @@ impl SimConfig {
     }
 
     /// The `[scanner]` table's static field: sensitivities, nonlinearity, couplings.
-    fn validate_scanner_geometry(&self, v: &Checker<'_>) -> Result<(), ValidationError> {
+    fn validate_scanner_geometry(
+        &self,
+        v: &spm_config::RangeChecker<'_>,
+    ) -> Result<(), ValidationError> {
         let s = &self.scanner;
         v.range_positive(
             "scanner.sensitivity_x_nm_per_count",
@@ -677,7 +680,10 @@ impl SimConfig {
     }
 
     /// The `[scanner]` table's hysteresis and creep.
-    fn validate_scanner_dynamics(&self, v: &Checker<'_>) -> Result<(), ValidationError> {
+    fn validate_scanner_dynamics(
+        &self,
+        v: &spm_config::RangeChecker<'_>,
+    ) -> Result<(), ValidationError> {
         let s = &self.scanner;
         let i = &self.instrument;
         for (name, h) in [
@@ -758,7 +764,7 @@ impl SimConfig {
     }
 
     /// The `[drift]` table.
-    fn validate_drift(&self, v: &Checker<'_>) -> Result<(), ValidationError> {
+    fn validate_drift(&self, v: &spm_config::RangeChecker<'_>) -> Result<(), ValidationError> {
         let d = &self.drift;
         v.range(
             "drift.velocity_x_nm_per_s",
@@ -845,7 +851,10 @@ impl SimConfig {
     }
 
     /// The `[measurement]` table.
-    fn validate_measurement(&self, v: &Checker<'_>) -> Result<(), ValidationError> {
+    fn validate_measurement(
+        &self,
+        v: &spm_config::RangeChecker<'_>,
+    ) -> Result<(), ValidationError> {
         let m = &self.measurement;
         v.range(
             "measurement.z_white_noise_nm",
@@ -893,7 +902,7 @@ impl SimConfig {
     }
 
     /// The `[faults]` table.
-    fn validate_faults(&self, v: &Checker<'_>) -> Result<(), ValidationError> {
+    fn validate_faults(&self, v: &spm_config::RangeChecker<'_>) -> Result<(), ValidationError> {
         let f = &self.faults;
         v.range(
             "faults.timeout_probability_per_call",
@@ -950,66 +959,6 @@ impl SimConfig {
             1e3,
         )?;
         Ok(())
-    }
-}
-
-struct Checker<'a> {
-    prefix: &'a str,
-}
-
-impl Checker<'_> {
-    fn fail(&self, field: &str, reason: &str) -> Result<(), ValidationError> {
-        Err(ValidationError {
-            field: format!("{}{field}", self.prefix),
-            reason: reason.to_owned(),
-        })
-    }
-    fn finite(&self, field: &str, value: f64) -> Result<(), ValidationError> {
-        if value.is_finite() {
-            Ok(())
-        } else {
-            self.fail(field, &format!("must be a finite number, found {value}"))
-        }
-    }
-    fn positive(&self, field: &str, value: f64) -> Result<(), ValidationError> {
-        self.finite(field, value)?;
-        if value > 0.0 {
-            Ok(())
-        } else {
-            self.fail(field, &format!("must be > 0, found {value}"))
-        }
-    }
-    fn range(&self, field: &str, value: f64, min: f64, max: f64) -> Result<(), ValidationError> {
-        self.finite(field, value)?;
-        if (min..=max).contains(&value) {
-            Ok(())
-        } else {
-            self.fail(field, &format!("must lie in [{min}, {max}], found {value}"))
-        }
-    }
-    fn range_positive(
-        &self,
-        field: &str,
-        value: f64,
-        min: f64,
-        max: f64,
-    ) -> Result<(), ValidationError> {
-        self.positive(field, value)?;
-        self.range(field, value, min, max)
-    }
-    fn at_most(&self, field: &str, value: u32, max: u32) -> Result<(), ValidationError> {
-        if value <= max {
-            Ok(())
-        } else {
-            self.fail(field, &format!("must be ≤ {max}, found {value}"))
-        }
-    }
-    fn at_least_one(&self, field: &str, value: u32) -> Result<(), ValidationError> {
-        if value >= 1 {
-            Ok(())
-        } else {
-            self.fail(field, "must be at least 1")
-        }
     }
 }
 

@@ -789,23 +789,35 @@ fn dynamics_section(page: &mut Page, report: &CalibrationReport) {
     }
 }
 
-// long-function: one straight page, section after section in reading order; splitting it
-// would scatter the page's layout over helpers that each run once.
 /// The calibration report page: metadata, accuracy per method, the image benchmark, the
 /// regression surfaces with σ and Δmax, given-up nodes with reasons, the drift history,
-/// the figures and the notes.
+/// the figures and the notes: one section after another, in reading order.
 pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> String {
     let run = &report.run;
     let mut page = Page::new(&format!(
         "spmcal calibration report: run {} of scanner {}",
         run.run_id, report.scanner_id
     ));
-    let figure = |page: &mut Page, file: &str| {
-        if let Some(f) = figures.iter().find(|f| f.file == file) {
-            page.figure(&f.file, &f.png, &f.caption);
-        }
-    };
+    run_section(&mut page, report, figures);
+    accuracy_section(&mut page, report, figures);
+    images_section(&mut page, report);
+    regression_section(&mut page, report, figures);
+    given_up_section(&mut page, report);
+    drift_section(&mut page, report, figures);
+    trajectory_and_notes_section(&mut page, report, figures);
+    page.finish()
+}
 
+/// Adds the figure `file` to the page when it was drawn.
+fn figure(page: &mut Page, figures: &[Figure], file: &str) {
+    if let Some(f) = figures.iter().find(|f| f.file == file) {
+        page.figure(&f.file, &f.png, &f.caption);
+    }
+}
+
+/// The run: ids, counts, times, provenance, targets, validation and the before/after image.
+fn run_section(page: &mut Page, report: &CalibrationReport, figures: &[Figure]) {
+    let run = &report.run;
     page.section("metadata", "Run");
     let text_row = |key: &str, label: &str, value: &str| {
         Row::new(key, vec![Cell::text(label), Cell::text(value)])
@@ -924,8 +936,8 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
         None => page.paragraph("Provenance: not recorded by the caller."),
     }
 
-    targets_section(&mut page, &report.targets);
-    validation_section(&mut page, &report.validation);
+    targets_section(page, &report.targets);
+    validation_section(page, &report.validation);
     if figures
         .iter()
         .any(|f| f.file == crate::plots::BEFORE_AFTER_FILE)
@@ -935,9 +947,12 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
              correction on one colour scale: compare the spacing of the atoms across the image \
              and in each direction; after a good correction it is the same everywhere.",
         );
-        figure(&mut page, crate::plots::BEFORE_AFTER_FILE);
+        figure(page, figures, crate::plots::BEFORE_AFTER_FILE);
     }
+}
 
+/// Accuracy against the oracle: per method, the residual map, the node LCCs.
+fn accuracy_section(page: &mut Page, report: &CalibrationReport, figures: &[Figure]) {
     page.section("accuracy", "Accuracy against the simulator's ground truth");
     match &report.accuracy {
         Some(a) => {
@@ -971,7 +986,7 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
              point, how many nm a corrected position still lies from the truth. Read it for \
              where the calibration is weakest (bright), not only how good it is on average.",
         );
-        figure(&mut page, crate::plots::RESIDUAL_FILE);
+        figure(page, figures, crate::plots::RESIDUAL_FILE);
     }
     if let Some(e) = &report.node_lcc_error {
         page.paragraph(&format!(
@@ -1010,19 +1025,25 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
             &rows,
         );
     }
+}
 
+/// The image benchmark.
+fn images_section(page: &mut Page, report: &CalibrationReport) {
     page.section(
         "images",
         "Test images taken after the run (image benchmark)",
     );
     match &report.images {
-        Some(images) => images_tables(&mut page, "", images),
+        Some(images) => images_tables(page, "", images),
         None => page.paragraph(
             "Not measured: needs a simulated backend (and is skipped when the image benchmark \
              is off).",
         ),
     }
+}
 
+/// The regression surfaces with σ and Δmax, their figures.
+fn regression_section(page: &mut Page, report: &CalibrationReport, figures: &[Figure]) {
     page.section("regression", "Regression surfaces (plane nearest z = 0)");
     let r = &report.regression;
     let surface_row =
@@ -1057,16 +1078,21 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
          Values shown in the unit of the last column (report.json holds nm/count and rad).",
     );
     for file in ["lcc-kx.png", "lcc-ky.png", "lcc-alpha.png"] {
-        figure(&mut page, file);
+        figure(page, figures, file);
     }
     page.paragraph(
         "The next figure shows how far each fitted surface itself may be off over the field \
          (one standard uncertainty, from the fit's design and σ): small where the records are \
          dense, growing towards the corners, where the surface extrapolates.",
     );
-    figure(&mut page, crate::plots::UNCERTAINTY_FILE);
+    figure(page, figures, crate::plots::UNCERTAINTY_FILE);
 
-    dynamics_section(&mut page, report);
+    dynamics_section(page, report);
+}
+
+/// Given-up nodes with their reasons.
+fn given_up_section(page: &mut Page, report: &CalibrationReport) {
+    let run = &report.run;
     page.section("given-up", "Given-up nodes");
     if run.given_up.is_empty() {
         page.paragraph("None: every visit of this invocation was measured.");
@@ -1103,7 +1129,10 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
         ],
         &rows,
     );
+}
 
+/// The drift history and the CDB history of the scanner.
+fn drift_section(page: &mut Page, report: &CalibrationReport, figures: &[Figure]) {
     page.section("drift", "Drift history");
     let d = &report.drift;
     let mut rows = vec![
@@ -1152,7 +1181,7 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
         }
     }
     page.table("drift-table", &["quantity", "value"], &rows);
-    figure(&mut page, "drift.png");
+    figure(page, figures, "drift.png");
 
     if figures.iter().any(|f| f.file == crate::plots::HISTORY_FILE) {
         page.section("history", "Calibration history of the scanner (the CDB)");
@@ -1161,15 +1190,17 @@ pub fn calibration_page(report: &CalibrationReport, figures: &[Figure]) -> Strin
              band; a step larger than the bands between two runs means the scanner changed \
              (or was handled) between them, and the newest calibration is the one to use.",
         );
-        figure(&mut page, crate::plots::HISTORY_FILE);
+        figure(page, figures, crate::plots::HISTORY_FILE);
     }
+}
 
+/// The nodes in visiting order and how the figures were measured.
+fn trajectory_and_notes_section(page: &mut Page, report: &CalibrationReport, figures: &[Figure]) {
     page.section("trajectory", "Nodes in visiting order");
-    figure(&mut page, "trajectory.png");
+    figure(page, figures, "trajectory.png");
 
     page.section("notes", "How the figures were measured");
     page.list("notes-list", &report.notes);
-    page.finish()
 }
 
 #[cfg(test)]

@@ -1159,7 +1159,6 @@ pub const CREEP_FIT_DRIFT_WINDOW_S: f64 = 300.0;
 /// distributed calibration along the effective trajectory of the creep law identified from
 /// the run, and two labelled bounds (the oracle's true dynamics; a per-image polynomial on
 /// exact positions).
-// long-function: one recipe in order: take the images, identify the creep law from the run, then the list of methods, each built from the results above it (the user-file row included)
 fn image_benchmark<S: SimulatedInstrument + Sync>(
     sim: &S,
     record: &RunRecord<'_>,
@@ -1170,8 +1169,8 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
 ) -> Result<spm_evaluation::images::ImageBenchmark, ReportError> {
     use spm_correction::dynamics::{CommandHistory, CreepLaw, creep_offsets, fit_creep_law};
     use spm_evaluation::images::{
-        DynamicsSummary, GratingConfig, ImageCorrection, ImageMethod, ImageSetConfig,
-        evaluate_images, grating_polynomial, take_test_images,
+        GratingConfig, ImageCorrection, ImageMethod, ImageSetConfig, evaluate_images,
+        grating_polynomial, take_test_images,
     };
     let plan = record.plan;
     let region = region.counts();
@@ -1198,34 +1197,7 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
         CREEP_FIT_DRIFT_WINDOW_S,
     );
     history.extend_with_events(&image_commands);
-    let dynamics = match &fit {
-        Ok(f) => DynamicsSummary {
-            creep_weight: f.law.weight(),
-            creep_weight_sigma: f.weight_sigma,
-            time_constants_s: [tau_min, tau_max],
-            elements_per_decade: per_decade,
-            settled_gain: f.law.total_weight(),
-            gamma_per_decade: f.gamma_per_decade,
-            tracks: f.tracks,
-            sightings: f.sightings,
-            residual_rms_counts: f.residual_rms_counts,
-            signal_rms_counts: f.signal_rms_counts,
-            note: None,
-        },
-        Err(e) => DynamicsSummary {
-            creep_weight: 0.0,
-            creep_weight_sigma: f64::NAN,
-            time_constants_s: [tau_min, tau_max],
-            elements_per_decade: per_decade,
-            settled_gain: 0.0,
-            gamma_per_decade: 0.0,
-            tracks: 0,
-            sightings: 0,
-            residual_rms_counts: f64::NAN,
-            signal_rms_counts: f64::NAN,
-            note: Some(format!("not identified: {e}")),
-        },
-    };
+    let dynamics = creep_summary(&fit);
     let split = |all: Vec<[f64; 2]>| -> Vec<Vec<[f64; 2]>> {
         let mut out = Vec::with_capacity(taken.len());
         let mut rest = all.as_slice();
@@ -1264,52 +1236,116 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
         });
     }
     if let Some((_, distributed)) = planes.iter().find(|(name, _)| *name == "distributed") {
-        // `spmcal correct`'s library path with the calibration file (static field: no
-        // recorded history is applied yet).
-        let set = spm_correction::SurfaceSet::new(
-            spm_correction::Provenance {
-                scanner_id: plan.scanner_id.clone(),
-                n_records: distributed.n_records,
-                nominal_nm_per_count: Some(plan.standard.nominal_nm_per_count),
-                counts_convention: Some(spm_correction::CountsConvention::CentredSigned),
-                ..spm_correction::Provenance::default()
-            },
-            vec![(*distributed).clone()],
-        )?;
-        if let Some(d) = identified {
-            let mut with = set.clone();
-            with.dynamics = Some(d.clone());
-            methods.push(ImageMethod {
-                name: "user_file_recorded_history".to_owned(),
-                correction: ImageCorrection::UserFileRecorded {
-                    set: Box::new(with.clone()),
-                    history: history.clone(),
-                },
-            });
-            methods.push(ImageMethod {
-                name: "user_file_ruler".to_owned(),
-                correction: ImageCorrection::UserFileRuler {
-                    set: Box::new(with.clone()),
-                    ruler: spm_apply::ruler::LatticeRuler {
-                        constant_nm: plan.standard.lattice_constant_nm,
-                        ..spm_apply::ruler::LatticeRuler::hopg()
-                    },
-                },
-            });
-            methods.push(ImageMethod {
-                name: "user_file_dynamics".to_owned(),
-                correction: ImageCorrection::UserFile(Box::new(with)),
-            });
-        }
-        methods.push(ImageMethod {
-            name: "user_file_alone".to_owned(),
-            correction: ImageCorrection::UserFile(Box::new(set)),
-        });
+        push_user_file_methods(&mut methods, plan, distributed, identified, &history)?;
     }
     methods.push(ImageMethod {
         name: "polynomial".to_owned(),
         correction: ImageCorrection::Map(grating),
     });
+    push_competitor_methods(&mut methods, plan, &config);
+    push_reference_methods(&mut methods, sim, &taken, planes);
+    let mut bench = evaluate_images(&taken, &methods, &config)?;
+    bench.dynamics = Some(dynamics);
+    Ok(bench)
+}
+
+/// The report's summary of the creep law identified from the run (or why it was not).
+fn creep_summary(
+    fit: &Result<spm_correction::dynamics::CreepFit, spm_correction::CorrectionError>,
+) -> spm_evaluation::images::DynamicsSummary {
+    use spm_evaluation::images::DynamicsSummary;
+    let (tau_min, tau_max, per_decade) = CREEP_LAW_SHAPE;
+    match fit {
+        Ok(f) => DynamicsSummary {
+            creep_weight: f.law.weight(),
+            creep_weight_sigma: f.weight_sigma,
+            time_constants_s: [tau_min, tau_max],
+            elements_per_decade: per_decade,
+            settled_gain: f.law.total_weight(),
+            gamma_per_decade: f.gamma_per_decade,
+            tracks: f.tracks,
+            sightings: f.sightings,
+            residual_rms_counts: f.residual_rms_counts,
+            signal_rms_counts: f.signal_rms_counts,
+            note: None,
+        },
+        Err(e) => DynamicsSummary {
+            creep_weight: 0.0,
+            creep_weight_sigma: f64::NAN,
+            time_constants_s: [tau_min, tau_max],
+            elements_per_decade: per_decade,
+            settled_gain: 0.0,
+            gamma_per_decade: 0.0,
+            tracks: 0,
+            sightings: 0,
+            residual_rms_counts: f64::NAN,
+            signal_rms_counts: f64::NAN,
+            note: Some(format!("not identified: {e}")),
+        },
+    }
+}
+
+/// `spmcal correct`'s library paths with the calibration file: the recorded history, the
+/// lattice ruler and the file's dynamics (when the run identified them), and the file alone.
+fn push_user_file_methods(
+    methods: &mut Vec<spm_evaluation::images::ImageMethod<'_>>,
+    plan: &PlanConfig,
+    distributed: &PlaneSurfaces,
+    identified: Option<&ScannerDynamics>,
+    history: &spm_correction::dynamics::CommandHistory,
+) -> Result<(), ReportError> {
+    use spm_evaluation::images::{ImageCorrection, ImageMethod};
+    // `spmcal correct`'s library path with the calibration file (static field: no
+    // recorded history is applied yet).
+    let set = spm_correction::SurfaceSet::new(
+        spm_correction::Provenance {
+            scanner_id: plan.scanner_id.clone(),
+            n_records: distributed.n_records,
+            nominal_nm_per_count: Some(plan.standard.nominal_nm_per_count),
+            counts_convention: Some(spm_correction::CountsConvention::CentredSigned),
+            ..spm_correction::Provenance::default()
+        },
+        vec![(*distributed).clone()],
+    )?;
+    if let Some(d) = identified {
+        let mut with = set.clone();
+        with.dynamics = Some(d.clone());
+        methods.push(ImageMethod {
+            name: "user_file_recorded_history".to_owned(),
+            correction: ImageCorrection::UserFileRecorded {
+                set: Box::new(with.clone()),
+                history: history.clone(),
+            },
+        });
+        methods.push(ImageMethod {
+            name: "user_file_ruler".to_owned(),
+            correction: ImageCorrection::UserFileRuler {
+                set: Box::new(with.clone()),
+                ruler: spm_apply::ruler::LatticeRuler {
+                    constant_nm: plan.standard.lattice_constant_nm,
+                    ..spm_apply::ruler::LatticeRuler::hopg()
+                },
+            },
+        });
+        methods.push(ImageMethod {
+            name: "user_file_dynamics".to_owned(),
+            correction: ImageCorrection::UserFile(Box::new(with)),
+        });
+    }
+    methods.push(ImageMethod {
+        name: "user_file_alone".to_owned(),
+        correction: ImageCorrection::UserFile(Box::new(set)),
+    });
+    Ok(())
+}
+
+/// The competitors (issue 23 item 5), with no calibration.
+fn push_competitor_methods(
+    methods: &mut Vec<spm_evaluation::images::ImageMethod<'_>>,
+    plan: &PlanConfig,
+    config: &spm_evaluation::images::ImageSetConfig,
+) {
+    use spm_evaluation::images::{ImageCorrection, ImageMethod};
     // The competitors (issue 23 item 5): per-image trace/retrace corrections from their
     // papers, with no calibration; shown with the real methods.
     let competitor = spm_evaluation::competitors::CompetitorConfig {
@@ -1335,6 +1371,16 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
             },
         });
     }
+}
+
+/// The labelled references (bounds, not competitors).
+fn push_reference_methods<'a, S: SimulatedInstrument + Sync>(
+    methods: &mut Vec<spm_evaluation::images::ImageMethod<'a>>,
+    sim: &'a S,
+    taken: &[spm_evaluation::images::TestImage],
+    planes: &[(&str, &'a PlaneSurfaces)],
+) {
+    use spm_evaluation::images::{ImageCorrection, ImageMethod};
     // References (labelled bounds, not competitors): the oracle's true static LCC field, the
     // distributed surfaces along the oracle's true effective trajectory, and a per-image cubic
     // on exact positions.
@@ -1378,9 +1424,6 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
         name: "bound_polynomial_per_image".to_owned(),
         correction: ImageCorrection::PerImageBound,
     });
-    let mut bench = evaluate_images(&taken, &methods, &config)?;
-    bench.dynamics = Some(dynamics);
-    Ok(bench)
 }
 
 /// Stores a run's identified dynamics in the CDB, dated by when the run finished, unless the

@@ -103,6 +103,12 @@ CREATE UNIQUE INDEX records_node ON records (run_id, repeat_index, node_index, l
 CREATE INDEX records_plane ON records (scanner_id, node_z_counts, acquired_unix_s);
 ";
 
+/// The schema of new files, for tests that compare it with the dialect's types.
+#[cfg(test)]
+pub(crate) fn schema_text() -> &'static str {
+    SCHEMA_V4
+}
+
 /// The `dynamics` table of v5 (new files and the v4 → v5 migration alike). The CHECKs
 /// repeat the rules of [`spm_records::DynamicsRecord::check`] that SQL can state (the size
 /// limit and the visible-text rule of the ids are left to it and to `cdb check`).

@@ -43,8 +43,7 @@ use crate::sql::checks::{self, Checker};
 use crate::sql::{self, Dialect};
 use crate::{invalid, validate_record};
 use spm_records::{
-    ColumnKind, ColumnValue, DynamicsRecord, IntegrityReport, LCC_RECORD_COLUMNS, LccRecord,
-    NodeDone, PlanNode, RunInfo, RunStatus, UNCERTAINTY_COLUMNS,
+    ColumnKind, ColumnValue, IntegrityReport, LCC_RECORD_COLUMNS, LccRecord, UNCERTAINTY_COLUMNS,
 };
 
 /// True if `location` names a PostgreSQL database (`postgres://` or `postgresql://`) rather
@@ -728,101 +727,7 @@ impl PgCdb {
         Ok(PgSnapshot { db: self })
     }
 
-    /// Registers a new run (status as given, normally [`RunStatus::Running`]).
-    ///
-    /// # Errors
-    /// [`ErrorKind::Conflict`] if the run id exists; [`ErrorKind::InvalidInput`] for empty ids
-    /// or non-finite times.
-    pub fn create_run(&mut self, run: &RunInfo) -> Result<()> {
-        sql::write::create_run(self, run)
-    }
-
-    /// Sets a run's final status and end time.
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown run; [`ErrorKind::InvalidInput`] for a
-    /// non-finite time.
-    pub fn finish_run(
-        &mut self,
-        run_id: &str,
-        status: RunStatus,
-        finished_unix_s: f64,
-    ) -> Result<()> {
-        sql::write::finish_run(self, run_id, status, finished_unix_s)
-    }
-
-    /// Sets an unfinished run back to 'running' with no end time, for a resume. A finished run
-    /// is never reopened.
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown run; [`ErrorKind::Conflict`] for a finished one.
-    pub fn reopen_run(&mut self, run_id: &str) -> Result<()> {
-        sql::write::reopen_run(self, run_id)
-    }
-
-    /// Registers a run's plan (all nodes pending) in one transaction. Idempotent: nodes
-    /// already registered with the same coordinates are left as they are.
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown run; [`ErrorKind::Conflict`] if a node exists
-    /// with other coordinates.
-    pub fn register_plan(&mut self, run_id: &str, nodes: &[PlanNode]) -> Result<()> {
-        sql::write::register_plan(self, run_id, nodes)
-    }
-
-    /// Stores a measured node: inserts its `records` and marks the plan node done, in one
-    /// transaction that holds the plan row's lock (all or nothing). Every record must belong
-    /// to this run, repeat and node, carry the plan node's coordinates and the run's scanner.
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown run or plan node; [`ErrorKind::Conflict`] if
-    /// the node is not pending (also when another program committed it meanwhile) or a record
-    /// duplicates an LCS index; [`ErrorKind::InvalidInput`] for invalid or mismatched records
-    /// or an empty slice.
-    pub fn commit_node(
-        &mut self,
-        run_id: &str,
-        done: &NodeDone,
-        records: &[LccRecord],
-    ) -> Result<()> {
-        sql::write::commit_node(self, run_id, done, records)
-    }
-
-    /// Marks a pending plan node as given up, with the reason.
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown node; [`ErrorKind::Conflict`] if not pending;
-    /// [`ErrorKind::InvalidInput`] for an empty reason or a non-finite time.
-    pub fn give_up_node(
-        &mut self,
-        run_id: &str,
-        repeat_index: u32,
-        node_index: u32,
-        reason: &str,
-        attempts: u32,
-        at_unix_s: f64,
-    ) -> Result<()> {
-        let visit = NodeDone {
-            repeat_index,
-            node_index,
-            attempts,
-            finished_unix_s: at_unix_s,
-        };
-        sql::write::give_up_node(self, run_id, &visit, reason)
-    }
-
-    /// Stores the scanner dynamics a run identified, in one transaction that holds the run
-    /// row's share lock. The run must be stored and on the record's scanner. (Like every
-    /// write on PostgreSQL, it leaves the identity's generation alone.)
-    ///
-    /// # Errors
-    /// [`ErrorKind::InvalidInput`] for a record that breaks
-    /// [`spm_records::DynamicsRecord::check`] (the message names the field) or whose scanner
-    /// is not its run's; [`ErrorKind::NotFound`] for an unknown run. Nothing is written on
-    /// error.
-    pub fn store_dynamics(&mut self, dynamics: &DynamicsRecord) -> Result<()> {
-        sql::write::store_dynamics(self, dynamics)
-    }
+    sql::write::write_methods!();
 
     /// Bulk import: inserts records (of existing runs, outside any plan) in one transaction
     /// with a binary `COPY`. Returns the number inserted.

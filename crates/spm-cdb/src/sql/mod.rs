@@ -63,6 +63,7 @@ impl Dialect {
 
     /// The type and NOT NULL of a record column of this kind (PostgreSQL's is the schema's;
     /// SQLite's schema is written out in `schema.rs`, a test checks it against this).
+    #[cfg_attr(not(feature = "postgres"), allow(dead_code))]
     pub(crate) fn column_type(self, kind: ColumnKind) -> &'static str {
         match (self, kind) {
             (_, ColumnKind::Text) => "TEXT NOT NULL",

@@ -472,3 +472,125 @@ macro_rules! progress_store {
     };
 }
 pub(crate) use progress_store;
+
+/// The public write methods of a [`SqlStore`] (`Cdb`, `PgCdb`), each the function of the
+/// same name above; used inside the type's `impl` block.
+macro_rules! write_methods {
+    () => {
+        /// Registers a new run (status as given, normally
+        /// [`RunStatus::Running`](spm_records::RunStatus::Running)).
+        ///
+        /// # Errors
+        /// [`ErrorKind::Conflict`](crate::ErrorKind::Conflict) if the run id exists;
+        /// [`ErrorKind::InvalidInput`](crate::ErrorKind::InvalidInput) for empty ids or
+        /// non-finite times.
+        pub fn create_run(&mut self, run: &spm_records::RunInfo) -> $crate::Result<()> {
+            $crate::sql::write::create_run(self, run)
+        }
+
+        /// Sets a run's final status and end time.
+        ///
+        /// # Errors
+        /// [`ErrorKind::NotFound`](crate::ErrorKind::NotFound) for an unknown run;
+        /// [`ErrorKind::InvalidInput`](crate::ErrorKind::InvalidInput) for a non-finite time.
+        pub fn finish_run(
+            &mut self,
+            run_id: &str,
+            status: spm_records::RunStatus,
+            finished_unix_s: f64,
+        ) -> $crate::Result<()> {
+            $crate::sql::write::finish_run(self, run_id, status, finished_unix_s)
+        }
+
+        /// Sets an unfinished run ('running', 'aborted' or 'failed') back to 'running' with
+        /// no end time, for a resume. A finished run is never reopened.
+        ///
+        /// # Errors
+        /// [`ErrorKind::NotFound`](crate::ErrorKind::NotFound) for an unknown run;
+        /// [`ErrorKind::Conflict`](crate::ErrorKind::Conflict) for a finished one.
+        pub fn reopen_run(&mut self, run_id: &str) -> $crate::Result<()> {
+            $crate::sql::write::reopen_run(self, run_id)
+        }
+
+        /// Registers a run's plan (all nodes pending) in one transaction. Idempotent: nodes
+        /// already registered with the same coordinates are left as they are (so a resumed
+        /// run may call it again).
+        ///
+        /// # Errors
+        /// [`ErrorKind::NotFound`](crate::ErrorKind::NotFound) for an unknown run;
+        /// [`ErrorKind::Conflict`](crate::ErrorKind::Conflict) if a node exists with other
+        /// coordinates.
+        pub fn register_plan(
+            &mut self,
+            run_id: &str,
+            nodes: &[spm_records::PlanNode],
+        ) -> $crate::Result<()> {
+            $crate::sql::write::register_plan(self, run_id, nodes)
+        }
+
+        /// Stores a measured node: inserts its `records` and marks the plan node done, in one
+        /// transaction (all or nothing; on PostgreSQL it holds the plan row's lock, so that
+        /// of two programs resuming one run the second finds the node done). Every record
+        /// must belong to this run, repeat and node, carry the plan node's coordinates and
+        /// the run's scanner.
+        ///
+        /// # Errors
+        /// [`ErrorKind::NotFound`](crate::ErrorKind::NotFound) for an unknown run or plan
+        /// node; [`ErrorKind::Conflict`](crate::ErrorKind::Conflict) if the node is not
+        /// pending (also when another program committed it meanwhile) or a record duplicates
+        /// an LCS index; [`ErrorKind::InvalidInput`](crate::ErrorKind::InvalidInput) for
+        /// invalid or mismatched records or an empty slice.
+        pub fn commit_node(
+            &mut self,
+            run_id: &str,
+            done: &spm_records::NodeDone,
+            records: &[spm_records::LccRecord],
+        ) -> $crate::Result<()> {
+            $crate::sql::write::commit_node(self, run_id, done, records)
+        }
+
+        /// Marks a pending plan node as given up, with the reason.
+        ///
+        /// # Errors
+        /// [`ErrorKind::NotFound`](crate::ErrorKind::NotFound) for an unknown node;
+        /// [`ErrorKind::Conflict`](crate::ErrorKind::Conflict) if not pending;
+        /// [`ErrorKind::InvalidInput`](crate::ErrorKind::InvalidInput) for an empty reason or
+        /// a non-finite time.
+        pub fn give_up_node(
+            &mut self,
+            run_id: &str,
+            repeat_index: u32,
+            node_index: u32,
+            reason: &str,
+            attempts: u32,
+            at_unix_s: f64,
+        ) -> $crate::Result<()> {
+            let visit = spm_records::NodeDone {
+                repeat_index,
+                node_index,
+                attempts,
+                finished_unix_s: at_unix_s,
+            };
+            $crate::sql::write::give_up_node(self, run_id, &visit, reason)
+        }
+
+        /// Stores the scanner dynamics a run identified, in one transaction (SQLite: stepping
+        /// the identity's generation like every write; PostgreSQL: holding the run row's
+        /// share lock, and leaving the generation alone like every write there). The run
+        /// must be stored and on the record's scanner.
+        ///
+        /// # Errors
+        /// [`ErrorKind::InvalidInput`](crate::ErrorKind::InvalidInput) for a record that
+        /// breaks [`DynamicsRecord::check`](spm_records::DynamicsRecord::check) (the message
+        /// names the field) or whose scanner is not its run's;
+        /// [`ErrorKind::NotFound`](crate::ErrorKind::NotFound) for an unknown run. Nothing
+        /// is written on error.
+        pub fn store_dynamics(
+            &mut self,
+            dynamics: &spm_records::DynamicsRecord,
+        ) -> $crate::Result<()> {
+            $crate::sql::write::store_dynamics(self, dynamics)
+        }
+    };
+}
+pub(crate) use write_methods;

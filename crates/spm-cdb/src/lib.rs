@@ -337,10 +337,7 @@ sqlite_read!(Snapshot<'_>);
 sql::write::progress_store!(Cdb);
 
 impl sql::write::SqlStore for Cdb {
-    fn write<T>(
-        &mut self,
-        f: impl FnOnce(&mut dyn sql::write::SqlTx) -> Result<T>,
-    ) -> Result<T> {
+    fn write<T>(&mut self, f: impl FnOnce(&mut dyn sql::write::SqlTx) -> Result<T>) -> Result<T> {
         let path = self.path.clone();
         let tx = self.write_tx()?;
         let out = f(&mut sql::sqlite::Conn::new(&tx, &path))?;
@@ -444,7 +441,6 @@ fn tune_cache(conn: &Connection) -> rusqlite::Result<()> {
 
 /// `PRAGMA mmap_size` of every connection: 0, no memory-mapped I/O (see [`tune_cache`]).
 pub const MMAP_SIZE: i64 = 0;
-
 
 /// Creates a new CDB so that no other process ever sees it half made: the schema is
 /// written to a hidden sibling file, which is then hard-linked into place (a link never

@@ -312,7 +312,9 @@ pub(crate) fn binds(r: &LccRecord) -> [Bind<'_>; LCC_RECORD_COLUMNS.len()] {
     r.column_values().map(Bind)
 }
 
-pub(crate) fn bind_refs<'a>(values: &'a [Bind<'a>; LCC_RECORD_COLUMNS.len()]) -> Vec<&'a (dyn ToSql + Sync)> {
+pub(crate) fn bind_refs<'a>(
+    values: &'a [Bind<'a>; LCC_RECORD_COLUMNS.len()],
+) -> Vec<&'a (dyn ToSql + Sync)> {
     values.iter().map(|b| b as &(dyn ToSql + Sync)).collect()
 }
 
@@ -791,10 +793,7 @@ sql::read::sql_read!(
 sql::write::progress_store!(PgCdb);
 
 impl sql::write::SqlStore for PgCdb {
-    fn write<T>(
-        &mut self,
-        f: impl FnOnce(&mut dyn sql::write::SqlTx) -> Result<T>,
-    ) -> Result<T> {
+    fn write<T>(&mut self, f: impl FnOnce(&mut dyn sql::write::SqlTx) -> Result<T>) -> Result<T> {
         let path = self.path.clone();
         let err = |e| CdbError::postgres(&path, e);
         let client = self.client.get_mut();

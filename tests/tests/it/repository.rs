@@ -372,12 +372,15 @@ fn a_program_build_leaves_the_test_support_out() {
         program.lines().any(|l| l.starts_with("spm-cdb ")),
         "spm-cdb is in spmcal's tree:\n{program}"
     );
-    for line in program.lines().filter(|l| l.contains("test-support")) {
-        panic!(
-            "`cargo build -p spmcal` turns on a test-support feature: {line} (enable it only \
-             in [dev-dependencies] and in xtask)"
-        );
-    }
+    let with_support: Vec<&str> = program
+        .lines()
+        .filter(|l| l.contains("test-support"))
+        .collect();
+    assert!(
+        with_support.is_empty(),
+        "`cargo build -p spmcal` turns on a test-support feature: {with_support:?} (enable it \
+         only in [dev-dependencies] and in xtask)"
+    );
     let tests = spmcal_tree_features("normal,build,dev");
     assert!(
         tests

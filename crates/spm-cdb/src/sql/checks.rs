@@ -128,7 +128,11 @@ pub(crate) fn value_checks<R: SqlRead + ?Sized>(c: &mut Checker<'_, R>) -> Resul
         c.record_rows(
             "empty_text",
             &format!("{} is empty", col.name),
-            &format!("{} AND {}", d.typed(col.name, ColumnKind::Text), d.blank(col.name)),
+            &format!(
+                "{} AND {}",
+                d.typed(col.name, ColumnKind::Text),
+                d.blank(col.name)
+            ),
         )?;
     }
     for col in [
@@ -318,30 +322,31 @@ pub(crate) fn plausibility_checks<R: SqlRead + ?Sized>(c: &mut Checker<'_, R>) -
     }
     let report = &mut c.report;
     let mut found = 0usize;
-    let result = super::read::for_each_record(c.db, &RecordFilter::default(), &mut |r: LccRecord| {
-        let Some(why) = limits
-            .get(r.run_id.as_str())
-            .and_then(|p| r.implausibility(p))
-        else {
-            return Ok(());
-        };
-        found += 1;
-        if found <= MAX_ROWS_PER_CHECK {
-            report.problems.push(IntegrityProblem {
-                kind: "implausible_record".into(),
-                detail: format!(
-                    "run {:?}, repeat {}, node {}, lcs {}: {why}",
-                    r.run_id, r.repeat_index, r.node_index, r.lcs_index
-                ),
-            });
-        } else if found == MAX_ROWS_PER_CHECK + 1 {
-            report.problems.push(IntegrityProblem {
-                kind: "implausible_record".into(),
-                detail: format!("… more than {MAX_ROWS_PER_CHECK} rows"),
-            });
-        }
-        Ok(())
-    });
+    let result =
+        super::read::for_each_record(c.db, &RecordFilter::default(), &mut |r: LccRecord| {
+            let Some(why) = limits
+                .get(r.run_id.as_str())
+                .and_then(|p| r.implausibility(p))
+            else {
+                return Ok(());
+            };
+            found += 1;
+            if found <= MAX_ROWS_PER_CHECK {
+                report.problems.push(IntegrityProblem {
+                    kind: "implausible_record".into(),
+                    detail: format!(
+                        "run {:?}, repeat {}, node {}, lcs {}: {why}",
+                        r.run_id, r.repeat_index, r.node_index, r.lcs_index
+                    ),
+                });
+            } else if found == MAX_ROWS_PER_CHECK + 1 {
+                report.problems.push(IntegrityProblem {
+                    kind: "implausible_record".into(),
+                    detail: format!("… more than {MAX_ROWS_PER_CHECK} rows"),
+                });
+            }
+            Ok(())
+        });
     match result {
         Err(e) if e.kind() == crate::ErrorKind::Corrupt => {
             report.problems.push(IntegrityProblem {

@@ -263,7 +263,10 @@ pub(crate) fn where_clause(dialect: Dialect, f: &RecordFilter) -> (String, Vec<P
     let mut params = Vec::new();
     let mut add = |column: &str, op: &str, p| {
         params.push(p);
-        terms.push(format!("{column} {op} {}", dialect.placeholder(params.len())));
+        terms.push(format!(
+            "{column} {op} {}",
+            dialect.placeholder(params.len())
+        ));
     };
     if let Some(s) = &f.scanner_id {
         add("scanner_id", "=", Param::Text(s));
@@ -325,13 +328,13 @@ mod tests {
             sqlite,
             " WHERE scanner_id = ?1 AND node_z_counts = ?2 AND acquired_unix_s <= ?3"
         );
-        assert_eq!(
-            p,
-            [Param::Text("s"), Param::Integer(3), Param::Real(5.0)]
-        );
+        assert_eq!(p, [Param::Text("s"), Param::Integer(3), Param::Real(5.0)]);
         let (pg, _) = where_clause(Dialect::Postgres, &f);
         assert_eq!(pg, sqlite.replace('?', "$"));
-        assert_eq!(where_clause(Dialect::Sqlite, &RecordFilter::default()).0, "");
+        assert_eq!(
+            where_clause(Dialect::Sqlite, &RecordFilter::default()).0,
+            ""
+        );
     }
 
     /// The SQLite schema is written out (`schema.rs`): its record columns have the types

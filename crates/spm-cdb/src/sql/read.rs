@@ -255,17 +255,11 @@ macro_rules! sql_read {
                 let $s = self;
                 $crate::sql::read::runs(&$sql, scanner_id)
             }
-            fn progress(
-                &self,
-                run_id: &str,
-            ) -> $crate::Result<Vec<spm_records::NodeProgress>> {
+            fn progress(&self, run_id: &str) -> $crate::Result<Vec<spm_records::NodeProgress>> {
                 let $s = self;
                 $crate::sql::read::progress(&$sql, run_id)
             }
-            fn next_pending(
-                &self,
-                run_id: &str,
-            ) -> $crate::Result<Option<spm_records::PlanNode>> {
+            fn next_pending(&self, run_id: &str) -> $crate::Result<Option<spm_records::PlanNode>> {
                 let $s = self;
                 $crate::sql::read::next_pending(&$sql, run_id)
             }

@@ -6,8 +6,8 @@
 use std::path::Path;
 
 use spm_records::{
-    ColumnKind, DynamicsRecord, LCC_RECORD_COLUMNS, LccColumns, LccRecord, NodeProgress,
-    NodeState, OwnedColumnValue, PlanNode, ProgressSummary, RunInfo, RunStatus,
+    ColumnKind, DynamicsRecord, LCC_RECORD_COLUMNS, LccColumns, LccRecord, NodeProgress, NodeState,
+    OwnedColumnValue, PlanNode, ProgressSummary, RunInfo, RunStatus,
 };
 
 use crate::error::{CdbError, Result};

@@ -259,7 +259,10 @@ pub(crate) fn commit_node(
     let (repeat, node) = (done.repeat_index, done.node_index);
     s.write(|tx| {
         let d = tx.dialect();
-        let sql = format!("SELECT scanner_id FROM runs WHERE run_id = {}", d.placeholder(1));
+        let sql = format!(
+            "SELECT scanner_id FROM runs WHERE run_id = {}",
+            d.placeholder(1)
+        );
         let scanner_id = query_first(tx, &sql, &[Param::Text(run_id)], |r| r.text(0))?
             .ok_or_else(|| unknown_run(&path, run_id))?;
         let key = [Param::Text(run_id), repeat.into(), node.into()];
@@ -325,7 +328,11 @@ pub(crate) fn give_up_node(
     s.write(|tx| {
         let d = tx.dialect();
         let key = [Param::Text(run_id), repeat.into(), node.into()];
-        let sql = format!("SELECT state FROM progress {}{}", node_key(tx), d.for_update());
+        let sql = format!(
+            "SELECT state FROM progress {}{}",
+            node_key(tx),
+            d.for_update()
+        );
         let state = query_first(tx, &sql, &key, |r| r.text(0))?
             .ok_or_else(|| unknown_node(&path, run_id, repeat, node))?;
         if state != "pending" {
@@ -375,10 +382,8 @@ pub(crate) fn store_dynamics(s: &mut impl SqlStore, dynamics: &DynamicsRecord) -
             d.placeholder(1),
             d.for_share()
         );
-        let run_scanner = query_first(tx, &sql, &[Param::Text(&dynamics.run_id)], |r| {
-            r.text(0)
-        })?
-        .ok_or_else(|| crate::dynamics::unknown_run(&path, dynamics))?;
+        let run_scanner = query_first(tx, &sql, &[Param::Text(&dynamics.run_id)], |r| r.text(0))?
+            .ok_or_else(|| crate::dynamics::unknown_run(&path, dynamics))?;
         crate::dynamics::check_run_scanner(&path, dynamics, &run_scanner)?;
         let sql = format!(
             "INSERT INTO dynamics ({DYNAMICS_COLUMNS}) VALUES ({})",
@@ -439,9 +444,8 @@ macro_rules! progress_store {
             fn states(
                 &mut self,
                 run_id: &str,
-            ) -> $crate::Result<
-                ::std::collections::HashMap<(u32, u32), spm_records::NodeState>,
-            > {
+            ) -> $crate::Result<::std::collections::HashMap<(u32, u32), spm_records::NodeState>>
+            {
                 $crate::sql::write::states(self, run_id)
             }
             fn commit_node(

@@ -383,26 +383,12 @@ fn check_probe(path: &Path, p: &Probe) -> Result<()> {
             reason: format!("schema_version has application_id {other:#x}"),
         });
     }
-    if p.version > SCHEMA_VERSION {
-        return Err(CdbError::NewerSchema {
-            path: path.to_path_buf(),
-            found: p.version,
-            supported: SCHEMA_VERSION,
-        });
-    }
-    if p.version == 0 && p.cdb_tables > 0 {
-        return Err(CdbError::NotACdb {
-            path: path.to_path_buf(),
-            reason: "tables runs/progress/records present but no schema_version".into(),
-        });
-    }
-    if p.version < 0 {
-        return Err(CdbError::NotACdb {
-            path: path.to_path_buf(),
-            reason: format!("negative schema version {}", p.version),
-        });
-    }
-    Ok(())
+    crate::schema::check_version(
+        path,
+        p.version,
+        p.cdb_tables > 0,
+        "tables runs/progress/records present but no schema_version",
+    )
 }
 
 /// Creates the schema in an empty database or migrates an older one up to `target`, one

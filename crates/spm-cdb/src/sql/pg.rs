@@ -45,26 +45,7 @@ impl Row<'_> {
     }
 }
 
-impl SqlRow for Row<'_> {
-    fn path(&self) -> &Path {
-        self.path
-    }
-    fn text(&self, i: usize) -> Result<String> {
-        self.get(i)
-    }
-    fn opt_text(&self, i: usize) -> Result<Option<String>> {
-        self.get(i)
-    }
-    fn real(&self, i: usize) -> Result<f64> {
-        self.get(i)
-    }
-    fn opt_real(&self, i: usize) -> Result<Option<f64>> {
-        self.get(i)
-    }
-    fn integer(&self, i: usize) -> Result<i64> {
-        self.get(i)
-    }
-}
+super::row::sql_row_via_get!(Row<'_>);
 
 /// Runs a query on any client, streaming its rows into `each`.
 pub(crate) fn query_each(

@@ -30,6 +30,34 @@ pub(crate) trait SqlRow {
     fn integer(&self, i: usize) -> Result<i64>;
 }
 
+/// `impl SqlRow for $t` through its `path` field and a generic
+/// `fn get<T>(&self, i: usize) -> Result<T>` (the client's own conversion).
+macro_rules! sql_row_via_get {
+    ($t:ty) => {
+        impl $crate::sql::row::SqlRow for $t {
+            fn path(&self) -> &::std::path::Path {
+                self.path
+            }
+            fn text(&self, i: usize) -> $crate::Result<String> {
+                self.get(i)
+            }
+            fn opt_text(&self, i: usize) -> $crate::Result<Option<String>> {
+                self.get(i)
+            }
+            fn real(&self, i: usize) -> $crate::Result<f64> {
+                self.get(i)
+            }
+            fn opt_real(&self, i: usize) -> $crate::Result<Option<f64>> {
+                self.get(i)
+            }
+            fn integer(&self, i: usize) -> $crate::Result<i64> {
+                self.get(i)
+            }
+        }
+    };
+}
+pub(crate) use sql_row_via_get;
+
 fn corrupt(path: &Path, reason: String) -> CdbError {
     CdbError::Corrupt {
         path: path.to_path_buf(),

@@ -70,6 +70,37 @@ fn node_key(tx: &dyn SqlTx) -> String {
     )
 }
 
+/// Sets a plan node's state (with its reason, or none), attempts and time.
+fn set_state(
+    tx: &mut dyn SqlTx,
+    [run_id, repeat, node]: [Param<'_>; 3],
+    state: &str,
+    reason: Option<&str>,
+    attempts: u32,
+    at_unix_s: f64,
+) -> Result<()> {
+    let d = tx.dialect();
+    let sql = format!(
+        "UPDATE progress SET state = {}, reason = {}, attempts = {}, updated_unix_s = {} {}",
+        d.placeholder(4),
+        d.placeholder(5),
+        d.placeholder(6),
+        d.placeholder(7),
+        node_key(tx)
+    );
+    let params = [
+        run_id,
+        repeat,
+        node,
+        Param::Text(state),
+        Param::OptText(reason),
+        attempts.into(),
+        Param::Real(at_unix_s),
+    ];
+    tx.execute(&sql, &params)?;
+    Ok(())
+}
+
 /// Registers a new run (status as given, normally [`RunStatus::Running`]).
 pub(crate) fn create_run(s: &mut impl SqlStore, run: &RunInfo) -> Result<()> {
     let path = s.path().to_path_buf();
@@ -282,24 +313,7 @@ pub(crate) fn commit_node(
             check_belongs(&path, run_id, &scanner_id, done, xyz, r)?;
             tx.insert_record(r)?;
         }
-        let sql = format!(
-            "UPDATE progress SET state = 'done', reason = NULL, attempts = {}, \
-             updated_unix_s = {} {}",
-            d.placeholder(4),
-            d.placeholder(5),
-            node_key(tx)
-        );
-        let [k1, k2, k3] = key;
-        tx.execute(
-            &sql,
-            &[
-                k1,
-                k2,
-                k3,
-                done.attempts.into(),
-                Param::Real(done.finished_unix_s),
-            ],
-        )?;
+        set_state(tx, key, "done", None, done.attempts, done.finished_unix_s)?;
         Ok(())
     })?;
     tracing::debug!(
@@ -338,25 +352,13 @@ pub(crate) fn give_up_node(
         if state != "pending" {
             return Err(not_pending(&path, run_id, repeat, node, &state));
         }
-        let sql = format!(
-            "UPDATE progress SET state = 'given_up', reason = {}, attempts = {}, \
-             updated_unix_s = {} {}",
-            d.placeholder(4),
-            d.placeholder(5),
-            d.placeholder(6),
-            node_key(tx)
-        );
-        let [k1, k2, k3] = key;
-        tx.execute(
-            &sql,
-            &[
-                k1,
-                k2,
-                k3,
-                Param::Text(reason),
-                visit.attempts.into(),
-                Param::Real(visit.finished_unix_s),
-            ],
+        set_state(
+            tx,
+            key,
+            "given_up",
+            Some(reason),
+            visit.attempts,
+            visit.finished_unix_s,
         )?;
         Ok(())
     })?;

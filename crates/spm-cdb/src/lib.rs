@@ -41,7 +41,9 @@
 //! # PostgreSQL (feature `postgres`)
 //! [`postgres`](crate::postgres) is the same CDB on a shared PostgreSQL server, for several
 //! instruments writing at once: same schema, versions and migrations, one transaction per
-//! node, [`ProgressStore`] over one SQL layer (`sql.rs`).
+//! node. Both back ends run one SQL layer (`src/sql/`): a dialect for what is spelled
+//! differently, then the same statements, row decoders, queries, progress writes (the one
+//! [`ProgressStore`] implementation) and integrity rules; see that module's documentation.
 //!
 //! # Test support (feature `test-support`)
 //! `bench_support` (synthetic records for benchmarks and tests) and, with `postgres`,

@@ -36,6 +36,8 @@ use std::sync::LazyLock;
 use postgres::types::{ToSql, Type};
 use postgres::{Client, NoTls, Row, Statement};
 
+#[cfg(doc)]
+use crate::ErrorKind;
 use crate::constraints::{Found, Kind};
 use crate::error::{CdbError, Result};
 use crate::schema::{APPLICATION_ID, SCHEMA_VERSION};

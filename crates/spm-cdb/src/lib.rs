@@ -41,20 +41,27 @@
 //! # PostgreSQL (feature `postgres`)
 //! [`postgres`](crate::postgres) is the same CDB on a shared PostgreSQL server, for several
 //! instruments writing at once: same schema, versions and migrations, one transaction per
-//! node, [`ProgressStore`] implemented twice. [`pg_server`](crate::pg_server) starts a private
-//! server for tests and benchmarks.
+//! node. Both back ends run one SQL layer (`src/sql/`): a dialect for what is spelled
+//! differently, then the same statements, row decoders, queries, progress writes (the one
+//! [`ProgressStore`] implementation) and integrity rules; see that module's documentation.
+//!
+//! # Test support (feature `test-support`)
+//! `bench_support` (synthetic records for benchmarks and tests) and, with `postgres`,
+//! `pg_server` (a private PostgreSQL server for tests and benchmarks) are compiled only with
+//! the feature `test-support`, which the dev-dependencies of the crates whose tests use them
+//! and xtask turn on: a program (`cargo build -p spmcal`) compiles neither.
 #![doc = include_str!("../README.md")]
 
 mod backup;
+#[cfg(feature = "test-support")]
 pub mod bench_support;
-mod columns;
 mod constraints;
 mod dynamics;
 mod error;
 mod export;
 mod identity;
 mod integrity;
-#[cfg(feature = "postgres")]
+#[cfg(all(feature = "postgres", feature = "test-support"))]
 pub mod pg_server;
 #[cfg(feature = "postgres")]
 mod pgpass;
@@ -62,9 +69,9 @@ mod pgpass;
 pub mod postgres;
 mod query;
 mod schema;
-mod store;
+mod sql;
 
-use rusqlite::{Connection, OpenFlags, TransactionBehavior, params};
+use rusqlite::{Connection, OpenFlags, TransactionBehavior};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -310,67 +317,36 @@ pub trait CdbRead {
     fn check(&self) -> Result<IntegrityReport>;
 }
 
-/// `CdbRead` for a type with `fn sqlite(&self) -> &Connection` and a `path` field.
+/// `CdbRead` for a type with `fn sqlite(&self) -> &Connection` and a `path` field: the
+/// shared queries (`sql::read`) on the SQLite adapter.
 macro_rules! sqlite_read {
     ($t:ty) => {
-        impl CdbRead for $t {
-            fn path(&self) -> &Path {
-                &self.path
-            }
-            fn schema_version(&self) -> Result<i64> {
-                self.sqlite()
-                    .pragma_query_value(None, "user_version", |r| r.get(0))
-                    .map_err(|e| CdbError::sqlite(&self.path, e))
-            }
-            fn for_each_record(
-                &self,
-                filter: &RecordFilter,
-                each: &mut dyn FnMut(LccRecord) -> Result<()>,
-            ) -> Result<()> {
-                query::for_each_record(self.sqlite(), &self.path, filter, each)
-            }
-            fn count_records(&self, filter: &RecordFilter) -> Result<u64> {
-                query::count_records(self.sqlite(), &self.path, filter)
-            }
-            fn columns(&self, filter: &RecordFilter) -> Result<LccColumns> {
-                query::columns(self.sqlite(), &self.path, filter)
-            }
-            fn scanners(&self) -> Result<Vec<String>> {
-                query::scanners(self.sqlite(), &self.path)
-            }
-            fn z_planes(&self, scanner_id: &str) -> Result<Vec<i64>> {
-                query::z_planes(self.sqlite(), &self.path, scanner_id)
-            }
-            fn run(&self, run_id: &str) -> Result<Option<RunInfo>> {
-                query::run(self.sqlite(), &self.path, run_id)
-            }
-            fn runs(&self, scanner_id: Option<&str>) -> Result<Vec<RunInfo>> {
-                query::runs(self.sqlite(), &self.path, scanner_id)
-            }
-            fn progress(&self, run_id: &str) -> Result<Vec<NodeProgress>> {
-                query::progress(self.sqlite(), &self.path, run_id)
-            }
-            fn next_pending(&self, run_id: &str) -> Result<Option<PlanNode>> {
-                query::next_pending(self.sqlite(), &self.path, run_id)
-            }
-            fn progress_summary(&self, run_id: &str) -> Result<ProgressSummary> {
-                query::progress_summary(self.sqlite(), &self.path, run_id)
-            }
-            fn dynamics(&self, scanner_id: Option<&str>) -> Result<Vec<DynamicsRecord>> {
-                dynamics::list(self.sqlite(), &self.path, scanner_id)
-            }
-            fn latest_dynamics(&self, scanner_id: &str) -> Result<Option<DynamicsRecord>> {
-                dynamics::latest(self.sqlite(), &self.path, scanner_id)
-            }
-            fn check(&self) -> Result<IntegrityReport> {
-                integrity::check(self.sqlite(), &self.path)
-            }
-        }
+        sql::read::sql_read!(
+            $t,
+            |s| sql: sql::sqlite::Conn::new(s.sqlite(), &s.path),
+            path: &s.path,
+            version: s
+                .sqlite()
+                .pragma_query_value(None, "user_version", |r| r.get(0))
+                .map_err(|e| CdbError::sqlite(&s.path, e)),
+            check: integrity::check(s.sqlite(), &s.path),
+        );
     };
 }
 
 sqlite_read!(Cdb);
 sqlite_read!(Snapshot<'_>);
+sql::write::progress_store!(Cdb);
+
+impl sql::write::SqlStore for Cdb {
+    fn write<T>(&mut self, f: impl FnOnce(&mut dyn sql::write::SqlTx) -> Result<T>) -> Result<T> {
+        let path = self.path.clone();
+        let tx = self.write_tx()?;
+        let out = f(&mut sql::sqlite::Conn::new(&tx, &path))?;
+        Self::commit(&path, tx)?;
+        Ok(out)
+    }
+}
 
 impl Snapshot<'_> {
     fn sqlite(&self) -> &Connection {
@@ -467,8 +443,6 @@ fn tune_cache(conn: &Connection) -> rusqlite::Result<()> {
 
 /// `PRAGMA mmap_size` of every connection: 0, no memory-mapped I/O (see [`tune_cache`]).
 pub const MMAP_SIZE: i64 = 0;
-
-use columns::{INSERT_RECORD, insert_record};
 
 /// Creates a new CDB so that no other process ever sees it half made: the schema is
 /// written to a hidden sibling file, which is then hard-linked into place (a link never
@@ -818,359 +792,7 @@ impl Cdb {
             .map_err(|e| CdbError::sqlite(&self.path, e))
     }
 
-    /// Registers a new run (status as given, normally [`RunStatus::Running`]).
-    ///
-    /// # Errors
-    /// [`ErrorKind::Conflict`] if the run id exists; [`ErrorKind::InvalidInput`] for empty ids
-    /// or non-finite times.
-    pub fn create_run(&mut self, run: &RunInfo) -> Result<()> {
-        let path = self.path.clone();
-        check_run_ids(&path, run)?;
-        check_time(&path, "started_unix_s", run.started_unix_s)?;
-        if let Some(t) = run.finished_unix_s {
-            check_time(&path, "finished_unix_s", t)?;
-        }
-        let err = |e| CdbError::sqlite(&path, e);
-        let tx = self.write_tx()?;
-        if query::run_exists(&tx, &path, &run.run_id)? {
-            return Err(CdbError::Conflict {
-                path,
-                reason: format!("run {:?} already exists", run.run_id),
-            });
-        }
-        tx.execute(
-            "INSERT INTO runs (run_id, scanner_id, config, started_unix_s, finished_unix_s, \
-             status, cdb_id) VALUES (?1, ?2, ?3, ?4, ?5, ?6, \
-             (SELECT id FROM cdb_identity ORDER BY rowid LIMIT 1))",
-            params![
-                run.run_id,
-                run.scanner_id,
-                run.config,
-                run.started_unix_s,
-                run.finished_unix_s,
-                run.status.as_str()
-            ],
-        )
-        .map_err(err)?;
-        Self::commit(&path, tx)?;
-        tracing::info!(run_id = %run.run_id, scanner_id = %run.scanner_id, "run created");
-        Ok(())
-    }
-
-    /// Sets a run's final status and end time.
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown run; [`ErrorKind::InvalidInput`] for a
-    /// non-finite time.
-    pub fn finish_run(
-        &mut self,
-        run_id: &str,
-        status: RunStatus,
-        finished_unix_s: f64,
-    ) -> Result<()> {
-        let path = self.path.clone();
-        check_time(&path, "finished_unix_s", finished_unix_s)?;
-        let err = |e| CdbError::sqlite(&path, e);
-        let tx = self.write_tx()?;
-        let n = tx
-            .execute(
-                "UPDATE runs SET status = ?2, finished_unix_s = ?3 WHERE run_id = ?1",
-                params![run_id, status.as_str(), finished_unix_s],
-            )
-            .map_err(err)?;
-        if n == 0 {
-            return Err(CdbError::NotFound {
-                path,
-                what: format!("run {run_id:?}"),
-            });
-        }
-        Self::commit(&path, tx)?;
-        tracing::info!(run_id, status = status.as_str(), "run finished");
-        Ok(())
-    }
-
-    /// Sets an unfinished run ('running', 'aborted' or 'failed') back to 'running' with no
-    /// end time, for a resume. A finished run is never reopened.
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown run; [`ErrorKind::Conflict`] for a finished one.
-    pub fn reopen_run(&mut self, run_id: &str) -> Result<()> {
-        let path = self.path.clone();
-        let err = |e| CdbError::sqlite(&path, e);
-        let tx = self.write_tx()?;
-        let run = query::run(&tx, &path, run_id)?.ok_or_else(|| CdbError::NotFound {
-            path: path.clone(),
-            what: format!("run {run_id:?}"),
-        })?;
-        if run.status == RunStatus::Finished {
-            return Err(CdbError::Conflict {
-                path,
-                reason: format!("run {run_id:?} is finished and cannot be resumed"),
-            });
-        }
-        tx.execute(
-            "UPDATE runs SET status = 'running', finished_unix_s = NULL WHERE run_id = ?1",
-            params![run_id],
-        )
-        .map_err(err)?;
-        Self::commit(&path, tx)?;
-        tracing::info!(run_id, "run reopened");
-        Ok(())
-    }
-
-    /// Registers a run's plan (all nodes pending) in one transaction. Idempotent: nodes
-    /// already registered with the same coordinates are left as they are (so a resumed run
-    /// may call it again).
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown run; [`ErrorKind::Conflict`] if a node exists
-    /// with other coordinates.
-    pub fn register_plan(&mut self, run_id: &str, nodes: &[PlanNode]) -> Result<()> {
-        let path = self.path.clone();
-        let err = |e| CdbError::sqlite(&path, e);
-        let tx = self.write_tx()?;
-        if !query::run_exists(&tx, &path, run_id)? {
-            return Err(CdbError::NotFound {
-                path,
-                what: format!("run {run_id:?}"),
-            });
-        }
-        {
-            let mut get = tx
-                .prepare(
-                    "SELECT node_x_counts, node_y_counts, node_z_counts FROM progress \
-                     WHERE run_id = ?1 AND repeat_index = ?2 AND node_index = ?3",
-                )
-                .map_err(err)?;
-            let mut put = tx
-                .prepare(
-                    "INSERT INTO progress (run_id, repeat_index, node_index, node_x_counts, \
-                     node_y_counts, node_z_counts, state, attempts) \
-                     VALUES (?1, ?2, ?3, ?4, ?5, ?6, 'pending', 0)",
-                )
-                .map_err(err)?;
-            for n in nodes {
-                let mut rows = get
-                    .query(params![run_id, n.repeat_index, n.node_index])
-                    .map_err(err)?;
-                if let Some(r) = rows.next().map_err(err)? {
-                    let xyz: (i64, i64, i64) = (
-                        r.get(0).map_err(err)?,
-                        r.get(1).map_err(err)?,
-                        r.get(2).map_err(err)?,
-                    );
-                    if xyz != (n.node_x_counts, n.node_y_counts, n.node_z_counts) {
-                        return Err(CdbError::Conflict {
-                            path,
-                            reason: format!(
-                                "run {run_id:?} repeat {} node {} is registered at {xyz:?}",
-                                n.repeat_index, n.node_index
-                            ),
-                        });
-                    }
-                    continue;
-                }
-                drop(rows);
-                put.execute(params![
-                    run_id,
-                    n.repeat_index,
-                    n.node_index,
-                    n.node_x_counts,
-                    n.node_y_counts,
-                    n.node_z_counts
-                ])
-                .map_err(err)?;
-            }
-        }
-        Self::commit(&path, tx)?;
-        tracing::debug!(run_id, nodes = nodes.len(), "plan registered");
-        Ok(())
-    }
-
-    /// Stores a measured node: inserts its `records` and marks the plan node done, in one
-    /// transaction (all or nothing). Every record must belong to this run, repeat and node,
-    /// carry the plan node's coordinates and the run's scanner.
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown run or plan node; [`ErrorKind::Conflict`] if
-    /// the node is not pending or a record duplicates an LCS index;
-    /// [`ErrorKind::InvalidInput`] for invalid or mismatched records or an empty slice.
-    pub fn commit_node(
-        &mut self,
-        run_id: &str,
-        done: &NodeDone,
-        records: &[LccRecord],
-    ) -> Result<()> {
-        let path = self.path.clone();
-        check_time(&path, "finished_unix_s", done.finished_unix_s)?;
-        if records.is_empty() {
-            return Err(invalid(
-                &path,
-                "commit_node needs at least one record (use give_up_node otherwise)".into(),
-            ));
-        }
-        for r in records {
-            validate_record(&path, r)?;
-        }
-        let err = |e| CdbError::sqlite(&path, e);
-        let tx = self.write_tx()?;
-        let run = query::run(&tx, &path, run_id)?.ok_or_else(|| CdbError::NotFound {
-            path: path.clone(),
-            what: format!("run {run_id:?}"),
-        })?;
-        let plan = tx.query_row(
-            "SELECT node_x_counts, node_y_counts, node_z_counts, state FROM progress \
-                 WHERE run_id = ?1 AND repeat_index = ?2 AND node_index = ?3",
-            params![run_id, done.repeat_index, done.node_index],
-            |r| {
-                Ok((
-                    r.get::<_, i64>(0)?,
-                    r.get::<_, i64>(1)?,
-                    r.get::<_, i64>(2)?,
-                    r.get::<_, String>(3)?,
-                ))
-            },
-        );
-        let (x, y, z, state) = match plan {
-            Ok(p) => p,
-            Err(rusqlite::Error::QueryReturnedNoRows) => {
-                return Err(CdbError::NotFound {
-                    path,
-                    what: format!(
-                        "plan node (run {run_id:?}, repeat {}, node {})",
-                        done.repeat_index, done.node_index
-                    ),
-                });
-            }
-            Err(e) => return Err(err(e)),
-        };
-        if state != "pending" {
-            return Err(CdbError::Conflict {
-                path,
-                reason: format!(
-                    "run {run_id:?} repeat {} node {} is {state}, not pending",
-                    done.repeat_index, done.node_index
-                ),
-            });
-        }
-        for r in records {
-            check_belongs(&path, run_id, &run.scanner_id, done, (x, y, z), r)?;
-            let mut stmt = tx.prepare_cached(&INSERT_RECORD).map_err(err)?;
-            insert_record(&mut stmt, r).map_err(err)?;
-        }
-        tx.execute(
-            "UPDATE progress SET state = 'done', reason = NULL, attempts = ?4, \
-             updated_unix_s = ?5 WHERE run_id = ?1 AND repeat_index = ?2 AND node_index = ?3",
-            params![
-                run_id,
-                done.repeat_index,
-                done.node_index,
-                done.attempts,
-                done.finished_unix_s
-            ],
-        )
-        .map_err(err)?;
-        Self::commit(&path, tx)?;
-        tracing::debug!(
-            run_id,
-            repeat = done.repeat_index,
-            node = done.node_index,
-            records = records.len(),
-            "node committed"
-        );
-        Ok(())
-    }
-
-    /// Marks a pending plan node as given up, with the reason.
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown node; [`ErrorKind::Conflict`] if not pending;
-    /// [`ErrorKind::InvalidInput`] for an empty reason or a non-finite time.
-    pub fn give_up_node(
-        &mut self,
-        run_id: &str,
-        repeat_index: u32,
-        node_index: u32,
-        reason: &str,
-        attempts: u32,
-        at_unix_s: f64,
-    ) -> Result<()> {
-        let path = self.path.clone();
-        check_time(&path, "at_unix_s", at_unix_s)?;
-        if reason.trim().is_empty() {
-            return Err(invalid(&path, "a given-up node needs a reason".into()));
-        }
-        let err = |e| CdbError::sqlite(&path, e);
-        let tx = self.write_tx()?;
-        let state: Option<String> = match tx.query_row(
-            "SELECT state FROM progress WHERE run_id = ?1 AND repeat_index = ?2 AND node_index = ?3",
-            params![run_id, repeat_index, node_index],
-            |r| r.get(0),
-        ) {
-            Ok(s) => Some(s),
-            Err(rusqlite::Error::QueryReturnedNoRows) => None,
-            Err(e) => return Err(err(e)),
-        };
-        match state.as_deref() {
-            None => {
-                return Err(CdbError::NotFound {
-                    path,
-                    what: format!(
-                        "plan node (run {run_id:?}, repeat {repeat_index}, node {node_index})"
-                    ),
-                });
-            }
-            Some("pending") => {}
-            Some(other) => {
-                return Err(CdbError::Conflict {
-                    path,
-                    reason: format!(
-                        "run {run_id:?} repeat {repeat_index} node {node_index} is {other}, not pending"
-                    ),
-                });
-            }
-        }
-        tx.execute(
-            "UPDATE progress SET state = 'given_up', reason = ?4, attempts = ?5, \
-             updated_unix_s = ?6 WHERE run_id = ?1 AND repeat_index = ?2 AND node_index = ?3",
-            params![
-                run_id,
-                repeat_index,
-                node_index,
-                reason,
-                attempts,
-                at_unix_s
-            ],
-        )
-        .map_err(err)?;
-        Self::commit(&path, tx)?;
-        tracing::warn!(run_id, repeat_index, node_index, reason, "node given up");
-        Ok(())
-    }
-
-    /// Stores the scanner dynamics a run identified, in one transaction that steps the
-    /// identity's generation like every write. The run must be stored and on the record's
-    /// scanner.
-    ///
-    /// # Errors
-    /// [`ErrorKind::InvalidInput`] for a record that breaks [`DynamicsRecord::check`] (the
-    /// message names the field) or whose scanner is not its run's; [`ErrorKind::NotFound`]
-    /// for an unknown run. Nothing is written on error.
-    pub fn store_dynamics(&mut self, dynamics: &DynamicsRecord) -> Result<()> {
-        let path = self.path.clone();
-        dynamics::validate(&path, dynamics)?;
-        let tx = self.write_tx()?;
-        dynamics::insert(&tx, &path, dynamics)?;
-        Self::commit(&path, tx)?;
-        tracing::info!(
-            run_id = %dynamics.run_id,
-            scanner_id = %dynamics.scanner_id,
-            model_format = %dynamics.model_format,
-            model_version = dynamics.model_version,
-            "scanner dynamics stored"
-        );
-        Ok(())
-    }
+    sql::write::write_methods!();
 
     /// Bulk import: inserts records (of existing runs, outside any plan) in one transaction;
     /// accepts records or references, so a large import can be streamed from a generator.
@@ -1191,11 +813,13 @@ impl Cdb {
         let mut n = 0;
         {
             // One prepared statement for the whole import (no per-row cache lookup).
-            let mut stmt = tx.prepare(&INSERT_RECORD).map_err(err)?;
+            let mut stmt = tx
+                .prepare(sql::insert_record(sql::Dialect::Sqlite))
+                .map_err(err)?;
             for r in records {
                 let r = std::borrow::Borrow::borrow(&r);
                 validate_record(&path, r)?;
-                insert_record(&mut stmt, r).map_err(err)?;
+                sql::sqlite::insert_record(&mut stmt, r).map_err(err)?;
                 n += 1;
             }
         }

@@ -36,15 +36,16 @@ use std::sync::LazyLock;
 use postgres::types::{ToSql, Type};
 use postgres::{Client, NoTls, Row, Statement};
 
+#[cfg(doc)]
+use crate::ErrorKind;
 use crate::constraints::{Found, Kind};
-use crate::dynamics::DYNAMICS_COLUMNS;
 use crate::error::{CdbError, Result};
 use crate::schema::{APPLICATION_ID, SCHEMA_VERSION};
-use crate::{CdbRead, check_belongs, check_run_ids, check_time, invalid, validate_record};
+use crate::sql::checks::{self, Checker};
+use crate::sql::{self, Dialect};
+use crate::{invalid, validate_record};
 use spm_records::{
-    ColumnKind, ColumnValue, DynamicsRecord, IntegrityProblem, IntegrityReport, LCC_RECORD_COLUMNS,
-    LccColumns, LccRecord, NodeDone, NodeProgress, NodeState, OwnedColumnValue, PlanNode,
-    ProgressStore, ProgressSummary, RecordFilter, RunInfo, RunStatus, UNCERTAINTY_COLUMNS,
+    ColumnKind, ColumnValue, IntegrityReport, LCC_RECORD_COLUMNS, LccRecord, UNCERTAINTY_COLUMNS,
 };
 
 /// True if `location` names a PostgreSQL database (`postgres://` or `postgresql://`) rather
@@ -227,16 +228,6 @@ const MIGRATIONS: &[(&str, &str)] = &[
     ),
 ];
 
-/// The PostgreSQL type and constraint of a record column kind.
-fn sql_type(kind: ColumnKind) -> &'static str {
-    match kind {
-        ColumnKind::Text => "TEXT NOT NULL",
-        ColumnKind::Real => "DOUBLE PRECISION NOT NULL",
-        ColumnKind::OptionalReal => "DOUBLE PRECISION",
-        ColumnKind::Integer => "BIGINT NOT NULL",
-    }
-}
-
 /// The v1 schema: `runs`, `progress`, and `records` with the columns of
 /// [`LCC_RECORD_COLUMNS`] that v1 had.
 static SCHEMA_V1: LazyLock<String> = LazyLock::new(|| {
@@ -249,7 +240,11 @@ static SCHEMA_V1: LazyLock<String> = LazyLock::new(|| {
                 "lcs_index" => " DEFAULT 0",
                 _ => "",
             };
-            format!("    {} {}{extra}", c.name, sql_type(c.kind))
+            format!(
+                "    {} {}{extra}",
+                c.name,
+                Dialect::Postgres.column_type(c.kind)
+            )
         })
         .collect();
     format!(
@@ -291,30 +286,9 @@ CREATE INDEX records_plane ON records (scanner_id, node_z_counts, acquired_unix_
     )
 });
 
-/// `scanner_id, run_id, …, quality` in [`LCC_RECORD_COLUMNS`] order.
-static RECORD_COLUMNS: LazyLock<String> = LazyLock::new(|| {
-    LCC_RECORD_COLUMNS
-        .iter()
-        .map(|c| c.name)
-        .collect::<Vec<_>>()
-        .join(", ")
-});
-
-/// `INSERT INTO records (…) VALUES ($1, …, $25)`.
-static INSERT_RECORD: LazyLock<String> = LazyLock::new(|| {
-    let placeholders: Vec<String> = (1..=LCC_RECORD_COLUMNS.len())
-        .map(|i| format!("${i}"))
-        .collect();
-    format!(
-        "INSERT INTO records ({}) VALUES ({})",
-        *RECORD_COLUMNS,
-        placeholders.join(", ")
-    )
-});
-
 /// A record value bound as a statement parameter.
 #[derive(Debug)]
-struct Bind<'a>(ColumnValue<'a>);
+pub(crate) struct Bind<'a>(ColumnValue<'a>);
 
 impl ToSql for Bind<'_> {
     fn to_sql(
@@ -336,11 +310,13 @@ impl ToSql for Bind<'_> {
     postgres::types::to_sql_checked!();
 }
 
-fn binds(r: &LccRecord) -> [Bind<'_>; LCC_RECORD_COLUMNS.len()] {
+pub(crate) fn binds(r: &LccRecord) -> [Bind<'_>; LCC_RECORD_COLUMNS.len()] {
     r.column_values().map(Bind)
 }
 
-fn bind_refs<'a>(values: &'a [Bind<'a>; LCC_RECORD_COLUMNS.len()]) -> Vec<&'a (dyn ToSql + Sync)> {
+pub(crate) fn bind_refs<'a>(
+    values: &'a [Bind<'a>; LCC_RECORD_COLUMNS.len()],
+) -> Vec<&'a (dyn ToSql + Sync)> {
     values.iter().map(|b| b as &(dyn ToSql + Sync)).collect()
 }
 
@@ -351,98 +327,6 @@ fn copy_type(kind: ColumnKind) -> Type {
         ColumnKind::Real | ColumnKind::OptionalReal => Type::FLOAT8,
         ColumnKind::Integer => Type::INT8,
     }
-}
-
-/// Reads a row selected with [`RECORD_COLUMNS`] (starting at column 0).
-fn record_from_row(path: &Path, row: &Row) -> Result<LccRecord> {
-    let corrupt = |e: postgres::Error| CdbError::Corrupt {
-        path: path.to_path_buf(),
-        reason: e.to_string(),
-    };
-    let mut values: [OwnedColumnValue; LCC_RECORD_COLUMNS.len()] =
-        std::array::from_fn(|_| OwnedColumnValue::OptionalReal(None));
-    for (i, (col, slot)) in LCC_RECORD_COLUMNS.iter().zip(values.iter_mut()).enumerate() {
-        *slot = match col.kind {
-            ColumnKind::Text => OwnedColumnValue::Text(row.try_get(i).map_err(corrupt)?),
-            ColumnKind::Real => OwnedColumnValue::Real(row.try_get(i).map_err(corrupt)?),
-            ColumnKind::OptionalReal => {
-                OwnedColumnValue::OptionalReal(row.try_get(i).map_err(corrupt)?)
-            }
-            ColumnKind::Integer => OwnedColumnValue::Integer(row.try_get(i).map_err(corrupt)?),
-        };
-    }
-    LccRecord::from_column_values(values).map_err(|p| CdbError::Corrupt {
-        path: path.to_path_buf(),
-        reason: p.to_string(),
-    })
-}
-
-/// A filter parameter.
-#[derive(Debug)]
-enum Param {
-    Text(String),
-    Integer(i64),
-    Real(f64),
-}
-
-impl Param {
-    fn as_sql(&self) -> &(dyn ToSql + Sync) {
-        match self {
-            Self::Text(t) => t,
-            Self::Integer(v) => v,
-            Self::Real(v) => v,
-        }
-    }
-}
-
-fn where_clause(f: &RecordFilter) -> (String, Vec<Param>) {
-    let mut terms = Vec::new();
-    let mut params = Vec::new();
-    let mut add = |column: &str, op: &str, p: Param| {
-        params.push(p);
-        terms.push(format!("{column} {op} ${}", params.len()));
-    };
-    if let Some(s) = &f.scanner_id {
-        add("scanner_id", "=", Param::Text(s.clone()));
-    }
-    if let Some(r) = &f.run_id {
-        add("run_id", "=", Param::Text(r.clone()));
-    }
-    if let Some(z) = f.node_z_counts {
-        add("node_z_counts", "=", Param::Integer(z));
-    }
-    if let Some(t) = f.since_unix_s {
-        add("acquired_unix_s", ">=", Param::Real(t));
-    }
-    if let Some(t) = f.until_unix_s {
-        add("acquired_unix_s", "<=", Param::Real(t));
-    }
-    if terms.is_empty() {
-        (String::new(), params)
-    } else {
-        (format!(" WHERE {}", terms.join(" AND ")), params)
-    }
-}
-
-fn check_filter(path: &Path, f: &RecordFilter) -> Result<()> {
-    for t in [f.since_unix_s, f.until_unix_s].into_iter().flatten() {
-        if !t.is_finite() {
-            return Err(invalid(path, format!("non-finite time bound {t}")));
-        }
-    }
-    Ok(())
-}
-
-fn index(v: u32) -> i64 {
-    i64::from(v)
-}
-
-/// A stored index (BIGINT) as `u32`, or a `Corrupt` error naming the column.
-fn stored_index(path: &Path, column: &str, v: i64) -> Result<u32> {
-    u32::try_from(v).map_err(|_| CdbError::Corrupt {
-        path: path.to_path_buf(),
-        reason: format!("{column} = {v} is not an index"),
-    })
 }
 
 /// What a look at a database found.
@@ -501,26 +385,12 @@ fn check_probe(path: &Path, p: &Probe) -> Result<()> {
             reason: format!("schema_version has application_id {other:#x}"),
         });
     }
-    if p.version > SCHEMA_VERSION {
-        return Err(CdbError::NewerSchema {
-            path: path.to_path_buf(),
-            found: p.version,
-            supported: SCHEMA_VERSION,
-        });
-    }
-    if p.version == 0 && p.cdb_tables > 0 {
-        return Err(CdbError::NotACdb {
-            path: path.to_path_buf(),
-            reason: "tables runs/progress/records present but no schema_version".into(),
-        });
-    }
-    if p.version < 0 {
-        return Err(CdbError::NotACdb {
-            path: path.to_path_buf(),
-            reason: format!("negative schema version {}", p.version),
-        });
-    }
-    Ok(())
+    crate::schema::check_version(
+        path,
+        p.version,
+        p.cdb_tables > 0,
+        "tables runs/progress/records present but no schema_version",
+    )
 }
 
 /// Creates the schema in an empty database or migrates an older one up to `target`, one
@@ -810,7 +680,7 @@ impl PgCdb {
     }
 
     /// The client, for reads through `&self` (one query at a time).
-    fn client(&self) -> Result<RefMut<'_, Client>> {
+    pub(crate) fn client(&self) -> Result<RefMut<'_, Client>> {
         self.client.try_borrow_mut().map_err(|_| {
             invalid(
                 &self.path,
@@ -847,403 +717,7 @@ impl PgCdb {
         Ok(PgSnapshot { db: self })
     }
 
-    /// Registers a new run (status as given, normally [`RunStatus::Running`]).
-    ///
-    /// # Errors
-    /// [`ErrorKind::Conflict`] if the run id exists; [`ErrorKind::InvalidInput`] for empty ids
-    /// or non-finite times.
-    pub fn create_run(&mut self, run: &RunInfo) -> Result<()> {
-        let path = self.path.clone();
-        check_run_ids(&path, run)?;
-        check_time(&path, "started_unix_s", run.started_unix_s)?;
-        if let Some(t) = run.finished_unix_s {
-            check_time(&path, "finished_unix_s", t)?;
-        }
-        let n = self
-            .client
-            .get_mut()
-            .execute(
-                "INSERT INTO runs (run_id, scanner_id, config, started_unix_s, finished_unix_s, \
-                 status, cdb_id) VALUES ($1, $2, $3, $4, $5, $6, \
-                 (SELECT id FROM cdb_identity LIMIT 1)) ON CONFLICT (run_id) DO NOTHING",
-                &[
-                    &run.run_id,
-                    &run.scanner_id,
-                    &run.config,
-                    &run.started_unix_s,
-                    &run.finished_unix_s,
-                    &run.status.as_str(),
-                ],
-            )
-            .map_err(|e| CdbError::postgres(&path, e))?;
-        if n == 0 {
-            return Err(CdbError::Conflict {
-                path,
-                reason: format!("run {:?} already exists", run.run_id),
-            });
-        }
-        tracing::info!(run_id = %run.run_id, scanner_id = %run.scanner_id, "run created");
-        Ok(())
-    }
-
-    /// Sets a run's final status and end time.
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown run; [`ErrorKind::InvalidInput`] for a
-    /// non-finite time.
-    pub fn finish_run(
-        &mut self,
-        run_id: &str,
-        status: RunStatus,
-        finished_unix_s: f64,
-    ) -> Result<()> {
-        let path = self.path.clone();
-        check_time(&path, "finished_unix_s", finished_unix_s)?;
-        let n = self
-            .client
-            .get_mut()
-            .execute(
-                "UPDATE runs SET status = $2, finished_unix_s = $3 WHERE run_id = $1",
-                &[&run_id, &status.as_str(), &finished_unix_s],
-            )
-            .map_err(|e| CdbError::postgres(&path, e))?;
-        if n == 0 {
-            return Err(CdbError::NotFound {
-                path,
-                what: format!("run {run_id:?}"),
-            });
-        }
-        tracing::info!(run_id, status = status.as_str(), "run finished");
-        Ok(())
-    }
-
-    /// Sets an unfinished run back to 'running' with no end time, for a resume. A finished run
-    /// is never reopened.
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown run; [`ErrorKind::Conflict`] for a finished one.
-    pub fn reopen_run(&mut self, run_id: &str) -> Result<()> {
-        let path = self.path.clone();
-        let err = |e| CdbError::postgres(&path, e);
-        let mut tx = self.client.get_mut().transaction().map_err(err)?;
-        let row = tx
-            .query_opt(
-                "SELECT status FROM runs WHERE run_id = $1 FOR UPDATE",
-                &[&run_id],
-            )
-            .map_err(err)?
-            .ok_or_else(|| CdbError::NotFound {
-                path: path.clone(),
-                what: format!("run {run_id:?}"),
-            })?;
-        let status: String = row.try_get(0).map_err(err)?;
-        if status == RunStatus::Finished.as_str() {
-            return Err(CdbError::Conflict {
-                path,
-                reason: format!("run {run_id:?} is finished and cannot be resumed"),
-            });
-        }
-        tx.execute(
-            "UPDATE runs SET status = 'running', finished_unix_s = NULL WHERE run_id = $1",
-            &[&run_id],
-        )
-        .map_err(err)?;
-        tx.commit().map_err(err)?;
-        tracing::info!(run_id, "run reopened");
-        Ok(())
-    }
-
-    /// Registers a run's plan (all nodes pending) in one transaction. Idempotent: nodes
-    /// already registered with the same coordinates are left as they are.
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown run; [`ErrorKind::Conflict`] if a node exists
-    /// with other coordinates.
-    pub fn register_plan(&mut self, run_id: &str, nodes: &[PlanNode]) -> Result<()> {
-        let path = self.path.clone();
-        let err = |e| CdbError::postgres(&path, e);
-        let mut tx = self.client.get_mut().transaction().map_err(err)?;
-        if tx
-            .query_opt("SELECT 1 FROM runs WHERE run_id = $1", &[&run_id])
-            .map_err(err)?
-            .is_none()
-        {
-            return Err(CdbError::NotFound {
-                path,
-                what: format!("run {run_id:?}"),
-            });
-        }
-        let put = tx
-            .prepare(
-                "INSERT INTO progress (run_id, repeat_index, node_index, node_x_counts, \
-                 node_y_counts, node_z_counts, state, attempts) \
-                 VALUES ($1, $2, $3, $4, $5, $6, 'pending', 0) \
-                 ON CONFLICT (run_id, repeat_index, node_index) DO NOTHING",
-            )
-            .map_err(err)?;
-        for n in nodes {
-            tx.execute(
-                &put,
-                &[
-                    &run_id,
-                    &index(n.repeat_index),
-                    &index(n.node_index),
-                    &n.node_x_counts,
-                    &n.node_y_counts,
-                    &n.node_z_counts,
-                ],
-            )
-            .map_err(err)?;
-        }
-        // Nodes registered before (by this run's earlier start) must be at the same place.
-        let stored: HashMap<(i64, i64), (i64, i64, i64)> = tx
-            .query(
-                "SELECT repeat_index, node_index, node_x_counts, node_y_counts, node_z_counts \
-                 FROM progress WHERE run_id = $1",
-                &[&run_id],
-            )
-            .map_err(err)?
-            .iter()
-            .map(|r| {
-                Ok((
-                    (r.try_get(0)?, r.try_get(1)?),
-                    (r.try_get(2)?, r.try_get(3)?, r.try_get(4)?),
-                ))
-            })
-            .collect::<std::result::Result<_, postgres::Error>>()
-            .map_err(err)?;
-        for n in nodes {
-            let key = (index(n.repeat_index), index(n.node_index));
-            let want = (n.node_x_counts, n.node_y_counts, n.node_z_counts);
-            if let Some(&xyz) = stored.get(&key)
-                && xyz != want
-            {
-                return Err(CdbError::Conflict {
-                    path,
-                    reason: format!(
-                        "run {run_id:?} repeat {} node {} is registered at {xyz:?}",
-                        n.repeat_index, n.node_index
-                    ),
-                });
-            }
-        }
-        tx.commit().map_err(err)?;
-        tracing::debug!(run_id, nodes = nodes.len(), "plan registered");
-        Ok(())
-    }
-
-    /// Stores a measured node: inserts its `records` and marks the plan node done, in one
-    /// transaction that holds the plan row's lock (all or nothing). Every record must belong
-    /// to this run, repeat and node, carry the plan node's coordinates and the run's scanner.
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown run or plan node; [`ErrorKind::Conflict`] if
-    /// the node is not pending (also when another program committed it meanwhile) or a record
-    /// duplicates an LCS index; [`ErrorKind::InvalidInput`] for invalid or mismatched records
-    /// or an empty slice.
-    pub fn commit_node(
-        &mut self,
-        run_id: &str,
-        done: &NodeDone,
-        records: &[LccRecord],
-    ) -> Result<()> {
-        let path = self.path.clone();
-        check_time(&path, "finished_unix_s", done.finished_unix_s)?;
-        if records.is_empty() {
-            return Err(invalid(
-                &path,
-                "commit_node needs at least one record (use give_up_node otherwise)".into(),
-            ));
-        }
-        for r in records {
-            validate_record(&path, r)?;
-        }
-        let err = |e| CdbError::postgres(&path, e);
-        let client = self.client.get_mut();
-        let insert = match &self.insert {
-            Some(s) => s.clone(),
-            None => {
-                let s = client.prepare(&INSERT_RECORD).map_err(err)?;
-                self.insert = Some(s.clone());
-                s
-            }
-        };
-        let mut tx = client.transaction().map_err(err)?;
-        let scanner_id: String = tx
-            .query_opt("SELECT scanner_id FROM runs WHERE run_id = $1", &[&run_id])
-            .map_err(err)?
-            .ok_or_else(|| CdbError::NotFound {
-                path: path.clone(),
-                what: format!("run {run_id:?}"),
-            })?
-            .try_get(0)
-            .map_err(err)?;
-        let plan = tx
-            .query_opt(
-                "SELECT node_x_counts, node_y_counts, node_z_counts, state FROM progress \
-                 WHERE run_id = $1 AND repeat_index = $2 AND node_index = $3 FOR UPDATE",
-                &[&run_id, &index(done.repeat_index), &index(done.node_index)],
-            )
-            .map_err(err)?
-            .ok_or_else(|| CdbError::NotFound {
-                path: path.clone(),
-                what: format!(
-                    "plan node (run {run_id:?}, repeat {}, node {})",
-                    done.repeat_index, done.node_index
-                ),
-            })?;
-        let xyz: (i64, i64, i64) = (
-            plan.try_get(0).map_err(err)?,
-            plan.try_get(1).map_err(err)?,
-            plan.try_get(2).map_err(err)?,
-        );
-        let state: String = plan.try_get(3).map_err(err)?;
-        if state != "pending" {
-            return Err(CdbError::Conflict {
-                path,
-                reason: format!(
-                    "run {run_id:?} repeat {} node {} is {state}, not pending",
-                    done.repeat_index, done.node_index
-                ),
-            });
-        }
-        for r in records {
-            check_belongs(&path, run_id, &scanner_id, done, xyz, r)?;
-            let values = binds(r);
-            tx.execute(&insert, &bind_refs(&values)).map_err(err)?;
-        }
-        tx.execute(
-            "UPDATE progress SET state = 'done', reason = NULL, attempts = $4, \
-             updated_unix_s = $5 WHERE run_id = $1 AND repeat_index = $2 AND node_index = $3",
-            &[
-                &run_id,
-                &index(done.repeat_index),
-                &index(done.node_index),
-                &index(done.attempts),
-                &done.finished_unix_s,
-            ],
-        )
-        .map_err(err)?;
-        tx.commit().map_err(err)?;
-        tracing::debug!(
-            run_id,
-            repeat = done.repeat_index,
-            node = done.node_index,
-            records = records.len(),
-            "node committed"
-        );
-        Ok(())
-    }
-
-    /// Marks a pending plan node as given up, with the reason.
-    ///
-    /// # Errors
-    /// [`ErrorKind::NotFound`] for an unknown node; [`ErrorKind::Conflict`] if not pending;
-    /// [`ErrorKind::InvalidInput`] for an empty reason or a non-finite time.
-    pub fn give_up_node(
-        &mut self,
-        run_id: &str,
-        repeat_index: u32,
-        node_index: u32,
-        reason: &str,
-        attempts: u32,
-        at_unix_s: f64,
-    ) -> Result<()> {
-        let path = self.path.clone();
-        check_time(&path, "at_unix_s", at_unix_s)?;
-        if reason.trim().is_empty() {
-            return Err(invalid(&path, "a given-up node needs a reason".into()));
-        }
-        let err = |e| CdbError::postgres(&path, e);
-        let mut tx = self.client.get_mut().transaction().map_err(err)?;
-        let key: [&(dyn ToSql + Sync); 3] = [&run_id, &index(repeat_index), &index(node_index)];
-        let state: String = tx
-            .query_opt(
-                "SELECT state FROM progress WHERE run_id = $1 AND repeat_index = $2 \
-                 AND node_index = $3 FOR UPDATE",
-                &key,
-            )
-            .map_err(err)?
-            .ok_or_else(|| CdbError::NotFound {
-                path: path.clone(),
-                what: format!(
-                    "plan node (run {run_id:?}, repeat {repeat_index}, node {node_index})"
-                ),
-            })?
-            .try_get(0)
-            .map_err(err)?;
-        if state != "pending" {
-            return Err(CdbError::Conflict {
-                path,
-                reason: format!(
-                    "run {run_id:?} repeat {repeat_index} node {node_index} is {state}, not pending"
-                ),
-            });
-        }
-        tx.execute(
-            "UPDATE progress SET state = 'given_up', reason = $4, attempts = $5, \
-             updated_unix_s = $6 WHERE run_id = $1 AND repeat_index = $2 AND node_index = $3",
-            &[
-                &run_id,
-                &index(repeat_index),
-                &index(node_index),
-                &reason,
-                &index(attempts),
-                &at_unix_s,
-            ],
-        )
-        .map_err(err)?;
-        tx.commit().map_err(err)?;
-        tracing::warn!(run_id, repeat_index, node_index, reason, "node given up");
-        Ok(())
-    }
-
-    /// Stores the scanner dynamics a run identified, in one transaction that holds the run
-    /// row's share lock. The run must be stored and on the record's scanner. (Like every
-    /// write on PostgreSQL, it leaves the identity's generation alone.)
-    ///
-    /// # Errors
-    /// [`ErrorKind::InvalidInput`] for a record that breaks
-    /// [`spm_records::DynamicsRecord::check`] (the message names the field) or whose scanner
-    /// is not its run's; [`ErrorKind::NotFound`] for an unknown run. Nothing is written on
-    /// error.
-    pub fn store_dynamics(&mut self, dynamics: &DynamicsRecord) -> Result<()> {
-        let path = self.path.clone();
-        crate::dynamics::validate(&path, dynamics)?;
-        let err = |e| CdbError::postgres(&path, e);
-        let mut tx = self.client.get_mut().transaction().map_err(err)?;
-        let run_scanner: String = tx
-            .query_opt(
-                "SELECT scanner_id FROM runs WHERE run_id = $1 FOR SHARE",
-                &[&dynamics.run_id],
-            )
-            .map_err(err)?
-            .ok_or_else(|| crate::dynamics::unknown_run(&path, dynamics))?
-            .try_get(0)
-            .map_err(err)?;
-        crate::dynamics::check_run_scanner(&path, dynamics, &run_scanner)?;
-        tx.execute(
-            &format!("INSERT INTO dynamics ({DYNAMICS_COLUMNS}) VALUES ($1, $2, $3, $4, $5, $6)"),
-            &[
-                &dynamics.run_id,
-                &dynamics.scanner_id,
-                &dynamics.identified_unix_s,
-                &dynamics.model_format,
-                &i64::from(dynamics.model_version),
-                &dynamics.model_json,
-            ],
-        )
-        .map_err(err)?;
-        tx.commit().map_err(err)?;
-        tracing::info!(
-            run_id = %dynamics.run_id,
-            scanner_id = %dynamics.scanner_id,
-            model_format = %dynamics.model_format,
-            model_version = dynamics.model_version,
-            "scanner dynamics stored"
-        );
-        Ok(())
-    }
+    sql::write::write_methods!();
 
     /// Bulk import: inserts records (of existing runs, outside any plan) in one transaction
     /// with a binary `COPY`. Returns the number inserted.
@@ -1267,7 +741,7 @@ impl PgCdb {
         let sink = tx
             .copy_in(&format!(
                 "COPY records ({}) FROM STDIN (FORMAT binary)",
-                *RECORD_COLUMNS
+                sql::record_columns()
             ))
             .map_err(err)?;
         let mut writer = postgres::binary_copy::BinaryCopyInWriter::new(sink, &types);
@@ -1290,357 +764,54 @@ impl PgCdb {
     }
 }
 
-const RUN_COLUMNS: &str = "run_id, scanner_id, config, started_unix_s, finished_unix_s, status";
+sql::read::sql_read!(
+    PgCdb,
+    |s| sql: *s,
+    path: &s.path,
+    version: schema_version(s),
+    check: integrity_check(s),
+);
+sql::read::sql_read!(
+    PgSnapshot<'_>,
+    |s| sql: *s.db,
+    path: &s.db.path,
+    version: schema_version(s.db),
+    check: integrity_check(s.db),
+);
+sql::write::progress_store!(PgCdb);
 
-fn run_from_row(path: &Path, r: &Row) -> Result<RunInfo> {
-    let err = |e| CdbError::postgres(path, e);
-    let status: String = r.try_get(5).map_err(err)?;
-    Ok(RunInfo {
-        run_id: r.try_get(0).map_err(err)?,
-        scanner_id: r.try_get(1).map_err(err)?,
-        config: r.try_get(2).map_err(err)?,
-        started_unix_s: r.try_get(3).map_err(err)?,
-        finished_unix_s: r.try_get(4).map_err(err)?,
-        status: RunStatus::parse(&status).ok_or_else(|| CdbError::Corrupt {
-            path: path.to_path_buf(),
-            reason: format!("unknown run status {status:?}"),
-        })?,
-    })
-}
-
-const PROGRESS_COLUMNS: &str = "repeat_index, node_index, node_x_counts, node_y_counts, \
-node_z_counts, state, reason, attempts, updated_unix_s";
-
-fn dynamics_from_row(path: &Path, r: &Row) -> Result<DynamicsRecord> {
-    let err = |e| CdbError::postgres(path, e);
-    Ok(DynamicsRecord {
-        run_id: r.try_get(0).map_err(err)?,
-        scanner_id: r.try_get(1).map_err(err)?,
-        identified_unix_s: r.try_get(2).map_err(err)?,
-        model_format: r.try_get(3).map_err(err)?,
-        model_version: crate::dynamics::stored_version(path, r.try_get(4).map_err(err)?)?,
-        model_json: r.try_get(5).map_err(err)?,
-    })
-}
-
-fn progress_from_row(path: &Path, r: &Row) -> Result<NodeProgress> {
-    let err = |e| CdbError::postgres(path, e);
-    let state: String = r.try_get(5).map_err(err)?;
-    let reason: Option<String> = r.try_get(6).map_err(err)?;
-    let state = match state.as_str() {
-        "pending" => NodeState::Pending,
-        "done" => NodeState::Done,
-        "given_up" => NodeState::GivenUp(reason.unwrap_or_default()),
-        other => {
-            return Err(CdbError::Corrupt {
-                path: path.to_path_buf(),
-                reason: format!("unknown node state {other:?}"),
-            });
-        }
-    };
-    Ok(NodeProgress {
-        node: PlanNode {
-            repeat_index: stored_index(path, "repeat_index", r.try_get(0).map_err(err)?)?,
-            node_index: stored_index(path, "node_index", r.try_get(1).map_err(err)?)?,
-            node_x_counts: r.try_get(2).map_err(err)?,
-            node_y_counts: r.try_get(3).map_err(err)?,
-            node_z_counts: r.try_get(4).map_err(err)?,
-        },
-        state,
-        attempts: stored_index(path, "attempts", r.try_get(7).map_err(err)?)?,
-        updated_unix_s: r.try_get(8).map_err(err)?,
-    })
-}
-
-impl CdbRead for PgCdb {
-    fn path(&self) -> &Path {
-        &self.path
-    }
-
-    fn schema_version(&self) -> Result<i64> {
-        let rows = self.query_rows("SELECT max(version) FROM schema_version", &[])?;
-        let v: Option<i64> = rows
-            .first()
-            .map(|r| r.try_get(0))
-            .transpose()
-            .map_err(self.err())?
-            .flatten();
-        Ok(v.unwrap_or(0))
-    }
-
-    fn for_each_record(
-        &self,
-        filter: &RecordFilter,
-        each: &mut dyn FnMut(LccRecord) -> Result<()>,
-    ) -> Result<()> {
-        use postgres::fallible_iterator::FallibleIterator;
-        check_filter(&self.path, filter)?;
-        let (w, p) = where_clause(filter);
-        let sql = format!(
-            "SELECT {} FROM records{w} ORDER BY acquired_unix_s, id",
-            *RECORD_COLUMNS
-        );
-        let mut client = self.client()?;
-        let mut rows = client
-            .query_raw(&sql, p.iter().map(Param::as_sql))
-            .map_err(self.err())?;
-        while let Some(row) = rows.next().map_err(self.err())? {
-            each(record_from_row(&self.path, &row)?)?;
-        }
-        Ok(())
-    }
-
-    fn count_records(&self, filter: &RecordFilter) -> Result<u64> {
-        check_filter(&self.path, filter)?;
-        let (w, p) = where_clause(filter);
-        let params: Vec<&(dyn ToSql + Sync)> = p.iter().map(Param::as_sql).collect();
-        let rows = self.query_rows(&format!("SELECT count(*) FROM records{w}"), &params)?;
-        let n: i64 = rows
-            .first()
-            .map_or(Ok(0), |r| r.try_get(0))
-            .map_err(self.err())?;
-        Ok(n.unsigned_abs())
-    }
-
-    fn columns(&self, filter: &RecordFilter) -> Result<LccColumns> {
-        use postgres::fallible_iterator::FallibleIterator;
-        check_filter(&self.path, filter)?;
-        let (w, p) = where_clause(filter);
-        let sql = format!(
-            "SELECT lcs_x_counts, lcs_y_counts, node_z_counts, acquired_unix_s, \
-             kx_nm_per_count, ky_nm_per_count, alpha_rad, kz_nm_per_count FROM records{w} \
-             ORDER BY id"
-        );
-        let mut client = self.client()?;
-        let mut rows = client
-            .query_raw(&sql, p.iter().map(Param::as_sql))
-            .map_err(self.err())?;
-        let mut c = LccColumns::default();
-        let corrupt = |e: postgres::Error| CdbError::Corrupt {
-            path: self.path.clone(),
-            reason: e.to_string(),
+impl sql::write::SqlStore for PgCdb {
+    fn write<T>(&mut self, f: impl FnOnce(&mut dyn sql::write::SqlTx) -> Result<T>) -> Result<T> {
+        let path = self.path.clone();
+        let err = |e| CdbError::postgres(&path, e);
+        let client = self.client.get_mut();
+        let insert = match &self.insert {
+            Some(s) => s.clone(),
+            None => {
+                let s = client
+                    .prepare(sql::insert_record(Dialect::Postgres))
+                    .map_err(err)?;
+                self.insert = Some(s.clone());
+                s
+            }
         };
-        while let Some(r) = rows.next().map_err(self.err())? {
-            c.lcs_x_counts.push(r.try_get(0).map_err(corrupt)?);
-            c.lcs_y_counts.push(r.try_get(1).map_err(corrupt)?);
-            c.node_z_counts.push(r.try_get(2).map_err(corrupt)?);
-            c.acquired_unix_s.push(r.try_get(3).map_err(corrupt)?);
-            c.kx_nm_per_count.push(r.try_get(4).map_err(corrupt)?);
-            c.ky_nm_per_count.push(r.try_get(5).map_err(corrupt)?);
-            c.alpha_rad.push(r.try_get(6).map_err(corrupt)?);
-            c.kz_nm_per_count.push(r.try_get(7).map_err(corrupt)?);
-        }
-        Ok(c)
-    }
-
-    fn scanners(&self) -> Result<Vec<String>> {
-        self.query_rows(
-            "SELECT scanner_id FROM runs UNION SELECT DISTINCT scanner_id FROM records \
-             ORDER BY 1",
-            &[],
-        )?
-        .iter()
-        .map(|r| r.try_get(0).map_err(self.err()))
-        .collect()
-    }
-
-    fn z_planes(&self, scanner_id: &str) -> Result<Vec<i64>> {
-        self.query_rows(
-            "SELECT DISTINCT node_z_counts FROM records WHERE scanner_id = $1 ORDER BY 1",
-            &[&scanner_id],
-        )?
-        .iter()
-        .map(|r| r.try_get(0).map_err(self.err()))
-        .collect()
-    }
-
-    fn run(&self, run_id: &str) -> Result<Option<RunInfo>> {
-        let rows = self.query_rows(
-            &format!("SELECT {RUN_COLUMNS} FROM runs WHERE run_id = $1"),
-            &[&run_id],
-        )?;
-        rows.first()
-            .map(|r| run_from_row(&self.path, r))
-            .transpose()
-    }
-
-    fn runs(&self, scanner_id: Option<&str>) -> Result<Vec<RunInfo>> {
-        self.query_rows(
-            &format!(
-                "SELECT {RUN_COLUMNS} FROM runs WHERE $1::TEXT IS NULL OR scanner_id = $1 \
-                 ORDER BY started_unix_s, run_id"
-            ),
-            &[&scanner_id],
-        )?
-        .iter()
-        .map(|r| run_from_row(&self.path, r))
-        .collect()
-    }
-
-    fn progress(&self, run_id: &str) -> Result<Vec<NodeProgress>> {
-        self.query_rows(
-            &format!(
-                "SELECT {PROGRESS_COLUMNS} FROM progress WHERE run_id = $1 \
-                 ORDER BY repeat_index, node_index"
-            ),
-            &[&run_id],
-        )?
-        .iter()
-        .map(|r| progress_from_row(&self.path, r))
-        .collect()
-    }
-
-    fn next_pending(&self, run_id: &str) -> Result<Option<PlanNode>> {
-        let rows = self.query_rows(
-            &format!(
-                "SELECT {PROGRESS_COLUMNS} FROM progress WHERE run_id = $1 \
-                 AND state = 'pending' ORDER BY repeat_index, node_index LIMIT 1"
-            ),
-            &[&run_id],
-        )?;
-        rows.first()
-            .map(|r| progress_from_row(&self.path, r).map(|p| p.node))
-            .transpose()
-    }
-
-    fn progress_summary(&self, run_id: &str) -> Result<ProgressSummary> {
-        let mut s = ProgressSummary::default();
-        for r in self.query_rows(
-            "SELECT state, count(*) FROM progress WHERE run_id = $1 GROUP BY state",
-            &[&run_id],
-        )? {
-            let state: String = r.try_get(0).map_err(self.err())?;
-            let n: i64 = r.try_get(1).map_err(self.err())?;
-            let n = n.unsigned_abs();
-            match state.as_str() {
-                "pending" => s.pending = n,
-                "done" => s.done = n,
-                "given_up" => s.given_up = n,
-                other => {
-                    return Err(CdbError::Corrupt {
-                        path: self.path.clone(),
-                        reason: format!("unknown node state {other:?}"),
-                    });
-                }
-            }
-        }
-        Ok(s)
-    }
-
-    fn dynamics(&self, scanner_id: Option<&str>) -> Result<Vec<DynamicsRecord>> {
-        self.query_rows(
-            &format!(
-                "SELECT {DYNAMICS_COLUMNS} FROM dynamics WHERE $1::TEXT IS NULL \
-                 OR scanner_id = $1 ORDER BY scanner_id, identified_unix_s, id"
-            ),
-            &[&scanner_id],
-        )?
-        .iter()
-        .map(|r| dynamics_from_row(&self.path, r))
-        .collect()
-    }
-
-    fn latest_dynamics(&self, scanner_id: &str) -> Result<Option<DynamicsRecord>> {
-        let rows = self.query_rows(
-            &format!(
-                "SELECT {DYNAMICS_COLUMNS} FROM dynamics WHERE scanner_id = $1 \
-                 ORDER BY identified_unix_s DESC, id DESC LIMIT 1"
-            ),
-            &[&scanner_id],
-        )?;
-        rows.first()
-            .map(|r| dynamics_from_row(&self.path, r))
-            .transpose()
-    }
-
-    fn check(&self) -> Result<IntegrityReport> {
-        integrity_check(self)
+        let mut tx = sql::pg::Tx::new(client.transaction().map_err(err)?, &path, insert);
+        let out = f(&mut tx)?;
+        tx.commit()?;
+        Ok(out)
     }
 }
 
-macro_rules! delegate_read {
-    ($($name:ident($($arg:ident: $ty:ty),*) -> $ret:ty;)*) => {
-        $(fn $name(&self, $($arg: $ty),*) -> Result<$ret> {
-            self.db.$name($($arg),*)
-        })*
-    };
-}
-
-impl CdbRead for PgSnapshot<'_> {
-    fn path(&self) -> &Path {
-        &self.db.path
-    }
-    fn for_each_record(
-        &self,
-        filter: &RecordFilter,
-        each: &mut dyn FnMut(LccRecord) -> Result<()>,
-    ) -> Result<()> {
-        self.db.for_each_record(filter, each)
-    }
-    delegate_read! {
-        schema_version() -> i64;
-        count_records(filter: &RecordFilter) -> u64;
-        columns(filter: &RecordFilter) -> LccColumns;
-        scanners() -> Vec<String>;
-        z_planes(scanner_id: &str) -> Vec<i64>;
-        run(run_id: &str) -> Option<RunInfo>;
-        runs(scanner_id: Option<&str>) -> Vec<RunInfo>;
-        progress(run_id: &str) -> Vec<NodeProgress>;
-        next_pending(run_id: &str) -> Option<PlanNode>;
-        progress_summary(run_id: &str) -> ProgressSummary;
-        dynamics(scanner_id: Option<&str>) -> Vec<DynamicsRecord>;
-        latest_dynamics(scanner_id: &str) -> Option<DynamicsRecord>;
-        check() -> IntegrityReport;
-    }
-}
-
-/// Report at most this many rows per kind of problem.
-const MAX_ROWS_PER_CHECK: i64 = 1000;
-
-/// SQL predicate true when `col` is NaN or infinite.
-fn not_finite(col: &str) -> String {
-    format!("{col} IN ('NaN'::float8, 'Infinity'::float8, '-Infinity'::float8)")
-}
-
-struct Checker<'a> {
-    db: &'a PgCdb,
-    report: IntegrityReport,
-}
-
-impl Checker<'_> {
-    fn rows(&mut self, kind: &str, sql: &str) -> Result<()> {
-        let rows = self.db.query_rows(
-            &format!(
-                "SELECT * FROM ({sql}) AS found LIMIT {}",
-                MAX_ROWS_PER_CHECK + 1
-            ),
-            &[],
-        )?;
-        for (n, r) in rows.iter().enumerate() {
-            if n as i64 >= MAX_ROWS_PER_CHECK {
-                self.report.problems.push(IntegrityProblem {
-                    kind: kind.into(),
-                    detail: format!("… more than {MAX_ROWS_PER_CHECK} rows"),
-                });
-                break;
-            }
-            let detail: String = r.try_get(0).map_err(self.db.err())?;
-            self.report.problems.push(IntegrityProblem {
-                kind: kind.into(),
-                detail,
-            });
-        }
-        Ok(())
-    }
-
-    fn record_rows(&mut self, kind: &str, what: &str, predicate: &str) -> Result<()> {
-        let sql = format!(
-            "SELECT 'record id ' || id || ' (run ' || quote_literal(run_id) || ', repeat ' || \
-             repeat_index || ', node ' || node_index || '): {what}' \
-             FROM records WHERE {predicate} ORDER BY id"
-        );
-        self.rows(kind, &sql)
-    }
+/// The newest version in `schema_version`.
+fn schema_version(db: &PgCdb) -> Result<i64> {
+    let rows = db.query_rows("SELECT max(version) FROM schema_version", &[])?;
+    let v: Option<i64> = rows
+        .first()
+        .map(|r| r.try_get(0))
+        .transpose()
+        .map_err(db.err())?
+        .flatten();
+    Ok(v.unwrap_or(0))
 }
 
 /// The tables and columns the current schema defines, as `(table, column, data type,
@@ -1823,7 +994,7 @@ fn stored_required_columns(db: &PgCdb) -> Result<Vec<(String, String)>> {
 
 /// The schema's keys, CHECKs and indexes (issue 25 item 16, [`crate::constraints`]) and
 /// extra NOT NULL columns.
-fn constraint_check(c: &mut Checker<'_>) -> Result<()> {
+fn constraint_check(c: &mut PgChecker<'_>) -> Result<()> {
     let (found, present) = stored_constraints(c.db)?;
     c.report
         .problems
@@ -1837,7 +1008,7 @@ fn constraint_check(c: &mut Checker<'_>) -> Result<()> {
 
 /// The statuses and states the schema's CHECKs admit, queried: rows stored while a CHECK
 /// was missing (the columns are known to exist).
-fn status_check(c: &mut Checker<'_>) -> Result<()> {
+fn status_check(c: &mut PgChecker<'_>) -> Result<()> {
     c.rows(
         "invalid_status",
         "SELECT 'run ' || quote_literal(run_id) || ': status ' || quote_literal(status) || \
@@ -1867,82 +1038,10 @@ pub fn records_table_columns(db: &PgCdb) -> Result<HashMap<String, (String, bool
         .collect())
 }
 
-/// The records against their run's plausibility limits (as on SQLite).
-fn plausibility_check(db: &PgCdb, report: &mut IntegrityReport) -> Result<()> {
-    let runs: Vec<(String, String)> = db
-        .query_rows("SELECT run_id, config FROM runs", &[])?
-        .iter()
-        .map(|r| Ok((r.try_get(0)?, r.try_get(1)?)))
-        .collect::<std::result::Result<_, postgres::Error>>()
-        .map_err(db.err())?;
-    crate::integrity::plausibility_pass(
-        &runs,
-        &mut |each| db.for_each_record(&RecordFilter::default(), each),
-        report,
-    )
-}
-
-/// The scanner dynamics (as on SQLite): the run stored and on the same scanner, every row
-/// obeying [`DynamicsRecord::check`]. (The server enforces the column types, NOT NULL and
-/// the schema's CHECKs; these rules find what got past them, e.g. with a constraint
-/// dropped.)
-fn dynamics_check(c: &mut Checker<'_>) -> Result<()> {
-    use postgres::fallible_iterator::FallibleIterator;
-    c.rows(
-        "dynamics_without_run",
-        "SELECT 'dynamics id ' || d.id || ': run ' || quote_literal(d.run_id) || \
-         ' does not exist' FROM dynamics d WHERE NOT EXISTS \
-         (SELECT 1 FROM runs u WHERE u.run_id = d.run_id) ORDER BY d.id",
-    )?;
-    c.rows(
-        "scanner_mismatch",
-        "SELECT 'dynamics id ' || d.id || ': scanner ' || quote_literal(d.scanner_id) || \
-         ' but run ' || quote_literal(d.run_id) || ' is on ' || quote_literal(u.scanner_id) \
-         FROM dynamics d JOIN runs u ON d.run_id = u.run_id \
-         WHERE d.scanner_id <> u.scanner_id ORDER BY d.id",
-    )?;
-    c.rows(
-        "invalid_dynamics",
-        "SELECT 'dynamics id ' || id || ': model_version ' || model_version || \
-         ' is not in 1..=4294967295' FROM dynamics \
-         WHERE model_version NOT BETWEEN 1 AND 4294967295 ORDER BY id",
-    )?;
-    let db = c.db;
-    let mut found = crate::dynamics::Findings::new(MAX_ROWS_PER_CHECK.unsigned_abs() as usize);
-    {
-        let mut client = db.client()?;
-        let mut rows = client
-            .query_raw(
-                &format!(
-                    "SELECT id, {DYNAMICS_COLUMNS} FROM dynamics \
-                     WHERE model_version BETWEEN 1 AND 4294967295 ORDER BY id"
-                ),
-                std::iter::empty::<&(dyn ToSql + Sync)>(),
-            )
-            .map_err(db.err())?;
-        while let Some(r) = rows.next().map_err(db.err())? {
-            let id: i64 = r.try_get(0).map_err(db.err())?;
-            let version: i64 = r.try_get(5).map_err(db.err())?;
-            let d = DynamicsRecord {
-                run_id: r.try_get(1).map_err(db.err())?,
-                scanner_id: r.try_get(2).map_err(db.err())?,
-                identified_unix_s: r.try_get(3).map_err(db.err())?,
-                model_format: r.try_get(4).map_err(db.err())?,
-                model_version: crate::dynamics::stored_version(&db.path, version)?,
-                model_json: r.try_get(6).map_err(db.err())?,
-            };
-            found.add(crate::dynamics::problem(id, &d));
-        }
-    }
-    c.report.problems.extend(found.into_problems());
-    Ok(())
-}
+type PgChecker<'a> = Checker<'a, PgCdb>;
 
 fn integrity_check(db: &PgCdb) -> Result<IntegrityReport> {
-    let mut c = Checker {
-        db,
-        report: IntegrityReport::default(),
-    };
+    let mut c = Checker::new(db);
     // Structure: every column of the current schema with its type and nullability, and
     // every key, CHECK and index (the server enforces them only while they exist).
     let stored = stored_columns(db)?;
@@ -1965,115 +1064,10 @@ fn integrity_check(db: &PgCdb) -> Result<IntegrityReport> {
         return Ok(c.report);
     }
     status_check(&mut c)?;
-    for col in LCC_RECORD_COLUMNS
-        .iter()
-        .filter(|c| matches!(c.kind, ColumnKind::Real | ColumnKind::OptionalReal))
-    {
-        c.record_rows(
-            "non_finite",
-            &format!("{} not finite", col.name),
-            &not_finite(col.name),
-        )?;
-    }
-    for col in spm_records::POSITIVE_COLUMNS {
-        c.record_rows(
-            "nonpositive_lcc",
-            &format!("{col} <= 0"),
-            &format!("{col} <= 0"),
-        )?;
-    }
-    c.record_rows(
-        "alpha_out_of_range",
-        "|alpha_rad| >= pi/2",
-        "abs(alpha_rad) >= 1.5707963267948966 AND alpha_rad <> 'NaN'::float8",
-    )?;
-    for col in spm_records::UNCERTAINTY_COLUMNS {
-        c.record_rows(
-            "negative_uncertainty",
-            &format!("{col} < 0"),
-            &format!("{col} < 0"),
-        )?;
-    }
-    for col in LCC_RECORD_COLUMNS
-        .iter()
-        .filter(|c| c.kind == ColumnKind::Text)
-    {
-        c.record_rows(
-            "empty_text",
-            &format!("{} is empty", col.name),
-            &format!("btrim({}) = ''", col.name),
-        )?;
-    }
-    for col in [
-        "repeat_index",
-        "node_index",
-        "lcs_index",
-        "cycles_kept",
-        "cycles_discarded",
-    ] {
-        c.record_rows(
-            "negative_count",
-            &format!("{col} < 0"),
-            &format!("{col} < 0 OR {col} > 4294967295"),
-        )?;
-    }
-    c.rows(
-        "duplicate_record",
-        "SELECT 'run ' || quote_literal(run_id) || ', repeat ' || repeat_index || ', node ' || \
-         node_index || ', lcs ' || lcs_index || ': ' || count(*) || ' records' \
-         FROM records GROUP BY run_id, repeat_index, node_index, lcs_index HAVING count(*) > 1",
-    )?;
-    c.rows(
-        "done_without_records",
-        "SELECT 'run ' || quote_literal(p.run_id) || ', repeat ' || p.repeat_index || \
-         ', node ' || p.node_index || ' is done but has no record' FROM progress p \
-         WHERE p.state = 'done' AND NOT EXISTS (SELECT 1 FROM records r WHERE \
-         r.run_id = p.run_id AND r.repeat_index = p.repeat_index AND \
-         r.node_index = p.node_index) ORDER BY p.run_id, p.repeat_index, p.node_index",
-    )?;
-    c.rows(
-        "records_for_unfinished_node",
-        "SELECT 'run ' || quote_literal(p.run_id) || ', repeat ' || p.repeat_index || \
-         ', node ' || p.node_index || ' is ' || p.state || ' but has records' FROM progress p \
-         WHERE p.state <> 'done' AND EXISTS (SELECT 1 FROM records r WHERE \
-         r.run_id = p.run_id AND r.repeat_index = p.repeat_index AND \
-         r.node_index = p.node_index) ORDER BY p.run_id, p.repeat_index, p.node_index",
-    )?;
-    c.rows(
-        "node_mismatch",
-        "SELECT 'record id ' || r.id || ': node (' || r.node_x_counts || ', ' || \
-         r.node_y_counts || ', ' || r.node_z_counts || ') differs from its plan node' \
-         FROM records r JOIN progress p ON r.run_id = p.run_id AND \
-         r.repeat_index = p.repeat_index AND r.node_index = p.node_index \
-         WHERE r.node_x_counts <> p.node_x_counts OR r.node_y_counts <> p.node_y_counts \
-         OR r.node_z_counts <> p.node_z_counts ORDER BY r.id",
-    )?;
-    c.rows(
-        "given_up_without_reason",
-        "SELECT 'run ' || quote_literal(run_id) || ', repeat ' || repeat_index || ', node ' || \
-         node_index || ' given up without a reason' FROM progress WHERE state = 'given_up' \
-         AND (reason IS NULL OR btrim(reason) = '')",
-    )?;
-    c.rows(
-        "identity",
-        "SELECT 'cdb_identity holds ' || count(*) || ' rows, expected 1' FROM cdb_identity \
-         HAVING count(*) <> 1",
-    )?;
-    c.rows(
-        "foreign_run",
-        "SELECT 'run ' || quote_literal(run_id) || ': cdb_id ' || quote_nullable(cdb_id) || \
-         ' is not this database''s id' FROM runs WHERE coalesce(cdb_id, '') <> \
-         coalesce((SELECT id FROM cdb_identity LIMIT 1), '') ORDER BY run_id",
-    )?;
-    c.rows(
-        "scanner_mismatch",
-        "SELECT 'record id ' || r.id || ': scanner ' || quote_literal(r.scanner_id) || \
-         ' but run ' || quote_literal(r.run_id) || ' is on ' || quote_literal(u.scanner_id) \
-         FROM records r JOIN runs u ON r.run_id = u.run_id \
-         WHERE r.scanner_id <> u.scanner_id ORDER BY r.id",
-    )?;
-    dynamics_check(&mut c)?;
-    plausibility_check(db, &mut c.report)?;
+    checks::value_checks(&mut c)?;
+    checks::relation_checks(&mut c)?;
+    checks::dynamics_checks(&mut c)?;
+    checks::plausibility_checks(&mut c)?;
     if !c.report.problems.is_empty() {
         tracing::warn!(
             url = %db.path.display(),
@@ -2082,55 +1076,6 @@ fn integrity_check(db: &PgCdb) -> Result<IntegrityReport> {
         );
     }
     Ok(c.report)
-}
-
-impl ProgressStore for PgCdb {
-    type Error = CdbError;
-    fn begin_run(&mut self, run: &RunInfo, visits: &[PlanNode]) -> Result<(), Self::Error> {
-        if self.run(&run.run_id)?.is_none() {
-            self.create_run(run)?;
-        }
-        self.register_plan(&run.run_id, visits)
-    }
-    fn states(&mut self, run_id: &str) -> Result<HashMap<(u32, u32), NodeState>, Self::Error> {
-        Ok(self
-            .progress(run_id)?
-            .into_iter()
-            .map(|p| ((p.node.repeat_index, p.node.node_index), p.state))
-            .collect())
-    }
-    fn commit_node(
-        &mut self,
-        run_id: &str,
-        done: &NodeDone,
-        records: &[LccRecord],
-    ) -> Result<(), Self::Error> {
-        PgCdb::commit_node(self, run_id, done, records)
-    }
-    fn give_up_node(
-        &mut self,
-        run_id: &str,
-        visit: &NodeDone,
-        reason: &str,
-    ) -> Result<(), Self::Error> {
-        PgCdb::give_up_node(
-            self,
-            run_id,
-            visit.repeat_index,
-            visit.node_index,
-            reason,
-            visit.attempts,
-            visit.finished_unix_s,
-        )
-    }
-    fn finish_run(
-        &mut self,
-        run_id: &str,
-        status: RunStatus,
-        at_unix_s: f64,
-    ) -> Result<(), Self::Error> {
-        PgCdb::finish_run(self, run_id, status, at_unix_s)
-    }
 }
 
 #[cfg(test)]

@@ -103,6 +103,12 @@ CREATE UNIQUE INDEX records_node ON records (run_id, repeat_index, node_index, l
 CREATE INDEX records_plane ON records (scanner_id, node_z_counts, acquired_unix_s);
 ";
 
+/// The schema of new files, for tests that compare it with the dialect's types.
+#[cfg(test)]
+pub(crate) fn schema_text() -> &'static str {
+    SCHEMA_V4
+}
+
 /// The `dynamics` table of v5 (new files and the v4 → v5 migration alike). The CHECKs
 /// repeat the rules of [`spm_records::DynamicsRecord::check`] that SQL can state (the size
 /// limit and the visible-text rule of the ids are left to it and to `cdb check`).
@@ -183,23 +189,40 @@ pub(crate) fn check_probe(path: &Path, p: &Probe) -> Result<()> {
             reason: format!("application_id {:#x}", p.application_id),
         });
     }
-    if p.user_version > SCHEMA_VERSION {
+    check_version(
+        path,
+        p.user_version,
+        p.n_tables > 0,
+        "tables present but no schema version",
+    )
+}
+
+/// The checks of a found schema version both back ends make before writing anything: not
+/// newer than this library's, not negative, and no version only in an empty database
+/// (`unversioned` says what was found instead).
+pub(crate) fn check_version(
+    path: &Path,
+    version: i64,
+    has_tables: bool,
+    unversioned: &str,
+) -> Result<()> {
+    if version > SCHEMA_VERSION {
         return Err(CdbError::NewerSchema {
             path: path.to_path_buf(),
-            found: p.user_version,
+            found: version,
             supported: SCHEMA_VERSION,
         });
     }
-    if p.user_version == 0 && p.n_tables > 0 {
+    if version == 0 && has_tables {
         return Err(CdbError::NotACdb {
             path: path.to_path_buf(),
-            reason: "tables present but no schema version".into(),
+            reason: unversioned.into(),
         });
     }
-    if p.user_version < 0 {
+    if version < 0 {
         return Err(CdbError::NotACdb {
             path: path.to_path_buf(),
-            reason: format!("negative schema version {}", p.user_version),
+            reason: format!("negative schema version {version}"),
         });
     }
     Ok(())

@@ -2,7 +2,7 @@
 //! weighted records — a streaming Householder QR (blocks of rows stacked under the running
 //! triangular factor) with each library's QR, and faer's one-shot QR of the whole augmented
 //! matrix — for a degree-3 (10 terms) and a degree-6 (28 terms) surface. Run with
-//! `cargo bench -p spm-regression --features faer --bench linalg`.
+//! `cargo bench -p spm-regression --features test-support --bench linalg`.
 #![allow(clippy::unwrap_used)]
 
 use criterion::{Criterion, criterion_group, criterion_main};

@@ -10,7 +10,7 @@
 //! no function returns NaN for finite input.
 #![doc = include_str!("../README.md")]
 
-#[cfg(feature = "faer")]
+#[cfg(feature = "test-support")]
 pub mod bench_support;
 mod error;
 mod fit;

@@ -340,6 +340,56 @@ fn the_test_build_leaves_faer_out() {
     }
 }
 
+/// The features of every package `cargo tree -p spmcal` resolves over the dependency
+/// edges `edges` (`{package} [{features}]` lines).
+fn spmcal_tree_features(edges: &str) -> String {
+    let output = cargo()
+        .args(["tree", "--offline", "-p", "spmcal", "-e", edges])
+        .args(["--prefix", "none", "--format", "{p} [{f}]"])
+        .args(["--target", &host_triple()])
+        .arg("--manifest-path")
+        .arg(workspace_root().join("Cargo.toml"))
+        .output()
+        .expect("cargo runs");
+    assert!(
+        output.status.success(),
+        "cargo tree failed:\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+/// A program's build compiles no test support (issue 28, item 3): `cargo build -p spmcal`
+/// resolves spm-cdb and spm-regression without their `test-support` feature, so the private
+/// PostgreSQL server (`spm_cdb::pg_server`) and the benchmark helpers
+/// (`spm_cdb::bench_support`, `spm_regression::bench_support`) are not in it. The tests
+/// (dev-dependencies) and xtask turn the feature on; the check is not vacuous: the test
+/// build of spmcal has it.
+#[test]
+fn a_program_build_leaves_the_test_support_out() {
+    let program = spmcal_tree_features("normal,build");
+    assert!(
+        program.lines().any(|l| l.starts_with("spm-cdb ")),
+        "spm-cdb is in spmcal's tree:\n{program}"
+    );
+    let with_support: Vec<&str> = program
+        .lines()
+        .filter(|l| l.contains("test-support"))
+        .collect();
+    assert!(
+        with_support.is_empty(),
+        "`cargo build -p spmcal` turns on a test-support feature: {with_support:?} (enable it \
+         only in [dev-dependencies] and in xtask)"
+    );
+    let tests = spmcal_tree_features("normal,build,dev");
+    assert!(
+        tests
+            .lines()
+            .any(|l| l.starts_with("spm-cdb ") && l.contains("test-support")),
+        "spmcal's tests no longer turn on spm-cdb's test-support:\n{tests}"
+    );
+}
+
 /// A scratch crate outside the workspace that depends on `spm-correction` alone, by path, as a
 /// user's program would: its resolved dependency tree holds neither the simulator nor SQLite.
 #[test]

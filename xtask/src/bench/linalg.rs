@@ -139,7 +139,7 @@ pub fn markdown(md: &mut String, section: &Section<LinalgResults>) {
                  library runs, O(terms²) memory); dense: one QR of the whole augmented matrix. \
                  The library keeps the faster one (nalgebra while faer/nalgebra > 1). \
                  Command: `cargo xtask bench` (criterion: `cargo bench -p spm-regression \
-                 --features faer --bench linalg`).\n",
+                 --features test-support --bench linalg`).\n",
                 r.records, r.repeats
             );
             let _ = writeln!(

@@ -2051,3 +2051,72 @@ fn sqlite_check_finds_tampered_keys_checks_and_indexes() {
     }
     assert!(missed.is_empty(), "{missed:#?}");
 }
+
+/// One tampered CDB, made the same way on a back end: a committed node, then rows written
+/// past the library (a blank scanner id, an LCS index beyond `u32`, K̄x ≤ 0, a given-up node
+/// whose reason is white space).
+fn tampered_report(b: &dyn Backend, name: &str) -> spm_cdb::IntegrityReport {
+    let path = b.fresh(name);
+    let r = run("run-1", "S", T0);
+    let nodes = plan(3);
+    {
+        let mut cdb = b.open(&path);
+        cdb.create_run(&r).unwrap();
+        cdb.register_plan(&r.run_id, &nodes).unwrap();
+        cdb.commit_node(&r.run_id, &done(0, T0), &[record(&r, &nodes[0], 0, T0)])
+            .unwrap();
+        assert!(cdb.check().unwrap().is_ok());
+    }
+    let insert = |scanner: &str, lcs: i64, kx: &str| {
+        b.raw_sql(
+            &path,
+            &format!(
+                "INSERT INTO records (scanner_id, run_id, acquired_unix_s, repeat_index, node_index,
+              lcs_index, node_x_counts, node_y_counts, node_z_counts, lcs_x_counts, lcs_y_counts,
+              lcs_z_counts, kx_nm_per_count, ky_nm_per_count, alpha_rad, drift_vx_nm_per_s,
+              drift_vy_nm_per_s, cycles_kept, cycles_discarded, quality)
+             VALUES ('{scanner}', 'run-1', {T0}, 0, 0, {lcs}, 0, 0, 0, 0, 0, 0, {kx}, 0.02, 0.0,
+                     0, 0, 1, 0, 1)"
+            ),
+        );
+    };
+    insert("  ", 1, "0.02");
+    insert("S", 4_294_967_296, "0.02");
+    insert("S", 2, "-0.02");
+    b.raw_sql(
+        &path,
+        "UPDATE progress SET state = 'given_up', reason = '   ' WHERE node_index = 2;",
+    );
+    b.open_read_only(&path).unwrap().check().unwrap()
+}
+
+/// The semantic rules of `cdb check` are one set of SQL predicates in two dialects
+/// (`spm_cdb`'s `sql::checks`): the same tampering gives the same findings, word for word, on
+/// both back ends — including the rules PostgreSQL had alone before they were shared (a blank
+/// id, a white-space reason, an index beyond `u32`).
+#[test]
+fn both_back_ends_find_the_same_problems_in_the_same_words() {
+    let sqlite = tampered_report(&common::Sqlite, "same_problems_sqlite");
+    let postgres = tampered_report(common::postgres(), "same_problems");
+    let kinds = |r: &spm_cdb::IntegrityReport| {
+        r.problems
+            .iter()
+            .map(|p| p.kind.clone())
+            .collect::<Vec<_>>()
+    };
+    let mut expected = vec![
+        "nonpositive_lcc",
+        "empty_text",
+        "negative_count",
+        "given_up_without_reason",
+        "scanner_mismatch",
+    ];
+    expected.sort_unstable();
+    for report in [&sqlite, &postgres] {
+        let mut found = kinds(report);
+        found.sort_unstable();
+        assert_eq!(found, expected, "{report:?}");
+        assert!(report.sqlite.is_empty(), "{report:?}");
+    }
+    assert_eq!(sqlite.problems, postgres.problems);
+}

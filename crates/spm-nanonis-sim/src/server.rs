@@ -739,7 +739,6 @@ impl State {
             .map_err(|e| describe(&e))
     }
 
-    // long-function: the checks of a scan start in the controller's order, then the raster.
     fn start_scan(&mut self, direction_up: u32) -> Result<(), String> {
         self.flush(false)?;
         if self.leftover_running {
@@ -958,8 +957,19 @@ impl State {
         }))
     }
 
-    // long-function: the dispatch table of the protocol, one short arm per command.
+    /// Executes one request: dispatched by the command's module (the part of its name before
+    /// the dot), each module's arms in its own function.
     fn execute(&mut self, request: &Request) -> Result<Reply, String> {
+        match request.name().split('.').next().unwrap_or_default() {
+            "Scan" => self.execute_scan(request),
+            "FolMe" | "Motor" => self.execute_motion(request),
+            "ZCtrl" | "Signals" => self.execute_readings(request),
+            _ => self.execute_settings(request),
+        }
+    }
+
+    /// `Util.*` and `Piezo.*`: the version, the calibration and the compensations.
+    fn execute_settings(&mut self, request: &Request) -> Result<Reply, String> {
         match request {
             Request::UtilVersionGet => Ok(Reply::Version(Version {
                 product_line: "Nanonis SPM Control Software".into(),
@@ -997,6 +1007,24 @@ impl State {
                 Ok(Reply::Empty)
             }
             Request::PiezoHystOnOffGet => Ok(Reply::U32(self.hysteresis)),
+            other => Err(format!("nanonis-sim does not implement {}", other.name())),
+        }
+    }
+
+    /// `Scan.*`: the scan itself (start, status, wait, data) or its set-up.
+    fn execute_scan(&mut self, request: &Request) -> Result<Reply, String> {
+        match request {
+            Request::ScanAction { .. }
+            | Request::ScanStatusGet
+            | Request::ScanWaitEndOfScan { .. }
+            | Request::ScanFrameDataGrab { .. } => self.execute_scan_run(request),
+            _ => self.execute_scan_setup(request),
+        }
+    }
+
+    /// `Scan.Action`, `Scan.StatusGet`, `Scan.WaitEndOfScan`, `Scan.FrameDataGrab`.
+    fn execute_scan_run(&mut self, request: &Request) -> Result<Reply, String> {
+        match request {
             Request::ScanAction {
                 action,
                 direction_up,
@@ -1064,6 +1092,14 @@ impl State {
                     Pending::None => self.wait_out(*timeout_ms),
                 }
             }
+            Request::ScanFrameDataGrab { channel, forward } => self.grab(*channel, *forward),
+            other => Err(format!("nanonis-sim does not implement {}", other.name())),
+        }
+    }
+
+    /// The scan's set-up: frame, buffer, properties, position and speed.
+    fn execute_scan_setup(&mut self, request: &Request) -> Result<Reply, String> {
+        match request {
             Request::ScanFrameSet(f) => {
                 if ![
                     f.centre_x_m,
@@ -1178,7 +1214,13 @@ impl State {
                 Ok(Reply::Empty)
             }
             Request::ScanSpeedGet => Ok(Reply::Speed(self.speed)),
-            Request::ScanFrameDataGrab { channel, forward } => self.grab(*channel, *forward),
+            other => Err(format!("nanonis-sim does not implement {}", other.name())),
+        }
+    }
+
+    /// `FolMe.*` and `Motor.*`: the tip's lateral moves and the coarse motor.
+    fn execute_motion(&mut self, request: &Request) -> Result<Reply, String> {
+        match request {
             Request::FolMeXYPosSet {
                 x_m,
                 y_m,
@@ -1267,16 +1309,6 @@ impl State {
                 }
                 Ok(Reply::Empty)
             }
-            Request::ZCtrlZPosGet => {
-                self.flush(false)?;
-                let z = self.sim.z_position().map_err(|e| describe(&e))?;
-                Ok(Reply::F32(self.z_metres(z.value())))
-            }
-            Request::ZCtrlOnOffSet(on) => {
-                self.z_on = *on == 1;
-                Ok(Reply::Empty)
-            }
-            Request::ZCtrlOnOffGet => Ok(Reply::U32(u32::from(self.z_on))),
             Request::MotorStartMove {
                 direction, steps, ..
             } => {
@@ -1305,6 +1337,23 @@ impl State {
                     Err("no motor module is configured".into())
                 }
             }
+            other => Err(format!("nanonis-sim does not implement {}", other.name())),
+        }
+    }
+
+    /// `ZCtrl.*` and `Signals.*`: the Z controller and the published signals.
+    fn execute_readings(&mut self, request: &Request) -> Result<Reply, String> {
+        match request {
+            Request::ZCtrlZPosGet => {
+                self.flush(false)?;
+                let z = self.sim.z_position().map_err(|e| describe(&e))?;
+                Ok(Reply::F32(self.z_metres(z.value())))
+            }
+            Request::ZCtrlOnOffSet(on) => {
+                self.z_on = *on == 1;
+                Ok(Reply::Empty)
+            }
+            Request::ZCtrlOnOffGet => Ok(Reply::U32(u32::from(self.z_on))),
             Request::SignalsValsGet { indexes, .. } => {
                 self.flush(false)?;
                 let t = self.sim.now().map_err(|e| describe(&e))?.value();

@@ -48,9 +48,9 @@ pub fn correct_unit_steps<F: CorrectionField + ?Sized>(
                 dy_counts: dy,
             });
         }
-        let k = field.form(w[1].x.value(), w[1].y.value());
-        x += k.kx_nm_per_count * dx + k.kyx_nm_per_count * dy;
-        y += k.kyy_nm_per_count * dy;
+        let [ix, iy] = field.form(w[1].x.value(), w[1].y.value()).increment(dx, dy);
+        x += ix;
+        y += iy;
         out.push(NmPoint::from_nm(x, y));
     }
     Ok(out)
@@ -125,10 +125,10 @@ fn segment<F: CorrectionField + ?Sized>(
         let mid = (p as f64 + 0.5) * h;
         for (node, weight) in quadrature.nodes().iter().zip(quadrature.weights()) {
             let tau = mid + 0.5 * h * node;
-            let k = field.form(ax + tau * dx, ay + tau * dy);
+            let [ix, iy] = field.form(ax + tau * dx, ay + tau * dy).increment(dx, dy);
             let w = 0.5 * h * weight;
-            sx += w * (k.kx_nm_per_count * dx + k.kyx_nm_per_count * dy);
-            sy += w * k.kyy_nm_per_count * dy;
+            sx += w * ix;
+            sy += w * iy;
         }
     }
     (sx, sy)

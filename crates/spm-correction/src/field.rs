@@ -53,7 +53,8 @@ impl FormCoefficients {
     /// The corrected increment (Δx̄, Δȳ), nm, of a step of (Δx, Δy) counts under these
     /// coefficients: (K̄x·Δx + K̄yx·Δy, K̄yy·Δy).
     ///
-    /// Implements eq. (5): one summand (the sums and integrals of the trajectory add these up).
+    /// Implements eqs. (1) and (5): one summand (the sums and integrals along the trajectory add
+    /// these up).
     #[must_use]
     #[inline]
     pub fn increment(self, dx_counts: f64, dy_counts: f64) -> [f64; 2] {

@@ -24,7 +24,9 @@ fn check_path(path: &[CountPoint]) -> Result<(), CorrectionError> {
 /// step adds K̄x·Δx + K̄yx·Δy to x̄ and K̄yy·Δy to ȳ, with the coefficients taken at the point the
 /// step arrives at. Returns the corrected position of every point, nm, the first at (0, 0).
 ///
-/// Implements eqs. (1) and (5): x̄, ȳ as sums of the local unit steps.
+/// Eqs. (1) and (5) literally, x̄, ȳ as sums of the local unit steps (each a
+/// [`crate::FormCoefficients::increment`]): the reference the tests check the integral route
+/// against; not in the equation index, which names what production runs.
 ///
 /// # Errors
 /// [`CorrectionError::Empty`], [`CorrectionError::NonFinite`],
@@ -64,7 +66,7 @@ pub fn correct_unit_steps<F: CorrectionField + ?Sized>(
 /// (panels no longer than its `max_panel_counts` along the segment). Returns the corrected
 /// position of every vertex, nm, the first at (0, 0).
 ///
-/// Implements eq. (5) along a piecewise-linear path, by quadrature.
+/// Implements eqs. (1) and (5) along a piecewise-linear path, by quadrature.
 ///
 /// # Errors
 /// [`CorrectionError::Empty`], [`CorrectionError::NonFinite`].

@@ -276,7 +276,11 @@ mod median_tests {
                         .wrapping_mul(6_364_136_223_846_793_005)
                         .wrapping_add(1);
                     let k = ((state >> 33) % 9) as f64 - 4.0;
-                    if k == 0.0 && state & 1 == 1 { -0.0 } else { k * 0.37 }
+                    if k == 0.0 && state & 1 == 1 {
+                        -0.0
+                    } else {
+                        k * 0.37
+                    }
                 })
                 .collect();
             let mut sorted = v.clone();

@@ -434,10 +434,10 @@ pub fn fit_plane(
     // The values of the product surfaces of eq. (11), after K̄y and α have passed their own fits.
     let (kyx, kyy) = spm_regression::product_values(&columns.ky_nm_per_count, &columns.alpha_rad)
         .map_err(|source| SurfaceFitError::Regression {
-            coefficient: "kyx_nm_per_count",
-            z_counts,
-            source,
-        })?;
+        coefficient: "kyx_nm_per_count",
+        z_counts,
+        source,
+    })?;
     let (kyx_surface, _) = one("kyx_nm_per_count", x, y, &kyx)?;
     let (kyy_surface, _) = one("kyy_nm_per_count", x, y, &kyy)?;
     let mut kz_x = Vec::new();

@@ -1108,7 +1108,11 @@ fn idents_of(expr: &syn::Expr) -> Vec<String> {
 /// `l.ky.0`), lower-cased; `None` for anything else.
 fn plain_name(expr: &syn::Expr) -> Option<String> {
     match expr {
-        syn::Expr::Path(p) => p.path.segments.last().map(|s| s.ident.to_string().to_lowercase()),
+        syn::Expr::Path(p) => p
+            .path
+            .segments
+            .last()
+            .map(|s| s.ident.to_string().to_lowercase()),
         syn::Expr::Field(f) => match &f.member {
             syn::Member::Named(ident) => Some(ident.to_string().to_lowercase()),
             syn::Member::Unnamed(_) => plain_name(&f.base),
@@ -1149,7 +1153,11 @@ fn formula_shape(expr: &syn::Expr) -> Option<(u32, &'static str)> {
             .then_some((3, "sin_cos() of α (eq. 3)")),
         syn::Expr::Binary(b) if matches!(b.op, syn::BinOp::Add(_)) => {
             let product_naming = |e: &syn::Expr, name: &str| {
-                matches!(e, syn::Expr::Binary(p) if matches!(p.op, syn::BinOp::Mul(_)))
+                let mut inner = e;
+                while let syn::Expr::Paren(p) = inner {
+                    inner = &p.expr;
+                }
+                matches!(inner, syn::Expr::Binary(p) if matches!(p.op, syn::BinOp::Mul(_)))
                     && idents_of(e).iter().any(|i| i == name)
             };
             let (l, r) = (&b.left, &b.right);
@@ -1266,9 +1274,9 @@ impl<'ast> syn::visit::Visit<'ast> for CallCollector {
     fn visit_expr(&mut self, expr: &'ast syn::Expr) {
         if let (Some(caller), Some((equation, what))) = (self.caller(), formula_shape(expr)) {
             let line = match expr {
-                syn::Expr::Binary(b) => match b.op {
-                    syn::BinOp::Mul(t) => t.span.start().line,
-                    syn::BinOp::Add(t) => t.span.start().line,
+                syn::Expr::Binary(b) => match &b.op {
+                    syn::BinOp::Mul(t) => t.spans[0].start().line,
+                    syn::BinOp::Add(t) => t.spans[0].start().line,
                     _ => 0,
                 },
                 syn::Expr::MethodCall(m) => m.method.span().start().line,
@@ -1431,11 +1439,20 @@ fn the_equation_call_graph_finds_test_only_functions_and_second_formulas() {
     let problems =
         equation_call_graph_problems(&index, &[(PathBuf::from("a.rs"), calls_in_text(text))]);
     let has = |needle: &str| problems.iter().any(|p| p.contains(needle));
-    assert!(has("`a.rs::step` is reached from tests only"), "{problems:#?}");
+    assert!(
+        has("`a.rs::step` is reached from tests only"),
+        "{problems:#?}"
+    );
     assert!(!has("from_lcc` is reached"), "{problems:#?}");
-    assert!(has("in fn second computes K̄y times sin/cos"), "{problems:#?}");
+    assert!(
+        has("in fn second computes K̄y times sin/cos"),
+        "{problems:#?}"
+    );
     assert!(has("in fn third computes sin_cos() of α"), "{problems:#?}");
     assert!(has("in fn fourth computes K̄x·Δx + K̄yx·Δy"), "{problems:#?}");
-    assert!(!has("in fn step") && !has("F::from_lcc computes"), "{problems:#?}");
+    assert!(
+        !has("in fn step") && !has("F::from_lcc computes"),
+        "{problems:#?}"
+    );
     assert_eq!(problems.len(), 4, "{problems:#?}");
 }

@@ -1084,7 +1084,8 @@ struct Reference {
 /// A spot that computes an indexed equation's formula outside the functions the index names.
 #[derive(Debug, Clone)]
 struct ShapeHit {
-    equation: u32,
+    /// The equations whose indexed functions may compute it.
+    equations: &'static [u32],
     line: usize,
     caller: (Option<String>, String),
     what: &'static str,
@@ -1138,19 +1139,19 @@ fn is_sin_or_cos(expr: &syn::Expr) -> bool {
 ///   or `sin_cos()` of an α (a receiver naming `alpha`);
 /// - eq. (5): a sum of a product naming `kx_nm_per_count` and one naming `kyx_nm_per_count`
 ///   (K̄x·Δx + K̄yx·Δy).
-fn formula_shape(expr: &syn::Expr) -> Option<(u32, &'static str)> {
+fn formula_shape(expr: &syn::Expr) -> Option<(&'static [u32], &'static str)> {
     match expr {
         syn::Expr::Binary(b) if matches!(b.op, syn::BinOp::Mul(_)) => {
             let ky_times_trig = |k: &syn::Expr, t: &syn::Expr| {
                 is_sin_or_cos(t) && plain_name(k).is_some_and(|n| n.contains("ky"))
             };
             (ky_times_trig(&b.left, &b.right) || ky_times_trig(&b.right, &b.left))
-                .then_some((3, "K̄y times sin/cos (eqs. 3, 11)"))
+                .then_some((&[3, 11], "K̄y times sin/cos (eqs. 3, 11)"))
         }
         syn::Expr::MethodCall(m) if m.method == "sin_cos" => idents_of(&m.receiver)
             .iter()
             .any(|i| i.contains("alpha"))
-            .then_some((3, "sin_cos() of α (eq. 3)")),
+            .then_some((&[3, 11], "sin_cos() of α (eqs. 3, 11)")),
         syn::Expr::Binary(b) if matches!(b.op, syn::BinOp::Add(_)) => {
             let product_naming = |e: &syn::Expr, name: &str| {
                 let mut inner = e;
@@ -1163,7 +1164,7 @@ fn formula_shape(expr: &syn::Expr) -> Option<(u32, &'static str)> {
             let (l, r) = (&b.left, &b.right);
             ((product_naming(l, "kx_nm_per_count") && product_naming(r, "kyx_nm_per_count"))
                 || (product_naming(r, "kx_nm_per_count") && product_naming(l, "kyx_nm_per_count")))
-            .then_some((5, "K̄x·Δx + K̄yx·Δy (eq. 5)"))
+            .then_some((&[1, 5], "K̄x·Δx + K̄yx·Δy (eqs. 1, 5)"))
         }
         _ => None,
     }
@@ -1272,7 +1273,7 @@ impl<'ast> syn::visit::Visit<'ast> for CallCollector {
     }
 
     fn visit_expr(&mut self, expr: &'ast syn::Expr) {
-        if let (Some(caller), Some((equation, what))) = (self.caller(), formula_shape(expr)) {
+        if let (Some(caller), Some((equations, what))) = (self.caller(), formula_shape(expr)) {
             let line = match expr {
                 syn::Expr::Binary(b) => match &b.op {
                     syn::BinOp::Mul(t) => t.spans[0].start().line,
@@ -1283,7 +1284,7 @@ impl<'ast> syn::visit::Visit<'ast> for CallCollector {
                 _ => 0,
             };
             self.shapes.push(ShapeHit {
-                equation,
+                equations,
                 line,
                 caller,
                 what,
@@ -1356,7 +1357,8 @@ fn equation_call_graph_problems(
     calls: &[(PathBuf, CallCollector)],
 ) -> Vec<String> {
     let mut problems = Vec::new();
-    let mut indexed: BTreeSet<(Option<String>, String)> = BTreeSet::new();
+    // The equations each indexed function is listed for.
+    let mut indexed: BTreeMap<(Option<String>, String), BTreeSet<u32>> = BTreeMap::new();
     for (n, functions) in index {
         for entry in functions {
             let Some((_, item)) = entry.split_once(".rs::") else {
@@ -1366,7 +1368,10 @@ fn equation_call_graph_problems(
                 Some((owner, name)) => (Some(owner), name),
                 None => (None, item),
             };
-            indexed.insert((owner.map(str::to_owned), name.to_owned()));
+            indexed
+                .entry((owner.map(str::to_owned), name.to_owned()))
+                .or_default()
+                .insert(*n);
             let reached = calls
                 .iter()
                 .flat_map(|(_, c)| &c.references)
@@ -1380,13 +1385,16 @@ fn equation_call_graph_problems(
     }
     for (file, collector) in calls {
         for hit in &collector.shapes {
-            if indexed.contains(&hit.caller) {
+            let allowed = indexed
+                .get(&hit.caller)
+                .is_some_and(|listed| hit.equations.iter().any(|e| listed.contains(e)));
+            if allowed {
                 continue;
             }
             let relative = file.strip_prefix(workspace_root()).unwrap_or(file);
             problems.push(format!(
                 "eq. ({}): {}:{} in fn {}{} computes {} itself; call the indexed function",
-                hit.equation,
+                hit.equations[0],
                 relative.display(),
                 hit.line,
                 hit.caller
@@ -1427,6 +1435,10 @@ fn the_equation_call_graph_finds_test_only_functions_and_second_formulas() {
         pub fn second(l: &L) -> f64 { l.ky_nm_per_count * l.alpha_rad.cos() }
         pub fn third(a: f64) -> (f64, f64) { a.alpha.sin_cos() }
         pub fn fourth(k: &K) -> f64 { (k.kx_nm_per_count * 2.0) + k.kyx_nm_per_count * 3.0 }
+        /// Implements eq. (2).
+        pub fn fit_plane(ky: &[f64], a: &[f64]) -> Vec<f64> {
+            ky.iter().zip(a).map(|(ky, a)| ky * a.sin()).collect()
+        }
         #[cfg(test)]
         mod tests {
             #[test]
@@ -1436,6 +1448,7 @@ fn the_equation_call_graph_finds_test_only_functions_and_second_formulas() {
     let mut index = BTreeMap::new();
     index.insert(3, vec!["a.rs::F::from_lcc".to_owned()]);
     index.insert(5, vec!["a.rs::step".to_owned()]);
+    index.insert(2, vec!["a.rs::fit_plane".to_owned()]);
     let problems =
         equation_call_graph_problems(&index, &[(PathBuf::from("a.rs"), calls_in_text(text))]);
     let has = |needle: &str| problems.iter().any(|p| p.contains(needle));
@@ -1450,9 +1463,11 @@ fn the_equation_call_graph_finds_test_only_functions_and_second_formulas() {
     );
     assert!(has("in fn third computes sin_cos() of α"), "{problems:#?}");
     assert!(has("in fn fourth computes K̄x·Δx + K̄yx·Δy"), "{problems:#?}");
+    assert!(has("`a.rs::fit_plane` is reached from tests only"), "{problems:#?}");
+    assert!(has("in fn fit_plane computes K̄y times sin/cos"), "{problems:#?}");
     assert!(
         !has("in fn step") && !has("F::from_lcc computes"),
         "{problems:#?}"
     );
-    assert_eq!(problems.len(), 4, "{problems:#?}");
+    assert_eq!(problems.len(), 6, "{problems:#?}");
 }

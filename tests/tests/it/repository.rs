@@ -1463,8 +1463,14 @@ fn the_equation_call_graph_finds_test_only_functions_and_second_formulas() {
     );
     assert!(has("in fn third computes sin_cos() of α"), "{problems:#?}");
     assert!(has("in fn fourth computes K̄x·Δx + K̄yx·Δy"), "{problems:#?}");
-    assert!(has("`a.rs::fit_plane` is reached from tests only"), "{problems:#?}");
-    assert!(has("in fn fit_plane computes K̄y times sin/cos"), "{problems:#?}");
+    assert!(
+        has("`a.rs::fit_plane` is reached from tests only"),
+        "{problems:#?}"
+    );
+    assert!(
+        has("in fn fit_plane computes K̄y times sin/cos"),
+        "{problems:#?}"
+    );
     assert!(
         !has("in fn step") && !has("F::from_lcc computes"),
         "{problems:#?}"

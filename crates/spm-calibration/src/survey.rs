@@ -191,13 +191,7 @@ impl SurveyReport {
         }
         let median = |f: fn(&SurveyLcc) -> f64| {
             let mut v: Vec<f64> = found.iter().map(|l| f(l)).collect();
-            v.sort_by(f64::total_cmp);
-            let n = v.len();
-            if n % 2 == 1 {
-                v[n / 2]
-            } else {
-                0.5 * (v[n / 2 - 1] + v[n / 2])
-            }
+            spm_regression::median(&mut v).unwrap_or(f64::NAN)
         };
         Some(SurveyLcc {
             kx_nm_per_count: median(|l| l.kx_nm_per_count),
@@ -473,8 +467,7 @@ pub fn neighbour_directions(
                 .fold(f64::INFINITY, f64::min)
         })
         .collect();
-    nearest.sort_by(f64::total_cmp);
-    let d_nn = nearest.get(nearest.len() / 2).copied().unwrap_or(f64::NAN);
+    let d_nn = spm_regression::upper_median(&mut nearest).unwrap_or(f64::NAN);
     if pos.len() < 3 || !(d_nn.is_finite() && d_nn > 0.0) {
         return Err(format!("{} features: too few for a lattice", pos.len()));
     }
@@ -566,12 +559,7 @@ pub fn refuse_outliers(
             .iter()
             .filter_map(|p| p.lcc.as_ref().map(f))
             .collect();
-        v.sort_by(f64::total_cmp);
-        match v.len() {
-            0 => f64::NAN,
-            n if n % 2 == 1 => v[n / 2],
-            n => 0.5 * (v[n / 2 - 1] + v[n / 2]),
-        }
+        spm_regression::median(&mut v).unwrap_or(f64::NAN)
     };
     if places.iter().filter(|p| p.lcc.is_some()).count() < 3 {
         return;

@@ -62,7 +62,7 @@ impl Plane {
 /// (and is undefined at c₁ = 0); there the c₁ → 0 limit is taken through the Taylor series of
 /// the same integrals, which agrees with the closed form to rounding.
 ///
-/// Implements eq. (10).
+/// The paper's eq. (10) as printed: the tests' closed-form truth, not in the equation index.
 #[must_use]
 pub fn eq10(a: Plane, b: Plane, c: Plane, x0: f64, y0: f64, x: f64, y: f64) -> (f64, f64) {
     let x_line = (a.k0 + a.k_y * (y0 + y) + a.k_x * x0) * x + 0.5 * a.k_x * x * x;
@@ -89,7 +89,7 @@ pub fn eq10(a: Plane, b: Plane, c: Plane, x0: f64, y0: f64, x: f64, y: f64) -> (
 /// (`x0`, `y0`), with K̄x^r = `a` and the product surfaces K̄yx^r = `e`, K̄yy^r = `f` of eq. (11),
 /// summed term by term over the raw-coordinate coefficients as printed.
 ///
-/// Implements eq. (12).
+/// The paper's eq. (12) as printed: the tests' closed-form truth, not in the equation index.
 #[must_use]
 pub fn eq12(
     a: &Polynomial2,

@@ -493,8 +493,6 @@ pub fn fit_creep_law(
         .unwrap_or(1);
     // Unknowns: [w, v_x(window 0..), v_y(window 0..)]; rows demeaned per track and axis.
     let n = 1 + 2 * windows;
-    let mut ata = vec![vec![0.0; n]; n];
-    let mut atb = vec![0.0; n];
     let mut rows = 0;
     let mut used_tracks = 0;
     let mut design: Vec<(Vec<(usize, f64)>, f64)> = Vec::new();
@@ -516,26 +514,12 @@ pub fn fit_creep_law(
                     row.push((1 + axis * windows + win, value));
                 }
                 let y = r.1[axis] - mean_y;
-                for &(i, vi) in &row {
-                    atb[i] += vi * y;
-                    for &(j, vj) in &row {
-                        ata[i][j] += vi * vj;
-                    }
-                }
                 design.push((row, y));
                 rows += 1;
             }
         }
     }
-    // Unused drift windows: pin them with a unit diagonal (no rows touch them).
-    for (i, row) in ata.iter_mut().enumerate() {
-        if row[i] == 0.0 {
-            row[i] = 1.0;
-        }
-    }
-    let (solution, inverse_00) = solve_symmetric(&ata, &atb).ok_or_else(|| {
-        CorrectionError::InvalidArgument("creep fit: singular normal equations".to_owned())
-    })?;
+    let (solution, inverse_00) = solve_creep_design(&design, n)?;
     let w = solution[0];
     let mut ss = 0.0;
     let mut signal = 0.0;
@@ -565,46 +549,57 @@ pub fn fit_creep_law(
     })
 }
 
-/// Solves A x = b for symmetric positive definite A by Gauss–Jordan with partial pivoting;
-/// also returns (A⁻¹)₀₀.
-fn solve_symmetric(a: &[Vec<f64>], b: &[f64]) -> Option<(Vec<f64>, f64)> {
-    let n = b.len();
-    let mut m: Vec<Vec<f64>> = a
-        .iter()
-        .zip(b)
-        .enumerate()
-        .map(|(i, (row, &bi))| {
-            let mut r = row.clone();
-            r.push(bi);
-            r.extend((0..n).map(|j| if i == j { 1.0 } else { 0.0 }));
-            r
-        })
-        .collect();
-    for col in 0..n {
-        let pivot = (col..n).max_by(|&i, &j| m[i][col].abs().total_cmp(&m[j][col].abs()))?;
-        if m[pivot][col].abs() < 1e-300 {
-            return None;
-        }
-        m.swap(col, pivot);
-        let p = m[col][col];
-        for v in m[col].iter_mut() {
-            *v /= p;
-        }
-        let pivot_row = m[col].clone();
-        for (r, row) in m.iter_mut().enumerate() {
-            if r != col {
-                let f = row[col];
-                if f != 0.0 {
-                    for (cell, pv) in row.iter_mut().zip(&pivot_row) {
-                        *cell -= f * pv;
-                    }
-                }
+/// The creep fit's least squares through the workspace's one solver,
+/// [`spm_regression::least_squares`] (unconstrained): the sparse rows of `design` made dense
+/// over `n` columns, the drift windows no row touches left out (their velocity is 0) and the
+/// weight's column always kept. Returns the full solution and (AᵀA)⁻¹₀₀, the weight's unscaled
+/// variance.
+fn solve_creep_design(
+    design: &[(Vec<(usize, f64)>, f64)],
+    n: usize,
+) -> Result<(Vec<f64>, f64), CorrectionError> {
+    let mut used = vec![false; n];
+    if let Some(first) = used.first_mut() {
+        *first = true;
+    }
+    for (row, _) in design {
+        for &(j, v) in row {
+            if v != 0.0 {
+                used[j] = true;
             }
         }
     }
-    let x: Vec<f64> = m.iter().map(|r| r[n]).collect();
-    let inv00 = m[0][n + 1];
-    x.iter().all(|v| v.is_finite()).then_some((x, inv00))
+    let keep: Vec<usize> = (0..n).filter(|&j| used[j]).collect();
+    let mut position = vec![usize::MAX; n];
+    for (c, &j) in keep.iter().enumerate() {
+        position[j] = c;
+    }
+    let dense: Vec<Vec<f64>> = design
+        .iter()
+        .map(|(row, _)| {
+            let mut d = vec![0.0; keep.len()];
+            for &(j, v) in row {
+                if let Some(cell) = d.get_mut(position[j]) {
+                    *cell += v;
+                }
+            }
+            d
+        })
+        .collect();
+    let rhs: Vec<f64> = design.iter().map(|(_, y)| *y).collect();
+    let fit = spm_regression::least_squares(&dense, &rhs, &vec![false; keep.len()])
+        .map_err(|e| CorrectionError::InvalidArgument(format!("creep fit: {e}")))?;
+    let mut solution = vec![0.0; n];
+    for (c, &j) in keep.iter().enumerate() {
+        solution[j] = fit.coefficients[c];
+    }
+    let inverse_00 = fit
+        .unscaled_covariance
+        .first()
+        .and_then(|row| row.first())
+        .copied()
+        .unwrap_or(f64::NAN);
+    Ok((solution, inverse_00))
 }
 
 /// Corrected coordinates of a raster along its effective trajectory: eq. (5) summed over the
@@ -702,12 +697,9 @@ pub fn correct_effective_path(
             0.5 * (from[0] + to[0]) / gain[0],
             0.5 * (from[1] + to[1]) / gain[1],
         ];
-        let f = field.form(mid[0], mid[1]);
-        let (dx, dy) = (to[0] - from[0], to[1] - from[1]);
-        [
-            f.kx_nm_per_count * dx + f.kyx_nm_per_count * dy,
-            f.kyy_nm_per_count * dy,
-        ]
+        field
+            .form(mid[0], mid[1])
+            .increment(to[0] - from[0], to[1] - from[1])
     };
     let mut out = vec![[0.0; 2]; n];
     let reference = [

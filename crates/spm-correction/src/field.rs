@@ -31,17 +31,37 @@ pub struct FormCoefficients {
 
 impl FormCoefficients {
     /// The coefficients of an oblique scanner with lumped K̄x, K̄y (nm/count) and obliquity α
-    /// (rad): (K̄x, K̄y sin α, K̄y cos α).
+    /// (rad): (K̄x, K̄y sin α, K̄y cos α), the rows of [`spm_hal::NmPerCountMatrix::from_lcc`].
     ///
-    /// Implements eq. (3): Kx = K̄x + K̄y sin α, Ky = K̄y cos α, kept as three terms.
+    /// Implements eq. (3) for the correction, through [`spm_hal::NmPerCountMatrix::from_lcc`]
+    /// (the one place the products are formed).
     #[must_use]
     pub fn from_lcc(kx_nm_per_count: f64, ky_nm_per_count: f64, alpha_rad: f64) -> Self {
-        let (s, c) = alpha_rad.sin_cos();
+        let [[kx, kyx], [_, kyy]] = spm_hal::NmPerCountMatrix::from_lcc(
+            spm_hal::NmPerCount(kx_nm_per_count),
+            spm_hal::NmPerCount(ky_nm_per_count),
+            spm_hal::Radians(alpha_rad),
+        )
+        .rows();
         Self {
-            kx_nm_per_count,
-            kyx_nm_per_count: ky_nm_per_count * s,
-            kyy_nm_per_count: ky_nm_per_count * c,
+            kx_nm_per_count: kx,
+            kyx_nm_per_count: kyx,
+            kyy_nm_per_count: kyy,
         }
+    }
+
+    /// The corrected increment (Δx̄, Δȳ), nm, of a step of (Δx, Δy) counts under these
+    /// coefficients: (K̄x·Δx + K̄yx·Δy, K̄yy·Δy).
+    ///
+    /// Implements eqs. (1) and (5): one summand (the sums and integrals along the trajectory add
+    /// these up).
+    #[must_use]
+    #[inline]
+    pub fn increment(self, dx_counts: f64, dy_counts: f64) -> [f64; 2] {
+        [
+            self.kx_nm_per_count * dx_counts + self.kyx_nm_per_count * dy_counts,
+            self.kyy_nm_per_count * dy_counts,
+        ]
     }
 }
 

@@ -285,15 +285,15 @@ impl PlaneSurfaces {
         ky_nm_per_count: f64,
         alpha_rad: f64,
     ) -> Result<Self, CorrectionError> {
-        let (s, c) = alpha_rad.sin_cos();
+        let form = crate::FormCoefficients::from_lcc(kx_nm_per_count, ky_nm_per_count, alpha_rad);
         Ok(Self {
             z_counts,
             n_records: 0,
             kx_nm_per_count: FittedSurface::constant(kx_nm_per_count)?,
             ky_nm_per_count: FittedSurface::constant(ky_nm_per_count)?,
             alpha_rad: FittedSurface::constant(alpha_rad)?,
-            kyx_nm_per_count: FittedSurface::constant(ky_nm_per_count * s)?,
-            kyy_nm_per_count: FittedSurface::constant(ky_nm_per_count * c)?,
+            kyx_nm_per_count: FittedSurface::constant(form.kyx_nm_per_count)?,
+            kyy_nm_per_count: FittedSurface::constant(form.kyy_nm_per_count)?,
             kz_nm_per_count: None,
             bowl_z_counts: None,
             calibrated_region_counts: None,

@@ -24,7 +24,9 @@ fn check_path(path: &[CountPoint]) -> Result<(), CorrectionError> {
 /// step adds K̄x·Δx + K̄yx·Δy to x̄ and K̄yy·Δy to ȳ, with the coefficients taken at the point the
 /// step arrives at. Returns the corrected position of every point, nm, the first at (0, 0).
 ///
-/// Implements eqs. (1) and (5): x̄, ȳ as sums of the local unit steps.
+/// Eqs. (1) and (5) literally, x̄, ȳ as sums of the local unit steps (each a
+/// [`crate::FormCoefficients::increment`]): the reference the tests check the integral route
+/// against; not in the equation index, which names what production runs.
 ///
 /// # Errors
 /// [`CorrectionError::Empty`], [`CorrectionError::NonFinite`],
@@ -48,9 +50,9 @@ pub fn correct_unit_steps<F: CorrectionField + ?Sized>(
                 dy_counts: dy,
             });
         }
-        let k = field.form(w[1].x.value(), w[1].y.value());
-        x += k.kx_nm_per_count * dx + k.kyx_nm_per_count * dy;
-        y += k.kyy_nm_per_count * dy;
+        let [ix, iy] = field.form(w[1].x.value(), w[1].y.value()).increment(dx, dy);
+        x += ix;
+        y += iy;
         out.push(NmPoint::from_nm(x, y));
     }
     Ok(out)
@@ -64,7 +66,7 @@ pub fn correct_unit_steps<F: CorrectionField + ?Sized>(
 /// (panels no longer than its `max_panel_counts` along the segment). Returns the corrected
 /// position of every vertex, nm, the first at (0, 0).
 ///
-/// Implements eq. (5) along a piecewise-linear path, by quadrature.
+/// Implements eqs. (1) and (5) along a piecewise-linear path, by quadrature.
 ///
 /// # Errors
 /// [`CorrectionError::Empty`], [`CorrectionError::NonFinite`].
@@ -125,10 +127,10 @@ fn segment<F: CorrectionField + ?Sized>(
         let mid = (p as f64 + 0.5) * h;
         for (node, weight) in quadrature.nodes().iter().zip(quadrature.weights()) {
             let tau = mid + 0.5 * h * node;
-            let k = field.form(ax + tau * dx, ay + tau * dy);
+            let [ix, iy] = field.form(ax + tau * dx, ay + tau * dy).increment(dx, dy);
             let w = 0.5 * h * weight;
-            sx += w * (k.kx_nm_per_count * dx + k.kyx_nm_per_count * dy);
-            sy += w * k.kyy_nm_per_count * dy;
+            sx += w * ix;
+            sy += w * iy;
         }
     }
     (sx, sy)

@@ -238,8 +238,7 @@ pub fn evaluate_field<T: GroundTruth + Sync + ?Sized>(
         .into_iter()
         .filter(|r| !r.is_nan())
         .collect();
-    let count = residuals.len().max(1) as f64;
-    let rms_nm = (residuals.iter().map(|r| r * r).sum::<f64>() / count).sqrt();
+    let rms_nm = spm_regression::rms(&residuals).unwrap_or(0.0);
     let max_nm = residuals.iter().fold(0.0_f64, |m, r| m.max(*r));
 
     // Lattice-constant error on small corrected images across the field.

@@ -264,7 +264,8 @@ pub fn held_out_check<E: std::fmt::Display>(
         }
         check.records_held_out += held_out.len();
     }
-    let rms = |v: &[f64]| (v.iter().map(|t| t * t).sum::<f64>() / v.len() as f64).sqrt();
+    // Every vector here is non-empty (err, sd and z grow together; `all` is checked below).
+    let rms = |v: &[f64]| spm_regression::rms(v).unwrap_or(f64::NAN);
     for (k, c) in Coefficient::ALL.into_iter().enumerate() {
         if z[k].is_empty() {
             continue;
@@ -630,13 +631,7 @@ pub fn lattice_check(
             }
         })
         .collect();
-    let rms = |v: &[f64]| {
-        if v.is_empty() {
-            f64::NAN
-        } else {
-            (v.iter().map(|t| t * t).sum::<f64>() / v.len() as f64).sqrt()
-        }
-    };
+    let rms = |v: &[f64]| spm_regression::rms(v).unwrap_or(f64::NAN);
     let ce: Vec<f64> = places
         .iter()
         .filter_map(|p| p.corrected_error_pct)

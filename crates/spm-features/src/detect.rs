@@ -323,17 +323,12 @@ fn smooth(z: &[f64], nx: usize, ny: usize) -> Vec<f64> {
     out
 }
 
-/// The upper median (the upper of the two middle values for an even count); 0 when empty.
-/// Not yet [`spm_regression::median`]: its mean of the two middles moved the real graphite
-/// `.sm4` frame's lattice (16 atoms, where one atom more or less passes the defect filter) from
-/// within 5 % of 0.2461 nm to 5.3 % off (`measured::graphite_sm4_lattice_with_spm_features`).
+/// The upper median ([`spm_regression::upper_median`]); 0 when empty. Not the mean of the two
+/// middles ([`spm_regression::median`]): that moved the real graphite `.sm4` frame's lattice
+/// (16 atoms, where one atom more or less passes the defect filter) from within 5 % of
+/// 0.2461 nm to 5.3 % off (`measured::graphite_sm4_lattice_with_spm_features`).
 fn median(values: &mut [f64]) -> f64 {
-    if values.is_empty() {
-        return 0.0;
-    }
-    let mid = values.len() / 2;
-    let (_, m, _) = values.select_nth_unstable_by(mid, f64::total_cmp);
-    *m
+    spm_regression::upper_median(values).unwrap_or(0.0)
 }
 
 /// Robust white-noise estimate from the residual of the raw map minus its

@@ -101,8 +101,7 @@ pub fn lattice_vectors(
                 .fold(f64::INFINITY, f64::min)
         })
         .collect();
-    nearest.sort_by(f64::total_cmp);
-    let d_nn = nearest[nearest.len() / 2];
+    let d_nn = spm_regression::upper_median(&mut nearest).unwrap_or(f64::NAN);
     if !(d_nn.is_finite() && d_nn > 0.0) {
         return Err(FeatureError::TooFewFeatures {
             needed: 3,

@@ -242,7 +242,10 @@ impl CountsPerSecond {
 pub struct NmPerCountMatrix(pub [[f64; 2]; 2]);
 
 impl NmPerCountMatrix {
-    /// From the local calibration coefficients K̄x, K̄y (nm/count) and α (rad).
+    /// From the local calibration coefficients K̄x, K̄y (nm/count) and α (rad): K̄y sin α and
+    /// K̄y cos α, the summands of eq. (3), formed here for the whole workspace.
+    ///
+    /// Implements eq. (3): Kx = K̄x + K̄y sin α, Ky = K̄y cos α, kept as three terms.
     #[must_use]
     pub fn from_lcc(kx: NmPerCount, ky: NmPerCount, alpha: Radians) -> Self {
         let (s, c) = alpha.0.sin_cos();

@@ -280,8 +280,7 @@ pub(crate) fn find_lattice(img: &Image<'_>, search: &LatticeSearch) -> Option<Pe
                 }
             }
         }
-        ring.sort_by(f64::total_cmp);
-        ring.get(ring.len() / 2).copied().unwrap_or(0.0)
+        spm_regression::upper_median(&mut ring).unwrap_or(0.0)
     };
     let mut sig: Vec<([f64; 2], f64)> = cand
         .into_iter()
@@ -1039,8 +1038,7 @@ fn locate_all(img: &Image<'_>, t: &Template, geo: &Geometry) -> (Vec<Cell>, usiz
         }
     }
     let mut corr: Vec<f64> = cells.iter().map(|c| c.correlation).collect();
-    corr.sort_by(f64::total_cmp);
-    let median = corr.get(corr.len() / 2).copied().unwrap_or(0.0);
+    let median = spm_regression::upper_median(&mut corr).unwrap_or(0.0);
     cells.retain(|c| c.correlation >= RELATIVE_CORRELATION * median);
     // Two sites converging on one cell (a fit that left its site): keep the better.
     cells.sort_by(|a, b| b.correlation.total_cmp(&a.correlation));

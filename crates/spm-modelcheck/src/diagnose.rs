@@ -363,11 +363,7 @@ fn robust_sigma(residual: &[f64], mask: &[bool]) -> f64 {
         .filter(|&k| mask[k])
         .flat_map(|k| [residual[2 * k].abs(), residual[2 * k + 1].abs()])
         .collect();
-    if abs.is_empty() {
-        return 0.0;
-    }
-    abs.sort_by(f64::total_cmp);
-    1.4826 * abs[abs.len() / 2]
+    1.4826 * spm_regression::upper_median(&mut abs).unwrap_or(0.0)
 }
 
 /// χ² of the 4×4 position-cell means of the residual against the noise, over groups.
@@ -870,8 +866,7 @@ fn robust_fit(
             .filter(|&k| mask[k])
             .flat_map(|k| [fit.residual[2 * k].abs(), fit.residual[2 * k + 1].abs()])
             .collect();
-        abs.sort_by(f64::total_cmp);
-        let sigma = 1.4826 * abs.get(abs.len() / 2).copied().unwrap_or(0.0);
+        let sigma = 1.4826 * spm_regression::upper_median(&mut abs).unwrap_or(0.0);
         // Never below a quarter period: a mis-indexed feature is off by a
         // lattice vector, a real effect (a tip jump) may be many σ.
         let limit = (outlier_sigmas * sigma).max(floor_nm);
@@ -1234,9 +1229,8 @@ pub fn diagnose_indexed(
         .filter_map(|&k| set.features[k].sigma_nm)
         .filter(|s| s.is_finite() && *s > 0.0)
         .collect();
-    reported.sort_by(f64::total_cmp);
-    let reported_sigma_nm = if reported.len() * 2 >= source.len() && !reported.is_empty() {
-        Some(std::f64::consts::SQRT_2 * reported[reported.len() / 2])
+    let reported_sigma_nm = if reported.len() * 2 >= source.len() {
+        spm_regression::upper_median(&mut reported).map(|m| std::f64::consts::SQRT_2 * m)
     } else {
         None
     };

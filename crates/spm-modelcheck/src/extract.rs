@@ -460,13 +460,12 @@ fn cell_features(
     let run = cells::locate_cells(&img, peaks, ctx.map_ctx.polarity, reference);
     if let Some(r) = &run {
         let mut c: Vec<f64> = r.cells.iter().map(|c| c.correlation).collect();
-        c.sort_by(f64::total_cmp);
         tracing::debug!(
             label = %ctx.label,
             k = ?peaks.k,
             contrast = ?peaks.contrast,
             origin = ?r.origin,
-            median_correlation = c.get(c.len() / 2).copied().unwrap_or(0.0),
+            median_correlation = spm_regression::upper_median(&mut c).unwrap_or(0.0),
             "cell localiser"
         );
     }

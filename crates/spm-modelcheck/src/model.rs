@@ -370,8 +370,7 @@ fn vibration_candidates(
         .map(|w| w[1] - w[0])
         .filter(|d| *d > 0.0)
         .collect();
-    gaps.sort_by(f64::total_cmp);
-    let Some(&gap) = gaps.get(gaps.len() / 2) else {
+    let Some(gap) = spm_regression::upper_median(&mut gaps) else {
         return (Vec::new(), 1.0);
     };
     if !(span > 0.0 && gap > 0.0) {

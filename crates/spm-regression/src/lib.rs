@@ -24,4 +24,4 @@ pub use fit::{FitOptions, Observations, PolyFit, fit, leverages, standard_errors
 pub use lsq::{LinearFit, least_squares};
 pub use polynomial::{MAX_DEGREE, Polynomial2, n_terms, term_index, term_powers};
 pub use select::{Criterion, DegreeScore, Selection, SelectionOptions, select_degree};
-pub use stats::{DeltaMax, Field, delta_max, median, product_values, sigma};
+pub use stats::{DeltaMax, Field, delta_max, median, product_values, rms, sigma, upper_median};

@@ -37,6 +37,45 @@ pub struct LinearFit {
     pub unscaled_covariance: Vec<Vec<f64>>,
 }
 
+impl LinearFit {
+    /// The leverage hᵢ = aᵢᵀ·(AₚᵀAₚ)⁻¹·aᵢ of each design row `rows[i]` (the rows this fit was
+    /// solved from, or new rows for a prediction's variance factor), from
+    /// [`LinearFit::unscaled_covariance`]: columns held at their bound do not count. At the
+    /// data they sum to the number of free parameters; a prediction at row a has the variance
+    /// σ²·(1 + h) against a new observation.
+    ///
+    /// # Errors
+    /// [`RegressionError::LengthMismatch`] for a row that is not as long as the fit's
+    /// parameters; [`RegressionError::NonFinite`] for NaN/∞ in a row.
+    pub fn leverages(&self, rows: &[Vec<f64>]) -> Result<Vec<f64>, RegressionError> {
+        let n = self.coefficients.len();
+        rows.iter()
+            .enumerate()
+            .map(|(index, row)| {
+                if row.len() != n {
+                    return Err(RegressionError::LengthMismatch {
+                        field: "design row",
+                        expected: n,
+                        got: row.len(),
+                    });
+                }
+                if row.iter().any(|v| !v.is_finite()) {
+                    return Err(RegressionError::NonFinite {
+                        field: "design row",
+                        index,
+                    });
+                }
+                Ok(self
+                    .unscaled_covariance
+                    .iter()
+                    .zip(row)
+                    .map(|(c, ai)| ai * c.iter().zip(row).map(|(cij, aj)| cij * aj).sum::<f64>())
+                    .sum())
+            })
+            .collect()
+    }
+}
+
 /// Solves the (sign-constrained) linear least-squares problem described in the module docs.
 /// `rows` are the design matrix's rows (each `columns` long), `rhs` the observations,
 /// `non_negative[j]` whether column j is constrained to ≥ 0.
@@ -289,6 +328,29 @@ mod tests {
                 &[false, false]
             ),
             Err(RegressionError::IllConditioned { .. })
+        ));
+    }
+
+    /// Leverages of a straight line through x = 0 … 9 against the closed form
+    /// hᵢ = 1/n + (xᵢ − x̄)²/Sxx (Sxx = 82.5), summing to the 2 parameters; a row of the wrong
+    /// length is an error.
+    #[test]
+    fn leverages_of_a_line_are_the_closed_form() {
+        let rows: Vec<Vec<f64>> = (0..10).map(|i| vec![1.0, f64::from(i)]).collect();
+        let rhs: Vec<f64> = (0..10).map(|i| 1.0 + f64::from(i % 3)).collect();
+        let fit = least_squares(&rows, &rhs, &[false, false]).unwrap();
+        let h = fit.leverages(&rows).unwrap();
+        for (i, hi) in h.iter().enumerate() {
+            let expected = 0.1 + (i as f64 - 4.5).powi(2) / 82.5;
+            assert!(
+                (hi - expected).abs() < 1e-12,
+                "h{i} = {hi}, closed form {expected}"
+            );
+        }
+        assert!((h.iter().sum::<f64>() - 2.0).abs() < 1e-12);
+        assert!(matches!(
+            fit.leverages(&[vec![1.0]]),
+            Err(RegressionError::LengthMismatch { .. })
         ));
     }
 }

@@ -226,11 +226,7 @@ impl Lcc {
     /// Rebuilds `J = R(θ)·M`.
     pub fn to_jacobian(&self) -> Jacobian {
         let (s, c) = self.theta.value().sin_cos();
-        let (sa, ca) = self.alpha.value().sin_cos();
-        let m = [
-            [self.kx.value(), self.ky.value() * sa],
-            [0.0, self.ky.value() * ca],
-        ];
+        let m = spm_hal::NmPerCountMatrix::from_lcc(self.kx, self.ky, self.alpha).rows();
         [
             [c * m[0][0] - s * m[1][0], c * m[0][1] - s * m[1][1]],
             [s * m[0][0] + c * m[1][0], s * m[0][1] + c * m[1][1]],

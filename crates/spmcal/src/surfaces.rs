@@ -425,24 +425,19 @@ pub fn fit_plane(
     let x = &columns.lcs_x_counts;
     let y = &columns.lcs_y_counts;
     let field = extent(x, y);
-    let kyx: Vec<f64> = columns
-        .ky_nm_per_count
-        .iter()
-        .zip(&columns.alpha_rad)
-        .map(|(ky, a)| ky * a.sin())
-        .collect();
-    let kyy: Vec<f64> = columns
-        .ky_nm_per_count
-        .iter()
-        .zip(&columns.alpha_rad)
-        .map(|(ky, a)| ky * a.cos())
-        .collect();
     let one = |name: &'static str, xs: &[f64], ys: &[f64], values: &[f64]| {
         fit_one(name, z_counts, xs, ys, values, &field, options)
     };
     let (kx, kx_summary) = one("kx_nm_per_count", x, y, &columns.kx_nm_per_count)?;
     let (ky, ky_summary) = one("ky_nm_per_count", x, y, &columns.ky_nm_per_count)?;
     let (alpha, alpha_summary) = one("alpha_rad", x, y, &columns.alpha_rad)?;
+    // The values of the product surfaces of eq. (11), after K̄y and α have passed their own fits.
+    let (kyx, kyy) = spm_regression::product_values(&columns.ky_nm_per_count, &columns.alpha_rad)
+        .map_err(|source| SurfaceFitError::Regression {
+        coefficient: "kyx_nm_per_count",
+        z_counts,
+        source,
+    })?;
     let (kyx_surface, _) = one("kyx_nm_per_count", x, y, &kyx)?;
     let (kyy_surface, _) = one("kyy_nm_per_count", x, y, &kyy)?;
     let mut kz_x = Vec::new();

@@ -182,7 +182,7 @@ pub struct VerticalReport {
 
 /// Leverage `x₀ᵀ(XᵀX)⁻¹x₀` of the point (x₀, y₀) for a polynomial of `degree` fitted at the
 /// points (x, y): the variance of the surface's value there is σ²·leverage. `None` when the
-/// normal matrix is singular. (XᵀX)⁻¹ is the least-squares kernel's unscaled covariance.
+/// normal matrix is singular. The kernel's [`spm_regression::LinearFit::leverages`].
 fn leverage(
     surface: &spm_regression::Polynomial2,
     x: &[f64],
@@ -201,14 +201,7 @@ fn leverage(
     let rows: Vec<Vec<f64>> = x.iter().zip(y).map(|(xi, yi)| row(*xi, *yi)).collect();
     let free = vec![false; spm_regression::n_terms(surface.degree())];
     let fit = spm_regression::least_squares(&rows, &vec![0.0; rows.len()], &free).ok()?;
-    let r0 = row(x0, y0);
-    Some(
-        fit.unscaled_covariance
-            .iter()
-            .zip(&r0)
-            .map(|(c, ri)| ri * c.iter().zip(&r0).map(|(cij, rj)| cij * rj).sum::<f64>())
-            .sum(),
-    )
+    fit.leverages(&[row(x0, y0)]).ok()?.first().copied()
 }
 
 /// Coarse-stage position of a plane label from the plan's Z levels.

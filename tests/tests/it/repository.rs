@@ -1120,3 +1120,415 @@ fn every_equation_of_the_paper_resolves_to_a_function_that_says_so() {
         problems.join("\n  ")
     );
 }
+
+/// Where production code names a function: every path expression (a call `a::f(…)`, or `f`
+/// passed as a value) by its last segment and the segment before it (`Self` resolved to the
+/// impl's type), and every method call by its name. A name-level call graph: a method call
+/// `.form(…)` counts for every `form`, since types are not resolved without the compiler.
+#[derive(Debug, Clone)]
+struct Reference {
+    name: String,
+    /// The segment before the name in a path (`Type` in `Type::f`), `None` for a bare name.
+    qualifier: Option<String>,
+    /// A method call (`x.f(…)`), reached through any owner.
+    method: bool,
+    /// The function the reference is in: (impl type, name).
+    caller: (Option<String>, String),
+}
+
+/// A spot that computes an indexed equation's formula outside the functions the index names.
+#[derive(Debug, Clone)]
+struct ShapeHit {
+    /// The equations whose indexed functions may compute it.
+    equations: &'static [u32],
+    line: usize,
+    caller: (Option<String>, String),
+    what: &'static str,
+}
+
+/// The identifiers of an expression, lower-cased.
+fn idents_of(expr: &syn::Expr) -> Vec<String> {
+    #[derive(Default)]
+    struct Idents(Vec<String>);
+    impl<'ast> syn::visit::Visit<'ast> for Idents {
+        fn visit_ident(&mut self, ident: &'ast proc_macro2::Ident) {
+            self.0.push(ident.to_string().to_lowercase());
+        }
+    }
+    let mut idents = Idents::default();
+    syn::visit::Visit::visit_expr(&mut idents, expr);
+    idents.0
+}
+
+/// The last identifier of a plain path or field expression (`ky`, `self.ky_nm_per_count`,
+/// `l.ky.0`), lower-cased; `None` for anything else.
+fn plain_name(expr: &syn::Expr) -> Option<String> {
+    match expr {
+        syn::Expr::Path(p) => p
+            .path
+            .segments
+            .last()
+            .map(|s| s.ident.to_string().to_lowercase()),
+        syn::Expr::Field(f) => match &f.member {
+            syn::Member::Named(ident) => Some(ident.to_string().to_lowercase()),
+            syn::Member::Unnamed(_) => plain_name(&f.base),
+        },
+        syn::Expr::Paren(p) => plain_name(&p.expr),
+        syn::Expr::Reference(r) => plain_name(&r.expr),
+        syn::Expr::Unary(u) => plain_name(&u.expr),
+        _ => None,
+    }
+}
+
+/// Whether `expr` is a call of the method `sin` or `cos`.
+fn is_sin_or_cos(expr: &syn::Expr) -> bool {
+    match expr {
+        syn::Expr::MethodCall(m) => m.method == "sin" || m.method == "cos",
+        syn::Expr::Paren(p) => is_sin_or_cos(&p.expr),
+        _ => false,
+    }
+}
+
+/// The formulas of eqs. (3), (5) and (11) by their shape:
+/// - eq. (3)/(11): a K̄y (a plain name containing `ky`) times the sine or cosine of anything,
+///   or `sin_cos()` of an α (a receiver naming `alpha`);
+/// - eq. (5): a sum of a product naming `kx_nm_per_count` and one naming `kyx_nm_per_count`
+///   (K̄x·Δx + K̄yx·Δy).
+fn formula_shape(expr: &syn::Expr) -> Option<(&'static [u32], &'static str)> {
+    match expr {
+        syn::Expr::Binary(b) if matches!(b.op, syn::BinOp::Mul(_)) => {
+            let ky_times_trig = |k: &syn::Expr, t: &syn::Expr| {
+                is_sin_or_cos(t) && plain_name(k).is_some_and(|n| n.contains("ky"))
+            };
+            (ky_times_trig(&b.left, &b.right) || ky_times_trig(&b.right, &b.left))
+                .then_some((&[3, 11], "K̄y times sin/cos (eqs. 3, 11)"))
+        }
+        syn::Expr::MethodCall(m) if m.method == "sin_cos" => idents_of(&m.receiver)
+            .iter()
+            .any(|i| i.contains("alpha"))
+            .then_some((&[3, 11], "sin_cos() of α (eqs. 3, 11)")),
+        syn::Expr::Binary(b) if matches!(b.op, syn::BinOp::Add(_)) => {
+            let product_naming = |e: &syn::Expr, name: &str| {
+                let mut inner = e;
+                while let syn::Expr::Paren(p) = inner {
+                    inner = &p.expr;
+                }
+                matches!(inner, syn::Expr::Binary(p) if matches!(p.op, syn::BinOp::Mul(_)))
+                    && idents_of(e).iter().any(|i| i == name)
+            };
+            let (l, r) = (&b.left, &b.right);
+            ((product_naming(l, "kx_nm_per_count") && product_naming(r, "kyx_nm_per_count"))
+                || (product_naming(r, "kx_nm_per_count") && product_naming(l, "kyx_nm_per_count")))
+            .then_some((&[1, 5], "K̄x·Δx + K̄yx·Δy (eqs. 1, 5)"))
+        }
+        _ => None,
+    }
+}
+
+/// The references and formula shapes of one file's non-test code, and the names of the
+/// out-of-line modules it declares under `#[cfg(test)]` (their files are test code).
+#[derive(Default)]
+struct CallCollector {
+    owner: Vec<Option<String>>,
+    function: Vec<(Option<String>, String)>,
+    test_depth: usize,
+    references: Vec<Reference>,
+    shapes: Vec<ShapeHit>,
+    test_modules: Vec<String>,
+}
+
+impl CallCollector {
+    fn caller(&self) -> Option<(Option<String>, String)> {
+        (self.test_depth == 0).then(|| self.function.last().cloned())?
+    }
+
+    fn enter_fn(&mut self, attrs: &[syn::Attribute], name: &syn::Ident) -> bool {
+        let test = attrs.iter().any(is_test_attr);
+        self.test_depth += usize::from(test);
+        let owner = self.owner.last().cloned().flatten();
+        self.function.push((owner, name.to_string()));
+        self.owner.push(None);
+        test
+    }
+
+    fn leave_fn(&mut self, test: bool) {
+        self.owner.pop();
+        self.function.pop();
+        self.test_depth -= usize::from(test);
+    }
+}
+
+impl<'ast> syn::visit::Visit<'ast> for CallCollector {
+    fn visit_item_mod(&mut self, module: &'ast syn::ItemMod) {
+        let test = module.attrs.iter().any(is_test_attr);
+        if test && module.content.is_none() {
+            self.test_modules.push(module.ident.to_string());
+        }
+        self.test_depth += usize::from(test);
+        syn::visit::visit_item_mod(self, module);
+        self.test_depth -= usize::from(test);
+    }
+
+    fn visit_item_impl(&mut self, item: &'ast syn::ItemImpl) {
+        let owner = match item.self_ty.as_ref() {
+            syn::Type::Path(p) => p.path.segments.last().map(|s| s.ident.to_string()),
+            _ => None,
+        };
+        self.owner.push(owner);
+        syn::visit::visit_item_impl(self, item);
+        self.owner.pop();
+    }
+
+    fn visit_item_fn(&mut self, item: &'ast syn::ItemFn) {
+        let test = self.enter_fn(&item.attrs, &item.sig.ident);
+        syn::visit::visit_item_fn(self, item);
+        self.leave_fn(test);
+    }
+
+    fn visit_impl_item_fn(&mut self, item: &'ast syn::ImplItemFn) {
+        let test = self.enter_fn(&item.attrs, &item.sig.ident);
+        syn::visit::visit_impl_item_fn(self, item);
+        self.leave_fn(test);
+    }
+
+    fn visit_trait_item_fn(&mut self, item: &'ast syn::TraitItemFn) {
+        let test = self.enter_fn(&item.attrs, &item.sig.ident);
+        syn::visit::visit_trait_item_fn(self, item);
+        self.leave_fn(test);
+    }
+
+    fn visit_expr_path(&mut self, expr: &'ast syn::ExprPath) {
+        if let (Some(caller), Some(last)) = (self.caller(), expr.path.segments.last()) {
+            let n = expr.path.segments.len();
+            let qualifier = (n >= 2).then(|| expr.path.segments[n - 2].ident.to_string());
+            let qualifier = match qualifier.as_deref() {
+                Some("Self") => caller.0.clone(),
+                _ => qualifier,
+            };
+            self.references.push(Reference {
+                name: last.ident.to_string(),
+                qualifier,
+                method: false,
+                caller,
+            });
+        }
+        syn::visit::visit_expr_path(self, expr);
+    }
+
+    fn visit_expr_method_call(&mut self, expr: &'ast syn::ExprMethodCall) {
+        if let Some(caller) = self.caller() {
+            self.references.push(Reference {
+                name: expr.method.to_string(),
+                qualifier: None,
+                method: true,
+                caller,
+            });
+        }
+        syn::visit::visit_expr_method_call(self, expr);
+    }
+
+    fn visit_expr(&mut self, expr: &'ast syn::Expr) {
+        if let (Some(caller), Some((equations, what))) = (self.caller(), formula_shape(expr)) {
+            let line = match expr {
+                syn::Expr::Binary(b) => match &b.op {
+                    syn::BinOp::Mul(t) => t.spans[0].start().line,
+                    syn::BinOp::Add(t) => t.spans[0].start().line,
+                    _ => 0,
+                },
+                syn::Expr::MethodCall(m) => m.method.span().start().line,
+                _ => 0,
+            };
+            self.shapes.push(ShapeHit {
+                equations,
+                line,
+                caller,
+                what,
+            });
+        }
+        syn::visit::visit_expr(self, expr);
+    }
+}
+
+fn calls_in_text(text: &str) -> CallCollector {
+    let file = syn::parse_file(text).unwrap_or_else(|e| panic!("does not parse: {e}"));
+    let mut collector = CallCollector::default();
+    syn::visit::Visit::visit_file(&mut collector, &file);
+    collector
+}
+
+/// The production sources of the library crates and their references and shapes: every
+/// `crates/*/src` file except those of `#[cfg(test)]` modules, `tests.rs` files and
+/// `bench_support.rs` (bench helpers).
+fn production_calls() -> Vec<(PathBuf, CallCollector)> {
+    let mut out = Vec::new();
+    for name in crate_names() {
+        let files: Vec<(PathBuf, CallCollector)> =
+            rust_sources(&workspace_root().join("crates").join(&name).join("src"))
+                .into_iter()
+                .map(|file| {
+                    let text = std::fs::read_to_string(&file).expect("source readable");
+                    let calls = calls_in_text(&text);
+                    (file, calls)
+                })
+                .collect();
+        let test_modules: BTreeSet<String> = files
+            .iter()
+            .flat_map(|(_, c)| c.test_modules.iter().cloned())
+            .chain(["tests".to_owned(), "bench_support".to_owned()])
+            .collect();
+        out.extend(files.into_iter().filter(|(file, _)| {
+            let stem = file.file_stem().map(|s| s.to_string_lossy().into_owned());
+            let module = if stem.as_deref() == Some("mod") {
+                file.parent()
+                    .and_then(Path::file_name)
+                    .map(|s| s.to_string_lossy().into_owned())
+            } else {
+                stem
+            };
+            !module.is_some_and(|m| test_modules.contains(&m))
+        }));
+    }
+    out
+}
+
+/// Whether `reference` reaches the indexed function `(owner, name)` from another function.
+fn reaches(reference: &Reference, owner: Option<&str>, name: &str) -> bool {
+    if reference.name != name
+        || (reference.caller.0.as_deref() == owner && reference.caller.1 == name)
+    {
+        return false;
+    }
+    match (owner, reference.method) {
+        (_, true) => owner.is_some(),
+        (Some(owner), false) => reference.qualifier.as_deref().is_none_or(|q| q == owner),
+        (None, false) => true,
+    }
+}
+
+/// The indexed functions no production code reaches, and the formulas of eqs. (3), (5) and
+/// (11) computed outside the functions the index names for them.
+fn equation_call_graph_problems(
+    index: &BTreeMap<u32, Vec<String>>,
+    calls: &[(PathBuf, CallCollector)],
+) -> Vec<String> {
+    let mut problems = Vec::new();
+    // The equations each indexed function is listed for.
+    let mut indexed: BTreeMap<(Option<String>, String), BTreeSet<u32>> = BTreeMap::new();
+    for (n, functions) in index {
+        for entry in functions {
+            let Some((_, item)) = entry.split_once(".rs::") else {
+                continue;
+            };
+            let (owner, name) = match item.rsplit_once("::") {
+                Some((owner, name)) => (Some(owner), name),
+                None => (None, item),
+            };
+            indexed
+                .entry((owner.map(str::to_owned), name.to_owned()))
+                .or_default()
+                .insert(*n);
+            let reached = calls
+                .iter()
+                .flat_map(|(_, c)| &c.references)
+                .any(|r| reaches(r, owner, name));
+            if !reached {
+                problems.push(format!(
+                    "eq. ({n}): `{entry}` is reached from tests only (no production caller)"
+                ));
+            }
+        }
+    }
+    for (file, collector) in calls {
+        for hit in &collector.shapes {
+            let allowed = indexed
+                .get(&hit.caller)
+                .is_some_and(|listed| hit.equations.iter().any(|e| listed.contains(e)));
+            if allowed {
+                continue;
+            }
+            let relative = file.strip_prefix(workspace_root()).unwrap_or(file);
+            problems.push(format!(
+                "eq. ({}): {}:{} in fn {}{} computes {} itself; call the indexed function",
+                hit.equations[0],
+                relative.display(),
+                hit.line,
+                hit.caller
+                    .0
+                    .as_ref()
+                    .map(|o| format!("{o}::"))
+                    .unwrap_or_default(),
+                hit.caller.1,
+                hit.what
+            ));
+        }
+    }
+    problems
+}
+
+#[test]
+fn every_indexed_function_is_reached_from_production_and_its_formula_is_written_once() {
+    let problems = equation_call_graph_problems(&equation_index(), &production_calls());
+    assert!(
+        problems.is_empty(),
+        "docs/ARCHITECTURE.md, equation index (a name-level call graph of crates/*/src \
+         without test code):\n  {}",
+        problems.join("\n  ")
+    );
+}
+
+#[test]
+fn the_equation_call_graph_finds_test_only_functions_and_second_formulas() {
+    let text = "
+        pub struct F;
+        impl F {
+            /// Implements eq. (3).
+            pub fn from_lcc(ky: f64, alpha: f64) -> f64 { ky * alpha.sin() }
+        }
+        /// Implements eq. (5).
+        pub fn step(k: &K, dx: f64, dy: f64) -> f64 { k.kx_nm_per_count * dx + k.kyx_nm_per_count * dy }
+        pub fn used() -> f64 { F::from_lcc(1.0, 0.5) }
+        pub fn second(l: &L) -> f64 { l.ky_nm_per_count * l.alpha_rad.cos() }
+        pub fn third(a: f64) -> (f64, f64) { a.alpha.sin_cos() }
+        pub fn fourth(k: &K) -> f64 { (k.kx_nm_per_count * 2.0) + k.kyx_nm_per_count * 3.0 }
+        /// Implements eq. (2).
+        pub fn fit_plane(ky: &[f64], a: &[f64]) -> Vec<f64> {
+            ky.iter().zip(a).map(|(ky, a)| ky * a.sin()).collect()
+        }
+        #[cfg(test)]
+        mod tests {
+            #[test]
+            fn t() { let _ = super::step(&K, 1.0, 0.0); }
+        }
+    ";
+    let mut index = BTreeMap::new();
+    index.insert(3, vec!["a.rs::F::from_lcc".to_owned()]);
+    index.insert(5, vec!["a.rs::step".to_owned()]);
+    index.insert(2, vec!["a.rs::fit_plane".to_owned()]);
+    let problems =
+        equation_call_graph_problems(&index, &[(PathBuf::from("a.rs"), calls_in_text(text))]);
+    let has = |needle: &str| problems.iter().any(|p| p.contains(needle));
+    assert!(
+        has("`a.rs::step` is reached from tests only"),
+        "{problems:#?}"
+    );
+    assert!(!has("from_lcc` is reached"), "{problems:#?}");
+    assert!(
+        has("in fn second computes K̄y times sin/cos"),
+        "{problems:#?}"
+    );
+    assert!(has("in fn third computes sin_cos() of α"), "{problems:#?}");
+    assert!(has("in fn fourth computes K̄x·Δx + K̄yx·Δy"), "{problems:#?}");
+    assert!(
+        has("`a.rs::fit_plane` is reached from tests only"),
+        "{problems:#?}"
+    );
+    assert!(
+        has("in fn fit_plane computes K̄y times sin/cos"),
+        "{problems:#?}"
+    );
+    assert!(
+        !has("in fn step") && !has("F::from_lcc computes"),
+        "{problems:#?}"
+    );
+    assert_eq!(problems.len(), 6, "{problems:#?}");
+}

@@ -414,12 +414,9 @@ fn civil_date(secs: u64) -> String {
         )
 }
 
-/// Root mean square.
+/// Root mean square ([`spm_regression::rms`]); NaN when empty (a table cell without data).
 pub fn rms(values: &[f64]) -> f64 {
-    if values.is_empty() {
-        return f64::NAN;
-    }
-    (values.iter().map(|v| v * v).sum::<f64>() / values.len() as f64).sqrt()
+    spm_regression::rms(values).unwrap_or(f64::NAN)
 }
 
 #[cfg(test)]

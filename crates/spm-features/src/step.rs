@@ -198,7 +198,6 @@ fn strongest_jump(line: &[f64], w: usize) -> Option<(usize, f64)> {
 ///
 /// # Errors
 /// [`StepRejection`] naming why the scan gives no monatomic step height.
-// long-function: one measurement in the order a reader checks it (edge, terraces, per-line offsets, both directions), each typed rejection where its evidence is computed
 pub fn measure_step(
     map: &HeightMap,
     config: &StepConfig,
@@ -222,98 +221,23 @@ pub fn measure_step(
             "heights missing or not finite".into(),
         ));
     }
-    let line = |j: usize| &map.z_counts[j * nx..(j + 1) * nx];
     let threshold = 0.5 * config.nominal_height_counts;
     // 1. The edge in every line.
-    let jumps: Vec<Option<(usize, f64)>> = (0..ny).map(|j| strongest_jump(line(j), w)).collect();
-    let positive = jumps
-        .iter()
-        .flatten()
-        .filter(|(_, d)| *d >= threshold)
-        .count();
-    let negative = jumps
-        .iter()
-        .flatten()
-        .filter(|(_, d)| *d <= -threshold)
-        .count();
-    let upper_towards_positive = positive >= negative;
-    let detected: Vec<(usize, f64)> = jumps
-        .iter()
-        .enumerate()
-        .filter_map(|(j, jump)| {
-            let (i, d) = (*jump)?;
-            let ok = if upper_towards_positive {
-                d >= threshold
-            } else {
-                d <= -threshold
-            };
-            ok.then_some((j, i as f64 - 0.5))
-        })
-        .collect();
-    if detected.len() < config.min_lines.max(ny / 3) {
-        return Err(StepRejection::NoEdge {
-            lines_with_edge: detected.len(),
-            lines: ny,
-            needed: config.min_lines.max(ny / 3),
-        });
-    }
+    let (detected, upper_towards_positive) = detect_edge(map, config, w, threshold)?;
     // 2. A straight edge i = a + b·j through the detections, outliers left out.
-    let mut inliers: Vec<(usize, f64)> = detected.clone();
-    let (mut a, mut b) = (0.0, 0.0);
-    for _ in 0..3 {
-        let n = inliers.len() as f64;
-        let mj = inliers.iter().map(|(j, _)| *j as f64).sum::<f64>() / n;
-        let mi = inliers.iter().map(|(_, i)| *i).sum::<f64>() / n;
-        let sjj: f64 = inliers.iter().map(|(j, _)| (*j as f64 - mj).powi(2)).sum();
-        let sji: f64 = inliers
-            .iter()
-            .map(|(j, i)| (*j as f64 - mj) * (i - mi))
-            .sum();
-        b = if sjj > 0.0 { sji / sjj } else { 0.0 };
-        a = mi - b * mj;
-        let tolerance = (2.0 * w as f64).max(3.0);
-        let kept: Vec<(usize, f64)> = detected
-            .iter()
-            .copied()
-            .filter(|(j, i)| (i - (a + b * *j as f64)).abs() <= tolerance)
-            .collect();
-        if kept.len() < 3 {
-            break;
-        }
-        inliers = kept;
-    }
+    let (a, b) = straight_edge(&detected, w);
     // 3. Per-line terrace sums with the edge band masked; lines crossing the edge only.
-    struct Line {
-        j: usize,
-        // Lower and upper terrace: count, Σi, Σz, Σi², Σi·z.
-        lo: [f64; 5],
-        hi: [f64; 5],
-    }
-    let mask = config.edge_mask_px.max(1.0);
-    let accumulate = |j: usize, exclude: &dyn Fn(usize) -> bool| -> Option<Line> {
-        let edge = a + b * j as f64;
-        let mut lo = [0.0; 5];
-        let mut hi = [0.0; 5];
-        for (i, &z) in line(j).iter().enumerate() {
-            let d = i as f64 - edge;
-            if d.abs() < mask || exclude(i) {
-                continue;
-            }
-            let upper = (d > 0.0) == upper_towards_positive;
-            let t = if upper { &mut hi } else { &mut lo };
-            let x = i as f64;
-            t[0] += 1.0;
-            t[1] += x;
-            t[2] += z;
-            t[3] += x * x;
-            t[4] += x * z;
-        }
-        let min = config.min_terrace_px as f64;
-        (lo[0] >= min && hi[0] >= min).then_some(Line { j, lo, hi })
+    let edge = Edge {
+        map,
+        a,
+        b,
+        mask: config.edge_mask_px.max(1.0),
+        upper_towards_positive,
+        min_terrace_px: config.min_terrace_px,
     };
     let no_exclusion = |_: usize| false;
     let mut lines: Vec<Line> = (0..ny)
-        .filter_map(|j| accumulate(j, &no_exclusion))
+        .filter_map(|j| edge.terraces(j, &no_exclusion))
         .collect();
     if lines.len() < config.min_lines {
         return Err(StepRejection::EdgeNearBorder {
@@ -321,93 +245,9 @@ pub fn measure_step(
         });
     }
     // 4. Common slope and per-line heights, with per-line offsets eliminated.
-    let solve = |lines: &[Line]| -> (f64, Vec<f64>) {
-        // Within a line: z − z̄ = g (i − ī) + H (u − ū). Normal equations pooled.
-        let (mut sgg, mut sgh, mut shh, mut sgz, mut shz) = (0.0, 0.0, 0.0, 0.0, 0.0);
-        for l in lines {
-            let n = l.lo[0] + l.hi[0];
-            let si = l.lo[1] + l.hi[1];
-            let sz = l.lo[2] + l.hi[2];
-            let sii = l.lo[3] + l.hi[3];
-            let siz = l.lo[4] + l.hi[4];
-            let su = l.hi[0];
-            sgg += sii - si * si / n;
-            sgh += l.hi[1] - si * su / n;
-            shh += su - su * su / n;
-            sgz += siz - si * sz / n;
-            shz += l.hi[2] - su * sz / n;
-        }
-        let det = sgg * shh - sgh * sgh;
-        let g = if det.abs() > 0.0 {
-            (shh * sgz - sgh * shz) / det
-        } else {
-            0.0
-        };
-        let heights = lines
-            .iter()
-            .map(|l| {
-                let (ml, mh) = (l.lo[2] / l.lo[0], l.hi[2] / l.hi[0]);
-                let (il, ih) = (l.lo[1] / l.lo[0], l.hi[1] / l.hi[0]);
-                (mh - ml) - g * (ih - il)
-            })
-            .collect();
-        (g, heights)
-    };
-    let (mut g, mut heights) = solve(&lines);
+    let (mut g, mut heights) = solve_lines(&lines);
     // 5. Pixel outliers (vacancies, adsorbates): residuals beyond 6 robust σ, one pass.
-    {
-        let h0 = median(&mut heights.clone());
-        let mut residuals = Vec::new();
-        let mut per_line = Vec::with_capacity(lines.len());
-        for l in &lines {
-            let edge = a + b * l.j as f64;
-            let offset = (l.lo[2] - g * l.lo[1]) / l.lo[0];
-            let r: Vec<(usize, f64)> = line(l.j)
-                .iter()
-                .enumerate()
-                .filter_map(|(i, &z)| {
-                    let d = i as f64 - edge;
-                    if d.abs() < mask {
-                        return None;
-                    }
-                    let upper = (d > 0.0) == upper_towards_positive;
-                    let model = offset + g * i as f64 + if upper { h0 } else { 0.0 };
-                    Some((i, z - model))
-                })
-                .collect();
-            residuals.extend(r.iter().map(|(_, r)| *r));
-            per_line.push(r);
-        }
-        let med = median(&mut residuals.clone());
-        let mad = median(
-            &mut residuals
-                .iter()
-                .map(|r| (r - med).abs())
-                .collect::<Vec<_>>(),
-        );
-        let limit = 6.0 * 1.4826 * mad.max(1e-9);
-        let any_outlier = per_line
-            .iter()
-            .any(|r| r.iter().any(|(_, v)| (v - med).abs() > limit));
-        if any_outlier {
-            let rebuilt: Vec<Line> = lines
-                .iter()
-                .zip(&per_line)
-                .filter_map(|(l, r)| {
-                    let bad: Vec<usize> = r
-                        .iter()
-                        .filter(|(_, v)| (v - med).abs() > limit)
-                        .map(|(i, _)| *i)
-                        .collect();
-                    accumulate(l.j, &|i| bad.contains(&i))
-                })
-                .collect();
-            if rebuilt.len() >= config.min_lines {
-                lines = rebuilt;
-                (g, heights) = solve(&lines);
-            }
-        }
-    }
+    drop_pixel_outliers(&edge, config, &mut lines, &mut g, &mut heights);
     // 6. Outlier lines (defects, a ragged edge).
     let med = median(&mut heights.clone());
     let mad = median(&mut heights.iter().map(|h| (h - med).abs()).collect::<Vec<_>>());
@@ -437,72 +277,14 @@ pub fn measure_step(
     let var = kept.iter().map(|(_, h)| (h - mean).powi(2)).sum::<f64>() / (n - 1.0);
     let sd = var.sqrt();
     // 8. A second edge: a jump of half a step in the residual of many lines.
-    let mut second = 0usize;
-    for l in &lines {
-        let edge = a + b * l.j as f64;
-        let offset = (l.lo[2] - g * l.lo[1]) / l.lo[0];
-        let residual: Vec<f64> = line(l.j)
-            .iter()
-            .enumerate()
-            .map(|(i, &z)| {
-                let d = i as f64 - edge;
-                let upper = (d > 0.0) == upper_towards_positive;
-                z - offset - g * i as f64 - if upper { mean } else { 0.0 }
-            })
-            .collect();
-        // Look on each side of the masked band separately.
-        let cut_lo = (edge - mask).floor().max(0.0) as usize;
-        let cut_hi = ((edge + mask).ceil().max(0.0) as usize).min(nx);
-        for part in [&residual[..cut_lo.min(nx)], &residual[cut_hi..]] {
-            if let Some((_, d)) = strongest_jump(part, w)
-                && d.abs() >= threshold
-            {
-                second += 1;
-                break;
-            }
-        }
-    }
+    let second = second_edges(&edge, &lines, g, mean, w, threshold);
     if second as f64 > 0.3 * lines.len() as f64 {
         return Err(StepRejection::MultipleEdges {
             lines_with_second_edge: second,
         });
     }
     // 7. Tip change: the largest two-sample jump of the per-line heights in scan order.
-    let min_part = (config.min_lines / 2).max(3);
-    if kept.len() >= 2 * min_part {
-        // Two-sample t with the pooled within-part spread (a jump inflates the overall one).
-        let mut prefix = vec![0.0];
-        let mut prefix2 = vec![0.0];
-        for (_, h) in &kept {
-            let d = h - mean;
-            prefix.push(prefix.last().copied().unwrap_or(0.0) + d);
-            prefix2.push(prefix2.last().copied().unwrap_or(0.0) + d * d);
-        }
-        let total = prefix.last().copied().unwrap_or(0.0);
-        let total2 = prefix2.last().copied().unwrap_or(0.0);
-        let mut worst: Option<(usize, f64, f64)> = None;
-        for k in min_part..=kept.len() - min_part {
-            let (k1, k2) = (k as f64, n - k as f64);
-            let m1 = prefix[k] / k1;
-            let m2 = (total - prefix[k]) / k2;
-            let ss = (prefix2[k] - k1 * m1 * m1) + (total2 - prefix2[k] - k2 * m2 * m2);
-            let pooled = (ss.max(0.0) / (n - 2.0)).sqrt();
-            let se = pooled * (1.0 / k1 + 1.0 / k2).sqrt();
-            let t = (m2 - m1).abs() / se.max(1e-9 * mean.abs()).max(1e-12);
-            if worst.is_none_or(|(_, wt, _)| t > wt) {
-                worst = Some((k, t, (m2 - m1) / mean));
-            }
-        }
-        if let Some((k, t, jump)) = worst
-            && t > config.tip_change_sigma
-            && jump.abs() > 0.02
-        {
-            return Err(StepRejection::TipChange {
-                line: kept[k].0,
-                jump_fraction: 100.0 * jump,
-            });
-        }
-    }
+    tip_change(&kept, mean, config)?;
     // 9. Monatomic?
     let ratio = mean / config.nominal_height_counts;
     let layers = ratio.round();
@@ -535,6 +317,314 @@ pub fn measure_step(
         lines_rejected: rejected,
         upper_towards_positive,
     })
+}
+
+/// Step 1 of [`measure_step`]: the strongest jump of every line, the edge's sign by majority,
+/// and the lines whose jump has that sign and at least half a step (line, position between
+/// pixels); whether the upper terrace lies towards +i.
+fn detect_edge(
+    map: &HeightMap,
+    config: &StepConfig,
+    w: usize,
+    threshold: f64,
+) -> Result<(Vec<(usize, f64)>, bool), StepRejection> {
+    let (nx, ny) = (map.columns, map.rows);
+    let line = |j: usize| &map.z_counts[j * nx..(j + 1) * nx];
+    let jumps: Vec<Option<(usize, f64)>> = (0..ny).map(|j| strongest_jump(line(j), w)).collect();
+    let positive = jumps
+        .iter()
+        .flatten()
+        .filter(|(_, d)| *d >= threshold)
+        .count();
+    let negative = jumps
+        .iter()
+        .flatten()
+        .filter(|(_, d)| *d <= -threshold)
+        .count();
+    let upper_towards_positive = positive >= negative;
+    let detected: Vec<(usize, f64)> = jumps
+        .iter()
+        .enumerate()
+        .filter_map(|(j, jump)| {
+            let (i, d) = (*jump)?;
+            let ok = if upper_towards_positive {
+                d >= threshold
+            } else {
+                d <= -threshold
+            };
+            ok.then_some((j, i as f64 - 0.5))
+        })
+        .collect();
+    if detected.len() < config.min_lines.max(ny / 3) {
+        return Err(StepRejection::NoEdge {
+            lines_with_edge: detected.len(),
+            lines: ny,
+            needed: config.min_lines.max(ny / 3),
+        });
+    }
+    Ok((detected, upper_towards_positive))
+}
+
+/// Step 2 of [`measure_step`]: the straight edge `i = a + b·j` through the detections, three
+/// passes leaving out detections further than `max(2w, 3)` pixels from the last line.
+fn straight_edge(detected: &[(usize, f64)], w: usize) -> (f64, f64) {
+    let mut inliers: Vec<(usize, f64)> = detected.to_vec();
+    let (mut a, mut b) = (0.0, 0.0);
+    for _ in 0..3 {
+        let n = inliers.len() as f64;
+        let mj = inliers.iter().map(|(j, _)| *j as f64).sum::<f64>() / n;
+        let mi = inliers.iter().map(|(_, i)| *i).sum::<f64>() / n;
+        let sjj: f64 = inliers.iter().map(|(j, _)| (*j as f64 - mj).powi(2)).sum();
+        let sji: f64 = inliers
+            .iter()
+            .map(|(j, i)| (*j as f64 - mj) * (i - mi))
+            .sum();
+        b = if sjj > 0.0 { sji / sjj } else { 0.0 };
+        a = mi - b * mj;
+        let tolerance = (2.0 * w as f64).max(3.0);
+        let kept: Vec<(usize, f64)> = detected
+            .iter()
+            .copied()
+            .filter(|(j, i)| (i - (a + b * *j as f64)).abs() <= tolerance)
+            .collect();
+        if kept.len() < 3 {
+            break;
+        }
+        inliers = kept;
+    }
+    (a, b)
+}
+
+/// One line crossing the edge: the lower and upper terrace's sums.
+struct Line {
+    j: usize,
+    // Lower and upper terrace: count, Σi, Σz, Σi², Σi·z.
+    lo: [f64; 5],
+    hi: [f64; 5],
+}
+
+/// The straight edge `i = a + b·j` of a map and its masked band: how a line splits into the
+/// two terraces.
+struct Edge<'m> {
+    map: &'m HeightMap,
+    a: f64,
+    b: f64,
+    /// Half-width of the band around the edge left out, pixels.
+    mask: f64,
+    upper_towards_positive: bool,
+    min_terrace_px: usize,
+}
+
+impl Edge<'_> {
+    /// The heights of line `j`.
+    fn line(&self, j: usize) -> &[f64] {
+        let nx = self.map.columns;
+        &self.map.z_counts[j * nx..(j + 1) * nx]
+    }
+
+    /// Step 3 of [`measure_step`]: the terrace sums of line `j`, the masked band and the
+    /// pixels `exclude` names left out; `None` when a terrace has too few pixels.
+    fn terraces(&self, j: usize, exclude: &dyn Fn(usize) -> bool) -> Option<Line> {
+        let edge = self.a + self.b * j as f64;
+        let mut lo = [0.0; 5];
+        let mut hi = [0.0; 5];
+        for (i, &z) in self.line(j).iter().enumerate() {
+            let d = i as f64 - edge;
+            if d.abs() < self.mask || exclude(i) {
+                continue;
+            }
+            let upper = (d > 0.0) == self.upper_towards_positive;
+            let t = if upper { &mut hi } else { &mut lo };
+            let x = i as f64;
+            t[0] += 1.0;
+            t[1] += x;
+            t[2] += z;
+            t[3] += x * x;
+            t[4] += x * z;
+        }
+        let min = self.min_terrace_px as f64;
+        (lo[0] >= min && hi[0] >= min).then_some(Line { j, lo, hi })
+    }
+}
+
+/// Step 4 of [`measure_step`]: the common slope `g` and each line's height, with per-line
+/// offsets eliminated. Within a line: z − z̄ = g (i − ī) + H (u − ū); normal equations pooled.
+fn solve_lines(lines: &[Line]) -> (f64, Vec<f64>) {
+    let (mut sgg, mut sgh, mut shh, mut sgz, mut shz) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for l in lines {
+        let n = l.lo[0] + l.hi[0];
+        let si = l.lo[1] + l.hi[1];
+        let sz = l.lo[2] + l.hi[2];
+        let sii = l.lo[3] + l.hi[3];
+        let siz = l.lo[4] + l.hi[4];
+        let su = l.hi[0];
+        sgg += sii - si * si / n;
+        sgh += l.hi[1] - si * su / n;
+        shh += su - su * su / n;
+        sgz += siz - si * sz / n;
+        shz += l.hi[2] - su * sz / n;
+    }
+    let det = sgg * shh - sgh * sgh;
+    let g = if det.abs() > 0.0 {
+        (shh * sgz - sgh * shz) / det
+    } else {
+        0.0
+    };
+    let heights = lines
+        .iter()
+        .map(|l| {
+            let (ml, mh) = (l.lo[2] / l.lo[0], l.hi[2] / l.hi[0]);
+            let (il, ih) = (l.lo[1] / l.lo[0], l.hi[1] / l.hi[0]);
+            (mh - ml) - g * (ih - il)
+        })
+        .collect();
+    (g, heights)
+}
+
+/// Step 5 of [`measure_step`]: pixels whose residual from the two-terrace model lies beyond
+/// 6 robust σ (vacancies, adsorbates) are left out in one pass, and the lines solved again,
+/// unless fewer than `min_lines` lines would remain.
+fn drop_pixel_outliers(
+    edge: &Edge<'_>,
+    config: &StepConfig,
+    lines: &mut Vec<Line>,
+    g: &mut f64,
+    heights: &mut Vec<f64>,
+) {
+    let h0 = median(&mut heights.clone());
+    let mut residuals = Vec::new();
+    let mut per_line = Vec::with_capacity(lines.len());
+    for l in lines.iter() {
+        let at = edge.a + edge.b * l.j as f64;
+        let offset = (l.lo[2] - *g * l.lo[1]) / l.lo[0];
+        let r: Vec<(usize, f64)> = edge
+            .line(l.j)
+            .iter()
+            .enumerate()
+            .filter_map(|(i, &z)| {
+                let d = i as f64 - at;
+                if d.abs() < edge.mask {
+                    return None;
+                }
+                let upper = (d > 0.0) == edge.upper_towards_positive;
+                let model = offset + *g * i as f64 + if upper { h0 } else { 0.0 };
+                Some((i, z - model))
+            })
+            .collect();
+        residuals.extend(r.iter().map(|(_, r)| *r));
+        per_line.push(r);
+    }
+    let med = median(&mut residuals.clone());
+    let mad = median(
+        &mut residuals
+            .iter()
+            .map(|r| (r - med).abs())
+            .collect::<Vec<_>>(),
+    );
+    let limit = 6.0 * 1.4826 * mad.max(1e-9);
+    let any_outlier = per_line
+        .iter()
+        .any(|r| r.iter().any(|(_, v)| (v - med).abs() > limit));
+    if any_outlier {
+        let rebuilt: Vec<Line> = lines
+            .iter()
+            .zip(&per_line)
+            .filter_map(|(l, r)| {
+                let bad: Vec<usize> = r
+                    .iter()
+                    .filter(|(_, v)| (v - med).abs() > limit)
+                    .map(|(i, _)| *i)
+                    .collect();
+                edge.terraces(l.j, &|i| bad.contains(&i))
+            })
+            .collect();
+        if rebuilt.len() >= config.min_lines {
+            *lines = rebuilt;
+            (*g, *heights) = solve_lines(lines);
+        }
+    }
+}
+
+/// Step 8 of [`measure_step`]: the lines whose residual from the model (slope `g`, step
+/// `mean`) jumps by at least `threshold` on either side of the masked band — a second edge.
+fn second_edges(
+    edge: &Edge<'_>,
+    lines: &[Line],
+    g: f64,
+    mean: f64,
+    w: usize,
+    threshold: f64,
+) -> usize {
+    let nx = edge.map.columns;
+    let mut second = 0usize;
+    for l in lines {
+        let at = edge.a + edge.b * l.j as f64;
+        let offset = (l.lo[2] - g * l.lo[1]) / l.lo[0];
+        let residual: Vec<f64> = edge
+            .line(l.j)
+            .iter()
+            .enumerate()
+            .map(|(i, &z)| {
+                let d = i as f64 - at;
+                let upper = (d > 0.0) == edge.upper_towards_positive;
+                z - offset - g * i as f64 - if upper { mean } else { 0.0 }
+            })
+            .collect();
+        // Look on each side of the masked band separately.
+        let cut_lo = (at - edge.mask).floor().max(0.0) as usize;
+        let cut_hi = ((at + edge.mask).ceil().max(0.0) as usize).min(nx);
+        for part in [&residual[..cut_lo.min(nx)], &residual[cut_hi..]] {
+            if let Some((_, d)) = strongest_jump(part, w)
+                && d.abs() >= threshold
+            {
+                second += 1;
+                break;
+            }
+        }
+    }
+    second
+}
+
+/// Step 7 of [`measure_step`]: a tip change, the largest two-sample jump of the kept lines'
+/// heights in scan order (two-sample t with the pooled within-part spread, since a jump
+/// inflates the overall one), refused beyond `tip_change_sigma` and 2 % of the step.
+fn tip_change(kept: &[(usize, f64)], mean: f64, config: &StepConfig) -> Result<(), StepRejection> {
+    let n = kept.len() as f64;
+    let min_part = (config.min_lines / 2).max(3);
+    if kept.len() >= 2 * min_part {
+        let mut prefix = vec![0.0];
+        let mut prefix2 = vec![0.0];
+        for (_, h) in kept {
+            let d = h - mean;
+            prefix.push(prefix.last().copied().unwrap_or(0.0) + d);
+            prefix2.push(prefix2.last().copied().unwrap_or(0.0) + d * d);
+        }
+        let total = prefix.last().copied().unwrap_or(0.0);
+        let total2 = prefix2.last().copied().unwrap_or(0.0);
+        let mut worst: Option<(usize, f64, f64)> = None;
+        for k in min_part..=kept.len() - min_part {
+            let (k1, k2) = (k as f64, n - k as f64);
+            let m1 = prefix[k] / k1;
+            let m2 = (total - prefix[k]) / k2;
+            let ss = (prefix2[k] - k1 * m1 * m1) + (total2 - prefix2[k] - k2 * m2 * m2);
+            let pooled = (ss.max(0.0) / (n - 2.0)).sqrt();
+            let se = pooled * (1.0 / k1 + 1.0 / k2).sqrt();
+            let t = (m2 - m1).abs() / se.max(1e-9 * mean.abs()).max(1e-12);
+            if worst.is_none_or(|(_, wt, _)| t > wt) {
+                worst = Some((k, t, (m2 - m1) / mean));
+            }
+        }
+        if let Some((k, t, jump)) = worst
+            && t > config.tip_change_sigma
+            && jump.abs() > 0.02
+        {
+            return Err(StepRejection::TipChange {
+                line: kept[k].0,
+                jump_fraction: 100.0 * jump,
+            });
+        }
+    }
+    Ok(())
 }
 
 /// Measures a step in two scans of the same window (forward and backward traces, or a direct

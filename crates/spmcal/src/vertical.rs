@@ -235,7 +235,6 @@ fn weighted_slope(points: &[(f64, f64, f64)]) -> Option<(f64, f64)> {
 /// The vertical figures of a fitted surface set against an instrument's ground truth (the
 /// simulator's oracle); `None` when it does not model the vertical axis. `records` are the
 /// records the surfaces were fitted from.
-// long-function: one report section: per plane, the Kz, bowl and z-slope comparisons against the truth share the plane's fitted surfaces and records
 pub fn evaluate(
     truth: &dyn GroundTruth,
     plan: &spm_calibration::PlanConfig,
@@ -299,33 +298,15 @@ pub fn evaluate(
                 .map_or(0.0, |k| spm_regression::n_terms(k.surface.degree()) as f64);
         let kz_chi2_per_dof = (dof >= 1.0).then(|| chi2 / dof);
         // Bowl against the truth, both relative to their means over the nodes.
-        let bowl_fraction = |state: LateralState| {
-            plane.bowl_z_counts.as_ref().and_then(|b| {
-                let pairs: Vec<(f64, f64)> = in_plane
-                    .iter()
-                    .map(|r| {
-                        let u = CountPoint::from_counts(r.lcs_x_counts, r.lcs_y_counts);
-                        (
-                            b.surface.evaluate(r.lcs_x_counts, r.lcs_y_counts),
-                            vertical.flat_sample_z_reading(u, coarse, state).value(),
-                        )
-                    })
-                    .collect();
-                let n = pairs.len() as f64;
-                let mb = pairs.iter().map(|p| p.0).sum::<f64>() / n;
-                let mt = pairs.iter().map(|p| p.1).sum::<f64>() / n;
-                let rms_t = (pairs.iter().map(|p| (p.1 - mt).powi(2)).sum::<f64>() / n).sqrt();
-                let rms_r = (pairs
-                    .iter()
-                    .map(|p| ((p.0 - mb) - (p.1 - mt)).powi(2))
-                    .sum::<f64>()
-                    / n)
-                    .sqrt();
-                (rms_t > 0.0).then(|| rms_r / rms_t)
-            })
-        };
-        let bowl_residual_fraction = bowl_fraction(LateralState::JustMoved);
-        let bowl_residual_fraction_settled_creep = bowl_fraction(LateralState::CreepSettled);
+        let bowl_residual_fraction =
+            bowl_fraction(plane, &in_plane, vertical, coarse, LateralState::JustMoved);
+        let bowl_residual_fraction_settled_creep = bowl_fraction(
+            plane,
+            &in_plane,
+            vertical,
+            coarse,
+            LateralState::CreepSettled,
+        );
         // K̄x, K̄y at the field centre of the records (for the z-dependence).
         let xs: Vec<f64> = in_plane.iter().map(|r| r.lcs_x_counts).collect();
         let ys: Vec<f64> = in_plane.iter().map(|r| r.lcs_y_counts).collect();
@@ -362,22 +343,80 @@ pub fn evaluate(
     if planes.is_empty() {
         return None;
     }
-    let compare = |m: &[(f64, f64, f64)], t: &[(f64, f64, f64)]| -> Option<SlopeComparison> {
-        let (sm, ss) = weighted_slope(m)?;
-        let (st, _) = weighted_slope(t)?;
-        // Relative slopes (per count), normalised by the mean coefficient.
-        let mean_m = m.iter().map(|p| p.1).sum::<f64>() / m.len() as f64;
-        let mean_t = t.iter().map(|p| p.1).sum::<f64>() / t.len() as f64;
-        let (measured, sigma, truth) = (sm / mean_m, ss / mean_m, st / mean_t);
-        Some(SlopeComparison {
-            measured_per_count: measured,
-            sigma_per_count: sigma,
-            true_per_count: truth,
-            within_2_sigma: (measured - truth).abs() <= 2.0 * sigma,
-        })
-    };
-    let z_crosstalk = compare(&slopes_x, &truth_x).zip(compare(&slopes_y, &truth_y));
-    let trend = (residual_vs_time.len() >= 4).then(|| {
+    let z_crosstalk = compare_slopes(&slopes_x, &truth_x).zip(compare_slopes(&slopes_y, &truth_y));
+    let trend = residual_trend(&residual_vs_time);
+    Some(VerticalReport {
+        kz_mean_error_pct: (!kz_errors.is_empty())
+            .then(|| kz_errors.iter().sum::<f64>() / kz_errors.len() as f64),
+        kz_max_error_pct: kz_errors.iter().copied().reduce(f64::max),
+        bowl_residual_fraction: planes
+            .iter()
+            .filter_map(|p| p.bowl_residual_fraction)
+            .reduce(f64::max),
+        z_crosstalk_recovered: z_crosstalk.map(|(x, y)| x.within_2_sigma && y.within_2_sigma),
+        z_crosstalk: z_crosstalk.map(|(x, y)| [x, y]),
+        kz_residual_trend_pct_per_hour: trend.map(|t| t.0),
+        kz_residual_trend_t: trend.map(|t| t.1),
+        kz_structured_residual: trend.is_some_and(|t| t.1.abs() > 5.0),
+        planes,
+    })
+}
+
+/// The bowl surface of `plane` against the truth's flat-sample Z reading at its records, both
+/// relative to their means over the nodes: RMS of the difference over RMS of the truth.
+fn bowl_fraction(
+    plane: &spm_correction::PlaneSurfaces,
+    in_plane: &[&LccRecord],
+    vertical: &dyn VerticalTruth,
+    coarse: i64,
+    state: LateralState,
+) -> Option<f64> {
+    plane.bowl_z_counts.as_ref().and_then(|b| {
+        let pairs: Vec<(f64, f64)> = in_plane
+            .iter()
+            .map(|r| {
+                let u = CountPoint::from_counts(r.lcs_x_counts, r.lcs_y_counts);
+                (
+                    b.surface.evaluate(r.lcs_x_counts, r.lcs_y_counts),
+                    vertical.flat_sample_z_reading(u, coarse, state).value(),
+                )
+            })
+            .collect();
+        let n = pairs.len() as f64;
+        let mb = pairs.iter().map(|p| p.0).sum::<f64>() / n;
+        let mt = pairs.iter().map(|p| p.1).sum::<f64>() / n;
+        let rms_t = (pairs.iter().map(|p| (p.1 - mt).powi(2)).sum::<f64>() / n).sqrt();
+        let rms_r = (pairs
+            .iter()
+            .map(|p| ((p.0 - mb) - (p.1 - mt)).powi(2))
+            .sum::<f64>()
+            / n)
+            .sqrt();
+        (rms_t > 0.0).then(|| rms_r / rms_t)
+    })
+}
+
+/// The measured relative slope of a coefficient against Z (per count, normalised by its mean)
+/// against the truth's, and whether they agree within 2 σ.
+fn compare_slopes(m: &[(f64, f64, f64)], t: &[(f64, f64, f64)]) -> Option<SlopeComparison> {
+    let (sm, ss) = weighted_slope(m)?;
+    let (st, _) = weighted_slope(t)?;
+    // Relative slopes (per count), normalised by the mean coefficient.
+    let mean_m = m.iter().map(|p| p.1).sum::<f64>() / m.len() as f64;
+    let mean_t = t.iter().map(|p| p.1).sum::<f64>() / t.len() as f64;
+    let (measured, sigma, truth) = (sm / mean_m, ss / mean_m, st / mean_t);
+    Some(SlopeComparison {
+        measured_per_count: measured,
+        sigma_per_count: sigma,
+        true_per_count: truth,
+        within_2_sigma: (measured - truth).abs() <= 2.0 * sigma,
+    })
+}
+
+/// The linear trend of the Kz records' relative residuals against time (% per hour) and its
+/// t value; `None` under 4 records.
+fn residual_trend(residual_vs_time: &[(f64, f64)]) -> Option<(f64, f64)> {
+    (residual_vs_time.len() >= 4).then(|| {
         let n = residual_vs_time.len() as f64;
         let mt = residual_vs_time.iter().map(|p| p.0).sum::<f64>() / n;
         let mr = residual_vs_time.iter().map(|p| p.1).sum::<f64>() / n;
@@ -393,20 +432,5 @@ pub fn evaluate(
             .sum();
         let se = (ss / (n - 2.0) / stt.max(1e-300)).sqrt();
         (100.0 * b, if se > 0.0 { b / se } else { 0.0 })
-    });
-    Some(VerticalReport {
-        kz_mean_error_pct: (!kz_errors.is_empty())
-            .then(|| kz_errors.iter().sum::<f64>() / kz_errors.len() as f64),
-        kz_max_error_pct: kz_errors.iter().copied().reduce(f64::max),
-        bowl_residual_fraction: planes
-            .iter()
-            .filter_map(|p| p.bowl_residual_fraction)
-            .reduce(f64::max),
-        z_crosstalk_recovered: z_crosstalk.map(|(x, y)| x.within_2_sigma && y.within_2_sigma),
-        z_crosstalk: z_crosstalk.map(|(x, y)| [x, y]),
-        kz_residual_trend_pct_per_hour: trend.map(|t| t.0),
-        kz_residual_trend_t: trend.map(|t| t.1),
-        kz_structured_residual: trend.is_some_and(|t| t.1.abs() > 5.0),
-        planes,
     })
 }

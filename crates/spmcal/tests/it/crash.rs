@@ -21,6 +21,8 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 const TRIALS: usize = 12;
+/// Kills that must land while visits are pending (the run registered, not finished).
+const MIN_MID_RUN_KILLS: usize = 10;
 
 fn workspace_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -308,7 +310,12 @@ fn trials(backend: &str, make_db: &dyn Fn(&Path, &str) -> Box<dyn Db>) {
 
     let mut rng = Rng(0x5eed_c0ff_ee00_0008);
     let (mut kills, mut mid_run) = (0, 0);
-    for trial in 0..TRIALS {
+    // At least TRIALS trials, and more (up to 3 × TRIALS) until 10 kills have landed mid-run:
+    // the kill moments are drawn from the reference run's duration, and on a loaded machine
+    // (the other tests of this binary run beside these) more of them fall before the run is
+    // registered or after it finished.
+    let mut trial = 0;
+    while trial < TRIALS || (mid_run < MIN_MID_RUN_KILLS && trial < 3 * TRIALS) {
         let dir = scratch.join(format!("trial-{trial}"));
         std::fs::create_dir_all(&dir).unwrap();
         let job = write_job(&dir);
@@ -383,12 +390,16 @@ fn trials(backend: &str, make_db: &dyn Fn(&Path, &str) -> Box<dyn Db>) {
             "trial {trial}: {done} done"
         );
         assert_eq!(c.records.values().sum::<u32>() as usize, done);
+        trial += 1;
     }
     eprintln!(
         "{backend}: {kills} kills, {mid_run} mid-run (pending visits left), `cdb check` clean \
          after each, full run {full:?}"
     );
     assert!(kills >= TRIALS, "kills: {kills}");
-    assert!(mid_run >= 10, "only {mid_run} kills landed mid-run");
+    assert!(
+        mid_run >= MIN_MID_RUN_KILLS,
+        "only {mid_run} kills landed mid-run in {trial} trials"
+    );
     let _ = std::fs::remove_dir_all(&scratch);
 }

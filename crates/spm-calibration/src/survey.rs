@@ -452,22 +452,8 @@ pub fn neighbour_directions(
     min_pairs: usize,
 ) -> Result<Lattice, String> {
     let config = LatticeConfig::default();
-    let pos: Vec<(f64, f64)> = features
-        .iter()
-        .map(|f| (f.position.x.value(), f.position.y.value()))
-        .collect();
-    let mut nearest: Vec<f64> = pos
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            pos.iter()
-                .enumerate()
-                .filter(|(j, _)| *j != i)
-                .map(|(_, q)| (q.0 - p.0).hypot(q.1 - p.1))
-                .fold(f64::INFINITY, f64::min)
-        })
-        .collect();
-    let d_nn = spm_regression::upper_median(&mut nearest).unwrap_or(f64::NAN);
+    let pos = spm_features::positions(features);
+    let d_nn = spm_features::nearest_neighbour_distance(&pos);
     if pos.len() < 3 || !(d_nn.is_finite() && d_nn > 0.0) {
         return Err(format!("{} features: too few for a lattice", pos.len()));
     }

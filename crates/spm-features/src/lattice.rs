@@ -67,6 +67,31 @@ struct Cluster {
     n: usize,
 }
 
+/// Feature positions as `(x, y)` counts.
+pub fn positions(features: &[Feature]) -> Vec<(f64, f64)> {
+    features
+        .iter()
+        .map(|f| (f.position.x.value(), f.position.y.value()))
+        .collect()
+}
+
+/// The typical nearest-neighbour distance of a set of positions, counts: the upper median of
+/// each position's distance to its nearest other one (NaN for fewer than two positions).
+pub fn nearest_neighbour_distance(pos: &[(f64, f64)]) -> f64 {
+    let mut nearest: Vec<f64> = pos
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            pos.iter()
+                .enumerate()
+                .filter(|(j, _)| *j != i)
+                .map(|(_, q)| (q.0 - p.0).hypot(q.1 - p.1))
+                .fold(f64::INFINITY, f64::min)
+        })
+        .collect();
+    spm_regression::upper_median(&mut nearest).unwrap_or(f64::NAN)
+}
+
 /// Lattice vectors from the statistics of neighbour pairs: every pair closer
 /// than `max_neighbour_factor` × the median nearest-neighbour distance gives a
 /// vector (folded so v and −v coincide); vectors are clustered by direction;
@@ -86,22 +111,8 @@ pub fn lattice_vectors(
             found: features.len(),
         });
     }
-    let pos: Vec<(f64, f64)> = features
-        .iter()
-        .map(|f| (f.position.x.value(), f.position.y.value()))
-        .collect();
-    let mut nearest: Vec<f64> = pos
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            pos.iter()
-                .enumerate()
-                .filter(|(j, _)| *j != i)
-                .map(|(_, q)| (q.0 - p.0).hypot(q.1 - p.1))
-                .fold(f64::INFINITY, f64::min)
-        })
-        .collect();
-    let d_nn = spm_regression::upper_median(&mut nearest).unwrap_or(f64::NAN);
+    let pos = positions(features);
+    let d_nn = nearest_neighbour_distance(&pos);
     if !(d_nn.is_finite() && d_nn > 0.0) {
         return Err(FeatureError::TooFewFeatures {
             needed: 3,

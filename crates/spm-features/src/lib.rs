@@ -51,7 +51,9 @@ pub use detect::{
     PositionUncertainty, RejectReason, Rejection, detect, nearest_index,
 };
 pub use error::FeatureError;
-pub use lattice::{Lattice, LatticeConfig, LatticeVector, lattice_vectors};
+pub use lattice::{
+    Lattice, LatticeConfig, LatticeVector, lattice_vectors, nearest_neighbour_distance, positions,
+};
 pub use lcs::{
     HOPG_LATTICE_NM, Lcs, LcsCandidates, LcsConfig, LcsStandard, find_lcs_at_nearest_vertex,
     find_lcs_nearest, lcs_candidates, lcs_neighbours, lcs_with_vertex,

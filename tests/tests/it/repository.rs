@@ -888,11 +888,7 @@ impl<'ast> syn::visit::Visit<'ast> for FnCollector {
     }
 
     fn visit_item_impl(&mut self, item: &'ast syn::ItemImpl) {
-        let owner = match item.self_ty.as_ref() {
-            syn::Type::Path(p) => p.path.segments.last().map(|s| s.ident.to_string()),
-            _ => None,
-        };
-        self.owner.push(owner);
+        self.owner.push(impl_owner(item));
         syn::visit::visit_item_impl(self, item);
         self.owner.pop();
     }
@@ -917,6 +913,14 @@ impl<'ast> syn::visit::Visit<'ast> for FnCollector {
         self.owner.push(None);
         syn::visit::visit_trait_item_fn(self, item);
         self.owner.pop();
+    }
+}
+
+/// The type an `impl` block is for (its last path segment), for naming its methods.
+fn impl_owner(item: &syn::ItemImpl) -> Option<String> {
+    match item.self_ty.as_ref() {
+        syn::Type::Path(p) => p.path.segments.last().map(|s| s.ident.to_string()),
+        _ => None,
     }
 }
 
@@ -1270,11 +1274,7 @@ impl<'ast> syn::visit::Visit<'ast> for CallCollector {
     }
 
     fn visit_item_impl(&mut self, item: &'ast syn::ItemImpl) {
-        let owner = match item.self_ty.as_ref() {
-            syn::Type::Path(p) => p.path.segments.last().map(|s| s.ident.to_string()),
-            _ => None,
-        };
-        self.owner.push(owner);
+        self.owner.push(impl_owner(item));
         syn::visit::visit_item_impl(self, item);
         self.owner.pop();
     }

@@ -211,7 +211,6 @@ pub(crate) struct LatticeSearch {
 
 /// The two first peaks of the image's lattice, or `None` when the spectrum shows no
 /// significant lattice in the search range.
-// long-function: one grid search whose candidate list, ring medians and pairing share the grid
 pub(crate) fn find_lattice(img: &Image<'_>, search: &LatticeSearch) -> Option<Peaks> {
     let win = Windowed::new(img);
     let (nx, ny) = (img.nx as f64, img.ny as f64);
@@ -315,7 +314,6 @@ pub(crate) fn find_lattice(img: &Image<'_>, search: &LatticeSearch) -> Option<Pe
 /// the most peak weight (contrast) wins, and among near-equal ones the coarsest
 /// reciprocal lattice (the smallest real cell that explains the spots). The basis is
 /// then refitted to all indexed peaks by least squares.
-// long-function: candidate generation, scoring and the least-squares refit share the peak list
 fn index_peaks(sig: &[([f64; 2], f64)], search: &LatticeSearch, tol_k: f64) -> Option<Peaks> {
     let px = search.pixel;
     let norm = |k: [f64; 2]| (k[0] / px[0]).hypot(k[1] / px[1]);
@@ -796,69 +794,77 @@ fn demean_lines(v: &mut [f64], line: &[usize], w: &[f64], lines: usize) {
     }
 }
 
-/// Locates one cell: coarse correlation over ±0.3 cell, then Gauss–Newton on
-/// z ≈ c_line + β·T(f − δ). Every image line in the window gets its own offset c_line
-/// (projected out): the line levelling's leakage of partial periods into each line's
-/// offset and tilt, and the feedback's line-to-line offsets, are stripes that would
-/// otherwise pull the cell along the slow axis (by up to 60 pm at the frame's sides on
-/// the synthetic cells of tests/it/cells.rs).
-// long-function: the window, the coarse search and the Gauss–Newton fit share the window's pixels
-fn locate_one(img: &Image<'_>, t: &Template, geo: &Geometry, site: [i64; 2]) -> Result<Cell, Miss> {
-    let fs = [
-        site[0] as f64 + geo.origin[0],
-        site[1] as f64 + geo.origin[1],
-    ];
-    let p0 = geo.p.eval(fs);
-    let j = geo.q.jacobian(p0);
-    let r = geo.radius_px;
-    let (mut fz, mut zs, mut ws, mut line) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-    let (mut full, mut inside) = (0.0, 0.0);
-    let (r0, r1) = ((p0[1] - r).floor() as i64, (p0[1] + r).ceil() as i64);
-    let (c0, c1) = ((p0[0] - r).floor() as i64, (p0[0] + r).ceil() as i64);
-    for row in r0..=r1 {
-        for col in c0..=c1 {
-            let d = (col as f64 - p0[0]).hypot(row as f64 - p0[1]);
-            if d >= r {
-                continue;
-            }
-            let w = (0.5 * PI * d / r).cos().powi(2);
-            full += w;
-            if row < 0 || col < 0 || row as usize >= img.ny || col as usize >= img.nx {
-                continue;
-            }
-            let Some(z) = img.at(col as usize, row as usize) else {
-                continue;
-            };
-            inside += w;
-            let dp = [col as f64 - p0[0], row as f64 - p0[1]];
-            fz.push([
-                geo.origin[0] + j[0][0] * dp[0] + j[0][1] * dp[1],
-                geo.origin[1] + j[1][0] * dp[0] + j[1][1] * dp[1],
-            ]);
-            zs.push(z);
-            ws.push(w);
-            line.push((row - r0) as usize);
-        }
-    }
-    if full <= 0.0 || inside < 0.6 * full || zs.len() < 12 {
-        return Err(Miss::Outside);
-    }
-    let lines = (r1 - r0 + 1) as usize;
-    let mut zd = zs.clone();
-    demean_lines(&mut zd, &line, &ws, lines);
-    let raw = |d: [f64; 2], exact: bool| -> Vec<f64> {
-        fz.iter()
-            .map(|f| {
-                if exact {
-                    t.value(f[0] - d[0], f[1] - d[1])
-                } else {
-                    t.linear(f[0] - d[0], f[1] - d[1])
+/// The pixels of one cell's fit window: their fractional coordinates, heights, taper
+/// weights and window-line indices.
+struct CellWindow {
+    /// Fractional coordinates of each pixel (through the geometry's Jacobian at the site).
+    fz: Vec<[f64; 2]>,
+    /// Heights.
+    zs: Vec<f64>,
+    /// Taper weights.
+    ws: Vec<f64>,
+    /// Each pixel's image line, 0-based within the window.
+    line: Vec<usize>,
+    /// Image lines the window spans.
+    lines: usize,
+}
+
+impl CellWindow {
+    /// The window of radius `geo.radius_px` around `p0` (pixels), with `j` the Jacobian
+    /// pixel → fractional there; `Miss::Outside` when it lies mostly outside the image or
+    /// on unscanned pixels.
+    fn around(
+        img: &Image<'_>,
+        geo: &Geometry,
+        p0: [f64; 2],
+        j: [[f64; 2]; 2],
+    ) -> Result<Self, Miss> {
+        let r = geo.radius_px;
+        let (mut fz, mut zs, mut ws, mut line) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let (mut full, mut inside) = (0.0, 0.0);
+        let (r0, r1) = ((p0[1] - r).floor() as i64, (p0[1] + r).ceil() as i64);
+        let (c0, c1) = ((p0[0] - r).floor() as i64, (p0[0] + r).ceil() as i64);
+        for row in r0..=r1 {
+            for col in c0..=c1 {
+                let d = (col as f64 - p0[0]).hypot(row as f64 - p0[1]);
+                if d >= r {
+                    continue;
                 }
-            })
-            .collect()
-    };
-    let model = |d: [f64; 2], exact: bool| -> Vec<f64> {
-        let mut v: Vec<f64> = fz
+                let w = (0.5 * PI * d / r).cos().powi(2);
+                full += w;
+                if row < 0 || col < 0 || row as usize >= img.ny || col as usize >= img.nx {
+                    continue;
+                }
+                let Some(z) = img.at(col as usize, row as usize) else {
+                    continue;
+                };
+                inside += w;
+                let dp = [col as f64 - p0[0], row as f64 - p0[1]];
+                fz.push([
+                    geo.origin[0] + j[0][0] * dp[0] + j[0][1] * dp[1],
+                    geo.origin[1] + j[1][0] * dp[0] + j[1][1] * dp[1],
+                ]);
+                zs.push(z);
+                ws.push(w);
+                line.push((row - r0) as usize);
+            }
+        }
+        if full <= 0.0 || inside < 0.6 * full || zs.len() < 12 {
+            return Err(Miss::Outside);
+        }
+        Ok(Self {
+            fz,
+            zs,
+            ws,
+            line,
+            lines: (r1 - r0 + 1) as usize,
+        })
+    }
+
+    /// The template shifted by `d` (fractional) at the window's pixels: exact or linear
+    /// interpolation.
+    fn raw(&self, t: &Template, d: [f64; 2], exact: bool) -> Vec<f64> {
+        self.fz
             .iter()
             .map(|f| {
                 if exact {
@@ -867,64 +873,90 @@ fn locate_one(img: &Image<'_>, t: &Template, geo: &Geometry, site: [i64; 2]) -> 
                     t.linear(f[0] - d[0], f[1] - d[1])
                 }
             })
-            .collect();
-        demean_lines(&mut v, &line, &ws, lines);
+            .collect()
+    }
+
+    /// [`Self::raw`] with each window line's weighted mean removed.
+    fn model(&self, t: &Template, d: [f64; 2], exact: bool) -> Vec<f64> {
+        let mut v = self.raw(t, d, exact);
+        self.demean(&mut v);
         v
-    };
-    // Coarse search: at most 9 × 9 shifts within ±0.3 cell.
-    let search = 0.3;
-    let n = ((search / geo.step).ceil() as i64).clamp(1, 4);
-    let ds = search / n as f64;
-    let mut best = ([0.0, 0.0], f64::NEG_INFINITY);
-    for a in -n..=n {
-        for b in -n..=n {
-            let d = [a as f64 * ds, b as f64 * ds];
-            // The basin from the full 2-D correlation (line offsets kept: the
-            // slow-axis structure tells the cell from its neighbours' adatoms).
-            let c = ncc(&zs, &raw(d, false), &ws);
-            if c > best.1 {
-                best = (d, c);
+    }
+
+    /// Removes each window line's weighted mean from `v`.
+    fn demean(&self, v: &mut [f64]) {
+        demean_lines(v, &self.line, &self.ws, self.lines);
+    }
+
+    /// The coarse search: the shift (fractional) of at most 9 × 9 within ±0.3 cell whose
+    /// full 2-D correlation is the highest (line offsets kept: the slow-axis structure
+    /// tells the cell from its neighbours' adatoms).
+    fn coarse_shift(&self, t: &Template, geo: &Geometry) -> [f64; 2] {
+        let search = 0.3;
+        let n = ((search / geo.step).ceil() as i64).clamp(1, 4);
+        let ds = search / n as f64;
+        let mut best = ([0.0, 0.0], f64::NEG_INFINITY);
+        for a in -n..=n {
+            for b in -n..=n {
+                let d = [a as f64 * ds, b as f64 * ds];
+                let c = ncc(&self.zs, &self.raw(t, d, false), &self.ws);
+                if c > best.1 {
+                    best = (d, c);
+                }
             }
         }
+        best.0
     }
-    // Gauss–Newton on the line-demeaned z ≈ β·T̃(f − δ).
+}
+
+/// A cell's template fit: (β, δx, δy), its weighted residual sum of squares and the
+/// normal matrix of its last step.
+struct CellFit {
+    theta: Vector3<f64>,
+    rss: f64,
+    normal: Matrix3<f64>,
+}
+
+/// Gauss–Newton on the line-demeaned heights `zd` ≈ β·T̃(f − δ), from the shift `start`
+/// (at most 12 steps, each halved up to 6 times until the RSS does not grow).
+fn fit_cell(w: &CellWindow, t: &Template, zd: &[f64], start: [f64; 2]) -> Result<CellFit, Miss> {
     let rss = |beta: f64, tv: &[f64]| {
         tv.iter()
-            .zip(&zd)
-            .zip(&ws)
+            .zip(zd)
+            .zip(&w.ws)
             .map(|((t, z), w)| w * (z - beta * t).powi(2))
             .sum::<f64>()
     };
-    let tv0 = model(best.0, true);
+    let tv0 = w.model(t, start, true);
     let (c, v) = tv0
         .iter()
-        .zip(&zd)
-        .zip(&ws)
+        .zip(zd)
+        .zip(&w.ws)
         .fold((0.0, 0.0), |(c, v), ((t, z), w)| {
             (c + w * t * z, v + w * t * t)
         });
-    let mut th = Vector3::new(if v > 0.0 { c / v } else { 0.0 }, best.0[0], best.0[1]);
+    let mut th = Vector3::new(if v > 0.0 { c / v } else { 0.0 }, start[0], start[1]);
     let mut cur = rss(th[0], &tv0);
     let mut normal = Matrix3::zeros();
     for _ in 0..12 {
         let dd = [th[1], th[2]];
-        let tv = model(dd, true);
-        let mut gx: Vec<f64> = Vec::with_capacity(fz.len());
-        let mut gy: Vec<f64> = Vec::with_capacity(fz.len());
-        for f in &fz {
+        let tv = w.model(t, dd, true);
+        let mut gx: Vec<f64> = Vec::with_capacity(w.fz.len());
+        let mut gy: Vec<f64> = Vec::with_capacity(w.fz.len());
+        for f in &w.fz {
             let g = t.gradient(f[0] - dd[0], f[1] - dd[1]);
             gx.push(g[0]);
             gy.push(g[1]);
         }
-        demean_lines(&mut gx, &line, &ws, lines);
-        demean_lines(&mut gy, &line, &ws, lines);
+        w.demean(&mut gx);
+        w.demean(&mut gy);
         let mut ntn = Matrix3::zeros();
         let mut ntr = Vector3::zeros();
-        for k in 0..fz.len() {
+        for k in 0..w.fz.len() {
             let row = Vector3::new(tv[k], -th[0] * gx[k], -th[0] * gy[k]);
             let res = zd[k] - th[0] * tv[k];
-            ntn += ws[k] * row * row.transpose();
-            ntr += ws[k] * res * row;
+            ntn += w.ws[k] * row * row.transpose();
+            ntr += w.ws[k] * res * row;
         }
         normal = ntn;
         let Some(step) = ntn.try_inverse().map(|inv| inv * ntr) else {
@@ -934,7 +966,7 @@ fn locate_one(img: &Image<'_>, t: &Template, geo: &Geometry, site: [i64; 2]) -> 
         let mut improved = false;
         for _ in 0..6 {
             let trial = th + lambda * step;
-            let v = rss(trial[0], &model([trial[1], trial[2]], true));
+            let v = rss(trial[0], &w.model(t, [trial[1], trial[2]], true));
             if v.is_finite() && v <= cur {
                 (th, cur, improved) = (trial, v, true);
                 break;
@@ -945,8 +977,34 @@ fn locate_one(img: &Image<'_>, t: &Template, geo: &Geometry, site: [i64; 2]) -> 
             break;
         }
     }
+    Ok(CellFit {
+        theta: th,
+        rss: cur,
+        normal,
+    })
+}
+
+/// Locates one cell: coarse correlation over ±0.3 cell, then Gauss–Newton on
+/// z ≈ c_line + β·T(f − δ). Every image line in the window gets its own offset c_line
+/// (projected out): the line levelling's leakage of partial periods into each line's
+/// offset and tilt, and the feedback's line-to-line offsets, are stripes that would
+/// otherwise pull the cell along the slow axis (by up to 60 pm at the frame's sides on
+/// the synthetic cells of tests/it/cells.rs).
+fn locate_one(img: &Image<'_>, t: &Template, geo: &Geometry, site: [i64; 2]) -> Result<Cell, Miss> {
+    let fs = [
+        site[0] as f64 + geo.origin[0],
+        site[1] as f64 + geo.origin[1],
+    ];
+    let p0 = geo.p.eval(fs);
+    let j = geo.q.jacobian(p0);
+    let window = CellWindow::around(img, geo, p0, j)?;
+    let mut zd = window.zs.clone();
+    window.demean(&mut zd);
+    let start = window.coarse_shift(t, geo);
+    let fit = fit_cell(&window, t, &zd, start)?;
+    let th = fit.theta;
     let d = [th[1], th[2]];
-    let correlation = ncc(&zd, &model(d, true), &ws);
+    let correlation = ncc(&zd, &window.model(t, d, true), &window.ws);
     if !(th[0] > 0.0 && d[0].abs() < 0.45 && d[1].abs() < 0.45 && correlation >= MIN_CORRELATION) {
         return Err(Miss::Poor);
     }
@@ -963,9 +1021,9 @@ fn locate_one(img: &Image<'_>, t: &Template, geo: &Geometry, site: [i64; 2]) -> 
         p0[0] + ji[0][0] * d[0] + ji[0][1] * d[1],
         p0[1] + ji[1][0] * d[0] + ji[1][1] * d[1],
     ];
-    let dof = zs.len() as f64 - 3.0 - lines as f64;
-    let s2 = cur / dof.max(1.0);
-    let cov = normal.try_inverse().ok_or(Miss::Poor)? * s2;
+    let dof = window.zs.len() as f64 - 3.0 - window.lines as f64;
+    let s2 = fit.rss / dof.max(1.0);
+    let cov = fit.normal.try_inverse().ok_or(Miss::Poor)? * s2;
     let cd = [[cov[(1, 1)], cov[(1, 2)]], [cov[(2, 1)], cov[(2, 2)]]];
     // C_px = J⁻¹·C_δ·J⁻ᵀ; per-axis σ = √(trace / 2).
     let mut trace = 0.0;

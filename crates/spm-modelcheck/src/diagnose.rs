@@ -1104,14 +1104,147 @@ fn encompasses(
     chosen_given_other <= threshold && other_given_chosen > threshold
 }
 
-/// Like [`diagnose_features`] with the lattice sites given (e.g. from a simulator's oracle).
-// long-function: the forward model selection shares one fit state (candidate set, residuals, BIC ledger) across its stages; issue 18 rewrites this loop into separate stages
-pub fn diagnose_indexed(
-    set: &FeatureSet,
+/// What every stage of the model selection reads: the indexed observations, their
+/// targets, the frames and the settings.
+struct Problem<'a> {
+    obs: Vec<Obs>,
+    /// The features (indices into the set) behind `obs`.
+    source: Vec<usize>,
+    /// The time origin of `obs`, s on the files' axis.
+    t_mid: f64,
+    /// The observations' lattice-site positions, interleaved x, y.
+    target: Vec<f64>,
+    frames: &'a [FrameInfo],
+    options: &'a Options,
+    n_frames: usize,
+    /// The baseline's columns (lumped scanner, drift, per-frame offsets).
+    base_len: usize,
+    /// The fewest features a fit may keep.
+    needed: usize,
+    lattice_a_nm: f64,
+    /// The observations' time span, s.
+    span_s: f64,
+    /// The localisation σ of a position difference, nm, from the localiser's own
+    /// uncertainties when it reports them for at least half the features.
+    reported_sigma_nm: Option<f64>,
+}
+
+impl Problem<'_> {
+    /// The smallest RMS displacement worth reporting, nm: a fraction of the localisation
+    /// uncertainty (the localiser's own, when it reports one; otherwise the scatter of
+    /// the model `fit`) and of the lattice constant.
+    fn relevance_nm(&self, fit: &Fit, mask: &[bool]) -> f64 {
+        let sigma = self
+            .reported_sigma_nm
+            .unwrap_or_else(|| std::f64::consts::SQRT_2 * robust_sigma(&fit.residual, mask));
+        (self.options.relevance_sigma_fraction * sigma)
+            .max(self.options.relevance_lattice_fraction * self.lattice_a_nm)
+    }
+
+    /// The held-out RMS of the model `cols` on the features `mask`, pm.
+    fn heldout_pm(&self, cols: &[Column], mask: &[bool]) -> f64 {
+        heldout_rms_with(&self.obs, self.frames, &self.target, cols, mask)
+    }
+}
+
+/// The model as it stands during the selection.
+struct Model {
+    cols: Vec<Column>,
+    fit: Fit,
+    /// The features the fit keeps (outliers out).
+    mask: Vec<bool>,
+    ctx: Ctx,
+    /// Whether the localiser's pixel-locking columns are part of the baseline.
+    pixel_locking: bool,
+    /// The effects added, with their columns' ranges in `cols`.
+    added: Vec<Added>,
+    /// The held-out RMS of the model, pm.
+    heldout_now: f64,
+    /// The equations the fit uses.
+    n_eq: f64,
+}
+
+/// What a rejected acceptance restores.
+type Snapshot = (Vec<Column>, Fit, Vec<bool>, Ctx, f64, f64);
+
+impl Model {
+    /// J₀ and θ₀ from the current fit.
+    fn refresh_ctx(&mut self, n_frames: usize) {
+        let (_, theta) = decompose(&self.fit, n_frames);
+        self.ctx = Ctx {
+            j0: [
+                [self.fit.coef[0], self.fit.coef[1]],
+                [self.fit.coef[2], self.fit.coef[3]],
+            ],
+            theta0: theta,
+        };
+    }
+
+    /// The baseline's columns, the pixel-locking columns (when in the model) and every
+    /// added effect's, rebuilt with the current context.
+    fn rebuild_columns(&mut self, p: &Problem<'_>) {
+        self.cols.truncate(p.base_len);
+        if self.pixel_locking
+            && let Some(pl) = pixel_locking_columns(&p.obs, &self.ctx)
+        {
+            self.cols.extend(pl);
+        }
+        for a in &mut self.added {
+            let start = self.cols.len();
+            self.cols
+                .extend(effect_columns(a.kind, a.hyper, &p.obs, &self.ctx));
+            a.range = start..self.cols.len();
+        }
+    }
+
+    /// Rebuilds the columns, refits, and re-admits the baseline's outliers that the
+    /// extended model describes (the edges of a strongly nonlinear frame: otherwise the
+    /// data that size the effect are thrown away).
+    fn refit(&mut self, p: &Problem<'_>) -> Result<(), ModelCheckError> {
+        self.rebuild_columns(p);
+        self.fit = solve(&self.cols, &p.target, &self.mask)?;
+        readmit(
+            &self.cols,
+            &p.target,
+            &mut self.mask,
+            &mut self.fit,
+            p.options,
+            p.needed,
+            p.lattice_a_nm,
+        );
+        Ok(())
+    }
+
+    fn snapshot(&self) -> Snapshot {
+        (
+            self.cols.clone(),
+            self.fit.clone(),
+            self.mask.clone(),
+            self.ctx,
+            self.heldout_now,
+            self.n_eq,
+        )
+    }
+
+    fn restore(&mut self, snapshot: Snapshot) {
+        (
+            self.cols,
+            self.fit,
+            self.mask,
+            self.ctx,
+            self.heldout_now,
+            self.n_eq,
+        ) = snapshot;
+    }
+}
+
+/// The observations of `set` at `sites`, and what every stage reads.
+fn problem<'a>(
+    set: &'a FeatureSet,
     sites: &[Option<[i64; 2]>],
     basis: &MeasuredBasis,
-    options: &Options,
-) -> Result<Diagnosis, ModelCheckError> {
+    options: &'a Options,
+) -> Result<Problem<'a>, ModelCheckError> {
     if sites.len() != set.features.len() {
         return Err(ModelCheckError::InvalidInput(format!(
             "{} sites for {} features",
@@ -1120,7 +1253,6 @@ pub fn diagnose_indexed(
         )));
     }
     let (obs, source, t_mid) = build_obs(set, sites, basis.a1_nm, basis.a2_nm)?;
-    let lattice_a_nm = basis.a1_nm[0].hypot(basis.a1_nm[1]);
     let n_frames = set.frames.len();
     let needed = 8 + n_frames * 2;
     if obs.len() < needed {
@@ -1130,100 +1262,6 @@ pub fn diagnose_indexed(
             context: "indexed features".to_owned(),
         });
     }
-    let base_len = 6 + 2 * n_frames;
-    let target: Vec<f64> = obs.iter().flat_map(|o| o.site).collect();
-    let mut base_cols = baseline_columns(&obs, n_frames);
-    let mut mask = vec![true; obs.len()];
-    let mut fit = robust_fit(
-        &base_cols,
-        &target,
-        &mut mask,
-        options.outlier_sigmas,
-        needed,
-        0.25 * lattice_a_nm,
-    )?;
-    // Constant drift and the lumped scanner are inseparable when the times
-    // follow the positions (one frame, or frames scanned the same way): then
-    // the drift is absorbed into the lumped scanner (Lapshin's point for
-    // counter-scanning) and not reported. The test is scale-free: how much the
-    // drift inflates the uncertainty of the scanner's numbers (variance
-    // inflation), not how large those uncertainties are (which depends on the
-    // noise and the number of features).
-    let without_drift: Vec<Column> = base_cols
-        .iter()
-        .enumerate()
-        .filter(|(i, _)| *i != 4 && *i != 5)
-        .map(|(_, c)| c.clone())
-        .collect();
-    let drift_separable = !nearly_collinear(&base_cols[4..6], &without_drift, &mask)
-        && match solve(&without_drift, &target, &mask) {
-            Ok(nd) => (0..4).all(|j| {
-                let with = fit.cov[(j, j)] / fit.rss.max(1e-300);
-                let without = nd.cov[(j, j)] / nd.rss.max(1e-300);
-                // Covariances are scaled by each fit's σ²: compare the
-                // unscaled (XᵀX)⁻¹ diagonals.
-                let with = with * (fit.n_eq.saturating_sub(fit.rank).max(1)) as f64;
-                let without = without * (nd.n_eq.saturating_sub(nd.rank).max(1)) as f64;
-                without > 0.0 && with / without < 100.0
-            }),
-            Err(_) => false,
-        };
-    if !drift_separable {
-        for c in &mut base_cols[4..6] {
-            c.iter_mut().for_each(|v| *v = 0.0);
-        }
-        mask = vec![true; obs.len()];
-        fit = robust_fit(
-            &base_cols,
-            &target,
-            &mut mask,
-            options.outlier_sigmas,
-            needed,
-            0.25 * lattice_a_nm,
-        )?;
-    }
-    let (_, theta_base) = decompose(&fit, n_frames);
-    let mut ctx = Ctx {
-        j0: [[fit.coef[0], fit.coef[1]], [fit.coef[2], fit.coef[3]]],
-        theta0: theta_base,
-    };
-    // The localiser's pixel-locking bias: part of the measurement model (the
-    // baseline), added when the data support it.
-    let mut pixel_locking = false;
-    if let Some(pl) = pixel_locking_columns(&obs, &ctx) {
-        let mut all = base_cols.clone();
-        all.extend(pl);
-        if let Ok(fit_pl) = solve(&all, &target, &mask) {
-            let ev = delta_bic(fit.n_eq as f64, fit.rss, fit_pl.rss, 4.0, 1.0);
-            if ev > options.evidence_threshold && fit_pl.rank >= fit.rank + 4 {
-                pixel_locking = true;
-                base_cols = all;
-                fit = fit_pl;
-            }
-        }
-    }
-    let (mut baseline_params, theta0) = decompose(&fit, n_frames);
-    if !drift_separable {
-        baseline_params.remove("drift_x_nm_per_s");
-        baseline_params.remove("drift_y_nm_per_s");
-    }
-    ctx = Ctx {
-        j0: [[fit.coef[0], fit.coef[1]], [fit.coef[2], fit.coef[3]]],
-        theta0,
-    };
-    let frames = &set.frames;
-    let baseline_fit = fit.clone();
-    let baseline_heldout = heldout_rms(&obs, frames, &target, &base_cols, None, &mask, &ctx);
-    let baseline = BaselineReport {
-        rms_pm: rms_pm(fit.rss, fit.n_eq),
-        heldout_rms_pm: baseline_heldout,
-        drift_separable,
-        parameters: baseline_params,
-    };
-    // Relevance: the smallest RMS displacement worth reporting — a fraction
-    // of the localisation uncertainty (the localiser's own, when it reports
-    // one; otherwise the scatter of the current model, updated every round)
-    // and of the lattice constant.
     let mut reported: Vec<f64> = source
         .iter()
         .filter_map(|&k| set.features[k].sigma_nm)
@@ -1234,424 +1272,558 @@ pub fn diagnose_indexed(
     } else {
         None
     };
-    let relevance_for = |fit: &Fit, mask: &[bool]| {
-        let sigma = reported_sigma_nm
-            .unwrap_or_else(|| std::f64::consts::SQRT_2 * robust_sigma(&fit.residual, mask));
-        (options.relevance_sigma_fraction * sigma)
-            .max(options.relevance_lattice_fraction * lattice_a_nm)
-    };
-    let mut relevance_nm = relevance_for(&fit, &mask);
-    let localisation_sigma_pm = 1000.0
-        * reported_sigma_nm
-            .unwrap_or_else(|| std::f64::consts::SQRT_2 * robust_sigma(&fit.residual, &mask));
     let span_s = obs.iter().map(|o| o.t).fold(f64::NEG_INFINITY, f64::max)
         - obs.iter().map(|o| o.t).fold(f64::INFINITY, f64::min);
-    let mut cols = base_cols;
-    let mut added: Vec<Added> = Vec::new();
-    let mut findings: Vec<Finding> = Vec::new();
-    let mut rounds = Vec::new();
-    let mut rejected: Vec<Rejection> = Vec::new();
-    let mut unexplained_candidates: Vec<String> = Vec::new();
-    let mut heldout_now = baseline_heldout;
-    let mut n_eq = fit.n_eq as f64;
-    // Effects whose acceptance failed the check on the model as reported (below).
-    let mut excluded: Vec<EffectKind> = Vec::new();
-    for _ in 0..options.max_findings {
-        relevance_nm = relevance_for(&fit, &mask);
-        let mut scores: Vec<Scored> = Vec::new();
-        for &kind in &options.effects {
-            if added.iter().any(|a| a.kind == kind)
-                || excluded.contains(&kind)
-                || !identifiable(kind, &obs)
-            {
-                continue;
-            }
-            let Some((extra, fit1, h, trials)) =
-                best_extension(kind, &obs, frames, &target, &cols, &fit, &mask, &ctx)
-            else {
-                continue;
-            };
-            if fit1.rank < fit.rank + extra.len() {
-                // Some of its columns are combinations of the model's: with these
-                // data the effect cannot be told apart from what is already there.
-                continue;
-            }
-            let k = n_params(kind, &extra);
-            let evidence = delta_bic(n_eq, fit.rss, fit1.rss, k, trials);
-            let range = cols.len()..cols.len() + extra.len();
-            // The displacement the effect adds to the model's prediction (not
-            // its raw columns, which other terms may partly cancel).
-            let explained_nm = change_rms(&fit.residual, &fit1.residual, &mask);
-            let mut params = effect_params(
-                &Added {
-                    kind,
-                    hyper: h,
-                    hyper_sigma: 0.0,
-                    range,
-                },
-                &fit1,
-                frames,
-            );
-            if kind == EffectKind::TipChange
-                && let Some(t) = params.get_mut("time_s")
-            {
-                t.value += t_mid;
-            }
-            let problem = if explained_nm < relevance_nm {
-                Some(format!(
-                    "irrelevant: explains {:.2} pm RMS, below {:.2} pm",
-                    1000.0 * explained_nm,
-                    1000.0 * relevance_nm
-                ))
-            } else {
-                implausible(kind, &params, frames, lattice_a_nm, span_s)
-                    .map(|r| format!("implausible: {r}"))
-            };
-            scores.push(Scored {
-                kind,
-                evidence,
-                extra,
-                fit: fit1,
-                hyper: h,
-                trials,
-                explained_nm,
-                problem,
-            });
+    Ok(Problem {
+        target: obs.iter().flat_map(|o| o.site).collect(),
+        obs,
+        source,
+        t_mid,
+        frames: &set.frames,
+        options,
+        n_frames,
+        base_len: 6 + 2 * n_frames,
+        needed,
+        lattice_a_nm: basis.a1_nm[0].hypot(basis.a1_nm[1]),
+        span_s,
+        reported_sigma_nm,
+    })
+}
+
+/// Whether constant drift can be told apart from the lumped scanner in the baseline
+/// `fit` of `base_cols`. They are inseparable when the times follow the positions (one
+/// frame, or frames scanned the same way): then the drift is absorbed into the lumped
+/// scanner (Lapshin's point for counter-scanning) and not reported. The test is
+/// scale-free: how much the drift inflates the uncertainty of the scanner's numbers
+/// (variance inflation), not how large those uncertainties are (which depends on the
+/// noise and the number of features).
+fn drift_is_separable(p: &Problem<'_>, base_cols: &[Column], fit: &Fit, mask: &[bool]) -> bool {
+    let without_drift: Vec<Column> = base_cols
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| *i != 4 && *i != 5)
+        .map(|(_, c)| c.clone())
+        .collect();
+    !nearly_collinear(&base_cols[4..6], &without_drift, mask)
+        && match solve(&without_drift, &p.target, mask) {
+            Ok(nd) => (0..4).all(|j| {
+                let with = fit.cov[(j, j)] / fit.rss.max(1e-300);
+                let without = nd.cov[(j, j)] / nd.rss.max(1e-300);
+                // Covariances are scaled by each fit's σ²: compare the
+                // unscaled (XᵀX)⁻¹ diagonals.
+                let with = with * (fit.n_eq.saturating_sub(fit.rank).max(1)) as f64;
+                let without = without * (nd.n_eq.saturating_sub(nd.rank).max(1)) as f64;
+                without > 0.0 && with / without < 100.0
+            }),
+            Err(_) => false,
         }
-        scores.sort_by(|a, b| b.evidence.total_cmp(&a.evidence));
-        rounds.push(
-            scores
-                .iter()
-                .map(|s| CandidateScore {
-                    effect: s.kind.name().to_owned(),
-                    evidence: if s.evidence.is_finite() {
-                        s.evidence
-                    } else {
-                        -1e300
-                    },
-                })
-                .collect::<Vec<_>>(),
-        );
-        let supported = |s: &Scored| s.evidence > options.evidence_threshold;
-        let mut round_rejected: Vec<Rejection> = Vec::new();
-        for s in scores.iter().filter(|s| supported(s)) {
-            if let Some(p) = &s.problem {
-                round_rejected.push(Rejection {
-                    effect: s.kind.name().to_owned(),
-                    evidence: s.evidence,
-                    explained_rms_pm: 1000.0 * s.explained_nm,
-                    reason: p.clone(),
-                });
+}
+
+/// The baseline (lumped scanner, constant drift when separable, per-frame offsets, and
+/// the localiser's pixel-locking bias when the data support it), fitted with outlier
+/// rejection: the model the selection starts from, and its report.
+fn baseline(p: &Problem<'_>) -> Result<(Model, BaselineReport), ModelCheckError> {
+    let options = p.options;
+    let mut base_cols = baseline_columns(&p.obs, p.n_frames);
+    let mut mask = vec![true; p.obs.len()];
+    let floor_nm = 0.25 * p.lattice_a_nm;
+    let mut fit = robust_fit(
+        &base_cols,
+        &p.target,
+        &mut mask,
+        options.outlier_sigmas,
+        p.needed,
+        floor_nm,
+    )?;
+    let drift_separable = drift_is_separable(p, &base_cols, &fit, &mask);
+    if !drift_separable {
+        for c in &mut base_cols[4..6] {
+            c.iter_mut().for_each(|v| *v = 0.0);
+        }
+        mask = vec![true; p.obs.len()];
+        fit = robust_fit(
+            &base_cols,
+            &p.target,
+            &mut mask,
+            options.outlier_sigmas,
+            p.needed,
+            floor_nm,
+        )?;
+    }
+    let mut model = Model {
+        cols: base_cols,
+        fit,
+        mask,
+        ctx: Ctx {
+            j0: [[0.0; 2]; 2],
+            theta0: 0.0,
+        },
+        pixel_locking: false,
+        added: Vec::new(),
+        heldout_now: f64::NAN,
+        n_eq: 0.0,
+    };
+    model.refresh_ctx(p.n_frames);
+    // The localiser's pixel-locking bias: part of the measurement model (the
+    // baseline), added when the data support it.
+    if let Some(pl) = pixel_locking_columns(&p.obs, &model.ctx) {
+        let mut all = model.cols.clone();
+        all.extend(pl);
+        if let Ok(fit_pl) = solve(&all, &p.target, &model.mask) {
+            let ev = delta_bic(model.fit.n_eq as f64, model.fit.rss, fit_pl.rss, 4.0, 1.0);
+            if ev > options.evidence_threshold && fit_pl.rank >= model.fit.rank + 4 {
+                model.pixel_locking = true;
+                model.cols = all;
+                model.fit = fit_pl;
             }
         }
-        let eligible: Vec<usize> = (0..scores.len())
-            .filter(|&i| supported(&scores[i]) && scores[i].problem.is_none())
-            .collect();
-        let mut accepted = None;
-        for &i in &eligible {
-            let encompassing = eligible.iter().copied().find(|&j| {
-                j != i
-                    && encompasses(
-                        &scores[j],
-                        &scores[i],
-                        &cols,
-                        &target,
-                        &mask,
-                        options.evidence_threshold,
-                    )
-            });
-            if let Some(j) = encompassing {
-                round_rejected.push(Rejection {
-                    effect: scores[i].kind.name().to_owned(),
-                    evidence: scores[i].evidence,
-                    explained_rms_pm: 1000.0 * scores[i].explained_nm,
-                    reason: format!("encompassed by {}", scores[j].kind.name()),
-                });
-                continue;
-            }
-            let after = heldout_rms(
-                &obs,
-                frames,
-                &target,
-                &cols,
-                Some(scores[i].kind),
-                &mask,
-                &ctx,
-            );
-            if after < heldout_now {
-                accepted = Some((i, after));
-                break;
-            }
-            round_rejected.push(Rejection {
-                effect: scores[i].kind.name().to_owned(),
-                evidence: scores[i].evidence,
-                explained_rms_pm: 1000.0 * scores[i].explained_nm,
-                reason: "no held-out gain".to_owned(),
-            });
+    }
+    let (mut parameters, _) = decompose(&model.fit, p.n_frames);
+    if !drift_separable {
+        parameters.remove("drift_x_nm_per_s");
+        parameters.remove("drift_y_nm_per_s");
+    }
+    model.refresh_ctx(p.n_frames);
+    model.heldout_now = heldout_rms(
+        &p.obs,
+        p.frames,
+        &p.target,
+        &model.cols,
+        None,
+        &model.mask,
+        &model.ctx,
+    );
+    model.n_eq = model.fit.n_eq as f64;
+    let report = BaselineReport {
+        rms_pm: rms_pm(model.fit.rss, model.fit.n_eq),
+        heldout_rms_pm: model.heldout_now,
+        drift_separable,
+        parameters,
+    };
+    Ok((model, report))
+}
+
+/// Every effect not yet in the model (nor excluded), at its best hyper-parameter, scored
+/// by its evidence, with the reason it may not be accepted, best first.
+fn score_candidates(
+    p: &Problem<'_>,
+    m: &Model,
+    excluded: &[EffectKind],
+    relevance_nm: f64,
+) -> Vec<Scored> {
+    let mut scores: Vec<Scored> = Vec::new();
+    for &kind in &p.options.effects {
+        if m.added.iter().any(|a| a.kind == kind)
+            || excluded.contains(&kind)
+            || !identifiable(kind, &p.obs)
+        {
+            continue;
         }
-        let Some((pos, after)) = accepted else {
-            // Structure the evidence supports and that matters, but whose only
-            // candidates are implausible: the library does not explain it.
-            for r in &round_rejected {
-                if r.reason.starts_with("implausible") {
-                    unexplained_candidates.push(format!(
-                        "{} would explain {:.1} pm but is {}",
-                        r.effect, r.explained_rms_pm, r.reason
-                    ));
-                }
-            }
-            rejected.extend(round_rejected);
-            break;
+        let Some((extra, fit1, h, trials)) = best_extension(
+            kind, &p.obs, p.frames, &p.target, &m.cols, &m.fit, &m.mask, &m.ctx,
+        ) else {
+            continue;
         };
-        rejected.extend(round_rejected);
-        let snapshot = (
-            cols.clone(),
-            fit.clone(),
-            mask.clone(),
-            ctx,
-            heldout_now,
-            n_eq,
+        if fit1.rank < m.fit.rank + extra.len() {
+            // Some of its columns are combinations of the model's: with these
+            // data the effect cannot be told apart from what is already there.
+            continue;
+        }
+        let k = n_params(kind, &extra);
+        let evidence = delta_bic(m.n_eq, m.fit.rss, fit1.rss, k, trials);
+        let range = m.cols.len()..m.cols.len() + extra.len();
+        // The displacement the effect adds to the model's prediction (not
+        // its raw columns, which other terms may partly cancel).
+        let explained_nm = change_rms(&m.fit.residual, &fit1.residual, &m.mask);
+        let mut params = effect_params(
+            &Added {
+                kind,
+                hyper: h,
+                hyper_sigma: 0.0,
+                range,
+            },
+            &fit1,
+            p.frames,
         );
-        let added_before: Vec<(f64, std::ops::Range<usize>)> =
-            added.iter().map(|a| (a.hyper, a.range.clone())).collect();
-        let chosen = scores.swap_remove(pos);
-        let confounded_with = scores
-            .iter()
-            .filter(|s| {
-                s.evidence > options.evidence_threshold
-                    && s.evidence >= chosen.evidence - 6.0
-                    && s.problem.is_none()
-            })
-            .map(|s| s.kind.name().to_owned())
-            .collect();
-        let Scored {
+        if kind == EffectKind::TipChange
+            && let Some(t) = params.get_mut("time_s")
+        {
+            t.value += p.t_mid;
+        }
+        let problem = if explained_nm < relevance_nm {
+            Some(format!(
+                "irrelevant: explains {:.2} pm RMS, below {:.2} pm",
+                1000.0 * explained_nm,
+                1000.0 * relevance_nm
+            ))
+        } else {
+            implausible(kind, &params, p.frames, p.lattice_a_nm, p.span_s)
+                .map(|r| format!("implausible: {r}"))
+        };
+        scores.push(Scored {
             kind,
             evidence,
             extra,
             fit: fit1,
             hyper: h,
+            trials,
             explained_nm,
-            ..
-        } = chosen;
-        let start = cols.len();
-        cols.extend(extra);
-        let hyper_sigma = match kind {
-            EffectKind::Creep => h,
-            EffectKind::PeriodicVibration => 0.25 / span_s.max(1e-9),
-            EffectKind::TipChange => frames
-                .iter()
-                .map(|f| 0.5 * f.duration_s / f.lines.max(1) as f64)
-                .fold(0.0, f64::max),
-            _ => 0.0,
-        };
-        added.push(Added {
-            kind,
-            hyper: h,
-            hyper_sigma,
-            range: start..cols.len(),
+            problem,
         });
-        findings.push(Finding {
-            effect: kind.name().to_owned(),
-            evidence,
-            rms_before_pm: rms_pm(fit.rss, fit.n_eq),
-            rms_after_pm: rms_pm(fit1.rss, fit1.n_eq),
-            heldout_rms_before_pm: heldout_now,
-            heldout_rms_after_pm: after,
-            parameters: BTreeMap::new(),
-            meaning: kind.meaning().to_owned(),
-            confounded_with,
-        });
-        heldout_now = after;
-        fit = fit1;
-        // Refresh J₀ and θ₀ from the extended fit and rebuild the columns.
-        let (_, theta) = decompose(&fit, n_frames);
-        ctx = Ctx {
-            j0: [[fit.coef[0], fit.coef[1]], [fit.coef[2], fit.coef[3]]],
-            theta0: theta,
-        };
-        cols.truncate(base_len);
-        if pixel_locking && let Some(pl) = pixel_locking_columns(&obs, &ctx) {
-            cols.extend(pl);
+    }
+    scores.sort_by(|a, b| b.evidence.total_cmp(&a.evidence));
+    scores
+}
+
+/// A rejection of the scored candidate `s` for `reason`.
+fn rejection(s: &Scored, reason: String) -> Rejection {
+    Rejection {
+        effect: s.kind.name().to_owned(),
+        evidence: s.evidence,
+        explained_rms_pm: 1000.0 * s.explained_nm,
+        reason,
+    }
+}
+
+/// The candidate a round accepts: the best supported one with no problem that no other
+/// encompasses and that lowers the held-out RMS (its index in `scores` and the held-out
+/// RMS with it, pm), and the round's rejections.
+fn choose(p: &Problem<'_>, m: &Model, scores: &[Scored]) -> (Option<(usize, f64)>, Vec<Rejection>) {
+    let threshold = p.options.evidence_threshold;
+    let supported = |s: &Scored| s.evidence > threshold;
+    let mut round_rejected: Vec<Rejection> = Vec::new();
+    for s in scores.iter().filter(|s| supported(s)) {
+        if let Some(problem) = &s.problem {
+            round_rejected.push(rejection(s, problem.clone()));
         }
-        for a in &mut added {
-            let start = cols.len();
-            cols.extend(effect_columns(a.kind, a.hyper, &obs, &ctx));
-            a.range = start..cols.len();
-        }
-        fit = solve(&cols, &target, &mask)?;
-        // Features dropped as outliers of the baseline may be well described
-        // by the extended model (the edges of a strongly nonlinear frame):
-        // re-admit them, or the data that size the effect are thrown away.
-        readmit(
-            &cols,
-            &target,
-            &mut mask,
-            &mut fit,
-            options,
-            needed,
-            lattice_a_nm,
-        );
-        // A strong map may need more than a cubic: raise the degree by two
-        // while the evidence supports it, the held-out RMS drops and the
-        // added orders explain a relevant displacement.
-        if kind == EffectKind::ScannerNonlinearity {
-            while let Some(pos) = added.iter().position(|a| a.kind == kind) {
-                let degree = nonlinearity_degree(added[pos].hyper);
-                if degree + 2 > 9 {
-                    break;
-                }
-                let mut trial = cols.clone();
-                let range = added[pos].range.clone();
-                let higher = effect_columns(kind, (degree + 2) as f64, &obs, &ctx);
-                // Keep the existing columns; append the two new orders per axis.
-                let new_cols: Vec<Column> = higher
-                    .iter()
-                    .enumerate()
-                    .filter(|(i, _)| {
-                        let k = i % (degree + 1) + 2;
-                        k > degree
-                    })
-                    .map(|(_, c)| c.clone())
-                    .collect();
-                trial.extend(new_cols);
-                let Ok(fit2) = solve(&trial, &target, &mask) else {
-                    break;
-                };
-                let ev = delta_bic(n_eq, fit.rss, fit2.rss, 4.0, 1.0);
-                let explained = change_rms(&fit.residual, &fit2.residual, &mask);
-                if !(ev > options.evidence_threshold && explained >= relevance_nm)
-                    || heldout_rms_with(&obs, frames, &target, &trial, &mask) >= heldout_now
-                {
-                    break;
-                }
-                // Rebuild with the higher degree in place of the old columns.
-                let _ = range;
-                added[pos].hyper = (degree + 2) as f64;
-                cols.truncate(base_len);
-                if pixel_locking && let Some(pl) = pixel_locking_columns(&obs, &ctx) {
-                    cols.extend(pl);
-                }
-                for a in &mut added {
-                    let start = cols.len();
-                    cols.extend(effect_columns(a.kind, a.hyper, &obs, &ctx));
-                    a.range = start..cols.len();
-                }
-                fit = solve(&cols, &target, &mask)?;
-                readmit(
-                    &cols,
-                    &target,
-                    &mut mask,
-                    &mut fit,
-                    options,
-                    needed,
-                    lattice_a_nm,
-                );
-                if let Some(f) = findings.last_mut() {
-                    f.rms_after_pm = rms_pm(fit.rss, fit.n_eq);
-                    let ho = heldout_rms_with(&obs, frames, &target, &cols, &mask);
-                    if ho.is_finite() {
-                        f.heldout_rms_after_pm = ho;
-                        heldout_now = ho;
-                    }
-                }
-            }
-        }
-        // The held-out reference and the equation count follow the mask.
-        n_eq = fit.n_eq as f64;
-        let ho = heldout_rms_with(&obs, frames, &target, &cols, &mask);
-        if ho.is_finite() {
-            heldout_now = ho;
-            if let Some(f) = findings.last_mut() {
-                f.heldout_rms_after_pm = ho;
-                f.rms_after_pm = rms_pm(fit.rss, fit.n_eq);
-            }
-        }
-        // One rule for every finding, on the model as it is reported: the re-admitted
-        // features and the refreshed columns change both the held-out RMS and the
-        // parameters after the candidate was scored (issue 29: an accepted hysteresis
-        // raised the held-out RMS 207 → 223 pm, and an interlace offset rejected beyond
-        // a/2 in one frame was reported at 0.387 nm in another). The held-out RMS with
-        // and without the effect is compared on the same features, and every finding's
-        // parameters must stay plausible; otherwise the effect is taken back.
-        let mut without: Vec<Column> = cols[..base_len].to_vec();
-        if pixel_locking && let Some(pl) = pixel_locking_columns(&obs, &ctx) {
-            without.extend(pl);
-        }
-        for a in &added[..added.len() - 1] {
-            without.extend(effect_columns(a.kind, a.hyper, &obs, &ctx));
-        }
-        let before_same = heldout_rms_with(&obs, frames, &target, &without, &mask);
-        let lowered = heldout_now < before_same;
-        let problem = if !lowered {
-            Some(format!(
-                "raises the held-out RMS on the features the extended model keeps \
-                 ({before_same:.2} → {heldout_now:.2} pm)"
-            ))
-        } else {
-            added.iter().find_map(|a| {
-                implausible(
-                    a.kind,
-                    &effect_params(a, &fit, frames),
-                    frames,
-                    lattice_a_nm,
-                    span_s,
+    }
+    let eligible: Vec<usize> = (0..scores.len())
+        .filter(|&i| supported(&scores[i]) && scores[i].problem.is_none())
+        .collect();
+    for &i in &eligible {
+        let encompassing = eligible.iter().copied().find(|&j| {
+            j != i
+                && encompasses(
+                    &scores[j], &scores[i], &m.cols, &p.target, &m.mask, threshold,
                 )
-                .map(|r| format!("implausible in the extended model: {} {r}", a.kind.name()))
-            })
-        };
-        if let Some(reason) = problem {
-            findings.pop();
-            added.pop();
-            for (a, (hyper, range)) in added.iter_mut().zip(added_before) {
-                a.hyper = hyper;
-                a.range = range;
-            }
-            (cols, fit, mask, ctx, heldout_now, n_eq) = snapshot;
-            rejected.push(Rejection {
-                effect: kind.name().to_owned(),
-                evidence,
-                explained_rms_pm: 1000.0 * explained_nm,
-                reason,
-            });
-            excluded.push(kind);
+        });
+        if let Some(j) = encompassing {
+            round_rejected.push(rejection(
+                &scores[i],
+                format!("encompassed by {}", scores[j].kind.name()),
+            ));
             continue;
         }
-        if let Some(f) = findings.last_mut() {
-            f.heldout_rms_before_pm = before_same;
-            f.heldout_rms_after_pm = heldout_now;
+        let after = heldout_rms(
+            &p.obs,
+            p.frames,
+            &p.target,
+            &m.cols,
+            Some(scores[i].kind),
+            &m.mask,
+            &m.ctx,
+        );
+        if after < m.heldout_now {
+            return (Some((i, after)), round_rejected);
         }
-        tracing::debug!(effect = kind.name(), evidence, "effect accepted");
+        round_rejected.push(rejection(&scores[i], "no held-out gain".to_owned()));
     }
-    for (finding, a) in findings.iter_mut().zip(&added) {
-        finding.parameters = effect_params(a, &fit, frames);
+    (None, round_rejected)
+}
+
+/// Raises the degree of the scanner nonlinearity (the effect `kind` in the model) by two
+/// while the evidence supports it, the held-out RMS drops and the added orders explain a
+/// relevant displacement; `finding` follows the model.
+fn raise_nonlinearity_degree(
+    p: &Problem<'_>,
+    m: &mut Model,
+    kind: EffectKind,
+    relevance_nm: f64,
+    finding: &mut Finding,
+) -> Result<(), ModelCheckError> {
+    while let Some(pos) = m.added.iter().position(|a| a.kind == kind) {
+        let degree = nonlinearity_degree(m.added[pos].hyper);
+        if degree + 2 > 9 {
+            break;
+        }
+        let mut trial = m.cols.clone();
+        let higher = effect_columns(kind, (degree + 2) as f64, &p.obs, &m.ctx);
+        // Keep the existing columns; append the two new orders per axis.
+        let new_cols: Vec<Column> = higher
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| {
+                let k = i % (degree + 1) + 2;
+                k > degree
+            })
+            .map(|(_, c)| c.clone())
+            .collect();
+        trial.extend(new_cols);
+        let Ok(fit2) = solve(&trial, &p.target, &m.mask) else {
+            break;
+        };
+        let ev = delta_bic(m.n_eq, m.fit.rss, fit2.rss, 4.0, 1.0);
+        let explained = change_rms(&m.fit.residual, &fit2.residual, &m.mask);
+        if !(ev > p.options.evidence_threshold && explained >= relevance_nm)
+            || p.heldout_pm(&trial, &m.mask) >= m.heldout_now
+        {
+            break;
+        }
+        // Rebuild with the higher degree in place of the old columns.
+        m.added[pos].hyper = (degree + 2) as f64;
+        m.refit(p)?;
+        finding.rms_after_pm = rms_pm(m.fit.rss, m.fit.n_eq);
+        let ho = p.heldout_pm(&m.cols, &m.mask);
+        if ho.is_finite() {
+            finding.heldout_rms_after_pm = ho;
+            m.heldout_now = ho;
+        }
+    }
+    Ok(())
+}
+
+/// Why the model as it is reported must not keep its last effect: the held-out RMS with
+/// and without it, compared on the same features (the re-admitted features and the
+/// refreshed columns change both after the candidate was scored: issue 29, an accepted
+/// hysteresis raised it 207 → 223 pm), or a finding's parameters no longer plausible (an
+/// interlace offset rejected beyond a/2 in one frame was reported at 0.387 nm in
+/// another). Also the held-out RMS without the effect, pm.
+fn reported_problem(p: &Problem<'_>, m: &Model) -> (Option<String>, f64) {
+    let mut without: Vec<Column> = m.cols[..p.base_len].to_vec();
+    if m.pixel_locking
+        && let Some(pl) = pixel_locking_columns(&p.obs, &m.ctx)
+    {
+        without.extend(pl);
+    }
+    for a in &m.added[..m.added.len() - 1] {
+        without.extend(effect_columns(a.kind, a.hyper, &p.obs, &m.ctx));
+    }
+    let before_same = p.heldout_pm(&without, &m.mask);
+    let heldout_now = m.heldout_now;
+    let lowered = heldout_now < before_same;
+    let problem = if !lowered {
+        Some(format!(
+            "raises the held-out RMS on the features the extended model keeps \
+             ({before_same:.2} → {heldout_now:.2} pm)"
+        ))
+    } else {
+        m.added.iter().find_map(|a| {
+            implausible(
+                a.kind,
+                &effect_params(a, &m.fit, p.frames),
+                p.frames,
+                p.lattice_a_nm,
+                p.span_s,
+            )
+            .map(|r| format!("implausible in the extended model: {} {r}", a.kind.name()))
+        })
+    };
+    (problem, before_same)
+}
+
+/// The selection's record: what was found, rejected and scored, round by round.
+#[derive(Default)]
+struct Selection {
+    findings: Vec<Finding>,
+    rounds: Vec<Vec<CandidateScore>>,
+    rejected: Vec<Rejection>,
+    unexplained_candidates: Vec<String>,
+    /// Effects whose acceptance failed the check on the model as reported.
+    excluded: Vec<EffectKind>,
+    /// The relevance of the last round, nm.
+    relevance_nm: f64,
+}
+
+/// Adds the accepted candidate `chosen` (held-out RMS `after` with it, pm) to the model,
+/// refits, and checks the model as it is reported: the effect's finding, or its rejection
+/// with the model restored.
+fn adopt(
+    p: &Problem<'_>,
+    m: &mut Model,
+    chosen: Scored,
+    confounded_with: Vec<String>,
+    (after, relevance_nm): (f64, f64),
+) -> Result<Result<Finding, Rejection>, ModelCheckError> {
+    let snapshot = m.snapshot();
+    let added_before: Vec<(f64, std::ops::Range<usize>)> =
+        m.added.iter().map(|a| (a.hyper, a.range.clone())).collect();
+    let Scored {
+        kind,
+        evidence,
+        extra,
+        fit: fit1,
+        hyper: h,
+        explained_nm,
+        ..
+    } = chosen;
+    let start = m.cols.len();
+    m.cols.extend(extra);
+    let hyper_sigma = match kind {
+        EffectKind::Creep => h,
+        EffectKind::PeriodicVibration => 0.25 / p.span_s.max(1e-9),
+        EffectKind::TipChange => p
+            .frames
+            .iter()
+            .map(|f| 0.5 * f.duration_s / f.lines.max(1) as f64)
+            .fold(0.0, f64::max),
+        _ => 0.0,
+    };
+    m.added.push(Added {
+        kind,
+        hyper: h,
+        hyper_sigma,
+        range: start..m.cols.len(),
+    });
+    let mut finding = Finding {
+        effect: kind.name().to_owned(),
+        evidence,
+        rms_before_pm: rms_pm(m.fit.rss, m.fit.n_eq),
+        rms_after_pm: rms_pm(fit1.rss, fit1.n_eq),
+        heldout_rms_before_pm: m.heldout_now,
+        heldout_rms_after_pm: after,
+        parameters: BTreeMap::new(),
+        meaning: kind.meaning().to_owned(),
+        confounded_with,
+    };
+    m.heldout_now = after;
+    m.fit = fit1;
+    // Refresh J₀ and θ₀ from the extended fit and rebuild the columns.
+    m.refresh_ctx(p.n_frames);
+    m.refit(p)?;
+    if kind == EffectKind::ScannerNonlinearity {
+        raise_nonlinearity_degree(p, m, kind, relevance_nm, &mut finding)?;
+    }
+    // The held-out reference and the equation count follow the mask.
+    m.n_eq = m.fit.n_eq as f64;
+    let ho = p.heldout_pm(&m.cols, &m.mask);
+    if ho.is_finite() {
+        m.heldout_now = ho;
+        finding.heldout_rms_after_pm = ho;
+        finding.rms_after_pm = rms_pm(m.fit.rss, m.fit.n_eq);
+    }
+    let (problem, before_same) = reported_problem(p, m);
+    if let Some(reason) = problem {
+        m.added.pop();
+        for (a, (hyper, range)) in m.added.iter_mut().zip(added_before) {
+            a.hyper = hyper;
+            a.range = range;
+        }
+        m.restore(snapshot);
+        return Ok(Err(Rejection {
+            effect: kind.name().to_owned(),
+            evidence,
+            explained_rms_pm: 1000.0 * explained_nm,
+            reason,
+        }));
+    }
+    finding.heldout_rms_before_pm = before_same;
+    finding.heldout_rms_after_pm = m.heldout_now;
+    tracing::debug!(effect = kind.name(), evidence, "effect accepted");
+    Ok(Ok(finding))
+}
+
+/// One round of the forward selection: scores the candidates, accepts one or ends the
+/// selection (`Ok(false)`).
+fn selection_round(
+    p: &Problem<'_>,
+    m: &mut Model,
+    sel: &mut Selection,
+) -> Result<bool, ModelCheckError> {
+    sel.relevance_nm = p.relevance_nm(&m.fit, &m.mask);
+    let mut scores = score_candidates(p, m, &sel.excluded, sel.relevance_nm);
+    sel.rounds.push(
+        scores
+            .iter()
+            .map(|s| CandidateScore {
+                effect: s.kind.name().to_owned(),
+                evidence: if s.evidence.is_finite() {
+                    s.evidence
+                } else {
+                    -1e300
+                },
+            })
+            .collect::<Vec<_>>(),
+    );
+    let (accepted, round_rejected) = choose(p, m, &scores);
+    let Some((pos, after)) = accepted else {
+        // Structure the evidence supports and that matters, but whose only
+        // candidates are implausible: the library does not explain it.
+        for r in &round_rejected {
+            if r.reason.starts_with("implausible") {
+                sel.unexplained_candidates.push(format!(
+                    "{} would explain {:.1} pm but is {}",
+                    r.effect, r.explained_rms_pm, r.reason
+                ));
+            }
+        }
+        sel.rejected.extend(round_rejected);
+        return Ok(false);
+    };
+    sel.rejected.extend(round_rejected);
+    let chosen = scores.swap_remove(pos);
+    let confounded_with = scores
+        .iter()
+        .filter(|s| {
+            s.evidence > p.options.evidence_threshold
+                && s.evidence >= chosen.evidence - 6.0
+                && s.problem.is_none()
+        })
+        .map(|s| s.kind.name().to_owned())
+        .collect();
+    let kind = chosen.kind;
+    match adopt(p, m, chosen, confounded_with, (after, sel.relevance_nm))? {
+        Ok(finding) => sel.findings.push(finding),
+        Err(rejection) => {
+            sel.rejected.push(rejection);
+            sel.excluded.push(kind);
+        }
+    }
+    Ok(true)
+}
+
+/// The final model's numbers: each finding's parameters, the localiser's bias, the
+/// lumped parameters and the residual structure; a lattice the features are not on is
+/// refused.
+fn report(
+    p: &Problem<'_>,
+    set: &FeatureSet,
+    m: &Model,
+    (baseline, baseline_fit, localisation_sigma_pm): (BaselineReport, Fit, f64),
+    mut sel: Selection,
+) -> Result<Diagnosis, ModelCheckError> {
+    let (fit, mask, n_frames) = (&m.fit, &m.mask, p.n_frames);
+    for (finding, a) in sel.findings.iter_mut().zip(&m.added) {
+        finding.parameters = effect_params(a, fit, p.frames);
         if a.kind == EffectKind::TipChange
             && let Some(t) = finding.parameters.get_mut("time_s")
         {
-            t.value += t_mid;
+            t.value += p.t_mid;
         }
     }
     let mut localiser_bias = BTreeMap::new();
-    if pixel_locking {
+    if m.pixel_locking {
         for (i, name) in PIXEL_LOCKING_NAMES.iter().enumerate() {
-            let j = base_len + i;
+            let j = p.base_len + i;
             if let Some(v) = fit.coef.get(j) {
                 localiser_bias.insert((*name).to_owned(), pv(*v, fit.cov[(j, j)].max(0.0).sqrt()));
             }
         }
     }
-    let (mut final_params, _) = decompose(&fit, n_frames);
-    if !drift_separable {
+    let (mut final_params, _) = decompose(fit, n_frames);
+    if !baseline.drift_separable {
         final_params.remove("drift_x_nm_per_s");
         final_params.remove("drift_y_nm_per_s");
     }
     let mut residual_structure = structure(
-        &obs,
+        &p.obs,
         &fit.residual,
-        &mask,
-        options.structure_z_threshold,
-        relevance_nm,
+        mask,
+        p.options.structure_z_threshold,
+        sel.relevance_nm,
     );
-    residual_structure.reasons.extend(unexplained_candidates);
+    residual_structure
+        .reasons
+        .extend(std::mem::take(&mut sel.unexplained_candidates));
     // A lattice the features are not on: the final model, after its outlier rejection
     // and every effect the data support, still leaves residuals (or predicts held-out
     // lines) beyond a quarter of the period — the indexing put the features on sites by
@@ -1659,8 +1831,9 @@ pub fn diagnose_indexed(
     // without a lattice claimed as hex:1.5 was reported with a held-out RMS of
     // 49 102 pm). A strong but smooth distortion (large hysteresis) leaves a baseline
     // beyond it and a final model far below it, so the test is on the final model.
-    let quarter_pm = 250.0 * lattice_a_nm;
+    let quarter_pm = 250.0 * p.lattice_a_nm;
     let final_rms_pm = rms_pm(fit.rss, fit.n_eq);
+    let heldout_now = m.heldout_now;
     if final_rms_pm > quarter_pm || heldout_now > quarter_pm {
         return Err(ModelCheckError::NotTheLattice {
             context: format!(
@@ -1675,7 +1848,8 @@ pub fn diagnose_indexed(
         });
     }
     let unexplained = !residual_structure.reasons.is_empty();
-    let residuals = obs
+    let residuals = p
+        .obs
         .iter()
         .enumerate()
         .map(|(k, o)| ResidualPoint {
@@ -1699,24 +1873,24 @@ pub fn diagnose_indexed(
     let used = mask.iter().filter(|m| **m).count();
     Ok(Diagnosis {
         baseline,
-        findings,
+        findings: sel.findings,
         final_report: FinalReport {
-            rms_pm: rms_pm(fit.rss, fit.n_eq),
+            rms_pm: final_rms_pm,
             heldout_rms_pm: heldout_now,
             parameters: final_params,
         },
         unexplained,
         residual_structure,
-        rounds,
+        rounds: sel.rounds,
         features_used: used,
-        outliers: obs.len() - used,
-        unindexed: set.features.len() - source.len(),
+        outliers: p.obs.len() - used,
+        unindexed: set.features.len() - p.source.len(),
         frames: set.frames.iter().map(|f| f.label.clone()).collect(),
         localisation_sigma_pm,
-        rejected,
+        rejected: sel.rejected,
         warnings: set.warnings.clone(),
         localiser_bias,
-        time_origin_s: t_mid,
+        time_origin_s: p.t_mid,
         frame_half_nm: set
             .frames
             .iter()
@@ -1724,4 +1898,36 @@ pub fn diagnose_indexed(
             .collect(),
         residuals,
     })
+}
+
+/// Like [`diagnose_features`] with the lattice sites given (e.g. from a simulator's oracle).
+pub fn diagnose_indexed(
+    set: &FeatureSet,
+    sites: &[Option<[i64; 2]>],
+    basis: &MeasuredBasis,
+    options: &Options,
+) -> Result<Diagnosis, ModelCheckError> {
+    let p = problem(set, sites, basis, options)?;
+    let (mut model, baseline_report) = baseline(&p)?;
+    let baseline_fit = model.fit.clone();
+    let localisation_sigma_pm = 1000.0
+        * p.reported_sigma_nm.unwrap_or_else(|| {
+            std::f64::consts::SQRT_2 * robust_sigma(&model.fit.residual, &model.mask)
+        });
+    let mut sel = Selection {
+        relevance_nm: p.relevance_nm(&model.fit, &model.mask),
+        ..Selection::default()
+    };
+    for _ in 0..options.max_findings {
+        if !selection_round(&p, &mut model, &mut sel)? {
+            break;
+        }
+    }
+    report(
+        &p,
+        set,
+        &model,
+        (baseline_report, baseline_fit, localisation_sigma_pm),
+        sel,
+    )
 }

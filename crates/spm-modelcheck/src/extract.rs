@@ -575,13 +575,169 @@ fn channel_features(
     }
 }
 
+/// The frame's physical size (x, y), nm: stored, or self-calibrated from the lattice in
+/// the image when the file has none (a warning says so).
+fn frame_size_nm(
+    forward: &Channel,
+    lattice: &LatticeSpec,
+    (name, path): (&str, &str),
+    warnings: &mut Vec<String>,
+) -> Result<(f64, f64), ModelCheckError> {
+    let (nx, ny) = (forward.nx(), forward.ny());
+    if let (Some(sx), Some(sy)) = (forward.size_x_nm(), forward.size_y_nm()) {
+        return Ok((sx, sy));
+    }
+    let Some((pixel, peaks)) = self_calibrate(forward, lattice) else {
+        return Err(ModelCheckError::MissingMetadata {
+            path: path.to_owned(),
+            reason: "no physical size stored, and no lattice in the image's power \
+                     spectrum to self-calibrate the pixel pitch from"
+                .to_owned(),
+        });
+    };
+    warnings.push(format!(
+        "{name}: no physical size stored; pixel pitch {pixel:.5} nm self-calibrated \
+         from the lattice in the image (cell of {:.1} px² set to the claimed {:.4} nm \
+         lattice's): scales are relative to that, the lattice constant is not measured",
+        peaks.cell_area_px(),
+        lattice.a_nm()
+    ));
+    Ok((pixel * nx as f64, pixel * ny as f64))
+}
+
+/// Where the files' frames start on one time axis, s: given, else from the record
+/// times, else where the previous frame ended.
+struct FrameClock {
+    /// The first file's record time, s.
+    first_record_s: Option<f64>,
+    /// Where the previous frame ended, s.
+    next_start_s: f64,
+}
+
+impl FrameClock {
+    /// The start of a frame given `start` (the caller's) and `recorded` (the file's
+    /// stamp), lasting `duration_s`; `first` says whether it is the first frame.
+    fn start_s(
+        &mut self,
+        start: Option<f64>,
+        recorded: Option<DateTime>,
+        first: bool,
+        duration_s: f64,
+    ) -> f64 {
+        let start_s = match (start, recorded, self.first_record_s) {
+            (Some(s), _, _) => s,
+            // A record time is stamped to the second: the true start lies in
+            // [rec, rec + 1 s). Frames shorter than a second (a fast-SPM
+            // movie) share stamps, so each starts where the previous ended
+            // when that is within its second, not on top of it.
+            (None, Some(rec), Some(first_s)) => {
+                let rec_s = seconds_of(rec) - first_s;
+                if first {
+                    rec_s
+                } else {
+                    self.next_start_s.clamp(rec_s, rec_s + 1.0)
+                }
+            }
+            _ => self.next_start_s,
+        };
+        self.next_start_s = start_s + duration_s;
+        start_s
+    }
+}
+
+/// One frame's timing and geometry, shared by its channels.
+struct FrameGeometry {
+    /// Pixels (columns, lines).
+    pixels: (usize, usize),
+    /// Pixel size (x, y), nm.
+    pixel_nm: [f64; 2],
+    /// The frame's start on the files' time axis, s.
+    start_s: f64,
+    /// One line's trace, s.
+    line_time_s: f64,
+    /// From one line's start to the next's, s.
+    line_period_s: f64,
+}
+
+/// The feature observations of one channel of frame `frame_index` (features next to
+/// unscanned pixels dropped), appended to `out`.
+fn channel_observations(
+    (channel, file, frame_index, name): (&Channel, &SpmFile, usize, &str),
+    frame: &FrameGeometry,
+    mode: &mut Mode,
+    lattice: &LatticeSpec,
+    polarity: Polarity,
+    ex: &ExtractOptions,
+    out: &mut Vec<FeatureObservation>,
+) -> Result<(), ModelCheckError> {
+    let (nx, ny) = frame.pixels;
+    let pixel_nm = frame.pixel_nm;
+    let line_time = frame.line_time_s;
+    let pattern_cell = (lattice.a_nm() - SI7X7_A_NM).abs() < 1e-6;
+    let direction = match channel.direction() {
+        Direction::Forward => LineDirection::Forward,
+        Direction::Backward => LineDirection::Backward,
+    };
+    let ch_timing = channel.timing();
+    let first_line = ch_timing.map_or(
+        if direction == LineDirection::Backward {
+            line_time
+        } else {
+            0.0
+        },
+        |t| t.first_line_start_s,
+    );
+    // Atomic lattices (one hill per site, the plain localiser's) are levelled
+    // jointly with their harmonics; a cell pattern (Si(111)-7×7) keeps the plain
+    // per-line levelling: its cell localiser removes each line's mean inside its
+    // own fit windows, and its many strong harmonics beyond the second shell are
+    // not in the joint model (with them the 20 nm Si 7×7 frame lost its lattice).
+    let search = (!pattern_cell).then(|| lattice_search(lattice, pixel_nm));
+    let (map, bad) = geometric_map(channel, search.as_ref());
+    let scan_up = channel.scan_dir().or(file.scan_dir) == Some(ScanDir::Up);
+    let time_and_line = |column: f64, row: f64| {
+        let display_row = (ny as f64 - 1.0) - row;
+        let acq_row = if scan_up { row } else { display_row };
+        let acq_col = match direction {
+            LineDirection::Forward => column,
+            LineDirection::Backward => nx as f64 - 1.0 - column,
+        };
+        let t = frame.start_s
+            + first_line
+            + acq_row * frame.line_period_s
+            + (acq_col + 0.5) * line_time / nx as f64;
+        (t, acq_row.round().max(0.0) as usize)
+    };
+    let ctx = ChannelCtx {
+        map_ctx: MapContext {
+            pixel_nm,
+            polarity,
+            a_nm: lattice.a_nm(),
+            min_snr: ex.min_snr,
+            direction,
+            frame_index,
+        },
+        time_and_line: &time_and_line,
+        label: format!("{name}, {}", format!("{direction:?}").to_lowercase()),
+    };
+    let feats = channel_features(mode, &map, &bad, &ctx, lattice, ex)?;
+    // Drop features next to unscanned (NaN) pixels.
+    let a_px = (lattice.a_nm() / pixel_nm[0]).ceil() as i64;
+    for f in feats {
+        let near_nan = near_unscanned(&f, pixel_nm, (nx, ny), a_px, &bad);
+        if !near_nan {
+            out.push(f);
+        }
+    }
+    Ok(())
+}
+
 /// Extracts feature observations from the height channels (forward and
 /// backward) of each file. Frame `i` of the result is file `i`.
 ///
 /// A file without a physical size (raw height arrays) is self-calibrated: its pixel
 /// pitch makes the cell of the lattice's fundamental in the image the claimed
 /// lattice's (a warning says so; its scales are then relative to that).
-// long-function: one pass over files and channels sharing the time axis, the scan-series check and the localiser's reference
 pub fn extract_features(
     files: &[(SpmFile, Option<f64>)],
     lattice: &LatticeSpec,
@@ -595,14 +751,15 @@ pub fn extract_features(
             Polarity::Hill
         });
     let mut set = FeatureSet::default();
-    let first_record = files.iter().find_map(|(f, _)| f.recorded).map(seconds_of);
-    let mut next_start = 0.0_f64;
+    let mut clock = FrameClock {
+        first_record_s: files.iter().find_map(|(f, _)| f.recorded).map(seconds_of),
+        next_start_s: 0.0,
+    };
     let mut first_settings: Option<(String, FrameSettings)> = None;
     let mut mode = match ex.localiser {
         Localiser::Features => Mode::Plain,
         _ => Mode::Undecided,
     };
-    let pattern_cell = (lattice.a_nm() - SI7X7_A_NM).abs() < 1e-6;
     for (frame_index, (file, start)) in files.iter().enumerate() {
         let path = file.source.display().to_string();
         let name = file
@@ -611,27 +768,7 @@ pub fn extract_features(
             .map_or_else(|| path.clone(), |n| n.to_string_lossy().into_owned());
         let (forward, backward) = height_channels(file, ex, &path)?;
         let (nx, ny) = (forward.nx(), forward.ny());
-        let (sx, sy) = match (forward.size_x_nm(), forward.size_y_nm()) {
-            (Some(sx), Some(sy)) => (sx, sy),
-            _ => {
-                let Some((pixel, peaks)) = self_calibrate(forward, lattice) else {
-                    return Err(ModelCheckError::MissingMetadata {
-                        path,
-                        reason: "no physical size stored, and no lattice in the image's power \
-                                 spectrum to self-calibrate the pixel pitch from"
-                            .to_owned(),
-                    });
-                };
-                set.warnings.push(format!(
-                    "{name}: no physical size stored; pixel pitch {pixel:.5} nm self-calibrated \
-                     from the lattice in the image (cell of {:.1} px² set to the claimed {:.4} nm \
-                     lattice's): scales are relative to that, the lattice constant is not measured",
-                    peaks.cell_area_px(),
-                    lattice.a_nm()
-                ));
-                (pixel * nx as f64, pixel * ny as f64)
-            }
-        };
+        let (sx, sy) = frame_size_nm(forward, lattice, (&name, &path), &mut set.warnings)?;
         let timing = forward.timing();
         let line_time = timing.map_or(ex.default_line_time_s, |t| t.line_time_s);
         let settings = FrameSettings {
@@ -661,23 +798,12 @@ pub fn extract_features(
             line_time * if backward.is_some() { 2.0 } else { 1.0 },
             |t| t.line_period_s,
         );
-        let start_s = match (start, file.recorded, first_record) {
-            (Some(s), _, _) => *s,
-            // A record time is stamped to the second: the true start lies in
-            // [rec, rec + 1 s). Frames shorter than a second (a fast-SPM
-            // movie) share stamps, so each starts where the previous ended
-            // when that is within its second, not on top of it.
-            (None, Some(rec), Some(first)) => {
-                let rec_s = seconds_of(rec) - first;
-                if set.frames.is_empty() {
-                    rec_s
-                } else {
-                    next_start.clamp(rec_s, rec_s + 1.0)
-                }
-            }
-            _ => next_start,
-        };
-        next_start = start_s + line_period * ny as f64;
+        let start_s = clock.start_s(
+            *start,
+            file.recorded,
+            set.frames.is_empty(),
+            line_period * ny as f64,
+        );
         set.frames.push(FrameInfo {
             label: format!(
                 "{} ({})",
@@ -695,63 +821,23 @@ pub fn extract_features(
             lines: ny,
             pixel_nm: Some([sx / nx as f64, sy / ny as f64]),
         });
-        let pixel_nm = [sx / nx as f64, sy / ny as f64];
+        let frame = FrameGeometry {
+            pixels: (nx, ny),
+            pixel_nm: [sx / nx as f64, sy / ny as f64],
+            start_s,
+            line_time_s: line_time,
+            line_period_s: line_period,
+        };
         for channel in [Some(forward), backward].into_iter().flatten() {
-            let direction = match channel.direction() {
-                Direction::Forward => LineDirection::Forward,
-                Direction::Backward => LineDirection::Backward,
-            };
-            let ch_timing = channel.timing();
-            let first_line = ch_timing.map_or(
-                if direction == LineDirection::Backward {
-                    line_time
-                } else {
-                    0.0
-                },
-                |t| t.first_line_start_s,
-            );
-            // Atomic lattices (one hill per site, the plain localiser's) are levelled
-            // jointly with their harmonics; a cell pattern (Si(111)-7×7) keeps the plain
-            // per-line levelling: its cell localiser removes each line's mean inside its
-            // own fit windows, and its many strong harmonics beyond the second shell are
-            // not in the joint model (with them the 20 nm Si 7×7 frame lost its lattice).
-            let search = (!pattern_cell).then(|| lattice_search(lattice, pixel_nm));
-            let (map, bad) = geometric_map(channel, search.as_ref());
-            let scan_up = channel.scan_dir().or(file.scan_dir) == Some(ScanDir::Up);
-            let time_and_line = |column: f64, row: f64| {
-                let display_row = (ny as f64 - 1.0) - row;
-                let acq_row = if scan_up { row } else { display_row };
-                let acq_col = match direction {
-                    LineDirection::Forward => column,
-                    LineDirection::Backward => nx as f64 - 1.0 - column,
-                };
-                let t = start_s
-                    + first_line
-                    + acq_row * line_period
-                    + (acq_col + 0.5) * line_time / nx as f64;
-                (t, acq_row.round().max(0.0) as usize)
-            };
-            let ctx = ChannelCtx {
-                map_ctx: MapContext {
-                    pixel_nm,
-                    polarity,
-                    a_nm: lattice.a_nm(),
-                    min_snr: ex.min_snr,
-                    direction,
-                    frame_index,
-                },
-                time_and_line: &time_and_line,
-                label: format!("{name}, {}", format!("{direction:?}").to_lowercase()),
-            };
-            let feats = channel_features(&mut mode, &map, &bad, &ctx, lattice, ex)?;
-            // Drop features next to unscanned (NaN) pixels.
-            let a_px = (lattice.a_nm() / pixel_nm[0]).ceil() as i64;
-            for f in feats {
-                let near_nan = near_unscanned(&f, pixel_nm, (nx, ny), a_px, &bad);
-                if !near_nan {
-                    set.features.push(f);
-                }
-            }
+            channel_observations(
+                (channel, file, frame_index, &name),
+                &frame,
+                &mut mode,
+                lattice,
+                polarity,
+                ex,
+                &mut set.features,
+            )?;
         }
     }
     Ok(set)

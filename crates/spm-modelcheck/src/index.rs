@@ -405,14 +405,15 @@ fn inverse(b1: [f64; 2], b2: [f64; 2]) -> Option<[[f64; 2]; 2]> {
     Some([[b2[1] / det, -b2[0] / det], [-b1[1] / det, b1[0] / det]])
 }
 
-/// Indexes every feature of `set` to a lattice site.
-// long-function: one breadth-first indexing walk whose queue, seeds and per-frame registration are shared by every step; issue 18 replaces its seeding
-pub fn index_features(
-    set: &FeatureSet,
-    lattice: &LatticeSpec,
-) -> Result<Indexing, ModelCheckError> {
-    // Groups: (frame, direction).
-    let mut groups: Vec<((usize, LineDirection), Vec<usize>)> = Vec::new();
+/// A group of features: one frame's one scan direction, and the features' indices.
+type Group = ((usize, LineDirection), Vec<usize>);
+
+/// A reciprocal basis (k₁, k₂), cycles per nm.
+type Reciprocal = ([f64; 2], [f64; 2]);
+
+/// The features grouped by (frame, direction), the largest group first.
+fn feature_groups(set: &FeatureSet) -> Vec<Group> {
+    let mut groups: Vec<Group> = Vec::new();
     for (k, f) in set.features.iter().enumerate() {
         let key = (f.frame_index, f.direction);
         match groups.iter_mut().find(|g| g.0 == key) {
@@ -421,14 +422,252 @@ pub fn index_features(
         }
     }
     groups.sort_by_key(|g| std::cmp::Reverse(g.1.len()));
+    groups
+}
+
+/// The positions (nm) of the features `members`.
+fn member_points(set: &FeatureSet, members: &[usize]) -> Vec<[f64; 2]> {
+    members
+        .iter()
+        .map(|&k| [set.features[k].x_nm, set.features[k].y_nm])
+        .collect()
+}
+
+/// The direct basis (b₁, b₂) of the reciprocal basis (k₁, k₂), when it is invertible.
+fn direct_basis((k1, k2): Reciprocal) -> Option<([f64; 2], [f64; 2])> {
+    inverse([k1[0], k2[0]], [k1[1], k2[1]])
+        .map(|inv| ([inv[0][0], inv[1][0]], [inv[0][1], inv[1][1]]))
+}
+
+/// The measured basis with the true one of the same angle class and handedness.
+fn measured_basis(b1: [f64; 2], b2: [f64; 2], lattice: &LatticeSpec) -> MeasuredBasis {
+    let a = lattice.a_nm();
+    let cos_measured = (b1[0] * b2[0] + b1[1] * b2[1]) / (b1[0].hypot(b1[1]) * b2[0].hypot(b2[1]));
+    let gamma = match lattice {
+        LatticeSpec::Hex { .. } if cos_measured < 0.0 => 2.0 * lattice.basis_angle_rad(),
+        _ => lattice.basis_angle_rad(),
+    };
+    let handed = (b1[0] * b2[1] - b1[1] * b2[0]).signum();
+    MeasuredBasis {
+        b1_nm: b1,
+        b2_nm: b2,
+        a1_nm: [a, 0.0],
+        a2_nm: [a * gamma.cos(), handed * a * gamma.sin()],
+    }
+}
+
+/// What the reference group gives every other: its basis (b₁, b₂), nm, and the
+/// structure-factor registration's reciprocal basis when it is used.
+#[derive(Clone, Copy)]
+struct Reference {
+    b1: [f64; 2],
+    b2: [f64; 2],
+    phase_mode: Option<Reciprocal>,
+}
+
+impl Reference {
+    /// A group's own basis, found the way it will be indexed: by the structure factor's
+    /// peaks followed from the reference's (`None` when that registration is off or
+    /// degenerate), else by its neighbour vectors from the reference's.
+    fn group_basis(&self, pts: &[[f64; 2]]) -> ([f64; 2], [f64; 2]) {
+        let from_k = self
+            .phase_mode
+            .and_then(|(k1, k2)| direct_basis(refine_reciprocal(pts, k1, k2)));
+        from_k.unwrap_or_else(|| refine_basis(pts, self.b1, self.b2).unwrap_or((self.b1, self.b2)))
+    }
+}
+
+/// Checks every group after the reference against the lattice, and warns where a group's
+/// lattice differs from the reference's by more than drift could: (sites on the lattice,
+/// features) over the groups, and the warnings.
+fn check_other_groups(
+    set: &FeatureSet,
+    groups: &[Group],
+    reference: &Reference,
+    lattice: &LatticeSpec,
+    label: &dyn Fn((usize, LineDirection)) -> String,
+) -> Result<(usize, usize, Vec<String>), ModelCheckError> {
+    let (b1, b2) = (reference.b1, reference.b2);
+    let ref_len = [b1[0].hypot(b1[1]), b2[0].hypot(b2[1])];
+    let (mut good_total, mut n_total) = (0, 0);
+    let mut warnings = Vec::new();
+    for (key, members) in groups.iter().skip(1) {
+        let pts = member_points(set, members);
+        if pts.len() < 6 {
+            continue;
+        }
+        let (g1, g2) = reference.group_basis(&pts);
+        let (g, n) = check_lattice(&pts, g1, g2, lattice, &label(*key))?;
+        good_total += g;
+        n_total += n;
+        // One sample, one scan series: the lattice seen in every frame should
+        // agree with the reference up to drift-sized distortion.
+        let rot = |a: [f64; 2], b: [f64; 2]| {
+            ((a[0] * b[1] - a[1] * b[0]).atan2(a[0] * b[0] + a[1] * b[1])).to_degrees()
+        };
+        let dr = rot(b1, g1).abs().max(rot(b2, g2).abs());
+        let dl = ((g1[0].hypot(g1[1]) / ref_len[0]) - 1.0)
+            .abs()
+            .max(((g2[0].hypot(g2[1]) / ref_len[1]) - 1.0).abs());
+        if dr > 5.0 || dl > 0.15 {
+            warnings.push(format!(
+                "{}: the lattice differs from {} by {dr:.1}° and {:.0} % in length: \
+                 these frames may not be one scan series of one area",
+                label(*key),
+                label(groups[0].0),
+                100.0 * dl
+            ));
+        }
+    }
+    Ok((good_total, n_total, warnings))
+}
+
+/// Indexes one group by the neighbour walk: from its seed (given `seed_site`), retried
+/// from the next features nearest it while the walk stays small (an isolated or spurious
+/// seed), then across defects and missing atoms from the nearest indexed feature within
+/// three basis lengths.
+fn walk_group(
+    pts: &[[f64; 2]],
+    (seed, seed_site): (usize, [i64; 2]),
+    frac: &dyn Fn([f64; 2]) -> [f64; 2],
+    b_len: f64,
+) -> Vec<Option<[i64; 2]>> {
+    let mut order: Vec<usize> = (0..pts.len()).collect();
+    order.sort_by(|&p, &q| {
+        let dp = (pts[p][0] - pts[seed][0]).hypot(pts[p][1] - pts[seed][1]);
+        let dq = (pts[q][0] - pts[seed][0]).hypot(pts[q][1] - pts[seed][1]);
+        dp.total_cmp(&dq)
+    });
+    let mut local: Vec<Option<[i64; 2]>> = vec![None; pts.len()];
+    let mut best_count = 0usize;
+    for &start in order.iter().take(12) {
+        let site0 = if start == seed {
+            seed_site
+        } else {
+            let f = frac([pts[start][0] - pts[seed][0], pts[start][1] - pts[seed][1]]);
+            [
+                seed_site[0] + f[0].round() as i64,
+                seed_site[1] + f[1].round() as i64,
+            ]
+        };
+        let walk = walk_lattice(pts, start, site0, frac, b_len);
+        let count = walk.iter().filter(|s| s.is_some()).count();
+        if count > best_count {
+            best_count = count;
+            local = walk;
+        }
+        if 2 * best_count > pts.len() {
+            break;
+        }
+    }
+    loop {
+        let mut best: Option<(f64, usize, usize)> = None;
+        for q in 0..pts.len() {
+            if local[q].is_some() {
+                continue;
+            }
+            for p in 0..pts.len() {
+                if local[p].is_none() {
+                    continue;
+                }
+                let d = (pts[q][0] - pts[p][0]).hypot(pts[q][1] - pts[p][1]);
+                if d < 3.0 * b_len && best.is_none_or(|b| d < b.0) {
+                    best = Some((d, q, p));
+                }
+            }
+        }
+        let Some((_, q, p)) = best else { break };
+        let Some(ip) = local[p] else { break };
+        let f = frac([pts[q][0] - pts[p][0], pts[q][1] - pts[p][1]]);
+        let site0 = [ip[0] + f[0].round() as i64, ip[1] + f[1].round() as i64];
+        let walk = walk_lattice(pts, q, site0, frac, b_len);
+        for (l, w) in local.iter_mut().zip(walk) {
+            if l.is_none() {
+                *l = w;
+            }
+        }
+    }
+    local
+}
+
+/// A frame's other half (backward vs forward) sees the same atoms, but trace and retrace
+/// can be shifted by up to a lattice constant mid-line (hysteresis, lag): shifts the
+/// group's sites `local` by a vote over its features near the line ends, where hysteresis
+/// vanishes (the loop closes at the turnaround), against the half of `frame` already
+/// indexed in `sites`.
+fn register_with_other_half(
+    set: &FeatureSet,
+    frame: usize,
+    sites: &[Option<[i64; 2]>],
+    pts: &[[f64; 2]],
+    local: &mut [Option<[i64; 2]>],
+    frac: &dyn Fn([f64; 2]) -> [f64; 2],
+    b_len: f64,
+) {
+    let half_x = set
+        .frames
+        .get(frame)
+        .map_or(f64::INFINITY, |f| f.half_width_x_nm.max(1e-12));
+    let other: Vec<(usize, [i64; 2])> = sites
+        .iter()
+        .enumerate()
+        .filter_map(|(k, s)| s.map(|s| (k, s)))
+        .filter(|(k, _)| set.features[*k].frame_index == frame)
+        .collect();
+    if other.is_empty() {
+        return;
+    }
+    let mut votes: std::collections::HashMap<[i64; 2], f64> = std::collections::HashMap::new();
+    for edge_limit in [0.8, 0.6, 0.0] {
+        for (m, l) in local.iter().enumerate() {
+            let Some(l) = l else { continue };
+            let xi = (pts[m][0] / half_x).abs();
+            if xi < edge_limit {
+                continue;
+            }
+            let nearest = other
+                .iter()
+                .map(|&(k, s)| {
+                    let f = &set.features[k];
+                    ([pts[m][0] - f.x_nm, pts[m][1] - f.y_nm], s)
+                })
+                .min_by(|a, b| a.0[0].hypot(a.0[1]).total_cmp(&b.0[0].hypot(b.0[1])));
+            let Some((d, s)) = nearest else { continue };
+            if d[0].hypot(d[1]) > 0.75 * b_len {
+                continue;
+            }
+            let f = frac(d);
+            let implied = [s[0] + f[0].round() as i64, s[1] + f[1].round() as i64];
+            // Features nearest the turnaround count most.
+            *votes
+                .entry([implied[0] - l[0], implied[1] - l[1]])
+                .or_insert(0.0) += xi * xi + 0.05;
+        }
+        if votes.values().sum::<f64>() >= 3.0 {
+            break;
+        }
+    }
+    if let Some((shift, _)) = votes
+        .into_iter()
+        .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))
+    {
+        for l in local.iter_mut().flatten() {
+            l[0] += shift[0];
+            l[1] += shift[1];
+        }
+    }
+}
+
+/// Indexes every feature of `set` to a lattice site.
+pub fn index_features(
+    set: &FeatureSet,
+    lattice: &LatticeSpec,
+) -> Result<Indexing, ModelCheckError> {
+    let groups = feature_groups(set);
     let reference = groups
         .first()
         .ok_or_else(|| ModelCheckError::NoLattice("an empty feature set".to_owned()))?;
-    let ref_points: Vec<[f64; 2]> = reference
-        .1
-        .iter()
-        .map(|&k| [set.features[k].x_nm, set.features[k].y_nm])
-        .collect();
+    let ref_points = member_points(set, &reference.1);
     let label = |key: (usize, LineDirection)| {
         let name = set
             .frames
@@ -447,70 +686,17 @@ pub fn index_features(
     // reciprocal vectors (an affine drift distortion only moves the peaks).
     // Use it when it puts clearly more features on sites.
     let phase_mode = fourier_registration(&ref_points, b1, b2, lattice);
-    if let Some((k1, k2)) = phase_mode
-        && let Some(inv) = inverse([k1[0], k2[0]], [k1[1], k2[1]])
-    {
-        b1 = [inv[0][0], inv[1][0]];
-        b2 = [inv[0][1], inv[1][1]];
+    if let Some((g1, g2)) = phase_mode.and_then(direct_basis) {
+        (b1, b2) = (g1, g2);
     }
     let binv =
         inverse(b1, b2).ok_or_else(|| ModelCheckError::NoLattice("degenerate basis".into()))?;
-    // True basis with the same angle class and handedness.
-    let a = lattice.a_nm();
-    let cos_measured = (b1[0] * b2[0] + b1[1] * b2[1]) / (b1[0].hypot(b1[1]) * b2[0].hypot(b2[1]));
-    let gamma = match lattice {
-        LatticeSpec::Hex { .. } if cos_measured < 0.0 => 2.0 * lattice.basis_angle_rad(),
-        _ => lattice.basis_angle_rad(),
-    };
-    let handed = (b1[0] * b2[1] - b1[1] * b2[0]).signum();
-    let basis = MeasuredBasis {
-        b1_nm: b1,
-        b2_nm: b2,
-        a1_nm: [a, 0.0],
-        a2_nm: [a * gamma.cos(), handed * a * gamma.sin()],
-    };
-    let (mut good_total, mut n_total) =
-        check_lattice(&ref_points, b1, b2, lattice, &label(reference.0))?;
-    let mut warnings = Vec::new();
-    let ref_len = [b1[0].hypot(b1[1]), b2[0].hypot(b2[1])];
-    for (key, members) in groups.iter().skip(1) {
-        let pts: Vec<[f64; 2]> = members
-            .iter()
-            .map(|&k| [set.features[k].x_nm, set.features[k].y_nm])
-            .collect();
-        if pts.len() < 6 {
-            continue;
-        }
-        // The group's own lattice, found the way it will be indexed: by the structure
-        // factor's peaks followed from the reference's, or by its neighbour vectors.
-        let from_k = phase_mode.and_then(|(k1, k2)| {
-            let (q1, q2) = refine_reciprocal(&pts, k1, k2);
-            inverse([q1[0], q2[0]], [q1[1], q2[1]])
-                .map(|inv| ([inv[0][0], inv[1][0]], [inv[0][1], inv[1][1]]))
-        });
-        let (g1, g2) = from_k.unwrap_or_else(|| refine_basis(&pts, b1, b2).unwrap_or((b1, b2)));
-        let (g, n) = check_lattice(&pts, g1, g2, lattice, &label(*key))?;
-        good_total += g;
-        n_total += n;
-        // One sample, one scan series: the lattice seen in every frame should
-        // agree with the reference up to drift-sized distortion.
-        let rot = |a: [f64; 2], b: [f64; 2]| {
-            ((a[0] * b[1] - a[1] * b[0]).atan2(a[0] * b[0] + a[1] * b[1])).to_degrees()
-        };
-        let dr = rot(b1, g1).abs().max(rot(b2, g2).abs());
-        let dl = ((g1[0].hypot(g1[1]) / ref_len[0]) - 1.0)
-            .abs()
-            .max(((g2[0].hypot(g2[1]) / ref_len[1]) - 1.0).abs());
-        if dr > 5.0 || dl > 0.15 {
-            warnings.push(format!(
-                "{}: the lattice differs from {} by {dr:.1}° and {:.0} % in length: \
-                 these frames may not be one scan series of one area",
-                label(*key),
-                label(reference.0),
-                100.0 * dl
-            ));
-        }
-    }
+    let basis = measured_basis(b1, b2, lattice);
+    let (good_ref, n_ref) = check_lattice(&ref_points, b1, b2, lattice, &label(reference.0))?;
+    let reference_basis = Reference { b1, b2, phase_mode };
+    let (good_other, n_other, warnings) =
+        check_other_groups(set, &groups, &reference_basis, lattice, &label)?;
+    let (good_total, n_total) = (good_ref + good_other, n_ref + n_other);
     let pooled = good_total as f64 / n_total.max(1) as f64;
     // (With the structure-factor registration the reference group has
     // already shown more than half its features on lattice sites.)
@@ -545,10 +731,7 @@ pub fn index_features(
     let b_len = b1[0].hypot(b1[1]).max(b2[0].hypot(b2[1]));
     let mut sites: Vec<Option<[i64; 2]>> = vec![None; set.features.len()];
     for (_, members) in &groups {
-        let pts: Vec<[f64; 2]> = members
-            .iter()
-            .map(|&k| [set.features[k].x_nm, set.features[k].y_nm])
-            .collect();
+        let pts = member_points(set, members);
         // Seed: nearest to the reference origin (same frame as the reference ⇒
         // same site; another frame ⇒ the per-frame offset absorbs the choice).
         let Some(seed) = (0..pts.len()).min_by(|&p, &q| {
@@ -566,9 +749,7 @@ pub fn index_features(
         // its drift); its index directions stay those of the reference.
         let group_k = phase_mode.map(|(k1, k2)| refine_reciprocal(&pts, k1, k2));
         let (g1, g2) = match group_k {
-            Some((k1, k2)) => inverse([k1[0], k2[0]], [k1[1], k2[1]]).map_or((b1, b2), |inv| {
-                ([inv[0][0], inv[1][0]], [inv[0][1], inv[1][1]])
-            }),
+            Some(k) => direct_basis(k).unwrap_or((b1, b2)),
             None => refine_basis(&pts, b1, b2).unwrap_or((b1, b2)),
         };
         let ginv = inverse(g1, g2).unwrap_or(binv);
@@ -578,132 +759,12 @@ pub fn index_features(
                 ginv[1][0] * d[0] + ginv[1][1] * d[1],
             ]
         };
-        let frac = &gfrac;
-        // Walk from the seed; when the walk stays small (an isolated or
-        // spurious seed), retry from the next features nearest the origin and
-        // keep the largest walk.
-        let mut order: Vec<usize> = (0..pts.len()).collect();
-        order.sort_by(|&p, &q| {
-            let dp = (pts[p][0] - pts[seed][0]).hypot(pts[p][1] - pts[seed][1]);
-            let dq = (pts[q][0] - pts[seed][0]).hypot(pts[q][1] - pts[seed][1]);
-            dp.total_cmp(&dq)
-        });
-        let mut local: Vec<Option<[i64; 2]>> = vec![None; pts.len()];
-        let mut best_count = 0usize;
-        if let Some((k1, k2)) = group_k {
+        let mut local = match group_k {
             // Indexed by phase: the whole group at once, off-site features left out.
-            local = phase_index(&pts, k1, k2).0;
-            best_count = pts.len();
-        }
-        for &start in order.iter().take(12) {
-            if group_k.is_some() {
-                break;
-            }
-            let site0 = if start == seed {
-                seed_site
-            } else {
-                let f = frac([pts[start][0] - pts[seed][0], pts[start][1] - pts[seed][1]]);
-                [
-                    seed_site[0] + f[0].round() as i64,
-                    seed_site[1] + f[1].round() as i64,
-                ]
-            };
-            let walk = walk_lattice(&pts, start, site0, &frac, b_len);
-            let count = walk.iter().filter(|s| s.is_some()).count();
-            if count > best_count {
-                best_count = count;
-                local = walk;
-            }
-            if 2 * best_count > pts.len() {
-                break;
-            }
-        }
-        // Other components (across defects, missing atoms): seed each from the
-        // nearest indexed feature within three basis lengths, and walk again.
-        while group_k.is_none() {
-            let mut best: Option<(f64, usize, usize)> = None;
-            for q in 0..pts.len() {
-                if local[q].is_some() {
-                    continue;
-                }
-                for p in 0..pts.len() {
-                    if local[p].is_none() {
-                        continue;
-                    }
-                    let d = (pts[q][0] - pts[p][0]).hypot(pts[q][1] - pts[p][1]);
-                    if d < 3.0 * b_len && best.is_none_or(|b| d < b.0) {
-                        best = Some((d, q, p));
-                    }
-                }
-            }
-            let Some((_, q, p)) = best else { break };
-            let Some(ip) = local[p] else { break };
-            let f = frac([pts[q][0] - pts[p][0], pts[q][1] - pts[p][1]]);
-            let site0 = [ip[0] + f[0].round() as i64, ip[1] + f[1].round() as i64];
-            let walk = walk_lattice(&pts, q, site0, &frac, b_len);
-            for (l, w) in local.iter_mut().zip(walk) {
-                if l.is_none() {
-                    *l = w;
-                }
-            }
-        }
-        // A frame's other half (backward vs forward) sees the same atoms, but
-        // trace and retrace can be shifted by up to a lattice constant mid-line
-        // (hysteresis, lag): register the whole group by a vote over its
-        // features near the line ends, where hysteresis vanishes (the loop
-        // closes at the turnaround), against the half already indexed.
-        let half_x = set
-            .frames
-            .get(frame)
-            .map_or(f64::INFINITY, |f| f.half_width_x_nm.max(1e-12));
-        let other: Vec<(usize, [i64; 2])> = sites
-            .iter()
-            .enumerate()
-            .filter_map(|(k, s)| s.map(|s| (k, s)))
-            .filter(|(k, _)| set.features[*k].frame_index == frame)
-            .collect();
-        if !other.is_empty() {
-            let mut votes: std::collections::HashMap<[i64; 2], f64> =
-                std::collections::HashMap::new();
-            for edge_limit in [0.8, 0.6, 0.0] {
-                for (m, l) in local.iter().enumerate() {
-                    let Some(l) = l else { continue };
-                    let xi = (pts[m][0] / half_x).abs();
-                    if xi < edge_limit {
-                        continue;
-                    }
-                    let nearest = other
-                        .iter()
-                        .map(|&(k, s)| {
-                            let f = &set.features[k];
-                            ([pts[m][0] - f.x_nm, pts[m][1] - f.y_nm], s)
-                        })
-                        .min_by(|a, b| a.0[0].hypot(a.0[1]).total_cmp(&b.0[0].hypot(b.0[1])));
-                    let Some((d, s)) = nearest else { continue };
-                    if d[0].hypot(d[1]) > 0.75 * b_len {
-                        continue;
-                    }
-                    let f = frac(d);
-                    let implied = [s[0] + f[0].round() as i64, s[1] + f[1].round() as i64];
-                    // Features nearest the turnaround count most.
-                    *votes
-                        .entry([implied[0] - l[0], implied[1] - l[1]])
-                        .or_insert(0.0) += xi * xi + 0.05;
-                }
-                if votes.values().sum::<f64>() >= 3.0 {
-                    break;
-                }
-            }
-            if let Some((shift, _)) = votes
-                .into_iter()
-                .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))
-            {
-                for l in local.iter_mut().flatten() {
-                    l[0] += shift[0];
-                    l[1] += shift[1];
-                }
-            }
-        }
+            Some((k1, k2)) => phase_index(&pts, k1, k2).0,
+            None => walk_group(&pts, (seed, seed_site), &gfrac, b_len),
+        };
+        register_with_other_half(set, frame, &sites, &pts, &mut local, &gfrac, b_len);
         // Duplicate sites in one group: keep none of them (ambiguous).
         let mut seen = std::collections::HashMap::new();
         for s in local.iter().flatten() {

@@ -96,7 +96,6 @@ const LINE_RIDGE: f64 = 1e-3;
 
 /// Per-line offsets and slopes fitted jointly with a cos/sin pair per harmonic `k_px`
 /// (cycles per pixel, (column, row)).
-// long-function: one pass accumulating the per-line sums and the reduced normal equations they feed
 fn joint_fit(img: &Lines<'_>, k_px: &[[f64; 2]]) -> JointFit {
     let (nx, ny) = (img.nx, img.ny);
     let m = 2 * k_px.len();

@@ -847,19 +847,9 @@ impl Simulator {
         ) = saved;
     }
 
-    // long-function: the raster's physics in acquisition order (commanded path, hysteresis, creep, drift, Z reading, noise per pixel) shares one mutable state per pixel; a split would pass that state through every piece
-    fn scan_impl(
-        &mut self,
-        request: &ScanRequest,
-        turn: Option<RasterTurn>,
-    ) -> Result<Frame, SimError> {
-        // A turn by 0 is no turn (and leaves every position's bits as they are).
-        let turn = turn.filter(|t| t.angle_rad != 0.0);
-        let place = |x: f64, y: f64| match turn {
-            None => [x, y],
-            Some(t) => t.apply(x, y),
-        };
-        self.begin_call(Operation::Scan, true)?;
+    /// Refuses a scan request the instrument cannot take: invalid, beyond the pixel,
+    /// dwell or counter-scan capabilities, or (turned by `turn`) outside the field.
+    fn check_scan(&self, request: &ScanRequest, turn: Option<RasterTurn>) -> Result<(), SimError> {
         request.validate().map_err(|e| SimError::InvalidRequest {
             reason: e.to_string(),
         })?;
@@ -894,7 +884,189 @@ impl Simulator {
         }
         .map_err(|e| SimError::OutOfRange {
             reason: e.to_string(),
-        })?;
+        })
+    }
+
+    /// The fast path for unrecorded retraces, when it applies: with the hysteresis
+    /// frozen and the commanded x a linear ramp, creep is advanced in closed form
+    /// (exact), fast 1/f processes by one exact AR step; only the last 12 feedback time
+    /// constants are simulated pixel by pixel, because they set the feedback state at the
+    /// next trace's start (the lag error left over is e^-12 ≈ 6e-6 of the step, far below
+    /// an ADC count).
+    fn lumped_retrace(
+        &self,
+        request: &ScanRequest,
+        factors: &PixelFactors,
+        (turned, record_backward): (bool, bool),
+    ) -> Option<LumpedRetrace> {
+        let nx = request.pixels_per_line as usize;
+        let dwell = request.pixel_dwell.value();
+        let step = request.pixel_step.value();
+        let tau_fb = self.config.measurement.feedback_time_constant_s;
+        let tail = if tau_fb > 0.0 {
+            ((12.0 * tau_fb / dwell).ceil() as usize).clamp(2, nx)
+        } else {
+            2.min(nx)
+        };
+        let lumped_n = nx - tail;
+        let quantise = self.config.measurement.quantise_lateral_dac;
+        let ox = request.origin.x.value();
+        let x_lo = ox;
+        let x_hi = ox + step * (nx - 1) as f64;
+        // With DAC rounding the ramp stays linear when the step is whole and
+        // the rounded ends are exactly (nx − 1) steps apart.
+        let linear_x = !quantise
+            || (step.fract() == 0.0
+                && round_code(x_hi) - round_code(x_lo) == step * (nx - 1) as f64);
+        let (x_lo, x_hi) = if quantise {
+            (round_code(x_lo), round_code(x_hi))
+        } else {
+            (x_lo, x_hi)
+        };
+        let advance = self.config.instrument.retrace_slow_axis_advance_counts;
+        if turned || record_backward || lumped_n < 8 || !linear_x || advance != 0.0 {
+            return None;
+        }
+        let creep = self.scanner.creep[0].ramp_coefficients(&factors.creep_decays, lumped_n);
+        // The medium processes miss the updates of the skipped pixels
+        // 0, 8, 16, … < lumped_n: one AR step covers their blocks.
+        let medium_blocks = lumped_n.div_ceil(MEDIUM_FLICKER_PIXELS);
+        let medium_s = (medium_blocks * MEDIUM_FLICKER_PIXELS) as f64 * dwell;
+        let flicker: Vec<(usize, (f64, f64))> = factors
+            .fast_flicker
+            .iter()
+            .map(|&(k, _)| (k, self.flicker.coefficients(k, lumped_n as f64 * dwell)))
+            .chain(
+                factors
+                    .medium_flicker
+                    .iter()
+                    .map(|&(k, _)| (k, self.flicker.coefficients(k, medium_s))),
+            )
+            .collect();
+        Some(LumpedRetrace {
+            pixels: lumped_n,
+            x_range: (x_lo, x_hi),
+            creep,
+            flicker,
+        })
+    }
+
+    /// Skips the first `plan.pixels` of an unrecorded retrace starting at `base_s` in
+    /// closed form when the hysteresis is frozen over the ramp: the pixel the line goes
+    /// on from (0 when it cannot).
+    fn skip_retrace(&mut self, plan: &LumpedRetrace, line: &AsideLine, next_event_t: f64) -> usize {
+        let (dwell, step, lumped_n) = (line.dwell_s, line.step, plan.pixels);
+        if next_event_t <= line.base_s + lumped_n as f64 * dwell {
+            return 0;
+        }
+        let (x_lo, x_hi) = plan.x_range;
+        let (lo, hi) = self.scanner.hysteresis[0].dead_band();
+        if !(lo <= x_lo && x_hi <= hi) {
+            return 0;
+        }
+        let (a, b) = if line.runs_plus_x {
+            (x_lo, step)
+        } else {
+            (x_hi, -step)
+        };
+        let hx = self.scanner.hysteresis[0].offset();
+        let y_in = self.scanner.input[1];
+        self.scanner.creep_offset = [
+            self.scanner.creep[0].advance_ramp(&plan.creep, a + hx, b),
+            self.scanner.creep[1].advance_ramp(&plan.creep, y_in, 0.0),
+        ];
+        for &(k, c) in &plan.flicker {
+            self.flicker.step(k, c, &mut self.noise_rng);
+        }
+        let x_last = a + b * (lumped_n - 1) as f64;
+        self.command = [x_last, line.y];
+        let q = self.quantise_lateral([x_last, line.y]);
+        self.scanner.set(q);
+        self.time_s = line.base_s + lumped_n as f64 * dwell;
+        lumped_n
+    }
+
+    /// The pixels `first_pixel..` of one half line, with the events due on the way
+    /// fired; each pixel's height into `out` (with the tip's and the effective
+    /// position's traces on the forward half).
+    fn scan_half_line(
+        &mut self,
+        line: &AsideLine,
+        (half, first_pixel): (TraceHalf, usize),
+        factors: &PixelFactors,
+        events: &mut EventCursor,
+        out: Option<&mut TraceImage>,
+    ) -> Result<(), SimError> {
+        let (nx, dwell) = (line.pixels, line.dwell_s);
+        let record = out.is_some();
+        let mut out = out;
+        for pixel in first_pixel..nx {
+            let t_mid = line.base_s + (pixel as f64 + 0.5) * dwell;
+            if t_mid >= events.next_t {
+                while let Some((te, kind, scheduled)) = events.list.get(events.next).copied() {
+                    if te > t_mid {
+                        break;
+                    }
+                    events.next += 1;
+                    if let Err(e) = self.fire(te, kind, Some(Operation::Scan), scheduled) {
+                        // The scan stops at this pixel.
+                        self.time_s = te.max(t_mid - 0.5 * dwell);
+                        return Err(e);
+                    }
+                }
+                events.next_t = events.list.get(events.next).map_or(f64::INFINITY, |e| e.0);
+            }
+            if pixel % MEDIUM_FLICKER_PIXELS == 0 {
+                for &(k, c) in &factors.medium_flicker {
+                    self.flicker.step(k, c, &mut self.noise_rng);
+                }
+            }
+            let column = if line.runs_plus_x {
+                pixel
+            } else {
+                nx - 1 - pixel
+            };
+            let x = line.origin_x + line.step * column as f64;
+            let p = match line.turn {
+                None => [x, line.y],
+                Some(t) => t.apply(x, line.y),
+            };
+            self.command = p;
+            let z = self.pixel(p, t_mid, factors, record);
+            if let Some(o) = out.as_mut() {
+                o.z_counts.push(z);
+                o.time_s.push(t_mid);
+            }
+            if half == TraceHalf::Forward {
+                if let Some(trace) = self.tip_trace.as_mut() {
+                    trace.push(self.last_tip_nm);
+                }
+                if let Some(trace) = self.effective_trace.as_mut() {
+                    trace.push(self.last_effective);
+                }
+            }
+            self.time_s = t_mid + 0.5 * dwell;
+        }
+        Ok(())
+    }
+
+    /// A raster's physics in acquisition order: the approach to the first pixel, then per
+    /// line the slow flicker, the forward and backward halves (the retrace set aside or
+    /// skipped in closed form when it is not recorded), the events due on the way.
+    fn scan_impl(
+        &mut self,
+        request: &ScanRequest,
+        turn: Option<RasterTurn>,
+    ) -> Result<Frame, SimError> {
+        // A turn by 0 is no turn (and leaves every position's bits as they are).
+        let turn = turn.filter(|t| t.angle_rad != 0.0);
+        let place = |x: f64, y: f64| match turn {
+            None => [x, y],
+            Some(t) => t.apply(x, y),
+        };
+        self.begin_call(Operation::Scan, true)?;
+        self.check_scan(request, turn)?;
+        let caps = self.capabilities();
         let nx = request.pixels_per_line as usize;
         let ny = request.lines as usize;
         let dwell = request.pixel_dwell.value();
@@ -917,51 +1089,23 @@ impl Simulator {
         let line_s = 2.0 * nx as f64 * dwell;
         let end = start + line_s * ny as f64;
         self.flush_drift(end);
-        let events = self.events_in(start, end, true);
-        let mut next_event = 0;
-        let mut next_event_t = events.first().map_or(f64::INFINITY, |e| e.0);
+        let list = self.events_in(start, end, true);
+        let mut events = EventCursor {
+            next_t: list.first().map_or(f64::INFINITY, |e| e.0),
+            next: 0,
+            list,
+        };
         let factors = self.pixel_factors(dwell, line_s);
         let record_backward = request.record_backward && caps.backward_trace;
-        let mut forward = TraceImage {
+        let image = || TraceImage {
             z_counts: Vec::with_capacity(nx * ny),
             time_s: Vec::with_capacity(nx * ny),
         };
-        let mut backward = record_backward.then(|| TraceImage {
-            z_counts: Vec::with_capacity(nx * ny),
-            time_s: Vec::with_capacity(nx * ny),
-        });
-        let mut aside = (!record_backward && self.backward_aside.is_some()).then(|| TraceImage {
-            z_counts: Vec::with_capacity(nx * ny),
-            time_s: Vec::with_capacity(nx * ny),
-        });
+        let mut forward = image();
+        let mut backward = record_backward.then(image);
+        let mut aside = (!record_backward && self.backward_aside.is_some()).then(image);
         let ox = request.origin.x.value();
         let oy = request.origin.y.value();
-        // Fast path for unrecorded retraces: with the hysteresis frozen and
-        // the commanded x a linear ramp, creep is advanced in closed form
-        // (exact), fast 1/f processes by one exact AR step; only the last
-        // 12 feedback time constants are simulated pixel by pixel, because
-        // they set the feedback state at the next trace's start (the lag
-        // error left over is e^-12 ≈ 6e-6 of the step, far below an ADC count).
-        let tau_fb = self.config.measurement.feedback_time_constant_s;
-        let tail = if tau_fb > 0.0 {
-            ((12.0 * tau_fb / dwell).ceil() as usize).clamp(2, nx)
-        } else {
-            2.min(nx)
-        };
-        let lumped_n = nx - tail;
-        let quantise = self.config.measurement.quantise_lateral_dac;
-        let x_lo = ox;
-        let x_hi = ox + step * (nx - 1) as f64;
-        // With DAC rounding the ramp stays linear when the step is whole and
-        // the rounded ends are exactly (nx − 1) steps apart.
-        let linear_x = !quantise
-            || (step.fract() == 0.0
-                && round_code(x_hi) - round_code(x_lo) == step * (nx - 1) as f64);
-        let (x_lo, x_hi) = if quantise {
-            (round_code(x_lo), round_code(x_hi))
-        } else {
-            (x_lo, x_hi)
-        };
         // Interlace: the second half of every line runs `advance` counts further
         // along the slow-scan direction (the command saturates at the field edge).
         let advance = self.config.instrument.retrace_slow_axis_advance_counts
@@ -970,28 +1114,7 @@ impl Simulator {
                 ScanDirection::Counter => -1.0,
             };
         let field_h = self.config.instrument.lateral_half_range_counts;
-        let lumped =
-            (turn.is_none() && backward.is_none() && lumped_n >= 8 && linear_x && advance == 0.0)
-                .then(|| {
-                    let creep =
-                        self.scanner.creep[0].ramp_coefficients(&factors.creep_decays, lumped_n);
-                    // The medium processes miss the updates of the skipped pixels
-                    // 0, 8, 16, … < lumped_n: one AR step covers their blocks.
-                    let medium_blocks = lumped_n.div_ceil(MEDIUM_FLICKER_PIXELS);
-                    let medium_s = (medium_blocks * MEDIUM_FLICKER_PIXELS) as f64 * dwell;
-                    let flicker: Vec<(usize, (f64, f64))> = factors
-                        .fast_flicker
-                        .iter()
-                        .map(|&(k, _)| (k, self.flicker.coefficients(k, lumped_n as f64 * dwell)))
-                        .chain(
-                            factors
-                                .medium_flicker
-                                .iter()
-                                .map(|&(k, _)| (k, self.flicker.coefficients(k, medium_s))),
-                        )
-                        .collect();
-                    (creep, flicker)
-                });
+        let lumped = self.lumped_retrace(request, &factors, (turn.is_some(), backward.is_some()));
         for line in 0..ny {
             let row = match request.direction {
                 ScanDirection::Direct => line,
@@ -1002,7 +1125,6 @@ impl Simulator {
                 self.flicker.step(k, c, &mut self.noise_rng);
             }
             for half in [TraceHalf::Forward, TraceHalf::Backward] {
-                let record = half == TraceHalf::Forward || backward.is_some();
                 let runs_plus_x = matches!(
                     (request.direction, half),
                     (ScanDirection::Direct, TraceHalf::Forward)
@@ -1014,92 +1136,32 @@ impl Simulator {
                 } else {
                     y
                 };
-                let base = start + ((2 * line + half_index) * nx) as f64 * dwell;
+                let half_line = AsideLine {
+                    pixels: nx,
+                    runs_plus_x,
+                    origin_x: ox,
+                    step,
+                    y,
+                    base_s: start + ((2 * line + half_index) * nx) as f64 * dwell,
+                    dwell_s: dwell,
+                    turn,
+                };
                 if half == TraceHalf::Backward
                     && let Some(out) = aside.as_mut()
                 {
-                    let line = AsideLine {
-                        pixels: nx,
-                        runs_plus_x,
-                        origin_x: ox,
-                        step,
-                        y,
-                        base_s: base,
-                        dwell_s: dwell,
-                        turn,
-                    };
-                    self.retrace_aside(&line, &factors, out);
+                    self.retrace_aside(&half_line, &factors, out);
                 }
-                let mut first_pixel = 0;
-                if let Some((creep, flicker)) = lumped.as_ref()
-                    && half == TraceHalf::Backward
-                    && next_event_t > base + lumped_n as f64 * dwell
-                {
-                    let (lo, hi) = self.scanner.hysteresis[0].dead_band();
-                    if lo <= x_lo && x_hi <= hi {
-                        let (a, b) = if runs_plus_x {
-                            (x_lo, step)
-                        } else {
-                            (x_hi, -step)
-                        };
-                        let hx = self.scanner.hysteresis[0].offset();
-                        let y_in = self.scanner.input[1];
-                        self.scanner.creep_offset = [
-                            self.scanner.creep[0].advance_ramp(creep, a + hx, b),
-                            self.scanner.creep[1].advance_ramp(creep, y_in, 0.0),
-                        ];
-                        for &(k, c) in flicker {
-                            self.flicker.step(k, c, &mut self.noise_rng);
-                        }
-                        let x_last = a + b * (lumped_n - 1) as f64;
-                        self.command = [x_last, y];
-                        let q = self.quantise_lateral([x_last, y]);
-                        self.scanner.set(q);
-                        self.time_s = base + lumped_n as f64 * dwell;
-                        first_pixel = lumped_n;
+                let first_pixel = match lumped.as_ref() {
+                    Some(plan) if half == TraceHalf::Backward => {
+                        self.skip_retrace(plan, &half_line, events.next_t)
                     }
-                }
-                for pixel in first_pixel..nx {
-                    let t_mid = base + (pixel as f64 + 0.5) * dwell;
-                    if t_mid >= next_event_t {
-                        while let Some((te, kind, scheduled)) = events.get(next_event).copied() {
-                            if te > t_mid {
-                                break;
-                            }
-                            next_event += 1;
-                            if let Err(e) = self.fire(te, kind, Some(Operation::Scan), scheduled) {
-                                // The scan stops at this pixel.
-                                self.time_s = te.max(t_mid - 0.5 * dwell);
-                                return Err(e);
-                            }
-                        }
-                        next_event_t = events.get(next_event).map_or(f64::INFINITY, |e| e.0);
-                    }
-                    if pixel % MEDIUM_FLICKER_PIXELS == 0 {
-                        for &(k, c) in &factors.medium_flicker {
-                            self.flicker.step(k, c, &mut self.noise_rng);
-                        }
-                    }
-                    let column = if runs_plus_x { pixel } else { nx - 1 - pixel };
-                    let x = ox + step * column as f64;
-                    let p = place(x, y);
-                    self.command = p;
-                    let z = self.pixel(p, t_mid, &factors, record);
-                    if half == TraceHalf::Forward {
-                        forward.z_counts.push(z);
-                        forward.time_s.push(t_mid);
-                        if let Some(trace) = self.tip_trace.as_mut() {
-                            trace.push(self.last_tip_nm);
-                        }
-                        if let Some(trace) = self.effective_trace.as_mut() {
-                            trace.push(self.last_effective);
-                        }
-                    } else if let Some(b) = backward.as_mut() {
-                        b.z_counts.push(z);
-                        b.time_s.push(t_mid);
-                    }
-                    self.time_s = t_mid + 0.5 * dwell;
-                }
+                    _ => 0,
+                };
+                let out = match half {
+                    TraceHalf::Forward => Some(&mut forward),
+                    TraceHalf::Backward => backward.as_mut(),
+                };
+                self.scan_half_line(&half_line, (half, first_pixel), &factors, &mut events, out)?;
             }
         }
         self.time_s = end;
@@ -1110,6 +1172,29 @@ impl Simulator {
             backward: backward.or(aside),
         })
     }
+}
+
+/// The closed-form skip of an unrecorded retrace's first pixels
+/// ([`Simulator::lumped_retrace`]).
+struct LumpedRetrace {
+    /// Pixels skipped.
+    pixels: usize,
+    /// The commanded x of the line's ends (DAC-rounded when the DAC is), counts.
+    x_range: (f64, f64),
+    /// The creep elements' ramp coefficients over the skipped pixels.
+    creep: Vec<[f64; 3]>,
+    /// The fast and medium flicker processes' AR coefficients over them.
+    flicker: Vec<(usize, (f64, f64))>,
+}
+
+/// The faults scheduled inside a scan, and the next to fire.
+struct EventCursor {
+    /// (time s, kind, scheduled) in time order.
+    list: Vec<(f64, FaultKind, bool)>,
+    /// The next to fire.
+    next: usize,
+    /// Its time, s (∞ when none is left).
+    next_t: f64,
 }
 
 /// A raster turned about a point, as a controller's frame angle turns its frame: every

@@ -387,8 +387,37 @@ fn vibration_candidates(
     let n_grid_min = 16;
     let n_grid = ((4.0 * trials) as usize).clamp(n_grid_min, 6000);
     let df = (f_max - f_min) / n_grid as f64;
-    let mut power: Vec<(f64, f64)> = Vec::with_capacity(n_grid);
-    for g in 0..=n_grid {
+    // The periodogram of the residual's x and y on the grid f_min + g·df. Each
+    // observation's phasor e^{iωt} advances from one grid frequency to the next by one
+    // rotation e^{i·2π·df·t}, restarted exactly (a sin_cos) every `RESYNC` points: the
+    // rounding of the rotations stays below 64 ulp, and the sums cost four products and
+    // one rotation per point instead of a sin_cos (the search took 39 % of a diagnosis).
+    const RESYNC: usize = 64;
+    let points = n_grid + 1;
+    let (mut xc, mut xs, mut yc, mut ys) = (
+        vec![0.0; points],
+        vec![0.0; points],
+        vec![0.0; points],
+        vec![0.0; points],
+    );
+    for &k in &idx {
+        let t = obs[k].t;
+        let (rx, ry) = (residual[2 * k], residual[2 * k + 1]);
+        let (ds, dc) = (2.0 * std::f64::consts::PI * df * t).sin_cos();
+        for block in (0..points).step_by(RESYNC) {
+            let f = f_min + block as f64 * df;
+            let (mut s, mut c) = (2.0 * std::f64::consts::PI * f * t).sin_cos();
+            for g in block..(block + RESYNC).min(points) {
+                xc[g] += rx * c;
+                xs[g] += rx * s;
+                yc[g] += ry * c;
+                ys[g] += ry * s;
+                (s, c) = (s * dc + c * ds, c * dc - s * ds);
+            }
+        }
+    }
+    let mut power: Vec<(f64, f64)> = Vec::with_capacity(points);
+    for g in 0..points {
         let f = f_min + g as f64 * df;
         // Harmonics of the line frequency are scan-synchronous: a "vibration"
         // there cannot be told from trace/retrace effects (hysteresis, lag).
@@ -399,16 +428,10 @@ fn vibration_candidates(
         if synchronous {
             continue;
         }
-        let w = 2.0 * std::f64::consts::PI * f;
-        let (mut xc, mut xs, mut yc, mut ys) = (0.0, 0.0, 0.0, 0.0);
-        for &k in &idx {
-            let (s, c) = (w * obs[k].t).sin_cos();
-            xc += residual[2 * k] * c;
-            xs += residual[2 * k] * s;
-            yc += residual[2 * k + 1] * c;
-            ys += residual[2 * k + 1] * s;
-        }
-        power.push((f, xc * xc + xs * xs + yc * yc + ys * ys));
+        power.push((
+            f,
+            xc[g] * xc[g] + xs[g] * xs[g] + yc[g] * yc[g] + ys[g] * ys[g],
+        ));
     }
     // The three highest local maxima.
     let mut peaks: Vec<(f64, f64)> = (0..power.len())

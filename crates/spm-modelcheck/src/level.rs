@@ -276,12 +276,21 @@ pub(crate) fn refine_basis(img: &Lines<'_>, peaks: &Peaks) -> [[f64; 2]; 2] {
     let k0 = peaks.k;
     let n = img.nx.max(img.ny) as f64;
     let bound = 2.0 / n;
+    // The compass search comes back to points it has evaluated (the way it came, each
+    // climb's start): each energy, a fit over the whole image, is computed once.
+    let seen = std::cell::RefCell::new(std::collections::HashMap::<[u64; 4], f64>::new());
     let energy = |p: [f64; 4]| {
         let k = [[p[0], p[1]], [p[2], p[3]]];
         if (0..4).any(|i| (p[i] - [k0[0][0], k0[0][1], k0[1][0], k0[1][1]][i]).abs() > bound) {
             return f64::NEG_INFINITY;
         }
-        joint_fit(img, &harmonics_of(k, 1.05)).explained
+        let key = p.map(f64::to_bits);
+        if let Some(e) = seen.borrow().get(&key) {
+            return *e;
+        }
+        let e = joint_fit(img, &harmonics_of(k, 1.05)).explained;
+        seen.borrow_mut().insert(key, e);
+        e
     };
     let mut p = [k0[0][0], k0[0][1], k0[1][0], k0[1][1]];
     let mut best = energy(p);

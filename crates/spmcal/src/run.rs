@@ -66,7 +66,10 @@ impl JobRunError {
             }
             Self::Cdb(inner) => !matches!(
                 inner.kind(),
-                spm_cdb::ErrorKind::Sqlite | spm_cdb::ErrorKind::Postgres | spm_cdb::ErrorKind::Io
+                spm_cdb::ErrorKind::Sqlite
+                    | spm_cdb::ErrorKind::Postgres
+                    | spm_cdb::ErrorKind::Interrupted
+                    | spm_cdb::ErrorKind::Io
             ),
             Self::Backend(_) | Self::Run(_) | Self::NoFreeRunId(_) => false,
         }
@@ -370,6 +373,8 @@ pub fn run_job_interruptible<O: Observer>(
         Instrument::Sim(_) | Instrument::Virtual(_) => job.provenance_text.clone(),
     };
     let mut cdb = CdbHandle::open(cdb_path)?;
+    // A PostgreSQL CDB stops reconnecting, and stops waiting for a silent server, at a stop.
+    cdb.set_interrupt(std::sync::Arc::clone(&stop));
     let run_id = match start {
         RunStart::New { run_id } => {
             let run = RunInfo {

@@ -1391,6 +1391,19 @@ impl sql::write::SqlStore for PgCdb {
                 Err((error, committing)) => {
                     let error = self.explain(error);
                     if !is_lost(&error) {
+                        if committing.is_some()
+                            && matches!(
+                                error,
+                                CdbError::Unanswered { .. } | CdbError::Interrupted { .. }
+                            )
+                        {
+                            tracing::warn!(
+                                url = %self.path.display(),
+                                "the COMMIT was under way when the wait was cut: whether it \
+                                 landed is the server's to say (a resumed run reads the \
+                                 node's state)"
+                            );
+                        }
                         return Err(error);
                     }
                     self.reconnect(&mut budget, &error)?;

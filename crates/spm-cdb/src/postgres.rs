@@ -480,7 +480,9 @@ fn migrate_step(tx: &mut postgres::Transaction<'_>, path: &Path, version: i64) -
 /// [`crate::pg_watchdog::STOP_GRACE_S`] (1 s), as [`ErrorKind::Interrupted`].
 pub struct PgCdb {
     // The client before its link: dropped first, its goodbye still reaches the server.
-    client: RefCell<Client>,
+    // Boxed: the client (its runtime) is large, and an enum holding a PgCdb or a Cdb stays
+    // small.
+    client: RefCell<Box<Client>>,
     link: RefCell<Link>,
     /// The URL the client connects with (spmcal's parameters split off); it may hold the
     /// password and is never shown.
@@ -927,7 +929,7 @@ impl PgCdb {
     pub fn open_at_version(url: &str, version: i64) -> Result<Self> {
         let mut db = Self::connect_to(url, false)?;
         let path = db.path.clone();
-        let client = db.client.get_mut();
+        let client = &mut **db.client.get_mut();
         // Look first without the lock: a refused database must not be touched.
         let p = probe(client, &path)?;
         check_probe(&path, &p)?;
@@ -944,7 +946,7 @@ impl PgCdb {
         })?;
         let connection = connect(&client_url, &path, read_only, &settings, None)?;
         Ok(Self {
-            client: RefCell::new(connection.client),
+            client: RefCell::new(Box::new(connection.client)),
             link: RefCell::new(connection.link),
             url: client_url,
             read_only,
@@ -967,7 +969,7 @@ impl PgCdb {
     pub fn open_read_only(url: &str) -> Result<Self> {
         let mut db = Self::connect_to(url, true)?;
         let path = db.path.clone();
-        let p = probe(db.client.get_mut(), &path)?;
+        let p = probe(&mut **db.client.get_mut(), &path)?;
         check_probe(&path, &p)?;
         if p.version == 0 {
             return Err(CdbError::NotACdb {
@@ -1030,12 +1032,15 @@ impl PgCdb {
 
     /// The client, for reads through `&self` (one query at a time).
     pub(crate) fn client(&self) -> Result<RefMut<'_, Client>> {
-        self.client.try_borrow_mut().map_err(|_| {
-            invalid(
-                &self.path,
-                "a query was started from inside another query's callback".into(),
-            )
-        })
+        self.client
+            .try_borrow_mut()
+            .map(|c| RefMut::map(c, |c| &mut **c))
+            .map_err(|_| {
+                invalid(
+                    &self.path,
+                    "a query was started from inside another query's callback".into(),
+                )
+            })
     }
 
     fn err(&self) -> impl Fn(postgres::Error) -> CdbError + '_ {
@@ -1228,7 +1233,7 @@ impl PgCdb {
     ) -> std::result::Result<T, (CdbError, Option<(i64, T)>)> {
         let path = self.path.clone();
         let err = |e| (CdbError::postgres(&path, e), None);
-        let client = self.client.get_mut();
+        let client = &mut **self.client.get_mut();
         let insert = match self.insert.get_mut() {
             Some(s) => s.clone(),
             None => {

@@ -367,3 +367,56 @@ fn absurd_settings_are_refused_naming_the_parameter() {
         spm_cdb::postgres::DEFAULT_RECONNECT_BACKOFF_S
     );
 }
+
+/// The watchdog counts the requests awaiting the server by the protocol's framing; a count
+/// left over by any kind of exchange (start-up, a write transaction, a COPY, a server-side
+/// error, a snapshot, a streamed read) would cut an idle connection. With a reply timeout
+/// of 0.5 s, every kind is done and the connection left idle for 1.5 s: it is still the
+/// same, and answers.
+#[test]
+fn an_idle_connection_is_never_cut_whatever_it_did_before() {
+    let url = common::postgres().fresh("pg_idle_not_cut");
+    let quick = format!("{url}?spmcal_reply_timeout_s=0.5");
+    let mut cdb = cdb_with_plan(&quick, 2);
+    let idle = |cdb: &PgCdb, what: &str| {
+        std::thread::sleep(Duration::from_millis(1500));
+        let pid = cdb
+            .backend_pid()
+            .unwrap_or_else(|e| panic!("after {what}: {e}"));
+        assert_eq!(cdb.reconnects(), 0, "after {what}");
+        pid
+    };
+    let pid = idle(&cdb, "opening");
+    commit(&mut cdb, 0).unwrap();
+    idle(&cdb, "a commit");
+    let e = commit(&mut cdb, 0).unwrap_err();
+    assert_eq!(e.kind(), ErrorKind::Conflict, "{e}");
+    idle(&cdb, "a refused commit");
+    let r = run("run-1", "S", T0);
+    let extra: Vec<_> = plan(2)
+        .iter()
+        .map(|n| {
+            let mut rec = record(&r, n, 7, T0);
+            rec.node_index = 3;
+            rec
+        })
+        .take(1)
+        .collect();
+    assert_eq!(cdb.import_records(&extra).unwrap(), 1);
+    idle(&cdb, "a COPY");
+    {
+        let snapshot = cdb.snapshot().unwrap();
+        assert!(snapshot.count_records(&RecordFilter::default()).unwrap() >= 3);
+        let report = snapshot.check().unwrap();
+        drop(report);
+    }
+    idle(&cdb, "a snapshot and a check");
+    let mut n = 0;
+    cdb.for_each_record(&RecordFilter::default(), &mut |_| {
+        n += 1;
+        Ok(())
+    })
+    .unwrap();
+    assert!(n >= 3);
+    assert_eq!(idle(&cdb, "a streamed read"), pid);
+}

@@ -1762,6 +1762,30 @@ mod tests {
         );
     }
 
+    /// spmcal's own URL parameters are split off before the client parses the URL (it
+    /// refuses unknown ones) and before it is shown.
+    #[test]
+    fn spmcal_parameters_are_split_off_before_parsing_and_showing() {
+        let url = "postgres://u:hunter2@h:5433/db?spmcal_reply_timeout_s=3&connect_timeout=4\
+                   &spmcal_reconnect_attempts=0";
+        assert_eq!(
+            redact_url(url),
+            "postgres://u:***@h:5433/db?connect_timeout=4"
+        );
+        let (client, s) = split_url(url).unwrap();
+        assert_eq!(client, "postgres://u:hunter2@h:5433/db?connect_timeout=4");
+        assert_eq!(s.reply_timeout_s, 3.0);
+        assert_eq!(s.reconnect_attempts, 0);
+        assert!(postgres::Config::from_str(&client).is_ok());
+        // A password holding `?` keeps its text.
+        let (client, _) = split_url("postgres://u:pa?ss@h/db").unwrap();
+        assert_eq!(client, "postgres://u:pa?ss@h/db");
+        assert_eq!(
+            split_url("postgres://u@h/db").unwrap().1,
+            PgSettings::default()
+        );
+    }
+
     #[test]
     fn v1_records_table_lacks_exactly_the_later_columns() {
         for c in LCC_RECORD_COLUMNS {

@@ -57,6 +57,17 @@ pub enum JobRunError {
 }
 
 impl JobRunError {
+    /// True when a stop request cut a wait for the CDB (a PostgreSQL server that did not
+    /// answer, or a reconnect loop): the run could not be marked 'aborted' then.
+    pub fn is_cdb_wait_interrupted(&self) -> bool {
+        let cdb = match self {
+            Self::Cdb(e) => Some(e),
+            Self::Run(RunError::Store(e)) => e.downcast_ref::<spm_cdb::CdbError>(),
+            _ => None,
+        };
+        cdb.is_some_and(|e| e.kind() == spm_cdb::ErrorKind::Interrupted)
+    }
+
     /// True when the error is the input's fault (a bad CDB, config or argument), false when
     /// the run itself failed.
     pub fn is_bad_input(&self) -> bool {

@@ -106,6 +106,8 @@ struct Shared {
     delivering: AtomicBool,
     cut: AtomicU8,
     closed: AtomicBool,
+    /// When the [`Link`] was dropped, ms after `base` plus one (0: it was not).
+    owner_gone_ms: AtomicU64,
     reply_timeout: Duration,
     stop: OnceLock<Arc<AtomicBool>>,
     lose_commit_reply: AtomicBool,
@@ -155,10 +157,18 @@ impl std::fmt::Debug for Link {
 }
 
 impl Drop for Link {
+    /// The client is dropped first and closes its socket, which ends the pumps after its
+    /// goodbye reached the server; a relay still open a moment later (a client given up
+    /// while connecting) is closed by the watchdog.
     fn drop(&mut self) {
-        self.shared.close();
+        self.shared
+            .owner_gone_ms
+            .store(self.shared.now_ms() + 1, Ordering::SeqCst);
     }
 }
+
+/// How long a relay may outlive its [`Link`] before the watchdog closes it, ms.
+const ORPHAN_GRACE_MS: u64 = 1000;
 
 /// Where the server is: `(host, port)` pairs tried in order, as the client would.
 pub(crate) enum Target {
@@ -221,6 +231,7 @@ impl Link {
             delivering: AtomicBool::new(false),
             cut: AtomicU8::new(CUT_NONE),
             closed: AtomicBool::new(false),
+            owner_gone_ms: AtomicU64::new(0),
             reply_timeout,
             stop: OnceLock::new(),
             lose_commit_reply: AtomicBool::new(false),
@@ -390,6 +401,11 @@ fn watch(shared: &Shared) {
     let grace_ms = (STOP_GRACE_S * 1000.0) as u64;
     while !shared.closed.load(Ordering::SeqCst) {
         std::thread::sleep(period);
+        let gone = shared.owner_gone_ms.load(Ordering::SeqCst);
+        if gone > 0 && shared.now_ms().saturating_sub(gone) > ORPHAN_GRACE_MS {
+            shared.close();
+            break;
+        }
         if shared.outstanding.load(Ordering::SeqCst) <= 0
             || shared.delivering.load(Ordering::SeqCst)
         {

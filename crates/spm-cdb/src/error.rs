@@ -38,6 +38,9 @@ pub enum ErrorKind {
     /// The database, its write-ahead log and its identity file do not belong together (a
     /// foreign or stale `-wal`, a replaced or restored file); nothing was written.
     IdentityMismatch,
+    /// The run's stop flag ended a wait for the PostgreSQL server or a reconnect loop;
+    /// nothing of the interrupted transaction was committed unless the message says so.
+    Interrupted,
 }
 
 /// An error of the calibration database; every variant names the database file.
@@ -182,6 +185,29 @@ pub enum CdbError {
         /// The timeout, s.
         timeout_s: f64,
     },
+    /// See [`ErrorKind::Postgres`]: the server cannot be reached (a connection refused, or
+    /// lost and every reconnect attempt failed, or the outcome of a commit interrupted by a
+    /// lost connection could not be learnt).
+    #[error(
+        "{}: PostgreSQL server unreachable ({attempts} reconnect attempt(s)): {last}",
+        path.display()
+    )]
+    Unreachable {
+        /// The database URL (without its password).
+        path: PathBuf,
+        /// Reconnect attempts made.
+        attempts: u32,
+        /// The last failure, in words.
+        last: String,
+    },
+    /// See [`ErrorKind::Interrupted`].
+    #[error("{}: stopped while {what} (a stop was requested)", path.display())]
+    Interrupted {
+        /// The database URL (without its password).
+        path: PathBuf,
+        /// What was under way.
+        what: &'static str,
+    },
 }
 
 impl CdbError {
@@ -204,7 +230,8 @@ impl CdbError {
             Self::IdentityMismatch { .. } => ErrorKind::IdentityMismatch,
             #[cfg(feature = "postgres")]
             Self::Postgres { .. } => ErrorKind::Postgres,
-            Self::Unanswered { .. } => ErrorKind::Postgres,
+            Self::Unanswered { .. } | Self::Unreachable { .. } => ErrorKind::Postgres,
+            Self::Interrupted { .. } => ErrorKind::Interrupted,
         }
     }
 
@@ -225,7 +252,9 @@ impl CdbError {
             | Self::Sqlite { path, .. }
             | Self::AccessDenied { path, .. }
             | Self::IdentityMismatch { path, .. }
-            | Self::Unanswered { path, .. } => path,
+            | Self::Unanswered { path, .. }
+            | Self::Unreachable { path, .. }
+            | Self::Interrupted { path, .. } => path,
             #[cfg(feature = "postgres")]
             Self::Postgres { path, .. } => path,
         }

@@ -64,6 +64,8 @@ mod integrity;
 #[cfg(all(feature = "postgres", feature = "test-support"))]
 pub mod pg_server;
 #[cfg(feature = "postgres")]
+mod pg_watchdog;
+#[cfg(feature = "postgres")]
 mod pgpass;
 #[cfg(feature = "postgres")]
 pub mod postgres;
@@ -339,7 +341,10 @@ sqlite_read!(Snapshot<'_>);
 sql::write::progress_store!(Cdb);
 
 impl sql::write::SqlStore for Cdb {
-    fn write<T>(&mut self, f: impl FnOnce(&mut dyn sql::write::SqlTx) -> Result<T>) -> Result<T> {
+    fn write<T>(
+        &mut self,
+        mut f: impl FnMut(&mut dyn sql::write::SqlTx) -> Result<T>,
+    ) -> Result<T> {
         let path = self.path.clone();
         let tx = self.write_tx()?;
         let out = f(&mut sql::sqlite::Conn::new(&tx, &path))?;

@@ -61,6 +61,7 @@ pub struct TestServer {
     port: u16,
     bin: PathBuf,
     run_as: Option<(u32, u32)>,
+    durable: bool,
     postmaster: Child,
     watchdog: Option<Child>,
 }
@@ -134,6 +135,66 @@ fn free_port(dir: &Path) -> Result<u16, ServerError> {
             path: dir.to_path_buf(),
             source,
         })
+}
+
+/// Starts the postmaster on `port` with the test settings, its output in `server.log`.
+fn spawn_postmaster(
+    dir: &Path,
+    bin: &Path,
+    run_as: Option<(u32, u32)>,
+    port: u16,
+    durable: bool,
+) -> Result<Child, ServerError> {
+    let io = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| ServerError::Io { path, source }
+    };
+    let data = dir.join("data");
+    let path = bin.join("postgres");
+    let mut c = match run_as {
+        Some((uid, gid)) => {
+            let mut c = Command::new("setpriv");
+            c.args([
+                format!("--reuid={uid}"),
+                format!("--regid={gid}"),
+                "--clear-groups".into(),
+                "--".into(),
+            ])
+            .arg(&path);
+            c
+        }
+        None => Command::new(&path),
+    };
+    c.arg("-D")
+        .arg(&data)
+        .args(["-p", &port.to_string(), "-h", "127.0.0.1", "-k"])
+        .arg(dir)
+        .args(["-c", "max_connections=60", "-c", "shared_buffers=64MB"]);
+    if !durable {
+        c.args([
+            "-c",
+            "fsync=off",
+            "-c",
+            "synchronous_commit=off",
+            "-c",
+            "full_page_writes=off",
+        ]);
+    }
+    let log_path = dir.join("server.log");
+    let log = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&log_path)
+        .map_err(io(dir))?;
+    if let Some((uid, gid)) = run_as {
+        std::os::unix::fs::chown(&log_path, Some(uid), Some(gid)).map_err(io(dir))?;
+    }
+    let log_err = log.try_clone().map_err(io(dir))?;
+    c.stdin(Stdio::null())
+        .stdout(log)
+        .stderr(log_err)
+        .spawn()
+        .map_err(io(&path))
 }
 
 impl TestServer {
@@ -231,39 +292,13 @@ impl TestServer {
         let mut last_error = String::new();
         for _attempt in 0..5 {
             let port = free_port(&dir)?;
-            let mut c = command("postgres");
-            c.arg("-D")
-                .arg(&data)
-                .args(["-p", &port.to_string(), "-h", "127.0.0.1", "-k"])
-                .arg(&dir)
-                .args(["-c", "max_connections=60", "-c", "shared_buffers=64MB"]);
-            if !durable {
-                c.args([
-                    "-c",
-                    "fsync=off",
-                    "-c",
-                    "synchronous_commit=off",
-                    "-c",
-                    "full_page_writes=off",
-                ]);
-            }
-            let log = std::fs::File::create(dir.join("server.log")).map_err(io(&dir))?;
-            if let Some((uid, gid)) = run_as {
-                std::os::unix::fs::chown(dir.join("server.log"), Some(uid), Some(gid))
-                    .map_err(io(&dir))?;
-            }
-            let log_err = log.try_clone().map_err(io(&dir))?;
-            let postmaster = c
-                .stdin(Stdio::null())
-                .stdout(log)
-                .stderr(log_err)
-                .spawn()
-                .map_err(io(&bin.join("postgres")))?;
+            let postmaster = spawn_postmaster(&dir, &bin, run_as, port, durable)?;
             let mut server = Self {
                 dir: dir.clone(),
                 port,
                 bin: bin.clone(),
                 run_as,
+                durable,
                 postmaster,
                 watchdog: None,
             };
@@ -285,6 +320,35 @@ impl TestServer {
             program: "postgres".into(),
             detail: last_error,
         })
+    }
+
+    /// Stops the server (a fast shutdown: every session is ended with SQLSTATE 57P01) and
+    /// starts it again on the same port and data directory, as an administrator's restart
+    /// does. Returns when it accepts connections again.
+    ///
+    /// # Errors
+    /// As [`TestServer::start`].
+    pub fn restart(&mut self) -> Result<(), ServerError> {
+        self.stop_server();
+        if let Some(mut w) = self.watchdog.take() {
+            let _ = w.kill();
+            let _ = w.wait();
+        }
+        self.postmaster =
+            spawn_postmaster(&self.dir, &self.bin, self.run_as, self.port, self.durable)?;
+        self.wait_ready(Duration::from_secs(60))
+            .map_err(|detail| ServerError::Failed {
+                program: "postgres (restart)".into(),
+                detail,
+            })?;
+        self.watchdog = self.spawn_watchdog();
+        Ok(())
+    }
+
+    /// Stops the server without starting it again (tests of a server gone for good); dropping
+    /// the value still removes the directory.
+    pub fn stop(&mut self) {
+        self.stop_server();
     }
 
     fn wait_ready(&mut self, limit: Duration) -> Result<(), String> {

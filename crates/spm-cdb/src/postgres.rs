@@ -27,11 +27,13 @@
 //! without a password takes it, as libpq does, from `PGPASSWORD`, else from the password file
 //! `PGPASSFILE` or `~/.pgpass` (mode 0600; see `pgpass.rs`).
 
-use std::cell::{RefCell, RefMut};
+use std::cell::{Cell, RefCell, RefMut};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
-use std::sync::LazyLock;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, LazyLock};
+use std::time::{Duration, Instant};
 
 use postgres::types::{ToSql, Type};
 use postgres::{Client, NoTls, Row, Statement};
@@ -40,6 +42,7 @@ use postgres::{Client, NoTls, Row, Statement};
 use crate::ErrorKind;
 use crate::constraints::{Found, Kind};
 use crate::error::{CdbError, Result};
+use crate::pg_watchdog::{Cut, Link, Target};
 use crate::schema::{APPLICATION_ID, SCHEMA_VERSION};
 use crate::sql::checks::{self, Checker};
 use crate::sql::{self, Dialect};
@@ -73,8 +76,9 @@ pub fn redact_url(url: &str) -> String {
     } else {
         return url.to_owned();
     };
-    // The parser expects the scheme in lower case.
+    // The parser expects the scheme in lower case; spmcal's own parameters are not its.
     let lowered = format!("{scheme}://{}", &trimmed[scheme.len() + 3..]);
+    let (lowered, _) = strip_settings(&lowered);
     let Ok(config) = postgres::Config::from_str(&lowered) else {
         return format!("{scheme}://(a malformed URL, not shown)");
     };
@@ -454,10 +458,42 @@ fn migrate_step(tx: &mut postgres::Transaction<'_>, path: &Path, version: i64) -
 }
 
 /// An open shared calibration database on PostgreSQL.
+///
+/// # Lost connections and silent servers
+/// A connection that is lost (closed or reset, the server shut down or restarted: SQLSTATE
+/// class 08, 57P01, 57P02, 57P03) is opened again, up to [`PgSettings::reconnect_attempts`]
+/// times per operation with pauses from [`PgSettings::reconnect_backoff_s`] doubling up to
+/// [`MAX_RECONNECT_BACKOFF_S`], and the operation is done again:
+/// - a write transaction from its start (nothing of an interrupted transaction is ever
+///   committed); when the connection was lost while its `COMMIT` was under way, the server
+///   is asked first whether that transaction committed (`txid_status`), and a committed one
+///   is not done twice;
+/// - a read when none of its rows had been handed on yet, outside a [`PgSnapshot`] (a
+///   snapshot's consistent view cannot be carried over to a new connection: its reads fail).
+///
+/// Every statement runs under a client-side watchdog ([`PgSettings::reply_timeout_s`]): a
+/// server that stays silent that long while the client waits (a stopped backend, which
+/// neither keepalive nor the server's own timeouts would notice) fails the call as
+/// [`CdbError::Unanswered`](crate::CdbError::Unanswered), not retried. With a stop flag
+/// ([`PgCdb::set_interrupt`]), a reconnect loop ends before its next attempt or within
+/// [`RECONNECT_POLL_S`] of a pause, and a wait for a silent server within
+/// [`crate::pg_watchdog::STOP_GRACE_S`] (1 s), as [`ErrorKind::Interrupted`].
 pub struct PgCdb {
-    client: RefCell<Client>,
+    // The client before its link: dropped first, its goodbye still reaches the server.
+    // Boxed: the client (its runtime) is large, and an enum holding a PgCdb or a Cdb stays
+    // small.
+    client: RefCell<Box<Client>>,
+    link: RefCell<Link>,
+    /// The URL the client connects with (spmcal's parameters split off); it may hold the
+    /// password and is never shown.
+    url: String,
+    read_only: bool,
+    settings: PgSettings,
+    stop: Option<Arc<AtomicBool>>,
+    in_snapshot: Cell<bool>,
+    reconnects: Cell<u64>,
     path: PathBuf,
-    insert: Option<Statement>,
+    insert: RefCell<Option<Statement>>,
 }
 
 impl std::fmt::Debug for PgCdb {
@@ -467,7 +503,8 @@ impl std::fmt::Debug for PgCdb {
 }
 
 /// A read transaction (`REPEATABLE READ READ ONLY`) on a [`PgCdb`]: every query through it
-/// sees the same committed state. Ends when dropped.
+/// sees the same committed state. Ends when dropped. A connection lost under it fails its
+/// reads (they are not retried on a new connection, whose view would differ).
 #[derive(Debug)]
 pub struct PgSnapshot<'c> {
     db: &'c PgCdb,
@@ -475,7 +512,9 @@ pub struct PgSnapshot<'c> {
 
 impl Drop for PgSnapshot<'_> {
     fn drop(&mut self) {
+        self.db.in_snapshot.set(false);
         if let Ok(mut client) = self.db.client.try_borrow_mut()
+            && !client.is_closed()
             && let Err(e) = client.batch_execute("COMMIT")
         {
             tracing::debug!(error = %e, "ending a PostgreSQL snapshot");
@@ -493,11 +532,213 @@ pub const DEFAULT_LOCK_TIMEOUT_MS: u64 = 30_000;
 /// `statement_timeout` of every session, ms (the longest statement spmcal sends, an export
 /// of a large CDB, takes seconds). A URL's `options=-c statement_timeout=…` overrides it.
 pub const DEFAULT_STATEMENT_TIMEOUT_MS: u64 = 600_000;
-/// TCP keepalive: first probe after this idle time, s (a host that went away is noticed
-/// within about a minute instead of the kernel's two hours).
-const KEEPALIVE_IDLE_S: u64 = 30;
 
-fn connect(url: &str, path: &Path, read_only: bool) -> Result<Client> {
+/// Reconnect attempts after a lost connection, per operation, when the URL gives no
+/// `spmcal_reconnect_attempts`.
+pub const DEFAULT_RECONNECT_ATTEMPTS: u32 = 10;
+/// Most reconnect attempts a URL may ask for (as the Nanonis client's): with pauses of at
+/// most [`MAX_RECONNECT_BACKOFF_S`], a server gone for good is given up within
+/// [`MAX_RECONNECT_BACKOFF_TOTAL_S`] of pauses (plus the attempts' own connect timeouts).
+pub const MAX_RECONNECT_ATTEMPTS: u32 = 100;
+/// First pause between reconnect attempts, s, when the URL gives no
+/// `spmcal_reconnect_backoff_s` (pauses double up to [`MAX_RECONNECT_BACKOFF_S`]).
+pub const DEFAULT_RECONNECT_BACKOFF_S: f64 = 0.5;
+/// Longest pause between two reconnect attempts, s (also the largest first pause).
+pub const MAX_RECONNECT_BACKOFF_S: f64 = 2.0;
+/// The pauses of one reconnect loop add up to at most this, s.
+pub const MAX_RECONNECT_BACKOFF_TOTAL_S: f64 =
+    MAX_RECONNECT_ATTEMPTS as f64 * MAX_RECONNECT_BACKOFF_S;
+/// With a stop flag, the longest slice of a reconnect pause before the flag is looked at
+/// again, s.
+pub const RECONNECT_POLL_S: f64 = 0.1;
+/// How long the server may stay silent while the client waits for its reply, s, when the
+/// URL gives no `spmcal_reply_timeout_s` (the client-side watchdog; the longest silent
+/// statement spmcal sends, an integrity check of 10⁶ records, takes seconds; a lock wait
+/// ends at [`DEFAULT_LOCK_TIMEOUT_MS`]).
+pub const DEFAULT_REPLY_TIMEOUT_S: f64 = 120.0;
+/// The range a URL's `spmcal_reply_timeout_s` must be in, s.
+pub const REPLY_TIMEOUT_RANGE_S: (f64, f64) = (0.1, 86_400.0);
+
+/// spmcal's own settings of a PostgreSQL connection, given as URL parameters beside libpq's
+/// (`postgres://…/db?spmcal_reconnect_attempts=20&spmcal_reply_timeout_s=300`) and split
+/// off before the URL reaches the client.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PgSettings {
+    /// `spmcal_reconnect_attempts`: reconnects after a lost connection, per operation
+    /// (0 … [`MAX_RECONNECT_ATTEMPTS`]; 0: none, the operation fails).
+    pub reconnect_attempts: u32,
+    /// `spmcal_reconnect_backoff_s`: the first pause between reconnect attempts, s
+    /// ((0, [`MAX_RECONNECT_BACKOFF_S`]]; the first reconnect is at once, later pauses
+    /// double up to [`MAX_RECONNECT_BACKOFF_S`]).
+    pub reconnect_backoff_s: f64,
+    /// `spmcal_reply_timeout_s`: how long the server may stay silent while the client waits
+    /// for it, s ([`REPLY_TIMEOUT_RANGE_S`]).
+    pub reply_timeout_s: f64,
+}
+
+impl Default for PgSettings {
+    fn default() -> Self {
+        Self {
+            reconnect_attempts: DEFAULT_RECONNECT_ATTEMPTS,
+            reconnect_backoff_s: DEFAULT_RECONNECT_BACKOFF_S,
+            reply_timeout_s: DEFAULT_REPLY_TIMEOUT_S,
+        }
+    }
+}
+
+const SETTING_PREFIX: &str = "spmcal_";
+
+/// The URL without spmcal's parameters, and those parameters as `(name, value)`.
+fn strip_settings(url: &str) -> (String, Vec<(String, String)>) {
+    let Some((base, query)) = url.split_once('?') else {
+        return (url.to_owned(), Vec::new());
+    };
+    let mut kept = Vec::new();
+    let mut ours = Vec::new();
+    for part in query.split('&') {
+        match part.split_once('=') {
+            Some((k, v)) if k.starts_with(SETTING_PREFIX) => {
+                ours.push((k.to_owned(), v.to_owned()))
+            }
+            None if part.starts_with(SETTING_PREFIX) => ours.push((part.to_owned(), String::new())),
+            _ => kept.push(part),
+        }
+    }
+    if ours.is_empty() {
+        return (url.to_owned(), ours);
+    }
+    let url = if kept.is_empty() {
+        base.to_owned()
+    } else {
+        format!("{base}?{}", kept.join("&"))
+    };
+    (url, ours)
+}
+
+/// Splits spmcal's parameters off a PostgreSQL URL and checks them: the URL for the client
+/// and the settings (defaults for those not given).
+///
+/// # Errors
+/// A message naming the parameter, its value and its range, for an unknown `spmcal_…`
+/// parameter or a value out of range.
+pub fn split_url(url: &str) -> std::result::Result<(String, PgSettings), String> {
+    let (client_url, pairs) = strip_settings(url.trim());
+    let mut s = PgSettings::default();
+    for (name, value) in pairs {
+        let bad = |range: &str| format!("the PostgreSQL URL's {name} = {value:?} must be {range}");
+        match name.as_str() {
+            "spmcal_reconnect_attempts" => {
+                s.reconnect_attempts = value
+                    .parse::<u32>()
+                    .ok()
+                    .filter(|&n| n <= MAX_RECONNECT_ATTEMPTS)
+                    .ok_or_else(|| {
+                        bad(&format!("a whole number from 0 to {MAX_RECONNECT_ATTEMPTS} (a server gone for good would be retried for hours)"))
+                    })?;
+            }
+            "spmcal_reconnect_backoff_s" => {
+                s.reconnect_backoff_s = value
+                    .parse::<f64>()
+                    .ok()
+                    .filter(|v| v.is_finite() && *v > 0.0 && *v <= MAX_RECONNECT_BACKOFF_S)
+                    .ok_or_else(|| {
+                        bad(&format!(
+                            "a number of seconds in (0, {MAX_RECONNECT_BACKOFF_S}]"
+                        ))
+                    })?;
+            }
+            "spmcal_reply_timeout_s" => {
+                let (lo, hi) = REPLY_TIMEOUT_RANGE_S;
+                s.reply_timeout_s = value
+                    .parse::<f64>()
+                    .ok()
+                    .filter(|v| v.is_finite() && *v >= lo && *v <= hi)
+                    .ok_or_else(|| bad(&format!("a number of seconds in [{lo}, {hi}]")))?;
+            }
+            _ => {
+                return Err(format!(
+                    "the PostgreSQL URL's parameter {name} is not spmcal's: known are \
+                     spmcal_reconnect_attempts, spmcal_reconnect_backoff_s, \
+                     spmcal_reply_timeout_s"
+                ));
+            }
+        }
+    }
+    Ok((client_url, s))
+}
+
+/// A connection: the client and the relay its bytes go through (the watchdog).
+struct Connection {
+    client: Client,
+    link: Link,
+}
+
+/// Where the configuration's hosts are, in the client's order.
+fn targets(config: &postgres::Config) -> Vec<Target> {
+    use postgres::config::Host;
+    let ports = config.get_ports();
+    let port_of = |i: usize| {
+        ports
+            .get(i)
+            .or_else(|| ports.first())
+            .copied()
+            .unwrap_or(5432)
+    };
+    let hosts = config.get_hosts();
+    let addrs = config.get_hostaddrs();
+    (0..hosts.len().max(addrs.len()))
+        .filter_map(|i| {
+            let port = port_of(i);
+            if let Some(ip) = addrs.get(i) {
+                return Some(Target::Addr(*ip, port));
+            }
+            match hosts.get(i)? {
+                Host::Tcp(name) => Some(Target::Tcp(name.clone(), port)),
+                #[cfg(unix)]
+                Host::Unix(dir) => Some(Target::Socket(dir.join(format!(".s.PGSQL.{port}")))),
+            }
+        })
+        .collect()
+}
+
+/// The client's configuration, pointed at the relay's loopback port.
+fn relayed(config: &postgres::Config, port: u16, timeout: Duration) -> postgres::Config {
+    let mut c = postgres::Config::new();
+    if let Some(user) = config.get_user() {
+        c.user(user);
+    }
+    if let Some(password) = config.get_password() {
+        c.password(password);
+    }
+    if let Some(db) = config.get_dbname() {
+        c.dbname(db);
+    }
+    if let Some(options) = config.get_options() {
+        c.options(options);
+    }
+    if let Some(name) = config.get_application_name() {
+        c.application_name(name);
+    }
+    c.ssl_mode(config.get_ssl_mode());
+    c.channel_binding(config.get_channel_binding());
+    c.target_session_attrs(config.get_target_session_attrs());
+    c.host("127.0.0.1");
+    c.port(port);
+    c.connect_timeout(timeout);
+    c
+}
+
+fn stopped(stop: Option<&Arc<AtomicBool>>) -> bool {
+    stop.is_some_and(|s| s.load(Ordering::SeqCst))
+}
+
+fn connect(
+    url: &str,
+    path: &Path,
+    read_only: bool,
+    settings: &PgSettings,
+    stop: Option<&Arc<AtomicBool>>,
+) -> Result<Connection> {
     let mut config =
         postgres::Config::from_str(url.trim()).map_err(|e| CdbError::InvalidInput {
             path: path.to_path_buf(),
@@ -524,35 +765,86 @@ fn connect(url: &str, path: &Path, read_only: bool) -> Result<Client> {
     let timeout = config
         .get_connect_timeout()
         .copied()
-        .unwrap_or(std::time::Duration::from_secs(DEFAULT_CONNECT_TIMEOUT_S));
-    config.connect_timeout(timeout);
-    config.keepalives(true);
-    config.keepalives_idle(std::time::Duration::from_secs(KEEPALIVE_IDLE_S));
+        .unwrap_or(Duration::from_secs(DEFAULT_CONNECT_TIMEOUT_S));
+    // The bytes go through a relay whose watchdog cuts a wait for a silent server
+    // (`pg_watchdog`); the relay connects to the server first.
+    let link = Link::open(
+        &targets(&config),
+        timeout,
+        Duration::from_secs_f64(settings.reply_timeout_s),
+    )
+    .map_err(|e| CdbError::Unreachable {
+        path: path.to_path_buf(),
+        attempts: 0,
+        last: format!("cannot connect to the server: {e}"),
+    })?;
+    if let Some(stop) = stop {
+        link.set_stop(Arc::clone(stop));
+    }
+    let relayed = relayed(&config, link.port(), timeout);
     // The client's connect timeout covers the TCP connect only: a server that accepts and
     // never answers would hold the start-up for ever. The whole connect runs on a thread
-    // that is given up after the timeout (it ends with the process or when the socket does).
+    // that is given up after the timeout (the link is dropped then, which ends it).
     let (sender, receiver) = std::sync::mpsc::channel();
     std::thread::Builder::new()
         .name("postgres-connect".to_owned())
         .spawn(move || {
-            let _ = sender.send(config.connect(NoTls));
+            let _ = sender.send(relayed.connect(NoTls));
         })
         .map_err(|e| CdbError::Io {
             path: path.to_path_buf(),
             context: "starting the connection thread".to_owned(),
             source: e,
         })?;
-    let unanswered = || CdbError::Unanswered {
-        path: path.to_path_buf(),
-        what: "connecting",
-        timeout_s: timeout.as_secs_f64(),
-    };
-    let mut client = match receiver.recv_timeout(timeout + std::time::Duration::from_millis(500)) {
-        Ok(connected) => connected.map_err(|e| CdbError::postgres(path, e))?,
-        Err(_) => return Err(unanswered()),
+    let deadline = Instant::now() + timeout + Duration::from_millis(500);
+    let mut client = loop {
+        let slice = deadline
+            .saturating_duration_since(Instant::now())
+            .min(Duration::from_secs_f64(RECONNECT_POLL_S));
+        match receiver.recv_timeout(slice) {
+            Ok(connected) => break connected.map_err(|e| CdbError::postgres(path, e))?,
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) if Instant::now() < deadline => {
+                if stopped(stop) {
+                    return Err(CdbError::Interrupted {
+                        path: path.to_path_buf(),
+                        what: "connecting",
+                    });
+                }
+            }
+            Err(_) => {
+                return Err(CdbError::Unanswered {
+                    path: path.to_path_buf(),
+                    what: "connecting",
+                    timeout_s: timeout.as_secs_f64(),
+                });
+            }
+        }
     };
     pin_schema(&mut client, path)?;
-    Ok(client)
+    Ok(Connection { client, link })
+}
+
+/// True for a client error that means the connection is gone (closed or reset, the server
+/// shut down or restarting: SQLSTATE class 08, 57P01, 57P02, 57P03), after which the
+/// operation may be done again on a new connection.
+fn is_lost(error: &CdbError) -> bool {
+    let CdbError::Postgres { source, .. } = error else {
+        return false;
+    };
+    if source.is_closed() {
+        return true;
+    }
+    if let Some(code) = source.code() {
+        let code = code.code();
+        return code.starts_with("08") || matches!(code, "57P01" | "57P02" | "57P03");
+    }
+    std::error::Error::source(source).is_some_and(|c| c.is::<std::io::Error>())
+}
+
+/// Reconnects made by one operation, and its next pause.
+struct Budget {
+    used: u32,
+    backoff_s: f64,
 }
 
 /// Resolves the one schema the CDB lives in and pins the session's `search_path` to it, so
@@ -620,12 +912,14 @@ fn check_config(path: &Path, config: &postgres::Config) -> Result<()> {
 
 impl PgCdb {
     /// Connects read-write, creating the schema in an empty database and migrating an older
-    /// one.
+    /// one. spmcal's own settings ([`PgSettings`]) come from the URL's `spmcal_…`
+    /// parameters.
     ///
     /// # Errors
     /// [`ErrorKind::NewerSchema`] (nothing written), [`ErrorKind::NotACdb`],
-    /// [`ErrorKind::Migration`], [`ErrorKind::InvalidInput`] for a malformed URL,
-    /// [`ErrorKind::Postgres`] when the server cannot be reached.
+    /// [`ErrorKind::Migration`], [`ErrorKind::InvalidInput`] for a malformed URL or a
+    /// setting out of range (naming it), [`ErrorKind::Postgres`] when the server cannot be
+    /// reached.
     pub fn open(url: &str) -> Result<Self> {
         Self::open_at_version(url, SCHEMA_VERSION)
     }
@@ -633,17 +927,35 @@ impl PgCdb {
     /// [`PgCdb::open`], creating or migrating only up to `version` (tests of the migrations).
     #[doc(hidden)]
     pub fn open_at_version(url: &str, version: i64) -> Result<Self> {
-        let path = PathBuf::from(redact_url(url));
-        let mut client = connect(url, &path, false)?;
+        let mut db = Self::connect_to(url, false)?;
+        let path = db.path.clone();
+        let client = &mut **db.client.get_mut();
         // Look first without the lock: a refused database must not be touched.
-        let p = probe(&mut client, &path)?;
+        let p = probe(client, &path)?;
         check_probe(&path, &p)?;
-        initialise_or_migrate(&mut client, &path, version)?;
+        initialise_or_migrate(client, &path, version)?;
         tracing::debug!(url = %path.display(), "CDB open");
+        Ok(db)
+    }
+
+    fn connect_to(url: &str, read_only: bool) -> Result<Self> {
+        let path = PathBuf::from(redact_url(url));
+        let (client_url, settings) = split_url(url).map_err(|reason| CdbError::InvalidInput {
+            path: path.clone(),
+            reason,
+        })?;
+        let connection = connect(&client_url, &path, read_only, &settings, None)?;
         Ok(Self {
-            client: RefCell::new(client),
+            client: RefCell::new(Box::new(connection.client)),
+            link: RefCell::new(connection.link),
+            url: client_url,
+            read_only,
+            settings,
+            stop: None,
+            in_snapshot: Cell::new(false),
+            reconnects: Cell::new(0),
             path,
-            insert: None,
+            insert: RefCell::new(None),
         })
     }
 
@@ -655,9 +967,9 @@ impl PgCdb {
     /// migrate), [`ErrorKind::NotACdb`] (also for a database without the schema), as
     /// [`PgCdb::open`].
     pub fn open_read_only(url: &str) -> Result<Self> {
-        let path = PathBuf::from(redact_url(url));
-        let mut client = connect(url, &path, true)?;
-        let p = probe(&mut client, &path)?;
+        let mut db = Self::connect_to(url, true)?;
+        let path = db.path.clone();
+        let p = probe(&mut **db.client.get_mut(), &path)?;
         check_probe(&path, &p)?;
         if p.version == 0 {
             return Err(CdbError::NotACdb {
@@ -672,25 +984,279 @@ impl PgCdb {
                 supported: SCHEMA_VERSION,
             });
         }
-        Ok(Self {
-            client: RefCell::new(client),
-            path,
-            insert: None,
-        })
+        Ok(db)
+    }
+
+    /// The settings from the URL (or their defaults).
+    #[must_use]
+    pub fn settings(&self) -> PgSettings {
+        self.settings
+    }
+
+    /// How many times the connection was opened again after being lost.
+    #[must_use]
+    pub fn reconnects(&self) -> u64 {
+        self.reconnects.get()
+    }
+
+    /// The run's stop flag: once it is set, no reconnect is started, a reconnect pause ends
+    /// within [`RECONNECT_POLL_S`], and a wait for a silent server is cut within
+    /// [`crate::pg_watchdog::STOP_GRACE_S`]; the operation then fails as
+    /// [`ErrorKind::Interrupted`] (a transaction cut so is not committed).
+    pub fn set_interrupt(&mut self, stop: Arc<AtomicBool>) {
+        self.link.get_mut().set_stop(Arc::clone(&stop));
+        self.stop = Some(stop);
+    }
+
+    /// The process id of the server's backend serving this connection (tests that stop or
+    /// end it).
+    ///
+    /// # Errors
+    /// PostgreSQL errors.
+    #[doc(hidden)]
+    pub fn backend_pid(&self) -> Result<i32> {
+        let rows = self.query_rows("SELECT pg_backend_pid()", &[])?;
+        rows.first()
+            .map(|r| r.try_get(0))
+            .transpose()
+            .map_err(self.err())?
+            .ok_or_else(|| invalid(&self.path, "no backend pid".into()))
+    }
+
+    /// Tests: the server's reply to the next `COMMIT` is dropped and the connection cut, as
+    /// when it is lost after the server committed but before the client heard.
+    #[doc(hidden)]
+    pub fn lose_next_commit_reply(&self) {
+        self.link.borrow().lose_next_commit_reply();
     }
 
     /// The client, for reads through `&self` (one query at a time).
     pub(crate) fn client(&self) -> Result<RefMut<'_, Client>> {
-        self.client.try_borrow_mut().map_err(|_| {
-            invalid(
-                &self.path,
-                "a query was started from inside another query's callback".into(),
-            )
-        })
+        self.client
+            .try_borrow_mut()
+            .map(|c| RefMut::map(c, |c| &mut **c))
+            .map_err(|_| {
+                invalid(
+                    &self.path,
+                    "a query was started from inside another query's callback".into(),
+                )
+            })
     }
 
     fn err(&self) -> impl Fn(postgres::Error) -> CdbError + '_ {
         |e| CdbError::postgres(&self.path, e)
+    }
+
+    /// A failure of the current connection in the watchdog's words when it cut it.
+    fn explain(&self, error: CdbError) -> CdbError {
+        if !matches!(error, CdbError::Postgres { .. }) {
+            return error;
+        }
+        let Ok(link) = self.link.try_borrow() else {
+            return error;
+        };
+        match link.cut() {
+            Some(Cut::Unanswered) => CdbError::Unanswered {
+                path: self.path.clone(),
+                what: "a statement",
+                timeout_s: link.reply_timeout().as_secs_f64(),
+            },
+            Some(Cut::Interrupted) => CdbError::Interrupted {
+                path: self.path.clone(),
+                what: "waiting for the PostgreSQL server",
+            },
+            Some(Cut::LostCommitReply) | None => error,
+        }
+    }
+
+    fn budget(&self) -> Budget {
+        Budget {
+            used: 0,
+            backoff_s: self.settings.reconnect_backoff_s,
+        }
+    }
+
+    fn interrupted(&self, what: &'static str) -> CdbError {
+        CdbError::Interrupted {
+            path: self.path.clone(),
+            what,
+        }
+    }
+
+    /// Opens the connection again after `cause`, within the operation's `budget` of
+    /// attempts, pausing between them; the stop flag ends the loop.
+    fn reconnect(&self, budget: &mut Budget, cause: &CdbError) -> Result<()> {
+        let mut last = cause.to_string();
+        loop {
+            if stopped(self.stop.as_ref()) {
+                return Err(self.interrupted("reconnecting"));
+            }
+            if budget.used >= self.settings.reconnect_attempts {
+                return Err(CdbError::Unreachable {
+                    path: self.path.clone(),
+                    attempts: budget.used,
+                    last,
+                });
+            }
+            if budget.used > 0 {
+                let until = Instant::now() + Duration::from_secs_f64(budget.backoff_s);
+                while Instant::now() < until {
+                    if stopped(self.stop.as_ref()) {
+                        return Err(self.interrupted("reconnecting"));
+                    }
+                    std::thread::sleep(
+                        until
+                            .saturating_duration_since(Instant::now())
+                            .min(Duration::from_secs_f64(RECONNECT_POLL_S)),
+                    );
+                }
+                budget.backoff_s = (budget.backoff_s * 2.0).min(MAX_RECONNECT_BACKOFF_S);
+            }
+            budget.used += 1;
+            match connect(
+                &self.url,
+                &self.path,
+                self.read_only,
+                &self.settings,
+                self.stop.as_ref(),
+            ) {
+                Ok(connection) => {
+                    let mut client = self.client()?;
+                    *client = connection.client;
+                    drop(client);
+                    if let Ok(mut link) = self.link.try_borrow_mut() {
+                        *link = connection.link;
+                    }
+                    if let Ok(mut insert) = self.insert.try_borrow_mut() {
+                        *insert = None;
+                    }
+                    self.reconnects.set(self.reconnects.get() + 1);
+                    tracing::warn!(
+                        url = %self.path.display(),
+                        attempt = budget.used,
+                        "PostgreSQL connection lost and opened again"
+                    );
+                    return Ok(());
+                }
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        crate::ErrorKind::InvalidInput
+                            | crate::ErrorKind::AccessDenied
+                            | crate::ErrorKind::Interrupted
+                    ) =>
+                {
+                    return Err(e);
+                }
+                Err(e) => {
+                    tracing::warn!(
+                        url = %self.path.display(),
+                        attempt = budget.used,
+                        error = %e,
+                        "PostgreSQL reconnect attempt failed"
+                    );
+                    last = e.to_string();
+                }
+            }
+        }
+    }
+
+    /// Runs a read on the client, again on a new connection when the connection was lost
+    /// and `may_retry` says nothing of it was handed on (never inside a snapshot).
+    pub(crate) fn read_op<R>(
+        &self,
+        mut op: impl FnMut(&mut Client) -> Result<R>,
+        may_retry: impl Fn() -> bool,
+    ) -> Result<R> {
+        let mut budget = self.budget();
+        loop {
+            let result = {
+                let mut client = self.client()?;
+                op(&mut client)
+            };
+            match result {
+                Ok(r) => return Ok(r),
+                Err(e) => {
+                    let e = self.explain(e);
+                    if !is_lost(&e) || self.in_snapshot.get() || !may_retry() {
+                        return Err(e);
+                    }
+                    self.reconnect(&mut budget, &e)?;
+                }
+            }
+        }
+    }
+
+    /// Whether the transaction `txid`, whose `COMMIT` was under way when the connection was
+    /// lost, committed: asked of the server (`txid_status`), waiting while it is still in
+    /// progress (its backend has not yet noticed) up to the reply timeout.
+    fn commit_landed(&self, txid: i64) -> Result<bool> {
+        let deadline = Instant::now() + Duration::from_secs_f64(self.settings.reply_timeout_s);
+        loop {
+            let status: Option<String> = self.read_op(
+                |c| {
+                    c.query_one("SELECT txid_status($1)", &[&txid])
+                        .and_then(|r| r.try_get(0))
+                        .map_err(|e| CdbError::postgres(&self.path, e))
+                },
+                || true,
+            )?;
+            match status.as_deref() {
+                Some("committed") => return Ok(true),
+                Some("aborted") => return Ok(false),
+                Some("in progress") if Instant::now() < deadline => {
+                    if stopped(self.stop.as_ref()) {
+                        return Err(self.interrupted("learning whether a commit landed"));
+                    }
+                    std::thread::sleep(Duration::from_secs_f64(RECONNECT_POLL_S));
+                }
+                other => {
+                    return Err(CdbError::Unreachable {
+                        path: self.path.clone(),
+                        attempts: 0,
+                        last: format!(
+                            "whether transaction {txid}, lost while committing, committed is \
+                             unknown (txid_status: {})",
+                            other.unwrap_or("none")
+                        ),
+                    });
+                }
+            }
+        }
+    }
+
+    /// One attempt of a write transaction: `Err((error, Some((txid, out))))` when `f` ran
+    /// and the `COMMIT` failed (it may have landed).
+    fn write_once<T>(
+        &mut self,
+        f: &mut impl FnMut(&mut dyn sql::write::SqlTx) -> Result<T>,
+    ) -> std::result::Result<T, (CdbError, Option<(i64, T)>)> {
+        let path = self.path.clone();
+        let err = |e| (CdbError::postgres(&path, e), None);
+        let client = &mut **self.client.get_mut();
+        let insert = match self.insert.get_mut() {
+            Some(s) => s.clone(),
+            None => {
+                let s = client
+                    .prepare(sql::insert_record(Dialect::Postgres))
+                    .map_err(err)?;
+                *self.insert.get_mut() = Some(s.clone());
+                s
+            }
+        };
+        let mut transaction = client.transaction().map_err(err)?;
+        // The transaction's id, to ask the server whether it committed if the connection is
+        // lost during the COMMIT.
+        let txid: i64 = transaction
+            .query_one("SELECT txid_current()", &[])
+            .and_then(|r| r.try_get(0))
+            .map_err(err)?;
+        let mut tx = sql::pg::Tx::new(transaction, &path, insert);
+        let out = f(&mut tx).map_err(|e| (e, None))?;
+        match tx.commit() {
+            Ok(()) => Ok(out),
+            Err(e) => Err((e, Some((txid, out)))),
+        }
     }
 
     /// Runs SQL as the database owner sees it (tests that alter the database directly).
@@ -711,12 +1277,16 @@ impl PgCdb {
     /// # Errors
     /// PostgreSQL errors.
     pub fn snapshot(&self) -> Result<PgSnapshot<'_>> {
-        self.client()?
-            .batch_execute("BEGIN ISOLATION LEVEL REPEATABLE READ READ ONLY")
-            .map_err(self.err())?;
+        self.read_op(
+            |c| {
+                c.batch_execute("BEGIN ISOLATION LEVEL REPEATABLE READ READ ONLY")
+                    .map_err(|e| CdbError::postgres(&self.path, e))
+            },
+            || true,
+        )?;
+        self.in_snapshot.set(true);
         Ok(PgSnapshot { db: self })
     }
-
     sql::write::write_methods!();
 
     /// Bulk import: inserts records (of existing runs, outside any plan) in one transaction
@@ -760,7 +1330,13 @@ impl PgCdb {
     }
 
     fn query_rows(&self, sql: &str, params: &[&(dyn ToSql + Sync)]) -> Result<Vec<Row>> {
-        self.client()?.query(sql, params).map_err(self.err())
+        self.read_op(
+            |c| {
+                c.query(sql, params)
+                    .map_err(|e| CdbError::postgres(&self.path, e))
+            },
+            || true,
+        )
     }
 }
 
@@ -781,24 +1357,71 @@ sql::read::sql_read!(
 sql::write::progress_store!(PgCdb);
 
 impl sql::write::SqlStore for PgCdb {
-    fn write<T>(&mut self, f: impl FnOnce(&mut dyn sql::write::SqlTx) -> Result<T>) -> Result<T> {
-        let path = self.path.clone();
-        let err = |e| CdbError::postgres(&path, e);
-        let client = self.client.get_mut();
-        let insert = match &self.insert {
-            Some(s) => s.clone(),
-            None => {
-                let s = client
-                    .prepare(sql::insert_record(Dialect::Postgres))
-                    .map_err(err)?;
-                self.insert = Some(s.clone());
-                s
+    fn write<T>(
+        &mut self,
+        mut f: impl FnMut(&mut dyn sql::write::SqlTx) -> Result<T>,
+    ) -> Result<T> {
+        let mut budget = self.budget();
+        // A transaction whose COMMIT was under way when the connection was lost, and what
+        // `f` returned in it.
+        let mut unsure: Option<(i64, T)> = None;
+        loop {
+            if let Some((txid, _)) = &unsure {
+                match self.commit_landed(*txid) {
+                    Ok(true) => {
+                        tracing::warn!(
+                            url = %self.path.display(),
+                            txid,
+                            "the transaction lost while committing had committed"
+                        );
+                        if let Some((_, out)) = unsure.take() {
+                            return Ok(out);
+                        }
+                    }
+                    // Aborted: done again below from its start.
+                    Ok(false) => {}
+                    Err(e) if is_lost(&e) => {
+                        self.reconnect(&mut budget, &e)?;
+                        continue;
+                    }
+                    Err(e) => return Err(e),
+                }
+                tracing::warn!(
+                    url = %self.path.display(),
+                    "doing the transaction lost with the connection again from its start"
+                );
             }
-        };
-        let mut tx = sql::pg::Tx::new(client.transaction().map_err(err)?, &path, insert);
-        let out = f(&mut tx)?;
-        tx.commit()?;
-        Ok(out)
+            match self.write_once(&mut f) {
+                Ok(out) => return Ok(out),
+                Err((error, committing)) => {
+                    let error = self.explain(error);
+                    if !is_lost(&error) {
+                        if committing.is_some()
+                            && matches!(
+                                error,
+                                CdbError::Unanswered { .. } | CdbError::Interrupted { .. }
+                            )
+                        {
+                            tracing::warn!(
+                                url = %self.path.display(),
+                                "the COMMIT was under way when the wait was cut: whether it \
+                                 landed is the server's to say (a resumed run reads the \
+                                 node's state)"
+                            );
+                        }
+                        return Err(error);
+                    }
+                    self.reconnect(&mut budget, &error)?;
+                    unsure = committing;
+                    if unsure.is_none() {
+                        tracing::warn!(
+                            url = %self.path.display(),
+                            "doing the transaction lost with the connection again from its start"
+                        );
+                    }
+                }
+            }
+        }
     }
 }
 
@@ -1136,6 +1759,30 @@ mod tests {
         assert_eq!(
             redact_url("postgres://u@%2Ftmp%2Fsock/db"),
             "postgres://u@/db?host=/tmp/sock"
+        );
+    }
+
+    /// spmcal's own URL parameters are split off before the client parses the URL (it
+    /// refuses unknown ones) and before it is shown.
+    #[test]
+    fn spmcal_parameters_are_split_off_before_parsing_and_showing() {
+        let url = "postgres://u:hunter2@h:5433/db?spmcal_reply_timeout_s=3&connect_timeout=4\
+                   &spmcal_reconnect_attempts=0";
+        assert_eq!(
+            redact_url(url),
+            "postgres://u:***@h:5433/db?connect_timeout=4"
+        );
+        let (client, s) = split_url(url).unwrap();
+        assert_eq!(client, "postgres://u:hunter2@h:5433/db?connect_timeout=4");
+        assert_eq!(s.reply_timeout_s, 3.0);
+        assert_eq!(s.reconnect_attempts, 0);
+        assert!(postgres::Config::from_str(&client).is_ok());
+        // A password holding `?` keeps its text.
+        let (client, _) = split_url("postgres://u:pa?ss@h/db").unwrap();
+        assert_eq!(client, "postgres://u:pa?ss@h/db");
+        assert_eq!(
+            split_url("postgres://u@h/db").unwrap().1,
+            PgSettings::default()
         );
     }
 

@@ -216,6 +216,13 @@ fn check_cdb_is_no_report_file(cdb: &Path, out: &Path) -> Result<(), CliError> {
 fn run_error(e: &spmcal::run::JobRunError, stop: &StopRequest) -> CliError {
     if e.is_bad_input() {
         CliError::BadInput(e.to_string())
+    } else if stop.requested() && e.is_cdb_wait_interrupted() {
+        CliError::RunFailed(format!(
+            "interrupted by {} while waiting for the calibration database ({e}); nothing of \
+             the visit under way is stored, and the run could not be marked 'aborted' (it \
+             stays 'running'); continue it with --resume",
+            stop.name()
+        ))
     } else if stop.requested() {
         CliError::RunFailed(format!(
             "interrupted by {}: the run stopped inside a visit ({e}); nothing of that visit is \

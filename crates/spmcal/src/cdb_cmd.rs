@@ -48,7 +48,7 @@ impl<W: std::io::Write> std::io::Write for Tracked<W> {
 pub fn cdb_error(error: spm_cdb::CdbError) -> CliError {
     use spm_cdb::ErrorKind;
     match error.kind() {
-        ErrorKind::Sqlite | ErrorKind::Postgres | ErrorKind::Io => {
+        ErrorKind::Sqlite | ErrorKind::Postgres | ErrorKind::Interrupted | ErrorKind::Io => {
             CliError::RunFailed(error.to_string())
         }
         _ => CliError::BadInput(error.to_string()),

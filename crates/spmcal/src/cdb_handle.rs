@@ -64,6 +64,15 @@ impl CdbHandle {
         }
     }
 
+    /// The run's stop flag: a PostgreSQL CDB stops reconnecting and cuts a wait for a
+    /// silent server once it is set ([`PgCdb::set_interrupt`]); a file needs none (SQLite
+    /// waits at most its busy timeout).
+    pub fn set_interrupt(&mut self, stop: std::sync::Arc<std::sync::atomic::AtomicBool>) {
+        if let Self::Postgres(c) = self {
+            c.set_interrupt(stop);
+        }
+    }
+
     /// The queries.
     #[must_use]
     pub fn read(&self) -> &dyn CdbRead {

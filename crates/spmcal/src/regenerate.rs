@@ -100,7 +100,10 @@ impl RegenerateError {
             | Self::StoredDynamics { .. } => true,
             Self::Report(ReportError::Cdb(e)) => !matches!(
                 e.kind(),
-                spm_cdb::ErrorKind::Sqlite | spm_cdb::ErrorKind::Postgres | spm_cdb::ErrorKind::Io
+                spm_cdb::ErrorKind::Sqlite
+                    | spm_cdb::ErrorKind::Postgres
+                    | spm_cdb::ErrorKind::Interrupted
+                    | spm_cdb::ErrorKind::Io
             ),
             Self::Report(_) => false,
         }

@@ -57,6 +57,17 @@ pub enum JobRunError {
 }
 
 impl JobRunError {
+    /// True when a stop request cut a wait for the CDB (a PostgreSQL server that did not
+    /// answer, or a reconnect loop): the run could not be marked 'aborted' then.
+    pub fn is_cdb_wait_interrupted(&self) -> bool {
+        let cdb = match self {
+            Self::Cdb(e) => Some(e),
+            Self::Run(RunError::Store(e)) => e.downcast_ref::<spm_cdb::CdbError>(),
+            _ => None,
+        };
+        cdb.is_some_and(|e| e.kind() == spm_cdb::ErrorKind::Interrupted)
+    }
+
     /// True when the error is the input's fault (a bad CDB, config or argument), false when
     /// the run itself failed.
     pub fn is_bad_input(&self) -> bool {
@@ -66,7 +77,10 @@ impl JobRunError {
             }
             Self::Cdb(inner) => !matches!(
                 inner.kind(),
-                spm_cdb::ErrorKind::Sqlite | spm_cdb::ErrorKind::Postgres | spm_cdb::ErrorKind::Io
+                spm_cdb::ErrorKind::Sqlite
+                    | spm_cdb::ErrorKind::Postgres
+                    | spm_cdb::ErrorKind::Interrupted
+                    | spm_cdb::ErrorKind::Io
             ),
             Self::Backend(_) | Self::Run(_) | Self::NoFreeRunId(_) => false,
         }
@@ -370,6 +384,8 @@ pub fn run_job_interruptible<O: Observer>(
         Instrument::Sim(_) | Instrument::Virtual(_) => job.provenance_text.clone(),
     };
     let mut cdb = CdbHandle::open(cdb_path)?;
+    // A PostgreSQL CDB stops reconnecting, and stops waiting for a silent server, at a stop.
+    cdb.set_interrupt(std::sync::Arc::clone(&stop));
     let run_id = match start {
         RunStart::New { run_id } => {
             let run = RunInfo {

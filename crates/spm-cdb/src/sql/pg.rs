@@ -78,7 +78,17 @@ impl SqlRead for crate::postgres::PgCdb {
         params: &[Param<'_>],
         each: &mut dyn FnMut(&dyn SqlRow) -> Result<()>,
     ) -> Result<()> {
-        query_each(&mut *self.client()?, self.location(), sql, params, each)
+        // Again on a new connection after a lost one, unless rows were handed on already.
+        let delivered = std::cell::Cell::new(false);
+        self.read_op(
+            |client| {
+                query_each(client, self.location(), sql, params, &mut |row| {
+                    delivered.set(true);
+                    each(row)
+                })
+            },
+            || !delivered.get(),
+        )
     }
 }
 

@@ -34,8 +34,10 @@ pub(crate) trait SqlTx: SqlRead {
 /// A CDB that writes: each call of [`SqlStore::write`] is one transaction, committed when
 /// `f` returns `Ok`, rolled back otherwise.
 pub(crate) trait SqlStore: CdbRead {
-    /// Runs `f` in one write transaction.
-    fn write<T>(&mut self, f: impl FnOnce(&mut dyn SqlTx) -> Result<T>) -> Result<T>;
+    /// Runs `f` in one write transaction. A back end that reconnects after a lost
+    /// connection (PostgreSQL) runs `f` again from the start in a new transaction when the
+    /// first did not commit, so `f` must do nothing outside the transaction.
+    fn write<T>(&mut self, f: impl FnMut(&mut dyn SqlTx) -> Result<T>) -> Result<T>;
 }
 
 fn unknown_run(path: &Path, run_id: &str) -> CdbError {

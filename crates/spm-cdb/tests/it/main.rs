@@ -9,3 +9,5 @@ mod common;
 #[cfg(feature = "postgres")]
 mod cdb;
 mod mmap;
+#[cfg(feature = "postgres")]
+mod pg_reconnect;

@@ -323,3 +323,362 @@ fn a_lock_held_by_another_session_ends_the_check_at_the_lock_timeout() {
     );
     tx.rollback().unwrap();
 }
+
+// ---------------------------------------------------------------------------------------
+// Issue 25 item 4 (rest): a server restarted under `calibrate`, a backend stopped under
+// `cdb check` and under `calibrate`.
+
+fn workspace_root() -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .ancestors()
+        .nth(2)
+        .expect("crates/spmcal lives in the workspace")
+        .to_path_buf()
+}
+
+/// The crash tests' job (13 × 13 nodes, 2 repeats, the dynamics stage off: 338 visits of the
+/// seeded room-temperature simulator) in `dir`.
+fn write_job(dir: &Path) -> std::path::PathBuf {
+    let root = workspace_root();
+    let plan = std::fs::read_to_string(root.join("configs/plan-hopg-small.toml")).unwrap();
+    let plan = plan
+        .replace("step_counts = 20000", "step_counts = 4000")
+        .replace("repeats = 1 ", "repeats = 2 ");
+    assert!(plan.contains("step_counts = 4000") && plan.contains("repeats = 2 "));
+    let plan = format!("{plan}\n[plan.dynamics]\nenabled = false\n");
+    std::fs::write(dir.join("plan.toml"), plan).unwrap();
+    let job = format!(
+        "plan_file = \"plan.toml\"\n[backend]\nkind = \"sim\"\nsim_config = {:?}\n",
+        root.join("configs/sim-hopg.toml").display().to_string()
+    );
+    let path = dir.join("job.toml");
+    std::fs::write(&path, job).unwrap();
+    path
+}
+
+fn calibrate(job: &Path, out: &Path, url: &str, resume: bool) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_spmcal"));
+    c.env("NO_COLOR", "1").args([
+        "calibrate",
+        "--config",
+        job.to_str().unwrap(),
+        "--cdb",
+        url,
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    if resume {
+        c.arg("--resume");
+    }
+    c
+}
+
+/// What a calibration stored, read on a connection of its own: `(repeat, node) → (state,
+/// records)`, and every record's `(repeat, node, lcs) → (kx, ky, alpha)`.
+type Visits = std::collections::BTreeMap<(i64, i64), (String, i64)>;
+type Records = std::collections::BTreeMap<(i64, i64, i64), (f64, f64, f64)>;
+
+fn stored(url: &str) -> (Visits, Records) {
+    let mut c = postgres::Client::connect(url, postgres::NoTls).unwrap();
+    let visits = c
+        .query(
+            "SELECT p.repeat_index, p.node_index, p.state, (SELECT count(*) FROM records r \
+             WHERE r.run_id = p.run_id AND r.repeat_index = p.repeat_index AND \
+             r.node_index = p.node_index) FROM progress p",
+            &[],
+        )
+        .unwrap()
+        .iter()
+        .map(|r| ((r.get(0), r.get(1)), (r.get(2), r.get(3))))
+        .collect();
+    let records = c
+        .query(
+            "SELECT repeat_index, node_index, lcs_index, kx_nm_per_count, ky_nm_per_count, \
+             alpha_rad FROM records",
+            &[],
+        )
+        .unwrap()
+        .iter()
+        .map(|r| {
+            (
+                (r.get(0), r.get(1), r.get(2)),
+                (r.get(3), r.get(4), r.get(5)),
+            )
+        })
+        .collect();
+    (visits, records)
+}
+
+/// (records, pending visits) stored so far; `None` while the schema is not there yet.
+fn progress_so_far(url: &str) -> Option<(i64, i64)> {
+    let mut c = postgres::Client::connect(url, postgres::NoTls).ok()?;
+    let row = c
+        .query_one(
+            "SELECT (SELECT count(*) FROM records), \
+             (SELECT count(*) FROM progress WHERE state = 'pending')",
+            &[],
+        )
+        .ok()?;
+    Some((row.get(0), row.get(1)))
+}
+
+/// Waits until the calibration has stored `records` records (and visits are still pending).
+fn wait_for_records(child: &mut std::process::Child, url: &str, records: i64) {
+    let started = std::time::Instant::now();
+    loop {
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the calibration ended before {records} records were stored"
+        );
+        if let Some((n, pending)) = progress_so_far(url)
+            && n >= records
+        {
+            assert!(pending > 0, "no visit left pending");
+            return;
+        }
+        assert!(
+            started.elapsed() < std::time::Duration::from_secs(120),
+            "no {records} records after 120 s"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+}
+
+/// Waits for `child` at most `limit` (then kills it: a hang is a failure, not a wait).
+fn wait_at_most(child: std::process::Child, limit: std::time::Duration, what: &str) -> Output {
+    let started = std::time::Instant::now();
+    let mut child = child;
+    while child.try_wait().unwrap().is_none() {
+        if started.elapsed() > limit {
+            let _ = child.kill();
+            let out = child.wait_with_output().unwrap();
+            panic!(
+                "{what}: still running after {limit:?} (killed): {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.wait_with_output().unwrap()
+}
+
+/// Sends a signal to a process (`kill -SIG pid`).
+fn signal(pid: u32, sig: &str) {
+    let status = Command::new("kill")
+        .args([format!("-{sig}"), pid.to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success(), "kill -{sig} {pid}");
+}
+
+/// A server backend stopped with SIGSTOP, continued when dropped (also when a test fails).
+struct Stopped(u32);
+impl Drop for Stopped {
+    fn drop(&mut self) {
+        signal(self.0, "CONT");
+    }
+}
+
+/// The backend of spmcal's session on `url`'s server (its `application_name`), found by an
+/// admin connection; with `waiting_on_lock`, only once it waits for a lock.
+fn spmcal_backend(url: &str, waiting_on_lock: bool) -> u32 {
+    let mut c = postgres::Client::connect(url, postgres::NoTls).unwrap();
+    let started = std::time::Instant::now();
+    loop {
+        let rows = c
+            .query(
+                "SELECT pid FROM pg_stat_activity WHERE application_name = 'spmcal' AND \
+                 (NOT $1 OR wait_event_type = 'Lock')",
+                &[&waiting_on_lock],
+            )
+            .unwrap();
+        if let Some(r) = rows.first() {
+            return u32::try_from(r.get::<_, i32>(0)).unwrap();
+        }
+        assert!(
+            started.elapsed() < std::time::Duration::from_secs(60),
+            "no spmcal session found"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+}
+
+/// Issue 25 item 4: a PostgreSQL restart during `calibrate` ended it with exit 1. The server
+/// is now stopped (fast shutdown: the session ended with 57P01) and started again on the same
+/// port and data while the calibration runs: it reconnects, finishes with exit 0, and stores
+/// exactly what an uninterrupted run of the same seeded job stores — every visit's state,
+/// one record per done visit with the same values, nothing lost or twice — and `cdb check`
+/// is clean.
+#[test]
+fn a_server_restart_during_calibrate_loses_and_duplicates_nothing() {
+    let mut server = spm_cdb::pg_server::TestServer::start()
+        .unwrap_or_else(|e| panic!("cannot start the private PostgreSQL server: {e}"));
+    let dir = std::env::temp_dir().join(format!("spmcal-pg-restart-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let job = write_job(&dir);
+
+    let reference = server.create_database("reference").unwrap();
+    ok(
+        &calibrate(&job, &dir.join("out-reference"), &reference, false)
+            .output()
+            .unwrap(),
+        "reference calibration",
+    );
+    let (want_visits, want_records) = stored(&reference);
+    assert_eq!(want_visits.len(), 13 * 13 * 2);
+
+    let url = server.create_database("restarted").unwrap();
+    let child = calibrate(&job, &dir.join("out"), &url, false)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut child = child;
+    wait_for_records(&mut child, &url, 30);
+    server.restart().unwrap();
+    let (records_after_restart, pending_after_restart) = progress_so_far(&url).unwrap();
+    let out = wait_at_most(child, std::time::Duration::from_secs(600), "calibrate");
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert_eq!(out.status.code(), Some(0), "{err}");
+    // The restart landed mid-run: visits were pending after it.
+    assert!(
+        pending_after_restart > 0,
+        "{records_after_restart} records, nothing pending after the restart"
+    );
+    let log = std::fs::read_to_string(dir.join("out/calibrate.log")).unwrap_or_default();
+    assert!(
+        log.contains("opened again") || err.contains("opened again"),
+        "no reconnect logged: {err}\n{log}"
+    );
+    let (visits, records) = stored(&url);
+    assert_eq!(visits, want_visits, "visit states and record counts");
+    assert_eq!(records, want_records, "the records' values");
+    for (key, (state, n)) in &visits {
+        assert_eq!(
+            *n,
+            i64::from(state == "done"),
+            "{key:?} {state} has {n} records"
+        );
+    }
+    ok(&spmcal(&["cdb", "check", &url]), "cdb check");
+    eprintln!(
+        "restart after {records_after_restart} of {} records ({pending_after_restart} visits \
+         pending): exit 0, {} visits and {} records identical to the reference",
+        want_records.len(),
+        visits.len(),
+        records.len()
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Issue 25 item 4: a backend stopped in the middle of a session (the kernel still
+/// acknowledges, so no keepalive fires) held `cdb check` for ever. Its session is made to
+/// wait on a lock, its backend stopped (SIGSTOP) and the lock released: the check now ends
+/// at the reply timeout (the URL's `spmcal_reply_timeout_s`, here 3 s) with exit 1 and a
+/// message naming it.
+#[test]
+fn a_stopped_backend_ends_cdb_check_at_the_reply_timeout() {
+    let server = spm_cdb::pg_server::TestServer::start()
+        .unwrap_or_else(|e| panic!("cannot start the private PostgreSQL server: {e}"));
+    let url = server.create_database("stopped").unwrap();
+    drop(PgCdb::open(&url).unwrap());
+    let mut holder = postgres::Client::connect(&url, postgres::NoTls).unwrap();
+    let mut tx = holder.transaction().unwrap();
+    tx.batch_execute("LOCK TABLE records IN ACCESS EXCLUSIVE MODE")
+        .unwrap();
+    let quick = format!("{url}?spmcal_reply_timeout_s=3");
+    let child = Command::new(env!("CARGO_BIN_EXE_spmcal"))
+        .args(["cdb", "check", &quick])
+        .env("NO_COLOR", "1")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stopped = Stopped(spmcal_backend(&url, true));
+    signal(stopped.0, "STOP");
+    let started = std::time::Instant::now();
+    tx.rollback().unwrap();
+    let out = wait_at_most(child, std::time::Duration::from_secs(60), "cdb check");
+    let waited = started.elapsed();
+    drop(stopped);
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("did not answer within 3 s"), "{err}");
+    assert!(
+        waited < std::time::Duration::from_secs(10),
+        "took {waited:?}"
+    );
+    eprintln!(
+        "cdb check on a stopped backend ended after {waited:?} (reply timeout 3 s): {}",
+        err.trim()
+    );
+}
+
+/// Issue 25 item 4: with the session's backend stopped, `calibrate` blocked in its next
+/// commit for ever and one SIGTERM was not acted on. Now the stop request cuts the wait
+/// (within about a second; the reply timeout, 120 s by default, is far away): exit 1 naming
+/// the signal, nothing of the visit stored, and `--resume` completes the plan with one
+/// record per done visit.
+#[test]
+fn sigterm_ends_calibrate_waiting_for_a_stopped_backend() {
+    let server = spm_cdb::pg_server::TestServer::start()
+        .unwrap_or_else(|e| panic!("cannot start the private PostgreSQL server: {e}"));
+    let dir = std::env::temp_dir().join(format!("spmcal-pg-sigstop-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let job = write_job(&dir);
+    let url = server.create_database("sigstop").unwrap();
+    let mut child = calibrate(&job, &dir.join("out"), &url, false)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    wait_for_records(&mut child, &url, 20);
+    let stopped = Stopped(spmcal_backend(&url, false));
+    signal(stopped.0, "STOP");
+    let (records_before, _) = progress_so_far(&url).unwrap();
+    // The next commit is sent within milliseconds and waits.
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    signal(child.id(), "TERM");
+    let started = std::time::Instant::now();
+    let out = wait_at_most(child, std::time::Duration::from_secs(60), "calibrate");
+    let waited = started.elapsed();
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("interrupted by SIGTERM while waiting for the calibration database"),
+        "{err}"
+    );
+    assert!(
+        waited < std::time::Duration::from_secs(10),
+        "took {waited:?}"
+    );
+    eprintln!(
+        "calibrate waiting on a stopped backend ended {waited:?} after SIGTERM: {}",
+        err.lines().last().unwrap_or_default()
+    );
+    drop(stopped);
+    // Nothing was committed while the backend was stopped; the run stays 'running'.
+    std::thread::sleep(std::time::Duration::from_millis(500));
+    let (records_after, _) = progress_so_far(&url).unwrap();
+    assert_eq!(records_after, records_before);
+    ok(
+        &calibrate(&job, &dir.join("out"), &url, true)
+            .output()
+            .unwrap(),
+        "calibrate --resume",
+    );
+    let (visits, _) = stored(&url);
+    assert_eq!(visits.len(), 13 * 13 * 2);
+    for (key, (state, n)) in &visits {
+        assert_ne!(state, "pending", "{key:?}");
+        assert_eq!(
+            *n,
+            i64::from(state == "done"),
+            "{key:?} {state} has {n} records"
+        );
+    }
+    ok(&spmcal(&["cdb", "check", &url]), "cdb check");
+    let _ = std::fs::remove_dir_all(&dir);
+}

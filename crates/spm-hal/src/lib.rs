@@ -19,6 +19,7 @@ pub mod microscope;
 pub mod mock;
 pub mod recording;
 pub mod scan;
+#[cfg(feature = "truth")]
 pub mod truth;
 pub mod units;
 

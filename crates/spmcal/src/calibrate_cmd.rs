@@ -339,6 +339,7 @@ pub fn run(
         host: host_name(),
         backend: outcome.instrument.identity(&job.backend),
         seed: match &job.backend {
+            #[cfg(feature = "sim")]
             spmcal::job::Backend::Sim(config) => Some(config.seed),
             _ => None,
         },

@@ -31,6 +31,7 @@ pub struct TrueDynamics {
 
 impl TrueDynamics {
     /// Of a simulator.
+    #[cfg(feature = "sim")]
     #[must_use]
     pub fn of(sim: &spm_sim::Simulator) -> Self {
         let oracle = sim.oracle();

@@ -22,6 +22,7 @@
 
 use serde::Deserialize;
 use spm_calibration::PlanConfig;
+#[cfg(feature = "sim")]
 use spm_sim::SimConfig;
 use std::path::{Path, PathBuf};
 
@@ -117,6 +118,7 @@ struct PlanFile {
 #[non_exhaustive]
 pub enum Backend {
     /// The simulated microscope with this configuration.
+    #[cfg(feature = "sim")]
     Sim(Box<SimConfig>),
     /// A Nanonis controller (or `spmcal nanonis-sim`) over TCP.
     Nanonis(Box<spm_nanonis::NanonisConfig>),
@@ -129,6 +131,7 @@ impl Backend {
     #[must_use]
     pub fn capabilities(&self) -> spm_hal::Capabilities {
         match self {
+            #[cfg(feature = "sim")]
             Self::Sim(config) => config.capabilities(),
             Self::Nanonis(config) => config.capabilities(),
             Self::Virtual(backend) => backend.capabilities(),
@@ -184,8 +187,20 @@ impl Job {
             ),
         };
         let job = match &file.backend {
+            #[cfg(feature = "sim")]
             BackendConfig::Sim { sim_config } => {
                 Self::from_parts(&dir.join(sim_config), plan, format!("{text}\n{plan_text}"))?
+            }
+            #[cfg(not(feature = "sim"))]
+            BackendConfig::Sim { .. } => {
+                return Err(JobError::Field {
+                    path: path.to_path_buf(),
+                    line: spm_config::TomlLocator::new(&text).line_of("backend"),
+                    field: "backend.kind".to_owned(),
+                    message: "this spmcal was built without the simulator (its `sim` feature \
+                              is off): it drives kind = \"nanonis\" and kind = \"virtual\" only"
+                        .to_owned(),
+                });
             }
             BackendConfig::Nanonis(config) => {
                 config.validate().map_err(|e| JobError::Field {
@@ -244,6 +259,10 @@ impl Job {
     }
 
     /// A job from a simulator config file and a plan (what `cargo xtask calibrate` uses).
+    ///
+    /// # Errors
+    /// A [`JobError`] naming the simulator's file, line and field.
+    #[cfg(feature = "sim")]
     pub fn from_parts(
         sim_path: &Path,
         plan: PlanConfig,

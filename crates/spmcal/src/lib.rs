@@ -26,6 +26,7 @@ pub mod progress;
 pub mod regenerate;
 pub mod report;
 pub mod run;
+#[cfg(feature = "sim")]
 pub mod simulate;
 pub mod surfaces;
 pub mod targets;

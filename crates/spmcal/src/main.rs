@@ -17,9 +17,11 @@ mod files;
 mod fit_cmd;
 mod info;
 mod lattice_cmd;
+#[cfg(feature = "sim")]
 mod nanonis_sim_cmd;
 mod report_cmd;
 mod scan_cmd;
+#[cfg(feature = "sim")]
 mod simulate_cmd;
 
 use clap::{Parser, Subcommand, ValueEnum};
@@ -307,6 +309,7 @@ enum Command {
         png: Option<PathBuf>,
     },
     /// Run a measured file's scan program on the simulated microscope and write it as .sxm.
+    #[cfg(feature = "sim")]
     Simulate {
         /// The measured file whose scan program (size, pixels, line time,
         /// directions, slow-axis direction, date) is copied.
@@ -325,6 +328,7 @@ enum Command {
     },
     /// Serve the Nanonis TCP protocol over the simulated microscope (for `[backend] kind =
     /// "nanonis"` without hardware); runs until killed.
+    #[cfg(feature = "sim")]
     NanonisSim(nanonis_sim_cmd::NanonisSimArgs),
     /// Calibration-database maintenance.
     Cdb {
@@ -488,11 +492,13 @@ impl Command {
                 paths.push(json.clone());
                 paths.extend(png.iter().cloned());
             }
+            #[cfg(feature = "sim")]
             Self::Simulate {
                 like, config, out, ..
             } => {
                 paths.extend([like.clone(), config.clone(), out.clone()]);
             }
+            #[cfg(feature = "sim")]
             Self::NanonisSim(args) => paths.push(args.config.clone()),
             Self::Cdb { command } => match command {
                 CdbCommand::Check { path } => paths.push(path.clone()),
@@ -660,12 +666,14 @@ fn run(command: Command) -> Result<(), CliError> {
             json,
             png,
         } => diagnose_cmd::run(&files, &lattice, &json, png.as_deref()),
+        #[cfg(feature = "sim")]
         Command::Simulate {
             like,
             config,
             out,
             nominal_nm_per_count,
         } => simulate_cmd::run(&like, &config, &out, nominal_nm_per_count),
+        #[cfg(feature = "sim")]
         Command::NanonisSim(args) => nanonis_sim_cmd::run(&args),
     }
 }

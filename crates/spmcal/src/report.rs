@@ -397,10 +397,7 @@ impl<'a> RunRecord<'a> {
             attach_tracks: &samples.attach_tracks,
             commands: &outcome.commands,
             ladder: &outcome.ladder,
-            true_dynamics: outcome
-                .instrument
-                .simulator()
-                .map(crate::dynamics::TrueDynamics::of),
+            true_dynamics: outcome.instrument.true_dynamics(),
             wall_time_s,
             standard_images: None,
             provenance: None,

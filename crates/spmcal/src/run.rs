@@ -7,6 +7,7 @@ use spm_calibration::{
 };
 use spm_cdb::{ProgressStore, RunInfo, RunStatus};
 use spm_hal::{CountVelocity, Seconds};
+#[cfg(feature = "sim")]
 use spm_sim::Simulator;
 use std::path::Path;
 use std::sync::Arc;
@@ -381,7 +382,9 @@ pub fn run_job_interruptible<O: Observer>(
             job.provenance_text.trim_end(),
             serde_json::to_string(nanonis.controller_state()).unwrap_or_default()
         ),
-        Instrument::Sim(_) | Instrument::Virtual(_) => job.provenance_text.clone(),
+        #[cfg(feature = "sim")]
+        Instrument::Sim(_) => job.provenance_text.clone(),
+        Instrument::Virtual(_) => job.provenance_text.clone(),
     };
     let mut cdb = CdbHandle::open(cdb_path)?;
     // A PostgreSQL CDB stops reconnecting, and stops waiting for a silent server, at a stop.
@@ -424,6 +427,7 @@ pub fn run_job_interruptible<O: Observer>(
         config_text: provenance,
     };
     match instrument {
+        #[cfg(feature = "sim")]
         Instrument::Sim(mut sim) => {
             let (result, commands, ladder) =
                 calibrate_on(&mut *sim, &mut cdb, observer, job, &options, &stop);
@@ -464,6 +468,7 @@ pub fn run_job_interruptible<O: Observer>(
 #[non_exhaustive]
 pub enum FinishedInstrument {
     /// The simulated microscope (its oracle is the ground truth).
+    #[cfg(feature = "sim")]
     Sim(Box<Simulator>),
     /// A Nanonis controller (no ground truth).
     Nanonis(Box<spm_nanonis::NanonisMicroscope>),
@@ -476,13 +481,25 @@ impl FinishedInstrument {
     #[must_use]
     pub fn truth(&self) -> Option<&dyn crate::report::TruthSource> {
         match self {
+            #[cfg(feature = "sim")]
             Self::Sim(sim) => Some(&**sim),
+            Self::Nanonis(_) | Self::Virtual(_) => None,
+        }
+    }
+
+    /// The true scanner dynamics, when the backend has them (the simulator's).
+    #[must_use]
+    pub fn true_dynamics(&self) -> Option<crate::dynamics::TrueDynamics> {
+        match self {
+            #[cfg(feature = "sim")]
+            Self::Sim(sim) => Some(crate::dynamics::TrueDynamics::of(sim)),
             Self::Nanonis(_) | Self::Virtual(_) => None,
         }
     }
 
     /// The simulator, when the backend is simulated (tests and benchmarks that read its
     /// oracle directly).
+    #[cfg(feature = "sim")]
     #[must_use]
     pub fn simulator(&self) -> Option<&Simulator> {
         match self {
@@ -492,6 +509,7 @@ impl FinishedInstrument {
     }
 
     /// The simulator, owned.
+    #[cfg(feature = "sim")]
     #[must_use]
     pub fn into_simulator(self) -> Option<Simulator> {
         match self {
@@ -519,6 +537,7 @@ pub fn standard_images(
     let region = crate::plots::Region::spanned(nodes)?.counts();
     let config = spm_evaluation::validation::lattice_image_set(plan);
     let taken = match instrument {
+        #[cfg(feature = "sim")]
         FinishedInstrument::Sim(sim) => {
             let mut copy = (**sim).clone();
             take_images_without_truth(&mut copy, &region, &config)
@@ -543,7 +562,9 @@ impl FinishedInstrument {
     pub fn release(&mut self) -> Result<(), String> {
         match self {
             Self::Nanonis(nanonis) => nanonis.restore_compensation().map_err(|e| e.to_string()),
-            Self::Sim(_) | Self::Virtual(_) => Ok(()),
+            #[cfg(feature = "sim")]
+            Self::Sim(_) => Ok(()),
+            Self::Virtual(_) => Ok(()),
         }
     }
 
@@ -558,6 +579,7 @@ impl FinishedInstrument {
                 config.port,
                 serde_json::to_string(nanonis.controller_state()).unwrap_or_default()
             ),
+            #[cfg(feature = "sim")]
             (Self::Sim(_), Backend::Sim(config)) => format!("sim (seed {})", config.seed),
             (Self::Virtual(_), Backend::Virtual(v)) => format!("virtual ({})", v.image.display()),
             _ => "unknown".to_owned(),
@@ -568,6 +590,7 @@ impl FinishedInstrument {
 /// An opened instrument of one of the [`Backend`]s.
 enum Instrument {
     /// The simulated microscope.
+    #[cfg(feature = "sim")]
     Sim(Box<Simulator>),
     /// A Nanonis controller over TCP.
     Nanonis(Box<spm_nanonis::NanonisMicroscope>),
@@ -578,6 +601,7 @@ enum Instrument {
 /// Builds the job's instrument.
 fn open_backend(backend: &Backend) -> Result<Instrument, JobRunError> {
     match backend {
+        #[cfg(feature = "sim")]
         Backend::Sim(config) => Simulator::new((**config).clone())
             .map(|sim| Instrument::Sim(Box::new(sim)))
             .map_err(|e| JobRunError::Backend(Box::new(e))),
@@ -744,6 +768,7 @@ pub fn scan_recorded(
         Ok(RecordedScan { frame, events })
     }
     match open_backend(&job.backend)? {
+        #[cfg(feature = "sim")]
         Instrument::Sim(mut sim) => on(&mut *sim, request, settle_s),
         Instrument::Nanonis(mut nanonis) => on(&mut *nanonis, request, settle_s),
         Instrument::Virtual(mut virt) => on(&mut *virt, request, settle_s),

@@ -343,8 +343,15 @@ fn the_test_build_leaves_faer_out() {
 /// The features of every package `cargo tree -p spmcal` resolves over the dependency
 /// edges `edges` (`{package} [{features}]` lines).
 fn spmcal_tree_features(edges: &str) -> String {
+    package_tree_features("spmcal", edges, &[])
+}
+
+/// `cargo tree` of `package` with `extra` arguments (feature flags), one `name version
+/// [features]` line per package.
+fn package_tree_features(package: &str, edges: &str, extra: &[&str]) -> String {
     let output = cargo()
-        .args(["tree", "--offline", "-p", "spmcal", "-e", edges])
+        .args(["tree", "--offline", "-p", package, "-e", edges])
+        .args(extra)
         .args(["--prefix", "none", "--format", "{p} [{f}]"])
         .args(["--target", &host_triple()])
         .arg("--manifest-path")
@@ -387,6 +394,51 @@ fn a_program_build_leaves_the_test_support_out() {
             .lines()
             .any(|l| l.starts_with("spm-cdb ") && l.contains("test-support")),
         "spmcal's tests no longer turn on spm-cdb's test-support:\n{tests}"
+    );
+}
+
+/// The Nanonis-only program (issue 28 item 4): `cargo build -p spmcal --no-default-features`
+/// links neither the simulator nor the Nanonis protocol's simulated server, and spm-hal's
+/// ground-truth traits are there only because the evaluation (which judges a run's
+/// validation images) reads them; the default build has all three. A crate using spm-hal
+/// alone gets no ground truth. `.ci/run` builds that program.
+#[test]
+fn the_nanonis_only_program_links_no_simulator_and_the_hal_alone_no_ground_truth() {
+    let has = |tree: &str, name: &str| tree.lines().any(|l| l.starts_with(&format!("{name} ")));
+    let default = package_tree_features("spmcal", "normal,build", &[]);
+    for name in ["spm-sim", "spm-nanonis-sim", "spm-nanonis", "spm-virtual"] {
+        assert!(
+            has(&default, name),
+            "the default spmcal has {name}:\n{default}"
+        );
+    }
+    let nanonis_only = package_tree_features("spmcal", "normal,build", &["--no-default-features"]);
+    for name in ["spm-sim", "spm-nanonis-sim"] {
+        assert!(
+            !has(&nanonis_only, name),
+            "spmcal --no-default-features links {name}:\n{nanonis_only}"
+        );
+    }
+    for name in ["spm-nanonis", "spm-virtual", "spm-calibration", "spm-cdb"] {
+        assert!(
+            has(&nanonis_only, name),
+            "spmcal --no-default-features lacks {name}:\n{nanonis_only}"
+        );
+    }
+    let hal = package_tree_features("spm-hal", "normal,build", &[]);
+    let hal_line = hal
+        .lines()
+        .find(|l| l.starts_with("spm-hal "))
+        .unwrap_or_default();
+    assert!(
+        !hal_line.contains("truth"),
+        "spm-hal alone turns on its ground truth: {hal_line}"
+    );
+    let sim = package_tree_features("spm-sim", "normal,build", &[]);
+    assert!(
+        sim.lines()
+            .any(|l| l.starts_with("spm-hal ") && l.contains("truth")),
+        "spm-sim implements the ground truth, so it turns the feature on:\n{sim}"
     );
 }
 

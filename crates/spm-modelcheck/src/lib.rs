@@ -61,7 +61,9 @@ pub use extract::{
 };
 pub use index::{Indexing, MeasuredBasis, index_features};
 pub use plot::{register_system_font, write_png};
-pub use simmap::{InputKnot, MoveHistory, SimContext, SimPatch, TipChangeEvent, sim_patch};
+pub use simmap::{
+    InputKnot, MoveHistory, SimContext, SimParam, SimPatch, TipChangeEvent, sim_patch,
+};
 pub use types::{
     EffectKind, FeatureObservation, FeatureSet, FrameInfo, HOPG_A_NM, LatticeSpec, LineDirection,
     ModelCheckError, Options, SI7X7_A_NM,

@@ -76,12 +76,202 @@ pub struct TipChangeEvent {
     pub jump_y_nm: f64,
 }
 
+/// A simulator parameter the model check sets: a field of spm-sim's configuration, named by
+/// its TOML path in one table ([`SimParam::path`]), which
+/// `tests/it/sim.rs::every_simulator_parameter_the_model_check_sets_is_in_the_simulators_config`
+/// checks against spm-sim's own config.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[non_exhaustive]
+pub enum SimParam {
+    /// K̄x of the scanner, nm per count (`scanner.sensitivity_x_nm_per_count`).
+    SensitivityXNmPerCount,
+    /// K̄y of the scanner, nm per count (`scanner.sensitivity_y_nm_per_count`).
+    SensitivityYNmPerCount,
+    /// The axes' non-orthogonality, degrees (`scanner.nonorthogonality_deg`).
+    NonorthogonalityDeg,
+    /// Linear crosstalk of x from y (`scanner.crosstalk_x_from_y`).
+    CrosstalkXFromY,
+    /// Linear crosstalk of y from x (`scanner.crosstalk_y_from_x`).
+    CrosstalkYFromX,
+    /// Bow of x from y (`scanner.bow_x_from_y`).
+    BowXFromY,
+    /// Bow of y from x (`scanner.bow_y_from_x`).
+    BowYFromX,
+    /// Shear gradient along x (`scanner.shear_gradient_x`).
+    ShearGradientX,
+    /// Shear gradient along y (`scanner.shear_gradient_y`).
+    ShearGradientY,
+    /// The x axis' quadratic nonlinearity (`scanner.nonlinearity_x.quadratic`).
+    NonlinearityXQuadratic,
+    /// The x axis' cubic nonlinearity (`scanner.nonlinearity_x.cubic`).
+    NonlinearityXCubic,
+    /// The y axis' quadratic nonlinearity (`scanner.nonlinearity_y.quadratic`).
+    NonlinearityYQuadratic,
+    /// The y axis' cubic nonlinearity (`scanner.nonlinearity_y.cubic`).
+    NonlinearityYCubic,
+    /// The x hysteresis loop's width, a fraction of the half range (`scanner.hysteresis_x.width_fraction`).
+    HysteresisXWidthFraction,
+    /// The x play operators' smallest threshold, counts (`scanner.hysteresis_x.min_threshold_counts`).
+    HysteresisXMinThresholdCounts,
+    /// The x play operators' largest threshold, counts (`scanner.hysteresis_x.max_threshold_counts`).
+    HysteresisXMaxThresholdCounts,
+    /// The number of x play operators (`scanner.hysteresis_x.operators`).
+    HysteresisXOperators,
+    /// Creep γ, per decade (`scanner.creep.log_slope_per_decade`).
+    CreepLogSlopePerDecade,
+    /// The creep chain's shortest time constant, s (`scanner.creep.min_time_constant_s`).
+    CreepMinTimeConstantS,
+    /// The creep chain's longest time constant, s (`scanner.creep.max_time_constant_s`).
+    CreepMaxTimeConstantS,
+    /// The creep chain's elements per decade (`scanner.creep.elements_per_decade`).
+    CreepElementsPerDecade,
+    /// The surface's rotation, degrees (whichever surface kind the config holds) (`surface.*.rotation_deg`).
+    SurfaceRotationDeg,
+    /// Constant drift, x, nm/s (`drift.velocity_x_nm_per_s`).
+    DriftVelocityXNmPerS,
+    /// Constant drift, y, nm/s (`drift.velocity_y_nm_per_s`).
+    DriftVelocityYNmPerS,
+    /// Warm-up drift amplitude, x, nm (`drift.warmup_amplitude_x_nm`).
+    WarmupAmplitudeXNm,
+    /// Warm-up drift amplitude, y, nm (`drift.warmup_amplitude_y_nm`).
+    WarmupAmplitudeYNm,
+    /// Warm-up drift time constant, s (`drift.warmup_time_constant_s`).
+    WarmupTimeConstantS,
+    /// Lateral vibration frequency, Hz (`drift.vibration_frequency_hz`).
+    VibrationFrequencyHz,
+    /// Lateral vibration amplitude, x, nm (`drift.vibration_amplitude_x_nm`).
+    VibrationAmplitudeXNm,
+    /// Lateral vibration amplitude, y, nm (`drift.vibration_amplitude_y_nm`).
+    VibrationAmplitudeYNm,
+    /// Lateral vibration phase, x, rad (`drift.vibration_phase_x_rad`).
+    VibrationPhaseXRad,
+    /// Lateral vibration phase, y, rad (`drift.vibration_phase_y_rad`).
+    VibrationPhaseYRad,
+    /// Interlace: the retrace's slow-axis advance, counts (`instrument.retrace_slow_axis_advance_counts`).
+    RetraceSlowAxisAdvanceCounts,
+    /// The Z feedback's time constant, s (`measurement.feedback_time_constant_s`).
+    FeedbackTimeConstantS,
+}
+
+impl SimParam {
+    /// Every parameter.
+    pub const ALL: &'static [Self] = &[
+        Self::SensitivityXNmPerCount,
+        Self::SensitivityYNmPerCount,
+        Self::NonorthogonalityDeg,
+        Self::CrosstalkXFromY,
+        Self::CrosstalkYFromX,
+        Self::BowXFromY,
+        Self::BowYFromX,
+        Self::ShearGradientX,
+        Self::ShearGradientY,
+        Self::NonlinearityXQuadratic,
+        Self::NonlinearityXCubic,
+        Self::NonlinearityYQuadratic,
+        Self::NonlinearityYCubic,
+        Self::HysteresisXWidthFraction,
+        Self::HysteresisXMinThresholdCounts,
+        Self::HysteresisXMaxThresholdCounts,
+        Self::HysteresisXOperators,
+        Self::CreepLogSlopePerDecade,
+        Self::CreepMinTimeConstantS,
+        Self::CreepMaxTimeConstantS,
+        Self::CreepElementsPerDecade,
+        Self::SurfaceRotationDeg,
+        Self::DriftVelocityXNmPerS,
+        Self::DriftVelocityYNmPerS,
+        Self::WarmupAmplitudeXNm,
+        Self::WarmupAmplitudeYNm,
+        Self::WarmupTimeConstantS,
+        Self::VibrationFrequencyHz,
+        Self::VibrationAmplitudeXNm,
+        Self::VibrationAmplitudeYNm,
+        Self::VibrationPhaseXRad,
+        Self::VibrationPhaseYRad,
+        Self::RetraceSlowAxisAdvanceCounts,
+        Self::FeedbackTimeConstantS,
+    ];
+
+    /// Its dotted TOML path in spm-sim's config (`surface.*` is the single surface table).
+    #[must_use]
+    pub fn path(self) -> &'static str {
+        match self {
+            Self::SensitivityXNmPerCount => "scanner.sensitivity_x_nm_per_count",
+            Self::SensitivityYNmPerCount => "scanner.sensitivity_y_nm_per_count",
+            Self::NonorthogonalityDeg => "scanner.nonorthogonality_deg",
+            Self::CrosstalkXFromY => "scanner.crosstalk_x_from_y",
+            Self::CrosstalkYFromX => "scanner.crosstalk_y_from_x",
+            Self::BowXFromY => "scanner.bow_x_from_y",
+            Self::BowYFromX => "scanner.bow_y_from_x",
+            Self::ShearGradientX => "scanner.shear_gradient_x",
+            Self::ShearGradientY => "scanner.shear_gradient_y",
+            Self::NonlinearityXQuadratic => "scanner.nonlinearity_x.quadratic",
+            Self::NonlinearityXCubic => "scanner.nonlinearity_x.cubic",
+            Self::NonlinearityYQuadratic => "scanner.nonlinearity_y.quadratic",
+            Self::NonlinearityYCubic => "scanner.nonlinearity_y.cubic",
+            Self::HysteresisXWidthFraction => "scanner.hysteresis_x.width_fraction",
+            Self::HysteresisXMinThresholdCounts => "scanner.hysteresis_x.min_threshold_counts",
+            Self::HysteresisXMaxThresholdCounts => "scanner.hysteresis_x.max_threshold_counts",
+            Self::HysteresisXOperators => "scanner.hysteresis_x.operators",
+            Self::CreepLogSlopePerDecade => "scanner.creep.log_slope_per_decade",
+            Self::CreepMinTimeConstantS => "scanner.creep.min_time_constant_s",
+            Self::CreepMaxTimeConstantS => "scanner.creep.max_time_constant_s",
+            Self::CreepElementsPerDecade => "scanner.creep.elements_per_decade",
+            Self::SurfaceRotationDeg => "surface.*.rotation_deg",
+            Self::DriftVelocityXNmPerS => "drift.velocity_x_nm_per_s",
+            Self::DriftVelocityYNmPerS => "drift.velocity_y_nm_per_s",
+            Self::WarmupAmplitudeXNm => "drift.warmup_amplitude_x_nm",
+            Self::WarmupAmplitudeYNm => "drift.warmup_amplitude_y_nm",
+            Self::WarmupTimeConstantS => "drift.warmup_time_constant_s",
+            Self::VibrationFrequencyHz => "drift.vibration_frequency_hz",
+            Self::VibrationAmplitudeXNm => "drift.vibration_amplitude_x_nm",
+            Self::VibrationAmplitudeYNm => "drift.vibration_amplitude_y_nm",
+            Self::VibrationPhaseXRad => "drift.vibration_phase_x_rad",
+            Self::VibrationPhaseYRad => "drift.vibration_phase_y_rad",
+            Self::RetraceSlowAxisAdvanceCounts => "instrument.retrace_slow_axis_advance_counts",
+            Self::FeedbackTimeConstantS => "measurement.feedback_time_constant_s",
+        }
+    }
+
+    /// The parameter at a dotted path.
+    #[must_use]
+    pub fn from_path(path: &str) -> Option<Self> {
+        Self::ALL.iter().copied().find(|p| p.path() == path)
+    }
+
+    /// Whether it is one of the x hysteresis operator's.
+    #[must_use]
+    pub fn is_x_hysteresis(self) -> bool {
+        matches!(
+            self,
+            Self::HysteresisXWidthFraction
+                | Self::HysteresisXMinThresholdCounts
+                | Self::HysteresisXMaxThresholdCounts
+                | Self::HysteresisXOperators
+        )
+    }
+}
+
+impl Serialize for SimParam {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        serializer.serialize_str(self.path())
+    }
+}
+
+impl<'de> Deserialize<'de> for SimParam {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        let path = String::deserialize(deserializer)?;
+        Self::from_path(&path).ok_or_else(|| {
+            serde::de::Error::custom(format!("{path} is not a simulator parameter spmcal sets"))
+        })
+    }
+}
+
 /// spm-sim configuration values of a fitted model.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct SimPatch {
-    /// Dotted `SimConfig` TOML paths and values. `surface.*.rotation_deg`
-    /// means the rotation of whichever surface kind the config holds.
-    pub values: BTreeMap<String, f64>,
+    /// The simulator parameters and their values.
+    pub values: BTreeMap<SimParam, f64>,
     /// Tip changes to schedule.
     pub tip_changes: Vec<TipChangeEvent>,
     /// Findings spm-sim has no parameter for, with the reason.
@@ -117,21 +307,15 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
     };
     let n0 = ctx.nominal_nm_per_count;
     let mut p = SimPatch::default();
-    let mut set = |k: &str, v: f64| {
-        p.values.insert(k.to_owned(), v);
+    let mut set = |k: SimParam, v: f64| {
+        p.values.insert(k, v);
     };
-    set(
-        "scanner.sensitivity_x_nm_per_count",
-        value(b, "scale_x") * n0,
-    );
-    set(
-        "scanner.sensitivity_y_nm_per_count",
-        value(b, "scale_y") * n0,
-    );
-    set("scanner.nonorthogonality_deg", value(b, "obliquity_deg"));
-    set("scanner.crosstalk_x_from_y", 0.0);
-    set("scanner.crosstalk_y_from_x", 0.0);
-    set("surface.*.rotation_deg", -value(b, "rotation_deg"));
+    set(SimParam::SensitivityXNmPerCount, value(b, "scale_x") * n0);
+    set(SimParam::SensitivityYNmPerCount, value(b, "scale_y") * n0);
+    set(SimParam::NonorthogonalityDeg, value(b, "obliquity_deg"));
+    set(SimParam::CrosstalkXFromY, 0.0);
+    set(SimParam::CrosstalkYFromX, 0.0);
+    set(SimParam::SurfaceRotationDeg, -value(b, "rotation_deg"));
     let mut m = Mapped {
         values: std::mem::take(&mut p.values),
         vx: value(b, "drift_x_nm_per_s"),
@@ -179,18 +363,18 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
         // Fast axis: the sweep is periodic (line period), the in-phase response is
         // a gain. Slow axis: the move history's exact chain response, split like
         // the model splits it (scale, drift, frame offsets, creep columns).
-        if let Some(v) = values.get_mut("scanner.sensitivity_x_nm_per_count") {
+        if let Some(v) = values.get_mut(&SimParam::SensitivityXNmPerCount) {
             *v /= 1.0 + gain(h.line_period_s);
         }
         if let Some([scale, drift]) = slow_axis_absorbed(h, &chain.taus_s, chain.tau_fit_s) {
-            if let Some(v) = values.get_mut("scanner.sensitivity_y_nm_per_count") {
+            if let Some(v) = values.get_mut(&SimParam::SensitivityYNmPerCount) {
                 *v /= 1.0 + chain.weight * scale;
             }
             vy -= value(b, "scale_y") * chain.weight * drift;
         }
         if let (Some((_, quadrature)), Some(wf)) = (
             chain.response(h.line_period_s),
-            values.get("scanner.hysteresis_x.width_fraction").copied(),
+            values.get(&SimParam::HysteresisXWidthFraction).copied(),
         ) {
             // A triangle sweep's fundamental is 8/π² of its amplitude: the chain's
             // branch half separation at the centre, as a fraction of the frame half-size.
@@ -201,16 +385,16 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
             let rest = h_fit - h_chain;
             if rest > 0.0 {
                 values.insert(
-                    "scanner.hysteresis_x.width_fraction".to_owned(),
+                    SimParam::HysteresisXWidthFraction,
                     rest * w_counts / ctx.half_range_counts,
                 );
             } else {
-                values.retain(|k, _| !k.starts_with("scanner.hysteresis_x."));
+                values.retain(|k, _| !k.is_x_hysteresis());
             }
         }
     }
-    values.insert("drift.velocity_x_nm_per_s".to_owned(), vx);
-    values.insert("drift.velocity_y_nm_per_s".to_owned(), vy);
+    values.insert(SimParam::DriftVelocityXNmPerS, vx);
+    values.insert(SimParam::DriftVelocityYNmPerS, vy);
     p.values = values;
     p.unmapped = unmapped;
     p.tip_changes = tips;
@@ -219,7 +403,7 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
 
 /// What the findings map to, collected finding by finding.
 struct Mapped {
-    values: BTreeMap<String, f64>,
+    values: BTreeMap<SimParam, f64>,
     vx: f64,
     vy: f64,
     unmapped: Vec<String>,
@@ -228,8 +412,8 @@ struct Mapped {
 }
 
 impl Mapped {
-    fn put(&mut self, key: &str, v: f64) {
-        self.values.insert(key.to_owned(), v);
+    fn put(&mut self, key: SimParam, v: f64) {
+        self.values.insert(key, v);
     }
 }
 
@@ -263,27 +447,27 @@ fn map_finding(
             let e = (t_mid / tau).exp();
             let ax = value(fp, "acceleration_x_nm_per_s2");
             let ay = value(fp, "acceleration_y_nm_per_s2");
-            m.put("drift.warmup_time_constant_s", tau);
-            m.put("drift.warmup_amplitude_x_nm", -ax * tau * tau * e);
-            m.put("drift.warmup_amplitude_y_nm", -ay * tau * tau * e);
+            m.put(SimParam::WarmupTimeConstantS, tau);
+            m.put(SimParam::WarmupAmplitudeXNm, -ax * tau * tau * e);
+            m.put(SimParam::WarmupAmplitudeYNm, -ay * tau * tau * e);
             m.vx += ax * tau;
             m.vy += ay * tau;
         }
         EffectKind::ScannerNonlinearity => {
             m.put(
-                "scanner.nonlinearity_x.quadratic",
+                SimParam::NonlinearityXQuadratic,
                 value(fp, "quadratic_x") * env.rx,
             );
             m.put(
-                "scanner.nonlinearity_x.cubic",
+                SimParam::NonlinearityXCubic,
                 value(fp, "cubic_x") * env.rx * env.rx,
             );
             m.put(
-                "scanner.nonlinearity_y.quadratic",
+                SimParam::NonlinearityYQuadratic,
                 value(fp, "quadratic_y") * env.ry,
             );
             m.put(
-                "scanner.nonlinearity_y.cubic",
+                SimParam::NonlinearityYCubic,
                 value(fp, "cubic_y") * env.ry * env.ry,
             );
         }
@@ -291,12 +475,12 @@ fn map_finding(
             // px += Ky·uy·byx·uy/H ⇒ Δux = (Ky/Kx)·byx·uy²/H.
             let k = value(env.linear, "scale_y") / value(env.linear, "scale_x").max(1e-12);
             m.put(
-                "scanner.bow_x_from_y",
+                SimParam::BowXFromY,
                 value(fp, "bow_x_from_y") * (env.frame_half[1] / env.frame_half[0]) * env.ry
                     / k.max(1e-12),
             );
             m.put(
-                "scanner.bow_y_from_x",
+                SimParam::BowYFromX,
                 value(fp, "bow_y_from_x") * (env.frame_half[0] / env.frame_half[1]) * env.rx * k,
             );
         }
@@ -309,21 +493,21 @@ fn map_finding(
                 }
                 _ => tau,
             };
-            m.put("measurement.feedback_time_constant_s", tau_sim);
+            m.put(SimParam::FeedbackTimeConstantS, tau_sim);
         }
         EffectKind::Hysteresis => {
             let h = value(fp, "branch_half_separation_fraction");
             let w_counts = env.frame_half[0] / env.n0;
             m.put(
-                "scanner.hysteresis_x.width_fraction",
+                SimParam::HysteresisXWidthFraction,
                 (h * w_counts / ctx.half_range_counts).max(0.0),
             );
-            m.put("scanner.hysteresis_x.max_threshold_counts", 0.5 * w_counts);
+            m.put(SimParam::HysteresisXMaxThresholdCounts, 0.5 * w_counts);
             m.put(
-                "scanner.hysteresis_x.min_threshold_counts",
+                SimParam::HysteresisXMinThresholdCounts,
                 0.5 * w_counts / 16.0,
             );
-            m.put("scanner.hysteresis_x.operators", 16.0);
+            m.put(SimParam::HysteresisXOperators, 16.0);
         }
         EffectKind::TipChange => m.tips.push(TipChangeEvent {
             time_s: value(fp, "time_s") + ctx.time_offset_s,
@@ -332,11 +516,11 @@ fn map_finding(
         }),
         EffectKind::Creep => match creep_slope(fp, ctx.move_history.as_ref()) {
             Ok(chain) => {
-                m.put("scanner.creep.log_slope_per_decade", chain.gamma);
-                m.put("scanner.creep.min_time_constant_s", CREEP_MIN_TAU_S);
-                m.put("scanner.creep.max_time_constant_s", CREEP_MAX_TAU_S);
+                m.put(SimParam::CreepLogSlopePerDecade, chain.gamma);
+                m.put(SimParam::CreepMinTimeConstantS, CREEP_MIN_TAU_S);
+                m.put(SimParam::CreepMaxTimeConstantS, CREEP_MAX_TAU_S);
                 m.put(
-                    "scanner.creep.elements_per_decade",
+                    SimParam::CreepElementsPerDecade,
                     f64::from(CREEP_PER_DECADE),
                 );
                 m.creep = Some(chain);
@@ -347,11 +531,11 @@ fn map_finding(
             // Model: Δuₓ = gₓ·W·ξₓ·ξ_y = gₓ·uₓ·u_y/H_frame (and Δu_y = g_y·uₓ·u_y/W_frame);
             // spm-sim: Δuₓ = γₓ·uₓ·u_y/H_field ⇒ γₓ = gₓ·H_field/H_frame.
             m.put(
-                "scanner.shear_gradient_x",
+                SimParam::ShearGradientX,
                 value(fp, "shear_gradient_x") * env.ry,
             );
             m.put(
-                "scanner.shear_gradient_y",
+                SimParam::ShearGradientY,
                 value(fp, "shear_gradient_y") * env.rx,
             );
         }
@@ -361,14 +545,22 @@ fn map_finding(
             let f_hz = value(fp, "frequency_hz").max(0.0);
             let w = std::f64::consts::TAU * f_hz;
             let t0 = d.time_origin_s + ctx.time_offset_s;
-            m.put("drift.vibration_frequency_hz", f_hz);
-            for axis in ["x", "y"] {
+            m.put(SimParam::VibrationFrequencyHz, f_hz);
+            for (axis, amplitude, phase) in [
+                (
+                    "x",
+                    SimParam::VibrationAmplitudeXNm,
+                    SimParam::VibrationPhaseXRad,
+                ),
+                (
+                    "y",
+                    SimParam::VibrationAmplitudeYNm,
+                    SimParam::VibrationPhaseYRad,
+                ),
+            ] {
+                m.put(amplitude, value(fp, &format!("amplitude_{axis}_nm")).abs());
                 m.put(
-                    &format!("drift.vibration_amplitude_{axis}_nm"),
-                    value(fp, &format!("amplitude_{axis}_nm")).abs(),
-                );
-                m.put(
-                    &format!("drift.vibration_phase_{axis}_rad"),
+                    phase,
                     wrap_rad(-value(fp, &format!("phase_{axis}_rad")) - w * t0),
                 );
             }
@@ -385,7 +577,7 @@ fn map_finding(
                 * value(env.linear, "obliquity_deg").to_radians().cos();
             if ky > 0.0 {
                 m.put(
-                    "instrument.retrace_slow_axis_advance_counts",
+                    SimParam::RetraceSlowAxisAdvanceCounts,
                     -value(fp, "separation_y_nm") / ky,
                 );
             } else {
@@ -637,7 +829,8 @@ impl SimPatch {
         let mut root: toml::Table = base
             .parse()
             .map_err(|e: toml::de::Error| bad(e.to_string()))?;
-        for (path, v) in &self.values {
+        for (param, v) in &self.values {
+            let path = param.path();
             let parts: Vec<&str> = path.split('.').collect();
             let Some((last, dirs)) = parts.split_last() else {
                 continue;

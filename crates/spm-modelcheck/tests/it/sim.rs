@@ -533,7 +533,7 @@ fn hidden_creep_is_named_and_maps_to_the_relaxation_chain() {
         let patch = sim_patch(d, &sim_context(), true);
         let gamma = patch
             .values
-            .get("scanner.creep.log_slope_per_decade")
+            .get(&spm_modelcheck::SimParam::CreepLogSlopePerDecade)
             .copied()
             .ok_or_else(|| format!("creep unmapped: {:?}", patch.unmapped))?;
         let truth = 0.015 * k;
@@ -916,4 +916,65 @@ fn closing_the_loop_on_a_shear_gradient() {
         0.5,
         ("registered image difference", image_mismatch_pm),
     );
+}
+
+/// The model check names simulator parameters by type ([`spm_modelcheck::SimParam`]), each
+/// with its TOML path in one table: every path is a field of spm-sim's own configuration.
+/// Checked on the shipped `configs/sim-hopg.toml`: the path resolves to a value there (`*`
+/// being the single surface table), and a patch that sets every parameter to the value the
+/// file holds gives a config spm-sim accepts (its tables deny unknown fields) with the same
+/// values.
+#[test]
+fn every_simulator_parameter_the_model_check_sets_is_in_the_simulators_config() {
+    use spm_modelcheck::{SimParam, SimPatch};
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/sim-hopg.toml");
+    let text = std::fs::read_to_string(&path).expect("configs/sim-hopg.toml readable");
+    let root: toml::Table = text.parse().expect("sim-hopg.toml is TOML");
+    let lookup = |dotted: &str| -> Option<f64> {
+        let mut table = &root;
+        let parts: Vec<&str> = dotted.split('.').collect();
+        let (last, dirs) = parts.split_last()?;
+        for part in dirs {
+            let next = if *part == "*" {
+                (table.len() == 1)
+                    .then(|| table.values().next())
+                    .flatten()?
+            } else {
+                table.get(*part)?
+            };
+            table = next.as_table()?;
+        }
+        match table.get(*last)? {
+            toml::Value::Float(v) => Some(*v),
+            toml::Value::Integer(v) => Some(*v as f64),
+            _ => None,
+        }
+    };
+    let mut patch = SimPatch::default();
+    let mut missing = Vec::new();
+    for &param in SimParam::ALL {
+        match lookup(param.path()) {
+            Some(v) => {
+                patch.values.insert(param, v);
+            }
+            None => missing.push(param.path()),
+        }
+    }
+    assert!(
+        missing.is_empty(),
+        "paths that are no numeric field of spm-sim's config: {missing:?}"
+    );
+    assert_eq!(patch.values.len(), SimParam::ALL.len());
+    let patched = patch.apply_to_toml(&text).expect("the patch applies");
+    let config = SimConfig::from_toml_str(&patched, "patched sim-hopg.toml")
+        .unwrap_or_else(|e| panic!("spm-sim refuses the patched config: {e}"));
+    let original = SimConfig::from_toml_str(&text, "sim-hopg.toml").expect("sim-hopg.toml");
+    assert_eq!(
+        config, original,
+        "setting each parameter to its own value changed the config"
+    );
+    for &param in SimParam::ALL {
+        assert_eq!(SimParam::from_path(param.path()), Some(param));
+    }
+    assert_eq!(SimParam::from_path("scanner.no_such_field"), None);
 }

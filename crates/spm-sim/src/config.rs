@@ -240,7 +240,7 @@ pub struct ScannerConfig {
     /// Nonlinear Z manipulator whose Kz varies with z and over the field
     /// ([`crate::vertical`]); absent = linear, Kz = `sensitivity_z_nm_per_count` everywhere.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub z_manipulator: Option<crate::vertical::ZManipulatorConfig>,
+    pub z_manipulator: Option<ZManipulatorConfig>,
 }
 
 /// Static nonlinearity of one axis: the axis displacement in "linear counts"
@@ -672,7 +672,7 @@ impl SimConfig {
             1.0,
         )?;
         if let Some(z) = &s.z_manipulator
-            && let Err((field, reason)) = crate::vertical::check(z)
+            && let Err((field, reason)) = check_z_manipulator(z)
         {
             return v.fail(&format!("scanner.z_manipulator.{field}"), &reason);
         }
@@ -1017,4 +1017,87 @@ impl FaultConfig {
             tip_change_jump_sigma_nm: 0.3,
         }
     }
+}
+
+/// Nonlinearity of the Z manipulator and its variation over the lateral field. Every field
+/// is dimensionless (fractions); 0 everywhere = a linear manipulator with Kz everywhere.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ZManipulatorConfig {
+    /// Quadratic coefficient q of the characteristic `ζ(1 + q·ζ + c·ζ²)`, ζ = z / half range.
+    /// Kz changes by `2q` at full extension. Typical: 0.04.
+    pub quadratic: f64,
+    /// Cubic coefficient c. Kz changes by `3c` at full extension. Typical: 0.02.
+    pub cubic: f64,
+    /// Fractional change of Kz at the +x field edge (linear in x), e.g. electrode asymmetry.
+    /// Typical: 0.015.
+    pub lateral_gradient_x: f64,
+    /// Fractional change of Kz at the +y field edge (linear in y). Typical: -0.01.
+    pub lateral_gradient_y: f64,
+    /// Fractional change of Kz at normalised lateral radius 1 (quadratic in r; the tube's
+    /// bending stiffens the Z response at the field edges). Typical: 0.02.
+    pub lateral_radial: f64,
+    /// Amplitude of a sinusoidal ripple of Kz along x (a "hidden" effect, not a polynomial),
+    /// fraction. Typical: 0 (off).
+    pub ripple_fraction: f64,
+    /// Period of the ripple along x, lateral counts (> 0). Typical: 16384.
+    pub ripple_period_counts: f64,
+    /// Fractional change of Kz per hour of instrument time (aging, temperature): a Z effect
+    /// a calibration that takes Kz as static does not model. Typical: 0 (off).
+    pub kz_drift_per_hour: f64,
+}
+
+/// Checks a Z-manipulator config: the characteristic must stay monotone over the Z range and
+/// the lateral factor positive over the field. Returns the offending field and reason.
+pub(crate) fn check_z_manipulator(c: &ZManipulatorConfig) -> Result<(), (&'static str, String)> {
+    for (field, v, lim) in [
+        ("quadratic", c.quadratic, 0.3),
+        ("cubic", c.cubic, 0.3),
+        ("lateral_gradient_x", c.lateral_gradient_x, 0.3),
+        ("lateral_gradient_y", c.lateral_gradient_y, 0.3),
+        ("lateral_radial", c.lateral_radial, 0.3),
+        ("ripple_fraction", c.ripple_fraction, 0.1),
+        ("kz_drift_per_hour", c.kz_drift_per_hour, 0.2),
+    ] {
+        if !(v.is_finite() && v.abs() <= lim) {
+            return Err((
+                field,
+                format!("must be a finite number in [-{lim}, {lim}], got {v}"),
+            ));
+        }
+    }
+    if !(c.ripple_period_counts.is_finite()
+        && c.ripple_period_counts >= 16.0
+        && c.ripple_period_counts <= 1e10)
+    {
+        return Err((
+            "ripple_period_counts",
+            format!(
+                "must be a finite number in [16, 1e10], got {}",
+                c.ripple_period_counts
+            ),
+        ));
+    }
+    // Monotone: dE/dz > 0 for |ζ| ≤ 1 (sampled), lateral factor > 0 on the field.
+    for k in 0..=40 {
+        let zeta = -1.0 + 0.05 * f64::from(k);
+        if 1.0 + 2.0 * c.quadratic * zeta + 3.0 * c.cubic * zeta * zeta <= 0.1 {
+            return Err((
+                "quadratic",
+                "with `cubic`, makes the Z characteristic non-monotone inside the Z range".into(),
+            ));
+        }
+    }
+    let worst = 1.0
+        - c.lateral_gradient_x.abs()
+        - c.lateral_gradient_y.abs()
+        - 2.0 * c.lateral_radial.min(0.0).abs()
+        - c.ripple_fraction.abs();
+    if worst <= 0.1 {
+        return Err((
+            "lateral_gradient_x",
+            "with the other lateral terms, makes Kz vanish somewhere in the field".into(),
+        ));
+    }
+    Ok(())
 }

@@ -132,6 +132,7 @@ pub mod fault;
 pub mod oracle;
 pub mod scanner;
 pub mod sim;
+mod state;
 pub mod surface;
 pub mod vertical;
 
@@ -146,5 +147,6 @@ pub use scanner::{Creep, Jacobian, Lcc, PlayHysteresis, StaticMap, creep_element
 pub use sim::{RasterTurn, Simulator};
 
 mod truth;
+pub use oracle::{VerticalOracle, ZCrosstalk};
 pub use surface::{FeatureKind, FeatureSite, Surface};
-pub use vertical::{VerticalOracle, ZCrosstalk, ZManipulatorConfig, ZMap};
+pub use vertical::{ZManipulatorConfig, ZMap};

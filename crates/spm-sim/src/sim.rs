@@ -6,6 +6,7 @@ use crate::drift::{Burst, Drift, Flicker, Jump};
 use crate::fault::{FaultEvent, FaultEventKind, FaultKind, FaultTrigger, Operation, SimError};
 use crate::oracle::Oracle;
 use crate::scanner::{Creep, PlayHysteresis, StaticMap};
+use crate::state::{ScannerState, SimState, TipState};
 use crate::surface::Surface;
 use crate::vertical::ZMap;
 use rand::{Rng, SeedableRng};
@@ -40,63 +41,6 @@ fn round_code(x: f64) -> f64 {
     }
 }
 
-/// The tip's imaging state (changed by tip-change faults).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) struct TipState {
-    pub contrast: f64,
-    pub ghost_offset: [f64; 2],
-    pub ghost_amplitude: f64,
-}
-
-impl TipState {
-    const PRISTINE: Self = Self {
-        contrast: 1.0,
-        ghost_offset: [0.0; 2],
-        ghost_amplitude: 0.0,
-    };
-}
-
-/// The scanner's dynamic state: hysteresis and creep of both lateral axes.
-#[derive(Clone, Debug)]
-pub(crate) struct ScannerState {
-    pub hysteresis: [PlayHysteresis; 2],
-    pub creep: [Creep; 2],
-    /// DAC value applied now (after quantisation), counts.
-    pub applied: [f64; 2],
-    /// Post-hysteresis input x = u + h, counts.
-    pub input: [f64; 2],
-    /// Creep offsets, counts.
-    pub creep_offset: [f64; 2],
-}
-
-impl ScannerState {
-    #[inline]
-    fn set(&mut self, u: [f64; 2]) {
-        self.applied = u;
-        self.input = [
-            u[0] + self.hysteresis[0].update(u[0]),
-            u[1] + self.hysteresis[1].update(u[1]),
-        ];
-    }
-
-    fn advance(&mut self, dt_s: f64) {
-        if dt_s > 0.0 {
-            self.creep_offset = [
-                self.creep[0].advance(self.input[0], dt_s),
-                self.creep[1].advance(self.input[1], dt_s),
-            ];
-        }
-    }
-
-    #[inline]
-    pub fn effective(&self) -> [f64; 2] {
-        [
-            self.input[0] + self.creep_offset[0],
-            self.input[1] + self.creep_offset[1],
-        ]
-    }
-}
-
 /// A physics-based simulated scanning tunnelling microscope.
 ///
 /// Deterministic: all randomness comes from ChaCha8 streams seeded by
@@ -104,31 +48,16 @@ impl ScannerState {
 /// only through [`Simulator::oracle`].
 #[derive(Clone, Debug)]
 pub struct Simulator {
-    pub(crate) config: SimConfig,
-    pub(crate) surface: Surface,
-    pub(crate) map: StaticMap,
-    /// The Z manipulator's characteristic (extension ⇄ Z counts).
-    pub(crate) zmap: ZMap,
-    pub(crate) scanner: ScannerState,
-    pub(crate) drift: Drift,
+    /// What the instrument is and where it stands: the state the oracle reads.
+    pub(crate) state: SimState,
     flicker: Flicker,
     noise_rng: ChaCha8Rng,
     fault_rng: ChaCha8Rng,
-    pub(crate) time_s: f64,
     /// The commanded (requested) position, counts.
     command: [f64; 2],
-    /// Feedback output: Z reading without noise, nm (Z counts × Kz).
-    pub(crate) z_nm: f64,
     coarse_steps: i64,
-    pub(crate) tip: TipState,
     scheduled: Vec<(FaultTrigger, FaultKind)>,
-    pub(crate) log: Vec<FaultEvent>,
     pending_jumps: Vec<Jump>,
-    /// True tip positions (scanner frame, nm) of the last scan's forward
-    /// pixels, when recording is on (oracle only).
-    pub(crate) tip_trace: Option<Vec<[f64; 2]>>,
-    /// Effective inputs (counts) of the same pixels, when recording is on.
-    pub(crate) effective_trace: Option<Vec<[f64; 2]>>,
     /// Tip position (scanner frame, nm) of the last simulated pixel.
     last_tip_nm: [f64; 2],
     /// Effective input (counts) of the last simulated pixel.
@@ -200,34 +129,36 @@ impl Simulator {
             &mut noise_rng,
         );
         let mut sim = Self {
-            surface,
-            map,
-            zmap,
-            scanner,
-            drift,
+            state: SimState {
+                surface,
+                map,
+                zmap,
+                scanner,
+                drift,
+                time_s: 0.0,
+                z_nm: 0.0,
+                tip: TipState::PRISTINE,
+                log: Vec::new(),
+                tip_trace: None,
+                effective_trace: None,
+                config,
+            },
             flicker,
             noise_rng,
             fault_rng,
-            time_s: 0.0,
             command: [0.0; 2],
-            z_nm: 0.0,
             coarse_steps: 0,
-            tip: TipState::PRISTINE,
             scheduled: Vec::new(),
-            log: Vec::new(),
             pending_jumps: Vec::new(),
-            tip_trace: None,
-            effective_trace: None,
             last_tip_nm: [0.0; 2],
             last_effective: [0.0; 2],
             backward_aside: None,
-            config,
         };
-        sim.z_nm = sim.z_reference_nm();
-        sim.z_nm = sim.feedback_target_nm(0.0, None);
+        sim.state.z_nm = sim.z_reference_nm();
+        sim.state.z_nm = sim.feedback_target_nm(0.0, None);
         // Two passes settle the Z-dependent lateral position.
-        sim.z_nm = sim.feedback_target_nm(0.0, None);
-        tracing::debug!(seed = sim.config.seed, "spm-sim simulator created");
+        sim.state.z_nm = sim.feedback_target_nm(0.0, None);
+        tracing::debug!(seed = sim.state.config.seed, "spm-sim simulator created");
         Ok(sim)
     }
 
@@ -237,8 +168,8 @@ impl Simulator {
     /// acquisition order, for [`Oracle::last_scan_tip_positions`]. Ground
     /// truth for benchmarks; it changes nothing the instrument measures.
     pub fn record_tip_positions(&mut self, on: bool) {
-        self.tip_trace = on.then(Vec::new);
-        self.effective_trace = on.then(Vec::new);
+        self.state.tip_trace = on.then(Vec::new);
+        self.state.effective_trace = on.then(Vec::new);
     }
 
     /// Turns the backward halves simulated aside on or off. While on, a scan whose request
@@ -251,7 +182,7 @@ impl Simulator {
     /// always.
     pub fn record_backward_aside(&mut self, on: bool) {
         self.backward_aside = on.then(|| {
-            let mut rng = ChaCha8Rng::seed_from_u64(self.config.seed);
+            let mut rng = ChaCha8Rng::seed_from_u64(self.state.config.seed);
             rng.set_stream(STREAM_BACKWARD_ASIDE);
             rng
         });
@@ -259,12 +190,12 @@ impl Simulator {
 
     /// The configuration this simulator runs.
     pub fn config(&self) -> &SimConfig {
-        &self.config
+        &self.state.config
     }
 
     /// The ground-truth view (tests, benchmarks, xtask; never algorithms).
     pub fn oracle(&self) -> Oracle<'_> {
-        Oracle::new(self)
+        Oracle::new(&self.state)
     }
 
     /// Schedules a fault. See [`FaultKind`] and [`FaultTrigger`] for the semantics.
@@ -280,7 +211,7 @@ impl Simulator {
 
     /// Replaces the random fault rates (e.g. to switch random faults off mid-run).
     pub fn set_fault_rates(&mut self, faults: crate::config::FaultConfig) {
-        self.config.faults = faults;
+        self.state.config.faults = faults;
     }
 
     // ------------------------------------------------------------------
@@ -289,44 +220,29 @@ impl Simulator {
     /// Z reading (nm) of the reference plane at the current coarse position.
     fn z_reference_nm(&self) -> f64 {
         let step = self
+            .state
             .config
             .instrument
             .coarse_z
             .as_ref()
             .map_or(0.0, |c| c.step_nm);
-        self.config.instrument.initial_z_extension_nm - self.coarse_steps as f64 * step
-    }
-
-    /// Tip position in the scanner frame now (nm).
-    pub(crate) fn scanner_position_nm(&self) -> [f64; 2] {
-        let ue = self.scanner.effective();
-        self.map.position(ue[0], ue[1], self.z_counts_noiseless())
-    }
-
-    /// The static map's Z argument: the extension in nominal counts (extension / Kz₀).
-    pub(crate) fn z_counts_noiseless(&self) -> f64 {
-        self.z_nm / self.map.kz_nm_per_count()
-    }
-
-    /// The Z reading without noise (counts) through the Z characteristic.
-    pub(crate) fn z_reading_noiseless(&self) -> f64 {
-        self.zmap.counts_of(self.z_nm, self.scanner.effective())
+        self.state.config.instrument.initial_z_extension_nm - self.coarse_steps as f64 * step
     }
 
     /// Image height of the surface under sample point `s` with the current tip.
     #[inline]
     fn topography_nm(&self, s: [f64; 2]) -> f64 {
-        let z = self.surface.height_nm(s[0], s[1]);
-        if self.tip == TipState::PRISTINE {
+        let z = self.state.surface.height_nm(s[0], s[1]);
+        if self.state.tip == TipState::PRISTINE {
             z
         } else {
-            let mut out = self.tip.contrast * z;
-            if self.tip.ghost_amplitude > 0.0 {
-                out += self.tip.ghost_amplitude
-                    * self.tip.contrast
-                    * self.surface.height_nm(
-                        s[0] + self.tip.ghost_offset[0],
-                        s[1] + self.tip.ghost_offset[1],
+            let mut out = self.state.tip.contrast * z;
+            if self.state.tip.ghost_amplitude > 0.0 {
+                out += self.state.tip.ghost_amplitude
+                    * self.state.tip.contrast
+                    * self.state.surface.height_nm(
+                        s[0] + self.state.tip.ghost_offset[0],
+                        s[1] + self.state.tip.ghost_offset[1],
                     );
             }
             out
@@ -336,11 +252,11 @@ impl Simulator {
     /// The Z reading (nm) the feedback converges to at time t, with an
     /// optional lateral jitter.
     fn feedback_target_nm(&self, t_s: f64, jitter: Option<[f64; 2]>) -> f64 {
-        let p = self.scanner_position_nm();
-        let d = self.drift.displacement(t_s);
+        let p = self.state.scanner_position_nm();
+        let d = self.state.drift.displacement(t_s);
         let j = jitter.unwrap_or([0.0; 2]);
         let s = [p[0] + d[0] + j[0], p[1] + d[1] + j[1]];
-        self.z_reference_nm() + self.topography_nm(s) + self.map.bowl_nm(p)
+        self.z_reference_nm() + self.topography_nm(s) + self.state.map.bowl_nm(p)
     }
 
     fn normal(&mut self) -> f64 {
@@ -348,7 +264,7 @@ impl Simulator {
     }
 
     fn quantise_lateral(&self, u: [f64; 2]) -> [f64; 2] {
-        if self.config.measurement.quantise_lateral_dac {
+        if self.state.config.measurement.quantise_lateral_dac {
             [round_code(u[0]), round_code(u[1])]
         } else {
             u
@@ -357,17 +273,17 @@ impl Simulator {
 
     /// A single noisy Z reading in counts from the current feedback state.
     fn read_z_counts(&mut self) -> f64 {
-        let white = self.config.measurement.z_white_noise_nm;
+        let white = self.state.config.measurement.z_white_noise_nm;
         let n = if white > 0.0 {
             white * self.normal()
         } else {
             0.0
         };
-        let z = self.zmap.counts_of(
-            self.z_nm + n + self.flicker.value(),
-            self.scanner.effective(),
+        let z = self.state.zmap.counts_of(
+            self.state.z_nm + n + self.flicker.value(),
+            self.state.scanner.effective(),
         );
-        if self.config.measurement.quantise_z_adc {
+        if self.state.config.measurement.quantise_z_adc {
             round_code(z)
         } else {
             z
@@ -380,7 +296,7 @@ impl Simulator {
         if dt_s <= 0.0 {
             return Ok(());
         }
-        let t0 = self.time_s;
+        let t0 = self.state.time_s;
         let t1 = t0 + dt_s;
         let events = self.events_in(t0, t1, true);
         let mut t = t0;
@@ -399,20 +315,20 @@ impl Simulator {
         if dt_s <= 0.0 {
             return;
         }
-        self.scanner.advance(dt_s);
-        self.time_s += dt_s;
-        self.zmap.set_time(self.time_s);
-        self.flush_drift(self.time_s);
+        self.state.scanner.advance(dt_s);
+        self.state.time_s += dt_s;
+        self.state.zmap.set_time(self.state.time_s);
+        self.flush_drift(self.state.time_s);
         self.flicker.advance_all(dt_s, &mut self.noise_rng);
-        let target = self.feedback_target_nm(self.time_s, None);
-        let tau = self.config.measurement.feedback_time_constant_s;
+        let target = self.feedback_target_nm(self.state.time_s, None);
+        let tau = self.state.config.measurement.feedback_time_constant_s;
         let decay = if tau > 0.0 { (-dt_s / tau).exp() } else { 0.0 };
-        self.z_nm = target + (self.z_nm - target) * decay;
+        self.state.z_nm = target + (self.state.z_nm - target) * decay;
     }
 
     /// Generates drift knots up to t and logs the spontaneous jumps that are due.
     fn flush_drift(&mut self, t_s: f64) {
-        let new = self.drift.ensure(t_s + 1.0);
+        let new = self.state.drift.ensure(t_s + 1.0);
         self.pending_jumps.extend(new);
         let mut k = 0;
         while k < self.pending_jumps.len() {
@@ -420,7 +336,7 @@ impl Simulator {
                 && jump.time_s <= t_s
             {
                 self.pending_jumps.swap_remove(k);
-                self.log.push(FaultEvent {
+                self.state.log.push(FaultEvent {
                     time: Seconds(jump.time_s),
                     kind: FaultEventKind::DriftJump,
                     duration: Seconds::ZERO,
@@ -445,21 +361,28 @@ impl Simulator {
         if length == 0.0 {
             self.command = target;
             let q = self.quantise_lateral(target);
-            self.scanner.set(q);
+            self.state.scanner.set(q);
             return Ok(());
         }
         let duration = length / speed_counts_per_s;
-        let min_tau = self.scanner.creep[0]
+        let min_tau = self.state.scanner.creep[0]
             .time_constants_s()
             .first()
             .copied()
             .unwrap_or(f64::INFINITY)
-            .min(self.config.measurement.feedback_time_constant_s.max(1e-6) * 20.0);
+            .min(
+                self.state
+                    .config
+                    .measurement
+                    .feedback_time_constant_s
+                    .max(1e-6)
+                    * 20.0,
+            );
         let steps = ((duration / (0.5 * min_tau)).ceil())
             .max((length / 64.0).ceil())
             .clamp(1.0, 4000.0) as usize;
         let dt = duration / steps as f64;
-        let t0 = self.time_s;
+        let t0 = self.state.time_s;
         let events = self.events_in(t0, t0 + duration, true);
         let mut next = 0;
         for k in 1..=steps {
@@ -470,10 +393,10 @@ impl Simulator {
             ];
             self.command = u;
             let q = self.quantise_lateral(u);
-            self.scanner.set(q);
+            self.state.scanner.set(q);
             self.evolve_held(dt);
             while let Some((te, kind, scheduled)) = events.get(next).copied() {
-                if te > self.time_s {
+                if te > self.state.time_s {
                     break;
                 }
                 next += 1;
@@ -490,7 +413,7 @@ impl Simulator {
     /// Random and scheduled events with times in `[t0, t1]`, sorted.
     fn events_in(&mut self, t0: f64, t1: f64, feedback: bool) -> Vec<(f64, FaultKind, bool)> {
         let mut out = Vec::new();
-        let f = self.config.faults.clone();
+        let f = self.state.config.faults.clone();
         let draw = |rate: f64, rng: &mut ChaCha8Rng| -> Option<f64> {
             if rate <= 0.0 {
                 return None;
@@ -544,7 +467,7 @@ impl Simulator {
     }
 
     fn random_tip_change(&mut self) -> FaultKind {
-        let sigma = self.config.faults.tip_change_jump_sigma_nm;
+        let sigma = self.state.config.faults.tip_change_jump_sigma_nm;
         let jx: f64 = self.fault_rng.sample(StandardNormal);
         let jy: f64 = self.fault_rng.sample(StandardNormal);
         let c: f64 = self.fault_rng.sample(StandardNormal);
@@ -576,7 +499,7 @@ impl Simulator {
         let op = operation.unwrap_or(Operation::Now);
         let log = |sim: &mut Self, k: FaultEventKind, duration: f64| {
             tracing::debug!(time_s = t_s, kind = ?k, ?operation, scheduled, "simulated fault");
-            sim.log.push(FaultEvent {
+            sim.state.log.push(FaultEvent {
                 time: Seconds(t_s),
                 kind: k,
                 duration: Seconds(duration),
@@ -587,11 +510,11 @@ impl Simulator {
         match kind {
             FaultKind::Timeout => {
                 log(self, FaultEventKind::Timeout, 0.0);
-                let d = self.config.faults.timeout_duration_s;
+                let d = self.state.config.faults.timeout_duration_s;
                 self.evolve_held(d);
                 Err(SimError::Timeout {
                     operation: op,
-                    time: Seconds(self.time_s),
+                    time: Seconds(self.state.time_s),
                 })
             }
             FaultKind::Communication => {
@@ -615,15 +538,15 @@ impl Simulator {
                 ghost_amplitude,
             } => {
                 log(self, FaultEventKind::TipChange, 0.0);
-                self.drift.add_tip_jump(Jump {
+                self.state.drift.add_tip_jump(Jump {
                     time_s: t_s,
                     displacement_nm: [jump.x.value(), jump.y.value()],
                 });
-                self.tip = TipState {
+                self.state.tip = TipState {
                     contrast: if contrast_factor.is_finite() && contrast_factor > 0.0 {
-                        self.tip.contrast * contrast_factor
+                        self.state.tip.contrast * contrast_factor
                     } else {
-                        self.tip.contrast
+                        self.state.tip.contrast
                     },
                     ghost_offset: [ghost_offset.x.value(), ghost_offset.y.value()],
                     ghost_amplitude: if ghost_amplitude.is_finite() {
@@ -643,7 +566,7 @@ impl Simulator {
                 log(self, FaultEventKind::DriftBurst, d);
                 let v = [velocity.x_nm_per_s, velocity.y_nm_per_s];
                 if v.iter().all(|x| x.is_finite()) {
-                    self.drift.add_burst(Burst {
+                    self.state.drift.add_burst(Burst {
                         start_s: t_s,
                         duration_s: d,
                         velocity_nm_per_s: v,
@@ -657,10 +580,10 @@ impl Simulator {
     /// Start of every call: overhead, call-level faults (scheduled and random).
     fn begin_call(&mut self, operation: Operation, overhead: bool) -> Result<(), SimError> {
         if overhead {
-            let d = self.config.instrument.call_overhead_s;
+            let d = self.state.config.instrument.call_overhead_s;
             self.idle(d, operation)?;
         }
-        let now = self.time_s;
+        let now = self.state.time_s;
         // Scheduled faults for this call.
         let mut k = 0;
         while k < self.scheduled.len() {
@@ -681,8 +604,8 @@ impl Simulator {
             }
         }
         if overhead {
-            let p_timeout = self.config.faults.timeout_probability_per_call;
-            let p_comm = self.config.faults.communication_probability_per_call;
+            let p_timeout = self.state.config.faults.timeout_probability_per_call;
+            let p_comm = self.state.config.faults.communication_probability_per_call;
             if p_timeout > 0.0 || p_comm > 0.0 {
                 let u: f64 = self.fault_rng.random();
                 if u < p_timeout {
@@ -702,7 +625,7 @@ impl Simulator {
                 reason: format!("{what} is not finite"),
             });
         }
-        let h = self.config.instrument.lateral_half_range_counts;
+        let h = self.state.config.instrument.lateral_half_range_counts;
         let (x, y) = (p.x.value(), p.y.value());
         if x < -h || y < -h || x > h - 1.0 || y > h - 1.0 {
             return Err(SimError::OutOfRange {
@@ -716,7 +639,7 @@ impl Simulator {
     // The scan
 
     fn pixel_factors(&self, dwell_s: f64, line_s: f64) -> PixelFactors {
-        let tau = self.config.measurement.feedback_time_constant_s;
+        let tau = self.state.config.measurement.feedback_time_constant_s;
         let mut fast = Vec::new();
         let mut medium = Vec::new();
         let mut slow = Vec::new();
@@ -733,7 +656,7 @@ impl Simulator {
             }
         }
         PixelFactors {
-            creep_decays: self.scanner.creep[0].decays(dwell_s),
+            creep_decays: self.state.scanner.creep[0].decays(dwell_s),
             feedback_decay: if tau > 0.0 {
                 (-dwell_s / tau).exp()
             } else {
@@ -749,44 +672,45 @@ impl Simulator {
     #[inline]
     fn pixel(&mut self, u: [f64; 2], t_mid: f64, f: &PixelFactors, record: bool) -> f64 {
         let q = self.quantise_lateral(u);
-        self.scanner.set(q);
-        self.zmap.set_time(t_mid);
-        let x = self.scanner.input;
-        self.scanner.creep_offset = [
-            self.scanner.creep[0].advance_with(x[0], &f.creep_decays),
-            self.scanner.creep[1].advance_with(x[1], &f.creep_decays),
+        self.state.scanner.set(q);
+        self.state.zmap.set_time(t_mid);
+        let x = self.state.scanner.input;
+        self.state.scanner.creep_offset = [
+            self.state.scanner.creep[0].advance_with(x[0], &f.creep_decays),
+            self.state.scanner.creep[1].advance_with(x[1], &f.creep_decays),
         ];
-        let ue = self.scanner.effective();
-        let kz = self.map.kz_nm_per_count();
-        let p = self.map.position(ue[0], ue[1], self.z_nm / kz);
+        let ue = self.state.scanner.effective();
+        let kz = self.state.map.kz_nm_per_count();
+        let p = self.state.map.position(ue[0], ue[1], self.state.z_nm / kz);
         self.last_tip_nm = p;
         self.last_effective = ue;
-        let d = self.drift.displacement(t_mid);
-        let jitter = self.config.measurement.lateral_jitter_nm;
+        let d = self.state.drift.displacement(t_mid);
+        let jitter = self.state.config.measurement.lateral_jitter_nm;
         let (jx, jy) = if jitter > 0.0 {
             (jitter * self.normal(), jitter * self.normal())
         } else {
             (0.0, 0.0)
         };
         let s = [p[0] + d[0] + jx, p[1] + d[1] + jy];
-        let target = self.z_reference_nm() + self.topography_nm(s) + self.map.bowl_nm(p);
-        self.z_nm = target + (self.z_nm - target) * f.feedback_decay;
+        let target = self.z_reference_nm() + self.topography_nm(s) + self.state.map.bowl_nm(p);
+        self.state.z_nm = target + (self.state.z_nm - target) * f.feedback_decay;
         for &(k, c) in &f.fast_flicker {
             self.flicker.step(k, c, &mut self.noise_rng);
         }
         if !record {
             return 0.0;
         }
-        let white = self.config.measurement.z_white_noise_nm;
+        let white = self.state.config.measurement.z_white_noise_nm;
         let n = if white > 0.0 {
             white * self.normal()
         } else {
             0.0
         };
         let z = self
+            .state
             .zmap
-            .counts_of(self.z_nm + n + self.flicker.value(), ue);
-        if self.config.measurement.quantise_z_adc {
+            .counts_of(self.state.z_nm + n + self.flicker.value(), ue);
+        if self.state.config.measurement.quantise_z_adc {
             round_code(z)
         } else {
             z
@@ -801,11 +725,11 @@ impl Simulator {
             return;
         };
         let saved = (
-            self.scanner.clone(),
-            self.zmap.clone(),
+            self.state.scanner.clone(),
+            self.state.zmap.clone(),
             self.flicker.clone(),
-            self.z_nm,
-            self.time_s,
+            self.state.z_nm,
+            self.state.time_s,
             self.command,
             self.last_tip_nm,
             self.last_effective,
@@ -836,11 +760,11 @@ impl Simulator {
         std::mem::swap(&mut self.noise_rng, &mut rng);
         self.backward_aside = Some(rng);
         (
-            self.scanner,
-            self.zmap,
+            self.state.scanner,
+            self.state.zmap,
             self.flicker,
-            self.z_nm,
-            self.time_s,
+            self.state.z_nm,
+            self.state.time_s,
             self.command,
             self.last_tip_nm,
             self.last_effective,
@@ -902,14 +826,14 @@ impl Simulator {
         let nx = request.pixels_per_line as usize;
         let dwell = request.pixel_dwell.value();
         let step = request.pixel_step.value();
-        let tau_fb = self.config.measurement.feedback_time_constant_s;
+        let tau_fb = self.state.config.measurement.feedback_time_constant_s;
         let tail = if tau_fb > 0.0 {
             ((12.0 * tau_fb / dwell).ceil() as usize).clamp(2, nx)
         } else {
             2.min(nx)
         };
         let lumped_n = nx - tail;
-        let quantise = self.config.measurement.quantise_lateral_dac;
+        let quantise = self.state.config.measurement.quantise_lateral_dac;
         let ox = request.origin.x.value();
         let x_lo = ox;
         let x_hi = ox + step * (nx - 1) as f64;
@@ -923,11 +847,15 @@ impl Simulator {
         } else {
             (x_lo, x_hi)
         };
-        let advance = self.config.instrument.retrace_slow_axis_advance_counts;
+        let advance = self
+            .state
+            .config
+            .instrument
+            .retrace_slow_axis_advance_counts;
         if turned || record_backward || lumped_n < 8 || !linear_x || advance != 0.0 {
             return None;
         }
-        let creep = self.scanner.creep[0].ramp_coefficients(&factors.creep_decays, lumped_n);
+        let creep = self.state.scanner.creep[0].ramp_coefficients(&factors.creep_decays, lumped_n);
         // The medium processes miss the updates of the skipped pixels
         // 0, 8, 16, … < lumped_n: one AR step covers their blocks.
         let medium_blocks = lumped_n.div_ceil(MEDIUM_FLICKER_PIXELS);
@@ -960,7 +888,7 @@ impl Simulator {
             return 0;
         }
         let (x_lo, x_hi) = plan.x_range;
-        let (lo, hi) = self.scanner.hysteresis[0].dead_band();
+        let (lo, hi) = self.state.scanner.hysteresis[0].dead_band();
         if !(lo <= x_lo && x_hi <= hi) {
             return 0;
         }
@@ -969,11 +897,11 @@ impl Simulator {
         } else {
             (x_hi, -step)
         };
-        let hx = self.scanner.hysteresis[0].offset();
-        let y_in = self.scanner.input[1];
-        self.scanner.creep_offset = [
-            self.scanner.creep[0].advance_ramp(&plan.creep, a + hx, b),
-            self.scanner.creep[1].advance_ramp(&plan.creep, y_in, 0.0),
+        let hx = self.state.scanner.hysteresis[0].offset();
+        let y_in = self.state.scanner.input[1];
+        self.state.scanner.creep_offset = [
+            self.state.scanner.creep[0].advance_ramp(&plan.creep, a + hx, b),
+            self.state.scanner.creep[1].advance_ramp(&plan.creep, y_in, 0.0),
         ];
         for &(k, c) in &plan.flicker {
             self.flicker.step(k, c, &mut self.noise_rng);
@@ -981,8 +909,8 @@ impl Simulator {
         let x_last = a + b * (lumped_n - 1) as f64;
         self.command = [x_last, line.y];
         let q = self.quantise_lateral([x_last, line.y]);
-        self.scanner.set(q);
-        self.time_s = line.base_s + lumped_n as f64 * dwell;
+        self.state.scanner.set(q);
+        self.state.time_s = line.base_s + lumped_n as f64 * dwell;
         lumped_n
     }
 
@@ -1010,7 +938,7 @@ impl Simulator {
                     events.next += 1;
                     if let Err(e) = self.fire(te, kind, Some(Operation::Scan), scheduled) {
                         // The scan stops at this pixel.
-                        self.time_s = te.max(t_mid - 0.5 * dwell);
+                        self.state.time_s = te.max(t_mid - 0.5 * dwell);
                         return Err(e);
                     }
                 }
@@ -1038,14 +966,14 @@ impl Simulator {
                 o.time_s.push(t_mid);
             }
             if half == TraceHalf::Forward {
-                if let Some(trace) = self.tip_trace.as_mut() {
+                if let Some(trace) = self.state.tip_trace.as_mut() {
                     trace.push(self.last_tip_nm);
                 }
-                if let Some(trace) = self.effective_trace.as_mut() {
+                if let Some(trace) = self.state.effective_trace.as_mut() {
                     trace.push(self.last_effective);
                 }
             }
-            self.time_s = t_mid + 0.5 * dwell;
+            self.state.time_s = t_mid + 0.5 * dwell;
         }
         Ok(())
     }
@@ -1078,14 +1006,17 @@ impl Simulator {
             step / dwell,
             Operation::Scan,
         )?;
-        for trace in [self.tip_trace.as_mut(), self.effective_trace.as_mut()]
-            .into_iter()
-            .flatten()
+        for trace in [
+            self.state.tip_trace.as_mut(),
+            self.state.effective_trace.as_mut(),
+        ]
+        .into_iter()
+        .flatten()
         {
             trace.clear();
             trace.reserve(nx * ny);
         }
-        let start = self.time_s;
+        let start = self.state.time_s;
         let line_s = 2.0 * nx as f64 * dwell;
         let end = start + line_s * ny as f64;
         self.flush_drift(end);
@@ -1108,12 +1039,16 @@ impl Simulator {
         let oy = request.origin.y.value();
         // Interlace: the second half of every line runs `advance` counts further
         // along the slow-scan direction (the command saturates at the field edge).
-        let advance = self.config.instrument.retrace_slow_axis_advance_counts
+        let advance = self
+            .state
+            .config
+            .instrument
+            .retrace_slow_axis_advance_counts
             * match request.direction {
                 ScanDirection::Direct => 1.0,
                 ScanDirection::Counter => -1.0,
             };
-        let field_h = self.config.instrument.lateral_half_range_counts;
+        let field_h = self.state.config.instrument.lateral_half_range_counts;
         let lumped = self.lumped_retrace(request, &factors, (turn.is_some(), backward.is_some()));
         for line in 0..ny {
             let row = match request.direction {
@@ -1164,7 +1099,7 @@ impl Simulator {
                 self.scan_half_line(&half_line, (half, first_pixel), &factors, &mut events, out)?;
             }
         }
-        self.time_s = end;
+        self.state.time_s = end;
         self.flush_drift(end);
         Ok(Frame {
             request: request.clone(),
@@ -1269,7 +1204,7 @@ impl Microscope for Simulator {
     type Error = SimError;
 
     fn capabilities(&self) -> Capabilities {
-        let i = &self.config.instrument;
+        let i = &self.state.config.instrument;
         let h = i.lateral_half_range_counts;
         let hz = i.z_half_range_counts;
         Capabilities {
@@ -1295,7 +1230,7 @@ impl Microscope for Simulator {
 
     fn now(&mut self) -> Result<Seconds, SimError> {
         self.begin_call(Operation::Now, false)?;
-        Ok(Seconds(self.time_s))
+        Ok(Seconds(self.state.time_s))
     }
 
     fn wait(&mut self, duration: Seconds) -> Result<(), SimError> {
@@ -1347,7 +1282,7 @@ impl Microscope for Simulator {
     }
 
     fn coarse_z(&mut self) -> Option<&mut dyn CoarseZStage<Error = SimError>> {
-        if self.config.instrument.coarse_z.is_some() {
+        if self.state.config.instrument.coarse_z.is_some() {
             Some(self)
         } else {
             None
@@ -1360,7 +1295,7 @@ impl CoarseZStage for Simulator {
 
     fn step(&mut self, steps: i64) -> Result<(), SimError> {
         self.begin_call(Operation::CoarseZ, true)?;
-        let Some(c) = self.config.instrument.coarse_z.clone() else {
+        let Some(c) = self.state.config.instrument.coarse_z.clone() else {
             return Err(SimError::OutOfRange {
                 reason: "this configuration has no coarse stage".to_owned(),
             });
@@ -1378,7 +1313,7 @@ impl CoarseZStage for Simulator {
         self.idle(duration, Operation::CoarseZ)?;
         self.coarse_steps = target;
         // The feedback re-establishes the gap at the new stage position.
-        self.z_nm = self.feedback_target_nm(self.time_s, None);
+        self.state.z_nm = self.feedback_target_nm(self.state.time_s, None);
         Ok(())
     }
 

@@ -17,35 +17,7 @@
 //! low-degree surfaces does not model: tests use it as the "hidden" effect whose residual
 //! must show up as structure.
 
-use serde::{Deserialize, Serialize};
-
-/// Nonlinearity of the Z manipulator and its variation over the lateral field. Every field
-/// is dimensionless (fractions); 0 everywhere = a linear manipulator with Kz everywhere.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ZManipulatorConfig {
-    /// Quadratic coefficient q of the characteristic `ζ(1 + q·ζ + c·ζ²)`, ζ = z / half range.
-    /// Kz changes by `2q` at full extension. Typical: 0.04.
-    pub quadratic: f64,
-    /// Cubic coefficient c. Kz changes by `3c` at full extension. Typical: 0.02.
-    pub cubic: f64,
-    /// Fractional change of Kz at the +x field edge (linear in x), e.g. electrode asymmetry.
-    /// Typical: 0.015.
-    pub lateral_gradient_x: f64,
-    /// Fractional change of Kz at the +y field edge (linear in y). Typical: -0.01.
-    pub lateral_gradient_y: f64,
-    /// Fractional change of Kz at normalised lateral radius 1 (quadratic in r; the tube's
-    /// bending stiffens the Z response at the field edges). Typical: 0.02.
-    pub lateral_radial: f64,
-    /// Amplitude of a sinusoidal ripple of Kz along x (a "hidden" effect, not a polynomial),
-    /// fraction. Typical: 0 (off).
-    pub ripple_fraction: f64,
-    /// Period of the ripple along x, lateral counts (> 0). Typical: 16384.
-    pub ripple_period_counts: f64,
-    /// Fractional change of Kz per hour of instrument time (aging, temperature): a Z effect
-    /// a calibration that takes Kz as static does not model. Typical: 0 (off).
-    pub kz_drift_per_hour: f64,
-}
+pub use crate::config::ZManipulatorConfig;
 
 /// The Z characteristic of a validated config (see the module docs).
 #[derive(Clone, Debug, PartialEq)]
@@ -162,61 +134,6 @@ impl ZMap {
     }
 }
 
-/// Checks a Z-manipulator config: the characteristic must stay monotone over the Z range and
-/// the lateral factor positive over the field. Returns the offending field and reason.
-pub(crate) fn check(c: &ZManipulatorConfig) -> Result<(), (&'static str, String)> {
-    for (field, v, lim) in [
-        ("quadratic", c.quadratic, 0.3),
-        ("cubic", c.cubic, 0.3),
-        ("lateral_gradient_x", c.lateral_gradient_x, 0.3),
-        ("lateral_gradient_y", c.lateral_gradient_y, 0.3),
-        ("lateral_radial", c.lateral_radial, 0.3),
-        ("ripple_fraction", c.ripple_fraction, 0.1),
-        ("kz_drift_per_hour", c.kz_drift_per_hour, 0.2),
-    ] {
-        if !(v.is_finite() && v.abs() <= lim) {
-            return Err((
-                field,
-                format!("must be a finite number in [-{lim}, {lim}], got {v}"),
-            ));
-        }
-    }
-    if !(c.ripple_period_counts.is_finite()
-        && c.ripple_period_counts >= 16.0
-        && c.ripple_period_counts <= 1e10)
-    {
-        return Err((
-            "ripple_period_counts",
-            format!(
-                "must be a finite number in [16, 1e10], got {}",
-                c.ripple_period_counts
-            ),
-        ));
-    }
-    // Monotone: dE/dz > 0 for |ζ| ≤ 1 (sampled), lateral factor > 0 on the field.
-    for k in 0..=40 {
-        let zeta = -1.0 + 0.05 * f64::from(k);
-        if 1.0 + 2.0 * c.quadratic * zeta + 3.0 * c.cubic * zeta * zeta <= 0.1 {
-            return Err((
-                "quadratic",
-                "with `cubic`, makes the Z characteristic non-monotone inside the Z range".into(),
-            ));
-        }
-    }
-    let worst = 1.0
-        - c.lateral_gradient_x.abs()
-        - c.lateral_gradient_y.abs()
-        - 2.0 * c.lateral_radial.min(0.0).abs()
-        - c.ripple_fraction.abs();
-    if worst <= 0.1 {
-        return Err((
-            "lateral_gradient_x",
-            "with the other lateral terms, makes Kz vanish somewhere in the field".into(),
-        ));
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -250,153 +167,12 @@ mod tests {
         }
         let linear = ZMap::new(0.004, 32768.0, 32768.0, None);
         assert_eq!(linear.counts_of(0.4, [1.0, 2.0]), 100.0);
-        assert!(check(&config()).is_ok());
+        assert!(crate::config::check_z_manipulator(&config()).is_ok());
         let bad = ZManipulatorConfig {
             quadratic: 0.3,
             cubic: -0.3,
             ..config()
         };
-        assert!(check(&bad).is_err());
-    }
-}
-
-/// Ground truth of the vertical axis (tests, benchmarks, xtask — never algorithms): the Kz
-/// field, the bowl (X,Y⇒Z) and the Z⇒X/Y crosstalk.
-///
-/// Lateral positions are *commanded* counts taken in the reference state (see
-/// [`crate::Oracle::reference_effective_input`]); Z is the controller's Z reading in counts.
-#[derive(Clone, Copy, Debug)]
-pub struct VerticalOracle<'a> {
-    sim: &'a crate::Simulator,
-    creep_settled: bool,
-}
-
-/// The Z⇒X/Y crosstalk of the scanner.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ZCrosstalk {
-    /// Tilted tube: X displacement per nm of extension, nm/nm.
-    pub tilt_x_nm_per_nm: f64,
-    /// Tilted tube: Y displacement per nm of extension, nm/nm.
-    pub tilt_y_nm_per_nm: f64,
-    /// Fractional change of both lateral sensitivities per count of the static map's Z
-    /// argument (extension / Kz₀), 1/count.
-    pub lateral_sensitivity_change_per_count: f64,
-}
-
-impl<'a> VerticalOracle<'a> {
-    pub(crate) fn new(sim: &'a crate::Simulator) -> Self {
-        Self {
-            sim,
-            creep_settled: true,
-        }
-    }
-
-    /// The same view, with lateral positions taken right after a move instead of with the
-    /// creep settled: the effective input `(1 + W_h)·u` (hysteresis midline, creep not yet
-    /// reacted). A node is measured seconds after its move, far from the settled state of
-    /// creep time constants up to hours; the two references bracket the state it had.
-    pub fn just_moved(mut self) -> Self {
-        self.creep_settled = false;
-        self
-    }
-
-    fn reference_effective(&self, commanded: spm_hal::CountPoint) -> [f64; 2] {
-        let o = self.sim.oracle();
-        let e = o.reference_effective_input(commanded);
-        if self.creep_settled {
-            [e.x.value(), e.y.value()]
-        } else {
-            let wc = 1.0 + self.sim.scanner.creep[0].total_weight();
-            [e.x.value() / wc, e.y.value() / wc]
-        }
-    }
-
-    /// True local Kz = ∂(extension)/∂(Z counts), nm/count, at commanded `u` and Z reading `z`.
-    pub fn kz_at(&self, commanded: spm_hal::CountPoint, z: spm_hal::Counts) -> spm_hal::NmPerCount {
-        let ue = self.reference_effective(commanded);
-        spm_hal::NmPerCount(self.sim.zmap.kz_nm_per_count(z.value(), ue))
-    }
-
-    /// True local Kz (nm/count) a small scan around commanded `u` sees now: the current
-    /// hysteresis and creep state (as [`crate::Oracle::effective_input_for`]) and Z reading.
-    pub fn kz_now(&self, commanded: spm_hal::CountPoint) -> spm_hal::NmPerCount {
-        let o = self.sim.oracle();
-        let e = o.effective_input_for(commanded);
-        let z = o.z_now();
-        spm_hal::NmPerCount(
-            self.sim
-                .zmap
-                .kz_nm_per_count(z.value(), [e.x.value(), e.y.value()]),
-        )
-    }
-
-    /// Extension (nm) of Z reading `z` at commanded `u`.
-    pub fn extension_nm(&self, commanded: spm_hal::CountPoint, z: spm_hal::Counts) -> f64 {
-        let ue = self.reference_effective(commanded);
-        self.sim.zmap.extension_nm(z.value(), ue)
-    }
-
-    /// Z reference (nm of extension) that holds the tip on the sample's reference plane with
-    /// the coarse stage at `coarse_steps`.
-    pub fn reference_extension_nm(&self, coarse_steps: i64) -> f64 {
-        let i = &self.sim.config.instrument;
-        let step = i.coarse_z.as_ref().map_or(0.0, |c| c.step_nm);
-        i.initial_z_extension_nm - coarse_steps as f64 * step
-    }
-
-    /// Extension (nm) the bowl adds at commanded `u` with the stage at `coarse_steps` (the
-    /// tube's arc over a flat, level sample; tilt and Z coupling included).
-    pub fn bowl_nm(&self, commanded: spm_hal::CountPoint, coarse_steps: i64) -> f64 {
-        let ue = self.reference_effective(commanded);
-        let kz0 = self.sim.map.kz_nm_per_count();
-        let base = self.reference_extension_nm(coarse_steps);
-        let mut e = base;
-        let mut bowl = 0.0;
-        for _ in 0..4 {
-            let p = self.sim.map.position(ue[0], ue[1], e / kz0);
-            bowl = self.sim.map.bowl_nm(p);
-            e = base + bowl;
-        }
-        bowl
-    }
-
-    /// The Z reading (counts, noiseless) of a flat, level sample on the reference plane at
-    /// commanded `u` with the stage at `coarse_steps`: the bowl as the controller sees it.
-    pub fn flat_sample_z_reading(
-        &self,
-        commanded: spm_hal::CountPoint,
-        coarse_steps: i64,
-    ) -> spm_hal::Counts {
-        let ue = self.reference_effective(commanded);
-        let e = self.reference_extension_nm(coarse_steps) + self.bowl_nm(commanded, coarse_steps);
-        spm_hal::Counts(self.sim.zmap.counts_of(e, ue))
-    }
-
-    /// History-independent true LCCs at commanded `u` for Z reading `z` (the Z reading is
-    /// turned into the static map's Z argument through the Z characteristic).
-    pub fn true_lcc_at_reading(
-        &self,
-        commanded: spm_hal::CountPoint,
-        z: spm_hal::Counts,
-    ) -> crate::Lcc {
-        let e = self.extension_nm(commanded, z);
-        let arg = spm_hal::Counts(e / self.sim.map.kz_nm_per_count());
-        self.sim.oracle().true_lcc(commanded, arg)
-    }
-
-    /// The Z⇒X/Y crosstalk parameters.
-    pub fn z_crosstalk(&self) -> ZCrosstalk {
-        let s = &self.sim.config.scanner;
-        ZCrosstalk {
-            tilt_x_nm_per_nm: s.tilt_x_from_z,
-            tilt_y_nm_per_nm: s.tilt_y_from_z,
-            lateral_sensitivity_change_per_count: s.lateral_sensitivity_change_per_z
-                / self.sim.config.instrument.z_half_range_counts,
-        }
-    }
-
-    /// True when the manipulator is linear and uniform.
-    pub fn is_linear(&self) -> bool {
-        self.sim.zmap.is_linear()
+        assert!(crate::config::check_z_manipulator(&bad).is_err());
     }
 }

@@ -1584,3 +1584,98 @@ fn the_equation_call_graph_finds_test_only_functions_and_second_formulas() {
     );
     assert_eq!(problems.len(), 6, "{problems:#?}");
 }
+
+/// spm-sim is layered (issue 28 item 4): the configuration; the physics of each part
+/// (`scanner`, `drift`, `surface`, `vertical`, `fault`); the state they make up (`state`); the
+/// oracle that reads that state and nothing else (`oracle`); the simulator that advances it
+/// (`sim`) and its ground-truth traits (`truth`). A module names (`crate::…`, in code, not in
+/// comments) only modules of a lower layer; a name re-exported at the crate root counts as its
+/// module's. No cycle is then possible (the oracle read 13 fields of the simulator, and
+/// config, sim, oracle and vertical named each other, before).
+#[test]
+fn the_simulator_is_layered_config_physics_state_oracle_simulator() {
+    let layer_of = |module: &str| -> Option<usize> {
+        Some(match module {
+            "config" => 0,
+            "fault" | "scanner" | "drift" | "surface" | "vertical" => 1,
+            "state" => 2,
+            "oracle" => 3,
+            "sim" => 4,
+            "truth" => 5,
+            _ => return None,
+        })
+    };
+    let src = workspace_root().join("crates/spm-sim/src");
+    let lib = std::fs::read_to_string(src.join("lib.rs")).expect("spm-sim's lib.rs");
+    // Root re-exports: `pub use module::{A, B};` (possibly over several lines).
+    let mut root_names: BTreeMap<String, String> = BTreeMap::new();
+    for statement in lib.split(';') {
+        let statement = statement.trim();
+        let Some(rest) = statement
+            .rsplit("pub use ")
+            .next()
+            .filter(|_| statement.contains("pub use "))
+        else {
+            continue;
+        };
+        let Some((module, names)) = rest.split_once("::") else {
+            continue;
+        };
+        for name in names
+            .trim_matches(|c| c == '{' || c == '}' || char::is_whitespace(c))
+            .split(',')
+        {
+            let name = name.trim();
+            if !name.is_empty() {
+                root_names.insert(name.to_owned(), module.trim().to_owned());
+            }
+        }
+    }
+    assert!(
+        root_names.get("Oracle").map(String::as_str) == Some("oracle"),
+        "the re-export parser found {root_names:?}"
+    );
+    let mut offences = Vec::new();
+    let mut checked = 0;
+    for file in rust_sources(&src) {
+        let module = file
+            .file_stem()
+            .and_then(|s| s.to_str())
+            .unwrap_or_default()
+            .to_owned();
+        let Some(own) = layer_of(&module) else {
+            continue;
+        };
+        let text = std::fs::read_to_string(&file).expect("source readable");
+        for (n, line) in text.lines().enumerate() {
+            let code = line.split("//").next().unwrap_or_default();
+            for piece in code.split("crate::").skip(1) {
+                let name: String = piece
+                    .chars()
+                    .take_while(|c| c.is_alphanumeric() || *c == '_')
+                    .collect();
+                let target = root_names.get(&name).cloned().unwrap_or(name);
+                let Some(theirs) = layer_of(&target) else {
+                    continue;
+                };
+                checked += 1;
+                if target != module && theirs >= own {
+                    offences.push(format!(
+                        "crates/spm-sim/src/{module}.rs:{}: `{module}` (layer {own}) names \
+                         `{target}` (layer {theirs})",
+                        n + 1
+                    ));
+                }
+            }
+        }
+    }
+    assert!(
+        checked >= 20,
+        "only {checked} crate paths found: the scan is broken"
+    );
+    assert!(
+        offences.is_empty(),
+        "spm-sim's layers are crossed:\n  {}",
+        offences.join("\n  ")
+    );
+}

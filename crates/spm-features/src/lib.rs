@@ -33,6 +33,7 @@
 #![doc = include_str!("../README.md")]
 #![warn(missing_docs)]
 
+pub mod cells;
 pub mod crb;
 mod detect;
 mod error;

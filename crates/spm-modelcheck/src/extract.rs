@@ -1,12 +1,12 @@
 //! From image files to feature observations with acquisition times.
 
-use crate::cells::{self, Image, LatticeSearch, Peaks, Template};
 use crate::diagnose::{Diagnosis, diagnose_features};
 use crate::level::{Lines, lattice_harmonics, level_lines, refine_basis};
 use crate::types::{
     FeatureObservation, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError,
     Options, SI7X7_A_NM,
 };
+use spm_features::cells::{self, Image, LatticeSearch, Peaks, Template};
 use spm_features::{DetectionConfig, Polarity, detect};
 use spm_formats::{Channel, DateTime, Direction, ScanDir, SpmFile};
 use spm_hal::{CountPoint, Counts, HeightMap};

@@ -294,7 +294,7 @@ fn nn_fraction(points: &[[f64; 2]], b1: [f64; 2], b2: [f64; 2]) -> f64 {
 fn refine_reciprocal(points: &[[f64; 2]], k1: [f64; 2], k2: [f64; 2]) -> ([f64; 2], [f64; 2]) {
     let near = |k: [f64; 2]| {
         let r = k[0].hypot(k[1]);
-        let (q, _) = crate::cells::climb(&|q| structure_factor(points, q), k, 0.01 * r);
+        let (q, _) = spm_features::cells::climb(&|q| structure_factor(points, q), k, 0.01 * r);
         let (rq, turn) = (
             q[0].hypot(q[1]),
             (k[0] * q[1] - k[1] * q[0]).atan2(k[0] * q[0] + k[1] * q[1]),

@@ -32,8 +32,8 @@
 //! pseudo-inverse leaves it to the offsets, whose removal is then the same for every
 //! atom of a row and moves none.
 
-use crate::cells::{Peaks, climb};
 use nalgebra::{DMatrix, DVector};
+use spm_features::cells::{Peaks, climb};
 
 /// Tukey weight of column `c` of `nx`: flat in the middle, sin² tapers over the outer
 /// 15 % of each end: enough to suppress the partial-period leakage (tests/it/image.rs,

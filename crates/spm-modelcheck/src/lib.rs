@@ -41,7 +41,6 @@
 #![doc = include_str!("../README.md")]
 #![warn(missing_docs)]
 
-mod cells;
 mod diagnose;
 mod extract;
 mod index;

@@ -23,13 +23,13 @@
 //!    distortion does not accumulate into a wrong site), the template refolded over the
 //!    accepted cells only, and every cell located again.
 
+use crate::Polarity;
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
-use spm_features::Polarity;
 use std::f64::consts::{PI, TAU};
 
 /// A levelled height map in pixel units (row index grows with y) and its unscanned pixels.
 #[derive(Clone, Copy, Debug)]
-pub(crate) struct Image<'a> {
+pub struct Image<'a> {
     /// Heights, row-major.
     pub z: &'a [f64],
     /// Unscanned (NaN) pixels.
@@ -53,17 +53,17 @@ impl Image<'_> {
 /// Each lattice peak must exceed the median power of its ring (|k| ± 15 %) by this factor.
 /// White noise gives ≲ 10 (the largest of ~10³ exponential values over their median);
 /// the Si 7×7 and graphite images give 10²–10⁵.
-pub(crate) const MIN_PEAK_CONTRAST: f64 = 25.0;
+pub const MIN_PEAK_CONTRAST: f64 = 25.0;
 /// A cell is kept when its template correlation reaches this fraction of the image's
 /// median cell correlation (noise lowers every cell's correlation alike; defects, steps
 /// and cells cut by a tip change fall far below the typical cell) …
-pub(crate) const RELATIVE_CORRELATION: f64 = 0.6;
+pub const RELATIVE_CORRELATION: f64 = 0.6;
 /// … and at least this (below it a cell is not distinguished from noise).
-pub(crate) const MIN_CORRELATION: f64 = 0.25;
+pub const MIN_CORRELATION: f64 = 0.25;
 
 /// The image's lattice: two reciprocal vectors in cycles per pixel (column, row).
 #[derive(Clone, Debug, PartialEq)]
-pub(crate) struct Peaks {
+pub struct Peaks {
     /// k₁, k₂, cycles per pixel.
     pub k: [[f64; 2]; 2],
     /// The two strongest indexed peaks' power over the median power of their ring.
@@ -179,7 +179,7 @@ impl Windowed {
 
 /// Maximises `f` from `start` by a compass search whose step halves from `step` to
 /// `step / 256`.
-pub(crate) fn climb(f: &dyn Fn([f64; 2]) -> f64, start: [f64; 2], step: f64) -> ([f64; 2], f64) {
+pub fn climb(f: &dyn Fn([f64; 2]) -> f64, start: [f64; 2], step: f64) -> ([f64; 2], f64) {
     let (mut x, mut best) = (start, f(start));
     let mut h = step;
     while h > step / 256.0 {
@@ -200,7 +200,7 @@ pub(crate) fn climb(f: &dyn Fn([f64; 2]) -> f64, start: [f64; 2], step: f64) -> 
 
 /// Where to look for the lattice's peaks.
 #[derive(Clone, Copy, Debug)]
-pub(crate) struct LatticeSearch {
+pub struct LatticeSearch {
     /// Pixel pitch (x, y) in the unit of `k_range` (nm; 1 when the size is unknown).
     pub pixel: [f64; 2],
     /// |k| range of the lattice's first peaks, cycles per unit of `pixel`.
@@ -211,7 +211,7 @@ pub(crate) struct LatticeSearch {
 
 /// The two first peaks of the image's lattice, or `None` when the spectrum shows no
 /// significant lattice in the search range.
-pub(crate) fn find_lattice(img: &Image<'_>, search: &LatticeSearch) -> Option<Peaks> {
+pub fn find_lattice(img: &Image<'_>, search: &LatticeSearch) -> Option<Peaks> {
     let win = Windowed::new(img);
     let (nx, ny) = (img.nx as f64, img.ny as f64);
     let px = search.pixel;
@@ -449,7 +449,7 @@ fn refit(harmonics: &[([i64; 2], [f64; 2], f64)]) -> Option<[[f64; 2]; 2]> {
 /// refitted (another frame or direction of one series is distorted differently, but by
 /// far less than the distance to the pattern's other peaks; a free search there can be
 /// caught by another order of the pattern).
-pub(crate) fn follow_lattice(img: &Image<'_>, reference: &Peaks) -> Peaks {
+pub fn follow_lattice(img: &Image<'_>, reference: &Peaks) -> Peaks {
     let win = Windowed::new(img);
     let step = 0.25 / (img.nx.max(img.ny) as f64);
     let [g1, g2] = reference.k;
@@ -469,7 +469,7 @@ pub(crate) fn follow_lattice(img: &Image<'_>, reference: &Peaks) -> Peaks {
 
 /// The mean cell: periodic in fractional coordinates (u, v) ∈ [0, 1)², zero mean, unit RMS.
 #[derive(Clone, Debug, PartialEq)]
-pub(crate) struct Template {
+pub struct Template {
     g: usize,
     v: Vec<f64>,
 }
@@ -731,7 +731,7 @@ fn fold(img: &Image<'_>, q: &Poly, mask: Option<&[bool]>, g: usize) -> Option<Te
 
 /// One located cell.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) struct Cell {
+pub struct Cell {
     /// Lattice site in this image's own indexing.
     pub site: [i64; 2],
     /// Position of the cell's origin, pixels (column, row).
@@ -1044,7 +1044,7 @@ fn locate_one(img: &Image<'_>, t: &Template, geo: &Geometry, site: [i64; 2]) -> 
 
 /// All cells of one image.
 #[derive(Clone, Debug)]
-pub(crate) struct CellRun {
+pub struct CellRun {
     /// The cells located.
     pub cells: Vec<Cell>,
     /// The final template and its origin (the point reported as the cell's position).
@@ -1116,7 +1116,7 @@ fn locate_all(img: &Image<'_>, t: &Template, geo: &Geometry) -> (Vec<Cell>, usiz
 /// Locates every cell of `img` on the lattice `peaks`; the template's origin is the
 /// pattern's extremum (by `polarity`) or, with `reference`, the point of this image's
 /// template that matches the reference template's origin.
-pub(crate) fn locate_cells(
+pub fn locate_cells(
     img: &Image<'_>,
     peaks: &Peaks,
     polarity: Polarity,

@@ -60,11 +60,77 @@ impl Lattice {
     }
 }
 
-struct Cluster {
-    reference: (f64, f64),
-    sum: (f64, f64),
-    sum_sq: (f64, f64),
-    n: usize,
+/// Neighbour vectors of one direction ([`neighbour_vector_clusters`]): folded into one
+/// half-plane and summed.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct VectorCluster {
+    /// The first vector of the cluster (the direction the others are compared with).
+    pub reference: (f64, f64),
+    /// The sum of its vectors, each turned to point along `reference`.
+    pub sum: (f64, f64),
+    /// The sum of their squared components.
+    pub sum_sq: (f64, f64),
+    /// How many vectors.
+    pub n: usize,
+}
+
+impl VectorCluster {
+    /// The mean vector.
+    #[must_use]
+    pub fn mean(&self) -> (f64, f64) {
+        (self.sum.0 / self.n as f64, self.sum.1 / self.n as f64)
+    }
+}
+
+/// The lattice-basis estimator's one kernel (lattice vectors of detected features, the model
+/// check's basis of a point set): the difference vector of every pair of `pos` whose length
+/// `keep_length` accepts, folded so that v and −v coincide (into x > 0, or x = 0 and y > 0),
+/// clustered by direction — a vector joins the first cluster whose reference it is parallel or
+/// antiparallel to by `parallel(|cos|)`, else it starts one. Clusters in the order found.
+pub fn neighbour_vector_clusters(
+    pos: &[(f64, f64)],
+    keep_length: impl Fn(f64) -> bool,
+    parallel: impl Fn(f64) -> bool,
+) -> Vec<VectorCluster> {
+    let mut clusters: Vec<VectorCluster> = Vec::new();
+    for i in 0..pos.len() {
+        for j in i + 1..pos.len() {
+            let mut v = (pos[j].0 - pos[i].0, pos[j].1 - pos[i].1);
+            let len = v.0.hypot(v.1);
+            if !keep_length(len) {
+                continue;
+            }
+            // Fold into the half-plane x > 0 (or x = 0, y > 0).
+            if v.0 < 0.0 || (v.0 == 0.0 && v.1 < 0.0) {
+                v = (-v.0, -v.1);
+            }
+            let mut placed = false;
+            for cluster in &mut clusters {
+                let r = cluster.reference;
+                let rl = r.0.hypot(r.1);
+                let cos = (v.0 * r.0 + v.1 * r.1) / (len * rl);
+                if parallel(cos.abs()) {
+                    let w = if cos < 0.0 { (-v.0, -v.1) } else { v };
+                    cluster.sum.0 += w.0;
+                    cluster.sum.1 += w.1;
+                    cluster.sum_sq.0 += w.0 * w.0;
+                    cluster.sum_sq.1 += w.1 * w.1;
+                    cluster.n += 1;
+                    placed = true;
+                    break;
+                }
+            }
+            if !placed {
+                clusters.push(VectorCluster {
+                    reference: v,
+                    sum: v,
+                    sum_sq: (v.0 * v.0, v.1 * v.1),
+                    n: 1,
+                });
+            }
+        }
+    }
+    clusters
 }
 
 /// Feature positions as `(x, y)` counts.
@@ -121,44 +187,11 @@ pub fn lattice_vectors(
     }
     let max_len = config.max_neighbour_factor * d_nn;
     let cos_tol = config.angle_tolerance_rad.cos();
-    let mut clusters: Vec<Cluster> = Vec::new();
-    for i in 0..pos.len() {
-        for j in i + 1..pos.len() {
-            let mut v = (pos[j].0 - pos[i].0, pos[j].1 - pos[i].1);
-            let len = v.0.hypot(v.1);
-            if len > max_len || len <= 0.0 {
-                continue;
-            }
-            // Fold into the half-plane x > 0 (or x = 0, y > 0).
-            if v.0 < 0.0 || (v.0 == 0.0 && v.1 < 0.0) {
-                v = (-v.0, -v.1);
-            }
-            let mut placed = false;
-            for cluster in &mut clusters {
-                let r = cluster.reference;
-                let rl = r.0.hypot(r.1);
-                let cos = (v.0 * r.0 + v.1 * r.1) / (len * rl);
-                if cos.abs() >= cos_tol {
-                    let w = if cos < 0.0 { (-v.0, -v.1) } else { v };
-                    cluster.sum.0 += w.0;
-                    cluster.sum.1 += w.1;
-                    cluster.sum_sq.0 += w.0 * w.0;
-                    cluster.sum_sq.1 += w.1 * w.1;
-                    cluster.n += 1;
-                    placed = true;
-                    break;
-                }
-            }
-            if !placed {
-                clusters.push(Cluster {
-                    reference: v,
-                    sum: v,
-                    sum_sq: (v.0 * v.0, v.1 * v.1),
-                    n: 1,
-                });
-            }
-        }
-    }
+    let clusters = neighbour_vector_clusters(
+        &pos,
+        |len| !(len > max_len || len <= 0.0),
+        |cos_abs| cos_abs >= cos_tol,
+    );
     let mut vectors: Vec<LatticeVector> = clusters
         .iter()
         .filter(|c| c.n >= config.min_pairs.max(1))

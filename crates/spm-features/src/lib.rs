@@ -53,7 +53,8 @@ pub use detect::{
 };
 pub use error::FeatureError;
 pub use lattice::{
-    Lattice, LatticeConfig, LatticeVector, lattice_vectors, nearest_neighbour_distance, positions,
+    Lattice, LatticeConfig, LatticeVector, VectorCluster, lattice_vectors,
+    nearest_neighbour_distance, neighbour_vector_clusters, positions,
 };
 pub use lcs::{
     HOPG_LATTICE_NM, Lcs, LcsCandidates, LcsConfig, LcsStandard, find_lcs_at_nearest_vertex,

@@ -62,38 +62,19 @@ fn measure_basis(points: &[[f64; 2]], a_expected_nm: Option<f64>) -> Option<([f6
     if !(d_nn.is_finite() && d_nn > 0.0) {
         return None;
     }
-    // Cluster folded neighbour vectors by direction (angle mod π).
-    let mut clusters: Vec<([f64; 2], usize, [f64; 2])> = Vec::new(); // (sum, n, reference)
-    for (i, p) in points.iter().enumerate() {
-        for q in points.iter().skip(i + 1) {
-            let mut v = [q[0] - p[0], q[1] - p[1]];
-            let len = v[0].hypot(v[1]);
-            if !(len > 0.7 * d_nn && len < 1.3 * d_nn) {
-                continue;
-            }
-            if v[0] < 0.0 || (v[0] == 0.0 && v[1] < 0.0) {
-                v = [-v[0], -v[1]];
-            }
-            let mut placed = false;
-            for c in &mut clusters {
-                let r = c.2;
-                let cos = (v[0] * r[0] + v[1] * r[1]) / (len * r[0].hypot(r[1]));
-                if cos.abs() > 0.97 {
-                    let w = if cos < 0.0 { [-v[0], -v[1]] } else { v };
-                    c.0[0] += w[0];
-                    c.0[1] += w[1];
-                    c.1 += 1;
-                    placed = true;
-                    break;
-                }
-            }
-            if !placed {
-                clusters.push((v, 1, v));
-            }
-        }
-    }
-    clusters.sort_by_key(|c| std::cmp::Reverse(c.1));
-    let mean = |c: &([f64; 2], usize, [f64; 2])| [c.0[0] / c.1 as f64, c.0[1] / c.1 as f64];
+    // Cluster folded neighbour vectors by direction (angle mod π): spm-features' kernel, with
+    // pairs within 30 % of the nearest-neighbour distance, directions within 14°.
+    let pos: Vec<(f64, f64)> = points.iter().map(|p| (p[0], p[1])).collect();
+    let mut clusters = spm_features::neighbour_vector_clusters(
+        &pos,
+        |len| len > 0.7 * d_nn && len < 1.3 * d_nn,
+        |cos_abs| cos_abs > 0.97,
+    );
+    clusters.sort_by_key(|c| std::cmp::Reverse(c.n));
+    let mean = |c: &spm_features::VectorCluster| {
+        let (x, y) = c.mean();
+        [x, y]
+    };
     let first = clusters.first()?;
     let b1 = mean(first);
     // The second: the most populated direction clearly not parallel to b1.

@@ -221,3 +221,41 @@ pub fn lattice_vectors(
         nearest_neighbour: Counts(d_nn),
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 4 × 3 triangular lattice with a = 2 (rows along x): the nearest-neighbour pairs fall
+    /// into the three directions 0°, 60° and 120°, folded into the right half-plane, with the
+    /// exact counts of a 4 × 3 patch; a window that keeps nothing gives no cluster.
+    #[test]
+    fn neighbour_vectors_of_a_triangular_patch_cluster_into_its_three_directions() {
+        let a = 2.0;
+        let h = a * 3f64.sqrt() / 2.0;
+        let pos: Vec<(f64, f64)> = (0..3)
+            .flat_map(|r| {
+                (0..4).map(move |c| {
+                    (
+                        a * f64::from(c) + 0.5 * a * f64::from(r % 2),
+                        h * f64::from(r),
+                    )
+                })
+            })
+            .collect();
+        let clusters =
+            neighbour_vector_clusters(&pos, |len| len > 0.9 * a && len < 1.1 * a, |c| c > 0.99);
+        assert_eq!(clusters.len(), 3, "{clusters:?}");
+        // Along x: 3 pairs per row × 3 rows; each oblique direction: 4 + 3 pairs between
+        // two rows.
+        let expect = [((a, 0.0), 9), ((0.5 * a, h), 7), ((0.5 * a, -h), 7)];
+        for (mean, n) in expect {
+            let hit = clusters.iter().find(|c| {
+                let m = c.mean();
+                (m.0 - mean.0).abs() < 1e-12 && (m.1 - mean.1).abs() < 1e-12
+            });
+            assert_eq!(hit.map(|c| c.n), Some(n), "{mean:?} in {clusters:?}");
+        }
+        assert!(neighbour_vector_clusters(&pos, |_| false, |_| true).is_empty());
+    }
+}

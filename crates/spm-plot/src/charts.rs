@@ -8,17 +8,17 @@ use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 
-type Area<'a> = DrawingArea<BitMapBackend<'a>, Shift>;
+pub(crate) type Area<'a> = DrawingArea<BitMapBackend<'a>, Shift>;
 
-const TITLE_PX: u32 = 22;
-const LABEL_PX: u32 = 18;
-const TICK_PX: u32 = 16;
+pub(crate) const TITLE_PX: u32 = 22;
+pub(crate) const LABEL_PX: u32 = 18;
+pub(crate) const TICK_PX: u32 = 16;
 /// The smallest text any chart of this crate draws, pixels of the PNG (the tick labels): at
 /// a display width w of a figure W pixels wide it reads at `MIN_FONT_PX × w / W` px.
 pub const MIN_FONT_PX: u32 = TICK_PX;
 
 /// Draws with `draw` on a white `width`×`height` canvas and returns the PNG.
-fn figure(
+pub(crate) fn figure(
     title: &str,
     width: u32,
     height: u32,
@@ -37,7 +37,7 @@ fn figure(
     encode_png(title, w, h, &rgb)
 }
 
-fn draw_error(figure: &str, e: impl std::fmt::Display) -> PlotError {
+pub(crate) fn draw_error(figure: &str, e: impl std::fmt::Display) -> PlotError {
     PlotError::Draw {
         figure: figure.to_owned(),
         message: e.to_string(),
@@ -94,7 +94,7 @@ fn log_range_with_legend(lo: f64, hi: f64, rows: usize) -> (f64, f64) {
 }
 
 /// The finite (min, max) of `values`, widened when degenerate; `None` when none is finite.
-fn finite_range(values: impl Iterator<Item = f64>) -> Option<(f64, f64)> {
+pub(crate) fn finite_range(values: impl Iterator<Item = f64>) -> Option<(f64, f64)> {
     let (lo, hi) = values
         .filter(|v| v.is_finite())
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
@@ -110,13 +110,13 @@ fn finite_range(values: impl Iterator<Item = f64>) -> Option<(f64, f64)> {
     Some((lo, hi))
 }
 
-fn pad_range((lo, hi): (f64, f64), fraction: f64) -> (f64, f64) {
+pub(crate) fn pad_range((lo, hi): (f64, f64), fraction: f64) -> (f64, f64) {
     let pad = (hi - lo) * fraction;
     (lo - pad, hi + pad)
 }
 
 /// Approximate tick step plotters uses for `n` ticks over `range` (for label decimals).
-fn step_of((lo, hi): (f64, f64), n: usize) -> f64 {
+pub(crate) fn step_of((lo, hi): (f64, f64), n: usize) -> f64 {
     let raw = (hi - lo) / n.max(1) as f64;
     if !(raw > 0.0 && raw.is_finite()) {
         return 1.0;
@@ -679,6 +679,8 @@ pub enum SeriesStyle {
     Markers,
     /// Crosses only (e.g. rejected or spoiled samples).
     Crosses,
+    /// Small translucent dots (thousands of points, e.g. residuals of every feature).
+    Dots,
     /// A shaded band: the points are the band's outline, its lower edge left to right then
     /// its upper edge right to left (e.g. a 16–84 % spread around a running median); shaded
     /// in the colour of the series that follows it (the median it surrounds).
@@ -793,7 +795,7 @@ pub fn xy_chart(f: &XyFigure) -> Result<Vec<u8>, PlotError> {
     })
 }
 
-fn draw_xy_series<'a, 'b: 'a, X, Y>(
+pub(crate) fn draw_xy_series<'a, 'b: 'a, X, Y>(
     chart: &mut ChartContext<'a, BitMapBackend<'b>, Cartesian2d<X, Y>>,
     title: &str,
     series: &[(&Series, Vec<(f64, f64)>)],
@@ -843,6 +845,13 @@ where
             drawn
                 .label(s.name.as_str())
                 .legend(move |(x, y)| Cross::new((x + 10, y), 6, colour.stroke_width(2)));
+        } else if style == SeriesStyle::Dots {
+            let dot = colour.mix(0.55);
+            chart
+                .draw_series(points.iter().map(|&p| Circle::new(p, 2, dot.filled())))
+                .map_err(|e| draw_error(title, e))?
+                .label(s.name.as_str())
+                .legend(move |(x, y)| Circle::new((x + 10, y), 4, colour.filled()));
         } else if style != SeriesStyle::Line {
             let drawn = chart
                 .draw_series(points.iter().map(|&p| Circle::new(p, 4, colour.filled())))

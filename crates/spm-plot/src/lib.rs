@@ -22,6 +22,7 @@ mod channel;
 mod charts;
 mod colour;
 mod font;
+mod panels;
 
 pub use channel::{PngOptions, render_png, write_png};
 pub use charts::{
@@ -32,6 +33,7 @@ pub use charts::{
 };
 pub use colour::{ColorMap, category_colour};
 pub use font::{FONT_FAMILY, register_fonts};
+pub use panels::{PanelGrid, XyPanel, panel_grid};
 
 /// Why a figure could not be drawn or written.
 #[derive(Debug, thiserror::Error)]

@@ -1679,3 +1679,39 @@ fn the_simulator_is_layered_config_physics_state_oracle_simulator() {
         offences.join("\n  ")
     );
 }
+
+/// One drawing stack (issue 28 item 5): spm-plot is the only crate whose manifest names
+/// plotters; the model check, the CLI and xtask draw through it.
+#[test]
+fn only_spm_plot_depends_on_plotters() {
+    let mut users = Vec::new();
+    let manifests = crate_names()
+        .into_iter()
+        .map(|name| {
+            workspace_root()
+                .join("crates")
+                .join(name)
+                .join("Cargo.toml")
+        })
+        .chain([workspace_root().join("xtask/Cargo.toml")]);
+    for manifest in manifests {
+        let text = std::fs::read_to_string(&manifest).expect("manifest readable");
+        let table: toml::Table = text.parse().expect("manifest is TOML");
+        let names = |key: &str| {
+            table
+                .get(key)
+                .and_then(toml::Value::as_table)
+                .is_some_and(|deps| deps.contains_key("plotters"))
+        };
+        if names("dependencies") || names("dev-dependencies") || names("build-dependencies") {
+            users.push(
+                manifest
+                    .strip_prefix(workspace_root())
+                    .unwrap_or(&manifest)
+                    .display()
+                    .to_string(),
+            );
+        }
+    }
+    assert_eq!(users, vec!["crates/spm-plot/Cargo.toml".to_owned()]);
+}

@@ -6,8 +6,8 @@
 
 use spm_plot::{
     CategoryFigure, CategorySeries, ColorMap, MAP_HEIGHT_PX, MAP_WIDTH_PX, MapFigure, MapNode,
-    OrderFigure, OrderPanel, Series, SeriesStyle, XyFigure, category_chart, order_map,
-    running_quantiles, surface_map, xy_chart,
+    OrderFigure, OrderPanel, PanelGrid, Series, SeriesStyle, XyFigure, XyPanel, category_chart,
+    category_colour, order_map, panel_grid, running_quantiles, surface_map, xy_chart,
 };
 
 struct Image {
@@ -393,4 +393,56 @@ fn running_quantiles_match_the_closed_form() {
     let q = running_quantiles(&sparse, 2, 2, &[0.5]);
     assert_eq!(q, vec![(7.5, vec![3.0])]);
     assert!(running_quantiles(&[], 4, 1, &[0.5]).is_empty());
+}
+
+/// A panel grid (the model check's residual figure): the requested size, the title and the
+/// notes drawn in the header band, each panel's dots in its series' colour, and a panel with
+/// nothing to draw saying so instead of failing the figure; no panel at all is an error.
+#[test]
+fn a_panel_grid_draws_its_header_and_every_panel() {
+    let dots = |name: &str, k: f64| Series {
+        name: name.to_owned(),
+        points: (0..400)
+            .map(|i| (f64::from(i), k * (f64::from(i) * 0.05).sin()))
+            .collect(),
+        style: SeriesStyle::Dots,
+    };
+    let panel = |title: &str, series: Vec<Series>| XyPanel {
+        title: title.to_owned(),
+        x_label: "time / s".to_owned(),
+        y_label: "residual / pm".to_owned(),
+        series,
+        zero_line: true,
+        y_from_zero: false,
+    };
+    let grid = PanelGrid {
+        title: "residuals".to_owned(),
+        notes: vec![
+            "baseline 10 pm → final 2 pm".to_owned(),
+            "found: none".to_owned(),
+        ],
+        columns: 2,
+        panels: vec![
+            panel("x and y", vec![dots("x", 100.0), dots("y", -50.0)]),
+            panel("empty", vec![]),
+            panel("only y", vec![dots("y", 20.0)]),
+        ],
+        size: (1000, 700),
+    };
+    let png = panel_grid(&grid).unwrap();
+    save("panel-grid.png", &png);
+    let image = Image::decode(&png);
+    assert_eq!((image.w, image.h), (1000, 700));
+    assert!(image.dark_pixels(0..30) > 100, "no title drawn");
+    assert!(image.dark_pixels(40..90) > 200, "no notes drawn");
+    let blue = category_colour(0);
+    assert!(
+        image.has_colour([blue.0, blue.1, blue.2], 40),
+        "the first series is not drawn"
+    );
+    let empty = PanelGrid {
+        panels: Vec::new(),
+        ..grid
+    };
+    assert!(panel_grid(&empty).is_err());
 }

@@ -158,6 +158,28 @@ impl DateTime {
             u8::try_from(of_day % 60).ok()?,
         )
     }
+
+    /// Seconds after 1970-01-01T00:00:00 UTC of this date-time taken as UTC (the inverse of
+    /// [`Self::from_unix_seconds`]: civil date to days after H. Hinnant's algorithm).
+    #[must_use]
+    pub fn unix_seconds(&self) -> i64 {
+        let (y, m, d) = (
+            i64::from(self.year),
+            i64::from(self.month),
+            i64::from(self.day),
+        );
+        let y = if m <= 2 { y - 1 } else { y };
+        let era = if y >= 0 { y } else { y - 399 } / 400;
+        let yoe = y - era * 400;
+        let mp = (m + 9) % 12;
+        let doy = (153 * mp + 2) / 5 + d - 1;
+        let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+        let days = era * 146_097 + doe - 719_468;
+        days * 86_400
+            + i64::from(self.hour) * 3600
+            + i64::from(self.minute) * 60
+            + i64::from(self.second)
+    }
 }
 
 impl fmt::Display for DateTime {
@@ -598,5 +620,27 @@ mod tests {
         check(-1, (1969, 12, 31, 23, 59, 59));
         check(4_107_542_399, (2100, 2, 28, 23, 59, 59)); // 2100 is no leap year
         check(4_107_542_400, (2100, 3, 1, 0, 0, 0));
+    }
+
+    /// The inverse: the same hand-computed instants back to Unix seconds, and a round trip
+    /// over every day of four centuries (leap years and the century rule).
+    #[test]
+    fn civil_dates_become_unix_seconds() {
+        for (secs, (y, mo, d, h, mi, s)) in [
+            (0, (1970, 1, 1, 0, 0, 0)),
+            (951_782_400, (2000, 2, 29, 0, 0, 0)),
+            (1_795_000_000, (2026, 11, 18, 11, 6, 40)),
+            (-1, (1969, 12, 31, 23, 59, 59)),
+            (4_107_542_399, (2100, 2, 28, 23, 59, 59)),
+            (4_107_542_400, (2100, 3, 1, 0, 0, 0)),
+        ] {
+            let date = DateTime::new(y, mo, d, h, mi, s).expect("valid");
+            assert_eq!(date.unix_seconds(), secs, "{date}");
+        }
+        for day in -73_000..73_000_i64 {
+            let secs = day * 86_400 + 3_723;
+            let date = DateTime::from_unix_seconds(secs).expect("in range");
+            assert_eq!(date.unix_seconds(), secs, "{date}");
+        }
     }
 }

@@ -74,19 +74,9 @@ pub struct ImageInput {
     pub start_time_s: Option<f64>,
 }
 
-fn days_from_civil(y: i64, m: i64, d: i64) -> i64 {
-    let y = if m <= 2 { y - 1 } else { y };
-    let era = if y >= 0 { y } else { y - 399 } / 400;
-    let yoe = y - era * 400;
-    let mp = (m + 9) % 12;
-    let doy = (153 * mp + 2) / 5 + d - 1;
-    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
-    era * 146_097 + doe - 719_468
-}
-
+/// A record time as seconds on the Unix axis (spm-formats' calendar).
 fn seconds_of(dt: DateTime) -> f64 {
-    let days = days_from_civil(dt.year as i64, dt.month as i64, dt.day as i64);
-    (days * 86_400 + dt.hour as i64 * 3600 + dt.minute as i64 * 60 + dt.second as i64) as f64
+    dt.unix_seconds() as f64
 }
 
 /// Where a height map's features belong and how to find them.

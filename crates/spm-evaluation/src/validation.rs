@@ -480,6 +480,8 @@ pub fn repeat_agreement(records: &[LccRecord], config: &RunValidationConfig) -> 
 pub struct LatticePlace {
     /// Place label ("centre", "corner −x −y", …).
     pub place: String,
+    /// The centre of the place's direct image, commanded counts.
+    pub centre_counts: [f64; 2],
     /// Lattice-constant error of the uncorrected pair (nominal sensitivity, drift removed by
     /// the pair), % (None: not measured).
     pub uncorrected_error_pct: Option<f64>,
@@ -616,12 +618,24 @@ pub fn lattice_check(
         .iter()
         .zip(&corrected)
         .zip(&static_only)
-        .map(|(((_, place, u), (_, _, c)), (_, _, st))| {
+        .map(|(((pair, place, u), (_, _, c)), (_, _, st))| {
             let (ue, ua) = figures(u);
             let (ce, ca) = figures(c);
             let (se, sa) = figures(st);
+            let centre_counts = images
+                .iter()
+                .find(|i| i.pair == *pair && i.direction == spm_hal::ScanDirection::Direct)
+                .map_or([f64::NAN; 2], |i| {
+                    let m = &i.map;
+                    let half = |n: usize| 0.5 * (n.max(1) - 1) as f64 * m.pixel_step.value();
+                    [
+                        m.origin.x.value() + half(m.columns),
+                        m.origin.y.value() + half(m.rows),
+                    ]
+                });
             LatticePlace {
                 place: place.clone(),
+                centre_counts,
                 uncorrected_error_pct: ue,
                 uncorrected_angle_error_deg: ua,
                 corrected_error_pct: ce,

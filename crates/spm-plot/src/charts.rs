@@ -477,6 +477,9 @@ pub struct FieldFigure<'a> {
     pub points: &'a [(f64, f64)],
     /// Colour map.
     pub map: ColorMap,
+    /// Every panel on one colour scale (the union of their ranges: panels of one quantity to
+    /// compare, e.g. before and after a correction); else each panel on its own.
+    pub shared_scale: bool,
 }
 
 /// Height of one panel of a [`field_maps`] figure, pixels.
@@ -508,6 +511,16 @@ pub fn field_maps(f: &FieldFigure<'_>) -> Result<Vec<u8>, PlotError> {
         })
         .collect::<Option<Vec<_>>>()
         .ok_or_else(empty)?;
+    let ranges = if f.shared_scale {
+        let union = ranges
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), r| {
+                (lo.min(r.0), hi.max(r.1))
+            });
+        vec![union; ranges.len()]
+    } else {
+        ranges
+    };
     let height = 40 + FIELD_PANEL_PX * f.panels.len() as u32;
     figure(title, MAP_WIDTH_PX, height, |root| {
         let body = root

@@ -938,6 +938,7 @@ fn run_section(page: &mut Page, report: &CalibrationReport, figures: &[Figure]) 
 
     targets_section(page, &report.targets);
     validation_section(page, &report.validation);
+    figure(page, figures, crate::plots::VALIDATION_MAP_FILE);
     if figures
         .iter()
         .any(|f| f.file == crate::plots::BEFORE_AFTER_FILE)

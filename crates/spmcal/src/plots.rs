@@ -324,6 +324,7 @@ pub fn uncertainty_map(
         panels: &panels,
         points: &points,
         map: ColorMap::Cividis,
+        shared_scale: false,
     })
     .map_err(PlotError::of(file))?;
     Ok(Figure {
@@ -531,6 +532,7 @@ pub fn residual_map(
         panels: &panels,
         points: &points,
         map: ColorMap::Viridis,
+        shared_scale: false,
     })
     .map_err(PlotError::of(file))?;
     Ok(Figure {
@@ -546,6 +548,121 @@ pub fn residual_map(
         ),
         png,
     })
+}
+
+/// The file of the validation map (the corrected standard's lattice over the field).
+pub const VALIDATION_MAP_FILE: &str = "validation-map.png";
+
+/// The residual distortion without a ground truth: the lattice-constant error of the standard
+/// imaged after the run at the validation's places over the calibrated region
+/// (`spm_evaluation::validation::LatticeCheck`), after `spmcal correct` with the run's
+/// calibration and uncorrected (the nominal sensitivity), one cell per place, positions in µm
+/// through `nominal_nm_per_count`. Every backend gets it: the standard is the ruler. `None`
+/// when no place has a centre or no corrected lattice was measured.
+///
+/// # Errors
+/// [`PlotError`] when the figure cannot be drawn.
+pub fn validation_map(
+    check: &spm_evaluation::validation::LatticeCheck,
+    nominal_nm_per_count: f64,
+) -> Result<Option<Figure>, PlotError> {
+    let file = VALIDATION_MAP_FILE;
+    let k = nominal_nm_per_count;
+    let places: Vec<&spm_evaluation::validation::LatticePlace> = check
+        .places
+        .iter()
+        .filter(|p| p.centre_counts.iter().all(|c| c.is_finite()))
+        .collect();
+    if check.corrected_measured == 0 || places.is_empty() {
+        return Ok(None);
+    }
+    // The places' grid: their distinct centres along each axis (to a count).
+    let distinct = |axis: usize| {
+        let mut v: Vec<f64> = places
+            .iter()
+            .map(|p| p.centre_counts[axis].round())
+            .collect();
+        v.sort_by(f64::total_cmp);
+        v.dedup();
+        v
+    };
+    let (xs, ys) = (distinct(0), distinct(1));
+    let cells = xs.len().max(ys.len());
+    let spacing = |v: &[f64]| {
+        if v.len() > 1 {
+            (v[v.len() - 1] - v[0]) / (v.len() - 1) as f64
+        } else {
+            f64::from(check.pixels) * check.step_counts
+        }
+    };
+    let d = spacing(&xs).max(spacing(&ys));
+    let (x0, y0) = (xs[0] - 0.5 * d, ys[0] - 0.5 * d);
+    let cell_of = |c: f64, lo: f64| ((c - lo) / d).floor().clamp(0.0, (cells - 1) as f64) as usize;
+    let mut corrected = vec![f64::NAN; cells * cells];
+    let mut uncorrected = vec![f64::NAN; cells * cells];
+    for p in &places {
+        let cell = cell_of(p.centre_counts[1], y0) * cells + cell_of(p.centre_counts[0], x0);
+        corrected[cell] = p.corrected_error_pct.unwrap_or(f64::NAN);
+        uncorrected[cell] = p.uncorrected_error_pct.unwrap_or(f64::NAN);
+    }
+    let points: Vec<(f64, f64)> = places
+        .iter()
+        .map(|p| (um(p.centre_counts[0], k), um(p.centre_counts[1], k)))
+        .collect();
+    let after = format!(
+        "after spmcal correct with this calibration: RMS {} %, max |error| {} % ({} of {} places)",
+        significant(check.corrected_rms_error_pct),
+        significant(check.corrected_max_error_pct),
+        check.corrected_measured,
+        check.places.len()
+    );
+    let before = format!(
+        "uncorrected (the nominal {} nm/count): RMS {} %",
+        significant(k),
+        significant(check.uncorrected_rms_error_pct)
+    );
+    let label = "lattice-constant error, %";
+    let mut panels = vec![FieldPanel {
+        caption: &after,
+        values: &corrected,
+        value_label: label,
+    }];
+    if uncorrected.iter().any(|v| v.is_finite()) {
+        panels.push(FieldPanel {
+            caption: &before,
+            values: &uncorrected,
+            value_label: label,
+        });
+    }
+    let side = d * cells as f64;
+    let png = field_maps(&FieldFigure {
+        title: "What the correction leaves, measured on the standard",
+        x_label: X_FIELD,
+        y_label: Y_FIELD,
+        x_range: (um(x0, k), um(x0 + side, k)),
+        y_range: (um(y0, k), um(y0 + side, k)),
+        cells,
+        panels: &panels,
+        points: &points,
+        map: ColorMap::Viridis,
+        shared_scale: true,
+    })
+    .map_err(PlotError::of(file))?;
+    Ok(Some(Figure {
+        file: file.to_owned(),
+        caption: format!(
+            "the standard imaged after the run at {} places over the calibrated region \
+             (counter-scanned pairs; dots: the images' centres), its lattice constant measured \
+             on each pair against the standard's {} nm: the error left after the correction a \
+             user applies (top) and without it (bottom), on one colour scale, one cell per place, \
+             blank where the lattice was not measured. No ground truth is needed, so a real controller's run \
+             shows it too. {}",
+            check.places.len(),
+            significant(check.lattice_constant_nm),
+            counts_note(k)
+        ),
+        png,
+    }))
 }
 
 /// The file of the before/after image of the standard.

@@ -759,6 +759,8 @@ pub fn finish_with(
     if drift.estimates == 0 {
         notes.push("drift: no drift estimate was made in this invocation (no figure)".to_owned());
     }
+    record.phase("validating (held-out nodes, repeats, the corrected standard)");
+    let validation = Validation::of(&all, record.plan, &fitted.set, record.standard_images);
     record.phase("drawing the figures");
     let mut figures = figures(record, &fitted, &all, drift.estimates > 0)?;
     figures.extend(verdict_figures(
@@ -767,13 +769,17 @@ pub fn finish_with(
         residual.as_ref().zip(accuracy.as_ref()),
         &mut notes,
     )?);
+    if let Some(check) = &validation.lattice {
+        figures.extend(plots::validation_map(
+            check,
+            record.plan.standard.nominal_nm_per_count,
+        )?);
+    }
     figures.extend(history_figure(&*snapshot, &record.plan.scanner_id)?);
     for figure in &figures {
         write(&out.join(&figure.file), &figure.png)?;
     }
 
-    record.phase("validating (held-out nodes, repeats, the corrected standard)");
-    let validation = Validation::of(&all, record.plan, &fitted.set, record.standard_images);
     let node_lcc_error = record.truth.and_then(|truth| node_lcc_error(truth, &all));
     let measured = record.run.nodes_done.max(1) as f64;
     let mut report = CalibrationReport {

@@ -599,6 +599,20 @@ fn a_run_over_tcp_reports_its_validation_without_an_oracle() {
             "report.html lacks {id}"
         );
     }
+    // Issue 27: what the correction leaves is drawn on a run without an oracle too, measured
+    // on the standard (one cell per place); the oracle's residual map is not drawn.
+    assert!(
+        out.join(spmcal::plots::VALIDATION_MAP_FILE).is_file(),
+        "no validation map on a controller's run"
+    );
+    assert!(html.contains(spmcal::plots::VALIDATION_MAP_FILE));
+    assert!(!out.join(spmcal::plots::RESIDUAL_FILE).exists());
+    for place in &lattice.places {
+        assert!(
+            place.centre_counts.iter().all(|c| c.is_finite()),
+            "{place:?}"
+        );
+    }
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     assert!(json["validation"]["held_out"]["rms_z"].is_number());

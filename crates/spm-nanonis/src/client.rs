@@ -398,6 +398,24 @@ impl Client {
         request: &Request,
         timeout_s: f64,
     ) -> Result<Reply, NanonisError> {
+        self.call_resending(request, timeout_s, request.is_retry_safe())
+    }
+
+    /// Sends a request with the ordinary command timeout, again after a busy reply, but not
+    /// on a new connection when its own was lost before the reply: the error is returned
+    /// (and [`Client::is_connected`] is `false`), so that the caller looks at what the
+    /// controller on a new connection is doing first. `NanonisMicroscope` starts its scans
+    /// this way: a scan may be running on a controller it reconnects to.
+    pub fn call_on_one_connection(&mut self, request: &Request) -> Result<Reply, NanonisError> {
+        self.call_resending(request, self.config.command_timeout_s, false)
+    }
+
+    fn call_resending(
+        &mut self,
+        request: &Request,
+        timeout_s: f64,
+        resend_on_loss: bool,
+    ) -> Result<Reply, NanonisError> {
         let mut last = None;
         for _ in 0..=RETRIES {
             self.ensure_connected()?;
@@ -407,7 +425,7 @@ impl Client {
                     tracing::debug!(error = %e, "nanonis: busy; sending again");
                     last = Some(e);
                 }
-                Err(e) if self.stream.is_none() && request.is_retry_safe() => {
+                Err(e) if self.stream.is_none() && resend_on_loss => {
                     tracing::debug!(error = %e, "nanonis: connection dropped; sending again");
                     last = Some(e);
                 }

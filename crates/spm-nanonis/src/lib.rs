@@ -59,6 +59,16 @@
 //!   connection opened; a read of the clock or the position extends the readings when it
 //!   was the only command sent since them. Like the scan settings left unsent when
 //!   unchanged, this assumes that the backend is the controller's only client during a run.
+//! - **Whether a scan runs.** `Scan.StatusGet` (and a stop of a scan found running) comes
+//!   before a scan only when the backend does not know that none runs: when it opens, after
+//!   any failed call (a scan may have been left running or paused, a stop may have failed),
+//!   after an interruption, and on every new connection (a lost one may have left a scan
+//!   running; a connection found lost at the scan's start is not reused for the start
+//!   before the question is asked there, [`Client::call_on_one_connection`]). Between
+//!   scans of its own that ended normally (`Scan.WaitEndOfScan` answered the end) nothing
+//!   the backend sends starts one — moves, waits and reads do not — so the answer is known.
+//!   This is the same assumption again: only another client could start a scan in between
+//!   (were one to, the controller would meet the backend's start with its scan running).
 //! - **Not done**, each for a reason:
 //!   the clock after a move or a wait is not derived from the time asked (the controller
 //!   adds its own overhead: nanonis-sim its simulator's call overhead), so it is read once
@@ -67,8 +77,7 @@
 //!   choice, and the frame is realised in float32), so it is read once;
 //!   the X and Y signals are not read in the clock's `Signals.ValsGet` (one round trip for
 //!   both), because that command answers float32, 2·10⁻³ counts at the edge of a 16-bit
-//!   field where `FolMe.XYPosGet` is exact; and `Scan.StatusGet` before every scan stays (a
-//!   scan started by someone else between two of the backend's is a pitfall handled).
+//!   field where `FolMe.XYPosGet` is exact.
 //!
 //! ## Failures
 //! A reply "busy" (not executed) is sent again; a command whose connection was lost is sent
@@ -95,7 +104,8 @@
 //!   done on already-corrected coordinates: it measures the correction, not the scanner.
 //! - **A scan already running** (started by a user or left by a lost connection) or paused
 //!   (left by an interrupted run) is stopped on the second connection when the backend opens
-//!   and before a new one starts (`Scan.StatusGet`).
+//!   and before a new scan starts whenever a scan may be running (`Scan.StatusGet`; see
+//!   "Round trips" for when it is known that none is).
 //! - **Scan speed** is set with the time per line kept constant and read back
 //!   (`Scan.SpeedGet`): the pixel times are reconstructed from the line times the
 //!   controller actually uses: pixel `k` of line `l` at

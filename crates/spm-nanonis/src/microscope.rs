@@ -364,6 +364,12 @@ pub struct NanonisMicroscope {
     /// The clock and position as last read or commanded, while the controller has received
     /// nothing else since.
     readings: Readings,
+    /// No scan is running on the controller: known since `Scan.StatusGet` said so or a scan
+    /// of the backend's ended normally, with nothing since that could have started or left
+    /// one (no reconnection, no failed call, no interruption). `Some(reconnects)` holds the
+    /// client's [`Client::reconnects`] when it became known; `None`: unknown, asked before
+    /// the next scan (see the crate docs, "Round trips").
+    scan_idle: Option<u64>,
 }
 
 /// What the backend knows of the controller without asking, valid while the client's
@@ -573,6 +579,7 @@ impl NanonisMicroscope {
             config,
             interrupt: None,
             readings: Readings::default(),
+            scan_idle: None,
         };
         // A scan left paused by an interrupted run (or running, by a user) is stopped before
         // anything moves the tip: its frame is not resumed (see the crate docs).
@@ -681,6 +688,7 @@ impl NanonisMicroscope {
     /// Stops a running scan, a Follow-Me move and the coarse motor, on the second
     /// connection (so it works while the main one is blocked).
     pub fn abort(&mut self) -> Result<(), NanonisError> {
+        self.scan_idle = None;
         self.client.stop(&Request::ScanAction {
             action: scan_action::STOP,
             direction_up: 1,
@@ -797,10 +805,15 @@ impl NanonisMicroscope {
     }
 
     /// Makes sure no scan is running: a scan left running (by a user, an earlier client or
-    /// a lost connection) is stopped on the second connection.
+    /// a lost connection) is stopped on the second connection. Asks the controller
+    /// (`Scan.StatusGet`) unless no scan is known to run ([`Self::scan_idle_known`]).
     fn stop_running_scan(&mut self) -> Result<(), NanonisError> {
+        if self.scan_idle_known() {
+            return Ok(());
+        }
         for _ in 0..5 {
             if u32_reply(&mut self.client, &Request::ScanStatusGet)? == 0 {
+                self.scan_idle = Some(self.client.reconnects());
                 return Ok(());
             }
             tracing::warn!("nanonis: a scan is already running; stopping it");
@@ -814,6 +827,132 @@ impl NanonisMicroscope {
             "a scan keeps running after 5 stop requests",
         )
         .in_command("Scan.StatusGet"))
+    }
+
+    /// Whether no scan is known to run on the controller: one of the backend's scans ended
+    /// normally (or `Scan.StatusGet` said so) and no connection has been opened since (a
+    /// lost connection may have left a scan running); a failed call or an interruption
+    /// forgets it ([`Self::noting_failure`]).
+    fn scan_idle_known(&self) -> bool {
+        self.client.is_connected() && self.scan_idle == Some(self.client.reconnects())
+    }
+
+    /// A call's result, with what a failure makes unknown forgotten: whether a scan runs
+    /// (a scan may have been left running or paused, a stop may have failed).
+    fn noting_failure<T>(&mut self, result: Result<T, NanonisError>) -> Result<T, NanonisError> {
+        if result.is_err() {
+            self.scan_idle = None;
+        }
+        result
+    }
+
+    /// Sends the scan buffer, frame and speed that differ from those last sent, with the
+    /// read-backs of buffer and speed (pitfalls: pixels coerced to multiples of 16, speeds
+    /// coerced by the controller).
+    fn set_up_scan(
+        &mut self,
+        n16: i32,
+        lines: i32,
+        frame: ScanFrame,
+        speed: ScanSpeed,
+    ) -> Result<(), NanonisError> {
+        if self.sent.buffer != Some((n16, lines)) {
+            self.client.call(&Request::ScanBufferSet(ScanBuffer {
+                channels: vec![self.config.z_channel],
+                pixels: n16,
+                lines,
+            }))?;
+            // Pitfall: read back what the controller made of it.
+            match self.client.call(&Request::ScanBufferGet)? {
+                Reply::Buffer(b) if b.pixels == n16 && b.lines == lines => {}
+                Reply::Buffer(b) => {
+                    self.sent.buffer = None;
+                    return Err(NanonisError::new(
+                        NanonisErrorKind::Controller,
+                        format!(
+                            "the controller set {} × {} pixels for the requested {n16} × {lines}",
+                            b.pixels, b.lines
+                        ),
+                    )
+                    .in_command("Scan.BufferGet"));
+                }
+                other => return Err(unexpected("Scan.BufferGet", &other)),
+            }
+            self.sent.buffer = Some((n16, lines));
+        }
+        let frame_bits = [
+            frame.centre_x_m.to_bits(),
+            frame.centre_y_m.to_bits(),
+            frame.width_m.to_bits(),
+            frame.height_m.to_bits(),
+            frame.angle_deg.to_bits(),
+        ];
+        if self.sent.frame != Some(frame_bits) {
+            self.client.call(&Request::ScanFrameSet(frame))?;
+            self.sent.frame = Some(frame_bits);
+        }
+        if self.sent.speed != Some(speed) {
+            self.client.call(&Request::ScanSpeedSet(speed))?;
+            // Pitfall: the controller may coerce the speed; time the pixels by what it uses.
+            let (tf, tb) = match self.client.call(&Request::ScanSpeedGet)? {
+                Reply::Speed(s) => (f64::from(s.forward_line_s), f64::from(s.backward_line_s)),
+                other => return Err(unexpected("Scan.SpeedGet", &other)),
+            };
+            if !(tf.is_finite() && tb.is_finite() && tf > 0.0 && tb > 0.0) {
+                return Err(NanonisError::new(
+                    NanonisErrorKind::Controller,
+                    format!("line times {tf} s / {tb} s are not positive"),
+                )
+                .in_command("Scan.SpeedGet"));
+            }
+            self.sent.speed = Some(speed);
+            self.sent.line_times_s = Some((tf, tb));
+        }
+        Ok(())
+    }
+
+    /// Starts a scan on a controller running none, set up for it: the set-up again when a
+    /// connection was opened during it (a lost one: the controller the new one meets may run
+    /// a scan and hold other settings), and the start not sent again on a new connection
+    /// before `Scan.StatusGet` has been asked there.
+    fn start_scan(
+        &mut self,
+        n16: i32,
+        lines: i32,
+        frame: ScanFrame,
+        speed: ScanSpeed,
+        direction_up: u32,
+    ) -> Result<(), NanonisError> {
+        let mut last = None;
+        for _ in 0..=crate::client::RETRIES {
+            let reconnects = self.client.reconnects();
+            self.invalidate_on_reconnect();
+            self.stop_running_scan()?;
+            self.set_up_scan(n16, lines, frame, speed)?;
+            if self.client.reconnects() != reconnects {
+                continue;
+            }
+            // From the start until its normal end a scan may be running.
+            self.scan_idle = None;
+            match self.client.call_on_one_connection(&Request::ScanAction {
+                action: scan_action::START,
+                direction_up,
+            }) {
+                Ok(_) => return Ok(()),
+                Err(e) if !self.client.is_connected() && e.kind != NanonisErrorKind::Aborted => {
+                    tracing::debug!(error = %e, "nanonis: connection lost at the scan's start");
+                    last = Some(e);
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Err(last.unwrap_or_else(|| {
+            NanonisError::new(
+                NanonisErrorKind::Io,
+                "the connection was reopened during every set-up of the scan",
+            )
+            .in_command("Scan.Action")
+        }))
     }
 
     // long-function: one scan's command sequence in protocol order, each step a documented
@@ -886,32 +1025,6 @@ impl NanonisMicroscope {
         } else {
             turned
         } as f32;
-        self.invalidate_on_reconnect();
-        self.stop_running_scan()?;
-        if self.sent.buffer != Some((n16 as i32, lines as i32)) {
-            self.client.call(&Request::ScanBufferSet(ScanBuffer {
-                channels: vec![self.config.z_channel],
-                pixels: n16 as i32,
-                lines: lines as i32,
-            }))?;
-            // Pitfall: read back what the controller made of it.
-            match self.client.call(&Request::ScanBufferGet)? {
-                Reply::Buffer(b) if b.pixels == n16 as i32 && b.lines == lines as i32 => {}
-                Reply::Buffer(b) => {
-                    self.sent.buffer = None;
-                    return Err(NanonisError::new(
-                        NanonisErrorKind::Controller,
-                        format!(
-                            "the controller set {} × {} pixels for the requested {n16} × {lines}",
-                            b.pixels, b.lines
-                        ),
-                    )
-                    .in_command("Scan.BufferGet"));
-                }
-                other => return Err(unexpected("Scan.BufferGet", &other)),
-            }
-            self.sent.buffer = Some((n16 as i32, lines as i32));
-        }
         let frame = ScanFrame {
             centre_x_m: f32_of(cx),
             centre_y_m: f32_of(cy),
@@ -919,17 +1032,6 @@ impl NanonisMicroscope {
             height_m: f32_of(height_m),
             angle_deg,
         };
-        let frame_bits = [
-            frame.centre_x_m.to_bits(),
-            frame.centre_y_m.to_bits(),
-            frame.width_m.to_bits(),
-            frame.height_m.to_bits(),
-            frame.angle_deg.to_bits(),
-        ];
-        if self.sent.frame != Some(frame_bits) {
-            self.client.call(&Request::ScanFrameSet(frame))?;
-            self.sent.frame = Some(frame_bits);
-        }
         let line_s = f64::from(n16) * request.pixel_dwell.value();
         let speed = ScanSpeed {
             forward_speed_m_per_s: f32_of(width_m / line_s),
@@ -939,29 +1041,11 @@ impl NanonisMicroscope {
             keep: 2,
             speed_ratio: 1.0,
         };
-        if self.sent.speed != Some(speed) {
-            self.client.call(&Request::ScanSpeedSet(speed))?;
-            // Pitfall: the controller may coerce the speed; time the pixels by what it uses.
-            let (tf, tb) = match self.client.call(&Request::ScanSpeedGet)? {
-                Reply::Speed(s) => (f64::from(s.forward_line_s), f64::from(s.backward_line_s)),
-                other => return Err(unexpected("Scan.SpeedGet", &other)),
-            };
-            if !(tf.is_finite() && tb.is_finite() && tf > 0.0 && tb > 0.0) {
-                return Err(NanonisError::new(
-                    NanonisErrorKind::Controller,
-                    format!("line times {tf} s / {tb} s are not positive"),
-                )
-                .in_command("Scan.SpeedGet"));
-            }
-            self.sent.speed = Some(speed);
-            self.sent.line_times_s = Some((tf, tb));
-        }
-        let (tf, tb) = self.sent.line_times_s.unwrap_or((line_s, line_s));
         let direction_up = self.config.slow_direction.direction_up();
-        self.client.call(&Request::ScanAction {
-            action: scan_action::START,
-            direction_up,
-        })?;
+        self.start_scan(n16 as i32, lines as i32, frame, speed, direction_up)?;
+        // The connection the scan was started on.
+        let reconnects = self.client.reconnects();
+        let (tf, tb) = self.sent.line_times_s.unwrap_or((line_s, line_s));
         let expected_s = f64::from(lines) * (tf + tb);
         let ended = match self.wait_end_of_scan(expected_s) {
             Ok(ended) => ended,
@@ -986,6 +1070,11 @@ impl NanonisMicroscope {
                 ),
             )
             .in_command("Scan.WaitEndOfScan"));
+        }
+        // Ended normally on the connection it was started on: no scan runs until the next
+        // start (a reconnection in between may have lost the end, or left another scan).
+        if self.client.reconnects() == reconnects {
+            self.scan_idle = Some(reconnects);
         }
         // Backward first when wanted (a controller that records lazily learns it is needed).
         let want_backward = request.record_backward && self.capabilities.backward_trace;
@@ -1235,7 +1324,8 @@ impl Microscope for NanonisMicroscope {
     }
 
     fn now(&mut self) -> Result<Seconds, NanonisError> {
-        self.now_s().map(Seconds)
+        let result = self.now_s().map(Seconds);
+        self.noting_failure(result)
     }
 
     fn wait(&mut self, duration: Seconds) -> Result<(), NanonisError> {
@@ -1246,14 +1336,48 @@ impl Microscope for NanonisMicroscope {
                 format!("wait duration {duration} must be finite and ≥ 0"),
             ));
         }
-        self.keeping_position(|m| m.pause(d))
+        let result = self.keeping_position(|m| m.pause(d));
+        self.noting_failure(result)
     }
 
     fn position(&mut self) -> Result<CountPoint, NanonisError> {
-        self.position_counts()
+        let result = self.position_counts();
+        self.noting_failure(result)
     }
 
     fn move_to(&mut self, request: MoveRequest) -> Result<(), NanonisError> {
+        let result = self.move_impl(request);
+        self.noting_failure(result)
+    }
+
+    fn scan(&mut self, request: &ScanRequest) -> Result<Frame, NanonisError> {
+        let result = self.scan_impl(request);
+        if let Err(e) = &result {
+            tracing::debug!(error = %e, "nanonis: scan failed");
+        }
+        self.noting_failure(result)
+    }
+
+    fn z_position(&mut self) -> Result<Counts, NanonisError> {
+        let result = self.keeping_position(|m| match m.client.call(&Request::ZCtrlZPosGet)? {
+            Reply::F32(z) if z.is_finite() => Ok(Counts(f64::from(z) / m.z_m_per_count)),
+            other => Err(unexpected("ZCtrl.ZPosGet", &other)),
+        });
+        self.noting_failure(result)
+    }
+
+    fn coarse_z(&mut self) -> Option<&mut dyn CoarseZStage<Error = NanonisError>> {
+        if self.capabilities.coarse_z.is_some() {
+            Some(self)
+        } else {
+            None
+        }
+    }
+}
+
+impl NanonisMicroscope {
+    /// [`Microscope::move_to`] (a failure is noted by the caller).
+    fn move_impl(&mut self, request: MoveRequest) -> Result<(), NanonisError> {
         self.check_inside(request.target, "move target")?;
         let speed = request.speed.value();
         if !(speed.is_finite() && speed > 0.0) {
@@ -1306,35 +1430,24 @@ impl Microscope for NanonisMicroscope {
         };
         Ok(())
     }
-
-    fn scan(&mut self, request: &ScanRequest) -> Result<Frame, NanonisError> {
-        let result = self.scan_impl(request);
-        if let Err(e) = &result {
-            tracing::debug!(error = %e, "nanonis: scan failed");
-        }
-        result
-    }
-
-    fn z_position(&mut self) -> Result<Counts, NanonisError> {
-        self.keeping_position(|m| match m.client.call(&Request::ZCtrlZPosGet)? {
-            Reply::F32(z) if z.is_finite() => Ok(Counts(f64::from(z) / m.z_m_per_count)),
-            other => Err(unexpected("ZCtrl.ZPosGet", &other)),
-        })
-    }
-
-    fn coarse_z(&mut self) -> Option<&mut dyn CoarseZStage<Error = NanonisError>> {
-        if self.capabilities.coarse_z.is_some() {
-            Some(self)
-        } else {
-            None
-        }
-    }
 }
 
 impl CoarseZStage for NanonisMicroscope {
     type Error = NanonisError;
 
     fn step(&mut self, steps: i64) -> Result<(), NanonisError> {
+        let result = self.coarse_step(steps);
+        self.noting_failure(result)
+    }
+
+    fn position_steps(&mut self) -> Result<i64, NanonisError> {
+        Ok(self.coarse_steps)
+    }
+}
+
+impl NanonisMicroscope {
+    /// [`CoarseZStage::step`] (a failure is noted by the caller).
+    fn coarse_step(&mut self, steps: i64) -> Result<(), NanonisError> {
         let Some(c) = self.config.coarse_z.clone() else {
             return Err(NanonisError::new(
                 NanonisErrorKind::OutOfRange,
@@ -1383,10 +1496,6 @@ impl CoarseZStage for NanonisMicroscope {
             self.coarse_steps += signed;
         }
         Ok(())
-    }
-
-    fn position_steps(&mut self) -> Result<i64, NanonisError> {
-        Ok(self.coarse_steps)
     }
 }
 

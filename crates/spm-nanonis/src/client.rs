@@ -1,16 +1,17 @@
 //! A blocking client of the Nanonis TCP protocol.
 //!
-//! - **Exact frames.** A request is written whole (`write_all` of header and body); a reply
-//!   is read whole (`read_exact` of the 40-byte header, then of exactly the body size it
-//!   announces). A reply is accepted only for the command that was sent and only if its
+//! - **Exact frames.** A request is written whole (one `write_all` of header and body); a
+//!   reply is read whole (`read_exact` of the 40-byte header, then of exactly the body size it
+//!   announces, through a read-ahead: one `recv` usually brings both). A reply is accepted only for the command that was sent and only if its
 //!   body decodes to exactly that command's return arguments and error section. After any
 //!   I/O, timeout or framing failure the connection is dropped: its byte stream can no
 //!   longer be trusted to be at a message boundary.
-//! - **Timeouts per command.** Every command has the read/write timeout
+//! - **Timeouts per command.** Every command has the read timeout
 //!   [`ClientConfig::command_timeout_s`]; wait-style commands (`Scan.WaitEndOfScan`, waited
 //!   `FolMe.XYPosSet` and `Motor.StartMove`) get their expected duration plus
 //!   [`ClientConfig::wait_margin_s`] ([`Client::call_waiting`]).
-//!   The timeout is set on the socket only when it differs from the one last set there.
+//!   The timeout is set on the socket only when it differs from the one last set there;
+//!   writes have the ordinary timeout, set once per connection.
 //! - **Reconnect with backoff.** A dropped connection is re-opened on the next command, up
 //!   to [`ClientConfig::reconnect_attempts`] times (at most [`MAX_RECONNECT_ATTEMPTS`]) with
 //!   exponential backoff from [`ClientConfig::reconnect_backoff_s`] (at most
@@ -163,20 +164,28 @@ pub struct Client {
     interrupt: Option<Arc<AtomicBool>>,
 }
 
-/// An open connection and the read/write timeout last set on it (set again only when a
-/// command needs another: two system calls fewer per round trip).
+/// Bytes a connection reads ahead: one `recv` brings a reply's header with the body of any
+/// reply but a frame's (whose rest is read straight into its own buffer).
+const READ_AHEAD_BYTES: usize = 8 << 10;
+
+/// An open connection, read through a read-ahead, and the read timeout last set on it (set
+/// again only when a command needs another). The write timeout is the ordinary command
+/// timeout, set once: a request is written at once whatever it asks the controller to do.
 #[derive(Debug)]
 struct Connection {
-    stream: TcpStream,
+    stream: std::io::BufReader<TcpStream>,
     timeout: Option<Duration>,
 }
 
 impl Connection {
-    fn new(stream: TcpStream) -> Self {
-        Self {
-            stream,
+    fn new(stream: TcpStream, write_timeout: Duration) -> Result<Self, NanonisError> {
+        stream
+            .set_write_timeout(Some(write_timeout))
+            .map_err(|e| io_error("set timeout", &e))?;
+        Ok(Self {
+            stream: std::io::BufReader::with_capacity(READ_AHEAD_BYTES, stream),
             timeout: None,
-        }
+        })
     }
 
     fn set_timeout(&mut self, timeout: Duration) -> Result<(), NanonisError> {
@@ -186,8 +195,8 @@ impl Connection {
         // Forgotten first: a failure half-way leaves it unknown.
         self.timeout = None;
         self.stream
-            .set_write_timeout(Some(timeout))
-            .and_then(|()| self.stream.set_read_timeout(Some(timeout)))
+            .get_ref()
+            .set_read_timeout(Some(timeout))
             .map_err(|e| io_error("set timeout", &e))?;
         self.timeout = Some(timeout);
         Ok(())
@@ -321,7 +330,10 @@ impl Client {
             }
             match self.open() {
                 Ok(stream) => {
-                    self.stream = Some(Connection::new(stream));
+                    self.stream = Some(Connection::new(
+                        stream,
+                        seconds(self.config.command_timeout_s),
+                    )?);
                     self.reconnects += 1;
                     self.sequence += 1;
                     match self.exchange(&Request::UtilVersionGet, self.config.command_timeout_s) {
@@ -469,7 +481,10 @@ impl Client {
         let mut last = None;
         for _ in 0..2 {
             if self.stop_stream.is_none() {
-                self.stop_stream = Some(Connection::new(self.open()?));
+                self.stop_stream = Some(Connection::new(
+                    self.open()?,
+                    seconds(self.config.command_timeout_s),
+                )?);
             }
             let Some(connection) = self.stop_stream.as_mut() else {
                 continue;
@@ -531,6 +546,7 @@ fn transact(
     message.extend_from_slice(&header);
     message.extend_from_slice(&body);
     stream
+        .get_mut()
         .write_all(&message)
         .map_err(|e| io_error("write request", &e))?;
     let mut reply_header = [0u8; HEADER_LEN];

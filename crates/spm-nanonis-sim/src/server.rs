@@ -266,6 +266,9 @@ pub struct ServerStats {
     pub commands: u64,
     /// Requests received per command name (`Scan.Action`, …): where a client's round trips go.
     pub commands_by_name: std::collections::BTreeMap<String, u64>,
+    /// Requests already received when the server turned to them, sent by the client before
+    /// it had the previous reply (pipelined): `commands − pipelined` is the round trips.
+    pub pipelined: u64,
     /// Error replies of the fault injector.
     pub injected_error_replies: u64,
     /// Connections dropped before executing.
@@ -1917,6 +1920,7 @@ fn serve_commands(stream: &mut TcpStream, context: &Context) {
         if stop.load(Ordering::SeqCst) {
             return;
         }
+        let pipelined = incoming.has_bytes();
         let Some((header, body)) = read_request(stream, &mut incoming, context) else {
             return;
         };
@@ -1926,6 +1930,7 @@ fn serve_commands(stream: &mut TcpStream, context: &Context) {
                 return;
             }
             state.stats.commands += 1;
+            state.stats.pipelined += u64::from(pipelined);
             // The name is copied once, on its first request.
             match state.stats.commands_by_name.get_mut(&header.command) {
                 Some(n) => *n += 1,

@@ -26,6 +26,9 @@
 //!   caller decides.
 //! - **Schema by version.** On every (re)connection `Util.VersionGet` is asked and the
 //!   [`Schema`] chosen from the host-application release.
+//! - **Pipelines** ([`Client::call_pipelined`]): several requests in one write, their
+//!   replies read in order, for a command and the reads after it (one round trip where one
+//!   call each takes one each); nothing in a pipeline is sent again by the client.
 //! - **A second connection for stop and abort** ([`Client::stop`]): the manual lets a client
 //!   open up to four connections, each serialising its own commands, so a stop sent on a
 //!   second connection is executed while the first one is blocked in a wait.
@@ -397,9 +400,14 @@ impl Client {
         request: &Request,
         expected_s: f64,
     ) -> Result<Reply, NanonisError> {
-        let timeout =
-            expected_s.max(0.0) + self.config.wait_margin_s + self.config.command_timeout_s;
-        self.call_with_timeout(request, timeout)
+        self.call_with_timeout(request, self.waiting_timeout_s(expected_s))
+    }
+
+    /// The timeout of a wait-style request expected to take `expected_s`: that, the wait
+    /// margin and the ordinary command timeout, s.
+    #[must_use]
+    pub fn waiting_timeout_s(&self, expected_s: f64) -> f64 {
+        expected_s.max(0.0) + self.config.wait_margin_s + self.config.command_timeout_s
     }
 
     /// Sends a request with an explicit timeout (s). A request the controller refused as
@@ -475,6 +483,76 @@ impl Client {
         }
     }
 
+    /// Sends `requests` on the main connection in one write, then reads their replies in
+    /// order: one round trip where calls one after another take one each. The controller
+    /// executes a connection's commands one after another, so they run as the same calls
+    /// would. No request is sent again here (nor is the connection reopened once lost): the
+    /// result of each is its reply, its error reply, or the error that ended the exchange (the
+    /// connection is then dropped and the requests after it fail too; they may have been
+    /// executed). Meant for a command followed by reads, which the caller sends again one by
+    /// one from the first failure on ([`Request::is_retry_safe`]). `timeout_s` is the read
+    /// timeout of each reply.
+    pub fn call_pipelined(
+        &mut self,
+        requests: &[&Request],
+        timeout_s: f64,
+    ) -> Vec<Result<Reply, NanonisError>> {
+        let failed_all = |e: NanonisError| {
+            requests
+                .iter()
+                .map(|r| Err(e.clone().in_command(r.name())))
+                .collect()
+        };
+        if let Err(e) = self.ensure_connected() {
+            return failed_all(e);
+        }
+        let mut message = Vec::new();
+        for request in requests {
+            if let Err(e) = encode_request(request, self.schema, &mut message) {
+                return failed_all(e);
+            }
+        }
+        let Some(connection) = self.stream.as_mut() else {
+            return failed_all(NanonisError::new(NanonisErrorKind::Io, "not connected"));
+        };
+        self.commands_sent += requests.len() as u64;
+        self.sequence += requests.len() as u64;
+        let written = connection.set_timeout(seconds(timeout_s)).and_then(|()| {
+            connection
+                .stream
+                .get_mut()
+                .write_all(&message)
+                .map_err(|e| io_error("write requests", &e))
+        });
+        if let Err(e) = written {
+            self.stream = None;
+            return failed_all(e);
+        }
+        let mut results = Vec::with_capacity(requests.len());
+        for request in requests {
+            let Some(connection) = self.stream.as_mut() else {
+                results.push(Err(NanonisError::new(
+                    NanonisErrorKind::Io,
+                    "not read: the connection was dropped at an earlier reply",
+                )
+                .in_command(request.name())));
+                continue;
+            };
+            results.push(match read_reply(connection, request, self.schema) {
+                Ok((reply, error)) if error.status == 0 => Ok(reply),
+                Ok((_, error)) => Err(NanonisError::from_error_reply(
+                    request.name(),
+                    &error.description,
+                )),
+                Err(e) => {
+                    self.stream = None;
+                    Err(e.in_command(request.name()))
+                }
+            });
+        }
+        results
+    }
+
     /// Sends a stop request (`Scan.Action` stop, `FolMe.Stop`, `Motor.StopMove`) on the
     /// second connection, opened on first use and re-opened once if it was dropped.
     pub fn stop(&mut self, request: &Request) -> Result<(), NanonisError> {
@@ -527,6 +605,23 @@ fn io_error(what: &str, e: &std::io::Error) -> NanonisError {
     NanonisError::new(kind, format!("{what}: {e}"))
 }
 
+/// The bytes of one request: header and body.
+fn encode_request(
+    request: &Request,
+    schema: Schema,
+    out: &mut Vec<u8>,
+) -> Result<(), NanonisError> {
+    let body = request
+        .encode(schema)
+        .map_err(|e| NanonisError::new(NanonisErrorKind::InvalidRequest, e.to_string()))?;
+    let header = codec::encode_request_header(request.name(), body.len(), true)
+        .map_err(|e| NanonisError::new(NanonisErrorKind::InvalidRequest, e.to_string()))?;
+    out.reserve(HEADER_LEN + body.len());
+    out.extend_from_slice(&header);
+    out.extend_from_slice(&body);
+    Ok(())
+}
+
 /// Writes one request and reads its reply on `connection`.
 fn transact(
     connection: &mut Connection,
@@ -534,21 +629,25 @@ fn transact(
     schema: Schema,
     timeout_s: f64,
 ) -> Result<(Reply, codec::ErrorSection), NanonisError> {
-    let name = request.name();
-    let body = request
-        .encode(schema)
-        .map_err(|e| NanonisError::new(NanonisErrorKind::InvalidRequest, e.to_string()))?;
-    let header = codec::encode_request_header(name, body.len(), true)
-        .map_err(|e| NanonisError::new(NanonisErrorKind::InvalidRequest, e.to_string()))?;
+    let mut message = Vec::new();
+    encode_request(request, schema, &mut message)?;
     connection.set_timeout(seconds(timeout_s))?;
-    let stream = &mut connection.stream;
-    let mut message = Vec::with_capacity(HEADER_LEN + body.len());
-    message.extend_from_slice(&header);
-    message.extend_from_slice(&body);
-    stream
+    connection
+        .stream
         .get_mut()
         .write_all(&message)
         .map_err(|e| io_error("write request", &e))?;
+    read_reply(connection, request, schema)
+}
+
+/// Reads the reply to `request` on `connection`.
+fn read_reply(
+    connection: &mut Connection,
+    request: &Request,
+    schema: Schema,
+) -> Result<(Reply, codec::ErrorSection), NanonisError> {
+    let name = request.name();
+    let stream = &mut connection.stream;
     let mut reply_header = [0u8; HEADER_LEN];
     stream
         .read_exact(&mut reply_header)

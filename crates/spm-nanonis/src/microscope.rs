@@ -634,9 +634,7 @@ impl NanonisMicroscope {
     /// after a slice that timed out: an end of scan between two slices is not waited for
     /// again). Returns whether the scan ended within the margin.
     fn wait_end_of_scan(&mut self, expected_s: f64) -> Result<bool, NanonisError> {
-        let total_ms = ((expected_s + self.config.wait_margin_s) * 1e3)
-            .ceil()
-            .min(f64::from(i32::MAX)) as i32;
+        let total_ms = self.end_of_scan_timeout_ms(expected_s);
         if self.interrupt.is_none() {
             let request = Request::ScanWaitEndOfScan {
                 timeout_ms: total_ms,
@@ -646,16 +644,35 @@ impl NanonisMicroscope {
                 other => Err(unexpected("Scan.WaitEndOfScan", &other)),
             };
         }
-        let slice_ms = (INTERRUPT_POLL_S * 1e3) as i32;
-        let mut waited_ms = 0i32;
+        self.sliced_wait_end_of_scan(total_ms, 0)
+    }
+
+    /// The interruptible wait for the end of a scan: slices of at most [`INTERRUPT_POLL_S`]
+    /// up to `total_ms`, from `waited_ms` on (when > 0, slices that timed out have been
+    /// waited already), with the flag looked at between them and `Scan.StatusGet` after each
+    /// slice that timed out.
+    fn sliced_wait_end_of_scan(
+        &mut self,
+        total_ms: i32,
+        mut waited_ms: i32,
+    ) -> Result<bool, NanonisError> {
         loop {
+            if waited_ms > 0 {
+                // After a slice that timed out: an end between two slices is not waited for.
+                if self.interrupted() {
+                    return Err(self.pause_interrupted_scan());
+                }
+                if u32_reply(&mut self.client, &Request::ScanStatusGet)? == 0 {
+                    return Ok(true);
+                }
+            }
             if self.interrupted() {
                 return Err(self.pause_interrupted_scan());
             }
             if waited_ms >= total_ms {
                 return Ok(false);
             }
-            let timeout_ms = slice_ms.min(total_ms - waited_ms);
+            let timeout_ms = slice_ms().min(total_ms - waited_ms);
             let request = Request::ScanWaitEndOfScan { timeout_ms };
             match self
                 .client
@@ -666,13 +683,15 @@ impl NanonisMicroscope {
                 other => return Err(unexpected("Scan.WaitEndOfScan", &other)),
             }
             waited_ms = waited_ms.saturating_add(timeout_ms);
-            if self.interrupted() {
-                return Err(self.pause_interrupted_scan());
-            }
-            if u32_reply(&mut self.client, &Request::ScanStatusGet)? == 0 {
-                return Ok(true);
-            }
         }
+    }
+
+    /// `Scan.WaitEndOfScan`'s timeout for a scan that takes `expected_s`: that and the wait
+    /// margin, whole milliseconds.
+    fn end_of_scan_timeout_ms(&self, expected_s: f64) -> i32 {
+        ((expected_s + self.config.wait_margin_s) * 1e3)
+            .ceil()
+            .min(f64::from(i32::MAX)) as i32
     }
 
     /// The controller's state found and set when the backend was opened.
@@ -761,25 +780,30 @@ impl NanonisMicroscope {
                 Ok(())
             }
             ClockSource::ControllerSignals { .. } => {
-                // Whole milliseconds (the command's `int`), the remainder carried to the
-                // next wait: the controller's clock never runs more than ½ ms from the sum
-                // of the requested waits.
-                let owed = duration_s + self.wait_carry_s;
-                let ms = (owed * 1e3).round().max(0.0);
-                self.wait_carry_s = owed - ms * 1e-3;
-                if ms > f64::from(i32::MAX) {
-                    return Err(NanonisError::new(
-                        NanonisErrorKind::InvalidRequest,
-                        format!("a wait of {duration_s} s is longer than the protocol's timeout"),
-                    ));
-                }
-                let request = Request::ScanWaitEndOfScan {
-                    timeout_ms: ms as i32,
-                };
+                let request = self.controller_wait(duration_s)?;
                 self.client.call_waiting(&request, duration_s)?;
                 Ok(())
             }
         }
+    }
+
+    /// A wait on the controller: `Scan.WaitEndOfScan` with no scan to end, timing out after
+    /// `duration_s` in whole milliseconds (the command's `int`), the remainder carried to the
+    /// next wait: the controller's clock never runs more than ½ ms from the sum of the
+    /// requested waits.
+    fn controller_wait(&mut self, duration_s: f64) -> Result<Request, NanonisError> {
+        let owed = duration_s + self.wait_carry_s;
+        let ms = (owed * 1e3).round().max(0.0);
+        if ms > f64::from(i32::MAX) {
+            return Err(NanonisError::new(
+                NanonisErrorKind::InvalidRequest,
+                format!("a wait of {duration_s} s is longer than the protocol's timeout"),
+            ));
+        }
+        self.wait_carry_s = owed - ms * 1e-3;
+        Ok(Request::ScanWaitEndOfScan {
+            timeout_ms: ms as i32,
+        })
     }
 
     fn check_inside(&self, p: CountPoint, what: &str) -> Result<(), NanonisError> {
@@ -1047,7 +1071,9 @@ impl NanonisMicroscope {
         let reconnects = self.client.reconnects();
         let (tf, tb) = self.sent.line_times_s.unwrap_or((line_s, line_s));
         let expected_s = f64::from(lines) * (tf + tb);
-        let ended = match self.wait_end_of_scan(expected_s) {
+        // Backward first when wanted (a controller that records lazily learns it is needed).
+        let want_backward = request.record_backward && self.capabilities.backward_trace;
+        let ended = match self.end_of_scan(expected_s, want_backward, n16, lines) {
             Ok(ended) => ended,
             // Interrupted: the scan is paused, not stopped.
             Err(e) if e.kind == NanonisErrorKind::Aborted => return Err(e),
@@ -1058,7 +1084,12 @@ impl NanonisMicroscope {
                 return Err(e);
             }
         };
-        if !ended {
+        let Some(ScanEnd {
+            forward,
+            backward,
+            end_s: end,
+        }) = ended
+        else {
             if let Err(stop) = self.abort() {
                 tracing::warn!(error = %stop, "nanonis: could not stop the scan");
             }
@@ -1070,21 +1101,12 @@ impl NanonisMicroscope {
                 ),
             )
             .in_command("Scan.WaitEndOfScan"));
-        }
+        };
         // Ended normally on the connection it was started on: no scan runs until the next
         // start (a reconnection in between may have lost the end, or left another scan).
         if self.client.reconnects() == reconnects {
             self.scan_idle = Some(reconnects);
         }
-        // Backward first when wanted (a controller that records lazily learns it is needed).
-        let want_backward = request.record_backward && self.capabilities.backward_trace;
-        let backward = if want_backward {
-            Some(self.grab(0, n16, lines)?)
-        } else {
-            None
-        };
-        let forward = self.grab(1, n16, lines)?;
-        let end = self.now_s()?;
         let start = end - f64::from(lines) * (tf + tb);
         let n = n as usize;
         let n16u = n16 as usize;
@@ -1163,27 +1185,235 @@ impl NanonisMicroscope {
         Ok(f64::from(value_m) / self.z_m_per_count)
     }
 
+    /// Whether a command and the reads after it are pipelined ([`Client::call_pipelined`]):
+    /// with a simulated controller (a virtual clock: `nanonis-sim`, whose server reads a
+    /// connection's requests one at a time from its stream, so several may be under way).
+    /// A controller clock in real time, or the host's (hardware), sends one command per
+    /// round trip, as the vendor's client does.
+    fn pipelining(&self) -> bool {
+        matches!(
+            self.config.clock,
+            ClockSource::ControllerSignals {
+                virtual_time: true,
+                ..
+            }
+        )
+    }
+
+    /// `first` (a wait-style command expected to take `expected_s`), then `reads` (commands
+    /// that change nothing on the controller): pipelined in one round trip when
+    /// [`Self::pipelining`], else one call each; from a failure in the pipeline that the
+    /// client retries (busy, or a lost connection with a retry-safe request) on, one call
+    /// each (with the client's retries). The replies, in order.
+    fn call_then_read(
+        &mut self,
+        first: &Request,
+        expected_s: f64,
+        reads: &[Request],
+    ) -> Result<Vec<Reply>, NanonisError> {
+        let all: Vec<&Request> = std::iter::once(first).chain(reads).collect();
+        let mut replies = Vec::with_capacity(all.len());
+        if self.pipelining() {
+            let timeout_s = self.client.waiting_timeout_s(expected_s);
+            for (request, result) in all.iter().zip(self.client.call_pipelined(&all, timeout_s)) {
+                match result {
+                    Ok(reply) => replies.push(reply),
+                    Err(e)
+                        if e.kind == NanonisErrorKind::Busy
+                            || (!self.client.is_connected() && request.is_retry_safe()) =>
+                    {
+                        tracing::debug!(error = %e, "nanonis: pipeline broken; one call each");
+                        break;
+                    }
+                    Err(e) => return Err(e),
+                }
+            }
+        }
+        for (k, request) in all.iter().enumerate().skip(replies.len()) {
+            replies.push(if k == 0 {
+                self.client.call_waiting(request, expected_s)?
+            } else {
+                self.client.call(request)?
+            });
+        }
+        Ok(replies)
+    }
+
+    /// The controller's clock read (`Signals.ValsGet` of the two time signals), with
+    /// [`ClockSource::ControllerSignals`].
+    fn clock_request(&self) -> Option<Request> {
+        match self.config.clock {
+            ClockSource::ControllerSignals {
+                whole_s_signal,
+                fraction_s_signal,
+                ..
+            } => Some(Request::SignalsValsGet {
+                indexes: vec![whole_s_signal, fraction_s_signal],
+                wait_newest: 0,
+            }),
+            ClockSource::Host => None,
+        }
+    }
+
+    /// The end of the scan just started, which takes `expected_s`, and its data: `None` when
+    /// it did not end within the margin. With [`Self::pipelining`] the wait (with an
+    /// interrupt flag its first slice), the grabs, the clock and the position are one round
+    /// trip (the readings kept as after reading them one by one; after a first slice that
+    /// timed out, the rest of the wait and the reads again one call each), else the wait
+    /// ([`Self::wait_end_of_scan`]), the grabs and the clock one call each.
+    fn end_of_scan(
+        &mut self,
+        expected_s: f64,
+        want_backward: bool,
+        n16: u32,
+        lines: u32,
+    ) -> Result<Option<ScanEnd>, NanonisError> {
+        let grab_request = |forward| Request::ScanFrameDataGrab {
+            channel: self.config.z_channel as u32,
+            forward,
+        };
+        let clock = self.clock_request();
+        let (true, Some(clock)) = (self.pipelining(), clock) else {
+            if !self.wait_end_of_scan(expected_s)? {
+                return Ok(None);
+            }
+            return self.scan_data(want_backward, n16, lines).map(Some);
+        };
+        // The whole wait, or with an interrupt flag its first slice.
+        let total_ms = self.end_of_scan_timeout_ms(expected_s);
+        let (first_ms, first_s) = if self.interrupt.is_some() {
+            if self.interrupted() {
+                return Err(self.pause_interrupted_scan());
+            }
+            let ms = slice_ms().min(total_ms);
+            (ms, f64::from(ms) * 1e-3)
+        } else {
+            (total_ms, expected_s)
+        };
+        let wait = Request::ScanWaitEndOfScan {
+            timeout_ms: first_ms,
+        };
+        let mut reads: Vec<Request> = want_backward.then(|| grab_request(0)).into_iter().collect();
+        reads.extend([
+            grab_request(1),
+            clock,
+            Request::FolMeXYPosGet { wait_newest: 0 },
+        ]);
+        let mut replies = self.call_then_read(&wait, first_s, &reads)?.into_iter();
+        match replies.next() {
+            Some(Reply::WaitEndOfScan { timed_out, .. }) if timed_out != 1 => {}
+            // The reads were of a scan still running: the rest of the wait, then again.
+            Some(Reply::WaitEndOfScan { .. }) if self.interrupt.is_some() => {
+                if !self.sliced_wait_end_of_scan(total_ms, first_ms)? {
+                    return Ok(None);
+                }
+                return self.scan_data(want_backward, n16, lines).map(Some);
+            }
+            Some(Reply::WaitEndOfScan { .. }) => return Ok(None),
+            other => return Err(unexpected_or_none("Scan.WaitEndOfScan", other)),
+        }
+        let backward = if want_backward {
+            Some(checked_frame(replies.next(), n16, lines)?)
+        } else {
+            None
+        };
+        let forward = checked_frame(replies.next(), n16, lines)?;
+        let end_s = clock_of(replies.next())?;
+        let position = match replies.next() {
+            Some(Reply::XY { x_m, y_m }) => self.counts_of_metres(x_m, y_m),
+            other => return Err(unexpected_or_none("FolMe.XYPosGet", other)),
+        };
+        // Both read after everything else, and reads take no virtual time: kept.
+        self.readings = Readings {
+            sequence: self.client.sequence(),
+            clock_s: Some(end_s),
+            position: Some(position),
+        };
+        Ok(Some(ScanEnd {
+            forward,
+            backward,
+            end_s,
+        }))
+    }
+
+    /// A scan's data and the clock at its end, one call each (backward first when wanted: a
+    /// controller that records lazily learns it is needed).
+    fn scan_data(
+        &mut self,
+        want_backward: bool,
+        n16: u32,
+        lines: u32,
+    ) -> Result<ScanEnd, NanonisError> {
+        let backward = if want_backward {
+            Some(self.grab(0, n16, lines)?)
+        } else {
+            None
+        };
+        let forward = self.grab(1, n16, lines)?;
+        let end_s = self.now_s()?;
+        Ok(ScanEnd {
+            forward,
+            backward,
+            end_s,
+        })
+    }
+
     fn grab(&mut self, forward: u32, columns: u32, rows: u32) -> Result<FrameData, NanonisError> {
         let request = Request::ScanFrameDataGrab {
             channel: self.config.z_channel as u32,
             forward,
         };
-        match self.client.call(&request)? {
-            Reply::FrameData(d) if d.rows == rows as usize && d.columns == columns as usize => {
-                Ok(d)
-            }
-            Reply::FrameData(d) => Err(NanonisError::new(
-                NanonisErrorKind::IncompleteData,
-                format!(
-                    "{} × {} data for a {columns} × {rows} scan",
-                    d.columns, d.rows
-                ),
-            )
-            .in_command("Scan.FrameDataGrab")),
-            other => Err(unexpected("Scan.FrameDataGrab", &other)),
-        }
+        checked_frame(Some(self.client.call(&request)?), columns, rows)
     }
+}
 
+/// A slice of the interruptible wait for the end of a scan, ms ([`INTERRUPT_POLL_S`]).
+fn slice_ms() -> i32 {
+    (INTERRUPT_POLL_S * 1e3) as i32
+}
+
+/// A scan's end as [`NanonisMicroscope::end_of_scan`] found it.
+struct ScanEnd {
+    forward: FrameData,
+    backward: Option<FrameData>,
+    /// The controller's clock at the end, s.
+    end_s: f64,
+}
+
+fn unexpected_or_none(command: &str, reply: Option<Reply>) -> NanonisError {
+    match reply {
+        Some(reply) => unexpected(command, &reply),
+        None => NanonisError::new(NanonisErrorKind::Protocol, "no reply").in_command(command),
+    }
+}
+
+/// The controller's time from the reply to the clock read, s.
+fn clock_of(reply: Option<Reply>) -> Result<f64, NanonisError> {
+    match reply {
+        Some(Reply::Values(v)) if v.len() == 2 => Ok(f64::from(v[0]) + f64::from(v[1])),
+        other => Err(unexpected_or_none("Signals.ValsGet", other)),
+    }
+}
+
+/// A frame grab's reply, checked to hold `columns × rows` data.
+fn checked_frame(reply: Option<Reply>, columns: u32, rows: u32) -> Result<FrameData, NanonisError> {
+    match reply {
+        Some(Reply::FrameData(d)) if d.rows == rows as usize && d.columns == columns as usize => {
+            Ok(d)
+        }
+        Some(Reply::FrameData(d)) => Err(NanonisError::new(
+            NanonisErrorKind::IncompleteData,
+            format!(
+                "{} × {} data for a {columns} × {rows} scan",
+                d.columns, d.rows
+            ),
+        )
+        .in_command("Scan.FrameDataGrab")),
+        other => Err(unexpected_or_none("Scan.FrameDataGrab", other)),
+    }
+}
+
+impl NanonisMicroscope {
     fn now_s(&mut self) -> Result<f64, NanonisError> {
         let ClockSource::ControllerSignals {
             whole_s_signal,
@@ -1421,11 +1651,24 @@ impl NanonisMicroscope {
         )?;
         // The settle always goes to the controller (even 0 s) so that a controller-side
         // clock sees move and settle as one operation.
-        self.pause(settle)?;
+        let clock_s = match (self.pipelining(), self.clock_request()) {
+            (true, Some(clock)) => {
+                // The settle and the clock read after it in one round trip.
+                let wait = self.controller_wait(settle)?;
+                let mut replies = self.call_then_read(&wait, settle, &[clock])?.into_iter();
+                replies.next();
+                Some(clock_of(replies.next())?)
+            }
+            _ => {
+                self.pause(settle)?;
+                None
+            }
+        };
         // The move waited for its end: the commanded position is its target (spm-hal's
         // `position` is the commanded one), known without asking until the next command.
         self.readings = Readings {
             position: Some(request.target),
+            clock_s,
             ..Readings::none(self.client.sequence())
         };
         Ok(())

@@ -353,3 +353,61 @@ fn after_a_reconnection_a_scan_left_running_is_stopped_first() {
     // The other client's start, the backend's stop of it and its own start.
     assert_eq!(sent("Scan.Action"), 3, "{after:?}");
 }
+
+/// Issue 26 (the TCP overhead): with a simulated controller (virtual clock) a move's settle
+/// and the clock read after it are one round trip, and so are a scan's end, its data, the
+/// clock and the position after it (pipelined: sent in one write, answered in order). The
+/// readings are the simulator's own (its clock and commanded position after the commands),
+/// and the server's count of requests it found already received is the truth of the
+/// round trips saved.
+#[test]
+fn a_wait_and_the_reads_after_it_are_one_round_trip() {
+    a_wait_and_the_reads_after_it_are_one_round_trip_when(false);
+    // As `spmcal calibrate` runs: interruptible (the wait for a scan's end in slices).
+    a_wait_and_the_reads_after_it_are_one_round_trip_when(true);
+}
+
+fn a_wait_and_the_reads_after_it_are_one_round_trip_when(interruptible: bool) {
+    let server = start(SocketFaults::none());
+    let mut tcp = NanonisMicroscope::connect(client_config(server.addr().port())).unwrap();
+    if interruptible {
+        tcp.set_interrupt(std::sync::Arc::new(std::sync::atomic::AtomicBool::new(
+            false,
+        )));
+    }
+    let s = request(ScanDirection::Direct, 16, 4);
+    let before = server.stats();
+    tcp.move_to(MoveRequest {
+        target: CountPoint::from_counts(1500.0, -2000.0),
+        speed: spm_hal::CountsPerSecond(1000.0),
+        settle: Seconds(0.0125),
+    })
+    .unwrap();
+    let after_move = (tcp.now().unwrap(), tcp.position().unwrap());
+    let truth_move = server.with_simulator_mut(|sim| (sim.now().unwrap(), sim.position().unwrap()));
+    let frame = tcp.scan(&s).unwrap();
+    frame.validate().unwrap();
+    let after_scan = (tcp.now().unwrap(), tcp.position().unwrap());
+    let truth_scan = server.with_simulator_mut(|sim| (sim.now().unwrap(), sim.position().unwrap()));
+    let after = server.stats();
+    let pipelined = after.pipelined - before.pipelined;
+    eprintln!(
+        "{} commands, {pipelined} pipelined",
+        after.commands - before.commands
+    );
+    // The move's clock read; the scan's grab, clock and position reads.
+    assert_eq!(pipelined, 4, "interruptible {interruptible}: {after:?}");
+    for ((t, p), (t_sim, p_sim), what) in [
+        (after_move, truth_move, "after the move"),
+        (after_scan, truth_scan, "after the scan"),
+    ] {
+        assert!(
+            close(t.value(), t_sim.value(), 0.0),
+            "{what}: {t} vs {t_sim}"
+        );
+        assert!(
+            p.distance(p_sim).value() < 2e-3,
+            "{what}: {p:?} vs {p_sim:?}"
+        );
+    }
+}

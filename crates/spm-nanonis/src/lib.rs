@@ -73,7 +73,8 @@
 //! - **Pipelined with a simulated controller** (`virtual_time`, `nanonis-sim`): a command
 //!   that waits and the reads after it are sent in one write and answered in order
 //!   ([`Client::call_pipelined`]) — a move's settle and the clock read after it (one round
-//!   trip for two), and a scan's end (`Scan.WaitEndOfScan`), its frame data, the clock and
+//!   trip for two), `Scan.BufferSet` and `Scan.SpeedSet` and their read-backs (one for two
+//!   each), and a scan's end (`Scan.WaitEndOfScan`), its frame data, the clock and
 //!   the position (one for four or five) — and the readings are kept as if read one by one
 //!   (reads take no virtual time). The controller executes a connection's commands one after
 //!   another, so the pipeline is the same commands without the waits for each reply

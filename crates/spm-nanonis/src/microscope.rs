@@ -881,15 +881,19 @@ impl NanonisMicroscope {
         speed: ScanSpeed,
     ) -> Result<(), NanonisError> {
         if self.sent.buffer != Some((n16, lines)) {
-            self.client.call(&Request::ScanBufferSet(ScanBuffer {
+            // Pitfall: read back what the controller made of it (pipelined).
+            let set = Request::ScanBufferSet(ScanBuffer {
                 channels: vec![self.config.z_channel],
                 pixels: n16,
                 lines,
-            }))?;
-            // Pitfall: read back what the controller made of it.
-            match self.client.call(&Request::ScanBufferGet)? {
-                Reply::Buffer(b) if b.pixels == n16 && b.lines == lines => {}
-                Reply::Buffer(b) => {
+            });
+            let mut replies = self
+                .call_then_read(&set, None, &[Request::ScanBufferGet])?
+                .into_iter()
+                .skip(1);
+            match replies.next() {
+                Some(Reply::Buffer(b)) if b.pixels == n16 && b.lines == lines => {}
+                Some(Reply::Buffer(b)) => {
                     self.sent.buffer = None;
                     return Err(NanonisError::new(
                         NanonisErrorKind::Controller,
@@ -900,7 +904,7 @@ impl NanonisMicroscope {
                     )
                     .in_command("Scan.BufferGet"));
                 }
-                other => return Err(unexpected("Scan.BufferGet", &other)),
+                other => return Err(unexpected_or_none("Scan.BufferGet", other)),
             }
             self.sent.buffer = Some((n16, lines));
         }
@@ -916,11 +920,21 @@ impl NanonisMicroscope {
             self.sent.frame = Some(frame_bits);
         }
         if self.sent.speed != Some(speed) {
-            self.client.call(&Request::ScanSpeedSet(speed))?;
-            // Pitfall: the controller may coerce the speed; time the pixels by what it uses.
-            let (tf, tb) = match self.client.call(&Request::ScanSpeedGet)? {
-                Reply::Speed(s) => (f64::from(s.forward_line_s), f64::from(s.backward_line_s)),
-                other => return Err(unexpected("Scan.SpeedGet", &other)),
+            // Pitfall: the controller may coerce the speed; time the pixels by what it uses
+            // (read back, pipelined).
+            let mut replies = self
+                .call_then_read(
+                    &Request::ScanSpeedSet(speed),
+                    None,
+                    &[Request::ScanSpeedGet],
+                )?
+                .into_iter()
+                .skip(1);
+            let (tf, tb) = match replies.next() {
+                Some(Reply::Speed(s)) => {
+                    (f64::from(s.forward_line_s), f64::from(s.backward_line_s))
+                }
+                other => return Err(unexpected_or_none("Scan.SpeedGet", other)),
             };
             if !(tf.is_finite() && tb.is_finite() && tf > 0.0 && tb > 0.0) {
                 return Err(NanonisError::new(
@@ -1200,21 +1214,24 @@ impl NanonisMicroscope {
         )
     }
 
-    /// `first` (a wait-style command expected to take `expected_s`), then `reads` (commands
-    /// that change nothing on the controller): pipelined in one round trip when
+    /// `first` (with `expected_s`, a wait-style command expected to take that long), then
+    /// `reads` (commands that change nothing on the controller): pipelined in one round trip when
     /// [`Self::pipelining`], else one call each; from a failure in the pipeline that the
     /// client retries (busy, or a lost connection with a retry-safe request) on, one call
     /// each (with the client's retries). The replies, in order.
     fn call_then_read(
         &mut self,
         first: &Request,
-        expected_s: f64,
+        expected_s: Option<f64>,
         reads: &[Request],
     ) -> Result<Vec<Reply>, NanonisError> {
         let all: Vec<&Request> = std::iter::once(first).chain(reads).collect();
         let mut replies = Vec::with_capacity(all.len());
         if self.pipelining() {
-            let timeout_s = self.client.waiting_timeout_s(expected_s);
+            let timeout_s = match expected_s {
+                Some(expected_s) => self.client.waiting_timeout_s(expected_s),
+                None => self.client.config().command_timeout_s,
+            };
             for (request, result) in all.iter().zip(self.client.call_pipelined(&all, timeout_s)) {
                 match result {
                     Ok(reply) => replies.push(reply),
@@ -1230,10 +1247,9 @@ impl NanonisMicroscope {
             }
         }
         for (k, request) in all.iter().enumerate().skip(replies.len()) {
-            replies.push(if k == 0 {
-                self.client.call_waiting(request, expected_s)?
-            } else {
-                self.client.call(request)?
+            replies.push(match (k, expected_s) {
+                (0, Some(expected_s)) => self.client.call_waiting(request, expected_s)?,
+                _ => self.client.call(request)?,
             });
         }
         Ok(replies)
@@ -1299,7 +1315,9 @@ impl NanonisMicroscope {
             clock,
             Request::FolMeXYPosGet { wait_newest: 0 },
         ]);
-        let mut replies = self.call_then_read(&wait, first_s, &reads)?.into_iter();
+        let mut replies = self
+            .call_then_read(&wait, Some(first_s), &reads)?
+            .into_iter();
         match replies.next() {
             Some(Reply::WaitEndOfScan { timed_out, .. }) if timed_out != 1 => {}
             // The reads were of a scan still running: the rest of the wait, then again.
@@ -1655,7 +1673,9 @@ impl NanonisMicroscope {
             (true, Some(clock)) => {
                 // The settle and the clock read after it in one round trip.
                 let wait = self.controller_wait(settle)?;
-                let mut replies = self.call_then_read(&wait, settle, &[clock])?.into_iter();
+                let mut replies = self
+                    .call_then_read(&wait, Some(settle), &[clock])?
+                    .into_iter();
                 replies.next();
                 Some(clock_of(replies.next())?)
             }

@@ -71,17 +71,19 @@
 //!   This is the same assumption again: only another client could start a scan in between
 //!   (were one to, the controller would meet the backend's start with its scan running).
 //! - **Pipelined with a simulated controller** (`virtual_time`, `nanonis-sim`): a command
-//!   that waits and the reads after it are sent in one write and answered in order
-//!   ([`Client::call_pipelined`]) — a move's settle and the clock read after it (one round
-//!   trip for two), `Scan.BufferSet` and `Scan.SpeedSet` and their read-backs (one for two
-//!   each), and a scan's end (`Scan.WaitEndOfScan`), its frame data, the clock and
-//!   the position (one for four or five) — and the readings are kept as if read one by one
-//!   (reads take no virtual time). The controller executes a connection's commands one after
-//!   another, so the pipeline is the same commands without the waits for each reply
-//!   between them; a failure in it that the client retries (a busy reply, a lost
-//!   connection) sends the rest one by one. Hardware (a real-time or host clock) keeps one
-//!   command per round trip, as the vendor's client sends them: no controller has been
-//!   checked with several requests under way.
+//!   and what follows it (reads, a settle) are sent in one write and answered in order
+//!   ([`Client::call_pipelined`]): a move (`FolMe.XYPosSet`), its settle and the clock read
+//!   after them (one round trip for three; a move the controller refuses is followed by its
+//!   settle all the same: time passes, and the clock is read again after the failure);
+//!   `Scan.BufferSet` and `Scan.SpeedSet` with their read-backs (one for two each); a
+//!   scan's end (`Scan.WaitEndOfScan`), its frame data, the clock and the position (one for
+//!   four or five). The readings are kept as if read one by one (reads take no virtual
+//!   time). The controller executes a connection's commands one after another, so a
+//!   pipeline is the same commands without the wait for each reply between them; from a
+//!   failure in it that the client retries (a busy reply, a lost connection) on, the rest
+//!   is sent one by one. Hardware (a real-time or host clock) keeps one command per round
+//!   trip, as the vendor's client sends them: no controller has been checked with several
+//!   requests under way.
 //! - **Not done**, each for a reason:
 //!   the clock after a move or a wait is not derived from the time asked (the controller
 //!   adds its own overhead: nanonis-sim its simulator's call overhead), so it is read once

@@ -1215,22 +1215,38 @@ impl NanonisMicroscope {
     }
 
     /// `first` (with `expected_s`, a wait-style command expected to take that long), then
-    /// `reads` (commands that change nothing on the controller): pipelined in one round trip when
-    /// [`Self::pipelining`], else one call each; from a failure in the pipeline that the
-    /// client retries (busy, or a lost connection with a retry-safe request) on, one call
-    /// each (with the client's retries). The replies, in order.
+    /// `reads` (commands that change nothing on the controller), in order
+    /// ([`Self::call_in_order`]).
     fn call_then_read(
         &mut self,
         first: &Request,
         expected_s: Option<f64>,
         reads: &[Request],
     ) -> Result<Vec<Reply>, NanonisError> {
-        let all: Vec<&Request> = std::iter::once(first).chain(reads).collect();
-        let mut replies = Vec::with_capacity(all.len());
+        let calls: Vec<(&Request, Option<f64>)> = std::iter::once((first, expected_s))
+            .chain(reads.iter().map(|r| (r, None)))
+            .collect();
+        self.call_in_order(&calls)
+    }
+
+    /// Requests (each with `Some(expected_s)` when it is a wait-style command expected to take
+    /// that long) executed in order: pipelined in one round trip when [`Self::pipelining`],
+    /// else one call each; from a failure in the pipeline that the client retries (busy, or a
+    /// lost connection with a retry-safe request) on, one call each (with the client's
+    /// retries). Only for requests after which the later ones do no harm when an earlier
+    /// one failed (reads, waits). The replies, in order.
+    fn call_in_order(
+        &mut self,
+        calls: &[(&Request, Option<f64>)],
+    ) -> Result<Vec<Reply>, NanonisError> {
+        let mut replies = Vec::with_capacity(calls.len());
         if self.pipelining() {
-            let timeout_s = match expected_s {
-                Some(expected_s) => self.client.waiting_timeout_s(expected_s),
-                None => self.client.config().command_timeout_s,
+            let all: Vec<&Request> = calls.iter().map(|(r, _)| *r).collect();
+            let waits: Vec<f64> = calls.iter().filter_map(|(_, e)| *e).collect();
+            let timeout_s = if waits.is_empty() {
+                self.client.config().command_timeout_s
+            } else {
+                self.client.waiting_timeout_s(waits.iter().sum())
             };
             for (request, result) in all.iter().zip(self.client.call_pipelined(&all, timeout_s)) {
                 match result {
@@ -1246,10 +1262,10 @@ impl NanonisMicroscope {
                 }
             }
         }
-        for (k, request) in all.iter().enumerate().skip(replies.len()) {
-            replies.push(match (k, expected_s) {
-                (0, Some(expected_s)) => self.client.call_waiting(request, expected_s)?,
-                _ => self.client.call(request)?,
+        for (request, expected_s) in calls.iter().skip(replies.len()) {
+            replies.push(match expected_s {
+                Some(expected_s) => self.client.call_waiting(request, *expected_s)?,
+                None => self.client.call(request)?,
             });
         }
         Ok(replies)
@@ -1659,27 +1675,31 @@ impl NanonisMicroscope {
         }
         let (x_m, y_m) = self.to_metres(request.target);
         let expected_s = here.distance(request.target).value() / speed;
-        self.client.call_waiting(
-            &Request::FolMeXYPosSet {
-                x_m,
-                y_m,
-                wait_end_of_move: 1,
-            },
-            expected_s,
-        )?;
+        let set = Request::FolMeXYPosSet {
+            x_m,
+            y_m,
+            wait_end_of_move: 1,
+        };
         // The settle always goes to the controller (even 0 s) so that a controller-side
         // clock sees move and settle as one operation.
         let clock_s = match (self.pipelining(), self.clock_request()) {
             (true, Some(clock)) => {
-                // The settle and the clock read after it in one round trip.
+                // The move, its settle and the clock read after them in one round trip (a
+                // move the controller refuses is followed by the settle all the same: time
+                // passes, and the clock is read again after the failure).
                 let wait = self.controller_wait(settle)?;
                 let mut replies = self
-                    .call_then_read(&wait, Some(settle), &[clock])?
-                    .into_iter();
-                replies.next();
+                    .call_in_order(&[
+                        (&set, Some(expected_s)),
+                        (&wait, Some(settle)),
+                        (&clock, None),
+                    ])?
+                    .into_iter()
+                    .skip(2);
                 Some(clock_of(replies.next())?)
             }
             _ => {
+                self.client.call_waiting(&set, expected_s)?;
                 self.pause(settle)?;
                 None
             }

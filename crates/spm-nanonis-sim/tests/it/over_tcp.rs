@@ -354,8 +354,8 @@ fn after_a_reconnection_a_scan_left_running_is_stopped_first() {
     assert_eq!(sent("Scan.Action"), 3, "{after:?}");
 }
 
-/// Issue 26 (the TCP overhead): with a simulated controller (virtual clock) a move's settle
-/// and the clock read after it are one round trip, a scan setting and its read-back are one,
+/// Issue 26 (the TCP overhead): with a simulated controller (virtual clock) a move, its settle
+/// and the clock read after them are one round trip, a scan setting and its read-back are one,
 /// and so are a scan's end, its data, the clock and the position after it (pipelined: sent in
 /// one write, answered in order). The
 /// readings are the simulator's own (its clock and commanded position after the commands),
@@ -396,9 +396,9 @@ fn a_wait_and_the_reads_after_it_are_one_round_trip_when(interruptible: bool) {
         "{} commands, {pipelined} pipelined",
         after.commands - before.commands
     );
-    // The move's clock read; the read-backs of the scan's buffer and speed (set for the
-    // first time); the scan's grab, clock and position reads.
-    assert_eq!(pipelined, 6, "interruptible {interruptible}: {after:?}");
+    // The move's settle and clock read; the read-backs of the scan's buffer and speed (set
+    // for the first time); the scan's grab, clock and position reads.
+    assert_eq!(pipelined, 7, "interruptible {interruptible}: {after:?}");
     for ((t, p), (t_sim, p_sim), what) in [
         (after_move, truth_move, "after the move"),
         (after_scan, truth_scan, "after the scan"),

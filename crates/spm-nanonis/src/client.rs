@@ -165,6 +165,8 @@ pub struct Client {
     sequence: u64,
     /// Set by whoever stops the run ([`Client::set_interrupt`]).
     interrupt: Option<Arc<AtomicBool>>,
+    /// How long a reply is polled for before the thread sleeps ([`Client::set_reply_poll`]).
+    reply_poll: Duration,
 }
 
 /// Bytes a connection reads ahead: one `recv` brings a reply's header with the body of any
@@ -178,17 +180,57 @@ const READ_AHEAD_BYTES: usize = 8 << 10;
 struct Connection {
     stream: std::io::BufReader<TcpStream>,
     timeout: Option<Duration>,
+    reply_poll: Duration,
 }
 
 impl Connection {
-    fn new(stream: TcpStream, write_timeout: Duration) -> Result<Self, NanonisError> {
+    fn new(
+        stream: TcpStream,
+        write_timeout: Duration,
+        reply_poll: Duration,
+    ) -> Result<Self, NanonisError> {
         stream
             .set_write_timeout(Some(write_timeout))
             .map_err(|e| io_error("set timeout", &e))?;
         Ok(Self {
             stream: std::io::BufReader::with_capacity(READ_AHEAD_BYTES, stream),
             timeout: None,
+            reply_poll,
         })
+    }
+
+    /// Polls for the next reply's first bytes for up to `reply_poll` without sleeping (they
+    /// are then in the read-ahead); after that the read sleeps until they come.
+    fn poll_for_reply(&mut self) -> Result<(), NanonisError> {
+        use std::io::BufRead;
+        if self.reply_poll.is_zero() || !self.stream.buffer().is_empty() {
+            return Ok(());
+        }
+        let set = |s: &TcpStream, on: bool| {
+            s.set_nonblocking(on)
+                .map_err(|e| io_error("set non-blocking", &e))
+        };
+        set(self.stream.get_ref(), true)?;
+        let until = std::time::Instant::now() + self.reply_poll;
+        let polled = loop {
+            match self.stream.fill_buf() {
+                Ok(_) => break Ok(()),
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::Interrupted
+                    ) =>
+                {
+                    if std::time::Instant::now() >= until {
+                        break Ok(());
+                    }
+                    std::hint::spin_loop();
+                }
+                Err(e) => break Err(io_error("read reply header", &e)),
+            }
+        };
+        set(self.stream.get_ref(), false)?;
+        polled
     }
 
     fn set_timeout(&mut self, timeout: Duration) -> Result<(), NanonisError> {
@@ -220,6 +262,7 @@ impl Client {
             reconnects: 0,
             sequence: 0,
             interrupt: None,
+            reply_poll: Duration::ZERO,
         };
         client.ensure_connected()?;
         client.reconnects = 0;
@@ -265,6 +308,17 @@ impl Client {
             };
             std::thread::sleep(seconds(slice_s));
             left_s -= slice_s;
+        }
+    }
+
+    /// Polls for each reply for up to `poll` before the thread sleeps waiting for it (zero,
+    /// the default: no polling). Meant for a controller on the same host that answers in
+    /// microseconds (`nanonis-sim`): a reply that comes while polling costs no wake-up of a
+    /// sleeping thread, which on a virtual machine takes longer than the reply.
+    pub fn set_reply_poll(&mut self, poll: Duration) {
+        self.reply_poll = poll;
+        if let Some(connection) = self.stream.as_mut() {
+            connection.reply_poll = poll;
         }
     }
 
@@ -336,6 +390,7 @@ impl Client {
                     self.stream = Some(Connection::new(
                         stream,
                         seconds(self.config.command_timeout_s),
+                        self.reply_poll,
                     )?);
                     self.reconnects += 1;
                     self.sequence += 1;
@@ -562,6 +617,7 @@ impl Client {
                 self.stop_stream = Some(Connection::new(
                     self.open()?,
                     seconds(self.config.command_timeout_s),
+                    Duration::ZERO,
                 )?);
             }
             let Some(connection) = self.stop_stream.as_mut() else {
@@ -647,6 +703,7 @@ fn read_reply(
     schema: Schema,
 ) -> Result<(Reply, codec::ErrorSection), NanonisError> {
     let name = request.name();
+    connection.poll_for_reply()?;
     let stream = &mut connection.stream;
     let mut reply_header = [0u8; HEADER_LEN];
     stream

@@ -84,6 +84,19 @@
 //!   is sent one by one. Hardware (a real-time or host clock) keeps one command per round
 //!   trip, as the vendor's client sends them: no controller has been checked with several
 //!   requests under way.
+//! - **Replies polled for with a simulated controller**: the same `virtual_time` controller
+//!   on the same host answers most commands within microseconds, and waking the thread
+//!   that slept waiting for the reply takes longer (tens of µs on a virtual machine, where
+//!   the sleeping CPU is idle), so each reply is polled for up to [`REPLY_POLL`] (50 µs)
+//!   before the thread sleeps ([`Client::set_reply_poll`]). Hardware: no polling.
+//!
+//! On the small HOPG plan against `nanonis-sim` (`cargo test -p xtask --release
+//! nanonis_overhead -- --ignored`): 472 commands per node, each a round trip, before the
+//! three points above; 430 commands in 196 round trips now. A round trip in a run costs
+//! far more than a bare one on an idle virtual machine (about 55 µs against 13 µs: the
+//! other thread's idle virtual CPU has to be woken), so the round trips, not the
+//! commands' work (under 2 % of either side's time), are the overhead (docs/RESULTS.md,
+//! "Nanonis").
 //! - **Not done**, each for a reason:
 //!   the clock after a move or a wait is not derived from the time asked (the controller
 //!   adds its own overhead: nanonis-sim its simulator's call overhead), so it is read once
@@ -192,5 +205,5 @@ pub use client::{Client, ClientConfig};
 pub use error::{NanonisError, NanonisErrorKind};
 pub use microscope::{
     ClockSource, CoarseZConfig, ControllerState, INTERRUPT_POLL_S, LOW_VOLTAGE_SPAN_V,
-    NanonisConfig, NanonisMicroscope, PIXEL_PACKET, SlowDirection, metres_per_count,
+    NanonisConfig, NanonisMicroscope, PIXEL_PACKET, REPLY_POLL, SlowDirection, metres_per_count,
 };

@@ -26,6 +26,10 @@ pub const LOW_VOLTAGE_SPAN_V: f64 = 20.0;
 /// before it looks at the flag again, s.
 pub const INTERRUPT_POLL_S: f64 = 0.2;
 
+/// With a simulated controller ([`ClockSource::ControllerSignals`] with `virtual_time`), how
+/// long each reply is polled for before the thread sleeps ([`Client::set_reply_poll`]).
+pub const REPLY_POLL: std::time::Duration = std::time::Duration::from_micros(50);
+
 /// Pixels per line travel from the real-time engine to the host in packets of this many:
 /// the scan module coerces pixels per line to a multiple of it.
 pub const PIXEL_PACKET: u32 = 16;
@@ -581,6 +585,9 @@ impl NanonisMicroscope {
             readings: Readings::default(),
             scan_idle: None,
         };
+        if opened.pipelining() {
+            opened.client.set_reply_poll(REPLY_POLL);
+        }
         // A scan left paused by an interrupted run (or running, by a user) is stopped before
         // anything moves the tip: its frame is not resumed (see the crate docs).
         opened.stop_running_scan()?;

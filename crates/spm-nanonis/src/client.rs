@@ -200,7 +200,8 @@ impl Connection {
     }
 
     /// Polls for the next reply's first bytes for up to `reply_poll` without sleeping (they
-    /// are then in the read-ahead); after that the read sleeps until they come.
+    /// are then in the read-ahead), yielding the CPU between two looks; after that the read
+    /// sleeps until they come.
     fn poll_for_reply(&mut self) -> Result<(), NanonisError> {
         use std::io::BufRead;
         if self.reply_poll.is_zero() || !self.stream.buffer().is_empty() {
@@ -224,7 +225,8 @@ impl Connection {
                     if std::time::Instant::now() >= until {
                         break Ok(());
                     }
-                    std::hint::spin_loop();
+                    // Yielded, not spun: the controller's thread may be waiting for this CPU.
+                    std::thread::yield_now();
                 }
                 Err(e) => break Err(io_error("read reply header", &e)),
             }

@@ -91,7 +91,10 @@
 //!   and a connection idle for `idle_timeout_s` (600 s) is closed; a request body above
 //!   `max_request_body_bytes` (1 MiB) closes the connection, and a body is read in chunks
 //!   of [`BODY_CHUNK_BYTES`] (64 KiB), so a claimed 80 MiB body that never arrives costs
-//!   one chunk, not 80 MiB. A failing `accept()` (out of file descriptors) is retried after
+//!   one chunk, not 80 MiB (plus the connection's fixed read-ahead of [`READ_AHEAD_BYTES`],
+//!   4 KiB, into which one `recv` usually brings a whole request: a request that arrives
+//!   whole costs that `recv` and no other system call, the read timeout being set on the
+//!   socket only when it changes). A failing `accept()` (out of file descriptors) is retried after
 //!   a pause growing from 10 ms to 1 s ([`accept_pause`]), the first failure of a burst
 //!   logged and the burst's size when accepting works again.
 
@@ -99,8 +102,8 @@ mod neutral;
 pub mod server;
 
 pub use server::{
-    BODY_CHUNK_BYTES, ConnectionLimits, FrameTruth, Server, ServerConfig, ServerError,
-    ServerHandle, ServerStats, SocketFaults, accept_pause,
+    BODY_CHUNK_BYTES, ConnectionLimits, FrameTruth, READ_AHEAD_BYTES, Server, ServerConfig,
+    ServerError, ServerHandle, ServerStats, SocketFaults, accept_pause,
 };
 
 /// The backend configuration for talking to a `nanonis-sim` server on loopback `port` with the

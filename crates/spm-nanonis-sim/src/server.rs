@@ -266,6 +266,9 @@ pub struct ServerStats {
     pub commands: u64,
     /// Requests received per command name (`Scan.Action`, …): where a client's round trips go.
     pub commands_by_name: std::collections::BTreeMap<String, u64>,
+    /// Requests already received when the server turned to them, sent by the client before
+    /// it had the previous reply (pipelined): `commands − pipelined` is the round trips.
+    pub pipelined: u64,
     /// Error replies of the fault injector.
     pub injected_error_replies: u64,
     /// Connections dropped before executing.
@@ -1670,7 +1673,8 @@ fn accept_loop(
 fn encode_reply(command: &str, reply: &Reply, error: &ErrorSection) -> Option<Vec<u8>> {
     let body = reply.encode(error).ok()?;
     let header = codec::encode_response_header(command, body.len()).ok()?;
-    let mut bytes = header.to_vec();
+    let mut bytes = Vec::with_capacity(HEADER_LEN + body.len());
+    bytes.extend_from_slice(&header);
     bytes.extend_from_slice(&body);
     Some(bytes)
 }
@@ -1701,31 +1705,118 @@ enum ReadEnd {
     TimedOut,
 }
 
-/// Reads exactly `buf.len()` bytes, all by `deadline`.
-fn read_by(stream: &mut TcpStream, buf: &mut [u8], deadline: Instant) -> Result<(), ReadEnd> {
-    let mut at = 0;
-    while at < buf.len() {
-        let left = deadline.saturating_duration_since(Instant::now());
-        if left.is_zero() {
-            return Err(ReadEnd::TimedOut);
-        }
-        if stream.set_read_timeout(Some(left)).is_err() {
-            return Err(ReadEnd::Closed);
-        }
-        match stream.read(&mut buf[at..]) {
-            Ok(0) => return Err(ReadEnd::Closed),
-            Ok(n) => at += n,
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    std::io::ErrorKind::WouldBlock
-                        | std::io::ErrorKind::TimedOut
-                        | std::io::ErrorKind::Interrupted
-                ) => {}
-            Err(_) => return Err(ReadEnd::Closed),
+/// Bytes of a connection's read-ahead: a client writes a request's header and body in one
+/// piece, so one `recv` into it usually brings a whole request (bodies longer than it are
+/// read into their own buffer, [`BODY_CHUNK_BYTES`] at a time).
+pub const READ_AHEAD_BYTES: usize = 4 << 10;
+
+/// The read side of a connection: the bytes received ahead of what was asked for, and the
+/// read timeout last set on the socket (set again only when another one is needed). A request
+/// that arrives whole costs one `recv` and no other system call.
+struct Incoming {
+    ahead: Box<[u8]>,
+    /// The unread bytes are `ahead[start..end]`.
+    start: usize,
+    end: usize,
+    timeout: Option<Duration>,
+}
+
+impl Incoming {
+    fn new() -> Self {
+        Self {
+            ahead: vec![0u8; READ_AHEAD_BYTES].into_boxed_slice(),
+            start: 0,
+            end: 0,
+            timeout: None,
         }
     }
-    Ok(())
+
+    /// Whether bytes are waiting in the read-ahead.
+    fn has_bytes(&self) -> bool {
+        self.start < self.end
+    }
+
+    /// One `recv` of at least one byte into `buf` (into the read-ahead when `buf` is `None`)
+    /// by `deadline`: the first attempt with the timeout `first` (the whole allowance, set on
+    /// the socket only when it is not set already), another after a timeout or an
+    /// interruption that left time.
+    fn recv_by(
+        &mut self,
+        stream: &mut TcpStream,
+        mut buf: Option<&mut [u8]>,
+        deadline: Instant,
+        first: Duration,
+    ) -> Result<usize, ReadEnd> {
+        let mut timeout = first;
+        loop {
+            if timeout.is_zero() {
+                return Err(ReadEnd::TimedOut);
+            }
+            if self.timeout != Some(timeout) {
+                self.timeout = None;
+                if stream.set_read_timeout(Some(timeout)).is_err() {
+                    return Err(ReadEnd::Closed);
+                }
+                self.timeout = Some(timeout);
+            }
+            let read = match buf.as_deref_mut() {
+                Some(buf) => stream.read(buf),
+                None => stream.read(&mut self.ahead),
+            };
+            match read {
+                Ok(0) => return Err(ReadEnd::Closed),
+                Ok(n) => return Ok(n),
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::WouldBlock
+                            | std::io::ErrorKind::TimedOut
+                            | std::io::ErrorKind::Interrupted
+                    ) => {}
+                Err(_) => return Err(ReadEnd::Closed),
+            }
+            timeout = deadline.saturating_duration_since(Instant::now());
+        }
+    }
+
+    /// Waits up to `idle` for the first byte of a request (none when the read-ahead holds
+    /// one already).
+    fn wait_for_request(&mut self, stream: &mut TcpStream, idle: Duration) -> Result<(), ReadEnd> {
+        if self.has_bytes() {
+            return Ok(());
+        }
+        let n = self.recv_by(stream, None, Instant::now() + idle, idle)?;
+        (self.start, self.end) = (0, n);
+        Ok(())
+    }
+
+    /// Fills `buf` exactly, all by `deadline`: from the read-ahead first, then from the
+    /// socket (a part at least as long as the read-ahead straight into `buf`).
+    fn read_by(
+        &mut self,
+        stream: &mut TcpStream,
+        buf: &mut [u8],
+        deadline: Instant,
+    ) -> Result<(), ReadEnd> {
+        let mut at = 0;
+        while at < buf.len() {
+            if self.has_bytes() {
+                let n = (self.end - self.start).min(buf.len() - at);
+                buf[at..at + n].copy_from_slice(&self.ahead[self.start..self.start + n]);
+                self.start += n;
+                at += n;
+                continue;
+            }
+            let left = deadline.saturating_duration_since(Instant::now());
+            if buf.len() - at >= self.ahead.len() {
+                at += self.recv_by(stream, Some(&mut buf[at..]), deadline, left)?;
+            } else {
+                let n = self.recv_by(stream, None, deadline, left)?;
+                (self.start, self.end) = (0, n);
+            }
+        }
+        Ok(())
+    }
 }
 
 /// A request body's buffer, counted in [`Counters::buffered`] while it lives.
@@ -1761,6 +1852,7 @@ impl Drop for BodyBuffer<'_> {
 /// connection (closed, timed out, malformed or oversized; counted).
 fn read_request(
     stream: &mut TcpStream,
+    incoming: &mut Incoming,
     context: &Context,
 ) -> Option<(codec::RequestHeader, Vec<u8>)> {
     let limits = &context.limits;
@@ -1772,13 +1864,13 @@ fn read_request(
         }
     };
     let mut header = [0u8; HEADER_LEN];
-    let idle_deadline = Instant::now() + Duration::from_secs_f64(limits.idle_timeout_s);
-    if let Err(end) = read_by(stream, &mut header[..1], idle_deadline) {
+    let idle = Duration::from_secs_f64(limits.idle_timeout_s);
+    if let Err(end) = incoming.wait_for_request(stream, idle) {
         timed_out(end, "idle beyond the idle timeout");
         return None;
     }
     let deadline = Instant::now() + Duration::from_secs_f64(limits.message_timeout_s);
-    if let Err(end) = read_by(stream, &mut header[1..], deadline) {
+    if let Err(end) = incoming.read_by(stream, &mut header, deadline) {
         timed_out(
             end,
             "a request's header not whole within the message timeout",
@@ -1813,7 +1905,7 @@ fn read_request(
         let n = BODY_CHUNK_BYTES.min(header.body_len - at);
         body.grow(n);
         body.bytes.resize(at + n, 0);
-        if let Err(end) = read_by(stream, &mut body.bytes[at..], deadline) {
+        if let Err(end) = incoming.read_by(stream, &mut body.bytes[at..], deadline) {
             timed_out(end, "a request's body not whole within the message timeout");
             return None;
         }
@@ -1823,11 +1915,13 @@ fn read_request(
 
 fn serve_commands(stream: &mut TcpStream, context: &Context) {
     let (shared, stop) = (&context.shared, &context.stop);
+    let mut incoming = Incoming::new();
     loop {
         if stop.load(Ordering::SeqCst) {
             return;
         }
-        let Some((header, body)) = read_request(stream, context) else {
+        let pipelined = incoming.has_bytes();
+        let Some((header, body)) = read_request(stream, &mut incoming, context) else {
             return;
         };
         let (fault, bytes) = {
@@ -1836,11 +1930,17 @@ fn serve_commands(stream: &mut TcpStream, context: &Context) {
                 return;
             }
             state.stats.commands += 1;
-            *state
-                .stats
-                .commands_by_name
-                .entry(header.command.clone())
-                .or_insert(0) += 1;
+            state.stats.pipelined += u64::from(pipelined);
+            // The name is copied once, on its first request.
+            match state.stats.commands_by_name.get_mut(&header.command) {
+                Some(n) => *n += 1,
+                None => {
+                    state
+                        .stats
+                        .commands_by_name
+                        .insert(header.command.clone(), 1);
+                }
+            }
             let fault = state.draw_fault(&header.command);
             let request = Request::decode(&header.command, &body, state.schema);
             let bytes = match (fault, request) {

@@ -1,16 +1,17 @@
 //! A blocking client of the Nanonis TCP protocol.
 //!
-//! - **Exact frames.** A request is written whole (`write_all` of header and body); a reply
-//!   is read whole (`read_exact` of the 40-byte header, then of exactly the body size it
-//!   announces). A reply is accepted only for the command that was sent and only if its
+//! - **Exact frames.** A request is written whole (one `write_all` of header and body); a
+//!   reply is read whole (`read_exact` of the 40-byte header, then of exactly the body size it
+//!   announces, through a read-ahead: one `recv` usually brings both). A reply is accepted only for the command that was sent and only if its
 //!   body decodes to exactly that command's return arguments and error section. After any
 //!   I/O, timeout or framing failure the connection is dropped: its byte stream can no
 //!   longer be trusted to be at a message boundary.
-//! - **Timeouts per command.** Every command has the read/write timeout
+//! - **Timeouts per command.** Every command has the read timeout
 //!   [`ClientConfig::command_timeout_s`]; wait-style commands (`Scan.WaitEndOfScan`, waited
 //!   `FolMe.XYPosSet` and `Motor.StartMove`) get their expected duration plus
 //!   [`ClientConfig::wait_margin_s`] ([`Client::call_waiting`]).
-//!   The timeout is set on the socket only when it differs from the one last set there.
+//!   The timeout is set on the socket only when it differs from the one last set there;
+//!   writes have the ordinary timeout, set once per connection.
 //! - **Reconnect with backoff.** A dropped connection is re-opened on the next command, up
 //!   to [`ClientConfig::reconnect_attempts`] times (at most [`MAX_RECONNECT_ATTEMPTS`]) with
 //!   exponential backoff from [`ClientConfig::reconnect_backoff_s`] (at most
@@ -25,6 +26,9 @@
 //!   caller decides.
 //! - **Schema by version.** On every (re)connection `Util.VersionGet` is asked and the
 //!   [`Schema`] chosen from the host-application release.
+//! - **Pipelines** ([`Client::call_pipelined`]): several requests in one write, their
+//!   replies read in order, for a command and the reads after it (one round trip where one
+//!   call each takes one each); nothing in a pipeline is sent again by the client.
 //! - **A second connection for stop and abort** ([`Client::stop`]): the manual lets a client
 //!   open up to four connections, each serialising its own commands, so a stop sent on a
 //!   second connection is executed while the first one is blocked in a wait.
@@ -161,22 +165,74 @@ pub struct Client {
     sequence: u64,
     /// Set by whoever stops the run ([`Client::set_interrupt`]).
     interrupt: Option<Arc<AtomicBool>>,
+    /// How long a reply is polled for before the thread sleeps ([`Client::set_reply_poll`]).
+    reply_poll: Duration,
 }
 
-/// An open connection and the read/write timeout last set on it (set again only when a
-/// command needs another: two system calls fewer per round trip).
+/// Bytes a connection reads ahead: one `recv` brings a reply's header with the body of any
+/// reply but a frame's (whose rest is read straight into its own buffer).
+const READ_AHEAD_BYTES: usize = 8 << 10;
+
+/// An open connection, read through a read-ahead, and the read timeout last set on it (set
+/// again only when a command needs another). The write timeout is the ordinary command
+/// timeout, set once: a request is written at once whatever it asks the controller to do.
 #[derive(Debug)]
 struct Connection {
-    stream: TcpStream,
+    stream: std::io::BufReader<TcpStream>,
     timeout: Option<Duration>,
+    reply_poll: Duration,
 }
 
 impl Connection {
-    fn new(stream: TcpStream) -> Self {
-        Self {
-            stream,
+    fn new(
+        stream: TcpStream,
+        write_timeout: Duration,
+        reply_poll: Duration,
+    ) -> Result<Self, NanonisError> {
+        stream
+            .set_write_timeout(Some(write_timeout))
+            .map_err(|e| io_error("set timeout", &e))?;
+        Ok(Self {
+            stream: std::io::BufReader::with_capacity(READ_AHEAD_BYTES, stream),
             timeout: None,
+            reply_poll,
+        })
+    }
+
+    /// Polls for the next reply's first bytes for up to `reply_poll` without sleeping (they
+    /// are then in the read-ahead), yielding the CPU between two looks; after that the read
+    /// sleeps until they come.
+    fn poll_for_reply(&mut self) -> Result<(), NanonisError> {
+        use std::io::BufRead;
+        if self.reply_poll.is_zero() || !self.stream.buffer().is_empty() {
+            return Ok(());
         }
+        let set = |s: &TcpStream, on: bool| {
+            s.set_nonblocking(on)
+                .map_err(|e| io_error("set non-blocking", &e))
+        };
+        set(self.stream.get_ref(), true)?;
+        let until = std::time::Instant::now() + self.reply_poll;
+        let polled = loop {
+            match self.stream.fill_buf() {
+                Ok(_) => break Ok(()),
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::Interrupted
+                    ) =>
+                {
+                    if std::time::Instant::now() >= until {
+                        break Ok(());
+                    }
+                    // Yielded, not spun: the controller's thread may be waiting for this CPU.
+                    std::thread::yield_now();
+                }
+                Err(e) => break Err(io_error("read reply header", &e)),
+            }
+        };
+        set(self.stream.get_ref(), false)?;
+        polled
     }
 
     fn set_timeout(&mut self, timeout: Duration) -> Result<(), NanonisError> {
@@ -186,8 +242,8 @@ impl Connection {
         // Forgotten first: a failure half-way leaves it unknown.
         self.timeout = None;
         self.stream
-            .set_write_timeout(Some(timeout))
-            .and_then(|()| self.stream.set_read_timeout(Some(timeout)))
+            .get_ref()
+            .set_read_timeout(Some(timeout))
             .map_err(|e| io_error("set timeout", &e))?;
         self.timeout = Some(timeout);
         Ok(())
@@ -208,6 +264,7 @@ impl Client {
             reconnects: 0,
             sequence: 0,
             interrupt: None,
+            reply_poll: Duration::ZERO,
         };
         client.ensure_connected()?;
         client.reconnects = 0;
@@ -253,6 +310,17 @@ impl Client {
             };
             std::thread::sleep(seconds(slice_s));
             left_s -= slice_s;
+        }
+    }
+
+    /// Polls for each reply for up to `poll` before the thread sleeps waiting for it (zero,
+    /// the default: no polling). Meant for a controller on the same host that answers in
+    /// microseconds (`nanonis-sim`): a reply that comes while polling costs no wake-up of a
+    /// sleeping thread, which on a virtual machine takes longer than the reply.
+    pub fn set_reply_poll(&mut self, poll: Duration) {
+        self.reply_poll = poll;
+        if let Some(connection) = self.stream.as_mut() {
+            connection.reply_poll = poll;
         }
     }
 
@@ -321,7 +389,11 @@ impl Client {
             }
             match self.open() {
                 Ok(stream) => {
-                    self.stream = Some(Connection::new(stream));
+                    self.stream = Some(Connection::new(
+                        stream,
+                        seconds(self.config.command_timeout_s),
+                        self.reply_poll,
+                    )?);
                     self.reconnects += 1;
                     self.sequence += 1;
                     match self.exchange(&Request::UtilVersionGet, self.config.command_timeout_s) {
@@ -385,9 +457,14 @@ impl Client {
         request: &Request,
         expected_s: f64,
     ) -> Result<Reply, NanonisError> {
-        let timeout =
-            expected_s.max(0.0) + self.config.wait_margin_s + self.config.command_timeout_s;
-        self.call_with_timeout(request, timeout)
+        self.call_with_timeout(request, self.waiting_timeout_s(expected_s))
+    }
+
+    /// The timeout of a wait-style request expected to take `expected_s`: that, the wait
+    /// margin and the ordinary command timeout, s.
+    #[must_use]
+    pub fn waiting_timeout_s(&self, expected_s: f64) -> f64 {
+        expected_s.max(0.0) + self.config.wait_margin_s + self.config.command_timeout_s
     }
 
     /// Sends a request with an explicit timeout (s). A request the controller refused as
@@ -398,6 +475,24 @@ impl Client {
         request: &Request,
         timeout_s: f64,
     ) -> Result<Reply, NanonisError> {
+        self.call_resending(request, timeout_s, request.is_retry_safe())
+    }
+
+    /// Sends a request with the ordinary command timeout, again after a busy reply, but not
+    /// on a new connection when its own was lost before the reply: the error is returned
+    /// (and [`Client::is_connected`] is `false`), so that the caller looks at what the
+    /// controller on a new connection is doing first. `NanonisMicroscope` starts its scans
+    /// this way: a scan may be running on a controller it reconnects to.
+    pub fn call_on_one_connection(&mut self, request: &Request) -> Result<Reply, NanonisError> {
+        self.call_resending(request, self.config.command_timeout_s, false)
+    }
+
+    fn call_resending(
+        &mut self,
+        request: &Request,
+        timeout_s: f64,
+        resend_on_loss: bool,
+    ) -> Result<Reply, NanonisError> {
         let mut last = None;
         for _ in 0..=RETRIES {
             self.ensure_connected()?;
@@ -407,7 +502,7 @@ impl Client {
                     tracing::debug!(error = %e, "nanonis: busy; sending again");
                     last = Some(e);
                 }
-                Err(e) if self.stream.is_none() && request.is_retry_safe() => {
+                Err(e) if self.stream.is_none() && resend_on_loss => {
                     tracing::debug!(error = %e, "nanonis: connection dropped; sending again");
                     last = Some(e);
                 }
@@ -445,13 +540,87 @@ impl Client {
         }
     }
 
+    /// Sends `requests` on the main connection in one write, then reads their replies in
+    /// order: one round trip where calls one after another take one each. The controller
+    /// executes a connection's commands one after another, so they run as the same calls
+    /// would. No request is sent again here (nor is the connection reopened once lost): the
+    /// result of each is its reply, its error reply, or the error that ended the exchange (the
+    /// connection is then dropped and the requests after it fail too; they may have been
+    /// executed). Meant for a command followed by reads, which the caller sends again one by
+    /// one from the first failure on ([`Request::is_retry_safe`]). `timeout_s` is the read
+    /// timeout of each reply.
+    pub fn call_pipelined(
+        &mut self,
+        requests: &[&Request],
+        timeout_s: f64,
+    ) -> Vec<Result<Reply, NanonisError>> {
+        let failed_all = |e: NanonisError| {
+            requests
+                .iter()
+                .map(|r| Err(e.clone().in_command(r.name())))
+                .collect()
+        };
+        if let Err(e) = self.ensure_connected() {
+            return failed_all(e);
+        }
+        let mut message = Vec::new();
+        for request in requests {
+            if let Err(e) = encode_request(request, self.schema, &mut message) {
+                return failed_all(e);
+            }
+        }
+        let Some(connection) = self.stream.as_mut() else {
+            return failed_all(NanonisError::new(NanonisErrorKind::Io, "not connected"));
+        };
+        self.commands_sent += requests.len() as u64;
+        self.sequence += requests.len() as u64;
+        let written = connection.set_timeout(seconds(timeout_s)).and_then(|()| {
+            connection
+                .stream
+                .get_mut()
+                .write_all(&message)
+                .map_err(|e| io_error("write requests", &e))
+        });
+        if let Err(e) = written {
+            self.stream = None;
+            return failed_all(e);
+        }
+        let mut results = Vec::with_capacity(requests.len());
+        for request in requests {
+            let Some(connection) = self.stream.as_mut() else {
+                results.push(Err(NanonisError::new(
+                    NanonisErrorKind::Io,
+                    "not read: the connection was dropped at an earlier reply",
+                )
+                .in_command(request.name())));
+                continue;
+            };
+            results.push(match read_reply(connection, request, self.schema) {
+                Ok((reply, error)) if error.status == 0 => Ok(reply),
+                Ok((_, error)) => Err(NanonisError::from_error_reply(
+                    request.name(),
+                    &error.description,
+                )),
+                Err(e) => {
+                    self.stream = None;
+                    Err(e.in_command(request.name()))
+                }
+            });
+        }
+        results
+    }
+
     /// Sends a stop request (`Scan.Action` stop, `FolMe.Stop`, `Motor.StopMove`) on the
     /// second connection, opened on first use and re-opened once if it was dropped.
     pub fn stop(&mut self, request: &Request) -> Result<(), NanonisError> {
         let mut last = None;
         for _ in 0..2 {
             if self.stop_stream.is_none() {
-                self.stop_stream = Some(Connection::new(self.open()?));
+                self.stop_stream = Some(Connection::new(
+                    self.open()?,
+                    seconds(self.config.command_timeout_s),
+                    Duration::ZERO,
+                )?);
             }
             let Some(connection) = self.stop_stream.as_mut() else {
                 continue;
@@ -494,6 +663,23 @@ fn io_error(what: &str, e: &std::io::Error) -> NanonisError {
     NanonisError::new(kind, format!("{what}: {e}"))
 }
 
+/// The bytes of one request: header and body.
+fn encode_request(
+    request: &Request,
+    schema: Schema,
+    out: &mut Vec<u8>,
+) -> Result<(), NanonisError> {
+    let body = request
+        .encode(schema)
+        .map_err(|e| NanonisError::new(NanonisErrorKind::InvalidRequest, e.to_string()))?;
+    let header = codec::encode_request_header(request.name(), body.len(), true)
+        .map_err(|e| NanonisError::new(NanonisErrorKind::InvalidRequest, e.to_string()))?;
+    out.reserve(HEADER_LEN + body.len());
+    out.extend_from_slice(&header);
+    out.extend_from_slice(&body);
+    Ok(())
+}
+
 /// Writes one request and reads its reply on `connection`.
 fn transact(
     connection: &mut Connection,
@@ -501,20 +687,26 @@ fn transact(
     schema: Schema,
     timeout_s: f64,
 ) -> Result<(Reply, codec::ErrorSection), NanonisError> {
-    let name = request.name();
-    let body = request
-        .encode(schema)
-        .map_err(|e| NanonisError::new(NanonisErrorKind::InvalidRequest, e.to_string()))?;
-    let header = codec::encode_request_header(name, body.len(), true)
-        .map_err(|e| NanonisError::new(NanonisErrorKind::InvalidRequest, e.to_string()))?;
+    let mut message = Vec::new();
+    encode_request(request, schema, &mut message)?;
     connection.set_timeout(seconds(timeout_s))?;
-    let stream = &mut connection.stream;
-    let mut message = Vec::with_capacity(HEADER_LEN + body.len());
-    message.extend_from_slice(&header);
-    message.extend_from_slice(&body);
-    stream
+    connection
+        .stream
+        .get_mut()
         .write_all(&message)
         .map_err(|e| io_error("write request", &e))?;
+    read_reply(connection, request, schema)
+}
+
+/// Reads the reply to `request` on `connection`.
+fn read_reply(
+    connection: &mut Connection,
+    request: &Request,
+    schema: Schema,
+) -> Result<(Reply, codec::ErrorSection), NanonisError> {
+    let name = request.name();
+    connection.poll_for_reply()?;
+    let stream = &mut connection.stream;
     let mut reply_header = [0u8; HEADER_LEN];
     stream
         .read_exact(&mut reply_header)

@@ -34,7 +34,8 @@
 //! controller sees a move and its settle as one operation.
 //!
 //! ## Round trips
-//! Every command is a round trip (about 50 µs to `nanonis-sim` on loopback), and a
+//! Every command is a round trip (13–14 µs to an idle `nanonis-sim` on loopback, more under
+//! load, when each reply waits for a core), and a
 //! calibration asks the clock and the position far more often than it changes them: spm-hal's command recorder reads both around every move, wait and scan,
 //! and the feature tracking reads them again before each move. The backend answers these
 //! without asking where the answer is known exactly, and nowhere else:
@@ -59,6 +60,44 @@
 //!   connection opened; a read of the clock or the position extends the readings when it
 //!   was the only command sent since them. Like the scan settings left unsent when
 //!   unchanged, this assumes that the backend is the controller's only client during a run.
+//! - **Whether a scan runs.** `Scan.StatusGet` (and a stop of a scan found running) comes
+//!   before a scan only when the backend does not know that none runs: when it opens, after
+//!   any failed call (a scan may have been left running or paused, a stop may have failed),
+//!   after an interruption, and on every new connection (a lost one may have left a scan
+//!   running; a connection found lost at the scan's start is not reused for the start
+//!   before the question is asked there, [`Client::call_on_one_connection`]). Between
+//!   scans of its own that ended normally (`Scan.WaitEndOfScan` answered the end) nothing
+//!   the backend sends starts one — moves, waits and reads do not — so the answer is known.
+//!   This is the same assumption again: only another client could start a scan in between
+//!   (were one to, the controller would meet the backend's start with its scan running).
+//! - **Pipelined with a simulated controller** (`virtual_time`, `nanonis-sim`): a command
+//!   and what follows it (reads, a settle) are sent in one write and answered in order
+//!   ([`Client::call_pipelined`]): a move (`FolMe.XYPosSet`), its settle and the clock read
+//!   after them (one round trip for three; a move the controller refuses is followed by its
+//!   settle all the same: time passes, and the clock is read again after the failure);
+//!   `Scan.BufferSet` and `Scan.SpeedSet` with their read-backs (one for two each); a
+//!   scan's end (`Scan.WaitEndOfScan`), its frame data, the clock and the position (one for
+//!   four or five). The readings are kept as if read one by one (reads take no virtual
+//!   time). The controller executes a connection's commands one after another, so a
+//!   pipeline is the same commands without the wait for each reply between them; from a
+//!   failure in it that the client retries (a busy reply, a lost connection) on, the rest
+//!   is sent one by one. Hardware (a real-time or host clock) keeps one command per round
+//!   trip, as the vendor's client sends them: no controller has been checked with several
+//!   requests under way.
+//! - **Replies polled for with a simulated controller**: the same `virtual_time` controller
+//!   on the same host answers most commands within microseconds, and waking the thread
+//!   that slept waiting for the reply takes longer (tens of µs on a virtual machine, where
+//!   the sleeping CPU is idle), so each reply is polled for up to [`REPLY_POLL`] (50 µs)
+//!   before the thread sleeps ([`Client::set_reply_poll`]). Hardware: no polling.
+//!
+//! On the small HOPG plan against `nanonis-sim` (`cargo test -p xtask --release
+//! nanonis_overhead -- --ignored`): 472 commands per node, each a round trip, before the
+//! three points above; 430 commands in 196 round trips now. A round trip in a run costs
+//! far more than a bare one on an idle virtual machine (about 55 µs against 13 µs: the
+//! other thread's idle virtual CPU has to be woken), so the round trips, not the
+//! commands' work (under 2 % of either side's time), are the overhead. Time per node over
+//! TCP ÷ in process, idle machine: 2.50–2.74 before, 1.47–1.51 now (docs/RESULTS.md,
+//! "Nanonis").
 //! - **Not done**, each for a reason:
 //!   the clock after a move or a wait is not derived from the time asked (the controller
 //!   adds its own overhead: nanonis-sim its simulator's call overhead), so it is read once
@@ -67,8 +106,7 @@
 //!   choice, and the frame is realised in float32), so it is read once;
 //!   the X and Y signals are not read in the clock's `Signals.ValsGet` (one round trip for
 //!   both), because that command answers float32, 2·10⁻³ counts at the edge of a 16-bit
-//!   field where `FolMe.XYPosGet` is exact; and `Scan.StatusGet` before every scan stays (a
-//!   scan started by someone else between two of the backend's is a pitfall handled).
+//!   field where `FolMe.XYPosGet` is exact.
 //!
 //! ## Failures
 //! A reply "busy" (not executed) is sent again; a command whose connection was lost is sent
@@ -95,7 +133,8 @@
 //!   done on already-corrected coordinates: it measures the correction, not the scanner.
 //! - **A scan already running** (started by a user or left by a lost connection) or paused
 //!   (left by an interrupted run) is stopped on the second connection when the backend opens
-//!   and before a new one starts (`Scan.StatusGet`).
+//!   and before a new scan starts whenever a scan may be running (`Scan.StatusGet`; see
+//!   "Round trips" for when it is known that none is).
 //! - **Scan speed** is set with the time per line kept constant and read back
 //!   (`Scan.SpeedGet`): the pixel times are reconstructed from the line times the
 //!   controller actually uses: pixel `k` of line `l` at
@@ -167,5 +206,5 @@ pub use client::{Client, ClientConfig};
 pub use error::{NanonisError, NanonisErrorKind};
 pub use microscope::{
     ClockSource, CoarseZConfig, ControllerState, INTERRUPT_POLL_S, LOW_VOLTAGE_SPAN_V,
-    NanonisConfig, NanonisMicroscope, PIXEL_PACKET, SlowDirection, metres_per_count,
+    NanonisConfig, NanonisMicroscope, PIXEL_PACKET, REPLY_POLL, SlowDirection, metres_per_count,
 };

@@ -26,6 +26,10 @@ pub const LOW_VOLTAGE_SPAN_V: f64 = 20.0;
 /// before it looks at the flag again, s.
 pub const INTERRUPT_POLL_S: f64 = 0.2;
 
+/// With a simulated controller ([`ClockSource::ControllerSignals`] with `virtual_time`), how
+/// long each reply is polled for before the thread sleeps ([`Client::set_reply_poll`]).
+pub const REPLY_POLL: std::time::Duration = std::time::Duration::from_micros(50);
+
 /// Pixels per line travel from the real-time engine to the host in packets of this many:
 /// the scan module coerces pixels per line to a multiple of it.
 pub const PIXEL_PACKET: u32 = 16;
@@ -364,6 +368,12 @@ pub struct NanonisMicroscope {
     /// The clock and position as last read or commanded, while the controller has received
     /// nothing else since.
     readings: Readings,
+    /// No scan is running on the controller: known since `Scan.StatusGet` said so or a scan
+    /// of the backend's ended normally, with nothing since that could have started or left
+    /// one (no reconnection, no failed call, no interruption). `Some(reconnects)` holds the
+    /// client's [`Client::reconnects`] when it became known; `None`: unknown, asked before
+    /// the next scan (see the crate docs, "Round trips").
+    scan_idle: Option<u64>,
 }
 
 /// What the backend knows of the controller without asking, valid while the client's
@@ -573,7 +583,11 @@ impl NanonisMicroscope {
             config,
             interrupt: None,
             readings: Readings::default(),
+            scan_idle: None,
         };
+        if opened.pipelining() {
+            opened.client.set_reply_poll(REPLY_POLL);
+        }
         // A scan left paused by an interrupted run (or running, by a user) is stopped before
         // anything moves the tip: its frame is not resumed (see the crate docs).
         opened.stop_running_scan()?;
@@ -627,9 +641,7 @@ impl NanonisMicroscope {
     /// after a slice that timed out: an end of scan between two slices is not waited for
     /// again). Returns whether the scan ended within the margin.
     fn wait_end_of_scan(&mut self, expected_s: f64) -> Result<bool, NanonisError> {
-        let total_ms = ((expected_s + self.config.wait_margin_s) * 1e3)
-            .ceil()
-            .min(f64::from(i32::MAX)) as i32;
+        let total_ms = self.end_of_scan_timeout_ms(expected_s);
         if self.interrupt.is_none() {
             let request = Request::ScanWaitEndOfScan {
                 timeout_ms: total_ms,
@@ -639,16 +651,35 @@ impl NanonisMicroscope {
                 other => Err(unexpected("Scan.WaitEndOfScan", &other)),
             };
         }
-        let slice_ms = (INTERRUPT_POLL_S * 1e3) as i32;
-        let mut waited_ms = 0i32;
+        self.sliced_wait_end_of_scan(total_ms, 0)
+    }
+
+    /// The interruptible wait for the end of a scan: slices of at most [`INTERRUPT_POLL_S`]
+    /// up to `total_ms`, from `waited_ms` on (when > 0, slices that timed out have been
+    /// waited already), with the flag looked at between them and `Scan.StatusGet` after each
+    /// slice that timed out.
+    fn sliced_wait_end_of_scan(
+        &mut self,
+        total_ms: i32,
+        mut waited_ms: i32,
+    ) -> Result<bool, NanonisError> {
         loop {
+            if waited_ms > 0 {
+                // After a slice that timed out: an end between two slices is not waited for.
+                if self.interrupted() {
+                    return Err(self.pause_interrupted_scan());
+                }
+                if u32_reply(&mut self.client, &Request::ScanStatusGet)? == 0 {
+                    return Ok(true);
+                }
+            }
             if self.interrupted() {
                 return Err(self.pause_interrupted_scan());
             }
             if waited_ms >= total_ms {
                 return Ok(false);
             }
-            let timeout_ms = slice_ms.min(total_ms - waited_ms);
+            let timeout_ms = slice_ms().min(total_ms - waited_ms);
             let request = Request::ScanWaitEndOfScan { timeout_ms };
             match self
                 .client
@@ -659,13 +690,15 @@ impl NanonisMicroscope {
                 other => return Err(unexpected("Scan.WaitEndOfScan", &other)),
             }
             waited_ms = waited_ms.saturating_add(timeout_ms);
-            if self.interrupted() {
-                return Err(self.pause_interrupted_scan());
-            }
-            if u32_reply(&mut self.client, &Request::ScanStatusGet)? == 0 {
-                return Ok(true);
-            }
         }
+    }
+
+    /// `Scan.WaitEndOfScan`'s timeout for a scan that takes `expected_s`: that and the wait
+    /// margin, whole milliseconds.
+    fn end_of_scan_timeout_ms(&self, expected_s: f64) -> i32 {
+        ((expected_s + self.config.wait_margin_s) * 1e3)
+            .ceil()
+            .min(f64::from(i32::MAX)) as i32
     }
 
     /// The controller's state found and set when the backend was opened.
@@ -681,6 +714,7 @@ impl NanonisMicroscope {
     /// Stops a running scan, a Follow-Me move and the coarse motor, on the second
     /// connection (so it works while the main one is blocked).
     pub fn abort(&mut self) -> Result<(), NanonisError> {
+        self.scan_idle = None;
         self.client.stop(&Request::ScanAction {
             action: scan_action::STOP,
             direction_up: 1,
@@ -753,25 +787,30 @@ impl NanonisMicroscope {
                 Ok(())
             }
             ClockSource::ControllerSignals { .. } => {
-                // Whole milliseconds (the command's `int`), the remainder carried to the
-                // next wait: the controller's clock never runs more than ½ ms from the sum
-                // of the requested waits.
-                let owed = duration_s + self.wait_carry_s;
-                let ms = (owed * 1e3).round().max(0.0);
-                self.wait_carry_s = owed - ms * 1e-3;
-                if ms > f64::from(i32::MAX) {
-                    return Err(NanonisError::new(
-                        NanonisErrorKind::InvalidRequest,
-                        format!("a wait of {duration_s} s is longer than the protocol's timeout"),
-                    ));
-                }
-                let request = Request::ScanWaitEndOfScan {
-                    timeout_ms: ms as i32,
-                };
+                let request = self.controller_wait(duration_s)?;
                 self.client.call_waiting(&request, duration_s)?;
                 Ok(())
             }
         }
+    }
+
+    /// A wait on the controller: `Scan.WaitEndOfScan` with no scan to end, timing out after
+    /// `duration_s` in whole milliseconds (the command's `int`), the remainder carried to the
+    /// next wait: the controller's clock never runs more than ½ ms from the sum of the
+    /// requested waits.
+    fn controller_wait(&mut self, duration_s: f64) -> Result<Request, NanonisError> {
+        let owed = duration_s + self.wait_carry_s;
+        let ms = (owed * 1e3).round().max(0.0);
+        if ms > f64::from(i32::MAX) {
+            return Err(NanonisError::new(
+                NanonisErrorKind::InvalidRequest,
+                format!("a wait of {duration_s} s is longer than the protocol's timeout"),
+            ));
+        }
+        self.wait_carry_s = owed - ms * 1e-3;
+        Ok(Request::ScanWaitEndOfScan {
+            timeout_ms: ms as i32,
+        })
     }
 
     fn check_inside(&self, p: CountPoint, what: &str) -> Result<(), NanonisError> {
@@ -797,10 +836,15 @@ impl NanonisMicroscope {
     }
 
     /// Makes sure no scan is running: a scan left running (by a user, an earlier client or
-    /// a lost connection) is stopped on the second connection.
+    /// a lost connection) is stopped on the second connection. Asks the controller
+    /// (`Scan.StatusGet`) unless no scan is known to run ([`Self::scan_idle_known`]).
     fn stop_running_scan(&mut self) -> Result<(), NanonisError> {
+        if self.scan_idle_known() {
+            return Ok(());
+        }
         for _ in 0..5 {
             if u32_reply(&mut self.client, &Request::ScanStatusGet)? == 0 {
+                self.scan_idle = Some(self.client.reconnects());
                 return Ok(());
             }
             tracing::warn!("nanonis: a scan is already running; stopping it");
@@ -814,6 +858,146 @@ impl NanonisMicroscope {
             "a scan keeps running after 5 stop requests",
         )
         .in_command("Scan.StatusGet"))
+    }
+
+    /// Whether no scan is known to run on the controller: one of the backend's scans ended
+    /// normally (or `Scan.StatusGet` said so) and no connection has been opened since (a
+    /// lost connection may have left a scan running); a failed call or an interruption
+    /// forgets it ([`Self::noting_failure`]).
+    fn scan_idle_known(&self) -> bool {
+        self.client.is_connected() && self.scan_idle == Some(self.client.reconnects())
+    }
+
+    /// A call's result, with what a failure makes unknown forgotten: whether a scan runs
+    /// (a scan may have been left running or paused, a stop may have failed).
+    fn noting_failure<T>(&mut self, result: Result<T, NanonisError>) -> Result<T, NanonisError> {
+        if result.is_err() {
+            self.scan_idle = None;
+        }
+        result
+    }
+
+    /// Sends the scan buffer, frame and speed that differ from those last sent, with the
+    /// read-backs of buffer and speed (pitfalls: pixels coerced to multiples of 16, speeds
+    /// coerced by the controller).
+    fn set_up_scan(
+        &mut self,
+        n16: i32,
+        lines: i32,
+        frame: ScanFrame,
+        speed: ScanSpeed,
+    ) -> Result<(), NanonisError> {
+        if self.sent.buffer != Some((n16, lines)) {
+            // Pitfall: read back what the controller made of it (pipelined).
+            let set = Request::ScanBufferSet(ScanBuffer {
+                channels: vec![self.config.z_channel],
+                pixels: n16,
+                lines,
+            });
+            let mut replies = self
+                .call_then_read(&set, None, &[Request::ScanBufferGet])?
+                .into_iter()
+                .skip(1);
+            match replies.next() {
+                Some(Reply::Buffer(b)) if b.pixels == n16 && b.lines == lines => {}
+                Some(Reply::Buffer(b)) => {
+                    self.sent.buffer = None;
+                    return Err(NanonisError::new(
+                        NanonisErrorKind::Controller,
+                        format!(
+                            "the controller set {} × {} pixels for the requested {n16} × {lines}",
+                            b.pixels, b.lines
+                        ),
+                    )
+                    .in_command("Scan.BufferGet"));
+                }
+                other => return Err(unexpected_or_none("Scan.BufferGet", other)),
+            }
+            self.sent.buffer = Some((n16, lines));
+        }
+        let frame_bits = [
+            frame.centre_x_m.to_bits(),
+            frame.centre_y_m.to_bits(),
+            frame.width_m.to_bits(),
+            frame.height_m.to_bits(),
+            frame.angle_deg.to_bits(),
+        ];
+        if self.sent.frame != Some(frame_bits) {
+            self.client.call(&Request::ScanFrameSet(frame))?;
+            self.sent.frame = Some(frame_bits);
+        }
+        if self.sent.speed != Some(speed) {
+            // Pitfall: the controller may coerce the speed; time the pixels by what it uses
+            // (read back, pipelined).
+            let mut replies = self
+                .call_then_read(
+                    &Request::ScanSpeedSet(speed),
+                    None,
+                    &[Request::ScanSpeedGet],
+                )?
+                .into_iter()
+                .skip(1);
+            let (tf, tb) = match replies.next() {
+                Some(Reply::Speed(s)) => {
+                    (f64::from(s.forward_line_s), f64::from(s.backward_line_s))
+                }
+                other => return Err(unexpected_or_none("Scan.SpeedGet", other)),
+            };
+            if !(tf.is_finite() && tb.is_finite() && tf > 0.0 && tb > 0.0) {
+                return Err(NanonisError::new(
+                    NanonisErrorKind::Controller,
+                    format!("line times {tf} s / {tb} s are not positive"),
+                )
+                .in_command("Scan.SpeedGet"));
+            }
+            self.sent.speed = Some(speed);
+            self.sent.line_times_s = Some((tf, tb));
+        }
+        Ok(())
+    }
+
+    /// Starts a scan on a controller running none, set up for it: the set-up again when a
+    /// connection was opened during it (a lost one: the controller the new one meets may run
+    /// a scan and hold other settings), and the start not sent again on a new connection
+    /// before `Scan.StatusGet` has been asked there.
+    fn start_scan(
+        &mut self,
+        n16: i32,
+        lines: i32,
+        frame: ScanFrame,
+        speed: ScanSpeed,
+        direction_up: u32,
+    ) -> Result<(), NanonisError> {
+        let mut last = None;
+        for _ in 0..=crate::client::RETRIES {
+            let reconnects = self.client.reconnects();
+            self.invalidate_on_reconnect();
+            self.stop_running_scan()?;
+            self.set_up_scan(n16, lines, frame, speed)?;
+            if self.client.reconnects() != reconnects {
+                continue;
+            }
+            // From the start until its normal end a scan may be running.
+            self.scan_idle = None;
+            match self.client.call_on_one_connection(&Request::ScanAction {
+                action: scan_action::START,
+                direction_up,
+            }) {
+                Ok(_) => return Ok(()),
+                Err(e) if !self.client.is_connected() && e.kind != NanonisErrorKind::Aborted => {
+                    tracing::debug!(error = %e, "nanonis: connection lost at the scan's start");
+                    last = Some(e);
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Err(last.unwrap_or_else(|| {
+            NanonisError::new(
+                NanonisErrorKind::Io,
+                "the connection was reopened during every set-up of the scan",
+            )
+            .in_command("Scan.Action")
+        }))
     }
 
     // long-function: one scan's command sequence in protocol order, each step a documented
@@ -886,32 +1070,6 @@ impl NanonisMicroscope {
         } else {
             turned
         } as f32;
-        self.invalidate_on_reconnect();
-        self.stop_running_scan()?;
-        if self.sent.buffer != Some((n16 as i32, lines as i32)) {
-            self.client.call(&Request::ScanBufferSet(ScanBuffer {
-                channels: vec![self.config.z_channel],
-                pixels: n16 as i32,
-                lines: lines as i32,
-            }))?;
-            // Pitfall: read back what the controller made of it.
-            match self.client.call(&Request::ScanBufferGet)? {
-                Reply::Buffer(b) if b.pixels == n16 as i32 && b.lines == lines as i32 => {}
-                Reply::Buffer(b) => {
-                    self.sent.buffer = None;
-                    return Err(NanonisError::new(
-                        NanonisErrorKind::Controller,
-                        format!(
-                            "the controller set {} × {} pixels for the requested {n16} × {lines}",
-                            b.pixels, b.lines
-                        ),
-                    )
-                    .in_command("Scan.BufferGet"));
-                }
-                other => return Err(unexpected("Scan.BufferGet", &other)),
-            }
-            self.sent.buffer = Some((n16 as i32, lines as i32));
-        }
         let frame = ScanFrame {
             centre_x_m: f32_of(cx),
             centre_y_m: f32_of(cy),
@@ -919,17 +1077,6 @@ impl NanonisMicroscope {
             height_m: f32_of(height_m),
             angle_deg,
         };
-        let frame_bits = [
-            frame.centre_x_m.to_bits(),
-            frame.centre_y_m.to_bits(),
-            frame.width_m.to_bits(),
-            frame.height_m.to_bits(),
-            frame.angle_deg.to_bits(),
-        ];
-        if self.sent.frame != Some(frame_bits) {
-            self.client.call(&Request::ScanFrameSet(frame))?;
-            self.sent.frame = Some(frame_bits);
-        }
         let line_s = f64::from(n16) * request.pixel_dwell.value();
         let speed = ScanSpeed {
             forward_speed_m_per_s: f32_of(width_m / line_s),
@@ -939,31 +1086,15 @@ impl NanonisMicroscope {
             keep: 2,
             speed_ratio: 1.0,
         };
-        if self.sent.speed != Some(speed) {
-            self.client.call(&Request::ScanSpeedSet(speed))?;
-            // Pitfall: the controller may coerce the speed; time the pixels by what it uses.
-            let (tf, tb) = match self.client.call(&Request::ScanSpeedGet)? {
-                Reply::Speed(s) => (f64::from(s.forward_line_s), f64::from(s.backward_line_s)),
-                other => return Err(unexpected("Scan.SpeedGet", &other)),
-            };
-            if !(tf.is_finite() && tb.is_finite() && tf > 0.0 && tb > 0.0) {
-                return Err(NanonisError::new(
-                    NanonisErrorKind::Controller,
-                    format!("line times {tf} s / {tb} s are not positive"),
-                )
-                .in_command("Scan.SpeedGet"));
-            }
-            self.sent.speed = Some(speed);
-            self.sent.line_times_s = Some((tf, tb));
-        }
-        let (tf, tb) = self.sent.line_times_s.unwrap_or((line_s, line_s));
         let direction_up = self.config.slow_direction.direction_up();
-        self.client.call(&Request::ScanAction {
-            action: scan_action::START,
-            direction_up,
-        })?;
+        self.start_scan(n16 as i32, lines as i32, frame, speed, direction_up)?;
+        // The connection the scan was started on.
+        let reconnects = self.client.reconnects();
+        let (tf, tb) = self.sent.line_times_s.unwrap_or((line_s, line_s));
         let expected_s = f64::from(lines) * (tf + tb);
-        let ended = match self.wait_end_of_scan(expected_s) {
+        // Backward first when wanted (a controller that records lazily learns it is needed).
+        let want_backward = request.record_backward && self.capabilities.backward_trace;
+        let ended = match self.end_of_scan(expected_s, want_backward, n16, lines) {
             Ok(ended) => ended,
             // Interrupted: the scan is paused, not stopped.
             Err(e) if e.kind == NanonisErrorKind::Aborted => return Err(e),
@@ -974,7 +1105,12 @@ impl NanonisMicroscope {
                 return Err(e);
             }
         };
-        if !ended {
+        let Some(ScanEnd {
+            forward,
+            backward,
+            end_s: end,
+        }) = ended
+        else {
             if let Err(stop) = self.abort() {
                 tracing::warn!(error = %stop, "nanonis: could not stop the scan");
             }
@@ -986,16 +1122,12 @@ impl NanonisMicroscope {
                 ),
             )
             .in_command("Scan.WaitEndOfScan"));
-        }
-        // Backward first when wanted (a controller that records lazily learns it is needed).
-        let want_backward = request.record_backward && self.capabilities.backward_trace;
-        let backward = if want_backward {
-            Some(self.grab(0, n16, lines)?)
-        } else {
-            None
         };
-        let forward = self.grab(1, n16, lines)?;
-        let end = self.now_s()?;
+        // Ended normally on the connection it was started on: no scan runs until the next
+        // start (a reconnection in between may have lost the end, or left another scan).
+        if self.client.reconnects() == reconnects {
+            self.scan_idle = Some(reconnects);
+        }
         let start = end - f64::from(lines) * (tf + tb);
         let n = n as usize;
         let n16u = n16 as usize;
@@ -1074,27 +1206,255 @@ impl NanonisMicroscope {
         Ok(f64::from(value_m) / self.z_m_per_count)
     }
 
+    /// Whether a command and the reads after it are pipelined ([`Client::call_pipelined`]):
+    /// with a simulated controller (a virtual clock: `nanonis-sim`, whose server reads a
+    /// connection's requests one at a time from its stream, so several may be under way).
+    /// A controller clock in real time, or the host's (hardware), sends one command per
+    /// round trip, as the vendor's client does.
+    fn pipelining(&self) -> bool {
+        matches!(
+            self.config.clock,
+            ClockSource::ControllerSignals {
+                virtual_time: true,
+                ..
+            }
+        )
+    }
+
+    /// `first` (with `expected_s`, a wait-style command expected to take that long), then
+    /// `reads` (commands that change nothing on the controller), in order
+    /// ([`Self::call_in_order`]).
+    fn call_then_read(
+        &mut self,
+        first: &Request,
+        expected_s: Option<f64>,
+        reads: &[Request],
+    ) -> Result<Vec<Reply>, NanonisError> {
+        let calls: Vec<(&Request, Option<f64>)> = std::iter::once((first, expected_s))
+            .chain(reads.iter().map(|r| (r, None)))
+            .collect();
+        self.call_in_order(&calls)
+    }
+
+    /// Requests (each with `Some(expected_s)` when it is a wait-style command expected to take
+    /// that long) executed in order: pipelined in one round trip when [`Self::pipelining`],
+    /// else one call each; from a failure in the pipeline that the client retries (busy, or a
+    /// lost connection with a retry-safe request) on, one call each (with the client's
+    /// retries). Only for requests after which the later ones do no harm when an earlier
+    /// one failed (reads, waits). The replies, in order.
+    fn call_in_order(
+        &mut self,
+        calls: &[(&Request, Option<f64>)],
+    ) -> Result<Vec<Reply>, NanonisError> {
+        let mut replies = Vec::with_capacity(calls.len());
+        if self.pipelining() {
+            let all: Vec<&Request> = calls.iter().map(|(r, _)| *r).collect();
+            let waits: Vec<f64> = calls.iter().filter_map(|(_, e)| *e).collect();
+            let timeout_s = if waits.is_empty() {
+                self.client.config().command_timeout_s
+            } else {
+                self.client.waiting_timeout_s(waits.iter().sum())
+            };
+            for (request, result) in all.iter().zip(self.client.call_pipelined(&all, timeout_s)) {
+                match result {
+                    Ok(reply) => replies.push(reply),
+                    Err(e)
+                        if e.kind == NanonisErrorKind::Busy
+                            || (!self.client.is_connected() && request.is_retry_safe()) =>
+                    {
+                        tracing::debug!(error = %e, "nanonis: pipeline broken; one call each");
+                        break;
+                    }
+                    Err(e) => return Err(e),
+                }
+            }
+        }
+        for (request, expected_s) in calls.iter().skip(replies.len()) {
+            replies.push(match expected_s {
+                Some(expected_s) => self.client.call_waiting(request, *expected_s)?,
+                None => self.client.call(request)?,
+            });
+        }
+        Ok(replies)
+    }
+
+    /// The controller's clock read (`Signals.ValsGet` of the two time signals), with
+    /// [`ClockSource::ControllerSignals`].
+    fn clock_request(&self) -> Option<Request> {
+        match self.config.clock {
+            ClockSource::ControllerSignals {
+                whole_s_signal,
+                fraction_s_signal,
+                ..
+            } => Some(Request::SignalsValsGet {
+                indexes: vec![whole_s_signal, fraction_s_signal],
+                wait_newest: 0,
+            }),
+            ClockSource::Host => None,
+        }
+    }
+
+    /// The end of the scan just started, which takes `expected_s`, and its data: `None` when
+    /// it did not end within the margin. With [`Self::pipelining`] the wait (with an
+    /// interrupt flag its first slice), the grabs, the clock and the position are one round
+    /// trip (the readings kept as after reading them one by one; after a first slice that
+    /// timed out, the rest of the wait and the reads again one call each), else the wait
+    /// ([`Self::wait_end_of_scan`]), the grabs and the clock one call each.
+    fn end_of_scan(
+        &mut self,
+        expected_s: f64,
+        want_backward: bool,
+        n16: u32,
+        lines: u32,
+    ) -> Result<Option<ScanEnd>, NanonisError> {
+        let grab_request = |forward| Request::ScanFrameDataGrab {
+            channel: self.config.z_channel as u32,
+            forward,
+        };
+        let clock = self.clock_request();
+        let (true, Some(clock)) = (self.pipelining(), clock) else {
+            if !self.wait_end_of_scan(expected_s)? {
+                return Ok(None);
+            }
+            return self.scan_data(want_backward, n16, lines).map(Some);
+        };
+        // The whole wait, or with an interrupt flag its first slice.
+        let total_ms = self.end_of_scan_timeout_ms(expected_s);
+        let (first_ms, first_s) = if self.interrupt.is_some() {
+            if self.interrupted() {
+                return Err(self.pause_interrupted_scan());
+            }
+            let ms = slice_ms().min(total_ms);
+            (ms, f64::from(ms) * 1e-3)
+        } else {
+            (total_ms, expected_s)
+        };
+        let wait = Request::ScanWaitEndOfScan {
+            timeout_ms: first_ms,
+        };
+        let mut reads: Vec<Request> = want_backward.then(|| grab_request(0)).into_iter().collect();
+        reads.extend([
+            grab_request(1),
+            clock,
+            Request::FolMeXYPosGet { wait_newest: 0 },
+        ]);
+        let mut replies = self
+            .call_then_read(&wait, Some(first_s), &reads)?
+            .into_iter();
+        match replies.next() {
+            Some(Reply::WaitEndOfScan { timed_out, .. }) if timed_out != 1 => {}
+            // The reads were of a scan still running: the rest of the wait, then again.
+            Some(Reply::WaitEndOfScan { .. }) if self.interrupt.is_some() => {
+                if !self.sliced_wait_end_of_scan(total_ms, first_ms)? {
+                    return Ok(None);
+                }
+                return self.scan_data(want_backward, n16, lines).map(Some);
+            }
+            Some(Reply::WaitEndOfScan { .. }) => return Ok(None),
+            other => return Err(unexpected_or_none("Scan.WaitEndOfScan", other)),
+        }
+        let backward = if want_backward {
+            Some(checked_frame(replies.next(), n16, lines)?)
+        } else {
+            None
+        };
+        let forward = checked_frame(replies.next(), n16, lines)?;
+        let end_s = clock_of(replies.next())?;
+        let position = match replies.next() {
+            Some(Reply::XY { x_m, y_m }) => self.counts_of_metres(x_m, y_m),
+            other => return Err(unexpected_or_none("FolMe.XYPosGet", other)),
+        };
+        // Both read after everything else, and reads take no virtual time: kept.
+        self.readings = Readings {
+            sequence: self.client.sequence(),
+            clock_s: Some(end_s),
+            position: Some(position),
+        };
+        Ok(Some(ScanEnd {
+            forward,
+            backward,
+            end_s,
+        }))
+    }
+
+    /// A scan's data and the clock at its end, one call each (backward first when wanted: a
+    /// controller that records lazily learns it is needed).
+    fn scan_data(
+        &mut self,
+        want_backward: bool,
+        n16: u32,
+        lines: u32,
+    ) -> Result<ScanEnd, NanonisError> {
+        let backward = if want_backward {
+            Some(self.grab(0, n16, lines)?)
+        } else {
+            None
+        };
+        let forward = self.grab(1, n16, lines)?;
+        let end_s = self.now_s()?;
+        Ok(ScanEnd {
+            forward,
+            backward,
+            end_s,
+        })
+    }
+
     fn grab(&mut self, forward: u32, columns: u32, rows: u32) -> Result<FrameData, NanonisError> {
         let request = Request::ScanFrameDataGrab {
             channel: self.config.z_channel as u32,
             forward,
         };
-        match self.client.call(&request)? {
-            Reply::FrameData(d) if d.rows == rows as usize && d.columns == columns as usize => {
-                Ok(d)
-            }
-            Reply::FrameData(d) => Err(NanonisError::new(
-                NanonisErrorKind::IncompleteData,
-                format!(
-                    "{} × {} data for a {columns} × {rows} scan",
-                    d.columns, d.rows
-                ),
-            )
-            .in_command("Scan.FrameDataGrab")),
-            other => Err(unexpected("Scan.FrameDataGrab", &other)),
-        }
+        checked_frame(Some(self.client.call(&request)?), columns, rows)
     }
+}
 
+/// A slice of the interruptible wait for the end of a scan, ms ([`INTERRUPT_POLL_S`]).
+fn slice_ms() -> i32 {
+    (INTERRUPT_POLL_S * 1e3) as i32
+}
+
+/// A scan's end as [`NanonisMicroscope::end_of_scan`] found it.
+struct ScanEnd {
+    forward: FrameData,
+    backward: Option<FrameData>,
+    /// The controller's clock at the end, s.
+    end_s: f64,
+}
+
+fn unexpected_or_none(command: &str, reply: Option<Reply>) -> NanonisError {
+    match reply {
+        Some(reply) => unexpected(command, &reply),
+        None => NanonisError::new(NanonisErrorKind::Protocol, "no reply").in_command(command),
+    }
+}
+
+/// The controller's time from the reply to the clock read, s.
+fn clock_of(reply: Option<Reply>) -> Result<f64, NanonisError> {
+    match reply {
+        Some(Reply::Values(v)) if v.len() == 2 => Ok(f64::from(v[0]) + f64::from(v[1])),
+        other => Err(unexpected_or_none("Signals.ValsGet", other)),
+    }
+}
+
+/// A frame grab's reply, checked to hold `columns × rows` data.
+fn checked_frame(reply: Option<Reply>, columns: u32, rows: u32) -> Result<FrameData, NanonisError> {
+    match reply {
+        Some(Reply::FrameData(d)) if d.rows == rows as usize && d.columns == columns as usize => {
+            Ok(d)
+        }
+        Some(Reply::FrameData(d)) => Err(NanonisError::new(
+            NanonisErrorKind::IncompleteData,
+            format!(
+                "{} × {} data for a {columns} × {rows} scan",
+                d.columns, d.rows
+            ),
+        )
+        .in_command("Scan.FrameDataGrab")),
+        other => Err(unexpected_or_none("Scan.FrameDataGrab", other)),
+    }
+}
+
+impl NanonisMicroscope {
     fn now_s(&mut self) -> Result<f64, NanonisError> {
         let ClockSource::ControllerSignals {
             whole_s_signal,
@@ -1235,7 +1595,8 @@ impl Microscope for NanonisMicroscope {
     }
 
     fn now(&mut self) -> Result<Seconds, NanonisError> {
-        self.now_s().map(Seconds)
+        let result = self.now_s().map(Seconds);
+        self.noting_failure(result)
     }
 
     fn wait(&mut self, duration: Seconds) -> Result<(), NanonisError> {
@@ -1246,14 +1607,48 @@ impl Microscope for NanonisMicroscope {
                 format!("wait duration {duration} must be finite and ≥ 0"),
             ));
         }
-        self.keeping_position(|m| m.pause(d))
+        let result = self.keeping_position(|m| m.pause(d));
+        self.noting_failure(result)
     }
 
     fn position(&mut self) -> Result<CountPoint, NanonisError> {
-        self.position_counts()
+        let result = self.position_counts();
+        self.noting_failure(result)
     }
 
     fn move_to(&mut self, request: MoveRequest) -> Result<(), NanonisError> {
+        let result = self.move_impl(request);
+        self.noting_failure(result)
+    }
+
+    fn scan(&mut self, request: &ScanRequest) -> Result<Frame, NanonisError> {
+        let result = self.scan_impl(request);
+        if let Err(e) = &result {
+            tracing::debug!(error = %e, "nanonis: scan failed");
+        }
+        self.noting_failure(result)
+    }
+
+    fn z_position(&mut self) -> Result<Counts, NanonisError> {
+        let result = self.keeping_position(|m| match m.client.call(&Request::ZCtrlZPosGet)? {
+            Reply::F32(z) if z.is_finite() => Ok(Counts(f64::from(z) / m.z_m_per_count)),
+            other => Err(unexpected("ZCtrl.ZPosGet", &other)),
+        });
+        self.noting_failure(result)
+    }
+
+    fn coarse_z(&mut self) -> Option<&mut dyn CoarseZStage<Error = NanonisError>> {
+        if self.capabilities.coarse_z.is_some() {
+            Some(self)
+        } else {
+            None
+        }
+    }
+}
+
+impl NanonisMicroscope {
+    /// [`Microscope::move_to`] (a failure is noted by the caller).
+    fn move_impl(&mut self, request: MoveRequest) -> Result<(), NanonisError> {
         self.check_inside(request.target, "move target")?;
         let speed = request.speed.value();
         if !(speed.is_finite() && speed > 0.0) {
@@ -1287,47 +1682,43 @@ impl Microscope for NanonisMicroscope {
         }
         let (x_m, y_m) = self.to_metres(request.target);
         let expected_s = here.distance(request.target).value() / speed;
-        self.client.call_waiting(
-            &Request::FolMeXYPosSet {
-                x_m,
-                y_m,
-                wait_end_of_move: 1,
-            },
-            expected_s,
-        )?;
+        let set = Request::FolMeXYPosSet {
+            x_m,
+            y_m,
+            wait_end_of_move: 1,
+        };
         // The settle always goes to the controller (even 0 s) so that a controller-side
         // clock sees move and settle as one operation.
-        self.pause(settle)?;
+        let clock_s = match (self.pipelining(), self.clock_request()) {
+            (true, Some(clock)) => {
+                // The move, its settle and the clock read after them in one round trip (a
+                // move the controller refuses is followed by the settle all the same: time
+                // passes, and the clock is read again after the failure).
+                let wait = self.controller_wait(settle)?;
+                let mut replies = self
+                    .call_in_order(&[
+                        (&set, Some(expected_s)),
+                        (&wait, Some(settle)),
+                        (&clock, None),
+                    ])?
+                    .into_iter()
+                    .skip(2);
+                Some(clock_of(replies.next())?)
+            }
+            _ => {
+                self.client.call_waiting(&set, expected_s)?;
+                self.pause(settle)?;
+                None
+            }
+        };
         // The move waited for its end: the commanded position is its target (spm-hal's
         // `position` is the commanded one), known without asking until the next command.
         self.readings = Readings {
             position: Some(request.target),
+            clock_s,
             ..Readings::none(self.client.sequence())
         };
         Ok(())
-    }
-
-    fn scan(&mut self, request: &ScanRequest) -> Result<Frame, NanonisError> {
-        let result = self.scan_impl(request);
-        if let Err(e) = &result {
-            tracing::debug!(error = %e, "nanonis: scan failed");
-        }
-        result
-    }
-
-    fn z_position(&mut self) -> Result<Counts, NanonisError> {
-        self.keeping_position(|m| match m.client.call(&Request::ZCtrlZPosGet)? {
-            Reply::F32(z) if z.is_finite() => Ok(Counts(f64::from(z) / m.z_m_per_count)),
-            other => Err(unexpected("ZCtrl.ZPosGet", &other)),
-        })
-    }
-
-    fn coarse_z(&mut self) -> Option<&mut dyn CoarseZStage<Error = NanonisError>> {
-        if self.capabilities.coarse_z.is_some() {
-            Some(self)
-        } else {
-            None
-        }
     }
 }
 
@@ -1335,6 +1726,18 @@ impl CoarseZStage for NanonisMicroscope {
     type Error = NanonisError;
 
     fn step(&mut self, steps: i64) -> Result<(), NanonisError> {
+        let result = self.coarse_step(steps);
+        self.noting_failure(result)
+    }
+
+    fn position_steps(&mut self) -> Result<i64, NanonisError> {
+        Ok(self.coarse_steps)
+    }
+}
+
+impl NanonisMicroscope {
+    /// [`CoarseZStage::step`] (a failure is noted by the caller).
+    fn coarse_step(&mut self, steps: i64) -> Result<(), NanonisError> {
         let Some(c) = self.config.coarse_z.clone() else {
             return Err(NanonisError::new(
                 NanonisErrorKind::OutOfRange,
@@ -1383,10 +1786,6 @@ impl CoarseZStage for NanonisMicroscope {
             self.coarse_steps += signed;
         }
         Ok(())
-    }
-
-    fn position_steps(&mut self) -> Result<i64, NanonisError> {
-        Ok(self.coarse_steps)
     }
 }
 

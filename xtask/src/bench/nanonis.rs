@@ -30,6 +30,9 @@ pub struct NanonisResults {
     pub ratio: f64,
     /// Protocol commands per node over TCP.
     pub commands_per_node: f64,
+    /// Round trips per node over TCP: the commands less those the client pipelined behind
+    /// another (`ServerStats::pipelined`).
+    pub round_trips_per_node: f64,
     /// Protocol commands per node over TCP, per command name (where the round trips go).
     pub commands_per_node_by_name: std::collections::BTreeMap<String, f64>,
     /// Simulated instrument time per node, s (the same on both sides).
@@ -148,6 +151,7 @@ pub fn run(ctx: &Context) -> Result<NanonisResults, XtaskError> {
         tcp_ms_per_node: per_node(best_tcp),
         ratio: best_tcp / best_local,
         commands_per_node: stats.commands as f64 / nodes.max(1) as f64,
+        round_trips_per_node: (stats.commands - stats.pipelined) as f64 / nodes.max(1) as f64,
         commands_per_node_by_name: stats
             .commands_by_name
             .iter()

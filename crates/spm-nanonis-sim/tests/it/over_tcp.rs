@@ -249,3 +249,167 @@ fn socket_faults_are_survived_and_an_unreachable_controller_aborts() {
     assert_eq!(e.kind(), ErrorKind::Aborted, "{e}");
     assert!(e.to_string().contains("unreachable"), "{e}");
 }
+
+/// `Scan.StatusGet` requests the server has received so far.
+fn status_gets(server: &spm_nanonis_sim::server::ServerHandle) -> u64 {
+    let stats = server.stats();
+    stats
+        .commands_by_name
+        .get("Scan.StatusGet")
+        .copied()
+        .unwrap_or(0)
+}
+
+/// Issue 26 (the TCP overhead): whether a scan runs is asked (`Scan.StatusGet`) before a scan
+/// only when it is unknown — when the backend opens, after a failed call — not between scans
+/// that ended normally with only moves, waits and reads in between (before: one round trip
+/// per scan). The server's own count of the requests it received is the truth.
+#[test]
+fn scan_status_is_asked_only_when_unknown() {
+    let server = start(SocketFaults::none());
+    let port = server.addr().port();
+    let mut tcp = NanonisMicroscope::connect(client_config(port)).unwrap();
+    let opened = status_gets(&server);
+    assert!(opened >= 1, "asked when the backend opens");
+    let s = request(ScanDirection::Direct, 16, 4);
+    for k in 0..3 {
+        tcp.move_to(MoveRequest {
+            target: CountPoint::from_counts(1000.0 + 10.0 * f64::from(k), -2000.0),
+            speed: spm_hal::CountsPerSecond(1000.0),
+            settle: Seconds(0.01),
+        })
+        .unwrap();
+        tcp.wait(Seconds(0.1)).unwrap();
+        tcp.now().unwrap();
+        tcp.position().unwrap();
+        tcp.scan(&s).unwrap();
+        tcp.z_position().unwrap();
+    }
+    assert_eq!(
+        status_gets(&server),
+        opened,
+        "no Scan.StatusGet between scans that ended normally"
+    );
+    // A scan the controller refuses (its Z feedback switched off by another client): the
+    // backend no longer knows whether a scan runs.
+    let mut other = spm_nanonis::Client::connect(client_config(port).client_config()).unwrap();
+    other
+        .call(&spm_nanonis::commands::Request::ZCtrlOnOffSet(0))
+        .unwrap();
+    tcp.scan(&s).unwrap_err();
+    assert_eq!(status_gets(&server), opened);
+    other
+        .call(&spm_nanonis::commands::Request::ZCtrlOnOffSet(1))
+        .unwrap();
+    tcp.scan(&s).unwrap();
+    assert_eq!(
+        status_gets(&server),
+        opened + 1,
+        "asked after a failed scan"
+    );
+    tcp.scan(&s).unwrap();
+    assert_eq!(status_gets(&server), opened + 1, "and known again after it");
+}
+
+/// A connection lost between two scans (here closed by the server after 0.3 s idle) may
+/// come back to a controller running a scan (here started by another client meanwhile): the
+/// backend asks `Scan.StatusGet` on the new connection, stops that scan, and only then
+/// starts its own — the start is not sent again on the new connection by itself.
+#[test]
+fn after_a_reconnection_a_scan_left_running_is_stopped_first() {
+    use spm_nanonis::commands::{Request, scan_action};
+    let mut config = ServerConfig::new(SocketFaults::none());
+    config.limits.idle_timeout_s = 0.3;
+    let server = Server::bind("127.0.0.1:0", sim_config(), config)
+        .unwrap()
+        .spawn()
+        .unwrap();
+    let port = server.addr().port();
+    let mut tcp = NanonisMicroscope::connect(client_config(port)).unwrap();
+    let s = request(ScanDirection::Direct, 16, 4);
+    tcp.scan(&s).unwrap();
+    let before = server.stats();
+    std::thread::sleep(std::time::Duration::from_millis(800));
+    assert!(
+        server.stats().timed_out_connections >= 1,
+        "the idle connection is closed"
+    );
+    let mut other = spm_nanonis::Client::connect(client_config(port).client_config()).unwrap();
+    other
+        .call(&Request::ScanAction {
+            action: scan_action::START,
+            direction_up: 1,
+        })
+        .unwrap();
+    let frame = tcp.scan(&s).unwrap();
+    frame.validate().unwrap();
+    assert!(tcp.client().reconnects() >= 1, "the backend reconnected");
+    let after = server.stats();
+    let sent = |name: &str| {
+        after.commands_by_name.get(name).copied().unwrap_or(0)
+            - before.commands_by_name.get(name).copied().unwrap_or(0)
+    };
+    assert!(sent("Scan.StatusGet") >= 1, "{after:?}");
+    // The other client's start, the backend's stop of it and its own start.
+    assert_eq!(sent("Scan.Action"), 3, "{after:?}");
+}
+
+/// Issue 26 (the TCP overhead): with a simulated controller (virtual clock) a move, its settle
+/// and the clock read after them are one round trip, a scan setting and its read-back are one,
+/// and so are a scan's end, its data, the clock and the position after it (pipelined: sent in
+/// one write, answered in order). The
+/// readings are the simulator's own (its clock and commanded position after the commands),
+/// and the server's count of requests it found already received is the truth of the
+/// round trips saved.
+#[test]
+fn a_wait_and_the_reads_after_it_are_one_round_trip() {
+    a_wait_and_the_reads_after_it_are_one_round_trip_when(false);
+    // As `spmcal calibrate` runs: interruptible (the wait for a scan's end in slices).
+    a_wait_and_the_reads_after_it_are_one_round_trip_when(true);
+}
+
+fn a_wait_and_the_reads_after_it_are_one_round_trip_when(interruptible: bool) {
+    let server = start(SocketFaults::none());
+    let mut tcp = NanonisMicroscope::connect(client_config(server.addr().port())).unwrap();
+    if interruptible {
+        tcp.set_interrupt(std::sync::Arc::new(std::sync::atomic::AtomicBool::new(
+            false,
+        )));
+    }
+    let s = request(ScanDirection::Direct, 16, 4);
+    let before = server.stats();
+    tcp.move_to(MoveRequest {
+        target: CountPoint::from_counts(1500.0, -2000.0),
+        speed: spm_hal::CountsPerSecond(1000.0),
+        settle: Seconds(0.0125),
+    })
+    .unwrap();
+    let after_move = (tcp.now().unwrap(), tcp.position().unwrap());
+    let truth_move = server.with_simulator_mut(|sim| (sim.now().unwrap(), sim.position().unwrap()));
+    let frame = tcp.scan(&s).unwrap();
+    frame.validate().unwrap();
+    let after_scan = (tcp.now().unwrap(), tcp.position().unwrap());
+    let truth_scan = server.with_simulator_mut(|sim| (sim.now().unwrap(), sim.position().unwrap()));
+    let after = server.stats();
+    let pipelined = after.pipelined - before.pipelined;
+    eprintln!(
+        "{} commands, {pipelined} pipelined",
+        after.commands - before.commands
+    );
+    // The move's settle and clock read; the read-backs of the scan's buffer and speed (set
+    // for the first time); the scan's grab, clock and position reads.
+    assert_eq!(pipelined, 7, "interruptible {interruptible}: {after:?}");
+    for ((t, p), (t_sim, p_sim), what) in [
+        (after_move, truth_move, "after the move"),
+        (after_scan, truth_scan, "after the scan"),
+    ] {
+        assert!(
+            close(t.value(), t_sim.value(), 0.0),
+            "{what}: {t} vs {t_sim}"
+        );
+        assert!(
+            p.distance(p_sim).value() < 2e-3,
+            "{what}: {p:?} vs {p_sim:?}"
+        );
+    }
+}

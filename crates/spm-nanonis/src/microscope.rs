@@ -1000,9 +1000,10 @@ impl NanonisMicroscope {
         }))
     }
 
-    // long-function: one scan's command sequence in protocol order, each step a documented
-    // pitfall (padding, read-backs, running scan, timeouts, frame order); split, it scatters.
-    fn scan_impl(&mut self, request: &ScanRequest) -> Result<Frame, NanonisError> {
+    /// The controller's frame and speed for `request` (checked against the capabilities and
+    /// the field): pixels per line padded to a multiple of 16, the frame turned for counter
+    /// scans and by the counts convention's frame angle.
+    fn plan_scan(&self, request: &ScanRequest) -> Result<ScanPlan, NanonisError> {
         request
             .validate()
             .map_err(|e| NanonisError::new(NanonisErrorKind::InvalidRequest, e.to_string()))?;
@@ -1070,30 +1071,36 @@ impl NanonisMicroscope {
         } else {
             turned
         } as f32;
-        let frame = ScanFrame {
-            centre_x_m: f32_of(cx),
-            centre_y_m: f32_of(cy),
-            width_m: f32_of(width_m),
-            height_m: f32_of(height_m),
-            angle_deg,
-        };
         let line_s = f64::from(n16) * request.pixel_dwell.value();
-        let speed = ScanSpeed {
-            forward_speed_m_per_s: f32_of(width_m / line_s),
-            backward_speed_m_per_s: f32_of(width_m / line_s),
-            forward_line_s: f32_of(line_s),
-            backward_line_s: f32_of(line_s),
-            keep: 2,
-            speed_ratio: 1.0,
-        };
-        let direction_up = self.config.slow_direction.direction_up();
-        self.start_scan(n16 as i32, lines as i32, frame, speed, direction_up)?;
-        // The connection the scan was started on.
-        let reconnects = self.client.reconnects();
-        let (tf, tb) = self.sent.line_times_s.unwrap_or((line_s, line_s));
-        let expected_s = f64::from(lines) * (tf + tb);
-        // Backward first when wanted (a controller that records lazily learns it is needed).
-        let want_backward = request.record_backward && self.capabilities.backward_trace;
+        Ok(ScanPlan {
+            n16,
+            frame: ScanFrame {
+                centre_x_m: f32_of(cx),
+                centre_y_m: f32_of(cy),
+                width_m: f32_of(width_m),
+                height_m: f32_of(height_m),
+                angle_deg,
+            },
+            speed: ScanSpeed {
+                forward_speed_m_per_s: f32_of(width_m / line_s),
+                backward_speed_m_per_s: f32_of(width_m / line_s),
+                forward_line_s: f32_of(line_s),
+                backward_line_s: f32_of(line_s),
+                keep: 2,
+                speed_ratio: 1.0,
+            },
+            line_s,
+        })
+    }
+
+    /// Waits for the end of the scan started (`expected_s` long) and grabs its data; a scan
+    /// that fails or does not end is stopped (an interrupted one is left paused).
+    fn finish_scan(
+        &mut self,
+        expected_s: f64,
+        want_backward: bool,
+        (n16, lines): (u32, u32),
+    ) -> Result<ScanEnd, NanonisError> {
         let ended = match self.end_of_scan(expected_s, want_backward, n16, lines) {
             Ok(ended) => ended,
             // Interrupted: the scan is paused, not stopped.
@@ -1105,33 +1112,34 @@ impl NanonisMicroscope {
                 return Err(e);
             }
         };
-        let Some(ScanEnd {
-            forward,
-            backward,
-            end_s: end,
-        }) = ended
-        else {
+        ended.ok_or_else(|| {
             if let Err(stop) = self.abort() {
                 tracing::warn!(error = %stop, "nanonis: could not stop the scan");
             }
-            return Err(NanonisError::new(
+            NanonisError::new(
                 NanonisErrorKind::Timeout,
                 format!(
                     "no end of scan within {:.0} ms",
                     (expected_s + self.config.wait_margin_s) * 1e3
                 ),
             )
-            .in_command("Scan.WaitEndOfScan"));
-        };
-        // Ended normally on the connection it was started on: no scan runs until the next
-        // start (a reconnection in between may have lost the end, or left another scan).
-        if self.client.reconnects() == reconnects {
-            self.scan_idle = Some(reconnects);
-        }
-        let start = end - f64::from(lines) * (tf + tb);
-        let n = n as usize;
+            .in_command("Scan.WaitEndOfScan")
+        })
+    }
+
+    /// spm-hal's frame from the grabbed data: the requested pixels of each line (the
+    /// padding cropped), rows in spm-hal's geometry, each pixel timed from the scan's start
+    /// `start_s` with the line times (forward, backward) `(tf, tb)`.
+    fn assemble_frame(
+        &self,
+        request: &ScanRequest,
+        (end, n16, direction_up, want_backward): (&ScanEnd, u32, u32, bool),
+        (start_s, tf, tb): (f64, f64, f64),
+    ) -> Result<Frame, NanonisError> {
+        let (forward, backward) = (&end.forward, end.backward.as_ref());
+        let n = request.pixels_per_line as usize;
         let n16u = n16 as usize;
-        let ny = lines as usize;
+        let ny = request.lines as usize;
         let mut fwd = TraceImage {
             z_counts: Vec::with_capacity(n * ny),
             time_s: Vec::with_capacity(n * ny),
@@ -1143,7 +1151,7 @@ impl NanonisMicroscope {
         // A frame the controller scanned in the other slow direction (a bouncy scan left
         // on, a start by someone else) has its lines in the other order in time: not the
         // scan requested.
-        for data in std::iter::once(&forward).chain(backward.as_ref()) {
+        for data in std::iter::once(forward).chain(backward) {
             if data.direction_up != direction_up {
                 let (found, started) = match direction_up {
                     1 => ("downwards", "upwards"),
@@ -1168,14 +1176,14 @@ impl NanonisMicroscope {
                 SlowDirection::Up => line,
                 SlowDirection::Down => ny - 1 - line,
             };
-            let line_start = start + acquired as f64 * (tf + tb);
+            let line_start = start_s + acquired as f64 * (tf + tb);
             for pixel in 0..n {
                 let value = forward.data[row * n16u + pixel];
                 fwd.z_counts.push(self.z_counts(value)?);
                 fwd.time_s
                     .push(line_start + (pixel as f64 + 0.5) * tf / n16u as f64);
             }
-            if let (Some(image), Some(data)) = (bwd.as_mut(), backward.as_ref()) {
+            if let (Some(image), Some(data)) = (bwd.as_mut(), backward) {
                 for pixel in 0..n {
                     let column = n - 1 - pixel;
                     let value = data.data[row * n16u + column];
@@ -1192,6 +1200,40 @@ impl NanonisMicroscope {
             forward: fwd,
             backward: bwd,
         })
+    }
+
+    /// One scan's command sequence in protocol order: the frame planned, the settings sent
+    /// (and read back) and the scan started, its end waited for and its data grabbed, the
+    /// frame assembled.
+    fn scan_impl(&mut self, request: &ScanRequest) -> Result<Frame, NanonisError> {
+        let plan = self.plan_scan(request)?;
+        let (n16, lines, line_s) = (plan.n16, request.lines, plan.line_s);
+        let direction_up = self.config.slow_direction.direction_up();
+        self.start_scan(
+            n16 as i32,
+            lines as i32,
+            plan.frame,
+            plan.speed,
+            direction_up,
+        )?;
+        // The connection the scan was started on.
+        let reconnects = self.client.reconnects();
+        let (tf, tb) = self.sent.line_times_s.unwrap_or((line_s, line_s));
+        let expected_s = f64::from(lines) * (tf + tb);
+        // Backward first when wanted (a controller that records lazily learns it is needed).
+        let want_backward = request.record_backward && self.capabilities.backward_trace;
+        let end = self.finish_scan(expected_s, want_backward, (n16, lines))?;
+        // Ended normally on the connection it was started on: no scan runs until the next
+        // start (a reconnection in between may have lost the end, or left another scan).
+        if self.client.reconnects() == reconnects {
+            self.scan_idle = Some(reconnects);
+        }
+        let start_s = end.end_s - f64::from(lines) * (tf + tb);
+        self.assemble_frame(
+            request,
+            (&end, n16, direction_up, want_backward),
+            (start_s, tf, tb),
+        )
     }
 
     fn z_counts(&self, value_m: f32) -> Result<f64, NanonisError> {
@@ -1414,6 +1456,16 @@ fn slice_ms() -> i32 {
 }
 
 /// A scan's end as [`NanonisMicroscope::end_of_scan`] found it.
+/// A scan's frame and speed as the controller is sent them ([`NanonisMicroscope::plan_scan`]).
+struct ScanPlan {
+    /// Pixels per line scanned (the request's, padded to a multiple of 16).
+    n16: u32,
+    frame: ScanFrame,
+    speed: ScanSpeed,
+    /// One line's trace as requested, s.
+    line_s: f64,
+}
+
 struct ScanEnd {
     forward: FrameData,
     backward: Option<FrameData>,

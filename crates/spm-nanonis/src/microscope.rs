@@ -374,6 +374,11 @@ pub struct NanonisMicroscope {
     /// client's [`Client::reconnects`] when it became known; `None`: unknown, asked before
     /// the next scan (see the crate docs, "Round trips").
     scan_idle: Option<u64>,
+    /// Where the tip may be after the backend's last scan, counts (x from, x to, y from, y
+    /// to: the scanned raster with a margin), until the position is next read from the
+    /// controller or the backend moves the tip: a reading outside it means another client
+    /// moved the tip ([`NanonisMicroscope::check_tip_after_scan`]).
+    after_scan: Option<[f64; 4]>,
 }
 
 /// What the backend knows of the controller without asking, valid while the client's
@@ -584,6 +589,7 @@ impl NanonisMicroscope {
             interrupt: None,
             readings: Readings::default(),
             scan_idle: None,
+            after_scan: None,
         };
         if opened.pipelining() {
             opened.client.set_reply_poll(REPLY_POLL);
@@ -1073,6 +1079,12 @@ impl NanonisMicroscope {
         } as f32;
         let line_s = f64::from(n16) * request.pixel_dwell.value();
         Ok(ScanPlan {
+            raster_counts: [
+                x_lo,
+                x_hi,
+                request.origin.y.value().min(far_y.value()),
+                request.origin.y.value().max(far_y.value()),
+            ],
             n16,
             frame: ScanFrame {
                 centre_x_m: f32_of(cx),
@@ -1206,6 +1218,8 @@ impl NanonisMicroscope {
     /// (and read back) and the scan started, its end waited for and its data grabbed, the
     /// frame assembled.
     fn scan_impl(&mut self, request: &ScanRequest) -> Result<Frame, NanonisError> {
+        // A scan moves the tip: only this one's raster counts from here on.
+        self.after_scan = None;
         let plan = self.plan_scan(request)?;
         let (n16, lines, line_s) = (plan.n16, request.lines, plan.line_s);
         let direction_up = self.config.slow_direction.direction_up();
@@ -1229,6 +1243,18 @@ impl NanonisMicroscope {
             self.scan_idle = Some(reconnects);
         }
         let start_s = end.end_s - f64::from(lines) * (tf + tb);
+        // Where the tip may be now: on the raster, give or take two pixels and 2 % of the
+        // frame (where a controller leaves the tip after a frame: its last pixel, or back
+        // at its start).
+        let [x0, x1, y0, y1] = plan.raster_counts;
+        let margin = 2.0 * request.pixel_step.value() + 0.02 * (x1 - x0).max(y1 - y0);
+        self.after_scan = Some([x0 - margin, x1 + margin, y0 - margin, y1 + margin]);
+        // A position read with the scan's end (pipelined) is checked now.
+        if self.readings.sequence == self.client.sequence()
+            && let Some(p) = self.readings.position
+        {
+            self.check_tip_after_scan(p)?;
+        }
         self.assemble_frame(
             request,
             (&end, n16, direction_up, want_backward),
@@ -1458,6 +1484,8 @@ fn slice_ms() -> i32 {
 /// A scan's end as [`NanonisMicroscope::end_of_scan`] found it.
 /// A scan's frame and speed as the controller is sent them ([`NanonisMicroscope::plan_scan`]).
 struct ScanPlan {
+    /// The padded raster's pixel centres, counts: x from, x to, y from, y to.
+    raster_counts: [f64; 4],
     /// Pixels per line scanned (the request's, padded to a multiple of 16).
     n16: u32,
     frame: ScanFrame,
@@ -1555,7 +1583,34 @@ impl NanonisMicroscope {
             other => return Err(unexpected("FolMe.XYPosGet", &other)),
         };
         self.after_read(before).position = Some(p);
+        self.check_tip_after_scan(p)?;
         Ok(p)
+    }
+
+    /// The first position read from the controller after the backend's last scan must lie
+    /// on that scan's raster (with its margin): the backend has moved nothing since, so a
+    /// tip elsewhere was moved by another client — a program or a person at the controller
+    /// — and what the run measures next is not what it commanded (issue 25 item 19). That is
+    /// an error naming the cause; the run stops there (`--resume` continues it once the
+    /// controller is the run's alone). Checked once per scan.
+    fn check_tip_after_scan(&mut self, p: CountPoint) -> Result<(), NanonisError> {
+        let Some([x0, x1, y0, y1]) = self.after_scan.take() else {
+            return Ok(());
+        };
+        let (x, y) = (p.x.value(), p.y.value());
+        if (x0..=x1).contains(&x) && (y0..=y1).contains(&y) {
+            return Ok(());
+        }
+        Err(NanonisError::new(
+            NanonisErrorKind::Controller,
+            format!(
+                "after the backend's scan of x {x0:.0} … {x1:.0}, y {y0:.0} … {y1:.0} counts the \
+                 tip is at ({x:.0}, {y:.0}) counts, and the backend moved nothing since: \
+                 another client (a program or the controller's own software) moved the tip; \
+                 a calibration needs the controller to itself"
+            ),
+        )
+        .in_command("FolMe.XYPosGet"))
     }
 
     /// Runs one command that does not move the tip (a wait, a Z read) and keeps the
@@ -1669,6 +1724,8 @@ impl Microscope for NanonisMicroscope {
     }
 
     fn move_to(&mut self, request: MoveRequest) -> Result<(), NanonisError> {
+        // The backend's own move: wherever the tip was, it is commanded elsewhere now.
+        self.after_scan = None;
         let result = self.move_impl(request);
         self.noting_failure(result)
     }

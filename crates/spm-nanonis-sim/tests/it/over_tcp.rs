@@ -413,3 +413,72 @@ fn a_wait_and_the_reads_after_it_are_one_round_trip_when(interruptible: bool) {
         );
     }
 }
+
+/// Issue 25 item 19, a second client moving the tip during a run. The backend has the
+/// controller to itself by assumption; what it can check without extra round trips is the
+/// first position it reads from the controller after its scan: the tip must be on the
+/// raster it scanned (with a margin), since the backend moved nothing since. Here with a
+/// controller clock in real time (one command per round trip, as on hardware): a scan,
+/// then another connection moves the tip 10 000 counts away, then the backend's position
+/// read is an error naming another client, and the run would stop there. The control: the
+/// same sequence with nobody else moving the tip reads the position (on the raster), and
+/// the backend's own move after a scan is never mistaken for another client's.
+#[test]
+fn a_tip_moved_by_another_client_after_a_scan_is_an_error_naming_the_cause() {
+    use spm_nanonis::commands::{Reply, Request};
+    let server = start(SocketFaults::none());
+    let port = server.addr().port();
+    let mut config = client_config(port);
+    config.clock = spm_nanonis::ClockSource::ControllerSignals {
+        whole_s_signal: 126,
+        fraction_s_signal: 127,
+        virtual_time: false,
+    };
+    let mut tcp = NanonisMicroscope::connect(config.clone()).unwrap();
+    let s = request(ScanDirection::Direct, 16, 4);
+    let to_start = MoveRequest {
+        target: s.origin,
+        speed: spm_hal::CountsPerSecond(1000.0),
+        settle: Seconds(0.01),
+    };
+    // Alone: the position after a scan is on its raster, and after the backend's own move
+    // it is the move's target.
+    tcp.move_to(to_start).unwrap();
+    tcp.scan(&s).unwrap();
+    let p = tcp.position().unwrap();
+    assert!(
+        (p.x.value() - s.origin.x.value()).abs() < 100.0
+            && (p.y.value() - s.origin.y.value()).abs() < 100.0,
+        "the tip after the scan: {p:?}"
+    );
+    tcp.scan(&s).unwrap();
+    tcp.move_to(MoveRequest {
+        target: CountPoint::from_counts(9000.0, 9000.0),
+        ..to_start
+    })
+    .unwrap();
+    tcp.position().unwrap();
+    // Another client moves the tip after the backend's scan.
+    tcp.move_to(to_start).unwrap();
+    tcp.scan(&s).unwrap();
+    let mut other = spm_nanonis::Client::connect(config.client_config()).unwrap();
+    let Reply::XY { x_m, y_m } = other
+        .call(&Request::FolMeXYPosGet { wait_newest: 0 })
+        .unwrap()
+    else {
+        panic!("FolMe.XYPosGet");
+    };
+    other
+        .call(&Request::FolMeXYPosSet {
+            x_m: x_m + 10_000.0 * 0.02e-9,
+            y_m,
+            wait_end_of_move: 1,
+        })
+        .unwrap();
+    let e = tcp.position().unwrap_err();
+    assert!(
+        e.to_string().contains("another client"),
+        "the error names the cause: {e}"
+    );
+    assert_eq!(spm_hal::Error::kind(&e), spm_hal::ErrorKind::Other, "{e}");
+}

@@ -1601,8 +1601,10 @@ impl NanonisMicroscope {
         if (x0..=x1).contains(&x) && (y0..=y1).contains(&y) {
             return Ok(());
         }
+        // Aborted, as by the user: not this node's failure, so the run stops (a visit given
+        // up and the run going on would leave the tip to the other client).
         Err(NanonisError::new(
-            NanonisErrorKind::Controller,
+            NanonisErrorKind::Aborted,
             format!(
                 "after the backend's scan of x {x0:.0} … {x1:.0}, y {y0:.0} … {y1:.0} counts the \
                  tip is at ({x:.0}, {y:.0}) counts, and the backend moved nothing since: \

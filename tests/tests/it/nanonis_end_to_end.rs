@@ -484,6 +484,76 @@ fn a_killed_controller_stops_the_run_and_resume_completes_it() {
     );
 }
 
+/// Issue 25 item 19: another client moving the tip during a calibration. With a controller
+/// clock in real time (as on hardware: one command per round trip), a second connection
+/// moves the tip far away every few milliseconds once the run is under way: the run stops
+/// with an error naming another client (not bad input: exit 1), the visits so far are kept,
+/// the one under way is undone (pending), and nothing was stored of a moved tip: `cdb check`
+/// is clean and every stored record belongs to a visit marked done.
+#[test]
+fn another_client_moving_the_tip_stops_the_run_naming_the_cause() {
+    use spm_nanonis::commands::{Reply, Request};
+    let dir = scratch("foreign-move");
+    let cdb = dir.join("cdb.sqlite");
+    let server = serve("127.0.0.1:0", SocketFaults::none());
+    let port = server.addr().port();
+    let mut config = nanonis_config(port, 2.0);
+    config.clock = spm_nanonis::ClockSource::ControllerSignals {
+        whole_s_signal: 126,
+        fraction_s_signal: 127,
+        virtual_time: false,
+    };
+    let other_config = config.client_config();
+    let job = job(Backend::Nanonis(Box::new(config)));
+    let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let stop = std::sync::Arc::clone(&done);
+    let mover = std::thread::spawn(move || {
+        // Once the run is under way.
+        std::thread::sleep(std::time::Duration::from_millis(30));
+        let mut other = spm_nanonis::Client::connect(other_config).unwrap();
+        let mut moves = 0;
+        while !stop.load(std::sync::atomic::Ordering::Relaxed) && moves < 5000 {
+            if let Ok(Reply::XY { x_m, y_m }) =
+                other.call(&Request::FolMeXYPosGet { wait_newest: 0 })
+            {
+                let _ = other.call(&Request::FolMeXYPosSet {
+                    x_m: if x_m > 0.0 { x_m - 2e-7 } else { x_m + 2e-7 },
+                    y_m,
+                    wait_end_of_move: 1,
+                });
+                moves += 1;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
+        moves
+    });
+    let (result, _) = run(
+        &job,
+        &cdb,
+        RunStart::New {
+            run_id: "foreign".into(),
+        },
+    );
+    done.store(true, std::sync::atomic::Ordering::Relaxed);
+    let moves = mover.join().unwrap();
+    let error = match result {
+        Ok(outcome) => panic!(
+            "the run finished with another client moving the tip {moves} times: {:?}",
+            outcome.report
+        ),
+        Err(e) => e,
+    };
+    assert!(!error.is_bad_input(), "{error}");
+    let message = error.to_string();
+    eprintln!("{message} ({moves} moves by the other client)");
+    assert!(message.contains("another client"), "{message}");
+    let cdb_read = Cdb::open_read_only(&cdb).unwrap();
+    let summary = cdb_read.progress_summary("foreign").unwrap();
+    assert!(summary.pending > 0, "{summary:?}");
+    let check = cdb_read.check().unwrap();
+    assert!(check.is_ok(), "cdb check: {check:?}");
+}
+
 /// Issue 24 item 6: a run on a real controller validates itself without an oracle. Over TCP
 /// (`[backend] kind = "nanonis"`), a 5 × 5 net in two passes with half the nodes held out:
 /// the report has no oracle accuracy, and in its place the held-out prediction (σ-scaled,

@@ -480,5 +480,9 @@ fn a_tip_moved_by_another_client_after_a_scan_is_an_error_naming_the_cause() {
         e.to_string().contains("another client"),
         "the error names the cause: {e}"
     );
-    assert_eq!(spm_hal::Error::kind(&e), spm_hal::ErrorKind::Other, "{e}");
+    assert_eq!(
+        spm_hal::Error::kind(&e),
+        spm_hal::ErrorKind::Aborted,
+        "the run stops: {e}"
+    );
 }

@@ -26,7 +26,8 @@ use std::path::Path;
 pub const NOT_REGENERATED: &str = "regenerated from the CDB (spmcal report): not regenerated, \
      since only the running instrument had them: the accuracy against the oracle, the image \
      benchmark, the node LCCs and the vertical axis against the oracle, the corrected \
-     standard's lattice (they need the simulator or new images of the standard), the drift \
+     standard's lattice with its validation map and before/after figure (they need the \
+     simulator or new images of the standard), the drift \
      history and its figure, the dynamics identification's diagnostics (the stored model is \
      used), the cycle counts, instrument and wall time; the surfaces are fitted from the \
      scanner's records in the CDB now";

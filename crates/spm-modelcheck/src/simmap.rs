@@ -430,6 +430,33 @@ struct FrameScale<'a> {
     n0: f64,
 }
 
+/// A periodic vibration's finding as spm-sim's: the model's d = A·cos(ω·t − φ), t from the
+/// observation span's middle at `t0_s` on the simulator's clock (φ = atan2(sin part, cos
+/// part)); spm-sim's A·cos(ω·T + φ_sim), T its clock.
+fn map_vibration(m: &mut Mapped, fp: &BTreeMap<String, crate::ParamValue>, t0_s: f64) {
+    let f_hz = value(fp, "frequency_hz").max(0.0);
+    let w = std::f64::consts::TAU * f_hz;
+    m.put(SimParam::VibrationFrequencyHz, f_hz);
+    for (axis, amplitude, phase) in [
+        (
+            "x",
+            SimParam::VibrationAmplitudeXNm,
+            SimParam::VibrationPhaseXRad,
+        ),
+        (
+            "y",
+            SimParam::VibrationAmplitudeYNm,
+            SimParam::VibrationPhaseYRad,
+        ),
+    ] {
+        m.put(amplitude, value(fp, &format!("amplitude_{axis}_nm")).abs());
+        m.put(
+            phase,
+            wrap_rad(-value(fp, &format!("phase_{axis}_rad")) - w * t0_s),
+        );
+    }
+}
+
 /// One finding as spm-sim configuration values (see [`sim_patch`]).
 fn map_finding(
     m: &mut Mapped,
@@ -539,32 +566,7 @@ fn map_finding(
                 value(fp, "shear_gradient_y") * env.rx,
             );
         }
-        EffectKind::PeriodicVibration => {
-            // Model: d = A·cos(ω·t − φ), t from the observation span's middle
-            // (φ = atan2(sin part, cos part)); spm-sim: A·cos(ω·T + φ_sim), T its clock.
-            let f_hz = value(fp, "frequency_hz").max(0.0);
-            let w = std::f64::consts::TAU * f_hz;
-            let t0 = d.time_origin_s + ctx.time_offset_s;
-            m.put(SimParam::VibrationFrequencyHz, f_hz);
-            for (axis, amplitude, phase) in [
-                (
-                    "x",
-                    SimParam::VibrationAmplitudeXNm,
-                    SimParam::VibrationPhaseXRad,
-                ),
-                (
-                    "y",
-                    SimParam::VibrationAmplitudeYNm,
-                    SimParam::VibrationPhaseYRad,
-                ),
-            ] {
-                m.put(amplitude, value(fp, &format!("amplitude_{axis}_nm")).abs());
-                m.put(
-                    phase,
-                    wrap_rad(-value(fp, &format!("phase_{axis}_rad")) - w * t0),
-                );
-            }
-        }
+        EffectKind::PeriodicVibration => map_vibration(m, fp, d.time_origin_s + ctx.time_offset_s),
         EffectKind::Interlace => {
             // Model: backward-line features sit `separation_y_nm` further along image y
             // than forward ones (a tip–sample offset −sep/2·s). spm-sim: the second half

@@ -765,16 +765,10 @@ pub fn finish_with(
     let mut figures = figures(record, &fitted, &all, drift.estimates > 0)?;
     figures.extend(verdict_figures(
         record,
-        &fitted.set,
+        (&fitted.set, &validation),
         residual.as_ref().zip(accuracy.as_ref()),
         &mut notes,
     )?);
-    if let Some(check) = &validation.lattice {
-        figures.extend(plots::validation_map(
-            check,
-            record.plan.standard.nominal_nm_per_count,
-        )?);
-    }
     figures.extend(history_figure(&*snapshot, &record.plan.scanner_id)?);
     for figure in &figures {
         write(&out.join(&figure.file), &figure.png)?;
@@ -814,16 +808,25 @@ pub fn finish_with(
         notes,
     };
     report.targets = crate::targets::judge(&report, &record.plan.targets, record.simulated());
-    let json = serde_json::to_string_pretty(&report).map_err(|e| ReportError::Write {
+    write_report(out, &report, &figures)?;
+    Ok(report)
+}
+
+/// `report.json` and `report.html` of `report` with its `figures`, in `out`.
+fn write_report(
+    out: &Path,
+    report: &CalibrationReport,
+    figures: &[plots::Figure],
+) -> Result<(), ReportError> {
+    let json = serde_json::to_string_pretty(report).map_err(|e| ReportError::Write {
         path: "report.json".to_owned(),
         message: e.to_string(),
     })?;
     write(&out.join("report.json"), json.as_bytes())?;
     write(
         &out.join("report.html"),
-        crate::html::calibration_page(&report, &figures).as_bytes(),
-    )?;
-    Ok(report)
+        crate::html::calibration_page(report, figures).as_bytes(),
+    )
 }
 
 /// How the accuracy figures are measured (report.json's first notes).
@@ -955,15 +958,22 @@ fn accuracy_section(
 }
 
 /// The figures that show what the calibration achieves: the residual-distortion map (with a
-/// ground truth) and the before/after image of the standard (when it was imaged; a failure
+/// ground truth), the validation map (the corrected standard's lattice over the field, on
+/// every backend) and the before/after image of the standard (when it was imaged; a failure
 /// to draw it is a note, not an error).
 fn verdict_figures(
     record: &RunRecord<'_>,
-    set: &spm_correction::SurfaceSet,
+    (set, validation): (&spm_correction::SurfaceSet, &Validation),
     residual: Option<(&spm_evaluation::ResidualField, &AccuracyTable)>,
     notes: &mut Vec<String>,
 ) -> Result<Vec<plots::Figure>, ReportError> {
     let mut figures = Vec::new();
+    if let Some(check) = &validation.lattice {
+        figures.extend(plots::validation_map(
+            check,
+            record.plan.standard.nominal_nm_per_count,
+        )?);
+    }
     if let Some((field, a)) = residual {
         figures.push(plots::residual_map(
             field,

@@ -1327,28 +1327,24 @@ fn baseline(p: &Problem<'_>) -> Result<(Model, BaselineReport), ModelCheckError>
     let mut base_cols = baseline_columns(&p.obs, p.n_frames);
     let mut mask = vec![true; p.obs.len()];
     let floor_nm = 0.25 * p.lattice_a_nm;
-    let mut fit = robust_fit(
-        &base_cols,
-        &p.target,
-        &mut mask,
-        options.outlier_sigmas,
-        p.needed,
-        floor_nm,
-    )?;
+    let fit_with_outliers = |cols: &[Column], mask: &mut Vec<bool>| {
+        robust_fit(
+            cols,
+            &p.target,
+            mask,
+            options.outlier_sigmas,
+            p.needed,
+            floor_nm,
+        )
+    };
+    let mut fit = fit_with_outliers(&base_cols, &mut mask)?;
     let drift_separable = drift_is_separable(p, &base_cols, &fit, &mask);
     if !drift_separable {
         for c in &mut base_cols[4..6] {
             c.iter_mut().for_each(|v| *v = 0.0);
         }
         mask = vec![true; p.obs.len()];
-        fit = robust_fit(
-            &base_cols,
-            &p.target,
-            &mut mask,
-            options.outlier_sigmas,
-            p.needed,
-            floor_nm,
-        )?;
+        fit = fit_with_outliers(&base_cols, &mut mask)?;
     }
     let mut model = Model {
         cols: base_cols,

@@ -35,7 +35,7 @@ fn workspace_root() -> PathBuf {
 /// Writes the job (13 × 13 nodes, 2 repeats) into `dir` and returns its path. The dynamics
 /// stage is off: the kills must land among the visits this test checks (with the stage on,
 /// half of a run this small is the stage and its fit, after every visit is done).
-fn write_job(dir: &Path) -> PathBuf {
+pub(crate) fn write_job(dir: &Path) -> PathBuf {
     let root = workspace_root();
     let plan = std::fs::read_to_string(root.join("configs/plan-hopg-small.toml")).unwrap();
     let plan = plan

@@ -328,33 +328,8 @@ fn a_lock_held_by_another_session_ends_the_check_at_the_lock_timeout() {
 // Issue 25 item 4 (rest): a server restarted under `calibrate`, a backend stopped under
 // `cdb check` and under `calibrate`.
 
-fn workspace_root() -> std::path::PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .ancestors()
-        .nth(2)
-        .expect("crates/spmcal lives in the workspace")
-        .to_path_buf()
-}
-
-/// The crash tests' job (13 × 13 nodes, 2 repeats, the dynamics stage off: 338 visits of the
-/// seeded room-temperature simulator) in `dir`.
-fn write_job(dir: &Path) -> std::path::PathBuf {
-    let root = workspace_root();
-    let plan = std::fs::read_to_string(root.join("configs/plan-hopg-small.toml")).unwrap();
-    let plan = plan
-        .replace("step_counts = 20000", "step_counts = 4000")
-        .replace("repeats = 1 ", "repeats = 2 ");
-    assert!(plan.contains("step_counts = 4000") && plan.contains("repeats = 2 "));
-    let plan = format!("{plan}\n[plan.dynamics]\nenabled = false\n");
-    std::fs::write(dir.join("plan.toml"), plan).unwrap();
-    let job = format!(
-        "plan_file = \"plan.toml\"\n[backend]\nkind = \"sim\"\nsim_config = {:?}\n",
-        root.join("configs/sim-hopg.toml").display().to_string()
-    );
-    let path = dir.join("job.toml");
-    std::fs::write(&path, job).unwrap();
-    path
-}
+// The crash tests' job (13 × 13 nodes, 2 repeats, the dynamics stage off: 338 visits).
+use crate::crash::write_job;
 
 fn calibrate(job: &Path, out: &Path, url: &str, resume: bool) -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_spmcal"));

@@ -137,6 +137,25 @@ fn free_port(dir: &Path) -> Result<u16, ServerError> {
         })
 }
 
+/// A server program `path`, run as the account `run_as` (uid, gid) when given (`setpriv`:
+/// PostgreSQL refuses to run as root).
+fn server_program(path: &Path, run_as: Option<(u32, u32)>) -> Command {
+    match run_as {
+        Some((uid, gid)) => {
+            let mut c = Command::new("setpriv");
+            c.args([
+                format!("--reuid={uid}"),
+                format!("--regid={gid}"),
+                "--clear-groups".into(),
+                "--".into(),
+            ])
+            .arg(path);
+            c
+        }
+        None => Command::new(path),
+    }
+}
+
 /// Starts the postmaster on `port` with the test settings, its output in `server.log`.
 fn spawn_postmaster(
     dir: &Path,
@@ -151,20 +170,7 @@ fn spawn_postmaster(
     };
     let data = dir.join("data");
     let path = bin.join("postgres");
-    let mut c = match run_as {
-        Some((uid, gid)) => {
-            let mut c = Command::new("setpriv");
-            c.args([
-                format!("--reuid={uid}"),
-                format!("--regid={gid}"),
-                "--clear-groups".into(),
-                "--".into(),
-            ])
-            .arg(&path);
-            c
-        }
-        None => Command::new(&path),
-    };
+    let mut c = server_program(&path, run_as);
     c.arg("-D")
         .arg(&data)
         .args(["-p", &port.to_string(), "-h", "127.0.0.1", "-k"])
@@ -246,23 +252,7 @@ impl TestServer {
             std::os::unix::fs::chown(&dir, Some(uid), Some(gid)).map_err(io(&dir))?;
         }
         let data = dir.join("data");
-        let command = |program: &str| -> Command {
-            let path = bin.join(program);
-            match run_as {
-                Some((uid, gid)) => {
-                    let mut c = Command::new("setpriv");
-                    c.args([
-                        format!("--reuid={uid}"),
-                        format!("--regid={gid}"),
-                        "--clear-groups".into(),
-                        "--".into(),
-                    ])
-                    .arg(path);
-                    c
-                }
-                None => Command::new(path),
-            }
-        };
+        let command = |program: &str| server_program(&bin.join(program), run_as);
         let output = command("initdb")
             .args([
                 "-A",
@@ -435,20 +425,7 @@ impl TestServer {
 
     fn stop_server(&mut self) {
         let data = self.dir.join("data");
-        let mut c = match self.run_as {
-            Some((uid, gid)) => {
-                let mut c = Command::new("setpriv");
-                c.args([
-                    format!("--reuid={uid}"),
-                    format!("--regid={gid}"),
-                    "--clear-groups".into(),
-                    "--".into(),
-                ])
-                .arg(self.bin.join("pg_ctl"));
-                c
-            }
-            None => Command::new(self.bin.join("pg_ctl")),
-        };
+        let mut c = server_program(&self.bin.join("pg_ctl"), self.run_as);
         let stopped = c
             .args(["stop", "-m", "fast", "-w", "-t", "30", "-D"])
             .arg(&data)

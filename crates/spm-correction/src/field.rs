@@ -249,11 +249,16 @@ impl CorrectionField for SurfaceField {
     /// Implements eq. (4).
     #[inline]
     fn form(&self, x: f64, y: f64) -> FormCoefficients {
-        FormCoefficients::from_lcc(
-            self.kx_nm_per_count.evaluate(x, y),
-            self.ky_nm_per_count.evaluate(x, y),
-            self.alpha_rad.evaluate(x, y),
-        )
+        let [kx, ky, alpha] = Polynomial2::evaluate_each(
+            [
+                &self.kx_nm_per_count,
+                &self.ky_nm_per_count,
+                &self.alpha_rad,
+            ],
+            x,
+            y,
+        );
+        FormCoefficients::from_lcc(kx, ky, alpha)
     }
     fn integral_kx_along_x(&self, x_a: f64, x_b: f64, y: f64) -> Option<f64> {
         Some(self.kx_nm_per_count.integrate_x(x_a, x_b, y))
@@ -286,10 +291,19 @@ impl CorrectionField for ProductField {
     /// Implements eq. (11).
     #[inline]
     fn form(&self, x: f64, y: f64) -> FormCoefficients {
+        let [kx, kyx, kyy] = Polynomial2::evaluate_each(
+            [
+                &self.kx_nm_per_count,
+                &self.kyx_nm_per_count,
+                &self.kyy_nm_per_count,
+            ],
+            x,
+            y,
+        );
         FormCoefficients {
-            kx_nm_per_count: self.kx_nm_per_count.evaluate(x, y),
-            kyx_nm_per_count: self.kyx_nm_per_count.evaluate(x, y),
-            kyy_nm_per_count: self.kyy_nm_per_count.evaluate(x, y),
+            kx_nm_per_count: kx,
+            kyx_nm_per_count: kyx,
+            kyy_nm_per_count: kyy,
         }
     }
     fn integral_kx_along_x(&self, x_a: f64, x_b: f64, y: f64) -> Option<f64> {

@@ -334,9 +334,12 @@ struct CreepStates<'l> {
     states: Vec<f64>,
     /// Duration of the cached exponentials, s.
     cached_s: f64,
-    /// Per element, for the cached duration T: (e^{−T/τ}, w·(1 − e^{−T/τ}),
-    /// w·(T − τ·(1 − e^{−T/τ}))), so that a ramp `a + b·s` advances cₖ to `e·cₖ + A·a + B·b`.
-    decay: Vec<(f64, f64, f64)>,
+    /// Per element, for the cached duration T: e^{−T/τ}, w·(1 − e^{−T/τ}) and
+    /// w·(T − τ·(1 − e^{−T/τ})), so that a ramp `a + b·s` advances cₖ to `e·cₖ + A·a + B·b`
+    /// (three arrays, so the per-pixel update is one vectorisable loop).
+    decay: Vec<f64>,
+    from_gain: Vec<f64>,
+    slope_gain: Vec<f64>,
 }
 
 impl<'l> CreepStates<'l> {
@@ -346,7 +349,9 @@ impl<'l> CreepStates<'l> {
             law,
             states: vec![law.weight() * x; n],
             cached_s: f64::NAN,
-            decay: vec![(1.0, 0.0, 0.0); n],
+            decay: vec![1.0; n],
+            from_gain: vec![0.0; n],
+            slope_gain: vec![0.0; n],
         }
     }
 
@@ -358,26 +363,32 @@ impl<'l> CreepStates<'l> {
                 || self.cached_s.is_nan()
             {
                 let w = self.law.weight();
-                for (d, &tau) in self.decay.iter_mut().zip(self.law.time_constants_s()) {
+                for (k, &tau) in self.law.time_constants_s().iter().enumerate() {
                     let one_minus = -(-duration_s / tau).exp_m1();
-                    *d = (
-                        (-duration_s / tau).exp(),
-                        w * one_minus,
-                        w * (duration_s - tau * one_minus),
-                    );
+                    self.decay[k] = (-duration_s / tau).exp();
+                    self.from_gain[k] = w * one_minus;
+                    self.slope_gain[k] = w * (duration_s - tau * one_minus);
                 }
                 self.cached_s = duration_s;
             }
             let b = (to - from) / self.cached_s;
-            for (s, &(e, a, bb)) in self.states.iter_mut().zip(&self.decay) {
-                *s = e * *s + a * from + bb * b;
+            let n = self.states.len();
+            let (decay, from_gain, slope_gain) =
+                (&self.decay[..n], &self.from_gain[..n], &self.slope_gain[..n]);
+            for (k, s) in self.states.iter_mut().enumerate() {
+                *s = decay[k] * *s + from_gain[k] * from + slope_gain[k] * b;
             }
         }
-        let mut c = 0.0;
-        for s in &self.states {
-            c += s;
+        // Four partial sums: the per-pixel sum is then not one chain of dependent additions.
+        let mut partial = [0.0; 4];
+        let mut chunks = self.states.chunks_exact(4);
+        for chunk in &mut chunks {
+            for (p, s) in partial.iter_mut().zip(chunk) {
+                *p += s;
+            }
         }
-        c
+        let tail: f64 = chunks.remainder().iter().sum();
+        (partial[0] + partial[1]) + (partial[2] + partial[3]) + tail
     }
 }
 

@@ -80,6 +80,26 @@ fn powers(t: f64, degree: u32, out: &mut [f64; MAX_DEGREE as usize + 2]) {
     }
 }
 
+/// [`term_powers`]`(MAX_DEGREE)` as a table, for the per-pixel sums.
+const TERM_TABLE: [(u8, u8); (MAX_DEGREE as usize + 1) * (MAX_DEGREE as usize + 2) / 2] = {
+    let mut table = [(0u8, 0u8); (MAX_DEGREE as usize + 1) * (MAX_DEGREE as usize + 2) / 2];
+    let mut k = 1;
+    let mut n = 1;
+    while n <= MAX_DEGREE as u8 {
+        let mut i = 1;
+        while i < n {
+            table[k] = (i, n - i);
+            k += 1;
+            i += 1;
+        }
+        table[k] = (0, n);
+        table[k + 1] = (n, 0);
+        k += 2;
+        n += 1;
+    }
+    table
+};
+
 /// A total-degree-d polynomial surface f(x, y) in the term order of eq. (6) (see
 /// [`term_powers`]).
 ///
@@ -255,11 +275,73 @@ impl Polynomial2 {
     /// Implements eq. (6): Σ a·x^p_x·y^p_y.
     #[must_use]
     pub fn evaluate(&self, x: f64, y: f64) -> f64 {
+        let (pu, pv) = self.basis_powers(x, y);
+        self.sum_terms(&pu, &pv)
+    }
+
+    /// Several surfaces at one point, their basis powers computed once when they share the
+    /// degree and normalisation (the fit gives every LCC surface of a plane the same): each
+    /// value is bit for bit [`Self::evaluate`]'s. Surfaces on different bases are evaluated
+    /// one by one.
+    #[must_use]
+    pub fn evaluate_each<const N: usize>(surfaces: [&Self; N], x: f64, y: f64) -> [f64; N] {
+        let Some(first) = surfaces.first() else {
+            return [0.0; N];
+        };
+        let shared = surfaces.iter().all(|p| {
+            p.degree == first.degree
+                && p.center_x == first.center_x
+                && p.center_y == first.center_y
+                && p.scale_x == first.scale_x
+                && p.scale_y == first.scale_y
+        });
+        if !shared {
+            let mut values = [0.0; N];
+            for (value, p) in values.iter_mut().zip(surfaces) {
+                *value = p.evaluate(x, y);
+            }
+            return values;
+        }
+        let (pu, pv) = first.basis_powers(x, y);
+        // One pass over the terms, the N sums side by side (independent chains of additions),
+        // each in [`Self::evaluate`]'s order and association.
+        let mut values = [-0.0; N];
+        for (t, &(i, j)) in TERM_TABLE.iter().take(n_terms(first.degree)).enumerate() {
+            let (pi, pj) = (pu[usize::from(i)], pv[usize::from(j)]);
+            for (value, p) in values.iter_mut().zip(&surfaces) {
+                if let Some(c) = p.coefficients.get(t) {
+                    *value += c * pi * pj;
+                }
+            }
+        }
+        values
+    }
+
+    /// The powers 1, u, u², … and 1, v, v², … of the normalised coordinates of (x, y).
+    #[inline]
+    fn basis_powers(
+        &self,
+        x: f64,
+        y: f64,
+    ) -> (
+        [f64; MAX_DEGREE as usize + 2],
+        [f64; MAX_DEGREE as usize + 2],
+    ) {
         let (u, v) = self.normalise(x, y);
         let mut pu = [0.0; MAX_DEGREE as usize + 2];
         let mut pv = [0.0; MAX_DEGREE as usize + 2];
         powers(u, self.degree, &mut pu);
         powers(v, self.degree, &mut pv);
+        (pu, pv)
+    }
+
+    /// Σ a·u^i·v^j over the terms, in [`term_powers`]' order.
+    #[inline]
+    fn sum_terms(
+        &self,
+        pu: &[f64; MAX_DEGREE as usize + 2],
+        pv: &[f64; MAX_DEGREE as usize + 2],
+    ) -> f64 {
         // The terms in [`term_powers`]' order, unrolled by total degree (this is the per-pixel
         // hot path of a dynamic correction); the same sum in the same order.
         let mut terms = self.coefficients.iter();
@@ -368,6 +450,34 @@ impl Polynomial2 {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+
+    #[test]
+    fn the_term_table_is_the_term_order_and_shared_evaluation_is_evaluate_bit_for_bit() {
+        let table: Vec<(u32, u32)> = TERM_TABLE
+            .iter()
+            .map(|&(i, j)| (u32::from(i), u32::from(j)))
+            .collect();
+        assert_eq!(table, term_powers(MAX_DEGREE).collect::<Vec<_>>());
+        for degree in 0..=MAX_DEGREE {
+            let surface = |seed: f64| {
+                let c = (0..n_terms(degree))
+                    .map(|k| ((k as f64 + seed) * 1.7).sin())
+                    .collect();
+                Polynomial2::new(degree, (3.0, -2.0), (40.0, 25.0), c).unwrap()
+            };
+            let (a, b, c) = (surface(0.1), surface(1.3), surface(2.9));
+            for (x, y) in [(0.0, 0.0), (17.3, -41.0), (-55.5, 12.25), (1e3, 7.0)] {
+                let shared = Polynomial2::evaluate_each([&a, &b, &c], x, y);
+                let single = [a.evaluate(x, y), b.evaluate(x, y), c.evaluate(x, y)];
+                assert_eq!(shared.map(f64::to_bits), single.map(f64::to_bits));
+            }
+            // Different bases: each on its own.
+            let other =
+                Polynomial2::new(degree, (0.0, 0.0), (1.0, 1.0), a.coefficients.clone()).unwrap();
+            let mixed = Polynomial2::evaluate_each([&a, &other], 2.0, 3.0);
+            assert_eq!(mixed, [a.evaluate(2.0, 3.0), other.evaluate(2.0, 3.0)]);
+        }
+    }
 
     #[test]
     fn term_order_matches_eq6() {

@@ -230,6 +230,22 @@ pub struct DynamicsIdentification {
     /// What was not identified and why (empty = everything).
     #[serde(default)]
     pub notes: Vec<String>,
+    /// The creep law's shortest time constants tried, each with the fit it gave (empty when
+    /// the shape was fixed); the one with the least residual is the law's.
+    #[serde(default)]
+    pub creep_fast_end_trials: Vec<FastEndTrial>,
+}
+
+/// One shortest creep time constant tried by [`fit_dynamics_choosing_fast_end`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FastEndTrial {
+    /// The creep law's shortest time constant, s.
+    pub min_time_constant_s: f64,
+    /// RMS residual of the joint fit with it, counts.
+    pub residual_rms_counts: f64,
+    /// The creep weight it fitted (per element).
+    pub creep_weight: f64,
 }
 
 /// The scanner's dynamics: hysteresis per lateral axis and the creep law.
@@ -373,8 +389,11 @@ impl<'l> CreepStates<'l> {
             }
             let b = (to - from) / self.cached_s;
             let n = self.states.len();
-            let (decay, from_gain, slope_gain) =
-                (&self.decay[..n], &self.from_gain[..n], &self.slope_gain[..n]);
+            let (decay, from_gain, slope_gain) = (
+                &self.decay[..n],
+                &self.from_gain[..n],
+                &self.slope_gain[..n],
+            );
             for (k, s) in self.states.iter_mut().enumerate() {
                 *s = decay[k] * *s + from_gain[k] * from + slope_gain[k] * b;
             }
@@ -692,6 +711,68 @@ pub fn fit_dynamics(
             ..DynamicsIdentification::default()
         },
     })
+}
+
+/// [`fit_dynamics`] with the creep law's shortest time constant identified too: the fit is
+/// made for each of `candidates_s` (the shape's other parameters as `setup` gives them) and
+/// the one with the least residual kept. The number of fitted parameters is the same for
+/// every candidate (one creep weight), so the residuals compare directly. What sees the fast
+/// end: a line's trace and retrace at two line rates (elements of about a line time stretch
+/// one rate's lines and not the other's) and the first seconds of the attachment tracks.
+/// The trials are kept in the result's [`DynamicsIdentification::creep_fast_end_trials`].
+///
+/// # Errors
+/// As [`fit_dynamics`] when no candidate gives a fit;
+/// [`CorrectionError::InvalidArgument`] without a usable candidate (each must be positive
+/// and not above the shape's longest time constant).
+pub fn fit_dynamics_choosing_fast_end(
+    history: &CommandHistory,
+    sightings: &[SamePoint],
+    setup: &DynamicsFitSetup,
+    candidates_s: &[f64],
+) -> Result<ScannerDynamics, CorrectionError> {
+    let max_s = setup.creep_shape.max_time_constant_s;
+    let usable: Vec<f64> = candidates_s
+        .iter()
+        .copied()
+        .filter(|&t| t.is_finite() && t > 0.0 && t <= max_s)
+        .collect();
+    if usable.is_empty() {
+        return Err(CorrectionError::InvalidArgument(format!(
+            "no usable shortest creep time constant among {candidates_s:?} (each in (0, {max_s}] s)"
+        )));
+    }
+    let mut trials = Vec::with_capacity(usable.len());
+    let mut best: Option<ScannerDynamics> = None;
+    let mut last_error = None;
+    for min_time_constant_s in usable {
+        let mut trial_setup = setup.clone();
+        trial_setup.creep_shape.min_time_constant_s = min_time_constant_s;
+        match fit_dynamics(history, sightings, &trial_setup) {
+            Ok(model) => {
+                let residual = model.identification.residual_rms_counts;
+                trials.push(FastEndTrial {
+                    min_time_constant_s,
+                    residual_rms_counts: residual,
+                    creep_weight: model.creep.weight,
+                });
+                let better = best
+                    .as_ref()
+                    .is_none_or(|b| residual < b.identification.residual_rms_counts);
+                if better && residual.is_finite() {
+                    best = Some(model);
+                }
+            }
+            Err(e) => last_error = Some(e),
+        }
+    }
+    match best {
+        Some(mut model) => {
+            model.identification.creep_fast_end_trials = trials;
+            Ok(model)
+        }
+        None => Err(last_error.unwrap_or(CorrectionError::Empty("creep fast-end trials"))),
+    }
 }
 
 /// One least-squares pass of [`fit_dynamics`]: (coefficients, standard errors, the fit).

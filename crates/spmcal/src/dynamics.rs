@@ -10,8 +10,8 @@ use serde::Serialize;
 use spm_calibration::dynamics::LadderFrame;
 use spm_correction::dynamics::{AttachTrack, CommandHistory};
 use spm_correction::hysteresis::{
-    CreepParameters, DynamicsFitSetup, PlayHysteresis, SamePoint, ScannerDynamics, fit_dynamics,
-    line_pair_sightings,
+    CreepParameters, DynamicsFitSetup, PlayHysteresis, SamePoint, ScannerDynamics,
+    fit_dynamics_choosing_fast_end, line_pair_sightings,
 };
 use spm_hal::TraceHalf;
 
@@ -27,6 +27,8 @@ pub struct TrueDynamics {
     pub hysteresis: [PlayHysteresis; 2],
     /// γ of the true creep law, per decade.
     pub creep_gamma_per_decade: f64,
+    /// The true creep law's shortest time constant, s.
+    pub creep_min_time_constant_s: f64,
 }
 
 impl TrueDynamics {
@@ -45,6 +47,7 @@ impl TrueDynamics {
         Self {
             hysteresis: [axis(0), axis(1)],
             creep_gamma_per_decade: sim.config().scanner.creep.log_slope_per_decade,
+            creep_min_time_constant_s: sim.config().scanner.creep.min_time_constant_s,
         }
     }
 }
@@ -83,6 +86,10 @@ pub struct DynamicsReport {
     pub track_creep_gamma_per_decade: Option<f64>,
     /// The simulator's γ.
     pub true_creep_gamma_per_decade: Option<f64>,
+    /// The creep law's shortest time constant the stage chose, s.
+    pub creep_min_time_constant_s: Option<f64>,
+    /// The simulator's shortest creep time constant, s.
+    pub true_creep_min_time_constant_s: Option<f64>,
     /// What was not identified, and why.
     pub notes: Vec<String>,
 }
@@ -265,7 +272,8 @@ pub fn identify(
             elements_per_decade: per_decade,
         },
     };
-    let model = match fit_dynamics(&history, &sightings, &setup) {
+    let candidates = crate::report::creep_fast_end_candidates_s();
+    let model = match fit_dynamics_choosing_fast_end(&history, &sightings, &setup, &candidates) {
         Ok(mut m) => {
             m.identification.ladder_counts = lengths.clone();
             m.identification.line_rates_hz = ladder
@@ -310,6 +318,7 @@ pub fn identify(
         .and_then(|m| m.creep.law().ok())
         .map(|law| law.gamma_per_decade());
     DynamicsReport {
+        creep_min_time_constant_s: model.as_ref().map(|m| m.creep.min_time_constant_s),
         model,
         frames: ladder.len(),
         frames_used,
@@ -319,6 +328,7 @@ pub fn identify(
         creep_gamma_per_decade,
         track_creep_gamma_per_decade,
         true_creep_gamma_per_decade: truth.map(|t| t.creep_gamma_per_decade),
+        true_creep_min_time_constant_s: truth.map(|t| t.creep_min_time_constant_s),
         notes,
     }
 }

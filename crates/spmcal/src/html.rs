@@ -784,6 +784,40 @@ fn dynamics_section(page: &mut Page, report: &CalibrationReport) {
         gamma(d.track_creep_gamma_per_decade),
         gamma(d.true_creep_gamma_per_decade)
     ));
+    let trials = d
+        .model
+        .as_ref()
+        .map_or(&[][..], |m| &m.identification.creep_fast_end_trials[..]);
+    if !trials.is_empty() {
+        page.paragraph(&format!(
+            "The creep law's shortest time constant, chosen by the joint fit's residual: {} s \
+             (the simulator's: {} s). Each candidate's fit:",
+            gamma(d.creep_min_time_constant_s),
+            gamma(d.true_creep_min_time_constant_s)
+        ));
+        let rows: Vec<Row> = trials
+            .iter()
+            .map(|t| {
+                Row::new(
+                    format!("fast-end-{}", t.min_time_constant_s),
+                    vec![
+                        Cell::significant(t.min_time_constant_s),
+                        Cell::significant(t.residual_rms_counts),
+                        Cell::significant(t.creep_weight),
+                    ],
+                )
+            })
+            .collect();
+        page.table(
+            "dynamics-fast-end",
+            &[
+                "shortest time constant (s)",
+                "residual RMS (counts)",
+                "creep weight per element",
+            ],
+            &rows,
+        );
+    }
     if !d.notes.is_empty() {
         page.list("dynamics-notes", &d.notes);
     }

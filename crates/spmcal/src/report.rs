@@ -1163,7 +1163,24 @@ fn node_lcc_error(oracle: &dyn TruthSource, all: &[spm_cdb::LccRecord]) -> Optio
 
 /// Shortest and longest time constant of the creep law's shape, s, and elements per decade:
 /// the log law over the scales that matter to images (a line, 10 ms, to a session, hours).
+/// The shortest is where the identification starts: the dynamics stage chooses it from
+/// [`CREEP_FAST_END_RANGE_S`] by the data ([`creep_fast_end_candidates_s`]).
 pub const CREEP_LAW_SHAPE: (f64, f64, u32) = (0.01, 1.0e4, 3);
+/// The range, s, over which the dynamics stage looks for the creep law's shortest time
+/// constant (a fast line's pixel-to-line times, 1 ms, to a slow line, 1 s).
+pub const CREEP_FAST_END_RANGE_S: (f64, f64) = (1.0e-3, 1.0);
+
+/// The shortest creep time constants the dynamics stage tries: [`CREEP_FAST_END_RANGE_S`] at
+/// the law's own spacing ([`CREEP_LAW_SHAPE`]'s elements per decade), s.
+#[must_use]
+pub fn creep_fast_end_candidates_s() -> Vec<f64> {
+    let (lo, hi) = CREEP_FAST_END_RANGE_S;
+    let per_decade = f64::from(CREEP_LAW_SHAPE.2);
+    let n = ((hi / lo).log10() * per_decade).round() as usize;
+    (0..=n)
+        .map(|k| lo * 10f64.powf(k as f64 / per_decade))
+        .collect()
+}
 /// Drift windows of the creep identification, s (the drift is taken constant within one).
 pub const CREEP_FIT_DRIFT_WINDOW_S: f64 = 300.0;
 
@@ -1202,6 +1219,8 @@ fn image_benchmark<S: SimulatedInstrument + Sync>(
     // The creep law from the run's own attachment tracks and commands.
     let mut history = CommandHistory::from_events(record.commands);
     let (tau_min, tau_max, per_decade) = CREEP_LAW_SHAPE;
+    // The shortest time constant the dynamics stage chose, when it ran.
+    let tau_min = identified.map_or(tau_min, |d| d.creep.min_time_constant_s);
     let shape = CreepLaw::log_spaced(0.0, tau_min, tau_max, per_decade)?;
     let fit = fit_creep_law(
         &history,
@@ -1272,7 +1291,10 @@ fn creep_summary(
         Ok(f) => DynamicsSummary {
             creep_weight: f.law.weight(),
             creep_weight_sigma: f.weight_sigma,
-            time_constants_s: [tau_min, tau_max],
+            time_constants_s: [
+                f.law.time_constants_s().first().copied().unwrap_or(tau_min),
+                f.law.time_constants_s().last().copied().unwrap_or(tau_max),
+            ],
             elements_per_decade: per_decade,
             settled_gain: f.law.total_weight(),
             gamma_per_decade: f.gamma_per_decade,

@@ -73,18 +73,13 @@ fn a_symmetric_cycle_has_the_closed_form_separation() {
 
 /// Synthetic trace/retrace lines at a ladder of sizes and two rates, with creep, drift and a
 /// signal lag: the fit recovers the loop the truth predicts at every ladder size.
-#[test]
-fn the_fit_recovers_the_loops_of_a_ladder() {
-    let truth = PlayHysteresis {
-        thresholds_counts: vec![400.0, 1100.0, 1800.0, 2600.0, 3400.0],
-        weights: vec![0.012, 0.009, 0.011, 0.008, 0.01],
-    };
-    let creep_truth = CreepParameters {
-        weight: 0.004,
-        min_time_constant_s: 0.01,
-        max_time_constant_s: 1000.0,
-        elements_per_decade: 3,
-    };
+/// A synthetic ladder (3 sizes × 2 line rates × 3 lines) through a scanner with the given
+/// hysteresis and creep, a 2e-4 s signal lag and a drift: the history and the same-point
+/// sightings of features every 37 counts in each line's trace and retrace.
+fn synthetic_ladder(
+    truth: &PlayHysteresis,
+    creep_truth: &CreepParameters,
+) -> (CommandHistory, Vec<SamePoint>) {
     let lag_s = 2e-4;
     let drift_counts_per_s = 3.0;
     let mut history = CommandHistory::default();
@@ -163,6 +158,23 @@ fn the_fit_recovers_the_loops_of_a_ladder() {
             feature += 37.0;
         }
     }
+    (history, sightings)
+}
+
+#[test]
+fn the_fit_recovers_the_loops_of_a_ladder() {
+    let truth = PlayHysteresis {
+        thresholds_counts: vec![400.0, 1100.0, 1800.0, 2600.0, 3400.0],
+        weights: vec![0.012, 0.009, 0.011, 0.008, 0.01],
+    };
+    let creep_truth = CreepParameters {
+        weight: 0.004,
+        min_time_constant_s: 0.01,
+        max_time_constant_s: 1000.0,
+        elements_per_decade: 3,
+    };
+    let lag_s = 2e-4;
+    let (history, sightings) = synthetic_ladder(&truth, &creep_truth);
     assert!(sightings.len() > 300, "{}", sightings.len());
     let grid: Vec<f64> = (1..=40).map(|k| 100.0 * f64::from(k)).collect();
     let fit = fit_dynamics(
@@ -190,6 +202,63 @@ fn the_fit_recovers_the_loops_of_a_ladder() {
     assert!(
         (fit.identification.signal_lag_s - lag_s).abs() < 0.3 * lag_s,
         "{fit:?}"
+    );
+}
+
+/// The creep law's shortest time constant hidden in a ladder (0.05 s, between the candidates
+/// 0.0464 and 0.1) is found: the nearest candidate wins, with a residual below the fixed
+/// shape's (0.01 s), and the weight comes back.
+#[test]
+fn the_fast_end_of_the_creep_law_is_found_in_a_ladder() {
+    let truth = PlayHysteresis {
+        thresholds_counts: vec![400.0, 1100.0, 1800.0, 2600.0, 3400.0],
+        weights: vec![0.012, 0.009, 0.011, 0.008, 0.01],
+    };
+    let creep_truth = CreepParameters {
+        weight: 0.006,
+        min_time_constant_s: 0.05,
+        max_time_constant_s: 1000.0,
+        elements_per_decade: 3,
+    };
+    let (history, sightings) = synthetic_ladder(&truth, &creep_truth);
+    let grid: Vec<f64> = (1..=40).map(|k| 100.0 * f64::from(k)).collect();
+    let setup = DynamicsFitSetup {
+        thresholds_counts: [grid, Vec::new()],
+        creep_shape: CreepParameters {
+            weight: 0.0,
+            min_time_constant_s: 0.01,
+            max_time_constant_s: 1000.0,
+            elements_per_decade: 3,
+        },
+    };
+    let candidates: Vec<f64> = (0..=9)
+        .map(|k| 1e-3 * 10f64.powf(f64::from(k) / 3.0))
+        .collect();
+    let fit = fit_dynamics_choosing_fast_end(&history, &sightings, &setup, &candidates).unwrap();
+    let trials = &fit.identification.creep_fast_end_trials;
+    assert_eq!(trials.len(), candidates.len(), "{trials:?}");
+    let chosen = fit.creep.min_time_constant_s;
+    assert!(
+        (chosen / 0.0464 - 1.0).abs() < 0.01,
+        "{chosen} ({trials:?})"
+    );
+    let fixed = fit_dynamics(&history, &sightings, &setup).unwrap();
+    assert!(
+        fit.identification.residual_rms_counts < 0.8 * fixed.identification.residual_rms_counts,
+        "{} vs the fixed shape's {}",
+        fit.identification.residual_rms_counts,
+        fixed.identification.residual_rms_counts
+    );
+    // The law's weight per element depends on its element count; compare the settled gains
+    // over the truth's own span of time constants (0.05 … 1000 s against 0.0464 … 1000 s).
+    let gamma = fit.creep.law().unwrap().gamma_per_decade();
+    let want = creep_truth.law().unwrap().gamma_per_decade();
+    assert!((gamma / want - 1.0).abs() < 0.15, "γ {gamma} vs {want}");
+    // No usable candidate is an error naming the range.
+    let e = fit_dynamics_choosing_fast_end(&history, &sightings, &setup, &[-1.0, 5e3]).unwrap_err();
+    assert!(
+        e.to_string().contains("shortest creep time constant"),
+        "{e}"
     );
 }
 

@@ -884,6 +884,67 @@ fn a_run_logs_to_its_folder_keeps_the_console_quiet_and_records_its_provenance()
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Issue 23: the dynamics stage of the quick job identifies what the simulated scanner hides
+/// (`configs/sim-hopg.toml`, read here as the truth): the fast axis's hysteresis loop at every
+/// ladder line outside its dead band within 10 % of the simulator's operator, the creep law's
+/// log slope within 10 %, and its shortest time constant — chosen from the data, not fixed —
+/// within a fifth of a decade of the simulator's (the fixed 0.01 s of before was 0.3 off).
+#[test]
+fn the_dynamics_stage_finds_the_simulators_hysteresis_and_creep() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let dir = std::env::temp_dir().join(format!("spmcal-dynamics-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let config = root.join("configs/calibrate-hopg-quick.toml");
+    let (code, _, stderr) = spmcal(&[
+        "calibrate",
+        "--config",
+        config.to_str().unwrap(),
+        "--quick",
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
+    let d = &report["dynamics"];
+    let sim: toml::Value =
+        toml::from_str(&std::fs::read_to_string(root.join("configs/sim-hopg.toml")).unwrap())
+            .unwrap();
+    let creep = &sim["scanner"]["creep"];
+    let true_tau = creep["min_time_constant_s"].as_float().unwrap();
+    let true_gamma = creep["log_slope_per_decade"].as_float().unwrap();
+    let tau = d["creep_min_time_constant_s"].as_f64().unwrap();
+    assert!(
+        (tau / true_tau).log10().abs() < 0.2,
+        "shortest creep time constant {tau} s against the simulator's {true_tau} s"
+    );
+    let gamma = d["creep_gamma_per_decade"].as_f64().unwrap();
+    assert!(
+        (gamma / true_gamma - 1.0).abs() < 0.1,
+        "creep γ {gamma} against {true_gamma}"
+    );
+    let trials = d["model"]["identification"]["creep_fast_end_trials"]
+        .as_array()
+        .unwrap();
+    assert!(trials.len() >= 5, "{trials:?}");
+    let mut loops = 0;
+    for row in d["loops_x"].as_array().unwrap() {
+        let want = row["true_separation_centre_counts"].as_f64().unwrap();
+        if want < 1.0 {
+            continue; // inside the dead band
+        }
+        let got = row["separation_centre_counts"].as_f64().unwrap();
+        assert!(
+            (got / want - 1.0).abs() < 0.1,
+            "loop at {} counts: {got} against {want}",
+            row["length_counts"]
+        );
+        loops += 1;
+    }
+    assert!(loops >= 3, "{d}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// `spmcal crop`: the two halves of a real `.sxm` (both halves of Z and Current: 4 channels)
 /// come out as `.gsf` per channel and as one `.gwy`; the `.gsf` halves tile the frame (their
 /// offsets ∓ a quarter of the 20 nm side); a part leaving the image, a bad range or an

@@ -43,6 +43,16 @@ pub struct DynamicsConfig {
     pub settle_s: f64,
     /// Speed of the move to each frame, counts/s. Default 20 000.
     pub move_speed_counts_per_s: f64,
+    /// Counter-scanned pairs for the slow axis: at each place and ladder length, a tall frame
+    /// of [`Self::slow_axis_columns`] columns whose lines step +y over the length, then at once
+    /// the same frame stepping −y. A sample point is seen on the way up and on the way down,
+    /// so the pair shows the slow axis's hysteresis loop (issue 23). Default true.
+    pub slow_axis_pairs: bool,
+    /// Pixels per line of the slow-axis frames (≥ 2). Default 4: narrow and fast, so the
+    /// drift between a point's two sightings stays under a pixel.
+    pub slow_axis_columns: u32,
+    /// Pixel dwell of the slow-axis frames, s. Default 5e-5.
+    pub slow_axis_dwell_s: f64,
 }
 
 impl Default for DynamicsConfig {
@@ -56,6 +66,9 @@ impl Default for DynamicsConfig {
             places: vec![[0.0, 0.0], [-0.5, 0.5], [0.5, -0.5]],
             settle_s: 10.0,
             move_speed_counts_per_s: 20_000.0,
+            slow_axis_pairs: true,
+            slow_axis_columns: 4,
+            slow_axis_dwell_s: 5e-5,
         }
     }
 }
@@ -110,6 +123,12 @@ impl DynamicsConfig {
         if self.lines == 0 {
             return Err(("dynamics.lines", "must be ≥ 1".into()));
         }
+        if self.slow_axis_columns < 2 {
+            return Err(("dynamics.slow_axis_columns", "must be ≥ 2".into()));
+        }
+        if !(self.slow_axis_dwell_s.is_finite() && self.slow_axis_dwell_s > 0.0) {
+            return Err(("dynamics.slow_axis_dwell_s", "must be > 0".into()));
+        }
         if self
             .pixel_dwells_s
             .iter()
@@ -143,10 +162,13 @@ impl DynamicsConfig {
 pub struct LadderFrame {
     /// Place index in the config.
     pub place: usize,
-    /// Line length, counts.
+    /// Line length (a slow-axis frame: its height), counts.
     pub length_counts: f64,
     /// The frame (forward and backward halves).
     pub frame: Frame,
+    /// `None` for a fast-axis frame (long lines along x); for a slow-axis frame, which half
+    /// of its counter-scanned pair it is.
+    pub slow_axis: Option<ScanDirection>,
 }
 
 /// Attempts per ladder frame: a transient failure (timeout, lost communication, feedback
@@ -219,6 +241,7 @@ pub fn scan_ladder<M: Microscope>(
                                 place,
                                 length_counts: length,
                                 frame,
+                                slow_axis: None,
                             });
                             break;
                         }
@@ -234,8 +257,87 @@ pub fn scan_ladder<M: Microscope>(
                 }
             }
         }
+        if config.slow_axis_pairs {
+            scan_slow_axis_pairs(microscope, config, step, place, at, &mut out);
+        }
     }
     out
+}
+
+/// The counter-scanned pairs of one place ([`DynamicsConfig::slow_axis_pairs`]): settled at
+/// the frame's centre, the frame stepping +y, then at once the frame stepping −y. A pair
+/// with a failed half is dropped whole (and named).
+fn scan_slow_axis_pairs<M: Microscope>(
+    microscope: &mut M,
+    config: &DynamicsConfig,
+    step: f64,
+    place: usize,
+    at: [f64; 2],
+    out: &mut LadderScan,
+) {
+    let caps = microscope.capabilities();
+    if !caps.counter_scan {
+        out.failures.push(format!(
+            "place {place}: no slow-axis pairs (the instrument cannot scan a counter raster)"
+        ));
+        return;
+    }
+    let columns = config
+        .slow_axis_columns
+        .min(caps.max_pixels_per_line.max(2));
+    let dwell_s = config.slow_axis_dwell_s.max(caps.min_pixel_dwell.value());
+    for &length in &config.ladder_counts {
+        let lines = ((length / step).round() as u32 + 1).clamp(2, caps.max_lines.max(2));
+        let length = step * f64::from(lines - 1);
+        let request = |direction| ScanRequest {
+            origin: CountPoint::from_counts(
+                (at[0] - 0.5 * step * f64::from(columns - 1)).round(),
+                (at[1] - 0.5 * length).round(),
+            ),
+            pixel_step: Counts(step),
+            pixels_per_line: columns,
+            lines,
+            direction,
+            pixel_dwell: Seconds(dwell_s),
+            record_backward: true,
+        };
+        let settle = MoveRequest {
+            target: CountPoint::from_counts(at[0].round(), at[1].round()),
+            speed: CountsPerSecond(config.move_speed_counts_per_s),
+            settle: Seconds(config.settle_s),
+        };
+        let mut attempt = 0;
+        loop {
+            attempt += 1;
+            let taken = microscope.move_to(settle).and_then(|()| {
+                let up = microscope.scan(&request(ScanDirection::Direct))?;
+                let down = microscope.scan(&request(ScanDirection::Counter))?;
+                Ok((up, down))
+            });
+            match taken {
+                Ok((up, down)) => {
+                    for (frame, direction) in
+                        [(up, ScanDirection::Direct), (down, ScanDirection::Counter)]
+                    {
+                        out.frames.push(LadderFrame {
+                            place,
+                            length_counts: length,
+                            frame,
+                            slow_axis: Some(direction),
+                        });
+                    }
+                    break;
+                }
+                Err(e) if e.kind().is_transient() && attempt < FRAME_ATTEMPTS => {}
+                Err(e) => {
+                    out.failures.push(format!(
+                        "place {place}, slow-axis pair of {length} counts: {e} (attempt {attempt})"
+                    ));
+                    break;
+                }
+            }
+        }
+    }
 }
 
 #[cfg(test)]
@@ -265,6 +367,7 @@ mod tests {
             pixel_dwells_s: vec![1e-4],
             places: vec![[0.0, 0.0]],
             lines: 2,
+            slow_axis_pairs: false,
             ..DynamicsConfig::default()
         };
         let standard = crate::PlanConfig::hopg_small_net().standard;
@@ -292,6 +395,78 @@ mod tests {
         mock.done().unwrap();
     }
 
+    /// Each place's slow-axis pairs follow its fast-axis frames: per length, the frame
+    /// stepping +y then the one stepping −y over the same region (tall: the length over the
+    /// lines, `slow_axis_columns` wide, at the slow-axis dwell); a pair with a failed half is
+    /// dropped whole and named.
+    #[test]
+    fn slow_axis_pairs_scan_the_same_tall_region_up_then_down() {
+        use spm_hal::ErrorKind;
+        use spm_hal::mock::{Expectation, Operation, ScriptedMicroscope};
+        let mut mock = ScriptedMicroscope::new(ScriptedMicroscope::default_capabilities())
+            .lenient_moves_and_waits(true);
+        let ok = || Expectation::scan(|_, _| Counts(0.0));
+        mock.expect_all([
+            ok(),
+            ok(),
+            ok(),
+            ok(),
+            ok(),
+            ok(),
+            Expectation::fault(Operation::Scan, ErrorKind::OutOfRange),
+            ok(),
+            ok(),
+        ]);
+        let config = DynamicsConfig {
+            ladder_counts: vec![64.0, 128.0, 256.0],
+            pixel_dwells_s: vec![1e-4],
+            places: vec![[0.0, 0.0]],
+            lines: 2,
+            ..DynamicsConfig::default()
+        };
+        let standard = crate::PlanConfig::hopg_small_net().standard;
+        let scan = scan_ladder(
+            &mut mock,
+            &config,
+            &standard,
+            CountPoint::from_counts(0.0, 0.0),
+            [1000.0, 1000.0],
+        );
+        assert_eq!(scan.failures.len(), 1, "{:?}", scan.failures);
+        assert!(
+            scan.failures[0].contains("slow-axis pair of 129"),
+            "{:?}",
+            scan.failures
+        );
+        let slow: Vec<&LadderFrame> = scan
+            .frames
+            .iter()
+            .filter(|f| f.slow_axis.is_some())
+            .collect();
+        assert_eq!(scan.frames.len() - slow.len(), 3);
+        assert_eq!(slow.len(), 4);
+        for pair in slow.chunks(2) {
+            let (up, down) = (&pair[0], &pair[1]);
+            assert_eq!(up.slow_axis, Some(ScanDirection::Direct));
+            assert_eq!(down.slow_axis, Some(ScanDirection::Counter));
+            assert_eq!(up.frame.request.direction, ScanDirection::Direct);
+            assert_eq!(down.frame.request.direction, ScanDirection::Counter);
+            for f in [up, down] {
+                let r = &f.frame.request;
+                assert_eq!(r.pixels_per_line, 4);
+                assert_eq!(r.pixel_dwell, Seconds(5e-5));
+                // The height spans the length: lines − 1 steps of 3 counts.
+                assert_eq!(
+                    f64::from(r.lines - 1) * r.pixel_step.value(),
+                    f.length_counts
+                );
+                assert_eq!(r.origin, up.frame.request.origin);
+            }
+        }
+        assert_eq!(slow[0].length_counts, 63.0);
+        assert_eq!(slow[2].length_counts, 255.0);
+    }
+
     #[test]
     fn the_defaults_validate_and_bad_ladders_are_refused() {
         DynamicsConfig::default().validate().unwrap();
@@ -314,5 +489,21 @@ mod tests {
             ..DynamicsConfig::default()
         };
         off.validate().unwrap();
+        let one_column = DynamicsConfig {
+            slow_axis_columns: 1,
+            ..DynamicsConfig::default()
+        };
+        assert_eq!(
+            one_column.validate().unwrap_err().0,
+            "dynamics.slow_axis_columns"
+        );
+        let no_dwell = DynamicsConfig {
+            slow_axis_dwell_s: 0.0,
+            ..DynamicsConfig::default()
+        };
+        assert_eq!(
+            no_dwell.validate().unwrap_err().0,
+            "dynamics.slow_axis_dwell_s"
+        );
     }
 }

@@ -339,23 +339,58 @@ impl ScannerDynamics {
 }
 
 /// Exact advance of the relaxation elements over straight pieces of their input, with the
-/// exponentials of the last piece's duration kept: a raster's pixels are evenly spaced, so
-/// they are computed once per line rate, not once per pixel. A piece whose duration agrees
-/// with the cached one to [`SAME_DURATION`] (times written as `base + k·dwell` differ in
+/// exponentials of the last few pieces' durations kept: a raster's pixels are evenly spaced,
+/// so they are computed once per line rate, not once per pixel. A piece whose duration agrees
+/// with a cached one to [`SAME_DURATION`] (times written as `base + k·dwell` differ in
 /// their last bits) is advanced as lasting the cached duration, which moves the creep by far
 /// less than a pico-count; otherwise the advance is [`crate::dynamics::creep_offsets`]'s.
 struct CreepStates<'l> {
     law: &'l CreepLaw,
     /// Per element: cₖ (counts).
     states: Vec<f64>,
-    /// Duration of the cached exponentials, s.
-    cached_s: f64,
-    /// Per element, for the cached duration T: e^{−T/τ}, w·(1 − e^{−T/τ}) and
-    /// w·(T − τ·(1 − e^{−T/τ})), so that a ramp `a + b·s` advances cₖ to `e·cₖ + A·a + B·b`
-    /// (three arrays, so the per-pixel update is one vectorisable loop).
+    /// The exponentials of the last few durations (a raster alternates a few: trace,
+    /// retrace, the step to the next line), replaced round robin.
+    tables: Vec<DecayTable>,
+    /// The table to replace next.
+    next: usize,
+}
+
+/// Tables kept by [`CreepStates`].
+const DECAY_TABLES: usize = 4;
+
+/// Per element, for one duration T: e^{−T/τ}, w·(1 − e^{−T/τ}) and w·(T − τ·(1 − e^{−T/τ})),
+/// so that a ramp `a + b·s` advances cₖ to `e·cₖ + A·a + B·b` (three arrays, so the per-pixel
+/// update is one vectorisable loop).
+struct DecayTable {
+    /// T, s.
+    duration_s: f64,
     decay: Vec<f64>,
     from_gain: Vec<f64>,
     slope_gain: Vec<f64>,
+}
+
+impl DecayTable {
+    fn new(law: &CreepLaw, duration_s: f64) -> Self {
+        let w = law.weight();
+        let taus = law.time_constants_s();
+        let mut table = Self {
+            duration_s,
+            decay: Vec::with_capacity(taus.len()),
+            from_gain: Vec::with_capacity(taus.len()),
+            slope_gain: Vec::with_capacity(taus.len()),
+        };
+        for &tau in taus {
+            let one_minus = -(-duration_s / tau).exp_m1();
+            table.decay.push((-duration_s / tau).exp());
+            table.from_gain.push(w * one_minus);
+            table.slope_gain.push(w * (duration_s - tau * one_minus));
+        }
+        table
+    }
+
+    fn holds(&self, duration_s: f64) -> bool {
+        (duration_s - self.duration_s).abs() <= SAME_DURATION * duration_s
+    }
 }
 
 impl<'l> CreepStates<'l> {
@@ -364,39 +399,46 @@ impl<'l> CreepStates<'l> {
         Self {
             law,
             states: vec![law.weight() * x; n],
-            cached_s: f64::NAN,
-            decay: vec![1.0; n],
-            from_gain: vec![0.0; n],
-            slope_gain: vec![0.0; n],
+            tables: Vec::with_capacity(DECAY_TABLES),
+            next: 0,
         }
+    }
+
+    /// The table of a duration: a kept one, or a new one in the next slot.
+    fn table(&mut self, duration_s: f64) -> &DecayTable {
+        if let Some(k) = self.tables.iter().position(|t| t.holds(duration_s)) {
+            return &self.tables[k];
+        }
+        let table = DecayTable::new(self.law, duration_s);
+        let k = if self.tables.len() < DECAY_TABLES {
+            self.tables.push(table);
+            self.tables.len() - 1
+        } else {
+            let k = self.next;
+            self.tables[k] = table;
+            self.next = (k + 1) % DECAY_TABLES;
+            k
+        };
+        &self.tables[k]
     }
 
     /// Advances over a straight piece from `from` to `to` lasting `duration_s` (≥ 0); returns
     /// the creep c = Σcₖ at its end.
     fn advance(&mut self, from: f64, to: f64, duration_s: f64) -> f64 {
         if duration_s > 0.0 {
-            if (duration_s - self.cached_s).abs() > SAME_DURATION * duration_s
-                || self.cached_s.is_nan()
-            {
-                let w = self.law.weight();
-                for (k, &tau) in self.law.time_constants_s().iter().enumerate() {
-                    let one_minus = -(-duration_s / tau).exp_m1();
-                    self.decay[k] = (-duration_s / tau).exp();
-                    self.from_gain[k] = w * one_minus;
-                    self.slope_gain[k] = w * (duration_s - tau * one_minus);
-                }
-                self.cached_s = duration_s;
-            }
-            let b = (to - from) / self.cached_s;
             let n = self.states.len();
+            let mut states = std::mem::take(&mut self.states);
+            let table = self.table(duration_s);
+            let b = (to - from) / table.duration_s;
             let (decay, from_gain, slope_gain) = (
-                &self.decay[..n],
-                &self.from_gain[..n],
-                &self.slope_gain[..n],
+                &table.decay[..n],
+                &table.from_gain[..n],
+                &table.slope_gain[..n],
             );
-            for (k, s) in self.states.iter_mut().enumerate() {
+            for (k, s) in states.iter_mut().enumerate() {
                 *s = decay[k] * *s + from_gain[k] * from + slope_gain[k] * b;
             }
+            self.states = states;
         }
         // Four partial sums: the per-pixel sum is then not one chain of dependent additions.
         let mut partial = [0.0; 4];
@@ -866,6 +908,58 @@ pub fn line_pair_sightings(
                 u_second_counts: forward.origin.x.value()
                     + step * if t1 <= t2 { column + shift } else { column },
                 v_second_counts_per_s: if t1 <= t2 { v2 } else { v1 },
+                group,
+            })
+        })
+        .collect()
+}
+
+/// Same-point sightings along the slow axis (y) of a counter-scanned pair: `up` (lines
+/// stepping +y) saw at row `r` what `down` (the same region stepping −y) shows at row
+/// `r + shift`, for each `(r, shift)` of `shifts` (rows, fractional; as
+/// `spm_features::counter_pair_shifts` gives them). Times and the slow axis's command
+/// velocities are read at the frames' middle column. Both frames must have the same size.
+#[must_use]
+pub fn counter_pair_sightings(
+    up: &spm_hal::HeightMap,
+    down: &spm_hal::HeightMap,
+    shifts: &[(f64, f64)],
+    group: usize,
+) -> Vec<SamePoint> {
+    let (nx, ny) = (up.columns, up.rows);
+    if nx == 0 || ny < 2 || down.columns != nx || down.rows != ny {
+        return Vec::new();
+    }
+    let column = nx / 2;
+    let time = |map: &spm_hal::HeightMap, row: f64| -> Option<(f64, f64)> {
+        if !(row >= 0.0 && row <= (ny - 1) as f64) {
+            return None;
+        }
+        let j = (row.floor() as usize).min(ny - 2);
+        let f = row - j as f64;
+        let t0 = *map.time_s.get(j * nx + column)?;
+        let t1 = *map.time_s.get((j + 1) * nx + column)?;
+        // Command velocity: one pixel step per (t1 − t0), negative for a frame stepping −y.
+        let dt = t1 - t0;
+        (dt != 0.0).then(|| (t0 + f * dt, map.pixel_step.value() / dt))
+    };
+    let step = up.pixel_step.value();
+    let y0 = up.origin.y.value();
+    shifts
+        .iter()
+        .filter_map(|&(row, shift)| {
+            let (t1, v1) = time(up, row)?;
+            let (t2, v2) = time(down, row + shift)?;
+            let (u1, u2) = (y0 + step * row, y0 + step * (row + shift));
+            let up_first = t1 <= t2;
+            Some(SamePoint {
+                axis: 1,
+                t_first_s: t1.min(t2),
+                u_first_counts: if up_first { u1 } else { u2 },
+                v_first_counts_per_s: if up_first { v1 } else { v2 },
+                t_second_s: t1.max(t2),
+                u_second_counts: if up_first { u2 } else { u1 },
+                v_second_counts_per_s: if up_first { v2 } else { v1 },
                 group,
             })
         })

@@ -60,5 +60,7 @@ pub use lcs::{
     HOPG_LATTICE_NM, Lcs, LcsCandidates, LcsConfig, LcsStandard, find_lcs_at_nearest_vertex,
     find_lcs_nearest, lcs_candidates, lcs_neighbours, lcs_with_vertex,
 };
-pub use shift::{ColumnShift, ShiftConfig, trace_retrace_shifts, track_one_way};
+pub use shift::{
+    ColumnShift, ShiftConfig, counter_pair_shifts, trace_retrace_shifts, track_one_way,
+};
 pub use step::{StepConfig, StepMeasurement, StepRejection, measure_step, measure_step_pair};

@@ -110,6 +110,49 @@ pub fn trace_retrace_shifts(
     Ok((agreeing, disagreeing))
 }
 
+/// The shift along the slow axis between the two frames of a counter-scanned pair: `up`
+/// (lines stepping +y) and `down` (the same region at once stepping −y), both in scanner
+/// geometry (`columns` × `rows`, row-major, row index growing with y). Returns per window of
+/// rows: the `up` row at the window's centre (`column` of the result, in rows) and where
+/// `down` shows what `up` shows there (`shift_px`, rows). Tracked from the top row down
+/// (where the two frames meet in time, so the shift starts near zero), each column of the
+/// frames a profile along y ([`track_one_way`] on the transposed frames).
+///
+/// # Errors
+/// As [`track_one_way`].
+pub fn counter_pair_shifts(
+    up: &[f64],
+    down: &[f64],
+    columns: usize,
+    rows: usize,
+    config: &ShiftConfig,
+) -> Result<Vec<ColumnShift>, FeatureError> {
+    if up.len() != columns * rows || down.len() != columns * rows {
+        return Err(FeatureError::InconsistentMap {
+            columns,
+            rows,
+            z_len: up.len().min(down.len()),
+            time_len: columns * rows,
+        });
+    }
+    // Transposed and reversed along y: profile c, sample k = row (rows − 1 − k).
+    let profiles = |img: &[f64]| -> Vec<f64> {
+        (0..columns)
+            .flat_map(|c| (0..rows).rev().map(move |r| img[r * columns + c]))
+            .collect()
+    };
+    let tracked = track_one_way(&profiles(up), &profiles(down), rows, columns, config)?;
+    let last = (rows - 1) as f64;
+    Ok(tracked
+        .into_iter()
+        .map(|t| ColumnShift {
+            column: last - t.column,
+            shift_px: -t.shift_px,
+            correlation: t.correlation,
+        })
+        .collect())
+}
+
 /// Largest difference of the two trackings' shifts at one window, pixels.
 pub const AGREEMENT_PX: f64 = 0.5;
 
@@ -274,6 +317,45 @@ pub fn track_one_way(
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+
+    /// A counter-scanned pair: `down` shows at row y + s(y) what `up` shows at y, s growing
+    /// from 0 at the top (the pair's turning point) to 9 rows at the bottom; the tracked
+    /// shifts follow it in `up`'s rows.
+    #[test]
+    fn a_counter_pair_shift_is_tracked_from_the_top() {
+        let (columns, rows) = (4, 900);
+        let truth = |y: f64| 9.0 * ((rows - 1) as f64 - y) / (rows - 1) as f64;
+        let pattern = |y: f64, c: usize| {
+            (2.0 * std::f64::consts::PI * y / 3.4 + 0.9 * c as f64).cos()
+                + 0.3 * (y * 0.41 + c as f64).sin()
+        };
+        let mut up = Vec::new();
+        let mut down = Vec::new();
+        for r in 0..rows {
+            for c in 0..columns {
+                let y = r as f64;
+                up.push(pattern(y, c));
+                let mut y0 = y;
+                for _ in 0..60 {
+                    y0 = y - truth(y0);
+                }
+                down.push(pattern(y0, c));
+            }
+        }
+        let shifts =
+            counter_pair_shifts(&up, &down, columns, rows, &ShiftConfig::default()).unwrap();
+        assert!(shifts.len() > 150, "{}", shifts.len());
+        for s in &shifts {
+            assert!(
+                (s.shift_px - truth(s.column)).abs() < 0.15,
+                "row {}: {} vs {}",
+                s.column,
+                s.shift_px,
+                truth(s.column)
+            );
+        }
+        assert!(shifts.iter().any(|s| s.shift_px > 8.0));
+    }
 
     /// A pattern of period 3.1 px sampled at a known, smoothly growing shift s(x) (up to many
     /// periods): the tracked shifts follow it.

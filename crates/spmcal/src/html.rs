@@ -751,21 +751,22 @@ fn dynamics_section(page: &mut Page, report: &CalibrationReport) {
         d.frames_used, d.frames, d.ladder_sightings, d.track_sightings
     ));
     let optional = |v: Option<f64>| v.map_or_else(|| Cell::text("—"), Cell::significant);
-    let rows: Vec<Row> = d
-        .loops_x
-        .iter()
-        .map(|l| {
-            Row::new(
-                format!("loop-{}", l.length_counts),
-                vec![
-                    Cell::significant(l.length_counts),
-                    Cell::significant(l.separation_centre_counts),
-                    optional(l.true_separation_centre_counts),
-                    optional(l.ratio),
-                ],
-            )
-        })
-        .collect();
+    let loop_rows = |prefix: &str, loops: &[crate::dynamics::LoopRow]| -> Vec<Row> {
+        loops
+            .iter()
+            .map(|l| {
+                Row::new(
+                    format!("{prefix}-{}", l.length_counts),
+                    vec![
+                        Cell::significant(l.length_counts),
+                        Cell::significant(l.separation_centre_counts),
+                        optional(l.true_separation_centre_counts),
+                        optional(l.ratio),
+                    ],
+                )
+            })
+            .collect()
+    };
     page.table(
         "dynamics-loops",
         &[
@@ -774,8 +775,25 @@ fn dynamics_section(page: &mut Page, report: &CalibrationReport) {
             "simulator's (counts)",
             "identified / simulator's",
         ],
-        &rows,
+        &loop_rows("loop", &d.loops_x),
     );
+    if !d.loops_y.is_empty() {
+        page.paragraph(&format!(
+            "The slow axis's loop, from {} of {} counter-scanned pairs ({} same-point \
+             sightings along y):",
+            d.slow_pairs_used, d.slow_pairs, d.slow_sightings
+        ));
+        page.table(
+            "dynamics-loops-y",
+            &[
+                "frame height (counts)",
+                "identified (counts)",
+                "simulator's (counts)",
+                "identified / simulator's",
+            ],
+            &loop_rows("loop-y", &d.loops_y),
+        );
+    }
     let gamma = |v: Option<f64>| v.map_or_else(|| "—".to_owned(), |g| significant_text(g, 3));
     page.paragraph(&format!(
         "Creep log slope γ per decade: {} (joint fit), {} (attachment tracks alone), {} (the \

@@ -402,3 +402,39 @@ fn the_streaming_replay_equals_the_composed_definition() {
         }
     }
 }
+
+/// A counter-scanned pair's sightings: `up` saw at row r what `down` shows at row r + s;
+/// each sighting carries the two rows' commands, their times (the middle column's, in time
+/// order) and the slow axis's signed command velocities.
+#[test]
+fn counter_pair_sightings_carry_rows_times_and_slow_velocities() {
+    use spm_hal::{CountPoint, Counts, HeightMap};
+    let (nx, ny) = (4, 10);
+    let line_s = 0.004;
+    let map = |up: bool| HeightMap {
+        origin: CountPoint::from_counts(100.0, -500.0),
+        pixel_step: Counts(3.0),
+        columns: nx,
+        rows: ny,
+        z_counts: vec![0.0; nx * ny],
+        time_s: (0..ny)
+            .flat_map(|r| {
+                let line = if up { r } else { 2 * ny - 1 - r };
+                (0..nx).map(move |c| line as f64 * line_s + c as f64 * 1e-4)
+            })
+            .collect(),
+    };
+    let (up, down) = (map(true), map(false));
+    let s = counter_pair_sightings(&up, &down, &[(2.0, 1.5), (8.0, -0.5), (9.5, 1.0)], 7);
+    // The last shift points outside the frame: dropped.
+    assert_eq!(s.len(), 2);
+    let first = &s[0];
+    assert_eq!((first.axis, first.group), (1, 7));
+    assert!((first.u_first_counts - (-500.0 + 6.0)).abs() < 1e-12);
+    assert!((first.u_second_counts - (-500.0 + 10.5)).abs() < 1e-12);
+    assert!((first.t_first_s - (2.0 * line_s + 2e-4)).abs() < 1e-12);
+    assert!((first.t_second_s - ((19.0 - 3.5) * line_s + 2e-4)).abs() < 1e-12);
+    assert!((first.v_first_counts_per_s - 3.0 / line_s).abs() < 1e-9);
+    assert!((first.v_second_counts_per_s + 3.0 / line_s).abs() < 1e-9);
+    assert!(s[1].t_first_s < s[1].t_second_s);
+}

@@ -11,19 +11,53 @@ use spm_features::{DetectionConfig, Feature, LatticeConfig, detect, lattice_vect
 use spm_hal::{CountPoint, Counts, HeightMap, NmPoint, NmVelocity, Seconds};
 use spm_regression::{least_squares, median};
 
-/// The drift velocity between the sightings of a pair, and the RMS residual (nm): counter −
-/// direct position = a + v·(t_counter − t_direct) per axis, least squares with the offset `a`.
-fn drift_with_offset(pairs: &[SightingPair]) -> Option<(NmVelocity, f64)> {
-    if pairs.len() < 3 {
+/// The drift between the sightings of a pair: displacement `d(t) = v·(t − t₀) +
+/// ½·α·(t − t₀)²` per axis (α = 0 unless asked for), so counter − direct position =
+/// a + d(t_counter) − d(t_direct), least squares with the offset `a`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PairDrift {
+    /// v, nm/s.
+    velocity: NmVelocity,
+    /// α per axis, nm/s².
+    acceleration_nm_per_s2: [f64; 2],
+    /// t₀, s.
+    t0_s: f64,
+}
+
+impl PairDrift {
+    /// d(t) − d(t_ref) per axis, nm.
+    fn displacement_nm(&self, t_s: f64, t_ref_s: f64) -> [f64; 2] {
+        let (u, r) = (t_s - self.t0_s, t_ref_s - self.t0_s);
+        let v = [self.velocity.x_nm_per_s, self.velocity.y_nm_per_s];
+        [0, 1].map(|k| v[k] * (u - r) + 0.5 * self.acceleration_nm_per_s2[k] * (u * u - r * r))
+    }
+}
+
+/// [`PairDrift`] of the sightings and the RMS residual (nm).
+fn drift_with_offset(pairs: &[SightingPair], accelerating: bool) -> Option<(PairDrift, f64)> {
+    let unknowns = if accelerating { 3 } else { 2 };
+    if pairs.len() < unknowns + 1 {
         return None;
     }
+    let t0_s = pairs
+        .iter()
+        .map(|p| 0.5 * (p.counter.time.value() + p.direct.time.value()))
+        .sum::<f64>()
+        / pairs.len() as f64;
     let rows: Vec<Vec<f64>> = pairs
         .iter()
-        .map(|p| vec![1.0, p.counter.time.value() - p.direct.time.value()])
+        .map(|p| {
+            let (tc, td) = (p.counter.time.value() - t0_s, p.direct.time.value() - t0_s);
+            let mut row = vec![1.0, tc - td];
+            if accelerating {
+                row.push(0.5 * (tc * tc - td * td));
+            }
+            row
+        })
         .collect();
-    let mut velocity = [0.0; 2];
+    let mut coefficients = [[0.0; 3]; 2];
     let mut ss = 0.0;
-    for (k, v) in velocity.iter_mut().enumerate() {
+    for (k, c) in coefficients.iter_mut().enumerate() {
         let rhs: Vec<f64> = pairs
             .iter()
             .map(|p| {
@@ -35,14 +69,18 @@ fn drift_with_offset(pairs: &[SightingPair]) -> Option<(NmVelocity, f64)> {
                 }
             })
             .collect();
-        let fit = least_squares(&rows, &rhs, &[false, false]).ok()?;
-        *v = fit.coefficients[1];
+        let fit = least_squares(&rows, &rhs, &vec![false; unknowns]).ok()?;
+        c[..unknowns].copy_from_slice(&fit.coefficients);
         ss += fit.residual_rms * fit.residual_rms;
     }
     Some((
-        NmVelocity {
-            x_nm_per_s: velocity[0],
-            y_nm_per_s: velocity[1],
+        PairDrift {
+            velocity: NmVelocity {
+                x_nm_per_s: coefficients[0][1],
+                y_nm_per_s: coefficients[1][1],
+            },
+            acceleration_nm_per_s2: [coefficients[0][2], coefficients[1][2]],
+            t0_s,
         },
         ss.sqrt(),
     ))
@@ -268,6 +306,10 @@ pub fn match_features(
         .collect()
 }
 
+/// The range of measured ÷ nominal lattice constant [`measure_lattice`] reports; outside it
+/// the atom detection, tuned to the nominal period, has failed.
+const MEASURABLE_PERIOD_RATIO: (f64, f64) = (2.0 / 3.0, 1.5);
+
 /// Lattice constant (nm) and largest angle deviation from 60° (degrees) on the direct image of
 /// a pair, given both images' corrected coordinate maps (scanner geometry): the atoms common
 /// to both give the drift (`estimate_drift`), the direct map is moved to a common time, the
@@ -317,14 +359,37 @@ pub fn measure_lattice(
     // corrections that each took out the drift from their own image's start (the lattice
     // ruler) are apart by the drift over the direct image; a constant offset moves no atom
     // against another, so it does not enter the lattice (the velocity alone moves the map).
-    let (velocity, residual_rms_nm) = drift_with_offset(&pairs)?;
-    // Matched atoms that a constant drift cannot explain to a fifth of a lattice constant are
-    // a failed match (or an image too distorted to match), not a lattice measurement.
-    if residual_rms_nm.is_nan() || residual_rms_nm > 0.2 * lattice_constant_nm {
-        return None;
-    }
+    // Matched atoms that a drift cannot explain to a fifth of a lattice constant are a failed
+    // match (or an image too distorted to match), not a lattice measurement. A constant drift
+    // first; a pair taken over tens of seconds (slow dwells) sees the drift's warm-up and the
+    // approach's creep change it, and gets a constant acceleration too.
+    let explained = |fit: Option<(PairDrift, f64)>| {
+        fit.filter(|(_, rms)| !rms.is_nan() && *rms <= 0.2 * lattice_constant_nm)
+    };
+    let (drift, _) = explained(drift_with_offset(&pairs, false))
+        .or_else(|| explained(drift_with_offset(&pairs, true)))?;
     let t_ref = Seconds(direct.time_s[direct.time_s.len() / 2]);
-    let moved = drift_corrected_map(direct_coordinates, &direct.time_s, velocity, t_ref).ok()?;
+    let moved =
+        drift_corrected_map(direct_coordinates, &direct.time_s, drift.velocity, t_ref).ok()?;
+    let moved = if drift.acceleration_nm_per_s2 == [0.0, 0.0] {
+        moved
+    } else {
+        let (nc, nr) = (moved.columns(), moved.rows());
+        let mut x = Vec::with_capacity(nc * nr);
+        let mut y = Vec::with_capacity(nc * nr);
+        for (k, &t) in direct.time_s.iter().enumerate() {
+            // The velocity's part was moved already; the acceleration's is left.
+            let full = drift.displacement_nm(t, t_ref.value());
+            let linear = [
+                drift.velocity.x_nm_per_s * (t - t_ref.value()),
+                drift.velocity.y_nm_per_s * (t - t_ref.value()),
+            ];
+            let p = moved.point(k % nc, k / nc)?;
+            x.push(p.x.value() - (full[0] - linear[0]));
+            y.push(p.y.value() - (full[1] - linear[1]));
+        }
+        CoordinateMap::new(nc, nr, x, spm_correction::YCoordinates::PerPixel(y)).ok()?
+    };
     // The largest axis-aligned rectangle inside the corrected (sheared, drift-moved) image:
     // inside its left and right columns and its first and last rows.
     let m = &moved;
@@ -398,6 +463,14 @@ pub fn measure_lattice(
     if v.iter().any(|p| (p[0].hypot(p[1]) / a - 1.0).abs() > 0.25) {
         return None;
     }
+    // The atoms were located for the standard's period: a lattice outside ⅔ … 3/2 of it is
+    // outside what that detection can measure (a superlattice of the atoms it kept, as in one
+    // slow pair of the default job that read +256 % where its positions were 0.4 % off).
+    if !(a > MEASURABLE_PERIOD_RATIO.0 * lattice_constant_nm
+        && a < MEASURABLE_PERIOD_RATIO.1 * lattice_constant_nm)
+    {
+        return None;
+    }
     let mut worst: f64 = 0.0;
     for i in 0..3 {
         for j in (i + 1)..3 {
@@ -412,4 +485,46 @@ pub fn measure_lattice(
     // A triangular lattice's three directions are 60° apart; one further off than 15° is a
     // spurious vector (a failed resampling or match), not a distorted lattice.
     (worst <= 15.0).then_some((a, worst))
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    /// Sightings of a pair taken while the drift warms up (d = v·t + ½·α·t², hidden): the
+    /// constant-velocity model leaves them more than a fifth of a lattice constant off, the
+    /// accelerating one recovers v and α and explains them exactly.
+    #[test]
+    fn a_warming_drift_is_explained_with_an_acceleration() {
+        let (v, alpha) = ([0.012, -0.008], [0.015, 0.01]);
+        let d = |t: f64| [0, 1].map(|k| v[k] * t + 0.5 * alpha[k] * t * t);
+        let pairs: Vec<SightingPair> = (0..40)
+            .map(|i| {
+                let (x, y) = (f64::from(i % 8) * 0.25, f64::from(i / 8) * 0.22);
+                let td = f64::from(i) * 0.3;
+                let tc = 40.0 - 0.6 * td;
+                let at = |t: f64| {
+                    let s = d(t);
+                    FeatureSighting {
+                        position: NmPoint::from_nm(x + s[0] + 0.7, y + s[1] - 0.3),
+                        time: Seconds(t),
+                    }
+                };
+                SightingPair {
+                    direct: at(td),
+                    counter: at(tc),
+                }
+            })
+            .collect();
+        let (_, constant_rms) = drift_with_offset(&pairs, false).unwrap();
+        assert!(constant_rms > 0.2 * 0.246, "{constant_rms}");
+        let (drift, rms) = drift_with_offset(&pairs, true).unwrap();
+        assert!(rms < 1e-9, "{rms}");
+        for k in 0..2 {
+            assert!((drift.acceleration_nm_per_s2[k] - alpha[k]).abs() < 1e-9);
+            let want = d(17.0)[k] - d(4.0)[k];
+            assert!((drift.displacement_nm(17.0, 4.0)[k] - want).abs() < 1e-9);
+        }
+    }
 }

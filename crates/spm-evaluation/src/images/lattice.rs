@@ -521,8 +521,8 @@ mod tests {
         assert!(constant_rms > 0.2 * 0.246, "{constant_rms}");
         let (drift, rms) = drift_with_offset(&pairs, true).unwrap();
         assert!(rms < 1e-9, "{rms}");
-        for k in 0..2 {
-            assert!((drift.acceleration_nm_per_s2[k] - alpha[k]).abs() < 1e-9);
+        for (k, want_alpha) in alpha.iter().enumerate() {
+            assert!((drift.acceleration_nm_per_s2[k] - want_alpha).abs() < 1e-9);
             let want = d(17.0)[k] - d(4.0)[k];
             assert!((drift.displacement_nm(17.0, 4.0)[k] - want).abs() < 1e-9);
         }

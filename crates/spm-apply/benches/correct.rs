@@ -1,5 +1,5 @@
 //! `spmcal correct`'s library path on a 2048² frame: the static field against the raster's
-//! dynamics (the file's own trace replayed through a 47-operator PI hysteresis and a
+//! dynamics (the file's own trace replayed through a 47-operator PI hysteresis per axis and a
 //! 22-element creep law, the size the default job identifies). Issue 23's target: the
 //! dynamic correction within 2× the static one. Both run in this one group, on every core,
 //! so their ratio is measured in one run.
@@ -72,9 +72,13 @@ fn dynamics() -> ScannerDynamics {
         version: DYNAMICS_FORMAT_VERSION,
         hysteresis_x: PlayHysteresis {
             weights: vec![0.002; thresholds.len()],
+            thresholds_counts: thresholds.clone(),
+        },
+        // The slow axis's loop, as the counter-scanned pairs identify it (stop 39).
+        hysteresis_y: PlayHysteresis {
+            weights: vec![0.0025; thresholds.len()],
             thresholds_counts: thresholds,
         },
-        hysteresis_y: PlayHysteresis::none(),
         creep: CreepParameters {
             weight: 0.0055,
             min_time_constant_s: 0.01,

@@ -397,9 +397,24 @@ pub fn measure_lattice(
         }
         CoordinateMap::new(nc, nr, x, spm_correction::YCoordinates::PerPixel(y)).ok()?
     };
+    // On the whole frame first; a slow frame's first lines can be smeared by the creep of the
+    // approach (atoms merged into streaks the resampling cannot undo), so the frame from a
+    // third of its lines on is tried next: the lattice is the same everywhere.
+    lattice_in_rows(&moved, direct, lattice_constant_nm, 0)
+        .or_else(|| lattice_in_rows(&moved, direct, lattice_constant_nm, moved.rows() / 3))
+}
+
+/// [`measure_lattice`]'s measurement on the drift-moved direct map `moved`, inside its rows
+/// from `first_row` (acquisition order of a direct raster) on.
+fn lattice_in_rows(
+    moved: &CoordinateMap,
+    direct: &HeightMap,
+    lattice_constant_nm: f64,
+    first_row: usize,
+) -> Option<(f64, f64)> {
     // The largest axis-aligned rectangle inside the corrected (sheared, drift-moved) image:
     // inside its left and right columns and its first and last rows.
-    let m = &moved;
+    let m = moved;
     let (nc, nr) = (m.columns(), m.rows());
     let (mut x0, mut x1, mut y0, mut y1) = (
         f64::NEG_INFINITY,
@@ -407,12 +422,15 @@ pub fn measure_lattice(
         f64::NEG_INFINITY,
         f64::INFINITY,
     );
-    for r in 0..nr {
+    if first_row + 2 > nr {
+        return None;
+    }
+    for r in first_row..nr {
         x0 = x0.max(m.point(0, r)?.x.value());
         x1 = x1.min(m.point(nc - 1, r)?.x.value());
     }
     for c in 0..nc {
-        y0 = y0.max(m.point(c, 0)?.y.value());
+        y0 = y0.max(m.point(c, first_row)?.y.value());
         y1 = y1.min(m.point(c, nr - 1)?.y.value());
     }
     if !(x1 > x0 && y1 > y0) {
@@ -436,7 +454,7 @@ pub fn measure_lattice(
     .ok()?;
     let image = resample(
         &direct.z_counts,
-        &moved,
+        moved,
         &grid,
         Interpolation::Bilinear,
         Parallelism::Sequential,

@@ -382,8 +382,9 @@ fn validate(observations: &[VectorObservation]) -> Result<(), LccError> {
 }
 
 /// Solves DESIGN §7's linear system `dᵢᵀ G dⱼ = Dᵢ·Dⱼ` (all pairs i ≤ j) for the metric by
-/// ordinary least squares (exactly for two vectors). Reference formulation; see the module
-/// docs for why [`solve_lcc`] is preferred on noisy data.
+/// ordinary least squares (exactly for two vectors), through the workspace's one solver
+/// [`spm_regression::least_squares`]. Reference formulation; see the module docs for why
+/// [`solve_lcc`] is preferred on noisy data.
 ///
 /// # Errors
 /// [`LccError`] for fewer than two vectors, non-finite input, collinear vectors or a
@@ -392,36 +393,33 @@ pub fn solve_metric_system(observations: &[VectorObservation]) -> Result<Metric,
     validate(observations)?;
     let n = observations.len();
     let scale = rms_norm(observations);
-    let rows = n * (n + 1) / 2;
-    let mut a = DMatrix::<f64>::zeros(rows, 3);
-    let mut b = DVector::<f64>::zeros(rows);
-    let mut r = 0;
+    let mut rows = Vec::with_capacity(n * (n + 1) / 2);
+    let mut b = Vec::with_capacity(n * (n + 1) / 2);
     for i in 0..n {
         for j in i..n {
             let (di, dj) = (observations[i].measured, observations[j].measured);
             let (xi, yi) = (di.x.value() / scale, di.y.value() / scale);
             let (xj, yj) = (dj.x.value() / scale, dj.y.value() / scale);
-            a[(r, 0)] = xi * xj;
-            a[(r, 1)] = xi * yj + yi * xj;
-            a[(r, 2)] = yi * yj;
-            b[r] = observations[i]
-                .standard
-                .v()
-                .dot(&observations[j].standard.v());
-            r += 1;
+            rows.push(vec![xi * xj, xi * yj + yi * xj, yi * yj]);
+            b.push(
+                observations[i]
+                    .standard
+                    .v()
+                    .dot(&observations[j].standard.v()),
+            );
         }
     }
-    let svd = a.svd(true, true);
-    let smax = svd.singular_values.max();
-    let smin = svd.singular_values.min();
-    if smin.partial_cmp(&(1e-12 * smax)) != Some(std::cmp::Ordering::Greater) {
-        return Err(LccError::Collinear {
-            max_sin: smin / smax.max(f64::MIN_POSITIVE),
-        });
-    }
-    let g = svd
-        .solve(&b, 0.0)
-        .map_err(|_| LccError::NonFinite { what: "metric" })?;
+    let g = spm_regression::least_squares(&rows, &b, &[false; 3])
+        .map_err(|e| match e {
+            // Rank deficiency: the measured vectors do not span the plane.
+            spm_regression::RegressionError::IllConditioned {
+                condition_number, ..
+            } => LccError::Collinear {
+                max_sin: 1.0 / condition_number,
+            },
+            _ => LccError::NonFinite { what: "metric" },
+        })?
+        .coefficients;
     let s2 = scale * scale;
     Ok(Metric {
         g11_nm2_per_count2: g[0] / s2,

@@ -6,6 +6,13 @@
 //! ([`Polynomial2::integrate_x`], [`Polynomial2::integrate_y`]) for the image correction of
 //! eqs. (9) and (12).
 //!
+//! It is the workspace's numerics kernel: [`least_squares`] (dense, with sign constraints,
+//! leverage and covariance), [`minimum_norm_least_squares`] (rank-revealing, with a row mask
+//! and per-group offsets eliminated exactly) and [`minimum_norm_solve`] (a normal system a
+//! caller accumulated) are its linear solvers, [`median`], [`upper_median`] and [`rms`] its
+//! sample statistics; no other crate decomposes or inverts a matrix to fit
+//! (`tests/tests/it/repository.rs`, `linear_algebra_solves_only_in_the_numerics_kernel`).
+//!
 //! Pure: no IO, no clock, no random numbers. Every failure is a typed [`RegressionError`];
 //! no function returns NaN for finite input.
 #![doc = include_str!("../README.md")]

@@ -1772,17 +1772,56 @@ fn peeled(expr: &syn::Expr) -> &syn::Expr {
     }
 }
 
-/// `a * b − c * d`: a 2 × 2 determinant (or a Cramer numerator).
-fn is_difference_of_products(expr: &syn::Expr) -> bool {
-    let is_product = |e: &syn::Expr| matches!(peeled(e), syn::Expr::Binary(b) if matches!(b.op, syn::BinOp::Mul(_)));
-    matches!(peeled(expr), syn::Expr::Binary(b)
-        if matches!(b.op, syn::BinOp::Sub(_)) && is_product(&b.left) && is_product(&b.right))
+/// A plain operand (a name, a field, an index by a name or a literal) as text, to compare two
+/// operands; `None` for anything else.
+fn operand_key(expr: &syn::Expr) -> Option<String> {
+    Some(match peeled(expr) {
+        syn::Expr::Path(p) => p
+            .path
+            .segments
+            .iter()
+            .map(|s| s.ident.to_string())
+            .collect::<Vec<_>>()
+            .join("::"),
+        syn::Expr::Field(f) => {
+            let member = match &f.member {
+                syn::Member::Named(ident) => ident.to_string(),
+                syn::Member::Unnamed(index) => index.index.to_string(),
+            };
+            format!("{}.{member}", operand_key(&f.base)?)
+        }
+        syn::Expr::Index(i) => format!("{}[{}]", operand_key(&i.expr)?, operand_key(&i.index)?),
+        syn::Expr::Lit(syn::ExprLit {
+            lit: syn::Lit::Int(n),
+            ..
+        }) => n.base10_digits().to_owned(),
+        _ => return None,
+    })
+}
+
+/// `a * d − b * b`: the determinant of a symmetric 2 × 2 matrix, the shape of a Gram (normal)
+/// matrix's determinant in a hand-written least-squares solve. (A general 2 × 2 inverse,
+/// `a * d − b * c` of a basis or a Jacobian, is not a fit and is not matched.)
+fn is_symmetric_determinant(expr: &syn::Expr) -> bool {
+    let product = |e: &syn::Expr| match peeled(e) {
+        syn::Expr::Binary(b) if matches!(b.op, syn::BinOp::Mul(_)) => {
+            Some((operand_key(&b.left)?, operand_key(&b.right)?))
+        }
+        _ => None,
+    };
+    match peeled(expr) {
+        syn::Expr::Binary(b) if matches!(b.op, syn::BinOp::Sub(_)) => {
+            matches!((product(&b.left), product(&b.right)),
+                (Some((a, d)), Some((b1, b2))) if a != d && b1 == b2)
+        }
+        _ => false,
+    }
 }
 
 /// Whether an expression is a solve that belongs in the kernel: a decomposition or inverse
 /// ([`KERNEL_ONLY_METHODS`]); a product with a transpose (XᵀX, Xᵀy: normal equations formed
-/// by hand); or Cramer's rule (a difference of products, or a `det…(…)` call, divided by
-/// something). Its line and what it is.
+/// by hand); the determinant of a symmetric 2 × 2 matrix (a normal matrix solved by hand); or
+/// Cramer's rule with a `det…(…)` function. Its line and what it is.
 fn solver_shape(expr: &syn::Expr) -> Option<(usize, String)> {
     match expr {
         syn::Expr::MethodCall(m) => {
@@ -1801,15 +1840,18 @@ fn solver_shape(expr: &syn::Expr) -> Option<(usize, String)> {
                     )
                 })
             }
+            syn::BinOp::Sub(t) if is_symmetric_determinant(expr) => Some((
+                t.spans[0].start().line,
+                "forms the determinant a·d − b² of a symmetric 2 × 2 (normal) matrix".to_owned(),
+            )),
             syn::BinOp::Div(t) => {
                 let det_call = matches!(peeled(&b.left), syn::Expr::Call(c)
                     if matches!(peeled(&c.func), syn::Expr::Path(p)
                         if p.path.segments.last().is_some_and(|s| s.ident.to_string().starts_with("det"))));
-                (det_call || is_difference_of_products(&b.left)).then(|| {
+                det_call.then(|| {
                     (
                         t.spans[0].start().line,
-                        "divides a difference of products by a determinant (Cramer's rule)"
-                            .to_owned(),
+                        "divides a determinant by a determinant (Cramer's rule)".to_owned(),
                     )
                 })
             }
@@ -1852,7 +1894,13 @@ const SOLVER_ALLOW_LIST: &[(&str, &str, &str)] = &[
         "solve_lcc",
         "GLS with block covariances, sandwich covariance",
     ),
-    // Not a solve: the inverse of the 2 × 2 map P (M = P⁻¹ up to a rotation).
+    // Not solves: the inverse of the 2 × 2 map P (M = P⁻¹ up to a rotation), and det G of the
+    // metric, whose sign and size decide that the metric is positive definite (α from it).
+    (
+        "crates/spm-calibration/src/lcc.rs",
+        "coefficients",
+        "det G of the metric, a positive-definiteness test",
+    ),
     (
         "crates/spm-calibration/src/lcc.rs",
         "coefficients_and_jacobian",
@@ -1984,10 +2032,10 @@ fn the_solver_check_finds_decompositions_normal_equations_and_cramer() {
     assert!(has("fn normal multiplies by a transpose"), "{problems:#?}");
     assert!(has("fn normal calls .cholesky()"), "{problems:#?}");
     assert!(
-        has("fn cramer divides a difference of products"),
+        has("fn cramer forms the determinant a·d − b²"),
         "{problems:#?}"
     );
-    assert!(has("fn cramer3 divides"), "{problems:#?}");
+    assert!(has("fn cramer3 divides a determinant"), "{problems:#?}");
     assert!(has("names crates/x/src/a.rs::gone"), "{problems:#?}");
     assert!(
         !has("fn fine") && !has("fn allowed") && !has("fn reference"),

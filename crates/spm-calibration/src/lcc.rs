@@ -40,7 +40,7 @@
 //! Kz comes from known heights ([`solve_kz`]): Kz = h / Δz for monatomic steps
 //! (h = 0.3354 nm on HOPG), inverse-variance averaged over several steps.
 
-use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, Vector2, Vector3};
+use nalgebra::{DMatrix, Matrix2, Matrix3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 use spm_hal::{CountVector, Counts, Nanometres, NmPerCount, Radians};
 
@@ -453,64 +453,31 @@ pub fn solve_lcc(observations: &[VectorObservation]) -> Result<LccEstimate, LccE
     let n = observations.len();
     // Scale counts to O(1) for conditioning: P' = P / scale.
     let scale = rms_norm(observations);
-    let weighted = observations.iter().all(|o| {
-        let m = o.covariance.m();
-        m[(0, 0)] > 0.0 && m.determinant() > 1e-18 * m[(0, 0)] * m[(1, 1)]
-    });
-    // Unknowns p = (p11, p12, p21, p22) of P (row-major); rows 2i, 2i+1 = x, y of vector i.
-    let mut x = DMatrix::<f64>::zeros(2 * n, 4);
-    let mut y = DVector::<f64>::zeros(2 * n);
-    let mut sigma = DMatrix::<f64>::zeros(2 * n, 2 * n);
-    for (i, o) in observations.iter().enumerate() {
+    // Unknowns p = (p11, p12, p21, p22) of P (row-major); rows 2i, 2i+1 = x, y of vector i,
+    // each pair with the vector's covariance: generalised least squares through the kernel
+    // (ordinary least squares with the sandwich covariance when some covariance is singular).
+    let mut rows = Vec::with_capacity(2 * n);
+    let mut y = Vec::with_capacity(2 * n);
+    let mut blocks = Vec::with_capacity(n);
+    for o in observations {
         let d = o.standard.v();
-        x[(2 * i, 0)] = d.x;
-        x[(2 * i, 1)] = d.y;
-        x[(2 * i + 1, 2)] = d.x;
-        x[(2 * i + 1, 3)] = d.y;
-        y[2 * i] = o.measured.x.value() / scale;
-        y[2 * i + 1] = o.measured.y.value() / scale;
+        rows.push(vec![d.x, d.y, 0.0, 0.0]);
+        rows.push(vec![0.0, 0.0, d.x, d.y]);
+        y.push(o.measured.x.value() / scale);
+        y.push(o.measured.y.value() / scale);
         let c = o.covariance.m() / (scale * scale);
-        for r in 0..2 {
-            for k in 0..2 {
-                sigma[(2 * i + r, 2 * i + k)] = c[(r, k)];
-            }
-        }
+        blocks.push(vec![vec![c[(0, 0)], c[(0, 1)]], vec![c[(1, 0)], c[(1, 1)]]]);
     }
-    // Weight matrix: block-diagonal inverse covariances, or identity.
-    let mut w = DMatrix::<f64>::identity(2 * n, 2 * n);
-    if weighted {
-        for i in 0..n {
-            let block = Matrix2::new(
-                sigma[(2 * i, 2 * i)],
-                sigma[(2 * i, 2 * i + 1)],
-                sigma[(2 * i + 1, 2 * i)],
-                sigma[(2 * i + 1, 2 * i + 1)],
-            );
-            let inv = block
-                .try_inverse()
-                .ok_or(LccError::InvalidCovariance { index: i })?;
-            for r in 0..2 {
-                for k in 0..2 {
-                    w[(2 * i + r, 2 * i + k)] = inv[(r, k)];
-                }
+    let fit =
+        spm_regression::generalised_least_squares(&rows, &y, &blocks).map_err(|e| match e {
+            spm_regression::RegressionError::NonFinite { .. } => {
+                LccError::NonFinite { what: "covariance" }
             }
-        }
-    }
-    let xtw = x.transpose() * &w;
-    let normal = &xtw * &x;
-    let normal_inv = normal
-        .clone()
-        .try_inverse()
-        .ok_or(LccError::DegenerateStandard { max_sin: 0.0 })?;
-    let h = &normal_inv * &xtw; // p = H y
-    let p = &h * &y;
-    let cov_p = &h * &sigma * h.transpose();
-    let residual = &y - &x * &p;
-    let chi_squared = if weighted {
-        (residual.transpose() * &w * &residual)[(0, 0)]
-    } else {
-        0.0
-    };
+            _ => LccError::DegenerateStandard { max_sin: 0.0 },
+        })?;
+    let p = &fit.coefficients;
+    let cov_p = DMatrix::from_fn(4, 4, |r, c| fit.covariance[r][c]);
+    let chi_squared = fit.chi_squared.unwrap_or(0.0);
     let pm = Matrix2::new(p[0], p[1], p[2], p[3]);
     let det = pm.determinant();
     let measured: Vec<_> = observations

@@ -7,7 +7,8 @@
 //! eqs. (9) and (12).
 //!
 //! It is the workspace's numerics kernel: [`least_squares`] (dense, with sign constraints,
-//! leverage and covariance), [`minimum_norm_least_squares`] (rank-revealing, with a row mask
+//! leverage and covariance), [`generalised_least_squares`] (correlated blocks of observations
+//! with their covariances), [`minimum_norm_least_squares`] (rank-revealing, with a row mask
 //! and per-group offsets eliminated exactly) and [`minimum_norm_solve`] (a normal system a
 //! caller accumulated) are its linear solvers, [`median`], [`upper_median`] and [`rms`] its
 //! sample statistics; no other crate decomposes or inverts a matrix to fit
@@ -21,6 +22,7 @@
 pub mod bench_support;
 mod error;
 mod fit;
+mod gls;
 mod lsq;
 mod polynomial;
 mod rank;
@@ -29,6 +31,7 @@ mod stats;
 
 pub use error::RegressionError;
 pub use fit::{FitOptions, Observations, PolyFit, fit, leverages, standard_errors};
+pub use gls::{GeneralisedFit, SINGULAR_CORRELATION, generalised_least_squares};
 pub use lsq::{LinearFit, least_squares};
 pub use polynomial::{MAX_DEGREE, Polynomial2, n_terms, term_index, term_powers};
 pub use rank::{

@@ -1901,7 +1901,7 @@ const SOLVER_ALLOW_LIST: &[(&str, &str, &str)] = &[
         "inverse of the 2 × 2 map P",
     ),
     // Streamed closed forms of the kernel's least squares (moments summed over an image, no
-    // design kept), each checked against `spm_regression::least_squares` by a unit test.
+    // design kept), each checked against the kernel's fit to 1e-9 by the test it names.
     (
         "crates/spm-features/src/step.rs",
         "solve_lines",
@@ -1915,7 +1915,8 @@ const SOLVER_ALLOW_LIST: &[(&str, &str, &str)] = &[
     (
         "crates/spm-virtual/src/image.rs",
         "without_background",
-        "a plane per pixel from Gaussian-smoothed moments",
+        "a weighted plane per pixel from smoothed moments; test \
+         background_removal_is_the_kernel_weighted_plane_fit",
     ),
 ];
 

@@ -105,19 +105,21 @@ pub fn site_vector_counts(a: NmPoint, b: NmPoint, sensitivity_nm_per_count: f64)
 }
 
 /// Relative errors (%) of the nearest-neighbour vectors of a counter-scanned frame: every pair
-/// of drift-free positions whose distance is within `tolerance` (a fraction) of the lattice
+/// of drift-free positions whose distance is within `tolerance_fraction` of the lattice
 /// constant `lattice_counts`, against `truth` of the pair (pairs without a truth are skipped).
 pub fn nearest_neighbour_errors_pct<T>(
     points: &[(CountPoint, T)],
     lattice_counts: f64,
-    tolerance: f64,
+    tolerance_fraction: f64,
     truth: impl Fn(&T, &T) -> Option<CountVector>,
 ) -> Vec<f64> {
     let mut errors = Vec::new();
     for (i, (p, p_id)) in points.iter().enumerate() {
         for (q, q_id) in &points[i + 1..] {
             let measured = *q - *p;
-            if (measured.norm().value() - lattice_counts).abs() > tolerance * lattice_counts {
+            if (measured.norm().value() - lattice_counts).abs()
+                > tolerance_fraction * lattice_counts
+            {
                 continue;
             }
             if let Some(error) = truth(p_id, q_id).and_then(|t| relative_error_pct(measured, t)) {

@@ -40,7 +40,7 @@
 //! Kz comes from known heights ([`solve_kz`]): Kz = h / Δz for monatomic steps
 //! (h = 0.3354 nm on HOPG), inverse-variance averaged over several steps.
 
-use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, Vector2, Vector3};
+use nalgebra::{DMatrix, Matrix2, Matrix3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 use spm_hal::{CountVector, Counts, Nanometres, NmPerCount, Radians};
 
@@ -382,8 +382,9 @@ fn validate(observations: &[VectorObservation]) -> Result<(), LccError> {
 }
 
 /// Solves DESIGN §7's linear system `dᵢᵀ G dⱼ = Dᵢ·Dⱼ` (all pairs i ≤ j) for the metric by
-/// ordinary least squares (exactly for two vectors). Reference formulation; see the module
-/// docs for why [`solve_lcc`] is preferred on noisy data.
+/// ordinary least squares (exactly for two vectors), through the workspace's one solver
+/// [`spm_regression::least_squares`]. Reference formulation; see the module docs for why
+/// [`solve_lcc`] is preferred on noisy data.
 ///
 /// # Errors
 /// [`LccError`] for fewer than two vectors, non-finite input, collinear vectors or a
@@ -392,36 +393,33 @@ pub fn solve_metric_system(observations: &[VectorObservation]) -> Result<Metric,
     validate(observations)?;
     let n = observations.len();
     let scale = rms_norm(observations);
-    let rows = n * (n + 1) / 2;
-    let mut a = DMatrix::<f64>::zeros(rows, 3);
-    let mut b = DVector::<f64>::zeros(rows);
-    let mut r = 0;
+    let mut rows = Vec::with_capacity(n * (n + 1) / 2);
+    let mut b = Vec::with_capacity(n * (n + 1) / 2);
     for i in 0..n {
         for j in i..n {
             let (di, dj) = (observations[i].measured, observations[j].measured);
             let (xi, yi) = (di.x.value() / scale, di.y.value() / scale);
             let (xj, yj) = (dj.x.value() / scale, dj.y.value() / scale);
-            a[(r, 0)] = xi * xj;
-            a[(r, 1)] = xi * yj + yi * xj;
-            a[(r, 2)] = yi * yj;
-            b[r] = observations[i]
-                .standard
-                .v()
-                .dot(&observations[j].standard.v());
-            r += 1;
+            rows.push(vec![xi * xj, xi * yj + yi * xj, yi * yj]);
+            b.push(
+                observations[i]
+                    .standard
+                    .v()
+                    .dot(&observations[j].standard.v()),
+            );
         }
     }
-    let svd = a.svd(true, true);
-    let smax = svd.singular_values.max();
-    let smin = svd.singular_values.min();
-    if smin.partial_cmp(&(1e-12 * smax)) != Some(std::cmp::Ordering::Greater) {
-        return Err(LccError::Collinear {
-            max_sin: smin / smax.max(f64::MIN_POSITIVE),
-        });
-    }
-    let g = svd
-        .solve(&b, 0.0)
-        .map_err(|_| LccError::NonFinite { what: "metric" })?;
+    let g = spm_regression::least_squares(&rows, &b, &[false; 3])
+        .map_err(|e| match e {
+            // Rank deficiency: the measured vectors do not span the plane.
+            spm_regression::RegressionError::IllConditioned {
+                condition_number, ..
+            } => LccError::Collinear {
+                max_sin: 1.0 / condition_number,
+            },
+            _ => LccError::NonFinite { what: "metric" },
+        })?
+        .coefficients;
     let s2 = scale * scale;
     Ok(Metric {
         g11_nm2_per_count2: g[0] / s2,
@@ -455,64 +453,31 @@ pub fn solve_lcc(observations: &[VectorObservation]) -> Result<LccEstimate, LccE
     let n = observations.len();
     // Scale counts to O(1) for conditioning: P' = P / scale.
     let scale = rms_norm(observations);
-    let weighted = observations.iter().all(|o| {
-        let m = o.covariance.m();
-        m[(0, 0)] > 0.0 && m.determinant() > 1e-18 * m[(0, 0)] * m[(1, 1)]
-    });
-    // Unknowns p = (p11, p12, p21, p22) of P (row-major); rows 2i, 2i+1 = x, y of vector i.
-    let mut x = DMatrix::<f64>::zeros(2 * n, 4);
-    let mut y = DVector::<f64>::zeros(2 * n);
-    let mut sigma = DMatrix::<f64>::zeros(2 * n, 2 * n);
-    for (i, o) in observations.iter().enumerate() {
+    // Unknowns p = (p11, p12, p21, p22) of P (row-major); rows 2i, 2i+1 = x, y of vector i,
+    // each pair with the vector's covariance: generalised least squares through the kernel
+    // (ordinary least squares with the sandwich covariance when some covariance is singular).
+    let mut rows = Vec::with_capacity(2 * n);
+    let mut y = Vec::with_capacity(2 * n);
+    let mut blocks = Vec::with_capacity(n);
+    for o in observations {
         let d = o.standard.v();
-        x[(2 * i, 0)] = d.x;
-        x[(2 * i, 1)] = d.y;
-        x[(2 * i + 1, 2)] = d.x;
-        x[(2 * i + 1, 3)] = d.y;
-        y[2 * i] = o.measured.x.value() / scale;
-        y[2 * i + 1] = o.measured.y.value() / scale;
+        rows.push(vec![d.x, d.y, 0.0, 0.0]);
+        rows.push(vec![0.0, 0.0, d.x, d.y]);
+        y.push(o.measured.x.value() / scale);
+        y.push(o.measured.y.value() / scale);
         let c = o.covariance.m() / (scale * scale);
-        for r in 0..2 {
-            for k in 0..2 {
-                sigma[(2 * i + r, 2 * i + k)] = c[(r, k)];
-            }
-        }
+        blocks.push(vec![vec![c[(0, 0)], c[(0, 1)]], vec![c[(1, 0)], c[(1, 1)]]]);
     }
-    // Weight matrix: block-diagonal inverse covariances, or identity.
-    let mut w = DMatrix::<f64>::identity(2 * n, 2 * n);
-    if weighted {
-        for i in 0..n {
-            let block = Matrix2::new(
-                sigma[(2 * i, 2 * i)],
-                sigma[(2 * i, 2 * i + 1)],
-                sigma[(2 * i + 1, 2 * i)],
-                sigma[(2 * i + 1, 2 * i + 1)],
-            );
-            let inv = block
-                .try_inverse()
-                .ok_or(LccError::InvalidCovariance { index: i })?;
-            for r in 0..2 {
-                for k in 0..2 {
-                    w[(2 * i + r, 2 * i + k)] = inv[(r, k)];
-                }
+    let fit =
+        spm_regression::generalised_least_squares(&rows, &y, &blocks).map_err(|e| match e {
+            spm_regression::RegressionError::NonFinite { .. } => {
+                LccError::NonFinite { what: "covariance" }
             }
-        }
-    }
-    let xtw = x.transpose() * &w;
-    let normal = &xtw * &x;
-    let normal_inv = normal
-        .clone()
-        .try_inverse()
-        .ok_or(LccError::DegenerateStandard { max_sin: 0.0 })?;
-    let h = &normal_inv * &xtw; // p = H y
-    let p = &h * &y;
-    let cov_p = &h * &sigma * h.transpose();
-    let residual = &y - &x * &p;
-    let chi_squared = if weighted {
-        (residual.transpose() * &w * &residual)[(0, 0)]
-    } else {
-        0.0
-    };
+            _ => LccError::DegenerateStandard { max_sin: 0.0 },
+        })?;
+    let p = &fit.coefficients;
+    let cov_p = DMatrix::from_fn(4, 4, |r, c| fit.covariance[r][c]);
+    let chi_squared = fit.chi_squared.unwrap_or(0.0);
     let pm = Matrix2::new(p[0], p[1], p[2], p[3]);
     let det = pm.determinant();
     let measured: Vec<_> = observations

@@ -342,6 +342,37 @@ fn lattice_error(c_method: [[f64; 2]; 2], c_true: [[f64; 2]; 2]) -> Option<f64> 
     worst.is_finite().then_some(worst)
 }
 
+/// The RMS, in %, of the node-mean K̄x and K̄y errors: the records grouped by their node
+/// (x, y, z), each group's mean K̄x and K̄y against the truth at the group's mean LCS centre
+/// (at the instrument's present Z); `None` without records.
+pub fn node_mean_k_rms_pct<T: GroundTruth + ?Sized>(
+    records: &[spm_records::LccRecord],
+    truth: &T,
+) -> Option<f64> {
+    let mut by_node: std::collections::BTreeMap<(i64, i64, i64), Vec<&spm_records::LccRecord>> =
+        std::collections::BTreeMap::new();
+    for r in records {
+        by_node
+            .entry((r.node_x_counts, r.node_y_counts, r.node_z_counts))
+            .or_default()
+            .push(r);
+    }
+    let z = truth.z_now();
+    let mut errors = Vec::new();
+    for group in by_node.values() {
+        let n = group.len() as f64;
+        let mean =
+            |f: fn(&spm_records::LccRecord) -> f64| group.iter().map(|r| f(r)).sum::<f64>() / n;
+        let lcc = truth.true_lcc(
+            CountPoint::from_counts(mean(|r| r.lcs_x_counts), mean(|r| r.lcs_y_counts)),
+            z,
+        );
+        errors.push((mean(|r| r.kx_nm_per_count) / lcc.kx_nm_per_count - 1.0) * 100.0);
+        errors.push((mean(|r| r.ky_nm_per_count) / lcc.ky_nm_per_count - 1.0) * 100.0);
+    }
+    spm_regression::rms(&errors)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -467,5 +498,48 @@ mod tests {
         assert!((accuracy.rms_pm - 1e3 * (squares / 121.0).sqrt()).abs() < 1e-6);
         assert!((accuracy.max_pm - 1e3 * 0.01 * 0.02 * 200.0 * 50f64.sqrt()).abs() < 1e-6);
         Ok(())
+    }
+
+    /// Two nodes against a constant 0.02 / 0.02 nm/count truth: node A's two records average
+    /// to +1 % and −1 %, node B's one record is +2 % and 0 %: RMS of (1, −1, 2, 0) = √1.5.
+    #[test]
+    fn node_mean_errors_average_each_node_first() {
+        let record = |node_x: i64, kx: f64, ky: f64| spm_records::LccRecord {
+            scanner_id: "s".into(),
+            run_id: "r".into(),
+            acquired_unix_s: 0.0,
+            repeat_index: 0,
+            node_index: 0,
+            lcs_index: 0,
+            node_x_counts: node_x,
+            node_y_counts: 0,
+            node_z_counts: 0,
+            lcs_x_counts: node_x as f64,
+            lcs_y_counts: 0.0,
+            lcs_z_counts: 0.0,
+            kx_nm_per_count: kx,
+            ky_nm_per_count: ky,
+            alpha_rad: 0.0,
+            kz_nm_per_count: None,
+            u_kx_nm_per_count: None,
+            u_ky_nm_per_count: None,
+            u_alpha_rad: None,
+            u_kz_nm_per_count: None,
+            drift_vx_nm_per_s: 0.0,
+            drift_vy_nm_per_s: 0.0,
+            cycles_kept: 4,
+            cycles_discarded: 0,
+            quality: 1.0,
+            kz_x_counts: None,
+            kz_y_counts: None,
+        };
+        let records = [
+            record(0, 0.0200, 0.0196),
+            record(0, 0.0204, 0.0200),
+            record(100, 0.0204, 0.0200),
+        ];
+        let rms = node_mean_k_rms_pct(&records, &CONSTANT).unwrap();
+        assert!((rms - 1.5_f64.sqrt()).abs() < 1e-9, "{rms}");
+        assert_eq!(node_mean_k_rms_pct(&[], &CONSTANT), None);
     }
 }

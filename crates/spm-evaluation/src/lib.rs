@@ -5,6 +5,8 @@
 //!   LCC field of the instrument's oracle (DESIGN §11); the per-image polynomial baseline.
 //! - [`images`]: the image benchmark (issue 12): test images taken as a user takes them, every
 //!   method's position and lattice error on them, the realistic grating polynomial.
+//! - [`drift`]: the drift-insensitivity experiment's figures (relative vector errors against
+//!   the truth, nearest-neighbour pairs, the RMS per drift velocity).
 //! - [`cubic`]: the total-degree-3 polynomial map of the conventional corrections.
 //! - [`competitors`]: the per-image trace/retrace corrections the benchmark compares with
 //!   (after Yothers, Browder & Bumm 2017 and Zhang et al. 2019).
@@ -21,6 +23,7 @@
 pub mod accuracy;
 pub mod competitors;
 pub mod cubic;
+pub mod drift;
 pub mod images;
 pub mod rigid;
 pub mod validation;

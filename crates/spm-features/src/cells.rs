@@ -24,7 +24,7 @@
 //!    accepted cells only, and every cell located again.
 
 use crate::Polarity;
-use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
+use nalgebra::{Matrix3, Vector3};
 use std::f64::consts::{PI, TAU};
 
 /// A levelled height map in pixel units (row index grows with y) and its unscanned pixels.
@@ -594,26 +594,24 @@ struct Poly {
     c: [Vec<f64>; 2],
 }
 
+/// The eq. (6) basis of the workspace's polynomials ([`spm_regression::term_powers`], in the
+/// order 1, y, x, xy, y², x², …) at (x, y).
 fn terms(deg: usize, x: f64, y: f64) -> Vec<f64> {
-    let mut t = vec![1.0];
-    for d in 1..=deg {
-        for k in 0..=d {
-            t.push(x.powi((d - k) as i32) * y.powi(k as i32));
-        }
-    }
-    t
+    spm_regression::term_powers(u32::try_from(deg).unwrap_or(u32::MAX))
+        .map(|(px, py)| x.powi(px as i32) * y.powi(py as i32))
+        .collect()
 }
 
 impl Poly {
     fn affine(centre: [f64; 2], offset: [f64; 2], m: [[f64; 2]; 2]) -> Self {
-        // out = offset + m·(p − centre); terms 1, x, y with scale 1.
+        // out = offset + m·(p − centre); terms 1, y, x (eq. 6) with scale 1.
         Self {
             deg: 1,
             centre,
             scale: 1.0,
             c: [
-                vec![offset[0], m[0][0], m[0][1]],
-                vec![offset[1], m[1][0], m[1][1]],
+                vec![offset[0], m[0][1], m[0][0]],
+                vec![offset[1], m[1][1], m[1][0]],
             ],
         }
     }
@@ -655,19 +653,16 @@ impl Poly {
         if n < 2 * m {
             return None;
         }
-        let a = DMatrix::from_fn(n, m, |i, j| {
-            terms(
-                deg,
-                (src[i][0] - centre[0]) / scale,
-                (src[i][1] - centre[1]) / scale,
-            )[j]
-        });
-        let svd = a.svd(true, true);
+        let rows: Vec<Vec<f64>> = src
+            .iter()
+            .map(|p| terms(deg, (p[0] - centre[0]) / scale, (p[1] - centre[1]) / scale))
+            .collect();
         let mut c: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
         for (axis, out) in c.iter_mut().enumerate() {
-            let b = DVector::from_iterator(n, dst.iter().map(|d| d[axis]));
-            let x = svd.solve(&b, 1e-12).ok()?;
-            *out = x.iter().copied().collect();
+            let b: Vec<f64> = dst.iter().map(|d| d[axis]).collect();
+            *out = spm_regression::least_squares(&rows, &b, &vec![false; m])
+                .ok()?
+                .coefficients;
         }
         c.iter()
             .all(|v| v.iter().all(|x| x.is_finite()))

@@ -5,6 +5,10 @@
 //! parameters `[x0, y0, A, s, b]`. With white noise the least-squares fit is
 //! the maximum-likelihood estimate, which reaches the Cramér–Rao bound of
 //! [`crate::crb`] asymptotically.
+//!
+//! The Cholesky solve inside the loop is a damped Gauss–Newton step of this nonlinear fit,
+//! (JᵀJ + λ·diag JᵀJ)·δ = Jᵀr on a fixed 5 × 5 matrix, not a linear least-squares solve: it
+//! stays here, named in the repository test's allow-list of the numerics kernel.
 
 use nalgebra::{SMatrix, SVector};
 

@@ -449,6 +449,9 @@ impl Edge<'_> {
 
 /// Step 4 of [`measure_step`]: the common slope `g` and each line's height, with per-line
 /// offsets eliminated. Within a line: z − z̄ = g (i − ī) + H (u − ū); normal equations pooled.
+/// The least squares of z = c_line + g·i + H·u computed streaming from each line's sums (no
+/// pixel kept), not a second solver: the test `solve_lines_is_the_kernel_least_squares`
+/// checks it against [`spm_regression::least_squares`] on the dense design.
 fn solve_lines(lines: &[Line]) -> (f64, Vec<f64>) {
     let (mut sgg, mut sgh, mut shh, mut sgz, mut shz) = (0.0, 0.0, 0.0, 0.0, 0.0);
     for l in lines {
@@ -725,5 +728,62 @@ mod tests {
         check(&[(30.0, 0.0, 84.0)], Some((16, 1.3)), Err("tip_change"));
         check(&[(30.0, 0.0, 140.0)], None, Err("implausible_height"));
         check(&[(2.0, 0.0, 84.0)], None, Err("edge_near_border"));
+    }
+
+    /// The streamed solve is the kernel's least squares: on random lines, the common slope of
+    /// z = c_line + g·i + H·u (one offset per line) from [`spm_regression::least_squares`] on
+    /// the dense design, and each line's height from the kernel's fit of that line's
+    /// z − g·i = c + H·u, equal [`solve_lines`] to 1e-9.
+    #[test]
+    fn solve_lines_is_the_kernel_least_squares() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(28);
+        let n_lines = 7;
+        let mut lines = Vec::new();
+        let mut pixels: Vec<(usize, f64, f64, f64)> = Vec::new(); // (line, i, u, z)
+        for j in 0..n_lines {
+            let offset: f64 = rng.random_range(-5.0..5.0);
+            let height: f64 = rng.random_range(1.0..3.0);
+            let edge = rng.random_range(10..30);
+            let (mut lo, mut hi) = ([0.0; 5], [0.0; 5]);
+            for i in 0..40 {
+                let x = f64::from(i);
+                let u = if i >= edge { 1.0 } else { 0.0 };
+                let z = offset + 0.03 * x + height * u + rng.random_range(-0.2..0.2);
+                let t = if i >= edge { &mut hi } else { &mut lo };
+                t[0] += 1.0;
+                t[1] += x;
+                t[2] += z;
+                t[3] += x * x;
+                t[4] += x * z;
+                pixels.push((j, x, u, z));
+            }
+            lines.push(Line { j, lo, hi });
+        }
+        let (g, heights) = solve_lines(&lines);
+        let rows: Vec<Vec<f64>> = pixels
+            .iter()
+            .map(|&(line, x, u, _)| {
+                let mut row: Vec<f64> = (0..n_lines)
+                    .map(|k| f64::from(u8::from(k == line)))
+                    .collect();
+                row.extend([x, u]);
+                row
+            })
+            .collect();
+        let rhs: Vec<f64> = pixels.iter().map(|p| p.3).collect();
+        let fit = spm_regression::least_squares(&rows, &rhs, &vec![false; n_lines + 2]).unwrap();
+        assert!(
+            (g - fit.coefficients[n_lines]).abs() < 1e-9,
+            "{g} vs {:?}",
+            fit.coefficients
+        );
+        for (j, h) in heights.iter().enumerate() {
+            let line: Vec<_> = pixels.iter().filter(|p| p.0 == j).collect();
+            let rows: Vec<Vec<f64>> = line.iter().map(|p| vec![1.0, p.2]).collect();
+            let rhs: Vec<f64> = line.iter().map(|p| p.3 - g * p.1).collect();
+            let per_line = spm_regression::least_squares(&rows, &rhs, &[false, false]).unwrap();
+            assert!((h - per_line.coefficients[1]).abs() < 1e-9, "line {j}: {h}");
+        }
     }
 }

@@ -191,11 +191,11 @@ fn joint_fit(img: &Lines<'_>, k_px: &[[f64; 2]]) -> JointFit {
             a[(j, i)] = a[(i, j)];
         }
     }
-    let top = a.diagonal().iter().copied().fold(0.0_f64, f64::max);
-    let theta = a
-        .svd(true, true)
-        .solve(&b, 1e-12 * top.max(1e-300))
-        .unwrap_or_else(|_| DVector::zeros(m));
+    let normal: Vec<Vec<f64>> = (0..m)
+        .map(|i| (0..m).map(|j| a[(i, j)]).collect())
+        .collect();
+    let theta = spm_regression::minimum_norm_solve(&normal, b.as_slice(), 1e-12)
+        .map_or_else(|_| DVector::zeros(m), DVector::from_vec);
     let explained = b.dot(&theta);
     JointFit {
         theta,

@@ -653,34 +653,11 @@ fn chain_response(knots: &[InputKnot], axis: usize, taus: &[f64], times: &[f64])
 /// The coefficient of `g` in the least-squares fit of `y` by (1, t, g) — the
 /// frame offset and the linear drift/scale the model absorbs, and its creep column.
 fn lg_coefficient(t: &[f64], g: &[f64], y: &[f64]) -> f64 {
-    // Normal equations of a 3-column fit, solved by Cramer's rule.
-    let cols = [vec![1.0; t.len()], t.to_vec(), g.to_vec()];
-    let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).sum::<f64>();
-    let m: Vec<Vec<f64>> = cols
-        .iter()
-        .map(|a| cols.iter().map(|b| dot(a, b)).collect())
-        .collect();
-    let r: Vec<f64> = cols.iter().map(|a| dot(a, y)).collect();
-    let det3 = |m: &[[f64; 3]; 3]| {
-        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
-    };
-    let a = [
-        [m[0][0], m[0][1], m[0][2]],
-        [m[1][0], m[1][1], m[1][2]],
-        [m[2][0], m[2][1], m[2][2]],
-    ];
-    let mut c = a;
-    for i in 0..3 {
-        c[i][2] = r[i];
-    }
-    let d = det3(&a);
-    if d.abs() > 0.0 && d.is_finite() {
-        det3(&c) / d
-    } else {
-        0.0
-    }
+    // Through the kernel's rank-revealing solver, as the model check fits that column: a
+    // creep column nearly proportional to t (τ far above the frame) is not an error.
+    let columns = [vec![1.0; t.len()], t.to_vec(), g.to_vec()];
+    spm_regression::minimum_norm_least_squares(&columns, y, &vec![true; y.len()])
+        .map_or(0.0, |fit| fit.coefficients[2])
 }
 
 /// spm-sim's creep slope γ (per decade) of the fitted per-frame creep amplitudes
@@ -721,24 +698,33 @@ fn slow_axis_absorbed(h: &MoveHistory, taus: &[f64], tau_fit_s: f64) -> Option<[
     };
     let t_mid = 0.5 * (frames[0][0] + frames[frames.len() - 1][1]);
     let n_cols = 2 + 2 * frames.len();
-    let x = nalgebra::DMatrix::<f64>::from_fn(times.len(), n_cols, |r, c| {
-        let t = times[r];
-        let f = frame_of[r];
-        match c {
-            0 => input(t),
-            1 => t - t_mid,
-            c if c - 2 < frames.len() => f64::from(u8::from(c - 2 == f)),
-            c => {
-                if c - 2 - frames.len() == f {
-                    (1.0 + (t - frames[f][0]) / tau_fit_s).log10()
-                } else {
-                    0.0
-                }
-            }
-        }
-    });
-    let y = nalgebra::DVector::from_vec(response);
-    let coef = x.svd(true, true).solve(&y, 1e-12).ok()?;
+    let columns: Vec<Vec<f64>> = (0..n_cols)
+        .map(|c| {
+            times
+                .iter()
+                .zip(&frame_of)
+                .map(|(&t, &f)| match c {
+                    0 => input(t),
+                    1 => t - t_mid,
+                    c if c - 2 < frames.len() => f64::from(u8::from(c - 2 == f)),
+                    c => {
+                        if c - 2 - frames.len() == f {
+                            (1.0 + (t - frames[f][0]) / tau_fit_s).log10()
+                        } else {
+                            0.0
+                        }
+                    }
+                })
+                .collect()
+        })
+        .collect();
+    let coef = spm_regression::minimum_norm_least_squares(
+        &columns,
+        &response,
+        &vec![true; response.len()],
+    )
+    .ok()?
+    .coefficients;
     let (a, b) = (coef[0], coef[1]);
     (a.is_finite() && b.is_finite()).then_some([a, b])
 }

@@ -45,6 +45,9 @@ impl Default for PngOptions {
 pub const NAN_RGB: [u8; 3] = [40, 60, 110];
 
 /// Subtracts the least-squares plane z = a + b·x + c·y over the finite pixels.
+/// The kernel's least squares (`spm_regression::least_squares` on rows 1, x, y) computed
+/// streaming from nine sums, so a large image needs no n × 3 design; the test
+/// `level_is_the_kernel_plane_fit` checks the two agree to 1e-9.
 fn level(data: &[f64], nx: usize, ny: usize) -> Vec<f64> {
     let (mut n, mut sx, mut sy, mut sz) = (0.0, 0.0, 0.0, 0.0);
     let (mut sxx, mut syy, mut sxy, mut sxz, mut syz) = (0.0, 0.0, 0.0, 0.0, 0.0);
@@ -244,4 +247,52 @@ pub fn write_png(
 ) -> Result<(), PlotError> {
     let bytes = render_png(channel, options)?;
     crate::write_file(path.as_ref(), &bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    /// The streamed plane equals the kernel's least-squares plane on pseudo-random data with
+    /// unscanned (NaN) pixels, to 1e-9.
+    #[test]
+    fn level_is_the_kernel_plane_fit() {
+        let (nx, ny) = (37, 23);
+        let mut state = 0x2545_f491_4f6c_dd1d_u64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        };
+        let data: Vec<f64> = (0..nx * ny)
+            .map(|k| {
+                let (x, y) = ((k % nx) as f64, (k / nx) as f64);
+                if k % 17 == 3 {
+                    f64::NAN
+                } else {
+                    40.0 + 0.3 * x - 0.7 * y + 5.0 * next()
+                }
+            })
+            .collect();
+        let finite: Vec<usize> = (0..data.len()).filter(|&k| data[k].is_finite()).collect();
+        let rows: Vec<Vec<f64>> = finite
+            .iter()
+            .map(|&k| vec![1.0, (k % nx) as f64, (k / nx) as f64])
+            .collect();
+        let rhs: Vec<f64> = finite.iter().map(|&k| data[k]).collect();
+        let fit = spm_regression::least_squares(&rows, &rhs, &[false; 3]).unwrap();
+        let levelled = level(&data, nx, ny);
+        for (k, (&z, l)) in data.iter().zip(&levelled).enumerate() {
+            let (x, y) = ((k % nx) as f64, (k / nx) as f64);
+            let c = &fit.coefficients;
+            let expected = z - (c[0] + c[1] * x + c[2] * y);
+            if z.is_finite() {
+                assert!((l - expected).abs() < 1e-9, "pixel {k}: {l} vs {expected}");
+            } else {
+                assert!(l.is_nan());
+            }
+        }
+    }
 }

@@ -6,6 +6,14 @@
 //! ([`Polynomial2::integrate_x`], [`Polynomial2::integrate_y`]) for the image correction of
 //! eqs. (9) and (12).
 //!
+//! It is the workspace's numerics kernel: [`least_squares`] (dense, with sign constraints,
+//! leverage and covariance), [`generalised_least_squares`] (correlated blocks of observations
+//! with their covariances), [`minimum_norm_least_squares`] (rank-revealing, with a row mask
+//! and per-group offsets eliminated exactly) and [`minimum_norm_solve`] (a normal system a
+//! caller accumulated) are its linear solvers, [`median`], [`upper_median`] and [`rms`] its
+//! sample statistics; no other crate decomposes or inverts a matrix to fit
+//! (`tests/tests/it/repository.rs`, `linear_algebra_solves_only_in_the_numerics_kernel`).
+//!
 //! Pure: no IO, no clock, no random numbers. Every failure is a typed [`RegressionError`];
 //! no function returns NaN for finite input.
 #![doc = include_str!("../README.md")]
@@ -14,14 +22,20 @@
 pub mod bench_support;
 mod error;
 mod fit;
+mod gls;
 mod lsq;
 mod polynomial;
+mod rank;
 mod select;
 mod stats;
 
 pub use error::RegressionError;
 pub use fit::{FitOptions, Observations, PolyFit, fit, leverages, standard_errors};
+pub use gls::{GeneralisedFit, SINGULAR_CORRELATION, generalised_least_squares};
 pub use lsq::{LinearFit, least_squares};
 pub use polynomial::{MAX_DEGREE, Polynomial2, n_terms, term_index, term_powers};
+pub use rank::{
+    MINIMUM_NORM_TOLERANCE, MinimumNormFit, minimum_norm_least_squares, minimum_norm_solve,
+};
 pub use select::{Criterion, DegreeScore, Selection, SelectionOptions, select_degree};
 pub use stats::{DeltaMax, Field, delta_max, median, product_values, rms, sigma, upper_median};

@@ -313,7 +313,9 @@ impl StoredImage {
     /// everywhere and terraces, tilt and bow are removed at scales above σ. Far from the
     /// edges a sinusoid of period `P` pixels keeps the fraction `1 − exp(−2π²σ²/P²)` of its
     /// amplitude: with σ of 1.5 lattice constants a lattice keeps more than 99.9 % of its
-    /// corrugation.
+    /// corrugation. The plane of every pixel is the weighted least squares of the numerics
+    /// kernel computed streaming from smoothed moments (one pass for all pixels), not a second
+    /// solver: `tests/it/microscope.rs` checks it against `spm_regression`'s fit.
     ///
     /// # Errors
     /// [`ImageError::Invalid`] for a width that is not finite and positive.

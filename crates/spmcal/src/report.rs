@@ -1148,8 +1148,9 @@ fn node_lcc_error(oracle: &dyn TruthSource, all: &[spm_cdb::LccRecord]) -> Optio
     }
     let n = e.len() as f64;
     let mean = |f: fn(&(f64, f64, f64)) -> f64| e.iter().map(f).sum::<f64>() / n;
-    let rms =
-        |f: fn(&(f64, f64, f64)) -> f64| (e.iter().map(|v| f(v).powi(2)).sum::<f64>() / n).sqrt();
+    let rms = |f: fn(&(f64, f64, f64)) -> f64| {
+        spm_regression::rms(&e.iter().map(f).collect::<Vec<_>>()).unwrap_or(0.0)
+    };
     Some(NodeLccError {
         n: e.len(),
         kx_mean_pct: mean(|v| v.0),

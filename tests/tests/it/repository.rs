@@ -1290,6 +1290,8 @@ struct CallCollector {
     test_depth: usize,
     references: Vec<Reference>,
     shapes: Vec<ShapeHit>,
+    /// Linear-algebra solves written outside the numerics kernel ([`solver_shape`]).
+    solvers: Vec<SolverHit>,
     test_modules: Vec<String>,
 }
 
@@ -1380,6 +1382,9 @@ impl<'ast> syn::visit::Visit<'ast> for CallCollector {
     }
 
     fn visit_expr(&mut self, expr: &'ast syn::Expr) {
+        if let (Some(caller), Some((line, what))) = (self.caller(), solver_shape(expr)) {
+            self.solvers.push(SolverHit { line, caller, what });
+        }
         if let (Some(caller), Some((equations, what))) = (self.caller(), formula_shape(expr)) {
             let line = match expr {
                 syn::Expr::Binary(b) => match &b.op {
@@ -1412,17 +1417,26 @@ fn calls_in_text(text: &str) -> CallCollector {
 /// `crates/*/src` file except those of `#[cfg(test)]` modules, `tests.rs` files and
 /// `bench_support.rs` (bench helpers).
 fn production_calls() -> Vec<(PathBuf, CallCollector)> {
+    production_calls_in(
+        crate_names()
+            .into_iter()
+            .map(|name| workspace_root().join("crates").join(name).join("src"))
+            .collect(),
+    )
+}
+
+/// [`production_calls`] of the given source folders (each one package's `src`).
+fn production_calls_in(src_dirs: Vec<PathBuf>) -> Vec<(PathBuf, CallCollector)> {
     let mut out = Vec::new();
-    for name in crate_names() {
-        let files: Vec<(PathBuf, CallCollector)> =
-            rust_sources(&workspace_root().join("crates").join(&name).join("src"))
-                .into_iter()
-                .map(|file| {
-                    let text = std::fs::read_to_string(&file).expect("source readable");
-                    let calls = calls_in_text(&text);
-                    (file, calls)
-                })
-                .collect();
+    for src in src_dirs {
+        let files: Vec<(PathBuf, CallCollector)> = rust_sources(&src)
+            .into_iter()
+            .map(|file| {
+                let text = std::fs::read_to_string(&file).expect("source readable");
+                let calls = calls_in_text(&text);
+                (file, calls)
+            })
+            .collect();
         let test_modules: BTreeSet<String> = files
             .iter()
             .flat_map(|(_, c)| c.test_modules.iter().cloned())
@@ -1714,4 +1728,314 @@ fn only_spm_plot_depends_on_plotters() {
         }
     }
     assert_eq!(users, vec!["crates/spm-plot/Cargo.toml".to_owned()]);
+}
+
+// ---------------------------------------------------------------------------------------------
+// One numerics kernel (issue 28 item 1): linear algebra solves only in spm-regression.
+// ---------------------------------------------------------------------------------------------
+
+/// A linear-algebra solve found in production code.
+#[derive(Debug)]
+struct SolverHit {
+    line: usize,
+    caller: (Option<String>, String),
+    what: String,
+}
+
+/// The matrix decompositions and inverses only the numerics kernel (`crates/spm-regression`)
+/// calls: anything else solves through `least_squares`, `minimum_norm_least_squares` or
+/// `minimum_norm_solve`.
+const KERNEL_ONLY_METHODS: &[&str] = &[
+    "svd",
+    "try_svd",
+    "cholesky",
+    "lu",
+    "full_piv_lu",
+    "qr",
+    "col_piv_qr",
+    "udu",
+    "bunch_kaufman",
+    "symmetric_eigen",
+    "try_inverse",
+    "try_inverse_mut",
+    "pseudo_inverse",
+    "solve_lower_triangular",
+    "solve_upper_triangular",
+];
+
+/// Parentheses and references around an expression removed.
+fn peeled(expr: &syn::Expr) -> &syn::Expr {
+    match expr {
+        syn::Expr::Paren(p) => peeled(&p.expr),
+        syn::Expr::Reference(r) => peeled(&r.expr),
+        other => other,
+    }
+}
+
+/// A plain operand (a name, a field, an index by a name or a literal) as text, to compare two
+/// operands; `None` for anything else.
+fn operand_key(expr: &syn::Expr) -> Option<String> {
+    Some(match peeled(expr) {
+        syn::Expr::Path(p) => p
+            .path
+            .segments
+            .iter()
+            .map(|s| s.ident.to_string())
+            .collect::<Vec<_>>()
+            .join("::"),
+        syn::Expr::Field(f) => {
+            let member = match &f.member {
+                syn::Member::Named(ident) => ident.to_string(),
+                syn::Member::Unnamed(index) => index.index.to_string(),
+            };
+            format!("{}.{member}", operand_key(&f.base)?)
+        }
+        syn::Expr::Index(i) => format!("{}[{}]", operand_key(&i.expr)?, operand_key(&i.index)?),
+        syn::Expr::Lit(syn::ExprLit {
+            lit: syn::Lit::Int(n),
+            ..
+        }) => n.base10_digits().to_owned(),
+        _ => return None,
+    })
+}
+
+/// `a * d − b * b`: the determinant of a symmetric 2 × 2 matrix, the shape of a Gram (normal)
+/// matrix's determinant in a hand-written least-squares solve. (A general 2 × 2 inverse,
+/// `a * d − b * c` of a basis or a Jacobian, is not a fit and is not matched.)
+fn is_symmetric_determinant(expr: &syn::Expr) -> bool {
+    let product = |e: &syn::Expr| match peeled(e) {
+        syn::Expr::Binary(b) if matches!(b.op, syn::BinOp::Mul(_)) => {
+            Some((operand_key(&b.left)?, operand_key(&b.right)?))
+        }
+        _ => None,
+    };
+    match peeled(expr) {
+        syn::Expr::Binary(b) if matches!(b.op, syn::BinOp::Sub(_)) => {
+            matches!((product(&b.left), product(&b.right)),
+                (Some((a, d)), Some((b1, b2))) if a != d && b1 == b2)
+        }
+        _ => false,
+    }
+}
+
+/// Whether an expression is a solve that belongs in the kernel: a decomposition or inverse
+/// ([`KERNEL_ONLY_METHODS`]); a product with a transpose on its left (XᵀX, Xᵀy: normal
+/// equations formed by hand); the determinant of a symmetric 2 × 2 matrix (a normal matrix solved by hand); or
+/// Cramer's rule with a `det…(…)` function. Its line and what it is.
+fn solver_shape(expr: &syn::Expr) -> Option<(usize, String)> {
+    match expr {
+        syn::Expr::MethodCall(m) => {
+            let name = m.method.to_string();
+            KERNEL_ONLY_METHODS
+                .contains(&name.as_str())
+                .then(|| (m.method.span().start().line, format!("calls .{name}()")))
+        }
+        syn::Expr::Binary(b) => match &b.op {
+            syn::BinOp::Mul(t) => {
+                let transposed = |e: &syn::Expr| matches!(peeled(e), syn::Expr::MethodCall(m) if m.method == "transpose");
+                // Xᵀ on the left: XᵀX, Xᵀy, XᵀWX (a propagation J·C·Jᵀ has it on the right).
+                transposed(&b.left).then(|| {
+                    (
+                        t.spans[0].start().line,
+                        "multiplies by a transpose (normal equations XᵀX, Xᵀy by hand)".to_owned(),
+                    )
+                })
+            }
+            syn::BinOp::Sub(t) if is_symmetric_determinant(expr) => Some((
+                t.spans[0].start().line,
+                "forms the determinant a·d − b² of a symmetric 2 × 2 (normal) matrix".to_owned(),
+            )),
+            syn::BinOp::Div(t) => {
+                let det_call = matches!(peeled(&b.left), syn::Expr::Call(c)
+                    if matches!(peeled(&c.func), syn::Expr::Path(p)
+                        if p.path.segments.last().is_some_and(|s| s.ident.to_string().starts_with("det"))));
+                det_call.then(|| {
+                    (
+                        t.spans[0].start().line,
+                        "divides a determinant by a determinant (Cramer's rule)".to_owned(),
+                    )
+                })
+            }
+            _ => None,
+        },
+        _ => None,
+    }
+}
+
+/// The justified exceptions: `(file, function, why it is not the kernel's business)`. Each
+/// entry must still match something (a stale entry fails the test too).
+const SOLVER_ALLOW_LIST: &[(&str, &str, &str)] = &[
+    // Newton steps of nonlinear fits: a damped Gauss–Newton step solves a small fixed-size
+    // normal matrix of the linearisation, one per iteration; not a linear least-squares fit.
+    (
+        "crates/spm-features/src/fit.rs",
+        "fit_gaussian",
+        "Levenberg–Marquardt step (5 × 5) and its covariance",
+    ),
+    (
+        "crates/spm-features/src/cells.rs",
+        "fit_cell",
+        "Gauss–Newton step (3 × 3) of a cell's template fit",
+    ),
+    (
+        "crates/spm-features/src/cells.rs",
+        "locate_one",
+        "the cell fit's covariance (3 × 3 inverse of its Newton normal matrix)",
+    ),
+    // The Cramér–Rao bound is the inverse Fisher information itself, not a fit.
+    (
+        "crates/spm-features/src/crb.rs",
+        "bound_from_fisher",
+        "inverse Fisher information (the bound)",
+    ),
+    // Not solves: the inverse of the 2 × 2 map P (M = P⁻¹ up to a rotation), and det G of the
+    // metric, whose sign and size decide that the metric is positive definite (α from it).
+    (
+        "crates/spm-calibration/src/lcc.rs",
+        "coefficients",
+        "det G of the metric, a positive-definiteness test",
+    ),
+    (
+        "crates/spm-calibration/src/lcc.rs",
+        "coefficients_and_jacobian",
+        "inverse of the 2 × 2 map P",
+    ),
+    // Streamed closed forms of the kernel's least squares (moments summed over an image, no
+    // design kept), each checked against the kernel's fit to 1e-9 by the test it names.
+    (
+        "crates/spm-features/src/step.rs",
+        "solve_lines",
+        "streamed; test solve_lines_is_the_kernel_least_squares",
+    ),
+    (
+        "crates/spm-plot/src/channel.rs",
+        "level",
+        "streamed; test level_is_the_kernel_plane_fit",
+    ),
+    (
+        "crates/spm-virtual/src/image.rs",
+        "without_background",
+        "a weighted plane per pixel from smoothed moments; test \
+         background_removal_is_the_kernel_weighted_plane_fit",
+    ),
+];
+
+/// The solves outside the kernel that the allow-list does not name, and the allow-list
+/// entries that name nothing.
+fn solver_problems(
+    calls: &[(PathBuf, CallCollector)],
+    allow: &[(&str, &str, &str)],
+) -> Vec<String> {
+    let mut problems = Vec::new();
+    let mut used = vec![false; allow.len()];
+    for (file, collector) in calls {
+        let relative = file.strip_prefix(workspace_root()).unwrap_or(file);
+        let path = relative.to_string_lossy().replace('\\', "/");
+        if path.starts_with("crates/spm-regression/") {
+            continue;
+        }
+        for hit in &collector.solvers {
+            if let Some(k) = allow
+                .iter()
+                .position(|(p, f, _)| *p == path && *f == hit.caller.1)
+            {
+                used[k] = true;
+                continue;
+            }
+            problems.push(format!(
+                "{path}:{} in fn {}{} {}: solve through spm_regression (least_squares, \
+                 minimum_norm_least_squares, minimum_norm_solve) or add a commented \
+                 SOLVER_ALLOW_LIST entry",
+                hit.line,
+                hit.caller
+                    .0
+                    .as_ref()
+                    .map(|o| format!("{o}::"))
+                    .unwrap_or_default(),
+                hit.caller.1,
+                hit.what
+            ));
+        }
+    }
+    for ((path, function, _), used) in allow.iter().zip(used) {
+        if !used {
+            problems.push(format!(
+                "SOLVER_ALLOW_LIST names {path}::{function}, which solves nothing any more: \
+                 remove the entry"
+            ));
+        }
+    }
+    problems
+}
+
+#[test]
+fn linear_algebra_solves_only_in_the_numerics_kernel() {
+    let mut dirs: Vec<PathBuf> = crate_names()
+        .into_iter()
+        .map(|name| workspace_root().join("crates").join(name).join("src"))
+        .collect();
+    dirs.push(workspace_root().join("xtask/src"));
+    let calls = production_calls_in(dirs);
+    let kernel_hits = calls
+        .iter()
+        .filter(|(f, _)| f.starts_with(workspace_root().join("crates/spm-regression")))
+        .map(|(_, c)| c.solvers.len())
+        .sum::<usize>();
+    assert!(
+        kernel_hits >= 3,
+        "the kernel's own solves are not found: the scan is broken"
+    );
+    let problems = solver_problems(&calls, SOLVER_ALLOW_LIST);
+    assert!(
+        problems.is_empty(),
+        "one numerics kernel (docs/ARCHITECTURE.md, spm-regression):\n  {}",
+        problems.join("\n  ")
+    );
+}
+
+#[test]
+fn the_solver_check_finds_decompositions_normal_equations_and_cramer() {
+    let text = "
+        pub fn svd_solve(a: M, b: V) -> V { a.svd(true, true).solve(&b, 1e-12).unwrap() }
+        pub fn normal(x: M, y: V) -> V { let n = x.transpose() * &x; n.cholesky().unwrap().solve(&(x.transpose() * y)) }
+        pub fn cramer(sxx: f64, sxy: f64, syy: f64, sxz: f64, syz: f64) -> f64 {
+            let det = sxx * syy - sxy * sxy;
+            (sxz * syy - syz * sxy) / det
+        }
+        pub fn cramer3(a: &M, c: &M) -> f64 { det3(c) / det3(a) }
+        pub fn propagate(j: M, c: M) -> M { &j * &c * j.transpose() }
+        pub fn fine(j: [[f64; 2]; 2], v: [f64; 2]) -> f64 {
+            let det = j[0][0] * j[1][1] - j[0][1] * j[1][0];
+            (j[1][1] * v[0]) / det
+        }
+        pub fn allowed(m: M) -> M { m.try_inverse().unwrap() }
+        #[cfg(test)]
+        mod tests {
+            fn reference(a: M) -> M { a.svd(true, true).pseudo_inverse(0.0).unwrap() }
+        }
+    ";
+    let calls = [(
+        workspace_root().join("crates/x/src/a.rs"),
+        calls_in_text(text),
+    )];
+    let allow = [
+        ("crates/x/src/a.rs", "allowed", "a reason"),
+        ("crates/x/src/a.rs", "gone", "a stale entry"),
+    ];
+    let problems = solver_problems(&calls, &allow);
+    let has = |needle: &str| problems.iter().any(|p| p.contains(needle));
+    assert!(has("fn svd_solve calls .svd()"), "{problems:#?}");
+    assert!(has("fn normal multiplies by a transpose"), "{problems:#?}");
+    assert!(has("fn normal calls .cholesky()"), "{problems:#?}");
+    assert!(
+        has("fn cramer forms the determinant a·d − b²"),
+        "{problems:#?}"
+    );
+    assert!(has("fn cramer3 divides a determinant"), "{problems:#?}");
+    assert!(has("names crates/x/src/a.rs::gone"), "{problems:#?}");
+    assert!(
+        !has("fn fine") && !has("fn allowed") && !has("fn reference") && !has("fn propagate"),
+        "{problems:#?}"
+    );
+    assert_eq!(problems.len(), 7, "{problems:#?}");
 }

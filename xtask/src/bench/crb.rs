@@ -80,7 +80,8 @@ pub fn run(ctx: &Context) -> Result<CrbResults, XtaskError> {
         let mut rng = ChaCha8Rng::seed_from_u64(snr as u64);
         let noise = hopg.corrugation / snr;
         let normal = Normal::new(0.0, noise).map_err(|e| XtaskError::step("crb", e))?;
-        let (mut err2, mut crb2, mut amp, mut n, mut missed) = (0.0, 0.0, 0.0, 0usize, 0usize);
+        let (mut errors, mut bounds) = (Vec::new(), Vec::new());
+        let (mut amp, mut n, mut missed) = (0.0, 0usize, 0usize);
         for _ in 0..trials {
             let atom = hopg.atom(3.0, 2.0);
             let off = (rng.random::<f64>() - 0.5, rng.random::<f64>() - 0.5);
@@ -123,9 +124,11 @@ pub fn run(ctx: &Context) -> Result<CrbResults, XtaskError> {
                 missed += 1;
                 continue;
             };
-            err2 +=
-                (f.position.x - atom.x).value().powi(2) + (f.position.y - atom.y).value().powi(2);
-            crb2 += bound.sigma_x.value().powi(2) + bound.sigma_y.value().powi(2);
+            errors.extend([
+                (f.position.x - atom.x).value(),
+                (f.position.y - atom.y).value(),
+            ]);
+            bounds.extend([bound.sigma_x.value(), bound.sigma_y.value()]);
             amp += f.amplitude_z_counts;
             n += 1;
         }
@@ -135,8 +138,8 @@ pub fn run(ctx: &Context) -> Result<CrbResults, XtaskError> {
                 format!("no atom found at SNR {snr}"),
             ));
         }
-        let rms = (err2 / (2 * n) as f64).sqrt();
-        let crb = (crb2 / (2 * n) as f64).sqrt();
+        // Per coordinate: the RMS of the x and y errors, and of the x and y bounds.
+        let (rms, crb) = (super::rms(&errors), super::rms(&bounds));
         let design = design_cramer_rao(step, noise, amp / n as f64);
         println!(
             "   crb SNR {snr}: RMS {rms:.4} counts, CRB {crb:.4}, ratio {:.3}",

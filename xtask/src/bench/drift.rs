@@ -6,10 +6,16 @@
 //! Scanner: `SimConfig::ideal()` with white Z noise at SNR 10 and a constant
 //! drift along the diagonal; the set-up of spm-fos's simulator tests (segments
 //! 16×16 px at 0.2 ms/px, aperture 64×64 px at 0.3 ms/px, 4 kept skipping cycles).
+//!
+//! This module runs the scans and prints; the figures (relative errors, true sites, the
+//! nearest-neighbour pairs, the RMS per velocity) are `spm_evaluation::drift`'s.
 
-use super::{Context, rms};
+use super::Context;
 use crate::XtaskError;
-use serde::Serialize;
+pub use spm_evaluation::drift::{DriftPoint, DriftResults};
+use spm_evaluation::drift::{
+    ideal_scanner_site, nearest_neighbour_errors_pct, relative_error_pct, site_vector_counts,
+};
 use spm_features::{DetectionConfig, Feature, LcsConfig};
 use spm_fos::{
     ApertureParams, AttachParams, CounterScanParams, MonitorParams, Motion, Raster, SkipOutcome,
@@ -22,35 +28,6 @@ use spm_sim::{FeatureKind, SimConfig, Simulator};
 const K: f64 = 0.02;
 /// HOPG lattice constant in counts at `K`.
 const A: f64 = 0.2461 / K;
-
-/// One drift velocity.
-#[derive(Debug, Serialize)]
-pub struct DriftPoint {
-    /// Drift speed, Å/s (along the diagonal).
-    pub velocity_angstrom_per_s: f64,
-    /// RMS relative A→B vector error of skipping, %.
-    pub skipping_pct: f64,
-    /// RMS relative vector error of counter-scanning (drift-free positions of
-    /// nearest-neighbour pairs seen in both frames), %.
-    pub counter_scan_pct: f64,
-    /// RMS relative A→B vector error of a single aperture scan, %.
-    pub single_scan_pct: f64,
-    /// Runs that completed (of the seeds tried).
-    pub runs: usize,
-}
-
-/// The drift section.
-#[derive(Debug, Serialize)]
-pub struct DriftResults {
-    /// Seeds per velocity.
-    pub seeds: usize,
-    /// The sweep.
-    pub points: Vec<DriftPoint>,
-    /// single-scan error ÷ skipping error at the fastest drift.
-    pub single_over_skipping_at_max: f64,
-    /// skipping error at the fastest drift ÷ at rest.
-    pub skipping_fast_over_rest: f64,
-}
 
 fn simulator(seed: u64, v_nm_per_s: f64) -> Result<Simulator, XtaskError> {
     let mut config = SimConfig::ideal();
@@ -79,11 +56,7 @@ fn detection() -> DetectionConfig {
 
 /// The true atom site under a feature of the ideal scanner (F(u) = K·u).
 fn site(sim: &Simulator, f: &Feature) -> Option<NmPoint> {
-    let d = sim.oracle().drift_displacement(f.time);
-    let s = NmPoint::from_nm(
-        K * f.position.x.value() + d.x.value(),
-        K * f.position.y.value() + d.y.value(),
-    );
+    let s = ideal_scanner_site(f.position, K, sim.oracle().drift_displacement(f.time));
     sim.oracle()
         .features_near(s, 0.15)
         .iter()
@@ -92,11 +65,7 @@ fn site(sim: &Simulator, f: &Feature) -> Option<NmPoint> {
 }
 
 fn true_vector(sim: &Simulator, a: &Feature, b: &Feature) -> Option<CountVector> {
-    let (sa, sb) = (site(sim, a)?, site(sim, b)?);
-    Some(CountVector::from_counts(
-        (sb.x - sa.x).value() / K,
-        (sb.y - sa.y).value() / K,
-    ))
+    Some(site_vector_counts(site(sim, a)?, site(sim, b)?, K))
 }
 
 /// (skipping, single scan, counter-scan) relative errors of one run, or None
@@ -136,7 +105,9 @@ fn one_run(seed: u64, v: f64) -> Result<Option<(f64, f64, Vec<f64>)>, XtaskError
     let Some(truth) = true_vector(&sim, &a, &b) else {
         return Ok(None);
     };
-    let single = (ab - truth).norm().value() / truth.norm().value() * 100.0;
+    let Some(single) = relative_error_pct(ab, truth) else {
+        return Ok(None);
+    };
     let drift = attached.velocity().unwrap_or(CountVelocity::ZERO);
     let mut skip_params = SkipParams::new(raster(16, 2e-4), MonitorParams::new(2.5, 20.0, 4));
     skip_params.detection = detection();
@@ -154,7 +125,9 @@ fn one_run(seed: u64, v: f64) -> Result<Option<(f64, f64, Vec<f64>)>, XtaskError
     let Some(truth) = true_vector(&sim, &last.cycle.a_end.feature, &last.cycle.b.feature) else {
         return Ok(None);
     };
-    let skipping = (vector - truth).norm().value() / truth.norm().value() * 100.0;
+    let Some(skipping) = relative_error_pct(vector, truth) else {
+        return Ok(None);
+    };
 
     // Counter-scan on the same surface, a little away.
     let params = CounterScanParams {
@@ -166,18 +139,10 @@ fn one_run(seed: u64, v: f64) -> Result<Option<(f64, f64, Vec<f64>)>, XtaskError
     };
     let counter = counter_scan(&mut sim, CountPoint::from_counts(-300.0, 50.0), &params)
         .map_err(|e| XtaskError::step("counter_scan", e))?;
-    let mut errors = Vec::new();
-    for (i, p) in counter.common.iter().enumerate() {
-        for q in &counter.common[i + 1..] {
-            let measured = q.drift_free - p.drift_free;
-            if (measured.norm().value() - A).abs() > 0.3 * A {
-                continue;
-            }
-            if let Some(truth) = true_vector(&sim, &p.direct, &q.direct) {
-                errors.push((measured - truth).norm().value() / truth.norm().value() * 100.0);
-            }
-        }
-    }
+    let pairs: Vec<_> = counter.common.iter().map(|p| (p.drift_free, p)).collect();
+    let errors = nearest_neighbour_errors_pct(&pairs, A, 0.3, |p, q| {
+        true_vector(&sim, &p.direct, &q.direct)
+    });
     Ok(Some((skipping, single, errors)))
 }
 
@@ -198,26 +163,13 @@ pub fn run(ctx: &Context) -> Result<DriftResults, XtaskError> {
                 counter.extend(c);
             }
         }
-        let point = DriftPoint {
-            velocity_angstrom_per_s: v_angstrom,
-            skipping_pct: rms(&skipping),
-            counter_scan_pct: rms(&counter),
-            single_scan_pct: rms(&single),
-            runs: skipping.len(),
-        };
+        let point = DriftPoint::from_errors(v_angstrom, &skipping, &counter, &single);
         println!(
             "   drift {v_angstrom:.1} Å/s: skipping {:.3} %, counter-scan {:.3} %, single scan {:.3} % ({} runs)",
             point.skipping_pct, point.counter_scan_pct, point.single_scan_pct, point.runs
         );
         points.push(point);
     }
-    let (Some(first), Some(last)) = (points.first(), points.last()) else {
-        return Err(XtaskError::step("drift", "no velocities"));
-    };
-    Ok(DriftResults {
-        seeds: seeds as usize,
-        single_over_skipping_at_max: last.single_scan_pct / last.skipping_pct,
-        skipping_fast_over_rest: last.skipping_pct / first.skipping_pct,
-        points,
-    })
+    DriftResults::from_points(seeds as usize, points)
+        .ok_or_else(|| XtaskError::step("drift", "no velocities"))
 }

@@ -307,28 +307,7 @@ fn node_mean_error(cdb_path: &Path, sim: &spm_sim::Simulator) -> Result<Option<f
     let snapshot = cdb.snapshot().map_err(fail)?;
     let records =
         spm_cdb::CdbRead::records(&snapshot, &spm_cdb::RecordFilter::default()).map_err(fail)?;
-    let mut by_node: std::collections::BTreeMap<(i64, i64, i64), Vec<&spm_cdb::LccRecord>> =
-        std::collections::BTreeMap::new();
-    for r in &records {
-        by_node
-            .entry((r.node_x_counts, r.node_y_counts, r.node_z_counts))
-            .or_default()
-            .push(r);
-    }
-    let oracle = sim.oracle();
-    let z = spm_hal::Counts(oracle.z_now().value());
-    let mut errors = Vec::new();
-    for group in by_node.values() {
-        let n = group.len() as f64;
-        let mean = |f: fn(&spm_cdb::LccRecord) -> f64| group.iter().map(|r| f(r)).sum::<f64>() / n;
-        let truth = oracle.true_lcc(
-            spm_hal::CountPoint::from_counts(mean(|r| r.lcs_x_counts), mean(|r| r.lcs_y_counts)),
-            z,
-        );
-        errors.push((mean(|r| r.kx_nm_per_count) / truth.kx.value() - 1.0) * 100.0);
-        errors.push((mean(|r| r.ky_nm_per_count) / truth.ky.value() - 1.0) * 100.0);
-    }
-    Ok((!errors.is_empty()).then(|| rms(&errors)))
+    Ok(spm_evaluation::accuracy::node_mean_k_rms_pct(&records, sim))
 }
 
 fn machine() -> Machine {

@@ -70,8 +70,8 @@ fn round_trip_us(sim: &SimConfig) -> Result<f64, XtaskError> {
         }
     }
     server.kill();
-    times_us.sort_by(f64::total_cmp);
-    Ok(times_us[times_us.len() / 2])
+    spm_regression::upper_median(&mut times_us)
+        .ok_or_else(|| XtaskError::step("Scan.StatusGet", "no round trip timed"))
 }
 
 fn nanonis_config(port: u16) -> NanonisConfig {

@@ -105,7 +105,7 @@ pub fn run(ctx: &Context) -> Result<ProductivityResults, XtaskError> {
             cycles: c,
             records: report.records,
             instrument_time_s: report.instrument_time_s,
-            node_k_rms_pct: ((e.kx_rms_pct.powi(2) + e.ky_rms_pct.powi(2)) / 2.0).sqrt(),
+            node_k_rms_pct: super::rms(&[e.kx_rms_pct, e.ky_rms_pct]),
             node_mean_k_rms_pct: calibrated.node_mean_k_rms_pct.unwrap_or(f64::NAN),
             node_alpha_rms_mrad: e.alpha_rms_mrad,
             distributed_rms_pm: a.distributed.rms_pm,

@@ -284,6 +284,57 @@ fn background_removal_takes_planes_away_and_keeps_a_lattice_by_the_closed_form()
     assert!(image.without_background(0.0).is_err());
 }
 
+/// The background is the kernel's weighted least-squares plane, computed streaming from
+/// Gaussian-smoothed moments: at pixels in the middle, at an edge and in a corner, the plane
+/// fitted by `spm_regression::generalised_least_squares` (one 1 × 1 block per pixel of
+/// variance 1/w, w the separable Gaussian window normalised inside the image) gives the same
+/// heights to 1e-9.
+#[test]
+fn background_removal_is_the_kernel_weighted_plane_fit() {
+    let (nx, ny) = (40usize, 31usize);
+    let sigma_px = 2.5;
+    let h: Vec<f64> = (0..nx * ny)
+        .map(|i| {
+            let (x, y) = ((i % nx) as f64, (i / nx) as f64);
+            2.0 + 0.05 * x - 0.03 * y + 0.4 * (0.9 * x).sin() * (0.7 * y).cos() + 0.002 * x * y
+        })
+        .collect();
+    let image = StoredImage::new(
+        h.clone(),
+        nx,
+        ny,
+        0.1,
+        0.1,
+        ImageTiming { line_time_s: 0.1 },
+    )
+    .unwrap();
+    let flat = image.without_background(sigma_px).unwrap();
+    let reach = (4.0 * sigma_px).ceil() as usize;
+    let g = |d: usize| (-0.5 * (d as f64 / sigma_px).powi(2)).exp();
+    for (column, row) in [(20_usize, 15_usize), (0, 12), (39, 30), (3, 0)] {
+        let (x0, x1) = (column.saturating_sub(reach), (column + reach).min(nx - 1));
+        let (y0, y1) = (row.saturating_sub(reach), (row + reach).min(ny - 1));
+        let (mut rows, mut rhs, mut blocks) = (Vec::new(), Vec::new(), Vec::new());
+        for y in y0..=y1 {
+            for x in x0..=x1 {
+                rows.push(vec![1.0, x as f64, y as f64]);
+                rhs.push(h[y * nx + x]);
+                blocks.push(vec![vec![
+                    1.0 / (g(x.abs_diff(column)) * g(y.abs_diff(row))),
+                ]]);
+            }
+        }
+        let fit = spm_regression::generalised_least_squares(&rows, &rhs, &blocks).unwrap();
+        let c = &fit.coefficients;
+        let expected = h[row * nx + column] - (c[0] + c[1] * column as f64 + c[2] * row as f64);
+        let got = flat.heights_nm()[row * nx + column];
+        assert!(
+            (got - expected).abs() < 1e-9,
+            "({column}, {row}): {got} vs the kernel's {expected}"
+        );
+    }
+}
+
 #[test]
 fn smoothing_attenuates_a_sinusoid_by_the_gaussians_transform() {
     let (nx, ny) = (90usize, 40usize);

@@ -287,6 +287,78 @@ fn track_sightings(tracks: &[AttachTrack], group0: usize) -> Vec<SamePoint> {
     out
 }
 
+/// What the report says of the counter-scanned pairs, when not all of them served.
+fn slow_pair_note(pairs: usize, pairs_used: usize, no_grid: bool) -> Option<String> {
+    if pairs == 0 {
+        Some(
+            "y hysteresis not identified: the stage scanned no counter-scanned pairs \
+             ([dynamics] slow_axis_pairs)"
+                .to_owned(),
+        )
+    } else if no_grid {
+        Some(format!(
+            "y hysteresis not identified: none of the {pairs} counter-scanned pairs could be \
+             tracked"
+        ))
+    } else if pairs_used < pairs {
+        Some(format!(
+            "{} of {pairs} counter-scanned pairs dropped (fewer than {MIN_WINDOWS} \
+             well-correlated windows)",
+            pairs - pairs_used
+        ))
+    } else {
+        None
+    }
+}
+
+/// The distinct line rates of the fast-axis ladder frames, lines per second.
+fn line_rates_hz(ladder: &[LadderFrame]) -> Vec<f64> {
+    ladder
+        .iter()
+        .filter(|f| f.slow_axis.is_none())
+        .map(|f| {
+            1.0 / (2.0
+                * f64::from(f.frame.request.pixels_per_line)
+                * f.frame.request.pixel_dwell.value())
+        })
+        .fold(Vec::new(), |mut v: Vec<f64>, r| {
+            if !v.iter().any(|x| (x / r - 1.0).abs() < 1e-9) {
+                v.push(r);
+            }
+            v
+        })
+}
+
+/// The loop at each size on one axis (0 = x), identified against the simulator's.
+fn loop_rows(
+    model: Option<&ScannerDynamics>,
+    truth: Option<&TrueDynamics>,
+    axis: usize,
+    lengths: &[f64],
+) -> Vec<LoopRow> {
+    lengths
+        .iter()
+        .map(|&length| {
+            let a = 0.5 * length;
+            let got = model.map_or(0.0, |m| {
+                let h = if axis == 0 {
+                    &m.hysteresis_x
+                } else {
+                    &m.hysteresis_y
+                };
+                h.loop_separation_counts(a, 0.0)
+            });
+            let want = truth.map(|t| t.hysteresis[axis.min(1)].loop_separation_counts(a, 0.0));
+            LoopRow {
+                length_counts: length,
+                separation_centre_counts: got,
+                true_separation_centre_counts: want,
+                ratio: want.filter(|w| *w > 0.0).map(|w| got / w),
+            }
+        })
+        .collect()
+}
+
 /// Identifies the run's dynamics (module docs).
 #[must_use]
 pub fn identify(
@@ -349,24 +421,7 @@ pub fn identify(
     } = slow_pair_sightings(ladder);
     let slow_sightings = slow.len();
     let grid_y = threshold_grid(&mut lengths_y);
-    if pairs == 0 {
-        notes.push(
-            "y hysteresis not identified: the stage scanned no counter-scanned pairs \
-             ([dynamics] slow_axis_pairs)"
-                .to_owned(),
-        );
-    } else if grid_y.is_empty() {
-        notes.push(format!(
-            "y hysteresis not identified: none of the {pairs} counter-scanned pairs could be \
-             tracked"
-        ));
-    } else if pairs_used < pairs {
-        notes.push(format!(
-            "{} of {pairs} counter-scanned pairs dropped (fewer than {MIN_WINDOWS} \
-             well-correlated windows)",
-            pairs - pairs_used
-        ));
-    }
+    notes.extend(slow_pair_note(pairs, pairs_used, grid_y.is_empty()));
     // Two stages. The fast-axis ladder and the tracks give the x hysteresis, the creep law
     // (its fast end chosen by the residual) and the lag; the counter-scanned pairs then give
     // the y hysteresis with all sightings. The pairs' sightings are dominated by the creep of
@@ -400,20 +455,7 @@ pub fn identify(
                 }
             }
             m.identification.ladder_counts = lengths.clone();
-            m.identification.line_rates_hz = ladder
-                .iter()
-                .filter(|f| f.slow_axis.is_none())
-                .map(|f| {
-                    1.0 / (2.0
-                        * f64::from(f.frame.request.pixels_per_line)
-                        * f.frame.request.pixel_dwell.value())
-                })
-                .fold(Vec::new(), |mut v: Vec<f64>, r| {
-                    if !v.iter().any(|x| (x / r - 1.0).abs() < 1e-9) {
-                        v.push(r);
-                    }
-                    v
-                });
+            m.identification.line_rates_hz = line_rates_hz(ladder);
             m.identification.notes = notes.clone();
             Some(m)
         }
@@ -422,31 +464,8 @@ pub fn identify(
             None
         }
     };
-    let loops = |axis: usize, lengths: &[f64]| -> Vec<LoopRow> {
-        lengths
-            .iter()
-            .map(|&length| {
-                let a = 0.5 * length;
-                let got = model.as_ref().map_or(0.0, |m| {
-                    let h = if axis == 0 {
-                        &m.hysteresis_x
-                    } else {
-                        &m.hysteresis_y
-                    };
-                    h.loop_separation_counts(a, 0.0)
-                });
-                let want = truth.map(|t| t.hysteresis[axis].loop_separation_counts(a, 0.0));
-                LoopRow {
-                    length_counts: length,
-                    separation_centre_counts: got,
-                    true_separation_centre_counts: want,
-                    ratio: want.filter(|w| *w > 0.0).map(|w| got / w),
-                }
-            })
-            .collect()
-    };
-    let loops_x = loops(0, &lengths);
-    let loops_y = loops(1, &lengths_y);
+    let loops_x = loop_rows(model.as_ref(), truth, 0, &lengths);
+    let loops_y = loop_rows(model.as_ref(), truth, 1, &lengths_y);
     let creep_gamma_per_decade = model
         .as_ref()
         .and_then(|m| m.creep.law().ok())

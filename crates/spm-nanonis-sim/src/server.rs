@@ -283,6 +283,8 @@ pub struct ServerStats {
     pub injected_stalls: u64,
     /// Scans found running.
     pub injected_scans_running: u64,
+    /// Requests refused on demand ([`ServerHandle::refuse_next`]).
+    pub injected_refusals: u64,
     /// Connections accepted.
     pub connections: u64,
     /// Requests refused as malformed (bad header closes, bad body gets an error reply).
@@ -313,6 +315,7 @@ impl ServerStats {
             + self.injected_delays
             + self.injected_stalls
             + self.injected_scans_running
+            + self.injected_refusals
     }
 }
 
@@ -501,6 +504,8 @@ struct State {
     /// A scan has ended (or been simulated) that no `Scan.WaitEndOfScan` returned for.
     end_unwaited: bool,
     leftover_running: bool,
+    /// Requests to refuse, by command name: how many more ([`ServerHandle::refuse_next`]).
+    refusals: std::collections::BTreeMap<String, u32>,
     rng: ChaCha8Rng,
     stats: ServerStats,
 }
@@ -602,10 +607,24 @@ impl State {
             last_scan: None,
             end_unwaited: false,
             leftover_running: false,
+            refusals: std::collections::BTreeMap::new(),
             rng,
             stats: ServerStats::default(),
             config,
         })
+    }
+
+    /// Whether this request of `command` is one to refuse ([`ServerHandle::refuse_next`]);
+    /// counted off.
+    fn take_refusal(&mut self, command: &str) -> bool {
+        match self.refusals.get_mut(command) {
+            Some(n) if *n > 0 => {
+                *n -= 1;
+                self.stats.injected_refusals += 1;
+                true
+            }
+            _ => false,
+        }
     }
 
     fn draw_fault(&mut self, command: &str) -> Fault {
@@ -1549,6 +1568,16 @@ impl ServerHandle {
         })
     }
 
+    /// The next `times` requests of `command` (`Scan.FrameSet`, …), on any connection, are
+    /// answered with an error section and not executed, as a controller refuses an argument
+    /// it does not accept (tests: a client's handling of a refusal, wherever the command
+    /// stands in its sequence). The description names the command and says it was injected;
+    /// it holds none of the words that make an error transient (busy, timeout, feedback).
+    pub fn refuse_next(&self, command: &str, times: u32) {
+        let mut state = lock(&self.shared);
+        *state.refusals.entry(command.to_owned()).or_insert(0) += times;
+    }
+
     /// Runs `f` on the simulator, mutably (tests: switch the oracle's recording on).
     pub fn with_simulator_mut<T>(&self, f: impl FnOnce(&mut Simulator) -> T) -> T {
         f(&mut lock(&self.shared).sim)
@@ -1942,6 +1971,7 @@ fn serve_commands(stream: &mut TcpStream, context: &Context) {
                 }
             }
             let fault = state.draw_fault(&header.command);
+            let refused = state.take_refusal(&header.command);
             let request = Request::decode(&header.command, &body, state.schema);
             let bytes = match (fault, request) {
                 (Fault::DropBefore, _) => {
@@ -1967,6 +1997,14 @@ fn serve_commands(stream: &mut TcpStream, context: &Context) {
                         &ErrorSection::error(format!("invalid request: {e}")),
                     )
                 }
+                (_, Ok(request)) if refused => encode_reply(
+                    &header.command,
+                    &request.neutral_reply(state.schema),
+                    &ErrorSection::error(format!(
+                        "{} refused (injected: ServerHandle::refuse_next); not executed",
+                        header.command
+                    )),
+                ),
                 (Fault::ErrorReply, Ok(request)) => {
                     state.stats.injected_error_replies += 1;
                     encode_reply(

@@ -27,8 +27,10 @@
 //! - **Schema by version.** On every (re)connection `Util.VersionGet` is asked and the
 //!   [`Schema`] chosen from the host-application release.
 //! - **Pipelines** ([`Client::call_pipelined`]): several requests in one write, their
-//!   replies read in order, for a command and the reads after it (one round trip where one
-//!   call each takes one each); nothing in a pipeline is sent again by the client.
+//!   replies read in order, for a command and what follows it (one round trip where one
+//!   call each takes one each: a move with its settle and clock read, a whole scan); nothing
+//!   in a pipeline is sent again by the client. Every reply of a pipeline is read, so once
+//!   the last is in the controller has executed them all.
 //! - **A second connection for stop and abort** ([`Client::stop`]): the manual lets a client
 //!   open up to four connections, each serialising its own commands, so a stop sent on a
 //!   second connection is executed while the first one is blocked in a wait.
@@ -546,9 +548,11 @@ impl Client {
     /// would. No request is sent again here (nor is the connection reopened once lost): the
     /// result of each is its reply, its error reply, or the error that ended the exchange (the
     /// connection is then dropped and the requests after it fail too; they may have been
-    /// executed). Meant for a command followed by reads, which the caller sends again one by
-    /// one from the first failure on ([`Request::is_retry_safe`]). `timeout_s` is the read
-    /// timeout of each reply.
+    /// executed). An error reply does not stop the controller from executing what follows
+    /// it: the caller decides what a failure means for the requests after it
+    /// (`NanonisMicroscope` sends reads and waits again one by one from the first failure on,
+    /// [`Request::is_retry_safe`], and stops the scan a pipeline started after a refused
+    /// setting). `timeout_s` is the read timeout of each reply.
     pub fn call_pipelined(
         &mut self,
         requests: &[&Request],

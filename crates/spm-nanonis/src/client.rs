@@ -5,7 +5,8 @@
 //!   announces, through a read-ahead: one `recv` usually brings both). A reply is accepted only for the command that was sent and only if its
 //!   body decodes to exactly that command's return arguments and error section. After any
 //!   I/O, timeout or framing failure the connection is dropped: its byte stream can no
-//!   longer be trusted to be at a message boundary.
+//!   longer be trusted to be at a message boundary. It is reset, not closed, so that
+//!   requests sent behind the failed one and not read yet are not executed later.
 //! - **Timeouts per command.** Every command has the read timeout
 //!   [`ClientConfig::command_timeout_s`]; wait-style commands (`Scan.WaitEndOfScan`, waited
 //!   `FolMe.XYPosSet` and `Motor.StartMove`) get their expected duration plus
@@ -414,14 +415,14 @@ impl Client {
                             return Ok(());
                         }
                         Ok(other) => {
-                            self.stream = None;
+                            self.drop_stream();
                             last = Some(NanonisError::new(
                                 NanonisErrorKind::Protocol,
                                 format!("unexpected reply {other:?}"),
                             ));
                         }
                         Err(e) => {
-                            self.stream = None;
+                            self.drop_stream();
                             last = Some(e);
                         }
                     }
@@ -536,7 +537,7 @@ impl Client {
                 }
             }
             Err(e) => {
-                self.stream = None;
+                self.drop_stream();
                 Err(e.in_command(name))
             }
         }
@@ -586,7 +587,7 @@ impl Client {
                 .map_err(|e| io_error("write requests", &e))
         });
         if let Err(e) = written {
-            self.stream = None;
+            self.drop_stream();
             return failed_all(e);
         }
         let mut results = Vec::with_capacity(requests.len());
@@ -606,7 +607,7 @@ impl Client {
                     &error.description,
                 )),
                 Err(e) => {
-                    self.stream = None;
+                    self.drop_stream();
                     Err(e.in_command(request.name()))
                 }
             });
@@ -650,6 +651,22 @@ impl Client {
             }
         }
         Err(last.unwrap_or_else(|| NanonisError::new(NanonisErrorKind::Io, "stop failed")))
+    }
+
+    /// Drops the main connection after a failure: reset (`SO_LINGER` 0) rather than closed,
+    /// so that requests the controller has received but not read yet — the rest of a
+    /// pipeline behind a reply that timed out — go with it instead of being executed later,
+    /// while the caller has gone on (a scan's start behind a stalled `Scan.FrameSet` would
+    /// start a scan in the middle of whatever comes next). The kernel discards the unread
+    /// bytes of a reset connection, and nanonis-sim, which may have read them already,
+    /// stops at its next write, that of the stalled reply.
+    fn drop_stream(&mut self) {
+        if let Some(connection) = self.stream.take()
+            && let Err(e) =
+                socket2::SockRef::from(connection.stream.get_ref()).set_linger(Some(Duration::ZERO))
+        {
+            tracing::debug!(error = %e, "nanonis: cannot reset the connection; closing it");
+        }
     }
 
     /// Closes both connections (the next command reconnects).

@@ -1329,14 +1329,14 @@ impl NanonisMicroscope {
         let timeout_s = self.client.waiting_timeout_s(wait.first_s);
         let mut results = self.client.call_pipelined(&all, timeout_s);
         let after_start = results.split_off(setup.len().min(results.len()));
-        let read_back = match checked_setup(&setup, results, buffer) {
-            Ok(read_back) => read_back,
-            Err(e) => return self.after_a_failed_start(e),
-        };
+        let answers = checked_setup(&setup, results, buffer);
+        if let Some((e, other_settings)) = answers.failure {
+            return self.after_a_failed_start(e, other_settings && answers.started);
+        }
         // The controller holds the settings sent.
         self.sent.buffer = Some(buffer);
         self.sent.frame = Some(bits);
-        if let Some(t) = read_back {
+        if let Some(t) = answers.line_times {
             self.sent.speed = Some(plan.speed);
             self.sent.line_times_s = Some(t);
         }
@@ -1362,10 +1362,18 @@ impl NanonisMicroscope {
 
     /// After a scan's set-up or start failed in its pipeline ([`Self::scan_in_one_round_trip`],
     /// whose later requests the controller has executed by now): any scan it started is
-    /// stopped, the settings are forgotten (sent again), and the failure is the error — or,
-    /// when the client would retry it (busy, a lost connection), `Ok(None)`: the scan is
-    /// done again one step after another.
-    fn after_a_failed_start(&mut self, e: NanonisError) -> Result<Option<ScanDone>, NanonisError> {
+    /// stopped and the settings are forgotten (sent again). When a scan ran with other
+    /// settings than those asked for (`scanned_otherwise`: a setting refused, even as busy,
+    /// before a start that was not), the instrument is not where the run left it — the tip
+    /// has scanned another frame — so the failure is the error whatever its kind (a busy
+    /// one stays transient: the calibration measures the node again, from its move). Else
+    /// a failure the client would retry (busy, a lost connection) gives `Ok(None)`: the
+    /// scan is done again one step after another; any other is the error.
+    fn after_a_failed_start(
+        &mut self,
+        e: NanonisError,
+        scanned_otherwise: bool,
+    ) -> Result<Option<ScanDone>, NanonisError> {
         tracing::debug!(error = %e, "nanonis: the scan's set-up or start failed; stopping");
         self.scan_idle = None;
         self.sent = SentSettings {
@@ -1377,6 +1385,16 @@ impl NanonisMicroscope {
             direction_up: 1,
         }) {
             tracing::warn!(error = %stop, "nanonis: could not stop the scan");
+        }
+        if scanned_otherwise {
+            return Err(NanonisError {
+                message: format!(
+                    "{}; the controller scanned with its previous settings in its place \
+                     (stopped): not the scan asked for",
+                    e.message
+                ),
+                ..e
+            });
         }
         let retried = e.kind == NanonisErrorKind::Busy
             || (!self.client.is_connected() && e.kind != NanonisErrorKind::Aborted);
@@ -1768,31 +1786,61 @@ fn checked_line_times(reply: Option<Reply>) -> Result<(f64, f64), NanonisError> 
     Ok((tf, tb))
 }
 
+/// A scan's set-up and start as the controller answered them in one pipeline
+/// ([`checked_setup`]).
+struct SetupAnswers {
+    /// The line times read back, when the speed was set.
+    line_times: Option<(f64, f64)>,
+    /// The first failure, and whether it left the controller with other settings than
+    /// those asked for (a setting refused, or read back otherwise than set).
+    failure: Option<(NanonisError, bool)>,
+    /// The start was answered without error: a scan ran.
+    started: bool,
+}
+
 /// The replies to a scan's set-up and start sent in one pipeline (`setup`, the start last),
-/// checked in order: the first error reply, failure or read-back that does not fit is the
-/// error. The line times read back when the speed was set.
+/// checked in order: the first error reply, failure or read-back that does not fit.
 fn checked_setup(
     setup: &[Request],
     results: Vec<Result<Reply, NanonisError>>,
     buffer: (i32, i32),
-) -> Result<Option<(f64, f64)>, NanonisError> {
-    let mut line_times = None;
+) -> SetupAnswers {
+    let mut answers = SetupAnswers {
+        line_times: None,
+        failure: None,
+        started: false,
+    };
     let mut results = results.into_iter();
     for request in setup {
-        let reply = match results.next() {
-            Some(result) => result?,
-            None => {
-                return Err(NanonisError::new(NanonisErrorKind::Protocol, "no reply")
-                    .in_command(request.name()));
-            }
+        let reply = results.next().unwrap_or_else(|| {
+            Err(NanonisError::new(NanonisErrorKind::Protocol, "no reply")
+                .in_command(request.name()))
+        });
+        let setting = matches!(
+            request,
+            Request::ScanBufferSet(_) | Request::ScanFrameSet(_) | Request::ScanSpeedSet(_)
+        );
+        let checked = match (request, reply) {
+            (_, Err(e)) => Err((e, setting)),
+            (Request::ScanBufferGet, Ok(reply)) => checked_buffer(Some(reply), buffer)
+                .map(|()| None)
+                .map_err(|e| (e, true)),
+            (Request::ScanSpeedGet, Ok(reply)) => checked_line_times(Some(reply))
+                .map(Some)
+                .map_err(|e| (e, true)),
+            (_, Ok(_)) => Ok(None),
         };
-        match request {
-            Request::ScanBufferGet => checked_buffer(Some(reply), buffer)?,
-            Request::ScanSpeedGet => line_times = Some(checked_line_times(Some(reply))?),
-            _ => {}
+        match checked {
+            Ok(line_times) => {
+                answers.line_times = line_times.or(answers.line_times);
+                answers.started |= matches!(request, Request::ScanAction { .. });
+            }
+            Err(failure) => {
+                answers.failure = answers.failure.or(Some(failure));
+            }
         }
     }
-    Ok(line_times)
+    answers
 }
 
 impl NanonisMicroscope {

@@ -504,8 +504,9 @@ struct State {
     /// A scan has ended (or been simulated) that no `Scan.WaitEndOfScan` returned for.
     end_unwaited: bool,
     leftover_running: bool,
-    /// Requests to refuse, by command name: how many more ([`ServerHandle::refuse_next`]).
-    refusals: std::collections::BTreeMap<String, u32>,
+    /// Requests to refuse, by command name: how many more, and the error description
+    /// ([`ServerHandle::refuse_next`]).
+    refusals: std::collections::BTreeMap<String, (u32, String)>,
     rng: ChaCha8Rng,
     stats: ServerStats,
 }
@@ -614,16 +615,16 @@ impl State {
         })
     }
 
-    /// Whether this request of `command` is one to refuse ([`ServerHandle::refuse_next`]);
-    /// counted off.
-    fn take_refusal(&mut self, command: &str) -> bool {
+    /// The error description when this request of `command` is one to refuse
+    /// ([`ServerHandle::refuse_next`]); counted off.
+    fn take_refusal(&mut self, command: &str) -> Option<String> {
         match self.refusals.get_mut(command) {
-            Some(n) if *n > 0 => {
+            Some((n, description)) if *n > 0 => {
                 *n -= 1;
                 self.stats.injected_refusals += 1;
-                true
+                Some(description.clone())
             }
-            _ => false,
+            _ => None,
         }
     }
 
@@ -1571,11 +1572,18 @@ impl ServerHandle {
     /// The next `times` requests of `command` (`Scan.FrameSet`, …), on any connection, are
     /// answered with an error section and not executed, as a controller refuses an argument
     /// it does not accept (tests: a client's handling of a refusal, wherever the command
-    /// stands in its sequence). The description names the command and says it was injected;
-    /// it holds none of the words that make an error transient (busy, timeout, feedback).
-    pub fn refuse_next(&self, command: &str, times: u32) {
-        let mut state = lock(&self.shared);
-        *state.refusals.entry(command.to_owned()).or_insert(0) += times;
+    /// stands in its sequence). `busy`: the description begins "busy" (a client sends such
+    /// a request again), else it names the command and says it was refused, with none of
+    /// the words that make an error transient. Replaces what was set for `command` before.
+    pub fn refuse_next(&self, command: &str, times: u32, busy: bool) {
+        let description = if busy {
+            format!("busy: {command} not executed (injected: ServerHandle::refuse_next)")
+        } else {
+            format!("{command} refused (injected: ServerHandle::refuse_next); not executed")
+        };
+        lock(&self.shared)
+            .refusals
+            .insert(command.to_owned(), (times, description));
     }
 
     /// Runs `f` on the simulator, mutably (tests: switch the oracle's recording on).
@@ -1997,13 +2005,10 @@ fn serve_commands(stream: &mut TcpStream, context: &Context) {
                         &ErrorSection::error(format!("invalid request: {e}")),
                     )
                 }
-                (_, Ok(request)) if refused => encode_reply(
+                (_, Ok(request)) if refused.is_some() => encode_reply(
                     &header.command,
                     &request.neutral_reply(state.schema),
-                    &ErrorSection::error(format!(
-                        "{} refused (injected: ServerHandle::refuse_next); not executed",
-                        header.command
-                    )),
+                    &ErrorSection::error(refused.unwrap_or_default()),
                 ),
                 (Fault::ErrorReply, Ok(request)) => {
                     state.stats.injected_error_replies += 1;

@@ -544,7 +544,7 @@ fn a_refused_setting_or_start_in_the_scan_pipeline_is_an_error_naming_it_and_no_
         let mut tcp = NanonisMicroscope::connect(client_config(port)).unwrap();
         tcp.scan(&first).unwrap();
         let before = server.stats();
-        server.refuse_next(refused, 1);
+        server.refuse_next(refused, 1, false);
         let e = tcp.scan(&second).unwrap_err();
         assert_eq!(e.command.as_deref(), Some(refused), "{e}");
         assert_eq!(e.kind, spm_nanonis::NanonisErrorKind::Controller, "{e}");
@@ -590,4 +590,40 @@ fn a_refused_setting_or_start_in_the_scan_pipeline_is_an_error_naming_it_and_no_
         }
         assert_eq!(settings(port), expected, "{refused}");
     }
+}
+
+/// The same pipeline, a setting or the start answered "busy" (not executed), which the client
+/// otherwise sends again. A busy start ran nothing (the wait after it waited for no scan):
+/// the scan is done again one step after another, with the frame asked for. A busy frame
+/// before a start that ran has let the controller scan its previous frame: the tip is not
+/// where the run left it, so that is the scan's error, transient (the calibration measures
+/// the node again from its move), naming `Scan.FrameSet` — not a frame.
+#[test]
+fn a_busy_start_in_the_scan_pipeline_is_retried_and_a_busy_frame_is_the_error() {
+    let first = request(ScanDirection::Direct, 16, 4);
+    let second = ScanRequest {
+        origin: CountPoint::from_counts(-3000.0, 2500.0),
+        ..first.clone()
+    };
+    let server = start(SocketFaults::none());
+    let mut tcp = NanonisMicroscope::connect(client_config(server.addr().port())).unwrap();
+    tcp.scan(&first).unwrap();
+    server.refuse_next("Scan.Action", 1, true);
+    let frame = tcp.scan(&second).unwrap();
+    frame.validate().unwrap();
+    assert_eq!(frame.request, second);
+    let truth = server.last_frame_truth().unwrap();
+    assert_eq!(truth.time_s.len(), frame.forward.time_s.len());
+    for (t, t_sim) in frame.forward.time_s.iter().zip(&truth.time_s) {
+        assert!(close(*t, *t_sim, 1e-3), "{t} vs {t_sim}");
+    }
+    server.refuse_next("Scan.FrameSet", 1, true);
+    let e = tcp.scan(&first).unwrap_err();
+    assert_eq!(e.command.as_deref(), Some("Scan.FrameSet"), "{e}");
+    assert_eq!(e.kind, spm_nanonis::NanonisErrorKind::Busy, "{e}");
+    assert!(e.kind().is_transient(), "{e}");
+    assert!(e.to_string().contains("previous settings"), "{e}");
+    let frame = tcp.scan(&first).unwrap();
+    frame.validate().unwrap();
+    assert_eq!(server.stats().injected_refusals, 2);
 }

@@ -85,6 +85,9 @@
 //! - **Socket-level fault injection** ([`SocketFaults`], seeded): error replies, replies
 //!   written one byte at a time, delays, stalls longer than the client's timeout,
 //!   connections dropped before or after executing a command, and a scan left running.
+//!   And on demand, for a test: the next requests of a named command refused with an error
+//!   section, not executed ([`ServerHandle::refuse_next`]), as a controller refuses an
+//!   argument — wherever the command stands in a client's sequence or pipeline.
 //! - **Bounded by the server, not by its clients** ([`ConnectionLimits`], issue 25 item 11):
 //!   at most `max_connections` (default 8) are served, one more is accepted and closed at
 //!   once; a request must arrive whole within `message_timeout_s` (10 s) of its first byte,

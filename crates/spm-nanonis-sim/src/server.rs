@@ -283,6 +283,8 @@ pub struct ServerStats {
     pub injected_stalls: u64,
     /// Scans found running.
     pub injected_scans_running: u64,
+    /// Requests refused on demand ([`ServerHandle::refuse_next`]).
+    pub injected_refusals: u64,
     /// Connections accepted.
     pub connections: u64,
     /// Requests refused as malformed (bad header closes, bad body gets an error reply).
@@ -313,6 +315,7 @@ impl ServerStats {
             + self.injected_delays
             + self.injected_stalls
             + self.injected_scans_running
+            + self.injected_refusals
     }
 }
 
@@ -501,6 +504,9 @@ struct State {
     /// A scan has ended (or been simulated) that no `Scan.WaitEndOfScan` returned for.
     end_unwaited: bool,
     leftover_running: bool,
+    /// Requests to refuse, by command name: how many more, and the error description
+    /// ([`ServerHandle::refuse_next`]).
+    refusals: std::collections::BTreeMap<String, (u32, String)>,
     rng: ChaCha8Rng,
     stats: ServerStats,
 }
@@ -602,10 +608,24 @@ impl State {
             last_scan: None,
             end_unwaited: false,
             leftover_running: false,
+            refusals: std::collections::BTreeMap::new(),
             rng,
             stats: ServerStats::default(),
             config,
         })
+    }
+
+    /// The error description when this request of `command` is one to refuse
+    /// ([`ServerHandle::refuse_next`]); counted off.
+    fn take_refusal(&mut self, command: &str) -> Option<String> {
+        match self.refusals.get_mut(command) {
+            Some((n, description)) if *n > 0 => {
+                *n -= 1;
+                self.stats.injected_refusals += 1;
+                Some(description.clone())
+            }
+            _ => None,
+        }
     }
 
     fn draw_fault(&mut self, command: &str) -> Fault {
@@ -1549,6 +1569,23 @@ impl ServerHandle {
         })
     }
 
+    /// The next `times` requests of `command` (`Scan.FrameSet`, …), on any connection, are
+    /// answered with an error section and not executed, as a controller refuses an argument
+    /// it does not accept (tests: a client's handling of a refusal, wherever the command
+    /// stands in its sequence). `busy`: the description begins "busy" (a client sends such
+    /// a request again), else it names the command and says it was refused, with none of
+    /// the words that make an error transient. Replaces what was set for `command` before.
+    pub fn refuse_next(&self, command: &str, times: u32, busy: bool) {
+        let description = if busy {
+            format!("busy: {command} not executed (injected: ServerHandle::refuse_next)")
+        } else {
+            format!("{command} refused (injected: ServerHandle::refuse_next); not executed")
+        };
+        lock(&self.shared)
+            .refusals
+            .insert(command.to_owned(), (times, description));
+    }
+
     /// Runs `f` on the simulator, mutably (tests: switch the oracle's recording on).
     pub fn with_simulator_mut<T>(&self, f: impl FnOnce(&mut Simulator) -> T) -> T {
         f(&mut lock(&self.shared).sim)
@@ -1942,6 +1979,7 @@ fn serve_commands(stream: &mut TcpStream, context: &Context) {
                 }
             }
             let fault = state.draw_fault(&header.command);
+            let refused = state.take_refusal(&header.command);
             let request = Request::decode(&header.command, &body, state.schema);
             let bytes = match (fault, request) {
                 (Fault::DropBefore, _) => {
@@ -1967,6 +2005,11 @@ fn serve_commands(stream: &mut TcpStream, context: &Context) {
                         &ErrorSection::error(format!("invalid request: {e}")),
                     )
                 }
+                (_, Ok(request)) if refused.is_some() => encode_reply(
+                    &header.command,
+                    &request.neutral_reply(state.schema),
+                    &ErrorSection::error(refused.unwrap_or_default()),
+                ),
                 (Fault::ErrorReply, Ok(request)) => {
                     state.stats.injected_error_replies += 1;
                     encode_reply(

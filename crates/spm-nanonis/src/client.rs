@@ -5,7 +5,8 @@
 //!   announces, through a read-ahead: one `recv` usually brings both). A reply is accepted only for the command that was sent and only if its
 //!   body decodes to exactly that command's return arguments and error section. After any
 //!   I/O, timeout or framing failure the connection is dropped: its byte stream can no
-//!   longer be trusted to be at a message boundary.
+//!   longer be trusted to be at a message boundary. It is reset, not closed, so that
+//!   requests sent behind the failed one and not read yet are not executed later.
 //! - **Timeouts per command.** Every command has the read timeout
 //!   [`ClientConfig::command_timeout_s`]; wait-style commands (`Scan.WaitEndOfScan`, waited
 //!   `FolMe.XYPosSet` and `Motor.StartMove`) get their expected duration plus
@@ -27,8 +28,10 @@
 //! - **Schema by version.** On every (re)connection `Util.VersionGet` is asked and the
 //!   [`Schema`] chosen from the host-application release.
 //! - **Pipelines** ([`Client::call_pipelined`]): several requests in one write, their
-//!   replies read in order, for a command and the reads after it (one round trip where one
-//!   call each takes one each); nothing in a pipeline is sent again by the client.
+//!   replies read in order, for a command and what follows it (one round trip where one
+//!   call each takes one each: a move with its settle and clock read, a whole scan); nothing
+//!   in a pipeline is sent again by the client. Every reply of a pipeline is read, so once
+//!   the last is in the controller has executed them all.
 //! - **A second connection for stop and abort** ([`Client::stop`]): the manual lets a client
 //!   open up to four connections, each serialising its own commands, so a stop sent on a
 //!   second connection is executed while the first one is blocked in a wait.
@@ -412,14 +415,14 @@ impl Client {
                             return Ok(());
                         }
                         Ok(other) => {
-                            self.stream = None;
+                            self.drop_stream();
                             last = Some(NanonisError::new(
                                 NanonisErrorKind::Protocol,
                                 format!("unexpected reply {other:?}"),
                             ));
                         }
                         Err(e) => {
-                            self.stream = None;
+                            self.drop_stream();
                             last = Some(e);
                         }
                     }
@@ -534,7 +537,7 @@ impl Client {
                 }
             }
             Err(e) => {
-                self.stream = None;
+                self.drop_stream();
                 Err(e.in_command(name))
             }
         }
@@ -546,9 +549,11 @@ impl Client {
     /// would. No request is sent again here (nor is the connection reopened once lost): the
     /// result of each is its reply, its error reply, or the error that ended the exchange (the
     /// connection is then dropped and the requests after it fail too; they may have been
-    /// executed). Meant for a command followed by reads, which the caller sends again one by
-    /// one from the first failure on ([`Request::is_retry_safe`]). `timeout_s` is the read
-    /// timeout of each reply.
+    /// executed). An error reply does not stop the controller from executing what follows
+    /// it: the caller decides what a failure means for the requests after it
+    /// (`NanonisMicroscope` sends reads and waits again one by one from the first failure on,
+    /// [`Request::is_retry_safe`], and stops the scan a pipeline started after a refused
+    /// setting). `timeout_s` is the read timeout of each reply.
     pub fn call_pipelined(
         &mut self,
         requests: &[&Request],
@@ -582,7 +587,7 @@ impl Client {
                 .map_err(|e| io_error("write requests", &e))
         });
         if let Err(e) = written {
-            self.stream = None;
+            self.drop_stream();
             return failed_all(e);
         }
         let mut results = Vec::with_capacity(requests.len());
@@ -602,7 +607,7 @@ impl Client {
                     &error.description,
                 )),
                 Err(e) => {
-                    self.stream = None;
+                    self.drop_stream();
                     Err(e.in_command(request.name()))
                 }
             });
@@ -646,6 +651,22 @@ impl Client {
             }
         }
         Err(last.unwrap_or_else(|| NanonisError::new(NanonisErrorKind::Io, "stop failed")))
+    }
+
+    /// Drops the main connection after a failure: reset (`SO_LINGER` 0) rather than closed,
+    /// so that requests the controller has received but not read yet — the rest of a
+    /// pipeline behind a reply that timed out — go with it instead of being executed later,
+    /// while the caller has gone on (a scan's start behind a stalled `Scan.FrameSet` would
+    /// start a scan in the middle of whatever comes next). The kernel discards the unread
+    /// bytes of a reset connection, and nanonis-sim, which may have read them already,
+    /// stops at its next write, that of the stalled reply.
+    fn drop_stream(&mut self) {
+        if let Some(connection) = self.stream.take()
+            && let Err(e) =
+                socket2::SockRef::from(connection.stream.get_ref()).set_linger(Some(Duration::ZERO))
+        {
+            tracing::debug!(error = %e, "nanonis: cannot reset the connection; closing it");
+        }
     }
 
     /// Closes both connections (the next command reconnects).

@@ -904,30 +904,13 @@ impl NanonisMicroscope {
                 .call_then_read(&set, None, &[Request::ScanBufferGet])?
                 .into_iter()
                 .skip(1);
-            match replies.next() {
-                Some(Reply::Buffer(b)) if b.pixels == n16 && b.lines == lines => {}
-                Some(Reply::Buffer(b)) => {
-                    self.sent.buffer = None;
-                    return Err(NanonisError::new(
-                        NanonisErrorKind::Controller,
-                        format!(
-                            "the controller set {} × {} pixels for the requested {n16} × {lines}",
-                            b.pixels, b.lines
-                        ),
-                    )
-                    .in_command("Scan.BufferGet"));
-                }
-                other => return Err(unexpected_or_none("Scan.BufferGet", other)),
+            if let Err(e) = checked_buffer(replies.next(), (n16, lines)) {
+                self.sent.buffer = None;
+                return Err(e);
             }
             self.sent.buffer = Some((n16, lines));
         }
-        let frame_bits = [
-            frame.centre_x_m.to_bits(),
-            frame.centre_y_m.to_bits(),
-            frame.width_m.to_bits(),
-            frame.height_m.to_bits(),
-            frame.angle_deg.to_bits(),
-        ];
+        let frame_bits = frame_bits(&frame);
         if self.sent.frame != Some(frame_bits) {
             self.client.call(&Request::ScanFrameSet(frame))?;
             self.sent.frame = Some(frame_bits);
@@ -943,19 +926,7 @@ impl NanonisMicroscope {
                 )?
                 .into_iter()
                 .skip(1);
-            let (tf, tb) = match replies.next() {
-                Some(Reply::Speed(s)) => {
-                    (f64::from(s.forward_line_s), f64::from(s.backward_line_s))
-                }
-                other => return Err(unexpected_or_none("Scan.SpeedGet", other)),
-            };
-            if !(tf.is_finite() && tb.is_finite() && tf > 0.0 && tb > 0.0) {
-                return Err(NanonisError::new(
-                    NanonisErrorKind::Controller,
-                    format!("line times {tf} s / {tb} s are not positive"),
-                )
-                .in_command("Scan.SpeedGet"));
-            }
+            let (tf, tb) = checked_line_times(replies.next())?;
             self.sent.speed = Some(speed);
             self.sent.line_times_s = Some((tf, tb));
         }
@@ -1105,15 +1076,15 @@ impl NanonisMicroscope {
         })
     }
 
-    /// Waits for the end of the scan started (`expected_s` long) and grabs its data; a scan
-    /// that fails or does not end is stopped (an interrupted one is left paused).
+    /// The end of the scan started (`expected_s` long) and its data as
+    /// [`Self::end_of_scan`] found them: a scan that failed or did not end is stopped (an
+    /// interrupted one is left paused).
     fn finish_scan(
         &mut self,
+        ended: Result<Option<ScanEnd>, NanonisError>,
         expected_s: f64,
-        want_backward: bool,
-        (n16, lines): (u32, u32),
     ) -> Result<ScanEnd, NanonisError> {
-        let ended = match self.end_of_scan(expected_s, want_backward, n16, lines) {
+        let ended = match ended {
             Ok(ended) => ended,
             // Interrupted: the scan is paused, not stopped.
             Err(e) if e.kind == NanonisErrorKind::Aborted => return Err(e),
@@ -1221,22 +1192,19 @@ impl NanonisMicroscope {
         // A scan moves the tip: only this one's raster counts from here on.
         self.after_scan = None;
         let plan = self.plan_scan(request)?;
-        let (n16, lines, line_s) = (plan.n16, request.lines, plan.line_s);
+        let (n16, lines) = (plan.n16, request.lines);
         let direction_up = self.config.slow_direction.direction_up();
-        self.start_scan(
-            n16 as i32,
-            lines as i32,
-            plan.frame,
-            plan.speed,
-            direction_up,
-        )?;
-        // The connection the scan was started on.
-        let reconnects = self.client.reconnects();
-        let (tf, tb) = self.sent.line_times_s.unwrap_or((line_s, line_s));
-        let expected_s = f64::from(lines) * (tf + tb);
         // Backward first when wanted (a controller that records lazily learns it is needed).
         let want_backward = request.record_backward && self.capabilities.backward_trace;
-        let end = self.finish_scan(expected_s, want_backward, (n16, lines))?;
+        let how = (lines, direction_up, want_backward);
+        let ScanDone {
+            end,
+            reconnects,
+            line_times: (tf, tb),
+        } = match self.scan_in_one_round_trip(&plan, how)? {
+            Some(done) => done,
+            None => self.scan_start_then_end(&plan, how)?,
+        };
         // Ended normally on the connection it was started on: no scan runs until the next
         // start (a reconnection in between may have lost the end, or left another scan).
         if self.client.reconnects() == reconnects {
@@ -1260,6 +1228,177 @@ impl NanonisMicroscope {
             (&end, n16, direction_up, want_backward),
             (start_s, tf, tb),
         )
+    }
+
+    /// A scan started ([`Self::start_scan`]: the set-up and the start, then the end
+    /// ([`Self::end_of_scan`]: the wait, the data, the clock and the position; one round
+    /// trip with [`Self::pipelining`]).
+    fn scan_start_then_end(
+        &mut self,
+        plan: &ScanPlan,
+        (lines, direction_up, want_backward): (u32, u32, bool),
+    ) -> Result<ScanDone, NanonisError> {
+        self.start_scan(
+            plan.n16 as i32,
+            lines as i32,
+            plan.frame,
+            plan.speed,
+            direction_up,
+        )?;
+        // The connection the scan was started on.
+        let reconnects = self.client.reconnects();
+        let line_times = self.sent.line_times_s.unwrap_or((plan.line_s, plan.line_s));
+        let expected_s = f64::from(lines) * (line_times.0 + line_times.1);
+        let ended = self.end_of_scan(expected_s, want_backward, plan.n16, lines);
+        let end = self.finish_scan(ended, expected_s)?;
+        Ok(ScanDone {
+            end,
+            reconnects,
+            line_times,
+        })
+    }
+
+    /// A whole scan in one round trip with a simulated controller ([`Self::pipelining`]):
+    /// the settings that differ from those last sent (buffer and speed with their
+    /// read-backs, the frame), the start, the wait for the end, the data, the clock and the
+    /// position in one write, answered in order. `Ok(None)`: not done so, to be done by
+    /// [`Self::scan_start_then_end`] — not pipelining, interrupted, or a failure before the
+    /// start that the client would retry (busy, a lost connection).
+    ///
+    /// The controller executes the whole pipeline whatever it answers to each part. So a
+    /// setting it refused (or read back otherwise than set) or a start it refused has run
+    /// what followed all the same — a scan with the settings it had, or a wait for none
+    /// (its timeout of controller time) — before the refusal is read: any scan started is
+    /// then stopped (`Scan.Action` stop), every reply after the failure is discarded, the
+    /// settings are sent again next time, and the error is the refusal, naming the
+    /// refused command. Nothing after a failure is ever taken as the scan's data.
+    fn scan_in_one_round_trip(
+        &mut self,
+        plan: &ScanPlan,
+        (lines, direction_up, want_backward): (u32, u32, bool),
+    ) -> Result<Option<ScanDone>, NanonisError> {
+        let clock = match (self.pipelining(), self.clock_request()) {
+            (true, Some(clock)) if !self.interrupted() => clock,
+            _ => return Ok(None),
+        };
+        self.stop_running_scan()?;
+        self.invalidate_on_reconnect();
+        // Connected, on the connection `Scan.StatusGet` (now or before) found idle.
+        if !self.scan_idle_known() {
+            return Ok(None);
+        }
+        let buffer = (plan.n16 as i32, lines as i32);
+        let bits = frame_bits(&plan.frame);
+        let mut setup = Vec::with_capacity(6);
+        if self.sent.buffer != Some(buffer) {
+            setup.push(Request::ScanBufferSet(ScanBuffer {
+                channels: vec![self.config.z_channel],
+                pixels: buffer.0,
+                lines: buffer.1,
+            }));
+            setup.push(Request::ScanBufferGet);
+        }
+        if self.sent.frame != Some(bits) {
+            setup.push(Request::ScanFrameSet(plan.frame));
+        }
+        let speed_sent = self.sent.speed == Some(plan.speed);
+        if !speed_sent {
+            setup.push(Request::ScanSpeedSet(plan.speed));
+            setup.push(Request::ScanSpeedGet);
+        }
+        setup.push(Request::ScanAction {
+            action: scan_action::START,
+            direction_up,
+        });
+        // The wait for the line times the controller uses, as read back before, else for
+        // those requested (and the rest of it after, should the controller's be longer).
+        let line_times = match (speed_sent, self.sent.line_times_s) {
+            (true, Some(t)) => t,
+            _ => (plan.line_s, plan.line_s),
+        };
+        let mut wait = self.end_of_scan_wait(f64::from(lines) * (line_times.0 + line_times.1));
+        let reads = self.end_of_scan_reads(want_backward, clock);
+        // From the start until its normal end a scan may be running.
+        self.scan_idle = None;
+        let reconnects = self.client.reconnects();
+        let all: Vec<&Request> = setup
+            .iter()
+            .chain(std::iter::once(&wait.request))
+            .chain(&reads)
+            .collect();
+        let timeout_s = self.client.waiting_timeout_s(wait.first_s);
+        let mut results = self.client.call_pipelined(&all, timeout_s);
+        let after_start = results.split_off(setup.len().min(results.len()));
+        let answers = checked_setup(&setup, results, buffer);
+        if let Some((e, other_settings)) = answers.failure {
+            return self.after_a_failed_start(e, other_settings && answers.started);
+        }
+        // The controller holds the settings sent.
+        self.sent.buffer = Some(buffer);
+        self.sent.frame = Some(bits);
+        if let Some(t) = answers.line_times {
+            self.sent.speed = Some(plan.speed);
+            self.sent.line_times_s = Some(t);
+        }
+        let line_times = self.sent.line_times_s.unwrap_or(line_times);
+        let expected_s = f64::from(lines) * (line_times.0 + line_times.1);
+        wait.total_ms = self.end_of_scan_timeout_ms(expected_s);
+        let calls: Vec<(&Request, Option<f64>)> =
+            std::iter::once((&wait.request, Some(wait.first_s)))
+                .chain(reads.iter().map(|r| (r, None)))
+                .collect();
+        let ended = self
+            .replies_in_order(&calls, after_start)
+            .and_then(|replies| {
+                self.end_of_scan_replies(replies, &wait, (want_backward, plan.n16, lines))
+            });
+        let end = self.finish_scan(ended, expected_s)?;
+        Ok(Some(ScanDone {
+            end,
+            reconnects,
+            line_times,
+        }))
+    }
+
+    /// After a scan's set-up or start failed in its pipeline ([`Self::scan_in_one_round_trip`],
+    /// whose later requests the controller has executed by now): any scan it started is
+    /// stopped and the settings are forgotten (sent again). When a scan ran with other
+    /// settings than those asked for (`scanned_otherwise`: a setting refused, even as busy,
+    /// before a start that was not), the instrument is not where the run left it — the tip
+    /// has scanned another frame — so the failure is the error whatever its kind (a busy
+    /// one stays transient: the calibration measures the node again, from its move). Else
+    /// a failure the client would retry (busy, a lost connection) gives `Ok(None)`: the
+    /// scan is done again one step after another; any other is the error.
+    fn after_a_failed_start(
+        &mut self,
+        e: NanonisError,
+        scanned_otherwise: bool,
+    ) -> Result<Option<ScanDone>, NanonisError> {
+        tracing::debug!(error = %e, "nanonis: the scan's set-up or start failed; stopping");
+        self.scan_idle = None;
+        self.sent = SentSettings {
+            reconnects: self.client.reconnects(),
+            ..SentSettings::default()
+        };
+        if let Err(stop) = self.client.stop(&Request::ScanAction {
+            action: scan_action::STOP,
+            direction_up: 1,
+        }) {
+            tracing::warn!(error = %stop, "nanonis: could not stop the scan");
+        }
+        if scanned_otherwise {
+            return Err(NanonisError {
+                message: format!(
+                    "{}; the controller scanned with its previous settings in its place \
+                     (stopped): not the scan asked for",
+                    e.message
+                ),
+                ..e
+            });
+        }
+        let retried = e.kind == NanonisErrorKind::Busy
+            || (!self.client.is_connected() && e.kind != NanonisErrorKind::Aborted);
+        if retried { Ok(None) } else { Err(e) }
     }
 
     fn z_counts(&self, value_m: f32) -> Result<f64, NanonisError> {
@@ -1314,8 +1453,7 @@ impl NanonisMicroscope {
         &mut self,
         calls: &[(&Request, Option<f64>)],
     ) -> Result<Vec<Reply>, NanonisError> {
-        let mut replies = Vec::with_capacity(calls.len());
-        if self.pipelining() {
+        let results = if self.pipelining() {
             let all: Vec<&Request> = calls.iter().map(|(r, _)| *r).collect();
             let waits: Vec<f64> = calls.iter().filter_map(|(_, e)| *e).collect();
             let timeout_s = if waits.is_empty() {
@@ -1323,18 +1461,34 @@ impl NanonisMicroscope {
             } else {
                 self.client.waiting_timeout_s(waits.iter().sum())
             };
-            for (request, result) in all.iter().zip(self.client.call_pipelined(&all, timeout_s)) {
-                match result {
-                    Ok(reply) => replies.push(reply),
-                    Err(e)
-                        if e.kind == NanonisErrorKind::Busy
-                            || (!self.client.is_connected() && request.is_retry_safe()) =>
-                    {
-                        tracing::debug!(error = %e, "nanonis: pipeline broken; one call each");
-                        break;
-                    }
-                    Err(e) => return Err(e),
+            self.client.call_pipelined(&all, timeout_s)
+        } else {
+            Vec::new()
+        };
+        self.replies_in_order(calls, results)
+    }
+
+    /// The replies to `calls` from `results`, the answers to them sent in one pipeline (or
+    /// fewer: none when not pipelined): taken in order up to the first failure the client
+    /// would retry (busy, or a lost connection with a retry-safe request), from there one
+    /// call each (with the client's retries). Any other failure is the error.
+    fn replies_in_order(
+        &mut self,
+        calls: &[(&Request, Option<f64>)],
+        results: Vec<Result<Reply, NanonisError>>,
+    ) -> Result<Vec<Reply>, NanonisError> {
+        let mut replies = Vec::with_capacity(calls.len());
+        for ((request, _), result) in calls.iter().zip(results) {
+            match result {
+                Ok(reply) => replies.push(reply),
+                Err(e)
+                    if e.kind == NanonisErrorKind::Busy
+                        || (!self.client.is_connected() && request.is_retry_safe()) =>
+                {
+                    tracing::debug!(error = %e, "nanonis: pipeline broken; one call each");
+                    break;
                 }
+                Err(e) => return Err(e),
             }
         }
         for (request, expected_s) in calls.iter().skip(replies.len()) {
@@ -1375,10 +1529,6 @@ impl NanonisMicroscope {
         n16: u32,
         lines: u32,
     ) -> Result<Option<ScanEnd>, NanonisError> {
-        let grab_request = |forward| Request::ScanFrameDataGrab {
-            channel: self.config.z_channel as u32,
-            forward,
-        };
         let clock = self.clock_request();
         let (true, Some(clock)) = (self.pipelining(), clock) else {
             if !self.wait_end_of_scan(expected_s)? {
@@ -1386,19 +1536,43 @@ impl NanonisMicroscope {
             }
             return self.scan_data(want_backward, n16, lines).map(Some);
         };
-        // The whole wait, or with an interrupt flag its first slice.
+        if self.interrupted() {
+            return Err(self.pause_interrupted_scan());
+        }
+        let wait = self.end_of_scan_wait(expected_s);
+        let reads = self.end_of_scan_reads(want_backward, clock);
+        let replies = self.call_then_read(&wait.request, Some(wait.first_s), &reads)?;
+        self.end_of_scan_replies(replies, &wait, (want_backward, n16, lines))
+    }
+
+    /// The wait for the end of a scan that takes `expected_s`, to be followed by
+    /// [`Self::end_of_scan_reads`] in one pipeline: the whole wait, or with an interrupt
+    /// flag its first slice.
+    fn end_of_scan_wait(&self, expected_s: f64) -> EndOfScanWait {
         let total_ms = self.end_of_scan_timeout_ms(expected_s);
         let (first_ms, first_s) = if self.interrupt.is_some() {
-            if self.interrupted() {
-                return Err(self.pause_interrupted_scan());
-            }
             let ms = slice_ms().min(total_ms);
             (ms, f64::from(ms) * 1e-3)
         } else {
             (total_ms, expected_s)
         };
-        let wait = Request::ScanWaitEndOfScan {
-            timeout_ms: first_ms,
+        EndOfScanWait {
+            request: Request::ScanWaitEndOfScan {
+                timeout_ms: first_ms,
+            },
+            first_ms,
+            first_s,
+            total_ms,
+        }
+    }
+
+    /// What is read after the end of a scan, in order: its backward data when wanted (a
+    /// controller that records lazily learns it is needed), its forward data, the clock
+    /// (`clock`) and the position.
+    fn end_of_scan_reads(&self, want_backward: bool, clock: Request) -> Vec<Request> {
+        let grab_request = |forward| Request::ScanFrameDataGrab {
+            channel: self.config.z_channel as u32,
+            forward,
         };
         let mut reads: Vec<Request> = want_backward.then(|| grab_request(0)).into_iter().collect();
         reads.extend([
@@ -1406,14 +1580,27 @@ impl NanonisMicroscope {
             clock,
             Request::FolMeXYPosGet { wait_newest: 0 },
         ]);
-        let mut replies = self
-            .call_then_read(&wait, Some(first_s), &reads)?
-            .into_iter();
+        reads
+    }
+
+    /// The scan's end from the replies to `wait` and [`Self::end_of_scan_reads`] (`None`:
+    /// it did not end within the margin); the clock and position read are kept. After a
+    /// first part of the wait that timed out, the reads were of a scan still running: the
+    /// rest of the wait (up to `wait.total_ms`), then the reads again, one call each.
+    fn end_of_scan_replies(
+        &mut self,
+        replies: Vec<Reply>,
+        wait: &EndOfScanWait,
+        (want_backward, n16, lines): (bool, u32, u32),
+    ) -> Result<Option<ScanEnd>, NanonisError> {
+        let mut replies = replies.into_iter();
         match replies.next() {
             Some(Reply::WaitEndOfScan { timed_out, .. }) if timed_out != 1 => {}
             // The reads were of a scan still running: the rest of the wait, then again.
-            Some(Reply::WaitEndOfScan { .. }) if self.interrupt.is_some() => {
-                if !self.sliced_wait_end_of_scan(total_ms, first_ms)? {
+            Some(Reply::WaitEndOfScan { .. })
+                if self.interrupt.is_some() || wait.first_ms < wait.total_ms =>
+            {
+                if !self.sliced_wait_end_of_scan(wait.total_ms, wait.first_ms)? {
                     return Ok(None);
                 }
                 return self.scan_data(want_backward, n16, lines).map(Some);
@@ -1481,7 +1668,6 @@ fn slice_ms() -> i32 {
     (INTERRUPT_POLL_S * 1e3) as i32
 }
 
-/// A scan's end as [`NanonisMicroscope::end_of_scan`] found it.
 /// A scan's frame and speed as the controller is sent them ([`NanonisMicroscope::plan_scan`]).
 struct ScanPlan {
     /// The padded raster's pixel centres, counts: x from, x to, y from, y to.
@@ -1494,6 +1680,27 @@ struct ScanPlan {
     line_s: f64,
 }
 
+/// The wait for a scan's end as sent ([`NanonisMicroscope::end_of_scan_wait`]).
+struct EndOfScanWait {
+    /// `Scan.WaitEndOfScan` with `first_ms`.
+    request: Request,
+    /// Its timeout, ms, and as s the time it is expected to take (the scan's).
+    first_ms: i32,
+    first_s: f64,
+    /// The whole wait's timeout, ms: more than `first_ms` for the first slice of an
+    /// interruptible wait.
+    total_ms: i32,
+}
+
+/// A scan done: its end, [`Client::reconnects`] when it was started, and the line times
+/// (forward, backward) the controller used, s.
+struct ScanDone {
+    end: ScanEnd,
+    reconnects: u64,
+    line_times: (f64, f64),
+}
+
+/// A scan's end as [`NanonisMicroscope::end_of_scan`] found it.
 struct ScanEnd {
     forward: FrameData,
     backward: Option<FrameData>,
@@ -1532,6 +1739,108 @@ fn checked_frame(reply: Option<Reply>, columns: u32, rows: u32) -> Result<FrameD
         .in_command("Scan.FrameDataGrab")),
         other => Err(unexpected_or_none("Scan.FrameDataGrab", other)),
     }
+}
+
+/// The bits of a frame's geometry, to tell a frame from the one last sent.
+fn frame_bits(frame: &ScanFrame) -> [u32; 5] {
+    [
+        frame.centre_x_m.to_bits(),
+        frame.centre_y_m.to_bits(),
+        frame.width_m.to_bits(),
+        frame.height_m.to_bits(),
+        frame.angle_deg.to_bits(),
+    ]
+}
+
+/// The reply to `Scan.BufferGet` checked to hold the buffer set, `(pixels, lines)` (pitfall:
+/// the controller coerces pixels per line to a multiple of 16).
+fn checked_buffer(reply: Option<Reply>, (pixels, lines): (i32, i32)) -> Result<(), NanonisError> {
+    match reply {
+        Some(Reply::Buffer(b)) if b.pixels == pixels && b.lines == lines => Ok(()),
+        Some(Reply::Buffer(b)) => Err(NanonisError::new(
+            NanonisErrorKind::Controller,
+            format!(
+                "the controller set {} × {} pixels for the requested {pixels} × {lines}",
+                b.pixels, b.lines
+            ),
+        )
+        .in_command("Scan.BufferGet")),
+        other => Err(unexpected_or_none("Scan.BufferGet", other)),
+    }
+}
+
+/// The line times (forward, backward), s, of the reply to `Scan.SpeedGet`, checked positive
+/// (pitfall: the controller may coerce the speed; the pixels are timed by what it uses).
+fn checked_line_times(reply: Option<Reply>) -> Result<(f64, f64), NanonisError> {
+    let (tf, tb) = match reply {
+        Some(Reply::Speed(s)) => (f64::from(s.forward_line_s), f64::from(s.backward_line_s)),
+        other => return Err(unexpected_or_none("Scan.SpeedGet", other)),
+    };
+    if !(tf.is_finite() && tb.is_finite() && tf > 0.0 && tb > 0.0) {
+        return Err(NanonisError::new(
+            NanonisErrorKind::Controller,
+            format!("line times {tf} s / {tb} s are not positive"),
+        )
+        .in_command("Scan.SpeedGet"));
+    }
+    Ok((tf, tb))
+}
+
+/// A scan's set-up and start as the controller answered them in one pipeline
+/// ([`checked_setup`]).
+struct SetupAnswers {
+    /// The line times read back, when the speed was set.
+    line_times: Option<(f64, f64)>,
+    /// The first failure, and whether it left the controller with other settings than
+    /// those asked for (a setting refused, or read back otherwise than set).
+    failure: Option<(NanonisError, bool)>,
+    /// The start was answered without error: a scan ran.
+    started: bool,
+}
+
+/// The replies to a scan's set-up and start sent in one pipeline (`setup`, the start last),
+/// checked in order: the first error reply, failure or read-back that does not fit.
+fn checked_setup(
+    setup: &[Request],
+    results: Vec<Result<Reply, NanonisError>>,
+    buffer: (i32, i32),
+) -> SetupAnswers {
+    let mut answers = SetupAnswers {
+        line_times: None,
+        failure: None,
+        started: false,
+    };
+    let mut results = results.into_iter();
+    for request in setup {
+        let reply = results.next().unwrap_or_else(|| {
+            Err(NanonisError::new(NanonisErrorKind::Protocol, "no reply")
+                .in_command(request.name()))
+        });
+        let setting = matches!(
+            request,
+            Request::ScanBufferSet(_) | Request::ScanFrameSet(_) | Request::ScanSpeedSet(_)
+        );
+        let checked = match (request, reply) {
+            (_, Err(e)) => Err((e, setting)),
+            (Request::ScanBufferGet, Ok(reply)) => checked_buffer(Some(reply), buffer)
+                .map(|()| None)
+                .map_err(|e| (e, true)),
+            (Request::ScanSpeedGet, Ok(reply)) => checked_line_times(Some(reply))
+                .map(Some)
+                .map_err(|e| (e, true)),
+            (_, Ok(_)) => Ok(None),
+        };
+        match checked {
+            Ok(line_times) => {
+                answers.line_times = line_times.or(answers.line_times);
+                answers.started |= matches!(request, Request::ScanAction { .. });
+            }
+            Err(failure) => {
+                answers.failure = answers.failure.or(Some(failure));
+            }
+        }
+    }
+    answers
 }
 
 impl NanonisMicroscope {

@@ -764,8 +764,8 @@ impl<M: spm_hal::Microscope> spm_hal::Microscope for Counting<M> {
 /// position reads per node of 694 commands (2302 clock reads for a bound of 712); now 79 and
 /// 37 of 404. And whether a scan runs (`Scan.StatusGet`) is asked only when it is unknown:
 /// after a failed call (or a reconnection), never between scans that ended normally (before:
-/// once per scan, 37 per node). And a wait and the reads after it are one round trip
-/// (pipelined: nanonis-sim's clock is virtual).
+/// once per scan, 37 per node). And a wait and the reads after it are one round trip, and so
+/// is a whole scan (pipelined: nanonis-sim's clock is virtual).
 #[test]
 fn over_tcp_the_clock_and_position_are_read_once_per_command_that_changes_them() {
     use spm_calibration::{Calibrator, MemoryStore, RunOptions};
@@ -828,6 +828,17 @@ fn over_tcp_the_clock_and_position_are_read_once_per_command_that_changes_them()
     assert!(
         pipelined >= pipelined_bound,
         "{pipelined} pipelined requests for {c:?} (at least {pipelined_bound})"
+    );
+    // And a whole scan is one round trip: its settings, start, end, data, clock and position
+    // (before: 3, and 4 or 5 when a setting changed). A move is one; a wait or a Z read and
+    // the clock read after it two; a failed call may cost a status read, a stop and the
+    // scan's steps one by one; once, the backend's Follow-Me speed and its first clock and
+    // position reads.
+    let round_trips = stats.commands - opened.commands - pipelined;
+    let round_trip_bound = c.moves + c.scans + 2 * (c.waits + c.z_reads) + 8 * c.failed + 3;
+    assert!(
+        round_trips <= round_trip_bound,
+        "{round_trips} round trips for {c:?} (at most {round_trip_bound})"
     );
     let position_bound = c.scans + c.failed + 1;
     assert!(

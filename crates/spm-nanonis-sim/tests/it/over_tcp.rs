@@ -396,9 +396,21 @@ fn a_wait_and_the_reads_after_it_are_one_round_trip_when(interruptible: bool) {
         "{} commands, {pipelined} pipelined",
         after.commands - before.commands
     );
-    // The move's settle and clock read; the read-backs of the scan's buffer and speed (set
-    // for the first time); the scan's grab, clock and position reads.
-    assert_eq!(pipelined, 7, "interruptible {interruptible}: {after:?}");
+    // The move's settle and clock read (2); the whole scan in one round trip (9 behind its
+    // first request): its buffer and speed (set for the first time) with their read-backs,
+    // its frame, its start, the wait for its end, its grab, the clock and the position.
+    assert_eq!(pipelined, 11, "interruptible {interruptible}: {after:?}");
+    let sent = |name: &str| {
+        after.commands_by_name.get(name).copied().unwrap_or(0)
+            - before.commands_by_name.get(name).copied().unwrap_or(0)
+    };
+    assert_eq!(
+        after.commands - before.commands - pipelined,
+        4,
+        "the position read before the move, the Follow-Me speed, the move, the scan: {after:?}"
+    );
+    assert_eq!(sent("Scan.FrameSet"), 1);
+    assert_eq!(sent("Scan.Action"), 1, "the start, nothing stopped");
     for ((t, p), (t_sim, p_sim), what) in [
         (after_move, truth_move, "after the move"),
         (after_scan, truth_scan, "after the scan"),
@@ -485,4 +497,133 @@ fn a_tip_moved_by_another_client_after_a_scan_is_an_error_naming_the_cause() {
         spm_hal::ErrorKind::Aborted,
         "the run stops: {e}"
     );
+}
+
+/// The scan's set-up and start, sent in one write with the wait for its end and the reads
+/// after it (a simulated controller): a setting or the start the controller refuses (here
+/// `ServerHandle::refuse_next`) has let it run the rest — a scan with the settings it had,
+/// or a wait for none — before the refusal is read. The backend then stops whatever scan
+/// runs, discards every reply after the refusal, and returns the error naming the refused
+/// command: no frame. The next scan sends its settings again, asks whether a scan runs
+/// first, and gets the frame asked for (the controller then holds exactly the settings of
+/// a controller that never refused anything).
+#[test]
+fn a_refused_setting_or_start_in_the_scan_pipeline_is_an_error_naming_it_and_no_frame() {
+    use spm_nanonis::commands::{Reply, Request};
+    let first = request(ScanDirection::Direct, 16, 4);
+    // Another frame, buffer and speed: all three are sent before its start.
+    let second = ScanRequest {
+        origin: CountPoint::from_counts(-3000.0, 2500.0),
+        pixel_dwell: Seconds(2e-4),
+        ..request(ScanDirection::Counter, 32, 8)
+    };
+    let settings = |port: u16| {
+        let mut c = spm_nanonis::Client::connect(client_config(port).client_config()).unwrap();
+        [
+            Request::ScanFrameGet,
+            Request::ScanBufferGet,
+            Request::ScanSpeedGet,
+            Request::ScanStatusGet,
+        ]
+        .map(|r| c.call(&r).unwrap())
+    };
+    // The reference: the same scans, nothing refused.
+    let reference = start(SocketFaults::none());
+    let mut tcp = NanonisMicroscope::connect(client_config(reference.addr().port())).unwrap();
+    tcp.scan(&first).unwrap();
+    tcp.scan(&second).unwrap();
+    let expected = settings(reference.addr().port());
+    for refused in [
+        "Scan.BufferSet",
+        "Scan.FrameSet",
+        "Scan.SpeedSet",
+        "Scan.Action",
+    ] {
+        let server = start(SocketFaults::none());
+        let port = server.addr().port();
+        let mut tcp = NanonisMicroscope::connect(client_config(port)).unwrap();
+        tcp.scan(&first).unwrap();
+        let before = server.stats();
+        server.refuse_next(refused, 1, false);
+        let e = tcp.scan(&second).unwrap_err();
+        assert_eq!(e.command.as_deref(), Some(refused), "{e}");
+        assert_eq!(e.kind, spm_nanonis::NanonisErrorKind::Controller, "{e}");
+        assert!(e.to_string().contains("refused"), "{e}");
+        let after = server.stats();
+        assert_eq!(after.injected_refusals, 1);
+        let sent = |name: &str| {
+            after.commands_by_name.get(name).copied().unwrap_or(0)
+                - before.commands_by_name.get(name).copied().unwrap_or(0)
+        };
+        // One round trip for the scan, then the stop (on the second connection).
+        let round_trips = (after.commands - after.pipelined) - (before.commands - before.pipelined);
+        assert_eq!(round_trips, 2, "{refused}: {after:?}");
+        assert_eq!(sent("Scan.Action"), 2, "{refused}: the start and the stop");
+        assert_eq!(sent("Scan.WaitEndOfScan"), 1, "{refused}");
+        // Nothing runs on the controller.
+        let mut other = spm_nanonis::Client::connect(client_config(port).client_config()).unwrap();
+        assert_eq!(
+            other.call(&Request::ScanStatusGet).unwrap(),
+            Reply::U32(0),
+            "{refused}: the scan is stopped"
+        );
+        drop(other);
+        // The next scan: whether a scan runs is asked, every setting is sent again, and the
+        // frame is the one asked for.
+        let before = server.stats();
+        let frame = tcp.scan(&second).unwrap();
+        frame.validate().unwrap();
+        assert_eq!(frame.request, second);
+        let after = server.stats();
+        let sent = |name: &str| {
+            after.commands_by_name.get(name).copied().unwrap_or(0)
+                - before.commands_by_name.get(name).copied().unwrap_or(0)
+        };
+        for name in [
+            "Scan.StatusGet",
+            "Scan.BufferSet",
+            "Scan.FrameSet",
+            "Scan.SpeedSet",
+            "Scan.Action",
+        ] {
+            assert_eq!(sent(name), 1, "{refused}: {name} after the failure");
+        }
+        assert_eq!(settings(port), expected, "{refused}");
+    }
+}
+
+/// The same pipeline, a setting or the start answered "busy" (not executed), which the client
+/// otherwise sends again. A busy start ran nothing (the wait after it waited for no scan):
+/// the scan is done again one step after another, with the frame asked for. A busy frame
+/// before a start that ran has let the controller scan its previous frame: the tip is not
+/// where the run left it, so that is the scan's error, transient (the calibration measures
+/// the node again from its move), naming `Scan.FrameSet` — not a frame.
+#[test]
+fn a_busy_start_in_the_scan_pipeline_is_retried_and_a_busy_frame_is_the_error() {
+    let first = request(ScanDirection::Direct, 16, 4);
+    let second = ScanRequest {
+        origin: CountPoint::from_counts(-3000.0, 2500.0),
+        ..first.clone()
+    };
+    let server = start(SocketFaults::none());
+    let mut tcp = NanonisMicroscope::connect(client_config(server.addr().port())).unwrap();
+    tcp.scan(&first).unwrap();
+    server.refuse_next("Scan.Action", 1, true);
+    let frame = tcp.scan(&second).unwrap();
+    frame.validate().unwrap();
+    assert_eq!(frame.request, second);
+    let truth = server.last_frame_truth().unwrap();
+    assert_eq!(truth.time_s.len(), frame.forward.time_s.len());
+    for (t, t_sim) in frame.forward.time_s.iter().zip(&truth.time_s) {
+        assert!(close(*t, *t_sim, 1e-3), "{t} vs {t_sim}");
+    }
+    server.refuse_next("Scan.FrameSet", 1, true);
+    let e = tcp.scan(&first).unwrap_err();
+    assert_eq!(e.command.as_deref(), Some("Scan.FrameSet"), "{e}");
+    assert_eq!(e.kind, spm_nanonis::NanonisErrorKind::Busy, "{e}");
+    assert!(e.kind().is_transient(), "{e}");
+    assert!(e.to_string().contains("previous settings"), "{e}");
+    let frame = tcp.scan(&first).unwrap();
+    frame.validate().unwrap();
+    assert_eq!(server.stats().injected_refusals, 2);
 }

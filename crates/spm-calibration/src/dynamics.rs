@@ -9,7 +9,7 @@
 
 use serde::{Deserialize, Serialize};
 use spm_hal::{
-    CountPoint, Counts, CountsPerSecond, Error as _, Frame, Microscope, MoveRequest, ScanDirection,
+    CountPoint, Counts, CountsPerSecond, Frame, Microscope, MoveRequest, ScanDirection,
     ScanRequest, Seconds,
 };
 
@@ -229,31 +229,21 @@ pub fn scan_ladder<M: Microscope>(
                     speed: CountsPerSecond(config.move_speed_counts_per_s),
                     settle: Seconds(config.settle_s),
                 };
-                let mut attempt = 0;
-                loop {
-                    attempt += 1;
-                    let taken = microscope
+                match with_attempts(|| {
+                    microscope
                         .move_to(settle)
-                        .and_then(|()| microscope.scan(&request));
-                    match taken {
-                        Ok(frame) => {
-                            out.frames.push(LadderFrame {
-                                place,
-                                length_counts: length,
-                                frame,
-                                slow_axis: None,
-                            });
-                            break;
-                        }
-                        Err(e) if e.kind().is_transient() && attempt < FRAME_ATTEMPTS => {}
-                        Err(e) => {
-                            out.failures.push(format!(
-                                "place {place}, {length} counts at {dwell} s per pixel: {e} \
-                                 (attempt {attempt})"
-                            ));
-                            break;
-                        }
-                    }
+                        .and_then(|()| microscope.scan(&request))
+                }) {
+                    Ok(frame) => out.frames.push(LadderFrame {
+                        place,
+                        length_counts: length,
+                        frame,
+                        slow_axis: None,
+                    }),
+                    Err((e, attempt)) => out.failures.push(format!(
+                        "place {place}, {length} counts at {dwell} s per pixel: {e} \
+                         (attempt {attempt})"
+                    )),
                 }
             }
         }
@@ -262,6 +252,22 @@ pub fn scan_ladder<M: Microscope>(
         }
     }
     out
+}
+
+/// `take` until it succeeds, at most [`FRAME_ATTEMPTS`] times while its error is transient;
+/// the lasting or last error with the attempt it ended.
+fn with_attempts<T, E: spm_hal::Error>(
+    mut take: impl FnMut() -> Result<T, E>,
+) -> Result<T, (E, u32)> {
+    let mut attempt = 0;
+    loop {
+        attempt += 1;
+        match take() {
+            Ok(value) => return Ok(value),
+            Err(e) if e.kind().is_transient() && attempt < FRAME_ATTEMPTS => {}
+            Err(e) => return Err((e, attempt)),
+        }
+    }
 }
 
 /// The counter-scanned pairs of one place ([`DynamicsConfig::slow_axis_pairs`]): settled at
@@ -306,36 +312,28 @@ fn scan_slow_axis_pairs<M: Microscope>(
             speed: CountsPerSecond(config.move_speed_counts_per_s),
             settle: Seconds(config.settle_s),
         };
-        let mut attempt = 0;
-        loop {
-            attempt += 1;
-            let taken = microscope.move_to(settle).and_then(|()| {
-                let up = microscope.scan(&request(ScanDirection::Direct))?;
-                let down = microscope.scan(&request(ScanDirection::Counter))?;
-                Ok((up, down))
-            });
-            match taken {
-                Ok((up, down)) => {
-                    for (frame, direction) in
-                        [(up, ScanDirection::Direct), (down, ScanDirection::Counter)]
-                    {
-                        out.frames.push(LadderFrame {
-                            place,
-                            length_counts: length,
-                            frame,
-                            slow_axis: Some(direction),
-                        });
-                    }
-                    break;
-                }
-                Err(e) if e.kind().is_transient() && attempt < FRAME_ATTEMPTS => {}
-                Err(e) => {
-                    out.failures.push(format!(
-                        "place {place}, slow-axis pair of {length} counts: {e} (attempt {attempt})"
-                    ));
-                    break;
+        let taken = with_attempts(|| {
+            microscope.move_to(settle)?;
+            let up = microscope.scan(&request(ScanDirection::Direct))?;
+            let down = microscope.scan(&request(ScanDirection::Counter))?;
+            Ok::<_, M::Error>((up, down))
+        });
+        match taken {
+            Ok((up, down)) => {
+                for (frame, direction) in
+                    [(up, ScanDirection::Direct), (down, ScanDirection::Counter)]
+                {
+                    out.frames.push(LadderFrame {
+                        place,
+                        length_counts: length,
+                        frame,
+                        slow_axis: Some(direction),
+                    });
                 }
             }
+            Err((e, attempt)) => out.failures.push(format!(
+                "place {place}, slow-axis pair of {length} counts: {e} (attempt {attempt})"
+            )),
         }
     }
 }

@@ -114,6 +114,15 @@ fn without_first_line(map: &spm_hal::HeightMap) -> Option<spm_hal::HeightMap> {
     })
 }
 
+/// The tracked windows whose correlation can be trusted, as (column, shift px).
+fn well_correlated(shifts: &[spm_features::ColumnShift]) -> Vec<(f64, f64)> {
+    shifts
+        .iter()
+        .filter(|s| s.correlation >= MIN_SHIFT_CORRELATION)
+        .map(|s| (s.column, s.shift_px))
+        .collect()
+}
+
 /// What the ladder frames gave.
 struct LadderSightings {
     sightings: Vec<SamePoint>,
@@ -156,11 +165,7 @@ fn ladder_sightings(ladder: &[LadderFrame]) -> LadderSightings {
         ) else {
             continue;
         };
-        let good: Vec<(f64, f64)> = shifts
-            .iter()
-            .filter(|s| s.correlation >= MIN_SHIFT_CORRELATION)
-            .map(|s| (s.column, s.shift_px))
-            .collect();
+        let good = well_correlated(&shifts);
         // Where the two trackings disagree one of them slipped a lattice period, and the
         // agreeing windows of such a line may hold a slip of both: the frame is left out.
         out.windows_disagreeing += disagreeing;
@@ -223,11 +228,7 @@ fn slow_pair_sightings(ladder: &[LadderFrame]) -> SlowPairSightings {
         ) else {
             continue;
         };
-        let good: Vec<(f64, f64)> = shifts
-            .iter()
-            .filter(|s| s.correlation >= MIN_SHIFT_CORRELATION)
-            .map(|s| (s.column, s.shift_px))
-            .collect();
+        let good = well_correlated(&shifts);
         if good.len() < MIN_WINDOWS {
             continue;
         }

@@ -242,7 +242,7 @@ pub struct DynamicsIdentification {
 pub struct FastEndTrial {
     /// The creep law's shortest time constant, s.
     pub min_time_constant_s: f64,
-    /// RMS residual of the joint fit with it, counts.
+    /// RMS residual of the joint fit with it (in the screening's passes), counts.
     pub residual_rms_counts: f64,
     /// The creep weight it fitted (per element).
     pub creep_weight: f64,
@@ -667,6 +667,16 @@ pub fn fit_dynamics(
     sightings: &[SamePoint],
     setup: &DynamicsFitSetup,
 ) -> Result<ScannerDynamics, CorrectionError> {
+    fit_dynamics_in_passes(history, sightings, setup, FIT_PASSES)
+}
+
+/// [`fit_dynamics`] with `passes` passes (≥ 1).
+fn fit_dynamics_in_passes(
+    history: &CommandHistory,
+    sightings: &[SamePoint],
+    setup: &DynamicsFitSetup,
+    passes: usize,
+) -> Result<ScannerDynamics, CorrectionError> {
     let usable: Vec<&SamePoint> = sightings
         .iter()
         .filter(|s| {
@@ -711,7 +721,7 @@ pub fn fit_dynamics(
     // Pass 1 drives the creep by the commands; later passes by x = u + h of the previous pass.
     let mut hysteresis = [PlayHysteresis::none(), PlayHysteresis::none()];
     let mut result = None;
-    for _ in 0..FIT_PASSES {
+    for _ in 0..passes.max(1) {
         let mut creep = vec![[0.0; 2]; times.len()];
         for (axis, model) in hysteresis.iter().enumerate() {
             let mut k = 0;
@@ -757,8 +767,9 @@ pub fn fit_dynamics(
 
 /// [`fit_dynamics`] with the creep law's shortest time constant identified too: the fit is
 /// made for each of `candidates_s` (the shape's other parameters as `setup` gives them) and
-/// the one with the least residual kept. The number of fitted parameters is the same for
-/// every candidate (one creep weight), so the residuals compare directly. What sees the fast
+/// the one with the least residual kept (every other candidate first, then the best one's
+/// neighbours). The number of fitted parameters is the same for every candidate (one creep
+/// weight), so the residuals compare directly. What sees the fast
 /// end: a line's trace and retrace at two line rates (elements of about a line time stretch
 /// one rate's lines and not the other's) and the first seconds of the attachment tracks.
 /// The trials are kept in the result's [`DynamicsIdentification::creep_fast_end_trials`].
@@ -774,48 +785,69 @@ pub fn fit_dynamics_choosing_fast_end(
     candidates_s: &[f64],
 ) -> Result<ScannerDynamics, CorrectionError> {
     let max_s = setup.creep_shape.max_time_constant_s;
-    let usable: Vec<f64> = candidates_s
+    let mut usable: Vec<f64> = candidates_s
         .iter()
         .copied()
         .filter(|&t| t.is_finite() && t > 0.0 && t <= max_s)
         .collect();
+    usable.sort_by(f64::total_cmp);
+    usable.dedup();
     if usable.is_empty() {
         return Err(CorrectionError::InvalidArgument(format!(
             "no usable shortest creep time constant among {candidates_s:?} (each in (0, {max_s}] s)"
         )));
     }
-    let mut trials = Vec::with_capacity(usable.len());
-    let mut best: Option<ScannerDynamics> = None;
+    let setup_for = |min_time_constant_s: f64| {
+        let mut trial = setup.clone();
+        trial.creep_shape.min_time_constant_s = min_time_constant_s;
+        trial
+    };
+    // Screening: every other candidate, then the neighbours of the best, each fitted in
+    // SCREENING_PASSES passes (the passes refine the weak hysteresis–creep coupling and do not
+    // reorder the candidates); the chosen one is then fitted in full.
+    let mut trials: Vec<FastEndTrial> = Vec::with_capacity(usable.len());
     let mut last_error = None;
-    for min_time_constant_s in usable {
-        let mut trial_setup = setup.clone();
-        trial_setup.creep_shape.min_time_constant_s = min_time_constant_s;
-        match fit_dynamics(history, sightings, &trial_setup) {
-            Ok(model) => {
-                let residual = model.identification.residual_rms_counts;
-                trials.push(FastEndTrial {
-                    min_time_constant_s,
-                    residual_rms_counts: residual,
-                    creep_weight: model.creep.weight,
-                });
-                let better = best
-                    .as_ref()
-                    .is_none_or(|b| residual < b.identification.residual_rms_counts);
-                if better && residual.is_finite() {
-                    best = Some(model);
-                }
-            }
+    let mut screen = |k: usize, trials: &mut Vec<FastEndTrial>| {
+        if trials.iter().any(|t| t.min_time_constant_s == usable[k]) {
+            return;
+        }
+        match fit_dynamics_in_passes(history, sightings, &setup_for(usable[k]), SCREENING_PASSES) {
+            Ok(model) => trials.push(FastEndTrial {
+                min_time_constant_s: usable[k],
+                residual_rms_counts: model.identification.residual_rms_counts,
+                creep_weight: model.creep.weight,
+            }),
             Err(e) => last_error = Some(e),
         }
+    };
+    for k in (0..usable.len()).step_by(2) {
+        screen(k, &mut trials);
     }
-    match best {
-        Some(mut model) => {
-            model.identification.creep_fast_end_trials = trials;
-            Ok(model)
+    let best_index = |trials: &[FastEndTrial]| {
+        trials
+            .iter()
+            .filter(|t| t.residual_rms_counts.is_finite())
+            .min_by(|a, b| a.residual_rms_counts.total_cmp(&b.residual_rms_counts))
+            .and_then(|t| usable.iter().position(|&u| u == t.min_time_constant_s))
+    };
+    if let Some(k) = best_index(&trials) {
+        for neighbour in [k.checked_sub(1), Some(k + 1)].into_iter().flatten() {
+            if neighbour < usable.len() {
+                screen(neighbour, &mut trials);
+            }
         }
-        None => Err(last_error.unwrap_or(CorrectionError::Empty("creep fast-end trials"))),
     }
+    let Some(best) = best_index(&trials) else {
+        return Err(last_error.unwrap_or(CorrectionError::Empty("creep fast-end trials")));
+    };
+    trials.sort_by(|a, b| a.min_time_constant_s.total_cmp(&b.min_time_constant_s));
+    let mut model = fit_dynamics(history, sightings, &setup_for(usable[best]))?;
+    model.identification.creep_fast_end_trials = trials;
+    Ok(model)
 }
+
+/// Passes of each candidate's fit while [`fit_dynamics_choosing_fast_end`] screens them.
+const SCREENING_PASSES: usize = 2;
 
 /// One least-squares pass of [`fit_dynamics`]: (coefficients, standard errors, the fit).
 fn solve_pass(

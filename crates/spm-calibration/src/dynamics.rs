@@ -53,6 +53,10 @@ pub struct DynamicsConfig {
     pub slow_axis_columns: u32,
     /// Pixel dwell of the slow-axis frames, s. Default 5e-5.
     pub slow_axis_dwell_s: f64,
+    /// The slow-axis pairs are scanned at the first this many [`Self::places`] (≥ 1); absent:
+    /// at every place. The slow axis's loop is one operator for the whole field; more places
+    /// average its tracking, fewer save their scans (a smoke plan scans them at one).
+    pub slow_axis_pair_places: Option<usize>,
 }
 
 impl Default for DynamicsConfig {
@@ -69,6 +73,7 @@ impl Default for DynamicsConfig {
             slow_axis_pairs: true,
             slow_axis_columns: 4,
             slow_axis_dwell_s: 5e-5,
+            slow_axis_pair_places: None,
         }
     }
 }
@@ -128,6 +133,9 @@ impl DynamicsConfig {
         }
         if !(self.slow_axis_dwell_s.is_finite() && self.slow_axis_dwell_s > 0.0) {
             return Err(("dynamics.slow_axis_dwell_s", "must be > 0".into()));
+        }
+        if self.slow_axis_pair_places == Some(0) {
+            return Err(("dynamics.slow_axis_pair_places", "must be ≥ 1".into()));
         }
         if self
             .pixel_dwells_s
@@ -247,7 +255,7 @@ pub fn scan_ladder<M: Microscope>(
                 }
             }
         }
-        if config.slow_axis_pairs {
+        if config.slow_axis_pairs && config.slow_axis_pair_places.is_none_or(|n| place < n) {
             scan_slow_axis_pairs(microscope, config, step, place, at, &mut out);
         }
     }
@@ -465,6 +473,47 @@ mod tests {
         assert_eq!(slow[2].length_counts, 255.0);
     }
 
+    /// `slow_axis_pair_places = 1`: the pairs at the first place only, the fast-axis frames at
+    /// every place.
+    #[test]
+    fn slow_axis_pairs_can_be_limited_to_the_first_places() {
+        use spm_hal::mock::{Expectation, ScriptedMicroscope};
+        let mut mock = ScriptedMicroscope::new(ScriptedMicroscope::default_capabilities())
+            .lenient_moves_and_waits(true);
+        mock.expect_all((0..12).map(|_| Expectation::scan(|_, _| Counts(0.0))));
+        let config = DynamicsConfig {
+            ladder_counts: vec![64.0, 128.0, 256.0],
+            pixel_dwells_s: vec![1e-4],
+            places: vec![[0.0, 0.0], [0.5, 0.5]],
+            lines: 2,
+            slow_axis_pair_places: Some(1),
+            ..DynamicsConfig::default()
+        };
+        let standard = crate::PlanConfig::hopg_small_net().standard;
+        let scan = scan_ladder(
+            &mut mock,
+            &config,
+            &standard,
+            CountPoint::from_counts(0.0, 0.0),
+            [1000.0, 1000.0],
+        );
+        assert!(scan.failures.is_empty(), "{:?}", scan.failures);
+        let fast: Vec<usize> = scan
+            .frames
+            .iter()
+            .filter(|f| f.slow_axis.is_none())
+            .map(|f| f.place)
+            .collect();
+        let slow: Vec<usize> = scan
+            .frames
+            .iter()
+            .filter(|f| f.slow_axis.is_some())
+            .map(|f| f.place)
+            .collect();
+        assert_eq!(fast, vec![0, 0, 0, 1, 1, 1]);
+        assert_eq!(slow, vec![0; 6]);
+    }
+
     #[test]
     fn the_defaults_validate_and_bad_ladders_are_refused() {
         DynamicsConfig::default().validate().unwrap();
@@ -494,6 +543,14 @@ mod tests {
         assert_eq!(
             one_column.validate().unwrap_err().0,
             "dynamics.slow_axis_columns"
+        );
+        let no_places = DynamicsConfig {
+            slow_axis_pair_places: Some(0),
+            ..DynamicsConfig::default()
+        };
+        assert_eq!(
+            no_places.validate().unwrap_err().0,
+            "dynamics.slow_axis_pair_places"
         );
         let no_dwell = DynamicsConfig {
             slow_axis_dwell_s: 0.0,

@@ -42,7 +42,12 @@ pub(crate) fn write_job(dir: &Path) -> PathBuf {
         .replace("step_counts = 20000", "step_counts = 4000")
         .replace("repeats = 1 ", "repeats = 2 ");
     assert!(plan.contains("step_counts = 4000") && plan.contains("repeats = 2 "));
-    let plan = format!("{plan}\n[plan.dynamics]\nenabled = false\n");
+    // The stage off, in the plan's own `[plan.dynamics]` table when it has one.
+    let plan = if plan.contains("[plan.dynamics]\n") {
+        plan.replacen("[plan.dynamics]\n", "[plan.dynamics]\nenabled = false\n", 1)
+    } else {
+        format!("{plan}\n[plan.dynamics]\nenabled = false\n")
+    };
     std::fs::write(dir.join("plan.toml"), plan).unwrap();
     let job = format!(
         "plan_file = \"plan.toml\"\n[backend]\nkind = \"sim\"\nsim_config = {:?}\n",

@@ -351,6 +351,29 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
 
+    /// Three short ladder lines at one dwell, at the field's centre, 2 lines per frame.
+    fn small_ladder() -> DynamicsConfig {
+        DynamicsConfig {
+            ladder_counts: vec![64.0, 128.0, 256.0],
+            pixel_dwells_s: vec![1e-4],
+            places: vec![[0.0, 0.0]],
+            lines: 2,
+            ..DynamicsConfig::default()
+        }
+    }
+
+    /// [`scan_ladder`] of the small HOPG plan's standard around the origin.
+    fn scan_small<M: Microscope>(microscope: &mut M, config: &DynamicsConfig) -> LadderScan {
+        let standard = crate::PlanConfig::hopg_small_net().standard;
+        scan_ladder(
+            microscope,
+            config,
+            &standard,
+            CountPoint::from_counts(0.0, 0.0),
+            [1000.0, 1000.0],
+        )
+    }
+
     /// Transient failures are retried up to FRAME_ATTEMPTS; a lasting one skips the frame and
     /// is named; the stage goes on either way.
     #[test]
@@ -369,21 +392,10 @@ mod tests {
             Expectation::fault(Operation::Scan, ErrorKind::Timeout),
         ]);
         let config = DynamicsConfig {
-            ladder_counts: vec![64.0, 128.0, 256.0],
-            pixel_dwells_s: vec![1e-4],
-            places: vec![[0.0, 0.0]],
-            lines: 2,
             slow_axis_pairs: false,
-            ..DynamicsConfig::default()
+            ..small_ladder()
         };
-        let standard = crate::PlanConfig::hopg_small_net().standard;
-        let scan = scan_ladder(
-            &mut mock,
-            &config,
-            &standard,
-            CountPoint::from_counts(0.0, 0.0),
-            [1000.0, 1000.0],
-        );
+        let scan = scan_small(&mut mock, &config);
         assert_eq!(scan.frames.len(), 1, "{:?}", scan.failures);
         // 64 counts at the 3-count step (4 pixels per HOPG lattice constant): 21 steps.
         assert_eq!(scan.frames[0].length_counts, 63.0);
@@ -423,21 +435,8 @@ mod tests {
             ok(),
             ok(),
         ]);
-        let config = DynamicsConfig {
-            ladder_counts: vec![64.0, 128.0, 256.0],
-            pixel_dwells_s: vec![1e-4],
-            places: vec![[0.0, 0.0]],
-            lines: 2,
-            ..DynamicsConfig::default()
-        };
-        let standard = crate::PlanConfig::hopg_small_net().standard;
-        let scan = scan_ladder(
-            &mut mock,
-            &config,
-            &standard,
-            CountPoint::from_counts(0.0, 0.0),
-            [1000.0, 1000.0],
-        );
+        let config = small_ladder();
+        let scan = scan_small(&mut mock, &config);
         assert_eq!(scan.failures.len(), 1, "{:?}", scan.failures);
         assert!(
             scan.failures[0].contains("slow-axis pair of 129"),
@@ -487,16 +486,9 @@ mod tests {
             places: vec![[0.0, 0.0], [0.5, 0.5]],
             lines: 2,
             slow_axis_pair_places: Some(1),
-            ..DynamicsConfig::default()
+            ..small_ladder()
         };
-        let standard = crate::PlanConfig::hopg_small_net().standard;
-        let scan = scan_ladder(
-            &mut mock,
-            &config,
-            &standard,
-            CountPoint::from_counts(0.0, 0.0),
-            [1000.0, 1000.0],
-        );
+        let scan = scan_small(&mut mock, &config);
         assert!(scan.failures.is_empty(), "{:?}", scan.failures);
         let fast: Vec<usize> = scan
             .frames

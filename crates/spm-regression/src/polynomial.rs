@@ -275,14 +275,14 @@ impl Polynomial2 {
     /// Implements eq. (6): Σ a·x^p_x·y^p_y.
     #[must_use]
     pub fn evaluate(&self, x: f64, y: f64) -> f64 {
-        let (pu, pv) = self.basis_powers(x, y);
-        self.sum_terms(&pu, &pv)
+        let [value] = Self::evaluate_each([self], x, y);
+        value
     }
 
     /// Several surfaces at one point, their basis powers computed once when they share the
-    /// degree and normalisation (the fit gives every LCC surface of a plane the same): each
-    /// value is bit for bit [`Self::evaluate`]'s. Surfaces on different bases are evaluated
-    /// one by one.
+    /// degree and normalisation (the fit gives every LCC surface of a plane the same); the one
+    /// sum of eq. (6), which [`Self::evaluate`] is for one surface. Surfaces on different bases
+    /// are evaluated one by one.
     #[must_use]
     pub fn evaluate_each<const N: usize>(surfaces: [&Self; N], x: f64, y: f64) -> [f64; N] {
         let Some(first) = surfaces.first() else {
@@ -333,33 +333,6 @@ impl Polynomial2 {
         powers(u, self.degree, &mut pu);
         powers(v, self.degree, &mut pv);
         (pu, pv)
-    }
-
-    /// Σ a·u^i·v^j over the terms, in [`term_powers`]' order.
-    #[inline]
-    fn sum_terms(
-        &self,
-        pu: &[f64; MAX_DEGREE as usize + 2],
-        pv: &[f64; MAX_DEGREE as usize + 2],
-    ) -> f64 {
-        // The terms in [`term_powers`]' order, unrolled by total degree (this is the per-pixel
-        // hot path of a dynamic correction); the same sum in the same order.
-        let mut terms = self.coefficients.iter();
-        let mut sum = -0.0;
-        let mut add = |c: Option<&f64>, i: usize, j: usize| {
-            if let Some(c) = c {
-                sum += c * pu[i] * pv[j];
-            }
-        };
-        add(terms.next(), 0, 0);
-        for n in 1..=(self.degree as usize).min(MAX_DEGREE as usize) {
-            for i in 1..n {
-                add(terms.next(), i, n - i);
-            }
-            add(terms.next(), 0, n);
-            add(terms.next(), n, 0);
-        }
-        sum
     }
 
     /// The gradient (∂f/∂x, ∂f/∂y) at (x, y).

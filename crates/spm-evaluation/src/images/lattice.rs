@@ -25,11 +25,11 @@ struct PairDrift {
 }
 
 impl PairDrift {
-    /// d(t) − d(t_ref) per axis, nm.
-    fn displacement_nm(&self, t_s: f64, t_ref_s: f64) -> [f64; 2] {
+    /// The acceleration's part of d(t) − d(t_ref) per axis, nm: ½·α·((t − t₀)² − (t_ref − t₀)²).
+    fn accelerated_nm(&self, t_s: f64, t_ref_s: f64) -> [f64; 2] {
         let (u, r) = (t_s - self.t0_s, t_ref_s - self.t0_s);
-        let v = [self.velocity.x_nm_per_s, self.velocity.y_nm_per_s];
-        [0, 1].map(|k| v[k] * (u - r) + 0.5 * self.acceleration_nm_per_s2[k] * (u * u - r * r))
+        self.acceleration_nm_per_s2
+            .map(|a| 0.5 * a * (u * u - r * r))
     }
 }
 
@@ -386,14 +386,10 @@ pub fn measure_lattice(
         let mut y = Vec::with_capacity(nc * nr);
         for (k, &t) in direct.time_s.iter().enumerate() {
             // The velocity's part was moved already; the acceleration's is left.
-            let full = drift.displacement_nm(t, t_ref.value());
-            let linear = [
-                drift.velocity.x_nm_per_s * (t - t_ref.value()),
-                drift.velocity.y_nm_per_s * (t - t_ref.value()),
-            ];
+            let q = drift.accelerated_nm(t, t_ref.value());
             let p = moved.point(k % nc, k / nc)?;
-            x.push(p.x.value() - (full[0] - linear[0]));
-            y.push(p.y.value() - (full[1] - linear[1]));
+            x.push(p.x.value() - q[0]);
+            y.push(p.y.value() - q[1]);
         }
         CoordinateMap::new(nc, nr, x, spm_correction::YCoordinates::PerPixel(y)).ok()?
     };
@@ -552,7 +548,9 @@ mod tests {
         for (k, want_alpha) in alpha.iter().enumerate() {
             assert!((drift.acceleration_nm_per_s2[k] - want_alpha).abs() < 1e-9);
             let want = d(17.0)[k] - d(4.0)[k];
-            assert!((drift.displacement_nm(17.0, 4.0)[k] - want).abs() < 1e-9);
+            let v = [drift.velocity.x_nm_per_s, drift.velocity.y_nm_per_s][k];
+            let got = v * (17.0 - 4.0) + drift.accelerated_nm(17.0, 4.0)[k];
+            assert!((got - want).abs() < 1e-9);
         }
     }
 }

@@ -398,39 +398,74 @@ fn pair_lattice(
     config: &ImageSetConfig,
     raw_atoms: &mut BTreeMap<usize, (Vec<Feature>, Vec<Feature>)>,
 ) -> Result<PairLattice, ImageBenchmarkError> {
-    let Some(image) = images.get(k) else {
+    let Some(counter) = lattice_partner(images, k, config) else {
         return Ok(PairLattice::NotApplicable);
     };
-    let nominal = config.nominal_nm_per_count;
-    let period_px = config.lattice_constant_nm / nominal / image.size.step_counts.max(1e-9);
-    let Some(counter) = images
-        .get(k + 1)
-        .filter(|c| c.pair == image.pair && c.direction == ScanDirection::Counter)
-    else {
-        return Ok(PairLattice::NotApplicable);
-    };
-    if image.direction != ScanDirection::Direct
-        || period_px < config.min_pixels_per_lattice_constant
-    {
-        return Ok(PairLattice::NotApplicable);
-    }
     let counter_map = coordinate_map(method, counter, k + 1)?;
     let raw = raw_atoms
         .entry(k)
-        .or_insert_with(|| (atoms(&image.map, period_px), atoms(&counter.map, period_px)));
-    Ok(
-        match measure_lattice(
-            map,
-            &counter_map,
-            &image.map,
-            &counter.map,
-            (&raw.0, &raw.1),
-            config.lattice_constant_nm,
-        ) {
-            Some((a_nm, angle_deg)) => PairLattice::Measured { a_nm, angle_deg },
-            None => PairLattice::Failed,
-        },
-    )
+        .or_insert_with(|| raw_pair_atoms(&images[k], counter, config));
+    Ok(lattice_of_maps(
+        &images[k],
+        counter,
+        map,
+        &counter_map,
+        raw,
+        config,
+    ))
+}
+
+/// The counter image of the pair whose direct image is `images[k]`, when that pair resolves
+/// the lattice (at least [`ImageSetConfig::min_pixels_per_lattice_constant`]).
+fn lattice_partner<'i>(
+    images: &'i [TestImage],
+    k: usize,
+    config: &ImageSetConfig,
+) -> Option<&'i TestImage> {
+    let image = images.get(k)?;
+    let counter = images
+        .get(k + 1)
+        .filter(|c| c.pair == image.pair && c.direction == ScanDirection::Counter)?;
+    (image.direction == ScanDirection::Direct
+        && period_px(image, config) >= config.min_pixels_per_lattice_constant)
+        .then_some(counter)
+}
+
+/// The lattice constant in pixels of `image`.
+fn period_px(image: &TestImage, config: &ImageSetConfig) -> f64 {
+    config.lattice_constant_nm / config.nominal_nm_per_count / image.size.step_counts.max(1e-9)
+}
+
+/// The atoms of a pair's raw images (they do not depend on the method).
+fn raw_pair_atoms(
+    direct: &TestImage,
+    counter: &TestImage,
+    config: &ImageSetConfig,
+) -> (Vec<Feature>, Vec<Feature>) {
+    let period = period_px(direct, config);
+    (atoms(&direct.map, period), atoms(&counter.map, period))
+}
+
+/// The lattice measured on a pair corrected into `map` (direct) and `counter_map`.
+fn lattice_of_maps(
+    direct: &TestImage,
+    counter: &TestImage,
+    map: &CoordinateMap,
+    counter_map: &CoordinateMap,
+    raw: &(Vec<Feature>, Vec<Feature>),
+    config: &ImageSetConfig,
+) -> PairLattice {
+    match measure_lattice(
+        map,
+        counter_map,
+        &direct.map,
+        &counter.map,
+        (&raw.0, &raw.1),
+        config.lattice_constant_nm,
+    ) {
+        Some((a_nm, angle_deg)) => PairLattice::Measured { a_nm, angle_deg },
+        None => PairLattice::Failed,
+    }
 }
 
 /// The lattice of every counter-scanned pair of `images` corrected by `method`, with no
@@ -456,7 +491,67 @@ pub fn lattice_of_pairs(
     Ok(out)
 }
 
-/// Corrects every image with every method and summarises.
+/// What one method gives on one image: whether a competitor refused it, its figures, and
+/// (the direct image of a pair) the pair's lattice.
+struct ImageOutcome {
+    refused: bool,
+    rms_pm: f64,
+    max_pm: f64,
+    pct: f64,
+    sample_pct: f64,
+    lattice: PairLattice,
+}
+
+/// Every method on the images `group` (consecutive indices of one pair): each image's map is
+/// made once per method and serves both its own figures and its pair's lattice; the raw
+/// atoms once per pair. `result[method][image in group]`.
+fn evaluate_group(
+    images: &[TestImage],
+    group: std::ops::Range<usize>,
+    methods: &[ImageMethod<'_>],
+    config: &ImageSetConfig,
+) -> Result<Vec<Vec<ImageOutcome>>, ImageBenchmarkError> {
+    let nominal = config.nominal_nm_per_count;
+    let mut raw: Option<(Vec<Feature>, Vec<Feature>)> = None;
+    let mut out = Vec::with_capacity(methods.len());
+    for method in methods {
+        let maps = group
+            .clone()
+            .map(|k| coordinate_map_or_refusal(method, &images[k], k))
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut outcomes = Vec::with_capacity(maps.len());
+        for (g, k) in group.clone().enumerate() {
+            let image = &images[k];
+            let (map, refused) = &maps[g];
+            let corrected = flatten(map)?;
+            let (rms_pm, max_pm, pct) =
+                position_figures(&corrected, &image.truth_nm, image, nominal);
+            let (_, _, sample_pct) =
+                position_figures(&corrected, &image.sample_truth_nm, image, nominal);
+            let lattice = match (lattice_partner(images, k, config), maps.get(g + 1)) {
+                (Some(counter), Some((counter_map, _))) => {
+                    let raw = raw.get_or_insert_with(|| raw_pair_atoms(image, counter, config));
+                    lattice_of_maps(image, counter, map, counter_map, raw, config)
+                }
+                _ => PairLattice::NotApplicable,
+            };
+            outcomes.push(ImageOutcome {
+                refused: *refused,
+                rms_pm,
+                max_pm,
+                pct,
+                sample_pct,
+                lattice,
+            });
+        }
+        out.push(outcomes);
+    }
+    Ok(out)
+}
+
+/// Corrects every image with every method and summarises. The pairs are independent and
+/// are evaluated in parallel (rayon); the figures are gathered in image order, so the result
+/// does not depend on the number of threads.
 ///
 /// # Errors
 /// As the correction of an image.
@@ -465,7 +560,7 @@ pub fn evaluate_images(
     methods: &[ImageMethod<'_>],
     config: &ImageSetConfig,
 ) -> Result<ImageBenchmark, ImageBenchmarkError> {
-    let nominal = config.nominal_nm_per_count;
+    use rayon::prelude::*;
     let mut rows: Vec<ImageRow> = images
         .iter()
         .map(|image| ImageRow {
@@ -480,10 +575,20 @@ pub fn evaluate_images(
             figures: BTreeMap::new(),
         })
         .collect();
+    // Consecutive images of one pair form a group.
+    let mut groups: Vec<std::ops::Range<usize>> = Vec::new();
+    for (k, image) in images.iter().enumerate() {
+        match groups.last_mut() {
+            Some(g) if images[g.start].pair == image.pair => g.end = k + 1,
+            _ => groups.push(k..k + 1),
+        }
+    }
+    let evaluated = groups
+        .par_iter()
+        .map(|g| evaluate_group(images, g.clone(), methods, config))
+        .collect::<Result<Vec<_>, _>>()?;
     let mut summaries = BTreeMap::new();
-    // The atoms of the raw images do not depend on the method: detected once per pair.
-    let mut raw_atoms: BTreeMap<usize, (Vec<Feature>, Vec<Feature>)> = BTreeMap::new();
-    for method in methods {
+    for (m, method) in methods.iter().enumerate() {
         let mut ms_sum = 0.0;
         let mut max_pm: f64 = 0.0;
         let mut pct_sum = 0.0;
@@ -493,42 +598,41 @@ pub fn evaluate_images(
         let mut angle_max: f64 = 0.0;
         let mut failures = 0;
         let mut refused = 0;
-        for (k, image) in images.iter().enumerate() {
-            let (map, was_refused) = coordinate_map_or_refusal(method, image, k)?;
-            refused += usize::from(was_refused);
-            let corrected = flatten(&map)?;
-            let (rms, max, pct) = position_figures(&corrected, &image.truth_nm, image, nominal);
-            let (_, _, sample_pct) =
-                position_figures(&corrected, &image.sample_truth_nm, image, nominal);
-            sample_pct_sum += sample_pct;
-            ms_sum += rms * rms;
-            max_pm = max_pm.max(max);
-            pct_sum += pct;
-            let key = format!("{}", image.size.side_counts());
-            let e = by_size.entry(key).or_insert((0.0, 0));
-            e.0 += rms * rms;
-            e.1 += 1;
-            let mut figures = ImageFigures {
-                position_rms_pm: rms,
-                position_max_pm: max,
-                position_rms_pct_of_side: pct,
-                sample_position_rms_pct_of_side: sample_pct,
-                lattice_error_pct: None,
-                lattice_angle_error_deg: None,
-            };
-            // The lattice figure once per pair, on its direct image.
-            match pair_lattice(method, images, k, &map, config, &mut raw_atoms)? {
-                PairLattice::Measured { a_nm, angle_deg } => {
-                    let e = 100.0 * (a_nm / config.lattice_constant_nm - 1.0);
-                    lattice.push(e.abs());
-                    angle_max = angle_max.max(angle_deg);
-                    figures.lattice_error_pct = Some(e);
-                    figures.lattice_angle_error_deg = Some(angle_deg);
+        for (group, outcomes) in groups.iter().zip(&evaluated) {
+            for (k, o) in group.clone().zip(&outcomes[m]) {
+                let image = &images[k];
+                refused += usize::from(o.refused);
+                let rms = o.rms_pm;
+                sample_pct_sum += o.sample_pct;
+                ms_sum += rms * rms;
+                max_pm = max_pm.max(o.max_pm);
+                pct_sum += o.pct;
+                let key = format!("{}", image.size.side_counts());
+                let e = by_size.entry(key).or_insert((0.0, 0));
+                e.0 += rms * rms;
+                e.1 += 1;
+                let mut figures = ImageFigures {
+                    position_rms_pm: rms,
+                    position_max_pm: o.max_pm,
+                    position_rms_pct_of_side: o.pct,
+                    sample_position_rms_pct_of_side: o.sample_pct,
+                    lattice_error_pct: None,
+                    lattice_angle_error_deg: None,
+                };
+                // The lattice figure once per pair, on its direct image.
+                match o.lattice {
+                    PairLattice::Measured { a_nm, angle_deg } => {
+                        let e = 100.0 * (a_nm / config.lattice_constant_nm - 1.0);
+                        lattice.push(e.abs());
+                        angle_max = angle_max.max(angle_deg);
+                        figures.lattice_error_pct = Some(e);
+                        figures.lattice_angle_error_deg = Some(angle_deg);
+                    }
+                    PairLattice::Failed => failures += 1,
+                    PairLattice::NotApplicable => {}
                 }
-                PairLattice::Failed => failures += 1,
-                PairLattice::NotApplicable => {}
+                rows[k].figures.insert(method.name.clone(), figures);
             }
-            rows[k].figures.insert(method.name.clone(), figures);
         }
         let n = images.len().max(1) as f64;
         let nl = lattice.len().max(1) as f64;

@@ -49,7 +49,7 @@ fn creep_and_hysteresis_are_what_limit_the_full_scanner() {
     // Same net on the full room-temperature scanner: still far better than the
     // lumped calibration, but the creep excited by the skipping moves biases
     // the LCCs (docs/results/calibration.md), so the lattice error grows.
-    let full = &small_net(true, false).report;
+    let full = &small_net(true, true).report;
     let a = full.accuracy.as_ref().expect("oracle");
     // The same static calibration as the test above (shared: `common::small_net`).
     let static_only = small_net(false, false)

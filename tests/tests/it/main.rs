@@ -9,5 +9,6 @@ mod images_end_to_end;
 mod nanonis_end_to_end;
 mod nanonis_frame_angle;
 mod nanonis_smoke;
+mod report_html;
 mod repository;
 mod vertical_end_to_end;

@@ -9,6 +9,5 @@ mod faults;
 mod hostile;
 mod no_panic;
 mod postgres_cli;
-mod report_html;
 mod vertical_cli;
 mod virtual_mode;

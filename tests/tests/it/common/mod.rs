@@ -16,6 +16,7 @@ use spm_sim::{SimConfig, Simulator};
 use spmcal::job::{Backend, Job};
 use spmcal::report::{CalibrationReport, RunRecord, finish_with};
 use spmcal::run::{RecordingObserver, RunStart, run_job};
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
@@ -29,6 +30,9 @@ pub struct SmallNetCalibration {
     pub surfaces: SurfaceSet,
     /// The plan that was run.
     pub plan: PlanConfig,
+    /// Every file the run wrote into its output folder (report.json, report.html, the
+    /// figures, surfaces.json), by name: the folder itself is removed.
+    pub files: BTreeMap<String, Vec<u8>>,
 }
 
 pub fn workspace_root() -> PathBuf {
@@ -120,6 +124,16 @@ pub fn calibrate_small_net(
     let surfaces_json =
         std::fs::read_to_string(out.join("surfaces.json")).expect("surfaces.json readable");
     let surfaces = SurfaceSet::from_json_str(&surfaces_json).expect("surfaces.json parses");
+    let mut files = BTreeMap::new();
+    for entry in std::fs::read_dir(&out).expect("output folder readable") {
+        let path = entry.expect("output folder entry").path();
+        if path.is_file() && path.extension().is_some_and(|e| e != "sqlite") {
+            let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
+            if let Some(name) = name {
+                files.insert(name, std::fs::read(&path).expect("output file readable"));
+            }
+        }
+    }
     let _ = std::fs::remove_dir_all(&out);
     SmallNetCalibration {
         report,
@@ -129,5 +143,6 @@ pub fn calibrate_small_net(
             .expect("a simulated backend returns its simulator"),
         surfaces,
         plan: job.plan,
+        files,
     }
 }

@@ -7,19 +7,12 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+use crate::common;
 use base64::Engine as _;
 use scraper::{ElementRef, Html, Selector};
 use serde_json::Value;
-use spm_calibration::{GiveUpReason, GivenUpVisit, NoObserver};
-use spmcal::job::Job;
+use spm_calibration::{GiveUpReason, GivenUpVisit};
 use spmcal::plots::Figure;
-use spmcal::report::{RunRecord, finish};
-use spmcal::run::{RecordingObserver, RunStart, run_job};
-use std::path::{Path, PathBuf};
-
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
 
 fn sel(s: &str) -> Selector {
     Selector::parse(s).unwrap()
@@ -318,29 +311,16 @@ fn check_page(html: &str, json: &Value, figures: &[Figure]) {
 
 #[test]
 fn report_html_matches_report_json() {
-    let root = root();
-    let (plan, plan_text) = Job::read_plan(&root.join("configs/plan-hopg-small.toml")).unwrap();
-    let job = Job::from_parts(&root.join("configs/sim-hopg.toml"), plan, plan_text).unwrap();
-    let out = std::env::temp_dir().join(format!("spmcal-report-html-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
-    std::fs::create_dir_all(&out).unwrap();
-    let cdb = out.join("cdb.sqlite");
-    let mut quiet = NoObserver;
-    let mut recorder = RecordingObserver::new(&mut quiet);
-    let outcome = run_job(
-        &job,
-        &cdb,
-        RunStart::New {
-            run_id: "html".to_owned(),
-        },
-        1.8e9,
-        &mut recorder,
-    )
-    .unwrap();
-    let samples = recorder.into_samples();
-    let record = RunRecord::of_job(&job.plan, &outcome, &samples, 1.5);
-    let mut report = finish(&cdb, &out, &record, true).unwrap();
-
+    // The shared small net with its image benchmark (`common::small_net`): the page and
+    // report.json it wrote, and the figures beside them.
+    let calibration = common::small_net(true, true);
+    let file = |name: &str| -> Vec<u8> {
+        calibration
+            .files
+            .get(name)
+            .unwrap_or_else(|| panic!("{name} written"))
+            .clone()
+    };
     let figures: Vec<Figure> = [
         "lcc-kx.png",
         "lcc-ky.png",
@@ -352,16 +332,16 @@ fn report_html_matches_report_json() {
         "cdb-history.png",
     ]
     .iter()
-    .map(|file| Figure {
-        file: (*file).to_owned(),
+    .map(|name| Figure {
+        file: (*name).to_owned(),
         caption: String::new(),
-        png: std::fs::read(out.join(file)).unwrap_or_else(|_| panic!("{file} written")),
+        png: file(name),
     })
     .collect();
-    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
-    let json: Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let html = String::from_utf8(file("report.html")).unwrap();
+    let json: Value = serde_json::from_slice(&file("report.json")).unwrap();
     check_page(&html, &json, &figures);
+    let mut report = calibration.report.clone();
 
     // The same report with a given-up node and markup in a note: rows and escaping.
     report.run.given_up.push(GivenUpVisit {
@@ -390,5 +370,4 @@ fn report_html_matches_report_json() {
     assert!(
         html.contains("&lt;script&gt;alert(&#39;x&#39;)&lt;/script&gt; &amp; &quot;quoted&quot;")
     );
-    let _ = std::fs::remove_dir_all(&out);
 }

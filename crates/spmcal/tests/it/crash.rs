@@ -1,7 +1,7 @@
 //! Crash safety (issue 8): `spmcal calibrate` killed with SIGKILL at seeded random moments
 //! loses nothing and resumes.
 //!
-//! A 13 × 13 net, two repeats (338 visits) on the room-temperature simulator (its typical
+//! A 9 × 9 net, two repeats (162 visits) on the room-temperature simulator (its typical
 //! random faults on) runs for a few seconds. Each trial starts the real binary, kills it
 //! (`Child::kill` is SIGKILL on unix) at a moment drawn from a seeded generator, then:
 //! `spmcal cdb check` exits 0; the SQLite contents are transactionally consistent (a node
@@ -32,16 +32,16 @@ fn workspace_root() -> PathBuf {
         .to_path_buf()
 }
 
-/// Writes the job (13 × 13 nodes, 2 repeats) into `dir` and returns its path. The dynamics
+/// Writes the job (9 × 9 nodes, 2 repeats) into `dir` and returns its path. The dynamics
 /// stage is off: the kills must land among the visits this test checks (with the stage on,
 /// half of a run this small is the stage and its fit, after every visit is done).
 pub(crate) fn write_job(dir: &Path) -> PathBuf {
     let root = workspace_root();
     let plan = std::fs::read_to_string(root.join("configs/plan-hopg-small.toml")).unwrap();
     let plan = plan
-        .replace("step_counts = 20000", "step_counts = 4000")
+        .replace("step_counts = 20000", "step_counts = 6000")
         .replace("repeats = 1 ", "repeats = 2 ");
-    assert!(plan.contains("step_counts = 4000") && plan.contains("repeats = 2 "));
+    assert!(plan.contains("step_counts = 6000") && plan.contains("repeats = 2 "));
     // The stage off, in the plan's own `[plan.dynamics]` table when it has one.
     let plan = if plan.contains("[plan.dynamics]\n") {
         plan.replacen("[plan.dynamics]\n", "[plan.dynamics]\nenabled = false\n", 1)
@@ -310,7 +310,7 @@ fn trials(backend: &str, make_db: &dyn Fn(&Path, &str) -> Box<dyn Db>) {
     run_to_end(&job, &reference, &*reference_db, false);
     let full = started.elapsed();
     let planned = reference_db.contents();
-    assert_eq!(planned.progress.len(), 13 * 13 * 2);
+    assert_eq!(planned.progress.len(), 9 * 9 * 2);
     assert_consistent(&planned, "reference");
 
     let mut rng = Rng(0x5eed_c0ff_ee00_0008);

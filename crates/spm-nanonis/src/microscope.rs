@@ -1190,7 +1190,8 @@ impl NanonisMicroscope {
                 let samples = pixel * bin..(pixel + 1) * bin;
                 let (z, index) = self.binned(data_row, samples)?;
                 fwd.z_counts.push(z);
-                fwd.time_s.push(line_start + (index + 0.5) * tf / n16u as f64);
+                fwd.time_s
+                    .push(line_start + (index + 0.5) * tf / n16u as f64);
             }
             if let (Some(image), Some(data)) = (bwd.as_mut(), backward) {
                 let data_row = line_of(&data.data, row, n16u)?;

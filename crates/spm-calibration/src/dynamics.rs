@@ -533,7 +533,11 @@ mod tests {
         assert_eq!(one.len(), 6);
         assert_eq!(sixteen.len(), one.len());
         for (a, b) in one.iter().zip(&sixteen) {
-            assert_eq!(nanonis.acquired_pixels_per_line(b.pixels_per_line) % 16, 0);
+            assert!(
+                nanonis
+                    .acquired_pixels_per_line(b.pixels_per_line)
+                    .is_multiple_of(16)
+            );
             assert!(nanonis.honours_pixels_per_line(b.pixels_per_line), "{b:?}");
             assert_eq!(line_s(b), line_s(a));
             assert_eq!(width_counts(b), width_counts(a));

@@ -127,7 +127,7 @@ impl Capabilities {
     /// requested pixel then the mean of a whole number of samples.
     #[must_use]
     pub fn honours_pixels_per_line(&self, pixels: u32) -> bool {
-        pixels > 0 && self.acquired_pixels_per_line(pixels) % pixels == 0
+        pixels > 0 && self.acquired_pixels_per_line(pixels).is_multiple_of(pixels)
     }
 }
 

@@ -9,8 +9,8 @@
 
 use serde::{Deserialize, Serialize};
 use spm_hal::{
-    CountPoint, Counts, CountsPerSecond, Frame, Microscope, MoveRequest, ScanDirection,
-    ScanRequest, Seconds,
+    Capabilities, CountPoint, Counts, CountsPerSecond, Frame, Microscope, MoveRequest,
+    ScanDirection, ScanRequest, Seconds,
 };
 
 use crate::config::StandardConfig;
@@ -49,7 +49,10 @@ pub struct DynamicsConfig {
     /// so the pair shows the slow axis's hysteresis loop (issue 23). Default true.
     pub slow_axis_pairs: bool,
     /// Pixels per line of the slow-axis frames (≥ 2). Default 4: narrow and fast, so the
-    /// drift between a point's two sightings stays under a pixel.
+    /// drift between a point's two sightings stays under a pixel. A count the controller
+    /// cannot scan as asked at its pixels-per-line granularity is rounded up to one it can,
+    /// at the same line time ([`slow_axis_raster`]); 4 is scanned as asked by every backend
+    /// (a Nanonis controller samples each line 16 times and averages each pixel's 4).
     pub slow_axis_columns: u32,
     /// Pixel dwell of the slow-axis frames, s. Default 5e-5.
     pub slow_axis_dwell_s: f64,
@@ -278,6 +281,27 @@ fn with_attempts<T, E: spm_hal::Error>(
     }
 }
 
+/// The slow-axis frames' pixels per line and pixel dwell, s, on an instrument of `caps`:
+/// [`DynamicsConfig::slow_axis_columns`] at [`DynamicsConfig::slow_axis_dwell_s`] (within the
+/// instrument's pixels per line and shortest dwell), rounded up to the next count the
+/// controller scans as asked at its granularity
+/// ([`Capabilities::honours_pixels_per_line`]: 4 of a Nanonis controller's 16 is scanned in
+/// its own frame and line time, 3 would be padded to 16 at 3's step and dwell, 5.3 times the
+/// line time), the dwell divided so that the line time stays the configured one. At the
+/// default 4 columns nothing changes at granularity 1 or 16: the frame, its width in counts
+/// and its line time are the same on every backend, and so is the physics it measures.
+#[must_use]
+pub fn slow_axis_raster(config: &DynamicsConfig, caps: &Capabilities) -> (u32, f64) {
+    let max_pixels = caps.max_pixels_per_line.max(2);
+    let asked = config.slow_axis_columns.min(max_pixels);
+    let columns = (asked..=max_pixels)
+        .find(|&c| caps.honours_pixels_per_line(c))
+        .unwrap_or(asked);
+    let line_s = f64::from(asked) * config.slow_axis_dwell_s;
+    let dwell_s = (line_s / f64::from(columns)).max(caps.min_pixel_dwell.value());
+    (columns, dwell_s)
+}
+
 /// The counter-scanned pairs of one place ([`DynamicsConfig::slow_axis_pairs`]): settled at
 /// the frame's centre, the frame stepping +y, then at once the frame stepping −y. A pair
 /// with a failed half is dropped whole (and named).
@@ -296,10 +320,7 @@ fn scan_slow_axis_pairs<M: Microscope>(
         ));
         return;
     }
-    let columns = config
-        .slow_axis_columns
-        .min(caps.max_pixels_per_line.max(2));
-    let dwell_s = config.slow_axis_dwell_s.max(caps.min_pixel_dwell.value());
+    let (columns, dwell_s) = slow_axis_raster(config, &caps);
     for &length in &config.ladder_counts {
         let lines = ((length / step).round() as u32 + 1).clamp(2, caps.max_lines.max(2));
         let length = step * f64::from(lines - 1);
@@ -470,6 +491,68 @@ mod tests {
         }
         assert_eq!(slow[0].length_counts, 63.0);
         assert_eq!(slow[2].length_counts, 255.0);
+    }
+
+    /// The tall frames of each pair at a controller granularity of 16 pixels per line (a
+    /// Nanonis controller's) against granularity 1 (the simulator's, the virtual
+    /// backend's): the controller acquires a multiple of 16 pixels per line, and scans the
+    /// frames as asked (no padding), with the frame's width in counts, its line time and its
+    /// pixel centres those of granularity 1. A count it would pad (3) is rounded up to one it
+    /// scans as asked (4), at the configured line time.
+    #[test]
+    fn at_a_granularity_of_16_the_tall_frames_keep_their_width_and_line_time() {
+        use spm_hal::mock::{Expectation, ScriptedMicroscope};
+        let tall_frames = |multiple: u32, columns: u32| -> Vec<ScanRequest> {
+            let caps = Capabilities {
+                pixels_per_line_multiple: multiple,
+                ..ScriptedMicroscope::default_capabilities()
+            };
+            let mut mock = ScriptedMicroscope::new(caps).lenient_moves_and_waits(true);
+            mock.expect_all((0..9).map(|_| Expectation::scan(|_, _| Counts(0.0))));
+            let config = DynamicsConfig {
+                slow_axis_columns: columns,
+                ..small_ladder()
+            };
+            let scan = scan_small(&mut mock, &config);
+            assert!(scan.failures.is_empty(), "{:?}", scan.failures);
+            mock.done().unwrap();
+            scan.frames
+                .into_iter()
+                .filter(|f| f.slow_axis.is_some())
+                .map(|f| f.frame.request)
+                .collect()
+        };
+        let line_s = |r: &ScanRequest| f64::from(r.pixels_per_line) * r.pixel_dwell.value();
+        let width_counts =
+            |r: &ScanRequest| f64::from(r.pixels_per_line - 1) * r.pixel_step.value();
+        let nanonis = Capabilities {
+            pixels_per_line_multiple: 16,
+            ..ScriptedMicroscope::default_capabilities()
+        };
+        let (one, sixteen) = (tall_frames(1, 4), tall_frames(16, 4));
+        assert_eq!(one.len(), 6);
+        assert_eq!(sixteen.len(), one.len());
+        for (a, b) in one.iter().zip(&sixteen) {
+            assert!(
+                nanonis
+                    .acquired_pixels_per_line(b.pixels_per_line)
+                    .is_multiple_of(16)
+            );
+            assert!(nanonis.honours_pixels_per_line(b.pixels_per_line), "{b:?}");
+            assert_eq!(line_s(b), line_s(a));
+            assert_eq!(width_counts(b), width_counts(a));
+            assert_eq!(b, a);
+        }
+        // 3 columns: padded to 16 they would take 16/3 of the line time.
+        assert!(!nanonis.honours_pixels_per_line(3));
+        let (one, sixteen) = (tall_frames(1, 3), tall_frames(16, 3));
+        for (a, b) in one.iter().zip(&sixteen) {
+            assert_eq!(a.pixels_per_line, 3);
+            assert_eq!(b.pixels_per_line, 4);
+            assert!(nanonis.honours_pixels_per_line(b.pixels_per_line));
+            assert!((line_s(b) - line_s(a)).abs() <= 1e-15, "{b:?} {a:?}");
+            assert_eq!((b.lines, b.pixel_step), (a.lines, a.pixel_step));
+        }
     }
 
     /// `slow_axis_pair_places = 1`: the pairs at the first place only, the fast-axis frames at

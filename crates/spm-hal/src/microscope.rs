@@ -85,6 +85,17 @@ pub struct Capabilities {
     pub lateral_resolution: Counts,
     /// Largest pixels per line of one scan.
     pub max_pixels_per_line: u32,
+    /// The controller's granularity of pixels per line: it acquires lines of a whole
+    /// multiple of this many pixels (≥ 1; 1: any count). A Nanonis controller's is 16 (its
+    /// real-time engine sends data in packets of 16 pixels). A backend with a granularity
+    /// above 1 scans a request of `n` pixels per line with the same frame, pixel centres
+    /// and line time when `n` divides the next multiple of the granularity (`n` a divisor
+    /// or a multiple of it): the line oversampled and each requested pixel the mean of its
+    /// samples ([`honours_pixels_per_line`](Self::honours_pixels_per_line)). Any other
+    /// count costs the instrument the padding's pixels (the backend documents how). Absent
+    /// in a serialised record of an older version: 1.
+    #[serde(default = "one_pixel")]
+    pub pixels_per_line_multiple: u32,
     /// Largest number of lines of one scan.
     pub max_lines: u32,
     /// Shortest pixel dwell, seconds.
@@ -95,6 +106,29 @@ pub struct Capabilities {
     pub backward_trace: bool,
     /// The coarse approach stage, when there is one that software can drive.
     pub coarse_z: Option<CoarseZCapability>,
+}
+
+fn one_pixel() -> u32 {
+    1
+}
+
+impl Capabilities {
+    /// The pixels per line the controller acquires for a request of `pixels`: the next
+    /// multiple of [`Self::pixels_per_line_multiple`] (a granularity of 0 taken as 1).
+    #[must_use]
+    pub fn acquired_pixels_per_line(&self, pixels: u32) -> u32 {
+        let multiple = self.pixels_per_line_multiple.max(1);
+        pixels.div_ceil(multiple).saturating_mul(multiple)
+    }
+
+    /// True when a request of `pixels` per line (≥ 1) is scanned exactly as asked (its
+    /// frame, pixel centres and line time) at the controller's granularity: `pixels` divides
+    /// the pixels the controller acquires for it ([`Self::acquired_pixels_per_line`]), each
+    /// requested pixel then the mean of a whole number of samples.
+    #[must_use]
+    pub fn honours_pixels_per_line(&self, pixels: u32) -> bool {
+        pixels > 0 && self.acquired_pixels_per_line(pixels).is_multiple_of(pixels)
+    }
 }
 
 /// A lateral move with the feedback on.

@@ -203,6 +203,7 @@ impl ScriptedMicroscope {
             z_max: Counts(32767.0),
             lateral_resolution: Counts(1.0),
             max_pixels_per_line: 4096,
+            pixels_per_line_multiple: 1,
             max_lines: 4096,
             min_pixel_dwell: Seconds(1e-6),
             counter_scan: true,

@@ -154,10 +154,15 @@
 //!
 //! ## Pitfalls handled
 //! - **Pixels per line are coerced to a multiple of 16** (`Scan.BufferSet`: data travel
-//!   from the real-time engine in packets of 16). A request of `n` pixels is scanned as
-//!   `⌈n/16⌉·16` pixels with the same pixel step, the extra pixels continuing the forward
-//!   trace past the requested ones, and cropped; the pixel times account for the longer
-//!   lines. The buffer is read back (`Scan.BufferGet`) and a mismatch is an error.
+//!   from the real-time engine in packets of 16; `Capabilities::pixels_per_line_multiple`
+//!   is 16). A request of `n` pixels that divides `m = ⌈n/16⌉·16` (2, 4, 8 of 16; any
+//!   multiple of 16) is scanned in its own frame and line time as `m` samples, `m/n` in
+//!   each requested pixel's cell at `n/m` of its dwell, each pixel their mean (centred on
+//!   it, timed at its dwell's middle): the tip moves as the request says. Any other `n`
+//!   (or a dwell whose `n/m` is below the shortest) is scanned as `m` pixels with the same
+//!   pixel step, the extra pixels continuing the forward trace past the requested ones, and
+//!   cropped; the pixel times account for the longer lines. The buffer is read back
+//!   (`Scan.BufferGet`) and a mismatch is an error.
 //! - **Continuous and bouncy scanning** (and autosave, autopaste) are switched off by
 //!   `Scan.PropsSet` when the backend opens: left on, the controller starts the next frame
 //!   (in the other direction, for bouncy) and the data grabbed are not the scan requested.

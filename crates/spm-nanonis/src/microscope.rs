@@ -277,6 +277,7 @@ impl NanonisConfig {
             z_max: Counts(z_half - 1.0),
             lateral_resolution: Counts(1.0),
             max_pixels_per_line: self.max_pixels_per_line / PIXEL_PACKET * PIXEL_PACKET,
+            pixels_per_line_multiple: PIXEL_PACKET,
             max_lines: self.max_lines,
             min_pixel_dwell: Seconds(self.min_pixel_dwell_s),
             counter_scan: true,
@@ -978,8 +979,9 @@ impl NanonisMicroscope {
     }
 
     /// The controller's frame and speed for `request` (checked against the capabilities and
-    /// the field): pixels per line padded to a multiple of 16, the frame turned for counter
-    /// scans and by the counts convention's frame angle.
+    /// the field): pixels per line coerced to a multiple of 16 (oversampled and binned, or
+    /// padded and cropped: [`ScanPlan::bin`]), the frame turned for counter scans and by the
+    /// counts convention's frame angle.
     fn plan_scan(&self, request: &ScanRequest) -> Result<ScanPlan, NanonisError> {
         request
             .validate()
@@ -987,10 +989,8 @@ impl NanonisMicroscope {
         let caps = &self.capabilities;
         let n = request.pixels_per_line;
         let lines = request.lines;
-        // Pitfall: pixels per line are coerced to a multiple of 16. Scan the next multiple
-        // with the same pixel step (the extra pixels continue the forward trace past the
-        // requested ones) and crop.
-        let n16 = n.div_ceil(PIXEL_PACKET) * PIXEL_PACKET;
+        // Pitfall: pixels per line are coerced to a multiple of 16.
+        let n16 = caps.acquired_pixels_per_line(n);
         if n16 > caps.max_pixels_per_line || lines > caps.max_lines {
             return Err(NanonisError::new(
                 NanonisErrorKind::OutOfRange,
@@ -1009,19 +1009,41 @@ impl NanonisMicroscope {
                 ),
             ));
         }
+        // A count dividing the multiple (4 of 16): the request's own frame and line time,
+        // oversampled (`bin` samples per requested pixel, each a `bin`-th of its dwell) —
+        // unless those samples would be shorter than the controller allows. Otherwise the
+        // next multiple with the same pixel step, the extra pixels continuing the forward
+        // trace past the requested ones, cropped (the lines longer by the padding).
+        let bin = n16 / n;
+        let bin = if caps.honours_pixels_per_line(n)
+            && request.pixel_dwell.value() / f64::from(bin) >= caps.min_pixel_dwell.value()
+        {
+            bin
+        } else {
+            1
+        };
         let step = request.pixel_step.value();
+        let sample_step = step / f64::from(bin);
         let (far_x, _) = request.far_corner();
-        let pad = f64::from(n16 - n) * step;
-        // The padded raster in counts: x range of pixel centres.
+        // The raster's sample centres in counts: x range (the samples of a binned line fill
+        // the requested pixels' cells; a padded one runs past the requested pixels).
+        let pad = f64::from(n16 - n * bin) * sample_step;
+        let inset = 0.5 * (step - sample_step);
         let (x_lo, x_hi) = match request.direction {
-            ScanDirection::Direct => (request.origin.x.value(), far_x.value() + pad),
-            ScanDirection::Counter => (request.origin.x.value() - pad, far_x.value()),
+            ScanDirection::Direct => (
+                request.origin.x.value() - inset,
+                far_x.value() + inset + pad,
+            ),
+            ScanDirection::Counter => (
+                request.origin.x.value() - inset - pad,
+                far_x.value() + inset,
+            ),
         };
         let (_, far_y) = request.far_corner();
         for (x, y) in [(x_lo, request.origin.y.value()), (x_hi, far_y.value())] {
             self.check_inside(
                 CountPoint::from_counts(x, y),
-                "the scan raster (padded to a multiple of 16 pixels)",
+                "the scan raster (its lines coerced to a multiple of 16 pixels)",
             )?;
         }
         // Frame: pixels are cell-centred, pixel i of a line at left + (i + ½)·width/pixels.
@@ -1030,7 +1052,7 @@ impl NanonisMicroscope {
             0.5 * (request.origin.y.value() + far_y.value()),
         );
         let (cx, cy) = self.to_metres(centre_counts);
-        let width_m = f64::from(n16) * step * self.lateral_m_per_count[0];
+        let width_m = f64::from(n16) * sample_step * self.lateral_m_per_count[0];
         let height_m = f64::from(lines) * step * self.lateral_m_per_count[1];
         // Counter scans: the frame turned by 180°, so its +x runs along −x and its "up"
         // along −y.
@@ -1048,7 +1070,7 @@ impl NanonisMicroscope {
         } else {
             turned
         } as f32;
-        let line_s = f64::from(n16) * request.pixel_dwell.value();
+        let line_s = f64::from(n16 / bin) * request.pixel_dwell.value();
         Ok(ScanPlan {
             raster_counts: [
                 x_lo,
@@ -1057,6 +1079,7 @@ impl NanonisMicroscope {
                 request.origin.y.value().max(far_y.value()),
             ],
             n16,
+            bin,
             frame: ScanFrame {
                 centre_x_m: f32_of(cx),
                 centre_y_m: f32_of(cy),
@@ -1111,17 +1134,19 @@ impl NanonisMicroscope {
     }
 
     /// spm-hal's frame from the grabbed data: the requested pixels of each line (the
-    /// padding cropped), rows in spm-hal's geometry, each pixel timed from the scan's start
-    /// `start_s` with the line times (forward, backward) `(tf, tb)`.
+    /// padding cropped, or each the mean of its `bin` samples: [`ScanPlan::bin`]), rows in
+    /// spm-hal's geometry, each pixel timed from the scan's start `start_s` with the line
+    /// times (forward, backward) `(tf, tb)`.
     fn assemble_frame(
         &self,
         request: &ScanRequest,
-        (end, n16, direction_up, want_backward): (&ScanEnd, u32, u32, bool),
+        (end, (n16, bin), direction_up, want_backward): (&ScanEnd, (u32, u32), u32, bool),
         (start_s, tf, tb): (f64, f64, f64),
     ) -> Result<Frame, NanonisError> {
         let (forward, backward) = (&end.forward, end.backward.as_ref());
         let n = request.pixels_per_line as usize;
         let n16u = n16 as usize;
+        let bin = bin.max(1) as usize;
         let ny = request.lines as usize;
         let mut fwd = TraceImage {
             z_counts: Vec::with_capacity(n * ny),
@@ -1160,21 +1185,26 @@ impl NanonisMicroscope {
                 SlowDirection::Down => ny - 1 - line,
             };
             let line_start = start_s + acquired as f64 * (tf + tb);
+            let data_row = line_of(&forward.data, row, n16u)?;
             for pixel in 0..n {
-                let value = forward.data[row * n16u + pixel];
-                fwd.z_counts.push(self.z_counts(value)?);
+                let samples = pixel * bin..(pixel + 1) * bin;
+                let (z, index) = self.binned(data_row, samples)?;
+                fwd.z_counts.push(z);
                 fwd.time_s
-                    .push(line_start + (pixel as f64 + 0.5) * tf / n16u as f64);
+                    .push(line_start + (index + 0.5) * tf / n16u as f64);
             }
             if let (Some(image), Some(data)) = (bwd.as_mut(), backward) {
+                let data_row = line_of(&data.data, row, n16u)?;
                 for pixel in 0..n {
                     let column = n - 1 - pixel;
-                    let value = data.data[row * n16u + column];
-                    image.z_counts.push(self.z_counts(value)?);
-                    let index = n16u - 1 - column;
+                    let samples = column * bin..(column + 1) * bin;
+                    let (z, index) = self.binned(data_row, samples)?;
+                    image.z_counts.push(z);
+                    // The retrace runs from the line's last sample back to its first.
+                    let index = (n16u - 1) as f64 - index;
                     image
                         .time_s
-                        .push(line_start + tf + (index as f64 + 0.5) * tb / n16u as f64);
+                        .push(line_start + tf + (index + 0.5) * tb / n16u as f64);
                 }
             }
         }
@@ -1225,7 +1255,7 @@ impl NanonisMicroscope {
         }
         self.assemble_frame(
             request,
-            (&end, n16, direction_up, want_backward),
+            (&end, (n16, plan.bin), direction_up, want_backward),
             (start_s, tf, tb),
         )
     }
@@ -1399,6 +1429,29 @@ impl NanonisMicroscope {
         let retried = e.kind == NanonisErrorKind::Busy
             || (!self.client.is_connected() && e.kind != NanonisErrorKind::Aborted);
         if retried { Ok(None) } else { Err(e) }
+    }
+
+    /// The mean height of a line's `samples` (columns of the frame), counts, and their mean
+    /// column: one requested pixel ([`ScanPlan::bin`]).
+    fn binned(
+        &self,
+        data_row: &[f32],
+        samples: std::ops::Range<usize>,
+    ) -> Result<(f64, f64), NanonisError> {
+        let count = samples.len().max(1) as f64;
+        let index = 0.5 * (samples.start + samples.end.saturating_sub(1)) as f64;
+        let values = data_row.get(samples).ok_or_else(|| {
+            NanonisError::new(
+                NanonisErrorKind::IncompleteData,
+                "the frame has fewer pixels per line than requested",
+            )
+            .in_command("Scan.FrameDataGrab")
+        })?;
+        let mut sum = 0.0;
+        for &value in values {
+            sum += self.z_counts(value)?;
+        }
+        Ok((sum / count, index))
     }
 
     fn z_counts(&self, value_m: f32) -> Result<f64, NanonisError> {
@@ -1670,10 +1723,16 @@ fn slice_ms() -> i32 {
 
 /// A scan's frame and speed as the controller is sent them ([`NanonisMicroscope::plan_scan`]).
 struct ScanPlan {
-    /// The padded raster's pixel centres, counts: x from, x to, y from, y to.
+    /// The scanned raster's sample centres, counts: x from, x to, y from, y to.
     raster_counts: [f64; 4],
-    /// Pixels per line scanned (the request's, padded to a multiple of 16).
+    /// Pixels per line scanned (the request's, coerced to a multiple of 16).
     n16: u32,
+    /// Samples per requested pixel. Above 1 (a request of a count dividing `n16`, such as 4
+    /// of 16): the controller scans the request's frame in its line time, `bin` samples in
+    /// each requested pixel's cell at a `bin`-th of its dwell, and each requested pixel is
+    /// their mean (centred on the pixel, timed at its dwell's middle). 1: the line padded
+    /// past the requested pixels at their step and dwell, and cropped.
+    bin: u32,
     frame: ScanFrame,
     speed: ScanSpeed,
     /// One line's trace as requested, s.
@@ -1739,6 +1798,17 @@ fn checked_frame(reply: Option<Reply>, columns: u32, rows: u32) -> Result<FrameD
         .in_command("Scan.FrameDataGrab")),
         other => Err(unexpected_or_none("Scan.FrameDataGrab", other)),
     }
+}
+
+/// Row `row` of a grabbed frame of `columns` pixels per line.
+fn line_of(data: &[f32], row: usize, columns: usize) -> Result<&[f32], NanonisError> {
+    data.get(row * columns..(row + 1) * columns).ok_or_else(|| {
+        NanonisError::new(
+            NanonisErrorKind::IncompleteData,
+            format!("the frame's data end before line {row} of {columns} pixels"),
+        )
+        .in_command("Scan.FrameDataGrab")
+    })
 }
 
 /// The bits of a frame's geometry, to tell a frame from the one last sent.

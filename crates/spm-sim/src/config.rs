@@ -406,6 +406,7 @@ impl SimConfig {
             z_max: spm_hal::Counts(hz - 1.0),
             lateral_resolution: spm_hal::Counts(1.0),
             max_pixels_per_line: i.max_pixels_per_line,
+            pixels_per_line_multiple: 1,
             max_lines: i.max_lines,
             min_pixel_dwell: spm_hal::Seconds(i.min_pixel_dwell_s),
             counter_scan: i.counter_scan,

@@ -1217,6 +1217,7 @@ impl Microscope for Simulator {
             // sub-count commands exactly (an ideal DAC), but still advertises 1.
             lateral_resolution: Counts(1.0),
             max_pixels_per_line: i.max_pixels_per_line,
+            pixels_per_line_multiple: 1,
             max_lines: i.max_lines,
             min_pixel_dwell: Seconds(i.min_pixel_dwell_s),
             counter_scan: i.counter_scan,

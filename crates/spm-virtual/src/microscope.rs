@@ -290,6 +290,7 @@ impl Microscope for VirtualMicroscope {
             z_max: Counts(1e9),
             lateral_resolution: Counts(1e-6),
             max_pixels_per_line: MAX_SCAN_PIXELS,
+            pixels_per_line_multiple: 1,
             max_lines: MAX_SCAN_PIXELS,
             min_pixel_dwell: Seconds(1e-9),
             counter_scan: true,

@@ -210,6 +210,77 @@ fn pixel_counts_are_padded_to_16_and_cropped() {
 }
 
 #[test]
+fn pixel_counts_dividing_16_are_scanned_in_their_own_frame_and_line_time() {
+    // 4 pixels are scanned as 16 samples over the request's own frame in its line time (a
+    // quarter of the dwell each) and each pixel is the mean of its 4 samples: the same
+    // physics as the in-process 4-pixel scan (nanonis-sim runs exactly that scan, its
+    // frame having non-square pixels, and resamples each line to 16 by linear
+    // interpolation), the pixel times the same, the line time not 4 times longer.
+    let server = start(SocketFaults::none());
+    let mut tcp = NanonisMicroscope::connect(client_config(server.addr().port())).unwrap();
+    let mut local = Simulator::new(sim_config()).unwrap();
+    assert_eq!(tcp.capabilities().pixels_per_line_multiple, 16);
+    assert_eq!(local.capabilities().pixels_per_line_multiple, 1);
+    // Binned: the mean over samples 4k..4k+3 of the line resampled to 16 pixels.
+    let binned = |line: &[f64], k: usize| -> f64 {
+        let n = line.len();
+        (4 * k..4 * k + 4)
+            .map(|c| {
+                let f = ((c as f64 + 0.5) / 16.0 * n as f64 - 0.5).clamp(0.0, (n - 1) as f64);
+                let j = (f.floor() as usize).min(n - 1);
+                let w = f - j as f64;
+                line[j] * (1.0 - w) + line[(j + 1).min(n - 1)] * w
+            })
+            .sum::<f64>()
+            / 4.0
+    };
+    for direction in [ScanDirection::Direct, ScanDirection::Counter] {
+        let asked = ScanRequest {
+            record_backward: true,
+            ..request(direction, 4, 6)
+        };
+        let a = tcp.scan(&asked).unwrap();
+        let b = local.scan(&asked).unwrap();
+        assert_eq!(a.request, asked);
+        // A line's trace and retrace: 4 pixels each at 1e-4 s, not 16.
+        let period_s = a.forward.time_s[4] - a.forward.time_s[0];
+        assert!(close(period_s, 8e-4, 1e-3), "{direction:?}: {period_s} s");
+        let halves = [
+            (&a.forward, &b.forward),
+            (a.backward.as_ref().unwrap(), b.backward.as_ref().unwrap()),
+        ];
+        for (half, (got, truth)) in halves.into_iter().enumerate() {
+            assert_eq!(got.z_counts.len(), 4 * 6);
+            for line in 0..6 {
+                let row = &truth.z_counts[line * 4..(line + 1) * 4];
+                // The retrace's pixels are in scan order: left to right in the frame.
+                let in_frame: Vec<f64> = if half == 0 {
+                    row.to_vec()
+                } else {
+                    row.iter().rev().copied().collect()
+                };
+                for pixel in 0..4 {
+                    let i = line * 4 + pixel;
+                    let k = if half == 0 { pixel } else { 3 - pixel };
+                    let e = binned(&in_frame, k);
+                    assert!(
+                        (got.z_counts[i] - e).abs() <= 2e-3,
+                        "{direction:?} half {half} line {line} pixel {pixel}: {} vs {e}",
+                        got.z_counts[i]
+                    );
+                    assert!(
+                        close(got.time_s[i], truth.time_s[i], 1e-3),
+                        "{direction:?} half {half}: {} vs {}",
+                        got.time_s[i],
+                        truth.time_s[i]
+                    );
+                }
+            }
+        }
+    }
+}
+
+#[test]
 fn socket_faults_are_survived_and_an_unreachable_controller_aborts() {
     let faults = SocketFaults::mixed(0.1, 7, 0.01, 0.0);
     let server = start(faults);

@@ -3,28 +3,17 @@
 #![allow(clippy::unwrap_used)]
 
 use spm_modelcheck::{
-    Diagnosis, ExtractOptions, FeatureSet, ImageInput, LatticeSpec, LineDirection, Localiser,
-    ModelCheckError, Options, SI7X7_A_NM, diagnose, extract_features,
+    Diagnosis, ExtractOptions, FeatureSet, LatticeSpec, LineDirection, Localiser, ModelCheckError,
+    SI7X7_A_NM, extract_features,
 };
 
-fn try_run(files: &[&str], lattice: &str) -> Result<Diagnosis, ModelCheckError> {
-    let inputs: Vec<ImageInput> = files
-        .iter()
-        .map(|f| ImageInput {
-            path: spmcal_tests::measured_file(f),
-            start_time_s: None,
-        })
-        .collect();
-    diagnose(
-        &inputs,
-        &LatticeSpec::parse(lattice).unwrap(),
-        &Options::default(),
-        &ExtractOptions::default(),
-    )
+/// The shared diagnosis of measured files (`common::measured`, default options).
+fn try_run(files: &[&str], lattice: &str) -> crate::common::measured::Outcome {
+    crate::common::measured::diagnosis(files, lattice)
 }
 
 fn run(files: &[&str], lattice: &str) -> Diagnosis {
-    try_run(files, lattice).unwrap()
+    try_run(files, lattice).as_ref().as_ref().unwrap().clone()
 }
 
 /// A parameter of a named finding, when the effect was found.
@@ -219,11 +208,14 @@ fn the_trace_retrace_offset_is_in_the_data_not_the_localiser() {
 fn the_200_nm_si7x7_image_is_refused_as_unresolved() {
     // 200 nm over 256 px: a 7×7 cell spans about 3.4 px (4 px with this scanner's
     // scale), its pattern beyond the pixel Nyquist limit.
-    match try_run(&["si7x7-nanonis/Si_7x7_012.sxm"], "si7x7") {
+    match try_run(&["si7x7-nanonis/Si_7x7_012.sxm"], "si7x7").as_ref() {
         Err(ModelCheckError::Unresolved { reason, .. }) => {
             assert!(reason.contains("Nyquist"), "{reason}")
         }
-        other => panic!("expected a refusal, got {:?}", other.map(|d| d.findings)),
+        other => panic!(
+            "expected a refusal, got {:?}",
+            other.as_ref().map(|d| &d.findings)
+        ),
     }
 }
 

@@ -19,9 +19,9 @@ fn run(paths: &[PathBuf], lattice: &LatticeSpec) -> Result<Diagnosis, ModelCheck
     )
 }
 
-/// Every measured file (../shared/data/measured, through the one data helper), with the
-/// lattice its folder holds; and the Si 7×7 drift pair together.
-fn measured_cases() -> Vec<(String, Vec<PathBuf>, &'static str)> {
+/// Every measured file (../shared/data/measured, through the one data helper), named by its
+/// path there, with the lattice its folder holds; and the Si 7×7 drift pair together.
+fn measured_cases() -> Vec<(String, Vec<String>, &'static str)> {
     let root = spmcal_tests::shared_data_dir().join("measured");
     let mut cases = Vec::new();
     let mut folders: Vec<_> = std::fs::read_dir(&root)
@@ -44,18 +44,14 @@ fn measured_cases() -> Vec<(String, Vec<PathBuf>, &'static str)> {
         files.sort();
         for file in files {
             let rel = format!("{name}/{}", file.file_name().unwrap().to_string_lossy());
-            cases.push((
-                rel.clone(),
-                vec![spmcal_tests::measured_file(&rel)],
-                lattice,
-            ));
+            cases.push((rel.clone(), vec![rel], lattice));
         }
     }
     cases.push((
         "si7x7-nanonis/Si_7x7_028.sxm + 032".to_owned(),
         vec![
-            spmcal_tests::measured_file("si7x7-nanonis/Si_7x7_028.sxm"),
-            spmcal_tests::measured_file("si7x7-nanonis/Si_7x7_032.sxm"),
+            "si7x7-nanonis/Si_7x7_028.sxm".to_owned(),
+            "si7x7-nanonis/Si_7x7_032.sxm".to_owned(),
         ],
         "si7x7",
     ));
@@ -90,9 +86,11 @@ fn cap_violation(d: &Diagnosis, a_nm: f64) -> Option<String> {
 fn every_accepted_finding_on_measured_files_lowers_the_heldout_rms() {
     let mut failures = Vec::new();
     let mut diagnosed = 0;
-    for (label, paths, lattice) in measured_cases() {
+    for (label, files, lattice) in measured_cases() {
+        let files: Vec<&str> = files.iter().map(String::as_str).collect();
+        let outcome = common::measured::diagnosis(&files, lattice);
         let lattice = LatticeSpec::parse(lattice).unwrap();
-        let d = match run(&paths, &lattice) {
+        let d = match outcome.as_ref() {
             Ok(d) => d,
             Err(e) => {
                 println!("{label}: refused: {e}");
@@ -123,7 +121,7 @@ fn every_accepted_finding_on_measured_files_lowers_the_heldout_rms() {
                 ));
             }
         }
-        if let Some(v) = cap_violation(&d, lattice.a_nm()) {
+        if let Some(v) = cap_violation(d, lattice.a_nm()) {
             failures.push(format!("{label}: {v}"));
         }
     }

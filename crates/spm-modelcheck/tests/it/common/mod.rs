@@ -3,6 +3,7 @@
 #![allow(dead_code, clippy::unwrap_used)]
 
 pub mod image;
+pub mod measured;
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;

@@ -328,7 +328,7 @@ fn a_lock_held_by_another_session_ends_the_check_at_the_lock_timeout() {
 // Issue 25 item 4 (rest): a server restarted under `calibrate`, a backend stopped under
 // `cdb check` and under `calibrate`.
 
-// The crash tests' job (13 × 13 nodes, 2 repeats, the dynamics stage off: 338 visits).
+// The crash tests' job (9 × 9 nodes, 2 repeats, the dynamics stage off: 162 visits).
 use crate::crash::write_job;
 
 fn calibrate(job: &Path, out: &Path, url: &str, resume: bool) -> Command {
@@ -501,7 +501,7 @@ fn a_server_restart_during_calibrate_loses_and_duplicates_nothing() {
         "reference calibration",
     );
     let (want_visits, want_records) = stored(&reference);
-    assert_eq!(want_visits.len(), 13 * 13 * 2);
+    assert_eq!(want_visits.len(), 9 * 9 * 2);
 
     let url = server.create_database("restarted").unwrap();
     let child = calibrate(&job, &dir.join("out"), &url, false)
@@ -645,7 +645,7 @@ fn sigterm_ends_calibrate_waiting_for_a_stopped_backend() {
         "calibrate --resume",
     );
     let (visits, _) = stored(&url);
-    assert_eq!(visits.len(), 13 * 13 * 2);
+    assert_eq!(visits.len(), 9 * 9 * 2);
     for (key, (state, n)) in &visits {
         assert_ne!(state, "pending", "{key:?}");
         assert_eq!(

@@ -634,10 +634,16 @@ fn sigterm_ends_calibrate_waiting_for_a_stopped_backend() {
         err.lines().last().unwrap_or_default()
     );
     drop(stopped);
-    // Nothing was committed while the backend was stopped; the run stays 'running'.
+    // Nothing was committed while the backend was stopped; the run stays 'running'. One
+    // visit's transaction may complete once the backend continues: when the STOP landed after
+    // the client had sent its COMMIT, PostgreSQL executes what it has received before it
+    // reads the closed connection (seen under load). At most that one, and whole (below).
     std::thread::sleep(std::time::Duration::from_millis(500));
     let (records_after, _) = progress_so_far(&url).unwrap();
-    assert_eq!(records_after, records_before);
+    assert!(
+        (records_before..=records_before + 1).contains(&records_after),
+        "{records_before} records before the stop, {records_after} after"
+    );
     ok(
         &calibrate(&job, &dir.join("out"), &url, true)
             .output()

@@ -484,9 +484,19 @@ pub fn measure_lattice(
     // third of its lines on is tried next, then its last third: the lattice is the same
     // everywhere. (On the default job's slow 512-count pair 27, 53 s an image, the atoms from
     // a third on still gave one dominant row direction of 0.29 nm and no triangle.)
-    lattice_in_rows(&moved, direct, lattice_constant_nm, 0)
-        .or_else(|| lattice_in_rows(&moved, direct, lattice_constant_nm, moved.rows() / 3))
-        .or_else(|| lattice_in_rows(&moved, direct, lattice_constant_nm, 2 * moved.rows() / 3))
+    lattice_in_frame(&moved, direct, lattice_constant_nm)
+}
+
+/// The lattice of a corrected frame: on the whole frame, else from a third of its lines on,
+/// else on its last third (see [`measure_lattice`]).
+fn lattice_in_frame(
+    moved: &CoordinateMap,
+    direct: &HeightMap,
+    lattice_constant_nm: f64,
+) -> Option<(f64, f64)> {
+    lattice_in_rows(moved, direct, lattice_constant_nm, 0)
+        .or_else(|| lattice_in_rows(moved, direct, lattice_constant_nm, moved.rows() / 3))
+        .or_else(|| lattice_in_rows(moved, direct, lattice_constant_nm, 2 * moved.rows() / 3))
 }
 
 /// [`measure_lattice`]'s measurement on the drift-moved direct map `moved`, inside its rows

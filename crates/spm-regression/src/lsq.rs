@@ -125,23 +125,18 @@ pub fn least_squares(
             got: rows.len(),
         });
     }
+    let a = DMatrix::from_fn(rows.len(), n, |i, j| rows[i][j]);
     let b = DVector::from_column_slice(rhs);
     // Column scales (normalised columns make the rank test meaningful).
-    let mut sums = vec![0.0; n];
-    for row in rows {
-        for (s, v) in sums.iter_mut().zip(row) {
-            *s += v * v;
-        }
-    }
-    let scale: Vec<f64> = sums
-        .iter()
-        .map(|s| if *s > 0.0 { s.sqrt() } else { 1.0 })
+    let scale: Vec<f64> = (0..n)
+        .map(|j| {
+            let s = a.column(j).norm();
+            if s > 0.0 { s } else { 1.0 }
+        })
         .collect();
-    let a = DMatrix::from_fn(rows.len(), n, |i, j| rows[i][j] / scale[j]);
-    // Gram matrix and right-hand side as column dot products (`tr_mul`): no transposed copy,
-    // and for the tall, narrow designs of this workspace far cheaper than a blocked product.
-    let g = a.tr_mul(&a);
-    let c = a.tr_mul(&b);
+    let a = DMatrix::from_fn(a.nrows(), n, |i, j| a[(i, j)] / scale[j]);
+    let g = a.transpose() * &a;
+    let c = a.transpose() * &b;
 
     let mut passive: Vec<bool> = non_negative.iter().map(|&c| !c).collect();
     let mut x = vec![0.0; n];

@@ -1,4 +1,4 @@
-//! Hidden effects in generated feature lists (fast, covers all ten effects of
+//! Hidden effects in generated feature lists (fast, covers all eleven effects of
 //! the library at five seeds each, whatever spm-sim can produce).
 #![allow(clippy::unwrap_used)]
 
@@ -143,6 +143,21 @@ fn hidden(effect: EffectKind, k: f64) -> (Box<Extra>, Vec<(&'static str, f64)>) 
             Box::new(move |_, _, s, _| ([0.0, 0.0], [0.0, 0.5 * s * 0.04 * k])),
             vec![("separation_y_nm", 0.04 * k)],
         ),
+        // The fast axis driven by a sine over ±β of phase (β = k rad: 0.6–1.4), the nominal
+        // frame edge at the sine's value there: input x = W·sin(βξ)/sin β.
+        EffectKind::SinusoidalDrive => {
+            let scale_x = Scan::default().scale[0];
+            (
+                Box::new(move |u, _, _, _| {
+                    let xi = u[0] / h;
+                    ([h * ((k * xi).sin() / k.sin() - xi), 0.0], [0.0, 0.0])
+                }),
+                vec![
+                    ("amplitude_nm", scale_x * h / k.sin()),
+                    ("phase_at_line_end_rad", k),
+                ],
+            )
+        }
     }
 }
 
@@ -264,6 +279,11 @@ fn hidden_interlace_is_named() {
     check_named_at_every_seed(EffectKind::Interlace);
 }
 
+#[test]
+fn hidden_sinusoidal_drive_is_named() {
+    check_named_at_every_seed(EffectKind::SinusoidalDrive);
+}
+
 /// Every effect of the library has a test above.
 #[test]
 fn every_library_effect_is_hidden_here() {
@@ -271,7 +291,7 @@ fn every_library_effect_is_hidden_here() {
         let (_, truth) = hidden(effect, 1.0);
         assert!(!truth.is_empty(), "{}", effect.name());
     }
-    assert_eq!(EffectKind::ALL.len(), 10, "add a hidden_*_is_named test");
+    assert_eq!(EffectKind::ALL.len(), 11, "add a hidden_*_is_named test");
 }
 
 #[test]

@@ -139,5 +139,17 @@ pub(crate) fn grow_from_centre(
         map = fit_map(&xi, &sites, degree_for(r))?;
     }
     sites = assign(&map, &xi, f64::INFINITY);
-    (nonlinear_departure(&map, &xi) > NONLINEAR_CELLS).then_some(sites)
+    if nonlinear_departure(&map, &xi) <= NONLINEAR_CELLS {
+        return None;
+    }
+    // Where the smooth map places no feature (a terrace of another registry, a region the
+    // map does not follow), the walk's site stands: the growth corrects slips, it does not
+    // unindex what the walk followed locally.
+    Some(
+        sites
+            .iter()
+            .zip(local)
+            .map(|(grown, walked)| grown.or(*walked))
+            .collect(),
+    )
 }

@@ -179,7 +179,7 @@ pub(crate) fn implausible(fraction: (f64, f64)) -> Option<String> {
 
 /// Evidence (ΔBIC) that the drive's shape is seen beyond the cubic it starts as: the drive
 /// added to the model *with* a free quadratic and cubic on both axes (the polynomial
-/// nonlinearity at degree 3). Below the threshold the data do not tell the sine from a
+/// nonlinearity at degree 3), on the features that model keeps. Below the threshold the data do not tell the sine from a
 /// polynomial, and the polynomial (which also takes positive cubics) is the honest name.
 pub(crate) fn beyond_cubic_evidence(
     obs: &[Obs],
@@ -197,11 +197,25 @@ pub(crate) fn beyond_cubic_evidence(
         obs,
         ctx,
     ));
-    let Ok(f0) = solve(&with_cubic, target, mask) else {
+    let n_cubic = with_cubic.len();
+    with_cubic.extend(extra.iter().cloned());
+    // On the features the extended model describes: the baseline's outliers include the
+    // frame edges, where a drive departs most from a straight line and from a cubic
+    // (re-admitted after an acceptance, as `readmit` does), within 5 RMS of its residual.
+    let Ok(f1) = solve(&with_cubic, target, mask) else {
         return f64::NEG_INFINITY;
     };
-    with_cubic.extend(extra.iter().cloned());
-    let Ok(f1) = solve(&with_cubic, target, mask) else {
+    let rms = (f1.rss / f1.n_eq.max(1) as f64).sqrt();
+    let wide: Vec<bool> = (0..mask.len())
+        .map(|k| {
+            let r = f1.residual[2 * k].hypot(f1.residual[2 * k + 1]);
+            mask[k] || (r.is_finite() && r < 5.0 * std::f64::consts::SQRT_2 * rms)
+        })
+        .collect();
+    let (Ok(f0), Ok(f1)) = (
+        solve(&with_cubic[..n_cubic], target, &wide),
+        solve(&with_cubic, target, &wide),
+    ) else {
         return f64::NEG_INFINITY;
     };
     evidence(f0.n_eq as f64, f0.rss, f1.rss, 2.0, trials)

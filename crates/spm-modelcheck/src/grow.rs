@@ -24,8 +24,9 @@ const TOLERANCE: f64 = 0.3;
 /// a third of cases (0.6²), within 0.2 in a sixth.
 const FINAL_TOLERANCE: f64 = 0.2;
 /// The grown sites replace the walk's only where F departs from an affine map by more
-/// than this (cells) somewhere in the group: below it, one basis rounds every step right.
-const NONLINEAR_CELLS: f64 = 0.25;
+/// than this (cells) somewhere in the group: below it one basis or one phase is within
+/// half a cell everywhere, and the walk and the phase (0.3-tolerant) stand.
+const NONLINEAR_CELLS: f64 = 0.5;
 
 /// The site map F: the (i, j) surfaces over (ξx, ξy).
 type SiteMap = [Polynomial2; 2];

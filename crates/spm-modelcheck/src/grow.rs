@@ -11,7 +11,8 @@
 //! sites the walk gave in the central square |ξ| ≤ 0.4, where every odd distortion of the
 //! fast axis and every frame-edge distortion is smallest, and every feature within a
 //! radius growing by 0.1 is then indexed as round(F) when F lies within 0.3 of a site; F is
-//! refitted on those and its degree raised (3 → 5 → 7) as the region grows.
+//! refitted on those and its degree raised (3 → 5, 7 once everything is in) as the region
+//! grows.
 
 use spm_regression::{FitOptions, Observations, Polynomial2};
 
@@ -40,7 +41,7 @@ fn radius(xi: [f64; 2]) -> f64 {
 fn degree_for(r: f64) -> u32 {
     if r <= 0.55 {
         3
-    } else if r <= 0.85 {
+    } else if r <= 1.05 {
         5
     } else {
         7

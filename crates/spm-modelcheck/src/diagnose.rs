@@ -275,6 +275,9 @@ fn best_extension(
             best = Some((extra, fit, h));
         }
     }
+    if kind == EffectKind::SinusoidalDrive {
+        best = best.map(|b| crate::sine::pure_sine_phase(obs, target, cols, mask, ctx, b));
+    }
     best.map(|(c, f, h)| (c, f, h, trials))
 }
 
@@ -727,7 +730,12 @@ fn decompose(fit: &Fit, n_frames: usize) -> (BTreeMap<String, ParamValue>, f64) 
     (m, theta)
 }
 
-fn effect_params(added: &Added, fit: &Fit, frames: &[FrameInfo]) -> BTreeMap<String, ParamValue> {
+fn effect_params(
+    added: &Added,
+    fit: &Fit,
+    frames: &[FrameInfo],
+    ctx: &Ctx,
+) -> BTreeMap<String, ParamValue> {
     let mut m = BTreeMap::new();
     let names = param_names(added.kind);
     let vals: Vec<(f64, f64)> = added
@@ -773,6 +781,14 @@ fn effect_params(added: &Added, fit: &Fit, frames: &[FrameInfo]) -> BTreeMap<Str
                     "shift_nm".to_owned(),
                     pv(v * f.fast_speed_nm_per_s, s * f.fast_speed_nm_per_s),
                 );
+            }
+        }
+        EffectKind::SinusoidalDrive => {
+            if let Some(&weight) = vals.first() {
+                let beta = (added.hyper, added.hyper_sigma);
+                for (k, (v, s)) in crate::sine::parameters(weight, beta, ctx, fit, frames) {
+                    m.insert(k, pv(v, s));
+                }
             }
         }
         EffectKind::PeriodicVibration => {
@@ -1013,6 +1029,9 @@ fn implausible(
             if jump > 3.0 * lattice_a_nm {
                 return bad(format!("tip jump {jump:.3} nm > 3a"));
             }
+        }
+        EffectKind::SinusoidalDrive => {
+            return crate::sine::implausible((v("sine_fraction"), s("sine_fraction")));
         }
         EffectKind::Interlace => {
             // Beyond half a lattice constant the other direction's features
@@ -1440,6 +1459,7 @@ fn score_candidates(
             },
             &fit1,
             p.frames,
+            &m.ctx,
         );
         if kind == EffectKind::TipChange
             && let Some(t) = params.get_mut("time_s")
@@ -1452,6 +1472,8 @@ fn score_candidates(
                 1000.0 * explained_nm,
                 1000.0 * relevance_nm
             ))
+        } else if let Some(why) = sine_not_told_from_cubic(p, m, kind, (&extra, trials)) {
+            Some(why)
         } else {
             implausible(kind, &params, p.frames, p.lattice_a_nm, p.span_s)
                 .map(|r| format!("implausible: {r}"))
@@ -1469,6 +1491,26 @@ fn score_candidates(
     }
     scores.sort_by(|a, b| b.evidence.total_cmp(&a.evidence));
     scores
+}
+
+/// For the sinusoidal drive: why its shape is not seen beyond the cubic it starts as (the
+/// drive's evidence with the polynomial's quadratic and cubic in the model at most the
+/// evidence threshold): a small-phase sine *is* a negative cubic, and the polynomial,
+/// which also takes a positive one, is then the name the data support.
+fn sine_not_told_from_cubic(
+    p: &Problem<'_>,
+    m: &Model,
+    kind: EffectKind,
+    extra: (&[Column], f64),
+) -> Option<String> {
+    if kind != EffectKind::SinusoidalDrive {
+        return None;
+    }
+    let ev = crate::sine::beyond_cubic_evidence(
+        &p.obs, &p.target, &m.cols, &m.mask, &m.ctx, extra, &delta_bic,
+    );
+    (ev <= p.options.evidence_threshold)
+        .then(|| format!("not told from a cubic: ΔBIC {ev:.1} beyond the polynomial's cubic"))
 }
 
 /// A rejection of the scored candidate `s` for `reason`.
@@ -1606,7 +1648,7 @@ fn reported_problem(p: &Problem<'_>, m: &Model) -> (Option<String>, f64) {
         m.added.iter().find_map(|a| {
             implausible(
                 a.kind,
-                &effect_params(a, &m.fit, p.frames),
+                &effect_params(a, &m.fit, p.frames, &m.ctx),
                 p.frames,
                 p.lattice_a_nm,
                 p.span_s,
@@ -1657,6 +1699,9 @@ fn adopt(
     let hyper_sigma = match kind {
         EffectKind::Creep => h,
         EffectKind::PeriodicVibration => 0.25 / p.span_s.max(1e-9),
+        EffectKind::SinusoidalDrive => {
+            crate::sine::phase_sigma(&p.obs, &p.target, &m.cols[..start], &m.mask, &m.ctx, h)
+        }
         EffectKind::TipChange => p
             .frames
             .iter()
@@ -1789,7 +1834,7 @@ fn report(
 ) -> Result<Diagnosis, ModelCheckError> {
     let (fit, mask, n_frames) = (&m.fit, &m.mask, p.n_frames);
     for (finding, a) in sel.findings.iter_mut().zip(&m.added) {
-        finding.parameters = effect_params(a, fit, p.frames);
+        finding.parameters = effect_params(a, fit, p.frames, &m.ctx);
         if a.kind == EffectKind::TipChange
             && let Some(t) = finding.parameters.get_mut("time_s")
         {

@@ -745,6 +745,13 @@ pub fn index_features(
             Some((k1, k2)) => phase_index(&pts, k1, k2).0,
             None => walk_group(&pts, (seed, seed_site), &gfrac, b_len),
         };
+        // Large distortions: regrown from the group's centre with the site map iterated
+        // (`grow`), where one basis or one phase would slip by a site.
+        if let Some(grown) = set.frames.get(frame).and_then(|f| {
+            crate::grow::grow_from_centre(&pts, &local, [f.half_width_x_nm, f.half_height_y_nm])
+        }) {
+            local = grown;
+        }
         register_with_other_half(set, frame, &sites, &pts, &mut local, &gfrac, b_len);
         // Duplicate sites in one group: keep none of them (ambiguous).
         let mut seen = std::collections::HashMap::new();

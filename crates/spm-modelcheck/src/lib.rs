@@ -3,7 +3,7 @@
 //! Given measured images of a crystal lattice (or feature lists), fit the
 //! baseline model — the known lattice seen through a lumped linear scanner
 //! (scales, obliquity, rotation) with constant drift and per-frame offsets —
-//! show what it gets wrong, name the physical cause from a library of ten
+//! show what it gets wrong, name the physical cause from a library of eleven
 //! effects by evidence, extend the model, and measure the gain on held-out
 //! features (DESIGN §10, §13).
 //!
@@ -28,6 +28,7 @@
 //! | `periodic_vibration` | A·cos(2πft + φ) per axis | `amplitude_{x,y}_nm`, `frequency_hz`, `phase_{x,y}_rad` |
 //! | `tip_change` | jump (jx, jy) from time t_c on | `jump_{x,y}_nm`, `time_s` |
 //! | `interlace` | slow-axis displacement ±½·d of forward/backward lines (d: backward features relative to forward) | `separation_y_nm` |
+//! | `sinusoidal_drive` | fast-axis input W·[ξ + κ·(sin βξ − βξ)/β]: the fast axis driven by a sine in time, pixels equidistant in time, ±β of phase over a line | `amplitude_nm`, `phase_at_line_end_rad` (β), `drive_frequency_hz`, `sine_weight` (κ), `sine_fraction` (1 for a pure sine) |
 //!
 //! ξ is the commanded position over the frame half-size (W along x, H along y).
 //! Time-dependent tip–sample effects are seen through each feature's footprint
@@ -43,11 +44,13 @@
 
 mod diagnose;
 mod extract;
+mod grow;
 mod index;
 mod level;
 mod model;
 mod plot;
 mod simmap;
+mod sine;
 mod types;
 
 pub use diagnose::{

@@ -195,6 +195,7 @@ pub(crate) fn param_names(kind: EffectKind) -> &'static [&'static str] {
         EffectKind::PeriodicVibration => &["x_cos_nm", "x_sin_nm", "y_cos_nm", "y_sin_nm"],
         EffectKind::TipChange => &["jump_x_nm", "jump_y_nm"],
         EffectKind::Interlace => &["separation_y_nm"],
+        EffectKind::SinusoidalDrive => &["sine_weight"],
     }
 }
 
@@ -204,6 +205,7 @@ pub(crate) fn hyper_name(kind: EffectKind) -> Option<&'static str> {
         EffectKind::Creep => Some("time_constant_s"),
         EffectKind::PeriodicVibration => Some("frequency_hz"),
         EffectKind::TipChange => Some("time_s"),
+        EffectKind::SinusoidalDrive => Some("phase_at_line_end_rad"),
         _ => None,
     }
 }
@@ -302,6 +304,11 @@ pub(crate) fn effect_columns(kind: EffectKind, hyper: f64, obs: &[Obs], ctx: &Ct
         // where J·u + d = R, so the tip–sample displacement d is +s/2 times
         // the separation (forward +½, backward −½).
         EffectKind::Interlace => vec![sample_col(obs, ctx, 1, |o| 0.5 * o.s)],
+        // The fast axis's input W·ξ becomes W·[ξ + κ·(sin βξ − βξ)/β]: a pure sine drive
+        // (κ = 1) over ±β of phase about the line centre (see `sine_drive_departure`).
+        EffectKind::SinusoidalDrive => vec![input_col(obs, ctx, 0, |o| {
+            o.half[0] * sine_drive_departure(o.xi[0], hyper)
+        })],
         EffectKind::TipChange => {
             let step = |t: f64| if t >= hyper { 1.0 } else { 0.0 };
             vec![
@@ -347,8 +354,49 @@ pub(crate) fn hyper_candidates(
                 .collect::<Vec<_>>(),
         ),
         EffectKind::TipChange => tip_change_candidates(obs, frames, residual, mask),
+        // β on a grid; `refine_sine_phase` then finds the best β between grid points.
+        // The look-elsewhere count: β is one smooth parameter whose effect is told apart
+        // from a cubic only through its higher orders, a few independent trials.
+        EffectKind::SinusoidalDrive => (
+            (0..SINE_GRID_POINTS)
+                .map(|i| SINE_PHASE_MIN_RAD + i as f64 * SINE_PHASE_STEP_RAD)
+                .collect(),
+            4.0,
+        ),
         _ => (vec![0.0], 1.0),
     }
+}
+
+/// The sinusoidal drive's phase grid: β from 0.1 rad (a drive indistinguishable from a
+/// small cubic) to 1.55 rad (just short of the turnaround at π/2, where the pixels at the
+/// line ends stop moving and no feature there can be localised), in 0.05 rad steps.
+pub(crate) const SINE_PHASE_MIN_RAD: f64 = 0.1;
+/// Step of the β grid, rad.
+pub(crate) const SINE_PHASE_STEP_RAD: f64 = 0.05;
+/// Points of the β grid.
+pub(crate) const SINE_GRID_POINTS: usize = 30;
+
+/// The departure from a straight line of a sinusoidally driven fast axis, in units of the
+/// frame's half-width W, at the normalised commanded position ξ = u/W.
+///
+/// Physics. A fast-SPM (resonant) scanner drives the fast axis by x(t) = A·sin(ω(t − t₀)),
+/// ω = 2π·f_drive, and records the pixels equidistant in time; a line of duration T_line
+/// centred on the zero crossing t₀ covers the phase ω(t − t₀) ∈ [−β, β] with
+/// β = π·f_drive·T_line (β = π/2 when a line is a whole half-period, as in pyfastspm's
+/// movies). The file's nominal position is linear in time, u = W·ξ with
+/// ξ = 2(t − t₀)/T_line ∈ [−1, 1] (trace; the retrace runs the second half-period,
+/// x = −A·sin(ω(t − t₀′)) with ξ = −2(t − t₀′)/T_line, the same map), so the true position
+/// is x = A·sin(βξ). Written about the linear scanner, whose lumped scale J absorbs the
+/// slope at the centre, x = (A·β/W)·W·[ξ + (sin βξ − βξ)/β]: the input departs from
+/// the nominal W·ξ by W·(sin βξ − βξ)/β, which this returns divided by W. Its Taylor
+/// series is −β²ξ³/6 + β⁴ξ⁵/120 − …: the cubic of spmcal's polynomial (−β²/6 at the
+/// frame edge) with every higher order fixed by the one phase β. The amplitude in the
+/// sample is A = |J·e_x|·W/β (nm), the drive frequency f = β/(π·T_line) (Hz).
+pub(crate) fn sine_drive_departure(xi: f64, beta_rad: f64) -> f64 {
+    if beta_rad.abs() < 1e-6 {
+        return 0.0;
+    }
+    ((beta_rad * xi).sin() - beta_rad * xi) / beta_rad
 }
 
 fn vibration_candidates(

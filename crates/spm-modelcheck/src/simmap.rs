@@ -567,6 +567,14 @@ fn map_finding(
             );
         }
         EffectKind::PeriodicVibration => map_vibration(m, fp, d.time_origin_s + ctx.time_offset_s),
+        // spm-sim's scan program is a linear raster (equidistant pixels along a constant-
+        // speed line): it has no sinusoidal fast-axis drive to set.
+        EffectKind::SinusoidalDrive => m.unmapped.push(format!(
+            "sinusoidal_drive: spm-sim has no sinusoidal fast-axis drive (amplitude {:.3} nm, \
+             phase at the line end {:.3} rad)",
+            value(fp, "amplitude_nm"),
+            value(fp, "phase_at_line_end_rad")
+        )),
         EffectKind::Interlace => {
             // Model: backward-line features sit `separation_y_nm` further along image y
             // than forward ones (a tip–sample offset −sep/2·s). spm-sim: the second half

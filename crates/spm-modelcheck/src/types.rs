@@ -153,7 +153,7 @@ impl LatticeSpec {
     }
 }
 
-/// The ten candidate effects of the library (DESIGN §13 vocabulary).
+/// The eleven candidate effects of the library (DESIGN §13 vocabulary).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum EffectKind {
@@ -177,11 +177,14 @@ pub enum EffectKind {
     TipChange,
     /// Backward lines displaced along the slow axis relative to forward ones.
     Interlace,
+    /// The fast axis driven by a sine in time (fast SPM, resonant scanning) while the
+    /// pixels are equidistant in time.
+    SinusoidalDrive,
 }
 
 impl EffectKind {
     /// All effects, in library order.
-    pub const ALL: [EffectKind; 10] = [
+    pub const ALL: [EffectKind; 11] = [
         Self::DriftAcceleration,
         Self::Creep,
         Self::Hysteresis,
@@ -192,6 +195,7 @@ impl EffectKind {
         Self::PeriodicVibration,
         Self::TipChange,
         Self::Interlace,
+        Self::SinusoidalDrive,
     ];
 
     /// The JSON name.
@@ -207,6 +211,7 @@ impl EffectKind {
             Self::PeriodicVibration => "periodic_vibration",
             Self::TipChange => "tip_change",
             Self::Interlace => "interlace",
+            Self::SinusoidalDrive => "sinusoidal_drive",
         }
     }
 
@@ -248,6 +253,9 @@ impl EffectKind {
             Self::Interlace => {
                 "backward lines sit at another slow-axis position than forward ones (slow-axis input stepped or ramped with the fast-axis direction, tube bending)"
             }
+            Self::SinusoidalDrive => {
+                "the fast axis follows a sine in time (resonant or fast-SPM drive) while the pixels are equidistant in time: features are stretched at the line centre and compressed towards the turnarounds"
+            }
         }
     }
 }
@@ -256,7 +264,7 @@ impl EffectKind {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Options {
-    /// Candidate effects searched (default: all ten).
+    /// Candidate effects searched (default: all eleven).
     pub effects: Vec<EffectKind>,
     /// ΔBIC (after the look-elsewhere penalty) an effect needs to be accepted.
     /// Default 10 ("very strong" evidence); calibrated by the null tests.

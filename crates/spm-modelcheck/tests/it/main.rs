@@ -9,4 +9,5 @@ mod measured;
 mod orientation;
 mod rules;
 mod sim;
+mod sine;
 mod synthetic;

@@ -108,6 +108,10 @@ pub struct Program {
     pub obliquity_rad: f64,
     pub rotation_rad: f64,
     pub drift_nm_per_s: [f64; 2],
+    /// Adsorbates per lattice site: Gaussian blobs (σ = 0.3 a, twice the corrugation) at
+    /// random places on the sample, off the lattice sites (0: none, and the images are the
+    /// same as without the field).
+    pub adsorbates_per_site: f64,
 }
 
 impl Default for Program {
@@ -125,8 +129,26 @@ impl Default for Program {
             obliquity_rad: 0.015,
             rotation_rad: 0.25,
             drift_nm_per_s: [0.004, -0.003],
+            adsorbates_per_site: 0.0,
         }
     }
+}
+
+/// The adsorbates' places on the sample (lattice frame, nm): uniform over a square of twice
+/// the frame's size (what the rotated, drifting frame sees), from their own random stream
+/// (the Z noise of the images stays that of a program without them).
+fn adsorbates(program: &Program, seed: u64) -> Vec<[f64; 2]> {
+    if program.adsorbates_per_site <= 0.0 {
+        return Vec::new();
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_ad50);
+    let side = 2.0 * program.size_nm;
+    let site_area = 0.75f64.sqrt() * program.a_nm * program.a_nm;
+    let n = (program.adsorbates_per_site * side * side / site_area).round() as usize;
+    let uniform = rand_distr::Uniform::new(-0.5 * side, 0.5 * side).unwrap();
+    (0..n)
+        .map(|_| [uniform.sample(&mut rng), uniform.sample(&mut rng)])
+        .collect()
 }
 
 fn date_plus(seconds: u64) -> DateTime {
@@ -230,10 +252,23 @@ pub fn write_frames(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> 
         })
         .collect();
     let offset = site_offset(program, seed);
+    let blobs = adsorbates(program, seed);
+    let blob_sigma = 0.3 * program.a_nm;
     let height = |r: [f64; 2]| {
         program.corrugation_nm / 3.0
             * gs.iter()
                 .map(|gk| (gk[0] * (r[0] - offset[0]) + gk[1] * (r[1] - offset[1])).cos())
+                .sum::<f64>()
+            + blobs
+                .iter()
+                .map(|b| {
+                    let d2 = (r[0] - b[0]).powi(2) + (r[1] - b[1]).powi(2);
+                    if d2 < 16.0 * blob_sigma * blob_sigma {
+                        2.0 * program.corrugation_nm * (-0.5 * d2 / (blob_sigma * blob_sigma)).exp()
+                    } else {
+                        0.0
+                    }
+                })
                 .sum::<f64>()
     };
     let period = 2.0 * program.line_time_s;

@@ -1,0 +1,308 @@
+//! Large fast-axis distortions (issue 29 item 3): a sinusoidally driven fast axis
+//! (fast SPM) and cubic distortions of several lattice constants, hidden in images of
+//! the image-level generator (tests/it/common/image.rs), must be indexed (≥ 95 % of the
+//! features used by the final model) and the sine named as `sinusoidal_drive` with its
+//! amplitude within 5 %.
+#![allow(clippy::unwrap_used)]
+
+use crate::common;
+
+use common::image::{Hidden, Program, write_frames};
+use spm_modelcheck::{
+    Diagnosis, EffectKind, ExtractOptions, LatticeSpec, Options, diagnose, extract_features,
+    index_features,
+};
+
+/// What one generated pair gives.
+#[derive(Debug)]
+struct Outcome {
+    /// Features used by the final model over all features extracted.
+    used_fraction: f64,
+    /// Features the indexing puts on a site, over all features extracted.
+    indexed_fraction: f64,
+    /// Features the indexing left out, over all features extracted.
+    unindexed_fraction: f64,
+    /// The `sinusoidal_drive` finding's amplitude over the truth − 1 (`None`: not named).
+    amplitude_error: Option<f64>,
+    diagnosis: Diagnosis,
+}
+
+/// A program with a frame of `size_nm` at the default pixel pitch (0.05 nm, ≈ 5 px per
+/// lattice constant), with `adsorbates_per_site` off-lattice blobs.
+fn program(size_nm: f64, adsorbates_per_site: f64) -> Program {
+    let base = Program::default();
+    let pitch_nm = base.size_nm / base.pixels as f64;
+    Program {
+        pixels: (size_nm / pitch_nm).round() as usize,
+        size_nm,
+        adsorbates_per_site,
+        ..base
+    }
+}
+
+/// The true amplitude of the generator's drive, nm in the sample (lattice) frame: the
+/// input x = W·sin(βξ)/sin β (nominal nm) through the fast axis's scale.
+fn true_amplitude_nm(program: &Program, beta_rad: f64) -> f64 {
+    program.scale[0] * 0.5 * program.size_nm / beta_rad.sin()
+}
+
+/// The fraction of the extracted features the indexing puts on a site, before any fit.
+fn indexed_fraction(paths: &[std::path::PathBuf], a_nm: f64) -> f64 {
+    let files: Vec<_> = paths
+        .iter()
+        .map(|p| (spm_formats::read_any(p).unwrap(), None))
+        .collect();
+    let lattice = LatticeSpec::Hex { a_nm };
+    let set = extract_features(&files, &lattice, &ExtractOptions::default()).unwrap();
+    let indexing = index_features(&set, &lattice).unwrap();
+    indexing.sites.iter().filter(|s| s.is_some()).count() as f64
+        / indexing.sites.len().max(1) as f64
+}
+
+fn measure(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> Result<Outcome, String> {
+    let paths = write_frames(program, hidden, seed, tag);
+    let indexed = indexed_fraction(&paths, program.a_nm);
+    let d = diagnose(
+        &common::image::inputs(&paths),
+        &LatticeSpec::Hex { a_nm: program.a_nm },
+        &Options::default(),
+        &ExtractOptions::default(),
+    );
+    if let Some(dir) = paths.first().and_then(|p| p.parent()) {
+        let _ = std::fs::remove_dir_all(dir);
+    }
+    let d = d.map_err(|e| format!("indexed {indexed:.3}: {e}"))?;
+    let total = (d.features_used + d.outliers + d.unindexed).max(1) as f64;
+    let amplitude_error = match hidden {
+        Hidden::SineDrive { beta_rad } => d
+            .findings
+            .iter()
+            .find(|f| f.effect == "sinusoidal_drive")
+            .and_then(|f| f.parameters.get("amplitude_nm"))
+            .map(|a| a.value / true_amplitude_nm(program, beta_rad) - 1.0),
+        _ => None,
+    };
+    Ok(Outcome {
+        used_fraction: d.features_used as f64 / total,
+        indexed_fraction: indexed,
+        unindexed_fraction: d.unindexed as f64 / total,
+        amplitude_error,
+        diagnosis: d,
+    })
+}
+
+fn summary(o: &Outcome) -> String {
+    let d = &o.diagnosis;
+    format!(
+        "indexed {:.3}, used {:.3} (unindexed {:.3}, {} outliers of {}), amplitude error {:?}; baseline {:.1} pm → final {:.1} pm (σloc {:.1}); findings {:?}; unexplained {} {:?}; rejected {:?}",
+        o.indexed_fraction,
+        o.used_fraction,
+        o.unindexed_fraction,
+        d.outliers,
+        d.features_used + d.outliers + d.unindexed,
+        o.amplitude_error,
+        d.baseline.rms_pm,
+        d.final_report.rms_pm,
+        d.localisation_sigma_pm,
+        d.findings
+            .iter()
+            .map(|f| (
+                f.effect.clone(),
+                f.evidence.round(),
+                f.parameters
+                    .iter()
+                    .map(|(k, v)| format!("{k}={:.4}±{:.1e}", v.value, v.sigma))
+                    .collect::<Vec<_>>()
+            ))
+            .collect::<Vec<_>>(),
+        d.unexplained,
+        d.residual_structure.reasons,
+        d.rejected
+            .iter()
+            .map(|r| format!("{} {:.0} {}", r.effect, r.evidence, r.reason))
+            .collect::<Vec<_>>(),
+    )
+}
+
+/// A case: its name, frame size (nm), adsorbates per site, and the hidden effect.
+type Case = (&'static str, f64, f64, Hidden);
+
+/// The sine drives: β = 1.2–1.5 rad of phase either side of the line centre (the edge
+/// pixels 2.8–14× compressed), amplitudes 2.5–5.1 nm (≥ ±1 nm); on the 9.6 nm frame the
+/// sine departs from the best straight line by 1.1 nm (4.4 lattice constants).
+fn sine_cases() -> Vec<Case> {
+    vec![
+        ("sine_1.2", 4.8, 0.0, Hidden::SineDrive { beta_rad: 1.2 }),
+        ("sine_1.4", 4.8, 0.0, Hidden::SineDrive { beta_rad: 1.4 }),
+        ("sine_1.5", 4.8, 0.0, Hidden::SineDrive { beta_rad: 1.5 }),
+        (
+            "sine_1.3_large",
+            9.6,
+            0.0,
+            Hidden::SineDrive { beta_rad: 1.3 },
+        ),
+    ]
+}
+
+/// Not passed yet (explore only): with 0.15 adsorbates per site the structure factor
+/// registers some groups (most nearest-neighbour vectors are not lattice vectors), and the
+/// indexing still slips in some seeds (docs/MODELCHECK.md).
+fn adsorbate_cases() -> Vec<Case> {
+    vec![(
+        "sine_1.4_adsorbates",
+        4.8,
+        0.15,
+        Hidden::SineDrive { beta_rad: 1.4 },
+    )]
+}
+
+/// The cubic moves the frame edge by 0.96 nm (3.9 a) on 9.6 nm.
+fn cubic_cases() -> Vec<Case> {
+    vec![(
+        "cubic_4a",
+        9.6,
+        0.0,
+        Hidden::Nonlinearity {
+            quadratic: 0.0,
+            cubic: 0.2,
+        },
+    )]
+}
+
+/// `CASE=sine_1.4 SEEDS=5 cargo test -p spm-modelcheck --test it sine::explore_sine -- --ignored --nocapture`
+#[test]
+#[ignore = "exploration: prints every case"]
+fn explore_sine() {
+    let only = std::env::var("CASE").ok();
+    let seeds: u64 = std::env::var("SEEDS").map_or(5, |s| s.parse().unwrap());
+    let clean = ("clean", 4.8, 0.0, Hidden::None);
+    for (name, size_nm, adsorbates, hidden) in sine_cases()
+        .into_iter()
+        .chain(cubic_cases())
+        .chain(adsorbate_cases())
+        .chain([clean])
+    {
+        if only.as_deref().is_some_and(|o| o != name) {
+            continue;
+        }
+        let adsorbates = std::env::var("ADSORBATES").map_or(adsorbates, |a| a.parse().unwrap());
+        for seed in 1..=seeds {
+            let started = std::time::Instant::now();
+            let o = measure(&program(size_nm, adsorbates), hidden, seed, name);
+            println!(
+                "{name} seed {seed} ({:.1} s): {}\n",
+                started.elapsed().as_secs_f64(),
+                o.as_ref().map_or_else(|e| format!("error: {e}"), summary)
+            );
+        }
+    }
+}
+
+/// Seeds per case.
+const SEEDS: u64 = 5;
+
+/// Runs every seed of `case` and checks each with `check` (input, expected: the outcome,
+/// the program and the hidden effect), collecting every failure.
+fn check_case(case: Case, check: &dyn Fn(&Outcome, &Program, Hidden) -> Result<(), String>) {
+    let (name, size_nm, adsorbates, hidden) = case;
+    let program = program(size_nm, adsorbates);
+    let failures: Vec<String> = (1..=SEEDS)
+        .filter_map(|seed| {
+            let outcome = match measure(&program, hidden, 40 + seed, name) {
+                Ok(o) => o,
+                Err(e) => return Some(format!("{name} seed {seed}: {e}")),
+            };
+            check(&outcome, &program, hidden)
+                .err()
+                .map(|why| format!("{name} seed {seed}: {why}; {}", summary(&outcome)))
+        })
+        .collect();
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// Indexed: at least 95 % of the extracted features in the final model (indexed and not
+/// rejected as outliers).
+fn indexed(o: &Outcome) -> Result<(), String> {
+    if o.used_fraction >= 0.95 {
+        Ok(())
+    } else {
+        Err(format!("only {:.1} % used", 100.0 * o.used_fraction))
+    }
+}
+
+/// The sine named first, its amplitude within 5 % and its phase β within 5 %.
+fn sine_named(o: &Outcome, hidden: Hidden) -> Result<(), String> {
+    let Hidden::SineDrive { beta_rad } = hidden else {
+        return Err("not a sine case".to_owned());
+    };
+    let d = &o.diagnosis;
+    let first = d.findings.first().map(|f| f.effect.as_str());
+    if first != Some("sinusoidal_drive") {
+        return Err(format!("first finding {first:?}"));
+    }
+    let err = o.amplitude_error.ok_or("no amplitude")?;
+    if err.abs() > 0.05 {
+        return Err(format!("amplitude off by {:.1} %", 100.0 * err));
+    }
+    let phase = d.findings[0]
+        .parameters
+        .get("phase_at_line_end_rad")
+        .ok_or("no phase")?
+        .value;
+    if (phase / beta_rad - 1.0).abs() > 0.05 {
+        return Err(format!("phase {phase:.4} rad for {beta_rad} rad"));
+    }
+    Ok(())
+}
+
+/// A sine-driven fast axis (β 1.2–1.5 rad, amplitudes 2.5–5.1 nm, up to 1.1 nm = 4.4 a off
+/// a straight line) is indexed (≥ 95 % of the features in the
+/// final model), named first as `sinusoidal_drive` with its amplitude and phase within 5 %,
+/// and leaves nothing the model lacks. Before issue 29's item 3, β ≥ 1.4 was refused
+/// (`NotTheLattice`: the cubic beyond its 0.3 cap, the edges' features slipped by a site)
+/// and β = 1.3 on 9.6 nm lost 6 % of the features as outliers.
+#[test]
+fn a_sine_driven_fast_axis_is_indexed_and_named_with_its_amplitude() {
+    for case in sine_cases() {
+        check_case(case, &|o, _, hidden| {
+            indexed(o)?;
+            sine_named(o, hidden)?;
+            let d = &o.diagnosis;
+            if d.unexplained {
+                return Err(format!("unexplained: {:?}", d.residual_structure.reasons));
+            }
+            Ok(())
+        });
+    }
+}
+
+/// A cubic of several lattice constants (0.96 nm = 3.9 a at the frame edge) is indexed and
+/// named as the polynomial it is — not as a sine, which cannot make a positive cubic — with
+/// its cubic within 3σ + 10 %.
+#[test]
+fn a_cubic_of_several_lattice_constants_is_indexed_and_stays_a_polynomial() {
+    for case in cubic_cases() {
+        check_case(case, &|o, _, hidden| {
+            indexed(o)?;
+            let Hidden::Nonlinearity { cubic, .. } = hidden else {
+                return Err("not a cubic case".to_owned());
+            };
+            let d = &o.diagnosis;
+            let first = d.findings.first().map(|f| f.effect.as_str());
+            if first != Some("scanner_nonlinearity") {
+                return Err(format!("first finding {first:?}"));
+            }
+            if d.finding(EffectKind::SinusoidalDrive).is_some() {
+                return Err("a sine named for a positive cubic".to_owned());
+            }
+            let c = d.findings[0]
+                .parameters
+                .get("cubic_x")
+                .ok_or("no cubic_x")?;
+            if (c.value - cubic).abs() > 3.0 * c.sigma + 0.1 * cubic {
+                return Err(format!("cubic_x {} ± {} for {cubic}", c.value, c.sigma));
+            }
+            Ok(())
+        });
+    }
+}

@@ -18,8 +18,9 @@ use spm_modelcheck::{
 struct Outcome {
     /// Features used by the final model over all features extracted.
     used_fraction: f64,
-    /// Features the indexing puts on a site, over all features extracted.
-    indexed_fraction: f64,
+    /// Features the indexing alone puts on a site, over all features extracted (made for the
+    /// exploration's print; the checks read the diagnosis).
+    indexed_fraction: Option<f64>,
     /// Features the indexing left out, over all features extracted.
     unindexed_fraction: f64,
     /// The `sinusoidal_drive` finding's amplitude over the truth − 1 (`None`: not named).
@@ -59,19 +60,27 @@ fn indexed_fraction(paths: &[std::path::PathBuf], a_nm: f64) -> f64 {
         / indexing.sites.len().max(1) as f64
 }
 
-fn measure(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> Result<Outcome, String> {
+/// Diagnoses one generated pair; `with_indexing` also indexes its features alone (a second
+/// extraction and indexing, for the exploration's print; made on a refusal too).
+fn measure(
+    program: &Program,
+    hidden: Hidden,
+    seed: u64,
+    tag: &str,
+    with_indexing: bool,
+) -> Result<Outcome, String> {
     let paths = write_frames(program, hidden, seed, tag);
-    let indexed = indexed_fraction(&paths, program.a_nm);
     let d = diagnose(
         &common::image::inputs(&paths),
         &LatticeSpec::Hex { a_nm: program.a_nm },
         &Options::default(),
         &ExtractOptions::default(),
     );
+    let indexed = (with_indexing || d.is_err()).then(|| indexed_fraction(&paths, program.a_nm));
     if let Some(dir) = paths.first().and_then(|p| p.parent()) {
         let _ = std::fs::remove_dir_all(dir);
     }
-    let d = d.map_err(|e| format!("indexed {indexed:.3}: {e}"))?;
+    let d = d.map_err(|e| format!("indexed {indexed:.3?}: {e}"))?;
     let total = (d.features_used + d.outliers + d.unindexed).max(1) as f64;
     let amplitude_error = match hidden {
         Hidden::SineDrive { beta_rad } => d
@@ -94,7 +103,7 @@ fn measure(program: &Program, hidden: Hidden, seed: u64, tag: &str) -> Result<Ou
 fn summary(o: &Outcome) -> String {
     let d = &o.diagnosis;
     format!(
-        "indexed {:.3}, used {:.3} (unindexed {:.3}, {} outliers of {}), amplitude error {:?}; baseline {:.1} pm → final {:.1} pm (σloc {:.1}); findings {:?}; unexplained {} {:?}; rejected {:?}",
+        "indexed {:.3?}, used {:.3} (unindexed {:.3}, {} outliers of {}), amplitude error {:?}; baseline {:.1} pm → final {:.1} pm (σloc {:.1}); findings {:?}; unexplained {} {:?}; rejected {:?}",
         o.indexed_fraction,
         o.used_fraction,
         o.unindexed_fraction,
@@ -188,7 +197,7 @@ fn explore_sine() {
         let adsorbates = std::env::var("ADSORBATES").map_or(adsorbates, |a| a.parse().unwrap());
         for seed in 1..=seeds {
             let started = std::time::Instant::now();
-            let o = measure(&program(size_nm, adsorbates), hidden, seed, name);
+            let o = measure(&program(size_nm, adsorbates), hidden, seed, name, true);
             println!(
                 "{name} seed {seed} ({:.1} s): {}\n",
                 started.elapsed().as_secs_f64(),
@@ -202,21 +211,37 @@ fn explore_sine() {
 const SEEDS: u64 = 5;
 
 /// Runs every seed of `case` and checks each with `check` (input, expected: the outcome,
-/// the program and the hidden effect), collecting every failure.
-fn check_case(case: Case, check: &dyn Fn(&Outcome, &Program, Hidden) -> Result<(), String>) {
+/// the program and the hidden effect), collecting every failure. The seeds are independent
+/// (each writes its own folder) and run on threads of their own.
+fn check_case(
+    case: Case,
+    check: &(dyn Fn(&Outcome, &Program, Hidden) -> Result<(), String> + Sync),
+) {
     let (name, size_nm, adsorbates, hidden) = case;
     let program = program(size_nm, adsorbates);
-    let failures: Vec<String> = (1..=SEEDS)
-        .filter_map(|seed| {
-            let outcome = match measure(&program, hidden, 40 + seed, name) {
-                Ok(o) => o,
-                Err(e) => return Some(format!("{name} seed {seed}: {e}")),
-            };
-            check(&outcome, &program, hidden)
-                .err()
-                .map(|why| format!("{name} seed {seed}: {why}; {}", summary(&outcome)))
-        })
-        .collect();
+    let failures: Vec<String> = std::thread::scope(|scope| {
+        let runs: Vec<_> = (1..=SEEDS)
+            .map(|seed| {
+                let program = &program;
+                scope.spawn(move || {
+                    let outcome = match measure(program, hidden, 40 + seed, name, false) {
+                        Ok(o) => o,
+                        Err(e) => return Some(format!("{name} seed {seed}: {e}")),
+                    };
+                    check(&outcome, program, hidden)
+                        .err()
+                        .map(|why| format!("{name} seed {seed}: {why}; {}", summary(&outcome)))
+                })
+            })
+            .collect();
+        runs.into_iter()
+            .zip(1..=SEEDS)
+            .filter_map(|(run, seed)| {
+                run.join()
+                    .unwrap_or_else(|_| Some(format!("{name} seed {seed}: panicked")))
+            })
+            .collect()
+    });
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
 

@@ -4,9 +4,7 @@
 //! (`measured`) read the same diagnoses. A diagnosis is deterministic, so a test that made
 //! its own would get the same one.
 
-use spm_modelcheck::{
-    Diagnosis, ExtractOptions, ImageInput, LatticeSpec, ModelCheckError, Options,
-};
+use spm_modelcheck::{Diagnosis, ExtractOptions, LatticeSpec, ModelCheckError, Options};
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock};
 
@@ -28,13 +26,11 @@ pub fn diagnosis(files: &[&str], lattice: &str) -> Outcome {
         Arc::clone(cache.entry(key).or_default())
     };
     Arc::clone(cell.get_or_init(|| {
-        let inputs: Vec<ImageInput> = files
+        let paths: Vec<_> = files
             .iter()
-            .map(|f| ImageInput {
-                path: spmcal_tests::measured_file(f),
-                start_time_s: None,
-            })
+            .map(|f| spmcal_tests::measured_file(f))
             .collect();
+        let inputs = super::image::inputs(&paths);
         Arc::new(LatticeSpec::parse(lattice).and_then(|spec| {
             spm_modelcheck::diagnose(
                 &inputs,

@@ -142,28 +142,9 @@ fn index_grid(positions: &[[f64; 2]], start: [f64; 2]) -> Option<Vec<(usize, (i3
     if !(pitch.is_finite() && pitch > 0.0) {
         return None;
     }
-    // Buckets of one pitch for the nearest-feature look-up.
-    let key = |p: [f64; 2]| ((p[0] / pitch).floor() as i64, (p[1] / pitch).floor() as i64);
-    let mut buckets: std::collections::HashMap<(i64, i64), Vec<usize>> =
-        std::collections::HashMap::new();
-    for (k, p) in positions.iter().enumerate() {
-        buckets.entry(key(*p)).or_default().push(k);
-    }
-    let nearest = |q: [f64; 2]| -> Option<(usize, f64)> {
-        let (bx, by) = key(q);
-        let mut best: Option<(usize, f64)> = None;
-        for dx in -1..=1 {
-            for dy in -1..=1 {
-                for &k in buckets.get(&(bx + dx, by + dy)).into_iter().flatten() {
-                    let d = dist(positions[k], q);
-                    if best.is_none_or(|b| d < b.1) {
-                        best = Some((k, d));
-                    }
-                }
-            }
-        }
-        best
-    };
+    // Cells of one pitch for the nearest-feature look-up.
+    let grid = super::neighbours::Grid::new(positions, pitch);
+    let nearest = |q: [f64; 2]| grid.nearest_within_a_cell(q, positions);
     let mut index_of: std::collections::HashMap<usize, (i32, i32)> =
         std::collections::HashMap::new();
     let mut taken: std::collections::HashSet<(i32, i32)> = std::collections::HashSet::new();

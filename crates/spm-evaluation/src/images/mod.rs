@@ -31,6 +31,7 @@ pub mod before_after;
 pub mod evaluate;
 pub mod grating;
 pub mod lattice;
+mod neighbours;
 pub mod take;
 mod user_file;
 

@@ -36,6 +36,7 @@
 
 use std::path::{Path, PathBuf};
 
+pub mod counter;
 pub mod crop;
 pub mod dynamic;
 pub mod history;

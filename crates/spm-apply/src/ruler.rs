@@ -105,6 +105,41 @@ pub struct RulerEstimate {
 }
 
 impl RulerEstimate {
+    /// An estimate of the time terms alone (no fast-axis terms), its reference at the middle
+    /// (median) of `times_s` (the image it corrects): what a counter-scanned pair measures
+    /// ([`crate::counter`]).
+    pub(crate) fn of_time_terms(
+        law: &CreepLaw,
+        amplitude_nm: [f64; 2],
+        since_move_s: f64,
+        drift_nm_per_s: [f64; 2],
+        times_s: &[f64],
+    ) -> Self {
+        let mut estimate = Self {
+            amplitude_nm,
+            since_move_s,
+            drift_nm_per_s,
+            fast_axis_nm: [0.0; FAST_TERMS],
+            reference_nm: [0.0; 2],
+            atoms: 0,
+            indexed: 0,
+            before_rms_nm: f64::NAN,
+            residual_rms_nm: f64::NAN,
+            law: law.clone(),
+        };
+        estimate.reference_to(times_s);
+        estimate
+    }
+
+    /// Moves the reference to the middle (median) of `times_s`: the image these times are of
+    /// keeps its middle where its map put it.
+    pub fn reference_to(&mut self, times_s: &[f64]) {
+        let mut times = times_s.to_vec();
+        let middle_s = spm_regression::median(&mut times).unwrap_or(0.0);
+        self.reference_nm = [0.0; 2];
+        self.reference_nm = self.error_at_nm(middle_s, 0.0);
+    }
+
     /// g(t).
     fn to_come(law: &CreepLaw, t_s: f64) -> f64 {
         law.still_to_come(t_s)
@@ -165,9 +200,9 @@ impl RulerEstimate {
 /// An atom: corrected position (nm) and time (s), and its detection with the position
 /// replaced by the corrected one (what the lattice estimator reads).
 #[derive(Debug, Clone, Copy)]
-struct Atom {
-    p: [f64; 2],
-    t: f64,
+pub(crate) struct Atom {
+    pub(crate) p: [f64; 2],
+    pub(crate) t: f64,
     /// Where along the line the atom was seen: its column's distance from the middle of the
     /// line, in line lengths (−½ … ½).
     u: f64,
@@ -175,7 +210,7 @@ struct Atom {
 }
 
 /// The image's atoms at their corrected positions and times.
-fn atoms(
+pub(crate) fn atoms(
     heights: &[f64],
     map: &CoordinateMap,
     times_s: &[f64],

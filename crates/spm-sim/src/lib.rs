@@ -144,7 +144,7 @@ pub use config::{
 pub use fault::{FaultEvent, FaultEventKind, FaultKind, FaultTrigger, Operation, SimError};
 pub use oracle::Oracle;
 pub use scanner::{Creep, Jacobian, Lcc, PlayHysteresis, StaticMap, creep_elements};
-pub use sim::{RasterTurn, Simulator};
+pub use sim::{RasterTurn, Simulator, SineDrive};
 
 mod truth;
 pub use oracle::{VerticalOracle, ZCrosstalk};

@@ -880,7 +880,7 @@ impl Simulator {
     /// closed form when the hysteresis is frozen over the ramp: the pixel the line goes
     /// on from (0 when it cannot).
     fn skip_retrace(&mut self, plan: &LumpedRetrace, line: &AsideLine, next_event_t: f64) -> usize {
-        let (dwell, step, lumped_n) = (line.dwell_s, line.path.step, plan.pixels);
+        let (dwell, step, lumped_n) = (line.dwell_s, line.path.step_counts, plan.pixels);
         if next_event_t <= line.base_s + lumped_n as f64 * dwell {
             return 0;
         }
@@ -1193,7 +1193,7 @@ struct RasterPath {
     /// The raster's first column's x, counts.
     origin_x_counts: f64,
     /// The pixel step, counts.
-    step: f64,
+    step_counts: f64,
     /// The sine's map of the columns (none: linear).
     sine: Option<SineLine>,
     /// The turn of every commanded position (none: unturned).
@@ -1234,7 +1234,7 @@ impl RasterPath {
         };
         Ok(Self {
             origin_x_counts: request.origin.x.value(),
-            step,
+            step_counts: step,
             sine,
             turn: turn.filter(|t| t.angle_rad != 0.0),
         })
@@ -1249,7 +1249,7 @@ impl RasterPath {
     #[inline]
     fn command(&self, column: usize, y: f64) -> [f64; 2] {
         let x = match &self.sine {
-            None => self.origin_x_counts + self.step * column as f64,
+            None => self.origin_x_counts + self.step_counts * column as f64,
             Some(s) => s.x_counts(column),
         };
         match self.turn {

@@ -276,6 +276,14 @@ pub struct SimPatch {
     pub tip_changes: Vec<TipChangeEvent>,
     /// Findings spm-sim has no parameter for, with the reason.
     pub unmapped: Vec<String>,
+    /// The scan program to run the frames with, as `tip_changes` is the faults to schedule
+    /// (neither is a config value): `Some(β)` when the fast axis is driven by a sine
+    /// (`sinusoidal_drive`): spm-sim's fast-SPM raster, `Simulator::scan_sine_driven` with
+    /// `SineDrive { phase_at_line_end_rad: β }` (β in rad; its amplitude W/sin β in counts
+    /// follows from the frame, so `scanner.sensitivity_x_nm_per_count` is the sine's scale,
+    /// not the lumped slope at the line centre). `None`: the linear raster. Default: `None`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sine_drive_phase_at_line_end_rad: Option<f64>,
 }
 
 fn value(d: &BTreeMap<String, crate::ParamValue>, key: &str) -> f64 {
@@ -297,7 +305,10 @@ fn value(d: &BTreeMap<String, crate::ParamValue>, key: &str) -> f64 {
 /// (`δ = −separation/(Ky·cos α)`); creep to the relaxation chain through the move
 /// history ([`MoveHistory`]: its γ from the chain's closed-form response, and the
 /// chain's gain, drift and loop that the linear fit and a hysteresis finding
-/// already hold taken out of them). Tip changes become scheduled faults.
+/// already hold taken out of them). Tip changes become scheduled faults. A sinusoidal
+/// drive becomes spm-sim's fast-SPM scan program ([`SimPatch::sine_drive_phase_at_line_end_rad`]):
+/// the lumped scale's slope at the line centre is the sine's A·β/W (A = k·W/sin β), so the
+/// fast axis's sensitivity is the lumped one × sin β/β.
 pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPatch {
     // The linear part of the model the findings extend: the final fit's.
     let b = if with_findings {
@@ -323,6 +334,7 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
         unmapped: Vec::new(),
         tips: Vec::new(),
         creep: None,
+        sine_phase_rad: None,
     };
     if with_findings {
         let frame_half = d.frame_half_nm.first().copied().unwrap_or([1.0, 1.0]);
@@ -349,7 +361,14 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
         unmapped,
         tips,
         creep,
+        sine_phase_rad,
     } = m;
+    if let (Some(beta), Some(v)) = (
+        sine_phase_rad,
+        values.get_mut(&SimParam::SensitivityXNmPerCount),
+    ) {
+        *v *= beta.sin() / beta;
+    }
     if let (Some(chain), Some(h)) = (&creep, ctx.move_history.as_ref()) {
         // The lumped linear scanner of the fit has absorbed the chain's in-phase
         // response to the sweeps (a gain), and a trace/retrace loop found as
@@ -398,6 +417,7 @@ pub fn sim_patch(d: &Diagnosis, ctx: &SimContext, with_findings: bool) -> SimPat
     p.values = values;
     p.unmapped = unmapped;
     p.tip_changes = tips;
+    p.sine_drive_phase_at_line_end_rad = sine_phase_rad;
     p
 }
 
@@ -409,6 +429,8 @@ struct Mapped {
     unmapped: Vec<String>,
     tips: Vec<TipChangeEvent>,
     creep: Option<CreepChain>,
+    /// The sine drive's phase at the line end, rad (a scan program, not a config value).
+    sine_phase_rad: Option<f64>,
 }
 
 impl Mapped {
@@ -567,14 +589,19 @@ fn map_finding(
             );
         }
         EffectKind::PeriodicVibration => map_vibration(m, fp, d.time_origin_s + ctx.time_offset_s),
-        // spm-sim's scan program is a linear raster (equidistant pixels along a constant-
-        // speed line): it has no sinusoidal fast-axis drive to set.
-        EffectKind::SinusoidalDrive => m.unmapped.push(format!(
-            "sinusoidal_drive: spm-sim has no sinusoidal fast-axis drive (amplitude {:.3} nm, \
-             phase at the line end {:.3} rad)",
-            value(fp, "amplitude_nm"),
-            value(fp, "phase_at_line_end_rad")
-        )),
+        // spm-sim's fast-SPM scan program (`Simulator::scan_sine_driven`) takes the phase;
+        // its amplitude W/sin β follows from the frame (the sensitivity is rescaled in
+        // `sim_patch`).
+        EffectKind::SinusoidalDrive => {
+            let beta = value(fp, "phase_at_line_end_rad");
+            if beta.is_finite() && beta > 0.0 && beta <= std::f64::consts::FRAC_PI_2 {
+                m.sine_phase_rad = Some(beta);
+            } else {
+                m.unmapped.push(format!(
+                    "sinusoidal_drive: phase at the line end {beta} rad outside (0, π/2]"
+                ));
+            }
+        }
         EffectKind::Interlace => {
             // Model: backward-line features sit `separation_y_nm` further along image y
             // than forward ones (a tip–sample offset −sep/2·s). spm-sim: the second half

@@ -40,6 +40,15 @@
 //! and only its last ~20 feedback time constants pixel by pixel). The probe
 //! ends at the last retrace's last pixel.
 //!
+//! ## Scan programs beyond the raster
+//! Simulator extensions (not on the `Microscope` trait), the raster's physics along
+//! another path: [`Simulator::scan_turned`] turns every commanded position about a
+//! point ([`RasterTurn`], a controller's frame angle); [`Simulator::scan_sine_driven`]
+//! drives the fast axis by a sine over ±β of phase per line with the pixels
+//! equidistant in time ([`SineDrive`], fast SPM's resonant scanner: column k at
+//! c + (W/sin β)·sin(β·ξ_k), ξ_k = (2k + 1 − N)/N, so the line's ends meet the
+//! nominal raster's). The frame's request stays the nominal raster.
+//!
 //! ## The scanner model
 //! Per lateral axis, commanded counts `u` (DAC-quantised if configured) pass
 //! through **hysteresis** and **creep** to the *effective input*
@@ -144,7 +153,7 @@ pub use config::{
 pub use fault::{FaultEvent, FaultEventKind, FaultKind, FaultTrigger, Operation, SimError};
 pub use oracle::Oracle;
 pub use scanner::{Creep, Jacobian, Lcc, PlayHysteresis, StaticMap, creep_elements};
-pub use sim::{RasterTurn, Simulator};
+pub use sim::{RasterTurn, Simulator, SineDrive};
 
 mod truth;
 pub use oracle::{VerticalOracle, ZCrosstalk};

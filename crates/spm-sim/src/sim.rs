@@ -80,12 +80,11 @@ struct PixelFactors {
 struct AsideLine {
     pixels: usize,
     runs_plus_x: bool,
-    origin_x: f64,
-    step: f64,
+    /// Where each column of the line is commanded.
+    path: RasterPath,
     y: f64,
     base_s: f64,
     dwell_s: f64,
-    turn: Option<RasterTurn>,
 }
 
 /// Pixels per update of the medium 1/f processes.
@@ -747,11 +746,7 @@ impl Simulator {
             } else {
                 line.pixels - 1 - pixel
             };
-            let x = line.origin_x + line.step * column as f64;
-            let p = match line.turn {
-                None => [x, line.y],
-                Some(t) => t.apply(x, line.y),
-            };
+            let p = line.path.command(column, line.y);
             self.command = p;
             let z = self.pixel(p, t_mid, f, true);
             out.z_counts.push(z);
@@ -772,8 +767,9 @@ impl Simulator {
     }
 
     /// Refuses a scan request the instrument cannot take: invalid, beyond the pixel,
-    /// dwell or counter-scan capabilities, or (turned by `turn`) outside the field.
-    fn check_scan(&self, request: &ScanRequest, turn: Option<RasterTurn>) -> Result<(), SimError> {
+    /// dwell or counter-scan capabilities, or (along `path`, when it is not the plain
+    /// raster) outside the field.
+    fn check_scan(&self, request: &ScanRequest, path: &RasterPath) -> Result<(), SimError> {
         request.validate().map_err(|e| SimError::InvalidRequest {
             reason: e.to_string(),
         })?;
@@ -802,9 +798,10 @@ impl Simulator {
                 reason: "counter scans are not supported by this configuration".to_owned(),
             });
         }
-        match turn {
-            None => request.check_inside(caps.field_min, caps.field_max),
-            Some(t) => t.check_inside(request, caps.field_min, caps.field_max),
+        if path.is_plain() {
+            request.check_inside(caps.field_min, caps.field_max)
+        } else {
+            path.check_inside(request, caps.field_min, caps.field_max)
         }
         .map_err(|e| SimError::OutOfRange {
             reason: e.to_string(),
@@ -821,7 +818,7 @@ impl Simulator {
         &self,
         request: &ScanRequest,
         factors: &PixelFactors,
-        (turned, record_backward): (bool, bool),
+        (plain, record_backward): (bool, bool),
     ) -> Option<LumpedRetrace> {
         let nx = request.pixels_per_line as usize;
         let dwell = request.pixel_dwell.value();
@@ -852,7 +849,7 @@ impl Simulator {
             .config
             .instrument
             .retrace_slow_axis_advance_counts;
-        if turned || record_backward || lumped_n < 8 || !linear_x || advance != 0.0 {
+        if !plain || record_backward || lumped_n < 8 || !linear_x || advance != 0.0 {
             return None;
         }
         let creep = self.state.scanner.creep[0].ramp_coefficients(&factors.creep_decays, lumped_n);
@@ -883,7 +880,7 @@ impl Simulator {
     /// closed form when the hysteresis is frozen over the ramp: the pixel the line goes
     /// on from (0 when it cannot).
     fn skip_retrace(&mut self, plan: &LumpedRetrace, line: &AsideLine, next_event_t: f64) -> usize {
-        let (dwell, step, lumped_n) = (line.dwell_s, line.step, plan.pixels);
+        let (dwell, step, lumped_n) = (line.dwell_s, line.path.step_counts, plan.pixels);
         if next_event_t <= line.base_s + lumped_n as f64 * dwell {
             return 0;
         }
@@ -954,11 +951,7 @@ impl Simulator {
             } else {
                 nx - 1 - pixel
             };
-            let x = line.origin_x + line.step * column as f64;
-            let p = match line.turn {
-                None => [x, line.y],
-                Some(t) => t.apply(x, line.y),
-            };
+            let p = line.path.command(column, line.y);
             self.command = p;
             let z = self.pixel(p, t_mid, factors, record);
             if let Some(o) = out.as_mut() {
@@ -985,24 +978,21 @@ impl Simulator {
         &mut self,
         request: &ScanRequest,
         turn: Option<RasterTurn>,
+        drive: Option<SineDrive>,
     ) -> Result<Frame, SimError> {
-        // A turn by 0 is no turn (and leaves every position's bits as they are).
-        let turn = turn.filter(|t| t.angle_rad != 0.0);
-        let place = |x: f64, y: f64| match turn {
-            None => [x, y],
-            Some(t) => t.apply(x, y),
-        };
         self.begin_call(Operation::Scan, true)?;
-        self.check_scan(request, turn)?;
+        let path = RasterPath::new(request, turn, drive)?;
+        self.check_scan(request, &path)?;
         let caps = self.capabilities();
         let nx = request.pixels_per_line as usize;
         let ny = request.lines as usize;
         let dwell = request.pixel_dwell.value();
         let step = request.pixel_step.value();
         // Approach the first pixel at the scan speed.
+        let (column, _) = request.geometric_index(TraceHalf::Forward, 0, 0);
         let first = request.commanded_position(TraceHalf::Forward, 0, 0);
         self.travel(
-            place(first.x.value(), first.y.value()),
+            path.command(column, first.y.value()),
             step / dwell,
             Operation::Scan,
         )?;
@@ -1035,7 +1025,6 @@ impl Simulator {
         let mut forward = image();
         let mut backward = record_backward.then(image);
         let mut aside = (!record_backward && self.backward_aside.is_some()).then(image);
-        let ox = request.origin.x.value();
         let oy = request.origin.y.value();
         // Interlace: the second half of every line runs `advance` counts further
         // along the slow-scan direction (the command saturates at the field edge).
@@ -1049,7 +1038,7 @@ impl Simulator {
                 ScanDirection::Counter => -1.0,
             };
         let field_h = self.state.config.instrument.lateral_half_range_counts;
-        let lumped = self.lumped_retrace(request, &factors, (turn.is_some(), backward.is_some()));
+        let lumped = self.lumped_retrace(request, &factors, (path.is_plain(), backward.is_some()));
         for line in 0..ny {
             let row = match request.direction {
                 ScanDirection::Direct => line,
@@ -1074,12 +1063,10 @@ impl Simulator {
                 let half_line = AsideLine {
                     pixels: nx,
                     runs_plus_x,
-                    origin_x: ox,
-                    step,
+                    path,
                     y,
                     base_s: start + ((2 * line + half_index) * nx) as f64 * dwell,
                     dwell_s: dwell,
-                    turn,
                 };
                 if half == TraceHalf::Backward
                     && let Some(out) = aside.as_mut()
@@ -1150,17 +1137,140 @@ impl RasterTurn {
         let (dx, dy) = (x - cx, y - cy);
         [cx + c * dx - s * dy, cy + s * dx + c * dy]
     }
+}
 
+/// A fast axis driven by a sine, as a fast-SPM's resonant scanner drives it: each line's
+/// fast-axis command follows x(t) = c + A·sin(β·ξ) with ξ = 2(t − t_mid)/T_line ∈ [−1, 1]
+/// over the line's duration T_line (`pixels_per_line` dwells; t_mid its middle), while the
+/// pixels are recorded equidistant in time as on the linear raster. The file's nominal
+/// position stays linear in time, u = c + W·ξ (c the raster's centre column, W = N·step/2
+/// its half-width, N the pixels per line): the amplitude A = W/sin β makes the line's ends
+/// (ξ = ±1) meet the raster's ends, so the frame's request (its origin, step and pixel count)
+/// is the nominal raster the file expects. Pixel k of a trace (its dwell's middle at
+/// ξ_k = (2k + 1 − N)/N) is commanded at c + A·sin(β·ξ_k) and held over its dwell, as the
+/// linear raster holds c + W·ξ_k; the retrace runs the other half-period with ξ reversed,
+/// the same map. It is the convention of spm-modelcheck's `sinusoidal_drive` (its
+/// `amplitude_nm` is A through the scanner's scale, its `phase_at_line_end_rad` β).
+/// The physics (static map, hysteresis, creep, drift, noise, feedback, faults) act along
+/// this path exactly as along the linear raster; as β → 0 it tends to the linear raster,
+/// and β = 0 is exactly [`Microscope::scan`].
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SineDrive {
+    /// The drive's phase at a line's ends, β, rad, in [0, π/2]: the line covers the phase
+    /// ±β about the sine's zero crossing, so β = π·f_drive·T_line (f_drive the drive's
+    /// frequency, Hz; π/2 when a line is a whole half-period). 0 is the linear raster.
+    /// Typical (fast SPM): 1.2–1.5. Default: 0.
+    pub phase_at_line_end_rad: f64,
+}
+
+/// The sine's map of a line's columns: column k at c + A·sin(β·ξ_k) ([`SineDrive`]).
+#[derive(Clone, Copy, Debug)]
+struct SineLine {
+    /// The raster's centre column's x, counts.
+    centre_counts: f64,
+    /// The sine's amplitude A = W/sin β, counts.
+    amplitude_counts: f64,
+    /// The phase at the line's ends β, rad.
+    phase_at_line_end_rad: f64,
+    /// Pixels per line, N.
+    pixels: usize,
+}
+
+impl SineLine {
+    /// The fast-axis command of `column`, counts.
+    #[inline]
+    fn x_counts(&self, column: usize) -> f64 {
+        let n = self.pixels as f64;
+        let xi = (2.0 * column as f64 + 1.0 - n) / n;
+        self.centre_counts + self.amplitude_counts * (self.phase_at_line_end_rad * xi).sin()
+    }
+}
+
+/// Where a raster's pixels are commanded: the linear raster of a [`ScanRequest`], its fast
+/// axis driven by a sine ([`SineDrive`]) or not, turned ([`RasterTurn`]) or not.
+#[derive(Clone, Copy, Debug)]
+struct RasterPath {
+    /// The raster's first column's x, counts.
+    origin_x_counts: f64,
+    /// The pixel step, counts.
+    step_counts: f64,
+    /// The sine's map of the columns (none: linear).
+    sine: Option<SineLine>,
+    /// The turn of every commanded position (none: unturned).
+    turn: Option<RasterTurn>,
+}
+
+impl RasterPath {
+    /// The path of `request`, turned by `turn` and driven by `drive`. A turn by 0 is no turn
+    /// and a phase of 0 no sine (every position's bits as the plain raster's); a phase that
+    /// is not finite or outside [0, π/2] is refused.
+    fn new(
+        request: &ScanRequest,
+        turn: Option<RasterTurn>,
+        drive: Option<SineDrive>,
+    ) -> Result<Self, SimError> {
+        let step = request.pixel_step.value();
+        let pixels = request.pixels_per_line as usize;
+        let sine = match drive {
+            Some(d) if d.phase_at_line_end_rad != 0.0 => {
+                let beta = d.phase_at_line_end_rad;
+                if !(beta.is_finite() && beta > 0.0 && beta <= std::f64::consts::FRAC_PI_2) {
+                    return Err(SimError::InvalidRequest {
+                        reason: format!(
+                            "sine drive phase at the line end {beta} rad must be in [0, π/2]"
+                        ),
+                    });
+                }
+                let half_width_counts = 0.5 * pixels as f64 * step;
+                Some(SineLine {
+                    centre_counts: request.origin.x.value()
+                        + 0.5 * pixels.saturating_sub(1) as f64 * step,
+                    amplitude_counts: half_width_counts / beta.sin(),
+                    phase_at_line_end_rad: beta,
+                    pixels,
+                })
+            }
+            _ => None,
+        };
+        Ok(Self {
+            origin_x_counts: request.origin.x.value(),
+            step_counts: step,
+            sine,
+            turn: turn.filter(|t| t.angle_rad != 0.0),
+        })
+    }
+
+    /// The plain linear raster (no sine, no turn).
+    fn is_plain(&self) -> bool {
+        self.sine.is_none() && self.turn.is_none()
+    }
+
+    /// The command of `column` on the line at `y` (counts).
+    #[inline]
+    fn command(&self, column: usize, y: f64) -> [f64; 2] {
+        let x = match &self.sine {
+            None => self.origin_x_counts + self.step_counts * column as f64,
+            Some(s) => s.x_counts(column),
+        };
+        match self.turn {
+            None => [x, y],
+            Some(t) => t.apply(x, y),
+        }
+    }
+
+    /// Refuses a path that leaves the field [`min`, `max`]: the bounding box of its corners
+    /// (its lines' first and last columns, the first and last lines; the sine's columns are
+    /// monotone in the column) after the turn.
     fn check_inside(
         &self,
         request: &ScanRequest,
         min: CountPoint,
         max: CountPoint,
     ) -> Result<(), spm_hal::ScanRequestError> {
-        let (far_x, far_y) = request.far_corner();
-        let (x0, y0) = (request.origin.x.value(), request.origin.y.value());
-        let (x1, y1) = (far_x.value(), far_y.value());
-        let corners = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)].map(|(x, y)| self.apply(x, y));
+        let (_, far_y) = request.far_corner();
+        let (y0, y1) = (request.origin.y.value(), far_y.value());
+        let last = (request.pixels_per_line as usize).saturating_sub(1);
+        let corners = [(0, y0), (last, y0), (0, y1), (last, y1)].map(|(c, y)| self.command(c, y));
         let lo = corners
             .iter()
             .fold([f64::INFINITY; 2], |m, p| [m[0].min(p[0]), m[1].min(p[1])]);
@@ -1184,6 +1294,26 @@ impl RasterTurn {
 }
 
 impl Simulator {
+    /// A raster whose fast axis is driven by a sine ([`SineDrive`]): fast SPM's resonant
+    /// scan program, the physics of [`Microscope::scan`] along the sine's path (the pixels
+    /// equidistant in time, each commanded at its dwell's middle on the sine). The frame's
+    /// request is the nominal (linear) raster; a phase of 0 is exactly [`Microscope::scan`].
+    /// Refused (`InvalidRequest`) for a phase outside [0, π/2], (`OutOfRange`) when the
+    /// sine's end pixels (up to half a step beyond the raster's) leave the field.
+    pub fn scan_sine_driven(
+        &mut self,
+        request: &ScanRequest,
+        drive: SineDrive,
+    ) -> Result<Frame, SimError> {
+        let result = self.scan_impl(request, None, Some(drive));
+        if let Err(e) = &result {
+            tracing::debug!(error = %e, "simulated sine-driven scan failed");
+        }
+        result
+    }
+}
+
+impl Simulator {
     /// A raster scan turned about a point ([`RasterTurn`]): the physics of
     /// [`Microscope::scan`] along the turned path. The frame's request is the raster before
     /// the turn; a turn by 0 is exactly [`Microscope::scan`].
@@ -1192,7 +1322,7 @@ impl Simulator {
         request: &ScanRequest,
         turn: RasterTurn,
     ) -> Result<Frame, SimError> {
-        let result = self.scan_impl(request, Some(turn));
+        let result = self.scan_impl(request, Some(turn), None);
         if let Err(e) = &result {
             tracing::debug!(error = %e, "simulated turned scan failed");
         }
@@ -1270,7 +1400,7 @@ impl Microscope for Simulator {
     }
 
     fn scan(&mut self, request: &ScanRequest) -> Result<Frame, SimError> {
-        let result = self.scan_impl(request, None);
+        let result = self.scan_impl(request, None, None);
         if let Err(e) = &result {
             tracing::debug!(error = %e, "simulated scan failed");
         }

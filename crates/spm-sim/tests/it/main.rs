@@ -8,4 +8,5 @@ mod extended_physics;
 mod faults;
 mod lattice;
 mod scanner;
+mod sine_drive;
 mod turned;

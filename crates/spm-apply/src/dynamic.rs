@@ -29,13 +29,26 @@ pub enum Half {
 /// The command history of a file's raster replayed at `line_time_s` per line: per line a
 /// trace and a retrace over the line's pixels, the slow axis stepping between lines.
 fn raster_history(raster: &FileRaster, order: &[usize], line_time_s: f64) -> CommandHistory {
+    let mut history = CommandHistory::default();
+    append_raster(&mut history, raster, order, line_time_s, 0.0);
+    history
+}
+
+/// Appends a file's raster replayed at `line_time_s` per line, its first pixel `start_s` after
+/// the clock's origin, to `history`.
+fn append_raster(
+    history: &mut CommandHistory,
+    raster: &FileRaster,
+    order: &[usize],
+    line_time_s: f64,
+    start_s: f64,
+) {
     let (nx, ny) = (raster.columns, raster.rows);
     let dwell = line_time_s / nx as f64;
-    let mut history = CommandHistory::default();
     let (first, last) = (order[0], order[nx - 1]);
     for line in 0..ny {
         let row = raster.display_row(line);
-        let base = 2.0 * line_time_s * line as f64;
+        let base = start_s + 2.0 * line_time_s * line as f64;
         let at = |column: usize| {
             let p = raster.pixel_counts(column as f64, row as f64);
             [p.x.value(), p.y.value()]
@@ -45,7 +58,6 @@ fn raster_history(raster: &FileRaster, order: &[usize], line_time_s: f64) -> Com
         history.ramp_to(base + line_time_s + 0.5 * dwell, at(last));
         history.ramp_to(base + line_time_s + (nx as f64 - 0.5) * dwell, at(first));
     }
-    history
 }
 
 /// The pixels of one half in acquisition order, computed on demand (a 2048² frame is 4 M
@@ -130,6 +142,58 @@ pub fn dynamic_map<F: CorrectionField + ?Sized>(
     let history = raster_history(raster, &pixels.order, line_time_s);
     let times: Vec<f64> = (0..pixels.len())
         .map(|i| pixels.time_s(i, line_time_s))
+        .collect();
+    let ue = effective_input(dynamics, &pixels, &history, &times)?;
+    drop(times);
+    map_along(field, raster, dynamics, &pixels, &ue)
+}
+
+/// [`dynamic_map`] of the second frame of a pair scanned right after `earlier` (a
+/// counter-scanned partner): the replay runs `earlier`'s raster first, settled at its first
+/// pixel, then this raster, its first pixel `delay_s` after `earlier`'s (the commands between
+/// them a straight move). The creep and hysteresis `earlier`'s raster left are then corrected
+/// in this frame; what is still unknown is the approach move before `earlier`, the same
+/// function of time in both frames ([`crate::counter`]).
+///
+/// # Errors
+/// [`CorrectionError::InvalidArgument`] without a line time in either file, or a delay shorter
+/// than `earlier`'s frame; as [`dynamic_map`].
+pub fn dynamic_map_after<F: CorrectionField + ?Sized>(
+    field: &F,
+    raster: &FileRaster,
+    dynamics: &ScannerDynamics,
+    half: Half,
+    earlier: &FileRaster,
+    delay_s: f64,
+) -> Result<(CoordinateMap, [f64; 2]), CorrectionError> {
+    let line_time = |r: &FileRaster| {
+        r.line_time_s
+            .filter(|t| t.is_finite() && *t > 0.0)
+            .ok_or_else(|| {
+                CorrectionError::InvalidArgument(
+                    "the raster's dynamics need the file's line time".to_owned(),
+                )
+            })
+    };
+    let (line_time_s, earlier_line_s) = (line_time(raster)?, line_time(earlier)?);
+    let earlier_frame_s = 2.0 * earlier_line_s * earlier.rows as f64;
+    if !(delay_s.is_finite() && delay_s >= earlier_frame_s) {
+        return Err(CorrectionError::InvalidArgument(format!(
+            "the partner's frame lasts {earlier_frame_s:.3} s, but this frame starts {delay_s:.3} s \
+             after it"
+        )));
+    }
+    let (nx, ny) = (raster.columns, raster.rows);
+    if nx < 2 || ny < 1 || earlier.columns < 2 || earlier.rows < 1 {
+        return Err(CorrectionError::Empty("raster with fewer than 2 columns"));
+    }
+    let pixels = HalfPixels::new(raster, half);
+    let mut history = CommandHistory::default();
+    let earlier_order: Vec<usize> = earlier.line_columns().collect();
+    append_raster(&mut history, earlier, &earlier_order, earlier_line_s, 0.0);
+    append_raster(&mut history, raster, &pixels.order, line_time_s, delay_s);
+    let times: Vec<f64> = (0..pixels.len())
+        .map(|i| delay_s + pixels.time_s(i, line_time_s))
         .collect();
     let ue = effective_input(dynamics, &pixels, &history, &times)?;
     drop(times);

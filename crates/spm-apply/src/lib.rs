@@ -287,6 +287,25 @@ pub struct ApplyOptions {
     /// image itself ([`ruler`]), when the file is corrected along its own raster (no
     /// recorded history).
     pub ruler: Option<ruler::LatticeRuler>,
+    /// The image's counter-scanned partner ([`counter`]): the drift and the part of the
+    /// approach creep the two frames show, measured between them, when the file is corrected
+    /// along its own raster (no recorded history).
+    pub counter: Option<CounterPartner>,
+}
+
+/// A counter-scanned partner of the image (`spmcal correct --counter FILE`): the same place
+/// scanned right before or after it with the slow axis the other way.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CounterPartner {
+    /// The partner file as read.
+    pub file: SpmFile,
+    /// Time from the image's first pixel to the partner's, s (negative: the partner came
+    /// first). `None`: from the files' time stamps, and at least the earlier frame's duration
+    /// (frames scanned back to back share their stamps' second).
+    pub delay_s: Option<f64>,
+    /// The feature scale the frames are matched at (the standard's lattice constant, or the
+    /// sample's feature spacing).
+    pub spacing: ruler::LatticeRuler,
 }
 
 /// The path the scanner takes to every pixel.
@@ -887,6 +906,10 @@ pub enum DynamicsUsed {
     /// [`DynamicsUsed::Raster`], and the approach move's creep and the drift measured against
     /// the standard's lattice in the image ([`ruler`]; the estimate in `spmcal_ruler_*`).
     RasterRuler,
+    /// [`DynamicsUsed::Raster`] (the later frame replayed after the earlier one's raster), and
+    /// the drift and the odd part of the approach creep measured between the image and its
+    /// counter-scanned partner ([`counter`]; the estimate in `spmcal_counter_*`).
+    RasterCounter,
 }
 
 impl DynamicsUsed {
@@ -910,6 +933,13 @@ impl DynamicsUsed {
                 "raster + lattice ruler: the file's own raster replayed through the \
                  calibration's hysteresis and creep; the approach move's creep and the drift \
                  measured against the standard's lattice in the image (spmcal_ruler_*)"
+            }
+            Self::RasterCounter => {
+                "raster + counter partner: the file's own raster replayed through the \
+                 calibration's hysteresis and creep (after the partner's raster when the partner \
+                 came first); the drift and the part of the approach move's creep odd about the \
+                 pair's middle measured between the two frames (spmcal_counter_*); the even part \
+                 is not seen by a pair"
             }
             Self::Raster => {
                 "raster: the file's own raster (trace and retrace at its line time) replayed \
@@ -939,6 +969,8 @@ pub struct Corrected {
     pub dynamics: DynamicsUsed,
     /// The lattice ruler's estimate of the approach creep and drift, when it was used.
     pub ruler: Option<ruler::RulerEstimate>,
+    /// The counter partner's estimate of the drift, when it was used.
+    pub counter: Option<counter::PairEstimate>,
     /// Expected 1σ position error of the static correction over the image, nm (see
     /// [`expected_error_nm`]).
     pub expected_error_nm: f64,
@@ -1033,6 +1065,8 @@ struct Maps {
     dynamics_used: DynamicsUsed,
     /// The lattice ruler's estimate, when it was applied.
     ruler: Option<ruler::RulerEstimate>,
+    /// The counter partner's estimate, when it was applied.
+    counter: Option<counter::PairEstimate>,
 }
 
 /// The half of the frame a channel holds. A channel's direction is that of its lines (forward
@@ -1160,13 +1194,159 @@ fn maps_for<F: CorrectionField + Sync>(
         dynamics_used = DynamicsUsed::RasterRuler;
         estimate = Some(found);
     }
+    let mut pair = None;
+    if options.counter.is_some() && !matches!(dynamics_used, DynamicsUsed::Raster) {
+        return Err(ApplyError::Option {
+            option: "--counter",
+            reason: format!(
+                "{}: a counter partner measures what the file-alone dynamics leave, but this \
+                 correction is {}",
+                file.source.display(),
+                dynamics_used.describe()
+            ),
+        });
+    }
+    if let (Some(partner), Some(d), DynamicsUsed::Raster) =
+        (options.counter.as_ref(), with_dynamics, dynamics_used)
+    {
+        let halves = [
+            Some((half_of(first, raster.path), &mut map)),
+            other_half.as_mut().map(|(m, _)| (other, m)),
+        ];
+        let found = with_counter_partner(file, options, field, raster, first, d, partner, halves)?;
+        dynamics_used = DynamicsUsed::RasterCounter;
+        pair = Some(found);
+    }
     Ok(Maps {
         map,
         first_nm,
         other_half,
         dynamics_used,
         ruler: estimate,
+        counter: pair,
     })
+}
+
+/// `spmcal correct --counter`: the drift and the odd part of the approach creep measured
+/// between the image and its counter-scanned partner ([`counter`]) on the trace halves of the
+/// first channel's name, and removed from each map of `halves` along its own pixel times. When
+/// the partner came first, this image's maps are replayed after the partner's raster.
+#[allow(clippy::too_many_arguments)]
+fn with_counter_partner<F: CorrectionField + Sync>(
+    file: &SpmFile,
+    options: &ApplyOptions,
+    field: &F,
+    raster: &FileRaster,
+    first: &Channel,
+    dynamics: &spm_correction::hysteresis::ScannerDynamics,
+    partner: &CounterPartner,
+    halves: [Option<(dynamic::Half, &mut CoordinateMap)>; 2],
+) -> Result<counter::PairEstimate, ApplyError> {
+    let refuse = |reason: String| ApplyError::Option {
+        option: "--counter",
+        reason: format!("{}: {reason}", partner.file.source.display()),
+    };
+    let correction = |source: CorrectionError| ApplyError::Correction {
+        file: file.source.clone(),
+        channel: "map".to_owned(),
+        source,
+    };
+    fn trace_channel<'f>(f: &'f SpmFile, name: &str, path: RasterPath) -> Option<&'f Channel> {
+        f.channels
+            .iter()
+            .find(|c| c.name() == name && half_of(c, path) == dynamic::Half::Trace)
+    }
+    let own = trace_channel(file, first.name(), raster.path).ok_or_else(|| {
+        refuse(format!(
+            "{} has no trace channel {}",
+            file.source.display(),
+            first.name()
+        ))
+    })?;
+    let probe = partner
+        .file
+        .channels
+        .iter()
+        .find(|c| c.name() == first.name())
+        .ok_or_else(|| refuse(format!("no channel {}", first.name())))?;
+    let partner_raster = FileRaster::of(&partner.file, probe, options.nominal_nm_per_count, None)?;
+    let theirs = trace_channel(&partner.file, first.name(), partner_raster.path)
+        .ok_or_else(|| refuse(format!("no trace channel {}", first.name())))?;
+    if (partner_raster.columns, partner_raster.rows) != (raster.columns, raster.rows) {
+        return Err(refuse(format!(
+            "{} × {} pixels, the image {} × {}: not a counter-scanned partner",
+            partner_raster.columns, partner_raster.rows, raster.columns, raster.rows
+        )));
+    }
+    let frame_s = |r: &FileRaster| r.line_time_s.map(|t| 2.0 * t * r.rows as f64);
+    let delay_s = match (partner.delay_s, file.recorded, partner.file.recorded) {
+        (Some(d), _, _) => d,
+        (None, Some(a), Some(b)) => {
+            let d = (b.unix_seconds() - a.unix_seconds()) as f64;
+            if d >= 0.0 {
+                d.max(frame_s(raster).unwrap_or(0.0))
+            } else {
+                -(-d).max(frame_s(&partner_raster).unwrap_or(0.0))
+            }
+        }
+        _ => {
+            return Err(refuse(
+                "the files carry no time stamps; give the time from the image's first line to \
+                 the partner's (--counter-delay)"
+                    .to_owned(),
+            ));
+        }
+    };
+    // The pair's clock starts at the earlier frame's first pixel; the later frame is replayed
+    // after the earlier one's raster.
+    let own_heights = geometry_heights(file, own)?;
+    let partner_heights = geometry_heights(&partner.file, theirs)?;
+    let own_file = counter::PairFile {
+        raster,
+        heights: &own_heights,
+    };
+    let partner_file = counter::PairFile {
+        raster: &partner_raster,
+        heights: &partner_heights,
+    };
+    let (own_start, (earlier, later)) = if delay_s >= 0.0 {
+        (0.0, (own_file, partner_file))
+    } else {
+        (-delay_s, (partner_file, own_file))
+    };
+    let (found, _) = counter::pair_maps(
+        field,
+        dynamics,
+        earlier,
+        later,
+        delay_s.abs(),
+        &partner.spacing,
+    )
+    .map_err(|e| refuse(e.to_string()))?;
+    let shifted = |half: dynamic::Half| -> Result<Vec<f64>, ApplyError> {
+        Ok(dynamic::pixel_times(raster, half)
+            .map_err(correction)?
+            .iter()
+            .map(|t| t + own_start)
+            .collect())
+    };
+    for (half, map) in halves.into_iter().flatten() {
+        if own_start > 0.0 {
+            *map = dynamic::dynamic_map_after(
+                field,
+                raster,
+                dynamics,
+                half,
+                &partner_raster,
+                own_start,
+            )
+            .map_err(correction)?
+            .0;
+        }
+        let times = shifted(half)?;
+        *map = found.corrected(map, &times).map_err(correction)?;
+    }
+    Ok(found)
 }
 
 /// A channel's values in scanner geometry (bottom row first), refused when none is finite.
@@ -1294,6 +1474,7 @@ pub fn correct_file(
         other_half,
         dynamics_used,
         ruler,
+        counter,
     } = maps_for(file, set, options, &field, &raster, &channels)?;
     let grid = OutputGrid::covering(&map, None).map_err(|e| correction("map", e))?;
     let step_nm = grid.step_nm.value();
@@ -1356,6 +1537,7 @@ pub fn correct_file(
             unknown_pixels,
             dynamics: dynamics_used,
             ruler: ruler.clone(),
+            counter: counter.clone(),
         },
     );
     Ok(Corrected {
@@ -1366,6 +1548,7 @@ pub fn correct_file(
         extrapolated_counts,
         dynamics: dynamics_used,
         ruler,
+        counter,
         expected_error_nm: expected,
         step_nm,
     })
@@ -1378,6 +1561,7 @@ struct Facts {
     unknown_pixels: usize,
     dynamics: DynamicsUsed,
     ruler: Option<ruler::RulerEstimate>,
+    counter: Option<counter::PairEstimate>,
 }
 
 fn metadata(
@@ -1393,6 +1577,7 @@ fn metadata(
         unknown_pixels,
         dynamics,
         ref ruler,
+        ref counter,
     } = *facts;
     let p = &set.provenance;
     let region = plane.calibrated_region();
@@ -1484,6 +1669,9 @@ fn metadata(
     if let Some(r) = ruler {
         m.extend(ruler_fields(r));
     }
+    if let Some(c) = counter {
+        m.extend(counter_fields(c));
+    }
     m.extend(vec![
         (
             "spmcal_expected_error_basis".into(),
@@ -1521,6 +1709,28 @@ pub(crate) fn source_header(file: &SpmFile) -> Vec<(String, String)> {
         m.push((source_key(key), value.replace(['\n', '\r', '\0'], " ")));
     }
     m
+}
+
+/// The counter partner's estimate as output metadata.
+fn counter_fields(c: &counter::PairEstimate) -> [(String, String); 4] {
+    [
+        (
+            "spmcal_counter_drift_nm_per_s".to_owned(),
+            format!("{:.6} {:.6}", c.drift_nm_per_s[0], c.drift_nm_per_s[1]),
+        ),
+        (
+            "spmcal_counter_cubic_nm_per_s3".to_owned(),
+            format!("{:.3e} {:.3e}", c.cubic_nm_per_s3[0], c.cubic_nm_per_s3[1]),
+        ),
+        (
+            "spmcal_counter_matched".to_owned(),
+            format!("{} of {} and {}", c.matched, c.features[0], c.features[1]),
+        ),
+        (
+            "spmcal_counter_residual_nm".to_owned(),
+            format!("{:.4}", c.residual_rms_nm),
+        ),
+    ]
 }
 
 /// The lattice ruler's estimate as output metadata.

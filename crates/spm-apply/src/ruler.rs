@@ -105,41 +105,6 @@ pub struct RulerEstimate {
 }
 
 impl RulerEstimate {
-    /// An estimate of the time terms alone (no fast-axis terms), its reference at the middle
-    /// (median) of `times_s` (the image it corrects): what a counter-scanned pair measures
-    /// ([`crate::counter`]).
-    pub(crate) fn of_time_terms(
-        law: &CreepLaw,
-        amplitude_nm: [f64; 2],
-        since_move_s: f64,
-        drift_nm_per_s: [f64; 2],
-        times_s: &[f64],
-    ) -> Self {
-        let mut estimate = Self {
-            amplitude_nm,
-            since_move_s,
-            drift_nm_per_s,
-            fast_axis_nm: [0.0; FAST_TERMS],
-            reference_nm: [0.0; 2],
-            atoms: 0,
-            indexed: 0,
-            before_rms_nm: f64::NAN,
-            residual_rms_nm: f64::NAN,
-            law: law.clone(),
-        };
-        estimate.reference_to(times_s);
-        estimate
-    }
-
-    /// Moves the reference to the middle (median) of `times_s`: the image these times are of
-    /// keeps its middle where its map put it.
-    pub fn reference_to(&mut self, times_s: &[f64]) {
-        let mut times = times_s.to_vec();
-        let middle_s = spm_regression::median(&mut times).unwrap_or(0.0);
-        self.reference_nm = [0.0; 2];
-        self.reference_nm = self.error_at_nm(middle_s, 0.0);
-    }
-
     /// g(t).
     fn to_come(law: &CreepLaw, t_s: f64) -> f64 {
         law.still_to_come(t_s)

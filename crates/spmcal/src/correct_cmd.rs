@@ -29,6 +29,12 @@ pub struct CorrectArgs<'a> {
     pub allow_extrapolation: bool,
     pub static_only: bool,
     pub ruler: Option<spm_apply::ruler::LatticeRuler>,
+    /// `--counter FILE`.
+    pub counter: Option<&'a Path>,
+    /// `--counter-delay S`.
+    pub counter_delay_s: Option<f64>,
+    /// `--feature-nm NM`.
+    pub feature_nm: Option<f64>,
 }
 
 fn apply_error(error: ApplyError, calibration: &Path) -> CliError {
@@ -132,7 +138,66 @@ fn options(args: &CorrectArgs<'_>, kind: OutputKind) -> ApplyOptions {
         history: None,
         interpolation: spm_correction::Interpolation::Bilinear,
         ruler: args.ruler,
+        counter: None,
     }
+}
+
+/// The counter-scanned partner of `--counter`, read and checked (one image per call).
+fn counter_partner(args: &CorrectArgs<'_>) -> Result<Option<spm_apply::CounterPartner>, CliError> {
+    let Some(path) = args.counter else {
+        if args.counter_delay_s.is_some() || args.feature_nm.is_some() {
+            return Err(CliError::BadInput(
+                "--counter-delay and --feature-nm go with --counter FILE".to_owned(),
+            ));
+        }
+        return Ok(None);
+    };
+    if args.images.len() != 1 {
+        return Err(CliError::BadInput(format!(
+            "--counter {}: one image per call has a counter partner ({} given)",
+            path.display(),
+            args.images.len()
+        )));
+    }
+    if args.static_only {
+        return Err(CliError::BadInput(format!(
+            "--counter {}: the partner measures what the dynamics leave; not with --static",
+            path.display()
+        )));
+    }
+    if let Some(d) = args.counter_delay_s
+        && !d.is_finite()
+    {
+        return Err(CliError::BadInput(format!(
+            "--counter-delay {d}: must be a number"
+        )));
+    }
+    let spacing = match (args.feature_nm, args.ruler) {
+        (Some(nm), _) if nm.is_finite() && nm > 0.0 => spm_apply::ruler::LatticeRuler {
+            constant_nm: nm,
+            ..spm_apply::ruler::LatticeRuler::hopg()
+        },
+        (Some(nm), _) => {
+            return Err(CliError::BadInput(format!(
+                "--feature-nm {nm}: must be a number > 0"
+            )));
+        }
+        (None, Some(ruler)) => ruler,
+        (None, None) => {
+            return Err(CliError::BadInput(format!(
+                "--counter {}: give the spacing of the sample's features (--feature-nm NM) or \
+                 its standard (--ruler)",
+                path.display()
+            )));
+        }
+    };
+    crate::files::check_input(path, "counter partner")?;
+    let file = spm_formats::read_any(path).map_err(|e| CliError::BadInput(e.to_string()))?;
+    Ok(Some(spm_apply::CounterPartner {
+        file,
+        delay_s: args.counter_delay_s,
+        spacing,
+    }))
 }
 
 /// The command history an image was taken with: `IMAGE.history.json` beside it, written by
@@ -246,21 +311,28 @@ pub fn run(args: &CorrectArgs<'_>) -> Result<(), CliError> {
     for image in args.images {
         crate::files::check_input(image, "image")?;
     }
+    let counter = counter_partner(args)?;
     // Read once, after the first image (whose errors are reported first).
     let mut calibration: Option<SurfaceSet> = None;
     for (image, (out, kind)) in args.images.iter().zip(&outs) {
         let mut inputs: Vec<&Path> = args.images.iter().map(PathBuf::as_path).collect();
         inputs.push(args.calibration);
+        inputs.extend(args.counter);
         crate::files::check_output(out, "--out", &inputs)?;
         let file = spm_formats::read_any(image).map_err(|e| CliError::BadInput(e.to_string()))?;
         let set = match calibration.take() {
             Some(set) => set,
             None => read_calibration(args.calibration)?,
         };
-        let options = ApplyOptions {
+        let mut options = ApplyOptions {
             history: history_of(image, args)?,
             ..options(args, *kind)
         };
+        if counter.is_some() {
+            // With a partner the standard only names the feature spacing.
+            options.ruler = None;
+            options.counter.clone_from(&counter);
+        }
         let corrected = spm_apply::correct_file(&file, &set, &options)
             .map_err(|e| apply_error(e, args.calibration))?;
         if file.header_value(spm_apply::KEY_SCANNER).is_none() && args.scanner.is_none() {
@@ -301,6 +373,8 @@ pub fn run(args: &CorrectArgs<'_>) -> Result<(), CliError> {
                     "the recorded history's hysteresis and creep (IMAGE.history.json)",
                 spm_apply::DynamicsUsed::RasterRuler =>
                     "the raster's hysteresis and creep; approach creep and drift from the lattice",
+                spm_apply::DynamicsUsed::RasterCounter =>
+                    "the raster's hysteresis and creep; drift from the counter-scanned partner",
             },
             if corrected.extrapolated_counts.is_some() {
                 "; EXTRAPOLATED beyond the calibrated region"

@@ -242,6 +242,23 @@ enum Command {
         /// a = 0.246 nm.
         #[arg(long, value_name = "STANDARD")]
         ruler: Option<RulerStandard>,
+        /// The image's counter-scanned partner: the same place scanned right before or after it
+        /// with the slow axis the other way. The drift, and the part of the approach move's
+        /// creep the two frames tell apart, are measured between them feature by feature (no
+        /// lattice assumed) and removed — for one image corrected along its own raster, without
+        /// a recorded history. Features are matched at `--feature-nm`, or the `--ruler`
+        /// standard's lattice constant.
+        #[arg(long, value_name = "FILE")]
+        counter: Option<PathBuf>,
+        /// With --counter: time from the image's first line to the partner's, s (negative when
+        /// the partner came first). Default: from the files' time stamps, at least the earlier
+        /// frame's duration.
+        #[arg(long, value_name = "S", allow_negative_numbers = true)]
+        counter_delay: Option<f64>,
+        /// With --counter: the spacing of the sample's features, nm (the detector's scale and
+        /// the match radius).
+        #[arg(long, value_name = "NM")]
+        feature_nm: Option<f64>,
     },
     /// Take one image through a job's backend and keep the command history it was taken with
     /// (IMAGE.sxm or IMAGE.gsf, and IMAGE.….history.json): `spmcal correct` then corrects the
@@ -643,6 +660,9 @@ fn run(command: Command) -> Result<(), CliError> {
             allow_extrapolation,
             static_only,
             ruler,
+            counter,
+            counter_delay,
+            feature_nm,
         } => correct_cmd::run(&correct_cmd::CorrectArgs {
             images: &images,
             calibration: &calibration,
@@ -659,6 +679,9 @@ fn run(command: Command) -> Result<(), CliError> {
             ruler: ruler.map(|r| match r {
                 RulerStandard::Hopg => spm_apply::ruler::LatticeRuler::hopg(),
             }),
+            counter: counter.as_deref(),
+            counter_delay_s: counter_delay,
+            feature_nm,
         }),
         Command::Diagnose {
             files,

@@ -1364,6 +1364,16 @@ fn push_user_file_methods(
             },
         });
         methods.push(ImageMethod {
+            name: "user_file_counter".to_owned(),
+            correction: ImageCorrection::UserFileCounter {
+                set: Box::new(with.clone()),
+                spacing: spm_apply::ruler::LatticeRuler {
+                    constant_nm: plan.standard.lattice_constant_nm,
+                    ..spm_apply::ruler::LatticeRuler::hopg()
+                },
+            },
+        });
+        methods.push(ImageMethod {
             name: "user_file_dynamics".to_owned(),
             correction: ImageCorrection::UserFile(Box::new(with)),
         });

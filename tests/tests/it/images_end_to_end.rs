@@ -59,6 +59,20 @@ fn with_every_effect_on_the_identified_creep_law_corrects_what_no_static_field_c
         file_alone.sample_position_rms_pct_of_side
     );
 
+    // The counter-scanned partner (`spmcal correct --counter`): the two frames of each pair see
+    // the part of the approach creep and drift that is odd about the pair's middle, and only
+    // that (the even part is the same in both frames). Measured between them feature by
+    // feature, it must go: a quarter of what the file alone leaves on this net (0.76 when
+    // written), so at most 0.85 of it.
+    let counter = get("user_file_counter");
+    assert!(
+        counter.sample_position_rms_pct_of_side
+            <= 0.85 * file_alone.sample_position_rms_pct_of_side,
+        "the counter partner leaves {} % on the sample, the file alone {} %",
+        counter.sample_position_rms_pct_of_side,
+        file_alone.sample_position_rms_pct_of_side
+    );
+
     // Found and measured: the creep law against the simulator's own.
     let dynamics = images.dynamics.as_ref().expect("dynamics summary");
     assert!(

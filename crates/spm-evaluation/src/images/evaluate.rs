@@ -5,7 +5,7 @@
 use super::ImageBenchmarkError;
 use super::lattice::{atoms, measure_lattice};
 use super::take::{ImageSetConfig, ImageSize, TestImage};
-use super::user_file::user_file_map;
+use super::user_file::{user_file_map, user_file_pair_maps};
 use crate::cubic::CubicMap;
 use crate::rigid::rigid_residuals;
 use serde::Serialize;
@@ -38,6 +38,15 @@ pub enum ImageCorrection<'a> {
         set: Box<spm_correction::SurfaceSet>,
         /// The lattice measured against.
         ruler: spm_apply::ruler::LatticeRuler,
+    },
+    /// [`ImageCorrection::UserFile`] with the approach creep and drift measured between the two
+    /// frames of each counter-scanned pair (`spmcal correct --counter FILE`,
+    /// [`spm_apply::counter`]; a pair whose features do not match keeps the file-alone maps).
+    UserFileCounter {
+        /// The calibration file (with its dynamics).
+        set: Box<spm_correction::SurfaceSet>,
+        /// The feature scale the frames are matched at.
+        spacing: spm_apply::ruler::LatticeRuler,
     },
     /// [`ImageCorrection::UserFile`] with the command log recorded while the run and the
     /// images were taken (what `spmcal scan` keeps): the creep of the approach move is
@@ -293,6 +302,7 @@ fn coordinate_map_or_refusal(
             ImageCorrection::UserFileRuler { set, ruler } => {
                 user_file_map(set, image, None, Some(ruler))?
             }
+            ImageCorrection::UserFileCounter { set, .. } => user_file_map(set, image, None, None)?,
             ImageCorrection::UserFileRecorded { set, history } => {
                 user_file_map(set, image, Some(history), None)?
             }
@@ -515,10 +525,21 @@ fn evaluate_group(
     let mut raw: Option<(Vec<Feature>, Vec<Feature>)> = None;
     let mut out = Vec::with_capacity(methods.len());
     for method in methods {
-        let maps = group
-            .clone()
-            .map(|k| coordinate_map_or_refusal(method, &images[k], k))
-            .collect::<Result<Vec<_>, _>>()?;
+        let maps = match (&method.correction, group.len()) {
+            (ImageCorrection::UserFileCounter { set, spacing }, 2) => {
+                let (a, b) = user_file_pair_maps(
+                    set,
+                    &images[group.start],
+                    &images[group.start + 1],
+                    spacing,
+                )?;
+                vec![(a, false), (b, false)]
+            }
+            _ => group
+                .clone()
+                .map(|k| coordinate_map_or_refusal(method, &images[k], k))
+                .collect::<Result<Vec<_>, _>>()?,
+        };
         let mut outcomes = Vec::with_capacity(maps.len());
         for (g, k) in group.clone().enumerate() {
             let image = &images[k];

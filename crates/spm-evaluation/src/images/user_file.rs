@@ -35,6 +35,56 @@ pub(super) fn user_file_map(
     Ok(map)
 }
 
+/// [`ImageCorrection::UserFileCounter`]: the two images of a counter-scanned pair (the first
+/// scanned first) each mapped from the file alone, then the approach creep and drift measured
+/// between them ([`spm_apply::counter::estimate_from_pair`]) and removed from both, as
+/// `spmcal correct --counter` does. The pair's clock: each file's pixel times from its line
+/// time, the second file's shifted by the time between the two frames' first pixels (what a
+/// controller's time stamps record). A pair whose features do not match, or a calibration
+/// without dynamics, keeps the file-alone maps.
+///
+/// [`ImageCorrection::UserFileCounter`]: super::evaluate::ImageCorrection::UserFileCounter
+pub(super) fn user_file_pair_maps(
+    set: &spm_correction::SurfaceSet,
+    first: &TestImage,
+    second: &TestImage,
+    spacing: &spm_apply::ruler::LatticeRuler,
+) -> Result<(CoordinateMap, CoordinateMap), ImageBenchmarkError> {
+    let (map1, raster1) = file_map(set, first, None)?;
+    let (map2, raster2) = file_map(set, second, None)?;
+    let Some(d) = &set.dynamics else {
+        return Ok((map1, map2));
+    };
+    let start = |t: &[f64]| t.iter().copied().fold(f64::INFINITY, f64::min);
+    let delay_s = start(&second.time_acquisition_s) - start(&first.time_acquisition_s);
+    let field = set
+        .plane_nearest(0.0)?
+        .field(spm_correction::Route::Products);
+    // The heights in the map's order (scanner geometry, bottom row first), the trace halves.
+    let pair = spm_apply::counter::pair_maps(
+        &field,
+        d,
+        spm_apply::counter::PairFile {
+            raster: &raster1,
+            heights: &first.map.z_counts,
+        },
+        spm_apply::counter::PairFile {
+            raster: &raster2,
+            heights: &second.map.z_counts,
+        },
+        delay_s,
+        spacing,
+    );
+    match pair {
+        Ok((found, [(m1, t1), (m2, t2)])) => {
+            Ok((found.corrected(&m1, &t1)?, found.corrected(&m2, &t2)?))
+        }
+        // A pair whose features do not match keeps the file-alone maps, as a user whose
+        // --counter is refused corrects without it.
+        Err(_) => Ok((map1, map2)),
+    }
+}
+
 /// The image written as a file, read back and mapped (file alone, or with `recorded`), and
 /// the raster read from the file.
 fn file_map(

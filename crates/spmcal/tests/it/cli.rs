@@ -666,6 +666,108 @@ fn a_scanned_image_is_corrected_along_its_recorded_history() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// `spmcal correct --counter FILE`: a direct image and its counter-scanned partner of one
+/// place (HOPG atoms resolved, no history sidecar), corrected with the drift measured between
+/// them: exit 0, the dynamics used named, the estimate in the output's metadata. Refused with
+/// exit 2, naming the option, nothing written: no feature spacing, a partner of another size,
+/// `--counter-delay` without `--counter`.
+#[test]
+fn an_image_is_corrected_with_its_counter_scanned_partner() {
+    let dir = std::env::temp_dir().join(format!("spmcal-counter-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let job = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/calibrate-hopg-quick.toml");
+    let scan = |name: &str, pixels: &str, counter: bool| {
+        let out = dir.join(name);
+        let mut args = vec![
+            "scan",
+            "--config",
+            job.to_str().unwrap(),
+            "--size-counts",
+            "128",
+            "--pixels",
+            pixels,
+            "--x-counts",
+            "-3000",
+            "--settle-s",
+            "1",
+            "--out",
+        ];
+        let out_text = out.to_str().unwrap().to_owned();
+        args.push(&out_text);
+        if counter {
+            args.push("--counter");
+        }
+        let (code, _, stderr) = spmcal(&args);
+        assert_eq!(code, 0, "{stderr}");
+        // A file alone: no recorded history.
+        std::fs::remove_file(dir.join(format!("{name}.history.json"))).unwrap();
+        out
+    };
+    let direct = scan("direct.gsf", "96", false);
+    let counter = scan("counter.gsf", "96", true);
+    let small = scan("small.gsf", "64", true);
+    let calibration = dynamics_calibration(&dir);
+    let correct = |out: &str, extra: &[&str]| {
+        let mut args = vec![
+            "correct",
+            direct.to_str().unwrap(),
+            "--calibration",
+            calibration.to_str().unwrap(),
+            "--out",
+        ];
+        let out_text = dir.join(out).to_str().unwrap().to_owned();
+        args.push(&out_text);
+        args.extend_from_slice(extra);
+        spmcal(&args)
+    };
+    let partner = counter.to_str().unwrap();
+    let (code, stdout, stderr) = correct(
+        "paired.gsf",
+        &[
+            "--counter",
+            partner,
+            "--feature-nm",
+            "0.246",
+            "--counter-delay",
+            "10",
+        ],
+    );
+    assert_eq!(code, 0, "{stderr}");
+    assert!(stdout.contains("counter-scanned partner"), "{stdout}");
+    let out = spm_formats::read_any(&dir.join("paired.gsf")).unwrap();
+    let drift = out.header_value("spmcal_counter_drift_nm_per_s").unwrap();
+    assert_eq!(drift.split_whitespace().count(), 2, "{drift}");
+    assert!(
+        out.header_value("spmcal_dynamics")
+            .is_some_and(|d| d.contains("counter partner")),
+        "{:?}",
+        out.header_value("spmcal_dynamics")
+    );
+    for (name, extra, needle) in [
+        ("no-spacing.gsf", vec!["--counter", partner], "--feature-nm"),
+        (
+            "small.gsf.out.gsf",
+            vec![
+                "--counter",
+                small.to_str().unwrap(),
+                "--feature-nm",
+                "0.246",
+                "--counter-delay",
+                "10",
+            ],
+            "not a counter-scanned partner",
+        ),
+        ("no-partner.gsf", vec!["--counter-delay", "10"], "--counter"),
+    ] {
+        let (code, _, stderr) = correct(name, &extra);
+        assert_eq!(code, 2, "{name}: {stderr}");
+        assert!(stderr.contains(needle), "{name}: {stderr}");
+        assert!(!dir.join(name).exists(), "{name} was written");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// `spmcal scan --out IMAGE.sxm` writes what a Nanonis controller writes: both halves named
 /// by the direction of their lines (forward = +x), the slow direction, the line time and
 /// spmcal's raster in counts. Independent truth for a counter raster (−x lines first,

@@ -496,6 +496,12 @@ pub struct LatticePlace {
     pub static_error_pct: Option<f64>,
     /// Largest angle error with the static surfaces alone, degrees.
     pub static_angle_error_deg: Option<f64>,
+    /// Lattice-constant error with each image's counter-scanned partner (`spmcal correct
+    /// --counter`: the drift between the pair's frames removed too), % (None: not measured, or
+    /// the calibration holds no dynamics).
+    pub counter_error_pct: Option<f64>,
+    /// Largest angle error with the counter partner, degrees.
+    pub counter_angle_error_deg: Option<f64>,
 }
 
 /// The lattice of the standard, imaged after the run over the calibrated region and
@@ -524,6 +530,10 @@ pub struct LatticeCheck {
     pub static_measured: usize,
     /// RMS lattice-constant error with the static surfaces alone, %.
     pub static_rms_error_pct: f64,
+    /// Places measured with the counter partner (0 without dynamics).
+    pub counter_measured: usize,
+    /// RMS lattice-constant error with the counter partner, %.
+    pub counter_rms_error_pct: f64,
     /// Whether the calibration file holds dynamics (then `spmcal correct` applies them, and
     /// the static column shows what the surfaces alone give).
     pub dynamics_applied: bool,
@@ -608,6 +618,23 @@ pub fn lattice_check(
         },
         config,
     )?;
+    let with_partner = match set.dynamics {
+        Some(_) => lattice_of_pairs(
+            images,
+            &ImageMethod {
+                name: "user_file_counter".to_owned(),
+                correction: ImageCorrection::UserFileCounter {
+                    set: Box::new(set.clone()),
+                    spacing: spm_apply::ruler::LatticeRuler {
+                        constant_nm: a,
+                        ..spm_apply::ruler::LatticeRuler::hopg()
+                    },
+                },
+            },
+            config,
+        )?,
+        None => Vec::new(),
+    };
     let figures = |l: &PairLattice| match *l {
         PairLattice::Measured { a_nm, angle_deg } => {
             (Some(100.0 * (a_nm / a - 1.0)), Some(angle_deg))
@@ -618,10 +645,12 @@ pub fn lattice_check(
         .iter()
         .zip(&corrected)
         .zip(&static_only)
-        .map(|(((pair, place, u), (_, _, c)), (_, _, st))| {
+        .enumerate()
+        .map(|(k, (((pair, place, u), (_, _, c)), (_, _, st)))| {
             let (ue, ua) = figures(u);
             let (ce, ca) = figures(c);
             let (se, sa) = figures(st);
+            let (pe, pa) = with_partner.get(k).map_or((None, None), |(_, _, l)| figures(l));
             let centre_counts = images
                 .iter()
                 .find(|i| i.pair == *pair && i.direction == spm_hal::ScanDirection::Direct)
@@ -642,6 +671,8 @@ pub fn lattice_check(
                 corrected_angle_error_deg: ca,
                 static_error_pct: se,
                 static_angle_error_deg: sa,
+                counter_error_pct: pe,
+                counter_angle_error_deg: pa,
             }
         })
         .collect();
@@ -659,6 +690,7 @@ pub fn lattice_check(
         .filter_map(|p| p.uncorrected_error_pct)
         .collect();
     let se: Vec<f64> = places.iter().filter_map(|p| p.static_error_pct).collect();
+    let pe: Vec<f64> = places.iter().filter_map(|p| p.counter_error_pct).collect();
     let max_abs = |v: &[f64]| {
         if v.is_empty() {
             f64::NAN
@@ -677,6 +709,8 @@ pub fn lattice_check(
         uncorrected_rms_error_pct: rms(&ue),
         static_measured: se.len(),
         static_rms_error_pct: rms(&se),
+        counter_measured: pe.len(),
+        counter_rms_error_pct: rms(&pe),
         dynamics_applied: set.dynamics.is_some(),
         places,
         thresholds: [

@@ -462,8 +462,12 @@ fn validation_lattice(
                         format!(
                             "The calibration file holds scanner dynamics, which spmcal correct \
                              applies; with the static surfaces alone (--static) the lattice is \
-                             measured at {} places, RMS error {:.2} %.",
-                            l.static_measured, l.static_rms_error_pct
+                             measured at {} places, RMS error {:.2} %; with each pair's \
+                             counter-scanned partner (--counter) at {} places, RMS error {:.2} %.",
+                            l.static_measured,
+                            l.static_rms_error_pct,
+                            l.counter_measured,
+                            l.counter_rms_error_pct
                         )
                     } else {
                         String::new()
@@ -488,6 +492,8 @@ fn validation_lattice(
                             opt(p.corrected_angle_error_deg, 2),
                             opt(p.static_error_pct, 2),
                             opt(p.static_angle_error_deg, 2),
+                            opt(p.counter_error_pct, 2),
+                            opt(p.counter_angle_error_deg, 2),
                         ],
                     )
                 })
@@ -502,6 +508,8 @@ fn validation_lattice(
                     "corrected: largest angle error, °",
                     "static surfaces only: lattice constant error, %",
                     "static surfaces only: largest angle error, °",
+                    "with the counter partner: lattice constant error, %",
+                    "with the counter partner: largest angle error, °",
                 ],
                 &rows,
             );

@@ -622,8 +622,11 @@ impl CalibrationReport {
                     l.uncorrected_rms_error_pct,
                     if l.dynamics_applied {
                         format!(
-                            "; static surfaces alone {:.2} % at {} places",
-                            l.static_rms_error_pct, l.static_measured
+                            "; static surfaces alone {:.2} % at {} places; with each pair's counter partner {:.2} % at {} places",
+                            l.static_rms_error_pct,
+                            l.static_measured,
+                            l.counter_rms_error_pct,
+                            l.counter_measured
                         )
                     } else {
                         String::new()

@@ -494,6 +494,18 @@ pub fn lattice_of_pairs(
         if image.direction != ScanDirection::Direct {
             continue;
         }
+        // A pair method maps both images together.
+        if let (ImageCorrection::UserFileCounter { set, spacing }, Some(counter)) =
+            (&method.correction, lattice_partner(images, k, config))
+        {
+            let (map, counter_map) = user_file_pair_maps(set, image, counter, spacing)?;
+            let raw = raw_atoms
+                .entry(k)
+                .or_insert_with(|| raw_pair_atoms(image, counter, config));
+            let lattice = lattice_of_maps(image, counter, &map, &counter_map, raw, config);
+            out.push((image.pair, image.place.clone(), lattice));
+            continue;
+        }
         let map = coordinate_map(method, image, k)?;
         let lattice = pair_lattice(method, images, k, &map, config, &mut raw_atoms)?;
         out.push((image.pair, image.place.clone(), lattice));

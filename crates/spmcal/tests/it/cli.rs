@@ -735,7 +735,7 @@ fn an_image_is_corrected_with_its_counter_scanned_partner() {
     );
     assert_eq!(code, 0, "{stderr}");
     assert!(stdout.contains("counter-scanned partner"), "{stdout}");
-    let out = spm_formats::read_any(&dir.join("paired.gsf")).unwrap();
+    let out = spm_formats::read_any(dir.join("paired.gsf")).unwrap();
     let drift = out.header_value("spmcal_counter_drift_nm_per_s").unwrap();
     assert_eq!(drift.split_whitespace().count(), 2, "{drift}");
     assert!(

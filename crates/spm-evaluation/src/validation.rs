@@ -650,7 +650,9 @@ pub fn lattice_check(
             let (ue, ua) = figures(u);
             let (ce, ca) = figures(c);
             let (se, sa) = figures(st);
-            let (pe, pa) = with_partner.get(k).map_or((None, None), |(_, _, l)| figures(l));
+            let (pe, pa) = with_partner
+                .get(k)
+                .map_or((None, None), |(_, _, l)| figures(l));
             let centre_counts = images
                 .iter()
                 .find(|i| i.pair == *pair && i.direction == spm_hal::ScanDirection::Direct)

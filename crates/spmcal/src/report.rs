@@ -620,17 +620,7 @@ impl CalibrationReport {
                     l.places.len(),
                     l.corrected_rms_error_pct,
                     l.uncorrected_rms_error_pct,
-                    if l.dynamics_applied {
-                        format!(
-                            "; static surfaces alone {:.2} % at {} places; with each pair's counter partner {:.2} % at {} places",
-                            l.static_rms_error_pct,
-                            l.static_measured,
-                            l.counter_rms_error_pct,
-                            l.counter_measured
-                        )
-                    } else {
-                        String::new()
-                    },
+                    other_paths(l),
                     l.corrected_max_error_pct,
                     l.corrected_max_angle_error_deg,
                     l.thresholds[0],
@@ -1132,6 +1122,19 @@ fn figures(
 }
 
 /// Every record's LCCs against the truth at its LCS centre: mean and RMS per coefficient.
+/// The corrected standard's other paths for the console: the static surfaces alone and each
+/// pair's counter partner (when the file holds dynamics).
+fn other_paths(l: &spm_evaluation::validation::LatticeCheck) -> String {
+    if l.dynamics_applied {
+        format!(
+            "; static surfaces alone {:.2} % at {} places; with each pair's counter partner {:.2} % at {} places",
+            l.static_rms_error_pct, l.static_measured, l.counter_rms_error_pct, l.counter_measured
+        )
+    } else {
+        String::new()
+    }
+}
+
 fn node_lcc_error(oracle: &dyn TruthSource, all: &[spm_cdb::LccRecord]) -> Option<NodeLccError> {
     let z = oracle.z_now();
     let mut e = Vec::with_capacity(all.len());

@@ -35,7 +35,7 @@
 //! - the matched features stay more than a quarter of the feature spacing RMS off the model.
 
 use crate::ruler::{Atom, LatticeRuler, atoms};
-use spm_correction::{CoordinateMap, CorrectionError, YCoordinates};
+use spm_correction::{CoordinateMap, CorrectionError};
 use std::collections::HashMap;
 
 /// Fewest matched features, as a fraction of the first frame's features that have a feature
@@ -109,27 +109,12 @@ impl PairEstimate {
         map: &CoordinateMap,
         times_s: &[f64],
     ) -> Result<CoordinateMap, CorrectionError> {
-        let (nx, ny) = (map.columns(), map.rows());
-        if times_s.len() != nx * ny {
-            return Err(CorrectionError::SizeMismatch {
-                what: "pixel times",
-                expected: nx * ny,
-                got: times_s.len(),
-            });
-        }
         let mut sorted = times_s.to_vec();
         let reference = self.error_nm(spm_regression::median(&mut sorted).unwrap_or(0.0));
-        let mut x = Vec::with_capacity(nx * ny);
-        let mut y = Vec::with_capacity(nx * ny);
-        for (i, &t) in times_s.iter().enumerate() {
+        crate::ruler::without_error(map, times_s, |t, _| {
             let e = self.error_nm(t);
-            let p = map
-                .point(i % nx, i / nx)
-                .ok_or(CorrectionError::Empty("map pixel"))?;
-            x.push(p.x.value() - (e[0] - reference[0]));
-            y.push(p.y.value() - (e[1] - reference[1]));
-        }
-        CoordinateMap::new(nx, ny, x, YCoordinates::PerPixel(y))
+            [e[0] - reference[0], e[1] - reference[1]]
+        })
     }
 }
 
@@ -508,6 +493,7 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
     use crate::ruler::tests::surface;
+    use spm_correction::YCoordinates;
     use spm_correction::dynamics::CreepLaw;
 
     const N: usize = 129;

@@ -140,26 +140,42 @@ impl RulerEstimate {
         map: &CoordinateMap,
         times_s: &[f64],
     ) -> Result<CoordinateMap, CorrectionError> {
-        let (nx, ny) = (map.columns(), map.rows());
-        if times_s.len() != nx * ny {
-            return Err(CorrectionError::SizeMismatch {
-                what: "pixel times",
-                expected: nx * ny,
-                got: times_s.len(),
-            });
-        }
-        let mut x = Vec::with_capacity(nx * ny);
-        let mut y = Vec::with_capacity(nx * ny);
-        for (i, &t) in times_s.iter().enumerate() {
-            let e = self.error_at_nm(t, along_line((i % nx) as f64, nx));
-            let p = map
-                .point(i % nx, i / nx)
-                .ok_or(CorrectionError::Empty("map pixel"))?;
-            x.push(p.x.value() - e[0]);
-            y.push(p.y.value() - e[1]);
-        }
-        CoordinateMap::new(nx, ny, x, YCoordinates::PerPixel(y))
+        let nx = map.columns();
+        without_error(map, times_s, |t, column| {
+            self.error_at_nm(t, along_line(column as f64, nx))
+        })
     }
+}
+
+/// `map` with `error(t, column)` (nm) of every pixel removed, `times_s` per pixel in the map's
+/// order: what the ruler and the counter partner ([`crate::counter`]) estimated.
+///
+/// # Errors
+/// [`CorrectionError::SizeMismatch`]; as [`CoordinateMap::new`].
+pub(crate) fn without_error(
+    map: &CoordinateMap,
+    times_s: &[f64],
+    error: impl Fn(f64, usize) -> [f64; 2],
+) -> Result<CoordinateMap, CorrectionError> {
+    let (nx, ny) = (map.columns(), map.rows());
+    if times_s.len() != nx * ny {
+        return Err(CorrectionError::SizeMismatch {
+            what: "pixel times",
+            expected: nx * ny,
+            got: times_s.len(),
+        });
+    }
+    let mut x = Vec::with_capacity(nx * ny);
+    let mut y = Vec::with_capacity(nx * ny);
+    for (i, &t) in times_s.iter().enumerate() {
+        let e = error(t, i % nx);
+        let p = map
+            .point(i % nx, i / nx)
+            .ok_or(CorrectionError::Empty("map pixel"))?;
+        x.push(p.x.value() - e[0]);
+        y.push(p.y.value() - e[1]);
+    }
+    CoordinateMap::new(nx, ny, x, YCoordinates::PerPixel(y))
 }
 
 /// An atom: corrected position (nm) and time (s), and its detection with the position

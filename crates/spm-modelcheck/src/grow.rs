@@ -178,10 +178,8 @@ pub(crate) fn grow_from_centre(
     // terrace's drift) the walk keeps more (the HOPG terrace's right half: the grown sites
     // kept 427 features, the walk's 618, and `spmcal lattice` found no lattice with them).
     let degree = degree_for(f64::INFINITY);
-    if let (Some(walked), Some(grown)) = (
-        on_site(&xi, local, degree),
-        on_site(&xi, &sites, degree),
-    ) && walked >= grown
+    if let (Some(walked), Some(grown)) = (on_site(&xi, local, degree), on_site(&xi, &sites, degree))
+        && walked >= grown
     {
         return None;
     }

@@ -328,6 +328,18 @@ pub fn estimate_from_pair(
             }
         }
     }
+    for f in [&first, &second] {
+        let (x0, x1, _, _) = f.map.bounds_nm();
+        let nm_per_px = (x1 - x0) / (f.map.columns().max(2) - 1) as f64;
+        let per_feature = spacing.constant_nm / nm_per_px;
+        if per_feature.is_nan() || per_feature < spacing.min_pixels_per_constant {
+            return Err(CorrectionError::InvalidArgument(format!(
+                "counter partner: matching features {} nm apart needs ≥ {} pixels between \
+                 them; this image has {per_feature:.2} ({nm_per_px:.4} nm per pixel)",
+                spacing.constant_nm, spacing.min_pixels_per_constant
+            )));
+        }
+    }
     let one = atoms(first.heights, first.map, first.times_s, spacing)?;
     let two = atoms(second.heights, second.map, second.times_s, spacing)?;
     let a = spacing.constant_nm;

@@ -10,6 +10,8 @@ use crate::model::{
 use crate::types::{
     EffectKind, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError, Options,
 };
+use crate::vibration::{PixelFit, PixelImage, SearchSpace};
+use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -62,6 +64,48 @@ pub struct Finding {
     /// Other effects whose evidence in the same round was within 6 of this one
     /// (the data cannot tell them apart well).
     pub confounded_with: Vec<String>,
+    /// For a vibration found on the pixels (issue 29 item 1): the evidence there. The
+    /// finding's `evidence`, RMS and held-out RMS are then the pixels' (the height
+    /// residual against the images' lattice templates, pm for heights in m; held out:
+    /// alternate lines), and the features' held-out RMS is given here.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pixel_level: Option<PixelEvidence>,
+}
+
+/// A member of a frequency's alias family.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AliasFrequency {
+    /// The member, Hz.
+    pub frequency_hz: f64,
+    /// N·ln(RSS with it / RSS with the named frequency) over the pixels: how much less it
+    /// explains (≈ 0: the data do not tell it from the named one).
+    pub evidence_gap: f64,
+}
+
+/// A vibration's evidence on the pixels of the images (`vibration.rs`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PixelEvidence {
+    /// Images (directions of frames) searched.
+    pub images: usize,
+    /// Pixels fitted.
+    pub pixels: usize,
+    /// The named frequency's alias family: ± one and two line rates, the mirrors about
+    /// the pixel rate.
+    pub aliases: Vec<AliasFrequency>,
+    /// What one sinusoid explains in all images over what separate ones per image
+    /// explain beyond their noise (1: the same vibration everywhere).
+    pub coherence: f64,
+    /// RMS of the displacement the feature positions see (their footprints average it)
+    /// over the RMS of the tip's at the features' times: ≈ 0 where the phase advances
+    /// about half a cycle per line (the features only broaden).
+    pub seen_by_features: f64,
+    /// The features' held-out RMS without the vibration, pm.
+    pub feature_heldout_rms_before_pm: f64,
+    /// With what they see of it subtracted from their positions, pm.
+    pub feature_heldout_rms_after_pm: f64,
+    /// Whether the feature positions were corrected (only when that lowers their
+    /// held-out RMS).
+    pub features_corrected: bool,
 }
 
 /// The final model's fit.
@@ -911,8 +955,21 @@ pub fn diagnose_features(
     lattice: &LatticeSpec,
     options: &Options,
 ) -> Result<Diagnosis, ModelCheckError> {
+    diagnose_features_with_pixels(set, lattice, options, &[])
+}
+
+/// [`diagnose_features`] with the pixels of the images the features came from
+/// ([`crate::pixel_image_from_height_map`]): a vibration is then searched on the pixels,
+/// where it acts, and not on the feature positions (see `vibration.rs`).
+pub fn diagnose_features_with_pixels(
+    set: &FeatureSet,
+    lattice: &LatticeSpec,
+    options: &Options,
+    pixels: &[PixelImage],
+) -> Result<Diagnosis, ModelCheckError> {
     let indexing = index_features(set, lattice)?;
-    let mut d = diagnose_indexed(set, &indexing.sites, &indexing.basis, options)?;
+    let mut d =
+        diagnose_indexed_with_pixels(set, &indexing.sites, &indexing.basis, options, pixels)?;
     d.warnings.extend(indexing.warnings);
     // A frame that gave nothing (NaN-filled by an aborted scan, flat, out of
     // range) is left out of the fit: say so rather than diagnosing fewer
@@ -1670,6 +1727,8 @@ struct Selection {
     excluded: Vec<EffectKind>,
     /// The relevance of the last round, nm.
     relevance_nm: f64,
+    /// A vibration found on the pixels: named first.
+    pixel: Option<Finding>,
 }
 
 /// Adds the accepted candidate `chosen` (held-out RMS `after` with it, pm) to the model,
@@ -1725,6 +1784,7 @@ fn adopt(
         parameters: BTreeMap::new(),
         meaning: kind.meaning().to_owned(),
         confounded_with,
+        pixel_level: None,
     };
     m.heldout_now = after;
     m.fit = fit1;
@@ -1841,6 +1901,9 @@ fn report(
             t.value += p.t_mid;
         }
     }
+    if let Some(f) = sel.pixel.take() {
+        sel.findings.insert(0, f);
+    }
     let mut localiser_bias = BTreeMap::new();
     if m.pixel_locking {
         for (i, name) in PIXEL_LOCKING_NAMES.iter().enumerate() {
@@ -1948,7 +2011,18 @@ pub fn diagnose_indexed(
     basis: &MeasuredBasis,
     options: &Options,
 ) -> Result<Diagnosis, ModelCheckError> {
-    let p = problem(set, sites, basis, options)?;
+    diagnose_indexed_with_pixels(set, sites, basis, options, &[])
+}
+
+/// [`diagnose_indexed`] with the images' pixels for the pixel-level vibration search.
+fn diagnose_indexed_with_pixels(
+    set: &FeatureSet,
+    sites: &[Option<[i64; 2]>],
+    basis: &MeasuredBasis,
+    options: &Options,
+    pixels: &[PixelImage],
+) -> Result<Diagnosis, ModelCheckError> {
+    let mut p = problem(set, sites, basis, options)?;
     let (mut model, baseline_report) = baseline(&p)?;
     let baseline_fit = model.fit.clone();
     let localisation_sigma_pm = 1000.0
@@ -1959,7 +2033,11 @@ pub fn diagnose_indexed(
         relevance_nm: p.relevance_nm(&model.fit, &model.mask),
         ..Selection::default()
     };
-    for _ in 0..options.max_findings {
+    pixel_vibration(&mut p, &mut model, &mut sel, pixels)?;
+    let rounds = options
+        .max_findings
+        .saturating_sub(usize::from(sel.pixel.is_some()));
+    for _ in 0..rounds {
         if !selection_round(&p, &mut model, &mut sel)? {
             break;
         }
@@ -1971,4 +2049,194 @@ pub fn diagnose_indexed(
         (baseline_report, baseline_fit, localisation_sigma_pm),
         sel,
     )
+}
+
+/// The vibration's coefficients (x cos, x sin, y cos, y sin) in the image axes, and their
+/// covariance, from the pixels' input-axis ones: d = Rot(−θ₀)·J₀·δu.
+fn image_axes(fit: &PixelFit, ctx: &Ctx) -> Fit {
+    let (s, c) = ctx.theta0.sin_cos();
+    let j = ctx.j0;
+    let m = [
+        [c * j[0][0] + s * j[1][0], c * j[0][1] + s * j[1][1]],
+        [-s * j[0][0] + c * j[1][0], -s * j[0][1] + c * j[1][1]],
+    ];
+    let k = DMatrix::from_row_slice(
+        4,
+        4,
+        &[
+            m[0][0], 0.0, m[0][1], 0.0, //
+            0.0, m[0][0], 0.0, m[0][1], //
+            m[1][0], 0.0, m[1][1], 0.0, //
+            0.0, m[1][0], 0.0, m[1][1],
+        ],
+    );
+    let coef = &k * DVector::from_column_slice(&fit.coefficients_nm);
+    let cov_in = DMatrix::from_fn(4, 4, |a, b| fit.covariance_nm2[a][b]);
+    Fit {
+        coef: coef.iter().copied().collect(),
+        cov: &k * cov_in * k.transpose(),
+        residual: Vec::new(),
+        rss: fit.rss[1],
+        n_eq: fit.pixels,
+        rank: 4,
+    }
+}
+
+/// The vibration searched on the images' pixels (`vibration.rs`), when they are given:
+/// its finding, named first, or its rejection. With pixels the feature-level candidate is
+/// not searched (the line rate aliases its frequency, and where the phase advances about
+/// half a cycle per line the features do not see it). The feature positions are corrected
+/// by what their footprints see of it when that lowers their held-out RMS.
+fn pixel_vibration(
+    p: &mut Problem<'_>,
+    m: &mut Model,
+    sel: &mut Selection,
+    pixels: &[PixelImage],
+) -> Result<(), ModelCheckError> {
+    let kind = EffectKind::PeriodicVibration;
+    if pixels.len() < 2 || !p.options.effects.contains(&kind) {
+        return Ok(());
+    }
+    sel.excluded.push(kind);
+    let line_frequencies_hz: Vec<f64> = p
+        .frames
+        .iter()
+        .filter(|f| f.duration_s > 0.0 && f.lines > 0)
+        .map(|f| f.lines as f64 / f.duration_s)
+        .collect();
+    let space = SearchSpace {
+        t_origin_s: p.t_mid,
+        longest_frame_s: p.frames.iter().map(|f| f.duration_s).fold(0.0, f64::max),
+        line_frequencies_hz: &line_frequencies_hz,
+    };
+    let Some(fit) = crate::vibration::search(pixels, &space) else {
+        return Ok(());
+    };
+    let image = image_axes(&fit, &m.ctx);
+    let added = Added {
+        kind,
+        hyper: fit.frequency_hz,
+        hyper_sigma: 0.25 / p.span_s.max(1e-9),
+        range: 0..4,
+    };
+    let parameters = effect_params(&added, &image, p.frames, &m.ctx);
+    let evidence = delta_bic(fit.pixels as f64, fit.rss[0], fit.rss[1], 5.0, fit.trials);
+    let amplitude = |k: &str| parameters.get(k).map_or(0.0, |v| v.value);
+    let displacement_nm =
+        (0.5 * (amplitude("amplitude_x_nm").powi(2) + amplitude("amplitude_y_nm").powi(2))).sqrt();
+    // What the features see: the feature-level columns (footprint averages) with these
+    // coefficients, against the tip's displacement at their times.
+    let cols = effect_columns(kind, fit.frequency_hz, &p.obs, &m.ctx);
+    let seen: Vec<f64> = (0..p.target.len())
+        .map(|i| (0..4).map(|j| image.coef[j] * cols[j][i]).sum())
+        .collect();
+    let w = std::f64::consts::TAU * fit.frequency_hz;
+    let (mut seen_ss, mut tip_ss) = (0.0, 0.0);
+    for (k, o) in p.obs.iter().enumerate().filter(|(k, _)| m.mask[*k]) {
+        let (sn, cs) = (w * o.t).sin_cos();
+        let d = [
+            image.coef[0] * cs + image.coef[1] * sn,
+            image.coef[2] * cs + image.coef[3] * sn,
+        ];
+        tip_ss += d[0] * d[0] + d[1] * d[1];
+        seen_ss += seen[2 * k].powi(2) + seen[2 * k + 1].powi(2);
+    }
+    let seen_by_features = (seen_ss / tip_ss.max(1e-300)).sqrt();
+    let relevance_nm = p.relevance_nm(&m.fit, &m.mask);
+    let problem = if evidence <= p.options.evidence_threshold {
+        Some(format!("not supported on the pixels (ΔBIC {evidence:.1})"))
+    } else if fit.coherence < 0.5 {
+        Some(format!(
+            "not one vibration in every image (coherence {:.2})",
+            fit.coherence
+        ))
+    } else if displacement_nm < relevance_nm {
+        Some(format!(
+            "irrelevant: explains {:.2} pm RMS, below {:.2} pm",
+            1000.0 * displacement_nm,
+            1000.0 * relevance_nm
+        ))
+    } else if let Some(r) = implausible(kind, &parameters, p.frames, p.lattice_a_nm, p.span_s) {
+        Some(format!("implausible: {r}"))
+    } else if fit.heldout_rms[1] >= fit.heldout_rms[0] {
+        Some(format!(
+            "no held-out gain on the pixels ({:.3} → {:.3})",
+            fit.heldout_rms[0], fit.heldout_rms[1]
+        ))
+    } else {
+        None
+    };
+    tracing::debug!(
+        frequency_hz = fit.frequency_hz,
+        evidence,
+        coherence = fit.coherence,
+        heldout = ?fit.heldout_rms,
+        ?parameters,
+        ?problem,
+        "pixel-level vibration"
+    );
+    if std::env::var("VIB_DEBUG").is_ok() {
+        eprintln!(
+            "VIB f {:.4} ev {evidence:.1} coh {:.3} heldout {:?} disp {:.2} pm rel {:.2} seen {seen_by_features:.3} aliases {:?} problem {problem:?}",
+            fit.frequency_hz, fit.coherence, fit.heldout_rms, 1000.0 * displacement_nm, 1000.0 * relevance_nm, fit.aliases
+        );
+    }
+    if let Some(reason) = problem {
+        if evidence > p.options.evidence_threshold {
+            sel.rejected.push(Rejection {
+                effect: kind.name().to_owned(),
+                evidence,
+                explained_rms_pm: 1000.0 * displacement_nm,
+                reason,
+            });
+        }
+        return Ok(());
+    }
+    let corrected: Vec<f64> = p.target.iter().zip(&seen).map(|(t, s)| t - s).collect();
+    let before = m.heldout_now;
+    let after = heldout_rms_with(&p.obs, p.frames, &corrected, &m.cols, &m.mask);
+    let features_corrected = after < before;
+    if std::env::var("VIB_DEBUG").is_ok() {
+        eprintln!("VIB features held-out {before:.2} -> {after:.2} pm");
+        let mut all = m.cols.clone();
+        all.extend(cols.iter().cloned());
+        if let Ok(f) = solve(&all, &p.target, &m.mask) {
+            eprintln!("VIB feature-level coef {:?} pixel {:?} rms {:.1} -> {:.1}", &f.coef[m.cols.len()..], image.coef, rms_pm(m.fit.rss, m.fit.n_eq), rms_pm(f.rss, f.n_eq));
+        }
+    }
+    if features_corrected {
+        p.target = corrected;
+        m.fit = solve(&m.cols, &p.target, &m.mask)?;
+        m.heldout_now = after;
+    }
+    let rms = |rss: f64| (rss / fit.pixels.max(1) as f64).sqrt();
+    sel.pixel = Some(Finding {
+        effect: kind.name().to_owned(),
+        evidence,
+        rms_before_pm: rms(fit.rss[0]),
+        rms_after_pm: rms(fit.rss[1]),
+        heldout_rms_before_pm: fit.heldout_rms[0],
+        heldout_rms_after_pm: fit.heldout_rms[1],
+        parameters,
+        meaning: kind.meaning().to_owned(),
+        confounded_with: Vec::new(),
+        pixel_level: Some(PixelEvidence {
+            images: fit.images,
+            pixels: fit.pixels,
+            aliases: fit
+                .aliases
+                .iter()
+                .map(|a| AliasFrequency {
+                    frequency_hz: a.frequency_hz,
+                    evidence_gap: a.evidence_gap,
+                })
+                .collect(),
+            coherence: fit.coherence,
+            seen_by_features,
+            feature_heldout_rms_before_pm: before,
+            feature_heldout_rms_after_pm: if features_corrected { after } else { before },
+            features_corrected,
+        }),
+    });
+    Ok(())
 }

@@ -1,6 +1,7 @@
 //! From image files to feature observations with acquisition times.
 
-use crate::diagnose::{Diagnosis, diagnose_features};
+use crate::diagnose::{Diagnosis, diagnose_features_with_pixels};
+use crate::vibration::{PixelImage, Template as VibrationTemplate};
 use crate::level::{Lines, lattice_harmonics, level_lines, refine_basis};
 use crate::types::{
     FeatureObservation, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError,
@@ -262,6 +263,19 @@ fn height_channels<'f>(
 /// looked for in the image so levelled, and, when found, the lines are levelled again
 /// jointly with the lattice's harmonics.
 fn geometric_map(channel: &Channel, search: Option<&LatticeSearch>) -> (HeightMap, Vec<bool>) {
+    let (map, bad, _) = geometric_map_and_template(channel, search);
+    (map, bad)
+}
+
+/// The levelled lattice image's template: harmonics (cycles per pixel) and coefficients.
+type LatticeTemplate = (Vec<[f64; 2]>, Vec<f64>);
+
+/// [`geometric_map`], and the lattice template its lines were levelled with (when the
+/// lattice was found).
+fn geometric_map_and_template(
+    channel: &Channel,
+    search: Option<&LatticeSearch>,
+) -> (HeightMap, Vec<bool>, Option<LatticeTemplate>) {
     let (nx, ny) = (channel.nx(), channel.ny());
     let scale = if channel.unit() == "m" { 1e12 } else { 1.0 };
     let data = channel.data();
@@ -278,22 +292,44 @@ fn geometric_map(channel: &Channel, search: Option<&LatticeSearch>) -> (HeightMa
             }
         }
     }
-    let mut z = raw.clone();
-    level_lines(&mut z, &bad, nx, ny, &[]);
     // Heights beyond a metre are not a surface (a corrupt or hostile file): no lattice
     // model is fitted to them, the plain levelling only.
     let physical = channel.unit() != "m" || raw.iter().all(|v| v.abs() < 1e12);
-    if let Some(search) = search.filter(|_| physical) {
+    let (z, template) = level_with_lattice(raw, &bad, (nx, ny), search.filter(|_| physical));
+    let map = HeightMap {
+        origin: CountPoint::from_counts(0.0, 0.0),
+        pixel_step: Counts(1.0),
+        columns: nx,
+        rows: ny,
+        z_counts: z,
+        time_s: vec![0.0; nx * ny],
+    };
+    (map, bad, template)
+}
+
+/// Levels the lines of `raw` (row-major, `bad` unscanned); with `search`, the lattice's
+/// peaks are looked for in the image so levelled, and, when found, the lines are levelled
+/// again jointly with the lattice's harmonics, whose template is returned.
+fn level_with_lattice(
+    raw: Vec<f64>,
+    bad: &[bool],
+    (nx, ny): (usize, usize),
+    search: Option<&LatticeSearch>,
+) -> (Vec<f64>, Option<LatticeTemplate>) {
+    let mut z = raw.clone();
+    level_lines(&mut z, bad, nx, ny, &[]);
+    let mut template = None;
+    if let Some(search) = search {
         let img = Image {
             z: &z,
-            bad: &bad,
+            bad,
             nx,
             ny,
         };
         if let Some(peaks) = cells::find_lattice(&img, search) {
             let lines = Lines {
                 z: &raw,
-                bad: &bad,
+                bad,
                 nx,
                 ny,
             };
@@ -306,18 +342,11 @@ fn geometric_map(channel: &Channel, search: Option<&LatticeSearch>) -> (HeightMa
                 "lines levelled jointly with the lattice's harmonics"
             );
             z = raw;
-            level_lines(&mut z, &bad, nx, ny, &harmonics);
+            let coefficients = level_lines(&mut z, bad, nx, ny, &harmonics);
+            template = Some((harmonics, coefficients));
         }
     }
-    let map = HeightMap {
-        origin: CountPoint::from_counts(0.0, 0.0),
-        pixel_step: Counts(1.0),
-        columns: nx,
-        rows: ny,
-        z_counts: z,
-        time_s: vec![0.0; nx * ny],
-    };
-    (map, bad)
+    (z, template)
 }
 
 /// Whether an unscanned pixel lies within `a_px` pixels of the feature.
@@ -658,7 +687,7 @@ fn channel_observations(
     lattice: &LatticeSpec,
     polarity: Polarity,
     ex: &ExtractOptions,
-    out: &mut Vec<FeatureObservation>,
+    (out, pixels): (&mut Vec<FeatureObservation>, &mut Vec<PixelImage>),
 ) -> Result<(), ModelCheckError> {
     let (nx, ny) = frame.pixels;
     let pixel_nm = frame.pixel_nm;
@@ -683,7 +712,7 @@ fn channel_observations(
     // own fit windows, and its many strong harmonics beyond the second shell are
     // not in the joint model (with them the 20 nm Si 7×7 frame lost its lattice).
     let search = (!pattern_cell).then(|| lattice_search(lattice, pixel_nm));
-    let (map, bad) = geometric_map(channel, search.as_ref());
+    let (map, bad, template) = geometric_map_and_template(channel, search.as_ref());
     let scan_up = channel.scan_dir().or(file.scan_dir) == Some(ScanDir::Up);
     let time_and_line = |column: f64, row: f64| {
         let display_row = (ny as f64 - 1.0) - row;
@@ -711,6 +740,20 @@ fn channel_observations(
         label: format!("{name}, {}", format!("{direction:?}").to_lowercase()),
     };
     let feats = channel_features(mode, &map, &bad, &ctx, lattice, ex)?;
+    if let Some((k_px, coefficients)) = &template
+        && matches!(mode, Mode::Plain)
+    {
+        pixels.extend(PixelImage::new(
+            (frame_index, direction),
+            (&map.z_counts, &bad, nx, ny),
+            &VibrationTemplate {
+                k_px,
+                coefficients,
+            },
+            pixel_nm,
+            &time_and_line,
+        ));
+    }
     // Drop features next to unscanned (NaN) pixels.
     let a_px = (lattice.a_nm() / pixel_nm[0]).ceil() as i64;
     for f in feats {
@@ -733,6 +776,17 @@ pub fn extract_features(
     lattice: &LatticeSpec,
     ex: &ExtractOptions,
 ) -> Result<FeatureSet, ModelCheckError> {
+    extract_features_and_pixels(files, lattice, ex).map(|(set, _)| set)
+}
+
+/// [`extract_features`], and the pixels of every atomic-lattice image levelled with its
+/// lattice template (for the pixel-level vibration search).
+fn extract_features_and_pixels(
+    files: &[(SpmFile, Option<f64>)],
+    lattice: &LatticeSpec,
+    ex: &ExtractOptions,
+) -> Result<(FeatureSet, Vec<PixelImage>), ModelCheckError> {
+    let mut pixels = Vec::new();
     let polarity = ex
         .polarity
         .unwrap_or(if (lattice.a_nm() - SI7X7_A_NM).abs() < 1e-6 {
@@ -826,11 +880,11 @@ pub fn extract_features(
                 lattice,
                 polarity,
                 ex,
-                &mut set.features,
+                (&mut set.features, &mut pixels),
             )?;
         }
     }
-    Ok(set)
+    Ok((set, pixels))
 }
 
 /// The `spmcal diagnose` entry point: reads the files, extracts features,
@@ -845,7 +899,7 @@ pub fn diagnose(
     for input in inputs {
         files.push((spm_formats::read_any(&input.path)?, input.start_time_s));
     }
-    let set = extract_features(&files, lattice, ex)?;
+    let (set, pixels) = extract_features_and_pixels(&files, lattice, ex)?;
     if set.features.is_empty() {
         // Say why in the user's terms: a lattice sampled too coarsely to
         // localise features, or no feature of that period at all.
@@ -872,7 +926,40 @@ pub fn diagnose(
         frames = set.frames.len(),
         "features extracted"
     );
-    diagnose_features(&set, lattice, options)
+    diagnose_features_with_pixels(&set, lattice, options, &pixels)
+}
+
+/// The pixels of a height map in scanner geometry (as [`features_from_height_map`] reads
+/// it) for the pixel-level vibration search: its lines levelled jointly with the claimed
+/// lattice's harmonics found in its spectrum, and each pixel's residual against that
+/// template; `None` when the lattice is not found in the map. Heights are in the map's
+/// unit (the search is scale-free).
+pub fn pixel_image_from_height_map(
+    map: &HeightMap,
+    ctx: &MapContext,
+    lattice: &LatticeSpec,
+    time_and_line: &dyn Fn(f64, f64) -> (f64, usize),
+) -> Option<PixelImage> {
+    let (nx, ny) = (map.columns, map.rows);
+    let bad: Vec<bool> = map.z_counts.iter().map(|v| !v.is_finite()).collect();
+    let raw: Vec<f64> = map
+        .z_counts
+        .iter()
+        .map(|v| if v.is_finite() { *v } else { 0.0 })
+        .collect();
+    let search = lattice_search(lattice, ctx.pixel_nm);
+    let (z, template) = level_with_lattice(raw, &bad, (nx, ny), Some(&search));
+    let (k_px, coefficients) = template?;
+    PixelImage::new(
+        (ctx.frame_index, ctx.direction),
+        (&z, &bad, nx, ny),
+        &VibrationTemplate {
+            k_px: &k_px,
+            coefficients: &coefficients,
+        },
+        ctx.pixel_nm,
+        time_and_line,
+    )
 }
 
 /// Convenience: [`diagnose`] for plain paths with default extraction.

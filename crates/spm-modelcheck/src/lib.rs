@@ -52,20 +52,23 @@ mod plot;
 mod simmap;
 mod sine;
 mod types;
+mod vibration;
 
 pub use diagnose::{
-    BaselineReport, CandidateScore, Diagnosis, FinalReport, Finding, ParamValue, Rejection,
-    ResidualPoint, ResidualStructure, diagnose_features, diagnose_indexed,
+    AliasFrequency, BaselineReport, CandidateScore, Diagnosis, FinalReport, Finding, ParamValue,
+    PixelEvidence, Rejection, ResidualPoint, ResidualStructure, diagnose_features,
+    diagnose_features_with_pixels, diagnose_indexed,
 };
 pub use extract::{
     ExtractOptions, ImageInput, Localiser, MapContext, diagnose, diagnose_paths, extract_features,
-    features_from_height_map,
+    features_from_height_map, pixel_image_from_height_map,
 };
 pub use index::{Indexing, MeasuredBasis, index_features};
 pub use plot::{register_system_font, write_png};
 pub use simmap::{
     InputKnot, MoveHistory, SimContext, SimParam, SimPatch, TipChangeEvent, sim_patch,
 };
+pub use vibration::PixelImage;
 pub use types::{
     EffectKind, FeatureObservation, FeatureSet, FrameInfo, HOPG_A_NM, LatticeSpec, LineDirection,
     ModelCheckError, Options, SI7X7_A_NM,

@@ -10,7 +10,7 @@ use crate::model::{
 use crate::types::{
     EffectKind, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError, Options,
 };
-use crate::vibration::{PixelFit, PixelImage, SearchSpace};
+use crate::vibration::{LatticeMap, PixelFit, PixelImage, SearchSpace};
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -2033,7 +2033,7 @@ fn diagnose_indexed_with_pixels(
         relevance_nm: p.relevance_nm(&model.fit, &model.mask),
         ..Selection::default()
     };
-    pixel_vibration(&mut p, &mut model, &mut sel, pixels)?;
+    pixel_vibration(&mut p, &mut model, &mut sel, (pixels, basis))?;
     let rounds = options
         .max_findings
         .saturating_sub(usize::from(sel.pixel.is_some()));
@@ -2091,7 +2091,7 @@ fn pixel_vibration(
     p: &mut Problem<'_>,
     m: &mut Model,
     sel: &mut Selection,
-    pixels: &[PixelImage],
+    (pixels, basis): (&[PixelImage], &MeasuredBasis),
 ) -> Result<(), ModelCheckError> {
     let kind = EffectKind::PeriodicVibration;
     if pixels.len() < 2 || !p.options.effects.contains(&kind) {
@@ -2108,6 +2108,11 @@ fn pixel_vibration(
         t_origin_s: p.t_mid,
         longest_frame_s: p.frames.iter().map(|f| f.duration_s).fold(0.0, f64::max),
         line_frequencies_hz: &line_frequencies_hz,
+        lattice: LatticeMap {
+            j0: m.ctx.j0,
+            drift_nm_per_s: [m.fit.coef[4], m.fit.coef[5]],
+            basis_nm: [basis.a1_nm, basis.a2_nm],
+        },
     };
     let Some(fit) = crate::vibration::search(pixels, &space) else {
         return Ok(());

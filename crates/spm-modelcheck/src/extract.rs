@@ -1,7 +1,7 @@
 //! From image files to feature observations with acquisition times.
 
 use crate::diagnose::{Diagnosis, diagnose_features_with_pixels};
-use crate::vibration::{PixelImage, Template as VibrationTemplate};
+use crate::vibration::PixelImage;
 use crate::level::{Lines, lattice_harmonics, level_lines, refine_basis};
 use crate::types::{
     FeatureObservation, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError,
@@ -263,19 +263,16 @@ fn height_channels<'f>(
 /// looked for in the image so levelled, and, when found, the lines are levelled again
 /// jointly with the lattice's harmonics.
 fn geometric_map(channel: &Channel, search: Option<&LatticeSearch>) -> (HeightMap, Vec<bool>) {
-    let (map, bad, _) = geometric_map_and_template(channel, search);
+    let (map, bad, _) = geometric_map_and_lattice(channel, search);
     (map, bad)
 }
 
-/// The levelled lattice image's template: harmonics (cycles per pixel) and coefficients.
-type LatticeTemplate = (Vec<[f64; 2]>, Vec<f64>);
-
-/// [`geometric_map`], and the lattice template its lines were levelled with (when the
-/// lattice was found).
-fn geometric_map_and_template(
+/// [`geometric_map`], and whether the lattice was found in it (its lines levelled jointly
+/// with the lattice's harmonics).
+fn geometric_map_and_lattice(
     channel: &Channel,
     search: Option<&LatticeSearch>,
-) -> (HeightMap, Vec<bool>, Option<LatticeTemplate>) {
+) -> (HeightMap, Vec<bool>, bool) {
     let (nx, ny) = (channel.nx(), channel.ny());
     let scale = if channel.unit() == "m" { 1e12 } else { 1.0 };
     let data = channel.data();
@@ -295,7 +292,7 @@ fn geometric_map_and_template(
     // Heights beyond a metre are not a surface (a corrupt or hostile file): no lattice
     // model is fitted to them, the plain levelling only.
     let physical = channel.unit() != "m" || raw.iter().all(|v| v.abs() < 1e12);
-    let (z, template) = level_with_lattice(raw, &bad, (nx, ny), search.filter(|_| physical));
+    let (z, found) = level_with_lattice(raw, &bad, (nx, ny), search.filter(|_| physical));
     let map = HeightMap {
         origin: CountPoint::from_counts(0.0, 0.0),
         pixel_step: Counts(1.0),
@@ -304,21 +301,21 @@ fn geometric_map_and_template(
         z_counts: z,
         time_s: vec![0.0; nx * ny],
     };
-    (map, bad, template)
+    (map, bad, found)
 }
 
 /// Levels the lines of `raw` (row-major, `bad` unscanned); with `search`, the lattice's
 /// peaks are looked for in the image so levelled, and, when found, the lines are levelled
-/// again jointly with the lattice's harmonics, whose template is returned.
+/// again jointly with the lattice's harmonics (then `true`).
 fn level_with_lattice(
     raw: Vec<f64>,
     bad: &[bool],
     (nx, ny): (usize, usize),
     search: Option<&LatticeSearch>,
-) -> (Vec<f64>, Option<LatticeTemplate>) {
+) -> (Vec<f64>, bool) {
     let mut z = raw.clone();
     level_lines(&mut z, bad, nx, ny, &[]);
-    let mut template = None;
+    let mut found = false;
     if let Some(search) = search {
         let img = Image {
             z: &z,
@@ -342,11 +339,11 @@ fn level_with_lattice(
                 "lines levelled jointly with the lattice's harmonics"
             );
             z = raw;
-            let coefficients = level_lines(&mut z, bad, nx, ny, &harmonics);
-            template = Some((harmonics, coefficients));
+            level_lines(&mut z, bad, nx, ny, &harmonics);
+            found = true;
         }
     }
-    (z, template)
+    (z, found)
 }
 
 /// Whether an unscanned pixel lies within `a_px` pixels of the feature.
@@ -712,7 +709,7 @@ fn channel_observations(
     // own fit windows, and its many strong harmonics beyond the second shell are
     // not in the joint model (with them the 20 nm Si 7×7 frame lost its lattice).
     let search = (!pattern_cell).then(|| lattice_search(lattice, pixel_nm));
-    let (map, bad, template) = geometric_map_and_template(channel, search.as_ref());
+    let (map, bad, lattice_found) = geometric_map_and_lattice(channel, search.as_ref());
     let scan_up = channel.scan_dir().or(file.scan_dir) == Some(ScanDir::Up);
     let time_and_line = |column: f64, row: f64| {
         let display_row = (ny as f64 - 1.0) - row;
@@ -740,16 +737,10 @@ fn channel_observations(
         label: format!("{name}, {}", format!("{direction:?}").to_lowercase()),
     };
     let feats = channel_features(mode, &map, &bad, &ctx, lattice, ex)?;
-    if let Some((k_px, coefficients)) = &template
-        && matches!(mode, Mode::Plain)
-    {
+    if lattice_found && matches!(mode, Mode::Plain) {
         pixels.extend(PixelImage::new(
             (frame_index, direction),
             (&map.z_counts, &bad, nx, ny),
-            &VibrationTemplate {
-                k_px,
-                coefficients,
-            },
             pixel_nm,
             &time_and_line,
         ));
@@ -930,10 +921,9 @@ pub fn diagnose(
 }
 
 /// The pixels of a height map in scanner geometry (as [`features_from_height_map`] reads
-/// it) for the pixel-level vibration search: its lines levelled jointly with the claimed
-/// lattice's harmonics found in its spectrum, and each pixel's residual against that
-/// template; `None` when the lattice is not found in the map. Heights are in the map's
-/// unit (the search is scale-free).
+/// it) for the pixel-level vibration search: its lines levelled (jointly with the claimed
+/// lattice's harmonics found in its spectrum); `None` when the lattice is not found in
+/// the map. Heights are in the map's unit (the search is scale-free).
 pub fn pixel_image_from_height_map(
     map: &HeightMap,
     ctx: &MapContext,
@@ -948,15 +938,13 @@ pub fn pixel_image_from_height_map(
         .map(|v| if v.is_finite() { *v } else { 0.0 })
         .collect();
     let search = lattice_search(lattice, ctx.pixel_nm);
-    let (z, template) = level_with_lattice(raw, &bad, (nx, ny), Some(&search));
-    let (k_px, coefficients) = template?;
+    let (z, found) = level_with_lattice(raw, &bad, (nx, ny), Some(&search));
+    if !found {
+        return None;
+    }
     PixelImage::new(
         (ctx.frame_index, ctx.direction),
         (&z, &bad, nx, ny),
-        &VibrationTemplate {
-            k_px: &k_px,
-            coefficients: &coefficients,
-        },
         ctx.pixel_nm,
         time_and_line,
     )

@@ -42,16 +42,15 @@
 
 use crate::types::LineDirection;
 
-/// One pixel: its time, its height residual against its image's lattice template, and
-/// the template's gradient.
+/// One pixel: its time, place and levelled height.
 #[derive(Clone, Copy, Debug)]
 struct Sample {
     /// Time from its line's centre, s.
     dt_s: f64,
-    /// Height minus the lattice template, in the image's height unit (pm for a file in m).
-    residual: f64,
-    /// ∂T/∂u along x and y per nominal nm of input (height unit per nm).
-    gradient_per_nm: [f64; 2],
+    /// Column and row (pixels; row growing with y).
+    place_px: [f64; 2],
+    /// The levelled height, in the image's height unit (pm for a file in m).
+    height: f64,
 }
 
 /// One scan line of one image.
@@ -65,8 +64,7 @@ struct Line {
 }
 
 /// The pixels of one lattice image (one direction of one frame) for the pixel-level
-/// vibration search: every scanned pixel's acquisition time, height residual against the
-/// image's lattice template (its sum of lattice harmonics) and the template's gradient.
+/// vibration search: every scanned pixel's place, acquisition time and levelled height.
 /// Built by the image reader ([`crate::diagnose`]) or from a height map
 /// ([`crate::pixel_image_from_height_map`]).
 #[derive(Clone, Debug)]
@@ -74,64 +72,58 @@ pub struct PixelImage {
     frame: usize,
     direction: LineDirection,
     lines: Vec<Line>,
+    pixel_nm: [f64; 2],
 }
 
-/// A lattice template: the harmonics (cycles per pixel, (column, row)) and their cos/sin
-/// coefficients, as `level::level_lines` fits them.
-pub(crate) struct Template<'a> {
-    pub k_px: &'a [[f64; 2]],
-    pub coefficients: &'a [f64],
+/// The template's height and gradient (per pixel) at a place (pixels).
+fn template_at(k_px: &[[f64; 2]], coefficients: &[f64], place: [f64; 2]) -> (f64, [f64; 2]) {
+    let tau = std::f64::consts::TAU;
+    let (mut t, mut g) = (0.0, [0.0, 0.0]);
+    for (j, kv) in k_px.iter().enumerate() {
+        let (s, co) = (tau * (kv[0] * place[0] + kv[1] * place[1])).sin_cos();
+        let (a, b) = (coefficients[2 * j], coefficients[2 * j + 1]);
+        t += a * co + b * s;
+        let d = -a * s + b * co;
+        g[0] += tau * kv[0] * d;
+        g[1] += tau * kv[1] * d;
+    }
+    (t, g)
 }
 
 impl PixelImage {
     /// The pixels of a levelled image `z` (row-major, row index growing with y; `bad` not
-    /// scanned) against `template`; `pixel_nm` the pitch; `time_and_line` the time (s) and
-    /// acquisition line of a (column, row). `None` when fewer than 4 lines have 8 pixels.
+    /// scanned); `pixel_nm` the pitch; `time_and_line` the time (s) and acquisition line of
+    /// a (column, row). `None` when fewer than 4 lines have 8 pixels.
     pub(crate) fn new(
         (frame, direction): (usize, LineDirection),
         (z, bad, nx, ny): (&[f64], &[bool], usize, usize),
-        template: &Template<'_>,
         pixel_nm: [f64; 2],
         time_and_line: &dyn Fn(f64, f64) -> (f64, usize),
     ) -> Option<Self> {
-        let tau = std::f64::consts::TAU;
-        if template.coefficients.len() != 2 * template.k_px.len()
-            || !(pixel_nm[0] > 0.0 && pixel_nm[1] > 0.0)
-        {
+        if !(pixel_nm[0] > 0.0 && pixel_nm[1] > 0.0) {
             return None;
         }
         let mut lines = Vec::new();
         for r in 0..ny {
             let mut samples = Vec::with_capacity(nx);
-            let mut times = Vec::with_capacity(nx);
             let mut parity = 0;
             for c in 0..nx {
                 let k = r * nx + c;
-                if bad.get(k).copied().unwrap_or(true) || !z[k].is_finite() {
+                if bad.get(k).copied().unwrap_or(true) || !z.get(k).is_some_and(|v| v.is_finite()) {
                     continue;
-                }
-                let (mut t, mut g) = (0.0, [0.0, 0.0]);
-                for (j, kv) in template.k_px.iter().enumerate() {
-                    let (s, co) = (tau * (kv[0] * c as f64 + kv[1] * r as f64)).sin_cos();
-                    let (a, b) = (template.coefficients[2 * j], template.coefficients[2 * j + 1]);
-                    t += a * co + b * s;
-                    let d = -a * s + b * co;
-                    g[0] += tau * kv[0] * d;
-                    g[1] += tau * kv[1] * d;
                 }
                 let (time_s, line) = time_and_line(c as f64, r as f64);
                 parity = line % 2;
-                times.push(time_s);
                 samples.push(Sample {
                     dt_s: time_s,
-                    residual: z[k] - t,
-                    gradient_per_nm: [g[0] / pixel_nm[0], g[1] / pixel_nm[1]],
+                    place_px: [c as f64, r as f64],
+                    height: z[k],
                 });
             }
-            if samples.len() < 8 || times.iter().any(|t| !t.is_finite()) {
+            if samples.len() < 8 || samples.iter().any(|s| !s.dt_s.is_finite()) {
                 continue;
             }
-            let t_centre_s = times.iter().sum::<f64>() / times.len() as f64;
+            let t_centre_s = samples.iter().map(|s| s.dt_s).sum::<f64>() / samples.len() as f64;
             for s in &mut samples {
                 s.dt_s -= t_centre_s;
             }
@@ -145,6 +137,7 @@ impl PixelImage {
             frame,
             direction,
             lines,
+            pixel_nm,
         })
     }
 
@@ -152,6 +145,94 @@ impl PixelImage {
     pub fn frame_and_direction(&self) -> (usize, LineDirection) {
         (self.frame, self.direction)
     }
+}
+
+/// The baseline's lattice map, which places every pixel in the lattice frame:
+/// R = J₀·u + v·(t − t₀) (+ the frame's offset, a constant phase).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct LatticeMap {
+    /// J₀: commanded position (nominal nm) to the lattice frame (nm).
+    pub j0: [[f64; 2]; 2],
+    /// Constant drift in the lattice frame, nm/s.
+    pub drift_nm_per_s: [f64; 2],
+    /// The lattice's basis a₁, a₂ (nm, lattice frame).
+    pub basis_nm: [[f64; 2]; 2],
+}
+
+impl LatticeMap {
+    /// The lattice's harmonics G = m·b₁ + n·b₂ (b the reciprocal basis, cycles per nm) out
+    /// to twice the longer of b₁, b₂ (a triangular lattice's shells 1, √3, 2), one of each ±
+    /// pair.
+    fn harmonics(&self) -> Vec<[f64; 2]> {
+        let [a1, a2] = self.basis_nm;
+        let det = a1[0] * a2[1] - a1[1] * a2[0];
+        if det.abs() < 1e-300 {
+            return Vec::new();
+        }
+        let b1 = [a2[1] / det, -a2[0] / det];
+        let b2 = [-a1[1] / det, a1[0] / det];
+        let limit = 2.05 * b1[0].hypot(b1[1]).max(b2[0].hypot(b2[1]));
+        let mut out: Vec<[f64; 2]> = Vec::new();
+        for m in -4i32..=4 {
+            for n in -4i32..=4 {
+                let g = [
+                    f64::from(m) * b1[0] + f64::from(n) * b2[0],
+                    f64::from(m) * b1[1] + f64::from(n) * b2[1],
+                ];
+                let len = g[0].hypot(g[1]);
+                let upper = g[1] > 0.0 || (g[1] == 0.0 && g[0] > 0.0);
+                if len > 1e-12 && len <= limit && upper {
+                    out.push(g);
+                }
+            }
+        }
+        out
+    }
+}
+
+/// One image's lattice template: harmonics (cycles per pixel, (column, row)) from the
+/// lattice map, below the pixel Nyquist frequency, and their cos/sin coefficients.
+#[derive(Clone, Debug)]
+struct ImageTemplate {
+    k_px: Vec<[f64; 2]>,
+    coefficients: Vec<f64>,
+    pixel_nm: [f64; 2],
+}
+
+/// The harmonics of `map` in image `img`'s pixels: the phase G·R is affine in (column,
+/// row) within one image (its time is).
+fn image_harmonics(img: &PixelImage, map: &LatticeMap, harmonics: &[[f64; 2]]) -> Vec<[f64; 2]> {
+    // Time ≈ t₀ + α·column + β·row over the image's pixels.
+    let samples: Vec<(f64, [f64; 2])> = img
+        .lines
+        .iter()
+        .flat_map(|l| l.samples.iter().map(move |s| (l.t_centre_s + s.dt_s, s.place_px)))
+        .collect();
+    let cols = vec![
+        vec![1.0; samples.len()],
+        samples.iter().map(|s| s.1[0]).collect::<Vec<f64>>(),
+        samples.iter().map(|s| s.1[1]).collect::<Vec<f64>>(),
+    ];
+    let times: Vec<f64> = samples.iter().map(|s| s.0).collect();
+    let Ok(fit) =
+        spm_regression::minimum_norm_least_squares(&cols, &times, &vec![true; times.len()])
+    else {
+        return Vec::new();
+    };
+    let (alpha, beta) = (fit.coefficients[1], fit.coefficients[2]);
+    let (j, v, px) = (map.j0, map.drift_nm_per_s, img.pixel_nm);
+    let d_c = [j[0][0] * px[0] + v[0] * alpha, j[1][0] * px[0] + v[1] * alpha];
+    let d_r = [j[0][1] * px[1] + v[0] * beta, j[1][1] * px[1] + v[1] * beta];
+    harmonics
+        .iter()
+        .map(|g| {
+            [
+                g[0] * d_c[0] + g[1] * d_c[1],
+                g[0] * d_r[0] + g[1] * d_r[1],
+            ]
+        })
+        .filter(|k| k[0].abs() < 0.5 && k[1].abs() < 0.5)
+        .collect()
 }
 
 /// What the search reads besides the images.
@@ -162,6 +243,8 @@ pub(crate) struct SearchSpace<'a> {
     pub longest_frame_s: f64,
     /// Line rates of the frames (lines per frame duration), Hz.
     pub line_frequencies_hz: &'a [f64],
+    /// The baseline's lattice map (the images' templates).
+    pub lattice: LatticeMap,
 }
 
 /// One member of the named frequency's alias family.
@@ -194,35 +277,73 @@ pub(crate) struct PixelFit {
     pub heldout_rms: [f64; 2],
 }
 
-/// The samples flattened: time from the origin, residual, gradients, image, line parity.
+/// The samples flattened: time from the origin, place, height, residual against the
+/// template, the template's gradients, image, line parity; and the images' templates.
 struct Flat {
     t: Vec<f64>,
+    place: Vec<[f64; 2]>,
+    z: Vec<f64>,
     e: Vec<f64>,
     g: [Vec<f64>; 2],
     image: Vec<usize>,
     parity: Vec<usize>,
+    /// Each line's samples (contiguous).
+    lines: Vec<std::ops::Range<usize>>,
+    templates: Vec<ImageTemplate>,
 }
 
 impl Flat {
-    fn new(images: &[PixelImage], t0: f64) -> Self {
+    /// The images' pixels, each image's template fitted at rest (its lines' offsets and
+    /// slopes with it), the residuals and the gradients.
+    fn new(images: &[PixelImage], t0: f64, map: &LatticeMap) -> Self {
+        let harmonics = map.harmonics();
         let mut f = Flat {
+            lines: Vec::new(),
             t: Vec::new(),
+            place: Vec::new(),
+            z: Vec::new(),
             e: Vec::new(),
             g: [Vec::new(), Vec::new()],
             image: Vec::new(),
             parity: Vec::new(),
+            templates: images
+                .iter()
+                .map(|img| {
+                    let k_px = image_harmonics(img, map, &harmonics);
+                    ImageTemplate {
+                        coefficients: vec![0.0; 2 * k_px.len()],
+                        k_px,
+                        pixel_nm: img.pixel_nm,
+                    }
+                })
+                .collect(),
         };
         for (i, img) in images.iter().enumerate() {
             for line in &img.lines {
+                f.lines.push(f.t.len()..f.t.len() + line.samples.len());
                 for s in &line.samples {
                     f.t.push(line.t_centre_s + s.dt_s - t0);
-                    f.e.push(s.residual);
-                    f.g[0].push(s.gradient_per_nm[0]);
-                    f.g[1].push(s.gradient_per_nm[1]);
+                    f.place.push(s.place_px);
+                    f.z.push(s.height);
                     f.image.push(i);
                     f.parity.push(line.parity);
                 }
             }
+        }
+        let n = f.t.len();
+        let rest = (0.0, &[0.0; 4]);
+        let mut target = f.z.clone();
+        f.detrend_lines(&mut target);
+        let coefficients = f.refit_templates(rest, &vec![true; n], &target);
+        for (t, c) in f.templates.iter_mut().zip(coefficients) {
+            t.coefficients = c;
+        }
+        let templates: Vec<Vec<f64>> = f.templates.iter().map(|t| t.coefficients.clone()).collect();
+        f.e = f.exact_residual(&templates, rest);
+        for k in 0..n {
+            let g = f.displaced(&templates, rest, k).1;
+            f.g[0].push(g[0]);
+            f.g[1].push(g[1]);
         }
         f
     }
@@ -259,23 +380,180 @@ impl Flat {
     }
 }
 
-/// Per line and axis, Σ e·g·e^{iω·dt} on the sub-grid `f0 + j·step` (j < n), as
-/// (re, im) pairs: `[j][line][axis]` flattened.
-fn line_sums(lines: &[&Line], f0: f64, step: f64, n: usize) -> Vec<[f64; 2]> {
+/// Gauss–Newton rounds of the exact fit.
+const ROUNDS: usize = 4;
+
+/// The vibration fitted on the exact template: a displacement of a few tens of pm is a
+/// sizeable fraction of a lattice period (g·δ ≈ 1 rad for 35 pm on graphite), where the
+/// linear response saturates (as 2·J₁(gδ)/g) and the template fitted to the vibrating
+/// image is itself washed out (by J₀(gδ) per harmonic): together a bias of +15 % in the
+/// amplitude. So, from the linear solution, `ROUNDS` times: each image's template
+/// coefficients are refitted at the displaced places p + δ(t), then the displacement's
+/// four coefficients take a Gauss–Newton step on the residual z − T(p + δ(t)).
+struct Exact {
+    coefficients: [f64; 4],
+    covariance: [[f64; 4]; 4],
+    /// RSS over the included samples.
+    rss: f64,
+    /// Each image's refitted template coefficients.
+    templates: Vec<Vec<f64>>,
+}
+
+impl Flat {
+    /// The displacement in pixels of sample `k`.
+    fn displacement_px(&self, w: f64, c: &[f64; 4], k: usize) -> [f64; 2] {
+        let (s, co) = (w * self.t[k]).sin_cos();
+        let px = self.templates[self.image[k]].pixel_nm;
+        [
+            (c[0] * co + c[1] * s) / px[0],
+            (c[2] * co + c[3] * s) / px[1],
+        ]
+    }
+
+    /// The template of sample `k` (coefficients `templates`) at its displaced place: the
+    /// height and the gradient per nm of input.
+    fn displaced(&self, templates: &[Vec<f64>], (w, c): (f64, &[f64; 4]), k: usize) -> (f64, [f64; 2]) {
+        let d = self.displacement_px(w, c, k);
+        let img = &self.templates[self.image[k]];
+        let place = [self.place[k][0] + d[0], self.place[k][1] + d[1]];
+        let (t, g) = template_at(&img.k_px, &templates[self.image[k]], place);
+        (t, [g[0] / img.pixel_nm[0], g[1] / img.pixel_nm[1]])
+    }
+
+    /// Removes from `v` each line's least-squares offset and slope along the line: the
+    /// lines were levelled jointly with the template, so every model of the heights is
+    /// compared modulo a line's offset and slope (Frisch–Waugh: the same as fitting them).
+    fn detrend_lines(&self, v: &mut [f64]) {
+        for range in &self.lines {
+            let m = range.len() as f64;
+            if m < 3.0 {
+                continue;
+            }
+            let xs = &self.place[range.clone()];
+            let mean_x = xs.iter().map(|p| p[0]).sum::<f64>() / m;
+            let (mut sxx, mut sxv, mut sv) = (0.0, 0.0, 0.0);
+            for (p, val) in xs.iter().zip(&v[range.clone()]) {
+                let dx = p[0] - mean_x;
+                sxx += dx * dx;
+                sxv += dx * val;
+                sv += val;
+            }
+            let (mean_v, slope) = (sv / m, if sxx > 0.0 { sxv / sxx } else { 0.0 });
+            for (p, val) in xs.iter().zip(&mut v[range.clone()]) {
+                *val -= mean_v + slope * (p[0] - mean_x);
+            }
+        }
+    }
+
+    /// The residual z − T(p + δ(t)) with each line's offset and slope removed.
+    fn exact_residual(&self, templates: &[Vec<f64>], (w, c): (f64, &[f64; 4])) -> Vec<f64> {
+        let mut r: Vec<f64> = (0..self.t.len())
+            .map(|k| self.z[k] - self.displaced(templates, (w, c), k).0)
+            .collect();
+        self.detrend_lines(&mut r);
+        r
+    }
+
+    /// Each image's template coefficients fitted to `target` (the heights, detrended per
+    /// line) at the places displaced by the vibration (w, c), over `included`.
+    fn refit_templates(
+        &self,
+        (w, c): (f64, &[f64; 4]),
+        included: &[bool],
+        target: &[f64],
+    ) -> Vec<Vec<f64>> {
+        let n = self.t.len();
+        self.templates
+            .iter()
+            .enumerate()
+            .map(|(i, tpl)| {
+                let rows: Vec<bool> = (0..n).map(|k| self.image[k] == i && included[k]).collect();
+                if tpl.k_px.is_empty() || rows.iter().filter(|r| **r).count() < 4 * tpl.k_px.len() {
+                    return tpl.coefficients.clone();
+                }
+                let mut cols = vec![vec![0.0; n]; 2 * tpl.k_px.len()];
+                for k in (0..n).filter(|&k| rows[k]) {
+                    let d = self.displacement_px(w, c, k);
+                    let place = [self.place[k][0] + d[0], self.place[k][1] + d[1]];
+                    for (j, kv) in tpl.k_px.iter().enumerate() {
+                        let phase = std::f64::consts::TAU * (kv[0] * place[0] + kv[1] * place[1]);
+                        let (sn, cs) = phase.sin_cos();
+                        cols[2 * j][k] = cs;
+                        cols[2 * j + 1][k] = sn;
+                    }
+                }
+                for col in &mut cols {
+                    self.detrend_lines(col);
+                }
+                spm_regression::minimum_norm_least_squares(&cols, target, &rows)
+                    .map_or_else(|_| tpl.coefficients.clone(), |fit| fit.coefficients)
+            })
+            .collect()
+    }
+
+    fn exact_fit(&self, f_hz: f64, start: [f64; 4], included: &[bool]) -> Option<Exact> {
+        let w = std::f64::consts::TAU * f_hz;
+        let n = self.t.len();
+        let mut c = start;
+        let mut templates: Vec<Vec<f64>>;
+        let mut target = self.z.clone();
+        self.detrend_lines(&mut target);
+        let mut last = None;
+        for _ in 0..ROUNDS {
+            templates = self.refit_templates((w, &c), included, &target);
+            let mut cols = vec![vec![0.0; n]; 4];
+            let mut r = vec![0.0; n];
+            for k in (0..n).filter(|&k| included[k]) {
+                let (t, g) = self.displaced(&templates, (w, &c), k);
+                let (sn, cs) = (w * self.t[k]).sin_cos();
+                r[k] = self.z[k] - t;
+                cols[0][k] = g[0] * cs;
+                cols[1][k] = g[0] * sn;
+                cols[2][k] = g[1] * cs;
+                cols[3][k] = g[1] * sn;
+            }
+            self.detrend_lines(&mut r);
+            for col in &mut cols {
+                self.detrend_lines(col);
+            }
+            let step = spm_regression::minimum_norm_least_squares(&cols, &r, included).ok()?;
+            let mut covariance = [[0.0; 4]; 4];
+            for a in 0..4 {
+                c[a] += step.coefficients.get(a).copied().unwrap_or(0.0);
+                for b in 0..4 {
+                    covariance[a][b] = step.covariance[a][b];
+                }
+            }
+            last = Some(covariance);
+        }
+        let covariance = last?;
+        let templates = self.refit_templates((w, &c), included, &target);
+        let r = self.exact_residual(&templates, (w, &c));
+        let rss = (0..n).filter(|&k| included[k]).map(|k| r[k] * r[k]).sum();
+        Some(Exact {
+            coefficients: c,
+            covariance,
+            rss,
+            templates,
+        })
+    }
+}
+
+/// Per line and axis, Σ e·g·e^{iω·dt} (dt from the line's centre) on the sub-grid
+/// `f0 + j·step` (j < n), as (re, im) pairs: `[j][line][axis]` flattened.
+fn line_sums(flat: &Flat, centres: &[f64], f0: f64, step: f64, n: usize) -> Vec<[f64; 2]> {
     const RESYNC: usize = 64;
     let tau = std::f64::consts::TAU;
-    let nl = lines.len();
+    let nl = flat.lines.len();
     let mut out = vec![[0.0; 2]; n * nl * 2];
-    for (l, line) in lines.iter().enumerate() {
-        for s in &line.samples {
-            let (ds, dc) = (tau * step * s.dt_s).sin_cos();
-            let w = [
-                s.residual * s.gradient_per_nm[0],
-                s.residual * s.gradient_per_nm[1],
-            ];
+    for (l, range) in flat.lines.iter().enumerate() {
+        for k in range.clone() {
+            let dt = flat.t[k] - centres[l];
+            let (ds, dc) = (tau * step * dt).sin_cos();
+            let w = [flat.e[k] * flat.g[0][k], flat.e[k] * flat.g[1][k]];
             for block in (0..n).step_by(RESYNC) {
                 let f = f0 + block as f64 * step;
-                let (mut sn, mut cs) = (tau * f * s.dt_s).sin_cos();
+                let (mut sn, mut cs) = (tau * f * dt).sin_cos();
                 for j in block..(block + RESYNC).min(n) {
                     let base = (j * nl + l) * 2;
                     for a in 0..2 {
@@ -291,9 +569,9 @@ fn line_sums(lines: &[&Line], f0: f64, step: f64, n: usize) -> Vec<[f64; 2]> {
 }
 
 /// The search's grids and the lines' sums.
-struct Spectrum<'a> {
-    lines: Vec<&'a Line>,
-    /// Image of each line.
+struct Spectrum {
+    /// Each line's centre time (from the origin) and image.
+    centres: Vec<f64>,
     image_of: Vec<usize>,
     sums: Vec<[f64; 2]>,
     sub_f0: f64,
@@ -303,24 +581,21 @@ struct Spectrum<'a> {
     norm: [f64; 2],
 }
 
-impl Spectrum<'_> {
+impl Spectrum {
     /// The power at `f_hz`: Σ over axes of |Σ_lines e^{iωt_line}·S_line(f)|²/norm, summed
     /// over images when `per_image` (coherent within each image), else coherent over all.
-    fn power(&self, f_hz: f64, per_image: bool, n_images: usize, lines: &[bool]) -> f64 {
+    fn power(&self, f_hz: f64, per_image: bool, n_images: usize) -> f64 {
         let j = ((f_hz - self.sub_f0) / self.sub_step).round();
         if !(j >= 0.0 && (j as usize) < self.sub_n) {
             return 0.0;
         }
         let j = j as usize;
-        let nl = self.lines.len();
+        let nl = self.centres.len();
         let groups = if per_image { n_images } else { 1 };
         let mut acc = vec![[[0.0; 2]; 2]; groups];
         let w = std::f64::consts::TAU * f_hz;
-        for (l, line) in self.lines.iter().enumerate() {
-            if !lines[l] {
-                continue;
-            }
-            let (s, c) = (w * line.t_centre_s).sin_cos();
+        for (l, centre) in self.centres.iter().enumerate() {
+            let (s, c) = (w * centre).sin_cos();
             let g = if per_image { self.image_of[l] } else { 0 };
             for a in 0..2 {
                 let v = self.sums[(j * nl + l) * 2 + a];
@@ -360,12 +635,12 @@ fn top_peaks(grid: &[(f64, f64)], count: usize) -> Vec<f64> {
 }
 
 /// The coherent (all-image) power's maximum within ±`half` of `f`, on a step of `step`.
-fn refine(spec: &Spectrum<'_>, f: f64, half: f64, step: f64, lines: &[bool]) -> f64 {
+fn refine(spec: &Spectrum, f: f64, half: f64, step: f64) -> f64 {
     let n = (half / step).ceil() as i64;
-    let mut best = (f, spec.power(f, false, 1, lines));
+    let mut best = (f, spec.power(f, false, 1));
     for i in -n..=n {
         let g = f + i as f64 * step;
-        let p = spec.power(g, false, 1, lines);
+        let p = spec.power(g, false, 1);
         if p > best.1 {
             best = (g, p);
         }
@@ -383,74 +658,63 @@ pub(crate) fn search(images: &[PixelImage], space: &SearchSpace<'_>) -> Option<P
     if images.len() < 2 {
         return None;
     }
-    let flat = Flat::new(images, space.t_origin_s);
+    let flat = Flat::new(images, space.t_origin_s, &space.lattice);
     let n = flat.t.len();
-    if n < 64 {
+    if n < 64 || flat.templates.iter().any(|t| t.k_px.is_empty()) {
         return None;
     }
     let t_min = flat.t.iter().copied().fold(f64::INFINITY, f64::min);
     let t_max = flat.t.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     let span = t_max - t_min;
-    let mut line_durations: Vec<f64> = Vec::new();
     let mut dwells: Vec<f64> = Vec::new();
-    for img in images {
-        for line in &img.lines {
-            let lo = line.samples.iter().map(|s| s.dt_s).fold(f64::INFINITY, f64::min);
-            let hi = line.samples.iter().map(|s| s.dt_s).fold(f64::NEG_INFINITY, f64::max);
-            let m = line.samples.len();
-            if m > 1 && hi > lo {
-                dwells.push((hi - lo) / (m - 1) as f64);
-                line_durations.push(hi - lo);
-            }
+    let mut line_duration: f64 = 0.0;
+    let mut centres = Vec::with_capacity(flat.lines.len());
+    let mut image_of = Vec::with_capacity(flat.lines.len());
+    for range in &flat.lines {
+        let ts = &flat.t[range.clone()];
+        let lo = ts.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = ts.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        if ts.len() > 1 && hi > lo {
+            dwells.push((hi - lo) / (ts.len() - 1) as f64);
+            line_duration = line_duration.max(hi - lo);
         }
+        centres.push(0.5 * (lo + hi));
+        image_of.push(flat.image[range.start]);
     }
     let dwell = spm_regression::upper_median(&mut dwells)?;
-    let line_duration = line_durations.iter().copied().fold(0.0, f64::max) + dwell;
+    let line_duration = line_duration + dwell;
     let f_min = (1.5 / span).max(2.0 / space.longest_frame_s.max(1e-9));
     let f_max = 0.5 / dwell;
     if !(span > 0.0 && dwell > 0.0 && f_max > f_min) {
         return None;
     }
-    let lines: Vec<&Line> = images.iter().flat_map(|i| i.lines.iter()).collect();
-    let image_of: Vec<usize> = images
-        .iter()
-        .enumerate()
-        .flat_map(|(i, img)| std::iter::repeat_n(i, img.lines.len()))
-        .collect();
     let sub_step = 1.0 / (8.0 * line_duration);
-    let sub_n = ((f_max - f_min) / sub_step).ceil() as usize + 2;
-    if sub_n * lines.len() * 2 > MAX_SUMS {
-        tracing::debug!(sub_n, lines = lines.len(), "pixel vibration search too large");
+    let sub_n = ((f_max - f_min) / sub_step).ceil() as usize + 3;
+    if sub_n * flat.lines.len() * 2 > MAX_SUMS {
+        tracing::debug!(sub_n, lines = flat.lines.len(), "pixel vibration search too large");
         return None;
     }
     let sub_f0 = f_min - sub_step;
-    let sums = line_sums(&lines, sub_f0, sub_step, sub_n + 1);
+    let sums = line_sums(&flat, &centres, sub_f0, sub_step, sub_n);
     let norm = [0, 1].map(|a| 0.5 * flat.g[a].iter().map(|g| g * g).sum::<f64>());
     let spec = Spectrum {
-        lines,
+        centres,
         image_of,
         sums,
         sub_f0,
         sub_step,
-        sub_n: sub_n + 1,
+        sub_n,
         norm,
     };
-    let all_lines = vec![true; spec.lines.len()];
     // Stage A: coherent within each image, summed over images.
-    let image_span = images
-        .iter()
-        .map(|img| {
-            let lo = img.lines.iter().map(|l| l.t_centre_s).fold(f64::INFINITY, f64::min);
-            let hi = img
-                .lines
-                .iter()
-                .map(|l| l.t_centre_s)
-                .fold(f64::NEG_INFINITY, f64::max);
-            hi - lo + line_duration
-        })
-        .fold(0.0, f64::max);
+    let mut image_span: f64 = 0.0;
+    for i in 0..images.len() {
+        let ts = spec.centres.iter().zip(&spec.image_of).filter(|(_, m)| **m == i).map(|(c, _)| *c);
+        let (lo, hi) = ts.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), t| (lo.min(t), hi.max(t)));
+        image_span = image_span.max(hi - lo + line_duration);
+    }
     let mut step_a = 1.0 / (4.0 * image_span);
-    let work = ((f_max - f_min) / step_a) as usize * spec.lines.len();
+    let work = ((f_max - f_min) / step_a) as usize * spec.centres.len();
     if work > MAX_GRID_WORK {
         step_a *= work as f64 / MAX_GRID_WORK as f64;
     }
@@ -459,7 +723,7 @@ pub(crate) fn search(images: &[PixelImage], space: &SearchSpace<'_>) -> Option<P
         .map(|i| f_min + i as f64 * step_a)
         .take_while(|f| *f <= f_max)
         .filter(|f| !synchronous(*f, space.line_frequencies_hz, exclusion))
-        .map(|f| (f, spec.power(f, true, images.len(), &all_lines)))
+        .map(|f| (f, spec.power(f, true, images.len())))
         .collect();
     // Stage B: coherent over all images around the best peaks, then exact fits.
     let step_b = 1.0 / (8.0 * span);
@@ -467,7 +731,7 @@ pub(crate) fn search(images: &[PixelImage], space: &SearchSpace<'_>) -> Option<P
     let fit_rss = |f: f64| flat.fit(f, &included).map(|fit| fit.rss);
     let mut best: Option<(f64, f64)> = None;
     for f in top_peaks(&grid, 5) {
-        let g = refine(&spec, f, step_a, step_b, &all_lines);
+        let g = refine(&spec, f, step_a, step_b);
         if g < f_min || g > f_max || synchronous(g, space.line_frequencies_hz, exclusion) {
             continue;
         }
@@ -487,7 +751,7 @@ pub(crate) fn search(images: &[PixelImage], space: &SearchSpace<'_>) -> Option<P
         for m in [-2.0, -1.0, 1.0, 2.0] {
             let g = f_best + m * line_rate;
             if g > 0.0 {
-                family.push(refine(&spec, g, step_a, step_b, &all_lines));
+                family.push(refine(&spec, g, step_a, step_b));
             }
         }
     }
@@ -525,14 +789,15 @@ pub(crate) fn search(images: &[PixelImage], space: &SearchSpace<'_>) -> Option<P
             .filter_map(|&g| flat.fit(g, &train).map(|f| (g, f)))
             .min_by(|a, b| a.1.rss.total_cmp(&b.1.rss));
         let Some((g, f)) = chosen else { continue };
-        let cols = flat.columns(g);
-        for k in 0..n {
-            if train[k] {
-                continue;
-            }
-            let pred: f64 = (0..4).map(|j| f.coefficients[j] * cols[j][k]).sum();
+        let start = [0, 1, 2, 3].map(|j| f.coefficients[j]);
+        let Some(exact) = flat.exact_fit(g, start, &train) else {
+            continue;
+        };
+        let w = std::f64::consts::TAU * g;
+        let r = flat.exact_residual(&exact.templates, (w, &exact.coefficients));
+        for k in (0..n).filter(|&k| !train[k]) {
             before += flat.e[k] * flat.e[k];
-            after += (flat.e[k] - pred).powi(2);
+            after += r[k] * r[k];
             count += 1;
         }
     }
@@ -540,19 +805,13 @@ pub(crate) fn search(images: &[PixelImage], space: &SearchSpace<'_>) -> Option<P
         (before / count.max(1) as f64).sqrt(),
         (after / count.max(1) as f64).sqrt(),
     ];
-    let mut coefficients_nm = [0.0; 4];
-    let mut covariance_nm2 = [[0.0; 4]; 4];
-    for a in 0..4 {
-        coefficients_nm[a] = fit.coefficients[a];
-        for b in 0..4 {
-            covariance_nm2[a][b] = fit.covariance[a][b];
-        }
-    }
+    let start = [0, 1, 2, 3].map(|j| fit.coefficients[j]);
+    let exact = flat.exact_fit(f_best, start, &included)?;
     Some(PixelFit {
         frequency_hz: f_best,
-        coefficients_nm,
-        covariance_nm2,
-        rss: [rss0, rss1],
+        coefficients_nm: exact.coefficients,
+        covariance_nm2: exact.covariance,
+        rss: [rss0, exact.rss.min(rss1)],
         pixels: n,
         images: images.len(),
         trials: ((f_max - f_min) * span).max(1.0),

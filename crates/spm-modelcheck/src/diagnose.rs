@@ -968,9 +968,37 @@ pub fn diagnose_features_with_pixels(
     pixels: &[PixelImage],
 ) -> Result<Diagnosis, ModelCheckError> {
     let indexing = index_features(set, lattice)?;
-    let mut d =
-        diagnose_indexed_with_pixels(set, &indexing.sites, &indexing.basis, options, pixels)?;
-    d.warnings.extend(indexing.warnings);
+    let (result, found) = diagnose_pass(set, (&indexing.sites, &indexing.basis), options, pixels);
+    let mut d = match (result, found) {
+        // A vibration that moves the features by a sizeable fraction of the cell along
+        // the lines (tens of pm, a few cycles per line) can break their indexing; found on
+        // the pixels, it is taken out of the features and they are indexed again.
+        (Err(error @ ModelCheckError::NotTheLattice { .. }), Some(v)) => {
+            let corrected = corrected_for_vibration(set, &v);
+            let again = index_features(&corrected, lattice).and_then(|ix| {
+                diagnose_pass(&corrected, (&ix.sites, &ix.basis), options, pixels)
+                    .0
+                    .map(|mut d| {
+                        d.warnings.extend(ix.warnings);
+                        d
+                    })
+            });
+            let Ok(mut d) = again else {
+                return Err(error);
+            };
+            d.warnings.push(format!(
+                "the features were corrected for the {:.4} Hz vibration found on the pixels \
+                 and indexed again (without: {error})",
+                v.frequency_hz
+            ));
+            d
+        }
+        (result, _) => {
+            let mut d = result?;
+            d.warnings.extend(indexing.warnings);
+            d
+        }
+    };
     // A frame that gave nothing (NaN-filled by an aborted scan, flat, out of
     // range) is left out of the fit: say so rather than diagnosing fewer
     // frames than were given without a word.
@@ -2022,33 +2050,83 @@ fn diagnose_indexed_with_pixels(
     options: &Options,
     pixels: &[PixelImage],
 ) -> Result<Diagnosis, ModelCheckError> {
-    let mut p = problem(set, sites, basis, options)?;
-    let (mut model, baseline_report) = baseline(&p)?;
-    let baseline_fit = model.fit.clone();
-    let localisation_sigma_pm = 1000.0
-        * p.reported_sigma_nm.unwrap_or_else(|| {
-            std::f64::consts::SQRT_2 * robust_sigma(&model.fit.residual, &model.mask)
-        });
-    let mut sel = Selection {
-        relevance_nm: p.relevance_nm(&model.fit, &model.mask),
-        ..Selection::default()
-    };
-    pixel_vibration(&mut p, &mut model, &mut sel, (pixels, basis))?;
-    let rounds = options
-        .max_findings
-        .saturating_sub(usize::from(sel.pixel.is_some()));
-    for _ in 0..rounds {
-        if !selection_round(&p, &mut model, &mut sel)? {
-            break;
+    diagnose_pass(set, (sites, basis), options, pixels).0
+}
+
+/// A vibration found on the pixels: its frequency and the input displacement's x cos,
+/// x sin, y cos, y sin (nominal nm) with time from `t_origin_s`.
+#[derive(Clone, Copy, Debug)]
+struct FoundVibration {
+    frequency_hz: f64,
+    coefficients_nm: [f64; 4],
+    t_origin_s: f64,
+}
+
+/// One diagnosis of indexed features, and the vibration found on the pixels (also when the
+/// diagnosis then fails).
+fn diagnose_pass(
+    set: &FeatureSet,
+    (sites, basis): (&[Option<[i64; 2]>], &MeasuredBasis),
+    options: &Options,
+    pixels: &[PixelImage],
+) -> (Result<Diagnosis, ModelCheckError>, Option<FoundVibration>) {
+    let mut found = None;
+    let result = (|| {
+        let mut p = problem(set, sites, basis, options)?;
+        let (mut model, baseline_report) = baseline(&p)?;
+        let baseline_fit = model.fit.clone();
+        let localisation_sigma_pm = 1000.0
+            * p.reported_sigma_nm.unwrap_or_else(|| {
+                std::f64::consts::SQRT_2 * robust_sigma(&model.fit.residual, &model.mask)
+            });
+        let mut sel = Selection {
+            relevance_nm: p.relevance_nm(&model.fit, &model.mask),
+            ..Selection::default()
+        };
+        found = pixel_vibration(&mut p, &mut model, &mut sel, (pixels, basis))?;
+        let rounds = options
+            .max_findings
+            .saturating_sub(usize::from(sel.pixel.is_some()));
+        for _ in 0..rounds {
+            if !selection_round(&p, &mut model, &mut sel)? {
+                break;
+            }
         }
+        report(
+            &p,
+            set,
+            &model,
+            (baseline_report, baseline_fit, localisation_sigma_pm),
+            sel,
+        )
+    })();
+    (result, found)
+}
+
+/// The features moved back by what their footprints see of a vibration found on the
+/// pixels (footprint averages over lines and along the line, `model.rs`): a feature seen
+/// at u sits where the tip was at u + δu.
+fn corrected_for_vibration(set: &FeatureSet, v: &FoundVibration) -> FeatureSet {
+    let mut out = set.clone();
+    let all: Vec<Option<[i64; 2]>> = vec![Some([0, 0]); set.features.len()];
+    let Ok((obs, source, t_mid)) = build_obs(set, &all, [1.0, 0.0], [0.0, 1.0]) else {
+        return out;
+    };
+    let w = std::f64::consts::TAU * v.frequency_hz;
+    let c = v.coefficients_nm;
+    for (o, &k) in obs.iter().zip(&source) {
+        let shift = t_mid - v.t_origin_s;
+        let d = [0, 1].map(|a| {
+            crate::model::along_line_attenuation(o, a, w)
+                * crate::model::footprint_average(o, a, |t| {
+                    let (sn, cs) = (w * (t + shift)).sin_cos();
+                    c[2 * a] * cs + c[2 * a + 1] * sn
+                })
+        });
+        out.features[k].x_nm += d[0];
+        out.features[k].y_nm += d[1];
     }
-    report(
-        &p,
-        set,
-        &model,
-        (baseline_report, baseline_fit, localisation_sigma_pm),
-        sel,
-    )
+    out
 }
 
 /// The vibration's coefficients (x cos, x sin, y cos, y sin) in the image axes, and their
@@ -2092,10 +2170,10 @@ fn pixel_vibration(
     m: &mut Model,
     sel: &mut Selection,
     (pixels, basis): (&[PixelImage], &MeasuredBasis),
-) -> Result<(), ModelCheckError> {
+) -> Result<Option<FoundVibration>, ModelCheckError> {
     let kind = EffectKind::PeriodicVibration;
     if pixels.len() < 2 || !p.options.effects.contains(&kind) {
-        return Ok(());
+        return Ok(None);
     }
     sel.excluded.push(kind);
     let line_frequencies_hz: Vec<f64> = p
@@ -2115,7 +2193,7 @@ fn pixel_vibration(
         },
     };
     let Some(fit) = crate::vibration::search(pixels, &space) else {
-        return Ok(());
+        return Ok(None);
     };
     let image = image_axes(&fit, &m.ctx);
     let added = Added {
@@ -2129,12 +2207,18 @@ fn pixel_vibration(
     let amplitude = |k: &str| parameters.get(k).map_or(0.0, |v| v.value);
     let displacement_nm =
         (0.5 * (amplitude("amplitude_x_nm").powi(2) + amplitude("amplitude_y_nm").powi(2))).sqrt();
-    // What the features see: the feature-level columns (footprint averages) with these
-    // coefficients, against the tip's displacement at their times.
+    // What the features see of it: the feature-level columns at this frequency with their
+    // own coefficients (their footprints average the vibration over lines and, at hundreds
+    // of Hz, within a line, in a way only they can tell), against the tip's displacement.
     let cols = effect_columns(kind, fit.frequency_hz, &p.obs, &m.ctx);
-    let seen: Vec<f64> = (0..p.target.len())
-        .map(|i| (0..4).map(|j| image.coef[j] * cols[j][i]).sum())
-        .collect();
+    let mut with_vibration = m.cols.clone();
+    with_vibration.extend(cols.iter().cloned());
+    let seen: Vec<f64> = match solve(&with_vibration, &p.target, &m.mask) {
+        Ok(f) => (0..p.target.len())
+            .map(|i| (0..4).map(|j| f.coef[m.cols.len() + j] * cols[j][i]).sum())
+            .collect(),
+        Err(_) => vec![0.0; p.target.len()],
+    };
     let w = std::f64::consts::TAU * fit.frequency_hz;
     let (mut seen_ss, mut tip_ss) = (0.0, 0.0);
     for (k, o) in p.obs.iter().enumerate().filter(|(k, _)| m.mask[*k]) {
@@ -2180,12 +2264,6 @@ fn pixel_vibration(
         ?problem,
         "pixel-level vibration"
     );
-    if std::env::var("VIB_DEBUG").is_ok() {
-        eprintln!(
-            "VIB f {:.4} ev {evidence:.1} coh {:.3} heldout {:?} disp {:.2} pm rel {:.2} seen {seen_by_features:.3} aliases {:?} problem {problem:?}",
-            fit.frequency_hz, fit.coherence, fit.heldout_rms, 1000.0 * displacement_nm, 1000.0 * relevance_nm, fit.aliases
-        );
-    }
     if let Some(reason) = problem {
         if evidence > p.options.evidence_threshold {
             sel.rejected.push(Rejection {
@@ -2195,22 +2273,13 @@ fn pixel_vibration(
                 reason,
             });
         }
-        return Ok(());
+        return Ok(None);
     }
-    let corrected: Vec<f64> = p.target.iter().zip(&seen).map(|(t, s)| t - s).collect();
     let before = m.heldout_now;
-    let after = heldout_rms_with(&p.obs, p.frames, &corrected, &m.cols, &m.mask);
+    let after = p.heldout_pm(&with_vibration, &m.mask);
     let features_corrected = after < before;
-    if std::env::var("VIB_DEBUG").is_ok() {
-        eprintln!("VIB features held-out {before:.2} -> {after:.2} pm");
-        let mut all = m.cols.clone();
-        all.extend(cols.iter().cloned());
-        if let Ok(f) = solve(&all, &p.target, &m.mask) {
-            eprintln!("VIB feature-level coef {:?} pixel {:?} rms {:.1} -> {:.1}", &f.coef[m.cols.len()..], image.coef, rms_pm(m.fit.rss, m.fit.n_eq), rms_pm(f.rss, f.n_eq));
-        }
-    }
     if features_corrected {
-        p.target = corrected;
+        p.target = p.target.iter().zip(&seen).map(|(t, s)| t - s).collect();
         m.fit = solve(&m.cols, &p.target, &m.mask)?;
         m.heldout_now = after;
     }
@@ -2243,5 +2312,9 @@ fn pixel_vibration(
             features_corrected,
         }),
     });
-    Ok(())
+    Ok(Some(FoundVibration {
+        frequency_hz: fit.frequency_hz,
+        coefficients_nm: fit.coefficients_nm,
+        t_origin_s: p.t_mid,
+    }))
 }

@@ -137,6 +137,7 @@ pub fn features_from_height_map(
         .map(|f| {
             let (column, row) = map.pixel_of(f.position);
             let (time_s, line_index) = time_and_line(column, row);
+            let line_time_offset_s = Some(time_s - time_and_line(column, row.round()).0);
             let width_px = f.width.value() / map.pixel_step.value().max(1e-300);
             let sigma_px = f.uncertainty.radial().value()
                 / std::f64::consts::SQRT_2
@@ -158,6 +159,7 @@ pub fn features_from_height_map(
                         .clamp(config.min_fit_radius_px, config.max_fit_radius_px)
                         * pixel_nm[1],
                 ),
+                line_time_offset_s,
             }
         })
         .collect())
@@ -493,6 +495,8 @@ fn cell_features(
         .iter()
         .map(|c| {
             let (time_s, line_index) = (ctx.time_and_line)(c.pos[0], c.pos[1]);
+            let line_time_offset_s =
+                Some(time_s - (ctx.time_and_line)(c.pos[0], c.pos[1].round()).0);
             FeatureObservation {
                 x_nm: (c.pos[0] - 0.5 * (nx - 1.0)) * px[0],
                 y_nm: (c.pos[1] - 0.5 * (ny - 1.0)) * px[1],
@@ -505,6 +509,7 @@ fn cell_features(
                 // footprint over lines.
                 width_nm: Some(run.radius_px / 2.6 * px[1]),
                 fit_radius_nm: Some(run.radius_px * px[1]),
+                line_time_offset_s,
             }
         })
         .collect::<Vec<_>>();

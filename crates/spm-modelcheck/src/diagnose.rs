@@ -10,7 +10,7 @@ use crate::model::{
 use crate::types::{
     EffectKind, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError, Options,
 };
-use crate::vibration::{LatticeMap, PixelFit, PixelImage, SearchSpace};
+use crate::vibration::{ImageMap, PixelFit, PixelImage, SearchSpace};
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -2129,6 +2129,73 @@ fn corrected_for_vibration(set: &FeatureSet, v: &FoundVibration) -> FeatureSet {
     out
 }
 
+/// The images that have a map, with it.
+fn paired<'a>(
+    pixels: &'a [PixelImage],
+    maps: &'a [Option<ImageMap>],
+) -> Vec<(&'a PixelImage, &'a ImageMap)> {
+    pixels
+        .iter()
+        .zip(maps)
+        .filter_map(|(img, map)| map.as_ref().map(|m| (img, m)))
+        .collect()
+}
+
+/// The highest degree of an image's lattice map.
+const IMAGE_MAP_DEGREE: u32 = 5;
+
+/// The lattice map of one image (`frame`, line direction): its features' sites as
+/// polynomials of their commanded positions, at degree 5 or the highest lower degree its
+/// features support (three per term). It follows what the scanner does in that image
+/// (drift, nonlinearity, a sine drive, a trace/retrace loop) and, of a vibration, only what
+/// is smooth over the image.
+fn image_map(
+    p: &Problem<'_>,
+    (mask, target): (&[bool], &[f64]),
+    (frame, direction): (usize, LineDirection),
+) -> Option<ImageMap> {
+    let (mut x, mut y, mut rx, mut ry) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for (k, o) in p.obs.iter().enumerate() {
+        if mask[k] && o.frame == frame && o.direction == direction {
+            x.push(o.u[0]);
+            y.push(o.u[1]);
+            rx.push(target[2 * k]);
+            ry.push(target[2 * k + 1]);
+        }
+    }
+    let options = spm_regression::FitOptions::default();
+    let fit = |x: &[f64], y: &[f64], rx: &[f64], ry: &[f64]| {
+        (1..=IMAGE_MAP_DEGREE).rev().find_map(|d| {
+            if x.len() < 3 * spm_regression::n_terms(d) {
+                return None;
+            }
+            let fx = spm_regression::fit(&spm_regression::Observations::new(x, y, rx), d, &options);
+            let fy = spm_regression::fit(&spm_regression::Observations::new(x, y, ry), d, &options);
+            let (fx, fy) = (fx.ok()?, fy.ok()?);
+            Some([fx.surface, fy.surface])
+        })
+    };
+    // Features off their site by a quarter of the period (slipped in the indexing) are
+    // left out, twice.
+    let mut map: ImageMap = fit(&x, &y, &rx, &ry)?;
+    for _ in 0..2 {
+        let keep: Vec<bool> = (0..x.len())
+            .map(|i| {
+                let d = [
+                    rx[i] - map[0].evaluate(x[i], y[i]),
+                    ry[i] - map[1].evaluate(x[i], y[i]),
+                ];
+                d[0].hypot(d[1]) < 0.25 * p.lattice_a_nm
+            })
+            .collect();
+        let pick = |v: &[f64]| -> Vec<f64> {
+            v.iter().zip(&keep).filter(|(_, k)| **k).map(|(v, _)| *v).collect()
+        };
+        map = fit(&pick(&x), &pick(&y), &pick(&rx), &pick(&ry))?;
+    }
+    Some(map)
+}
+
 /// The vibration's coefficients (x cos, x sin, y cos, y sin) in the image axes, and their
 /// covariance, from the pixels' input-axis ones: d = Rot(−θ₀)·J₀·δu.
 fn image_axes(fit: &PixelFit, ctx: &Ctx) -> Fit {
@@ -2186,13 +2253,43 @@ fn pixel_vibration(
         t_origin_s: p.t_mid,
         longest_frame_s: p.frames.iter().map(|f| f.duration_s).fold(0.0, f64::max),
         line_frequencies_hz: &line_frequencies_hz,
-        lattice: LatticeMap {
-            j0: m.ctx.j0,
-            drift_nm_per_s: [m.fit.coef[4], m.fit.coef[5]],
-            basis_nm: [basis.a1_nm, basis.a2_nm],
-        },
+        harmonics: crate::vibration::lattice_harmonics([basis.a1_nm, basis.a2_nm]),
     };
-    let Some(fit) = crate::vibration::search(pixels, &space) else {
+    // The frequency against each image's affine map from the baseline (a template that
+    // cannot absorb any of the vibration) ...
+    let drift = [m.fit.coef[4], m.fit.coef[5]];
+    let affine: Vec<Option<ImageMap>> = pixels
+        .iter()
+        .map(|img| crate::vibration::affine_map(img, m.ctx.j0, drift, p.t_mid))
+        .collect();
+    let Some(candidate) = crate::vibration::candidate(&paired(pixels, &affine), &space) else {
+        return Ok(None);
+    };
+    // ... what the features see of it: the feature-level columns at this frequency with
+    // their own coefficients (their footprints average the vibration over lines and, at
+    // hundreds of Hz, within a line, in a way only they can tell) ...
+    let seen_at = |f_hz: f64| {
+        let cols = effect_columns(kind, f_hz, &p.obs, &m.ctx);
+        let mut with_vibration = m.cols.clone();
+        with_vibration.extend(cols.iter().cloned());
+        let seen: Vec<f64> = match solve(&with_vibration, &p.target, &m.mask) {
+            Ok(f) => (0..p.target.len())
+                .map(|i| (0..4).map(|j| f.coef[m.cols.len() + j] * cols[j][i]).sum())
+                .collect(),
+            Err(_) => vec![0.0; p.target.len()],
+        };
+        (seen, with_vibration)
+    };
+    // ... and the vibration fitted against each image's own lattice map, from its
+    // features without what they see of it: the scanner's static distortions (a
+    // nonlinearity, a sine drive, a trace/retrace loop, of several lattice constants) are
+    // in the template, not in the vibration.
+    let without: Vec<f64> = p.target.iter().zip(&seen_at(candidate.frequency_hz).0).map(|(t, s)| t - s).collect();
+    let maps: Vec<Option<ImageMap>> = pixels
+        .iter()
+        .map(|img| image_map(p, (&m.mask, &without), img.frame_and_direction()))
+        .collect();
+    let Some(fit) = crate::vibration::assess(&paired(pixels, &maps), &space, &candidate) else {
         return Ok(None);
     };
     let image = image_axes(&fit, &m.ctx);
@@ -2207,18 +2304,7 @@ fn pixel_vibration(
     let amplitude = |k: &str| parameters.get(k).map_or(0.0, |v| v.value);
     let displacement_nm =
         (0.5 * (amplitude("amplitude_x_nm").powi(2) + amplitude("amplitude_y_nm").powi(2))).sqrt();
-    // What the features see of it: the feature-level columns at this frequency with their
-    // own coefficients (their footprints average the vibration over lines and, at hundreds
-    // of Hz, within a line, in a way only they can tell), against the tip's displacement.
-    let cols = effect_columns(kind, fit.frequency_hz, &p.obs, &m.ctx);
-    let mut with_vibration = m.cols.clone();
-    with_vibration.extend(cols.iter().cloned());
-    let seen: Vec<f64> = match solve(&with_vibration, &p.target, &m.mask) {
-        Ok(f) => (0..p.target.len())
-            .map(|i| (0..4).map(|j| f.coef[m.cols.len() + j] * cols[j][i]).sum())
-            .collect(),
-        Err(_) => vec![0.0; p.target.len()],
-    };
+    let (seen, with_vibration) = seen_at(fit.frequency_hz);
     let w = std::f64::consts::TAU * fit.frequency_hz;
     let (mut seen_ss, mut tip_ss) = (0.0, 0.0);
     for (k, o) in p.obs.iter().enumerate().filter(|(k, _)| m.mask[*k]) {

@@ -47,8 +47,8 @@ use crate::types::LineDirection;
 struct Sample {
     /// Time from its line's centre, s.
     dt_s: f64,
-    /// Column and row (pixels; row growing with y).
-    place_px: [f64; 2],
+    /// Commanded position (nominal nm from the frame centre, y up).
+    u_nm: [f64; 2],
     /// The levelled height, in the image's height unit (pm for a file in m).
     height: f64,
 }
@@ -75,17 +75,20 @@ pub struct PixelImage {
     pixel_nm: [f64; 2],
 }
 
-/// The template's height and gradient (per pixel) at a place (pixels).
-fn template_at(k_px: &[[f64; 2]], coefficients: &[f64], place: [f64; 2]) -> (f64, [f64; 2]) {
+/// The template's height and gradient (per nominal nm) at a commanded position u:
+/// Σ_G a·cos 2πG·R(u) + b·sin 2πG·R(u), R the image's lattice map.
+fn template_at(tpl: &ImageTemplate, coefficients: &[f64], u: [f64; 2]) -> (f64, [f64; 2]) {
     let tau = std::f64::consts::TAU;
+    let r = [tpl.map[0].evaluate(u[0], u[1]), tpl.map[1].evaluate(u[0], u[1])];
+    let (dx, dy) = (tpl.map[0].gradient(u[0], u[1]), tpl.map[1].gradient(u[0], u[1]));
     let (mut t, mut g) = (0.0, [0.0, 0.0]);
-    for (j, kv) in k_px.iter().enumerate() {
-        let (s, co) = (tau * (kv[0] * place[0] + kv[1] * place[1])).sin_cos();
+    for (j, h) in tpl.harmonics.iter().enumerate() {
+        let (s, co) = (tau * (h[0] * r[0] + h[1] * r[1])).sin_cos();
         let (a, b) = (coefficients[2 * j], coefficients[2 * j + 1]);
         t += a * co + b * s;
-        let d = -a * s + b * co;
-        g[0] += tau * kv[0] * d;
-        g[1] += tau * kv[1] * d;
+        let d = tau * (-a * s + b * co);
+        g[0] += d * (h[0] * dx.0 + h[1] * dy.0);
+        g[1] += d * (h[0] * dx.1 + h[1] * dy.1);
     }
     (t, g)
 }
@@ -116,7 +119,10 @@ impl PixelImage {
                 parity = line % 2;
                 samples.push(Sample {
                     dt_s: time_s,
-                    place_px: [c as f64, r as f64],
+                    u_nm: [
+                        (c as f64 - 0.5 * (nx as f64 - 1.0)) * pixel_nm[0],
+                        (r as f64 - 0.5 * (ny as f64 - 1.0)) * pixel_nm[1],
+                    ],
                     height: z[k],
                 });
             }
@@ -147,92 +153,68 @@ impl PixelImage {
     }
 }
 
-/// The baseline's lattice map, which places every pixel in the lattice frame:
-/// R = J₀·u + v·(t − t₀) (+ the frame's offset, a constant phase).
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct LatticeMap {
-    /// J₀: commanded position (nominal nm) to the lattice frame (nm).
-    pub j0: [[f64; 2]; 2],
-    /// Constant drift in the lattice frame, nm/s.
-    pub drift_nm_per_s: [f64; 2],
-    /// The lattice's basis a₁, a₂ (nm, lattice frame).
-    pub basis_nm: [[f64; 2]; 2],
-}
-
-impl LatticeMap {
-    /// The lattice's harmonics G = m·b₁ + n·b₂ (b the reciprocal basis, cycles per nm) out
-    /// to twice the longer of b₁, b₂ (a triangular lattice's shells 1, √3, 2), one of each ±
-    /// pair.
-    fn harmonics(&self) -> Vec<[f64; 2]> {
-        let [a1, a2] = self.basis_nm;
-        let det = a1[0] * a2[1] - a1[1] * a2[0];
-        if det.abs() < 1e-300 {
-            return Vec::new();
-        }
-        let b1 = [a2[1] / det, -a2[0] / det];
-        let b2 = [-a1[1] / det, a1[0] / det];
-        let limit = 2.05 * b1[0].hypot(b1[1]).max(b2[0].hypot(b2[1]));
-        let mut out: Vec<[f64; 2]> = Vec::new();
-        for m in -4i32..=4 {
-            for n in -4i32..=4 {
-                let g = [
-                    f64::from(m) * b1[0] + f64::from(n) * b2[0],
-                    f64::from(m) * b1[1] + f64::from(n) * b2[1],
-                ];
-                let len = g[0].hypot(g[1]);
-                let upper = g[1] > 0.0 || (g[1] == 0.0 && g[0] > 0.0);
-                if len > 1e-12 && len <= limit && upper {
-                    out.push(g);
-                }
+/// The lattice's harmonics G = m·b₁ + n·b₂ (b the reciprocal basis of `basis_nm`, cycles
+/// per nm) out to twice the longer of b₁, b₂ (a triangular lattice's shells 1, √3, 2), one
+/// of each ± pair.
+pub(crate) fn lattice_harmonics(basis_nm: [[f64; 2]; 2]) -> Vec<[f64; 2]> {
+    let [a1, a2] = basis_nm;
+    let det = a1[0] * a2[1] - a1[1] * a2[0];
+    if det.abs() < 1e-300 {
+        return Vec::new();
+    }
+    let b1 = [a2[1] / det, -a2[0] / det];
+    let b2 = [-a1[1] / det, a1[0] / det];
+    let limit = 2.05 * b1[0].hypot(b1[1]).max(b2[0].hypot(b2[1]));
+    let mut out: Vec<[f64; 2]> = Vec::new();
+    for m in -4i32..=4 {
+        for n in -4i32..=4 {
+            let g = [
+                f64::from(m) * b1[0] + f64::from(n) * b2[0],
+                f64::from(m) * b1[1] + f64::from(n) * b2[1],
+            ];
+            let len = g[0].hypot(g[1]);
+            let upper = g[1] > 0.0 || (g[1] == 0.0 && g[0] > 0.0);
+            if len > 1e-12 && len <= limit && upper {
+                out.push(g);
             }
         }
-        out
     }
+    out
 }
 
-/// One image's lattice template: harmonics (cycles per pixel, (column, row)) from the
-/// lattice map, below the pixel Nyquist frequency, and their cos/sin coefficients.
+/// The lattice map of one image: its features' sites R (lattice frame, nm) as polynomials
+/// of their commanded positions u (x and y of R).
+pub(crate) type ImageMap = [spm_regression::Polynomial2; 2];
+
+/// One image's lattice template: the harmonics below the pixel Nyquist frequency (at the
+/// image's centre), the map, and the harmonics' cos/sin coefficients.
 #[derive(Clone, Debug)]
 struct ImageTemplate {
-    k_px: Vec<[f64; 2]>,
+    map: ImageMap,
+    harmonics: Vec<[f64; 2]>,
     coefficients: Vec<f64>,
-    pixel_nm: [f64; 2],
 }
 
-/// The harmonics of `map` in image `img`'s pixels: the phase G·R is affine in (column,
-/// row) within one image (its time is).
-fn image_harmonics(img: &PixelImage, map: &LatticeMap, harmonics: &[[f64; 2]]) -> Vec<[f64; 2]> {
-    // Time ≈ t₀ + α·column + β·row over the image's pixels.
-    let samples: Vec<(f64, [f64; 2])> = img
-        .lines
-        .iter()
-        .flat_map(|l| l.samples.iter().map(move |s| (l.t_centre_s + s.dt_s, s.place_px)))
-        .collect();
-    let cols = vec![
-        vec![1.0; samples.len()],
-        samples.iter().map(|s| s.1[0]).collect::<Vec<f64>>(),
-        samples.iter().map(|s| s.1[1]).collect::<Vec<f64>>(),
-    ];
-    let times: Vec<f64> = samples.iter().map(|s| s.0).collect();
-    let Ok(fit) =
-        spm_regression::minimum_norm_least_squares(&cols, &times, &vec![true; times.len()])
-    else {
-        return Vec::new();
-    };
-    let (alpha, beta) = (fit.coefficients[1], fit.coefficients[2]);
-    let (j, v, px) = (map.j0, map.drift_nm_per_s, img.pixel_nm);
-    let d_c = [j[0][0] * px[0] + v[0] * alpha, j[1][0] * px[0] + v[1] * alpha];
-    let d_r = [j[0][1] * px[1] + v[0] * beta, j[1][1] * px[1] + v[1] * beta];
-    harmonics
-        .iter()
-        .map(|g| {
-            [
-                g[0] * d_c[0] + g[1] * d_c[1],
-                g[0] * d_r[0] + g[1] * d_r[1],
-            ]
-        })
-        .filter(|k| k[0].abs() < 0.5 && k[1].abs() < 0.5)
-        .collect()
+impl ImageTemplate {
+    fn new(map: &ImageMap, harmonics: &[[f64; 2]], pixel_nm: [f64; 2]) -> Self {
+        let (dx, dy) = (map[0].gradient(0.0, 0.0), map[1].gradient(0.0, 0.0));
+        let harmonics: Vec<[f64; 2]> = harmonics
+            .iter()
+            .copied()
+            .filter(|h| {
+                let k = [
+                    (h[0] * dx.0 + h[1] * dy.0) * pixel_nm[0],
+                    (h[0] * dx.1 + h[1] * dy.1) * pixel_nm[1],
+                ];
+                k[0].abs() < 0.5 && k[1].abs() < 0.5
+            })
+            .collect();
+        Self {
+            map: map.clone(),
+            coefficients: vec![0.0; 2 * harmonics.len()],
+            harmonics,
+        }
+    }
 }
 
 /// What the search reads besides the images.
@@ -243,8 +225,8 @@ pub(crate) struct SearchSpace<'a> {
     pub longest_frame_s: f64,
     /// Line rates of the frames (lines per frame duration), Hz.
     pub line_frequencies_hz: &'a [f64],
-    /// The baseline's lattice map (the images' templates).
-    pub lattice: LatticeMap,
+    /// The lattice's harmonics (cycles per nm, lattice frame).
+    pub harmonics: Vec<[f64; 2]>,
 }
 
 /// One member of the named frequency's alias family.
@@ -281,7 +263,7 @@ pub(crate) struct PixelFit {
 /// template, the template's gradients, image, line parity; and the images' templates.
 struct Flat {
     t: Vec<f64>,
-    place: Vec<[f64; 2]>,
+    u: Vec<[f64; 2]>,
     z: Vec<f64>,
     e: Vec<f64>,
     g: [Vec<f64>; 2],
@@ -295,12 +277,11 @@ struct Flat {
 impl Flat {
     /// The images' pixels, each image's template fitted at rest (its lines' offsets and
     /// slopes with it), the residuals and the gradients.
-    fn new(images: &[PixelImage], t0: f64, map: &LatticeMap) -> Self {
-        let harmonics = map.harmonics();
+    fn new(images: &[(&PixelImage, &ImageMap)], t0: f64, harmonics: &[[f64; 2]]) -> Self {
         let mut f = Flat {
             lines: Vec::new(),
             t: Vec::new(),
-            place: Vec::new(),
+            u: Vec::new(),
             z: Vec::new(),
             e: Vec::new(),
             g: [Vec::new(), Vec::new()],
@@ -308,22 +289,15 @@ impl Flat {
             parity: Vec::new(),
             templates: images
                 .iter()
-                .map(|img| {
-                    let k_px = image_harmonics(img, map, &harmonics);
-                    ImageTemplate {
-                        coefficients: vec![0.0; 2 * k_px.len()],
-                        k_px,
-                        pixel_nm: img.pixel_nm,
-                    }
-                })
+                .map(|(img, map)| ImageTemplate::new(map, harmonics, img.pixel_nm))
                 .collect(),
         };
-        for (i, img) in images.iter().enumerate() {
+        for (i, (img, _)) in images.iter().enumerate() {
             for line in &img.lines {
                 f.lines.push(f.t.len()..f.t.len() + line.samples.len());
                 for s in &line.samples {
                     f.t.push(line.t_centre_s + s.dt_s - t0);
-                    f.place.push(s.place_px);
+                    f.u.push(s.u_nm);
                     f.z.push(s.height);
                     f.image.push(i);
                     f.parity.push(line.parity);
@@ -400,24 +374,20 @@ struct Exact {
 }
 
 impl Flat {
-    /// The displacement in pixels of sample `k`.
-    fn displacement_px(&self, w: f64, c: &[f64; 4], k: usize) -> [f64; 2] {
+    /// The displaced commanded position of sample `k` (nominal nm).
+    fn displaced_u(&self, w: f64, c: &[f64; 4], k: usize) -> [f64; 2] {
         let (s, co) = (w * self.t[k]).sin_cos();
-        let px = self.templates[self.image[k]].pixel_nm;
         [
-            (c[0] * co + c[1] * s) / px[0],
-            (c[2] * co + c[3] * s) / px[1],
+            self.u[k][0] + c[0] * co + c[1] * s,
+            self.u[k][1] + c[2] * co + c[3] * s,
         ]
     }
 
     /// The template of sample `k` (coefficients `templates`) at its displaced place: the
     /// height and the gradient per nm of input.
     fn displaced(&self, templates: &[Vec<f64>], (w, c): (f64, &[f64; 4]), k: usize) -> (f64, [f64; 2]) {
-        let d = self.displacement_px(w, c, k);
-        let img = &self.templates[self.image[k]];
-        let place = [self.place[k][0] + d[0], self.place[k][1] + d[1]];
-        let (t, g) = template_at(&img.k_px, &templates[self.image[k]], place);
-        (t, [g[0] / img.pixel_nm[0], g[1] / img.pixel_nm[1]])
+        let u = self.displaced_u(w, c, k);
+        template_at(&self.templates[self.image[k]], &templates[self.image[k]], u)
     }
 
     /// Removes from `v` each line's least-squares offset and slope along the line: the
@@ -429,7 +399,7 @@ impl Flat {
             if m < 3.0 {
                 continue;
             }
-            let xs = &self.place[range.clone()];
+            let xs = &self.u[range.clone()];
             let mean_x = xs.iter().map(|p| p[0]).sum::<f64>() / m;
             let (mut sxx, mut sxv, mut sv) = (0.0, 0.0, 0.0);
             for (p, val) in xs.iter().zip(&v[range.clone()]) {
@@ -468,15 +438,16 @@ impl Flat {
             .enumerate()
             .map(|(i, tpl)| {
                 let rows: Vec<bool> = (0..n).map(|k| self.image[k] == i && included[k]).collect();
-                if tpl.k_px.is_empty() || rows.iter().filter(|r| **r).count() < 4 * tpl.k_px.len() {
+                let m = tpl.harmonics.len();
+                if m == 0 || rows.iter().filter(|r| **r).count() < 8 * m {
                     return tpl.coefficients.clone();
                 }
-                let mut cols = vec![vec![0.0; n]; 2 * tpl.k_px.len()];
+                let mut cols = vec![vec![0.0; n]; 2 * m];
                 for k in (0..n).filter(|&k| rows[k]) {
-                    let d = self.displacement_px(w, c, k);
-                    let place = [self.place[k][0] + d[0], self.place[k][1] + d[1]];
-                    for (j, kv) in tpl.k_px.iter().enumerate() {
-                        let phase = std::f64::consts::TAU * (kv[0] * place[0] + kv[1] * place[1]);
+                    let u = self.displaced_u(w, c, k);
+                    let r = [tpl.map[0].evaluate(u[0], u[1]), tpl.map[1].evaluate(u[0], u[1])];
+                    for (j, h) in tpl.harmonics.iter().enumerate() {
+                        let phase = std::f64::consts::TAU * (h[0] * r[0] + h[1] * r[1]);
                         let (sn, cs) = phase.sin_cos();
                         cols[2 * j][k] = cs;
                         cols[2 * j + 1][k] = sn;
@@ -654,13 +625,53 @@ const MAX_GRID_WORK: usize = 200_000_000;
 
 /// Searches the vibration over the images' pixels; `None` when there is nothing to
 /// search (fewer than two images, or no frequency range).
-pub(crate) fn search(images: &[PixelImage], space: &SearchSpace<'_>) -> Option<PixelFit> {
+/// The search's outcome on one set of templates: the best frequency, its alias family,
+/// the trials it stands for, and the highest frequency searched.
+#[derive(Clone, Debug)]
+pub(crate) struct Candidate {
+    pub frequency_hz: f64,
+    family: Vec<f64>,
+    trials: f64,
+    f_max: f64,
+}
+
+/// The affine lattice map of an image from the baseline: R = J₀·u + v·(t(u) − t₀), t(u)
+/// the image's pixel times (affine in u within an image), as degree-1 polynomials.
+pub(crate) fn affine_map(
+    img: &PixelImage,
+    j0: [[f64; 2]; 2],
+    drift_nm_per_s: [f64; 2],
+    t_origin_s: f64,
+) -> Option<ImageMap> {
+    let (mut x, mut y, mut rx, mut ry) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for line in &img.lines {
+        for s in &line.samples {
+            let t = line.t_centre_s + s.dt_s - t_origin_s;
+            let u = s.u_nm;
+            x.push(u[0]);
+            y.push(u[1]);
+            rx.push(j0[0][0] * u[0] + j0[0][1] * u[1] + drift_nm_per_s[0] * t);
+            ry.push(j0[1][0] * u[0] + j0[1][1] * u[1] + drift_nm_per_s[1] * t);
+        }
+    }
+    let options = spm_regression::FitOptions::default();
+    let fx = spm_regression::fit(&spm_regression::Observations::new(&x, &y, &rx), 1, &options);
+    let fy = spm_regression::fit(&spm_regression::Observations::new(&x, &y, &ry), 1, &options);
+    Some([fx.ok()?.surface, fy.ok()?.surface])
+}
+
+/// The best vibration frequency over the images' pixels against their templates (`maps`);
+/// `None` when there is nothing to search (fewer than two images, no frequency range).
+pub(crate) fn candidate(
+    images: &[(&PixelImage, &ImageMap)],
+    space: &SearchSpace<'_>,
+) -> Option<Candidate> {
     if images.len() < 2 {
         return None;
     }
-    let flat = Flat::new(images, space.t_origin_s, &space.lattice);
+    let flat = Flat::new(images, space.t_origin_s, &space.harmonics);
     let n = flat.t.len();
-    if n < 64 || flat.templates.iter().any(|t| t.k_px.is_empty()) {
+    if n < 64 || flat.templates.iter().any(|t| t.harmonics.is_empty()) {
         return None;
     }
     let t_min = flat.t.iter().copied().fold(f64::INFINITY, f64::min);
@@ -741,9 +752,7 @@ pub(crate) fn search(images: &[PixelImage], space: &SearchSpace<'_>) -> Option<P
             best = Some((g, rss));
         }
     }
-    let (f_best, rss1) = best?;
-    let fit = flat.fit(f_best, &included)?;
-    let rss0 = flat.rss0(&included);
+    let (f_best, _) = best?;
     // The alias family.
     let line_rate = space.line_frequencies_hz.first().copied().unwrap_or(0.0);
     let mut family: Vec<f64> = Vec::new();
@@ -757,6 +766,40 @@ pub(crate) fn search(images: &[PixelImage], space: &SearchSpace<'_>) -> Option<P
     }
     family.push(1.0 / dwell - f_best);
     family.push(1.0 / dwell + f_best);
+    Some(Candidate {
+        frequency_hz: f_best,
+        family,
+        trials: ((f_max - f_min) * span).max(1.0),
+        f_max,
+    })
+}
+
+/// The vibration at the candidate's frequency (re-chosen within its alias family) fitted
+/// on the pixels against their templates (`maps`), with its evidence, coherence and
+/// held-out RMS.
+pub(crate) fn assess(
+    images: &[(&PixelImage, &ImageMap)],
+    space: &SearchSpace<'_>,
+    candidate: &Candidate,
+) -> Option<PixelFit> {
+    let flat = Flat::new(images, space.t_origin_s, &space.harmonics);
+    let n = flat.t.len();
+    if n < 64 || flat.templates.iter().any(|t| t.harmonics.is_empty()) {
+        return None;
+    }
+    let included = vec![true; n];
+    let fit_rss = |f: f64| flat.fit(f, &included).map(|fit| fit.rss);
+    let (f_max, family) = (candidate.f_max, &candidate.family);
+    let (f_best, rss1) = std::iter::once(candidate.frequency_hz)
+        .chain(family.iter().copied().filter(|g| *g <= f_max))
+        .filter_map(|g| fit_rss(g).map(|r| (g, r)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))?;
+    let fit = flat.fit(f_best, &included)?;
+    let rss0 = flat.rss0(&included);
+    let family: Vec<f64> = std::iter::once(candidate.frequency_hz)
+        .chain(family.iter().copied())
+        .filter(|g| (g - f_best).abs() > 1e-9)
+        .collect();
     let aliases: Vec<AliasMember> = family
         .iter()
         .filter_map(|&g| {
@@ -814,7 +857,7 @@ pub(crate) fn search(images: &[PixelImage], space: &SearchSpace<'_>) -> Option<P
         rss: [rss0, exact.rss.min(rss1)],
         pixels: n,
         images: images.len(),
-        trials: ((f_max - f_min) * span).max(1.0),
+        trials: candidate.trials,
         aliases,
         coherence,
         heldout_rms,

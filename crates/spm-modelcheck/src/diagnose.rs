@@ -2129,6 +2129,18 @@ fn corrected_for_vibration(set: &FeatureSet, v: &FoundVibration) -> FeatureSet {
     out
 }
 
+/// The least coherence of a vibration: what one sinusoid explains in all images over what
+/// separate ones per image explain (beyond their noise). A vibration found on the
+/// generator's images has 0.97–1.00; an unmodelled static distortion that some frequency's
+/// pattern happens to match in each image (a large trace/retrace loop) has ≈ 0.5.
+const MIN_COHERENCE: f64 = 0.8;
+
+/// The most the feature positions may see of a vibration, as a fraction of the tip's
+/// displacement at their times: their footprints average it (≤ 1, up to noise). More
+/// means the features' fit at that frequency follows something else (the creep after a
+/// frame's start, a trace/retrace loop): 1.4–4 there.
+const MAX_SEEN: f64 = 1.25;
+
 /// The images that have a map, with it.
 fn paired<'a>(
     pixels: &'a [PixelImage],
@@ -2280,16 +2292,25 @@ fn pixel_vibration(
         };
         (seen, with_vibration)
     };
-    // ... and the vibration fitted against each image's own lattice map, from its
-    // features without what they see of it: the scanner's static distortions (a
-    // nonlinearity, a sine drive, a trace/retrace loop, of several lattice constants) are
-    // in the template, not in the vibration.
+    // ... and the vibration fitted against each image's own lattice map from its features
+    // without what they see of it, against the static model, each image's map from its
+    // features as they are (which follows the scanner's static distortions — a
+    // nonlinearity, a sine drive, a trace/retrace loop, a shear gradient — and absorbs of
+    // a vibration only what is smooth over an image): a static distortion that some
+    // frequency's pattern mimics is better explained by the static model.
     let without: Vec<f64> = p.target.iter().zip(&seen_at(candidate.frequency_hz).0).map(|(t, s)| t - s).collect();
-    let maps: Vec<Option<ImageMap>> = pixels
+    let triples: Vec<(&PixelImage, ImageMap, ImageMap)> = pixels
         .iter()
-        .map(|img| image_map(p, (&m.mask, &without), img.frame_and_direction()))
+        .filter_map(|img| {
+            let fd = img.frame_and_direction();
+            let still = image_map(p, (&m.mask, &p.target), fd)?;
+            let vibrating = image_map(p, (&m.mask, &without), fd)?;
+            Some((img, still, vibrating))
+        })
         .collect();
-    let Some(fit) = crate::vibration::assess(&paired(pixels, &maps), &space, &candidate) else {
+    let triples: Vec<(&PixelImage, &ImageMap, &ImageMap)> =
+        triples.iter().map(|(i, s, v)| (*i, s, v)).collect();
+    let Some(fit) = crate::vibration::assess(&triples, &space, &candidate) else {
         return Ok(None);
     };
     let image = image_axes(&fit, &m.ctx);
@@ -2320,10 +2341,15 @@ fn pixel_vibration(
     let relevance_nm = p.relevance_nm(&m.fit, &m.mask);
     let problem = if evidence <= p.options.evidence_threshold {
         Some(format!("not supported on the pixels (ΔBIC {evidence:.1})"))
-    } else if fit.coherence < 0.5 {
+    } else if fit.coherence < MIN_COHERENCE {
         Some(format!(
             "not one vibration in every image (coherence {:.2})",
             fit.coherence
+        ))
+    } else if seen_by_features > MAX_SEEN {
+        Some(format!(
+            "the features move {seen_by_features:.2}× as much as the tip at this frequency: \
+             something else than a vibration"
         ))
     } else if displacement_nm < relevance_nm {
         Some(format!(
@@ -2350,6 +2376,7 @@ fn pixel_vibration(
         ?problem,
         "pixel-level vibration"
     );
+    eprintln!("VIBDBG f {:.4} ev {evidence:.0} coh {:.3} ho {:?} disp {:.2} rel {:.2} seen {seen_by_features:.3} aliases {:?} {problem:?}", fit.frequency_hz, fit.coherence, fit.heldout_rms, 1000.0*displacement_nm, 1000.0*relevance_nm, fit.aliases.iter().map(|a| (a.frequency_hz, a.evidence_gap.round())).collect::<Vec<_>>());
     if let Some(reason) = problem {
         if evidence > p.options.evidence_threshold {
             sel.rejected.push(Rejection {

@@ -775,16 +775,26 @@ pub(crate) fn candidate(
 }
 
 /// The vibration at the candidate's frequency (re-chosen within its alias family) fitted
-/// on the pixels against their templates (`maps`), with its evidence, coherence and
-/// held-out RMS.
+/// on the pixels against the templates of the maps `vibrating` (the features without what
+/// they see of it), against the static model: the templates of the maps `still` (the
+/// features as they are, which follow any static distortion of each image) and no
+/// vibration. With its evidence, coherence and held-out RMS.
 pub(crate) fn assess(
-    images: &[(&PixelImage, &ImageMap)],
+    images: &[(&PixelImage, &ImageMap, &ImageMap)],
     space: &SearchSpace<'_>,
     candidate: &Candidate,
 ) -> Option<PixelFit> {
-    let flat = Flat::new(images, space.t_origin_s, &space.harmonics);
+    let with = |pick: fn(&(&PixelImage, &ImageMap, &ImageMap)) -> ImageMap| {
+        let maps: Vec<ImageMap> = images.iter().map(pick).collect();
+        let pairs: Vec<(&PixelImage, &ImageMap)> =
+            images.iter().zip(&maps).map(|(i, m)| (i.0, m)).collect();
+        Flat::new(&pairs, space.t_origin_s, &space.harmonics)
+    };
+    let flat = with(|i| i.2.clone());
+    let still = with(|i| i.1.clone());
     let n = flat.t.len();
-    if n < 64 || flat.templates.iter().any(|t| t.harmonics.is_empty()) {
+    let usable = |f: &Flat| f.templates.iter().all(|t| !t.harmonics.is_empty());
+    if n < 64 || !usable(&flat) || !usable(&still) {
         return None;
     }
     let included = vec![true; n];
@@ -795,7 +805,7 @@ pub(crate) fn assess(
         .filter_map(|g| fit_rss(g).map(|r| (g, r)))
         .min_by(|a, b| a.1.total_cmp(&b.1))?;
     let fit = flat.fit(f_best, &included)?;
-    let rss0 = flat.rss0(&included);
+    let rss0 = still.rss0(&included);
     let family: Vec<f64> = std::iter::once(candidate.frequency_hz)
         .chain(family.iter().copied())
         .filter(|g| (g - f_best).abs() > 1e-9)
@@ -819,7 +829,7 @@ pub(crate) fn assess(
     }
     let sigma2 = rss1 / (n as f64 - 4.0).max(1.0);
     let noise_gain = 4.0 * (images.len() as f64 - 1.0) * sigma2;
-    let joint = rss0 - rss1;
+    let joint = flat.rss0(&included) - rss1;
     let coherence = joint / (separate - noise_gain).max(joint).max(1e-300);
     // Held-out: two folds over alternate lines, the frequency re-chosen in its family.
     let mut members = vec![f_best];
@@ -839,7 +849,7 @@ pub(crate) fn assess(
         let w = std::f64::consts::TAU * g;
         let r = flat.exact_residual(&exact.templates, (w, &exact.coefficients));
         for k in (0..n).filter(|&k| !train[k]) {
-            before += flat.e[k] * flat.e[k];
+            before += still.e[k] * still.e[k];
             after += r[k] * r[k];
             count += 1;
         }

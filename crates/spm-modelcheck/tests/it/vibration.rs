@@ -144,3 +144,78 @@ fn explore_vibration() {
         }
     }
 }
+
+/// The amplitude factor of a seed, 0.7–1.3 (lattice-frame amplitudes 21–39 pm along x,
+/// 14–26 pm along y).
+fn k_of(seed: u64) -> f64 {
+    0.7 + 0.6 * ((seed * 2_654_435_761) % 1000) as f64 / 1000.0
+}
+
+/// Every case `(whole, advance)` at 5 seeds: the vibration named first, its frequency
+/// within 2 % and its image-axis amplitudes within 20 %, in every one.
+fn check_cases(program: &Program, cases: &[(f64, f64)], first_seed: u64) {
+    let mut failures = Vec::new();
+    for &(whole, advance) in cases {
+        let f = frequency_for_advance(program, whole, advance);
+        for seed in first_seed..first_seed + 5 {
+            let amplitude = [0.03 * k_of(seed), 0.02 * k_of(seed)];
+            let d = run(program, hidden(program, whole, advance, amplitude), seed, "vib");
+            if let Err(e) = check(program, &d, f, amplitude) {
+                failures.push(format!("{whole}+{advance} cycles/line seed {seed}: {e}"));
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{failures:#?}");
+}
+
+/// A few tens of Hz (4 cycles per line period and the advance), at phase advances per
+/// line of ≈ 0 (0.02: exactly 0 is a harmonic of the line rate, scan-synchronous and left
+/// out as at the feature level), 0.1, 0.25, 0.4 and 0.5 cycle. At 0.5 the vibration
+/// averages out inside each atom's footprint (the features see a quarter of it); at ≈ 0
+/// it bends the lattice by two waves along every line, so that the features are indexed
+/// again after the vibration is taken out of them. Before issue 29 item 1 (main at
+/// 97de5a5), see docs/MODELCHECK.md.
+#[test]
+fn a_vibration_is_named_at_its_true_frequency_at_any_phase_advance() {
+    let program = Program::default();
+    let cases: Vec<(f64, f64)> = [0.02, 0.1, 0.25, 0.4, 0.5]
+        .iter()
+        .map(|a| (4.0, *a))
+        .collect();
+    check_cases(&program, &cases, 11);
+}
+
+/// Hundreds of Hz up to nearly half the pixel rate (1200 Hz): 30 and 90 cycles per line
+/// period, at phase advances of 0.5 and 0.25 cycle.
+#[test]
+fn a_vibration_up_to_half_the_pixel_rate_is_named_at_its_true_frequency() {
+    let program = Program::default();
+    check_cases(&program, &[(30.0, 0.5), (90.0, 0.25)], 21);
+}
+
+/// Beyond half the pixel rate the pixel clock folds the frequency exactly (the generator
+/// samples each pixel at one instant on one dwell grid): the lower member of the family is
+/// named, and the true one is in its alias family with no evidence gap.
+#[test]
+fn a_vibration_beyond_half_the_pixel_rate_is_named_with_its_mirror() {
+    let program = Program::default();
+    let pixel_rate = program.pixels as f64 / program.line_time_s;
+    let f = pixel_rate - frequency_for_advance(&program, 90.0, 0.25);
+    let amplitude = [0.03, 0.02];
+    let hidden = Hidden::Vibration {
+        amplitude_nm: amplitude,
+        frequency_hz: f,
+    };
+    let d = run(&program, hidden, 31, "vib-mirror");
+    let mirror = pixel_rate - f;
+    check(&program, &d, mirror, amplitude).unwrap();
+    let pixel = d.findings[0].pixel_level.as_ref().unwrap();
+    assert!(
+        pixel
+            .aliases
+            .iter()
+            .any(|a| (a.frequency_hz - f).abs() < 0.01 * f && a.evidence_gap.abs() < 1.0),
+        "{}",
+        summary(&d)
+    );
+}

@@ -2201,7 +2201,11 @@ fn image_map(
             })
             .collect();
         let pick = |v: &[f64]| -> Vec<f64> {
-            v.iter().zip(&keep).filter(|(_, k)| **k).map(|(v, _)| *v).collect()
+            v.iter()
+                .zip(&keep)
+                .filter(|(_, k)| **k)
+                .map(|(v, _)| *v)
+                .collect()
         };
         map = fit(&pick(&x), &pick(&y), &pick(&rx), &pick(&ry))?;
     }
@@ -2277,6 +2281,14 @@ fn pixel_vibration(
     let Some(candidate) = crate::vibration::candidate(&paired(pixels, &affine), &space) else {
         return Ok(None);
     };
+    let [rss0, rss1] = candidate.linear_rss;
+    if delta_bic(candidate.pixels as f64, rss0, rss1, 5.0, candidate.trials)
+        <= p.options.evidence_threshold
+    {
+        // Nothing there even against the rigid template: no vibration (and no need to
+        // fit one on the images' own maps).
+        return Ok(None);
+    }
     // ... what the features see of it: the feature-level columns at this frequency with
     // their own coefficients (their footprints average the vibration over lines and, at
     // hundreds of Hz, within a line, in a way only they can tell) ...
@@ -2298,7 +2310,12 @@ fn pixel_vibration(
     // nonlinearity, a sine drive, a trace/retrace loop, a shear gradient — and absorbs of
     // a vibration only what is smooth over an image): a static distortion that some
     // frequency's pattern mimics is better explained by the static model.
-    let without: Vec<f64> = p.target.iter().zip(&seen_at(candidate.frequency_hz).0).map(|(t, s)| t - s).collect();
+    let without: Vec<f64> = p
+        .target
+        .iter()
+        .zip(&seen_at(candidate.frequency_hz).0)
+        .map(|(t, s)| t - s)
+        .collect();
     let triples: Vec<(&PixelImage, ImageMap, ImageMap)> = pixels
         .iter()
         .filter_map(|img| {
@@ -2376,7 +2393,6 @@ fn pixel_vibration(
         ?problem,
         "pixel-level vibration"
     );
-    eprintln!("VIBDBG f {:.4} ev {evidence:.0} coh {:.3} ho {:?} disp {:.2} rel {:.2} seen {seen_by_features:.3} aliases {:?} {problem:?}", fit.frequency_hz, fit.coherence, fit.heldout_rms, 1000.0*displacement_nm, 1000.0*relevance_nm, fit.aliases.iter().map(|a| (a.frequency_hz, a.evidence_gap.round())).collect::<Vec<_>>());
     if let Some(reason) = problem {
         if evidence > p.options.evidence_threshold {
             sel.rejected.push(Rejection {

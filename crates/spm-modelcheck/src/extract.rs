@@ -1,12 +1,12 @@
 //! From image files to feature observations with acquisition times.
 
 use crate::diagnose::{Diagnosis, diagnose_features_with_pixels};
-use crate::vibration::PixelImage;
 use crate::level::{Lines, lattice_harmonics, level_lines, refine_basis};
 use crate::types::{
     FeatureObservation, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError,
     Options, SI7X7_A_NM,
 };
+use crate::vibration::PixelImage;
 use spm_features::cells::{self, Image, LatticeSearch, Peaks, Template};
 use spm_features::{DetectionConfig, Polarity, detect};
 use spm_formats::{Channel, DateTime, Direction, ScanDir, SpmFile};
@@ -319,12 +319,7 @@ fn level_with_lattice(
     level_lines(&mut z, bad, nx, ny, &[]);
     let mut found = false;
     if let Some(search) = search {
-        let img = Image {
-            z: &z,
-            bad,
-            nx,
-            ny,
-        };
+        let img = Image { z: &z, bad, nx, ny };
         if let Some(peaks) = cells::find_lattice(&img, search) {
             let lines = Lines {
                 z: &raw,

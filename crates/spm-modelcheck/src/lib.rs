@@ -68,8 +68,8 @@ pub use plot::{register_system_font, write_png};
 pub use simmap::{
     InputKnot, MoveHistory, SimContext, SimParam, SimPatch, TipChangeEvent, sim_patch,
 };
-pub use vibration::PixelImage;
 pub use types::{
     EffectKind, FeatureObservation, FeatureSet, FrameInfo, HOPG_A_NM, LatticeSpec, LineDirection,
     ModelCheckError, Options, SI7X7_A_NM,
 };
+pub use vibration::PixelImage;

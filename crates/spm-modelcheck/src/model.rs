@@ -118,7 +118,11 @@ pub(crate) fn footprint_average(o: &Obs, axis: usize, f: impl Fn(f64) -> f64) ->
     };
     // The lines are sampled at their own times: the nearest one passed the feature's
     // column `line_offset_s` before the feature's (fractional-row) time.
-    let offset_lines = if period > 0.0 { o.line_offset_s / period } else { 0.0 };
+    let offset_lines = if period > 0.0 {
+        o.line_offset_s / period
+    } else {
+        0.0
+    };
     let t_nearest = o.t - o.line_offset_s;
     let n = radius.floor() as i64 + 1;
     let (mut sum, mut weight) = (0.0, 0.0);

@@ -79,8 +79,14 @@ pub struct PixelImage {
 /// Σ_G a·cos 2πG·R(u) + b·sin 2πG·R(u), R the image's lattice map.
 fn template_at(tpl: &ImageTemplate, coefficients: &[f64], u: [f64; 2]) -> (f64, [f64; 2]) {
     let tau = std::f64::consts::TAU;
-    let r = [tpl.map[0].evaluate(u[0], u[1]), tpl.map[1].evaluate(u[0], u[1])];
-    let (dx, dy) = (tpl.map[0].gradient(u[0], u[1]), tpl.map[1].gradient(u[0], u[1]));
+    let r = [
+        tpl.map[0].evaluate(u[0], u[1]),
+        tpl.map[1].evaluate(u[0], u[1]),
+    ];
+    let (dx, dy) = (
+        tpl.map[0].gradient(u[0], u[1]),
+        tpl.map[1].gradient(u[0], u[1]),
+    );
     let (mut t, mut g) = (0.0, [0.0, 0.0]);
     for (j, h) in tpl.harmonics.iter().enumerate() {
         let (s, co) = (tau * (h[0] * r[0] + h[1] * r[1])).sin_cos();
@@ -271,6 +277,9 @@ struct Flat {
     parity: Vec<usize>,
     /// Each line's samples (contiguous).
     lines: Vec<std::ops::Range<usize>>,
+    /// Each image's samples and lines (contiguous).
+    image_samples: Vec<std::ops::Range<usize>>,
+    image_lines: Vec<std::ops::Range<usize>>,
     templates: Vec<ImageTemplate>,
 }
 
@@ -280,6 +289,8 @@ impl Flat {
     fn new(images: &[(&PixelImage, &ImageMap)], t0: f64, harmonics: &[[f64; 2]]) -> Self {
         let mut f = Flat {
             lines: Vec::new(),
+            image_samples: Vec::new(),
+            image_lines: Vec::new(),
             t: Vec::new(),
             u: Vec::new(),
             z: Vec::new(),
@@ -293,6 +304,7 @@ impl Flat {
                 .collect(),
         };
         for (i, (img, _)) in images.iter().enumerate() {
+            let (first_sample, first_line) = (f.t.len(), f.lines.len());
             for line in &img.lines {
                 f.lines.push(f.t.len()..f.t.len() + line.samples.len());
                 for s in &line.samples {
@@ -303,6 +315,8 @@ impl Flat {
                     f.parity.push(line.parity);
                 }
             }
+            f.image_samples.push(first_sample..f.t.len());
+            f.image_lines.push(first_line..f.lines.len());
         }
         let n = f.t.len();
         let rest = (0.0, &[0.0; 4]);
@@ -327,8 +341,8 @@ impl Flat {
         let w = std::f64::consts::TAU * f_hz;
         let n = self.t.len();
         let mut cols = vec![vec![0.0; n]; 4];
-        for k in 0..n {
-            let (s, c) = (w * self.t[k]).sin_cos();
+        for (k, t) in self.t.iter().enumerate() {
+            let (s, c) = (w * t).sin_cos();
             cols[0][k] = self.g[0][k] * c;
             cols[1][k] = self.g[0][k] * s;
             cols[2][k] = self.g[1][k] * c;
@@ -355,7 +369,7 @@ impl Flat {
 }
 
 /// Gauss–Newton rounds of the exact fit.
-const ROUNDS: usize = 4;
+const ROUNDS: usize = 3;
 
 /// The vibration fitted on the exact template: a displacement of a few tens of pm is a
 /// sizeable fraction of a lattice period (g·δ ≈ 1 rad for 35 pm on graphite), where the
@@ -385,7 +399,12 @@ impl Flat {
 
     /// The template of sample `k` (coefficients `templates`) at its displaced place: the
     /// height and the gradient per nm of input.
-    fn displaced(&self, templates: &[Vec<f64>], (w, c): (f64, &[f64; 4]), k: usize) -> (f64, [f64; 2]) {
+    fn displaced(
+        &self,
+        templates: &[Vec<f64>],
+        (w, c): (f64, &[f64; 4]),
+        k: usize,
+    ) -> (f64, [f64; 2]) {
         let u = self.displaced_u(w, c, k);
         template_at(&self.templates[self.image[k]], &templates[self.image[k]], u)
     }
@@ -395,23 +414,39 @@ impl Flat {
     /// compared modulo a line's offset and slope (Frisch–Waugh: the same as fitting them).
     fn detrend_lines(&self, v: &mut [f64]) {
         for range in &self.lines {
-            let m = range.len() as f64;
-            if m < 3.0 {
-                continue;
-            }
-            let xs = &self.u[range.clone()];
-            let mean_x = xs.iter().map(|p| p[0]).sum::<f64>() / m;
-            let (mut sxx, mut sxv, mut sv) = (0.0, 0.0, 0.0);
-            for (p, val) in xs.iter().zip(&v[range.clone()]) {
-                let dx = p[0] - mean_x;
-                sxx += dx * dx;
-                sxv += dx * val;
-                sv += val;
-            }
-            let (mean_v, slope) = (sv / m, if sxx > 0.0 { sxv / sxx } else { 0.0 });
-            for (p, val) in xs.iter().zip(&mut v[range.clone()]) {
-                *val -= mean_v + slope * (p[0] - mean_x);
-            }
+            self.detrend_line(range.clone(), &mut v[range.clone()]);
+        }
+    }
+
+    /// [`Self::detrend_lines`] over image `i`'s samples only (`v` indexed from its first).
+    fn detrend_image(&self, i: usize, v: &mut [f64]) {
+        let start = self.image_samples[i].start;
+        for range in &self.lines[self.image_lines[i].clone()] {
+            self.detrend_line(
+                range.clone(),
+                &mut v[range.start - start..range.end - start],
+            );
+        }
+    }
+
+    /// One line's (samples `range`) offset and slope removed from `v`.
+    fn detrend_line(&self, range: std::ops::Range<usize>, v: &mut [f64]) {
+        let m = range.len() as f64;
+        if m < 3.0 {
+            return;
+        }
+        let xs = &self.u[range];
+        let mean_x = xs.iter().map(|p| p[0]).sum::<f64>() / m;
+        let (mut sxx, mut sxv, mut sv) = (0.0, 0.0, 0.0);
+        for (p, val) in xs.iter().zip(v.iter()) {
+            let dx = p[0] - mean_x;
+            sxx += dx * dx;
+            sxv += dx * val;
+            sv += val;
+        }
+        let (mean_v, slope) = (sv / m, if sxx > 0.0 { sxv / sxx } else { 0.0 });
+        for (p, val) in xs.iter().zip(v.iter_mut()) {
+            *val -= mean_v + slope * (p[0] - mean_x);
         }
     }
 
@@ -432,31 +467,34 @@ impl Flat {
         included: &[bool],
         target: &[f64],
     ) -> Vec<Vec<f64>> {
-        let n = self.t.len();
         self.templates
             .iter()
             .enumerate()
             .map(|(i, tpl)| {
-                let rows: Vec<bool> = (0..n).map(|k| self.image[k] == i && included[k]).collect();
+                let range = self.image_samples[i].clone();
+                let rows = &included[range.clone()];
                 let m = tpl.harmonics.len();
                 if m == 0 || rows.iter().filter(|r| **r).count() < 8 * m {
                     return tpl.coefficients.clone();
                 }
-                let mut cols = vec![vec![0.0; n]; 2 * m];
-                for k in (0..n).filter(|&k| rows[k]) {
+                let mut cols = vec![vec![0.0; range.len()]; 2 * m];
+                for (row, k) in range.clone().enumerate() {
                     let u = self.displaced_u(w, c, k);
-                    let r = [tpl.map[0].evaluate(u[0], u[1]), tpl.map[1].evaluate(u[0], u[1])];
+                    let r = [
+                        tpl.map[0].evaluate(u[0], u[1]),
+                        tpl.map[1].evaluate(u[0], u[1]),
+                    ];
                     for (j, h) in tpl.harmonics.iter().enumerate() {
                         let phase = std::f64::consts::TAU * (h[0] * r[0] + h[1] * r[1]);
                         let (sn, cs) = phase.sin_cos();
-                        cols[2 * j][k] = cs;
-                        cols[2 * j + 1][k] = sn;
+                        cols[2 * j][row] = cs;
+                        cols[2 * j + 1][row] = sn;
                     }
                 }
                 for col in &mut cols {
-                    self.detrend_lines(col);
+                    self.detrend_image(i, col);
                 }
-                spm_regression::minimum_norm_least_squares(&cols, target, &rows)
+                spm_regression::minimum_norm_least_squares(&cols, &target[range], rows)
                     .map_or_else(|_| tpl.coefficients.clone(), |fit| fit.coefficients)
             })
             .collect()
@@ -489,10 +527,15 @@ impl Flat {
             }
             let step = spm_regression::minimum_norm_least_squares(&cols, &r, included).ok()?;
             let mut covariance = [[0.0; 4]; 4];
-            for a in 0..4 {
+            for (a, row) in covariance.iter_mut().enumerate() {
                 c[a] += step.coefficients.get(a).copied().unwrap_or(0.0);
-                for b in 0..4 {
-                    covariance[a][b] = step.covariance[a][b];
+                for (b, v) in row.iter_mut().enumerate() {
+                    *v = step
+                        .covariance
+                        .get(a)
+                        .and_then(|r| r.get(b))
+                        .copied()
+                        .unwrap_or(f64::NAN);
                 }
             }
             last = Some(covariance);
@@ -511,7 +554,8 @@ impl Flat {
 }
 
 /// Per line and axis, Σ e·g·e^{iω·dt} (dt from the line's centre) on the sub-grid
-/// `f0 + j·step` (j < n), as (re, im) pairs: `[j][line][axis]` flattened.
+/// `f0 + j·step` (j < n), as (re, im) pairs: `[line][j][axis]` flattened (a sample's
+/// frequencies contiguous).
 fn line_sums(flat: &Flat, centres: &[f64], f0: f64, step: f64, n: usize) -> Vec<[f64; 2]> {
     const RESYNC: usize = 64;
     let tau = std::f64::consts::TAU;
@@ -526,7 +570,7 @@ fn line_sums(flat: &Flat, centres: &[f64], f0: f64, step: f64, n: usize) -> Vec<
                 let f = f0 + block as f64 * step;
                 let (mut sn, mut cs) = (tau * f * dt).sin_cos();
                 for j in block..(block + RESYNC).min(n) {
-                    let base = (j * nl + l) * 2;
+                    let base = (l * n + j) * 2;
                     for a in 0..2 {
                         out[base + a][0] += w[a] * cs;
                         out[base + a][1] += w[a] * sn;
@@ -556,22 +600,32 @@ impl Spectrum {
     /// The power at `f_hz`: Σ over axes of |Σ_lines e^{iωt_line}·S_line(f)|²/norm, summed
     /// over images when `per_image` (coherent within each image), else coherent over all.
     fn power(&self, f_hz: f64, per_image: bool, n_images: usize) -> f64 {
+        let w = std::f64::consts::TAU * f_hz;
+        let phasors: Vec<(f64, f64)> = self.centres.iter().map(|c| (w * c).sin_cos()).collect();
+        self.power_with(f_hz, &phasors, per_image, n_images)
+    }
+
+    /// [`Self::power`] with each line's e^{iω·t_line} given as (sin, cos).
+    fn power_with(
+        &self,
+        f_hz: f64,
+        phasors: &[(f64, f64)],
+        per_image: bool,
+        n_images: usize,
+    ) -> f64 {
         let j = ((f_hz - self.sub_f0) / self.sub_step).round();
         if !(j >= 0.0 && (j as usize) < self.sub_n) {
             return 0.0;
         }
         let j = j as usize;
-        let nl = self.centres.len();
         let groups = if per_image { n_images } else { 1 };
         let mut acc = vec![[[0.0; 2]; 2]; groups];
-        let w = std::f64::consts::TAU * f_hz;
-        for (l, centre) in self.centres.iter().enumerate() {
-            let (s, c) = (w * centre).sin_cos();
+        for (l, &(s, c)) in phasors.iter().enumerate() {
             let g = if per_image { self.image_of[l] } else { 0 };
-            for a in 0..2 {
-                let v = self.sums[(j * nl + l) * 2 + a];
-                acc[g][a][0] += v[0] * c - v[1] * s;
-                acc[g][a][1] += v[0] * s + v[1] * c;
+            for (a, sum) in acc[g].iter_mut().enumerate() {
+                let v = self.sums[(l * self.sub_n + j) * 2 + a];
+                sum[0] += v[0] * c - v[1] * s;
+                sum[1] += v[0] * s + v[1] * c;
             }
         }
         acc.iter()
@@ -630,8 +684,11 @@ const MAX_GRID_WORK: usize = 200_000_000;
 #[derive(Clone, Debug)]
 pub(crate) struct Candidate {
     pub frequency_hz: f64,
+    /// The RSS without and with the linear fit at it, and the pixels.
+    pub linear_rss: [f64; 2],
+    pub pixels: usize,
     family: Vec<f64>,
-    trials: f64,
+    pub trials: f64,
     f_max: f64,
 }
 
@@ -702,7 +759,11 @@ pub(crate) fn candidate(
     let sub_step = 1.0 / (8.0 * line_duration);
     let sub_n = ((f_max - f_min) / sub_step).ceil() as usize + 3;
     if sub_n * flat.lines.len() * 2 > MAX_SUMS {
-        tracing::debug!(sub_n, lines = flat.lines.len(), "pixel vibration search too large");
+        tracing::debug!(
+            sub_n,
+            lines = flat.lines.len(),
+            "pixel vibration search too large"
+        );
         return None;
     }
     let sub_f0 = f_min - sub_step;
@@ -720,8 +781,15 @@ pub(crate) fn candidate(
     // Stage A: coherent within each image, summed over images.
     let mut image_span: f64 = 0.0;
     for i in 0..images.len() {
-        let ts = spec.centres.iter().zip(&spec.image_of).filter(|(_, m)| **m == i).map(|(c, _)| *c);
-        let (lo, hi) = ts.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), t| (lo.min(t), hi.max(t)));
+        let ts = spec
+            .centres
+            .iter()
+            .zip(&spec.image_of)
+            .filter(|(_, m)| **m == i)
+            .map(|(c, _)| *c);
+        let (lo, hi) = ts.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), t| {
+            (lo.min(t), hi.max(t))
+        });
         image_span = image_span.max(hi - lo + line_duration);
     }
     let mut step_a = 1.0 / (4.0 * image_span);
@@ -730,12 +798,36 @@ pub(crate) fn candidate(
         step_a *= work as f64 / MAX_GRID_WORK as f64;
     }
     let exclusion = 2.0 / span;
-    let grid: Vec<(f64, f64)> = (0..)
+    // Each line's phasor advances by one rotation per grid step (restarted exactly every
+    // 64 steps), not a sin_cos per line and frequency.
+    let tau = std::f64::consts::TAU;
+    let rotations: Vec<(f64, f64)> = spec
+        .centres
+        .iter()
+        .map(|c| (tau * step_a * c).sin_cos())
+        .collect();
+    let mut phasors: Vec<(f64, f64)> = Vec::new();
+    let mut grid: Vec<(f64, f64)> = Vec::new();
+    for (g, f) in (0..)
         .map(|i| f_min + i as f64 * step_a)
         .take_while(|f| *f <= f_max)
-        .filter(|f| !synchronous(*f, space.line_frequencies_hz, exclusion))
-        .map(|f| (f, spec.power(f, true, images.len())))
-        .collect();
+        .enumerate()
+    {
+        if g % 64 == 0 {
+            phasors = spec
+                .centres
+                .iter()
+                .map(|c| (tau * f * c).sin_cos())
+                .collect();
+        } else {
+            for (p, r) in phasors.iter_mut().zip(&rotations) {
+                *p = (p.0 * r.1 + p.1 * r.0, p.1 * r.1 - p.0 * r.0);
+            }
+        }
+        if !synchronous(f, space.line_frequencies_hz, exclusion) {
+            grid.push((f, spec.power_with(f, &phasors, true, images.len())));
+        }
+    }
     // Stage B: coherent over all images around the best peaks, then exact fits.
     let step_b = 1.0 / (8.0 * span);
     let included = vec![true; n];
@@ -752,7 +844,7 @@ pub(crate) fn candidate(
             best = Some((g, rss));
         }
     }
-    let (f_best, _) = best?;
+    let (f_best, rss1) = best?;
     // The alias family.
     let line_rate = space.line_frequencies_hz.first().copied().unwrap_or(0.0);
     let mut family: Vec<f64> = Vec::new();
@@ -768,6 +860,8 @@ pub(crate) fn candidate(
     family.push(1.0 / dwell + f_best);
     Some(Candidate {
         frequency_hz: f_best,
+        linear_rss: [flat.rss0(&included), rss1],
+        pixels: n,
         family,
         trials: ((f_max - f_min) * span).max(1.0),
         f_max,

@@ -6,9 +6,7 @@
 
 use crate::common;
 
-use common::image::{
-    Hidden, Program, vibration_image_amplitudes, write_frames, write_no_lattice,
-};
+use common::image::{Hidden, Program, vibration_image_amplitudes, write_frames, write_no_lattice};
 use spm_modelcheck::{
     Diagnosis, EffectKind, ExtractOptions, LatticeSpec, ModelCheckError, Options, diagnose,
 };

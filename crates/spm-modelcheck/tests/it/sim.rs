@@ -1019,7 +1019,11 @@ fn a_vibration_at_half_a_cycle_per_line_is_named_from_the_pixels() {
         let e = EffectKind::PeriodicVibration;
         let outcome = named(&d, e, Naming::First).and_then(|()| {
             let p = |n: &str| param(&d, e, n).map(|v| v.0);
-            let (f, ax, ay) = (p("frequency_hz")?, p("amplitude_x_nm")?, p("amplitude_y_nm")?);
+            let (f, ax, ay) = (
+                p("frequency_hz")?,
+                p("amplitude_x_nm")?,
+                p("amplitude_y_nm")?,
+            );
             if (f - f_hz).abs() > 0.02 * f_hz
                 || (ax - 3.0 * k).abs() > 0.6 * k
                 || (ay - 2.0 * k).abs() > 0.4 * k

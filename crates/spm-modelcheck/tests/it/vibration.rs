@@ -25,9 +25,7 @@ fn try_run(
     let paths = write_frames(program, hidden, seed, tag);
     let d = diagnose(
         &common::image::inputs(&paths),
-        &LatticeSpec::Hex {
-            a_nm: program.a_nm,
-        },
+        &LatticeSpec::Hex { a_nm: program.a_nm },
         &Options::default(),
         &ExtractOptions::default(),
     );
@@ -74,8 +72,17 @@ fn hidden(program: &Program, whole: f64, advance: f64, amplitude_nm: [f64; 2]) -
 
 /// Whether the vibration is named first with its frequency within 2 % and its image-axis
 /// amplitudes within 20 %; the reason when not.
-fn check(program: &Program, d: &Diagnosis, f_hz: f64, amplitude_nm: [f64; 2]) -> Result<(), String> {
-    let Some(f) = d.findings.first().filter(|f| f.effect == "periodic_vibration") else {
+fn check(
+    program: &Program,
+    d: &Diagnosis,
+    f_hz: f64,
+    amplitude_nm: [f64; 2],
+) -> Result<(), String> {
+    let Some(f) = d
+        .findings
+        .first()
+        .filter(|f| f.effect == "periodic_vibration")
+    else {
         return Err(format!("not named first: {}", summary(d)));
     };
     let found = f.parameters["frequency_hz"].value;
@@ -128,7 +135,12 @@ fn explore_vibration() {
             let scale: f64 = std::env::var("AMP").map_or(1.0, |s| s.parse().unwrap());
             let amplitude = [0.03 * k * scale, 0.02 * k * scale];
             let started = std::time::Instant::now();
-            let d = try_run(&program, hidden(&program, whole, advance, amplitude), seed, "vib-explore");
+            let d = try_run(
+                &program,
+                hidden(&program, whole, advance, amplitude),
+                seed,
+                "vib-explore",
+            );
             let verdict = d
                 .as_ref()
                 .map_err(|e| format!("{e}"))
@@ -159,7 +171,12 @@ fn check_cases(program: &Program, cases: &[(f64, f64)], first_seed: u64) {
         let f = frequency_for_advance(program, whole, advance);
         for seed in first_seed..first_seed + 5 {
             let amplitude = [0.03 * k_of(seed), 0.02 * k_of(seed)];
-            let d = run(program, hidden(program, whole, advance, amplitude), seed, "vib");
+            let d = run(
+                program,
+                hidden(program, whole, advance, amplitude),
+                seed,
+                "vib",
+            );
             if let Err(e) = check(program, &d, f, amplitude) {
                 failures.push(format!("{whole}+{advance} cycles/line seed {seed}: {e}"));
             }

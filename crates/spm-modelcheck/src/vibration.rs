@@ -1,44 +1,49 @@
 //! A lateral vibration modelled where it acts: on every pixel's height, not only on the
-//! feature positions (issue 29 item 1).
+//! feature positions (issue 29 item 1; the selection's side is `diagnose.rs`,
+//! `pixel_vibration`).
 //!
 //! A feature's fitted position averages the tip's motion over the lines of its footprint,
-//! and its times are sampled once per line: a vibration whose phase advances about half
+//! and the features sample time once per line: a vibration whose phase advances about half
 //! a cycle per line averages out inside each atom (the features only broaden), and any
-//! other is seen at its alias modulo the line rate. Each pixel, though, is sampled at
-//! its own time, densely along the line. So, per image (one direction of one frame):
+//! other is seen at an alias modulo the line rate. Each pixel is sampled at its own time,
+//! densely along its line. So, on the levelled images of both directions of every frame:
 //!
-//! 1. the lattice *template* T(c, r) is the image's own sum of lattice harmonics, fitted
-//!    jointly with the lines' offsets and slopes when the lines are levelled
-//!    (`level.rs`; its reciprocal basis refined on the image, so the image's mean affine
-//!    distortion — including constant drift, affine in (column, row) within one
-//!    image — is inside the template);
-//! 2. a displacement δu of the tip (nominal nm of input, image axes) changes the height
-//!    by ∇T·δu: the height residual e = z − T is regressed on the template's gradient
-//!    times cos/sin of 2πf·t, t each pixel's own acquisition time;
-//! 3. the frequency is searched from two cycles per frame to half the pixel rate: first
-//!    coherently within each image and summed over images (a grid of a quarter of one
-//!    image's resolution: the phase between frames tens of seconds apart would make a
-//!    coherent grid miss the fringe), then coherently over all images around the best
-//!    peaks. Each line's sum is computed once per frequency of a sub-grid of 1/(8 line
-//!    durations) about the line's centre time, so a frequency costs one rotation per
-//!    line, not per pixel. Frequencies within 2/span of a harmonic of the line rate are
-//!    scan-synchronous (a static distortion of every line) and left out, as at the
-//!    feature level;
-//! 4. the alias family — the named frequency ± one and two line rates, and its mirrors
-//!    about the pixel rate — is fitted exactly and reported with each member's evidence
-//!    gap: the line rate folds a frequency for the features, not for the pixels of a line
-//!    (the gap is large), while the pixel clock folds it exactly when the pixels sit on
-//!    one dwell grid (the gap is then ≈ 0: the lower member, within half the pixel rate,
-//!    is named).
+//! 1. **Template.** Each image's lattice template is Σ_G a_G·cos 2πG·R(u) + b_G·sin 2πG·R(u)
+//!    over the lattice's harmonics G (shells 1, √3, 2, below the pixel Nyquist frequency),
+//!    R(u) a lattice map from the commanded position u to the lattice frame; the a, b
+//!    are fitted to the image's heights modulo each line's offset and slope (the lines
+//!    were levelled so; `detrend_lines`).
+//! 2. **Model.** A tip displacement δu(t) (nominal nm, scan axes) shows as z = T(u + δu(t)):
+//!    linearised, the residual e = z − T(u) is ∇T·δu, regressed on the template's
+//!    gradient × cos/sin 2πf·t, t each pixel's own acquisition time.
+//! 3. **Search** (`candidate`), against the baseline's rigid map R = J₀·u + v·(t − t₀)
+//!    (affine within an image, so it absorbs none of a vibration): from two cycles per
+//!    frame to half the pixel rate, first coherently within each image and summed over
+//!    images (on a grid of a quarter of one image's resolution; the phase between frames
+//!    tens of seconds apart would make a coherent grid miss the fringe), then coherently
+//!    over all images around the five best peaks, then by exact least squares. Each line's
+//!    sum Σ e·∇T·e^{iω(t − t_line)} is computed once on a sub-grid of 1/(8 line durations)
+//!    (a frequency then costs one rotation per line, not one per pixel). Frequencies within
+//!    2/span of a harmonic of the line rate are scan-synchronous (the same in every line)
+//!    and left out, as at the feature level.
+//! 4. **Fit** (`assess`), against each image's own polynomial lattice map (degree ≤ 5,
+//!    fitted to its features' sites): the vibration's map from the features without what
+//!    they see of it, the static model's from the features as they are (which follows a
+//!    nonlinearity, a sine drive, a trace/retrace loop, a shear gradient). The frequency is
+//!    re-chosen within the alias family and its amplitude fitted on the exact template
+//!    (`exact_fit`: a displacement of 30 pm is g·δ ≈ 1 rad on graphite, where the linear
+//!    response saturates and the template fitted to a vibrating image is washed out: +15 %
+//!    in the amplitude otherwise).
+//! 5. **Alias family**: the named frequency ± one and two line rates, and its mirrors about
+//!    the pixel rate, each with its evidence gap N·ln(RSS_member/RSS_named). The line rate
+//!    folds a frequency for the features, not for the pixels of a line (gaps of 10³–10⁵
+//!    on the generator); the pixel clock folds it exactly when all pixels sit on one dwell
+//!    grid (gap ≈ 0: the member within half the pixel rate is named).
 //!
-//! The vibration is accepted when its evidence (ΔBIC over the pixels, with the search's
-//! look-elsewhere count) exceeds the threshold, the same sinusoid explains every image
-//! (its *coherence*: the joint fit explains at least half of what separate fits per image
-//! explain beyond their noise — a tip change or a frame-specific artefact does not), its
-//! displacement is relevant and plausible as at the feature level, and it lowers the
-//! two-fold held-out RMS of the height residual over alternate lines (fitted on the even
-//! lines, tested on the odd, and vice versa; the frequency re-chosen within its alias
-//! family on each fold).
+//! Its evidence (ΔBIC over the pixels against the static model, with the search's
+//! look-elsewhere count), *coherence* (what one sinusoid explains in every image over
+//! what separate ones per image explain beyond their noise) and two-fold held-out RMS of
+//! the height residual (alternate lines) are judged in `diagnose.rs`.
 
 use crate::types::LineDirection;
 

@@ -210,18 +210,9 @@ fn joint_fit(img: &Lines<'_>, k_px: &[[f64; 2]]) -> JointFit {
 
 /// Removes each line's offset and slope, fitted jointly with the harmonics `k_px`
 /// (cycles per pixel, (column, row); empty: a plain per-line fit), from `z` (whose
-/// unscanned pixels, `bad`, are left as they are). Returns the harmonics' fitted
-/// coefficients (cos, sin per harmonic of phase 2π·k·(column, row)): the lattice
-/// template of the levelled image (`vibration.rs`).
-pub(crate) fn level_lines(
-    z: &mut [f64],
-    bad: &[bool],
-    nx: usize,
-    ny: usize,
-    k_px: &[[f64; 2]],
-) -> Vec<f64> {
+/// unscanned pixels, `bad`, are left as they are).
+pub(crate) fn level_lines(z: &mut [f64], bad: &[bool], nx: usize, ny: usize, k_px: &[[f64; 2]]) {
     let fit = joint_fit(&Lines { z, bad, nx, ny }, k_px);
-    let template = fit.theta.as_slice().to_vec();
     let centre = 0.5 * (nx as f64 - 1.0);
     for (r, line) in fit.lines.into_iter().enumerate() {
         let Some((gi, mut rhs, ph)) = line else {
@@ -239,7 +230,6 @@ pub(crate) fn level_lines(
             }
         }
     }
-    template
 }
 
 /// The reciprocal lattice points m·k₁ + n·k₂ out to `reach` × the longer basis vector,

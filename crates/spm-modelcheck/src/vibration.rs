@@ -1,6 +1,5 @@
 //! A lateral vibration modelled where it acts: on every pixel's height, not only on the
-//! feature positions (issue 29 item 1; the selection's side is `diagnose.rs`,
-//! `pixel_vibration`).
+//! feature positions (issue 29 item 1; the selection's side is `diagnose/pixels.rs`).
 //!
 //! A feature's fitted position averages the tip's motion over the lines of its footprint,
 //! and the features sample time once per line: a vibration whose phase advances about half
@@ -43,7 +42,7 @@
 //! Its evidence (ΔBIC over the pixels against the static model, with the search's
 //! look-elsewhere count), *coherence* (what one sinusoid explains in every image over
 //! what separate ones per image explain beyond their noise) and two-fold held-out RMS of
-//! the height residual (alternate lines) are judged in `diagnose.rs`.
+//! the height residual (alternate lines) are judged in `diagnose/pixels.rs`.
 
 use crate::types::LineDirection;
 

@@ -10,6 +10,10 @@ use crate::model::{
 use crate::types::{
     EffectKind, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError, Options,
 };
+use crate::vibration::PixelImage;
+mod pixels;
+
+use pixels::{FoundVibration, corrected_for_vibration, pixel_vibration};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -62,6 +66,48 @@ pub struct Finding {
     /// Other effects whose evidence in the same round was within 6 of this one
     /// (the data cannot tell them apart well).
     pub confounded_with: Vec<String>,
+    /// For a vibration found on the pixels (issue 29 item 1): the evidence there. The
+    /// finding's `evidence`, RMS and held-out RMS are then the pixels' (the height
+    /// residual against the images' lattice templates, pm for heights in m; held out:
+    /// alternate lines), and the features' held-out RMS is given here.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pixel_level: Option<PixelEvidence>,
+}
+
+/// A member of a frequency's alias family.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AliasFrequency {
+    /// The member, Hz.
+    pub frequency_hz: f64,
+    /// N·ln(RSS with it / RSS with the named frequency) over the pixels: how much less it
+    /// explains (≈ 0: the data do not tell it from the named one).
+    pub evidence_gap: f64,
+}
+
+/// A vibration's evidence on the pixels of the images (`vibration.rs`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PixelEvidence {
+    /// Images (directions of frames) searched.
+    pub images: usize,
+    /// Pixels fitted.
+    pub pixels: usize,
+    /// The named frequency's alias family: ± one and two line rates, the mirrors about
+    /// the pixel rate.
+    pub aliases: Vec<AliasFrequency>,
+    /// What one sinusoid explains in all images over what separate ones per image
+    /// explain beyond their noise (1: the same vibration everywhere).
+    pub coherence: f64,
+    /// RMS of the displacement the feature positions see (their footprints average it)
+    /// over the RMS of the tip's at the features' times: ≈ 0 where the phase advances
+    /// about half a cycle per line (the features only broaden).
+    pub seen_by_features: f64,
+    /// The features' held-out RMS without the vibration, pm.
+    pub feature_heldout_rms_before_pm: f64,
+    /// With what they see of it subtracted from their positions, pm.
+    pub feature_heldout_rms_after_pm: f64,
+    /// Whether the feature positions were corrected (only when that lowers their
+    /// held-out RMS).
+    pub features_corrected: bool,
 }
 
 /// The final model's fit.
@@ -911,9 +957,50 @@ pub fn diagnose_features(
     lattice: &LatticeSpec,
     options: &Options,
 ) -> Result<Diagnosis, ModelCheckError> {
+    diagnose_features_with_pixels(set, lattice, options, &[])
+}
+
+/// [`diagnose_features`] with the pixels of the images the features came from
+/// ([`crate::pixel_image_from_height_map`]): a vibration is then searched on the pixels,
+/// where it acts, and not on the feature positions (see `vibration.rs`).
+pub fn diagnose_features_with_pixels(
+    set: &FeatureSet,
+    lattice: &LatticeSpec,
+    options: &Options,
+    pixels: &[PixelImage],
+) -> Result<Diagnosis, ModelCheckError> {
     let indexing = index_features(set, lattice)?;
-    let mut d = diagnose_indexed(set, &indexing.sites, &indexing.basis, options)?;
-    d.warnings.extend(indexing.warnings);
+    let (result, found) = diagnose_pass(set, (&indexing.sites, &indexing.basis), options, pixels);
+    let mut d = match (result, found) {
+        // A vibration that moves the features by a sizeable fraction of the cell along
+        // the lines (tens of pm, a few cycles per line) can break their indexing; found on
+        // the pixels, it is taken out of the features and they are indexed again.
+        (Err(error @ ModelCheckError::NotTheLattice { .. }), Some(v)) => {
+            let corrected = corrected_for_vibration(set, &v);
+            let again = index_features(&corrected, lattice).and_then(|ix| {
+                diagnose_pass(&corrected, (&ix.sites, &ix.basis), options, pixels)
+                    .0
+                    .map(|mut d| {
+                        d.warnings.extend(ix.warnings);
+                        d
+                    })
+            });
+            let Ok(mut d) = again else {
+                return Err(error);
+            };
+            d.warnings.push(format!(
+                "the features were corrected for the {:.4} Hz vibration found on the pixels \
+                 and indexed again (without: {error})",
+                v.frequency_hz
+            ));
+            d
+        }
+        (result, _) => {
+            let mut d = result?;
+            d.warnings.extend(indexing.warnings);
+            d
+        }
+    };
     // A frame that gave nothing (NaN-filled by an aborted scan, flat, out of
     // range) is left out of the fit: say so rather than diagnosing fewer
     // frames than were given without a word.
@@ -1670,6 +1757,8 @@ struct Selection {
     excluded: Vec<EffectKind>,
     /// The relevance of the last round, nm.
     relevance_nm: f64,
+    /// A vibration found on the pixels: named first.
+    pixel: Option<Finding>,
 }
 
 /// Adds the accepted candidate `chosen` (held-out RMS `after` with it, pm) to the model,
@@ -1725,6 +1814,7 @@ fn adopt(
         parameters: BTreeMap::new(),
         meaning: kind.meaning().to_owned(),
         confounded_with,
+        pixel_level: None,
     };
     m.heldout_now = after;
     m.fit = fit1;
@@ -1841,6 +1931,9 @@ fn report(
             t.value += p.t_mid;
         }
     }
+    if let Some(f) = sel.pixel.take() {
+        sel.findings.insert(0, f);
+    }
     let mut localiser_bias = BTreeMap::new();
     if m.pixel_locking {
         for (i, name) in PIXEL_LOCKING_NAMES.iter().enumerate() {
@@ -1948,27 +2041,57 @@ pub fn diagnose_indexed(
     basis: &MeasuredBasis,
     options: &Options,
 ) -> Result<Diagnosis, ModelCheckError> {
-    let p = problem(set, sites, basis, options)?;
-    let (mut model, baseline_report) = baseline(&p)?;
-    let baseline_fit = model.fit.clone();
-    let localisation_sigma_pm = 1000.0
-        * p.reported_sigma_nm.unwrap_or_else(|| {
-            std::f64::consts::SQRT_2 * robust_sigma(&model.fit.residual, &model.mask)
-        });
-    let mut sel = Selection {
-        relevance_nm: p.relevance_nm(&model.fit, &model.mask),
-        ..Selection::default()
-    };
-    for _ in 0..options.max_findings {
-        if !selection_round(&p, &mut model, &mut sel)? {
-            break;
+    diagnose_indexed_with_pixels(set, sites, basis, options, &[])
+}
+
+/// [`diagnose_indexed`] with the images' pixels for the pixel-level vibration search.
+fn diagnose_indexed_with_pixels(
+    set: &FeatureSet,
+    sites: &[Option<[i64; 2]>],
+    basis: &MeasuredBasis,
+    options: &Options,
+    pixels: &[PixelImage],
+) -> Result<Diagnosis, ModelCheckError> {
+    diagnose_pass(set, (sites, basis), options, pixels).0
+}
+
+/// One diagnosis of indexed features, and the vibration found on the pixels (also when the
+/// diagnosis then fails).
+fn diagnose_pass(
+    set: &FeatureSet,
+    (sites, basis): (&[Option<[i64; 2]>], &MeasuredBasis),
+    options: &Options,
+    pixels: &[PixelImage],
+) -> (Result<Diagnosis, ModelCheckError>, Option<FoundVibration>) {
+    let mut found = None;
+    let result = (|| {
+        let mut p = problem(set, sites, basis, options)?;
+        let (mut model, baseline_report) = baseline(&p)?;
+        let baseline_fit = model.fit.clone();
+        let localisation_sigma_pm = 1000.0
+            * p.reported_sigma_nm.unwrap_or_else(|| {
+                std::f64::consts::SQRT_2 * robust_sigma(&model.fit.residual, &model.mask)
+            });
+        let mut sel = Selection {
+            relevance_nm: p.relevance_nm(&model.fit, &model.mask),
+            ..Selection::default()
+        };
+        found = pixel_vibration(&mut p, &mut model, &mut sel, (pixels, basis))?;
+        let rounds = options
+            .max_findings
+            .saturating_sub(usize::from(sel.pixel.is_some()));
+        for _ in 0..rounds {
+            if !selection_round(&p, &mut model, &mut sel)? {
+                break;
+            }
         }
-    }
-    report(
-        &p,
-        set,
-        &model,
-        (baseline_report, baseline_fit, localisation_sigma_pm),
-        sel,
-    )
+        report(
+            &p,
+            set,
+            &model,
+            (baseline_report, baseline_fit, localisation_sigma_pm),
+            sel,
+        )
+    })();
+    (result, found)
 }

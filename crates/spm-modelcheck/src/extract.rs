@@ -1,11 +1,12 @@
 //! From image files to feature observations with acquisition times.
 
-use crate::diagnose::{Diagnosis, diagnose_features};
+use crate::diagnose::{Diagnosis, diagnose_features_with_pixels};
 use crate::level::{Lines, lattice_harmonics, level_lines, refine_basis};
 use crate::types::{
     FeatureObservation, FeatureSet, FrameInfo, LatticeSpec, LineDirection, ModelCheckError,
     Options, SI7X7_A_NM,
 };
+use crate::vibration::PixelImage;
 use spm_features::cells::{self, Image, LatticeSearch, Peaks, Template};
 use spm_features::{DetectionConfig, Polarity, detect};
 use spm_formats::{Channel, DateTime, Direction, ScanDir, SpmFile};
@@ -136,6 +137,7 @@ pub fn features_from_height_map(
         .map(|f| {
             let (column, row) = map.pixel_of(f.position);
             let (time_s, line_index) = time_and_line(column, row);
+            let line_time_offset_s = Some(time_s - time_and_line(column, row.round()).0);
             let width_px = f.width.value() / map.pixel_step.value().max(1e-300);
             let sigma_px = f.uncertainty.radial().value()
                 / std::f64::consts::SQRT_2
@@ -157,6 +159,7 @@ pub fn features_from_height_map(
                         .clamp(config.min_fit_radius_px, config.max_fit_radius_px)
                         * pixel_nm[1],
                 ),
+                line_time_offset_s,
             }
         })
         .collect())
@@ -262,6 +265,16 @@ fn height_channels<'f>(
 /// looked for in the image so levelled, and, when found, the lines are levelled again
 /// jointly with the lattice's harmonics.
 fn geometric_map(channel: &Channel, search: Option<&LatticeSearch>) -> (HeightMap, Vec<bool>) {
+    let (map, bad, _) = geometric_map_and_lattice(channel, search);
+    (map, bad)
+}
+
+/// [`geometric_map`], and whether the lattice was found in it (its lines levelled jointly
+/// with the lattice's harmonics).
+fn geometric_map_and_lattice(
+    channel: &Channel,
+    search: Option<&LatticeSearch>,
+) -> (HeightMap, Vec<bool>, bool) {
     let (nx, ny) = (channel.nx(), channel.ny());
     let scale = if channel.unit() == "m" { 1e12 } else { 1.0 };
     let data = channel.data();
@@ -278,22 +291,39 @@ fn geometric_map(channel: &Channel, search: Option<&LatticeSearch>) -> (HeightMa
             }
         }
     }
-    let mut z = raw.clone();
-    level_lines(&mut z, &bad, nx, ny, &[]);
     // Heights beyond a metre are not a surface (a corrupt or hostile file): no lattice
     // model is fitted to them, the plain levelling only.
     let physical = channel.unit() != "m" || raw.iter().all(|v| v.abs() < 1e12);
-    if let Some(search) = search.filter(|_| physical) {
-        let img = Image {
-            z: &z,
-            bad: &bad,
-            nx,
-            ny,
-        };
+    let (z, found) = level_with_lattice(raw, &bad, (nx, ny), search.filter(|_| physical));
+    let map = HeightMap {
+        origin: CountPoint::from_counts(0.0, 0.0),
+        pixel_step: Counts(1.0),
+        columns: nx,
+        rows: ny,
+        z_counts: z,
+        time_s: vec![0.0; nx * ny],
+    };
+    (map, bad, found)
+}
+
+/// Levels the lines of `raw` (row-major, `bad` unscanned); with `search`, the lattice's
+/// peaks are looked for in the image so levelled, and, when found, the lines are levelled
+/// again jointly with the lattice's harmonics (then `true`).
+fn level_with_lattice(
+    raw: Vec<f64>,
+    bad: &[bool],
+    (nx, ny): (usize, usize),
+    search: Option<&LatticeSearch>,
+) -> (Vec<f64>, bool) {
+    let mut z = raw.clone();
+    level_lines(&mut z, bad, nx, ny, &[]);
+    let mut found = false;
+    if let Some(search) = search {
+        let img = Image { z: &z, bad, nx, ny };
         if let Some(peaks) = cells::find_lattice(&img, search) {
             let lines = Lines {
                 z: &raw,
-                bad: &bad,
+                bad,
                 nx,
                 ny,
             };
@@ -306,18 +336,11 @@ fn geometric_map(channel: &Channel, search: Option<&LatticeSearch>) -> (HeightMa
                 "lines levelled jointly with the lattice's harmonics"
             );
             z = raw;
-            level_lines(&mut z, &bad, nx, ny, &harmonics);
+            level_lines(&mut z, bad, nx, ny, &harmonics);
+            found = true;
         }
     }
-    let map = HeightMap {
-        origin: CountPoint::from_counts(0.0, 0.0),
-        pixel_step: Counts(1.0),
-        columns: nx,
-        rows: ny,
-        z_counts: z,
-        time_s: vec![0.0; nx * ny],
-    };
-    (map, bad)
+    (z, found)
 }
 
 /// Whether an unscanned pixel lies within `a_px` pixels of the feature.
@@ -467,6 +490,8 @@ fn cell_features(
         .iter()
         .map(|c| {
             let (time_s, line_index) = (ctx.time_and_line)(c.pos[0], c.pos[1]);
+            let line_time_offset_s =
+                Some(time_s - (ctx.time_and_line)(c.pos[0], c.pos[1].round()).0);
             FeatureObservation {
                 x_nm: (c.pos[0] - 0.5 * (nx - 1.0)) * px[0],
                 y_nm: (c.pos[1] - 0.5 * (ny - 1.0)) * px[1],
@@ -479,6 +504,7 @@ fn cell_features(
                 // footprint over lines.
                 width_nm: Some(run.radius_px / 2.6 * px[1]),
                 fit_radius_nm: Some(run.radius_px * px[1]),
+                line_time_offset_s,
             }
         })
         .collect::<Vec<_>>();
@@ -658,7 +684,7 @@ fn channel_observations(
     lattice: &LatticeSpec,
     polarity: Polarity,
     ex: &ExtractOptions,
-    out: &mut Vec<FeatureObservation>,
+    (out, pixels): (&mut Vec<FeatureObservation>, &mut Vec<PixelImage>),
 ) -> Result<(), ModelCheckError> {
     let (nx, ny) = frame.pixels;
     let pixel_nm = frame.pixel_nm;
@@ -683,7 +709,7 @@ fn channel_observations(
     // own fit windows, and its many strong harmonics beyond the second shell are
     // not in the joint model (with them the 20 nm Si 7×7 frame lost its lattice).
     let search = (!pattern_cell).then(|| lattice_search(lattice, pixel_nm));
-    let (map, bad) = geometric_map(channel, search.as_ref());
+    let (map, bad, lattice_found) = geometric_map_and_lattice(channel, search.as_ref());
     let scan_up = channel.scan_dir().or(file.scan_dir) == Some(ScanDir::Up);
     let time_and_line = |column: f64, row: f64| {
         let display_row = (ny as f64 - 1.0) - row;
@@ -711,6 +737,14 @@ fn channel_observations(
         label: format!("{name}, {}", format!("{direction:?}").to_lowercase()),
     };
     let feats = channel_features(mode, &map, &bad, &ctx, lattice, ex)?;
+    if lattice_found && matches!(mode, Mode::Plain) {
+        pixels.extend(PixelImage::new(
+            (frame_index, direction),
+            (&map.z_counts, &bad, nx, ny),
+            pixel_nm,
+            &time_and_line,
+        ));
+    }
     // Drop features next to unscanned (NaN) pixels.
     let a_px = (lattice.a_nm() / pixel_nm[0]).ceil() as i64;
     for f in feats {
@@ -733,6 +767,17 @@ pub fn extract_features(
     lattice: &LatticeSpec,
     ex: &ExtractOptions,
 ) -> Result<FeatureSet, ModelCheckError> {
+    extract_features_and_pixels(files, lattice, ex).map(|(set, _)| set)
+}
+
+/// [`extract_features`], and the pixels of every atomic-lattice image levelled with its
+/// lattice template (for the pixel-level vibration search).
+fn extract_features_and_pixels(
+    files: &[(SpmFile, Option<f64>)],
+    lattice: &LatticeSpec,
+    ex: &ExtractOptions,
+) -> Result<(FeatureSet, Vec<PixelImage>), ModelCheckError> {
+    let mut pixels = Vec::new();
     let polarity = ex
         .polarity
         .unwrap_or(if (lattice.a_nm() - SI7X7_A_NM).abs() < 1e-6 {
@@ -826,11 +871,11 @@ pub fn extract_features(
                 lattice,
                 polarity,
                 ex,
-                &mut set.features,
+                (&mut set.features, &mut pixels),
             )?;
         }
     }
-    Ok(set)
+    Ok((set, pixels))
 }
 
 /// The `spmcal diagnose` entry point: reads the files, extracts features,
@@ -845,7 +890,7 @@ pub fn diagnose(
     for input in inputs {
         files.push((spm_formats::read_any(&input.path)?, input.start_time_s));
     }
-    let set = extract_features(&files, lattice, ex)?;
+    let (set, pixels) = extract_features_and_pixels(&files, lattice, ex)?;
     if set.features.is_empty() {
         // Say why in the user's terms: a lattice sampled too coarsely to
         // localise features, or no feature of that period at all.
@@ -872,7 +917,37 @@ pub fn diagnose(
         frames = set.frames.len(),
         "features extracted"
     );
-    diagnose_features(&set, lattice, options)
+    diagnose_features_with_pixels(&set, lattice, options, &pixels)
+}
+
+/// The pixels of a height map in scanner geometry (as [`features_from_height_map`] reads
+/// it) for the pixel-level vibration search: its lines levelled (jointly with the claimed
+/// lattice's harmonics found in its spectrum); `None` when the lattice is not found in
+/// the map. Heights are in the map's unit (the search is scale-free).
+pub fn pixel_image_from_height_map(
+    map: &HeightMap,
+    ctx: &MapContext,
+    lattice: &LatticeSpec,
+    time_and_line: &dyn Fn(f64, f64) -> (f64, usize),
+) -> Option<PixelImage> {
+    let (nx, ny) = (map.columns, map.rows);
+    let bad: Vec<bool> = map.z_counts.iter().map(|v| !v.is_finite()).collect();
+    let raw: Vec<f64> = map
+        .z_counts
+        .iter()
+        .map(|v| if v.is_finite() { *v } else { 0.0 })
+        .collect();
+    let search = lattice_search(lattice, ctx.pixel_nm);
+    let (z, found) = level_with_lattice(raw, &bad, (nx, ny), Some(&search));
+    if !found {
+        return None;
+    }
+    PixelImage::new(
+        (ctx.frame_index, ctx.direction),
+        (&z, &bad, nx, ny),
+        ctx.pixel_nm,
+        time_and_line,
+    )
 }
 
 /// Convenience: [`diagnose`] for plain paths with default extraction.

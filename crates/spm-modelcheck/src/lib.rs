@@ -25,7 +25,7 @@
 //! | `nonorthogonality` | input W·g·ξx·ξy per axis (obliquity varying over the field) | `shear_gradient_{x,y}` |
 //! | `crosstalk_xy` | input x += b·H·ξy², y += b·W·ξx² (quadratic crosstalk, bow) | `bow_x_from_y`, `bow_y_from_x` |
 //! | `feedback_lag` | fast-axis input −s·v·τ | `time_constant_s`, `shift_nm` |
-//! | `periodic_vibration` | A·cos(2πft + φ) per axis | `amplitude_{x,y}_nm`, `frequency_hz`, `phase_{x,y}_rad` |
+//! | `periodic_vibration` | A·cos(2πft + φ) per axis; with images, fitted on their pixels (`vibration.rs`), its alias family reported | `amplitude_{x,y}_nm`, `frequency_hz`, `phase_{x,y}_rad`; `pixel_level` |
 //! | `tip_change` | jump (jx, jy) from time t_c on | `jump_{x,y}_nm`, `time_s` |
 //! | `interlace` | slow-axis displacement ±½·d of forward/backward lines (d: backward features relative to forward) | `separation_y_nm` |
 //! | `sinusoidal_drive` | fast-axis input W·[ξ + κ·(sin βξ − βξ)/β]: the fast axis driven by a sine in time, pixels equidistant in time, ±β of phase over a line | `amplitude_nm`, `phase_at_line_end_rad` (β), `drive_frequency_hz`, `sine_weight` (κ), `sine_fraction` (1 for a pure sine) |
@@ -52,14 +52,16 @@ mod plot;
 mod simmap;
 mod sine;
 mod types;
+mod vibration;
 
 pub use diagnose::{
-    BaselineReport, CandidateScore, Diagnosis, FinalReport, Finding, ParamValue, Rejection,
-    ResidualPoint, ResidualStructure, diagnose_features, diagnose_indexed,
+    AliasFrequency, BaselineReport, CandidateScore, Diagnosis, FinalReport, Finding, ParamValue,
+    PixelEvidence, Rejection, ResidualPoint, ResidualStructure, diagnose_features,
+    diagnose_features_with_pixels, diagnose_indexed,
 };
 pub use extract::{
     ExtractOptions, ImageInput, Localiser, MapContext, diagnose, diagnose_paths, extract_features,
-    features_from_height_map,
+    features_from_height_map, pixel_image_from_height_map,
 };
 pub use index::{Indexing, MeasuredBasis, index_features};
 pub use plot::{register_system_font, write_png};
@@ -70,3 +72,4 @@ pub use types::{
     EffectKind, FeatureObservation, FeatureSet, FrameInfo, HOPG_A_NM, LatticeSpec, LineDirection,
     ModelCheckError, Options, SI7X7_A_NM,
 };
+pub use vibration::PixelImage;

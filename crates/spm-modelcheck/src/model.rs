@@ -45,6 +45,8 @@ pub(crate) struct Obs {
     /// The feature's footprint over lines: (Gaussian width σ, fit-window
     /// radius) in lines, and the line period, s; `None` when unknown.
     pub footprint: Option<(f64, f64, f64)>,
+    /// Time from the nearest line's pass at the feature's column to the feature's time, s.
+    pub line_offset_s: f64,
 }
 
 /// The context effect columns need: baseline J₀ and rotation θ₀.
@@ -114,17 +116,60 @@ pub(crate) fn footprint_average(o: &Obs, axis: usize, f: impl Fn(f64) -> f64) ->
     let Some((sigma, radius, period)) = o.footprint else {
         return f(o.t);
     };
-    let n = radius.floor() as i64;
+    // The lines are sampled at their own times: the nearest one passed the feature's
+    // column `line_offset_s` before the feature's (fractional-row) time.
+    let offset_lines = if period > 0.0 {
+        o.line_offset_s / period
+    } else {
+        0.0
+    };
+    let t_nearest = o.t - o.line_offset_s;
+    let n = radius.floor() as i64 + 1;
     let (mut sum, mut weight) = (0.0, 0.0);
-    for l in -n..=n {
-        let l = l as f64;
+    for m in -n..=n {
+        let l = m as f64 - offset_lines;
+        if l.abs() > radius {
+            continue;
+        }
         let chord = 2.0 * (radius * radius - l * l).max(0.0).sqrt() + 1.0;
         let g2 = (-(l * l) / (sigma * sigma).max(1e-12)).exp() * chord;
         let w = if axis == 0 { g2 } else { l * l * g2 };
-        sum += w * f(o.t + l * period);
+        sum += w * f(t_nearest + m as f64 * period);
         weight += w;
     }
     if weight > 0.0 { sum / weight } else { f(o.t) }
+}
+
+/// The attenuation of a vibration of angular frequency `w_rad_per_s` (rad/s) within one
+/// line of a feature's footprint, along image `axis` (0 = fast, 1 = slow).
+///
+/// Along its line the fit window spans a few pixels, scanned one dwell apart: a vibration
+/// of several tens of cycles per line (hundreds of Hz) changes within it. A Gaussian fit
+/// weighs column offset c (pixels) by c²·g(c)² for the fast-axis position and by g(c)²
+/// for the slow-axis one (g(c)² = e^{−c²/σ²}); with a symmetric window the phase of the
+/// line's centre is kept and the amplitude is multiplied by
+/// Σ w(c)·cos(ω·c·τ) / Σ w(c), τ the dwell. 1 without a pixel grid or footprint, and for
+/// vibrations slow against the dwell (the feature-level columns of [`footprint_average`]).
+pub(crate) fn along_line_attenuation(o: &Obs, axis: usize, w_rad_per_s: f64) -> f64 {
+    let (Some((sigma, radius, _)), Some((_, pitch))) = (o.footprint, o.phase) else {
+        return 1.0;
+    };
+    if !(pitch[0] > 0.0 && o.speed > 0.0) {
+        return 1.0;
+    }
+    let aspect = pitch[1] / pitch[0];
+    let (sigma_px, radius_px) = (sigma * aspect, radius * aspect);
+    let dwell_s = pitch[0] / o.speed;
+    let n = radius_px.floor() as i64;
+    let (mut sum, mut weight) = (0.0, 0.0);
+    for c in -n..=n {
+        let c = c as f64;
+        let g2 = (-(c * c) / (sigma_px * sigma_px).max(1e-12)).exp();
+        let wgt = if axis == 0 { c * c * g2 } else { g2 };
+        sum += wgt * (w_rad_per_s * c * dwell_s).cos();
+        weight += wgt;
+    }
+    if weight > 0.0 { sum / weight } else { 1.0 }
 }
 
 /// Names of the pixel-locking columns, in column order (nominal nm).
@@ -292,11 +337,14 @@ pub(crate) fn effect_columns(kind: EffectKind, hyper: f64, obs: &[Obs], ctx: &Ct
         EffectKind::FeedbackLag => vec![input_col(obs, ctx, 0, |o| -o.s * o.speed)],
         EffectKind::PeriodicVibration => {
             let w = 2.0 * std::f64::consts::PI * hyper;
+            let seen = |o: &Obs, axis: usize, f: fn(f64) -> f64| {
+                along_line_attenuation(o, axis, w) * footprint_average(o, axis, |t| f(w * t))
+            };
             vec![
-                sample_col(obs, ctx, 0, |o| footprint_average(o, 0, |t| (w * t).cos())),
-                sample_col(obs, ctx, 0, |o| footprint_average(o, 0, |t| (w * t).sin())),
-                sample_col(obs, ctx, 1, |o| footprint_average(o, 1, |t| (w * t).cos())),
-                sample_col(obs, ctx, 1, |o| footprint_average(o, 1, |t| (w * t).sin())),
+                sample_col(obs, ctx, 0, |o| seen(o, 0, f64::cos)),
+                sample_col(obs, ctx, 0, |o| seen(o, 0, f64::sin)),
+                sample_col(obs, ctx, 1, |o| seen(o, 1, f64::cos)),
+                sample_col(obs, ctx, 1, |o| seen(o, 1, f64::sin)),
             ]
         }
         // Features of backward lines appear displaced along the slow axis by
@@ -681,6 +729,10 @@ pub(crate) fn build_obs(
                 }
                 _ => None,
             },
+            line_offset_s: f
+                .line_time_offset_s
+                .filter(|s| s.is_finite() && s.abs() <= frame.duration_s)
+                .unwrap_or(0.0),
         });
         source.push(k);
     }

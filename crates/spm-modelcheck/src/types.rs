@@ -77,6 +77,12 @@ pub struct FeatureObservation {
     /// Radius of the localiser's fit window, nominal nm, when known.
     #[serde(default)]
     pub fit_radius_nm: Option<f64>,
+    /// `time_s` minus the time the nearest scan line passed the feature's column, s: the
+    /// feature's centre lies between lines, which are sampled only at their own times (a
+    /// vibration of several cycles per line has no phase "between" them). `None` when
+    /// unknown (taken as 0).
+    #[serde(default)]
+    pub line_time_offset_s: Option<f64>,
 }
 
 /// Features of one or more frames, ready for [`crate::diagnose_features`].

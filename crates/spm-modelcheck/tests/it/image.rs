@@ -6,7 +6,7 @@
 
 use crate::common;
 
-use common::image::{Hidden, Program, write_frames, write_no_lattice};
+use common::image::{Hidden, Program, vibration_image_amplitudes, write_frames, write_no_lattice};
 use spm_modelcheck::{
     Diagnosis, EffectKind, ExtractOptions, LatticeSpec, ModelCheckError, Options, diagnose,
 };
@@ -168,17 +168,6 @@ fn explore_no_lattice() {
 fn to_image(program: &Program, v: [f64; 2]) -> [f64; 2] {
     let (s, c) = program.rotation_rad.sin_cos();
     [c * v[0] + s * v[1], -s * v[0] + c * v[1]]
-}
-
-/// Amplitudes along the image axes of a lattice-frame vibration
-/// (x: A_x cos ωt, y: A_y cos(ωt + 1)).
-fn vibration_image_amplitudes(program: &Program, a: [f64; 2]) -> [f64; 2] {
-    let (s, c) = program.rotation_rad.sin_cos();
-    let (s1, c1) = 1f64.sin_cos();
-    // Complex amplitudes: x → a0, y → a1·e^{i}.
-    let x = [c * a[0] + s * a[1] * c1, s * a[1] * s1];
-    let y = [-s * a[0] + c * a[1] * c1, c * a[1] * s1];
-    [x[0].hypot(x[1]), y[0].hypot(y[1])]
 }
 
 /// (effect expected first, hidden, true parameters).

@@ -11,3 +11,4 @@ mod rules;
 mod sim;
 mod sine;
 mod synthetic;
+mod vibration;

@@ -214,6 +214,7 @@ fn features_off_the_claimed_lattice_are_refused_not_fitted() {
                         sigma_nm: None,
                         width_nm: None,
                         fit_radius_nm: None,
+                        line_time_offset_s: None,
                     });
                 }
             }

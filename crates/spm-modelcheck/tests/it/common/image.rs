@@ -179,6 +179,23 @@ pub fn instrument_map(program: &Program) -> [[f64; 2]; 2] {
     ]
 }
 
+/// Amplitudes along the image axes (the library reports tip–sample displacements along
+/// the scan axes) of the generator's lattice-frame vibration (x: A_x cos ωt, y: A_y cos(ωt + 1)).
+pub fn vibration_image_amplitudes(program: &Program, a: [f64; 2]) -> [f64; 2] {
+    let (s, c) = program.rotation_rad.sin_cos();
+    let (s1, c1) = 1f64.sin_cos();
+    // Complex amplitudes: x → a0, y → a1·e^{i}.
+    let x = [c * a[0] + s * a[1] * c1, s * a[1] * s1];
+    let y = [-s * a[0] + c * a[1] * c1, c * a[1] * s1];
+    [x[0].hypot(x[1]), y[0].hypot(y[1])]
+}
+
+/// The vibration frequency whose phase advances `advance` cycles per line period (trace
+/// and retrace) on top of `whole` cycles, Hz.
+pub fn frequency_for_advance(program: &Program, whole: f64, advance: f64) -> f64 {
+    (whole + advance) / (2.0 * program.line_time_s)
+}
+
 /// Where the lattice's sites sit in the lattice frame (the hills' offset), nm.
 fn site_offset(program: &Program, seed: u64) -> [f64; 2] {
     [

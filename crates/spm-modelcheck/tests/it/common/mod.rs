@@ -146,6 +146,7 @@ pub fn generate(scan: &Scan, seed: u64, extra: &Extra) -> FeatureSet {
                         sigma_nm: Some(scan.noise_nm),
                         width_nm: None,
                         fit_radius_nm: None,
+                        line_time_offset_s: None,
                     });
                 }
             }

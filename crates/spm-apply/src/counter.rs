@@ -449,25 +449,25 @@ pub struct PairFile<'a> {
     pub heights: &'a [f64],
 }
 
-/// The trace halves of a counter-scanned pair mapped along their rasters with `dynamics` (the
-/// later frame replayed after the earlier one's raster, `delay_s` after it), the estimate
-/// between them, and each half's pixel times on the pair's clock: `(estimate, [(map, times)
-/// of the earlier, of the later])`. The maps are the file-alone maps, before the estimate is
-/// removed ([`PairEstimate::corrected`]).
+/// The estimate between the trace halves of a counter-scanned pair: the earlier frame's map
+/// along its own raster (`earlier_map`, [`crate::dynamic::dynamic_map`], which the caller
+/// usually has already), the later frame's replayed after the earlier one's raster,
+/// `delay_s` after it ([`crate::dynamic::dynamic_map_after`]). Returns the estimate, the
+/// earlier frame's pixel times and the later frame's map and times, on the pair's clock: the
+/// maps before the estimate is removed ([`PairEstimate::corrected`]).
 ///
 /// # Errors
-/// As [`crate::dynamic::dynamic_map`], [`crate::dynamic::dynamic_map_after`] and
+/// As [`crate::dynamic::dynamic_map_after`], [`crate::dynamic::pixel_times`] and
 /// [`estimate_from_pair`].
 pub fn pair_maps<F: spm_correction::CorrectionField + ?Sized>(
     field: &F,
     dynamics: &spm_correction::hysteresis::ScannerDynamics,
-    earlier: PairFile<'_>,
+    (earlier, earlier_map): (PairFile<'_>, &CoordinateMap),
     later: PairFile<'_>,
     delay_s: f64,
     spacing: &LatticeRuler,
-) -> Result<(PairEstimate, [MappedFrame; 2]), CorrectionError> {
-    use crate::dynamic::{Half, dynamic_map, dynamic_map_after, pixel_times};
-    let (first_map, _) = dynamic_map(field, earlier.raster, dynamics, Half::Trace)?;
+) -> Result<(PairEstimate, Vec<f64>, MappedFrame), CorrectionError> {
+    use crate::dynamic::{Half, dynamic_map_after, pixel_times};
     let (second_map, _) = dynamic_map_after(
         field,
         later.raster,
@@ -484,7 +484,7 @@ pub fn pair_maps<F: spm_correction::CorrectionField + ?Sized>(
     let found = estimate_from_pair(
         PairFrame {
             heights: earlier.heights,
-            map: &first_map,
+            map: earlier_map,
             times_s: &first_times,
         },
         PairFrame {
@@ -494,10 +494,7 @@ pub fn pair_maps<F: spm_correction::CorrectionField + ?Sized>(
         },
         spacing,
     )?;
-    Ok((
-        found,
-        [(first_map, first_times), (second_map, second_times)],
-    ))
+    Ok((found, first_times, (second_map, second_times)))
 }
 
 #[cfg(test)]

@@ -1314,10 +1314,28 @@ fn with_counter_partner<F: CorrectionField + Sync>(
     } else {
         (-delay_s, (partner_file, own_file))
     };
-    let (found, _) = counter::pair_maps(
+    // The earlier frame's trace map along its own raster: this image's own when it came first
+    // and its first channel is the trace half (already made), else made here.
+    let own_trace = halves
+        .iter()
+        .flatten()
+        .find(|(half, _)| *half == dynamic::Half::Trace)
+        .map(|(_, m)| &**m)
+        .filter(|_| own_start == 0.0);
+    let made;
+    let earlier_map = match own_trace {
+        Some(m) => m,
+        None => {
+            made = dynamic::dynamic_map(field, earlier.raster, dynamics, dynamic::Half::Trace)
+                .map_err(correction)?
+                .0;
+            &made
+        }
+    };
+    let (found, _, _) = counter::pair_maps(
         field,
         dynamics,
-        earlier,
+        (earlier, earlier_map),
         later,
         delay_s.abs(),
         &partner.spacing,

@@ -478,6 +478,22 @@ fn lattice_of_maps(
     }
 }
 
+/// The maps of a method that corrects the two images of a counter-scanned pair together
+/// ([`ImageCorrection::UserFileCounter`]), direct image first; `None` for a method that maps
+/// each image alone.
+fn pair_method_maps(
+    method: &ImageMethod<'_>,
+    direct: &TestImage,
+    counter: &TestImage,
+) -> Result<Option<(CoordinateMap, CoordinateMap)>, ImageBenchmarkError> {
+    match &method.correction {
+        ImageCorrection::UserFileCounter { set, spacing } => {
+            user_file_pair_maps(set, direct, counter, spacing).map(Some)
+        }
+        _ => Ok(None),
+    }
+}
+
 /// The lattice of every counter-scanned pair of `images` corrected by `method`, with no
 /// ground truth (the run's validation): `(pair, place, lattice)` per pair.
 ///
@@ -495,10 +511,9 @@ pub fn lattice_of_pairs(
             continue;
         }
         // A pair method maps both images together.
-        if let (ImageCorrection::UserFileCounter { set, spacing }, Some(counter)) =
-            (&method.correction, lattice_partner(images, k, config))
+        if let Some(counter) = lattice_partner(images, k, config)
+            && let Some((map, counter_map)) = pair_method_maps(method, image, counter)?
         {
-            let (map, counter_map) = user_file_pair_maps(set, image, counter, spacing)?;
             let raw = raw_atoms
                 .entry(k)
                 .or_insert_with(|| raw_pair_atoms(image, counter, config));
@@ -537,17 +552,13 @@ fn evaluate_group(
     let mut raw: Option<(Vec<Feature>, Vec<Feature>)> = None;
     let mut out = Vec::with_capacity(methods.len());
     for method in methods {
-        let maps = match (&method.correction, group.len()) {
-            (ImageCorrection::UserFileCounter { set, spacing }, 2) => {
-                let (a, b) = user_file_pair_maps(
-                    set,
-                    &images[group.start],
-                    &images[group.start + 1],
-                    spacing,
-                )?;
-                vec![(a, false), (b, false)]
-            }
-            _ => group
+        let pair = match group.len() {
+            2 => pair_method_maps(method, &images[group.start], &images[group.start + 1])?,
+            _ => None,
+        };
+        let maps = match pair {
+            Some((a, b)) => vec![(a, false), (b, false)],
+            None => group
                 .clone()
                 .map(|k| coordinate_map_or_refusal(method, &images[k], k))
                 .collect::<Result<Vec<_>, _>>()?,

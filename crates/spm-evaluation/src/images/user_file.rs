@@ -51,9 +51,9 @@ pub(super) fn user_file_pair_maps(
     spacing: &spm_apply::ruler::LatticeRuler,
 ) -> Result<(CoordinateMap, CoordinateMap), ImageBenchmarkError> {
     let (map1, raster1) = file_map(set, first, None)?;
-    let (map2, raster2) = file_map(set, second, None)?;
+    let raster2 = file_raster(set, second)?;
     let Some(d) = &set.dynamics else {
-        return Ok((map1, map2));
+        return Ok((map1, file_map(set, second, None)?.0));
     };
     let start = |t: &[f64]| t.iter().copied().fold(f64::INFINITY, f64::min);
     let delay_s = start(&second.time_acquisition_s) - start(&first.time_acquisition_s);
@@ -64,10 +64,13 @@ pub(super) fn user_file_pair_maps(
     let pair = spm_apply::counter::pair_maps(
         &field,
         d,
-        spm_apply::counter::PairFile {
-            raster: &raster1,
-            heights: &first.map.z_counts,
-        },
+        (
+            spm_apply::counter::PairFile {
+                raster: &raster1,
+                heights: &first.map.z_counts,
+            },
+            &map1,
+        ),
         spm_apply::counter::PairFile {
             raster: &raster2,
             heights: &second.map.z_counts,
@@ -76,22 +79,19 @@ pub(super) fn user_file_pair_maps(
         spacing,
     );
     match pair {
-        Ok((found, [(m1, t1), (m2, t2)])) => {
-            Ok((found.corrected(&m1, &t1)?, found.corrected(&m2, &t2)?))
-        }
+        Ok((found, t1, (m2, t2))) => Ok((found.corrected(&map1, &t1)?, found.corrected(&m2, &t2)?)),
         // A pair whose features do not match keeps the file-alone maps, as a user whose
         // --counter is refused corrects without it.
-        Err(_) => Ok((map1, map2)),
+        Err(_) => Ok((map1, file_map(set, second, None)?.0)),
     }
 }
 
-/// The image written as a file, read back and mapped (file alone, or with `recorded`), and
-/// the raster read from the file.
-fn file_map(
+/// The image written as a file with what a controller records, read back, checked by the
+/// guard rails, and its raster read from the file.
+fn file_raster(
     set: &spm_correction::SurfaceSet,
     image: &TestImage,
-    recorded: Option<&spm_correction::dynamics::CommandHistory>,
-) -> Result<(CoordinateMap, spm_apply::FileRaster), ImageBenchmarkError> {
+) -> Result<spm_apply::FileRaster, ImageBenchmarkError> {
     use spm_apply::{
         ApplyOptions, FileRaster, KEY_CONVENTION, KEY_LINE_TIME, KEY_ORIGIN_X, KEY_ORIGIN_Y,
         KEY_SCAN_PATH, KEY_SCANNER, KEY_STEP,
@@ -152,7 +152,20 @@ fn file_map(
         ..ApplyOptions::default()
     };
     spm_apply::check(&file, set, plane, &raster, &options).map_err(|e| fail(e.to_string()))?;
-    let field = plane.field(spm_correction::Route::Products);
+    Ok(raster)
+}
+
+/// The image written as a file, read back and mapped (file alone, or with `recorded`), and
+/// the raster read from the file.
+fn file_map(
+    set: &spm_correction::SurfaceSet,
+    image: &TestImage,
+    recorded: Option<&spm_correction::dynamics::CommandHistory>,
+) -> Result<(CoordinateMap, spm_apply::FileRaster), ImageBenchmarkError> {
+    let raster = file_raster(set, image)?;
+    let field = set
+        .plane_nearest(0.0)?
+        .field(spm_correction::Route::Products);
     let half = spm_apply::dynamic::Half::Trace;
     let (map, _) = match (&set.dynamics, recorded) {
         (Some(d), Some(history)) => spm_apply::dynamic::recorded_map(

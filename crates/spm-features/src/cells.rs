@@ -474,6 +474,16 @@ pub struct Template {
     v: Vec<f64>,
 }
 
+/// ⌊u⌋ for |u| < 2⁶³ (the lattice coordinates here), NaN for NaN: without SSE4.1 (the
+/// x86-64 baseline) `f64::floor` is a library call, and the template lookups need two.
+fn floor(u: f64) -> f64 {
+    if u.is_nan() {
+        return u;
+    }
+    let t = u as i64 as f64;
+    if t > u { t - 1.0 } else { t }
+}
+
 fn catmull_rom(p: [f64; 4], t: f64) -> f64 {
     0.5 * (2.0 * p[1]
         + (p[2] - p[0]) * t
@@ -482,26 +492,42 @@ fn catmull_rom(p: [f64; 4], t: f64) -> f64 {
 }
 
 impl Template {
-    fn cell(&self, i: i64, j: i64) -> f64 {
-        let g = self.g as i64;
-        self.v[(j.rem_euclid(g) * g + i.rem_euclid(g)) as usize]
+    /// The periodic indices `i + o` (o = 0 … N−1) wrapped into `0..g`: one division for
+    /// all N (this lookup is most of the cell fits' time).
+    fn wrapped<const N: usize>(&self, i: i64) -> [usize; N] {
+        let g = self.g;
+        let mut k = i.rem_euclid(g as i64) as usize;
+        let mut out = [0; N];
+        for o in &mut out {
+            *o = k;
+            k = if k + 1 == g { 0 } else { k + 1 };
+        }
+        out
+    }
+
+    /// `u` wrapped into [0, 1) times the grid: as `u.rem_euclid(1.0)` (the same value:
+    /// both are the exact u − ⌊u⌋ rounded once), without the slow software `fmod`.
+    fn grid_coordinate(&self, u: f64) -> f64 {
+        (u - floor(u)) * self.g as f64
     }
 
     /// Catmull–Rom interpolation (periodic).
     pub fn value(&self, u: f64, v: f64) -> f64 {
-        let g = self.g as f64;
-        let (x, y) = (u.rem_euclid(1.0) * g, v.rem_euclid(1.0) * g);
-        let (i, j) = (x.floor() as i64, y.floor() as i64);
-        let (tx, ty) = (x - x.floor(), y - y.floor());
+        let (x, y) = (self.grid_coordinate(u), self.grid_coordinate(v));
+        // x, y ≥ 0 (or NaN): the cast truncates, which is ⌊·⌋ there.
+        let (i, j) = (x as i64, y as i64);
+        let (tx, ty) = (x - i as f64, y - j as f64);
+        let columns = self.wrapped::<4>(i - 1);
+        let rows = self.wrapped::<4>(j - 1);
         let mut col = [0.0; 4];
-        for (b, c) in col.iter_mut().enumerate() {
-            let jj = j + b as i64 - 1;
+        for (c, r) in col.iter_mut().zip(rows) {
+            let row = &self.v[r * self.g..(r + 1) * self.g];
             *c = catmull_rom(
                 [
-                    self.cell(i - 1, jj),
-                    self.cell(i, jj),
-                    self.cell(i + 1, jj),
-                    self.cell(i + 2, jj),
+                    row[columns[0]],
+                    row[columns[1]],
+                    row[columns[2]],
+                    row[columns[3]],
                 ],
                 tx,
             );
@@ -511,12 +537,16 @@ impl Template {
 
     /// Bilinear interpolation (periodic; the coarse search).
     fn linear(&self, u: f64, v: f64) -> f64 {
-        let g = self.g as f64;
-        let (x, y) = (u.rem_euclid(1.0) * g, v.rem_euclid(1.0) * g);
-        let (i, j) = (x.floor() as i64, y.floor() as i64);
-        let (tx, ty) = (x - x.floor(), y - y.floor());
-        (1.0 - ty) * ((1.0 - tx) * self.cell(i, j) + tx * self.cell(i + 1, j))
-            + ty * ((1.0 - tx) * self.cell(i, j + 1) + tx * self.cell(i + 1, j + 1))
+        let (x, y) = (self.grid_coordinate(u), self.grid_coordinate(v));
+        // x, y ≥ 0 (or NaN): the cast truncates, which is ⌊·⌋ there.
+        let (i, j) = (x as i64, y as i64);
+        let (tx, ty) = (x - i as f64, y - j as f64);
+        let [c0, c1] = self.wrapped::<2>(i);
+        let [r0, r1] = self.wrapped::<2>(j);
+        let (r0, r1) = (r0 * self.g, r1 * self.g);
+        let cell = |r: usize, c: usize| self.v[r + c];
+        (1.0 - ty) * ((1.0 - tx) * cell(r0, c0) + tx * cell(r0, c1))
+            + ty * ((1.0 - tx) * cell(r1, c0) + tx * cell(r1, c1))
     }
 
     fn gradient(&self, u: f64, v: f64) -> [f64; 2] {

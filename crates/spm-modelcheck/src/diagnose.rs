@@ -307,10 +307,12 @@ fn best_extension(
 ) -> Option<(Vec<Column>, Fit, f64, f64)> {
     let (cands, trials) = hyper_candidates(kind, obs, frames, &current.residual, mask);
     let mut best: Option<(Vec<Column>, Fit, f64)> = None;
+    // The model's design factored once for every candidate's collinearity test.
+    let design = crate::model::factor(cols, mask);
     for h in cands {
         let mut all = cols.to_vec();
         let extra = effect_columns(kind, h, obs, ctx);
-        if nearly_collinear(&extra, cols, mask) {
+        if explained_by(&extra, design.as_ref(), mask) {
             continue;
         }
         all.extend(extra.iter().cloned());
@@ -866,6 +868,19 @@ fn effect_params(
 /// variation about its mean, over the fitted equations): the effect is then
 /// confounded with the model already there.
 fn nearly_collinear(extra: &[Column], cols: &[Column], mask: &[bool]) -> bool {
+    explained_by(extra, crate::model::factor(cols, mask).as_ref(), mask)
+}
+
+/// [`nearly_collinear`] against a design already factored (`None`: it could not be, and
+/// every column counts as explained).
+fn explained_by(
+    extra: &[Column],
+    design: Option<&spm_regression::FactoredDesign>,
+    mask: &[bool],
+) -> bool {
+    let Some(design) = design else {
+        return true;
+    };
     let n = mask.iter().filter(|m| **m).count().max(1) as f64;
     extra.iter().any(|c| {
         let mean = [0, 1].map(|a| {
@@ -879,7 +894,7 @@ fn nearly_collinear(extra: &[Column], cols: &[Column], mask: &[bool]) -> bool {
             .filter(|&k| mask[k])
             .map(|k| (c[2 * k] - mean[0]).powi(2) + (c[2 * k + 1] - mean[1]).powi(2))
             .sum();
-        match solve(cols, c, mask) {
+        match design.fit(c) {
             Ok(f) => total <= 0.0 || f.rss < 1e-3 * total,
             Err(_) => true,
         }

@@ -91,15 +91,17 @@ fn measure_basis(points: &[[f64; 2]], a_expected_nm: Option<f64>) -> Option<([f6
 fn refine_basis(points: &[[f64; 2]], b1: [f64; 2], b2: [f64; 2]) -> Option<([f64; 2], [f64; 2])> {
     let mut out = [[0.0; 2]; 2];
     for (o, b) in out.iter_mut().zip([b1, b2]) {
-        let len = b[0].hypot(b[1]);
+        // Squared lengths compared (this loop over all pairs is hot; no hypot needed).
+        let len2 = b[0] * b[0] + b[1] * b[1];
+        let d2 = |v: [f64; 2], s: f64| (v[0] + s * b[0]).powi(2) + (v[1] + s * b[1]).powi(2);
         let (mut sum, mut n) = ([0.0, 0.0], 0usize);
         for (i, p) in points.iter().enumerate() {
             for q in points.iter().skip(i + 1) {
                 let mut v = [q[0] - p[0], q[1] - p[1]];
-                if (v[0] + b[0]).hypot(v[1] + b[1]) < (v[0] - b[0]).hypot(v[1] - b[1]) {
+                if d2(v, 1.0) < d2(v, -1.0) {
                     v = [-v[0], -v[1]];
                 }
-                if (v[0] - b[0]).hypot(v[1] - b[1]) < 0.3 * len {
+                if d2(v, -1.0) < 0.09 * len2 {
                     sum[0] += v[0];
                     sum[1] += v[1];
                     n += 1;
@@ -252,7 +254,7 @@ fn nn_fraction(points: &[[f64; 2]], b1: [f64; 2], b2: [f64; 2]) -> f64 {
             .enumerate()
             .filter(|(j, _)| *j != i)
             .map(|(_, q)| [q[0] - p[0], q[1] - p[1]])
-            .min_by(|u, v| u[0].hypot(u[1]).total_cmp(&v[0].hypot(v[1])));
+            .min_by(|u, v| (u[0] * u[0] + u[1] * u[1]).total_cmp(&(v[0] * v[0] + v[1] * v[1])));
         let Some(d) = nearest else { continue };
         let f = [
             inv[0][0] * d[0] + inv[0][1] * d[1],
@@ -347,7 +349,7 @@ fn check_lattice(
             .enumerate()
             .filter(|(j, _)| *j != i)
             .map(|(_, q)| [q[0] - p[0], q[1] - p[1]])
-            .min_by(|u, v| u[0].hypot(u[1]).total_cmp(&v[0].hypot(v[1])));
+            .min_by(|u, v| (u[0] * u[0] + u[1] * u[1]).total_cmp(&(v[0] * v[0] + v[1] * v[1])));
         let Some(d) = nearest else { continue };
         let f = [
             inv[0][0] * d[0] + inv[0][1] * d[1],

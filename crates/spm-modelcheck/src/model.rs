@@ -623,6 +623,16 @@ pub(crate) struct Fit {
 /// others get zero weight and do not count in the rank, and the per-frame offsets (disjoint
 /// 0/1 indicator columns, hundreds in a movie) are eliminated exactly, so that the cost grows
 /// with the data, not with frames³.
+/// The design `cols` factored over the features of `mask` (both axes' rows), for many
+/// right-hand sides; `None` when it cannot be (too few features, a non-finite value).
+pub(crate) fn factor(cols: &[Column], mask: &[bool]) -> Option<spm_regression::FactoredDesign> {
+    let rows = cols.first().map_or(2 * mask.len(), Vec::len);
+    let included: Vec<bool> = (0..rows)
+        .map(|r| mask.get(r / 2).copied().unwrap_or(false))
+        .collect();
+    spm_regression::FactoredDesign::new(cols, &included).ok()
+}
+
 pub(crate) fn solve(
     cols: &[Column],
     target: &[f64],

@@ -35,7 +35,8 @@ pub use gls::{GeneralisedFit, SINGULAR_CORRELATION, generalised_least_squares};
 pub use lsq::{LinearFit, least_squares};
 pub use polynomial::{MAX_DEGREE, Polynomial2, n_terms, term_index, term_powers};
 pub use rank::{
-    MINIMUM_NORM_TOLERANCE, MinimumNormFit, minimum_norm_least_squares, minimum_norm_solve,
+    FactoredDesign, MINIMUM_NORM_TOLERANCE, MinimumNormFit, minimum_norm_least_squares,
+    minimum_norm_solve,
 };
 pub use select::{Criterion, DegreeScore, Selection, SelectionOptions, select_degree};
 pub use stats::{DeltaMax, Field, delta_max, median, product_values, rms, sigma, upper_median};

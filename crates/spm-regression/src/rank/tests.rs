@@ -201,3 +201,51 @@ fn symmetric_systems_solve_to_the_pseudo_inverse() {
         Err(RegressionError::NonFinite { .. })
     ));
 }
+
+/// One factored design fits many right-hand sides as separate calls do, bit for bit, with
+/// and without indicator columns, whatever was fitted before; a rhs of another length or
+/// with NaN in a fitted row is refused, one left out is not looked at.
+#[test]
+fn a_factored_design_fits_each_rhs_as_a_fresh_solve_does() {
+    let n = 200;
+    let u = |i: usize| ((i as f64 * 3.17).sin() * 1000.0).fract();
+    let with_offsets: Vec<Vec<f64>> = vec![
+        (0..n).map(|r| f64::from(u8::from(r < n / 2))).collect(),
+        (0..n).map(|r| f64::from(u8::from(r >= n / 2))).collect(),
+        (0..n).map(|r| u(r) - 0.5).collect(),
+        (0..n).map(|r| (r as f64 / 90.0).sin()).collect(),
+    ];
+    let dense_only = with_offsets[2..].to_vec();
+    let mask: Vec<bool> = (0..n).map(|r| r % 7 != 3).collect();
+    let targets: Vec<Vec<f64>> = (0..4)
+        .map(|k| {
+            (0..n)
+                .map(|r| (k as f64 + 1.0) * u(r + 11 * k) + 0.3 * with_offsets[3][r])
+                .collect()
+        })
+        .collect();
+    for cols in [&with_offsets, &dense_only] {
+        let design = FactoredDesign::new(cols, &mask).unwrap();
+        for target in targets.iter().rev().chain(&targets) {
+            let once = design.fit(target).unwrap();
+            let fresh = minimum_norm_least_squares(cols, target, &mask).unwrap();
+            assert_eq!(once, fresh);
+            assert!(once.rss > 0.0 && once.rank == cols.len());
+        }
+        let mut bad = targets[0].clone();
+        bad[3] = f64::NAN;
+        assert!(design.fit(&bad).is_ok(), "row 3 is left out");
+        bad[4] = f64::NAN;
+        assert!(matches!(
+            design.fit(&bad),
+            Err(RegressionError::NonFinite {
+                field: "rhs",
+                index: 4
+            })
+        ));
+        assert!(matches!(
+            design.fit(&targets[0][1..]),
+            Err(RegressionError::LengthMismatch { .. })
+        ));
+    }
+}

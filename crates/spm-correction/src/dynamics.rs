@@ -667,19 +667,7 @@ pub fn correct_effective_path(
     gain: [f64; 2],
     reference_commanded: [f64; 2],
 ) -> Result<Vec<[f64; 2]>, CorrectionError> {
-    let n = columns
-        .checked_mul(rows)
-        .ok_or(CorrectionError::Empty("raster size overflows"))?;
-    if n == 0 {
-        return Err(CorrectionError::Empty("raster with no pixel"));
-    }
-    if ue.len() != n {
-        return Err(CorrectionError::SizeMismatch {
-            what: "effective input",
-            expected: n,
-            got: ue.len(),
-        });
-    }
+    let n = path_pixels(columns, rows, ue.len())?;
     if let Some(index) = ue
         .iter()
         .position(|p| !(p[0].is_finite() && p[1].is_finite()))
@@ -689,6 +677,91 @@ pub fn correct_effective_path(
             index,
         });
     }
+    effective_path(
+        field,
+        columns,
+        rows,
+        n,
+        |i| ue[i],
+        gain,
+        reference_commanded,
+    )
+}
+
+/// [`correct_effective_path`] with the effective input of each axis in its own slice
+/// (`ue_x[i]`, `ue_y[i]` of pixel i, acquisition order), as a replay per axis gives it: the
+/// same sums, bit for bit, without the pairs' buffer.
+///
+/// # Errors
+/// As [`correct_effective_path`]; [`CorrectionError::SizeMismatch`] when the slices differ in
+/// length.
+pub fn correct_effective_path_axes(
+    field: &(impl CorrectionField + ?Sized),
+    columns: usize,
+    rows: usize,
+    ue_x: &[f64],
+    ue_y: &[f64],
+    gain: [f64; 2],
+    reference_commanded: [f64; 2],
+) -> Result<Vec<[f64; 2]>, CorrectionError> {
+    let n = path_pixels(columns, rows, ue_x.len())?;
+    if ue_y.len() != n {
+        return Err(CorrectionError::SizeMismatch {
+            what: "effective input",
+            expected: n,
+            got: ue_y.len(),
+        });
+    }
+    if let Some(index) = ue_x
+        .iter()
+        .zip(ue_y)
+        .position(|(x, y)| !(x.is_finite() && y.is_finite()))
+    {
+        return Err(CorrectionError::NonFinite {
+            what: "effective input",
+            index,
+        });
+    }
+    effective_path(
+        field,
+        columns,
+        rows,
+        n,
+        |i| [ue_x[i], ue_y[i]],
+        gain,
+        reference_commanded,
+    )
+}
+
+/// The pixels of a `columns` × `rows` path whose effective input holds `len` pixels.
+fn path_pixels(columns: usize, rows: usize, len: usize) -> Result<usize, CorrectionError> {
+    let n = columns
+        .checked_mul(rows)
+        .ok_or(CorrectionError::Empty("raster size overflows"))?;
+    if n == 0 {
+        return Err(CorrectionError::Empty("raster with no pixel"));
+    }
+    if len != n {
+        return Err(CorrectionError::SizeMismatch {
+            what: "effective input",
+            expected: n,
+            got: len,
+        });
+    }
+    Ok(n)
+}
+
+/// The sums of [`correct_effective_path`] over the `n` = `columns` × `rows` pixels whose
+/// (checked, finite) effective input `ue(i)` gives.
+fn effective_path(
+    field: &(impl CorrectionField + ?Sized),
+    columns: usize,
+    rows: usize,
+    n: usize,
+    ue: impl Fn(usize) -> [f64; 2] + Sync,
+    gain: [f64; 2],
+    reference_commanded: [f64; 2],
+) -> Result<Vec<[f64; 2]>, CorrectionError> {
     if !(gain[0] > 0.0 && gain[1] > 0.0) {
         return Err(CorrectionError::InvalidArgument(format!("gain {gain:?}")));
     }
@@ -709,11 +782,11 @@ pub fn correct_effective_path(
     // The line starts chain line to line; each line then sums its own increments (the lines
     // are independent given their starts, so they run on every core, bit-identically).
     let mut line_starts = Vec::with_capacity(rows);
-    let mut line_start = step(reference, ue[0]);
+    let mut line_start = step(reference, ue(0));
     for line in 0..rows {
         let base = line * columns;
         if line > 0 {
-            let d = step(ue[base - columns], ue[base]);
+            let d = step(ue(base - columns), ue(base));
             line_start = [line_start[0] + d[0], line_start[1] + d[1]];
         }
         line_starts.push(line_start);
@@ -721,9 +794,12 @@ pub fn correct_effective_path(
     for_each_row(Parallelism::AllCores, &mut out, columns, |line, row| {
         let base = line * columns;
         row[0] = line_starts[line];
+        let mut previous = ue(base);
         for k in 1..columns {
-            let d = step(ue[base + k - 1], ue[base + k]);
+            let next = ue(base + k);
+            let d = step(previous, next);
             row[k] = [row[k - 1][0] + d[0], row[k - 1][1] + d[1]];
+            previous = next;
         }
     })?;
     Ok(out)

@@ -404,13 +404,13 @@ impl<'l> CreepStates<'l> {
         }
     }
 
-    /// The table of a duration: a kept one, or a new one in the next slot.
-    fn table(&mut self, duration_s: f64) -> &DecayTable {
+    /// The index of a duration's table: a kept one, or a new one in the next slot.
+    fn table(&mut self, duration_s: f64) -> usize {
         if let Some(k) = self.tables.iter().position(|t| t.holds(duration_s)) {
-            return &self.tables[k];
+            return k;
         }
         let table = DecayTable::new(self.law, duration_s);
-        let k = if self.tables.len() < DECAY_TABLES {
+        if self.tables.len() < DECAY_TABLES {
             self.tables.push(table);
             self.tables.len() - 1
         } else {
@@ -418,39 +418,71 @@ impl<'l> CreepStates<'l> {
             self.tables[k] = table;
             self.next = (k + 1) % DECAY_TABLES;
             k
-        };
-        &self.tables[k]
+        }
     }
 
     /// Advances over a straight piece from `from` to `to` lasting `duration_s` (≥ 0); returns
     /// the creep c = Σcₖ at its end.
+    ///
+    /// The sum is taken in four partial sums (elements k ≡ 0, 1, 2, 3 mod 4, then the last
+    /// n mod 4 elements), so the per-pixel sum is not one chain of dependent additions; the
+    /// advance adds each element to its partial sum as it updates it (one pass over the
+    /// states).
     fn advance(&mut self, from: f64, to: f64, duration_s: f64) -> f64 {
-        if duration_s > 0.0 {
-            let n = self.states.len();
-            let mut states = std::mem::take(&mut self.states);
-            let table = self.table(duration_s);
-            let b = (to - from) / table.duration_s;
-            let (decay, from_gain, slope_gain) = (
-                &table.decay[..n],
-                &table.from_gain[..n],
-                &table.slope_gain[..n],
-            );
-            for (k, s) in states.iter_mut().enumerate() {
-                *s = decay[k] * *s + from_gain[k] * from + slope_gain[k] * b;
-            }
-            self.states = states;
+        if !(duration_s > 0.0) {
+            return four_partial_sums(&self.states);
         }
-        // Four partial sums: the per-pixel sum is then not one chain of dependent additions.
+        let k = self.table(duration_s);
+        let table = &self.tables[k];
+        let b = (to - from) / table.duration_s;
+        let n = self.states.len();
+        let whole = n - n % 4;
+        let (decay, from_gain, slope_gain) = (
+            &table.decay[..n],
+            &table.from_gain[..n],
+            &table.slope_gain[..n],
+        );
         let mut partial = [0.0; 4];
-        let mut chunks = self.states.chunks_exact(4);
-        for chunk in &mut chunks {
-            for (p, s) in partial.iter_mut().zip(chunk) {
-                *p += s;
+        for (((s, d), g), h) in self.states[..whole]
+            .chunks_exact_mut(4)
+            .zip(decay.chunks_exact(4))
+            .zip(from_gain.chunks_exact(4))
+            .zip(slope_gain.chunks_exact(4))
+        {
+            for m in 0..4 {
+                let v = d[m] * s[m] + g[m] * from + h[m] * b;
+                s[m] = v;
+                partial[m] += v;
             }
         }
-        let tail: f64 = chunks.remainder().iter().sum();
+        let mut tail = [0.0; 3];
+        let rest = n - whole;
+        for (((t, s), d), (g, h)) in tail
+            .iter_mut()
+            .zip(&mut self.states[whole..])
+            .zip(&decay[whole..])
+            .zip(from_gain[whole..].iter().zip(&slope_gain[whole..]))
+        {
+            *s = d * *s + g * from + h * b;
+            *t = *s;
+        }
+        let tail: f64 = tail[..rest].iter().sum();
         (partial[0] + partial[1]) + (partial[2] + partial[3]) + tail
     }
+}
+
+/// Σ `states` as [`CreepStates::advance`] sums them: four partial sums over the whole chunks
+/// of four, then the remainder.
+fn four_partial_sums(states: &[f64]) -> f64 {
+    let mut partial = [0.0; 4];
+    let mut chunks = states.chunks_exact(4);
+    for chunk in &mut chunks {
+        for (p, s) in partial.iter_mut().zip(chunk) {
+            *p += s;
+        }
+    }
+    let tail: f64 = chunks.remainder().iter().sum();
+    (partial[0] + partial[1]) + (partial[2] + partial[3]) + tail
 }
 
 /// The hysteresis of one axis along one monotone segment, swept: from the state `y⁰` at the

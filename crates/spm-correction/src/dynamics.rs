@@ -23,7 +23,7 @@
 //! Pure: no IO, no clock.
 
 use crate::error::CorrectionError;
-use crate::field::CorrectionField;
+use crate::field::{CorrectionField, FormCoefficients};
 use crate::parallel::{Parallelism, for_each_row};
 use crate::raster::{CoordinateMap, YCoordinates};
 use spm_hal::recording::CommandEvent;
@@ -791,13 +791,29 @@ fn effective_path(
         }
         line_starts.push(line_start);
     }
+    // Along a line, the forms at the increments' midpoints are evaluated in one call (the
+    // same values as `step`'s, bit for bit).
     for_each_row(Parallelism::AllCores, &mut out, columns, |line, row| {
         let base = line * columns;
+        let mut mid_x = Vec::with_capacity(columns);
+        let mut mid_y = Vec::with_capacity(columns);
+        for k in 1..columns {
+            let (from, to) = (ue(base + k - 1), ue(base + k));
+            mid_x.push(0.5 * (from[0] + to[0]) / gain[0]);
+            mid_y.push(0.5 * (from[1] + to[1]) / gain[1]);
+        }
+        let zero = FormCoefficients {
+            kx_nm_per_count: 0.0,
+            kyx_nm_per_count: 0.0,
+            kyy_nm_per_count: 0.0,
+        };
+        let mut forms = vec![zero; columns - 1];
+        field.forms(&mid_x, &mid_y, &mut forms);
         row[0] = line_starts[line];
         let mut previous = ue(base);
         for k in 1..columns {
             let next = ue(base + k);
-            let d = step(previous, next);
+            let d = forms[k - 1].increment(next[0] - previous[0], next[1] - previous[1]);
             row[k] = [row[k - 1][0] + d[0], row[k - 1][1] + d[1]];
             previous = next;
         }

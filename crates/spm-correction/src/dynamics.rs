@@ -44,6 +44,7 @@ pub struct CommandSegment {
 
 impl CommandSegment {
     /// The command at time `t` (clamped to the segment).
+    #[inline]
     pub fn at(&self, t_s: f64) -> [f64; 2] {
         let d = self.end_s - self.start_s;
         let f = if d > 0.0 {

@@ -344,10 +344,17 @@ impl ScannerDynamics {
 /// with a cached one to [`SAME_DURATION`] (times written as `base + k·dwell` differ in
 /// their last bits) is advanced as lasting the cached duration, which moves the creep by far
 /// less than a pico-count; otherwise the advance is [`crate::dynamics::creep_offsets`]'s.
+///
+/// Each element is kept as its lag `eₖ = cₖ − w·x` behind the equilibrium of the current
+/// input x (every element has the weight w): over a ramp of x by Δx in T, `τₖċₖ = w·x − cₖ`
+/// gives `eₖ ← e^{−T/τₖ}·eₖ − w·τₖ·(1 − e^{−T/τₖ})·Δx/T` — two products per element where
+/// cₖ itself takes three — and the creep is `c = Σcₖ = Σeₖ + W·x` (W = n·w).
 struct CreepStates<'l> {
     law: &'l CreepLaw,
-    /// Per element: cₖ (counts).
-    states: Vec<f64>,
+    /// Per element: eₖ = cₖ − w·x (counts).
+    lags: Vec<f64>,
+    /// W = n·w.
+    total_weight: f64,
     /// The exponentials of the last few durations (a raster alternates a few: trace,
     /// retrace, the step to the next line), replaced round robin.
     tables: Vec<DecayTable>,
@@ -358,15 +365,14 @@ struct CreepStates<'l> {
 /// Tables kept by [`CreepStates`].
 const DECAY_TABLES: usize = 4;
 
-/// Per element, for one duration T: e^{−T/τ}, w·(1 − e^{−T/τ}) and w·(T − τ·(1 − e^{−T/τ})),
-/// so that a ramp `a + b·s` advances cₖ to `e·cₖ + A·a + B·b` (three arrays, so the per-pixel
+/// Per element, for one duration T: e^{−T/τ} and w·τ·(1 − e^{−T/τ})/T, so that a ramp of
+/// the input by Δx over T advances the lag eₖ to `e·eₖ − L·Δx` (two arrays, so the per-pixel
 /// update is one vectorisable loop).
 struct DecayTable {
     /// T, s.
     duration_s: f64,
     decay: Vec<f64>,
-    from_gain: Vec<f64>,
-    slope_gain: Vec<f64>,
+    lag_gain: Vec<f64>,
 }
 
 impl DecayTable {
@@ -376,14 +382,12 @@ impl DecayTable {
         let mut table = Self {
             duration_s,
             decay: Vec::with_capacity(taus.len()),
-            from_gain: Vec::with_capacity(taus.len()),
-            slope_gain: Vec::with_capacity(taus.len()),
+            lag_gain: Vec::with_capacity(taus.len()),
         };
         for &tau in taus {
             let one_minus = -(-duration_s / tau).exp_m1();
             table.decay.push((-duration_s / tau).exp());
-            table.from_gain.push(w * one_minus);
-            table.slope_gain.push(w * (duration_s - tau * one_minus));
+            table.lag_gain.push(w * tau * one_minus / duration_s);
         }
         table
     }
@@ -394,11 +398,13 @@ impl DecayTable {
 }
 
 impl<'l> CreepStates<'l> {
-    fn settled(law: &'l CreepLaw, x: f64) -> Self {
+    /// Every element settled at the input (no lag).
+    fn settled(law: &'l CreepLaw) -> Self {
         let n = law.time_constants_s().len();
         Self {
             law,
-            states: vec![law.weight() * x; n],
+            lags: vec![0.0; n],
+            total_weight: law.total_weight(),
             tables: Vec::with_capacity(DECAY_TABLES),
             next: 0,
         }
@@ -421,68 +427,59 @@ impl<'l> CreepStates<'l> {
         }
     }
 
-    /// Advances over a straight piece from `from` to `to` lasting `duration_s` (≥ 0); returns
-    /// the creep c = Σcₖ at its end.
+    /// Advances over a straight piece from `from` to `to` lasting `duration_s` (≥ 0; a piece
+    /// of no duration leaves every cₖ where it is); returns the creep c = Σcₖ at its end.
     ///
-    /// The sum is taken in four partial sums (elements k ≡ 0, 1, 2, 3 mod 4, then the last
+    /// Σeₖ is taken in four partial sums (elements k ≡ 0, 1, 2, 3 mod 4, then the last
     /// n mod 4 elements), so the per-pixel sum is not one chain of dependent additions; the
-    /// advance adds each element to its partial sum as it updates it (one pass over the
-    /// states).
+    /// advance adds each element to its partial sum as it updates it (one pass).
+    #[inline]
     fn advance(&mut self, from: f64, to: f64, duration_s: f64) -> f64 {
-        if !(duration_s > 0.0) {
-            return four_partial_sums(&self.states);
-        }
-        let k = self.table(duration_s);
-        let table = &self.tables[k];
-        let b = (to - from) / table.duration_s;
-        let n = self.states.len();
+        let n = self.lags.len();
         let whole = n - n % 4;
-        let (decay, from_gain, slope_gain) = (
-            &table.decay[..n],
-            &table.from_gain[..n],
-            &table.slope_gain[..n],
-        );
         let mut partial = [0.0; 4];
-        for (((s, d), g), h) in self.states[..whole]
-            .chunks_exact_mut(4)
-            .zip(decay.chunks_exact(4))
-            .zip(from_gain.chunks_exact(4))
-            .zip(slope_gain.chunks_exact(4))
-        {
-            for m in 0..4 {
-                let v = d[m] * s[m] + g[m] * from + h[m] * b;
-                s[m] = v;
-                partial[m] += v;
+        let mut tail = [0.0; 3];
+        if duration_s > 0.0 {
+            let k = self.table(duration_s);
+            let table = &self.tables[k];
+            let rise = to - from;
+            let (decay, lag_gain) = (&table.decay[..n], &table.lag_gain[..n]);
+            for ((e, d), g) in self.lags[..whole]
+                .chunks_exact_mut(4)
+                .zip(decay.chunks_exact(4))
+                .zip(lag_gain.chunks_exact(4))
+            {
+                for m in 0..4 {
+                    let v = d[m] * e[m] - g[m] * rise;
+                    e[m] = v;
+                    partial[m] += v;
+                }
+            }
+            for ((t, e), (d, g)) in tail
+                .iter_mut()
+                .zip(&mut self.lags[whole..])
+                .zip(decay[whole..].iter().zip(&lag_gain[whole..]))
+            {
+                *e = d * *e - g * rise;
+                *t = *e;
+            }
+        } else {
+            // cₖ unchanged while the equilibrium moves from `from` to `to`.
+            let shift = self.law.weight() * (from - to);
+            for e in self.lags[..whole].chunks_exact_mut(4) {
+                for m in 0..4 {
+                    e[m] += shift;
+                    partial[m] += e[m];
+                }
+            }
+            for (t, e) in tail.iter_mut().zip(&mut self.lags[whole..]) {
+                *e += shift;
+                *t = *e;
             }
         }
-        let mut tail = [0.0; 3];
-        let rest = n - whole;
-        for (((t, s), d), (g, h)) in tail
-            .iter_mut()
-            .zip(&mut self.states[whole..])
-            .zip(&decay[whole..])
-            .zip(from_gain[whole..].iter().zip(&slope_gain[whole..]))
-        {
-            *s = d * *s + g * from + h * b;
-            *t = *s;
-        }
-        let tail: f64 = tail[..rest].iter().sum();
-        (partial[0] + partial[1]) + (partial[2] + partial[3]) + tail
+        let tail: f64 = tail[..n - whole].iter().sum();
+        (partial[0] + partial[1]) + (partial[2] + partial[3]) + tail + self.total_weight * to
     }
-}
-
-/// Σ `states` as [`CreepStates::advance`] sums them: four partial sums over the whole chunks
-/// of four, then the remainder.
-fn four_partial_sums(states: &[f64]) -> f64 {
-    let mut partial = [0.0; 4];
-    let mut chunks = states.chunks_exact(4);
-    for chunk in &mut chunks {
-        for (p, s) in partial.iter_mut().zip(chunk) {
-            *p += s;
-        }
-    }
-    let tail: f64 = chunks.remainder().iter().sum();
-    (partial[0] + partial[1]) + (partial[2] + partial[3]) + tail
 }
 
 /// The hysteresis of one axis along one monotone segment, swept: from the state `y⁰` at the
@@ -636,9 +633,7 @@ pub fn replay_axis(
         let x = u + h;
         let c = match (previous, creep.as_mut()) {
             (Some((t0, x0)), Some(states)) => states.advance(x0, x, (t - t0).max(0.0)),
-            _ => creep
-                .insert(CreepStates::settled(law, x))
-                .advance(x, x, 0.0),
+            _ => creep.insert(CreepStates::settled(law)).advance(x, x, 0.0),
         };
         previous = Some((t, x));
         while q < query_times_s.len() && query_times_s[q] <= t {

@@ -286,7 +286,6 @@ pub fn resample_into(
             resample_rows(&source, map.x_nm(), y_rows, &grid, parallelism, out)
         }
         YCoordinates::PerPixel(y_px) => {
-            out.fill(f64::NAN);
             resample_newton(&source, map.x_nm(), y_px, &grid, parallelism, out)
         }
     }
@@ -733,6 +732,7 @@ fn resample_newton(
     ];
     let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
     if !(det.is_finite() && det.abs() > 0.0) {
+        out.fill(f64::NAN);
         return Err(CorrectionError::NotMonotone {
             axis: "x",
             index: 0,
@@ -779,6 +779,9 @@ fn resample_newton(
     // rows side by side give the processor independent chains to overlap. Each row's
     // arithmetic is the same as walked alone.
     for_each_row(parallelism, out, NEWTON_ROWS * columns, |item, rows| {
+        // NaN where no node is written (outside the data), filled here so that each worker
+        // first touches its own rows.
+        rows.fill(f64::NAN);
         let first_row = item * NEWTON_ROWS;
         let mut walks = [RowWalk::default(); NEWTON_ROWS];
         let count = rows.len() / columns;

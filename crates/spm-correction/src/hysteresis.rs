@@ -351,8 +351,11 @@ impl ScannerDynamics {
 /// cₖ itself takes three — and the creep is `c = Σcₖ = Σeₖ + W·x` (W = n·w).
 struct CreepStates<'l> {
     law: &'l CreepLaw,
-    /// Per element: eₖ = cₖ − w·x (counts).
-    lags: Vec<f64>,
+    /// Per element: eₖ = cₖ − w·x (counts), in blocks of four (the last block padded with
+    /// elements that stay 0: their decay and gain are 0).
+    lags: Vec<[f64; 4]>,
+    /// The number of elements n.
+    elements: usize,
     /// W = n·w.
     total_weight: f64,
     /// The exponentials of the last few durations (a raster alternates a few: trace,
@@ -366,28 +369,30 @@ struct CreepStates<'l> {
 const DECAY_TABLES: usize = 4;
 
 /// Per element, for one duration T: e^{−T/τ} and w·τ·(1 − e^{−T/τ})/T, so that a ramp of
-/// the input by Δx over T advances the lag eₖ to `e·eₖ − L·Δx` (two arrays, so the per-pixel
-/// update is one vectorisable loop).
+/// the input by Δx over T advances the lag eₖ to `e·eₖ − L·Δx`; in blocks of four as
+/// [`CreepStates`] keeps the lags (padded with 0), so the per-pixel update is one
+/// vectorisable loop.
 struct DecayTable {
     /// T, s.
     duration_s: f64,
-    decay: Vec<f64>,
-    lag_gain: Vec<f64>,
+    decay: Vec<[f64; 4]>,
+    lag_gain: Vec<[f64; 4]>,
 }
 
 impl DecayTable {
     fn new(law: &CreepLaw, duration_s: f64) -> Self {
         let w = law.weight();
         let taus = law.time_constants_s();
+        let blocks = taus.len().div_ceil(4);
         let mut table = Self {
             duration_s,
-            decay: Vec::with_capacity(taus.len()),
-            lag_gain: Vec::with_capacity(taus.len()),
+            decay: vec![[0.0; 4]; blocks],
+            lag_gain: vec![[0.0; 4]; blocks],
         };
-        for &tau in taus {
+        for (k, &tau) in taus.iter().enumerate() {
             let one_minus = -(-duration_s / tau).exp_m1();
-            table.decay.push((-duration_s / tau).exp());
-            table.lag_gain.push(w * tau * one_minus / duration_s);
+            table.decay[k / 4][k % 4] = (-duration_s / tau).exp();
+            table.lag_gain[k / 4][k % 4] = w * tau * one_minus / duration_s;
         }
         table
     }
@@ -403,7 +408,8 @@ impl<'l> CreepStates<'l> {
         let n = law.time_constants_s().len();
         Self {
             law,
-            lags: vec![0.0; n],
+            lags: vec![[0.0; 4]; n.div_ceil(4)],
+            elements: n,
             total_weight: law.total_weight(),
             tables: Vec::with_capacity(DECAY_TABLES),
             next: 0,
@@ -430,55 +436,39 @@ impl<'l> CreepStates<'l> {
     /// Advances over a straight piece from `from` to `to` lasting `duration_s` (≥ 0; a piece
     /// of no duration leaves every cₖ where it is); returns the creep c = Σcₖ at its end.
     ///
-    /// Σeₖ is taken in four partial sums (elements k ≡ 0, 1, 2, 3 mod 4, then the last
-    /// n mod 4 elements), so the per-pixel sum is not one chain of dependent additions; the
-    /// advance adds each element to its partial sum as it updates it (one pass).
+    /// Σeₖ is taken in four partial sums (one per place in the blocks), so the per-pixel sum
+    /// is not one chain of dependent additions; the advance adds each element to its partial
+    /// sum as it updates it (one pass).
     #[inline]
     fn advance(&mut self, from: f64, to: f64, duration_s: f64) -> f64 {
-        let n = self.lags.len();
-        let whole = n - n % 4;
         let mut partial = [0.0; 4];
-        let mut tail = [0.0; 3];
         if duration_s > 0.0 {
             let k = self.table(duration_s);
             let table = &self.tables[k];
             let rise = to - from;
-            let (decay, lag_gain) = (&table.decay[..n], &table.lag_gain[..n]);
-            for ((e, d), g) in self.lags[..whole]
-                .chunks_exact_mut(4)
-                .zip(decay.chunks_exact(4))
-                .zip(lag_gain.chunks_exact(4))
-            {
+            for ((e, d), g) in self.lags.iter_mut().zip(&table.decay).zip(&table.lag_gain) {
+                let mut v = [0.0; 4];
                 for m in 0..4 {
-                    let v = d[m] * e[m] - g[m] * rise;
-                    e[m] = v;
-                    partial[m] += v;
+                    v[m] = d[m] * e[m] - g[m] * rise;
                 }
-            }
-            for ((t, e), (d, g)) in tail
-                .iter_mut()
-                .zip(&mut self.lags[whole..])
-                .zip(decay[whole..].iter().zip(&lag_gain[whole..]))
-            {
-                *e = d * *e - g * rise;
-                *t = *e;
+                *e = v;
+                for m in 0..4 {
+                    partial[m] += v[m];
+                }
             }
         } else {
             // cₖ unchanged while the equilibrium moves from `from` to `to`.
             let shift = self.law.weight() * (from - to);
-            for e in self.lags[..whole].chunks_exact_mut(4) {
+            for e in &mut self.lags.as_flattened_mut()[..self.elements] {
+                *e += shift;
+            }
+            for e in &self.lags {
                 for m in 0..4 {
-                    e[m] += shift;
                     partial[m] += e[m];
                 }
             }
-            for (t, e) in tail.iter_mut().zip(&mut self.lags[whole..]) {
-                *e += shift;
-                *t = *e;
-            }
         }
-        let tail: f64 = tail[..n - whole].iter().sum();
-        (partial[0] + partial[1]) + (partial[2] + partial[3]) + tail + self.total_weight * to
+        (partial[0] + partial[1]) + (partial[2] + partial[3]) + self.total_weight * to
     }
 }
 
@@ -590,17 +580,31 @@ pub fn replay_axis(
     let segments = history.segments();
     let first = crate::dynamics::first_of_replay(history, query_times_s)?;
     let axis = axis.min(1);
+    let last_segment = segments.len() - 1;
     let mut play = PlayState::settled(model.thresholds_counts.len(), first.from_counts[axis]);
     // The play pointer: segments before `applied` have been applied at their ends.
     let mut applied = 0;
     let mut sweep = PlaySweep::default();
-    // u and h at time t: the segment holding t swept, or, after the history, its end held.
-    let mut at = |t: f64| -> (f64, f64) {
+    // The merged times: every segment end and every query, each once, in order.
+    let mut end = 0;
+    let mut q = 0;
+    let n = query_times_s.len();
+    let mut previous: Option<(f64, f64)> = None;
+    let mut creep: Option<CreepStates<'_>> = None;
+    while q < n {
+        let t = match segments.get(end) {
+            Some(seg) if seg.end_s <= query_times_s[q] => seg.end_s,
+            _ => query_times_s[q],
+        };
+        while end < segments.len() && segments[end].end_s <= t {
+            end += 1;
+        }
+        // u and h at time t: the segment holding t swept, or, after the history, its end held.
         while applied < segments.len() && segments[applied].end_s < t {
             play.apply(&model.thresholds_counts, segments[applied].to_counts[axis]);
             applied += 1;
         }
-        let seg = &segments[applied.min(segments.len() - 1)];
+        let seg = &segments[applied.min(last_segment)];
         let u = seg.at(t)[axis];
         let h = if applied < segments.len() {
             if sweep.segment != Some(applied) {
@@ -614,32 +618,35 @@ pub fn replay_axis(
                 .map(|(y, w)| y * w)
                 .sum::<f64>()
         };
-        (u, h)
-    };
-    // The merged times: every segment end and every query, each once, in order.
-    let mut end = 0;
-    let mut q = 0;
-    let mut previous: Option<(f64, f64)> = None;
-    let mut creep: Option<CreepStates<'_>> = None;
-    while q < query_times_s.len() {
-        let t = match segments.get(end) {
-            Some(seg) if seg.end_s <= query_times_s[q] => seg.end_s,
-            _ => query_times_s[q],
-        };
-        while end < segments.len() && segments[end].end_s <= t {
-            end += 1;
-        }
-        let (u, h) = at(t);
         let x = u + h;
-        let c = match (previous, creep.as_mut()) {
-            (Some((t0, x0)), Some(states)) => states.advance(x0, x, (t - t0).max(0.0)),
-            _ => creep.insert(CreepStates::settled(law)).advance(x, x, 0.0),
+        let states = creep.get_or_insert_with(|| CreepStates::settled(law));
+        let c = match previous {
+            Some((t0, x0)) => states.advance(x0, x, (t - t0).max(0.0)),
+            None => states.advance(x, x, 0.0),
         };
-        previous = Some((t, x));
-        while q < query_times_s.len() && query_times_s[q] <= t {
+        let (mut t_last, mut x_last) = (t, x);
+        while q < n && query_times_s[q] <= t {
             sink(h, c);
             q += 1;
         }
+        // The queries strictly inside the segment being swept (no segment end among them, so
+        // each is the next merged time, with the segment and its sweep as they are): the
+        // steps above without their checks.
+        if applied == end && applied < segments.len() {
+            while q < n && query_times_s[q] < seg.end_s {
+                let t = query_times_s[q];
+                let u = seg.at(t)[axis];
+                let h = sweep.at(u);
+                let x = u + h;
+                let c = states.advance(x_last, x, (t - t_last).max(0.0));
+                (t_last, x_last) = (t, x);
+                while q < n && query_times_s[q] <= t {
+                    sink(h, c);
+                    q += 1;
+                }
+            }
+        }
+        previous = Some((t_last, x_last));
     }
     Ok(())
 }

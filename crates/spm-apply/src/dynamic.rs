@@ -155,11 +155,12 @@ pub fn dynamic_map<F: CorrectionField + ?Sized>(
     let pixels = HalfPixels::new(raster, half);
     let history = raster_history(raster, &pixels.order, line_time_s);
     let times: Vec<f64> = (0..pixels.len())
+        .into_par_iter()
         .map(|i| pixels.time_s(i, line_time_s))
         .collect();
     let ue = effective_input(dynamics, &pixels, &history, &times)?;
     drop(times);
-    map_along(field, raster, dynamics, &pixels, &ue)
+    map_along(field, raster, dynamics, &pixels, ue)
 }
 
 /// [`dynamic_map`] of the second frame of a pair scanned right after `earlier` (a
@@ -207,11 +208,12 @@ pub fn dynamic_map_after<F: CorrectionField + ?Sized>(
     append_raster(&mut history, earlier, &earlier_order, earlier_line_s, 0.0);
     append_raster(&mut history, raster, &pixels.order, line_time_s, delay_s);
     let times: Vec<f64> = (0..pixels.len())
+        .into_par_iter()
         .map(|i| delay_s + pixels.time_s(i, line_time_s))
         .collect();
     let ue = effective_input(dynamics, &pixels, &history, &times)?;
     drop(times);
-    map_along(field, raster, dynamics, &pixels, &ue)
+    map_along(field, raster, dynamics, &pixels, ue)
 }
 
 /// The instrument time of every pixel of one half of `raster` as [`dynamic_map`] replays it
@@ -311,17 +313,17 @@ pub fn recorded_map<F: CorrectionField + ?Sized>(
     // The file's geometry gives the commands; the record gives when.
     let pixels = HalfPixels::new(raster, half);
     let ue = effective_input(dynamics, &pixels, history, pixel_times_s)?;
-    map_along(field, raster, dynamics, &pixels, &ue)
+    map_along(field, raster, dynamics, &pixels, ue)
 }
 
 /// The map of a half's pixels given their effective input `[ue_x, ue_y]` (see
-/// [`dynamic_map`]).
+/// [`dynamic_map`]); the input's buffers become the map's.
 fn map_along<F: CorrectionField + ?Sized>(
     field: &F,
     raster: &FileRaster,
     dynamics: &ScannerDynamics,
     pixels: &HalfPixels<'_>,
-    ue: &[Vec<f64>; 2],
+    ue: [Vec<f64>; 2],
 ) -> Result<(CoordinateMap, [f64; 2]), CorrectionError> {
     let (nx, ny) = (raster.columns, raster.rows);
     let gain = dynamics.gain()?;
@@ -360,8 +362,9 @@ fn map_along<F: CorrectionField + ?Sized>(
         &quadrature,
     )?);
     let (s, c) = raster.angle_ccw_rad.sin_cos();
-    let mut x_nm = vec![0.0; nx * ny];
-    let mut y_nm = vec![0.0; nx * ny];
+    // The effective input is spent: its buffers (one value per pixel each) take the map,
+    // every value of which is written below.
+    let [mut x_nm, mut y_nm] = ue;
     // Map row m holds display row ny − 1 − m, which one acquired line holds (`display_row`
     // is its own inverse: the identity or the reversal of the rows); the map's rows are
     // filled on every core.

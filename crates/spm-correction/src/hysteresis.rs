@@ -397,6 +397,7 @@ impl DecayTable {
         table
     }
 
+    #[inline]
     fn holds(&self, duration_s: f64) -> bool {
         (duration_s - self.duration_s).abs() <= SAME_DURATION * duration_s
     }
@@ -416,11 +417,19 @@ impl<'l> CreepStates<'l> {
         }
     }
 
-    /// The index of a duration's table: a kept one, or a new one in the next slot.
+    /// The index of a duration's table: the first kept one that holds it, or a new one in the
+    /// next slot.
+    #[inline]
     fn table(&mut self, duration_s: f64) -> usize {
         if let Some(k) = self.tables.iter().position(|t| t.holds(duration_s)) {
             return k;
         }
+        self.new_table(duration_s)
+    }
+
+    /// A new table in the next slot (the rare path of [`CreepStates::table`]).
+    #[inline(never)]
+    fn new_table(&mut self, duration_s: f64) -> usize {
         let table = DecayTable::new(self.law, duration_s);
         if self.tables.len() < DECAY_TABLES {
             self.tables.push(table);

@@ -197,7 +197,7 @@ fn catmull_rom_weights(t: f64) -> [f64; 4] {
 impl Source<'_> {
     /// The image at fractional (column, row) with row = j + fy; column in [0, columns − 1],
     /// 0 ≤ j ≤ rows − 2 (or 0 for one row) and fy ∈ [0, 1].
-    #[inline]
+    #[inline(always)]
     fn sample(&self, column: f64, j: usize, fy: f64) -> f64 {
         let nx = self.columns;
         let i = (column as usize).min(nx.saturating_sub(2));
@@ -625,7 +625,7 @@ fn resample_rows(
 }
 
 /// Bilinear forward map at (c, r) (cell clamped, so extrapolated outside) and its Jacobian.
-#[inline]
+#[inline(always)]
 fn forward(
     x_nm: &[f64],
     y_nm: &[f64],
@@ -664,7 +664,7 @@ fn forward(
 const NEWTON_STEP_DONE_PX: f64 = 1e-7;
 
 /// Newton's method for F(c, r) = target from `guess`; None if it does not converge.
-#[inline]
+#[inline(always)]
 fn invert(
     x_nm: &[f64],
     y_nm: &[f64],
@@ -794,20 +794,10 @@ fn resample_newton(
                 before_previous: None,
             };
         }
-        if count == NEWTON_ROWS {
-            for c in 0..columns {
-                for (k, walk) in walks.iter_mut().enumerate() {
-                    if let Some(v) = node(walk, c) {
-                        rows[k * columns + c] = v;
-                    }
-                }
-            }
-        } else {
-            for (walk, row) in walks.iter_mut().zip(rows.chunks_mut(columns)) {
-                for (c, o) in row.iter_mut().enumerate() {
-                    if let Some(v) = node(walk, c) {
-                        *o = v;
-                    }
+        for c in 0..columns {
+            for (k, walk) in walks.iter_mut().enumerate().take(count) {
+                if let Some(v) = node(walk, c) {
+                    rows[k * columns + c] = v;
                 }
             }
         }

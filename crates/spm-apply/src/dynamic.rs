@@ -2,7 +2,7 @@
 //! commands — every line's trace and retrace at the file's line time, the slow axis stepping
 //! between lines — through the calibration file's scanner dynamics (PI hysteresis per axis,
 //! then the creep of its output), and eq. (5) is summed over the increments of the effective
-//! input pixel to pixel (`spm_correction::dynamics::correct_effective_path`).
+//! input pixel to pixel (`spm_correction::dynamics::correct_effective_path_axes`).
 //!
 //! Of the probe's history before the frame nothing is known from a file alone: the replay
 //! starts settled at the frame's first pixel (no creep of the approach move, the hysteresis
@@ -133,7 +133,7 @@ impl<'r> HalfPixels<'r> {
 ///
 /// # Errors
 /// [`CorrectionError::InvalidArgument`] without a line time; as the dynamics' replay and
-/// [`correct_effective_path`].
+/// [`correct_effective_path_axes`].
 pub fn dynamic_map<F: CorrectionField + ?Sized>(
     field: &F,
     raster: &FileRaster,

@@ -2,16 +2,17 @@
 //! commands — every line's trace and retrace at the file's line time, the slow axis stepping
 //! between lines — through the calibration file's scanner dynamics (PI hysteresis per axis,
 //! then the creep of its output), and eq. (5) is summed over the increments of the effective
-//! input pixel to pixel (`spm_correction::dynamics::correct_effective_path`).
+//! input pixel to pixel (`spm_correction::dynamics::correct_effective_path_axes`).
 //!
 //! Of the probe's history before the frame nothing is known from a file alone: the replay
 //! starts settled at the frame's first pixel (no creep of the approach move, the hysteresis
 //! demagnetised there). What the image then still carries of the approach is named in the
 //! output ([`crate::DynamicsUsed`]).
 
+use rayon::prelude::*;
 use spm_correction::CorrectionError;
-use spm_correction::dynamics::{CommandHistory, correct_effective_path};
-use spm_correction::hysteresis::ScannerDynamics;
+use spm_correction::dynamics::{CommandHistory, correct_effective_path_axes};
+use spm_correction::hysteresis::{PlayHysteresis, ScannerDynamics, replay_axis};
 use spm_correction::{CoordinateMap, CorrectionField, Quadrature, YCoordinates, correct_polyline};
 use spm_hal::CountPoint;
 
@@ -67,6 +68,8 @@ struct HalfPixels<'r> {
     /// Display columns in trace order.
     order: Vec<usize>,
     half: Half,
+    /// (sin, cos) of the raster's scan angle.
+    rotation: (f64, f64),
 }
 
 impl<'r> HalfPixels<'r> {
@@ -75,6 +78,7 @@ impl<'r> HalfPixels<'r> {
             raster,
             order: raster.line_columns().collect(),
             half,
+            rotation: raster.angle_ccw_rad.sin_cos(),
         }
     }
 
@@ -96,7 +100,17 @@ impl<'r> HalfPixels<'r> {
     /// Commanded counts of the `i`-th acquired pixel.
     fn commanded(&self, i: usize) -> CountPoint {
         let (column, row) = self.pixel(i);
-        self.raster.pixel_counts(column as f64, row as f64)
+        self.raster
+            .pixel_counts_rotated(column as f64, row as f64, self.rotation)
+    }
+
+    /// Display column of the `k`-th pixel of an acquired line.
+    #[inline]
+    fn column(&self, k: usize) -> usize {
+        match self.half {
+            Half::Trace => self.order[k],
+            Half::Retrace => self.order[self.raster.columns - 1 - k],
+        }
     }
 
     /// Instrument time of the `i`-th acquired pixel at `line_time_s` per line, s.
@@ -119,7 +133,7 @@ impl<'r> HalfPixels<'r> {
 ///
 /// # Errors
 /// [`CorrectionError::InvalidArgument`] without a line time; as the dynamics' replay and
-/// [`correct_effective_path`].
+/// [`correct_effective_path_axes`].
 pub fn dynamic_map<F: CorrectionField + ?Sized>(
     field: &F,
     raster: &FileRaster,
@@ -141,11 +155,12 @@ pub fn dynamic_map<F: CorrectionField + ?Sized>(
     let pixels = HalfPixels::new(raster, half);
     let history = raster_history(raster, &pixels.order, line_time_s);
     let times: Vec<f64> = (0..pixels.len())
+        .into_par_iter()
         .map(|i| pixels.time_s(i, line_time_s))
         .collect();
     let ue = effective_input(dynamics, &pixels, &history, &times)?;
     drop(times);
-    map_along(field, raster, dynamics, &pixels, &ue)
+    map_along(field, raster, dynamics, &pixels, ue)
 }
 
 /// [`dynamic_map`] of the second frame of a pair scanned right after `earlier` (a
@@ -193,11 +208,12 @@ pub fn dynamic_map_after<F: CorrectionField + ?Sized>(
     append_raster(&mut history, earlier, &earlier_order, earlier_line_s, 0.0);
     append_raster(&mut history, raster, &pixels.order, line_time_s, delay_s);
     let times: Vec<f64> = (0..pixels.len())
+        .into_par_iter()
         .map(|i| delay_s + pixels.time_s(i, line_time_s))
         .collect();
     let ue = effective_input(dynamics, &pixels, &history, &times)?;
     drop(times);
-    map_along(field, raster, dynamics, &pixels, &ue)
+    map_along(field, raster, dynamics, &pixels, ue)
 }
 
 /// The instrument time of every pixel of one half of `raster` as [`dynamic_map`] replays it
@@ -226,22 +242,45 @@ pub fn pixel_times(raster: &FileRaster, half: Half) -> Result<Vec<f64>, Correcti
     Ok(times)
 }
 
-/// The effective input `uₑ = u + h + c` of every pixel of a half (acquisition order), counts.
+/// The effective input `uₑ = u + h + c` of every pixel of a half (acquisition order), counts,
+/// one vector per axis: each axis replayed on its own thread
+/// ([`ScannerDynamics::offsets_per_axis`]'s replay), its command added as the offsets come.
 fn effective_input(
     dynamics: &ScannerDynamics,
     pixels: &HalfPixels<'_>,
     history: &CommandHistory,
     pixel_times_s: &[f64],
-) -> Result<Vec<[f64; 2]>, CorrectionError> {
-    let [x, y] = dynamics.offsets_per_axis(history, pixel_times_s)?;
-    Ok(x.iter()
-        .zip(&y)
-        .enumerate()
-        .map(|(i, (ox, oy))| {
-            let u = pixels.commanded(i);
-            [u.x.value() + ox, u.y.value() + oy]
+) -> Result<[Vec<f64>; 2], CorrectionError> {
+    let law = dynamics.creep.law()?;
+    let nx = pixels.raster.columns;
+    let axis = |axis: usize, model: &PlayHysteresis| {
+        let mut out = Vec::with_capacity(pixel_times_s.len());
+        // The pixel the next offset belongs to: line and position in the line.
+        let (mut line, mut k) = (0, 0);
+        let mut row = pixels.raster.display_row(0) as f64;
+        replay_axis(history, axis, model, &law, pixel_times_s, |h, c| {
+            let u =
+                pixels
+                    .raster
+                    .pixel_counts_rotated(pixels.column(k) as f64, row, pixels.rotation);
+            let u = if axis == 0 { u.x.value() } else { u.y.value() };
+            out.push(u + (h + c));
+            k += 1;
+            if k == nx {
+                k = 0;
+                line += 1;
+                if line < pixels.raster.rows {
+                    row = pixels.raster.display_row(line) as f64;
+                }
+            }
         })
-        .collect())
+        .map(|()| out)
+    };
+    let (x, y) = rayon::join(
+        || axis(0, &dynamics.hysteresis_x),
+        || axis(1, &dynamics.hysteresis_y),
+    );
+    Ok([x?, y?])
 }
 
 /// [`dynamic_map`] along a *recorded* command history (a command log that holds the probe's
@@ -274,25 +313,27 @@ pub fn recorded_map<F: CorrectionField + ?Sized>(
     // The file's geometry gives the commands; the record gives when.
     let pixels = HalfPixels::new(raster, half);
     let ue = effective_input(dynamics, &pixels, history, pixel_times_s)?;
-    map_along(field, raster, dynamics, &pixels, &ue)
+    map_along(field, raster, dynamics, &pixels, ue)
 }
 
-/// The map of a half's pixels given their effective input `ue` (see [`dynamic_map`]).
+/// The map of a half's pixels given their effective input `[ue_x, ue_y]` (see
+/// [`dynamic_map`]); the input's buffers become the map's.
 fn map_along<F: CorrectionField + ?Sized>(
     field: &F,
     raster: &FileRaster,
     dynamics: &ScannerDynamics,
     pixels: &HalfPixels<'_>,
-    ue: &[[f64; 2]],
+    ue: [Vec<f64>; 2],
 ) -> Result<(CoordinateMap, [f64; 2]), CorrectionError> {
     let (nx, ny) = (raster.columns, raster.rows);
     let gain = dynamics.gain()?;
     let reference = pixels.commanded(0);
-    let mut along = correct_effective_path(
+    let along = correct_effective_path_axes(
         field,
         nx,
         ny,
-        ue,
+        &ue[0],
+        &ue[1],
         gain,
         [reference.x.value(), reference.y.value()],
     )?;
@@ -320,19 +361,26 @@ fn map_along<F: CorrectionField + ?Sized>(
         &[corner, pixels.commanded(0)],
         &quadrature,
     )?);
-    for p in &mut along {
-        *p = [p[0] + to_first[0], p[1] + to_first[1]];
-    }
     let (s, c) = raster.angle_ccw_rad.sin_cos();
-    let mut x_nm = vec![0.0; nx * ny];
-    let mut y_nm = vec![0.0; nx * ny];
-    for (i, xy) in along.iter().enumerate() {
-        let (column, row) = pixels.pixel(i);
-        let index = (ny - 1 - row) * nx + column;
-        // Scanner axes → frame axes (rotation by −θ), as the static path does.
-        x_nm[index] = xy[0] * c + xy[1] * s;
-        y_nm[index] = -xy[0] * s + xy[1] * c;
-    }
+    // The effective input is spent: its buffers (one value per pixel each) take the map,
+    // every value of which is written below.
+    let [mut x_nm, mut y_nm] = ue;
+    // Map row m holds display row ny − 1 − m, which one acquired line holds (`display_row`
+    // is its own inverse: the identity or the reversal of the rows); the map's rows are
+    // filled on every core.
+    x_nm.par_chunks_mut(nx)
+        .zip(y_nm.par_chunks_mut(nx))
+        .enumerate()
+        .for_each(|(m, (x_row, y_row))| {
+            let line = raster.display_row(ny - 1 - m);
+            for (k, xy) in along[line * nx..(line + 1) * nx].iter().enumerate() {
+                let p = [xy[0] + to_first[0], xy[1] + to_first[1]];
+                let column = pixels.column(k);
+                // Scanner axes → frame axes (rotation by −θ), as the static path does.
+                x_row[column] = p[0] * c + p[1] * s;
+                y_row[column] = -p[0] * s + p[1] * c;
+            }
+        });
     drop(along);
     let map = CoordinateMap::new(nx, ny, x_nm, YCoordinates::PerPixel(y_nm))?;
     Ok((map, first_nm))

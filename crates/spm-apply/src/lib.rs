@@ -517,9 +517,15 @@ impl FileRaster {
     /// (row 0 = top).
     #[must_use]
     pub fn pixel_counts(&self, column: f64, row: f64) -> CountPoint {
+        self.pixel_counts_rotated(column, row, self.angle_ccw_rad.sin_cos())
+    }
+
+    /// [`FileRaster::pixel_counts`] given `(sin, cos)` of the scan angle (computed once for
+    /// every pixel of a frame).
+    #[inline]
+    fn pixel_counts_rotated(&self, column: f64, row: f64, (s, c): (f64, f64)) -> CountPoint {
         let u = (column - (self.columns as f64 - 1.0) / 2.0) * self.step_x_counts;
         let v = ((self.rows as f64 - 1.0) / 2.0 - row) * self.step_y_counts;
-        let (s, c) = self.angle_ccw_rad.sin_cos();
         CountPoint::from_counts(
             self.centre.x.value() + u * c - v * s,
             self.centre.y.value() + u * s + v * c,

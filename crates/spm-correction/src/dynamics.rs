@@ -23,7 +23,7 @@
 //! Pure: no IO, no clock.
 
 use crate::error::CorrectionError;
-use crate::field::CorrectionField;
+use crate::field::{CorrectionField, FormCoefficients};
 use crate::parallel::{Parallelism, for_each_row};
 use crate::raster::{CoordinateMap, YCoordinates};
 use spm_hal::recording::CommandEvent;
@@ -44,6 +44,7 @@ pub struct CommandSegment {
 
 impl CommandSegment {
     /// The command at time `t` (clamped to the segment).
+    #[inline]
     pub fn at(&self, t_s: f64) -> [f64; 2] {
         let d = self.end_s - self.start_s;
         let f = if d > 0.0 {
@@ -667,19 +668,7 @@ pub fn correct_effective_path(
     gain: [f64; 2],
     reference_commanded: [f64; 2],
 ) -> Result<Vec<[f64; 2]>, CorrectionError> {
-    let n = columns
-        .checked_mul(rows)
-        .ok_or(CorrectionError::Empty("raster size overflows"))?;
-    if n == 0 {
-        return Err(CorrectionError::Empty("raster with no pixel"));
-    }
-    if ue.len() != n {
-        return Err(CorrectionError::SizeMismatch {
-            what: "effective input",
-            expected: n,
-            got: ue.len(),
-        });
-    }
+    let n = path_pixels(columns, rows, ue.len())?;
     if let Some(index) = ue
         .iter()
         .position(|p| !(p[0].is_finite() && p[1].is_finite()))
@@ -689,6 +678,91 @@ pub fn correct_effective_path(
             index,
         });
     }
+    effective_path(
+        field,
+        columns,
+        rows,
+        n,
+        |i| ue[i],
+        gain,
+        reference_commanded,
+    )
+}
+
+/// [`correct_effective_path`] with the effective input of each axis in its own slice
+/// (`ue_x[i]`, `ue_y[i]` of pixel i, acquisition order), as a replay per axis gives it: the
+/// same sums, bit for bit, without the pairs' buffer.
+///
+/// # Errors
+/// As [`correct_effective_path`]; [`CorrectionError::SizeMismatch`] when the slices differ in
+/// length.
+pub fn correct_effective_path_axes(
+    field: &(impl CorrectionField + ?Sized),
+    columns: usize,
+    rows: usize,
+    ue_x: &[f64],
+    ue_y: &[f64],
+    gain: [f64; 2],
+    reference_commanded: [f64; 2],
+) -> Result<Vec<[f64; 2]>, CorrectionError> {
+    let n = path_pixels(columns, rows, ue_x.len())?;
+    if ue_y.len() != n {
+        return Err(CorrectionError::SizeMismatch {
+            what: "effective input",
+            expected: n,
+            got: ue_y.len(),
+        });
+    }
+    if let Some(index) = ue_x
+        .iter()
+        .zip(ue_y)
+        .position(|(x, y)| !(x.is_finite() && y.is_finite()))
+    {
+        return Err(CorrectionError::NonFinite {
+            what: "effective input",
+            index,
+        });
+    }
+    effective_path(
+        field,
+        columns,
+        rows,
+        n,
+        |i| [ue_x[i], ue_y[i]],
+        gain,
+        reference_commanded,
+    )
+}
+
+/// The pixels of a `columns` × `rows` path whose effective input holds `len` pixels.
+fn path_pixels(columns: usize, rows: usize, len: usize) -> Result<usize, CorrectionError> {
+    let n = columns
+        .checked_mul(rows)
+        .ok_or(CorrectionError::Empty("raster size overflows"))?;
+    if n == 0 {
+        return Err(CorrectionError::Empty("raster with no pixel"));
+    }
+    if len != n {
+        return Err(CorrectionError::SizeMismatch {
+            what: "effective input",
+            expected: n,
+            got: len,
+        });
+    }
+    Ok(n)
+}
+
+/// The sums of [`correct_effective_path`] over the `n` = `columns` × `rows` pixels whose
+/// (checked, finite) effective input `ue(i)` gives.
+fn effective_path(
+    field: &(impl CorrectionField + ?Sized),
+    columns: usize,
+    rows: usize,
+    n: usize,
+    ue: impl Fn(usize) -> [f64; 2] + Sync,
+    gain: [f64; 2],
+    reference_commanded: [f64; 2],
+) -> Result<Vec<[f64; 2]>, CorrectionError> {
     if !(gain[0] > 0.0 && gain[1] > 0.0) {
         return Err(CorrectionError::InvalidArgument(format!("gain {gain:?}")));
     }
@@ -709,21 +783,40 @@ pub fn correct_effective_path(
     // The line starts chain line to line; each line then sums its own increments (the lines
     // are independent given their starts, so they run on every core, bit-identically).
     let mut line_starts = Vec::with_capacity(rows);
-    let mut line_start = step(reference, ue[0]);
+    let mut line_start = step(reference, ue(0));
     for line in 0..rows {
         let base = line * columns;
         if line > 0 {
-            let d = step(ue[base - columns], ue[base]);
+            let d = step(ue(base - columns), ue(base));
             line_start = [line_start[0] + d[0], line_start[1] + d[1]];
         }
         line_starts.push(line_start);
     }
+    // Along a line, the forms at the increments' midpoints are evaluated in one call (the
+    // same values as `step`'s, bit for bit).
     for_each_row(Parallelism::AllCores, &mut out, columns, |line, row| {
         let base = line * columns;
-        row[0] = line_starts[line];
+        let mut mid_x = Vec::with_capacity(columns);
+        let mut mid_y = Vec::with_capacity(columns);
         for k in 1..columns {
-            let d = step(ue[base + k - 1], ue[base + k]);
+            let (from, to) = (ue(base + k - 1), ue(base + k));
+            mid_x.push(0.5 * (from[0] + to[0]) / gain[0]);
+            mid_y.push(0.5 * (from[1] + to[1]) / gain[1]);
+        }
+        let zero = FormCoefficients {
+            kx_nm_per_count: 0.0,
+            kyx_nm_per_count: 0.0,
+            kyy_nm_per_count: 0.0,
+        };
+        let mut forms = vec![zero; columns - 1];
+        field.forms(&mid_x, &mid_y, &mut forms);
+        row[0] = line_starts[line];
+        let mut previous = ue(base);
+        for k in 1..columns {
+            let next = ue(base + k);
+            let d = forms[k - 1].increment(next[0] - previous[0], next[1] - previous[1]);
             row[k] = [row[k - 1][0] + d[0], row[k - 1][1] + d[1]];
+            previous = next;
         }
     })?;
     Ok(out)

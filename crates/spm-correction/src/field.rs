@@ -156,6 +156,15 @@ pub trait CorrectionField: Sync {
     /// The coefficients (K̄x, K̄yx, K̄yy) at (x, y) counts.
     fn form(&self, x_counts: f64, y_counts: f64) -> FormCoefficients;
 
+    /// [`CorrectionField::form`] at every point (`x_counts[i]`, `y_counts[i]`) into `out[i]`
+    /// (the shortest of the three lengths), bit for bit: one call for a line of points, so
+    /// that a field of polynomial surfaces makes its per-call choices once.
+    fn forms(&self, x_counts: &[f64], y_counts: &[f64], out: &mut [FormCoefficients]) {
+        for (o, (&x, &y)) in out.iter_mut().zip(x_counts.iter().zip(y_counts)) {
+            *o = self.form(x, y);
+        }
+    }
+
     /// ∫ K̄x(x, y) dx from `x_a` to `x_b` at fixed `y`, nm, when analytic.
     fn integral_kx_along_x(&self, _x_a: f64, _x_b: f64, _y: f64) -> Option<f64> {
         None
@@ -180,6 +189,9 @@ pub trait CorrectionField: Sync {
 impl<T: CorrectionField + ?Sized> CorrectionField for &T {
     fn form(&self, x: f64, y: f64) -> FormCoefficients {
         (**self).form(x, y)
+    }
+    fn forms(&self, x: &[f64], y: &[f64], out: &mut [FormCoefficients]) {
+        (**self).forms(x, y, out);
     }
     fn integral_kx_along_x(&self, x_a: f64, x_b: f64, y: f64) -> Option<f64> {
         (**self).integral_kx_along_x(x_a, x_b, y)
@@ -260,6 +272,19 @@ impl CorrectionField for SurfaceField {
         );
         FormCoefficients::from_lcc(kx, ky, alpha)
     }
+    fn forms(&self, x: &[f64], y: &[f64], out: &mut [FormCoefficients]) {
+        let surfaces = [
+            &self.kx_nm_per_count,
+            &self.ky_nm_per_count,
+            &self.alpha_rad,
+        ];
+        for_each_block(x, y, out, |x, y, values, out| {
+            Polynomial2::evaluate_each_many(surfaces, x, y, values);
+            for (o, &[kx, ky, alpha]) in out.iter_mut().zip(values.iter()) {
+                *o = FormCoefficients::from_lcc(kx, ky, alpha);
+            }
+        });
+    }
     fn integral_kx_along_x(&self, x_a: f64, x_b: f64, y: f64) -> Option<f64> {
         Some(self.kx_nm_per_count.integrate_x(x_a, x_b, y))
     }
@@ -306,6 +331,23 @@ impl CorrectionField for ProductField {
             kyy_nm_per_count: kyy,
         }
     }
+    fn forms(&self, x: &[f64], y: &[f64], out: &mut [FormCoefficients]) {
+        let surfaces = [
+            &self.kx_nm_per_count,
+            &self.kyx_nm_per_count,
+            &self.kyy_nm_per_count,
+        ];
+        for_each_block(x, y, out, |x, y, values, out| {
+            Polynomial2::evaluate_each_many(surfaces, x, y, values);
+            for (o, &[kx, kyx, kyy]) in out.iter_mut().zip(values.iter()) {
+                *o = FormCoefficients {
+                    kx_nm_per_count: kx,
+                    kyx_nm_per_count: kyx,
+                    kyy_nm_per_count: kyy,
+                };
+            }
+        });
+    }
     fn integral_kx_along_x(&self, x_a: f64, x_b: f64, y: f64) -> Option<f64> {
         Some(self.kx_nm_per_count.integrate_x(x_a, x_b, y))
     }
@@ -317,6 +359,29 @@ impl CorrectionField for ProductField {
     }
     fn kx_line(&self, y: f64) -> Option<LineAntiderivative> {
         Some(LineAntiderivative::new(&self.kx_nm_per_count, y))
+    }
+}
+
+/// Points per block of [`for_each_block`].
+const FORM_BLOCK: usize = 256;
+
+/// Runs `f(xs, ys, values, out)` over blocks of at most [`FORM_BLOCK`] points of `out` (the
+/// shortest of the three lengths), `values` a scratch of the block's length for the
+/// surfaces' sums.
+fn for_each_block(
+    x: &[f64],
+    y: &[f64],
+    out: &mut [FormCoefficients],
+    mut f: impl FnMut(&[f64], &[f64], &mut [[f64; 3]], &mut [FormCoefficients]),
+) {
+    let n = out.len().min(x.len()).min(y.len());
+    let mut values = [[0.0; 3]; FORM_BLOCK];
+    for ((out, x), y) in out[..n]
+        .chunks_mut(FORM_BLOCK)
+        .zip(x[..n].chunks(FORM_BLOCK))
+        .zip(y[..n].chunks(FORM_BLOCK))
+    {
+        f(x, y, &mut values[..out.len()], out);
     }
 }
 

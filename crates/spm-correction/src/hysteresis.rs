@@ -344,10 +344,20 @@ impl ScannerDynamics {
 /// with a cached one to [`SAME_DURATION`] (times written as `base + k·dwell` differ in
 /// their last bits) is advanced as lasting the cached duration, which moves the creep by far
 /// less than a pico-count; otherwise the advance is [`crate::dynamics::creep_offsets`]'s.
+///
+/// Each element is kept as its lag `eₖ = cₖ − w·x` behind the equilibrium of the current
+/// input x (every element has the weight w): over a ramp of x by Δx in T, `τₖċₖ = w·x − cₖ`
+/// gives `eₖ ← e^{−T/τₖ}·eₖ − w·τₖ·(1 − e^{−T/τₖ})·Δx/T` — two products per element where
+/// cₖ itself takes three — and the creep is `c = Σcₖ = Σeₖ + W·x` (W = n·w).
 struct CreepStates<'l> {
     law: &'l CreepLaw,
-    /// Per element: cₖ (counts).
-    states: Vec<f64>,
+    /// Per element: eₖ = cₖ − w·x (counts), in blocks of four (the last block padded with
+    /// elements that stay 0: their decay and gain are 0).
+    lags: Vec<[f64; 4]>,
+    /// The number of elements n.
+    elements: usize,
+    /// W = n·w.
+    total_weight: f64,
     /// The exponentials of the last few durations (a raster alternates a few: trace,
     /// retrace, the step to the next line), replaced round robin.
     tables: Vec<DecayTable>,
@@ -358,59 +368,70 @@ struct CreepStates<'l> {
 /// Tables kept by [`CreepStates`].
 const DECAY_TABLES: usize = 4;
 
-/// Per element, for one duration T: e^{−T/τ}, w·(1 − e^{−T/τ}) and w·(T − τ·(1 − e^{−T/τ})),
-/// so that a ramp `a + b·s` advances cₖ to `e·cₖ + A·a + B·b` (three arrays, so the per-pixel
-/// update is one vectorisable loop).
+/// Per element, for one duration T: e^{−T/τ} and w·τ·(1 − e^{−T/τ})/T, so that a ramp of
+/// the input by Δx over T advances the lag eₖ to `e·eₖ − L·Δx`; in blocks of four as
+/// [`CreepStates`] keeps the lags (padded with 0), so the per-pixel update is one
+/// vectorisable loop.
 struct DecayTable {
     /// T, s.
     duration_s: f64,
-    decay: Vec<f64>,
-    from_gain: Vec<f64>,
-    slope_gain: Vec<f64>,
+    decay: Vec<[f64; 4]>,
+    lag_gain: Vec<[f64; 4]>,
 }
 
 impl DecayTable {
     fn new(law: &CreepLaw, duration_s: f64) -> Self {
         let w = law.weight();
         let taus = law.time_constants_s();
+        let blocks = taus.len().div_ceil(4);
         let mut table = Self {
             duration_s,
-            decay: Vec::with_capacity(taus.len()),
-            from_gain: Vec::with_capacity(taus.len()),
-            slope_gain: Vec::with_capacity(taus.len()),
+            decay: vec![[0.0; 4]; blocks],
+            lag_gain: vec![[0.0; 4]; blocks],
         };
-        for &tau in taus {
+        for (k, &tau) in taus.iter().enumerate() {
             let one_minus = -(-duration_s / tau).exp_m1();
-            table.decay.push((-duration_s / tau).exp());
-            table.from_gain.push(w * one_minus);
-            table.slope_gain.push(w * (duration_s - tau * one_minus));
+            table.decay[k / 4][k % 4] = (-duration_s / tau).exp();
+            table.lag_gain[k / 4][k % 4] = w * tau * one_minus / duration_s;
         }
         table
     }
 
+    #[inline]
     fn holds(&self, duration_s: f64) -> bool {
         (duration_s - self.duration_s).abs() <= SAME_DURATION * duration_s
     }
 }
 
 impl<'l> CreepStates<'l> {
-    fn settled(law: &'l CreepLaw, x: f64) -> Self {
+    /// Every element settled at the input (no lag).
+    fn settled(law: &'l CreepLaw) -> Self {
         let n = law.time_constants_s().len();
         Self {
             law,
-            states: vec![law.weight() * x; n],
+            lags: vec![[0.0; 4]; n.div_ceil(4)],
+            elements: n,
+            total_weight: law.total_weight(),
             tables: Vec::with_capacity(DECAY_TABLES),
             next: 0,
         }
     }
 
-    /// The table of a duration: a kept one, or a new one in the next slot.
-    fn table(&mut self, duration_s: f64) -> &DecayTable {
+    /// The index of a duration's table: the first kept one that holds it, or a new one in the
+    /// next slot.
+    #[inline]
+    fn table(&mut self, duration_s: f64) -> usize {
         if let Some(k) = self.tables.iter().position(|t| t.holds(duration_s)) {
-            return &self.tables[k];
+            return k;
         }
+        self.new_table(duration_s)
+    }
+
+    /// A new table in the next slot (the rare path of [`CreepStates::table`]).
+    #[inline(never)]
+    fn new_table(&mut self, duration_s: f64) -> usize {
         let table = DecayTable::new(self.law, duration_s);
-        let k = if self.tables.len() < DECAY_TABLES {
+        if self.tables.len() < DECAY_TABLES {
             self.tables.push(table);
             self.tables.len() - 1
         } else {
@@ -418,38 +439,45 @@ impl<'l> CreepStates<'l> {
             self.tables[k] = table;
             self.next = (k + 1) % DECAY_TABLES;
             k
-        };
-        &self.tables[k]
+        }
     }
 
-    /// Advances over a straight piece from `from` to `to` lasting `duration_s` (≥ 0); returns
-    /// the creep c = Σcₖ at its end.
+    /// Advances over a straight piece from `from` to `to` lasting `duration_s` (≥ 0; a piece
+    /// of no duration leaves every cₖ where it is); returns the creep c = Σcₖ at its end.
+    ///
+    /// Σeₖ is taken in four partial sums (one per place in the blocks), so the per-pixel sum
+    /// is not one chain of dependent additions; the advance adds each element to its partial
+    /// sum as it updates it (one pass).
+    #[inline]
     fn advance(&mut self, from: f64, to: f64, duration_s: f64) -> f64 {
-        if duration_s > 0.0 {
-            let n = self.states.len();
-            let mut states = std::mem::take(&mut self.states);
-            let table = self.table(duration_s);
-            let b = (to - from) / table.duration_s;
-            let (decay, from_gain, slope_gain) = (
-                &table.decay[..n],
-                &table.from_gain[..n],
-                &table.slope_gain[..n],
-            );
-            for (k, s) in states.iter_mut().enumerate() {
-                *s = decay[k] * *s + from_gain[k] * from + slope_gain[k] * b;
-            }
-            self.states = states;
-        }
-        // Four partial sums: the per-pixel sum is then not one chain of dependent additions.
         let mut partial = [0.0; 4];
-        let mut chunks = self.states.chunks_exact(4);
-        for chunk in &mut chunks {
-            for (p, s) in partial.iter_mut().zip(chunk) {
-                *p += s;
+        if duration_s > 0.0 {
+            let k = self.table(duration_s);
+            let table = &self.tables[k];
+            let rise = to - from;
+            for ((e, d), g) in self.lags.iter_mut().zip(&table.decay).zip(&table.lag_gain) {
+                let mut v = [0.0; 4];
+                for m in 0..4 {
+                    v[m] = d[m] * e[m] - g[m] * rise;
+                }
+                *e = v;
+                for m in 0..4 {
+                    partial[m] += v[m];
+                }
+            }
+        } else {
+            // cₖ unchanged while the equilibrium moves from `from` to `to`.
+            let shift = self.law.weight() * (from - to);
+            for e in &mut self.lags.as_flattened_mut()[..self.elements] {
+                *e += shift;
+            }
+            for e in &self.lags {
+                for m in 0..4 {
+                    partial[m] += e[m];
+                }
             }
         }
-        let tail: f64 = chunks.remainder().iter().sum();
-        (partial[0] + partial[1]) + (partial[2] + partial[3]) + tail
+        (partial[0] + partial[1]) + (partial[2] + partial[3]) + self.total_weight * to
     }
 }
 
@@ -561,17 +589,31 @@ pub fn replay_axis(
     let segments = history.segments();
     let first = crate::dynamics::first_of_replay(history, query_times_s)?;
     let axis = axis.min(1);
+    let last_segment = segments.len() - 1;
     let mut play = PlayState::settled(model.thresholds_counts.len(), first.from_counts[axis]);
     // The play pointer: segments before `applied` have been applied at their ends.
     let mut applied = 0;
     let mut sweep = PlaySweep::default();
-    // u and h at time t: the segment holding t swept, or, after the history, its end held.
-    let mut at = |t: f64| -> (f64, f64) {
+    // The merged times: every segment end and every query, each once, in order.
+    let mut end = 0;
+    let mut q = 0;
+    let n = query_times_s.len();
+    let mut previous: Option<(f64, f64)> = None;
+    let mut creep: Option<CreepStates<'_>> = None;
+    while q < n {
+        let t = match segments.get(end) {
+            Some(seg) if seg.end_s <= query_times_s[q] => seg.end_s,
+            _ => query_times_s[q],
+        };
+        while end < segments.len() && segments[end].end_s <= t {
+            end += 1;
+        }
+        // u and h at time t: the segment holding t swept, or, after the history, its end held.
         while applied < segments.len() && segments[applied].end_s < t {
             play.apply(&model.thresholds_counts, segments[applied].to_counts[axis]);
             applied += 1;
         }
-        let seg = &segments[applied.min(segments.len() - 1)];
+        let seg = &segments[applied.min(last_segment)];
         let u = seg.at(t)[axis];
         let h = if applied < segments.len() {
             if sweep.segment != Some(applied) {
@@ -585,34 +627,35 @@ pub fn replay_axis(
                 .map(|(y, w)| y * w)
                 .sum::<f64>()
         };
-        (u, h)
-    };
-    // The merged times: every segment end and every query, each once, in order.
-    let mut end = 0;
-    let mut q = 0;
-    let mut previous: Option<(f64, f64)> = None;
-    let mut creep: Option<CreepStates<'_>> = None;
-    while q < query_times_s.len() {
-        let t = match segments.get(end) {
-            Some(seg) if seg.end_s <= query_times_s[q] => seg.end_s,
-            _ => query_times_s[q],
-        };
-        while end < segments.len() && segments[end].end_s <= t {
-            end += 1;
-        }
-        let (u, h) = at(t);
         let x = u + h;
-        let c = match (previous, creep.as_mut()) {
-            (Some((t0, x0)), Some(states)) => states.advance(x0, x, (t - t0).max(0.0)),
-            _ => creep
-                .insert(CreepStates::settled(law, x))
-                .advance(x, x, 0.0),
+        let states = creep.get_or_insert_with(|| CreepStates::settled(law));
+        let c = match previous {
+            Some((t0, x0)) => states.advance(x0, x, (t - t0).max(0.0)),
+            None => states.advance(x, x, 0.0),
         };
-        previous = Some((t, x));
-        while q < query_times_s.len() && query_times_s[q] <= t {
+        let (mut t_last, mut x_last) = (t, x);
+        while q < n && query_times_s[q] <= t {
             sink(h, c);
             q += 1;
         }
+        // The queries strictly inside the segment being swept (no segment end among them, so
+        // each is the next merged time, with the segment and its sweep as they are): the
+        // steps above without their checks.
+        if applied == end && applied < segments.len() {
+            while q < n && query_times_s[q] < seg.end_s {
+                let t = query_times_s[q];
+                let u = seg.at(t)[axis];
+                let h = sweep.at(u);
+                let x = u + h;
+                let c = states.advance(x_last, x, (t - t_last).max(0.0));
+                (t_last, x_last) = (t, x);
+                while q < n && query_times_s[q] <= t {
+                    sink(h, c);
+                    q += 1;
+                }
+            }
+        }
+        previous = Some((t_last, x_last));
     }
     Ok(())
 }

@@ -338,15 +338,9 @@ impl CoordinateMap {
     /// The bounding box (min x̄, max x̄, min ȳ, max ȳ), nm.
     #[must_use]
     pub fn bounds_nm(&self) -> (f64, f64, f64, f64) {
-        let fold = |v: &[f64]| {
-            v.iter()
-                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &t| {
-                    (lo.min(t), hi.max(t))
-                })
-        };
-        let (x0, x1) = fold(&self.x_nm);
+        let (x0, x1) = min_max(&self.x_nm);
         let (y0, y1) = match &self.y_nm {
-            YCoordinates::PerRow(v) | YCoordinates::PerPixel(v) => fold(v),
+            YCoordinates::PerRow(v) | YCoordinates::PerPixel(v) => min_max(v),
         };
         (x0, x1, y0, y1)
     }
@@ -679,4 +673,38 @@ pub fn correct_raster_reusing<F: CorrectionField + ?Sized>(
         x_nm,
         y_nm: YCoordinates::PerRow(lines.y_per_row),
     })
+}
+
+/// (min, max) of `values` (±∞ reversed when empty): blocks on every core, each folded in
+/// eight independent lanes (a min/max of finite values is exact in any order).
+fn min_max(values: &[f64]) -> (f64, f64) {
+    use rayon::prelude::*;
+    const BLOCK: usize = 1 << 16;
+    let fold = |block: &[f64]| {
+        let mut lo = [f64::INFINITY; 8];
+        let mut hi = [f64::NEG_INFINITY; 8];
+        let mut chunks = block.chunks_exact(8);
+        for chunk in &mut chunks {
+            for k in 0..8 {
+                lo[k] = lo[k].min(chunk[k]);
+                hi[k] = hi[k].max(chunk[k]);
+            }
+        }
+        let (lo, hi) = chunks.remainder().iter().fold(
+            (
+                lo.iter().copied().fold(f64::INFINITY, f64::min),
+                hi.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+            ),
+            |(lo, hi), &t| (lo.min(t), hi.max(t)),
+        );
+        (lo, hi)
+    };
+    let join = |(a, b): (f64, f64), (c, d): (f64, f64)| (a.min(c), b.max(d));
+    if values.len() <= BLOCK {
+        return fold(values);
+    }
+    values
+        .par_chunks(BLOCK)
+        .map(fold)
+        .reduce(|| (f64::INFINITY, f64::NEG_INFINITY), join)
 }

@@ -197,7 +197,7 @@ fn catmull_rom_weights(t: f64) -> [f64; 4] {
 impl Source<'_> {
     /// The image at fractional (column, row) with row = j + fy; column in [0, columns − 1],
     /// 0 ≤ j ≤ rows − 2 (or 0 for one row) and fy ∈ [0, 1].
-    #[inline]
+    #[inline(always)]
     fn sample(&self, column: f64, j: usize, fy: f64) -> f64 {
         let nx = self.columns;
         let i = (column as usize).min(nx.saturating_sub(2));
@@ -286,7 +286,6 @@ pub fn resample_into(
             resample_rows(&source, map.x_nm(), y_rows, &grid, parallelism, out)
         }
         YCoordinates::PerPixel(y_px) => {
-            out.fill(f64::NAN);
             resample_newton(&source, map.x_nm(), y_px, &grid, parallelism, out)
         }
     }
@@ -626,7 +625,7 @@ fn resample_rows(
 }
 
 /// Bilinear forward map at (c, r) (cell clamped, so extrapolated outside) and its Jacobian.
-#[inline]
+#[inline(always)]
 fn forward(
     x_nm: &[f64],
     y_nm: &[f64],
@@ -665,6 +664,7 @@ fn forward(
 const NEWTON_STEP_DONE_PX: f64 = 1e-7;
 
 /// Newton's method for F(c, r) = target from `guess`; None if it does not converge.
+#[inline(always)]
 fn invert(
     x_nm: &[f64],
     y_nm: &[f64],
@@ -732,6 +732,7 @@ fn resample_newton(
     ];
     let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
     if !(det.is_finite() && det.abs() > 0.0) {
+        out.fill(f64::NAN);
         return Err(CorrectionError::NotMonotone {
             axis: "x",
             index: 0,
@@ -746,37 +747,77 @@ fn resample_newton(
     };
     let (cmax, rmax) = ((nx - 1) as f64, (ny - 1) as f64);
     let tol = 1e-9;
-    for_each_row(parallelism, out, grid.columns, |r, out_row| {
-        let y = grid.y_nm(r);
-        let mut guess = affine_guess(grid.x_nm(0), y);
-        // The previous nodes' solutions: the next guess extrapolates the last three
-        // quadratically (the map is smooth, so the guess is within 1e-7 pixel and one Newton
-        // step ends it), or the last two linearly after a restart.
-        let mut previous: Option<(f64, f64)> = None;
-        let mut before_previous: Option<(f64, f64)> = None;
-        for (c, o) in out_row.iter_mut().enumerate() {
-            let x = grid.x_nm(c);
-            let solution = invert(x_nm, y_nm, nx, ny, (x, y), guess)
-                .or_else(|| invert(x_nm, y_nm, nx, ny, (x, y), affine_guess(x, y)));
-            let Some((sc, sr)) = solution else {
-                guess = affine_guess(grid.x_nm(c + 1), y);
-                previous = None;
-                before_previous = None;
-                continue;
+    // One output node of a row: Newton from the row's guess, the guess then moved on. The
+    // value at the node, or None outside the data.
+    let node = |walk: &mut RowWalk, c: usize| -> Option<f64> {
+        let (x, y) = (grid.x_nm(c), walk.y);
+        let solution = invert(x_nm, y_nm, nx, ny, (x, y), walk.guess)
+            .or_else(|| invert(x_nm, y_nm, nx, ny, (x, y), affine_guess(x, y)));
+        let Some((sc, sr)) = solution else {
+            walk.guess = affine_guess(grid.x_nm(c + 1), y);
+            walk.previous = None;
+            walk.before_previous = None;
+            return None;
+        };
+        walk.guess = match (walk.previous, walk.before_previous) {
+            (Some((pc, pr)), Some((qc, qr))) => (3.0 * (sc - pc) + qc, 3.0 * (sr - pr) + qr),
+            (Some((pc, pr)), None) => (2.0 * sc - pc, 2.0 * sr - pr),
+            _ => (sc, sr),
+        };
+        walk.before_previous = walk.previous;
+        walk.previous = Some((sc, sr));
+        if sc < -tol || sr < -tol || sc > cmax + tol || sr > rmax + tol {
+            return None;
+        }
+        let (sc, sr) = (sc.clamp(0.0, cmax), sr.clamp(0.0, rmax));
+        let j = (sr as usize).min(ny - 2);
+        Some(source.sample(sc, j, sr - j as f64))
+    };
+    let columns = grid.columns;
+    // NEWTON_ROWS output rows per work item, walked side by side: each row's nodes depend on
+    // the row's previous ones (the guess), so one row is a chain of dependent Newton steps;
+    // rows side by side give the processor independent chains to overlap. Each row's
+    // arithmetic is the same as walked alone.
+    for_each_row(parallelism, out, NEWTON_ROWS * columns, |item, rows| {
+        // NaN where no node is written (outside the data), filled here so that each worker
+        // first touches its own rows.
+        rows.fill(f64::NAN);
+        let first_row = item * NEWTON_ROWS;
+        let mut walks = [RowWalk::default(); NEWTON_ROWS];
+        let count = rows.len() / columns;
+        for (k, walk) in walks.iter_mut().enumerate().take(count) {
+            let y = grid.y_nm(first_row + k);
+            *walk = RowWalk {
+                y,
+                guess: affine_guess(grid.x_nm(0), y),
+                previous: None,
+                before_previous: None,
             };
-            guess = match (previous, before_previous) {
-                (Some((pc, pr)), Some((qc, qr))) => (3.0 * (sc - pc) + qc, 3.0 * (sr - pr) + qr),
-                (Some((pc, pr)), None) => (2.0 * sc - pc, 2.0 * sr - pr),
-                _ => (sc, sr),
-            };
-            before_previous = previous;
-            previous = Some((sc, sr));
-            if sc < -tol || sr < -tol || sc > cmax + tol || sr > rmax + tol {
-                continue;
+        }
+        for c in 0..columns {
+            for (k, walk) in walks.iter_mut().enumerate().take(count) {
+                if let Some(v) = node(walk, c) {
+                    rows[k * columns + c] = v;
+                }
             }
-            let (sc, sr) = (sc.clamp(0.0, cmax), sr.clamp(0.0, rmax));
-            let j = (sr as usize).min(ny - 2);
-            *o = source.sample(sc, j, sr - j as f64);
         }
     })
+}
+
+/// Output rows [`resample_newton`] walks side by side.
+const NEWTON_ROWS: usize = 4;
+
+/// The walk of [`resample_newton`] along one output row: its y, the next node's guess and
+/// the last two nodes' solutions (the guess extrapolates the last three quadratically, the
+/// map being smooth, so that one Newton step ends it; the last two linearly after a restart).
+#[derive(Debug, Clone, Copy, Default)]
+struct RowWalk {
+    /// y of the row, nm.
+    y: f64,
+    /// (column, row) guess of the next node.
+    guess: (f64, f64),
+    /// The last node's solution.
+    previous: Option<(f64, f64)>,
+    /// The solution before it.
+    before_previous: Option<(f64, f64)>,
 }

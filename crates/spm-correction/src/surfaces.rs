@@ -232,6 +232,12 @@ impl CorrectionField for PlaneField {
             Self::Products(f) => f.form(x, y),
         }
     }
+    fn forms(&self, x: &[f64], y: &[f64], out: &mut [FormCoefficients]) {
+        match self {
+            Self::Exact(f) => f.forms(x, y, out),
+            Self::Products(f) => f.forms(x, y, out),
+        }
+    }
     fn integral_kx_along_x(&self, x_a: f64, x_b: f64, y: f64) -> Option<f64> {
         match self {
             Self::Exact(f) => f.integral_kx_along_x(x_a, x_b, y),
@@ -564,6 +570,14 @@ impl<F: CorrectionField> BlendedField<F> {
 }
 
 impl<F: CorrectionField> CorrectionField for BlendedField<F> {
+    fn forms(&self, x: &[f64], y: &[f64], out: &mut [FormCoefficients]) {
+        if let Some(f) = self.single() {
+            return f.forms(x, y, out);
+        }
+        for (o, (&x, &y)) in out.iter_mut().zip(x.iter().zip(y)) {
+            *o = self.form(x, y);
+        }
+    }
     fn form(&self, x: f64, y: f64) -> FormCoefficients {
         if let Some(f) = self.single() {
             return f.form(x, y);

@@ -303,18 +303,136 @@ impl Polynomial2 {
             return values;
         }
         let (pu, pv) = first.basis_powers(x, y);
-        // One pass over the terms, the N sums side by side (independent chains of additions),
-        // each in [`Self::evaluate`]'s order and association.
+        // The usual degrees with the term count known at compile time: the same sums, term
+        // by term in the same order, unrolled and without a bounds check per term.
+        let fixed = match first.degree {
+            0 => Self::term_sums::<N, 1>(&surfaces, &pu, &pv),
+            1 => Self::term_sums::<N, 3>(&surfaces, &pu, &pv),
+            2 => Self::term_sums::<N, 6>(&surfaces, &pu, &pv),
+            3 => Self::term_sums::<N, 10>(&surfaces, &pu, &pv),
+            4 => Self::term_sums::<N, 15>(&surfaces, &pu, &pv),
+            5 => Self::term_sums::<N, 21>(&surfaces, &pu, &pv),
+            _ => None,
+        };
+        fixed.unwrap_or_else(|| Self::term_sums_any(&surfaces, first.degree, &pu, &pv))
+    }
+
+    /// [`Self::evaluate_each`] at every point `(xs[i], ys[i])` into `out[i]` (the shortest of
+    /// the three lengths), bit for bit: the check that the surfaces share a basis and the
+    /// choice of the unrolled sums are made once for all points.
+    pub fn evaluate_each_many<const N: usize>(
+        surfaces: [&Self; N],
+        xs: &[f64],
+        ys: &[f64],
+        out: &mut [[f64; N]],
+    ) {
+        let points = out.iter_mut().zip(xs.iter().zip(ys));
+        let Some(first) = surfaces.first() else {
+            points.for_each(|(o, _)| *o = [0.0; N]);
+            return;
+        };
+        let shared = surfaces.iter().all(|p| {
+            p.degree == first.degree
+                && p.center_x == first.center_x
+                && p.center_y == first.center_y
+                && p.scale_x == first.scale_x
+                && p.scale_y == first.scale_y
+        });
+        let done = shared
+            && match first.degree {
+                0 => Self::many_fixed::<N, 0, 1>(&surfaces, xs, ys, out),
+                1 => Self::many_fixed::<N, 1, 3>(&surfaces, xs, ys, out),
+                2 => Self::many_fixed::<N, 2, 6>(&surfaces, xs, ys, out),
+                3 => Self::many_fixed::<N, 3, 10>(&surfaces, xs, ys, out),
+                4 => Self::many_fixed::<N, 4, 15>(&surfaces, xs, ys, out),
+                5 => Self::many_fixed::<N, 5, 21>(&surfaces, xs, ys, out),
+                _ => false,
+            };
+        if !done {
+            for (o, (&x, &y)) in out.iter_mut().zip(xs.iter().zip(ys)) {
+                *o = Self::evaluate_each(surfaces, x, y);
+            }
+        }
+    }
+
+    /// [`Self::evaluate_each_many`] of surfaces of degree `D` (`T` terms) on one basis: per
+    /// point the normalisation, the powers and the sums of [`Self::evaluate_each`], in its
+    /// order. False (nothing written) when a surface does not hold exactly `T` coefficients.
+    fn many_fixed<const N: usize, const D: usize, const T: usize>(
+        surfaces: &[&Self; N],
+        xs: &[f64],
+        ys: &[f64],
+        out: &mut [[f64; N]],
+    ) -> bool {
+        let mut coefficients = [&[0.0; T]; N];
+        for (c, p) in coefficients.iter_mut().zip(surfaces) {
+            match <&[f64; T]>::try_from(p.coefficients.as_slice()) {
+                Ok(fixed) => *c = fixed,
+                Err(_) => return false,
+            }
+        }
+        let first = surfaces[0];
+        for (o, (&x, &y)) in out.iter_mut().zip(xs.iter().zip(ys)) {
+            let (u, v) = first.normalise(x, y);
+            let mut pu = [1.0; MAX_DEGREE as usize + 2];
+            let mut pv = [1.0; MAX_DEGREE as usize + 2];
+            for k in 1..=D {
+                pu[k] = pu[k - 1] * u;
+                pv[k] = pv[k - 1] * v;
+            }
+            let mut values = [-0.0; N];
+            for (t, &(i, j)) in TERM_TABLE.iter().take(T).enumerate() {
+                let (pi, pj) = (pu[usize::from(i)], pv[usize::from(j)]);
+                for (value, c) in values.iter_mut().zip(&coefficients) {
+                    *value += c[t] * pi * pj;
+                }
+            }
+            *o = values;
+        }
+        true
+    }
+
+    /// The sums of eq. (6) of `surfaces` (one basis) from the basis powers: one pass over the
+    /// terms, the N sums side by side (independent chains of additions), each term added as
+    /// `c·pᵢ·pⱼ` to a sum started at −0.
+    fn term_sums_any<const N: usize>(
+        surfaces: &[&Self; N],
+        degree: u32,
+        pu: &[f64; MAX_DEGREE as usize + 2],
+        pv: &[f64; MAX_DEGREE as usize + 2],
+    ) -> [f64; N] {
         let mut values = [-0.0; N];
-        for (t, &(i, j)) in TERM_TABLE.iter().take(n_terms(first.degree)).enumerate() {
+        for (t, &(i, j)) in TERM_TABLE.iter().take(n_terms(degree)).enumerate() {
             let (pi, pj) = (pu[usize::from(i)], pv[usize::from(j)]);
-            for (value, p) in values.iter_mut().zip(&surfaces) {
+            for (value, p) in values.iter_mut().zip(surfaces) {
                 if let Some(c) = p.coefficients.get(t) {
                     *value += c * pi * pj;
                 }
             }
         }
         values
+    }
+
+    /// [`Self::term_sums_any`] for `T` terms known at compile time (bit for bit the same
+    /// sums); None when a surface does not hold exactly `T` coefficients.
+    #[inline]
+    fn term_sums<const N: usize, const T: usize>(
+        surfaces: &[&Self; N],
+        pu: &[f64; MAX_DEGREE as usize + 2],
+        pv: &[f64; MAX_DEGREE as usize + 2],
+    ) -> Option<[f64; N]> {
+        let mut coefficients = [&[0.0; T]; N];
+        for (c, p) in coefficients.iter_mut().zip(surfaces) {
+            *c = <&[f64; T]>::try_from(p.coefficients.as_slice()).ok()?;
+        }
+        let mut values = [-0.0; N];
+        for (t, &(i, j)) in TERM_TABLE.iter().take(T).enumerate() {
+            let (pi, pj) = (pu[usize::from(i)], pv[usize::from(j)]);
+            for (value, c) in values.iter_mut().zip(&coefficients) {
+                *value += c[t] * pi * pj;
+            }
+        }
+        Some(values)
     }
 
     /// The powers 1, u, u², … and 1, v, v², … of the normalised coordinates of (x, y).
@@ -449,6 +567,27 @@ mod tests {
                 Polynomial2::new(degree, (0.0, 0.0), (1.0, 1.0), a.coefficients.clone()).unwrap();
             let mixed = Polynomial2::evaluate_each([&a, &other], 2.0, 3.0);
             assert_eq!(mixed, [a.evaluate(2.0, 3.0), other.evaluate(2.0, 3.0)]);
+            // Many points at once: each point's evaluate_each, bit for bit.
+            let xs = [0.0, 17.3, -55.5, 1e3, 2.5];
+            let ys = [0.0, -41.0, 12.25, 7.0, -3.0];
+            let mut many = [[0.0; 3]; 5];
+            Polynomial2::evaluate_each_many([&a, &b, &c], &xs, &ys, &mut many);
+            for ((m, &x), &y) in many.iter().zip(&xs).zip(&ys) {
+                let one = Polynomial2::evaluate_each([&a, &b, &c], x, y);
+                assert_eq!(m.map(f64::to_bits), one.map(f64::to_bits));
+            }
+            let mut mixed_many = [[0.0; 2]; 5];
+            Polynomial2::evaluate_each_many([&a, &other], &xs, &ys, &mut mixed_many);
+            for ((m, &x), &y) in mixed_many.iter().zip(&xs).zip(&ys) {
+                assert_eq!(*m, Polynomial2::evaluate_each([&a, &other], x, y));
+            }
+            // The unrolled sums of the usual degrees are the generic loop's, bit for bit.
+            for (x, y) in [(0.0, 0.0), (17.3, -41.0), (-55.5, 12.25), (1e3, 7.0)] {
+                let (pu, pv) = a.basis_powers(x, y);
+                let generic = Polynomial2::term_sums_any(&[&a, &b, &c], degree, &pu, &pv);
+                let shared = Polynomial2::evaluate_each([&a, &b, &c], x, y);
+                assert_eq!(shared.map(f64::to_bits), generic.map(f64::to_bits));
+            }
         }
     }
 

@@ -176,21 +176,37 @@ fn vote_offset(one: &[Atom], points: &[[f64; 2]], cells: &Cells, ks: &[usize], a
             for dy in -3..=3 {
                 for &j in cells.cells.get(&(cx + dx, cy + dy)).into_iter().flatten() {
                     let d = [p[0] - points[j][0], p[1] - points[j][1]];
-                    if d[0].hypot(d[1]) <= reach {
+                    if d[0] * d[0] + d[1] * d[1] <= reach * reach {
                         candidates.push(d);
                     }
                 }
             }
         }
     }
+    // Each candidate's votes: the candidates within `close` of it, counted over the 3 × 3
+    // buckets of side `close` around it (not over all pairs: thousands of candidates).
     let close = 0.1 * a;
+    let bucket = |d: &[f64; 2]| ((d[0] / close).floor() as i64, (d[1] / close).floor() as i64);
+    let mut buckets: std::collections::HashMap<(i64, i64), Vec<usize>> =
+        std::collections::HashMap::new();
+    for (i, d) in candidates.iter().enumerate() {
+        buckets.entry(bucket(d)).or_default().push(i);
+    }
     let mut best = ([0.0; 2], 0_usize, f64::INFINITY);
     for d in &candidates {
-        let votes = candidates
-            .iter()
-            .filter(|e| (e[0] - d[0]).hypot(e[1] - d[1]) <= close)
-            .count();
-        let length = d[0].hypot(d[1]);
+        let (bx, by) = bucket(d);
+        let mut votes = 0;
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                for &i in buckets.get(&(bx + dx, by + dy)).into_iter().flatten() {
+                    let e = candidates[i];
+                    if (e[0] - d[0]).powi(2) + (e[1] - d[1]).powi(2) <= close * close {
+                        votes += 1;
+                    }
+                }
+            }
+        }
+        let length = d[0] * d[0] + d[1] * d[1];
         if votes > best.1 || (votes == best.1 && length < best.2) {
             best = (*d, votes, length);
         }
@@ -266,7 +282,9 @@ fn grow_match(
                         let (Some(j), q) = (partner_of[n], one[n].p) else {
                             continue;
                         };
-                        if (q[0] - p[0]).hypot(q[1] - p[1]) > neighbourhood {
+                        if (q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2)
+                            > neighbourhood * neighbourhood
+                        {
                             continue;
                         }
                         rows.push(vec![1.0, q[0] - p[0], q[1] - p[1]]);

@@ -49,30 +49,11 @@ fn summary(d: &Diagnosis) -> String {
         d.features_used,
         d.outliers,
         d.unindexed,
-        d.findings
-            .iter()
-            .map(|f| (
-                f.effect.clone(),
-                f.evidence.round(),
-                f.parameters
-                    .iter()
-                    .map(|(k, v)| format!("{k}={:.4e}±{:.1e}", v.value, v.sigma))
-                    .collect::<Vec<_>>()
-            ))
-            .collect::<Vec<_>>(),
+        common::findings(d),
         d.unexplained,
         d.residual_structure.reasons,
-        d.rejected
-            .iter()
-            .map(|r| format!(
-                "{} {:.0} {:.2}pm {}",
-                r.effect, r.evidence, r.explained_rms_pm, r.reason
-            ))
-            .collect::<Vec<_>>(),
-        d.rounds.first().map(|r| r
-            .iter()
-            .map(|c| (c.effect.clone(), c.evidence.round()))
-            .collect::<Vec<_>>()),
+        common::rejections(d),
+        common::first_round(d),
         d.localiser_bias
     )
 }

@@ -113,23 +113,10 @@ fn summary(o: &Outcome) -> String {
         d.baseline.rms_pm,
         d.final_report.rms_pm,
         d.localisation_sigma_pm,
-        d.findings
-            .iter()
-            .map(|f| (
-                f.effect.clone(),
-                f.evidence.round(),
-                f.parameters
-                    .iter()
-                    .map(|(k, v)| format!("{k}={:.4}±{:.1e}", v.value, v.sigma))
-                    .collect::<Vec<_>>()
-            ))
-            .collect::<Vec<_>>(),
+        common::findings(d),
         d.unexplained,
         d.residual_structure.reasons,
-        d.rejected
-            .iter()
-            .map(|r| format!("{} {:.0} {}", r.effect, r.evidence, r.reason))
-            .collect::<Vec<_>>(),
+        common::rejections(d),
     )
 }
 
@@ -340,11 +327,10 @@ fn a_cubic_of_several_lattice_constants_is_indexed_and_stays_a_polynomial() {
 /// (features of the scanner-geometry height maps, placed on the nominal linear raster).
 mod fast_spm {
     use super::Diagnosis;
-    use spm_features::Polarity;
-    use spm_hal::{CountPoint, Counts, Frame, ScanDirection, ScanRequest, Seconds, TraceHalf};
+    use crate::common::sim_frame::{SimFrame, add_sim_frame};
+    use spm_hal::{CountPoint, Counts, Frame, ScanDirection, ScanRequest, Seconds};
     use spm_modelcheck::{
-        FeatureSet, FrameInfo, LatticeSpec, LineDirection, MapContext, Options, SimContext,
-        SimPatch, diagnose_features, features_from_height_map, sim_patch,
+        FeatureSet, LatticeSpec, Options, SimContext, SimPatch, diagnose_features, sim_patch,
     };
     use spm_sim::{LatticeConfig, SimConfig, Simulator, SineDrive, SurfaceConfig};
 
@@ -431,49 +417,17 @@ mod fast_spm {
     /// The frame's features, as `tests/it/sim.rs`'s `add_frame` places them: the nominal
     /// (linear) raster of the request, each feature's time from its pixels' (equidistant).
     fn add_frame(set: &mut FeatureSet, frame: &Frame, frame_index: usize, g: Geometry) {
-        let n = g.pixels as usize;
-        let pixel_nm = g.pixel_nm();
-        set.frames.push(FrameInfo {
+        let f = SimFrame {
+            frame,
+            index: frame_index,
             label: format!("sine-driven sim frame {frame_index}"),
-            half_width_x_nm: g.half_width_nm(),
-            half_height_y_nm: g.half_width_nm(),
-            start_time_s: frame.forward.time_s[0] - 0.5 * DWELL_S,
-            duration_s: 2.0 * (n * n) as f64 * DWELL_S,
-            fast_speed_nm_per_s: pixel_nm / DWELL_S,
-            lines: n,
-            pixel_nm: Some([pixel_nm, pixel_nm]),
-        });
-        let counter = frame.request.direction == ScanDirection::Counter;
-        for half in [TraceHalf::Forward, TraceHalf::Backward] {
-            let map = frame.height_map(half).unwrap();
-            let plus_x = matches!(
-                (counter, half),
-                (false, TraceHalf::Forward) | (true, TraceHalf::Backward)
-            );
-            let direction = if plus_x {
-                LineDirection::Forward
-            } else {
-                LineDirection::Backward
-            };
-            let times = map.time_s.clone();
-            let time_and_line = move |column: f64, row: f64| {
-                let r = (row.round().max(0.0) as usize).min(n - 1);
-                let c = (column.round().max(0.0) as usize).min(n - 1);
-                let dt = (column - c as f64) * DWELL_S * if plus_x { 1.0 } else { -1.0 };
-                let line = if counter { n - 1 - r } else { r };
-                (times[r * n + c] + dt, line)
-            };
-            let ctx = MapContext {
-                pixel_nm: [pixel_nm, pixel_nm],
-                polarity: Polarity::Hill,
-                a_nm: g.a_nm,
-                min_snr: 4.0,
-                direction,
-                frame_index,
-            };
-            set.features
-                .extend(features_from_height_map(&map, &ctx, &time_and_line).unwrap());
-        }
+            pixels: g.pixels as usize,
+            pixel_nm: g.pixel_nm(),
+            half_width_nm: g.half_width_nm(),
+            dwell_s: DWELL_S,
+            a_nm: g.a_nm,
+        };
+        add_sim_frame(set, None, &f);
     }
 
     pub(super) fn diagnose(set: &FeatureSet, a_nm: f64) -> Result<Diagnosis, String> {

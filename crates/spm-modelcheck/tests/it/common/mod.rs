@@ -4,11 +4,53 @@
 
 pub mod image;
 pub mod measured;
+pub mod sim_frame;
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
-use spm_modelcheck::{FeatureObservation, FeatureSet, FrameInfo, LineDirection};
+use spm_modelcheck::{Diagnosis, FeatureObservation, FeatureSet, FrameInfo, LineDirection};
+
+/// The diagnosis's findings for a failure message: each effect, its evidence, held-out RMS
+/// before → after (pm) and parameters.
+pub fn findings(d: &Diagnosis) -> Vec<String> {
+    d.findings
+        .iter()
+        .map(|f| {
+            let parameters: Vec<String> = f
+                .parameters
+                .iter()
+                .map(|(k, v)| format!("{k}={:.4e}±{:.1e}", v.value, v.sigma))
+                .collect();
+            format!(
+                "{} ev {:.0} held-out {:.1}→{:.1} pm {parameters:?}",
+                f.effect, f.evidence, f.heldout_rms_before_pm, f.heldout_rms_after_pm
+            )
+        })
+        .collect()
+}
+
+/// The diagnosis's rejected candidates for a failure message.
+pub fn rejections(d: &Diagnosis) -> Vec<String> {
+    d.rejected
+        .iter()
+        .map(|r| {
+            format!(
+                "{} {:.0} {:.2}pm {}",
+                r.effect, r.evidence, r.explained_rms_pm, r.reason
+            )
+        })
+        .collect()
+}
+
+/// The first round's candidates and their evidence.
+pub fn first_round(d: &Diagnosis) -> Option<Vec<(String, f64)>> {
+    d.rounds.first().map(|r| {
+        r.iter()
+            .map(|c| (c.effect.clone(), c.evidence.round()))
+            .collect()
+    })
+}
 
 /// Scan geometry of the generated frames.
 #[derive(Clone, Debug)]

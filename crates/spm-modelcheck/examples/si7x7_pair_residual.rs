@@ -249,13 +249,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let groups: Vec<(usize, LineDirection)> = (0..2)
         .flat_map(|f| [(f, LineDirection::Forward), (f, LineDirection::Backward)])
         .collect();
-    let mut columns: Vec<Vec<f64>> = vec![used
-        .iter()
-        .map(|p| {
-            let s = if p.direction == LineDirection::Forward { 1.0 } else { -1.0 };
-            0.5 * s * p.x_nm
-        })
-        .collect()];
+    let mut columns: Vec<Vec<f64>> = vec![
+        used.iter()
+            .map(|p| {
+                let s = if p.direction == LineDirection::Forward {
+                    1.0
+                } else {
+                    -1.0
+                };
+                0.5 * s * p.x_nm
+            })
+            .collect(),
+    ];
     for g in &groups {
         columns.push(
             used.iter()
@@ -271,7 +276,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // k = p·scale_y/(2W).
     let lines = d.residuals.iter().map(|p| p.line + 1).max().unwrap_or(1) as f64;
     let w = half(0)[0];
-    let scale_y = d.baseline.parameters.get("scale_y").map_or(f64::NAN, |p| p.value);
+    let scale_y = d
+        .baseline
+        .parameters
+        .get("scale_y")
+        .map_or(f64::NAN, |p| p.value);
     let pitch = 2.0 * half(0)[1] / lines;
     println!(
         "  y residual = k·½·s·x + a constant per frame and direction: k = {:.3e} ± {:.1e}; a continuous slow-axis ramp (pitch {:.4} nm over {lines} lines, scale_y {scale_y:.4}, W {w:.2} nm) gives {:.3e}; the RSS falls {:.0} → {:.0} pm²",

@@ -251,6 +251,7 @@ pub(crate) fn hyper_name(kind: EffectKind) -> Option<&'static str> {
         EffectKind::PeriodicVibration => Some("frequency_hz"),
         EffectKind::TipChange => Some("time_s"),
         EffectKind::SinusoidalDrive => Some("phase_at_line_end_rad"),
+        EffectKind::Interlace => Some("slow_axis_ramped"),
         _ => None,
     }
 }
@@ -351,6 +352,24 @@ pub(crate) fn effect_columns(kind: EffectKind, hyper: f64, obs: &[Obs], ctx: &Ct
         // `separation_y_nm` relative to forward ones: a feature at R is seen
         // where J·u + d = R, so the tip–sample displacement d is +s/2 times
         // the separation (forward +½, backward −½).
+        //
+        // Ramped (`hyper` ≥ ½): the slow axis moves on *through* every line, one line pitch
+        // per trace + retrace, instead of stepping between lines (measured on the Si 7×7
+        // pair, docs/MODELCHECK.md). A feature then sits further along the slow scan by
+        // the advance times its time within its line pair: (1 + s·ξ)/4 in the half that
+        // runs first, ½ + (1 − s·ξ)/4 in the second — less ½, s·(ξ − o)/4 with o = ±1 as
+        // the forward or the backward half runs first, along the frame's slow direction.
+        // Its forward − backward mean is −½·slow·o per unit advance; the column is scaled
+        // so that its coefficient is, as for the stepped shape, `separation_y_nm` (the mean
+        // separation in the first frame; the advance per line pair is twice its size).
+        EffectKind::Interlace if hyper >= 0.5 => {
+            let order = pair_order(obs);
+            let (first0, slow0) = order.first().copied().unwrap_or((1.0, 1.0));
+            vec![sample_col(obs, ctx, 1, |o| {
+                let (first, slow) = order.get(o.frame).copied().unwrap_or((1.0, 1.0));
+                -0.5 * first0 * slow0 * slow * o.s * (o.xi[0] - first)
+            })]
+        }
         EffectKind::Interlace => vec![sample_col(obs, ctx, 1, |o| 0.5 * o.s)],
         // The fast axis's input W·ξ becomes W·[ξ + κ·(sin βξ − βξ)/β]: a pure sine drive
         // (κ = 1) over ±β of phase about the line centre (see `sine_drive_departure`).
@@ -365,6 +384,53 @@ pub(crate) fn effect_columns(kind: EffectKind, hyper: f64, obs: &[Obs], ctx: &Ct
             ]
         }
     }
+}
+
+/// Per frame: which half of a line pair runs first (+1 forward, −1 backward) and which
+/// way the slow axis runs (+1 towards +y, −1 towards −y), from the features' times: within
+/// a line the half that runs first is earlier, and the lines advance in time along the
+/// slow direction. A frame with one direction only gets (+1, sign).
+pub(crate) fn pair_order(obs: &[Obs]) -> Vec<(f64, f64)> {
+    let n_frames = obs.iter().map(|o| o.frame + 1).max().unwrap_or(0);
+    (0..n_frames)
+        .map(|f| {
+            let of: Vec<&Obs> = obs.iter().filter(|o| o.frame == f).collect();
+            // Least squares t = a + b·line + c·s over the frame: b > 0 always (lines are
+            // numbered in acquisition order), c < 0 when the forward half is earlier.
+            let n = of.len() as f64;
+            if n < 3.0 {
+                return (1.0, 1.0);
+            }
+            let mean = |g: &dyn Fn(&Obs) -> f64| of.iter().map(|o| g(o)).sum::<f64>() / n;
+            let (ml, ms, mt) = (
+                mean(&|o| o.line as f64),
+                mean(&|o| o.s),
+                mean(&|o| o.t_frame),
+            );
+            let (mut sll, mut sss, mut sls, mut slt, mut sst) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            let (mut syt, mut syy) = (0.0, 0.0);
+            let my = mean(&|o| o.u[1]);
+            for o in &of {
+                let (l, sv, t, y) = (o.line as f64 - ml, o.s - ms, o.t_frame - mt, o.u[1] - my);
+                sll += l * l;
+                sss += sv * sv;
+                sls += l * sv;
+                slt += l * t;
+                sst += sv * t;
+                syt += y * t;
+                syy += y * y;
+            }
+            let det = sll * sss - sls * sls;
+            let c = if det > 1e-12 * (sll * sss).max(1e-300) {
+                (sll * sst - sls * slt) / det
+            } else {
+                -1.0
+            };
+            let first = if c <= 0.0 { 1.0 } else { -1.0 };
+            let slow = if syy > 0.0 && syt < 0.0 { -1.0 } else { 1.0 };
+            (first, slow)
+        })
+        .collect()
 }
 
 /// Hyper-parameter candidates for an effect from the current residuals, and the
@@ -411,6 +477,8 @@ pub(crate) fn hyper_candidates(
                 .collect(),
             4.0,
         ),
+        // Stepped (0) or ramped (1) slow axis: two shapes, one trial each.
+        EffectKind::Interlace => (vec![0.0, 1.0], 2.0),
         _ => (vec![0.0], 1.0),
     }
 }

@@ -621,6 +621,15 @@ fn map_finding(
                 m.unmapped
                     .push(format!("interlace: slow-axis scale {ky} nm per count"));
             }
+            // A ramped slow axis (hyper 1): spm-sim steps its slow axis, so only the mean
+            // separation above is simulated; the ramp within each line is not.
+            if value(fp, "slow_axis_ramped") >= 0.5 {
+                m.unmapped.push(
+                    "interlace: the slow axis ramps through every line; spm-sim steps it \
+                     (only the mean separation is simulated)"
+                        .to_owned(),
+                );
+            }
         }
     }
 }

@@ -181,7 +181,8 @@ pub enum EffectKind {
     PeriodicVibration,
     /// Sudden lateral jump of the image (tip apex change).
     TipChange,
-    /// Backward lines displaced along the slow axis relative to forward ones.
+    /// Backward lines displaced along the slow axis relative to forward ones: stepped
+    /// (a constant offset) or ramped (the slow axis moving on through every line).
     Interlace,
     /// The fast axis driven by a sine in time (fast SPM, resonant scanning) while the
     /// pixels are equidistant in time.

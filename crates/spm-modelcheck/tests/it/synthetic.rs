@@ -145,7 +145,7 @@ fn hidden(effect: EffectKind, k: f64) -> (Box<Extra>, Vec<(&'static str, f64)>) 
         // forward ones: the tip sits ±20 pm off.
         EffectKind::Interlace => (
             Box::new(move |_, _, s, _| ([0.0, 0.0], [0.0, 0.5 * s * 0.04 * k])),
-            vec![("separation_y_nm", 0.04 * k)],
+            vec![("separation_y_nm", 0.04 * k), ("slow_axis_ramped", 0.0)],
         ),
         // The fast axis driven by a sine over ±β of phase, β = 0.8 + 0.5·k rad (1.1–1.5: a
         // fast-SPM drive; at β ≈ 1.04 the sine departs from its best cubic by 4 pm RMS, and
@@ -284,6 +284,47 @@ fn hidden_tip_change_is_named() {
 #[test]
 fn hidden_interlace_is_named() {
     check_named_at_every_seed(EffectKind::Interlace);
+}
+
+/// A slow axis that ramps through every line instead of stepping between lines (as the
+/// Si 7×7 pair's Nanonis scans do, docs/MODELCHECK.md): the tip moves on along the slow
+/// scan, `advance` per trace + retrace, in every frame whichever way it runs. It is named
+/// `interlace`, ramped, at every seed, with the mean separation of the directions it
+/// implies; the stepped shape fits it worse.
+#[test]
+fn a_slow_axis_ramped_through_the_lines_is_named_as_a_ramped_interlace() {
+    let scan = Scan::default();
+    let period = 2.0 * scan.line_time_s;
+    let frame_span = period * scan.lines as f64 + scan.gap_s;
+    let ups = scan.frames_up.clone();
+    for seed in 300..300 + SEEDS_PER_EFFECT {
+        let k = 0.6 + 0.8 * ((seed * 2_654_435_761) % 1000) as f64 / 1000.0;
+        let advance = 0.06 * k;
+        let ups = ups.clone();
+        let extra: Box<Extra> = Box::new(move |_, t, _, t_frame| {
+            let frame = ((t / frame_span).floor().max(0.0) as usize).min(ups.len() - 1);
+            let slow = if ups[frame] { 1.0 } else { -1.0 };
+            let within = (t_frame / period).fract();
+            ([0.0, 0.0], [0.0, slow * advance * (within - 0.5)])
+        });
+        let d = run(&*extra, seed, &Options::default());
+        assert_eq!(
+            d.findings.first().map(|f| f.effect.as_str()),
+            Some("interlace"),
+            "seed {seed}: {}",
+            summary(&d)
+        );
+        // Frame 0 runs up with the forward half first: forward − backward = −advance/2.
+        check_recovered(
+            &d,
+            EffectKind::Interlace,
+            &[
+                ("separation_y_nm", -0.5 * advance),
+                ("slow_axis_ramped", 1.0),
+            ],
+        );
+        assert!(!d.unexplained, "seed {seed}: {}", summary(&d));
+    }
 }
 
 #[test]

@@ -27,7 +27,7 @@
 //! | `feedback_lag` | fast-axis input −s·v·τ | `time_constant_s`, `shift_nm` |
 //! | `periodic_vibration` | A·cos(2πft + φ) per axis; with images, fitted on their pixels (`vibration.rs`), its alias family reported | `amplitude_{x,y}_nm`, `frequency_hz`, `phase_{x,y}_rad`; `pixel_level` |
 //! | `tip_change` | jump (jx, jy) from time t_c on | `jump_{x,y}_nm`, `time_s` |
-//! | `interlace` | slow-axis displacement ±½·d of forward/backward lines (d: backward features relative to forward) | `separation_y_nm` |
+//! | `interlace` | slow-axis displacement ±½·d of forward/backward lines (d: backward features relative to forward); ramped: the slow axis moving on through every line, displacement 2d × the time within the line pair | `separation_y_nm`, `slow_axis_ramped` (0 stepped, 1 ramped) |
 //! | `sinusoidal_drive` | fast-axis input W·[ξ + κ·(sin βξ − βξ)/β]: the fast axis driven by a sine in time, pixels equidistant in time, ±β of phase over a line | `amplitude_nm`, `phase_at_line_end_rad` (β), `drive_frequency_hz`, `sine_weight` (κ), `sine_fraction` (1 for a pure sine) |
 //!
 //! ξ is the commanded position over the frame half-size (W along x, H along y).

@@ -395,39 +395,29 @@ pub(crate) fn pair_order(obs: &[Obs]) -> Vec<(f64, f64)> {
     (0..n_frames)
         .map(|f| {
             let of: Vec<&Obs> = obs.iter().filter(|o| o.frame == f).collect();
-            // Least squares t = a + b·line + c·s over the frame: b > 0 always (lines are
-            // numbered in acquisition order), c < 0 when the forward half is earlier.
-            let n = of.len() as f64;
-            if n < 3.0 {
-                return (1.0, 1.0);
-            }
-            let mean = |g: &dyn Fn(&Obs) -> f64| of.iter().map(|o| g(o)).sum::<f64>() / n;
-            let (ml, ms, mt) = (
-                mean(&|o| o.line as f64),
-                mean(&|o| o.s),
-                mean(&|o| o.t_frame),
-            );
-            let (mut sll, mut sss, mut sls, mut slt, mut sst) = (0.0, 0.0, 0.0, 0.0, 0.0);
-            let (mut syt, mut syy) = (0.0, 0.0);
-            let my = mean(&|o| o.u[1]);
-            for o in &of {
-                let (l, sv, t, y) = (o.line as f64 - ml, o.s - ms, o.t_frame - mt, o.u[1] - my);
-                sll += l * l;
-                sss += sv * sv;
-                sls += l * sv;
-                slt += l * t;
-                sst += sv * t;
-                syt += y * t;
-                syy += y * y;
-            }
-            let det = sll * sss - sls * sls;
-            let c = if det > 1e-12 * (sll * sss).max(1e-300) {
-                (sll * sst - sls * slt) / det
-            } else {
-                -1.0
+            // t = a + b·line + c·s over the frame (lines are numbered in acquisition
+            // order): c < 0 when the forward half is the earlier; and t = a′ + b′·y, b′ < 0
+            // when the lines run towards −y.
+            let fit = |columns: Vec<Vec<f64>>| {
+                let t: Vec<f64> = of.iter().map(|o| o.t_frame).collect();
+                spm_regression::minimum_norm_least_squares(&columns, &t, &vec![true; t.len()])
+                    .ok()
+                    .and_then(|fit| fit.coefficients.get(1).copied())
             };
-            let first = if c <= 0.0 { 1.0 } else { -1.0 };
-            let slow = if syy > 0.0 && syt < 0.0 { -1.0 } else { 1.0 };
+            let ones = vec![1.0; of.len()];
+            let both = of.iter().any(|o| o.s > 0.0) && of.iter().any(|o| o.s < 0.0);
+            let first = if !both {
+                1.0
+            } else {
+                fit(vec![
+                    ones.clone(),
+                    of.iter().map(|o| o.s).collect(),
+                    of.iter().map(|o| o.line as f64).collect(),
+                ])
+                .map_or(1.0, |c| if c <= 0.0 { 1.0 } else { -1.0 })
+            };
+            let slow = fit(vec![ones, of.iter().map(|o| o.u[1]).collect()])
+                .map_or(1.0, |b| if b < 0.0 { -1.0 } else { 1.0 });
             (first, slow)
         })
         .collect()

@@ -147,8 +147,11 @@ pub enum SimParam {
     VibrationPhaseXRad,
     /// Lateral vibration phase, y, rad (`drift.vibration_phase_y_rad`).
     VibrationPhaseYRad,
-    /// Interlace: the retrace's slow-axis advance, counts (`instrument.retrace_slow_axis_advance_counts`).
+    /// Interlace, stepped: the retrace's slow-axis advance, counts (`instrument.retrace_slow_axis_advance_counts`).
     RetraceSlowAxisAdvanceCounts,
+    /// Interlace, ramped: the slow axis's advance through every line pair, counts
+    /// (`instrument.slow_axis_ramp_counts`).
+    SlowAxisRampCounts,
     /// The Z feedback's time constant, s (`measurement.feedback_time_constant_s`).
     FeedbackTimeConstantS,
 }
@@ -189,6 +192,7 @@ impl SimParam {
         Self::VibrationPhaseXRad,
         Self::VibrationPhaseYRad,
         Self::RetraceSlowAxisAdvanceCounts,
+        Self::SlowAxisRampCounts,
         Self::FeedbackTimeConstantS,
     ];
 
@@ -229,6 +233,7 @@ impl SimParam {
             Self::VibrationPhaseXRad => "drift.vibration_phase_x_rad",
             Self::VibrationPhaseYRad => "drift.vibration_phase_y_rad",
             Self::RetraceSlowAxisAdvanceCounts => "instrument.retrace_slow_axis_advance_counts",
+            Self::SlowAxisRampCounts => "instrument.slow_axis_ramp_counts",
             Self::FeedbackTimeConstantS => "measurement.feedback_time_constant_s",
         }
     }
@@ -302,7 +307,8 @@ fn value(d: &BTreeMap<String, crate::ParamValue>, key: &str) -> f64 {
 /// gradient to `scanner.shear_gradient_{x,y}` (`γx = gx·H_field/H_frame`,
 /// `γy = gy·H_field/W_frame`); a vibration to `drift.vibration_*` (phases moved to
 /// the simulator's clock); an interlace to `instrument.retrace_slow_axis_advance_counts`
-/// (`δ = −separation/(Ky·cos α)`); creep to the relaxation chain through the move
+/// (`δ = −separation/(Ky·cos α)`), a ramped one to `instrument.slow_axis_ramp_counts`
+/// (`ρ = −2·separation/(Ky·cos α)`); creep to the relaxation chain through the move
 /// history ([`MoveHistory`]: its γ from the chain's closed-form response, and the
 /// chain's gain, drift and loop that the linear fit and a hysteresis finding
 /// already hold taken out of them). Tip changes become scheduled faults. A sinusoidal
@@ -602,35 +608,31 @@ fn map_finding(
                 ));
             }
         }
-        EffectKind::Interlace => {
-            // Model: backward-line features sit `separation_y_nm` further along image y
-            // than forward ones (a tip–sample offset −sep/2·s). spm-sim: the second half
-            // of every line runs δ counts further along the slow-scan direction, the tip
-            // Ky·δ further, so its features appear Ky·δ back; for direct rasters (second
-            // half = backward) and counter ones (second half = forward, stepping −y)
-            // alike, sep = −Ky·cos α·δ.
-            let ky = value(env.linear, "scale_y")
-                * env.n0
-                * value(env.linear, "obliquity_deg").to_radians().cos();
-            if ky > 0.0 {
-                m.put(
-                    SimParam::RetraceSlowAxisAdvanceCounts,
-                    -value(fp, "separation_y_nm") / ky,
-                );
-            } else {
-                m.unmapped
-                    .push(format!("interlace: slow-axis scale {ky} nm per count"));
-            }
-            // A ramped slow axis (hyper 1): spm-sim steps its slow axis, so only the mean
-            // separation above is simulated; the ramp within each line is not.
-            if value(fp, "slow_axis_ramped") >= 0.5 {
-                m.unmapped.push(
-                    "interlace: the slow axis ramps through every line; spm-sim steps it \
-                     (only the mean separation is simulated)"
-                        .to_owned(),
-                );
-            }
-        }
+        EffectKind::Interlace => map_interlace(m, fp, env),
+    }
+}
+
+/// An interlace finding as spm-sim's stepped or ramped slow axis.
+fn map_interlace(m: &mut Mapped, fp: &BTreeMap<String, crate::ParamValue>, env: &FrameScale<'_>) {
+    // Model: backward-line features sit `separation_y_nm` further along image y
+    // than forward ones (a tip–sample offset −sep/2·s). spm-sim: the second half
+    // of every line runs δ counts further along the slow-scan direction, the tip
+    // Ky·δ further, so its features appear Ky·δ back; for direct rasters (second
+    // half = backward) and counter ones (second half = forward, stepping −y)
+    // alike, sep = −Ky·cos α·δ. Ramped (`slow_axis_ramped`): spm-sim's slow axis
+    // moves on ρ counts through each line pair, the second half's features sit ρ/2
+    // further on the average, so sep = −Ky·cos α·ρ/2.
+    let ky = value(env.linear, "scale_y")
+        * env.n0
+        * value(env.linear, "obliquity_deg").to_radians().cos();
+    let sep = value(fp, "separation_y_nm");
+    if ky <= 0.0 || !ky.is_finite() {
+        m.unmapped
+            .push(format!("interlace: slow-axis scale {ky} nm per count"));
+    } else if value(fp, "slow_axis_ramped") >= 0.5 {
+        m.put(SimParam::SlowAxisRampCounts, -2.0 * sep / ky);
+    } else {
+        m.put(SimParam::RetraceSlowAxisAdvanceCounts, -sep / ky);
     }
 }
 

@@ -69,6 +69,15 @@ pub struct InstrumentConfig {
     /// the first, and its features appear displaced against the slow-scan direction. The command
     /// saturates at the field edge. Typical: 0; ideal: 0.
     pub retrace_slow_axis_advance_counts: f64,
+    /// Interlace, ramped: how far the slow-axis (y) command moves on *through* every line
+    /// pair (trace, then retrace), linearly in time, counts, along the slow-scan direction;
+    /// each line pair starts where a stepped raster puts its line. A controller that ramps
+    /// its slow axis continuously advances it by one line step per pair (the Nanonis Si 7×7
+    /// files, docs/MODELCHECK.md): the features of the second half then sit half that
+    /// further on, and each half's are sheared along the fast axis. Default 0: the slow axis
+    /// stepped between lines.
+    #[serde(default)]
+    pub slow_axis_ramp_counts: f64,
     /// The coarse approach stage; absent = no software-driven stage.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub coarse_z: Option<CoarseZConfig>,
@@ -476,6 +485,12 @@ impl SimConfig {
         v.range(
             "instrument.retrace_slow_axis_advance_counts",
             i.retrace_slow_axis_advance_counts,
+            -0.25 * i.lateral_half_range_counts,
+            0.25 * i.lateral_half_range_counts,
+        )?;
+        v.range(
+            "instrument.slow_axis_ramp_counts",
+            i.slow_axis_ramp_counts,
             -0.25 * i.lateral_half_range_counts,
             0.25 * i.lateral_half_range_counts,
         )?;

@@ -118,7 +118,9 @@
 //! (building, pumps), plus drift bursts and tip-change jumps (faults).
 //! Interlace (`instrument.retrace_slow_axis_advance_counts`): the controller
 //! advances the slow-axis command between the two halves of every line, so the
-//! second half runs that far along the slow-scan direction.
+//! second half runs that far along the slow-scan direction. Ramped
+//! (`instrument.slow_axis_ramp_counts`): the slow-axis command moves on through every
+//! line pair, linearly in time, as a controller that ramps its slow axis does.
 //! Z: the feedback output follows `reference + topography(sample point) +
 //! bowl` through a first-order lag (time constant `feedback_time_constant_s`,
 //! acting along the fast axis in both trace directions); the reading adds white

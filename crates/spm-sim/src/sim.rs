@@ -82,9 +82,25 @@ struct AsideLine {
     runs_plus_x: bool,
     /// Where each column of the line is commanded.
     path: RasterPath,
+    /// The slow-axis command at the half line's first pixel (in time), counts.
     y: f64,
+    /// How far it moves on per pixel (a ramped slow axis), counts; 0 when stepped.
+    y_per_pixel: f64,
+    /// The field's edge the ramped command saturates at, counts.
+    y_limit: f64,
     base_s: f64,
     dwell_s: f64,
+}
+
+impl AsideLine {
+    /// The slow-axis command at the `pixel`-th pixel in time.
+    fn y_at(&self, pixel: usize) -> f64 {
+        if self.y_per_pixel == 0.0 {
+            self.y
+        } else {
+            (self.y + self.y_per_pixel * pixel as f64).clamp(-self.y_limit, self.y_limit - 1.0)
+        }
+    }
 }
 
 /// Pixels per update of the medium 1/f processes.
@@ -746,7 +762,7 @@ impl Simulator {
             } else {
                 line.pixels - 1 - pixel
             };
-            let p = line.path.command(column, line.y);
+            let p = line.path.command(column, line.y_at(pixel));
             self.command = p;
             let z = self.pixel(p, t_mid, f, true);
             out.z_counts.push(z);
@@ -849,7 +865,8 @@ impl Simulator {
             .config
             .instrument
             .retrace_slow_axis_advance_counts;
-        if !plain || record_backward || lumped_n < 8 || !linear_x || advance != 0.0 {
+        let ramp = self.state.config.instrument.slow_axis_ramp_counts;
+        if !plain || record_backward || lumped_n < 8 || !linear_x || advance != 0.0 || ramp != 0.0 {
             return None;
         }
         let creep = self.state.scanner.creep[0].ramp_coefficients(&factors.creep_decays, lumped_n);
@@ -951,7 +968,7 @@ impl Simulator {
             } else {
                 nx - 1 - pixel
             };
-            let p = line.path.command(column, line.y);
+            let p = line.path.command(column, line.y_at(pixel));
             self.command = p;
             let z = self.pixel(p, t_mid, factors, record);
             if let Some(o) = out.as_mut() {
@@ -1037,6 +1054,13 @@ impl Simulator {
                 ScanDirection::Direct => 1.0,
                 ScanDirection::Counter => -1.0,
             };
+        // Ramped: the slow axis moves on through the line pair, along the slow direction.
+        let ramp_per_pixel = self.state.config.instrument.slow_axis_ramp_counts
+            * match request.direction {
+                ScanDirection::Direct => 1.0,
+                ScanDirection::Counter => -1.0,
+            }
+            / (2 * nx) as f64;
         let field_h = self.state.config.instrument.lateral_half_range_counts;
         let lumped = self.lumped_retrace(request, &factors, (path.is_plain(), backward.is_some()));
         for line in 0..ny {
@@ -1060,11 +1084,14 @@ impl Simulator {
                 } else {
                     y
                 };
+                let y = y + ramp_per_pixel * (half_index * nx) as f64;
                 let half_line = AsideLine {
                     pixels: nx,
                     runs_plus_x,
                     path,
                     y,
+                    y_per_pixel: ramp_per_pixel,
+                    y_limit: field_h,
                     base_s: start + ((2 * line + half_index) * nx) as f64 * dwell,
                     dwell_s: dwell,
                 };

@@ -8,7 +8,7 @@ use spm_hal::{
 };
 use spm_modelcheck::{
     Diagnosis, EffectKind, FeatureSet, InputKnot, LatticeSpec, LineDirection, MoveHistory, Options,
-    PixelImage, SimContext, diagnose_features, diagnose_features_with_pixels, sim_patch,
+    PixelImage, SimContext, SimParam, diagnose_features, diagnose_features_with_pixels, sim_patch,
 };
 use spm_sim::{FaultKind, FaultTrigger, LatticeConfig, SimConfig, Simulator, SurfaceConfig};
 
@@ -486,7 +486,7 @@ fn hidden_creep_is_named_and_maps_to_the_relaxation_chain() {
         let patch = sim_patch(d, &sim_context(), true);
         let gamma = patch
             .values
-            .get(&spm_modelcheck::SimParam::CreepLogSlopePerDecade)
+            .get(&SimParam::CreepLogSlopePerDecade)
             .copied()
             .ok_or_else(|| format!("creep unmapped: {:?}", patch.unmapped))?;
         let truth = 0.015 * k;
@@ -560,7 +560,49 @@ fn hidden_interlace_is_named_and_recovered() {
     let ky =
         c.scanner.sensitivity_y_nm_per_count * c.scanner.nonorthogonality_deg.to_radians().cos();
     check(e, 200, Naming::First, hidden(e), |d, k| {
-        near(d, e, "separation_y_nm", -ky * INTERLACE_COUNTS * k)
+        near(d, e, "separation_y_nm", -ky * INTERLACE_COUNTS * k)?;
+        within(d, e, "slow_axis_ramped", -0.5, 0.5)
+    });
+}
+
+/// A slow axis ramped through every line pair in spm-sim (`instrument.slow_axis_ramp_counts`,
+/// as the Nanonis Si 7×7 files' controller does; docs/MODELCHECK.md): named `interlace`,
+/// ramped, with the mean separation the ramp gives (its second half ρ/2 further on:
+/// −Ky·cos α·ρ/2), and mapped back by `sim_patch` to the ramp within 15 %.
+#[test]
+fn a_ramped_slow_axis_is_named_and_mapped_back() {
+    let e = EffectKind::Interlace;
+    let c = base_config(0);
+    let ky =
+        c.scanner.sensitivity_y_nm_per_count * c.scanner.nonorthogonality_deg.to_radians().cos();
+    let ramp = |k: f64| 2.0 * INTERLACE_COUNTS * k;
+    let build = move |seed, k| {
+        let mut c = base_config(seed);
+        c.instrument.slow_axis_ramp_counts = ramp(k);
+        (c, None)
+    };
+    check(e, 210, Naming::First, build, |d, k| {
+        near(d, e, "separation_y_nm", -ky * 0.5 * ramp(k))?;
+        within(d, e, "slow_axis_ramped", 0.5, 1.5)?;
+        let patch = sim_patch(d, &sim_context(), true);
+        let mapped = patch
+            .values
+            .get(&SimParam::SlowAxisRampCounts)
+            .copied()
+            .ok_or("no slow_axis_ramp_counts in the patch")?;
+        if (mapped / ramp(k) - 1.0).abs() > 0.15 {
+            return Err(format!(
+                "mapped ramp {mapped:.2} counts, hidden {:.2}",
+                ramp(k)
+            ));
+        }
+        if patch
+            .values
+            .contains_key(&SimParam::RetraceSlowAxisAdvanceCounts)
+        {
+            return Err("a stepped advance mapped too".to_owned());
+        }
+        Ok(())
     });
 }
 

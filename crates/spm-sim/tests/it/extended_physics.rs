@@ -150,6 +150,51 @@ fn the_interlace_advances_the_second_half_of_every_line_along_the_slow_scan() {
     }
 }
 
+/// A ramped slow axis: the command moves on `ramp_counts` along the slow-scan direction
+/// through every line pair, linearly in time (the first half's first pixel where a stepped
+/// raster puts the line).
+fn check_ramp(ramp_counts: f64, direction: ScanDirection) {
+    let mut c = ideal();
+    c.instrument.slow_axis_ramp_counts = ramp_counts;
+    let mut sim = Simulator::new(c).unwrap();
+    let r = request(direction);
+    let frame = sim.scan(&r).unwrap();
+    let along = match direction {
+        ScanDirection::Direct => 1.0,
+        ScanDirection::Counter => -1.0,
+    };
+    let (nx, dwell) = (r.pixels_per_line as f64, r.pixel_dwell.value());
+    let start = frame.forward.time_s[0] - 0.5 * dwell;
+    for half in [TraceHalf::Forward, TraceHalf::Backward] {
+        // The pixel's place in time within its line pair, from its time.
+        let tip = |u: CountPoint, t: f64| {
+            let k = ((t - start) / dwell - 0.5).round().rem_euclid(2.0 * nx);
+            let dy = along * ramp_counts * k / (2.0 * nx);
+            [
+                K_NM_PER_COUNT * u.x.value(),
+                K_NM_PER_COUNT * (u.y.value() + dy),
+            ]
+        };
+        let e = worst_error_nm(&sim, &frame, half, &tip);
+        assert!(e < 1e-9, "{direction:?} {half:?}: {e} nm");
+        // The stepped raster is far off: the test can fail.
+        let stepped =
+            |u: CountPoint, _t: f64| [K_NM_PER_COUNT * u.x.value(), K_NM_PER_COUNT * u.y.value()];
+        assert!(
+            worst_error_nm(&sim, &frame, half, &stepped) > 1e-3,
+            "{half:?}"
+        );
+    }
+}
+
+#[test]
+fn a_ramped_slow_axis_moves_on_through_every_line_pair() {
+    for direction in [ScanDirection::Direct, ScanDirection::Counter] {
+        check_ramp(40.0, direction);
+        check_ramp(-15.0, direction);
+    }
+}
+
 #[test]
 fn the_interlace_is_visible_when_on() {
     // Without the closed form's shift the backward image does not match.
@@ -229,7 +274,7 @@ fn the_shear_gradient_adds_g_ux_uy_over_h_to_the_input() {
 #[test]
 fn the_new_fields_are_validated_with_their_paths() {
     type Edit = fn(&mut SimConfig);
-    let cases: [(&str, Edit); 5] = [
+    let cases: [(&str, Edit); 7] = [
         ("drift.vibration_amplitude_x_nm", |c| {
             c.drift.vibration_amplitude_x_nm = -1.0
         }),
@@ -244,6 +289,12 @@ fn the_new_fields_are_validated_with_their_paths() {
         }),
         ("instrument.retrace_slow_axis_advance_counts", |c| {
             c.instrument.retrace_slow_axis_advance_counts = 9000.0
+        }),
+        ("instrument.slow_axis_ramp_counts", |c| {
+            c.instrument.slow_axis_ramp_counts = 9000.0
+        }),
+        ("instrument.slow_axis_ramp_counts", |c| {
+            c.instrument.slow_axis_ramp_counts = f64::NAN
         }),
     ];
     for (field, edit) in cases {

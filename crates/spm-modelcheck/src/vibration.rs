@@ -92,8 +92,9 @@ fn template_at(tpl: &ImageTemplate, coefficients: &[f64], u: [f64; 2]) -> (f64, 
         tpl.map[1].gradient(u[0], u[1]),
     );
     let (mut t, mut g) = (0.0, [0.0, 0.0]);
-    for (j, h) in tpl.harmonics.iter().enumerate() {
-        let (s, co) = (tau * (h[0] * r[0] + h[1] * r[1])).sin_cos();
+    let mut phasors = Vec::with_capacity(tpl.harmonics.len());
+    tpl.harmonics.phasors(r, &mut phasors);
+    for (j, (h, &(s, co))) in tpl.harmonics.vectors.iter().zip(&phasors).enumerate() {
         let (a, b) = (coefficients[2 * j], coefficients[2 * j + 1]);
         t += a * co + b * s;
         let d = tau * (-a * s + b * co);
@@ -163,21 +164,73 @@ impl PixelImage {
     }
 }
 
+/// The lattice's harmonics G = m·b₁ + n·b₂ (b the reciprocal basis, cycles per nm,
+/// lattice frame), one of each ± pair, with their orders (m, n): e^{2πi·G·R} is then
+/// formed from the two basis phasors' powers, not a `sin_cos` per harmonic (the templates
+/// are evaluated at every pixel of every fit).
+#[derive(Clone, Debug, Default)]
+pub(crate) struct Harmonics {
+    basis: [[f64; 2]; 2],
+    orders: Vec<[i32; 2]>,
+    vectors: Vec<[f64; 2]>,
+}
+
+/// The largest |m|, |n| of [`lattice_harmonics`].
+const MAX_ORDER: i32 = 4;
+
+impl Harmonics {
+    fn len(&self) -> usize {
+        self.orders.len()
+    }
+
+    fn is_empty(&self) -> bool {
+        self.orders.is_empty()
+    }
+
+    /// (sin, cos) of 2π·G·R for each harmonic, into `out`.
+    fn phasors(&self, r: [f64; 2], out: &mut Vec<(f64, f64)>) {
+        let tau = std::f64::consts::TAU;
+        let [b1, b2] = self.basis;
+        let unit = |b: [f64; 2]| (tau * (b[0] * r[0] + b[1] * r[1])).sin_cos();
+        // Powers −MAX … MAX of each basis phasor, as (sin, cos).
+        let powers = |(s, c): (f64, f64)| {
+            let mut p = [(0.0, 1.0); (2 * MAX_ORDER + 1) as usize];
+            let mid = MAX_ORDER as usize;
+            for k in 1..=mid {
+                let (ps, pc) = p[mid + k - 1];
+                p[mid + k] = (ps * c + pc * s, pc * c - ps * s);
+                p[mid - k] = (-p[mid + k].0, p[mid + k].1);
+            }
+            p
+        };
+        let (p1, p2) = (powers(unit(b1)), powers(unit(b2)));
+        out.clear();
+        out.extend(self.orders.iter().map(|&[m, n]| {
+            let (s1, c1) = p1[(m + MAX_ORDER) as usize];
+            let (s2, c2) = p2[(n + MAX_ORDER) as usize];
+            (s1 * c2 + c1 * s2, c1 * c2 - s1 * s2)
+        }));
+    }
+}
+
 /// The lattice's harmonics G = m·b₁ + n·b₂ (b the reciprocal basis of `basis_nm`, cycles
 /// per nm) out to twice the longer of b₁, b₂ (a triangular lattice's shells 1, √3, 2), one
 /// of each ± pair.
-pub(crate) fn lattice_harmonics(basis_nm: [[f64; 2]; 2]) -> Vec<[f64; 2]> {
+pub(crate) fn lattice_harmonics(basis_nm: [[f64; 2]; 2]) -> Harmonics {
     let [a1, a2] = basis_nm;
     let det = a1[0] * a2[1] - a1[1] * a2[0];
     if det.abs() < 1e-300 {
-        return Vec::new();
+        return Harmonics::default();
     }
     let b1 = [a2[1] / det, -a2[0] / det];
     let b2 = [-a1[1] / det, a1[0] / det];
     let limit = 2.05 * b1[0].hypot(b1[1]).max(b2[0].hypot(b2[1]));
-    let mut out: Vec<[f64; 2]> = Vec::new();
-    for m in -4i32..=4 {
-        for n in -4i32..=4 {
+    let mut out = Harmonics {
+        basis: [b1, b2],
+        ..Harmonics::default()
+    };
+    for m in -MAX_ORDER..=MAX_ORDER {
+        for n in -MAX_ORDER..=MAX_ORDER {
             let g = [
                 f64::from(m) * b1[0] + f64::from(n) * b2[0],
                 f64::from(m) * b1[1] + f64::from(n) * b2[1],
@@ -185,7 +238,8 @@ pub(crate) fn lattice_harmonics(basis_nm: [[f64; 2]; 2]) -> Vec<[f64; 2]> {
             let len = g[0].hypot(g[1]);
             let upper = g[1] > 0.0 || (g[1] == 0.0 && g[0] > 0.0);
             if len > 1e-12 && len <= limit && upper {
-                out.push(g);
+                out.orders.push([m, n]);
+                out.vectors.push(g);
             }
         }
     }
@@ -201,28 +255,34 @@ pub(crate) type ImageMap = [spm_regression::Polynomial2; 2];
 #[derive(Clone, Debug)]
 struct ImageTemplate {
     map: ImageMap,
-    harmonics: Vec<[f64; 2]>,
+    harmonics: Harmonics,
     coefficients: Vec<f64>,
 }
 
 impl ImageTemplate {
-    fn new(map: &ImageMap, harmonics: &[[f64; 2]], pixel_nm: [f64; 2]) -> Self {
+    fn new(map: &ImageMap, harmonics: &Harmonics, pixel_nm: [f64; 2]) -> Self {
         let (dx, dy) = (map[0].gradient(0.0, 0.0), map[1].gradient(0.0, 0.0));
-        let harmonics: Vec<[f64; 2]> = harmonics
-            .iter()
-            .copied()
-            .filter(|h| {
-                let k = [
-                    (h[0] * dx.0 + h[1] * dy.0) * pixel_nm[0],
-                    (h[0] * dx.1 + h[1] * dy.1) * pixel_nm[1],
-                ];
-                k[0].abs() < 0.5 && k[1].abs() < 0.5
-            })
-            .collect();
+        let below_nyquist = |h: &[f64; 2]| {
+            let k = [
+                (h[0] * dx.0 + h[1] * dy.0) * pixel_nm[0],
+                (h[0] * dx.1 + h[1] * dy.1) * pixel_nm[1],
+            ];
+            k[0].abs() < 0.5 && k[1].abs() < 0.5
+        };
+        let mut kept = Harmonics {
+            basis: harmonics.basis,
+            ..Harmonics::default()
+        };
+        for (order, h) in harmonics.orders.iter().zip(&harmonics.vectors) {
+            if below_nyquist(h) {
+                kept.orders.push(*order);
+                kept.vectors.push(*h);
+            }
+        }
         Self {
             map: map.clone(),
-            coefficients: vec![0.0; 2 * harmonics.len()],
-            harmonics,
+            coefficients: vec![0.0; 2 * kept.len()],
+            harmonics: kept,
         }
     }
 }
@@ -236,7 +296,7 @@ pub(crate) struct SearchSpace<'a> {
     /// Line rates of the frames (lines per frame duration), Hz.
     pub line_frequencies_hz: &'a [f64],
     /// The lattice's harmonics (cycles per nm, lattice frame).
-    pub harmonics: Vec<[f64; 2]>,
+    pub harmonics: Harmonics,
 }
 
 /// One member of the named frequency's alias family.
@@ -290,7 +350,7 @@ struct Flat {
 impl Flat {
     /// The images' pixels, each image's template fitted at rest (its lines' offsets and
     /// slopes with it), the residuals and the gradients.
-    fn new(images: &[(&PixelImage, &ImageMap)], t0: f64, harmonics: &[[f64; 2]]) -> Self {
+    fn new(images: &[(&PixelImage, &ImageMap)], t0: f64, harmonics: &Harmonics) -> Self {
         let mut f = Flat {
             lines: Vec::new(),
             image_samples: Vec::new(),
@@ -482,15 +542,15 @@ impl Flat {
                     return tpl.coefficients.clone();
                 }
                 let mut cols = vec![vec![0.0; range.len()]; 2 * m];
+                let mut phasors = Vec::with_capacity(m);
                 for (row, k) in range.clone().enumerate() {
                     let u = self.displaced_u(w, c, k);
                     let r = [
                         tpl.map[0].evaluate(u[0], u[1]),
                         tpl.map[1].evaluate(u[0], u[1]),
                     ];
-                    for (j, h) in tpl.harmonics.iter().enumerate() {
-                        let phase = std::f64::consts::TAU * (h[0] * r[0] + h[1] * r[1]);
-                        let (sn, cs) = phase.sin_cos();
+                    tpl.harmonics.phasors(r, &mut phasors);
+                    for (j, &(sn, cs)) in phasors.iter().enumerate() {
                         cols[2 * j][row] = cs;
                         cols[2 * j + 1][row] = sn;
                     }
@@ -986,4 +1046,27 @@ pub(crate) fn assess(
         coherence,
         heldout_rms,
     })
+}
+
+#[cfg(test)]
+mod harmonic_tests {
+    use super::*;
+
+    /// The harmonics' phasors from the basis phasors' powers are those of 2π·G·R.
+    #[test]
+    fn the_phasors_from_powers_are_the_direct_ones() {
+        let h = lattice_harmonics([[0.2461, 0.0], [0.123_05, 0.213_13]]);
+        assert!(h.len() >= 9, "{} harmonics", h.len());
+        let mut out = Vec::new();
+        for r in [[0.0, 0.0], [3.7, -2.2], [-41.3, 17.9], [250.0, 130.0]] {
+            h.phasors(r, &mut out);
+            for (g, &(s, c)) in h.vectors.iter().zip(&out) {
+                let (ds, dc) = (std::f64::consts::TAU * (g[0] * r[0] + g[1] * r[1])).sin_cos();
+                assert!(
+                    (s - ds).abs() < 1e-9 && (c - dc).abs() < 1e-9,
+                    "{g:?} at {r:?}"
+                );
+            }
+        }
+    }
 }

@@ -257,13 +257,14 @@ impl WholeLine {
 }
 
 /// Line `r`'s sums over its scanned pixels: the whole line's closed-form sums less its
-/// unscanned pixels, or (when most of it is unscanned, where that difference would lose
-/// precision) the scanned pixels summed directly.
+/// unscanned pixels, or the scanned pixels summed directly — when most of the line is
+/// unscanned (where that difference would lose precision) or without `whole` (the
+/// reference the closed form is tested against).
 fn line_sums(
     img: &Lines<'_>,
     k_px: &[[f64; 2]],
     weights: &[f64],
-    whole: &WholeLine,
+    whole: Option<&WholeLine>,
     r: usize,
     out: &mut LineSums,
 ) {
@@ -274,16 +275,19 @@ fn line_sums(
     let good = |c: usize| !bad_row[c] && row[c].is_finite();
     let unscanned = (0..nx).filter(|&c| !good(c)).count();
     let mut h = vec![0.0; m];
-    if 2 * unscanned > nx {
-        *out = LineSums::zeros(m);
-        for (c, &w) in weights.iter().enumerate() {
-            if good(c) {
-                design_row(k_px, c, r, &mut h);
-                out.add_pixel(1.0, w, c as f64 - centre, &h, Some(row[c]));
+    let whole = match whole {
+        Some(whole) if 2 * unscanned <= nx => whole,
+        _ => {
+            *out = LineSums::zeros(m);
+            for (c, &w) in weights.iter().enumerate() {
+                if good(c) {
+                    design_row(k_px, c, r, &mut h);
+                    out.add_pixel(1.0, w, c as f64 - centre, &h, Some(row[c]));
+                }
             }
+            return;
         }
-        return;
-    }
+    };
     let phase: Vec<Complex<f64>> = k_px
         .iter()
         .map(|k| Complex::from_polar(1.0, std::f64::consts::TAU * k[1] * r as f64))
@@ -340,21 +344,8 @@ fn joint_fit_with(img: &Lines<'_>, k_px: &[[f64; 2]], direct: bool) -> JointFit 
     let mut lines = Vec::with_capacity(ny);
     let whole = (!direct).then(|| WholeLine::new(k_px, &weights, centre));
     let mut sums = LineSums::zeros(m);
-    let mut h = vec![0.0; m];
     for r in 0..ny {
-        match &whole {
-            Some(whole) => line_sums(img, k_px, &weights, whole, r, &mut sums),
-            None => {
-                sums = LineSums::zeros(m);
-                for (c, &w) in weights.iter().enumerate() {
-                    let v = img.z[r * nx + c];
-                    if !img.bad[r * nx + c] && v.is_finite() {
-                        design_row(k_px, c, r, &mut h);
-                        sums.add_pixel(1.0, w, c as f64 - centre, &h, Some(v));
-                    }
-                }
-            }
-        }
+        line_sums(img, k_px, &weights, whole.as_ref(), r, &mut sums);
         let LineSums {
             mut g,
             pz,

@@ -279,6 +279,16 @@ impl Polynomial2 {
         value
     }
 
+    /// Whether `other` has this surface's basis (degree and normalisation): their terms are
+    /// then the same powers.
+    fn same_basis(&self, other: &Self) -> bool {
+        self.degree == other.degree
+            && self.center_x == other.center_x
+            && self.center_y == other.center_y
+            && self.scale_x == other.scale_x
+            && self.scale_y == other.scale_y
+    }
+
     /// Several surfaces at one point, their basis powers computed once when they share the
     /// degree and normalisation (the fit gives every LCC surface of a plane the same); the one
     /// sum of eq. (6), which [`Self::evaluate`] is for one surface. Surfaces on different bases
@@ -288,13 +298,7 @@ impl Polynomial2 {
         let Some(first) = surfaces.first() else {
             return [0.0; N];
         };
-        let shared = surfaces.iter().all(|p| {
-            p.degree == first.degree
-                && p.center_x == first.center_x
-                && p.center_y == first.center_y
-                && p.scale_x == first.scale_x
-                && p.scale_y == first.scale_y
-        });
+        let shared = surfaces.iter().all(|p| p.same_basis(first));
         if !shared {
             let mut values = [0.0; N];
             for (value, p) in values.iter_mut().zip(surfaces) {
@@ -331,13 +335,7 @@ impl Polynomial2 {
             points.for_each(|(o, _)| *o = [0.0; N]);
             return;
         };
-        let shared = surfaces.iter().all(|p| {
-            p.degree == first.degree
-                && p.center_x == first.center_x
-                && p.center_y == first.center_y
-                && p.scale_x == first.scale_x
-                && p.scale_y == first.scale_y
-        });
+        let shared = surfaces.iter().all(|p| p.same_basis(first));
         let done = shared
             && match first.degree {
                 0 => Self::many_fixed::<N, 0, 1>(&surfaces, xs, ys, out),

@@ -660,9 +660,10 @@ pub fn virtual_plan(
 /// lattice indexed and fitted with scales, obliquity, rotation and drift).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct PartLattice {
-    /// Scale along x: apparent over true lattice length (1 = correct).
+    /// Scale along x: true over apparent lattice length, i.e. the image's true nm per
+    /// nominal nm (K̄x/K; 1 = correct, 0.68 = the lattice looks 1/0.68 times too long).
     pub scale_x: f64,
-    /// Scale along y.
+    /// Scale along y, as `scale_x`.
     pub scale_y: f64,
     /// Obliquity, degrees (0 = orthogonal axes).
     pub obliquity_deg: f64,
@@ -744,48 +745,45 @@ pub fn survey_lattice(
         detail: e.to_string(),
     })?;
     let (nx, ny) = (forward.nx(), forward.ny());
-    // A part in display coordinates (row 0 = top) as a file of its own, measured.
+    let extract = spm_modelcheck::ExtractOptions {
+        channel: Some(forward.name().to_owned()),
+        ..spm_modelcheck::ExtractOptions::default()
+    };
+    let options = spm_modelcheck::Options {
+        effects: Vec::new(),
+        max_findings: 0,
+        ..spm_modelcheck::Options::default()
+    };
+    // The features are extracted once, on the whole image: a cell's own spectrum holds a
+    // few lattice constants only, too few for the cell-template localiser's lattice and
+    // template (Si 7×7 at 13.8 pixels per cell: 8 of 16 cells found that way, 14 with the
+    // whole image's features). A part is then the features whose centre lies in it.
+    let whole_file = spm_formats::SpmFile {
+        channels: vec![forward.clone()],
+        ..file.clone()
+    };
+    let all = spm_modelcheck::extract_features(&[(whole_file, None)], &spec, &extract).ok();
+    let (width_nm, height_nm) = (nx as f64 * pixel_x_nm, ny as f64 * pixel_y_nm);
+    // A part in display coordinates (row 0 = top), in pixels.
     let measure = |column0: usize, row0: usize, w: usize, h: usize| -> Option<PartLattice> {
-        let mut data = Vec::with_capacity(w * h);
-        for row in row0..row0 + h {
-            for column in column0..column0 + w {
-                data.push(forward.get(row, column)?);
-            }
-        }
-        let mut part = spm_formats::Channel::new(
-            forward.name(),
-            spm_formats::Direction::Forward,
-            forward.unit(),
-            w,
-            h,
-            data,
-        )
-        .ok()?
-        .with_size_nm(w as f64 * pixel_x_nm, h as f64 * pixel_y_nm);
-        if let Some(dir) = forward.scan_dir() {
-            part = part.with_scan_dir(dir);
-        }
-        if let Some(t) = forward.timing() {
-            part = part.with_timing(t);
-        }
-        let part_file = spm_formats::SpmFile {
-            channels: vec![part],
-            header: Vec::new(),
-            ..file.clone()
+        let all = all.as_ref()?;
+        // Feature coordinates are nm from the frame centre, y up; the part's bounds too.
+        let x0 = column0 as f64 * pixel_x_nm - 0.5 * width_nm;
+        let x1 = x0 + w as f64 * pixel_x_nm;
+        let y1 = 0.5 * height_nm - row0 as f64 * pixel_y_nm;
+        let y0 = y1 - h as f64 * pixel_y_nm;
+        let set = spm_modelcheck::FeatureSet {
+            features: all
+                .features
+                .iter()
+                .filter(|f| (x0..x1).contains(&f.x_nm) && (y0..y1).contains(&f.y_nm))
+                .cloned()
+                .collect(),
+            ..all.clone()
         };
-        let extract = spm_modelcheck::ExtractOptions {
-            channel: Some(forward.name().to_owned()),
-            ..spm_modelcheck::ExtractOptions::default()
-        };
-        let set = spm_modelcheck::extract_features(&[(part_file, None)], &spec, &extract).ok()?;
         if set.features.len() < MIN_PART_FEATURES {
             return None;
         }
-        let options = spm_modelcheck::Options {
-            effects: Vec::new(),
-            max_findings: 0,
-            ..spm_modelcheck::Options::default()
-        };
         let d = spm_modelcheck::diagnose_features(&set, &spec, &options).ok()?;
         let p = |key: &str| d.baseline.parameters.get(key).map(|v| v.value);
         Some(PartLattice {

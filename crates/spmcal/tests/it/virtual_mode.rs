@@ -326,3 +326,76 @@ fn the_measured_images_are_accepted_for_the_standard_they_show_and_refused_for_a
         .to_string();
     assert!(e.contains("graphiteterrace.spm"), "{e}");
 }
+
+/// `spmcal lattice`'s cells on an image whose y scale changes down the frame (as the slow
+/// axis's creep does on Si_7x7_028): every cell is measured, and each row of cells gives the
+/// closed-form scale at its centre, top row first (display row 0 = the file's first row).
+#[test]
+fn the_lattice_of_every_cell_follows_a_y_scale_that_changes_down_the_frame() {
+    let dir = std::env::temp_dir().join(format!("spmcal-lattice-cells-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (n, pixel_nm, a) = (256usize, 0.025, 0.2461);
+    let height_nm = n as f64 * pixel_nm;
+    // True y of an image row's y (nm from the top): y_true = y / s0 + q·y², so the image's
+    // lattice along y is s(y) = dy / dy_true = 1 / (1/s0 + 2·q·y) of its true length: 0.90 at
+    // the top, 1.10 at the bottom. The diagnosis's scale is true over apparent, 1 / s(y).
+    let (s_top, s_bottom) = (0.90, 1.10);
+    let q = (1.0 / s_bottom - 1.0 / s_top) / (2.0 * height_nm);
+    let scale_at = |y: f64| 1.0 / (1.0 / s_top + 2.0 * q * y);
+    // The lattice turned by 10° (its rows not along the lines), so both line parities
+    // hold features of every row (the diagnosis's held-out check fits alternate lines).
+    let (sin, cos) = 10f64.to_radians().sin_cos();
+    let turn = |(u, v): (f64, f64)| (cos * u - sin * v, sin * u + cos * v);
+    let (b1, b2) = ((a, 0.0), (0.5 * a, 0.75f64.sqrt() * a));
+    let mut data = Vec::with_capacity(n * n);
+    for row in 0..n {
+        for column in 0..n {
+            let y_img = (row as f64 + 0.5) * pixel_nm;
+            // Lattice coordinates: the true position turned back by 10°.
+            let (x, y) = turn((
+                (column as f64 + 0.5) * pixel_nm,
+                -(y_img / s_top + q * y_img * y_img),
+            ));
+            let (x, y) = (x, -y);
+            let j = y / b2.1;
+            let i = (x - j * b2.0) / b1.0;
+            let mut z = 0.0;
+            for di in -1..=1 {
+                for dj in -1..=1 {
+                    let (si, sj) = (i.round() + f64::from(di), j.round() + f64::from(dj));
+                    let (sx, sy) = (si * b1.0 + sj * b2.0, sj * b2.1);
+                    let r2 = (x - sx).powi(2) + (y - sy).powi(2);
+                    z += 0.05e-9 * (-r2 / (2.0 * 0.05f64.powi(2))).exp();
+                }
+            }
+            data.push(z);
+        }
+    }
+    let channel = spm_formats::Channel::new("Z", spm_formats::Direction::Forward, "m", n, n, data)
+        .unwrap()
+        .with_size_nm(height_nm, height_nm);
+    let path = dir.join("graded.gsf");
+    spm_formats::write_gsf(&path, &channel, &[]).unwrap();
+    let survey = spmcal::virtual_mode::survey_lattice(&path, StandardName::Hopg, None, 4).unwrap();
+    assert_eq!(survey.cells.len(), 16);
+    for cell in &survey.cells {
+        let l = cell
+            .lattice
+            .unwrap_or_else(|| panic!("cell ({}, {}) not measured", cell.column, cell.row));
+        let expected = 1.0 / scale_at((cell.row as f64 + 0.5) * 0.25 * height_nm);
+        assert!(
+            (l.scale_y / expected - 1.0).abs() < 0.01,
+            "cell ({}, {}): scale y {:.4}, closed form {expected:.4}",
+            cell.column,
+            cell.row,
+            l.scale_y
+        );
+        assert!(
+            (l.scale_x - 1.0).abs() < 0.01 && l.obliquity_deg.abs() < 0.5,
+            "cell ({}, {}): {l:?}",
+            cell.column,
+            cell.row
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}

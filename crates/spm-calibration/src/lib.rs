@@ -79,5 +79,5 @@ pub use runner::{
     Calibrator, FosParams, GivenUpVisit, MemoryStore, MemoryStoreError, NoObserver, Observer,
     ProgressStore, RunError, RunOptions, RunReport,
 };
-pub use survey::{GateTally, SurveyConfig, SurveyLcc, SurveyPlace, SurveyReport};
+pub use survey::{GateTally, SurveyConfig, SurveyLattice, SurveyLcc, SurveyPlace, SurveyReport};
 pub use vertical::{KzOutcome, KzSearch, StepSearchConfig};

@@ -59,6 +59,23 @@ pub struct SurveyConfig {
     /// A lattice direction counts when at least this many neighbour pairs lie along it.
     /// Default 4.
     pub min_pairs: u32,
+    /// How a frame's lattice is found. Default `neighbours`.
+    pub lattice_from: SurveyLattice,
+}
+
+/// How a survey frame's lattice is found (`[plan.survey] lattice_from`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SurveyLattice {
+    /// The recognised features' neighbour vectors ([`neighbour_directions`]): for a lattice
+    /// of single features (HOPG atoms). On the HOPG terrace's frames the spectrum's
+    /// strongest peaks scatter by tens of per cent and degrees.
+    #[default]
+    Neighbours,
+    /// The frame's power spectrum ([`spectrum_directions`]), the features' neighbours where
+    /// it shows no lattice: for a cell pattern (Si(111)-7×7) whose features are barely
+    /// above the noise, where every cell's pattern sharpens the peaks.
+    Spectrum,
 }
 
 impl Default for SurveyConfig {
@@ -68,6 +85,7 @@ impl Default for SurveyConfig {
             places_per_side: 3,
             size_lattice: 8.0,
             min_pairs: 4,
+            lattice_from: SurveyLattice::Neighbours,
         }
     }
 }
@@ -380,7 +398,16 @@ pub fn survey_place<M: Microscope>(
     let features = &recognised.detection.features;
     place.features = features.len();
     let max_directions = max_directions(plan.standard.lcs_angle());
-    let found = neighbour_directions(features, max_directions, plan.survey.min_pairs as usize)
+    let a_counts = plan.standard.lattice_constant_nm / plan.standard.nominal_nm_per_count;
+    let spectrum = match plan.survey.lattice_from {
+        SurveyLattice::Spectrum => spectrum_directions(&recognised.map, a_counts, max_directions),
+        SurveyLattice::Neighbours => None,
+    };
+    let found = spectrum
+        .map_or_else(
+            || neighbour_directions(features, max_directions, plan.survey.min_pairs as usize),
+            Ok,
+        )
         .and_then(|lattice| {
             for v in &lattice.vectors {
                 tracing::debug!(
@@ -426,6 +453,74 @@ fn scan_at<M: Microscope>(
     scan_and_recognise(microscope, raster, centre, ScanDirection::Direct, detection)
 }
 
+/// The lattice directions of a frame from its power spectrum (`spm_features::cells::
+/// find_lattice`: the strongest pair of peaks near the nominal period, refined to sub-bin):
+/// b₁, b₂ and, for a triangular lattice (`max_directions` 3), the shorter of b₁ ± b₂;
+/// `None` when the spectrum shows no lattice (then the features' neighbour statistics are
+/// used). Every cell of the frame contributes to the peaks, so a frame whose features are
+/// barely above the noise (Si_7x7_028's corner holes: some features missed, some false)
+/// still gives its lattice: the neighbour statistics of that frame put K̄y 50 % off.
+/// `pairs` is the number of cells in the frame; `sigma` a tenth of a spectral bin.
+pub fn spectrum_directions(
+    map: &spm_hal::HeightMap,
+    a_counts: f64,
+    max_directions: usize,
+) -> Option<Lattice> {
+    use spm_features::cells;
+    let step = map.pixel_step.value();
+    let bad: Vec<bool> = map.z_counts.iter().map(|z| !z.is_finite()).collect();
+    let img = cells::Image {
+        z: &map.z_counts,
+        bad: &bad,
+        nx: map.columns,
+        ny: map.rows,
+    };
+    let hex = max_directions == 3;
+    // The first peaks' row spacing: √3/2 a for a triangular lattice, a for a square one;
+    // searched within a factor 1.6 (spm-modelcheck's localiser's range).
+    let row = if hex {
+        0.75f64.sqrt() * a_counts
+    } else {
+        a_counts
+    };
+    let search = cells::LatticeSearch {
+        pixel: [step, step],
+        k_range: [1.0 / (1.6 * row), 1.6 / row],
+        hex,
+    };
+    let peaks = cells::find_lattice(&img, &search)?;
+    let b = peaks.basis_px()?;
+    let side = step * map.columns.min(map.rows) as f64;
+    let cells_in_frame = (map.columns * map.rows) as f64 / peaks.cell_area_px();
+    let vector = |v: [f64; 2]| {
+        let (x, y) = (v[0] * step, v[1] * step);
+        let sigma = (x * x + y * y) / (10.0 * side);
+        LatticeVector {
+            vector: spm_hal::CountVector::from_counts(x, y),
+            sigma: spm_hal::CountVector::from_counts(sigma, sigma),
+            pairs: cells_in_frame as usize,
+        }
+    };
+    let mut vectors = vec![vector(b[0]), vector(b[1])];
+    if hex {
+        let (d, s) = (
+            [b[0][0] - b[1][0], b[0][1] - b[1][1]],
+            [b[0][0] + b[1][0], b[0][1] + b[1][1]],
+        );
+        vectors.push(vector(if d[0].hypot(d[1]) <= s[0].hypot(s[1]) {
+            d
+        } else {
+            s
+        }));
+    }
+    Some(Lattice {
+        nearest_neighbour: spm_hal::Counts(
+            step * b[0][0].hypot(b[0][1]).min(b[1][0].hypot(b[1][1])),
+        ),
+        vectors,
+    })
+}
+
 /// Lattice directions of a standard whose LCS angle is `lcs_angle`: ⌊π / angle + ½⌋, at
 /// least 2 (3 for 60°, 2 for 90°).
 fn max_directions(lcs_angle: Radians) -> usize {
@@ -457,21 +552,25 @@ pub fn neighbour_directions(
     if pos.len() < 3 || !(d_nn.is_finite() && d_nn > 0.0) {
         return Err(format!("{} features: too few for a lattice", pos.len()));
     }
-    let max_len = config.max_neighbour_factor * d_nn;
-    let mut remaining: Vec<(f64, f64)> = Vec::new();
-    for (i, p) in pos.iter().enumerate() {
-        for q in &pos[i + 1..] {
-            let v = (q.0 - p.0, q.1 - p.1);
-            let len = v.0.hypot(v.1);
-            if len > 0.0 && len <= max_len {
-                remaining.push(if v.0 < 0.0 || (v.0 == 0.0 && v.1 < 0.0) {
-                    (-v.0, -v.1)
-                } else {
-                    v
-                });
+    // Every pair up to `limit` apart, folded so that v and −v coincide.
+    let pairs_within = |limit: f64| {
+        let mut out: Vec<(f64, f64)> = Vec::new();
+        for (i, p) in pos.iter().enumerate() {
+            for q in &pos[i + 1..] {
+                let v = (q.0 - p.0, q.1 - p.1);
+                let len = v.0.hypot(v.1);
+                if len > 0.0 && len <= limit {
+                    out.push(if v.0 < 0.0 || (v.0 == 0.0 && v.1 < 0.0) {
+                        (-v.0, -v.1)
+                    } else {
+                        v
+                    });
+                }
             }
         }
-    }
+        out
+    };
+    let mut remaining = pairs_within(config.max_neighbour_factor * d_nn);
     let cos_tol = config.angle_tolerance_rad.cos();
     // The members of the direction `m` (sign-aligned with it) and the rest.
     let split = |m: (f64, f64), from: &[(f64, f64)]| {
@@ -509,24 +608,69 @@ pub fn neighbour_directions(
         if members.len() < min_pairs.max(2) {
             break;
         }
-        let n = members.len() as f64;
-        let var = |c: fn(&(f64, f64)) -> f64, m: f64| {
-            members.iter().map(|w| (c(w) - m).powi(2)).sum::<f64>() / (n - 1.0) / n
-        };
-        vectors.push(LatticeVector {
-            vector: spm_hal::CountVector::from_counts(mean.0, mean.1),
-            sigma: spm_hal::CountVector::from_counts(
-                var(|w| w.0, mean.0).sqrt(),
-                var(|w| w.1, mean.1).sqrt(),
-            ),
-            pairs: members.len(),
-        });
+        vectors.push(mean_vector(&members));
         remaining = rest;
+    }
+    // A triangular lattice's third direction is the first two's difference (or sum), which
+    // a strongly anisotropic image can make longer than the neighbour limit: Si_7x7_028's
+    // slow axis stretches it to 1.42 × the nearest-neighbour distance, its pairs were
+    // left out, and a sparse direction of stray pairs took its place (K̄y 50 % off). It is
+    // measured where the first two predict it, over pairs up to twice that far.
+    if max_directions == 3
+        && let [v1, v2, ..] = vectors.as_slice()
+    {
+        let (a, b) = (v1.vector, v2.vector);
+        let (ax, ay, bx, by) = (a.x.value(), a.y.value(), b.x.value(), b.y.value());
+        let third = if ax * bx + ay * by > 0.0 {
+            (ax - bx, ay - by)
+        } else {
+            (ax + bx, ay + by)
+        };
+        let length = third.0.hypot(third.1);
+        let near: Vec<(f64, f64)> = pairs_within(2.0 * length)
+            .into_iter()
+            .filter(|w| {
+                let l = w.0.hypot(w.1);
+                (l / length - 1.0).abs() <= THIRD_LENGTH_TOLERANCE
+            })
+            .collect();
+        let (members, _) = split(third, &near);
+        if members.len() >= min_pairs.max(2) {
+            let third = mean_vector(&members);
+            vectors.truncate(2);
+            vectors.push(third);
+            vectors.sort_by_key(|v| std::cmp::Reverse(v.pairs));
+        }
     }
     Ok(Lattice {
         vectors,
         nearest_neighbour: spm_hal::Counts(d_nn),
     })
+}
+
+/// Relative length window around the predicted third direction of a triangular lattice
+/// ([`neighbour_directions`]): wide enough for a frame's scatter, narrow enough to leave the
+/// next shell (√3 times longer in an undistorted lattice) out.
+const THIRD_LENGTH_TOLERANCE: f64 = 0.25;
+
+/// The mean of a direction's pair vectors (sign-aligned) and its standard error.
+fn mean_vector(members: &[(f64, f64)]) -> LatticeVector {
+    let n = members.len() as f64;
+    let mean = (
+        members.iter().map(|w| w.0).sum::<f64>() / n,
+        members.iter().map(|w| w.1).sum::<f64>() / n,
+    );
+    let var = |c: fn(&(f64, f64)) -> f64, m: f64| {
+        members.iter().map(|w| (c(w) - m).powi(2)).sum::<f64>() / (n - 1.0).max(1.0) / n
+    };
+    LatticeVector {
+        vector: spm_hal::CountVector::from_counts(mean.0, mean.1),
+        sigma: spm_hal::CountVector::from_counts(
+            var(|w| w.0, mean.0).sqrt(),
+            var(|w| w.1, mean.1).sqrt(),
+        ),
+        pairs: members.len(),
+    }
 }
 
 /// Refuses the places whose lattice is far from the others': K̄x or K̄y off the median over

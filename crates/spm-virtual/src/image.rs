@@ -191,6 +191,23 @@ impl StoredImage {
         Ok(self)
     }
 
+    /// The same frame (size, pixels, timing, centre) with other heights, nm, in the same
+    /// order: an image filtered outside this crate.
+    ///
+    /// # Errors
+    /// [`ImageError`] for a wrong number of heights or heights that are not finite.
+    pub fn with_heights_nm(&self, heights_nm: Vec<f64>) -> Result<Self, ImageError> {
+        Self::new(
+            heights_nm,
+            self.columns,
+            self.rows,
+            self.pixel_x_nm,
+            self.pixel_y_nm,
+            self.timing,
+        )?
+        .with_centre_nm(self.centre_nm)
+    }
+
     /// The frame's centre in the instrument's coordinates, nm (the file's scan offset).
     #[must_use]
     pub fn centre_nm(&self) -> [f64; 2] {

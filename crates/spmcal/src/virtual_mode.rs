@@ -68,6 +68,13 @@ pub struct VirtualBackendConfig {
     /// file; `--virtual` uses [`SMOOTHING_SIGMA_LATTICE`] lattice constants.
     #[serde(default)]
     pub smoothing_sigma_nm: Option<f64>,
+    /// Filter the image by its own mean cell of this standard before serving it, after the
+    /// background and the smoothing (`spm_features::cells::matched_filter`: the cell
+    /// pattern fitted around every pixel, so a corner hole is found by its whole 7×7 cell,
+    /// not by its few pixels). Default: none in a job file; `--virtual --standard si7x7`
+    /// uses it.
+    #[serde(default)]
+    pub matched_cell: Option<StandardName>,
 }
 
 /// Width of the smoothing `--virtual` applies by default, lattice constants: for HOPG
@@ -79,6 +86,17 @@ pub struct VirtualBackendConfig {
 pub fn default_smoothing_sigma_lattice(standard: StandardName) -> f64 {
     match standard {
         StandardName::Hopg | StandardName::Si7x7 => 0.05,
+    }
+}
+
+/// The mean-cell filter `--virtual` applies ([`VirtualBackendConfig::matched_cell`]): for
+/// Si(111)-7×7, whose corner holes on Si_7x7_028/032 (13.8 pixels per cell) are barely
+/// above the noise; none for HOPG (one atom per cell: the smoothing does it).
+#[must_use]
+pub fn default_matched_cell(standard: StandardName) -> Option<StandardName> {
+    match standard {
+        StandardName::Hopg => None,
+        StandardName::Si7x7 => Some(StandardName::Si7x7),
     }
 }
 
@@ -291,10 +309,13 @@ impl VirtualBackendConfig {
             Some(p) => Some(read_image(&dir.join(p), self.channel.as_deref(), &options)?.0),
             None => None,
         };
-        let (forward, backward, counter) = match (self.background_sigma_nm, self.smoothing_sigma_nm)
-        {
-            (None, None) => (forward, backward, counter),
-            (background, smoothing) => {
+        let (forward, backward, counter) = match (
+            self.background_sigma_nm,
+            self.smoothing_sigma_nm,
+            self.matched_cell,
+        ) {
+            (None, None, None) => (forward, backward, counter),
+            (background, smoothing, matched) => {
                 let level = |image: StoredImage| {
                     let pixel_nm = image.pixel_x_nm();
                     let image = match background {
@@ -305,10 +326,25 @@ impl VirtualBackendConfig {
                         Some(sigma_nm) => image.and_then(|i| i.smoothed(sigma_nm / pixel_nm)),
                         None => image,
                     };
-                    image.map_err(|e| VirtualInputError::Parameter {
+                    let image = image.map_err(|e| VirtualInputError::Parameter {
                         path: image_path.clone(),
                         detail: format!("background_sigma_nm / smoothing_sigma_nm: {e}"),
-                    })
+                    })?;
+                    match matched {
+                        Some(standard) => cell_matched(&image, standard).map_err(|finding| {
+                            VirtualInputError::NotTheStandard {
+                                path: image_path.clone(),
+                                standard: standard.as_str().to_owned(),
+                                polarity: match standard.feature() {
+                                    spm_calibration::FeaturePolarity::Hills => "hills",
+                                    spm_calibration::FeaturePolarity::Pits => "pits",
+                                },
+                                lattice_nm: standard.lattice_constant_nm(),
+                                finding,
+                            }
+                        }),
+                        None => Ok(image),
+                    }
                 };
                 (
                     level(forward)?,
@@ -334,6 +370,46 @@ impl VirtualBackendConfig {
             })?;
         Ok(backend)
     }
+}
+
+/// `image` filtered by its own mean cell of `standard` (`spm_features::cells`: the lattice
+/// from the spectrum, the mean cell folded over it, the matched filter), or why not.
+fn cell_matched(image: &StoredImage, standard: StandardName) -> Result<StoredImage, String> {
+    use spm_features::cells;
+    let bad = vec![false; image.heights_nm().len()];
+    let img = cells::Image {
+        z: image.heights_nm(),
+        bad: &bad,
+        nx: image.columns(),
+        ny: image.rows(),
+    };
+    // The search of spm-modelcheck's cell localiser: first peaks within a factor 1.6 of the
+    // triangular lattice's row spacing.
+    let row_nm = standard.lattice_constant_nm() * 0.75f64.sqrt();
+    let search = cells::LatticeSearch {
+        pixel: [image.pixel_x_nm(), image.pixel_y_nm()],
+        k_range: [1.0 / (1.6 * row_nm), 1.6 / row_nm],
+        hex: true,
+    };
+    let peaks = cells::find_lattice(&img, &search).ok_or_else(|| {
+        "its spectrum shows no lattice near that period (the mean-cell filter \
+         (`matched_cell`) needs one)"
+            .to_owned()
+    })?;
+    let polarity = match standard.feature() {
+        spm_calibration::FeaturePolarity::Hills => Polarity::Hill,
+        spm_calibration::FeaturePolarity::Pits => Polarity::Pit,
+    };
+    let matched = cells::matched_filter(&img, &peaks, polarity)
+        .ok_or_else(|| "its cells cannot be located on the lattice of its spectrum".to_owned())?;
+    tracing::info!(
+        cells = matched.cells,
+        radius_px = matched.radius_px,
+        "image filtered by its own mean cell"
+    );
+    image
+        .with_heights_nm(matched.z)
+        .map_err(|e| format!("the filtered image: {e}"))
 }
 
 /// The image as a height map in pixel units (1 count = 1 pixel), for recognition.
@@ -540,6 +616,7 @@ pub fn virtual_job(
                 .unwrap_or_else(|| default_smoothing_sigma_lattice(options.standard))
                 * options.standard.lattice_constant_nm(),
         ),
+        matched_cell: default_matched_cell(options.standard),
     };
     let loaded = probe.load(Path::new(""))?;
     let pixel_nm = loaded.surface.forward.pixel_x_nm();
@@ -600,6 +677,12 @@ pub fn virtual_plan(
     // onto another basis of the lattice): recognition is gated by the image's own lattice,
     // surveyed first (`spm_calibration::survey`, docs/results/virtual.md).
     plan.survey.enabled = true;
+    // A cell pattern's frames give their lattice by their spectrum (Si_7x7_028: the
+    // features' neighbours put K̄y 50 % off); single atoms by their neighbours.
+    plan.survey.lattice_from = match options.standard {
+        StandardName::Hopg => spm_calibration::SurveyLattice::Neighbours,
+        StandardName::Si7x7 => spm_calibration::SurveyLattice::Spectrum,
+    };
     plan.attach.first_size_counts = 3.0 * a_counts;
     plan.attach.first_pixels = pixels(3.0 * a_counts);
     // A tracking segment of two lattice constants: on measured images one of a lattice

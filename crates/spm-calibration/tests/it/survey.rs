@@ -5,7 +5,9 @@
 //! terrace — is accepted without the gate and refused with it.
 #![allow(clippy::unwrap_used)]
 
-use spm_calibration::survey::{apparent_lcc, neighbour_directions, survey_place};
+use spm_calibration::survey::{
+    apparent_lcc, neighbour_directions, spectrum_directions, survey_place,
+};
 use spm_calibration::{FosParams, PlanConfig};
 use spm_features::{Feature, lcs_candidates};
 use spm_fos::Raster;
@@ -222,19 +224,16 @@ fn test_feature() -> Feature {
         .features[0]
 }
 
-#[test]
-fn the_survey_solves_a_known_oblique_lattice_as_its_local_calibration() {
-    // K̄x 0.022, K̄y 0.018 nm/count, α 6°: the closed-form map and its inverse.
-    let (kx, ky, alpha) = (0.022, 0.018, 6f64.to_radians());
+/// The inverse of the LCC map (counts per nm) turned by `rotation_deg` in the sample.
+fn counts_per_nm(kx: f64, ky: f64, alpha: f64, rotation_deg: f64) -> [[f64; 2]; 2] {
     let m = NmPerCountMatrix::from_lcc(NmPerCount(kx), NmPerCount(ky), Radians(alpha)).rows();
     let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
     let inverse = [
         [m[1][1] / det, -m[0][1] / det],
         [-m[1][0] / det, m[0][0] / det],
     ];
-    // Rotated by 17° in the sample (the survey does not know the lattice's orientation).
-    let r = 17f64.to_radians();
-    let rotated = [
+    let r = rotation_deg.to_radians();
+    [
         [
             inverse[0][0] * r.cos() + inverse[0][1] * r.sin(),
             -inverse[0][0] * r.sin() + inverse[0][1] * r.cos(),
@@ -243,15 +242,83 @@ fn the_survey_solves_a_known_oblique_lattice_as_its_local_calibration() {
             inverse[1][0] * r.cos() + inverse[1][1] * r.sin(),
             -inverse[1][0] * r.sin() + inverse[1][1] * r.cos(),
         ],
-    ];
-    let features = lattice_features(rotated, 0.2461, 5);
-    let lattice = neighbour_directions(&features, 3, 4).unwrap();
-    assert_eq!(lattice.vectors.len(), 3, "{lattice:?}");
-    let (lcc, summary) = apparent_lcc(&lattice, 0.2461, Radians(60f64.to_radians()), 4).unwrap();
-    println!("{summary:?}");
-    assert!((lcc.kx.value() / kx - 1.0).abs() < 0.01, "{lcc:?}");
-    assert!((lcc.ky.value() / ky - 1.0).abs() < 0.01, "{lcc:?}");
-    assert!((lcc.alpha.value() - alpha).abs() < 0.01, "{lcc:?}");
+    ]
+}
+
+/// The survey's LCC of a frame of a triangular lattice seen through (K̄x, K̄y, α), turned by
+/// `rotation_deg` in the sample (the survey does not know the lattice's orientation), from
+/// the features' neighbour statistics and from the frame's spectrum, against the closed form.
+fn check_survey(kx: f64, ky: f64, alpha_deg: f64, rotation_deg: f64) {
+    let (a_nm, alpha) = (0.2461, alpha_deg.to_radians());
+    let inverse = counts_per_nm(kx, ky, alpha, rotation_deg);
+    let case = format!("K̄x {kx}, K̄y {ky}, α {alpha_deg}°, turned {rotation_deg}°");
+    let agree = |lattice: &spm_features::Lattice, how: &str| {
+        assert_eq!(lattice.vectors.len(), 3, "{how}, {case}: {lattice:?}");
+        let (lcc, _) = apparent_lcc(lattice, a_nm, Radians(60f64.to_radians()), 4).unwrap();
+        assert!(
+            (lcc.kx.value() / kx - 1.0).abs() < 0.01
+                && (lcc.ky.value() / ky - 1.0).abs() < 0.01
+                && (lcc.alpha.value() - alpha).abs() < 0.01,
+            "{how}, {case}: {lcc:?}"
+        );
+    };
+    let features = lattice_features(inverse, a_nm, 5);
+    agree(
+        &neighbour_directions(&features, 3, 4).unwrap(),
+        "neighbours",
+    );
+    // A frame of Gaussian pits at the lattice's points, 1 count per pixel, 9 lattice
+    // constants wide at the nominal sensitivity (the mean of K̄x and K̄y).
+    let nominal = 0.5 * (kx + ky);
+    let a_counts = a_nm / nominal;
+    let n = (9.0 * a_counts).round() as usize;
+    let centre = 0.5 * (n as f64 - 1.0);
+    let m = NmPerCountMatrix::from_lcc(NmPerCount(kx), NmPerCount(ky), Radians(alpha)).rows();
+    let r = rotation_deg.to_radians();
+    let z_counts = (0..n * n)
+        .map(|k| {
+            let (c, row) = ((k % n) as f64 - centre, (k / n) as f64 - centre);
+            // The pixel in the sample (nm), turned back into the lattice's frame.
+            let (x, y) = (m[0][0] * c + m[0][1] * row, m[1][0] * c + m[1][1] * row);
+            let (x, y) = (r.cos() * x + r.sin() * y, -r.sin() * x + r.cos() * y);
+            let j = y / (a_nm * 0.75f64.sqrt());
+            let i = x / a_nm - 0.5 * j;
+            let mut h = 0.0;
+            for (di, dj) in [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)] {
+                let (si, sj) = (i.floor() + di, j.floor() + dj);
+                let (px, py) = (a_nm * (si + 0.5 * sj), a_nm * 0.75f64.sqrt() * sj);
+                let d2 = (x - px).powi(2) + (y - py).powi(2);
+                h -= (-d2 / (2.0 * (0.15 * a_nm).powi(2))).exp();
+            }
+            h
+        })
+        .collect();
+    let map = spm_hal::HeightMap {
+        origin: CountPoint::from_counts(-centre, -centre),
+        pixel_step: spm_hal::Counts(1.0),
+        columns: n,
+        rows: n,
+        z_counts,
+        time_s: vec![0.0; n * n],
+    };
+    agree(
+        &spectrum_directions(&map, a_counts, 3).expect("a lattice in the spectrum"),
+        "spectrum",
+    );
+}
+
+#[test]
+fn the_survey_solves_a_known_oblique_lattice_as_its_local_calibration() {
+    for (kx, ky, alpha_deg, rotation_deg) in [
+        (0.022, 0.018, 6.0, 17.0),
+        // Si_7x7_028's apparent lattice (the slow axis stretched by 1/0.68, −10°): its third
+        // direction is 1.4 × the nearest-neighbour distance at these orientations.
+        (0.0181, 0.0133, -10.0, 0.0),
+        (0.0181, 0.0133, -10.0, 25.0),
+        (0.0181, 0.0133, -10.0, 50.0),
+    ] {
+        check_survey(kx, ky, alpha_deg, rotation_deg);
+    }
 }
 
 #[test]

@@ -1225,6 +1225,63 @@ pub fn locate_cells(
     })
 }
 
+/// The template fitted in one window: z ≈ α + β·T, weighted.
+#[derive(Clone, Copy, Debug)]
+struct WindowFit {
+    /// The weighted correlation of z and T.
+    rho: f64,
+    /// The slope β.
+    beta: f64,
+}
+
+/// One kernel entry: column and row offset, weight, template value.
+type KernelEntry = (i64, i64, f64, f64);
+
+/// The weighted straight-line fit z ≈ α + β·T of the kernel placed at (`column`, `row`), over
+/// the window's pixels that hold data, from its streamed moments (a closed form of the
+/// kernel's weighted least squares: test
+/// `window_fit_is_the_kernel_weighted_least_squares`). `None` for a pixel without data, a
+/// window holding less than a quarter of the full weight `full`, or a flat window.
+fn window_fit(
+    img: &Image<'_>,
+    kernel: &[KernelEntry],
+    full: f64,
+    column: i64,
+    row: i64,
+) -> Option<WindowFit> {
+    let (nx, ny) = (img.nx as i64, img.ny as i64);
+    if column < 0 || row < 0 || column >= nx || row >= ny {
+        return None;
+    }
+    img.at(column as usize, row as usize)?;
+    let (mut sw, mut st, mut stt, mut sz, mut szz, mut stz) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    for &(dc, dr, w, t) in kernel {
+        let (c, r) = (column + dc, row + dr);
+        if c < 0 || r < 0 || c >= nx || r >= ny {
+            continue;
+        }
+        let Some(v) = img.at(c as usize, r as usize) else {
+            continue;
+        };
+        sw += w;
+        st += w * t;
+        stt += w * t * t;
+        sz += w * v;
+        szz += w * v * v;
+        stz += w * t * v;
+    }
+    let var_t = sw * stt - st * st;
+    let var_z = sw * szz - sz * sz;
+    if sw < 0.25 * full || !(var_t > 1e-12 * sw * sw && var_z > 0.0) {
+        return None;
+    }
+    let cov = sw * stz - st * sz;
+    Some(WindowFit {
+        rho: cov / (var_t * var_z).sqrt(),
+        beta: cov / var_t,
+    })
+}
+
 /// An image filtered by its own mean cell: see [`matched_filter`].
 #[derive(Clone, Debug)]
 pub struct Matched {
@@ -1254,7 +1311,7 @@ pub fn matched_filter(img: &Image<'_>, peaks: &Peaks, polarity: Polarity) -> Opt
     let r = run.radius_px;
     let reach = r.ceil() as i64;
     // The kernel: offsets inside the window, their weight and template value.
-    let mut kernel: Vec<(i64, i64, f64, f64)> = Vec::new();
+    let mut kernel: Vec<KernelEntry> = Vec::new();
     let mut full = 0.0;
     for dr in -reach..=reach {
         for dc in -reach..=reach {
@@ -1278,35 +1335,11 @@ pub fn matched_filter(img: &Image<'_>, peaks: &Peaks, polarity: Polarity) -> Opt
     let mut beta = vec![f64::NAN; img.nx * img.ny];
     for row in 0..ny {
         for column in 0..nx {
-            if img.at(column as usize, row as usize).is_none() {
-                continue;
+            if let Some(fit) = window_fit(img, &kernel, full, column, row) {
+                let k = (row * nx + column) as usize;
+                rho[k] = fit.rho;
+                beta[k] = fit.beta;
             }
-            let (mut sw, mut st, mut stt, mut sz, mut szz, mut stz) =
-                (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-            for &(dc, dr, w, t) in &kernel {
-                let (c, rr) = (column + dc, row + dr);
-                if c < 0 || rr < 0 || c >= nx || rr >= ny {
-                    continue;
-                }
-                let Some(v) = img.at(c as usize, rr as usize) else {
-                    continue;
-                };
-                sw += w;
-                st += w * t;
-                stt += w * t * t;
-                sz += w * v;
-                szz += w * v * v;
-                stz += w * t * v;
-            }
-            let var_t = sw * stt - st * st;
-            let var_z = sw * szz - sz * sz;
-            if sw < 0.25 * full || !(var_t > 1e-12 * sw * sw && var_z > 0.0) {
-                continue;
-            }
-            let cov = sw * stz - st * sz;
-            let k = (row * nx + column) as usize;
-            rho[k] = cov / (var_t * var_z).sqrt();
-            beta[k] = cov / var_t;
         }
     }
     // The height scale: the median slope at the cells found, times the pattern's extremum.
@@ -1548,5 +1581,89 @@ mod tests {
             filtered_scatter < 0.8 * raw_scatter,
             "scatter: filtered {filtered_scatter:.2} px, raw {raw_scatter:.2} px"
         );
+    }
+
+    /// The streamed window fit is the kernel's weighted least squares: β against
+    /// `spm_regression::generalised_least_squares` on the window's pixels (weights as
+    /// inverse variances), ρ² against its coefficient of determination; in the interior, at
+    /// an edge, at a corner and beside a NaN pixel.
+    #[test]
+    fn window_fit_is_the_kernel_weighted_least_squares() {
+        let (nx, ny) = (30usize, 24usize);
+        let mut z: Vec<f64> = (0..nx * ny)
+            .map(|k| {
+                let (x, y) = ((k % nx) as f64, (k / nx) as f64);
+                (0.7 * x).sin() + 0.4 * (0.5 * y + 0.3 * x).cos() + 0.01 * x * y
+            })
+            .collect();
+        z[10 * nx + 12] = f64::NAN;
+        let bad: Vec<bool> = z.iter().map(|v| !v.is_finite()).collect();
+        let img = Image {
+            z: &z,
+            bad: &bad,
+            nx,
+            ny,
+        };
+        let radius: f64 = 4.6;
+        let reach = radius.ceil() as i64;
+        let mut kernel = Vec::new();
+        let mut full = 0.0;
+        for dr in -reach..=reach {
+            for dc in -reach..=reach {
+                let d = (dc as f64).hypot(dr as f64);
+                if d < radius {
+                    let w = (0.5 * PI * d / radius).cos().powi(2);
+                    kernel.push((dc, dr, w, (0.9 * dc as f64 - 0.2 * dr as f64).cos()));
+                    full += w;
+                }
+            }
+        }
+        for (column, row) in [(15i64, 12i64), (0, 10), (29, 23), (13, 10)] {
+            let fit = window_fit(&img, &kernel, full, column, row).expect("a fit");
+            let (mut design, mut rhs, mut blocks) = (Vec::new(), Vec::new(), Vec::new());
+            for &(dc, dr, w, t) in &kernel {
+                let (c, r) = (column + dc, row + dr);
+                if c < 0 || r < 0 || c >= nx as i64 || r >= ny as i64 {
+                    continue;
+                }
+                let v = z[r as usize * nx + c as usize];
+                if !v.is_finite() || w <= 0.0 {
+                    continue;
+                }
+                design.push(vec![1.0, t]);
+                rhs.push(v);
+                blocks.push(vec![vec![1.0 / w]]);
+            }
+            let kernel_fit =
+                spm_regression::generalised_least_squares(&design, &rhs, &blocks).expect("fit");
+            let c = &kernel_fit.coefficients;
+            // Weighted residual and total sums of squares.
+            let (mut rss, mut sw, mut swz) = (0.0, 0.0, 0.0);
+            for ((d, v), b) in design.iter().zip(&rhs).zip(&blocks) {
+                let w = 1.0 / b[0][0];
+                rss += w * (v - c[0] - c[1] * d[1]).powi(2);
+                sw += w;
+                swz += w * v;
+            }
+            let mean = swz / sw;
+            let tss: f64 = design
+                .iter()
+                .zip(&rhs)
+                .zip(&blocks)
+                .map(|((_, v), b)| (v - mean).powi(2) / b[0][0])
+                .sum();
+            assert!(
+                (fit.beta - c[1]).abs() < 1e-9 * c[1].abs().max(1.0),
+                "({column}, {row}): β {} against the kernel's {}",
+                fit.beta,
+                c[1]
+            );
+            assert!(
+                (fit.rho * fit.rho - (1.0 - rss / tss)).abs() < 1e-9,
+                "({column}, {row}): ρ² {} against 1 − RSS/TSS {}",
+                fit.rho * fit.rho,
+                1.0 - rss / tss
+            );
+        }
     }
 }

@@ -1913,6 +1913,12 @@ const SOLVER_ALLOW_LIST: &[(&str, &str, &str)] = &[
         "streamed; test level_is_the_kernel_plane_fit",
     ),
     (
+        "crates/spm-features/src/cells.rs",
+        "window_fit",
+        "the template's weighted line per pixel from streamed moments; test \
+         window_fit_is_the_kernel_weighted_least_squares",
+    ),
+    (
         "crates/spm-virtual/src/image.rs",
         "without_background",
         "a weighted plane per pixel from smoothed moments; test \

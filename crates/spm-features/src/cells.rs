@@ -1237,42 +1237,87 @@ struct WindowFit {
 /// One kernel entry: column and row offset, weight, template value.
 type KernelEntry = (i64, i64, f64, f64);
 
+/// The kernel placed over one image: its entries, their offsets as flat indices, its reach
+/// and full weight, and whether every pixel of the image holds data.
+struct Kernel {
+    entries: Vec<KernelEntry>,
+    deltas: Vec<isize>,
+    reach: i64,
+    full: f64,
+    clean: bool,
+}
+
+impl Kernel {
+    fn new(entries: Vec<KernelEntry>, img: &Image<'_>) -> Self {
+        let deltas = entries
+            .iter()
+            .map(|&(dc, dr, _, _)| (dr * img.nx as i64 + dc) as isize)
+            .collect();
+        let reach = entries
+            .iter()
+            .map(|&(dc, dr, _, _)| dc.abs().max(dr.abs()))
+            .max()
+            .unwrap_or(0);
+        let full = entries.iter().map(|e| e.2).sum();
+        let clean = img
+            .z
+            .iter()
+            .zip(img.bad)
+            .all(|(z, bad)| z.is_finite() && !bad)
+            && img.z.len() == img.nx * img.ny;
+        Self {
+            entries,
+            deltas,
+            reach,
+            full,
+            clean,
+        }
+    }
+}
+
 /// The weighted straight-line fit z ≈ α + β·T of the kernel placed at (`column`, `row`), over
 /// the window's pixels that hold data, from its streamed moments (a closed form of the
 /// kernel's weighted least squares: test
 /// `window_fit_is_the_kernel_weighted_least_squares`). `None` for a pixel without data, a
-/// window holding less than a quarter of the full weight `full`, or a flat window.
-fn window_fit(
-    img: &Image<'_>,
-    kernel: &[KernelEntry],
-    full: f64,
-    column: i64,
-    row: i64,
-) -> Option<WindowFit> {
+/// window holding less than a quarter of the kernel's full weight, or a flat window. A
+/// window inside an image without missing pixels reads them by flat index (the same sums in
+/// the same order).
+fn window_fit(img: &Image<'_>, kernel: &Kernel, column: i64, row: i64) -> Option<WindowFit> {
     let (nx, ny) = (img.nx as i64, img.ny as i64);
     if column < 0 || row < 0 || column >= nx || row >= ny {
         return None;
     }
     img.at(column as usize, row as usize)?;
     let (mut sw, mut st, mut stt, mut sz, mut szz, mut stz) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-    for &(dc, dr, w, t) in kernel {
-        let (c, r) = (column + dc, row + dr);
-        if c < 0 || r < 0 || c >= nx || r >= ny {
-            continue;
-        }
-        let Some(v) = img.at(c as usize, r as usize) else {
-            continue;
-        };
+    let mut add = |w: f64, t: f64, v: f64| {
         sw += w;
         st += w * t;
         stt += w * t * t;
         sz += w * v;
         szz += w * v * v;
         stz += w * t * v;
+    };
+    let r = kernel.reach;
+    if kernel.clean && column >= r && row >= r && column + r < nx && row + r < ny {
+        let centre = (row * nx + column) as isize;
+        for (&(_, _, w, t), &d) in kernel.entries.iter().zip(&kernel.deltas) {
+            add(w, t, img.z[(centre + d) as usize]);
+        }
+    } else {
+        for &(dc, dr, w, t) in &kernel.entries {
+            let (c, r) = (column + dc, row + dr);
+            if c < 0 || r < 0 || c >= nx || r >= ny {
+                continue;
+            }
+            let Some(v) = img.at(c as usize, r as usize) else {
+                continue;
+            };
+            add(w, t, v);
+        }
     }
     let var_t = sw * stt - st * st;
     let var_z = sw * szz - sz * sz;
-    if sw < 0.25 * full || !(var_t > 1e-12 * sw * sw && var_z > 0.0) {
+    if sw < 0.25 * kernel.full || !(var_t > 1e-12 * sw * sw && var_z > 0.0) {
         return None;
     }
     let cov = sw * stz - st * sz;
@@ -1312,7 +1357,6 @@ pub fn matched_filter(img: &Image<'_>, peaks: &Peaks, polarity: Polarity) -> Opt
     let reach = r.ceil() as i64;
     // The kernel: offsets inside the window, their weight and template value.
     let mut kernel: Vec<KernelEntry> = Vec::new();
-    let mut full = 0.0;
     for dr in -reach..=reach {
         for dc in -reach..=reach {
             let d = (dc as f64).hypot(dr as f64);
@@ -1326,16 +1370,16 @@ pub fn matched_filter(img: &Image<'_>, peaks: &Peaks, polarity: Polarity) -> Opt
                 run.origin[1] + k2[0] * x + k2[1] * y,
             );
             kernel.push((dc, dr, w, t));
-            full += w;
         }
     }
+    let kernel = Kernel::new(kernel, img);
     let (nx, ny) = (img.nx as i64, img.ny as i64);
     // The fit at every pixel: its correlation ρ and slope β (z ≈ α + β·T).
     let mut rho = vec![f64::NAN; img.nx * img.ny];
     let mut beta = vec![f64::NAN; img.nx * img.ny];
     for row in 0..ny {
         for column in 0..nx {
-            if let Some(fit) = window_fit(img, &kernel, full, column, row) {
+            if let Some(fit) = window_fit(img, &kernel, column, row) {
                 let k = (row * nx + column) as usize;
                 rho[k] = fit.rho;
                 beta[k] = fit.beta;
@@ -1596,6 +1640,7 @@ mod tests {
                 (0.7 * x).sin() + 0.4 * (0.5 * y + 0.3 * x).cos() + 0.01 * x * y
             })
             .collect();
+        let clean_z = z.clone();
         z[10 * nx + 12] = f64::NAN;
         let bad: Vec<bool> = z.iter().map(|v| !v.is_finite()).collect();
         let img = Image {
@@ -1604,24 +1649,43 @@ mod tests {
             nx,
             ny,
         };
+        let no_bad = vec![false; z.len()];
+        let clean = Image {
+            z: &clean_z,
+            bad: &no_bad,
+            nx,
+            ny,
+        };
         let radius: f64 = 4.6;
         let reach = radius.ceil() as i64;
-        let mut kernel = Vec::new();
-        let mut full = 0.0;
+        let mut entries = Vec::new();
         for dr in -reach..=reach {
             for dc in -reach..=reach {
                 let d = (dc as f64).hypot(dr as f64);
                 if d < radius {
                     let w = (0.5 * PI * d / radius).cos().powi(2);
-                    kernel.push((dc, dr, w, (0.9 * dc as f64 - 0.2 * dr as f64).cos()));
-                    full += w;
+                    entries.push((dc, dr, w, (0.9 * dc as f64 - 0.2 * dr as f64).cos()));
                 }
             }
         }
-        for (column, row) in [(15i64, 12i64), (0, 10), (29, 23), (13, 10)] {
-            let fit = window_fit(&img, &kernel, full, column, row).expect("a fit");
+        // With a NaN pixel (every window summed pixel by pixel) and without (interior
+        // windows read by flat index).
+        let holed_kernel = Kernel::new(entries.clone(), &img);
+        let clean_kernel = Kernel::new(entries, &clean);
+        assert!(!holed_kernel.clean && clean_kernel.clean);
+        for (image, kernel, column, row) in [
+            (&img, &holed_kernel, 15i64, 12i64),
+            (&img, &holed_kernel, 0, 10),
+            (&img, &holed_kernel, 29, 23),
+            (&img, &holed_kernel, 13, 10),
+            (&clean, &clean_kernel, 15, 12),
+            (&clean, &clean_kernel, 13, 10),
+            (&clean, &clean_kernel, 2, 20),
+        ] {
+            let z = image.z;
+            let fit = window_fit(image, kernel, column, row).expect("a fit");
             let (mut design, mut rhs, mut blocks) = (Vec::new(), Vec::new(), Vec::new());
-            for &(dc, dr, w, t) in &kernel {
+            for &(dc, dr, w, t) in &kernel.entries {
                 let (c, r) = (column + dc, row + dr);
                 if c < 0 || r < 0 || c >= nx as i64 || r >= ny as i64 {
                     continue;

@@ -268,6 +268,29 @@ impl LccColumns {
         self.kx_nm_per_count.is_empty()
     }
 
+    /// The records whose `keep` is true (a record beyond `keep`'s length is dropped).
+    #[must_use]
+    pub fn selected(&self, keep: &[bool]) -> Self {
+        fn pick<T: Clone>(values: &[T], keep: &[bool]) -> Vec<T> {
+            values
+                .iter()
+                .zip(keep)
+                .filter(|(_, k)| **k)
+                .map(|(v, _)| v.clone())
+                .collect()
+        }
+        Self {
+            lcs_x_counts: pick(&self.lcs_x_counts, keep),
+            lcs_y_counts: pick(&self.lcs_y_counts, keep),
+            node_z_counts: pick(&self.node_z_counts, keep),
+            acquired_unix_s: pick(&self.acquired_unix_s, keep),
+            kx_nm_per_count: pick(&self.kx_nm_per_count, keep),
+            ky_nm_per_count: pick(&self.ky_nm_per_count, keep),
+            alpha_rad: pick(&self.alpha_rad, keep),
+            kz_nm_per_count: pick(&self.kz_nm_per_count, keep),
+        }
+    }
+
     /// Appends one record's regression inputs.
     pub fn push(&mut self, r: &LccRecord) {
         self.lcs_x_counts.push(r.lcs_x_counts);

@@ -39,4 +39,6 @@ pub use rank::{
     minimum_norm_solve,
 };
 pub use select::{Criterion, DegreeScore, Selection, SelectionOptions, select_degree};
-pub use stats::{DeltaMax, Field, delta_max, median, product_values, rms, sigma, upper_median};
+pub use stats::{
+    DeltaMax, Field, delta_max, joint_outliers, median, product_values, rms, sigma, upper_median,
+};

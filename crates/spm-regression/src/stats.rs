@@ -208,9 +208,102 @@ pub fn rms(values: &[f64]) -> Option<f64> {
     Some((values.iter().map(|v| v * v).sum::<f64>() / values.len() as f64).sqrt())
 }
 
+/// The points that are outliers of a joint fit of several quantities (e.g. a record's K̄x,
+/// K̄y and α, all spoilt by one misrecognised structure): `true` where the point's residual in
+/// any quantity lies beyond `k` robust standard deviations of that quantity's residuals, the
+/// robust σ being 1.4826 × the median absolute deviation from the median over the points in
+/// `among`. Points outside `among` are judged against the same σ. A quantity whose robust σ
+/// is zero or not finite flags nothing; a non-finite residual is an outlier. A residual set
+/// shorter than `among` judges only its own points.
+#[must_use]
+pub fn joint_outliers(residuals: &[&[f64]], among: &[bool], k: f64) -> Vec<bool> {
+    let n = among.len();
+    let mut out = vec![false; n];
+    for r in residuals {
+        let mut inside: Vec<f64> = r
+            .iter()
+            .zip(among)
+            .filter(|(v, a)| **a && v.is_finite())
+            .map(|(v, _)| *v)
+            .collect();
+        let Some(centre) = median(&mut inside) else {
+            continue;
+        };
+        let mut deviations: Vec<f64> = inside.iter().map(|v| (v - centre).abs()).collect();
+        let Some(mad) = median(&mut deviations) else {
+            continue;
+        };
+        let sigma = 1.4826 * mad;
+        if !(sigma.is_finite() && sigma > 0.0) {
+            continue;
+        }
+        for (flag, v) in out.iter_mut().zip(r.iter()) {
+            if !v.is_finite() || (v - centre).abs() > k * sigma {
+                *flag = true;
+            }
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod median_tests {
-    use super::{median, rms, upper_median};
+    use super::{joint_outliers, median, rms, upper_median};
+
+    /// Residuals whose median is 0 and median absolute deviation 1 (robust σ 1.4826):
+    /// flagged beyond k·σ in any quantity, judged over `among` only.
+    #[test]
+    fn check_joint_outliers() {
+        let check = |residuals: &[&[f64]], among: &[bool], k: f64, expected: &[bool]| {
+            assert_eq!(
+                joint_outliers(residuals, among, k),
+                expected,
+                "{residuals:?} over {among:?}, k {k}"
+            );
+        };
+        let a: &[f64] = &[-1.0, 0.0, 1.0, -1.0, 1.0, 0.0, 4.0];
+        let b: &[f64] = &[0.0, -1.0, 1.0, 0.0, 1.0, -1.0, 0.0];
+        let all = [true; 7];
+        // 4 / 1.4826 = 2.70 σ: an outlier at 2.5 σ, not at 3.
+        check(&[a], &all, 3.0, &[false; 7]);
+        check(
+            &[a],
+            &all,
+            2.5,
+            &[false, false, false, false, false, false, true],
+        );
+        // Jointly: b's largest is 1 / 1.4826 = 0.67 σ; a point is flagged by any quantity.
+        check(
+            &[b, a],
+            &all,
+            2.5,
+            &[false, false, false, false, false, false, true],
+        );
+        check(
+            &[b],
+            &all,
+            0.6,
+            &[false, true, true, false, true, true, false],
+        );
+        // σ from `among` only: without the last point a's MAD is 1 still, and the point
+        // left out is judged against it.
+        let among = [true, true, true, true, true, true, false];
+        check(
+            &[a],
+            &among,
+            2.5,
+            &[false, false, false, false, false, false, true],
+        );
+        // A quantity without spread flags nothing; a NaN residual is an outlier.
+        check(&[&[2.0; 7]], &all, 3.0, &[false; 7]);
+        let with_nan: &[f64] = &[-1.0, 0.0, 1.0, -1.0, 1.0, 0.0, f64::NAN];
+        check(
+            &[with_nan],
+            &all,
+            3.0,
+            &[false, false, false, false, false, false, true],
+        );
+    }
 
     #[test]
     fn check_median() {

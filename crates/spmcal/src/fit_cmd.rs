@@ -16,8 +16,16 @@ pub fn run(
     since: Option<&str>,
     until: Option<&str>,
     out: &Path,
+    reject_outliers: Option<f64>,
 ) -> Result<(), CliError> {
     let (since, until) = parse_window(since, until)?;
+    if let Some(k) = reject_outliers
+        && !(k.is_finite() && k >= 1.0)
+    {
+        return Err(CliError::BadInput(format!(
+            "--reject-outliers {k}: give a number of standard deviations ≥ 1"
+        )));
+    }
     crate::files::check_output(out, "--out", &[cdb_path])?;
     let cdb = crate::cdb_cmd::open_read_only(cdb_path)?;
     let snapshot = cdb.snapshot().map_err(cdb_error)?;
@@ -26,7 +34,10 @@ pub fn run(
         scanner,
         since,
         until,
-        &SurfaceFitOptions::bic_up_to(MAX_SURFACE_DEGREE),
+        &SurfaceFitOptions {
+            outlier_sigmas: reject_outliers,
+            ..SurfaceFitOptions::bic_up_to(MAX_SURFACE_DEGREE)
+        },
     )
     .map_err(|e| match e {
         SurfaceFitError::Cdb(e) => cdb_error(e),
@@ -45,6 +56,13 @@ pub fn run(
              reports them) were left out of the fit",
             spmcal::cdb_handle::shown(cdb_path),
             fitted.excluded_records
+        );
+    }
+    if fitted.outlier_records > 0 {
+        crate::outln!(
+            "{} records left out as outliers (beyond {} robust σ of their plane's surfaces)",
+            fitted.outlier_records,
+            reject_outliers.unwrap_or(f64::NAN)
         );
     }
     let mut set = fitted.set;

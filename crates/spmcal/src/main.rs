@@ -168,6 +168,12 @@ enum Command {
         /// Where to write the surfaces (JSON).
         #[arg(long, value_name = "FILE")]
         out: PathBuf,
+        /// Leave out records whose K̄x, K̄y or α lies beyond this many robust standard
+        /// deviations from their plane's surfaces (refitted until none does; never below
+        /// half the records), e.g. 3 for a calibration on a measured image whose
+        /// recognition accepted some wrong structures. Default: every record is fitted.
+        #[arg(long, value_name = "SIGMAS")]
+        reject_outliers: Option<f64>,
     },
     /// Regenerate the report (report.json, report.html, surfaces.json, figures) of a
     /// finished run from the CDB alone, e.g. after the report failed; what only the running
@@ -579,12 +585,14 @@ fn run(command: Command) -> Result<(), CliError> {
             since,
             until,
             out,
+            reject_outliers,
         } => fit_cmd::run(
             &cdb,
             scanner.as_deref(),
             since.as_deref(),
             until.as_deref(),
             &out,
+            reject_outliers,
         ),
         Command::Report { cdb, run, out } => report_cmd::run(&cdb, &run, &out),
         Command::Cdb { command } => match command {

@@ -9,5 +9,6 @@ mod faults;
 mod hostile;
 mod no_panic;
 mod postgres_cli;
+mod surfaces;
 mod vertical_cli;
 mod virtual_mode;

@@ -11,27 +11,34 @@ use spmcal::virtual_mode::{VirtualBackend, VirtualRunOptions, virtual_plan};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+/// The height, m, at (`x`, `y`) nm of a triangular lattice of Gaussian hills (a = 0.2461 nm,
+/// σ 0.05 nm, 0.05 nm high) with a site at the origin and a lattice vector along x.
+fn hopg_height_m(x: f64, y: f64) -> f64 {
+    let a = 0.2461;
+    let (b1, b2) = ((a, 0.0), (0.5 * a, 0.75f64.sqrt() * a));
+    // Fractional coordinates, then the nearest sites' Gaussians.
+    let j = y / b2.1;
+    let i = (x - j * b2.0) / b1.0;
+    let mut z = 0.0;
+    for di in -1..=1 {
+        for dj in -1..=1 {
+            let (si, sj) = (i.round() + f64::from(di), j.round() + f64::from(dj));
+            let (sx, sy) = (si * b1.0 + sj * b2.0, sj * b2.1);
+            let r2 = (x - sx).powi(2) + (y - sy).powi(2);
+            z += 0.05e-9 * (-r2 / (2.0 * 0.05f64.powi(2))).exp();
+        }
+    }
+    z
+}
+
 /// A triangular lattice of Gaussian hills, a = 0.2461 nm, on `n`² pixels of `pixel_nm`,
 /// written as a Gwyddion .gsf file.
 fn lattice_file(dir: &Path, name: &str, n: usize, pixel_nm: f64, hole: bool) -> PathBuf {
-    let a = 0.2461;
-    let (b1, b2) = ((a, 0.0), (0.5 * a, 0.75f64.sqrt() * a));
     let mut data = Vec::with_capacity(n * n);
     for row in 0..n {
         for column in 0..n {
             let (x, y) = (column as f64 * pixel_nm, row as f64 * pixel_nm);
-            // Fractional coordinates, then the nearest site's distance.
-            let j = y / b2.1;
-            let i = (x - j * b2.0) / b1.0;
-            let mut z = 0.0;
-            for di in -1..=1 {
-                for dj in -1..=1 {
-                    let (si, sj) = (i.round() + f64::from(di), j.round() + f64::from(dj));
-                    let (sx, sy) = (si * b1.0 + sj * b2.0, sj * b2.1);
-                    let r2 = (x - sx).powi(2) + (y - sy).powi(2);
-                    z += 0.05e-9 * (-r2 / (2.0 * 0.05f64.powi(2))).exp();
-                }
-            }
+            let z = hopg_height_m(x, y);
             let missing =
                 hole && (n / 3..n / 3 + 4).contains(&row) && (n / 2..n / 2 + 4).contains(&column);
             data.push(if missing { f64::NAN } else { z });
@@ -334,7 +341,7 @@ fn the_measured_images_are_accepted_for_the_standard_they_show_and_refused_for_a
 fn the_lattice_of_every_cell_follows_a_y_scale_that_changes_down_the_frame() {
     let dir = std::env::temp_dir().join(format!("spmcal-lattice-cells-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let (n, pixel_nm, a) = (256usize, 0.025, 0.2461);
+    let (n, pixel_nm) = (256usize, 0.025);
     let height_nm = n as f64 * pixel_nm;
     // True y of an image row's y (nm from the top): y_true = y / s0 + q·y², so the image's
     // lattice along y is s(y) = dy / dy_true = 1 / (1/s0 + 2·q·y) of its true length: 0.90 at
@@ -346,7 +353,6 @@ fn the_lattice_of_every_cell_follows_a_y_scale_that_changes_down_the_frame() {
     // hold features of every row (the diagnosis's held-out check fits alternate lines).
     let (sin, cos) = 10f64.to_radians().sin_cos();
     let turn = |(u, v): (f64, f64)| (cos * u - sin * v, sin * u + cos * v);
-    let (b1, b2) = ((a, 0.0), (0.5 * a, 0.75f64.sqrt() * a));
     let mut data = Vec::with_capacity(n * n);
     for row in 0..n {
         for column in 0..n {
@@ -356,19 +362,7 @@ fn the_lattice_of_every_cell_follows_a_y_scale_that_changes_down_the_frame() {
                 (column as f64 + 0.5) * pixel_nm,
                 -(y_img / s_top + q * y_img * y_img),
             ));
-            let (x, y) = (x, -y);
-            let j = y / b2.1;
-            let i = (x - j * b2.0) / b1.0;
-            let mut z = 0.0;
-            for di in -1..=1 {
-                for dj in -1..=1 {
-                    let (si, sj) = (i.round() + f64::from(di), j.round() + f64::from(dj));
-                    let (sx, sy) = (si * b1.0 + sj * b2.0, sj * b2.1);
-                    let r2 = (x - sx).powi(2) + (y - sy).powi(2);
-                    z += 0.05e-9 * (-r2 / (2.0 * 0.05f64.powi(2))).exp();
-                }
-            }
-            data.push(z);
+            data.push(hopg_height_m(x, -y));
         }
     }
     let channel = spm_formats::Channel::new("Z", spm_formats::Direction::Forward, "m", n, n, data)

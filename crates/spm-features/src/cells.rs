@@ -1245,6 +1245,8 @@ struct Kernel {
     reach: i64,
     full: f64,
     clean: bool,
+    /// Σw·T and Σw·T² over every entry, summed in the entries' order (a whole window's).
+    whole_t: (f64, f64),
 }
 
 impl Kernel {
@@ -1265,12 +1267,18 @@ impl Kernel {
             .zip(img.bad)
             .all(|(z, bad)| z.is_finite() && !bad)
             && img.z.len() == img.nx * img.ny;
+        let (mut st, mut stt) = (0.0, 0.0);
+        for &(_, _, w, t) in &entries {
+            st += w * t;
+            stt += w * t * t;
+        }
         Self {
             entries,
             deltas,
             reach,
             full,
             clean,
+            whole_t: (st, stt),
         }
     }
 }
@@ -1299,10 +1307,17 @@ fn window_fit(img: &Image<'_>, kernel: &Kernel, column: i64, row: i64) -> Option
     };
     let r = kernel.reach;
     if kernel.clean && column >= r && row >= r && column + r < nx && row + r < ny {
+        // The whole window: Σw, Σw·T, Σw·T² are the kernel's own (the same sums).
         let centre = (row * nx + column) as isize;
+        let (mut z1, mut z2, mut tz) = (0.0, 0.0, 0.0);
         for (&(_, _, w, t), &d) in kernel.entries.iter().zip(&kernel.deltas) {
-            add(w, t, img.z[(centre + d) as usize]);
+            let v = img.z[(centre + d) as usize];
+            z1 += w * v;
+            z2 += w * v * v;
+            tz += w * t * v;
         }
+        drop(add);
+        (sw, st, stt, sz, szz, stz) = (kernel.full, kernel.whole_t.0, kernel.whole_t.1, z1, z2, tz);
     } else {
         for &(dc, dr, w, t) in &kernel.entries {
             let (c, r) = (column + dc, row + dr);

@@ -1296,40 +1296,46 @@ fn window_fit(img: &Image<'_>, kernel: &Kernel, column: i64, row: i64) -> Option
         return None;
     }
     img.at(column as usize, row as usize)?;
-    let (mut sw, mut st, mut stt, mut sz, mut szz, mut stz) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-    let mut add = |w: f64, t: f64, v: f64| {
-        sw += w;
-        st += w * t;
-        stt += w * t * t;
-        sz += w * v;
-        szz += w * v * v;
-        stz += w * t * v;
-    };
     let r = kernel.reach;
-    if kernel.clean && column >= r && row >= r && column + r < nx && row + r < ny {
-        // The whole window: Σw, Σw·T, Σw·T² are the kernel's own (the same sums).
-        let centre = (row * nx + column) as isize;
-        let (mut z1, mut z2, mut tz) = (0.0, 0.0, 0.0);
-        for (&(_, _, w, t), &d) in kernel.entries.iter().zip(&kernel.deltas) {
-            let v = img.z[(centre + d) as usize];
-            z1 += w * v;
-            z2 += w * v * v;
-            tz += w * t * v;
-        }
-        drop(add);
-        (sw, st, stt, sz, szz, stz) = (kernel.full, kernel.whole_t.0, kernel.whole_t.1, z1, z2, tz);
-    } else {
-        for &(dc, dr, w, t) in &kernel.entries {
-            let (c, r) = (column + dc, row + dr);
-            if c < 0 || r < 0 || c >= nx || r >= ny {
-                continue;
+    let (sw, st, stt, sz, szz, stz) =
+        if kernel.clean && column >= r && row >= r && column + r < nx && row + r < ny {
+            // The whole window: Σw, Σw·T, Σw·T² are the kernel's own (the same sums).
+            let centre = (row * nx + column) as isize;
+            let (mut sz, mut szz, mut stz) = (0.0, 0.0, 0.0);
+            for (&(_, _, w, t), &d) in kernel.entries.iter().zip(&kernel.deltas) {
+                let v = img.z[(centre + d) as usize];
+                sz += w * v;
+                szz += w * v * v;
+                stz += w * t * v;
             }
-            let Some(v) = img.at(c as usize, r as usize) else {
-                continue;
-            };
-            add(w, t, v);
-        }
-    }
+            (
+                kernel.full,
+                kernel.whole_t.0,
+                kernel.whole_t.1,
+                sz,
+                szz,
+                stz,
+            )
+        } else {
+            let (mut sw, mut st, mut stt, mut sz, mut szz, mut stz) =
+                (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+            for &(dc, dr, w, t) in &kernel.entries {
+                let (c, r) = (column + dc, row + dr);
+                if c < 0 || r < 0 || c >= nx || r >= ny {
+                    continue;
+                }
+                let Some(v) = img.at(c as usize, r as usize) else {
+                    continue;
+                };
+                sw += w;
+                st += w * t;
+                stt += w * t * t;
+                sz += w * v;
+                szz += w * v * v;
+                stz += w * t * v;
+            }
+            (sw, st, stt, sz, szz, stz)
+        };
     let var_t = sw * stt - st * st;
     let var_z = sw * szz - sz * sz;
     if sw < 0.25 * kernel.full || !(var_t > 1e-12 * sw * sw && var_z > 0.0) {

@@ -182,7 +182,7 @@ pub struct SurfaceFitOptions {
     /// this many robust standard deviations (`spm_regression::joint_outliers`), refitting
     /// until none does (at most [`MAX_OUTLIER_ROUNDS`] rounds, never below half the plane's
     /// records). For records a misrecognised structure spoilt (measured images: Si_7x7_028,
-    /// 5 of 17 records with α 10°–20° off the others). Default `None`: every record is fitted.
+    /// 4 of 17 records with α 10°–19° off the others' median). Default `None`: every record is fitted.
     pub outlier_sigmas: Option<f64>,
 }
 

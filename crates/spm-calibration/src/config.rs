@@ -337,6 +337,26 @@ pub enum FeaturePolarity {
     Pits,
 }
 
+impl FeaturePolarity {
+    /// The detector's polarity.
+    #[must_use]
+    pub fn polarity(self) -> spm_features::Polarity {
+        match self {
+            Self::Hills => spm_features::Polarity::Hill,
+            Self::Pits => spm_features::Polarity::Pit,
+        }
+    }
+
+    /// The name as written in a plan (`hills`, `pits`).
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Hills => "hills",
+            Self::Pits => "pits",
+        }
+    }
+}
+
 /// How the net is laid out (paper Fig. 1).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]

@@ -15,14 +15,14 @@
 //! Record dates are `run_start_unix_s + (instrument clock − instrument clock at start)`: the
 //! caller reads the wall clock once ([`RunOptions::start_unix_s`]), the library never.
 
-use crate::config::{FeaturePolarity, PlanConfig};
+use crate::config::PlanConfig;
 use crate::machine::{
     Action, Anchor, ApertureResult, AttachResult, CycleCounts, Event, Failure, GiveUpReason,
     MachineParams, NodeMachine, NodeMeasurement, SkipResult,
 };
 use crate::plan::{GridNode, NetPlan, PlanError, PlanVisit};
 use serde::{Deserialize, Serialize};
-use spm_features::{DetectionConfig, LcsConfig, LcsStandard, Polarity};
+use spm_features::{DetectionConfig, LcsConfig, LcsStandard};
 use spm_fos::{
     ApertureParams, AttachOutcome, AttachParams, CounterScanParams, Decision, FosError,
     MonitorParams, Motion, Raster, SkipOutcome, SkipParams, SpoilReason,
@@ -189,10 +189,7 @@ impl FosParams {
             settle_s: plan.motion.settle_s,
         };
         let spacing_counts = s.lattice_constant_nm / s.nominal_nm_per_count;
-        let polarity = match s.feature {
-            FeaturePolarity::Hills => Polarity::Hill,
-            FeaturePolarity::Pits => Polarity::Pit,
-        };
+        let polarity = s.feature.polarity();
         let detection = |r: &Raster| DetectionConfig {
             polarity,
             min_separation_px: (tuning.detection_separation_fraction * spacing_counts

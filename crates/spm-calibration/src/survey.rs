@@ -476,18 +476,7 @@ pub fn spectrum_directions(
         ny: map.rows,
     };
     let hex = max_directions == 3;
-    // The first peaks' row spacing: √3/2 a for a triangular lattice, a for a square one;
-    // searched within a factor 1.6 (spm-modelcheck's localiser's range).
-    let row = if hex {
-        0.75f64.sqrt() * a_counts
-    } else {
-        a_counts
-    };
-    let search = cells::LatticeSearch {
-        pixel: [step, step],
-        k_range: [1.0 / (1.6 * row), 1.6 / row],
-        hex,
-    };
+    let search = cells::LatticeSearch::near_period([step, step], a_counts, hex);
     let peaks = cells::find_lattice(&img, &search)?;
     let b = peaks.basis_px()?;
     let side = step * map.columns.min(map.rows) as f64;

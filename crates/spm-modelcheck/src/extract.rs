@@ -380,20 +380,13 @@ enum Mode {
     Cells(CellReference),
 }
 
-/// The claimed lattice's first peaks, cycles per nm: within a factor 1.6 of the row
-/// period (the diagnosis's refusal test allows no more; the fundamental is the
-/// smallest-|k| pair found, so the √3 harmonics cannot be taken for it).
+/// The claimed lattice's first peaks, cycles per nm ([`LatticeSearch::near_period`]).
 fn lattice_search(lattice: &LatticeSpec, pixel_nm: [f64; 2]) -> LatticeSearch {
-    let a = lattice.a_nm();
-    let (row, hex) = match lattice {
-        LatticeSpec::Hex { .. } => (a * 0.75f64.sqrt(), true),
-        LatticeSpec::Square { .. } => (a, false),
-    };
-    LatticeSearch {
-        pixel: pixel_nm,
-        k_range: [1.0 / (1.6 * row), 1.6 / row],
-        hex,
-    }
+    LatticeSearch::near_period(
+        pixel_nm,
+        lattice.a_nm(),
+        matches!(lattice, LatticeSpec::Hex { .. }),
+    )
 }
 
 /// `Some(reason)` when the lattice's cell pattern is not resolved by the pixels: the

@@ -447,17 +447,38 @@ pub fn fit_plane(
     let fewest = MIN_RECORDS_PER_PLANE.max(n.div_ceil(2));
     let mut keep = vec![true; n];
     for _ in 0..MAX_OUTLIER_ROUNDS {
-        let (plane, _) = fit_plane_all(z_counts, &columns.selected(&keep), options)?;
-        let residual = |values: &[f64], surface: &FittedSurface| -> Vec<f64> {
-            values
-                .iter()
-                .zip(columns.lcs_x_counts.iter().zip(&columns.lcs_y_counts))
-                .map(|(v, (x, y))| v - surface.surface.evaluate(*x, *y))
-                .collect()
+        // The three measured coefficients' surfaces over the kept records, and every
+        // record's residual from them (the product surfaces follow from these).
+        let kept = columns.selected(&keep);
+        let field = extent(&kept.lcs_x_counts, &kept.lcs_y_counts);
+        let residual = |name: &'static str, values: &[f64], all: &[f64]| {
+            let (surface, _) = fit_one(
+                name,
+                z_counts,
+                &kept.lcs_x_counts,
+                &kept.lcs_y_counts,
+                values,
+                &field,
+                options,
+            )?;
+            Ok::<Vec<f64>, SurfaceFitError>(
+                all.iter()
+                    .zip(columns.lcs_x_counts.iter().zip(&columns.lcs_y_counts))
+                    .map(|(v, (x, y))| v - surface.surface.evaluate(*x, *y))
+                    .collect(),
+            )
         };
-        let rk = residual(&columns.kx_nm_per_count, &plane.kx_nm_per_count);
-        let ry = residual(&columns.ky_nm_per_count, &plane.ky_nm_per_count);
-        let ra = residual(&columns.alpha_rad, &plane.alpha_rad);
+        let rk = residual(
+            "kx_nm_per_count",
+            &kept.kx_nm_per_count,
+            &columns.kx_nm_per_count,
+        )?;
+        let ry = residual(
+            "ky_nm_per_count",
+            &kept.ky_nm_per_count,
+            &columns.ky_nm_per_count,
+        )?;
+        let ra = residual("alpha_rad", &kept.alpha_rad, &columns.alpha_rad)?;
         let flagged = spm_regression::joint_outliers(&[&rk, &ry, &ra], &keep, k);
         let next: Vec<bool> = (0..n).map(|i| !flagged[i]).collect();
         if next == keep || next.iter().filter(|k| **k).count() < fewest {

@@ -335,10 +335,7 @@ impl VirtualBackendConfig {
                             VirtualInputError::NotTheStandard {
                                 path: image_path.clone(),
                                 standard: standard.as_str().to_owned(),
-                                polarity: match standard.feature() {
-                                    spm_calibration::FeaturePolarity::Hills => "hills",
-                                    spm_calibration::FeaturePolarity::Pits => "pits",
-                                },
+                                polarity: standard.feature().as_str(),
                                 lattice_nm: standard.lattice_constant_nm(),
                                 finding,
                             }
@@ -383,23 +380,17 @@ fn cell_matched(image: &StoredImage, standard: StandardName) -> Result<StoredIma
         nx: image.columns(),
         ny: image.rows(),
     };
-    // The search of spm-modelcheck's cell localiser: first peaks within a factor 1.6 of the
-    // triangular lattice's row spacing.
-    let row_nm = standard.lattice_constant_nm() * 0.75f64.sqrt();
-    let search = cells::LatticeSearch {
-        pixel: [image.pixel_x_nm(), image.pixel_y_nm()],
-        k_range: [1.0 / (1.6 * row_nm), 1.6 / row_nm],
-        hex: true,
-    };
+    let search = cells::LatticeSearch::near_period(
+        [image.pixel_x_nm(), image.pixel_y_nm()],
+        standard.lattice_constant_nm(),
+        true,
+    );
     let peaks = cells::find_lattice(&img, &search).ok_or_else(|| {
         "its spectrum shows no lattice near that period (the mean-cell filter \
          (`matched_cell`) needs one)"
             .to_owned()
     })?;
-    let polarity = match standard.feature() {
-        spm_calibration::FeaturePolarity::Hills => Polarity::Hill,
-        spm_calibration::FeaturePolarity::Pits => Polarity::Pit,
-    };
+    let polarity = standard.feature().polarity();
     let matched = cells::matched_filter(&img, &peaks, polarity)
         .ok_or_else(|| "its cells cannot be located on the lattice of its spectrum".to_owned())?;
     tracing::info!(
@@ -498,17 +489,11 @@ pub fn check_standard(
             max_pixel_nm: a / MIN_PIXELS_PER_LATTICE,
         });
     }
-    let polarity = match standard.feature {
-        spm_calibration::FeaturePolarity::Hills => Polarity::Hill,
-        spm_calibration::FeaturePolarity::Pits => Polarity::Pit,
-    };
+    let polarity = standard.feature.polarity();
     let not_it = |finding: String| VirtualInputError::NotTheStandard {
         path: path.to_path_buf(),
         standard: name.clone(),
-        polarity: match polarity {
-            Polarity::Hill => "hills",
-            Polarity::Pit => "pits",
-        },
+        polarity: standard.feature.as_str(),
         lattice_nm: a,
         finding,
     };

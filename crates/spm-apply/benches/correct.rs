@@ -51,6 +51,7 @@ fn field() -> SurfaceSet {
             &[-30_000.0, 30_000.0],
             0.0,
         ),
+        form: spm_correction::SurfaceForm::Independent,
     };
     SurfaceSet::new(
         Provenance {

@@ -61,6 +61,7 @@ fn curved() -> SurfaceSet {
             &[-30_000.0, 30_000.0],
             0.0,
         ),
+        form: spm_correction::SurfaceForm::Independent,
     };
     SurfaceSet::new(
         Provenance {

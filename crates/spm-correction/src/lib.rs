@@ -74,7 +74,7 @@ pub use resample::{
 };
 pub use surfaces::{
     BlendedField, CountRegion, CountsConvention, FittedSurface, PlaneField, PlaneSurfaces,
-    Provenance, Route, SURFACES_FORMAT_VERSION, SurfaceSet,
+    Provenance, Route, SURFACES_FORMAT_VERSION, SurfaceForm, SurfaceSet,
 };
 pub use trajectory::{correct_polyline, correct_unit_steps};
 pub use vertical::{bowl_counts, field_at_z};

@@ -111,6 +111,9 @@ pub struct PlaneSurfaces {
     /// [`PlaneSurfaces::calibrated_region`].
     #[serde(default)]
     pub calibrated_region_counts: Option<CountRegion>,
+    /// How K̄x and the product surfaces were fitted (absent in older files: independently).
+    #[serde(default)]
+    pub form: SurfaceForm,
 }
 
 /// An axis-parallel rectangle of the scanner field, counts.
@@ -303,6 +306,7 @@ impl PlaneSurfaces {
             kz_nm_per_count: None,
             bowl_z_counts: None,
             calibrated_region_counts: None,
+            form: SurfaceForm::Independent,
         })
     }
 
@@ -392,6 +396,40 @@ pub struct Provenance {
     /// The git commit spmcal was built from, when known (version 2).
     #[serde(default)]
     pub spmcal_commit: Option<String>,
+}
+
+/// How a plane's K̄x and product surfaces K̄yx, K̄yy (the correction 1-form, eq. 5) are fitted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SurfaceForm {
+    /// Each surface by itself (eqs. 2 and 11): the form is exact only as far as the records
+    /// make it.
+    #[default]
+    Independent,
+    /// The derivatives of two fitted potentials, x̄(x, y) and ȳ(y)
+    /// (`spm_regression::fit_exact_form`): the form is exact, so the corrected position does
+    /// not depend on the raster's path, and K̄yy has no x term for a raster to read at the
+    /// start of its lines.
+    Exact,
+}
+
+impl SurfaceForm {
+    /// The name in files and on the command line.
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Independent => "independent",
+            Self::Exact => "exact",
+        }
+    }
+
+    /// The form named `text` ([`Self::as_str`]).
+    #[must_use]
+    pub fn parse(text: &str) -> Option<Self> {
+        [Self::Independent, Self::Exact]
+            .into_iter()
+            .find(|f| f.as_str() == text)
+    }
 }
 
 /// All regression surfaces of one scanner: what `surfaces.json` holds.

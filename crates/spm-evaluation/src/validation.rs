@@ -866,6 +866,7 @@ mod tests {
             kz_nm_per_count: None,
             bowl_z_counts: None,
             calibrated_region_counts: None,
+            form: spm_correction::SurfaceForm::Independent,
         })
     }
 

@@ -22,6 +22,7 @@
 pub mod bench_support;
 mod error;
 mod fit;
+mod form;
 mod gls;
 mod lsq;
 mod polynomial;
@@ -31,6 +32,7 @@ mod stats;
 
 pub use error::RegressionError;
 pub use fit::{FitOptions, Observations, PolyFit, fit, leverages, standard_errors};
+pub use form::{ExactForm, FormObservations, FormScatter, fit_exact_form};
 pub use gls::{GeneralisedFit, SINGULAR_CORRELATION, generalised_least_squares};
 pub use lsq::{LinearFit, least_squares};
 pub use polynomial::{MAX_DEGREE, Polynomial2, n_terms, term_index, term_powers};
@@ -38,7 +40,9 @@ pub use rank::{
     FactoredDesign, MINIMUM_NORM_TOLERANCE, MinimumNormFit, minimum_norm_least_squares,
     minimum_norm_solve,
 };
-pub use select::{Criterion, DegreeScore, Selection, SelectionOptions, select_degree};
+pub use select::{
+    Criterion, DegreeScore, Selection, SelectionOptions, information_criterion, select_degree,
+};
 pub use stats::{
     DeltaMax, Field, delta_max, joint_outliers, median, product_values, rms, sigma, upper_median,
 };

@@ -471,6 +471,46 @@ impl Polynomial2 {
         (gx / self.scale_x, gy / self.scale_y)
     }
 
+    /// The surface ∂f/∂x (total degree one less; degree 0 for a constant), on this surface's
+    /// normalisation: [`Self::gradient`]'s first component everywhere.
+    #[must_use]
+    pub fn partial_x(&self) -> Self {
+        self.partial(true)
+    }
+
+    /// The surface ∂f/∂y (total degree one less; degree 0 for a constant), on this surface's
+    /// normalisation: [`Self::gradient`]'s second component everywhere.
+    #[must_use]
+    pub fn partial_y(&self) -> Self {
+        self.partial(false)
+    }
+
+    fn partial(&self, along_x: bool) -> Self {
+        let degree = self.degree.saturating_sub(1);
+        let mut coefficients = vec![0.0; n_terms(degree)];
+        if self.degree > 0 {
+            let scale = if along_x { self.scale_x } else { self.scale_y };
+            for ((i, j), c) in term_powers(self.degree).zip(&self.coefficients) {
+                let (power, term) = if along_x {
+                    (i, (i.wrapping_sub(1), j))
+                } else {
+                    (j, (i, j.wrapping_sub(1)))
+                };
+                if power > 0 {
+                    coefficients[term_index(term.0, term.1)] += c * f64::from(power) / scale;
+                }
+            }
+        }
+        Self {
+            degree,
+            center_x: self.center_x,
+            center_y: self.center_y,
+            scale_x: self.scale_x,
+            scale_y: self.scale_y,
+            coefficients,
+        }
+    }
+
     /// Analytic ∫ f(x, y) dx from `x_a` to `x_b` at fixed `y` (the first integral of eq. 9).
     ///
     /// Implements eq. (12): the analytic x integral of eq. (6).

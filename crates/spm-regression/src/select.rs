@@ -81,12 +81,36 @@ impl Selection {
 }
 
 fn bic(fit: &PolyFit, obs: &Observations<'_>) -> f64 {
-    let n = fit.n_points as f64;
-    let p = fit.surface.coefficients().len() as f64;
-    let mean_sq = obs.value.iter().map(|v| v * v).sum::<f64>() / obs.len().max(1) as f64;
-    let floor = n * (1e-12 * mean_sq.sqrt()).powi(2) + f64::MIN_POSITIVE;
-    let rss = fit.weighted_rss.max(floor);
-    n * (rss / n).ln() + p * n.ln()
+    bic_score(
+        fit.n_points,
+        fit.surface.coefficients().len(),
+        fit.weighted_rss,
+        obs.value,
+    )
+}
+
+/// [`information_criterion`] with the RSS floored at 10⁻¹² of the `values`' RMS per point, so
+/// an exact fit does not score −∞.
+pub(crate) fn bic_score(
+    n_points: usize,
+    n_params: usize,
+    weighted_rss: f64,
+    values: &[f64],
+) -> f64 {
+    let mean_sq = values.iter().map(|v| v * v).sum::<f64>() / values.len().max(1) as f64;
+    let floor = n_points as f64 * (1e-12 * mean_sq.sqrt()).powi(2);
+    information_criterion(n_points, n_params, weighted_rss.max(floor))
+}
+
+/// The Bayesian information criterion BIC = n·ln(RSS/n) + p·ln n of a least-squares fit of
+/// `n_params` parameters to `n_points` observations with the weighted residual sum of squares
+/// `weighted_rss` (lower is better; the RSS is floored at the smallest positive number). The
+/// one criterion [`select_degree`] and every other model choice use.
+#[must_use]
+pub fn information_criterion(n_points: usize, n_params: usize, weighted_rss: f64) -> f64 {
+    let n = n_points as f64;
+    let rss = weighted_rss.max(f64::MIN_POSITIVE);
+    n * (rss / n).ln() + n_params as f64 * n.ln()
 }
 
 /// Mean and standard error of the held-out weighted squared error over `folds` folds.

@@ -17,6 +17,7 @@ pub fn run(
     until: Option<&str>,
     out: &Path,
     reject_outliers: Option<f64>,
+    form: Option<spm_correction::SurfaceForm>,
 ) -> Result<(), CliError> {
     let (since, until) = parse_window(since, until)?;
     if let Some(k) = reject_outliers
@@ -36,6 +37,7 @@ pub fn run(
         until,
         &SurfaceFitOptions {
             outlier_sigmas: reject_outliers,
+            form,
             ..SurfaceFitOptions::bic_up_to(MAX_SURFACE_DEGREE)
         },
     )
@@ -90,5 +92,11 @@ pub fn run(
         s.alpha.degree,
         s.alpha.sigma
     );
+    let forms: Vec<String> = set
+        .planes
+        .iter()
+        .map(|p| format!("z = {}: {}", p.z_counts, p.form.as_str()))
+        .collect();
+    crate::outln!("form of K̄x, K̄yx, K̄yy (eq. 5): {}", forms.join("; "));
     Ok(())
 }

@@ -174,6 +174,11 @@ enum Command {
         /// recognition accepted some wrong structures. Default: every record is fitted.
         #[arg(long, value_name = "SIGMAS")]
         reject_outliers: Option<f64>,
+        /// How K̄x and the product surfaces K̄yx, K̄yy are fitted: one by one, as the
+        /// derivatives of two potentials (an exact form), or per plane the one with the lower
+        /// BIC.
+        #[arg(long, value_enum, default_value_t = FormArg::Auto)]
+        form: FormArg,
     },
     /// Regenerate the report (report.json, report.html, surfaces.json, figures) of a
     /// finished run from the CDB alone, e.g. after the report failed; what only the running
@@ -408,6 +413,28 @@ enum OutFormat {
     Gsf,
 }
 
+/// How `spmcal fit` fits K̄x and the product surfaces (`spm_correction::SurfaceForm`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum FormArg {
+    /// Per plane, the form with the lower BIC.
+    Auto,
+    /// Each surface by itself (eqs. 2 and 11).
+    Independent,
+    /// The derivatives of two potentials x̄(x, y), ȳ(y): a correction that does not depend
+    /// on the raster's path, and a y scale with no x term to extrapolate.
+    Exact,
+}
+
+impl FormArg {
+    fn form(self) -> Option<spm_correction::SurfaceForm> {
+        match self {
+            Self::Auto => None,
+            Self::Independent => Some(spm_correction::SurfaceForm::Independent),
+            Self::Exact => Some(spm_correction::SurfaceForm::Exact),
+        }
+    }
+}
+
 /// Raster direction of an image to correct.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum RasterDirection {
@@ -586,6 +613,7 @@ fn run(command: Command) -> Result<(), CliError> {
             until,
             out,
             reject_outliers,
+            form,
         } => fit_cmd::run(
             &cdb,
             scanner.as_deref(),
@@ -593,6 +621,7 @@ fn run(command: Command) -> Result<(), CliError> {
             until.as_deref(),
             &out,
             reject_outliers,
+            form.form(),
         ),
         Command::Report { cdb, run, out } => report_cmd::run(&cdb, &run, &out),
         Command::Cdb { command } => match command {

@@ -4,7 +4,8 @@
 use serde::Serialize;
 use spm_cdb::{CdbRead, LccColumns, RecordFilter};
 use spm_correction::{
-    CountRegion, CountsConvention, FittedSurface, PlaneSurfaces, Provenance, SurfaceSet,
+    CountRegion, CountsConvention, FittedSurface, PlaneSurfaces, Provenance, SurfaceForm,
+    SurfaceSet,
 };
 use spm_regression::{Criterion, Field, Observations, SelectionOptions, delta_max, select_degree};
 
@@ -184,18 +185,26 @@ pub struct SurfaceFitOptions {
     /// records). For records a misrecognised structure spoilt (measured images: Si_7x7_028,
     /// 4 of 17 records with α 10°–19° off the others' median). Default `None`: every record is fitted.
     pub outlier_sigmas: Option<f64>,
+    /// How K̄x, K̄yx and K̄yy are fitted ([`SurfaceForm`]); `None` (the default,
+    /// [`Self::bic_up_to`]): per plane, the form with the lower BIC
+    /// ([`spm_regression::information_criterion`] over the three coefficients' residuals, each
+    /// in units of its independent fit's σ). A sparse or noisy net gets the exact form, whose
+    /// two potentials use every record's K̄x and K̄yx together; a dense net whose field's
+    /// y scale does vary along x keeps the surfaces one by one (docs/RESULTS.md, stop 44).
+    pub form: Option<SurfaceForm>,
 }
 
 /// Rounds of outlier rejection at most ([`SurfaceFitOptions::outlier_sigmas`]).
 pub const MAX_OUTLIER_ROUNDS: usize = 5;
 
 impl SurfaceFitOptions {
-    /// Degrees 0…`max_degree` chosen by BIC, every record fitted.
+    /// Degrees 0…`max_degree` chosen by BIC, every record fitted, the form chosen by BIC.
     pub fn bic_up_to(max_degree: u32) -> Self {
         Self {
             max_degree,
             criterion: Criterion::Bic,
             outlier_sigmas: None,
+            form: None,
         }
     }
 }
@@ -524,6 +533,38 @@ fn fit_plane_all(
     })?;
     let (kyx_surface, _) = one("kyx_nm_per_count", x, y, &kyx)?;
     let (kyy_surface, _) = one("kyy_nm_per_count", x, y, &kyy)?;
+    let independent = FormFit {
+        form: SurfaceForm::Independent,
+        kx,
+        kx_summary,
+        kyx: kyx_surface,
+        kyy: kyy_surface,
+    };
+    let chosen = if options.form == Some(SurfaceForm::Independent) {
+        independent
+    } else {
+        let (exact, exact_params) = exact_form(
+            z_counts,
+            x,
+            y,
+            columns,
+            (&kyx, &kyy),
+            &independent,
+            &field,
+            options,
+        )?;
+        match options.form {
+            Some(_) => exact,
+            None => choose_form(x.len(), independent, (exact, exact_params)),
+        }
+    };
+    let FormFit {
+        form,
+        kx,
+        kx_summary,
+        kyx: kyx_surface,
+        kyy: kyy_surface,
+    } = chosen;
     let mut kz_x = Vec::new();
     let mut kz_y = Vec::new();
     let mut kz_v = Vec::new();
@@ -551,6 +592,7 @@ fn fit_plane_all(
         kz_nm_per_count: kz,
         bowl_z_counts: None,
         calibrated_region_counts: CountRegion::bounding(x, y, 0.0),
+        form,
     };
     Ok((
         plane,
@@ -563,6 +605,135 @@ fn fit_plane_all(
             outliers_left_out: 0,
         },
     ))
+}
+
+/// K̄x and the product surfaces of one plane, fitted in one form.
+struct FormFit {
+    form: SurfaceForm,
+    kx: FittedSurface,
+    kx_summary: SurfaceSummary,
+    kyx: FittedSurface,
+    kyy: FittedSurface,
+}
+
+impl FormFit {
+    /// Free coefficients of the three surfaces.
+    fn n_params(&self, exact_params: usize) -> usize {
+        match self.form {
+            SurfaceForm::Independent => [&self.kx, &self.kyx, &self.kyy]
+                .iter()
+                .map(|s| spm_regression::n_terms(s.surface.degree()))
+                .sum(),
+            SurfaceForm::Exact => exact_params,
+        }
+    }
+}
+
+/// The exact form (`spm_regression::fit_exact_form`) through the plane's records, the x
+/// potential's two kinds of observation weighted by the independent fits' σ.
+#[allow(clippy::too_many_arguments)]
+fn exact_form(
+    z_counts: i64,
+    x: &[f64],
+    y: &[f64],
+    columns: &LccColumns,
+    (kyx, kyy): (&[f64], &[f64]),
+    independent: &FormFit,
+    field: &Field,
+    options: &SurfaceFitOptions,
+) -> Result<(FormFit, usize), SurfaceFitError> {
+    let form = spm_regression::fit_exact_form(
+        &spm_regression::FormObservations {
+            x,
+            y,
+            kx_nm_per_count: &columns.kx_nm_per_count,
+            kyx_nm_per_count: kyx,
+            kyy_nm_per_count: kyy,
+        },
+        options.max_degree,
+        spm_regression::FormScatter {
+            kx_nm_per_count: independent.kx.sigma,
+            kyx_nm_per_count: independent.kyx.sigma,
+        },
+    )
+    .map_err(|source| SurfaceFitError::Regression {
+        coefficient: "exact form (kx, kyx, kyy)",
+        z_counts,
+        source,
+    })?;
+    let n_params = form.n_params;
+    let (kx, kx_summary) = summarise(
+        "kx_nm_per_count",
+        z_counts,
+        form.kx_nm_per_count,
+        x,
+        y,
+        &columns.kx_nm_per_count,
+        field,
+    )?;
+    let (kyx, _) = summarise(
+        "kyx_nm_per_count",
+        z_counts,
+        form.kyx_nm_per_count,
+        x,
+        y,
+        kyx,
+        field,
+    )?;
+    let (kyy, _) = summarise(
+        "kyy_nm_per_count",
+        z_counts,
+        form.kyy_nm_per_count,
+        x,
+        y,
+        kyy,
+        field,
+    )?;
+    Ok((
+        FormFit {
+            form: SurfaceForm::Exact,
+            kx,
+            kx_summary,
+            kyx,
+            kyy,
+        },
+        n_params,
+    ))
+}
+
+/// The form with the lower BIC over the 3n residuals of K̄x, K̄yx and K̄yy, each in units of its
+/// independent fit's σ (eq. 14); a tie keeps the independent surfaces.
+fn choose_form(
+    n_records: usize,
+    independent: FormFit,
+    (exact, exact_params): (FormFit, usize),
+) -> FormFit {
+    let scaled = |fit: &FormFit| {
+        [
+            (fit.kx.sigma, independent.kx.sigma),
+            (fit.kyx.sigma, independent.kyx.sigma),
+            (fit.kyy.sigma, independent.kyy.sigma),
+        ]
+        .iter()
+        .map(|(s, unit)| if *unit > 0.0 { (s / unit).powi(2) } else { 1.0 })
+        .sum::<f64>()
+            * n_records.saturating_sub(1) as f64
+    };
+    let n = 3 * n_records;
+    let bic = |fit: &FormFit| {
+        spm_regression::information_criterion(n, fit.n_params(exact_params), scaled(fit))
+    };
+    let (b_independent, b_exact) = (bic(&independent), bic(&exact));
+    tracing::info!(
+        b_independent,
+        b_exact,
+        "BIC of the correction form, one by one against exact"
+    );
+    if b_exact < b_independent {
+        exact
+    } else {
+        independent
+    }
 }
 
 /// The records' bounding box (the calibrated region's one definition,
@@ -614,9 +785,35 @@ pub(crate) fn fit_one(
         },
     )
     .map_err(regression)?;
-    let surface = selection.fit.surface;
+    summarise(
+        coefficient,
+        z_counts,
+        selection.fit.surface,
+        x,
+        y,
+        values,
+        field,
+    )
+}
+
+/// A fitted surface with its σ (eq. 14) over the records it was fitted to and its Δmax
+/// (eq. 13) over `field`.
+fn summarise(
+    coefficient: &'static str,
+    z_counts: i64,
+    surface: spm_regression::Polynomial2,
+    x: &[f64],
+    y: &[f64],
+    values: &[f64],
+    field: &Field,
+) -> Result<(FittedSurface, SurfaceSummary), SurfaceFitError> {
+    let regression = |source| SurfaceFitError::Regression {
+        coefficient,
+        z_counts,
+        source,
+    };
     let sigma = if values.len() >= 2 {
-        spm_regression::sigma(&surface, &observations).map_err(regression)?
+        spm_regression::sigma(&surface, &Observations::new(x, y, values)).map_err(regression)?
     } else {
         0.0
     };

@@ -36,6 +36,7 @@ fn plane(z_counts: f64) -> PlaneSurfaces {
         kz_nm_per_count: Some(surface(0.002, 1, 5.0)),
         bowl_z_counts: None,
         calibrated_region_counts: None,
+        form: spm_correction::SurfaceForm::Independent,
     }
 }
 

@@ -393,3 +393,126 @@ fn the_lattice_of_every_cell_follows_a_y_scale_that_changes_down_the_frame() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// How regular the corner holes of a measured Si(111)-7×7 image come out of a localiser: over
+/// every pair of features about a lattice constant apart, the pair's vector against the median
+/// of the like vectors within 40 px (the local lattice, so the image's y-scale gradient does
+/// not count). Returns (features, vectors, vectors off by more than 0.15 a, RMS of the rest
+/// per position in px, i.e. the vectors' RMS / √2).
+fn lattice_regularity(features: &[(f64, f64)], a_px: f64) -> (usize, usize, usize, f64) {
+    let (mut off, mut n, mut residuals) = (0, 0, Vec::new());
+    for (i, p) in features.iter().enumerate() {
+        for (j, q) in features.iter().enumerate() {
+            let v = (q.0 - p.0, q.1 - p.1);
+            let d = v.0.hypot(v.1);
+            if i == j || !(0.8 * a_px..=1.8 * a_px).contains(&d) {
+                continue;
+            }
+            let (mut xs, mut ys) = (Vec::new(), Vec::new());
+            for (k, r) in features.iter().enumerate() {
+                if (r.0 - p.0).hypot(r.1 - p.1) > 40.0 {
+                    continue;
+                }
+                for (l, s) in features.iter().enumerate() {
+                    let w = (s.0 - r.0, s.1 - r.1);
+                    if k != l && (w.0 - v.0).hypot(w.1 - v.1) < 0.3 * a_px {
+                        xs.push(w.0);
+                        ys.push(w.1);
+                    }
+                }
+            }
+            if xs.len() < 5 {
+                continue;
+            }
+            let median = |v: &mut Vec<f64>| spm_regression::median(v).unwrap();
+            let e = (v.0 - median(&mut xs)).hypot(v.1 - median(&mut ys));
+            n += 1;
+            if e > 0.15 * a_px {
+                off += 1;
+            } else {
+                residuals.push(e);
+            }
+        }
+    }
+    let rms = spm_regression::rms(&residuals).unwrap_or(f64::NAN) / 2f64.sqrt();
+    (features.len(), n, off, rms)
+}
+
+/// Why single records on Si_7x7_028 scatter by 10 % (docs/RESULTS.md, stop 44): the features
+/// the calibration tracks are the generic detector's extrema on the image the virtual backend
+/// serves (filtered by its mean cell); the lattice tool's are the cell-template localiser's.
+/// Measured on the same image, the localiser's corner holes lie on a regular lattice (no
+/// vector off by 0.15 a, 0.3 px per position); the detector's figures are printed beside them.
+#[test]
+#[ignore = "a diagnostic on measured data, 8 s: cargo test -p spmcal --test it -- --ignored corner_holes"]
+fn the_corner_holes_of_a_measured_image_by_the_tracking_detector_and_by_the_localiser() {
+    let path = spmcal_tests::measured_file("si7x7-nanonis/Si_7x7_028.sxm");
+    let (_, backend, _) =
+        spmcal::virtual_mode::virtual_job(&path, &VirtualRunOptions::new(StandardName::Si7x7))
+            .unwrap();
+    let served = &backend.surface.forward;
+    let a_px = 2.688 / served.pixel_x_nm();
+    let map = spm_hal::HeightMap {
+        origin: CountPoint::from_counts(0.0, 0.0),
+        pixel_step: Counts(1.0),
+        columns: served.columns(),
+        rows: served.rows(),
+        z_counts: served.heights_nm().to_vec(),
+        time_s: vec![0.0; served.columns() * served.rows()],
+    };
+    let detected = spm_features::detect(
+        &map,
+        &spm_features::DetectionConfig {
+            polarity: spm_features::Polarity::Pit,
+            min_separation_px: 0.5 * a_px,
+            ..spm_features::DetectionConfig::default()
+        },
+    )
+    .unwrap();
+    let tracked: Vec<(f64, f64)> = detected
+        .features
+        .iter()
+        .map(|f| (f.position.x.value(), f.position.y.value()))
+        .collect();
+    let file = spm_formats::read_any(&path).unwrap();
+    let z = file
+        .channels
+        .iter()
+        .find(|c| c.name() == "Z")
+        .unwrap()
+        .clone();
+    let pixel_nm = z.pixel_x_nm().unwrap();
+    let located = spm_modelcheck::extract_features(
+        &[(
+            spm_formats::SpmFile {
+                channels: vec![z],
+                ..file.clone()
+            },
+            None,
+        )],
+        &spm_modelcheck::LatticeSpec::parse("si7x7").unwrap(),
+        &spm_modelcheck::ExtractOptions {
+            channel: Some("Z".into()),
+            ..spm_modelcheck::ExtractOptions::default()
+        },
+    )
+    .unwrap();
+    let localised: Vec<(f64, f64)> = located
+        .features
+        .iter()
+        .map(|f| (f.x_nm / pixel_nm, f.y_nm / pixel_nm))
+        .collect();
+    let t = lattice_regularity(&tracked, a_px);
+    let l = lattice_regularity(&localised, 2.688 / pixel_nm);
+    eprintln!(
+        "tracking detector on the served image: {} features, {} neighbour vectors, {} off by \
+         > 0.15 a, the rest {:.2} px per position",
+        t.0, t.1, t.2, t.3
+    );
+    eprintln!(
+        "cell-template localiser on the file: {} features, {} neighbour vectors, {} off by \
+         > 0.15 a, the rest {:.2} px per position",
+        l.0, l.1, l.2, l.3
+    );
+    assert!(l.0 > 200 && l.2 == 0 && l.3 < 0.4, "{l:?}");
+}

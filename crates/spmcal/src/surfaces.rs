@@ -188,9 +188,9 @@ pub struct SurfaceFitOptions {
     /// How K̄x, K̄yx and K̄yy are fitted ([`SurfaceForm`]); `None` (the default,
     /// [`Self::bic_up_to`]): per plane, the form with the lower BIC
     /// ([`spm_regression::information_criterion`] over the three coefficients' residuals, each
-    /// in units of its independent fit's σ). A sparse or noisy net gets the exact form, whose
-    /// two potentials use every record's K̄x and K̄yx together; a dense net whose field's
-    /// y scale does vary along x keeps the surfaces one by one (docs/RESULTS.md, stop 44).
+    /// in units of its independent fit's σ). Sparse or noisy records tend to get the exact
+    /// form (Si_7x7_028's 17, the quick simulated job's 9); a dense net whose field's y scale
+    /// does vary along x keeps the surfaces one by one (docs/RESULTS.md, stop 44).
     pub form: Option<SurfaceForm>,
 }
 

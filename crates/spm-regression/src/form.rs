@@ -70,7 +70,8 @@ pub struct ExactForm {
 
 /// Fits the correction 1-form as an exact form (module docs), the derivative surfaces of degree
 /// at most `max_degree`; a degree d is tried only while the records stand in more than d + 1
-/// distinct columns and rows and number at least twice the terms of a degree-d surface (the
+/// distinct columns and rows and at least twice as many distinct places
+/// ([`crate::distinct_places`]) as a degree-d surface has terms (the
 /// rule the surfaces fitted one by one follow: the
 /// potentials' K̄x and K̄yx are two observations at the same places, which do not make a
 /// higher degree safe to extrapolate; the quick simulated job's budget row with creep off put
@@ -131,11 +132,12 @@ pub fn fit_exact_form(
     // ±0.9 nm/count a quarter of the field beyond them).
     let (x_levels, y_levels) = (levels(obs.x, sx), levels(obs.y, sy));
     let x_max_degree = max_degree.min(x_levels.min(y_levels).saturating_sub(2) as u32);
-    let x_potential = select_potential(x_max_degree, n, |degree| {
+    let places = crate::distinct_places(obs.x, obs.y);
+    let x_potential = select_potential(x_max_degree, places, |degree| {
         fit_x_potential(obs, degree, (cx, sx), (cy, sy), (wx, wyx))
     })?;
     let y_max_degree = max_degree.min(y_levels.saturating_sub(2) as u32);
-    let y_potential = select_potential(y_max_degree, n, |degree| {
+    let y_potential = select_potential(y_max_degree, places, |degree| {
         fit_y_potential(obs, degree, (cx, sx), (cy, sy))
     })?;
     let n_params = n_terms(x_potential.degree()) - 1 + y_potential.degree() as usize;
@@ -172,14 +174,14 @@ struct Candidate {
 /// first degree that has too few observations or does not fit, and fails only at degree 0.
 fn select_potential(
     max_degree: u32,
-    n_records: usize,
+    n_places: usize,
     fit: impl Fn(u32) -> Result<Candidate, RegressionError>,
 ) -> Result<Polynomial2, RegressionError> {
     let mut best: Option<(f64, Polynomial2)> = None;
     for degree in 0..=max_degree.min(crate::MAX_DEGREE - 1) {
         // The records must hold twice the terms of one derivative surface, as for a surface
         // fitted by itself: the potentials' extra observations come from the same places.
-        if degree > 0 && 2 * n_terms(degree) > n_records {
+        if degree > 0 && 2 * n_terms(degree) > n_places {
             break;
         }
         let candidate = match fit(degree) {
@@ -203,7 +205,7 @@ fn select_potential(
     best.map(|(_, p)| p).ok_or(RegressionError::TooFewPoints {
         degree: 0,
         needed: 2,
-        got: n_records,
+        got: n_places,
     })
 }
 

@@ -770,10 +770,12 @@ pub(crate) fn fit_one(
         source,
     };
     let observations = Observations::new(x, y, values);
-    // A handful of records cannot support a high degree: cap it so that
-    // at least twice as many points as terms remain.
+    // A handful of places cannot support a high degree: cap it so that at least twice as
+    // many distinct places as terms remain (repeats of a node, or nodes that attached to the
+    // same feature, are one place).
+    let places = spm_regression::distinct_places(x, y);
     let mut max_degree = options.max_degree;
-    while max_degree > 0 && spm_regression::n_terms(max_degree) * 2 > values.len() {
+    while max_degree > 0 && spm_regression::n_terms(max_degree) * 2 > places {
         max_degree -= 1;
     }
     let selection = select_degree(

@@ -602,8 +602,17 @@ pub fn validation_map(
     let mut uncorrected = vec![f64::NAN; cells * cells];
     for p in &places {
         let cell = cell_of(p.centre_counts[1], y0) * cells + cell_of(p.centre_counts[0], x0);
-        corrected[cell] = p.corrected_error_pct.unwrap_or(f64::NAN);
-        uncorrected[cell] = p.uncorrected_error_pct.unwrap_or(f64::NAN);
+        // Places that share a cell (centres closer than the grid's spacing): a measured value
+        // is not covered by a place that has none.
+        if let Some(v) = p.corrected_error_pct.filter(|v| v.is_finite()) {
+            corrected[cell] = v;
+        }
+        if let Some(v) = p.uncorrected_error_pct.filter(|v| v.is_finite()) {
+            uncorrected[cell] = v;
+        }
+    }
+    if !corrected.iter().any(|v| v.is_finite()) {
+        return Ok(None);
     }
     let points: Vec<(f64, f64)> = places
         .iter()
@@ -822,6 +831,64 @@ pub fn cdb_trend_figure(series: &[TrendSeries<'_>]) -> Result<Vec<u8>, PlotError
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn place(x: f64, y: f64, corrected: Option<f64>) -> spm_evaluation::validation::LatticePlace {
+        spm_evaluation::validation::LatticePlace {
+            place: format!("({x}, {y})"),
+            centre_counts: [x, y],
+            uncorrected_error_pct: Some(9.0),
+            uncorrected_angle_error_deg: Some(5.0),
+            corrected_error_pct: corrected,
+            corrected_angle_error_deg: corrected.map(|_| 0.2),
+            static_error_pct: None,
+            static_angle_error_deg: None,
+            counter_error_pct: None,
+            counter_angle_error_deg: None,
+        }
+    }
+
+    fn check(
+        places: Vec<spm_evaluation::validation::LatticePlace>,
+    ) -> spm_evaluation::validation::LatticeCheck {
+        let measured = places
+            .iter()
+            .filter(|p| p.corrected_error_pct.is_some())
+            .count();
+        spm_evaluation::validation::LatticeCheck {
+            lattice_constant_nm: 0.2461,
+            pixels: 64,
+            step_counts: 3.0,
+            places,
+            corrected_measured: measured,
+            corrected_max_error_pct: 1.0,
+            corrected_rms_error_pct: 1.0,
+            corrected_max_angle_error_deg: 0.2,
+            uncorrected_rms_error_pct: 9.0,
+            static_measured: 0,
+            static_rms_error_pct: f64::NAN,
+            counter_measured: 0,
+            counter_rms_error_pct: f64::NAN,
+            dynamics_applied: false,
+            thresholds: [1.0, 0.5],
+            verdict: spm_evaluation::validation::Verdict::Pass,
+            reason: None,
+        }
+    }
+
+    /// A virtual run's places can share a cell of the map (nodes that attached to the same
+    /// feature): a measured place is drawn whatever the order, and a map with nothing measured
+    /// is no figure rather than an error (the HOPG terrace's right half, stop 44).
+    #[test]
+    fn places_sharing_a_cell_keep_the_measured_value() {
+        let shared = check(vec![
+            place(0.0, 0.0, Some(1.0)),
+            place(10.0, 5.0, None),
+            place(5000.0, 0.0, None),
+        ]);
+        assert!(validation_map(&shared, 0.02).unwrap().is_some());
+        let none = check(vec![place(0.0, 0.0, None), place(5000.0, 0.0, None)]);
+        assert!(validation_map(&none, 0.02).unwrap().is_none());
+    }
 
     fn point(t: f64, mean: f64, u: f64) -> spm_cdb::TrendPoint {
         spm_cdb::TrendPoint {

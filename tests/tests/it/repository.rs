@@ -149,6 +149,43 @@ fn the_architecture_document_mentions_every_crate() {
     }
 }
 
+/// `cargo xtask bench --write-docs` writes docs/RESULTS.md from its measured tables and the
+/// hand-written `docs/results/*.md` (headings demoted one level): a section edited in
+/// RESULTS.md alone would be lost by the next regeneration.
+#[test]
+fn every_hand_written_results_fragment_is_in_results_md_as_it_stands() {
+    let root = workspace_root();
+    let results = std::fs::read_to_string(root.join("docs/RESULTS.md")).expect("RESULTS.md");
+    let mut fragments: Vec<PathBuf> = std::fs::read_dir(root.join("docs/results"))
+        .expect("docs/results")
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "md"))
+        .collect();
+    fragments.sort();
+    assert!(!fragments.is_empty());
+    for path in fragments {
+        let text = std::fs::read_to_string(&path).expect("fragment");
+        let demoted: String = text
+            .trim_end()
+            .lines()
+            .map(|line| {
+                if line.starts_with('#') {
+                    format!("#{line}\n")
+                } else {
+                    format!("{line}\n")
+                }
+            })
+            .collect();
+        assert!(
+            results.contains(&demoted),
+            "{} differs from its section of docs/RESULTS.md: edit the fragment, then the \
+             section (or regenerate with `cargo xtask bench --write-docs`)",
+            path.display()
+        );
+    }
+}
+
 #[test]
 fn the_readme_names_the_two_commands() {
     let text = std::fs::read_to_string(workspace_root().join("README.md")).expect("README.md");

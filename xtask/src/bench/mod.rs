@@ -4,8 +4,8 @@
 //! three simulated scanners, on the static field and on test images ([`accuracy`]), the
 //! error budget of the images effect by effect ([`budget`]), drift insensitivity ([`drift`]),
 //! productivity of the plan variants ([`productivity`]), localisation error ÷
-//! Cramér–Rao bound ([`crb`]), speed ([`speed`]) and the Gwyddion peer
-//! ([`gwyddion`]). Everything is seeded; a section that fails is recorded with
+//! Cramér–Rao bound ([`crb`]), speed ([`speed`]), the Gwyddion peer
+//! ([`gwyddion`]) and virtual calibration on the measured images, held out ([`real`]). Everything is seeded; a section that fails is recorded with
 //! its reason and the others still run. [`report`] writes `results.json`, the
 //! PNG figures and `docs/RESULTS.md` (the hand-written `docs/results/*.md`
 //! sections follow the measured tables).
@@ -19,6 +19,7 @@ mod linalg;
 mod nanonis;
 mod postgres;
 mod productivity;
+mod real;
 mod report;
 mod speed;
 mod vertical;
@@ -120,6 +121,8 @@ pub struct Results {
     pub nanonis: Section<nanonis::NanonisResults>,
     /// The CDB on SQLite and on a shared PostgreSQL database.
     pub postgres: Section<postgres::PostgresResults>,
+    /// Virtual calibration on the measured images, held out (issue 24).
+    pub real: Section<real::RealResults>,
 }
 
 /// What `cargo xtask bench` was asked to do.
@@ -166,6 +169,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
     let nanonis = timed("nanonis", || nanonis::run(&ctx));
     let postgres = timed("postgres", || postgres::run(&ctx));
     let vertical = timed("vertical", || vertical::run(&ctx));
+    let real = timed("real", || real::run(&ctx));
     let gwyddion = timed("gwyddion", || {
         if with_gwyddion {
             gwyddion::run(&ctx)
@@ -208,6 +212,7 @@ pub fn run(root: &Path, out: &Path, options: Options) -> Result<(), XtaskError> 
         linalg,
         nanonis,
         postgres,
+        real,
     };
     report::write(&ctx, &results)
 }

@@ -328,6 +328,7 @@ fn markdown(results: &Results, figures: &[(String, String)], fragments: &str) ->
     nanonis_section(&mut md, &results.nanonis);
     postgres_section(&mut md, &results.postgres);
     vertical_section(&mut md, &results.vertical);
+    super::real::markdown(&mut md, &results.real);
 
     if !figures.is_empty() {
         let _ = writeln!(md, "## Figures\n");

@@ -218,10 +218,12 @@ fn hold_out(ctx: &Context, on: &Image, held: &Image) -> Result<HeldOut, XtaskErr
     let dir = ctx.scratch(&format!("real-{}", on.name.replace(' ', "-")))?;
     let calibrated = calibrate(&job, &dir, true, false)?;
     let fail = |e: spm_cdb::CdbError| XtaskError::step(step("reading the CDB"), e);
-    let cdb = spm_cdb::Cdb::open_read_only(&dir.join("cdb.sqlite")).map_err(fail)?;
+    // As `spmcal fit` reads it: records outside their run's plausibility limits left out.
+    let cdb =
+        spmcal::cdb_handle::CdbHandle::open_read_only(&dir.join("cdb.sqlite")).map_err(fail)?;
     let snapshot = cdb.snapshot().map_err(fail)?;
     let fitted = fit_from_cdb(
-        &snapshot,
+        &*snapshot,
         None,
         None,
         None,

@@ -70,8 +70,8 @@ pub struct ExactForm {
 
 /// Fits the correction 1-form as an exact form (module docs), the derivative surfaces of degree
 /// at most `max_degree`; a degree d is tried only while the records stand in more than d + 1
-/// distinct columns and rows and at least twice as many distinct places
-/// ([`crate::distinct_places`]) as a degree-d surface has terms (the
+/// distinct columns and rows and [`crate::degree_supported`] allows d for the records and their
+/// distinct places (the
 /// rule the surfaces fitted one by one follow: the
 /// potentials' K̄x and K̄yx are two observations at the same places, which do not make a
 /// higher degree safe to extrapolate; the quick simulated job's budget row with creep off put
@@ -133,11 +133,11 @@ pub fn fit_exact_form(
     let (x_levels, y_levels) = (levels(obs.x, sx), levels(obs.y, sy));
     let x_max_degree = max_degree.min(x_levels.min(y_levels).saturating_sub(2) as u32);
     let places = crate::distinct_places(obs.x, obs.y);
-    let x_potential = select_potential(x_max_degree, places, |degree| {
+    let x_potential = select_potential(x_max_degree, (n, places), |degree| {
         fit_x_potential(obs, degree, (cx, sx), (cy, sy), (wx, wyx))
     })?;
     let y_max_degree = max_degree.min(y_levels.saturating_sub(2) as u32);
-    let y_potential = select_potential(y_max_degree, places, |degree| {
+    let y_potential = select_potential(y_max_degree, (n, places), |degree| {
         fit_y_potential(obs, degree, (cx, sx), (cy, sy))
     })?;
     let n_params = n_terms(x_potential.degree()) - 1 + y_potential.degree() as usize;
@@ -174,14 +174,14 @@ struct Candidate {
 /// first degree that has too few observations or does not fit, and fails only at degree 0.
 fn select_potential(
     max_degree: u32,
-    n_places: usize,
+    (n_records, n_places): (usize, usize),
     fit: impl Fn(u32) -> Result<Candidate, RegressionError>,
 ) -> Result<Polynomial2, RegressionError> {
     let mut best: Option<(f64, Polynomial2)> = None;
     for degree in 0..=max_degree.min(crate::MAX_DEGREE - 1) {
-        // The records must hold twice the terms of one derivative surface, as for a surface
-        // fitted by itself: the potentials' extra observations come from the same places.
-        if degree > 0 && 2 * n_terms(degree) > n_places {
+        // As for a surface fitted by itself: the potentials' extra observations come from the
+        // same places.
+        if !crate::degree_supported(degree, n_records, n_places) {
             break;
         }
         let candidate = match fit(degree) {
@@ -205,7 +205,7 @@ fn select_potential(
     best.map(|(_, p)| p).ok_or(RegressionError::TooFewPoints {
         degree: 0,
         needed: 2,
-        got: n_places,
+        got: n_records,
     })
 }
 
@@ -314,6 +314,30 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
 
+    /// [`fit_exact_form`] of the records with the x potential's two kinds weighted alike.
+    fn fit(
+        (x, y): (&[f64], &[f64]),
+        [kx, kyx, kyy]: [&[f64]; 3],
+        max_degree: u32,
+        scatter: f64,
+    ) -> ExactForm {
+        fit_exact_form(
+            &FormObservations {
+                x,
+                y,
+                kx_nm_per_count: kx,
+                kyx_nm_per_count: kyx,
+                kyy_nm_per_count: kyy,
+            },
+            max_degree,
+            FormScatter {
+                kx_nm_per_count: scatter,
+                kyx_nm_per_count: scatter,
+            },
+        )
+        .unwrap()
+    }
+
     /// A field whose form is exact: x̄ = a·x + b·y + c·x·y + e·y², ȳ = f·y + g·y² (nm, counts).
     fn exact_field(x: f64, y: f64) -> [f64; 3] {
         let (a, b, c, e, f, g) = (0.02, 0.003, 2e-7, -1e-7, 0.015, 3e-7);
@@ -339,21 +363,7 @@ mod tests {
         let values: Vec<[f64; 3]> = x.iter().zip(&y).map(|(x, y)| exact_field(*x, *y)).collect();
         let col = |k: usize| values.iter().map(|v| v[k]).collect::<Vec<_>>();
         let (kx, kyx, kyy) = (col(0), col(1), col(2));
-        let form = fit_exact_form(
-            &FormObservations {
-                x: &x,
-                y: &y,
-                kx_nm_per_count: &kx,
-                kyx_nm_per_count: &kyx,
-                kyy_nm_per_count: &kyy,
-            },
-            3,
-            FormScatter {
-                kx_nm_per_count: 0.0,
-                kyx_nm_per_count: 0.0,
-            },
-        )
-        .unwrap();
+        let form = fit((&x, &y), [&kx, &kyx, &kyy], 3, 0.0);
         // Beyond the records too: the form is the field's.
         for (px, py) in [(0.0, 0.0), (-9000.0, 3000.0), (7000.0, -8000.0)] {
             let [tx, tyx, tyy] = exact_field(px, py);
@@ -387,21 +397,7 @@ mod tests {
             .collect();
         let kx = vec![0.02; x.len()];
         let kyx = vec![0.0; x.len()];
-        let form = fit_exact_form(
-            &FormObservations {
-                x: &x,
-                y: &y,
-                kx_nm_per_count: &kx,
-                kyx_nm_per_count: &kyx,
-                kyy_nm_per_count: &kyy,
-            },
-            2,
-            FormScatter {
-                kx_nm_per_count: 1e-4,
-                kyx_nm_per_count: 1e-4,
-            },
-        )
-        .unwrap();
+        let form = fit((&x, &y), [&kx, &kyx, &kyy], 2, 1e-4);
         for px in [-12000.0, 0.0, 12000.0] {
             for py in [-4000.0, 0.0, 4000.0] {
                 let got = form.kyy_nm_per_count.evaluate(px, py);
@@ -441,21 +437,7 @@ mod tests {
                 0.022 + 1e-8 * y + 1e-5 * delta + 2e-5 * (k as f64 * 0.7).sin()
             })
             .collect();
-        let form = fit_exact_form(
-            &FormObservations {
-                x: &x,
-                y: &y,
-                kx_nm_per_count: &kx,
-                kyx_nm_per_count: &kyx,
-                kyy_nm_per_count: &kyy,
-            },
-            5,
-            FormScatter {
-                kx_nm_per_count: 1e-4,
-                kyx_nm_per_count: 1e-4,
-            },
-        )
-        .unwrap();
+        let form = fit((&x, &y), [&kx, &kyx, &kyy], 5, 1e-4);
         assert!(
             form.kyy_nm_per_count.degree() <= 1,
             "{:?}",

@@ -44,6 +44,6 @@ pub use select::{
     Criterion, DegreeScore, Selection, SelectionOptions, information_criterion, select_degree,
 };
 pub use stats::{
-    DeltaMax, Field, delta_max, distinct_places, joint_outliers, median, product_values, rms,
-    sigma, upper_median,
+    DeltaMax, Field, degree_supported, delta_max, distinct_places, joint_outliers, median,
+    product_values, rms, sigma, upper_median,
 };

@@ -393,11 +393,21 @@ mod median_tests {
     }
 }
 
+/// Whether `n_records` at `n_places` distinct places ([`distinct_places`]) support a surface
+/// of total degree `degree`: degree 0 always; otherwise at least twice as many records as the
+/// surface has terms, and more places than terms (one place repeated many times fixes no
+/// slope: Si_7x7_051's 15 records at 4 places).
+#[must_use]
+pub fn degree_supported(degree: u32, n_records: usize, n_places: usize) -> bool {
+    let terms = crate::n_terms(degree);
+    degree == 0 || (2 * terms <= n_records && terms < n_places)
+}
+
 /// How many distinct places the points (`x`, `y`) stand at: a point within 2 % of the
 /// points' half-range (per coordinate) of an earlier place counts as that place. Repeats of a
-/// net's node, and nodes that attached to the same feature, are one place: a surface's degree
-/// is limited by the places, not the records (Si_7x7_051: 15 records at 4 places, through
-/// which a quadratic passed exactly and read K̄y < 0 at the image's corner).
+/// net's node, and nodes that attached to the same feature, are one place
+/// ([`degree_supported`]; Si_7x7_051: 15 records at 4 places, through which a quadratic read
+/// K̄y < 0 at the image's corner).
 #[must_use]
 pub fn distinct_places(x: &[f64], y: &[f64]) -> usize {
     let half_range = |v: &[f64]| {
@@ -424,6 +434,18 @@ pub fn distinct_places(x: &[f64], y: &[f64]) -> usize {
 #[cfg(test)]
 mod place_tests {
     use super::distinct_places;
+
+    #[test]
+    fn a_degree_needs_twice_its_terms_in_records_and_more_places_than_terms() {
+        use super::degree_supported;
+        // 3 × 3 net, one pass: a plane (3 terms) but not a quadratic (6 > 9 / 2).
+        assert!(degree_supported(1, 9, 9) && !degree_supported(2, 9, 9));
+        // Three Z levels of a 3 × 3 net: a quadratic bowl through 9 places.
+        assert!(degree_supported(2, 27, 9));
+        // 15 records at 4 places: a plane, not a quadratic.
+        assert!(degree_supported(1, 15, 4) && !degree_supported(2, 15, 4));
+        assert!(degree_supported(0, 1, 1));
+    }
 
     #[test]
     fn repeats_and_near_repeats_are_one_place() {

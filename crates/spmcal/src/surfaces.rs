@@ -770,12 +770,12 @@ pub(crate) fn fit_one(
         source,
     };
     let observations = Observations::new(x, y, values);
-    // A handful of places cannot support a high degree: cap it so that at least twice as
-    // many distinct places as terms remain (repeats of a node, or nodes that attached to the
-    // same feature, are one place).
+    // A handful of records or places cannot support a high degree: at least twice as many
+    // records as terms, and more distinct places than terms (repeats of a node, or nodes
+    // that attached to the same feature, are one place).
     let places = spm_regression::distinct_places(x, y);
     let mut max_degree = options.max_degree;
-    while max_degree > 0 && spm_regression::n_terms(max_degree) * 2 > places {
+    while !spm_regression::degree_supported(max_degree, values.len(), places) {
         max_degree -= 1;
     }
     let selection = select_degree(

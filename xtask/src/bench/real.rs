@@ -51,6 +51,19 @@ pub struct LatticeFigures {
 }
 
 impl LatticeFigures {
+    /// The whole image as "x / y / obliquity", or `missing`.
+    fn whole_text(&self, missing: &str) -> String {
+        self.whole.map_or_else(
+            || missing.to_owned(),
+            |p| {
+                format!(
+                    "{:.3} / {:.3} / {:+.2}°",
+                    p.scale_x, p.scale_y, p.obliquity_deg
+                )
+            },
+        )
+    }
+
     fn of(survey: &LatticeSurvey) -> Self {
         let measured: Vec<PartLattice> = survey.cells.iter().filter_map(|c| c.lattice).collect();
         let scales_ok = |p: &PartLattice| {
@@ -175,17 +188,6 @@ pub fn run(ctx: &Context) -> Result<RealResults, XtaskError> {
     held_out.push(hold_out(ctx, &halves[0], &halves[1])?);
     held_out.push(hold_out(ctx, &halves[1], &halves[0])?);
     for h in &held_out {
-        let w = |f: &LatticeFigures| {
-            f.whole.map_or_else(
-                || "no lattice".to_owned(),
-                |p| {
-                    format!(
-                        "{:.3} / {:.3} / {:+.2}°",
-                        p.scale_x, p.scale_y, p.obliquity_deg
-                    )
-                },
-            )
-        };
         let c = &h.corrected;
         println!(
             "   real {} by {} ({} records, {} form): whole {} (was {}); {} of {} cells measured, {} within {} % and {} within {}°",
@@ -193,8 +195,8 @@ pub fn run(ctx: &Context) -> Result<RealResults, XtaskError> {
             h.calibrated_on,
             h.records,
             h.form,
-            w(c),
-            w(&h.uncorrected),
+            c.whole_text("no lattice"),
+            h.uncorrected.whole_text("no lattice"),
             c.cells_measured,
             c.cells,
             c.cells_within_scale,
@@ -307,17 +309,6 @@ pub fn markdown(md: &mut String, section: &super::Section<RealResults>) {
                 r.scale_tolerance * 100.0,
                 r.obliquity_tolerance_deg
             );
-            let whole = |f: &LatticeFigures| {
-                f.whole.map_or_else(
-                    || "not found".to_owned(),
-                    |p| {
-                        format!(
-                            "{:.3} / {:.3} / {:+.2}°",
-                            p.scale_x, p.scale_y, p.obliquity_deg
-                        )
-                    },
-                )
-            };
             let range = |r: Option<(f64, f64)>, digits: usize| {
                 r.map_or_else(
                     || "—".to_owned(),
@@ -333,8 +324,8 @@ pub fn markdown(md: &mut String, section: &super::Section<RealResults>) {
                     h.calibrated_on,
                     h.records,
                     h.form,
-                    whole(&h.uncorrected),
-                    whole(c),
+                    h.uncorrected.whole_text("not found"),
+                    c.whole_text("not found"),
                     c.cells_measured,
                     c.cells,
                     c.cells_within_scale,

@@ -543,16 +543,16 @@ fn fit_plane_all(
     let chosen = if options.form == Some(SurfaceForm::Independent) {
         independent
     } else {
-        let (exact, exact_params) = exact_form(
+        let records = PlaneRecords {
             z_counts,
             x,
             y,
-            columns,
-            (&kyx, &kyy),
-            &independent,
-            &field,
-            options,
-        )?;
+            kx: &columns.kx_nm_per_count,
+            kyx: &kyx,
+            kyy: &kyy,
+            field: &field,
+        };
+        let (exact, exact_params) = exact_form(&records, &independent, options.max_degree)?;
         match options.form {
             Some(_) => exact,
             None => choose_form(x.len(), independent, (exact, exact_params)),
@@ -629,28 +629,35 @@ impl FormFit {
     }
 }
 
-/// The exact form (`spm_regression::fit_exact_form`) through the plane's records, the x
-/// potential's two kinds of observation weighted by the independent fits' σ.
-#[allow(clippy::too_many_arguments)]
-fn exact_form(
+/// One plane's records: positions, counts; the form's three coefficients, nm per count; and
+/// the records' extent (for Δmax).
+struct PlaneRecords<'a> {
     z_counts: i64,
-    x: &[f64],
-    y: &[f64],
-    columns: &LccColumns,
-    (kyx, kyy): (&[f64], &[f64]),
+    x: &'a [f64],
+    y: &'a [f64],
+    kx: &'a [f64],
+    kyx: &'a [f64],
+    kyy: &'a [f64],
+    field: &'a Field,
+}
+
+/// The exact form (`spm_regression::fit_exact_form`) through the plane's records, the x
+/// potential's two kinds of observation weighted by the independent fits' σ; with the
+/// potentials' number of free coefficients.
+fn exact_form(
+    r: &PlaneRecords<'_>,
     independent: &FormFit,
-    field: &Field,
-    options: &SurfaceFitOptions,
+    max_degree: u32,
 ) -> Result<(FormFit, usize), SurfaceFitError> {
     let form = spm_regression::fit_exact_form(
         &spm_regression::FormObservations {
-            x,
-            y,
-            kx_nm_per_count: &columns.kx_nm_per_count,
-            kyx_nm_per_count: kyx,
-            kyy_nm_per_count: kyy,
+            x: r.x,
+            y: r.y,
+            kx_nm_per_count: r.kx,
+            kyx_nm_per_count: r.kyx,
+            kyy_nm_per_count: r.kyy,
         },
-        options.max_degree,
+        max_degree,
         spm_regression::FormScatter {
             kx_nm_per_count: independent.kx.sigma,
             kyx_nm_per_count: independent.kyx.sigma,
@@ -658,37 +665,15 @@ fn exact_form(
     )
     .map_err(|source| SurfaceFitError::Regression {
         coefficient: "exact form (kx, kyx, kyy)",
-        z_counts,
+        z_counts: r.z_counts,
         source,
     })?;
     let n_params = form.n_params;
-    let (kx, kx_summary) = summarise(
-        "kx_nm_per_count",
-        z_counts,
-        form.kx_nm_per_count,
-        x,
-        y,
-        &columns.kx_nm_per_count,
-        field,
-    )?;
-    let (kyx, _) = summarise(
-        "kyx_nm_per_count",
-        z_counts,
-        form.kyx_nm_per_count,
-        x,
-        y,
-        kyx,
-        field,
-    )?;
-    let (kyy, _) = summarise(
-        "kyy_nm_per_count",
-        z_counts,
-        form.kyy_nm_per_count,
-        x,
-        y,
-        kyy,
-        field,
-    )?;
+    let summary =
+        |name, surface, values| summarise(name, r.z_counts, surface, r.x, r.y, values, r.field);
+    let (kx, kx_summary) = summary("kx_nm_per_count", form.kx_nm_per_count, r.kx)?;
+    let (kyx, _) = summary("kyx_nm_per_count", form.kyx_nm_per_count, r.kyx)?;
+    let (kyy, _) = summary("kyy_nm_per_count", form.kyy_nm_per_count, r.kyy)?;
     Ok((
         FormFit {
             form: SurfaceForm::Exact,

@@ -69,13 +69,12 @@ pub struct ExactForm {
 }
 
 /// Fits the correction 1-form as an exact form (module docs), the derivative surfaces of degree
-/// at most `max_degree`; a degree d is tried only while the records stand in more than d + 1
-/// distinct columns and rows and [`crate::degree_supported`] allows d for the records and their
-/// distinct places (the
-/// rule the surfaces fitted one by one follow: the
-/// potentials' K̄x and K̄yx are two observations at the same places, which do not make a
-/// higher degree safe to extrapolate; the quick simulated job's budget row with creep off put
-/// 8.7 % of the side on its images at degree 2 from 9 records, 1.5 % at degree 1).
+/// at most `max_degree`. A degree d is tried only while the records stand in more than d + 1
+/// distinct columns and rows, and while [`crate::degree_supported`] allows it for the records
+/// and their distinct places, the rule of the surfaces fitted one by one: the potentials' K̄x
+/// and K̄yx are two observations at the same places, which do not make a higher degree safe to
+/// extrapolate (the quick simulated job's budget row with creep off put 8.7 % of the side on
+/// its images at degree 2 from 9 records, 1.5 % at degree 1).
 ///
 /// # Errors
 /// [`RegressionError::LengthMismatch`] for slices of different lengths;

@@ -1,7 +1,7 @@
 //! Scanner-error statistics of §4 of the paper: σ (eq. 14) and Δmax (eq. 13), and the product
 //! values of eq. (11).
 
-use crate::fit::Observations;
+use crate::fit::{Observations, normalisation};
 use crate::{Polynomial2, RegressionError};
 
 /// σ of eq. (14): √(Σᵢ (zᵢ − f(xᵢ, yᵢ))² / (n − 1)), the RMS deviation of the measured LCCs from
@@ -410,15 +410,8 @@ pub fn degree_supported(degree: u32, n_records: usize, n_places: usize) -> bool 
 /// K̄y < 0 at the image's corner).
 #[must_use]
 pub fn distinct_places(x: &[f64], y: &[f64]) -> usize {
-    let half_range = |v: &[f64]| {
-        let (lo, hi) = v
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &t| {
-                (lo.min(t), hi.max(t))
-            });
-        if hi > lo { 0.5 * (hi - lo) } else { 1.0 }
-    };
-    let (tx, ty) = (0.02 * half_range(x), 0.02 * half_range(y));
+    // Half-ranges as the fits normalise them (1 when every point has one coordinate).
+    let (tx, ty) = (0.02 * normalisation(x).1, 0.02 * normalisation(y).1);
     let mut places: Vec<(f64, f64)> = Vec::new();
     for (&px, &py) in x.iter().zip(y) {
         if !places

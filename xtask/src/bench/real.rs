@@ -127,13 +127,11 @@ pub struct RealResults {
     pub held_out: Vec<HeldOut>,
 }
 
-/// One image to calibrate on: its path, the standard, the run's options, the nominal
-/// sensitivity `correct` is told, the grid.
+/// One image to calibrate on: its path, the standard, the run's options, the grid.
 struct Image {
     name: &'static str,
     path: PathBuf,
     options: VirtualRunOptions,
-    nominal_nm_per_count: f64,
     grid: usize,
 }
 
@@ -147,13 +145,10 @@ pub fn run(ctx: &Context) -> Result<RealResults, XtaskError> {
     }
     let si = |name: &'static str| {
         let path = measured.join(format!("si7x7-nanonis/{name}.sxm"));
-        let options = VirtualRunOptions::new(StandardName::Si7x7);
-        // 50 nm over 256 pixels, a tenth of a pixel per count (the default of `--virtual`).
         Image {
             name,
             path,
-            options,
-            nominal_nm_per_count: 0.01953125,
+            options: VirtualRunOptions::new(StandardName::Si7x7),
             grid: 4,
         }
     };
@@ -180,8 +175,6 @@ pub fn run(ctx: &Context) -> Result<RealResults, XtaskError> {
             name,
             path,
             options,
-            // 11.48 nm over 512 pixels, a tenth of a pixel per count.
-            nominal_nm_per_count: 0.0022424,
             grid: 2,
         });
     }
@@ -240,8 +233,10 @@ fn hold_out(ctx: &Context, on: &Image, held: &Image) -> Result<HeldOut, XtaskErr
         .to_owned();
     let file = spm_formats::read_any(&held.path)
         .map_err(|e| XtaskError::step(format!("reading {}", held.path.display()), e))?;
+    // The held-out image's counts as the calibration's: its nominal sensitivity (`--virtual`'s
+    // default, a tenth of a pixel, the same pixel size in both images of a pair).
     let options = spm_apply::ApplyOptions {
-        nominal_nm_per_count: Some(held.nominal_nm_per_count),
+        nominal_nm_per_count: fitted.set.provenance.nominal_nm_per_count,
         allow_extrapolation: true,
         channels: spm_apply::ChannelSelection::Height,
         ..spm_apply::ApplyOptions::default()

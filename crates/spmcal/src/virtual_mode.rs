@@ -766,6 +766,60 @@ pub struct LatticeSurvey {
     pub cells: Vec<CellLattice>,
 }
 
+/// The part of an image that holds data: for each display row, the span of columns from its
+/// first to its last finite pixel, and the first and last rows that hold any. A corrected
+/// image is a parallelogram (or a curved quadrilateral) inside its bounding box, with NaN
+/// beyond the raster; the grid of [`survey_lattice`] divides this scanned region, not the
+/// box, so that every cell is a part of the field the raster covered (a cell of the box at a
+/// sheared image's side is half NaN and holds too few features to measure).
+#[derive(Debug, Clone, PartialEq)]
+struct ScannedRegion {
+    /// Per display row, the first and one-past-the-last column of its data (`None`: no data).
+    spans: Vec<Option<(usize, usize)>>,
+    /// The first and one-past-the-last row with data.
+    rows: Option<(usize, usize)>,
+}
+
+impl ScannedRegion {
+    /// The region of `data` (display order, `nx` × `ny`).
+    fn of(data: &[f64], nx: usize, ny: usize) -> Self {
+        let spans: Vec<Option<(usize, usize)>> = (0..ny)
+            .map(|r| {
+                let line = data.get(r * nx..(r + 1) * nx)?;
+                let first = line.iter().position(|v| v.is_finite())?;
+                let last = line.iter().rposition(|v| v.is_finite())?;
+                Some((first, last + 1))
+            })
+            .collect();
+        let rows = spans
+            .iter()
+            .position(Option::is_some)
+            .zip(spans.iter().rposition(Option::is_some))
+            .map(|(a, b)| (a, b + 1));
+        Self { spans, rows }
+    }
+
+    /// The cell (column, row) of a `grid` × `grid` division of the region that holds the
+    /// place (`column`, `row`) in display pixels: rows divide the rows with data, and
+    /// within its row a place's column is its fraction of that row's span. `None` outside.
+    fn cell_of(&self, column: f64, row: f64, grid: usize) -> Option<(usize, usize)> {
+        let (r0, r1) = self.rows?;
+        if !(row >= r0 as f64 && row < r1 as f64) {
+            return None;
+        }
+        let (c0, c1) = (*self.spans.get(row as usize)?)?;
+        if !(column >= c0 as f64 && column < c1 as f64) {
+            return None;
+        }
+        let fraction = |v: f64, a: usize, b: usize| (v - a as f64) / (b - a) as f64;
+        let index = |f: f64| ((f * grid as f64) as usize).min(grid - 1);
+        Some((
+            index(fraction(column, c0, c1)),
+            index(fraction(row, r0, r1)),
+        ))
+    }
+}
+
 /// Fewest features a part's lattice is fitted to.
 const MIN_PART_FEATURES: usize = 12;
 
@@ -832,19 +886,29 @@ pub fn survey_lattice(
     };
     let all = spm_modelcheck::extract_features(&[(whole_file, None)], &spec, &extract).ok();
     let (width_nm, height_nm) = (nx as f64 * pixel_x_nm, ny as f64 * pixel_y_nm);
-    // A part in display coordinates (row 0 = top), in pixels.
-    let measure = |column0: usize, row0: usize, w: usize, h: usize| -> Option<PartLattice> {
+    let region = ScannedRegion::of(forward.data(), nx, ny);
+    // A feature's place in display pixels (column from the left, row from the top; pixel c
+    // covers [c, c + 1)). Feature coordinates are nm from the frame centre, y up.
+    let place = |f: &spm_modelcheck::FeatureObservation| {
+        (
+            f.x_nm / pixel_x_nm + 0.5 * width_nm / pixel_x_nm,
+            0.5 * height_nm / pixel_y_nm - f.y_nm / pixel_y_nm,
+        )
+    };
+    let grid = grid.max(1);
+    // The features of the part `cell` selects (`None`: the whole image).
+    let measure = |cell: Option<(usize, usize)>| -> Option<PartLattice> {
         let all = all.as_ref()?;
-        // Feature coordinates are nm from the frame centre, y up; the part's bounds too.
-        let x0 = column0 as f64 * pixel_x_nm - 0.5 * width_nm;
-        let x1 = x0 + w as f64 * pixel_x_nm;
-        let y1 = 0.5 * height_nm - row0 as f64 * pixel_y_nm;
-        let y0 = y1 - h as f64 * pixel_y_nm;
         let set = spm_modelcheck::FeatureSet {
             features: all
                 .features
                 .iter()
-                .filter(|f| (x0..x1).contains(&f.x_nm) && (y0..y1).contains(&f.y_nm))
+                .filter(|f| {
+                    cell.is_none_or(|c| {
+                        let (column, row) = place(f);
+                        region.cell_of(column, row, grid) == Some(c)
+                    })
+                })
                 .cloned()
                 .collect(),
             ..all.clone()
@@ -861,15 +925,13 @@ pub fn survey_lattice(
             features: set.features.len(),
         })
     };
-    let grid = grid.max(1);
-    let (w, h) = (nx / grid, ny / grid);
     let mut cells = Vec::with_capacity(grid * grid);
     for row in 0..grid {
         for column in 0..grid {
             cells.push(CellLattice {
                 column,
                 row,
-                lattice: measure(column * w, row * h, w, h),
+                lattice: measure(Some((column, row))),
             });
         }
     }
@@ -877,7 +939,79 @@ pub fn survey_lattice(
         file: path.to_path_buf(),
         standard: standard.as_str(),
         lattice_constant_nm: a,
-        whole: measure(0, 0, nx, ny),
+        whole: measure(None),
         cells,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::ScannedRegion;
+
+    /// A 12 × 8 image whose rows hold data from column `row` to column `row + 8` (a
+    /// parallelogram sheared by one column per row, NaN beside it, as a corrected image is).
+    fn sheared() -> ScannedRegion {
+        let (nx, ny) = (16, 8);
+        let data: Vec<f64> = (0..nx * ny)
+            .map(|i| {
+                let (r, c) = (i / nx, i % nx);
+                if (r..r + 8).contains(&c) {
+                    1.0
+                } else {
+                    f64::NAN
+                }
+            })
+            .collect();
+        ScannedRegion::of(&data, nx, ny)
+    }
+
+    #[track_caller]
+    fn check(
+        region: &ScannedRegion,
+        place: (f64, f64),
+        grid: usize,
+        expected: Option<(usize, usize)>,
+    ) {
+        assert_eq!(
+            region.cell_of(place.0, place.1, grid),
+            expected,
+            "place {place:?}"
+        );
+    }
+
+    #[test]
+    fn the_grid_divides_each_row_of_the_scanned_region_not_the_box() {
+        let region = sheared();
+        // Row 0 spans columns 0..8, row 7 spans 7..15: a cell's columns follow the shear.
+        check(&region, (0.5, 0.5), 2, Some((0, 0)));
+        check(&region, (7.5, 0.5), 2, Some((1, 0)));
+        check(&region, (7.5, 7.5), 2, Some((0, 1)));
+        check(&region, (14.9, 7.5), 2, Some((1, 1)));
+        // In the box's left half but right of the sheared row's middle.
+        check(&region, (7.2, 6.5), 2, Some((0, 1)));
+        check(&region, (11.5, 6.5), 2, Some((1, 1)));
+        // NaN beside the data, and beyond the image.
+        check(&region, (0.5, 7.5), 2, None);
+        check(&region, (15.5, 0.5), 2, None);
+        check(&region, (3.0, 8.5), 2, None);
+        check(&region, (3.0, -0.5), 2, None);
+    }
+
+    #[test]
+    fn an_image_without_nan_is_divided_as_its_box() {
+        let region = ScannedRegion::of(&[0.0; 8 * 4], 8, 4);
+        for (place, expected) in [
+            ((0.0, 0.0), (0, 0)),
+            ((1.99, 0.5), (0, 0)),
+            ((2.0, 0.5), (1, 0)),
+            ((7.99, 3.99), (3, 3)),
+            ((4.5, 2.0), (2, 2)),
+        ] {
+            check(&region, place, 4, Some(expected));
+        }
+        assert_eq!(
+            ScannedRegion::of(&[f64::NAN; 4], 2, 2).cell_of(0.5, 0.5, 2),
+            None
+        );
+    }
 }

@@ -1,4 +1,4 @@
-//! SPM file formats: Nanonis `.sxm`, RHK `.sm4`, ISO 28600, raw f64, Gwyddion `.gsf`.
+//! SPM file formats: Nanonis `.sxm`, RHK `.sm4`, ISO 28600, raw f64, Gwyddion `.gsf` and `.gwy`.
 //!
 //! Every reader turns a file into one [`SpmFile`]: a list of image [`Channel`]s (name,
 //! forward/backward, SI unit, pixel grid, physical size in nm, slow-axis direction, line
@@ -112,6 +112,9 @@ pub fn detect_format(bytes: &[u8], name: &Path) -> Option<Format> {
     if bytes.starts_with(gsf::MAGIC) {
         return Some(Format::Gsf);
     }
+    if bytes.starts_with(gwy::MAGIC) {
+        return Some(Format::Gwy);
+    }
     if bytes.starts_with(iso28600::MAGIC.as_bytes()) {
         return Some(Format::Iso28600);
     }
@@ -129,6 +132,7 @@ pub fn detect_format(bytes: &[u8], name: &Path) -> Option<Format> {
         Some("sxm") => Some(Format::NanonisSxm),
         Some("sm4") => Some(Format::RhkSm4),
         Some("gsf") => Some(Format::Gsf),
+        Some("gwy") => Some(Format::Gwy),
         Some("spm") => Some(Format::Iso28600),
         Some("dat" | "raw") => Some(Format::RawF64),
         _ if raw::size_matches(bytes) => Some(Format::RawF64),
@@ -154,5 +158,6 @@ pub fn read_as(bytes: &[u8], name: &Path, format: Format) -> Result<SpmFile> {
         Format::Iso28600 => iso28600::parse(bytes, name),
         Format::RawF64 => raw::parse(bytes, name),
         Format::Gsf => gsf::parse(bytes, name),
+        Format::Gwy => gwy::parse(bytes, name),
     }
 }

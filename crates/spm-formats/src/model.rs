@@ -20,10 +20,13 @@ pub enum Format {
     RawF64,
     /// Gwyddion Simple Field `.gsf`.
     Gsf,
+    /// Gwyddion native file `.gwy`.
+    Gwy,
 }
 
 impl Format {
-    /// A short stable identifier (`"nanonis-sxm"`, `"rhk-sm4"`, `"iso28600"`, `"raw-f64"`, `"gsf"`).
+    /// A short stable identifier (`"nanonis-sxm"`, `"rhk-sm4"`, `"iso28600"`, `"raw-f64"`, `"gsf"`,
+    /// `"gwy"`).
     pub fn id(self) -> &'static str {
         match self {
             Format::NanonisSxm => "nanonis-sxm",
@@ -31,6 +34,7 @@ impl Format {
             Format::Iso28600 => "iso28600",
             Format::RawF64 => "raw-f64",
             Format::Gsf => "gsf",
+            Format::Gwy => "gwy",
         }
     }
 }

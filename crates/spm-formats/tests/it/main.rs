@@ -5,6 +5,7 @@ mod common;
 
 mod errors;
 mod gsf;
+mod gwy;
 mod measured;
 mod mutation;
 mod orientation;

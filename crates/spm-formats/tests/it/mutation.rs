@@ -25,17 +25,47 @@ const FILES: &[&str] = &[
     "si7x7-raw/image_with_step_edge_and_atoms.dat",
 ];
 
+/// The real files, and a `.gwy` as spmcal writes it (no real file is one): two channels,
+/// one with holes (masked), and metadata.
 fn originals() -> &'static Vec<(String, Vec<u8>)> {
     static DATA: OnceLock<Vec<(String, Vec<u8>)>> = OnceLock::new();
     DATA.get_or_init(|| {
-        FILES
+        let mut files: Vec<(String, Vec<u8>)> = FILES
             .iter()
             .map(|rel| {
                 let path = measured_file(rel);
                 let name = path.file_name().unwrap().to_string_lossy().into_owned();
                 (name, std::fs::read(&path).unwrap())
             })
-            .collect()
+            .collect();
+        let (nx, ny) = (32, 24);
+        let data = |hole: bool| -> Vec<f64> {
+            (0..nx * ny)
+                .map(|i| {
+                    if hole && i % 37 == 0 {
+                        f64::NAN
+                    } else {
+                        1e-10 * (i as f64).sin()
+                    }
+                })
+                .collect()
+        };
+        let channel = |direction, hole| {
+            spm_formats::Channel::new("Z", direction, "m", nx, ny, data(hole))
+                .unwrap()
+                .with_size_nm(3.2, 2.4)
+                .with_center_nm(1.0, -2.0)
+        };
+        let gwy = spm_formats::encode_gwy(
+            &[
+                channel(spm_formats::Direction::Forward, false),
+                channel(spm_formats::Direction::Backward, true),
+            ],
+            &[("spmcal_scan_angle_ccw_deg".to_owned(), "10".to_owned())],
+        )
+        .unwrap();
+        files.push(("written.gwy".to_owned(), gwy));
+        files
     })
 }
 
@@ -130,7 +160,7 @@ proptest! {
 
     #[test]
     fn mutated_files_never_panic(
-        file in 0..FILES.len(),
+        file in 0..=FILES.len(),
         mutations in proptest::collection::vec(mutation(), 1..4),
     ) {
         let (name, original) = &originals()[file];

@@ -695,6 +695,82 @@ pub fn solve_kz(steps: &[StepObservation]) -> Result<KzEstimate, LccError> {
     })
 }
 
+/// Smallest robust scale of the vectors' length residuals in [`solve_lcc_rejecting`]: a
+/// nearest-neighbour vector is not expected to agree with its node's lattice better than
+/// 1 % (localisation noise over one lattice constant), so agreement below that does not
+/// make a 3 % vector an outlier.
+pub const MIN_VECTOR_RESIDUAL_SCALE: f64 = 0.01;
+
+/// [`solve_lcc`] over a node's many vectors (every neighbour of A) that leaves out the
+/// vectors of other features. Each vector's length through a solution is compared with its
+/// standard's, `e = |M·v| / |s| − 1` (independent of the frame's rotation). Every three of
+/// the vectors are solved, and the solution whose median |e| over all vectors is least is
+/// the reference (least median of squares: up to half the vectors may be another feature's
+/// without moving it). Vectors with |e| beyond `k` robust standard deviations of that
+/// solution's residuals (1.4826 × their median |e|, at least
+/// [`MIN_VECTOR_RESIDUAL_SCALE`]) are left out, and the rest solved by [`solve_lcc`].
+/// Returns the estimate and the indices of the vectors kept, in order. With three vectors or
+/// fewer it is [`solve_lcc`] of all (a triangle has no redundancy to judge a vector by).
+///
+/// # Errors
+/// As [`solve_lcc`].
+pub fn solve_lcc_rejecting(
+    observations: &[VectorObservation],
+    k: f64,
+) -> Result<(LccEstimate, Vec<usize>), LccError> {
+    let n = observations.len();
+    let all: Vec<usize> = (0..n).collect();
+    if n <= 3 {
+        return solve_lcc(observations).map(|e| (e, all));
+    }
+    let residuals = |estimate: &LccEstimate| -> Vec<f64> {
+        observations
+            .iter()
+            .map(|o| {
+                let (x, y) = estimate.to_nm(o.measured);
+                (x.value().hypot(y.value()) / o.standard.norm().value() - 1.0).abs()
+            })
+            .collect()
+    };
+    let mut best: Option<(f64, Vec<f64>)> = None;
+    for i in 0..n {
+        for j in i + 1..n {
+            for l in j + 1..n {
+                let Ok(estimate) = solve_lcc(&[observations[i], observations[j], observations[l]])
+                else {
+                    continue;
+                };
+                let e = residuals(&estimate);
+                let mut sorted = e.clone();
+                let Some(median) = spm_regression::median(&mut sorted) else {
+                    continue;
+                };
+                if median.is_finite() && best.as_ref().is_none_or(|(m, _)| median < *m) {
+                    best = Some((median, e));
+                }
+            }
+        }
+    }
+    let Some((median, e)) = best else {
+        return solve_lcc(observations).map(|e| (e, all));
+    };
+    let limit = k * (1.4826 * median).max(MIN_VECTOR_RESIDUAL_SCALE);
+    let kept: Vec<usize> = all.into_iter().filter(|&i| e[i] <= limit).collect();
+    if kept.len() < 3 {
+        return solve_lcc(observations).map(|e| (e, (0..n).collect()));
+    }
+    if kept.len() < n {
+        tracing::debug!(
+            kept = kept.len(),
+            of = n,
+            limit,
+            "vectors of other features left out"
+        );
+    }
+    let subset: Vec<VectorObservation> = kept.iter().map(|&i| observations[i]).collect();
+    solve_lcc(&subset).map(|estimate| (estimate, kept))
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
@@ -812,5 +888,47 @@ mod tests {
             solve_kz(&[zero]),
             Err(LccError::InvalidStep { index: 0, .. })
         ));
+    }
+
+    /// `check(lengths' errors, expected kept)`: six neighbours of A on a distorted lattice,
+    /// the i-th one's measured vector stretched by `errors[i]`; the node's solution leaves out
+    /// exactly the vectors of another feature and is then the lattice's.
+    #[track_caller]
+    fn check_rejection(errors: [f64; 6], kept: &[usize]) {
+        let (kx, ky, alpha) = (0.0180, 0.0133, -0.17_f64);
+        let m = [[kx, ky * alpha.sin()], [0.0, ky * alpha.cos()]];
+        let a = 2.688;
+        let o: Vec<VectorObservation> = (0..6)
+            .map(|i| {
+                let d =
+                    StandardVector::polar(Nanometres(a), Radians::from_degrees(60.0 * i as f64));
+                let mut v = obs(m, 0.2, d, 0.0);
+                v.measured = v.measured * (1.0 + errors[i]);
+                v
+            })
+            .collect();
+        let (e, k) = solve_lcc_rejecting(&o, 3.0).unwrap();
+        assert_eq!(k, kept, "errors {errors:?}");
+        let clean = errors
+            .iter()
+            .enumerate()
+            .all(|(i, &x)| x == 0.0 || !kept.contains(&i));
+        if clean {
+            assert!((e.kx.value() / kx - 1.0).abs() < 1e-9, "{}", e.kx.value());
+            assert!((e.ky.value() / ky - 1.0).abs() < 1e-9);
+            assert!((e.alpha.value() - alpha).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn a_vector_of_another_feature_is_left_out_of_the_node() {
+        check_rejection([0.0; 6], &[0, 1, 2, 3, 4, 5]);
+        check_rejection([0.0, 0.0, 0.30, 0.0, 0.0, 0.0], &[0, 1, 3, 4, 5]);
+        check_rejection([0.0, -0.25, 0.0, 0.0, 0.20, 0.0], &[0, 2, 3, 5]);
+        // Within the noise floor (1 %): nothing is left out.
+        check_rejection(
+            [0.01, -0.01, 0.005, 0.0, -0.008, 0.012],
+            &[0, 1, 2, 3, 4, 5],
+        );
     }
 }

@@ -18,10 +18,17 @@
 //! [`crate::runner`] executes the actions and owns termination, observers and checkpoints.
 
 use crate::config::{AttachTarget, MeasurementMethod, NeighbourSet, PlanConfig};
-use crate::lcc::{CountCovariance, LccEstimate, StandardVector, VectorObservation, solve_lcc};
+use crate::lcc::{
+    CountCovariance, LccEstimate, StandardVector, VectorObservation, solve_lcc, solve_lcc_rejecting,
+};
 use crate::plan::{GridNode, PlanVisit};
 use serde::{Deserialize, Serialize};
 use spm_hal::{CountPoint, CountVector, CountVelocity, Counts, ErrorKind, Radians, Seconds};
+
+/// A node's vector (with every neighbour of A measured) is of another feature when its
+/// length through the node's robust solution is this many robust standard deviations off
+/// ([`crate::lcc::solve_lcc_rejecting`]).
+pub const VECTOR_REJECTION_SIGMAS: f64 = 3.0;
 
 /// A feature position at a time (positions move with the drift).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -370,6 +377,12 @@ pub struct MachineParams {
     /// A measured vector farther than this fraction of its length from the expected one
     /// caught another feature (plan `tuning.vector_match_tolerance_fraction`).
     pub vector_match_tolerance: f64,
+    /// Accepted relative deviation of a neighbour's length from the lattice constant
+    /// (plan `standard.length_tolerance_fraction`), for [`NeighbourSet::AllInAperture`].
+    pub length_tolerance: f64,
+    /// Accepted deviation of a neighbour's direction from a lattice direction (plan
+    /// `standard.angle_tolerance_deg`), for [`NeighbourSet::AllInAperture`].
+    pub angle_tolerance: Radians,
 }
 
 impl MachineParams {
@@ -386,6 +399,8 @@ impl MachineParams {
             max_attempts: plan.failures.max_attempts_per_node.max(1),
             transient_retries: plan.failures.transient_retries_per_node,
             vector_match_tolerance: plan.tuning.vector_match_tolerance_fraction,
+            length_tolerance: plan.standard.length_tolerance_fraction,
+            angle_tolerance: Radians(plan.standard.angle_tolerance_deg.to_radians()),
         }
     }
 }
@@ -530,10 +545,70 @@ impl NodeMachine {
         )
     }
 
+    /// Every neighbour of A named by the lattice direction it lies along, through the
+    /// recognised LCS: the LCS maps the standard's frame to counts here (P·(a, 0) = A→B,
+    /// P·a(cos θ, ±sin θ) = A→C), each neighbour is taken back through P⁻¹ and given the
+    /// standard vector of its nearest lattice direction (its angle rounded to a multiple of
+    /// the LCS angle θ). A neighbour that is not a nearest neighbour there (its length or
+    /// angle through P⁻¹ beyond the standard's tolerances) is not measured. Naming the
+    /// directions in counts instead (the angle from the first neighbour) names one wrongly
+    /// where the scanner's local distortion turns a direction by more than half of θ, and
+    /// one such vector spoils the node's solution (a Si 7×7 image at 0.68 y-scale and −10°
+    /// obliquity: records with K̄x 20 % and α 25° off).
+    fn neighbours_through_lcs(
+        &self,
+        (ab, ac): (CountVector, CountVector),
+        neighbours: &[CountVector],
+    ) -> Vec<VectorTarget> {
+        let a = self.params.lattice_constant_nm;
+        let theta = self.params.lcs_angle.value();
+        let sign = if ab.x.value() * ac.y.value() - ab.y.value() * ac.x.value() >= 0.0 {
+            1.0
+        } else {
+            -1.0
+        };
+        // P⁻¹ = S · C⁻¹, C = [A→B A→C] (columns, counts), S = [(a, 0) a(cos θ, ±sin θ)].
+        let (c11, c12, c21, c22) = (ab.x.value(), ac.x.value(), ab.y.value(), ac.y.value());
+        let det = c11 * c22 - c12 * c21;
+        if !(det.is_finite() && det != 0.0) {
+            return Vec::new();
+        }
+        let (s11, s12, s21, s22) = (a, a * theta.cos(), 0.0, sign * a * theta.sin());
+        let to_nm = |v: CountVector| {
+            let (x, y) = (v.x.value(), v.y.value());
+            // C⁻¹ v, then S ·.
+            let (u, w) = ((c22 * x - c12 * y) / det, (-c21 * x + c11 * y) / det);
+            (s11 * u + s12 * w, s21 * u + s22 * w)
+        };
+        neighbours
+            .iter()
+            .filter_map(|&n| {
+                let (x, y) = to_nm(n);
+                let angle = y.atan2(x);
+                let k = (angle / theta).round();
+                let off_angle = (angle - k * theta).abs();
+                let off_length = (x.hypot(y) / a - 1.0).abs();
+                (off_angle <= self.params.angle_tolerance.value()
+                    && off_length <= self.params.length_tolerance)
+                    .then(|| VectorTarget {
+                        start: VectorStart::AtA,
+                        estimate: n,
+                        standard: StandardVector::polar(spm_hal::Nanometres(a), Radians(k * theta)),
+                    })
+            })
+            .collect()
+    }
+
     fn plan_targets(&mut self, aperture: &ApertureResult) -> bool {
         let a = self.params.lattice_constant_nm;
         let mut targets = Vec::new();
         match (self.params.neighbours, aperture.lcs) {
+            (NeighbourSet::AllInAperture, Some(lcs)) if aperture.neighbours.len() >= 2 => {
+                targets = self.neighbours_through_lcs(lcs, &aperture.neighbours);
+                if targets.len() < 2 {
+                    return false;
+                }
+            }
             (NeighbourSet::AllInAperture, _) if aperture.neighbours.len() >= 2 => {
                 let first = aperture.neighbours[0];
                 for &n in &aperture.neighbours {
@@ -612,7 +687,32 @@ impl NodeMachine {
         let Some(a) = self.a else {
             return self.redo(GiveUpReason::NoFeature);
         };
-        match solve_lcc(&self.measured) {
+        // Every neighbour of A measured: a vector of another feature (a defect, a feature
+        // the aperture misplaced) is left out by the node's own redundancy.
+        let solved = match self.params.neighbours {
+            NeighbourSet::AllInAperture if self.measured.len() > 3 => {
+                solve_lcc_rejecting(&self.measured, VECTOR_REJECTION_SIGMAS).map(|(lcc, kept)| {
+                    if kept.len() < self.measured.len() {
+                        let keep = |i: &usize| kept.contains(i);
+                        self.measured = std::mem::take(&mut self.measured)
+                            .into_iter()
+                            .enumerate()
+                            .filter(|(i, _)| keep(i))
+                            .map(|(_, m)| m)
+                            .collect();
+                        self.targets = std::mem::take(&mut self.targets)
+                            .into_iter()
+                            .enumerate()
+                            .filter(|(i, _)| keep(i))
+                            .map(|(_, t)| t)
+                            .collect();
+                    }
+                    lcc
+                })
+            }
+            _ => solve_lcc(&self.measured),
+        };
+        match solved {
             Ok(lcc) => {
                 // Gravity centre of A and the end features of the vectors from A.
                 let ends: Vec<CountVector> = self

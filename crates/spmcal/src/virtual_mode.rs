@@ -662,6 +662,13 @@ pub fn virtual_plan(
     // onto another basis of the lattice): recognition is gated by the image's own lattice,
     // surveyed first (`spm_calibration::survey`, docs/results/virtual.md).
     plan.survey.enabled = true;
+    // Every neighbour of A is measured, not B and C alone: a stored image freezes its noise,
+    // so the repeats that average it on an instrument return the same vectors here, while
+    // A's other neighbours are independent sightings. On Si_7x7_028 the records' K̄y then
+    // follows the lattice tool's row by row within about 1 % (one triangle: 2 %, and 2 %
+    // high on average), and a vector of another feature is left out by the node's own
+    // redundancy (`spm_calibration::solve_lcc_rejecting`; docs/results/virtual.md).
+    plan.variant.neighbours = spm_calibration::NeighbourSet::AllInAperture;
     // A cell pattern's frames give their lattice by their spectrum (Si_7x7_028: the
     // features' neighbours put K̄y 50 % off); single atoms by their neighbours.
     plan.survey.lattice_from = match options.standard {

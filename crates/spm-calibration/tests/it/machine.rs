@@ -464,3 +464,45 @@ fn transcripts_of_the_plan_variants() {
         "move attach aperture move attach aperture give-up:NoLcs",
     );
 }
+
+/// Every neighbour of A on a scanner that stretches y 2.5× (K̄y = K̄x / 2.5): in counts the
+/// lattice directions are up to 26° from where the angle from the first neighbour puts them,
+/// so each neighbour is named through the recognised LCS instead; and a neighbour whose
+/// skipping caught a feature 20 % farther out is left out of the node by its redundancy. The
+/// node's coefficients are the scanner's exactly.
+#[test]
+fn every_neighbour_is_named_through_the_lcs_and_a_wrong_one_is_left_out() {
+    let ky = KX / 2.5;
+    let a = 0.2461;
+    let raw = |degrees: f64| {
+        let t = degrees.to_radians();
+        CountVector::from_counts(a * t.cos() / KX, a * t.sin() / ky)
+    };
+    let mut m = machine(|c| c.variant.neighbours = spm_calibration::NeighbourSet::AllInAperture);
+    m.step(Event::Begin);
+    m.step(Event::Paused);
+    m.step(settled());
+    // The first neighbour is the 120° one: 103° in counts, with the 60° one at 77°.
+    let ring: Vec<CountVector> = [120.0, 60.0, 0.0, 300.0, 240.0, 180.0]
+        .into_iter()
+        .map(raw)
+        .collect();
+    let mut action = m.step(Event::ApertureScanned(ApertureResult {
+        a: anchor(0.0, 0.0),
+        lcs: Some((raw(0.0), raw(60.0))),
+        neighbours: ring.clone(),
+    }));
+    for (i, v) in ring.iter().enumerate() {
+        assert!(matches!(action, Action::Skip { .. }), "{action:?}");
+        // The fourth skipping caught a feature 20 % beyond the neighbour.
+        let measured = if i == 3 { *v * 1.2 } else { *v };
+        action = m.step(completed(measured, 2, 0));
+    }
+    let Action::Finished(r) = action else {
+        panic!("{action:?}")
+    };
+    assert_eq!(r.vectors.len(), 5);
+    assert!((r.lcc.kx.value() / KX - 1.0).abs() < 1e-9, "{:?}", r.lcc);
+    assert!((r.lcc.ky.value() / ky - 1.0).abs() < 1e-9, "{:?}", r.lcc);
+    assert!(r.lcc.alpha.value().abs() < 1e-9, "{:?}", r.lcc);
+}

@@ -30,6 +30,16 @@ use spm_hal::{CountPoint, CountVector, CountVelocity, Counts, ErrorKind, Radians
 /// ([`crate::lcc::solve_lcc_rejecting`]).
 pub const VECTOR_REJECTION_SIGMAS: f64 = 3.0;
 
+/// Keeps the items of `items` whose indices are in `kept`, in order.
+fn retain_indices<T>(items: &mut Vec<T>, kept: &[usize]) {
+    let mut index = 0;
+    items.retain(|_| {
+        let keep = kept.contains(&index);
+        index += 1;
+        keep
+    });
+}
+
 /// A feature position at a time (positions move with the drift).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Anchor {
@@ -692,21 +702,8 @@ impl NodeMachine {
         let solved = match self.params.neighbours {
             NeighbourSet::AllInAperture if self.measured.len() > 3 => {
                 solve_lcc_rejecting(&self.measured, VECTOR_REJECTION_SIGMAS).map(|(lcc, kept)| {
-                    if kept.len() < self.measured.len() {
-                        let keep = |i: &usize| kept.contains(i);
-                        self.measured = std::mem::take(&mut self.measured)
-                            .into_iter()
-                            .enumerate()
-                            .filter(|(i, _)| keep(i))
-                            .map(|(_, m)| m)
-                            .collect();
-                        self.targets = std::mem::take(&mut self.targets)
-                            .into_iter()
-                            .enumerate()
-                            .filter(|(i, _)| keep(i))
-                            .map(|(_, t)| t)
-                            .collect();
-                    }
+                    retain_indices(&mut self.measured, &kept);
+                    retain_indices(&mut self.targets, &kept);
                     lcc
                 })
             }

@@ -9,8 +9,19 @@ use std::path::PathBuf;
 fn text(lattice: Option<&PartLattice>) -> String {
     match lattice {
         Some(l) => format!(
-            "scale x {:.3}, scale y {:.3}, obliquity {:+.2}°, {} features",
-            l.scale_x, l.scale_y, l.obliquity_deg, l.features
+            "scale x {:.3} ± {:.3}, scale y {:.3} ± {:.3}, obliquity {:+.2}° ± {:.2}°, {} features{}",
+            l.scale_x,
+            l.scale_x_sigma,
+            l.scale_y,
+            l.scale_y_sigma,
+            l.obliquity_deg,
+            l.obliquity_sigma_deg,
+            l.features,
+            if l.features_left_out > 0 {
+                format!(" ({} left out: not lattice sites)", l.features_left_out)
+            } else {
+                String::new()
+            }
         ),
         None => "no lattice found".to_owned(),
     }

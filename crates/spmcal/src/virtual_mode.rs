@@ -742,8 +742,18 @@ pub struct PartLattice {
     pub scale_y: f64,
     /// Obliquity, degrees (0 = orthogonal axes).
     pub obliquity_deg: f64,
+    /// One-sigma uncertainty of `scale_x` (the fit's covariance scaled by its residual
+    /// variance: the part's own localisation scatter over its extent).
+    pub scale_x_sigma: f64,
+    /// One-sigma uncertainty of `scale_y`.
+    pub scale_y_sigma: f64,
+    /// One-sigma uncertainty of `obliquity_deg`, degrees.
+    pub obliquity_sigma_deg: f64,
     /// Features used.
     pub features: usize,
+    /// Features of the part left out as not lattice sites (a cell whose fit left residuals
+    /// above [`ROBUST_CELL_RESIDUAL_FACTOR`] times the typical cell's).
+    pub features_left_out: usize,
 }
 
 /// The lattice measured in one cell of a grid over an image.
@@ -827,8 +837,14 @@ impl ScannedRegion {
     }
 }
 
-/// Fewest features a part's lattice is fitted to.
-const MIN_PART_FEATURES: usize = 12;
+/// Fewest features a part's lattice is fitted to (its fit then states its own uncertainty: on
+/// Si_7x7_028 a side cell of 10 corner holes reads ±0.2–0.4 %, ±0.2–0.5°).
+pub const MIN_PART_FEATURES: usize = 9;
+
+/// A cell of [`survey_lattice`]'s grid whose fit leaves an RMS residual above this many
+/// times the median cell's holds features that are not lattice sites. On Si_7x7_028 and 032
+/// corrected, the cells' residuals are 23–44 pm, and the two cells with a defect 210–224 pm.
+pub const ROBUST_CELL_RESIDUAL_FACTOR: f64 = 3.0;
 
 /// Measures the lattice of `standard` on an image file, whole and in a `grid` × `grid`
 /// partition, by spm-modelcheck's extraction and baseline fit (what `spmcal diagnose`
@@ -903,57 +919,134 @@ pub fn survey_lattice(
         )
     };
     let grid = grid.max(1);
-    // The features of the part `cell` selects (`None`: the whole image).
-    let measure = |cell: Option<(usize, usize)>| -> Option<PartLattice> {
-        let all = all.as_ref()?;
-        let set = spm_modelcheck::FeatureSet {
-            features: all
-                .features
-                .iter()
-                .filter(|f| {
-                    cell.is_none_or(|c| {
-                        let (column, row) = place(f);
-                        region.cell_of(column, row, grid) == Some(c)
-                    })
+    let Some(all) = all else {
+        return Ok(LatticeSurvey {
+            file: path.to_path_buf(),
+            standard: standard.as_str(),
+            lattice_constant_nm: a,
+            whole: None,
+            cells: (0..grid * grid)
+                .map(|i| CellLattice {
+                    column: i % grid,
+                    row: i / grid,
+                    lattice: None,
                 })
-                .cloned()
                 .collect(),
+        });
+    };
+    // The lattice of a set of features, with the fit's residual RMS (pm).
+    let fit = |features: Vec<spm_modelcheck::FeatureObservation>| -> Option<(PartLattice, f64)> {
+        let set = spm_modelcheck::FeatureSet {
+            features,
             ..all.clone()
         };
         if set.features.len() < MIN_PART_FEATURES {
             return None;
         }
         let d = spm_modelcheck::diagnose_features(&set, &spec, &options).ok()?;
-        let p = |key: &str| d.baseline.parameters.get(key).map(|v| v.value);
-        Some(PartLattice {
-            scale_x: p("scale_x")?,
-            scale_y: p("scale_y")?,
-            obliquity_deg: p("obliquity_deg")?,
+        let p = |key: &str| d.baseline.parameters.get(key).copied();
+        let (x, y, o) = (p("scale_x")?, p("scale_y")?, p("obliquity_deg")?);
+        let lattice = PartLattice {
+            scale_x: x.value,
+            scale_y: y.value,
+            obliquity_deg: o.value,
+            scale_x_sigma: x.sigma,
+            scale_y_sigma: y.sigma,
+            obliquity_sigma_deg: o.sigma,
             features: set.features.len(),
-        })
+            features_left_out: 0,
+        };
+        Some((lattice, d.baseline.rms_pm))
     };
-    let mut cells = Vec::with_capacity(grid * grid);
-    for row in 0..grid {
-        for column in 0..grid {
-            cells.push(CellLattice {
-                column,
-                row,
-                lattice: measure(Some((column, row))),
-            });
+    let in_cell = |c: (usize, usize)| -> Vec<spm_modelcheck::FeatureObservation> {
+        all.features
+            .iter()
+            .filter(|f| {
+                let (column, row) = place(f);
+                region.cell_of(column, row, grid) == Some(c)
+            })
+            .cloned()
+            .collect()
+    };
+    let places: Vec<(usize, usize)> = (0..grid * grid).map(|i| (i % grid, i / grid)).collect();
+    let mut fitted: Vec<Option<(PartLattice, f64)>> =
+        places.iter().map(|&c| fit(in_cell(c))).collect();
+    // A cell whose fit leaves residuals far above the typical cell's holds features that
+    // are not lattice sites (a defect's, or a hole misplaced beside one).
+    let mut residuals: Vec<f64> = fitted.iter().flatten().map(|(_, rms)| *rms).collect();
+    if let Some(typical) = spm_regression::median(&mut residuals) {
+        let bound = ROBUST_CELL_RESIDUAL_FACTOR * typical;
+        for (slot, &c) in fitted.iter_mut().zip(&places) {
+            if let Some(first) = *slot {
+                let (lattice, rms, left_out) =
+                    leave_out_non_sites(in_cell(c), first, bound, MIN_PART_FEATURES, &fit);
+                *slot = Some((
+                    PartLattice {
+                        features_left_out: left_out,
+                        ..lattice
+                    },
+                    rms,
+                ));
+            }
         }
     }
+    let cells = places
+        .iter()
+        .zip(fitted)
+        .map(|(&(column, row), f)| CellLattice {
+            column,
+            row,
+            lattice: f.map(|(l, _)| l),
+        })
+        .collect();
+    let whole = fit(all.features.clone()).map(|(l, _)| l);
     Ok(LatticeSurvey {
         file: path.to_path_buf(),
         standard: standard.as_str(),
         lattice_constant_nm: a,
-        whole: measure(None),
+        whole,
         cells,
     })
 }
 
+/// Leaves features out of a part whose fit `first` (its result and residual RMS) is above
+/// `bound`: one at a time, each time the one whose removal lowers the residual most, while
+/// the part is above the bound, the removal lowers its residual by a fifth at least, and
+/// more than `min` features remain. Returns the last fit, its residual and how many
+/// features were left out.
+fn leave_out_non_sites<T: Clone, L: Copy>(
+    mut features: Vec<T>,
+    first: (L, f64),
+    bound: f64,
+    min: usize,
+    fit: &dyn Fn(Vec<T>) -> Option<(L, f64)>,
+) -> (L, f64, usize) {
+    let (mut best, mut rms) = first;
+    let mut left_out = 0;
+    while rms > bound && features.len() > min {
+        let trial = (0..features.len())
+            .filter_map(|i| {
+                let mut rest = features.clone();
+                rest.remove(i);
+                fit(rest).map(|(l, r)| (i, l, r))
+            })
+            .min_by(|p, q| p.2.total_cmp(&q.2));
+        match trial {
+            Some((i, l, r)) if r < 0.8 * rms => {
+                features.remove(i);
+                best = l;
+                rms = r;
+                left_out += 1;
+            }
+            _ => break,
+        }
+    }
+    (best, rms, left_out)
+}
+
 #[cfg(test)]
 mod tests {
-    use super::ScannedRegion;
+    use super::{ScannedRegion, leave_out_non_sites};
 
     /// A 12 × 8 image whose rows hold data from column `row` to column `row + 8` (a
     /// parallelogram sheared by one column per row, NaN beside it, as a corrected image is).
@@ -1020,5 +1113,34 @@ mod tests {
             ScannedRegion::of(&[f64::NAN; 4], 2, 2).cell_of(0.5, 0.5, 2),
             None
         );
+    }
+
+    /// `leave_out_non_sites` on values whose "fit" is their mean and RMS deviation: the
+    /// values far from the rest are left out one by one, the part's residual then within
+    /// the bound; a clean part and one at its minimum size are left as they are.
+    #[test]
+    fn features_that_are_not_lattice_sites_are_left_out_of_a_part() {
+        let fit = |v: Vec<f64>| -> Option<(f64, f64)> {
+            let mean = v.iter().sum::<f64>() / v.len() as f64;
+            let rms = (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / v.len() as f64).sqrt();
+            Some((mean, rms))
+        };
+        let check = |values: &[f64], min: usize, expected_left_out: usize, expected_mean: f64| {
+            let first = fit(values.to_vec()).unwrap();
+            let (mean, rms, left_out) = leave_out_non_sites(values.to_vec(), first, 0.5, min, &fit);
+            assert_eq!(left_out, expected_left_out, "{values:?}");
+            assert!((mean - expected_mean).abs() < 1e-9, "{values:?}: {mean}");
+            assert!(left_out == 0 || rms <= 0.5, "{values:?}: rms {rms}");
+        };
+        let clean = [0.1, -0.2, 0.3, 0.0, -0.1, 0.2, -0.3, 0.0];
+        check(&clean, 4, 0, 0.0);
+        let mut one = clean.to_vec();
+        one.push(9.0);
+        check(&one, 4, 1, 0.0);
+        let mut two = clean.to_vec();
+        two.extend([7.0, -6.0]);
+        check(&two, 4, 2, 0.0);
+        // At its minimum size nothing is left out.
+        check(&[0.0, 0.1, 9.0], 3, 0, 9.1 / 3.0);
     }
 }

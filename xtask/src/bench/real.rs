@@ -42,6 +42,10 @@ pub struct LatticeFigures {
     pub cells_within_obliquity: usize,
     /// Measured cells within both.
     pub cells_within_both: usize,
+    /// Measured cells whose own one-sigma uncertainty exceeds a tolerance (scale σ above
+    /// [`SCALE_TOLERANCE`] or obliquity σ above [`OBLIQUITY_TOLERANCE_DEG`]): the lattice
+    /// tool cannot tell there whether the target is met.
+    pub cells_uncertain: usize,
     /// Smallest and largest scale x over the measured cells.
     pub scale_x_range: Option<(f64, f64)>,
     /// Smallest and largest scale y over the measured cells.
@@ -89,6 +93,13 @@ impl LatticeFigures {
             cells_within_both: measured
                 .iter()
                 .filter(|p| scales_ok(p) && angle_ok(p))
+                .count(),
+            cells_uncertain: measured
+                .iter()
+                .filter(|p| {
+                    p.scale_x_sigma.max(p.scale_y_sigma) > SCALE_TOLERANCE
+                        || p.obliquity_sigma_deg > OBLIQUITY_TOLERANCE_DEG
+                })
                 .count(),
             scale_x_range: range(&|p| p.scale_x),
             scale_y_range: range(&|p| p.scale_y),
@@ -183,7 +194,7 @@ pub fn run(ctx: &Context) -> Result<RealResults, XtaskError> {
     for h in &held_out {
         let c = &h.corrected;
         println!(
-            "   real {} by {} ({} records, {} form): whole {} (was {}); {} of {} cells measured, {} within {} % and {} within {}°",
+            "   real {} by {} ({} records, {} form): whole {} (was {}); {} of {} cells measured ({} with σ above a tolerance), {} within {} % and {} within {}°",
             h.held_out,
             h.calibrated_on,
             h.records,
@@ -192,6 +203,7 @@ pub fn run(ctx: &Context) -> Result<RealResults, XtaskError> {
             h.uncorrected.whole_text("no lattice"),
             c.cells_measured,
             c.cells,
+            c.cells_uncertain,
             c.cells_within_scale,
             SCALE_TOLERANCE * 100.0,
             c.cells_within_obliquity,
@@ -294,13 +306,19 @@ pub fn markdown(md: &mut String, section: &super::Section<RealResults>) {
                 "Calibrated in virtual mode on one image, corrected another with `spmcal fit`'s \
                  defaults through `spmcal correct`'s library path, lattice measured whole and per \
                  cell (`spmcal lattice`: Si 4 × 4, HOPG 2 × 2). Scale: true over apparent \
-                 lattice length (1 = right); target {} % in both scales and {}° in every cell.\n",
+                 lattice length (1 = right); target {} % in both scales and {}° in every cell. \
+                 A cell is measured when it holds {} features or more; a cell whose fit leaves \
+                 residuals above {} × the typical cell's has its features that are not lattice \
+                 sites left out (`spmcal lattice`); \"σ above a tolerance\" counts the cells \
+                 whose own one-sigma uncertainty exceeds a tolerance.\n",
                 r.scale_tolerance * 100.0,
-                r.obliquity_tolerance_deg
+                r.obliquity_tolerance_deg,
+                spmcal::virtual_mode::MIN_PART_FEATURES,
+                spmcal::virtual_mode::ROBUST_CELL_RESIDUAL_FACTOR
             );
             let _ = writeln!(
                 md,
-                "| held out | calibrated on | records | form | whole image before (x / y / obliquity) | whole image after | cells measured | within {} % | within {}° | scale x / y, obliquity over the cells |\n|---|---|---:|---|---|---|---:|---:|---:|---|",
+                "| held out | calibrated on | records | form | whole image before (x / y / obliquity) | whole image after | cells measured (σ above a tolerance) | within {} % | within {}° | scale x / y, obliquity over the cells |\n|---|---|---:|---|---|---|---:|---:|---:|---|",
                 r.scale_tolerance * 100.0,
                 r.obliquity_tolerance_deg
             );
@@ -314,7 +332,7 @@ pub fn markdown(md: &mut String, section: &super::Section<RealResults>) {
                 let c = &h.corrected;
                 let _ = writeln!(
                     md,
-                    "| {} | {} | {} | {} | {} | {} | {} of {} | {} | {} | {}, {}, {}° |",
+                    "| {} | {} | {} | {} | {} | {} | {} of {} ({}) | {} | {} | {}, {}, {}° |",
                     h.held_out,
                     h.calibrated_on,
                     h.records,
@@ -323,6 +341,7 @@ pub fn markdown(md: &mut String, section: &super::Section<RealResults>) {
                     c.whole_text("not found"),
                     c.cells_measured,
                     c.cells,
+                    c.cells_uncertain,
                     c.cells_within_scale,
                     c.cells_within_obliquity,
                     range(c.scale_x_range, 3),

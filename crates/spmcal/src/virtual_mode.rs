@@ -908,78 +908,105 @@ pub fn survey_lattice(
         ..file.clone()
     };
     let all = spm_modelcheck::extract_features(&[(whole_file, None)], &spec, &extract).ok();
-    let (width_nm, height_nm) = (nx as f64 * pixel_x_nm, ny as f64 * pixel_y_nm);
     let region = ScannedRegion::of(forward.data(), nx, ny);
-    // A feature's place in display pixels (column from the left, row from the top; pixel c
-    // covers [c, c + 1)). Feature coordinates are nm from the frame centre, y up.
-    let place = |f: &spm_modelcheck::FeatureObservation| {
-        (
-            f.x_nm / pixel_x_nm + 0.5 * width_nm / pixel_x_nm,
-            0.5 * height_nm / pixel_y_nm - f.y_nm / pixel_y_nm,
-        )
-    };
     let grid = grid.max(1);
-    let Some(all) = all else {
-        return Ok(LatticeSurvey {
-            file: path.to_path_buf(),
-            standard: standard.as_str(),
-            lattice_constant_nm: a,
-            whole: None,
-            cells: (0..grid * grid)
+    let (whole, cells) = match all {
+        Some(all) => {
+            let fit = |features| fit_part(&all, features, &spec, &options);
+            // A feature's place in display pixels (column from the left, row from the top;
+            // pixel c covers [c, c + 1)). Feature coordinates are nm from the frame centre,
+            // y up.
+            let place = |f: &spm_modelcheck::FeatureObservation| {
+                (
+                    f.x_nm / pixel_x_nm + 0.5 * nx as f64,
+                    0.5 * ny as f64 - f.y_nm / pixel_y_nm,
+                )
+            };
+            let in_cell = |c: (usize, usize)| -> Vec<spm_modelcheck::FeatureObservation> {
+                all.features
+                    .iter()
+                    .filter(|f| {
+                        let (column, row) = place(f);
+                        region.cell_of(column, row, grid) == Some(c)
+                    })
+                    .cloned()
+                    .collect()
+            };
+            let whole = fit(all.features.clone()).map(|(l, _)| l);
+            (whole, grid_cells(grid, &in_cell, &fit))
+        }
+        None => (
+            None,
+            (0..grid * grid)
                 .map(|i| CellLattice {
                     column: i % grid,
                     row: i / grid,
                     lattice: None,
                 })
                 .collect(),
-        });
+        ),
     };
-    // The lattice of a set of features, with the fit's residual RMS (pm).
-    let fit = |features: Vec<spm_modelcheck::FeatureObservation>| -> Option<(PartLattice, f64)> {
-        let set = spm_modelcheck::FeatureSet {
-            features,
-            ..all.clone()
-        };
-        if set.features.len() < MIN_PART_FEATURES {
-            return None;
-        }
-        let d = spm_modelcheck::diagnose_features(&set, &spec, &options).ok()?;
-        let p = |key: &str| d.baseline.parameters.get(key).copied();
-        let (x, y, o) = (p("scale_x")?, p("scale_y")?, p("obliquity_deg")?);
-        let lattice = PartLattice {
-            scale_x: x.value,
-            scale_y: y.value,
-            obliquity_deg: o.value,
-            scale_x_sigma: x.sigma,
-            scale_y_sigma: y.sigma,
-            obliquity_sigma_deg: o.sigma,
-            features: set.features.len(),
-            features_left_out: 0,
-        };
-        Some((lattice, d.baseline.rms_pm))
+    Ok(LatticeSurvey {
+        file: path.to_path_buf(),
+        standard: standard.as_str(),
+        lattice_constant_nm: a,
+        whole,
+        cells,
+    })
+}
+
+/// The lattice of a set of features (`all`'s frames), with the fit's residual RMS (pm);
+/// `None` below [`MIN_PART_FEATURES`] or when the fit finds no lattice.
+fn fit_part(
+    all: &spm_modelcheck::FeatureSet,
+    features: Vec<spm_modelcheck::FeatureObservation>,
+    spec: &spm_modelcheck::LatticeSpec,
+    options: &spm_modelcheck::Options,
+) -> Option<(PartLattice, f64)> {
+    if features.len() < MIN_PART_FEATURES {
+        return None;
+    }
+    let set = spm_modelcheck::FeatureSet {
+        features,
+        frames: all.frames.clone(),
+        warnings: all.warnings.clone(),
     };
-    let in_cell = |c: (usize, usize)| -> Vec<spm_modelcheck::FeatureObservation> {
-        all.features
-            .iter()
-            .filter(|f| {
-                let (column, row) = place(f);
-                region.cell_of(column, row, grid) == Some(c)
-            })
-            .cloned()
-            .collect()
+    let d = spm_modelcheck::diagnose_features(&set, spec, options).ok()?;
+    let p = |key: &str| d.baseline.parameters.get(key).copied();
+    let (x, y, o) = (p("scale_x")?, p("scale_y")?, p("obliquity_deg")?);
+    let lattice = PartLattice {
+        scale_x: x.value,
+        scale_y: y.value,
+        obliquity_deg: o.value,
+        scale_x_sigma: x.sigma,
+        scale_y_sigma: y.sigma,
+        obliquity_sigma_deg: o.sigma,
+        features: set.features.len(),
+        features_left_out: 0,
     };
+    Some((lattice, d.baseline.rms_pm))
+}
+
+/// The cells of a `grid` × `grid` division, row by row: each cell's features (`in_cell`)
+/// fitted (`fit`); a cell whose fit leaves residuals far above the typical cell's holds
+/// features that are not lattice sites (a defect's, or a hole misplaced beside one), and they
+/// are left out ([`leave_out_non_sites`], above [`ROBUST_CELL_RESIDUAL_FACTOR`] × the median
+/// cell's residual).
+fn grid_cells(
+    grid: usize,
+    in_cell: &dyn Fn((usize, usize)) -> Vec<spm_modelcheck::FeatureObservation>,
+    fit: &dyn Fn(Vec<spm_modelcheck::FeatureObservation>) -> Option<(PartLattice, f64)>,
+) -> Vec<CellLattice> {
     let places: Vec<(usize, usize)> = (0..grid * grid).map(|i| (i % grid, i / grid)).collect();
     let mut fitted: Vec<Option<(PartLattice, f64)>> =
         places.iter().map(|&c| fit(in_cell(c))).collect();
-    // A cell whose fit leaves residuals far above the typical cell's holds features that
-    // are not lattice sites (a defect's, or a hole misplaced beside one).
     let mut residuals: Vec<f64> = fitted.iter().flatten().map(|(_, rms)| *rms).collect();
     if let Some(typical) = spm_regression::median(&mut residuals) {
         let bound = ROBUST_CELL_RESIDUAL_FACTOR * typical;
         for (slot, &c) in fitted.iter_mut().zip(&places) {
             if let Some(first) = *slot {
                 let (lattice, rms, left_out) =
-                    leave_out_non_sites(in_cell(c), first, bound, MIN_PART_FEATURES, &fit);
+                    leave_out_non_sites(in_cell(c), first, bound, MIN_PART_FEATURES, fit);
                 *slot = Some((
                     PartLattice {
                         features_left_out: left_out,
@@ -990,7 +1017,7 @@ pub fn survey_lattice(
             }
         }
     }
-    let cells = places
+    places
         .iter()
         .zip(fitted)
         .map(|(&(column, row), f)| CellLattice {
@@ -998,15 +1025,7 @@ pub fn survey_lattice(
             row,
             lattice: f.map(|(l, _)| l),
         })
-        .collect();
-    let whole = fit(all.features.clone()).map(|(l, _)| l);
-    Ok(LatticeSurvey {
-        file: path.to_path_buf(),
-        standard: standard.as_str(),
-        lattice_constant_nm: a,
-        whole,
-        cells,
-    })
+        .collect()
 }
 
 /// Leaves features out of a part whose fit `first` (its result and residual RMS) is above

@@ -564,7 +564,7 @@ impl NodeMachine {
     /// directions in counts instead (the angle from the first neighbour) names one wrongly
     /// where the scanner's local distortion turns a direction by more than half of θ, and
     /// one such vector spoils the node's solution (a Si 7×7 image at 0.68 y-scale and −10°
-    /// obliquity: records with K̄x 20 % and α 25° off).
+    /// obliquity: a record with K̄x 21 % and α 27° off).
     fn neighbours_through_lcs(
         &self,
         (ab, ac): (CountVector, CountVector),

@@ -740,6 +740,18 @@ pub(crate) fn extent(x: &[f64], y: &[f64]) -> Field {
     }
 }
 
+/// A regression failure of `coefficient`'s surface on plane `z_counts`.
+fn regression_error(
+    coefficient: &'static str,
+    z_counts: i64,
+) -> impl Fn(spm_regression::RegressionError) -> SurfaceFitError + Copy {
+    move |source| SurfaceFitError::Regression {
+        coefficient,
+        z_counts,
+        source,
+    }
+}
+
 pub(crate) fn fit_one(
     coefficient: &'static str,
     z_counts: i64,
@@ -749,11 +761,7 @@ pub(crate) fn fit_one(
     field: &Field,
     options: &SurfaceFitOptions,
 ) -> Result<(FittedSurface, SurfaceSummary), SurfaceFitError> {
-    let regression = |source| SurfaceFitError::Regression {
-        coefficient,
-        z_counts,
-        source,
-    };
+    let regression = regression_error(coefficient, z_counts);
     let observations = Observations::new(x, y, values);
     // A handful of records or places cannot support a high degree: at least twice as many
     // records as terms, and more distinct places than terms (repeats of a node, or nodes
@@ -794,11 +802,7 @@ fn summarise(
     values: &[f64],
     field: &Field,
 ) -> Result<(FittedSurface, SurfaceSummary), SurfaceFitError> {
-    let regression = |source| SurfaceFitError::Regression {
-        coefficient,
-        z_counts,
-        source,
-    };
+    let regression = regression_error(coefficient, z_counts);
     let sigma = if values.len() >= 2 {
         spm_regression::sigma(&surface, &Observations::new(x, y, values)).map_err(regression)?
     } else {

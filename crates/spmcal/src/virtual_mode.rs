@@ -665,8 +665,8 @@ pub fn virtual_plan(
     // Every neighbour of A is measured, not B and C alone: a stored image freezes its noise,
     // so the repeats that average it on an instrument return the same vectors here, while
     // A's other neighbours are independent sightings. On Si_7x7_028 the records' K̄y then
-    // follows the lattice tool's row by row within about 1 % (one triangle: 2 %, and 2 %
-    // high on average), and a vector of another feature is left out by the node's own
+    // follows the lattice tool's row by row with a sd of 1.4 % (one triangle: 1.5–5 %, and
+    // up to 1.7 % high on average), and a vector of another feature is left out by the node's own
     // redundancy (`spm_calibration::solve_lcc_rejecting`; docs/results/virtual.md).
     plan.variant.neighbours = spm_calibration::NeighbourSet::AllInAperture;
     // A cell pattern's frames give their lattice by their spectrum (Si_7x7_028: the
@@ -838,12 +838,13 @@ impl ScannedRegion {
 }
 
 /// Fewest features a part's lattice is fitted to (its fit then states its own uncertainty: on
-/// Si_7x7_028 a side cell of 10 corner holes reads ±0.2–0.4 %, ±0.2–0.5°).
+/// Si_7x7_028 and 032 corrected, side cells of 10–11 corner holes read ±0.2–0.6 % and
+/// ±0.2–0.5°, one of six ±4 % and ±3°).
 pub const MIN_PART_FEATURES: usize = 9;
 
 /// A cell of [`survey_lattice`]'s grid whose fit leaves an RMS residual above this many
-/// times the median cell's holds features that are not lattice sites. On Si_7x7_028 and 032
-/// corrected, the cells' residuals are 23–44 pm, and the two cells with a defect 210–224 pm.
+/// times the median cell's holds features that are not lattice sites. On Si_7x7_032 corrected,
+/// the cells' residuals are 23–44 pm, and two odd cells' 210 and 224 pm.
 pub const ROBUST_CELL_RESIDUAL_FACTOR: f64 = 3.0;
 
 /// Measures the lattice of `standard` on an image file, whole and in a `grid` × `grid`
@@ -998,15 +999,19 @@ fn grid_cells(
     fit: &dyn Fn(Vec<spm_modelcheck::FeatureObservation>) -> Option<(PartLattice, f64)>,
 ) -> Vec<CellLattice> {
     let places: Vec<(usize, usize)> = (0..grid * grid).map(|i| (i % grid, i / grid)).collect();
+    let features: Vec<Vec<spm_modelcheck::FeatureObservation>> =
+        places.iter().map(|&c| in_cell(c)).collect();
     let mut fitted: Vec<Option<(PartLattice, f64)>> =
-        places.iter().map(|&c| fit(in_cell(c))).collect();
+        features.iter().map(|f| fit(f.clone())).collect();
     let mut residuals: Vec<f64> = fitted.iter().flatten().map(|(_, rms)| *rms).collect();
     if let Some(typical) = spm_regression::median(&mut residuals) {
         let bound = ROBUST_CELL_RESIDUAL_FACTOR * typical;
-        for (slot, &c) in fitted.iter_mut().zip(&places) {
-            if let Some(first) = *slot {
+        for (slot, cell) in fitted.iter_mut().zip(features) {
+            if let Some(first) = *slot
+                && first.1 > bound
+            {
                 let (lattice, rms, left_out) =
-                    leave_out_non_sites(in_cell(c), first, bound, MIN_PART_FEATURES, fit);
+                    leave_out_non_sites(cell, first, bound, MIN_PART_FEATURES, fit);
                 *slot = Some((
                     PartLattice {
                         features_left_out: left_out,

@@ -14,6 +14,8 @@
 //!   bilinear or Catmull-Rom, NaN outside the data), heights through Kz ([`heights_nm`]);
 //! - **scanner input dynamics** ([`dynamics`]): creep replayed along a command log, its law
 //!   identified from attachment tracks, and images corrected along their effective trajectory;
+//! - the **regression surfaces fitted** from a plane's calibration records ([`fit`]: eqs. 2,
+//!   6, 11, 13, 14, the degree by BIC, the 1-form as an exact form, outliers, the bowl);
 //! - **counter-scanned pairs**: drift from common features and drift-corrected coordinate maps
 //!   ([`estimate_drift`], [`correct_counter_pair`]).
 //!
@@ -42,6 +44,7 @@ mod drift;
 pub mod dynamics;
 mod error;
 mod field;
+pub mod fit;
 mod height;
 pub mod hysteresis;
 mod parallel;

@@ -373,6 +373,61 @@ pub fn node_mean_k_rms_pct<T: GroundTruth + ?Sized>(
     spm_regression::rms(&errors)
 }
 
+/// Measured node LCCs against the oracle's true LCCs at the LCS centres.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct NodeLccError {
+    /// Records compared.
+    pub n: usize,
+    /// Mean (K̄x measured / true − 1), % (bias).
+    pub kx_mean_pct: f64,
+    /// RMS (K̄x measured / true − 1), %.
+    pub kx_rms_pct: f64,
+    /// Mean (K̄y measured / true − 1), %.
+    pub ky_mean_pct: f64,
+    /// RMS (K̄y measured / true − 1), %.
+    pub ky_rms_pct: f64,
+    /// Mean (α measured − true), mrad.
+    pub alpha_mean_mrad: f64,
+    /// RMS (α measured − true), mrad.
+    pub alpha_rms_mrad: f64,
+}
+
+/// Every record's LCCs against the truth at its LCS centre (at the instrument's present Z):
+/// mean and RMS per coefficient; `None` without records.
+#[must_use]
+pub fn node_lcc_error(
+    oracle: &dyn GroundTruth,
+    all: &[spm_records::LccRecord],
+) -> Option<NodeLccError> {
+    let z = oracle.z_now();
+    let mut e = Vec::with_capacity(all.len());
+    for r in all {
+        let truth = oracle.true_lcc(CountPoint::from_counts(r.lcs_x_counts, r.lcs_y_counts), z);
+        e.push((
+            (r.kx_nm_per_count / truth.kx_nm_per_count - 1.0) * 100.0,
+            (r.ky_nm_per_count / truth.ky_nm_per_count - 1.0) * 100.0,
+            (r.alpha_rad - truth.alpha_rad) * 1e3,
+        ));
+    }
+    if e.is_empty() {
+        return None;
+    }
+    let n = e.len() as f64;
+    let mean = |f: fn(&(f64, f64, f64)) -> f64| e.iter().map(f).sum::<f64>() / n;
+    let rms = |f: fn(&(f64, f64, f64)) -> f64| {
+        spm_regression::rms(&e.iter().map(f).collect::<Vec<_>>()).unwrap_or(0.0)
+    };
+    Some(NodeLccError {
+        n: e.len(),
+        kx_mean_pct: mean(|v| v.0),
+        kx_rms_pct: rms(|v| v.0),
+        ky_mean_pct: mean(|v| v.1),
+        ky_rms_pct: rms(|v| v.1),
+        alpha_mean_mrad: mean(|v| v.2),
+        alpha_rms_mrad: rms(|v| v.2),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

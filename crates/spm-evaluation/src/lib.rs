@@ -13,6 +13,8 @@
 //! - [`rigid`]: residuals after the best rigid motion.
 //! - [`validation`]: what a run says of itself without an oracle (held-out nodes, repeat
 //!   agreement), on any backend.
+//! - [`vertical`]: the vertical axis's surfaces (Kz, the bowl, the z-dependence of K̄x and
+//!   K̄y) against the truth (report.json's `vertical`).
 //!
 //! The oracle is reached only through the `spm_hal::truth` traits; the simulator itself is
 //! never named. No I/O, no command line, no clock: the caller takes the instrument and writes
@@ -27,6 +29,7 @@ pub mod drift;
 pub mod images;
 pub mod rigid;
 pub mod validation;
+pub mod vertical;
 
 pub use accuracy::{
     Accuracy, EvaluationGrid, PolynomialImage, ResidualField, evaluate, evaluate_field,

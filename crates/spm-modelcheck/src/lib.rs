@@ -10,6 +10,7 @@
 //! - [`diagnose`]: files → [`Diagnosis`] (the `spmcal diagnose` entry point);
 //! - [`diagnose_features`]: the same from a [`FeatureSet`] already extracted;
 //! - [`extract_features`]: images → feature observations with times;
+//! - [`survey_channel`]: an image's lattice, whole and in a grid of cells;
 //! - [`write_png`]: the residual figure;
 //! - [`sim_patch`]: the fitted model as spm-sim configuration values.
 //!
@@ -51,6 +52,7 @@ mod model;
 mod plot;
 mod simmap;
 mod sine;
+mod survey;
 mod types;
 mod vibration;
 
@@ -67,6 +69,10 @@ pub use index::{Indexing, MeasuredBasis, index_features};
 pub use plot::{register_system_font, write_png};
 pub use simmap::{
     InputKnot, MoveHistory, SimContext, SimParam, SimPatch, TipChangeEvent, sim_patch,
+};
+pub use survey::{
+    CellLattice, MIN_PART_FEATURES, PartLattice, ROBUST_CELL_RESIDUAL_FACTOR, SurveyError,
+    survey_channel,
 };
 pub use types::{
     EffectKind, FeatureObservation, FeatureSet, FrameInfo, HOPG_A_NM, LatticeSpec, LineDirection,

@@ -45,7 +45,7 @@ pub fn run(
         SurfaceFitError::Cdb(e) => cdb_error(e),
         SurfaceFitError::NoRecords { .. }
         | SurfaceFitError::AmbiguousScanner(_)
-        | SurfaceFitError::TooFewRecords { .. } => {
+        | SurfaceFitError::Fit(spm_correction::fit::FitError::TooFewRecords { .. }) => {
             CliError::BadInput(format!("{}: {e}", spmcal::cdb_handle::shown(cdb_path)))
         }
         other => CliError::RunFailed(other.to_string()),

@@ -30,5 +30,4 @@ pub mod run;
 pub mod simulate;
 pub mod surfaces;
 pub mod targets;
-pub mod vertical;
 pub mod virtual_mode;

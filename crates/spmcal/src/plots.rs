@@ -12,7 +12,7 @@
 //!   cycles marked with crosses.
 //! - `trajectory.png`: the node centres joined in visiting order, one panel per pass.
 //! - `lcc-uncertainty.png`: the standard uncertainty of each fitted surface over the region,
-//!   σ·√h from the fit's design ([`spm_regression::standard_errors`]), with the records it
+//!   σ·√h from the fit's design ([`spm_correction::fit::standard_uncertainty`]), with the records it
 //!   was fitted from as dots.
 //!
 //! Positions are drawn in µm of field through the plan's nominal sensitivity (a unit a
@@ -25,7 +25,6 @@ use spm_plot::{
     OrderFigure, OrderPanel, Series, SeriesStyle, XyFigure, cell_centres, field_maps, image_pair,
     order_map, running_quantiles, surface_map, xy_chart,
 };
-use spm_regression::Polynomial2;
 
 /// Why a figure could not be drawn.
 #[derive(Debug, thiserror::Error)]
@@ -187,7 +186,7 @@ impl Coefficient {
 /// [`PlotError`] when nothing finite can be drawn.
 pub fn lcc_map(
     coefficient: Coefficient,
-    surface: &Polynomial2,
+    fitted: &spm_correction::FittedSurface,
     summary: &SurfaceSummary,
     nodes: &[NodeSample],
     region: &Region,
@@ -201,6 +200,7 @@ pub fn lcc_map(
         significant(summary.delta_max * scale)
     );
     let k = nominal_nm_per_count;
+    let surface = &fitted.surface;
     let value = |x_um: f64, y_um: f64| surface.evaluate(x_um * 1e3 / k, y_um * 1e3 / k) * scale;
     let nodes: Vec<MapNode> = nodes
         .iter()
@@ -268,36 +268,20 @@ pub fn uncertainty_map(
     );
     let xs: Vec<f64> = records_counts.iter().map(|p| p.0).collect();
     let ys: Vec<f64> = records_counts.iter().map(|p| p.1).collect();
-    let zeros = vec![0.0; xs.len()];
-    let obs = spm_regression::Observations::new(&xs, &ys, &zeros);
     let mut values = Vec::new();
     for (coefficient, surface, sigma) in [
-        (
-            Coefficient::Kx,
-            &plane.kx_nm_per_count.surface,
-            summary.kx.sigma,
-        ),
-        (
-            Coefficient::Ky,
-            &plane.ky_nm_per_count.surface,
-            summary.ky.sigma,
-        ),
-        (
-            Coefficient::Alpha,
-            &plane.alpha_rad.surface,
-            summary.alpha.sigma,
-        ),
+        (Coefficient::Kx, &plane.kx_nm_per_count, summary.kx.sigma),
+        (Coefficient::Ky, &plane.ky_nm_per_count, summary.ky.sigma),
+        (Coefficient::Alpha, &plane.alpha_rad, summary.alpha.sigma),
     ] {
         let (name, what, unit, scale) = coefficient.describe();
-        let u =
-            spm_regression::standard_errors(&obs, surface, sigma * scale, &grid).map_err(|e| {
-                PlotError {
-                    path: file.to_owned(),
-                    message: format!("{name} surface's leverages: {e}"),
-                }
+        let u = spm_correction::fit::standard_uncertainty(surface, &xs, &ys, sigma * scale, &grid)
+            .map_err(|e| PlotError {
+                path: file.to_owned(),
+                message: format!("{name} surface's leverages: {e}"),
             })?;
         values.push((
-            format!("{name} ({what}), degree {}", surface.degree()),
+            format!("{name} ({what}), degree {}", surface.surface.degree()),
             u,
             format!("u({name}), {unit}"),
         ));

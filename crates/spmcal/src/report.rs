@@ -72,25 +72,6 @@ pub struct AccuracyTable {
     pub distributed_over_lumped_rms: f64,
 }
 
-/// Measured node LCCs against the oracle's true LCCs at the LCS centres.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct NodeLccError {
-    /// Records compared.
-    pub n: usize,
-    /// Mean (K̄x measured / true − 1), % (bias).
-    pub kx_mean_pct: f64,
-    /// RMS (K̄x measured / true − 1), %.
-    pub kx_rms_pct: f64,
-    /// Mean (K̄y measured / true − 1), %.
-    pub ky_mean_pct: f64,
-    /// RMS (K̄y measured / true − 1), %.
-    pub ky_rms_pct: f64,
-    /// Mean (α measured − true), mrad.
-    pub alpha_mean_mrad: f64,
-    /// RMS (α measured − true), mrad.
-    pub alpha_rms_mrad: f64,
-}
-
 /// One drift estimate in report.json.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct DriftPoint {
@@ -182,9 +163,9 @@ pub struct CalibrationReport {
     /// method's position and lattice error on them (simulated backends only).
     pub images: Option<spm_evaluation::images::ImageBenchmark>,
     /// Every record's LCCs against the oracle's true LCCs (simulated backends only).
-    pub node_lcc_error: Option<NodeLccError>,
+    pub node_lcc_error: Option<spm_evaluation::accuracy::NodeLccError>,
     /// The vertical axis against the oracle (simulated backends, runs that measured Kz).
-    pub vertical: Option<crate::vertical::VerticalReport>,
+    pub vertical: Option<spm_evaluation::vertical::VerticalReport>,
     /// The scanner dynamics identified in situ (issue 23), against the simulator's own where
     /// there is one.
     pub dynamics: Option<crate::dynamics::DynamicsReport>,
@@ -285,7 +266,7 @@ impl Validation {
         let options = SurfaceFitOptions::bic_up_to(MAX_SURFACE_DEGREE);
         let held_out =
             spm_evaluation::validation::held_out_check(&usable, &plan.validation, |z, records| {
-                crate::surfaces::fit_plane_of_records(z, records, &options)
+                spm_correction::fit::fit_plane_of_records(z, records, &options)
             });
         let repeats = spm_evaluation::validation::repeat_agreement(&usable, &plan.validation);
         let (lattice, lattice_failure) = match images {
@@ -767,7 +748,9 @@ pub fn finish_with(
         write(&out.join(&figure.file), &figure.png)?;
     }
 
-    let node_lcc_error = record.truth.and_then(|truth| node_lcc_error(truth, &all));
+    let node_lcc_error = record
+        .truth
+        .and_then(|truth| spm_evaluation::accuracy::node_lcc_error(truth, &all));
     let measured = record.run.nodes_done.max(1) as f64;
     let mut report = CalibrationReport {
         scanner_id: record.plan.scanner_id.clone(),
@@ -790,7 +773,7 @@ pub fn finish_with(
             {
                 return None;
             }
-            crate::vertical::evaluate(truth, record.plan, &fitted.set, &all)
+            spm_evaluation::vertical::evaluate(truth, record.plan, &fitted.set, &all)
         }),
         dynamics,
         validation,
@@ -1079,9 +1062,9 @@ fn figures(
     ) {
         let summary = &fitted.summary;
         for (coefficient, surface, summary) in [
-            (Coefficient::Kx, &plane.kx_nm_per_count.surface, &summary.kx),
-            (Coefficient::Ky, &plane.ky_nm_per_count.surface, &summary.ky),
-            (Coefficient::Alpha, &plane.alpha_rad.surface, &summary.alpha),
+            (Coefficient::Kx, &plane.kx_nm_per_count, &summary.kx),
+            (Coefficient::Ky, &plane.ky_nm_per_count, &summary.ky),
+            (Coefficient::Alpha, &plane.alpha_rad, &summary.alpha),
         ] {
             figures.push(plots::lcc_map(
                 coefficient,
@@ -1121,7 +1104,6 @@ fn figures(
     Ok(figures)
 }
 
-/// Every record's LCCs against the truth at its LCS centre: mean and RMS per coefficient.
 /// The corrected standard's other paths for the console: the static surfaces alone and each
 /// pair's counter partner (when the file holds dynamics).
 fn other_paths(l: &spm_evaluation::validation::LatticeCheck) -> String {
@@ -1133,39 +1115,6 @@ fn other_paths(l: &spm_evaluation::validation::LatticeCheck) -> String {
     } else {
         String::new()
     }
-}
-
-fn node_lcc_error(oracle: &dyn TruthSource, all: &[spm_cdb::LccRecord]) -> Option<NodeLccError> {
-    let z = oracle.z_now();
-    let mut e = Vec::with_capacity(all.len());
-    for r in all {
-        let truth = oracle.true_lcc(
-            spm_hal::CountPoint::from_counts(r.lcs_x_counts, r.lcs_y_counts),
-            z,
-        );
-        e.push((
-            (r.kx_nm_per_count / truth.kx_nm_per_count - 1.0) * 100.0,
-            (r.ky_nm_per_count / truth.ky_nm_per_count - 1.0) * 100.0,
-            (r.alpha_rad - truth.alpha_rad) * 1e3,
-        ));
-    }
-    if e.is_empty() {
-        return None;
-    }
-    let n = e.len() as f64;
-    let mean = |f: fn(&(f64, f64, f64)) -> f64| e.iter().map(f).sum::<f64>() / n;
-    let rms = |f: fn(&(f64, f64, f64)) -> f64| {
-        spm_regression::rms(&e.iter().map(f).collect::<Vec<_>>()).unwrap_or(0.0)
-    };
-    Some(NodeLccError {
-        n: e.len(),
-        kx_mean_pct: mean(|v| v.0),
-        kx_rms_pct: rms(|v| v.0),
-        ky_mean_pct: mean(|v| v.1),
-        ky_rms_pct: rms(|v| v.1),
-        alpha_mean_mrad: mean(|v| v.2),
-        alpha_rms_mrad: rms(|v| v.2),
-    })
 }
 
 /// Shortest and longest time constant of the creep law's shape, s, and elements per decade:

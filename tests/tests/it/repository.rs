@@ -66,6 +66,56 @@ fn no_algorithm_crate_depends_on_the_simulator() {
     }
 }
 
+/// The numerics kernel and linear-algebra crates the CLI crate must not name: its math lives
+/// in the library crates (docs/ARCHITECTURE.md, `crates/spmcal`).
+const CLI_FORBIDDEN_MATH: &[&str] = &["spm_regression::", "nalgebra::", "faer::"];
+
+/// The forbidden names in a source text, outside comments.
+fn math_in(text: &str) -> Vec<String> {
+    text.lines()
+        .enumerate()
+        .filter(|(_, line)| !line.trim_start().starts_with("//"))
+        .flat_map(|(i, line)| {
+            CLI_FORBIDDEN_MATH
+                .iter()
+                .filter(move |name| line.contains(*name))
+                .map(move |name| format!("line {}: {name}", i + 1))
+        })
+        .collect()
+}
+
+#[test]
+fn the_cli_crate_holds_no_math() {
+    let deps = normal_dependencies("spmcal");
+    for kernel in ["spm-regression", "nalgebra", "faer"] {
+        assert!(
+            !deps.iter().any(|d| d == kernel),
+            "crates/spmcal/Cargo.toml lists {kernel} as a dependency; the CLI's math belongs in \
+             a library crate (a dev-dependency for its tests is fine)"
+        );
+    }
+    let root = workspace_root();
+    let mut found = Vec::new();
+    for file in rust_sources(&root.join("crates/spmcal/src")) {
+        let text = std::fs::read_to_string(&file).unwrap();
+        found.extend(
+            math_in(&text)
+                .into_iter()
+                .map(|m| format!("{}: {m}", file.display())),
+        );
+    }
+    assert!(
+        found.is_empty(),
+        "math in the CLI crate:\n{}",
+        found.join("\n")
+    );
+    // The check finds a call and passes over a comment.
+    assert_eq!(
+        math_in("// spm_regression::median\nlet m = spm_regression::median(&mut v);"),
+        vec!["line 2: spm_regression::".to_owned()]
+    );
+}
+
 #[test]
 fn spm_hal_knows_no_other_workspace_crate() {
     let deps = normal_dependencies("spm-hal");

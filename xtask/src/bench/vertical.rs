@@ -26,7 +26,7 @@ pub struct VerticalResults {
     /// report.json `regression.kz` (degree, σ, Δmax of the first plane).
     pub regression_kz: Option<spmcal::surfaces::SurfaceSummary>,
     /// report.json `vertical` with every effect on.
-    pub vertical: Option<spmcal::vertical::VerticalReport>,
+    pub vertical: Option<spm_evaluation::vertical::VerticalReport>,
     /// The Kz-residual trend (%/h) and its t with a hidden Kz drift of 3 %/h.
     pub hidden_kz_drift_trend_pct_per_hour: Option<f64>,
     /// Its t.

@@ -2,4 +2,5 @@
 //! module per topic, run as `cargo test -p spm-correction --test it <module>::`.
 
 mod api;
+mod fit;
 mod properties;

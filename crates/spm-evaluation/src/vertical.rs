@@ -1,119 +1,14 @@
-//! The vertical axis after a run (issue 15): the bowl surface of every Z plane from the LCSs'
-//! levels, and — against the simulator's oracle — the `vertical` section of report.json
-//! (Kz surface error, bowl residual, the z-dependence of K̄x and K̄y across the planes).
+//! The vertical axis of a calibration against an instrument's ground truth (issue 15): the
+//! `vertical` section of report.json — Kz surface error, bowl residual, the z-dependence of
+//! K̄x and K̄y across the planes, and the trend of the Kz residuals with time. The surfaces
+//! themselves (Kz, the bowl) are fitted by `spm_correction::fit`.
 
-use crate::surfaces::{RegressionSummary, SurfaceFitError, SurfaceFitOptions, extent, fit_one};
 use serde::Serialize;
-use spm_cdb::{CdbRead, RecordFilter};
-use spm_correction::{PlaneSurfaces, SurfaceSet};
+use spm_correction::SurfaceSet;
+use spm_correction::fit::extent;
 use spm_hal::truth::{GroundTruth, LateralState, VerticalTruth};
 use spm_hal::{CountPoint, Counts};
 use spm_records::LccRecord;
-
-/// Fits the plane's bowl (the LCSs' Z over x, y) when the plane's records come from a run that
-/// measured the vertical axis (at least one record with Kz; without it `lcs_z_counts` is a
-/// single Z reading on the corrugation and no bowl is fitted). With enough records for a
-/// quadratic (≥ 12), records on another terrace (Z off the surface by more than 0.6 step)
-/// are left out, iteratively.
-///
-/// # Errors
-/// [`SurfaceFitError`] from the CDB or the regression.
-pub fn with_bowl(
-    cdb: &dyn CdbRead,
-    filter: &RecordFilter,
-    mut plane: PlaneSurfaces,
-    mut summary: RegressionSummary,
-    options: &SurfaceFitOptions,
-) -> Result<(PlaneSurfaces, RegressionSummary), SurfaceFitError> {
-    let records = cdb.records(filter)?;
-    let levels: Vec<&LccRecord> = records
-        .iter()
-        .filter(|r| {
-            r.lcs_x_counts.is_finite() && r.lcs_y_counts.is_finite() && r.lcs_z_counts.is_finite()
-        })
-        .collect();
-    let kz: Vec<f64> = levels.iter().filter_map(|r| r.kz_nm_per_count).collect();
-    // Kz^r at the places Kz was measured (the steps' edge points, schema v3; the LCS for
-    // older records), not at the LCSs the steps were searched from.
-    let with_kz: Vec<&&LccRecord> = levels
-        .iter()
-        .filter(|r| r.kz_nm_per_count.is_some_and(|k| k.is_finite() && k > 0.0))
-        .collect();
-    if with_kz.len() >= 2 {
-        let x: Vec<f64> = with_kz
-            .iter()
-            .map(|r| r.kz_x_counts.unwrap_or(r.lcs_x_counts))
-            .collect();
-        let y: Vec<f64> = with_kz
-            .iter()
-            .map(|r| r.kz_y_counts.unwrap_or(r.lcs_y_counts))
-            .collect();
-        let v: Vec<f64> = with_kz.iter().filter_map(|r| r.kz_nm_per_count).collect();
-        let field = extent(&x, &y);
-        let (surface, s) = fit_one(
-            "kz_nm_per_count",
-            plane.z_counts as i64,
-            &x,
-            &y,
-            &v,
-            &field,
-            options,
-        )?;
-        plane.kz_nm_per_count = Some(surface);
-        summary.kz = Some(s);
-    }
-    if kz.is_empty() || levels.len() < 6 {
-        return Ok((plane, summary));
-    }
-    // 0.6 monatomic step in counts (0.3354 nm over the mean Kz): a terrace offset. A plane
-    // (fewer than 12 records) cannot follow the bowl, so nothing is left out then.
-    let terrace = if levels.len() >= 12 {
-        0.6 * 0.3354 / (kz.iter().sum::<f64>() / kz.len() as f64)
-    } else {
-        f64::INFINITY
-    };
-    let z_counts = plane.z_counts as i64;
-    let mut keep = vec![true; levels.len()];
-    let mut fitted = None;
-    for _ in 0..4 {
-        let pick = |f: fn(&LccRecord) -> f64| -> Vec<f64> {
-            levels
-                .iter()
-                .zip(&keep)
-                .filter(|(_, k)| **k)
-                .map(|(r, _)| f(r))
-                .collect()
-        };
-        let (x, y, z) = (
-            pick(|r| r.lcs_x_counts),
-            pick(|r| r.lcs_y_counts),
-            pick(|r| r.lcs_z_counts),
-        );
-        if z.len() < 6 {
-            break;
-        }
-        let field = extent(&x, &y);
-        let (surface, s) = fit_one("bowl_z_counts", z_counts, &x, &y, &z, &field, options)?;
-        let next: Vec<bool> = levels
-            .iter()
-            .map(|r| {
-                (r.lcs_z_counts - surface.surface.evaluate(r.lcs_x_counts, r.lcs_y_counts)).abs()
-                    < terrace
-            })
-            .collect();
-        let stable = next == keep;
-        keep = next;
-        fitted = Some((surface, s));
-        if stable {
-            break;
-        }
-    }
-    if let Some((surface, s)) = fitted {
-        plane.bowl_z_counts = Some(surface);
-        summary.bowl = Some(s);
-    }
-    Ok((plane, summary))
-}
 
 /// A z-slope measured across the Z planes against the oracle's.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -180,9 +75,9 @@ pub struct VerticalReport {
     pub planes: Vec<PlaneVertical>,
 }
 
-/// Leverage `x₀ᵀ(XᵀX)⁻¹x₀` of the point (x₀, y₀) for a polynomial of `degree` fitted at the
-/// points (x, y): the variance of the surface's value there is σ²·leverage. `None` when the
-/// normal matrix is singular. The kernel's [`spm_regression::LinearFit::leverages`].
+/// Leverage `x₀ᵀ(XᵀX)⁻¹x₀` of the point (x₀, y₀) for `surface`'s polynomial fitted at the
+/// points (x, y) ([`spm_regression::leverages`]): the variance of the surface's value there is
+/// σ²·leverage. `None` when the design is singular.
 fn leverage(
     surface: &spm_regression::Polynomial2,
     x: &[f64],
@@ -190,18 +85,12 @@ fn leverage(
     x0: f64,
     y0: f64,
 ) -> Option<f64> {
-    let (cx, cy) = surface.center();
-    let (sx, sy) = surface.scale();
-    let row = |x: f64, y: f64| -> Vec<f64> {
-        let (u, v) = ((x - cx) / sx, (y - cy) / sy);
-        spm_regression::term_powers(surface.degree())
-            .map(|(px, py)| u.powi(px as i32) * v.powi(py as i32))
-            .collect()
-    };
-    let rows: Vec<Vec<f64>> = x.iter().zip(y).map(|(xi, yi)| row(*xi, *yi)).collect();
-    let free = vec![false; spm_regression::n_terms(surface.degree())];
-    let fit = spm_regression::least_squares(&rows, &vec![0.0; rows.len()], &free).ok()?;
-    fit.leverages(&[row(x0, y0)]).ok()?.first().copied()
+    let zeros = vec![0.0; x.len()];
+    let observations = spm_regression::Observations::new(x, y, &zeros);
+    spm_regression::leverages(&observations, surface, &[(x0, y0)])
+        .ok()?
+        .first()
+        .copied()
 }
 
 /// Coarse-stage position of a plane label from the plan's Z levels.
@@ -433,4 +322,32 @@ fn residual_trend(residual_vs_time: &[(f64, f64)]) -> Option<(f64, f64)> {
         let se = (ss / (n - 2.0) / stt.max(1e-300)).sqrt();
         (100.0 * b, if se > 0.0 { b / se } else { 0.0 })
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::leverage;
+
+    /// The leverage of a plane fitted at the four corners (±1, ±1) and the centre, against
+    /// its closed form 1/n + x₀²/Σx² + y₀²/Σy² (the design's columns are orthogonal there).
+    #[test]
+    fn a_plane_s_leverage_is_its_closed_form() -> Result<(), spm_regression::RegressionError> {
+        let x = [-1.0, 1.0, -1.0, 1.0, 0.0];
+        let y = [-1.0, -1.0, 1.0, 1.0, 0.0];
+        let plane = spm_regression::Polynomial2::new(1, (0.0, 0.0), (1.0, 1.0), vec![0.0; 3])?;
+        for (x0, y0) in [(0.0, 0.0), (0.5, -0.25), (2.0, 3.0)] {
+            let expected = 1.0 / 5.0 + x0 * x0 / 4.0 + y0 * y0 / 4.0;
+            let h = leverage(&plane, &x, &y, x0, y0);
+            assert!(
+                h.is_some_and(|h| (h - expected).abs() < 1e-12),
+                "({x0}, {y0}): {h:?} against {expected}"
+            );
+        }
+        // Three collinear records cannot carry a plane.
+        assert_eq!(
+            leverage(&plane, &[0.0, 1.0, 2.0], &[0.0, 1.0, 2.0], 0.0, 0.0),
+            None
+        );
+        Ok(())
+    }
 }

@@ -579,6 +579,12 @@ pub enum NeighbourSet {
     Lcs,
     /// Every nearest neighbour of A found in the aperture.
     AllInAperture,
+    /// Every feature of the aperture that sits on a site of A's lattice as the recognised
+    /// LCS spans it (nearest neighbours and the farther shells, √3·a and 2·a in an aperture
+    /// of 4 lattice constants), each named by its lattice indices through the LCS. A longer
+    /// vector is measured to the same absolute precision, so its relative error is smaller;
+    /// for stored images, whose noise is frozen (virtual mode).
+    LatticeInAperture,
 }
 
 /// How drift-free vectors are measured.

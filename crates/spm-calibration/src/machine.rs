@@ -158,6 +158,9 @@ pub struct ApertureResult {
     pub lcs: Option<(CountVector, CountVector)>,
     /// A→neighbour for every neighbour forming an LCS with A, counts.
     pub neighbours: Vec<CountVector>,
+    /// A→feature for every other feature recognised in the aperture, counts (for
+    /// [`NeighbourSet::LatticeInAperture`]).
+    pub features: Vec<CountVector>,
 }
 
 /// A measured vector (summary of `spm_fos::SkipReport`).
@@ -363,6 +366,49 @@ impl NodeMeasurement {
     }
 }
 
+/// The lattice a recognised LCS spans at a node: C = [A→B A→C] (columns, counts) and the
+/// standard's S = [(a, 0) a(cos θ, ±sin θ)] (nm; the sign of C's orientation), so that the
+/// site with lattice indices (i, j) lies at C·(i, j) in counts and at S·(i, j) in nm.
+struct LcsFrame {
+    /// C⁻¹, row by row.
+    c_inverse: [[f64; 2]; 2],
+    /// S, row by row.
+    s: [[f64; 2]; 2],
+}
+
+impl LcsFrame {
+    /// The frame of the LCS (A→B, A→C) for lattice constant `a_nm` and LCS angle
+    /// `theta_rad`; `None` when A→B and A→C are parallel or not finite.
+    fn new((ab, ac): (CountVector, CountVector), a_nm: f64, theta_rad: f64) -> Option<Self> {
+        let (c11, c12, c21, c22) = (ab.x.value(), ac.x.value(), ab.y.value(), ac.y.value());
+        let det = c11 * c22 - c12 * c21;
+        if !(det.is_finite() && det != 0.0) {
+            return None;
+        }
+        let sign = if det >= 0.0 { 1.0 } else { -1.0 };
+        Some(Self {
+            c_inverse: [[c22 / det, -c12 / det], [-c21 / det, c11 / det]],
+            s: [
+                [a_nm, a_nm * theta_rad.cos()],
+                [0.0, sign * a_nm * theta_rad.sin()],
+            ],
+        })
+    }
+
+    /// Lattice coordinates (u, w) = C⁻¹·v of a vector from A, counts.
+    fn lattice(&self, v: CountVector) -> (f64, f64) {
+        let (x, y) = (v.x.value(), v.y.value());
+        let m = &self.c_inverse;
+        (m[0][0] * x + m[0][1] * y, m[1][0] * x + m[1][1] * y)
+    }
+
+    /// The standard's vector S·(u, w) of lattice coordinates, nm.
+    fn standard(&self, (u, w): (f64, f64)) -> (f64, f64) {
+        let m = &self.s;
+        (m[0][0] * u + m[0][1] * w, m[1][0] * u + m[1][1] * w)
+    }
+}
+
 /// The parts of the plan the machine needs.
 #[derive(Clone, Debug, PartialEq)]
 pub struct MachineParams {
@@ -388,7 +434,9 @@ pub struct MachineParams {
     /// caught another feature (plan `tuning.vector_match_tolerance_fraction`).
     pub vector_match_tolerance: f64,
     /// Accepted relative deviation of a neighbour's length from the lattice constant
-    /// (plan `standard.length_tolerance_fraction`), for [`NeighbourSet::AllInAperture`].
+    /// (plan `standard.length_tolerance_fraction`), for [`NeighbourSet::AllInAperture`]; for
+    /// [`NeighbourSet::LatticeInAperture`], the accepted distance of a feature from its
+    /// lattice site, as a fraction of the lattice constant.
     pub length_tolerance: f64,
     /// Accepted deviation of a neighbour's direction from a lattice direction (plan
     /// `standard.angle_tolerance_deg`), for [`NeighbourSet::AllInAperture`].
@@ -567,33 +615,18 @@ impl NodeMachine {
     /// obliquity: a record with K̄x 21 % and α 27° off).
     fn neighbours_through_lcs(
         &self,
-        (ab, ac): (CountVector, CountVector),
+        lcs: (CountVector, CountVector),
         neighbours: &[CountVector],
     ) -> Vec<VectorTarget> {
         let a = self.params.lattice_constant_nm;
         let theta = self.params.lcs_angle.value();
-        let sign = if ab.x.value() * ac.y.value() - ab.y.value() * ac.x.value() >= 0.0 {
-            1.0
-        } else {
-            -1.0
-        };
-        // P⁻¹ = S · C⁻¹, C = [A→B A→C] (columns, counts), S = [(a, 0) a(cos θ, ±sin θ)].
-        let (c11, c12, c21, c22) = (ab.x.value(), ac.x.value(), ab.y.value(), ac.y.value());
-        let det = c11 * c22 - c12 * c21;
-        if !(det.is_finite() && det != 0.0) {
+        let Some(frame) = LcsFrame::new(lcs, a, theta) else {
             return Vec::new();
-        }
-        let (s11, s12, s21, s22) = (a, a * theta.cos(), 0.0, sign * a * theta.sin());
-        let to_nm = |v: CountVector| {
-            let (x, y) = (v.x.value(), v.y.value());
-            // C⁻¹ v, then S ·.
-            let (u, w) = ((c22 * x - c12 * y) / det, (-c21 * x + c11 * y) / det);
-            (s11 * u + s12 * w, s21 * u + s22 * w)
         };
         neighbours
             .iter()
             .filter_map(|&n| {
-                let (x, y) = to_nm(n);
+                let (x, y) = frame.standard(frame.lattice(n));
                 let angle = y.atan2(x);
                 let k = (angle / theta).round();
                 let off_angle = (angle - k * theta).abs();
@@ -609,10 +642,48 @@ impl NodeMachine {
             .collect()
     }
 
+    /// Every feature of the aperture on a site of A's lattice, named by its lattice indices
+    /// through the recognised LCS: a feature at v sits at lattice coordinates (u, w) = C⁻¹·v
+    /// ([`LcsFrame`]); it is kept when its nearest site (i, j) is not A's own and it lies
+    /// within `length_tolerance` lattice constants of that site in the standard's frame
+    /// (|S·(u − i, w − j)|), and its true vector is S·(i, j).
+    fn sites_through_lcs(
+        &self,
+        lcs: (CountVector, CountVector),
+        features: &[CountVector],
+    ) -> Vec<VectorTarget> {
+        let a = self.params.lattice_constant_nm;
+        let Some(frame) = LcsFrame::new(lcs, a, self.params.lcs_angle.value()) else {
+            return Vec::new();
+        };
+        features
+            .iter()
+            .filter_map(|&v| {
+                let (u, w) = frame.lattice(v);
+                let (i, j) = (u.round(), w.round());
+                let (ex, ey) = frame.standard((u - i, w - j));
+                let (sx, sy) = frame.standard((i, j));
+                ((i, j) != (0.0, 0.0) && ex.hypot(ey) <= self.params.length_tolerance * a).then(
+                    || VectorTarget {
+                        start: VectorStart::AtA,
+                        estimate: v,
+                        standard: StandardVector::from_nm(sx, sy),
+                    },
+                )
+            })
+            .collect()
+    }
+
     fn plan_targets(&mut self, aperture: &ApertureResult) -> bool {
         let a = self.params.lattice_constant_nm;
         let mut targets = Vec::new();
         match (self.params.neighbours, aperture.lcs) {
+            (NeighbourSet::LatticeInAperture, Some(lcs)) => {
+                targets = self.sites_through_lcs(lcs, &aperture.features);
+                if targets.len() < 2 {
+                    return false;
+                }
+            }
             (NeighbourSet::AllInAperture, Some(lcs)) if aperture.neighbours.len() >= 2 => {
                 targets = self.neighbours_through_lcs(lcs, &aperture.neighbours);
                 if targets.len() < 2 {
@@ -700,7 +771,9 @@ impl NodeMachine {
         // Every neighbour of A measured: a vector of another feature (a defect, a feature
         // the aperture misplaced) is left out by the node's own redundancy.
         let solved = match self.params.neighbours {
-            NeighbourSet::AllInAperture if self.measured.len() > 3 => {
+            NeighbourSet::AllInAperture | NeighbourSet::LatticeInAperture
+                if self.measured.len() > 3 =>
+            {
                 solve_lcc_rejecting(&self.measured, VECTOR_REJECTION_SIGMAS).map(|(lcc, kept)| {
                     retain_indices(&mut self.measured, &kept);
                     retain_indices(&mut self.targets, &kept);

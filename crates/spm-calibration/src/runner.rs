@@ -942,6 +942,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
                 a: centre,
                 lcs: None,
                 neighbours: Vec::new(),
+                features: Vec::new(),
             }));
         };
         let neighbours = r
@@ -950,6 +951,15 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             .filter_map(|&i| r.feature(i))
             .map(|f| f.position - a.position)
             .collect();
+        let features = r
+            .recognised
+            .detection
+            .features
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| Some(*i) != r.a)
+            .map(|(_, f)| f.position - a.position)
+            .collect();
         Ok(Event::ApertureScanned(ApertureResult {
             a: Anchor {
                 position: a.position,
@@ -957,6 +967,7 @@ impl<'a, M: Microscope, S: ProgressStore + ?Sized, O: Observer + ?Sized> Calibra
             },
             lcs: r.lcs.map(|l| (l.ab, l.ac)),
             neighbours,
+            features,
         }))
     }
 

@@ -65,7 +65,7 @@ pub struct VirtualBackendConfig {
     pub background_sigma_nm: Option<f64>,
     /// Smooth the image with a Gaussian of this width, nm, before serving it
     /// (`StoredImage::smoothed`: pixel and line noise averaged). Default: none in a job
-    /// file; `--virtual` uses [`SMOOTHING_SIGMA_LATTICE`] lattice constants.
+    /// file; `--virtual` uses [`default_smoothing_sigma_lattice`] lattice constants.
     #[serde(default)]
     pub smoothing_sigma_nm: Option<f64>,
     /// Filter the image by its own mean cell of this standard before serving it, after the
@@ -668,7 +668,15 @@ pub fn virtual_plan(
     // follows the lattice tool's row by row with a sd of 1.4 % (one triangle: 1.5–5 %, and
     // up to 1.7 % high on average), and a vector of another feature is left out by the node's own
     // redundancy (`spm_calibration::solve_lcc_rejecting`; docs/results/virtual.md).
-    plan.variant.neighbours = spm_calibration::NeighbourSet::AllInAperture;
+    // For Si(111)-7×7 every corner hole of the aperture on a site of A's lattice is measured
+    // (the shells at √3·a and 2·a too): the records' K̄x scatter halves (Si_7x7_028 1.9 →
+    // 1.0 %, 032 1.1 → 0.7 %). On the HOPG terrace the farther atoms are worse sightings (the
+    // noise's false atoms within the site tolerance; the left half's mean α moved by 2°), so
+    // HOPG keeps the nearest neighbours.
+    plan.variant.neighbours = match options.standard {
+        StandardName::Si7x7 => spm_calibration::NeighbourSet::LatticeInAperture,
+        StandardName::Hopg => spm_calibration::NeighbourSet::AllInAperture,
+    };
     // A cell pattern's frames give their lattice by their spectrum (Si_7x7_028: the
     // features' neighbours put K̄y 50 % off); single atoms by their neighbours.
     plan.survey.lattice_from = match options.standard {

@@ -46,6 +46,7 @@ fn aperture() -> Event {
         a: anchor(5.0, 5.0),
         lcs: Some(lcs()),
         neighbours: vec![],
+        features: vec![],
     })
 }
 
@@ -210,6 +211,7 @@ fn permanent_errors_and_missing_features_have_their_reasons() {
         a: anchor(0.0, 0.0),
         lcs: None,
         neighbours: vec![],
+        features: vec![],
     });
     assert!(matches!(
         m.step(no_lcs),
@@ -271,6 +273,7 @@ fn variants_change_the_sequence_and_the_vectors() {
         a: anchor(0.0, 0.0),
         lcs: Some(lcs()),
         neighbours: ring.clone(),
+        features: ring.clone(),
     }));
     for v in &ring {
         assert!(matches!(action, Action::Skip { .. }));
@@ -448,6 +451,7 @@ fn transcripts_of_the_plan_variants() {
             a: anchor(5.0, 5.0),
             lcs: None,
             neighbours: vec![],
+            features: vec![],
         })
     };
     check(
@@ -491,6 +495,7 @@ fn every_neighbour_is_named_through_the_lcs_and_a_wrong_one_is_left_out() {
         a: anchor(0.0, 0.0),
         lcs: Some((raw(0.0), raw(60.0))),
         neighbours: ring.clone(),
+        features: ring.clone(),
     }));
     for (i, v) in ring.iter().enumerate() {
         assert!(matches!(action, Action::Skip { .. }), "{action:?}");
@@ -505,4 +510,66 @@ fn every_neighbour_is_named_through_the_lcs_and_a_wrong_one_is_left_out() {
     assert!((r.lcc.kx.value() / KX - 1.0).abs() < 1e-9, "{:?}", r.lcc);
     assert!((r.lcc.ky.value() / ky - 1.0).abs() < 1e-9, "{:?}", r.lcc);
     assert!(r.lcc.alpha.value().abs() < 1e-9, "{:?}", r.lcc);
+}
+
+/// Every feature of the aperture on a site of A's lattice, on a scanner that stretches y
+/// 2.5× and shears (α = 0.2 rad): the two shells beyond the nearest neighbours (√3·a and
+/// 2·a) are named by their lattice indices through the recognised LCS; a feature between
+/// sites (a defect) and A itself are left out; the node's coefficients are the scanner's.
+#[test]
+fn every_lattice_site_in_the_aperture_is_named_through_the_lcs() {
+    let ky = KX / 2.5;
+    let alpha: f64 = 0.2;
+    let a = 0.2461;
+    // The scanner's inverse: true (x, y) nm → counts, with K̄y along the sheared y axis.
+    let counts = |x: f64, y: f64| {
+        let v = y / (ky * alpha.cos());
+        let u = (x - ky * alpha.sin() * v) / KX;
+        CountVector::from_counts(u, v)
+    };
+    let site = |i: f64, j: f64| {
+        let t = 60f64.to_radians();
+        counts(a * (i + j * t.cos()), a * j * t.sin())
+    };
+    let mut m =
+        machine(|c| c.variant.neighbours = spm_calibration::NeighbourSet::LatticeInAperture);
+    m.step(Event::Begin);
+    m.step(Event::Paused);
+    m.step(settled());
+    let mut sites = Vec::new();
+    for i in -2..=2 {
+        for j in -2..=2 {
+            let (i, j) = (f64::from(i), f64::from(j));
+            // Within two lattice constants, A itself left out.
+            let length = (i * i + j * j + i * j).sqrt();
+            if length > 0.0 && length <= 2.0 + 1e-9 {
+                sites.push(site(i, j));
+            }
+        }
+    }
+    assert_eq!(sites.len(), 18);
+    let mut features = sites.clone();
+    // Half-way between two sites, and A itself.
+    features.push(site(0.5, 0.5));
+    features.push(site(0.0, 0.0));
+    let mut action = m.step(Event::ApertureScanned(ApertureResult {
+        a: anchor(0.0, 0.0),
+        lcs: Some((site(1.0, 0.0), site(0.0, 1.0))),
+        neighbours: Vec::new(),
+        features,
+    }));
+    let mut skipped = 0;
+    while let Action::Skip { .. } = action {
+        let v = sites[skipped];
+        skipped += 1;
+        action = m.step(completed(v, 2, 0));
+    }
+    assert_eq!(skipped, 18, "every site skipped to, nothing else");
+    let Action::Finished(r) = action else {
+        panic!("{action:?}")
+    };
+    assert_eq!(r.vectors.len(), 18);
+    assert!((r.lcc.kx.value() / KX - 1.0).abs() < 1e-9, "{:?}", r.lcc);
+    assert!((r.lcc.ky.value() / ky - 1.0).abs() < 1e-9, "{:?}", r.lcc);
+    assert!((r.lcc.alpha.value() - alpha).abs() < 1e-9, "{:?}", r.lcc);
 }

@@ -57,8 +57,8 @@ fn usable(x: f64, y: f64, kx: f64, ky: f64, alpha: f64, kz: Option<f64>) -> bool
         && kz.is_none_or(|kz| kz.is_finite() && kz > 0.0)
 }
 
-/// Whether `cdb check` accepts a record's regression inputs ([`usable`]): the records a fit
-/// uses.
+/// Whether `cdb check` accepts a record's regression inputs (finite centre, K̄x, K̄y > 0,
+/// |α| < π/2, Kz > 0 where given): the records a fit uses.
 #[must_use]
 pub fn record_is_usable(r: &LccRecord) -> bool {
     usable(
@@ -91,7 +91,8 @@ pub fn fit_plane_of_records(
     fit_plane(z_counts, &columns, options).map(|(plane, _)| plane)
 }
 
-/// Keeps the records that `cdb check` accepts ([`usable`]); returns how many were left out.
+/// Keeps the records that `cdb check` accepts ([`record_is_usable`]); returns how many were
+/// left out.
 pub fn keep_valid(columns: &mut LccColumns) -> usize {
     let n = columns.len();
     let keep: Vec<bool> = (0..n)

@@ -85,7 +85,7 @@ pub struct RulerEstimate {
     pub since_move_s: f64,
     /// v, nm/s per axis.
     pub drift_nm_per_s: [f64; 2],
-    /// The fast axis's terms along the line (see [`fast_axis_terms`]), nm: x·u, x·u², x·u³,
+    /// The fast axis's terms along the line (see `fast_axis_terms`), nm: x·u, x·u², x·u³,
     /// y·u², y·u³, u the place along the line in line lengths from its middle (−½ … ½).
     pub fast_axis_nm: [f64; FAST_TERMS],
     /// e at the frame's middle (the median pixel time, the middle of the line), nm: what

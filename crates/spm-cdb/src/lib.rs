@@ -446,7 +446,7 @@ fn tune_cache(conn: &Connection) -> rusqlite::Result<()> {
     Ok(())
 }
 
-/// `PRAGMA mmap_size` of every connection: 0, no memory-mapped I/O (see [`tune_cache`]).
+/// `PRAGMA mmap_size` of every connection: 0, no memory-mapped I/O (see `tune_cache`).
 pub const MMAP_SIZE: i64 = 0;
 
 /// Creates a new CDB so that no other process ever sees it half made: the schema is

@@ -474,10 +474,10 @@ fn migrate_step(tx: &mut postgres::Transaction<'_>, path: &Path, version: i64) -
 /// Every statement runs under a client-side watchdog ([`PgSettings::reply_timeout_s`]): a
 /// server that stays silent that long while the client waits (a stopped backend, which
 /// neither keepalive nor the server's own timeouts would notice) fails the call as
-/// [`CdbError::Unanswered`](crate::CdbError::Unanswered), not retried. With a stop flag
-/// ([`PgCdb::set_interrupt`]), a reconnect loop ends before its next attempt or within
-/// [`RECONNECT_POLL_S`] of a pause, and a wait for a silent server within
-/// [`crate::pg_watchdog::STOP_GRACE_S`] (1 s), as [`ErrorKind::Interrupted`].
+/// [`CdbError::Unanswered`], not retried. With a stop flag ([`PgCdb::set_interrupt`]), a
+/// reconnect loop ends before its next attempt or within [`RECONNECT_POLL_S`] of a pause, and
+/// a wait for a silent server within 1 s (the watchdog's `STOP_GRACE_S`), as
+/// [`ErrorKind::Interrupted`].
 pub struct PgCdb {
     // The client before its link: dropped first, its goodbye still reaches the server.
     // Boxed: the client (its runtime) is large, and an enum holding a PgCdb or a Cdb stays
@@ -1000,9 +1000,9 @@ impl PgCdb {
     }
 
     /// The run's stop flag: once it is set, no reconnect is started, a reconnect pause ends
-    /// within [`RECONNECT_POLL_S`], and a wait for a silent server is cut within
-    /// [`crate::pg_watchdog::STOP_GRACE_S`]; the operation then fails as
-    /// [`ErrorKind::Interrupted`] (a transaction cut so is not committed).
+    /// within [`RECONNECT_POLL_S`], and a wait for a silent server is cut within 1 s (the
+    /// watchdog's `STOP_GRACE_S`); the operation then fails as [`ErrorKind::Interrupted`] (a
+    /// transaction cut so is not committed).
     pub fn set_interrupt(&mut self, stop: Arc<AtomicBool>) {
         self.link.get_mut().set_stop(Arc::clone(&stop));
         self.stop = Some(stop);

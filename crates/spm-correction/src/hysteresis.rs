@@ -299,10 +299,10 @@ impl ScannerDynamics {
 
     /// `uₑ − u` (counts, per axis) at every query time of `history`: the hysteresis h of the
     /// commands, then the creep of `x = u + h` (DESIGN §4's model). Queries in time order.
-    /// One streaming pass ([`replay_dynamics`]): memory is the output.
+    /// One streaming pass per axis ([`replay_axis`]): memory is the output.
     ///
     /// # Errors
-    /// As [`replay_dynamics`] and [`CreepParameters::law`].
+    /// As [`replay_axis`] and [`CreepParameters::law`].
     pub fn offsets(
         &self,
         history: &CommandHistory,

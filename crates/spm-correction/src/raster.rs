@@ -608,7 +608,8 @@ impl<'f, F: CorrectionField + ?Sized> RasterLines<'f, F> {
 }
 
 /// Corrected coordinates of every pixel of a direct or counter raster, in the common frame
-/// described in the [module documentation](self) (nm from the corrected origin corner).
+/// (nm from the corrected origin corner of the direct image; a counter map is anchored at the
+/// far corner's direct-image value, where the two rasters physically meet).
 ///
 /// Implements eq. (7): every pixel of a direct or counter raster.
 ///

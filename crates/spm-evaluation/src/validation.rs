@@ -508,6 +508,9 @@ pub struct LatticePlace {
 /// corrected as a user corrects (`spmcal correct`).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct LatticeCheck {
+    /// What was measured: counter-scanned pairs imaged after the run, or the stored image a
+    /// virtual run calibrated on, cell by cell.
+    pub measured_on: LatticeSource,
     /// The standard's lattice constant, nm.
     pub lattice_constant_nm: f64,
     /// Pixels per line and lines of each image.
@@ -543,6 +546,18 @@ pub struct LatticeCheck {
     pub verdict: Verdict,
     /// Why not measured, or what is out of range.
     pub reason: Option<String>,
+}
+
+/// What a [`LatticeCheck`] measured.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LatticeSource {
+    /// Counter-scanned pairs of the standard imaged after the run at places over the
+    /// calibrated region ([`lattice_check`]).
+    CounterPairs,
+    /// The stored image a virtual run calibrated on, corrected whole and measured in the
+    /// cells of a grid ([`lattice_check_of_cells`]).
+    StoredImageCells,
 }
 
 /// The image set of the lattice check: `lattice_places_per_side`² places over the region, one
@@ -678,21 +693,38 @@ pub fn lattice_check(
             }
         })
         .collect();
+    Ok(summarise_places(
+        LatticeSource::CounterPairs,
+        places,
+        a,
+        (
+            config.sizes.first().map_or(0, |s| s.pixels),
+            config.sizes.first().map_or(0.0, |s| s.step_counts),
+        ),
+        set.dynamics.is_some(),
+        thresholds,
+    ))
+}
+
+/// A lattice check's figures over its places (RMS and largest errors of each column) and its
+/// verdict against the plan's thresholds. `image` is the pixels per line and the pixel step
+/// (counts) of the images measured.
+fn summarise_places(
+    measured_on: LatticeSource,
+    places: Vec<LatticePlace>,
+    lattice_constant_nm: f64,
+    (pixels, step_counts): (u32, f64),
+    dynamics_applied: bool,
+    thresholds: &RunValidationConfig,
+) -> LatticeCheck {
     let rms = |v: &[f64]| spm_regression::rms(v).unwrap_or(f64::NAN);
-    let ce: Vec<f64> = places
-        .iter()
-        .filter_map(|p| p.corrected_error_pct)
-        .collect();
-    let ca: Vec<f64> = places
-        .iter()
-        .filter_map(|p| p.corrected_angle_error_deg)
-        .collect();
-    let ue: Vec<f64> = places
-        .iter()
-        .filter_map(|p| p.uncorrected_error_pct)
-        .collect();
-    let se: Vec<f64> = places.iter().filter_map(|p| p.static_error_pct).collect();
-    let pe: Vec<f64> = places.iter().filter_map(|p| p.counter_error_pct).collect();
+    let column =
+        |f: fn(&LatticePlace) -> Option<f64>| -> Vec<f64> { places.iter().filter_map(f).collect() };
+    let ce = column(|p| p.corrected_error_pct);
+    let ca = column(|p| p.corrected_angle_error_deg);
+    let ue = column(|p| p.uncorrected_error_pct);
+    let se = column(|p| p.static_error_pct);
+    let pe = column(|p| p.counter_error_pct);
     let max_abs = |v: &[f64]| {
         if v.is_empty() {
             f64::NAN
@@ -701,9 +733,10 @@ pub fn lattice_check(
         }
     };
     let mut check = LatticeCheck {
-        lattice_constant_nm: a,
-        pixels: config.sizes.first().map_or(0, |s| s.pixels),
-        step_counts: config.sizes.first().map_or(0.0, |s| s.step_counts),
+        measured_on,
+        lattice_constant_nm,
+        pixels,
+        step_counts,
         corrected_measured: ce.len(),
         corrected_max_error_pct: max_abs(&ce),
         corrected_rms_error_pct: rms(&ce),
@@ -713,7 +746,7 @@ pub fn lattice_check(
         static_rms_error_pct: rms(&se),
         counter_measured: pe.len(),
         counter_rms_error_pct: rms(&pe),
-        dynamics_applied: set.dynamics.is_some(),
+        dynamics_applied,
         places,
         thresholds: [
             thresholds.lattice_constant_error_pct_max,
@@ -723,7 +756,87 @@ pub fn lattice_check(
         reason: None,
     };
     judge_lattice(&mut check);
-    Ok(check)
+    check
+}
+
+/// A part of an image's lattice as a lattice fit over its features measures it
+/// (`spm_modelcheck::survey`, what `spmcal lattice` reports).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PartFigures {
+    /// True over apparent lattice length along x (1: right).
+    pub scale_x: f64,
+    /// The same along y.
+    pub scale_y: f64,
+    /// Obliquity of the axes, degrees (0: orthogonal).
+    pub obliquity_deg: f64,
+}
+
+impl PartFigures {
+    /// The lattice-constant error of the part, %: of the two axes' apparent lattice
+    /// constants (a / scale), the one farther from a.
+    #[must_use]
+    pub fn lattice_constant_error_pct(&self) -> f64 {
+        let (ex, ey) = (
+            100.0 * (1.0 / self.scale_x - 1.0),
+            100.0 * (1.0 / self.scale_y - 1.0),
+        );
+        if ex.abs() >= ey.abs() { ex } else { ey }
+    }
+}
+
+/// One cell of a grid over a stored image of the standard, its lattice before and after the
+/// correction ([`lattice_check_of_cells`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SurveyCell {
+    /// The cell's label ("cell (column, row)").
+    pub place: String,
+    /// Its centre, commanded counts.
+    pub centre_counts: [f64; 2],
+    /// The stored image's lattice there through the nominal sensitivity (`None`: too few
+    /// features).
+    pub uncorrected: Option<PartFigures>,
+    /// The lattice there after `spmcal correct` with the run's calibration file.
+    pub corrected: Option<PartFigures>,
+}
+
+/// The lattice check of a run on a stored image (the virtual backend), whose counter-scanned
+/// pairs would only resample the same frozen pixels: the image itself, corrected as a user
+/// corrects it, its lattice measured cell by cell (`cells`, e.g. a `lattice_places_per_side`²
+/// grid), each cell's figures against the plan's thresholds as the pairs' are. `image` is the
+/// image's pixels per line and pixel step in counts.
+#[must_use]
+pub fn lattice_check_of_cells(
+    cells: &[SurveyCell],
+    lattice_constant_nm: f64,
+    image: (u32, f64),
+    dynamics_applied: bool,
+    thresholds: &RunValidationConfig,
+) -> LatticeCheck {
+    let error = |p: &Option<PartFigures>| p.map(|f| f.lattice_constant_error_pct());
+    let angle = |p: &Option<PartFigures>| p.map(|f| f.obliquity_deg.abs());
+    let places = cells
+        .iter()
+        .map(|c| LatticePlace {
+            place: c.place.clone(),
+            centre_counts: c.centre_counts,
+            uncorrected_error_pct: error(&c.uncorrected),
+            uncorrected_angle_error_deg: angle(&c.uncorrected),
+            corrected_error_pct: error(&c.corrected),
+            corrected_angle_error_deg: angle(&c.corrected),
+            static_error_pct: None,
+            static_angle_error_deg: None,
+            counter_error_pct: None,
+            counter_angle_error_deg: None,
+        })
+        .collect();
+    summarise_places(
+        LatticeSource::StoredImageCells,
+        places,
+        lattice_constant_nm,
+        image,
+        dynamics_applied,
+        thresholds,
+    )
 }
 
 /// The lattice check's verdict against its thresholds, with the reasons.

@@ -53,8 +53,8 @@ pub struct ColumnShift {
 /// Tracks the trace → retrace shift along the lines from both ends (module docs): from the
 /// first column rightwards and from the last column leftwards (both ends are reversal points,
 /// where the branches meet). A window is returned only where both trackings agree to within
-/// [`AGREEMENT_PX`]; one that slipped a lattice period disagrees from the slip on. Returns the
-/// agreeing windows and how many windows disagreed.
+/// 0.5 pixel (`AGREEMENT_PX`); one that slipped a lattice period disagrees from the slip on.
+/// Returns the agreeing windows and how many windows disagreed.
 ///
 /// # Errors
 /// As the one-way tracking: [`FeatureError::InconsistentMap`], [`FeatureError::NonFinite`],

@@ -485,7 +485,7 @@ pub struct FieldFigure<'a> {
 /// Height of one panel of a [`field_maps`] figure, pixels.
 const FIELD_PANEL_PX: u32 = 420;
 
-/// Draws a [`FieldFigure`], [`MAP_WIDTH_PX`] wide, [`FIELD_PANEL_PX`] per panel.
+/// Draws a [`FieldFigure`], [`MAP_WIDTH_PX`] wide, 420 pixels high per panel.
 ///
 /// # Errors
 /// [`PlotError::Empty`] when there is no panel, a panel has no finite value or not one value
@@ -1082,7 +1082,7 @@ pub const ORDER_COLUMNS: usize = 2;
 const ORDER_PANEL_PX: (u32, u32) = (430, 400);
 
 /// Draws an [`OrderFigure`]: [`ORDER_COLUMNS`] panels per row (fewer when there are fewer
-/// panels), each [`ORDER_PANEL_PX`], and one colour bar.
+/// panels), each 430 pixels wide and 400 high, and one colour bar.
 ///
 /// # Errors
 /// [`PlotError::Empty`] when no point is finite.

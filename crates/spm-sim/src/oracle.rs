@@ -8,7 +8,7 @@ use crate::surface::{FeatureSite, Surface};
 use serde::{Deserialize, Serialize};
 use spm_hal::{CountPoint, Counts, NmPerCount, NmPoint, NmVelocity, Seconds};
 
-/// Read-only ground truth of a [`Simulator`].
+/// Read-only ground truth of a [`Simulator`](crate::Simulator).
 ///
 /// Vocabulary (see the crate docs): `u` = commanded counts, `uₑ = u + h + c`
 /// = *effective input* (after hysteresis h and creep c), `F(uₑ, z)` = the
@@ -30,7 +30,8 @@ impl<'a> Oracle<'a> {
 
     /// True tip positions (scanner frame, nm: hysteresis and creep as they
     /// acted, drift and jitter excluded) of the last scan's forward pixels in
-    /// acquisition order, recorded while [`Simulator::record_tip_positions`]
+    /// acquisition order, recorded while
+    /// [`Simulator::record_tip_positions`](crate::Simulator::record_tip_positions)
     /// is on; empty otherwise.
     pub fn last_scan_tip_positions(&self) -> Vec<NmPoint> {
         self.state

@@ -326,7 +326,9 @@ pub fn run(
     let spinner = ProgressBarObserver::phases();
     let phase = |name: &str| spinner.phase(name);
     phase("imaging the standard over the calibrated region (validation)");
-    // The standard imaged over the calibrated region, for the validation's lattice check.
+    // The standard imaged over the calibrated region, for the validation's lattice check; a
+    // virtual run's stored image is itself corrected and measured instead.
+    let stored = spmcal::run::stored_standard(&job);
     let standard = spmcal::run::standard_images(&mut outcome.instrument, &job.plan, &samples.nodes);
     if let Err(e) = outcome.instrument.release() {
         tracing::error!("the controller's own compensation could not be switched back on: {e}");
@@ -350,6 +352,7 @@ pub fn run(
     };
     let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s)
         .with_standard_images(standard.as_ref())
+        .with_stored_standard(stored.as_ref())
         .with_provenance(&provenance)
         .with_phase(&phase);
     let report = finish_with(

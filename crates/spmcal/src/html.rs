@@ -428,6 +428,31 @@ fn validation_section(page: &mut Page, v: &crate::report::Validation) {
     validation_lattice(page, v, &verdict);
 }
 
+/// What the corrected-standard check measured, in words.
+fn lattice_source(l: &spm_evaluation::validation::LatticeCheck) -> String {
+    match l.measured_on {
+        spm_evaluation::validation::LatticeSource::CounterPairs => format!(
+            "counter-scanned pairs of {} × {} pixels ({} counts per pixel) at {} places over \
+             the calibrated region, taken after the run and corrected as spmcal correct does \
+             (the drift removed by each pair)",
+            l.pixels,
+            l.pixels,
+            l.step_counts,
+            l.places.len()
+        ),
+        spm_evaluation::validation::LatticeSource::StoredImageCells => format!(
+            "the stored image the run calibrated on ({} pixels per line, {:.3} counts per \
+             pixel), corrected whole as spmcal correct does with the run's calibration (beyond \
+             the calibrated region too) and its lattice measured in the {} cells of a grid \
+             (spmcal lattice); a pair taken from a stored image would only resample its \
+             frozen pixels",
+            l.pixels,
+            l.step_counts,
+            l.places.len()
+        ),
+    }
+}
+
 /// The validation's corrected-standard part: the paragraph with its verdict and the table of
 /// places.
 fn validation_lattice(
@@ -440,16 +465,11 @@ fn validation_lattice(
             page.paragraph_with_id(
                 "validation-lattice",
                 &format!(
-                    "Corrected standard: counter-scanned pairs of {} × {} pixels ({} counts per \
-                     pixel) at {} places over the calibrated region, taken after the run and \
-                     corrected as spmcal correct does (the drift removed by each pair). Lattice \
+                    "Corrected standard: {}. Lattice \
                      constant measured at {} places: RMS error {:.2} % (uncorrected {:.2} %), \
                      max {:.2} %; angles max {:.2}°. Pass: ≤ {} % and ≤ {}° everywhere. \
                      Verdict: {}. {}",
-                    l.pixels,
-                    l.pixels,
-                    l.step_counts,
-                    l.places.len(),
+                    lattice_source(l),
                     l.corrected_measured,
                     l.corrected_rms_error_pct,
                     l.uncorrected_rms_error_pct,

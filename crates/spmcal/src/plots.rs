@@ -839,6 +839,7 @@ mod tests {
             .filter(|p| p.corrected_error_pct.is_some())
             .count();
         spm_evaluation::validation::LatticeCheck {
+            measured_on: spm_evaluation::validation::LatticeSource::CounterPairs,
             lattice_constant_nm: 0.2461,
             pixels: 64,
             step_counts: 3.0,

@@ -257,6 +257,7 @@ impl Validation {
         plan: &PlanConfig,
         set: &spm_correction::SurfaceSet,
         images: Option<&Result<Vec<spm_evaluation::images::TestImage>, String>>,
+        stored: Option<&crate::virtual_mode::StoredStandard>,
     ) -> Self {
         let usable: Vec<spm_cdb::LccRecord> = records
             .iter()
@@ -269,10 +270,19 @@ impl Validation {
                 spm_correction::fit::fit_plane_of_records(z, records, &options)
             });
         let repeats = spm_evaluation::validation::repeat_agreement(&usable, &plan.validation);
-        let (lattice, lattice_failure) = match images {
-            None => (None, None),
-            Some(Err(e)) => (None, Some(format!("the images were not taken: {e}"))),
-            Some(Ok(images)) => match spm_evaluation::validation::lattice_check(
+        let (lattice, lattice_failure) = match (stored, images) {
+            (Some(stored), _) => {
+                match crate::virtual_mode::stored_lattice_check(stored, set, plan) {
+                    Ok(check) => (Some(check), None),
+                    Err(e) => (
+                        None,
+                        Some(format!("the stored image was not measured: {e}")),
+                    ),
+                }
+            }
+            (None, None) => (None, None),
+            (None, Some(Err(e))) => (None, Some(format!("the images were not taken: {e}"))),
+            (None, Some(Ok(images))) => match spm_evaluation::validation::lattice_check(
                 images,
                 set,
                 &spm_evaluation::validation::lattice_image_set(plan),
@@ -319,6 +329,10 @@ pub struct RunRecord<'a> {
     /// The standard imaged over the calibrated region after the run, for the validation's
     /// lattice check ([`crate::run::standard_images`]); `None` when not taken.
     pub standard_images: Option<&'a Result<Vec<spm_evaluation::images::TestImage>, String>>,
+    /// The stored image a virtual run calibrated on: the validation's lattice check corrects
+    /// it and measures it cell by cell instead of imaging pairs
+    /// ([`crate::virtual_mode::stored_lattice_check`]).
+    pub stored_standard: Option<&'a crate::virtual_mode::StoredStandard>,
     /// The run's provenance, for the report.
     pub provenance: Option<&'a RunProvenance>,
     /// Told the name of each phase of the report as it starts (a progress display).
@@ -381,6 +395,7 @@ impl<'a> RunRecord<'a> {
             true_dynamics: outcome.instrument.true_dynamics(),
             wall_time_s,
             standard_images: None,
+            stored_standard: None,
             provenance: None,
             phase: None,
             stored_dynamics: None,
@@ -409,6 +424,7 @@ impl<'a> RunRecord<'a> {
             true_dynamics: None,
             wall_time_s: 0.0,
             standard_images: None,
+            stored_standard: None,
             provenance: Some(provenance),
             phase: None,
             stored_dynamics: None,
@@ -454,6 +470,19 @@ impl<'a> RunRecord<'a> {
     ) -> Self {
         Self {
             standard_images: images,
+            ..self
+        }
+    }
+
+    /// The record with the stored image a virtual run calibrated on, for the validation's
+    /// lattice check.
+    #[must_use]
+    pub fn with_stored_standard(
+        self,
+        stored: Option<&'a crate::virtual_mode::StoredStandard>,
+    ) -> Self {
+        Self {
+            stored_standard: stored,
             ..self
         }
     }
@@ -734,7 +763,13 @@ pub fn finish_with(
         notes.push("drift: no drift estimate was made in this invocation (no figure)".to_owned());
     }
     record.phase("validating (held-out nodes, repeats, the corrected standard)");
-    let validation = Validation::of(&all, record.plan, &fitted.set, record.standard_images);
+    let validation = Validation::of(
+        &all,
+        record.plan,
+        &fitted.set,
+        record.standard_images,
+        record.stored_standard,
+    );
     record.phase("drawing the figures");
     let mut figures = figures(record, &fitted, &all, drift.estimates > 0)?;
     figures.extend(verdict_figures(

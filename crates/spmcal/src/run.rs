@@ -521,10 +521,9 @@ impl FinishedInstrument {
 
 /// The standard imaged over the region of the measured `nodes` after the run, for the
 /// validation's lattice check (counter-scanned pairs at the plan's
-/// `validation.lattice_places_per_side`² places): on the controller or the stored image
-/// itself, and on a copy of a simulator (so that the image benchmark, which takes its own
+/// `validation.lattice_places_per_side`² places): on the controller, and on a copy of a simulator (so that the image benchmark, which takes its own
 /// images on another copy, sees the instrument as the run left it). `None` when the plan asks
-/// for no places or the nodes span no area.
+/// for no places, the nodes span no area, or the backend is a stored image.
 pub fn standard_images(
     instrument: &mut FinishedInstrument,
     plan: &spm_calibration::PlanConfig,
@@ -545,11 +544,25 @@ pub fn standard_images(
         FinishedInstrument::Nanonis(nanonis) => {
             take_images_without_truth(&mut **nanonis, &region, &config)
         }
-        FinishedInstrument::Virtual(virt) => {
-            take_images_without_truth(&mut **virt, &region, &config)
-        }
+        // A pair taken from a stored image would only resample its frozen pixels: the image
+        // itself is corrected and measured instead ([`stored_standard`]).
+        FinishedInstrument::Virtual(_) => return None,
     };
     Some(taken.map_err(|e| e.to_string()))
+}
+
+/// The stored image of a virtual job, for the validation's lattice check
+/// ([`crate::virtual_mode::stored_lattice_check`]); `None` for other backends, when the plan
+/// asks for no places, or when the plan does not name its standard.
+#[must_use]
+pub fn stored_standard(job: &crate::job::Job) -> Option<crate::virtual_mode::StoredStandard> {
+    if job.plan.validation.lattice_places_per_side == 0 {
+        return None;
+    }
+    match &job.backend {
+        Backend::Virtual(virt) => crate::virtual_mode::StoredStandard::of_job(virt, &job.plan),
+        _ => None,
+    }
 }
 
 impl FinishedInstrument {

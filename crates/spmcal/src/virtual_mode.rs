@@ -109,6 +109,8 @@ pub const BACKGROUND_SIGMA_LATTICE: f64 = 1.5;
 pub struct VirtualBackend {
     /// The image file (as given, resolved against the job file's folder).
     pub image: PathBuf,
+    /// The height channel served (`None`: Z, Topography, or the first in metres).
+    pub channel: Option<String>,
     /// The surface served.
     pub surface: VirtualSurface,
     /// The stated conversions.
@@ -352,6 +354,7 @@ impl VirtualBackendConfig {
         };
         let backend = VirtualBackend {
             image: image_path.clone(),
+            channel: self.channel.clone(),
             surface: VirtualSurface {
                 forward,
                 backward,
@@ -758,6 +761,170 @@ pub struct LatticeSurvey {
     pub cells: Vec<CellLattice>,
 }
 
+/// The stored image a virtual run calibrated on, for the validation's lattice check
+/// ([`stored_lattice_check`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredStandard {
+    /// The image file.
+    pub image: PathBuf,
+    /// Its height channel (`None`: Z, Topography, or the first in metres).
+    pub channel: Option<String>,
+    /// The standard it shows.
+    pub standard: StandardName,
+}
+
+impl StoredStandard {
+    /// The stored image of a job's virtual backend, when the plan names its standard.
+    #[must_use]
+    pub fn of_job(backend: &VirtualBackend, plan: &PlanConfig) -> Option<Self> {
+        Some(Self {
+            image: backend.image.clone(),
+            channel: backend.channel.clone(),
+            standard: plan.standard.name?,
+        })
+    }
+}
+
+/// The validation's lattice check of a run on a stored image: a counter-scanned pair taken
+/// from it would resample the same frozen pixels, so the image itself is corrected as
+/// `spmcal correct` corrects it with the run's calibration `set` (the nominal sensitivity of
+/// the plan; beyond the calibrated region too, since the net keeps a margin) and its lattice
+/// measured in each cell of a `lattice_places_per_side`² grid before and after
+/// ([`spm_modelcheck::survey_channel`], what `spmcal lattice` reports), judged against the
+/// plan's thresholds ([`spm_evaluation::validation::lattice_check_of_cells`]).
+///
+/// # Errors
+/// [`VirtualInputError`] when the image cannot be read or corrected.
+pub fn stored_lattice_check(
+    stored: &StoredStandard,
+    set: &spm_correction::SurfaceSet,
+    plan: &PlanConfig,
+) -> Result<spm_evaluation::validation::LatticeCheck, VirtualInputError> {
+    use spm_evaluation::validation::{PartFigures, SurveyCell};
+    let path = stored.image.as_path();
+    let grid = (plan.validation.lattice_places_per_side as usize).max(1);
+    let nominal = plan.standard.nominal_nm_per_count;
+    let file = spm_formats::read_any(path)?;
+    let forward = height_channel(&file, path, stored.channel.as_deref())?;
+    let spec = lattice_spec(stored.standard, path)?;
+    let before = survey_of(&file, forward, &spec, grid, path)?;
+    let options = spm_apply::ApplyOptions {
+        nominal_nm_per_count: Some(nominal),
+        allow_extrapolation: true,
+        channels: match &stored.channel {
+            Some(name) => spm_apply::ChannelSelection::Named(name.clone()),
+            None => spm_apply::ChannelSelection::Height,
+        },
+        ..spm_apply::ApplyOptions::default()
+    };
+    let corrected = spm_apply::correct_file(&file, set, &options).map_err(|e| {
+        VirtualInputError::Parameter {
+            path: path.to_path_buf(),
+            detail: format!("correcting the stored image with the run's calibration: {e}"),
+        }
+    })?;
+    let corrected_file = spm_formats::SpmFile {
+        channels: corrected.channels,
+        ..file.clone()
+    };
+    let after = match corrected_file.channels.first() {
+        Some(channel) => survey_of(&corrected_file, channel, &spec, grid, path)?,
+        None => (None, Vec::new()),
+    };
+    let figures = |c: Option<&spm_modelcheck::CellLattice>| {
+        c.and_then(|c| c.lattice).map(|l| PartFigures {
+            scale_x: l.scale_x,
+            scale_y: l.scale_y,
+            obliquity_deg: l.obliquity_deg,
+        })
+    };
+    let (width, height) = (
+        forward.nx() as f64 * forward.pixel_x_nm().unwrap_or(f64::NAN) / nominal,
+        forward.ny() as f64 * forward.pixel_y_nm().unwrap_or(f64::NAN) / nominal,
+    );
+    let cells: Vec<SurveyCell> = before
+        .1
+        .iter()
+        .map(|b| {
+            let centre = |k: usize, n: f64| ((k as f64 + 0.5) / grid as f64 - 0.5) * n;
+            SurveyCell {
+                place: format!("cell ({}, {})", b.column, b.row),
+                // Row 0 is the display's top, +y.
+                centre_counts: [centre(b.column, width), -centre(b.row, height)],
+                uncorrected: figures(Some(b)),
+                corrected: figures(
+                    after
+                        .1
+                        .iter()
+                        .find(|a| (a.column, a.row) == (b.column, b.row)),
+                ),
+            }
+        })
+        .collect();
+    Ok(spm_evaluation::validation::lattice_check_of_cells(
+        &cells,
+        stored.standard.lattice_constant_nm(),
+        (
+            u32::try_from(forward.nx()).unwrap_or(u32::MAX),
+            forward.pixel_x_nm().unwrap_or(f64::NAN) / nominal,
+        ),
+        set.dynamics.is_some(),
+        &plan.validation,
+    ))
+}
+
+/// The height channel of `file` (`wanted`, or Z, Topography, the first in metres), forward.
+fn height_channel<'a>(
+    file: &'a spm_formats::SpmFile,
+    path: &Path,
+    wanted: Option<&str>,
+) -> Result<&'a spm_formats::Channel, VirtualInputError> {
+    pick_channels(file, wanted)
+        .map(|(forward, _)| forward)
+        .ok_or_else(|| VirtualInputError::NoChannel {
+            path: path.to_path_buf(),
+            wanted: wanted
+                .unwrap_or("Z (or Topography, or any in metres)")
+                .to_owned(),
+            available: file
+                .channels
+                .iter()
+                .map(|c| c.name().to_owned())
+                .collect::<Vec<_>>()
+                .join(", "),
+        })
+}
+
+/// The lattice model check's specification of a standard.
+fn lattice_spec(
+    standard: StandardName,
+    path: &Path,
+) -> Result<spm_modelcheck::LatticeSpec, VirtualInputError> {
+    spm_modelcheck::LatticeSpec::parse(standard.as_str()).map_err(|e| {
+        VirtualInputError::Parameter {
+            path: path.to_path_buf(),
+            detail: e.to_string(),
+        }
+    })
+}
+
+/// [`spm_modelcheck::survey_channel`] with its error named by the file.
+fn survey_of(
+    file: &spm_formats::SpmFile,
+    channel: &spm_formats::Channel,
+    spec: &spm_modelcheck::LatticeSpec,
+    grid: usize,
+    path: &Path,
+) -> Result<(Option<PartLattice>, Vec<CellLattice>), VirtualInputError> {
+    spm_modelcheck::survey_channel(file, channel, spec, grid).map_err(|e| match e {
+        spm_modelcheck::SurveyError::NoPixelSize => VirtualInputError::Image {
+            path: path.to_path_buf(),
+            channel: channel.name().to_owned(),
+            source: spm_virtual::ImageError::NoPixelSize,
+        },
+    })
+}
+
 /// Measures the lattice of `standard` on an image file, whole and in a `grid` × `grid`
 /// partition, by spm-modelcheck's extraction and baseline fit (what `spmcal diagnose`
 /// reports), on the height channel; pixels without data (a corrected image's corners) are
@@ -773,35 +940,9 @@ pub fn survey_lattice(
 ) -> Result<LatticeSurvey, VirtualInputError> {
     let a = standard.lattice_constant_nm();
     let file = spm_formats::read_any(path)?;
-    let (forward, _) =
-        pick_channels(&file, channel).ok_or_else(|| VirtualInputError::NoChannel {
-            path: path.to_path_buf(),
-            wanted: channel
-                .unwrap_or("Z (or Topography, or any in metres)")
-                .to_owned(),
-            available: file
-                .channels
-                .iter()
-                .map(|c| c.name().to_owned())
-                .collect::<Vec<_>>()
-                .join(", "),
-        })?;
-    let spec = match standard {
-        StandardName::Hopg => spm_modelcheck::LatticeSpec::parse("hopg"),
-        StandardName::Si7x7 => spm_modelcheck::LatticeSpec::parse("si7x7"),
-    }
-    .map_err(|e| VirtualInputError::Parameter {
-        path: path.to_path_buf(),
-        detail: e.to_string(),
-    })?;
-    let (whole, cells) =
-        spm_modelcheck::survey_channel(&file, forward, &spec, grid).map_err(|e| match e {
-            spm_modelcheck::SurveyError::NoPixelSize => VirtualInputError::Image {
-                path: path.to_path_buf(),
-                channel: forward.name().to_owned(),
-                source: spm_virtual::ImageError::NoPixelSize,
-            },
-        })?;
+    let forward = height_channel(&file, path, channel)?;
+    let spec = lattice_spec(standard, path)?;
+    let (whole, cells) = survey_of(&file, forward, &spec, grid, path)?;
     Ok(LatticeSurvey {
         file: path.to_path_buf(),
         standard: standard.as_str(),

@@ -292,8 +292,10 @@ pub fn calibrate(
     let samples = recorder.into_samples();
     // The validation's corrected standard, imaged as `spmcal calibrate` images it.
     let standard = spmcal::run::standard_images(&mut outcome.instrument, &job.plan, &samples.nodes);
+    let stored = spmcal::run::stored_standard(job);
     let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s)
-        .with_standard_images(standard.as_ref());
+        .with_standard_images(standard.as_ref())
+        .with_stored_standard(stored.as_ref());
     let report = finish_with(&cdb_path, dir, &record, quick, with_images)
         .map_err(|e| XtaskError::step(format!("report in {}", dir.display()), e))?;
     let node_mean_k_rms_pct = match outcome.instrument.simulator() {

@@ -1,6 +1,6 @@
 //! One image of the standard before and after correction (issue 27's before/after figure):
 //! the raw heights on the commanded raster through the nominal sensitivity, and the same
-//! heights corrected as `spmcal correct` does (the calibration file alone, [`user_file_map`])
+//! heights corrected as `spmcal correct` does (the calibration file alone, `user_file_map`)
 //! and resampled onto a uniform nm grid of the same spacing.
 
 use super::ImageBenchmarkError;

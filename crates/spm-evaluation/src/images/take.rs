@@ -206,7 +206,7 @@ const ATTEMPTS: usize = 4;
 /// Takes the image set on `sim` (truth recording is switched on for it and off after).
 ///
 /// # Errors
-/// [`ImageBenchmarkError::Instrument`] when an image fails [`ATTEMPTS`] times.
+/// [`ImageBenchmarkError::Instrument`] when an image fails 4 times (`ATTEMPTS`).
 pub fn take_test_images<S: SimulatedInstrument>(
     instrument: &mut CommandRecorder<S>,
     region: &CountRegion,
@@ -266,7 +266,7 @@ pub fn take_test_images<S: SimulatedInstrument>(
 /// stored image).
 ///
 /// # Errors
-/// [`ImageBenchmarkError::Instrument`] when an image fails [`ATTEMPTS`] times.
+/// [`ImageBenchmarkError::Instrument`] when an image fails 4 times (`ATTEMPTS`).
 pub fn take_images_without_truth<M: Microscope>(
     instrument: &mut M,
     region: &CountRegion,

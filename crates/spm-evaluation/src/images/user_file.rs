@@ -183,11 +183,11 @@ fn file_map(
 }
 
 /// What `spmcal correct --ruler` finds on one test image (the file-alone map of
-/// [`user_file_map`], then [`spm_apply::ruler::estimate_from_lattice`]): the estimate, or why
+/// `user_file_map`, then [`spm_apply::ruler::estimate_from_lattice`]): the estimate, or why
 /// the ruler refused the image. For developer probes of the ruler on the benchmark's images.
 ///
 /// # Errors
-/// As [`user_file_map`]; [`ImageBenchmarkError::Config`] when the calibration has no dynamics.
+/// As `user_file_map`; [`ImageBenchmarkError::Config`] when the calibration has no dynamics.
 pub fn ruler_outcome(
     set: &spm_correction::SurfaceSet,
     image: &TestImage,

@@ -248,6 +248,7 @@ fn calibrate(name: &str, faults: Option<FaultConfig>, p_feature_lost: f64) -> Ou
         true_dynamics: None,
         wall_time_s: 0.0,
         standard_images: None,
+        stored_standard: None,
         provenance: None,
         phase: None,
         stored_dynamics: None,

@@ -384,10 +384,14 @@ fn validation_section(page: &mut Page, v: &crate::report::Validation) {
     page.paragraph_with_id(
         "validation-repeats",
         &format!(
-            "Repeat agreement: {} place(s) measured in 2–{} repeats. Pooled repeat scatter over \
+            "Repeat agreement: {} place(s) measured {}. Pooled repeat scatter over \
              the records' stated uncertainty, at most {} to pass. Verdict: {}.",
             r.places,
-            r.repeats,
+            match r.repeats {
+                0 | 1 => "in two repeats or more".to_owned(),
+                2 => "in 2 repeats".to_owned(),
+                n => format!("in 2–{n} repeats"),
+            },
             r.scatter_over_stated_max,
             verdict(r.verdict, &r.reason)
         ),
@@ -498,39 +502,45 @@ fn validation_lattice(
                 Some(v) => Cell::number(v, digits),
                 None => Cell::text("not measured"),
             };
+            // The static and counter-partner columns only where something was measured in
+            // them (a calibration with dynamics, measured on pairs).
+            let others = l.static_measured > 0 || l.counter_measured > 0;
             let rows: Vec<Row> = l
                 .places
                 .iter()
                 .map(|p| {
-                    Row::new(
-                        p.place.clone(),
-                        vec![
-                            Cell::text(p.place.clone()),
-                            opt(p.uncorrected_error_pct, 2),
-                            opt(p.uncorrected_angle_error_deg, 2),
-                            opt(p.corrected_error_pct, 2),
-                            opt(p.corrected_angle_error_deg, 2),
+                    let mut cells = vec![
+                        Cell::text(p.place.clone()),
+                        opt(p.uncorrected_error_pct, 2),
+                        opt(p.uncorrected_angle_error_deg, 2),
+                        opt(p.corrected_error_pct, 2),
+                        opt(p.corrected_angle_error_deg, 2),
+                    ];
+                    if others {
+                        cells.extend([
                             opt(p.static_error_pct, 2),
                             opt(p.static_angle_error_deg, 2),
                             opt(p.counter_error_pct, 2),
                             opt(p.counter_angle_error_deg, 2),
-                        ],
-                    )
+                        ]);
+                    }
+                    Row::new(p.place.clone(), cells)
                 })
                 .collect();
+            let header = [
+                "place",
+                "uncorrected: lattice constant error, %",
+                "uncorrected: largest angle error, °",
+                "corrected: lattice constant error, %",
+                "corrected: largest angle error, °",
+                "static surfaces only: lattice constant error, %",
+                "static surfaces only: largest angle error, °",
+                "with the counter partner: lattice constant error, %",
+                "with the counter partner: largest angle error, °",
+            ];
             page.table(
                 "validation-lattice-table",
-                &[
-                    "place",
-                    "uncorrected: lattice constant error, %",
-                    "uncorrected: largest angle error, °",
-                    "corrected: lattice constant error, %",
-                    "corrected: largest angle error, °",
-                    "static surfaces only: lattice constant error, %",
-                    "static surfaces only: largest angle error, °",
-                    "with the counter partner: lattice constant error, %",
-                    "with the counter partner: largest angle error, °",
-                ],
+                &header[..if others { header.len() } else { 5 }],
                 &rows,
             );
         }

@@ -737,6 +737,17 @@ impl NodeMachine {
         true
     }
 
+    /// Whether a vector whose skipping caught another feature (or would leave the
+    /// instrument's range) is dropped from the node rather than the node redone: for
+    /// [`NeighbourSet::LatticeInAperture`], whose farther sites lie near the aperture's edge,
+    /// where a skipping's window reaches beyond a small image or meets a feature between
+    /// sites (Si_7x7_051: 1 record of 25 nodes when such a vector redid its node, 16 when it
+    /// is dropped). A nearest neighbour that catches another feature says that the node's
+    /// attachment or LCS is wrong, and the other variants redo the node.
+    fn drops_wrong_vectors(&self) -> bool {
+        self.params.neighbours == NeighbourSet::LatticeInAperture
+    }
+
     fn next_measurement(&mut self, index: usize) -> Action {
         let Some(a) = self.a else {
             return self.redo(GiveUpReason::NoFeature);
@@ -823,6 +834,23 @@ impl NodeMachine {
         }
         match (self.stage, event) {
             (Stage::Start, Event::Begin) => self.start_attempt(self.pause),
+            // With every site of A measured, a vector whose skipping would leave the
+            // instrument's range (a site near the field's edge) is left out of the node while
+            // three or more targets remain.
+            (
+                Stage::Measuring(index),
+                Event::Failed(Failure::Permanent {
+                    kind: ErrorKind::OutOfRange,
+                    ..
+                }),
+            ) if self.drops_wrong_vectors() && self.targets.len() > 3 => {
+                self.targets.remove(index);
+                tracing::debug!(
+                    left = self.targets.len(),
+                    "a vector out of the instrument's range is left out of the node"
+                );
+                self.next_measurement(index)
+            }
             (_, Event::Failed(failure)) => self.fail(failure),
             (Stage::Pausing, Event::Paused) => self.after_pause(),
             (Stage::Attaching, Event::Attached(result)) => match result {
@@ -872,6 +900,18 @@ impl NodeMachine {
                         if deviation_fraction.is_nan()
                             || deviation_fraction > self.params.vector_match_tolerance
                         {
+                            // With every site of A measured, a skipping that caught another
+                            // feature costs its vector only, while three or more targets
+                            // remain: the node keeps its redundancy.
+                            if self.drops_wrong_vectors() && self.targets.len() > 3 {
+                                self.targets.remove(index);
+                                tracing::debug!(
+                                    deviation_fraction,
+                                    left = self.targets.len(),
+                                    "a vector that caught another feature is left out of the node"
+                                );
+                                return self.next_measurement(index);
+                            }
                             return self.redo(GiveUpReason::WrongFeature { deviation_fraction });
                         }
                     }

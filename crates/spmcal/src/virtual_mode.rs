@@ -761,6 +761,13 @@ pub struct LatticeSurvey {
     pub cells: Vec<CellLattice>,
 }
 
+/// The narrowest cell of the validation's grid over a stored image, lattice constants
+/// ([`stored_lattice_check`]): about 29 sites of a triangular lattice. The lattice fit needs
+/// [`MIN_PART_FEATURES`], and the features within a lattice constant of the data's edge are
+/// not extracted: Si_7x7_051 (7.4 lattice constants) corrected finds no lattice in any cell of
+/// 2 × 2 (23 features over the whole image), so it is measured whole.
+pub const MIN_CELL_SIDE_LATTICE: f64 = 5.0;
+
 /// The stored image a virtual run calibrated on, for the validation's lattice check
 /// ([`stored_lattice_check`]).
 #[derive(Debug, Clone, PartialEq)]
@@ -802,10 +809,18 @@ pub fn stored_lattice_check(
 ) -> Result<spm_evaluation::validation::LatticeCheck, VirtualInputError> {
     use spm_evaluation::validation::{PartFigures, SurveyCell};
     let path = stored.image.as_path();
-    let grid = (plan.validation.lattice_places_per_side as usize).max(1);
     let nominal = plan.standard.nominal_nm_per_count;
     let file = spm_formats::read_any(path)?;
     let forward = height_channel(&file, path, stored.channel.as_deref())?;
+    // The plan's places per side, fewer on a small image: a cell at least
+    // [`MIN_CELL_SIDE_LATTICE`] lattice constants wide, so that it holds the features a fit
+    // needs (Si_7x7_051, 7.4 lattice constants: the whole image).
+    let side_lattice = (forward.nx() as f64 * forward.pixel_x_nm().unwrap_or(f64::NAN))
+        .min(forward.ny() as f64 * forward.pixel_y_nm().unwrap_or(f64::NAN))
+        / stored.standard.lattice_constant_nm();
+    let grid = (plan.validation.lattice_places_per_side as usize)
+        .min((side_lattice / MIN_CELL_SIDE_LATTICE).floor() as usize)
+        .max(1);
     let spec = lattice_spec(stored.standard, path)?;
     let before = survey_of(&file, forward, &spec, grid, path)?;
     let options = spm_apply::ApplyOptions {

@@ -515,7 +515,9 @@ fn every_neighbour_is_named_through_the_lcs_and_a_wrong_one_is_left_out() {
 /// Every feature of the aperture on a site of A's lattice, on a scanner that stretches y
 /// 2.5× and shears (α = 0.2 rad): the two shells beyond the nearest neighbours (√3·a and
 /// 2·a) are named by their lattice indices through the recognised LCS; a feature between
-/// sites (a defect) and A itself are left out; the node's coefficients are the scanner's.
+/// sites (a defect) and A itself are left out; a skipping that caught another feature, and
+/// one out of the instrument's range, cost their vectors, not the node; the node's
+/// coefficients are the scanner's.
 #[test]
 fn every_lattice_site_in_the_aperture_is_named_through_the_lcs() {
     let ky = KX / 2.5;
@@ -562,13 +564,22 @@ fn every_lattice_site_in_the_aperture_is_named_through_the_lcs() {
     while let Action::Skip { .. } = action {
         let v = sites[skipped];
         skipped += 1;
-        action = m.step(completed(v, 2, 0));
+        action = match skipped {
+            // The fifth skipping caught the next feature out (60 % of its length off) and the
+            // ninth would leave the instrument's range: each costs its vector, not the node.
+            5 => m.step(completed(v * 1.6, 2, 0)),
+            9 => m.step(Event::Failed(Failure::Permanent {
+                kind: ErrorKind::OutOfRange,
+                message: "a scan leaves the stored image".into(),
+            })),
+            _ => m.step(completed(v, 2, 0)),
+        };
     }
     assert_eq!(skipped, 18, "every site skipped to, nothing else");
     let Action::Finished(r) = action else {
         panic!("{action:?}")
     };
-    assert_eq!(r.vectors.len(), 18);
+    assert_eq!(r.vectors.len(), 16);
     assert!((r.lcc.kx.value() / KX - 1.0).abs() < 1e-9, "{:?}", r.lcc);
     assert!((r.lcc.ky.value() / ky - 1.0).abs() < 1e-9, "{:?}", r.lcc);
     assert!((r.lcc.alpha.value() - alpha).abs() < 1e-9, "{:?}", r.lcc);

@@ -737,6 +737,69 @@ impl NodeMachine {
         true
     }
 
+    /// The machine's step on a skipping's result (stage `Measuring(index)`): the vector is
+    /// kept and the next one measured, or a vector that caught another feature redoes the
+    /// node (or, with every lattice site measured, costs its vector only), or an unstable
+    /// drift redoes the node.
+    fn skipped(&mut self, index: usize, result: SkipResult) -> Action {
+        match result {
+            SkipResult::Completed {
+                vector,
+                covariance,
+                a,
+                drift,
+                cycles,
+            } => {
+                self.cycles.add(cycles);
+                self.drift = drift;
+                if let Some(target) = self.targets.get(index) {
+                    let length = target.estimate.norm().value();
+                    let deviation_fraction =
+                        (vector - target.estimate).norm().value() / length.max(f64::MIN_POSITIVE);
+                    if deviation_fraction.is_nan()
+                        || deviation_fraction > self.params.vector_match_tolerance
+                    {
+                        // With every site of A measured, a skipping that caught another
+                        // feature costs its vector only, while three or more targets
+                        // remain: the node keeps its redundancy.
+                        if self.drops_wrong_vectors() && self.targets.len() > 3 {
+                            self.targets.remove(index);
+                            tracing::debug!(
+                                deviation_fraction,
+                                left = self.targets.len(),
+                                "a vector that caught another feature is left out of the node"
+                            );
+                            return self.next_measurement(index);
+                        }
+                        return self.redo(GiveUpReason::WrongFeature { deviation_fraction });
+                    }
+                }
+                // Keep A's latest sighting when the vector started at A.
+                if self
+                    .targets
+                    .get(index)
+                    .is_some_and(|t| t.start == VectorStart::AtA)
+                {
+                    self.a = Some(a);
+                }
+                let standard = self.targets[index].standard;
+                self.measured.push(VectorObservation {
+                    measured: vector,
+                    covariance,
+                    standard,
+                });
+                self.next_measurement(index + 1)
+            }
+            SkipResult::Unstable { cycles } => {
+                self.cycles.add(cycles);
+                self.redo(GiveUpReason::DriftUnstable {
+                    discarded: self.cycles.discarded,
+                    restarts: self.cycles.restarts,
+                })
+            }
+        }
+    }
+
     /// Whether a vector whose skipping caught another feature (or would leave the
     /// instrument's range) is dropped from the node rather than the node redone: for
     /// [`NeighbourSet::LatticeInAperture`], whose farther sites lie near the aperture's edge,
@@ -883,62 +946,7 @@ impl NodeMachine {
                     }
                 }
             }
-            (Stage::Measuring(index), Event::Skipped(result)) => match result {
-                SkipResult::Completed {
-                    vector,
-                    covariance,
-                    a,
-                    drift,
-                    cycles,
-                } => {
-                    self.cycles.add(cycles);
-                    self.drift = drift;
-                    if let Some(target) = self.targets.get(index) {
-                        let length = target.estimate.norm().value();
-                        let deviation_fraction = (vector - target.estimate).norm().value()
-                            / length.max(f64::MIN_POSITIVE);
-                        if deviation_fraction.is_nan()
-                            || deviation_fraction > self.params.vector_match_tolerance
-                        {
-                            // With every site of A measured, a skipping that caught another
-                            // feature costs its vector only, while three or more targets
-                            // remain: the node keeps its redundancy.
-                            if self.drops_wrong_vectors() && self.targets.len() > 3 {
-                                self.targets.remove(index);
-                                tracing::debug!(
-                                    deviation_fraction,
-                                    left = self.targets.len(),
-                                    "a vector that caught another feature is left out of the node"
-                                );
-                                return self.next_measurement(index);
-                            }
-                            return self.redo(GiveUpReason::WrongFeature { deviation_fraction });
-                        }
-                    }
-                    // Keep A's latest sighting when the vector started at A.
-                    if self
-                        .targets
-                        .get(index)
-                        .is_some_and(|t| t.start == VectorStart::AtA)
-                    {
-                        self.a = Some(a);
-                    }
-                    let standard = self.targets[index].standard;
-                    self.measured.push(VectorObservation {
-                        measured: vector,
-                        covariance,
-                        standard,
-                    });
-                    self.next_measurement(index + 1)
-                }
-                SkipResult::Unstable { cycles } => {
-                    self.cycles.add(cycles);
-                    self.redo(GiveUpReason::DriftUnstable {
-                        discarded: self.cycles.discarded,
-                        restarts: self.cycles.restarts,
-                    })
-                }
-            },
+            (Stage::Measuring(index), Event::Skipped(result)) => self.skipped(index, result),
             (Stage::CounterScanning, Event::CounterScanned(result)) => {
                 self.drift = result.drift;
                 self.a = Some(result.a);

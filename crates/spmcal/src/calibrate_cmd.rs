@@ -333,23 +333,12 @@ pub fn run(
     if let Err(e) = outcome.instrument.release() {
         tracing::error!("the controller's own compensation could not be switched back on: {e}");
     }
-    let provenance = spmcal::report::RunProvenance {
-        started_utc: spm_cdb::rfc3339_utc(start_unix_s),
-        finished_utc: spm_cdb::rfc3339_utc(start_unix_s + wall_time_s),
-        spmcal_version: env!("CARGO_PKG_VERSION").to_owned(),
-        spmcal_commit: option_env!("SPMCAL_GIT_COMMIT").map(str::to_owned),
-        host: host_name(),
-        backend: outcome.instrument.identity(&job.backend),
-        seed: match &job.backend {
-            #[cfg(feature = "sim")]
-            spmcal::job::Backend::Sim(config) => Some(config.seed),
-            _ => None,
-        },
-        inputs: inputs
-            .iter()
-            .map(|p| spmcal::report::InputFile::of(p))
-            .collect(),
-    };
+    let provenance = run_provenance(
+        &job,
+        &outcome.instrument,
+        (start_unix_s, wall_time_s),
+        &inputs,
+    );
     let record = RunRecord::of_job(&job.plan, &outcome, &samples, wall_time_s)
         .with_standard_images(standard.as_ref())
         .with_stored_standard(stored.as_ref())
@@ -470,6 +459,33 @@ fn guard_files(source: &JobSource, cdb_path: &Path, out: &Path) -> Result<Vec<Pa
         )));
     }
     Ok(inputs)
+}
+
+/// The run's provenance for its report: the times, the program, the host, the backend and
+/// the input files (with their digests).
+fn run_provenance(
+    job: &spmcal::job::Job,
+    instrument: &spmcal::run::FinishedInstrument,
+    (start_unix_s, wall_time_s): (f64, f64),
+    inputs: &[PathBuf],
+) -> spmcal::report::RunProvenance {
+    spmcal::report::RunProvenance {
+        started_utc: spm_cdb::rfc3339_utc(start_unix_s),
+        finished_utc: spm_cdb::rfc3339_utc(start_unix_s + wall_time_s),
+        spmcal_version: env!("CARGO_PKG_VERSION").to_owned(),
+        spmcal_commit: option_env!("SPMCAL_GIT_COMMIT").map(str::to_owned),
+        host: host_name(),
+        backend: instrument.identity(&job.backend),
+        seed: match &job.backend {
+            #[cfg(feature = "sim")]
+            spmcal::job::Backend::Sim(config) => Some(config.seed),
+            _ => None,
+        },
+        inputs: inputs
+            .iter()
+            .map(|p| spmcal::report::InputFile::of(p))
+            .collect(),
+    }
 }
 
 /// The machine's host name (Linux: the kernel's; else `HOSTNAME`), for the provenance.

@@ -31,19 +31,16 @@ fn hopg_height_m(x: f64, y: f64) -> f64 {
     z
 }
 
-/// A triangular lattice of Gaussian hills, a = 0.2461 nm, on `n`² pixels of `pixel_nm`,
+/// `n`² pixels of `pixel_nm` whose height (m) at column and row is `height(column, row)`,
 /// written as a Gwyddion .gsf file.
-fn lattice_file(dir: &Path, name: &str, n: usize, pixel_nm: f64, hole: bool) -> PathBuf {
-    let mut data = Vec::with_capacity(n * n);
-    for row in 0..n {
-        for column in 0..n {
-            let (x, y) = (column as f64 * pixel_nm, row as f64 * pixel_nm);
-            let z = hopg_height_m(x, y);
-            let missing =
-                hole && (n / 3..n / 3 + 4).contains(&row) && (n / 2..n / 2 + 4).contains(&column);
-            data.push(if missing { f64::NAN } else { z });
-        }
-    }
+fn height_file(
+    dir: &Path,
+    name: &str,
+    n: usize,
+    pixel_nm: f64,
+    height: impl Fn(usize, usize) -> f64,
+) -> PathBuf {
+    let data: Vec<f64> = (0..n * n).map(|i| height(i % n, i / n)).collect();
     let side = n as f64 * pixel_nm;
     let channel = spm_formats::Channel::new("Z", spm_formats::Direction::Forward, "m", n, n, data)
         .unwrap()
@@ -53,8 +50,22 @@ fn lattice_file(dir: &Path, name: &str, n: usize, pixel_nm: f64, hole: bool) -> 
     path
 }
 
-/// The lattice of [`lattice_file`] seen through a scanner that stretches x by `stretch_x`
-/// and y by `stretch_y` (a pixel at (x, y) nm shows the true point (x / sx, y / sy)): the
+/// A triangular lattice of Gaussian hills, a = 0.2461 nm, on `n`² pixels of `pixel_nm`,
+/// written as a Gwyddion .gsf file; `hole`: 4 × 4 pixels without data.
+fn lattice_file(dir: &Path, name: &str, n: usize, pixel_nm: f64, hole: bool) -> PathBuf {
+    height_file(dir, name, n, pixel_nm, |column, row| {
+        let missing =
+            hole && (n / 3..n / 3 + 4).contains(&row) && (n / 2..n / 2 + 4).contains(&column);
+        if missing {
+            f64::NAN
+        } else {
+            hopg_height_m(column as f64 * pixel_nm, row as f64 * pixel_nm)
+        }
+    })
+}
+
+/// The lattice of [`lattice_file`] seen through a scanner that stretches x by `stretch[0]`
+/// and y by `stretch[1]` (a pixel at (x, y) nm shows the true point (x / sx, y / sy)): the
 /// image's lattice constants are `stretch` times the true ones along each axis.
 fn stretched_lattice_file(
     dir: &Path,
@@ -63,20 +74,12 @@ fn stretched_lattice_file(
     pixel_nm: f64,
     stretch: [f64; 2],
 ) -> PathBuf {
-    let mut data = Vec::with_capacity(n * n);
-    for row in 0..n {
-        for column in 0..n {
-            let (x, y) = (column as f64 * pixel_nm, row as f64 * pixel_nm);
-            data.push(hopg_height_m(x / stretch[0], y / stretch[1]));
-        }
-    }
-    let side = n as f64 * pixel_nm;
-    let channel = spm_formats::Channel::new("Z", spm_formats::Direction::Forward, "m", n, n, data)
-        .unwrap()
-        .with_size_nm(side, side);
-    let path = dir.join(name);
-    spm_formats::write_gsf(&path, &channel, &[]).unwrap();
-    path
+    height_file(dir, name, n, pixel_nm, |column, row| {
+        hopg_height_m(
+            column as f64 * pixel_nm / stretch[0],
+            row as f64 * pixel_nm / stretch[1],
+        )
+    })
 }
 
 fn refuse(image: &Path, standard: &str, out: &Path, mentions: &[&str]) {

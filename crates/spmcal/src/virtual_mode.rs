@@ -781,13 +781,21 @@ pub struct StoredStandard {
 }
 
 impl StoredStandard {
-    /// The stored image of a job's virtual backend, when the plan names its standard.
+    /// The stored image of a job's virtual backend, when the plan's standard is one the
+    /// survey knows: named (`[plan.standard] name`), or, in a plan that predates the name,
+    /// recognised by its lattice constant.
     #[must_use]
     pub fn of_job(backend: &VirtualBackend, plan: &PlanConfig) -> Option<Self> {
+        let a = plan.standard.lattice_constant_nm;
+        let standard = plan.standard.name.or_else(|| {
+            StandardName::ALL
+                .into_iter()
+                .find(|s| (s.lattice_constant_nm() - a).abs() <= 1e-6 * a)
+        })?;
         Some(Self {
             image: backend.image.clone(),
             channel: backend.channel.clone(),
-            standard: plan.standard.name?,
+            standard,
         })
     }
 }

@@ -650,3 +650,44 @@ fn every_measured_si_frame_calibrates_and_its_corrected_self_measures_the_standa
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The stored standard of a virtual job's validation: the plan's named standard, or, in a plan
+/// that predates the name, the standard its lattice constant is; none for a lattice the survey
+/// does not know (`check(name, lattice constant, expected)`).
+#[test]
+fn a_virtual_job_s_stored_standard_is_named_or_recognised_by_its_lattice_constant() {
+    let image = StoredImage::new(
+        vec![0.0; 16 * 16],
+        16,
+        16,
+        0.02,
+        0.02,
+        ImageTiming { line_time_s: 0.1 },
+    )
+    .unwrap();
+    let backend = VirtualBackend {
+        image: PathBuf::from("stored.gsf"),
+        channel: Some("Topography".to_owned()),
+        surface: VirtualSurface::single(image),
+        params: VirtualParams::new(0.002),
+    };
+    let check = |name: Option<StandardName>, a_nm: f64, expected: Option<StandardName>| {
+        let mut plan = spm_calibration::PlanConfig::hopg_small_net();
+        plan.standard.name = name;
+        plan.standard.lattice_constant_nm = a_nm;
+        let stored = spmcal::virtual_mode::StoredStandard::of_job(&backend, &plan);
+        assert_eq!(
+            stored.as_ref().map(|s| s.standard),
+            expected,
+            "{name:?}, {a_nm}"
+        );
+        if let Some(s) = stored {
+            assert_eq!(s.image, PathBuf::from("stored.gsf"));
+            assert_eq!(s.channel.as_deref(), Some("Topography"));
+        }
+    };
+    check(Some(StandardName::Si7x7), 2.688, Some(StandardName::Si7x7));
+    check(None, 0.2461, Some(StandardName::Hopg));
+    check(None, 2.688, Some(StandardName::Si7x7));
+    check(None, 0.3, None);
+}

@@ -15,7 +15,8 @@
 //!   σ·√h from the fit's design ([`spm_correction::fit::standard_uncertainty`]), with the records it
 //!   was fitted from as dots.
 //!
-//! Positions are drawn in µm of field through the plan's nominal sensitivity (a unit a
+//! Positions are drawn in µm of field (nm for a map under a micrometre, [`FieldAxes`])
+//! through the plan's nominal sensitivity (a unit a
 //! person can picture); the captions give the factor back to counts.
 
 use crate::run::{DriftSample, NodeSample};
@@ -119,24 +120,85 @@ fn significant(v: f64) -> String {
     }
 }
 
-/// Counts to µm of field through the nominal sensitivity `nm_per_count`.
-fn um(counts: f64, nm_per_count: f64) -> f64 {
-    counts * nm_per_count * 1e-3
+/// The axes of a map of the field: positions through the plan's nominal sensitivity in µm,
+/// or in nm when the map spans less than a micrometre (a stored image of 50 nm in virtual
+/// mode reads 0–50 nm, not 0.000–0.050 µm).
+#[derive(Debug, Clone, PartialEq)]
+struct FieldAxes {
+    /// Nominal sensitivity, nm per count.
+    nm_per_count: f64,
+    /// The unit, nm.
+    unit_nm: f64,
+    /// The unit's symbol.
+    unit: &'static str,
+    /// Axis label of x.
+    x_label: String,
+    /// Axis label of y.
+    y_label: String,
 }
 
-/// The caption's sentence that takes the µm axes back to counts.
-fn counts_note(nm_per_count: f64) -> String {
-    format!(
-        "Axes in µm of field at the plan's nominal {} nm/count (1 µm = {} counts).",
-        significant(nm_per_count),
-        significant(1e3 / nm_per_count)
-    )
-}
+impl FieldAxes {
+    /// The axes of a map spanning `span_counts` (its wider side) at `nm_per_count`.
+    fn for_span(nm_per_count: f64, span_counts: f64) -> Self {
+        let (unit_nm, unit) = if (span_counts * nm_per_count).abs() >= 1e3 {
+            (1e3, "µm")
+        } else {
+            (1.0, "nm")
+        };
+        Self {
+            nm_per_count,
+            unit_nm,
+            unit,
+            x_label: format!("x on the field, {unit}"),
+            y_label: format!("y on the field, {unit}"),
+        }
+    }
 
-/// Axis labels of the field, µm.
-const X_FIELD: &str = "x on the field, µm";
-/// Axis labels of the field, µm.
-const Y_FIELD: &str = "y on the field, µm";
+    /// The axes of a map of `region`.
+    fn of_region(nm_per_count: f64, region: &Region) -> Self {
+        Self::for_span(
+            nm_per_count,
+            (region.x_max_counts - region.x_min_counts)
+                .max(region.y_max_counts - region.y_min_counts),
+        )
+    }
+
+    /// The axes of a map of `points` (counts).
+    fn of_points(nm_per_count: f64, points: impl Iterator<Item = (f64, f64)> + Clone) -> Self {
+        let extent = |f: fn(&(f64, f64)) -> f64| {
+            let (lo, hi) = points
+                .clone()
+                .map(|p| f(&p))
+                .filter(|v| v.is_finite())
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+                    (a.min(v), b.max(v))
+                });
+            if hi >= lo { hi - lo } else { 0.0 }
+        };
+        Self::for_span(nm_per_count, extent(|p| p.0).max(extent(|p| p.1)))
+    }
+
+    /// A position in counts on the axes.
+    fn at(&self, counts: f64) -> f64 {
+        counts * self.nm_per_count / self.unit_nm
+    }
+
+    /// A position on the axes back in counts.
+    fn counts(&self, value: f64) -> f64 {
+        value * self.unit_nm / self.nm_per_count
+    }
+
+    /// The caption's sentence that takes the axes back to counts.
+    fn note(&self) -> String {
+        format!(
+            "Axes in {} of field at the plan's nominal {} nm/count (1 {} = {} counts).",
+            self.unit,
+            significant(self.nm_per_count),
+            self.unit,
+            significant(self.unit_nm / self.nm_per_count)
+        )
+    }
+}
 
 /// Which lateral calibration coefficient a map shows.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -179,7 +241,7 @@ impl Coefficient {
 }
 
 /// The regression surface of `coefficient` over `region` with the measured node values on it
-/// and their residuals below it, positions in µm through `nominal_nm_per_count`; the title
+/// and their residuals below it, positions in µm (nm under a micrometre) through `nominal_nm_per_count`; the title
 /// carries the fit's degree, σ and Δmax.
 ///
 /// # Errors
@@ -199,14 +261,14 @@ pub fn lcc_map(
         significant(summary.sigma * scale),
         significant(summary.delta_max * scale)
     );
-    let k = nominal_nm_per_count;
+    let axes = FieldAxes::of_region(nominal_nm_per_count, region);
     let surface = &fitted.surface;
-    let value = |x_um: f64, y_um: f64| surface.evaluate(x_um * 1e3 / k, y_um * 1e3 / k) * scale;
+    let value = |x: f64, y: f64| surface.evaluate(axes.counts(x), axes.counts(y)) * scale;
     let nodes: Vec<MapNode> = nodes
         .iter()
         .map(|n| MapNode {
-            x: um(n.x_counts, k),
-            y: um(n.y_counts, k),
+            x: axes.at(n.x_counts),
+            y: axes.at(n.y_counts),
             value: coefficient.of(n) * scale,
             visit: n.repeat_index,
         })
@@ -215,10 +277,10 @@ pub fn lcc_map(
     let residual_label = format!("measured − surface, {unit}");
     let png = surface_map(&MapFigure {
         title: &title,
-        x_label: X_FIELD,
-        y_label: Y_FIELD,
-        x_range: (um(region.x_min_counts, k), um(region.x_max_counts, k)),
-        y_range: (um(region.y_min_counts, k), um(region.y_max_counts, k)),
+        x_label: &axes.x_label,
+        y_label: &axes.y_label,
+        x_range: (axes.at(region.x_min_counts), axes.at(region.x_max_counts)),
+        y_range: (axes.at(region.y_min_counts), axes.at(region.y_max_counts)),
         surface: &value,
         nodes: &nodes,
         value_label: &value_label,
@@ -233,7 +295,7 @@ pub fn lcc_map(
              colour scale (top) and each node's residual, measured − surface (bottom); the \
              passes over a node are concentric discs, the first outermost. {}",
             nodes.len(),
-            counts_note(k)
+            axes.note()
         ),
         png,
     })
@@ -247,7 +309,7 @@ pub const UNCERTAINTY_FILE: &str = "lcc-uncertainty.png";
 
 /// The standard uncertainty of the plane's Kx, Ky and α surfaces over `region`, σ·√h with h
 /// the leverage of the fit's design over the records at `records_counts` (the LCS centres
-/// the plane was fitted from, counts), σ each surface's eq. (14) σ; positions in µm through
+/// the plane was fitted from, counts), σ each surface's eq. (14) σ; positions in µm (nm under a micrometre) through
 /// `nominal_nm_per_count`.
 ///
 /// # Errors
@@ -261,6 +323,7 @@ pub fn uncertainty_map(
 ) -> Result<Figure, PlotError> {
     let file = UNCERTAINTY_FILE;
     let k = nominal_nm_per_count;
+    let axes = FieldAxes::of_region(k, region);
     let grid = cell_centres(
         (region.x_min_counts, region.x_max_counts),
         (region.y_min_counts, region.y_max_counts),
@@ -296,14 +359,14 @@ pub fn uncertainty_map(
         .collect();
     let points: Vec<(f64, f64)> = records_counts
         .iter()
-        .map(|p| (um(p.0, k), um(p.1, k)))
+        .map(|p| (axes.at(p.0), axes.at(p.1)))
         .collect();
     let png = field_maps(&FieldFigure {
         title: "Standard uncertainty of the fitted surfaces over the field",
-        x_label: X_FIELD,
-        y_label: Y_FIELD,
-        x_range: (um(region.x_min_counts, k), um(region.x_max_counts, k)),
-        y_range: (um(region.y_min_counts, k), um(region.y_max_counts, k)),
+        x_label: &axes.x_label,
+        y_label: &axes.y_label,
+        x_range: (axes.at(region.x_min_counts), axes.at(region.x_max_counts)),
+        y_range: (axes.at(region.y_min_counts), axes.at(region.y_max_counts)),
         cells: UNCERTAINTY_CELLS,
         panels: &panels,
         points: &points,
@@ -319,7 +382,7 @@ pub fn uncertainty_map(
              that place (small inside the {} records, the dots; large at the edges and \
              corners, where the surface extrapolates). {}",
             records_counts.len(),
-            counts_note(k)
+            axes.note()
         ),
         png,
     })
@@ -419,7 +482,7 @@ fn spoiled_series(spoiled: &[(f64, f64)]) -> Series {
     }
 }
 
-/// The node centres joined in visiting order, one panel per pass (repeat), positions in µm
+/// The node centres joined in visiting order, one panel per pass (repeat), positions in µm (nm under a micrometre)
 /// through `nominal_nm_per_count`.
 ///
 /// # Errors
@@ -429,7 +492,10 @@ pub fn trajectory_plot(
     nominal_nm_per_count: f64,
 ) -> Result<Figure, PlotError> {
     let file = "trajectory.png";
-    let k = nominal_nm_per_count;
+    let axes = FieldAxes::of_points(
+        nominal_nm_per_count,
+        nodes.iter().map(|n| (n.x_counts, n.y_counts)),
+    );
     let mut passes: Vec<u32> = nodes.iter().map(|n| n.repeat_index).collect();
     passes.sort_unstable();
     passes.dedup();
@@ -439,7 +505,7 @@ pub fn trajectory_plot(
             let points: Vec<(f64, f64)> = nodes
                 .iter()
                 .filter(|n| n.repeat_index == pass)
-                .map(|n| (um(n.x_counts, k), um(n.y_counts, k)))
+                .map(|n| (axes.at(n.x_counts), axes.at(n.y_counts)))
                 .collect();
             OrderPanel {
                 caption: format!("pass {}: {} visits", pass + 1, points.len()),
@@ -449,12 +515,13 @@ pub fn trajectory_plot(
         .collect();
     let png = order_map(&OrderFigure {
         title: format!(
-            "Measured nodes in visiting order ({} visits, {} passes)",
+            "Measured nodes in visiting order ({} visits, {} {})",
             nodes.len(),
-            panels.len()
+            panels.len(),
+            if panels.len() == 1 { "pass" } else { "passes" }
         ),
-        x_label: X_FIELD.to_owned(),
-        y_label: Y_FIELD.to_owned(),
+        x_label: axes.x_label.clone(),
+        y_label: axes.y_label.clone(),
         panels,
         order_label: "visit number within the pass".to_owned(),
     })
@@ -464,7 +531,7 @@ pub fn trajectory_plot(
         caption: format!(
             "the measured nodes joined in the order they were visited, one panel per pass \
              over the net. {}",
-            counts_note(k)
+            axes.note()
         ),
         png,
     })
@@ -477,7 +544,7 @@ pub const RESIDUAL_FILE: &str = "residual-distortion.png";
 /// simulator's ground truth (`spm_evaluation::accuracy::residual_field`: the field-wide
 /// raster corrected with the surfaces and with the true LCC field, the best rigid motion
 /// removed; `rms_pm` and `max_pm` are the accuracy table's figures of the same raster);
-/// positions in µm through `nominal_nm_per_count`, the measured nodes as dots.
+/// positions in µm (nm under a micrometre) through `nominal_nm_per_count`, the measured nodes as dots.
 ///
 /// # Errors
 /// [`PlotError`] when no residual is finite.
@@ -490,11 +557,12 @@ pub fn residual_map(
     let file = RESIDUAL_FILE;
     let k = nominal_nm_per_count;
     let (n, s) = (field.pixels, field.step_counts);
+    let axes = FieldAxes::for_span(k, s * n as f64);
     let [x0, y0] = field.origin_counts;
-    let range = |lo: f64| (um(lo - 0.5 * s, k), um(lo + s * (n as f64 - 0.5), k));
+    let range = |lo: f64| (axes.at(lo - 0.5 * s), axes.at(lo + s * (n as f64 - 0.5)));
     let points: Vec<(f64, f64)> = nodes
         .iter()
-        .map(|p| (um(p.x_counts, k), um(p.y_counts, k)))
+        .map(|p| (axes.at(p.x_counts), axes.at(p.y_counts)))
         .collect();
     let caption = format!(
         "distributed surfaces: RMS {} nm, max {} nm",
@@ -508,8 +576,8 @@ pub fn residual_map(
     }];
     let png = field_maps(&FieldFigure {
         title: "What the correction leaves: residual distortion over the field",
-        x_label: X_FIELD,
-        y_label: Y_FIELD,
+        x_label: &axes.x_label,
+        y_label: &axes.y_label,
         x_range: range(x0),
         y_range: range(y0),
         cells: n,
@@ -528,7 +596,7 @@ pub fn residual_map(
              the best rotation and shift removed (a simulated run's ground truth; dots: the \
              measured nodes). Dark is good; bright areas are where the surfaces miss the \
              scanner. {}",
-            counts_note(k)
+            axes.note()
         ),
         png,
     })
@@ -540,7 +608,7 @@ pub const VALIDATION_MAP_FILE: &str = "validation-map.png";
 /// The residual distortion without a ground truth: the lattice-constant error of the standard
 /// imaged after the run at the validation's places over the calibrated region
 /// (`spm_evaluation::validation::LatticeCheck`), after `spmcal correct` with the run's
-/// calibration and uncorrected (the nominal sensitivity), one cell per place, positions in µm
+/// calibration and uncorrected (the nominal sensitivity), one cell per place, positions in µm (nm under a micrometre)
 /// through `nominal_nm_per_count`. Every backend gets it: the standard is the ruler. `None`
 /// when no place has a centre or no corrected lattice was measured.
 ///
@@ -598,9 +666,11 @@ pub fn validation_map(
     if !corrected.iter().any(|v| v.is_finite()) {
         return Ok(None);
     }
+    let side = d * cells as f64;
+    let axes = FieldAxes::for_span(k, side);
     let points: Vec<(f64, f64)> = places
         .iter()
-        .map(|p| (um(p.centre_counts[0], k), um(p.centre_counts[1], k)))
+        .map(|p| (axes.at(p.centre_counts[0]), axes.at(p.centre_counts[1])))
         .collect();
     let after = format!(
         "after spmcal correct with this calibration: RMS {} %, max |error| {} % ({} of {} places)",
@@ -627,13 +697,12 @@ pub fn validation_map(
             value_label: label,
         });
     }
-    let side = d * cells as f64;
     let png = field_maps(&FieldFigure {
         title: "What the correction leaves, measured on the standard",
-        x_label: X_FIELD,
-        y_label: Y_FIELD,
-        x_range: (um(x0, k), um(x0 + side, k)),
-        y_range: (um(y0, k), um(y0 + side, k)),
+        x_label: &axes.x_label,
+        y_label: &axes.y_label,
+        x_range: (axes.at(x0), axes.at(x0 + side)),
+        y_range: (axes.at(y0), axes.at(y0 + side)),
         cells,
         panels: &panels,
         points: &points,
@@ -652,7 +721,7 @@ pub fn validation_map(
              shows it too. {}",
             check.places.len(),
             significant(check.lattice_constant_nm),
-            counts_note(k)
+            axes.note()
         ),
         png,
     }))
@@ -814,6 +883,29 @@ pub fn cdb_trend_figure(series: &[TrendSeries<'_>]) -> Result<Vec<u8>, PlotError
 
 #[cfg(test)]
 mod tests {
+
+    /// `check(span nm, unit, a position in counts → on the axes)`: a map of a micrometre or
+    /// more in µm, of less in nm; positions go to the unit and back.
+    #[test]
+    fn a_map_under_a_micrometre_is_drawn_in_nm() {
+        let check = |span_nm: f64, unit: &str, (counts, on_axes): (f64, f64)| {
+            let k = 0.02;
+            let axes = super::FieldAxes::for_span(k, span_nm / k);
+            assert_eq!(axes.unit, unit, "{span_nm} nm");
+            assert!((axes.at(counts) - on_axes).abs() < 1e-12, "{span_nm} nm");
+            assert!((axes.counts(axes.at(counts)) - counts).abs() < 1e-9);
+            assert!(axes.x_label.ends_with(unit) && axes.note().contains(unit));
+        };
+        check(50.0, "nm", (1000.0, 20.0));
+        check(999.0, "nm", (-500.0, -10.0));
+        check(1000.0, "µm", (1000.0, 0.02));
+        check(1300.0, "µm", (32767.0, 0.65534));
+        let points = [(0.0, 0.0), (2500.0, -100.0), (f64::NAN, 7.0)];
+        assert_eq!(
+            super::FieldAxes::of_points(0.02, points.iter().copied()).unit,
+            "nm"
+        );
+    }
     use super::*;
 
     fn place(x: f64, y: f64, corrected: Option<f64>) -> spm_evaluation::validation::LatticePlace {

@@ -15,7 +15,7 @@
 //!   σ·√h from the fit's design ([`spm_correction::fit::standard_uncertainty`]), with the records it
 //!   was fitted from as dots.
 //!
-//! Positions are drawn in µm of field (nm for a map under a micrometre, [`FieldAxes`])
+//! Positions are drawn in µm of field (nm for a map under a micrometre, `FieldAxes`)
 //! through the plan's nominal sensitivity (a unit a
 //! person can picture); the captions give the factor back to counts.
 

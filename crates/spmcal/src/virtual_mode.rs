@@ -846,12 +846,23 @@ pub fn stored_lattice_check(
             detail: format!("correcting the stored image with the run's calibration: {e}"),
         }
     })?;
-    let corrected_file = spm_formats::SpmFile {
-        channels: corrected.channels,
-        ..file.clone()
-    };
-    let after = match corrected_file.channels.first() {
-        Some(channel) => survey_of(&corrected_file, channel, &spec, grid, path)?,
+    // As `spmcal lattice` reads `spmcal correct`'s output: the corrected channel encoded as
+    // the .gsf it writes, with its metadata, and read back (not under the raw file's header,
+    // whose line time and scan direction describe the raw raster).
+    let after = match corrected.channels.first() {
+        Some(channel) => {
+            let extra: Vec<(&str, &str)> = corrected
+                .metadata
+                .iter()
+                .map(|(k, v)| (k.as_str(), v.as_str()))
+                .collect();
+            let bytes = spm_formats::encode_gsf(channel, &extra)?;
+            let written = spm_formats::read_bytes(&bytes, &path.with_extension("corrected.gsf"))?;
+            match written.channels.first() {
+                Some(channel) => survey_of(&written, channel, &spec, grid, path)?,
+                None => (None, Vec::new()),
+            }
+        }
         None => (None, Vec::new()),
     };
     let figures = |c: Option<&spm_modelcheck::CellLattice>| {

@@ -605,17 +605,19 @@ fn a_virtual_run_measures_its_corrected_stored_image_cell_by_cell() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// The measured Si(111)-7×7 frames (028 for the pair of 028 and 032, and 051) calibrate in
-/// virtual mode (item 3) into records at many places, and the frame corrected by its own calibration validates against the standard's
-/// 2.688 nm (item 6): uncorrected the frames read their lattice constant 48–56 % off (y scale
-/// 0.64–0.68), corrected within 1.5 % in every cell measured. Si_7x7_051 (20 nm, 34 pixels
-/// per cell) once gave a single record, when a skipping to a far site that caught another
-/// feature, or left the small image, redid its whole node.
+/// The measured Si(111)-7×7 frame Si_7x7_051 (20 nm, 34 pixels per cell) calibrates in
+/// virtual mode (item 3) into records at many places, and the frame corrected by its own
+/// calibration validates against the standard's 2.688 nm (item 6): uncorrected it reads its
+/// lattice constant 56 % off (y scale 0.64), corrected within 1.5 %. It once gave a single
+/// record, when a skipping to a far site that caught another feature, or left the small
+/// image, redid its whole node. (Si_7x7_028 and 032 give 23 records each and read 0.6 % RMS
+/// over 3 × 3 cells, `cargo xtask bench`'s real section; the 3 × 3 check itself is
+/// [`a_virtual_run_measures_its_corrected_stored_image_cell_by_cell`].)
 #[test]
-fn every_measured_si_frame_calibrates_and_its_corrected_self_measures_the_standard() {
+fn the_small_si_frame_calibrates_and_its_corrected_self_measures_the_standard() {
     let dir = std::env::temp_dir().join(format!("spmcal-virtual-si-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    for (name, fewest_records) in [("Si_7x7_028", 18), ("Si_7x7_051", 12)] {
+    for (name, fewest_records) in [("Si_7x7_051", 12)] {
         let image = spmcal_tests::measured_file(&format!("si7x7-nanonis/{name}.sxm"));
         let out = dir.join(name);
         let output = Command::new(env!("CARGO_BIN_EXE_spmcal"))

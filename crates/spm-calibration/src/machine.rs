@@ -763,13 +763,7 @@ impl NodeMachine {
                         // feature costs its vector only, while three or more targets
                         // remain: the node keeps its redundancy.
                         if self.drops_wrong_vectors() && self.targets.len() > 3 {
-                            self.targets.remove(index);
-                            tracing::debug!(
-                                deviation_fraction,
-                                left = self.targets.len(),
-                                "a vector that caught another feature is left out of the node"
-                            );
-                            return self.next_measurement(index);
+                            return self.drop_target(index, "caught another feature");
                         }
                         return self.redo(GiveUpReason::WrongFeature { deviation_fraction });
                     }
@@ -809,6 +803,18 @@ impl NodeMachine {
     /// attachment or LCS is wrong, and the other variants redo the node.
     fn drops_wrong_vectors(&self) -> bool {
         self.params.neighbours == NeighbourSet::LatticeInAperture
+    }
+
+    /// Leaves target `index` out of the node (its skipping `why`) and measures the next one,
+    /// now at the same index.
+    fn drop_target(&mut self, index: usize, why: &str) -> Action {
+        self.targets.remove(index);
+        tracing::debug!(
+            why,
+            left = self.targets.len(),
+            "a vector is left out of the node"
+        );
+        self.next_measurement(index)
     }
 
     fn next_measurement(&mut self, index: usize) -> Action {
@@ -907,12 +913,7 @@ impl NodeMachine {
                     ..
                 }),
             ) if self.drops_wrong_vectors() && self.targets.len() > 3 => {
-                self.targets.remove(index);
-                tracing::debug!(
-                    left = self.targets.len(),
-                    "a vector out of the instrument's range is left out of the node"
-                );
-                self.next_measurement(index)
+                self.drop_target(index, "out of the instrument's range")
             }
             (_, Event::Failed(failure)) => self.fail(failure),
             (Stage::Pausing, Event::Paused) => self.after_pause(),

@@ -111,22 +111,7 @@ pub fn keep_valid(columns: &mut LccColumns) -> usize {
     if excluded == 0 {
         return 0;
     }
-    fn retain<T>(v: &mut Vec<T>, keep: &[bool]) {
-        let mut i = 0;
-        v.retain(|_| {
-            let k = keep.get(i).copied().unwrap_or(false);
-            i += 1;
-            k
-        });
-    }
-    retain(&mut columns.lcs_x_counts, &keep);
-    retain(&mut columns.lcs_y_counts, &keep);
-    retain(&mut columns.node_z_counts, &keep);
-    retain(&mut columns.acquired_unix_s, &keep);
-    retain(&mut columns.kx_nm_per_count, &keep);
-    retain(&mut columns.ky_nm_per_count, &keep);
-    retain(&mut columns.alpha_rad, &keep);
-    retain(&mut columns.kz_nm_per_count, &keep);
+    *columns = columns.selected(&keep);
     excluded
 }
 

@@ -820,12 +820,21 @@ pub fn stored_lattice_check(
     let nominal = plan.standard.nominal_nm_per_count;
     let file = spm_formats::read_any(path)?;
     let forward = height_channel(&file, path, stored.channel.as_deref())?;
+    let (Some(pixel_x_nm), Some(pixel_y_nm)) = (forward.pixel_x_nm(), forward.pixel_y_nm()) else {
+        return Err(VirtualInputError::Image {
+            path: path.to_path_buf(),
+            channel: forward.name().to_owned(),
+            source: spm_virtual::ImageError::NoPixelSize,
+        });
+    };
+    let size_nm = [
+        forward.nx() as f64 * pixel_x_nm,
+        forward.ny() as f64 * pixel_y_nm,
+    ];
     // The plan's places per side, fewer on a small image: a cell at least
     // [`MIN_CELL_SIDE_LATTICE`] lattice constants wide, so that it holds the features a fit
     // needs (Si_7x7_051, 7.4 lattice constants: the whole image).
-    let side_lattice = (forward.nx() as f64 * forward.pixel_x_nm().unwrap_or(f64::NAN))
-        .min(forward.ny() as f64 * forward.pixel_y_nm().unwrap_or(f64::NAN))
-        / stored.standard.lattice_constant_nm();
+    let side_lattice = size_nm[0].min(size_nm[1]) / stored.standard.lattice_constant_nm();
     let grid = (plan.validation.lattice_places_per_side as usize)
         .min((side_lattice / MIN_CELL_SIDE_LATTICE).floor() as usize)
         .max(1);
@@ -834,10 +843,8 @@ pub fn stored_lattice_check(
     let options = spm_apply::ApplyOptions {
         nominal_nm_per_count: Some(nominal),
         allow_extrapolation: true,
-        channels: match &stored.channel {
-            Some(name) => spm_apply::ChannelSelection::Named(name.clone()),
-            None => spm_apply::ChannelSelection::Height,
-        },
+        // The channel surveyed before, both its halves; its forward half is surveyed after.
+        channels: spm_apply::ChannelSelection::Named(forward.name().to_owned()),
         ..spm_apply::ApplyOptions::default()
     };
     let corrected = spm_apply::correct_file(&file, set, &options).map_err(|e| {
@@ -849,7 +856,11 @@ pub fn stored_lattice_check(
     // As `spmcal lattice` reads `spmcal correct`'s output: the corrected channel encoded as
     // the .gsf it writes, with its metadata, and read back (not under the raw file's header,
     // whose line time and scan direction describe the raw raster).
-    let after = match corrected.channels.first() {
+    let corrected_forward = corrected
+        .channels
+        .iter()
+        .find(|c| c.direction() == spm_formats::Direction::Forward);
+    let after = match corrected_forward {
         Some(channel) => {
             let extra: Vec<(&str, &str)> = corrected
                 .metadata
@@ -872,10 +883,7 @@ pub fn stored_lattice_check(
             obliquity_deg: l.obliquity_deg,
         })
     };
-    let (width, height) = (
-        forward.nx() as f64 * forward.pixel_x_nm().unwrap_or(f64::NAN) / nominal,
-        forward.ny() as f64 * forward.pixel_y_nm().unwrap_or(f64::NAN) / nominal,
-    );
+    let (width, height) = (size_nm[0] / nominal, size_nm[1] / nominal);
     let cells: Vec<SurveyCell> = before
         .1
         .iter()
@@ -900,7 +908,7 @@ pub fn stored_lattice_check(
         stored.standard.lattice_constant_nm(),
         (
             u32::try_from(forward.nx()).unwrap_or(u32::MAX),
-            forward.pixel_x_nm().unwrap_or(f64::NAN) / nominal,
+            pixel_x_nm / nominal,
         ),
         set.dynamics.is_some(),
         &plan.validation,

@@ -183,3 +183,35 @@ fn the_exact_form_corrects_independently_of_the_path_and_is_the_field() {
         );
     }
 }
+
+/// The records `cdb check` would flag (K̄x ≤ 0, α non-finite or beyond ±π/2, a centre that is
+/// not finite, Kz ≤ 0) are left out of a fit and counted; the others stay, in order.
+#[test]
+fn records_cdb_check_would_flag_are_left_out_and_counted() {
+    let mut c = LccColumns::default();
+    // (x, kx, alpha, kz): valid when every field is.
+    let rows = [
+        (0.0, 0.02, 0.1, None),
+        (1.0, -0.02, 0.1, None),
+        (2.0, 0.02, f64::NAN, None),
+        (3.0, 0.02, 2.0, None),
+        (f64::INFINITY, 0.02, 0.1, None),
+        (5.0, 0.02, 0.1, Some(0.0)),
+        (6.0, 0.02, -0.3, Some(0.01)),
+    ];
+    for (x, kx, alpha, kz) in rows {
+        c.lcs_x_counts.push(x);
+        c.lcs_y_counts.push(0.0);
+        c.node_z_counts.push(0);
+        c.acquired_unix_s.push(0.0);
+        c.kx_nm_per_count.push(kx);
+        c.ky_nm_per_count.push(0.015);
+        c.alpha_rad.push(alpha);
+        c.kz_nm_per_count.push(kz);
+    }
+    assert_eq!(spm_correction::fit::keep_valid(&mut c), 5);
+    assert_eq!(c.lcs_x_counts, vec![0.0, 6.0]);
+    assert_eq!(c.alpha_rad, vec![0.1, -0.3]);
+    assert_eq!(c.kz_nm_per_count, vec![None, Some(0.01)]);
+    assert_eq!(c.len(), 2);
+}

@@ -82,6 +82,28 @@ fn stretched_lattice_file(
     })
 }
 
+/// `spmcal calibrate --virtual IMAGE --standard STANDARD --out OUT`, which must succeed: its
+/// console output and report.json.
+fn calibrate_virtual(image: &Path, standard: &str, out: &Path) -> (String, serde_json::Value) {
+    let output = Command::new(env!("CARGO_BIN_EXE_spmcal"))
+        .args(["calibrate", "--virtual"])
+        .arg(image)
+        .args(["--standard", standard, "--out"])
+        .arg(out)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
+    assert!(
+        output.status.success(),
+        "{}: {stdout}{}",
+        image.display(),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let report =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    (stdout, report)
+}
+
 fn refuse(image: &Path, standard: &str, out: &Path, mentions: &[&str]) {
     let output = Command::new(env!("CARGO_BIN_EXE_spmcal"))
         .args(["calibrate", "--virtual"])
@@ -561,22 +583,7 @@ fn a_virtual_run_measures_its_corrected_stored_image_cell_by_cell() {
     let dir = std::env::temp_dir().join(format!("spmcal-virtual-check-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let image = stretched_lattice_file(&dir, "stretched.gsf", 220, 0.02, [1.06, 0.96]);
-    let out = dir.join("out");
-    let output = Command::new(env!("CARGO_BIN_EXE_spmcal"))
-        .args(["calibrate", "--virtual"])
-        .arg(&image)
-        .args(["--standard", "hopg", "--out"])
-        .arg(&out)
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    assert!(
-        output.status.success(),
-        "{stdout}{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let (stdout, report) = calibrate_virtual(&image, "hopg", &dir.join("out"));
     let lattice = &report["validation"]["lattice"];
     assert_eq!(lattice["measured_on"], "stored_image_cells", "{lattice:#}");
     let places = lattice["places"].as_array().unwrap();
@@ -619,21 +626,7 @@ fn the_small_si_frame_calibrates_and_its_corrected_self_measures_the_standard() 
     std::fs::create_dir_all(&dir).unwrap();
     let (name, fewest_records) = ("Si_7x7_051", 12);
     let image = spmcal_tests::measured_file(&format!("si7x7-nanonis/{name}.sxm"));
-    let out = dir.join(name);
-    let output = Command::new(env!("CARGO_BIN_EXE_spmcal"))
-        .args(["calibrate", "--virtual"])
-        .arg(&image)
-        .args(["--standard", "si7x7", "--out"])
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{name}: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let (_, report) = calibrate_virtual(&image, "si7x7", &dir.join(name));
     let records = report["records"].as_u64().unwrap();
     assert!(records >= fewest_records, "{name}: {records} records");
     let lattice = &report["validation"]["lattice"];
